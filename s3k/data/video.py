@@ -1,0 +1,216 @@
+"""Video decoding with PyAV: frame count, random access to frame ``i``, iteration, extraction to PNG.
+
+Frame ``i`` is the ``i``-th frame in presentation order, counted from 0, which is how SLEAP, DeepLabCut and
+anipose number frames. Random access seeks to the key frame before the frame's timestamp and decodes forward;
+it assumes a constant frame rate (what camera rigs record) and checks the frame it lands on.
+
+Images are ``uint8 (H, W, 3)`` RGB arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+
+def _av():
+    try:
+        import av
+    except ImportError as exc:  # pragma: no cover - av is a declared dependency
+        raise ImportError("reading videos needs PyAV: pip install av") from exc
+    return av
+
+
+def _open(path: str | Path):
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: video file not found")
+    av = _av()
+    try:
+        container = av.open(str(path))
+    except Exception as exc:  # PyAV raises several error types for unreadable files
+        raise ValueError(f"{path}: cannot open as a video ({exc})") from exc
+    if not container.streams.video:
+        container.close()
+        raise ValueError(f"{path}: no video stream")
+    return container, container.streams.video[0]
+
+
+def frame_count(path: str | Path, exact: bool = False) -> int:
+    """Number of frames of the first video stream.
+
+    Args:
+        path: video file.
+        exact: decode the whole stream and count, instead of trusting the container header (which some
+            containers leave empty or approximate).
+
+    Returns:
+        The number of frames.
+    """
+    container, stream = _open(path)
+    with container:
+        if stream.frames and not exact:
+            return int(stream.frames)
+        return sum(1 for _ in container.decode(stream))
+
+
+def frame_size(path: str | Path) -> tuple[int, int]:
+    """Image size ``(W, H)`` of the first video stream."""
+    container, stream = _open(path)
+    with container:
+        return int(stream.codec_context.width), int(stream.codec_context.height)
+
+
+def frame_rate(path: str | Path) -> float:
+    """Average frame rate (frames per second) of the first video stream."""
+    container, stream = _open(path)
+    with container:
+        rate = stream.average_rate or stream.guessed_rate
+        if not rate:
+            raise ValueError(f"{path}: the video stream declares no frame rate")
+        return float(rate)
+
+
+def iter_frames(path: str | Path, frame_ids: Iterable[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Decode a video front to back, yielding ``(i, image (H, W, 3) uint8 RGB)``.
+
+    Args:
+        path: video file.
+        frame_ids: if given, only these frames are yielded (in increasing order) and decoding stops after the
+            last one. Ids beyond the end of the video raise an ``IndexError``.
+    """
+    wanted = None if frame_ids is None else sorted({int(i) for i in frame_ids})
+    if wanted is not None and wanted and wanted[0] < 0:
+        raise IndexError(f"{path}: negative frame index {wanted[0]}")
+    container, stream = _open(path)
+    with container:
+        stream.thread_type = "AUTO"
+        if wanted is not None and not wanted:
+            return
+        last = None if wanted is None else wanted[-1]
+        targets = None if wanted is None else set(wanted)
+        n = 0
+        for i, frame in enumerate(container.decode(stream)):
+            n = i + 1
+            if targets is None or i in targets:
+                yield i, frame.to_ndarray(format="rgb24")
+            if last is not None and i >= last:
+                return
+        if last is not None and last >= n:
+            raise IndexError(f"{path}: frame {last} requested but the video has {n} frames")
+
+
+def read_frame(path: str | Path, index: int) -> np.ndarray:
+    """Frame ``index`` as ``(H, W, 3) uint8`` RGB, by seeking (constant frame rate assumed).
+
+    Falls back to decoding from the start when the stream has no usable timestamps.
+    """
+    index = int(index)
+    if index < 0:
+        raise IndexError(f"{path}: negative frame index {index}")
+    container, stream = _open(path)
+    with container:
+        rate = stream.average_rate or stream.guessed_rate
+        tb = stream.time_base
+        if rate and tb:
+            start = stream.start_time or 0
+            seconds_per_frame = 1 / Fraction(rate)
+            target_pts = start + int(round(index * seconds_per_frame / tb))
+            container.seek(target_pts, stream=stream, backward=True, any_frame=False)
+            for frame in container.decode(stream):
+                if frame.pts is None:
+                    break
+                i = int(round((frame.pts - start) * tb / seconds_per_frame))
+                if i == index:
+                    return frame.to_ndarray(format="rgb24")
+                if i > index:
+                    break
+    # Sequential fallback: exact by construction, slower.
+    for _, image in iter_frames(path, [index]):
+        return image
+    raise IndexError(f"{path}: frame {index} not found")  # pragma: no cover - iter_frames raises first
+
+
+def extract_frames(
+    path: str | Path,
+    out_dir: str | Path,
+    frame_ids: Iterable[int] | None = None,
+    pattern: str = "{:06d}.png",
+) -> list[Path]:
+    """Write frames of a video to PNG files named by frame index.
+
+    Args:
+        path: video file.
+        out_dir: folder to write into (created if missing).
+        frame_ids: frames to extract (all when None).
+        pattern: file name format taking the frame index.
+
+    Returns:
+        The written paths, in frame order.
+    """
+    import cv2
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for i, image in iter_frames(path, frame_ids):
+        target = out_dir / pattern.format(i)
+        if not cv2.imwrite(str(target), image[:, :, ::-1]):
+            raise OSError(f"{target}: could not write PNG")
+        written.append(target)
+    return written
+
+
+def write_video(
+    path: str | Path,
+    frames: Iterable[np.ndarray],
+    fps: float = 30.0,
+    codec: str = "libx264",
+    lossless: bool = False,
+) -> int:
+    """Encode ``(H, W, 3) uint8`` RGB frames to a video file (H and W even for yuv420p codecs).
+
+    Args:
+        path: output file; the container follows the extension (``.mp4``, ``.avi``, ``.mkv``...).
+        frames: the images, all the same size.
+        fps: frame rate.
+        codec: an FFmpeg encoder name (``libx264``, ``mpeg4``, ``ffv1``...). ``ffv1`` (in ``.mkv``/``.avi``)
+            stores RGB exactly, which tests that compare pixels need.
+        lossless: ask libx264 for ``qp=0`` in 4:4:4 (nearly exact: only the RGB/YUV conversion rounds).
+
+    Returns:
+        The number of frames written.
+    """
+    av = _av()
+    rate = Fraction(fps).limit_denominator(1001)
+    n = 0
+    with av.open(str(path), mode="w") as container:
+        stream = None
+        for image in frames:
+            image = np.ascontiguousarray(image, dtype=np.uint8)
+            if image.ndim != 3 or image.shape[2] != 3:
+                raise ValueError(f"{path}: frame {n} has shape {image.shape}, expected (H, W, 3)")
+            if stream is None:
+                options = {"qp": "0"} if lossless and codec == "libx264" else {}
+                stream = container.add_stream(codec, rate=rate, options=options)
+                stream.width, stream.height = image.shape[1], image.shape[0]
+                if codec == "ffv1":
+                    stream.pix_fmt = "bgr0"
+                else:
+                    stream.pix_fmt = "yuv444p" if lossless and codec == "libx264" else "yuv420p"
+            elif (image.shape[1], image.shape[0]) != (stream.width, stream.height):
+                raise ValueError(
+                    f"{path}: frame {n} is {image.shape[1]}x{image.shape[0]}, "
+                    f"the first was {stream.width}x{stream.height}"
+                )
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            for packet in stream.encode(frame):
+                container.mux(packet)
+            n += 1
+        if stream is not None:
+            for packet in stream.encode():
+                container.mux(packet)
+    return n
