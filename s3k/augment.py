@@ -1,0 +1,200 @@
+"""Image augmentation that keeps the multi-view geometry exact.
+
+Each image gets its own random similarity ``M`` (rotation about the image centre, scale, shift) applied
+to the pixels and to the camera: a pixel ``p`` of the original image lands at ``M p`` in the warped one, so
+the warped image is the picture taken by the same camera with intrinsics ``K' = M K`` (distortion acts
+before ``K`` and is unchanged). Rays, triangulation and reprojection therefore stay consistent, which is what
+lets the supervised and self-supervised terms use the augmented views. Brightness, contrast, per-channel
+gain and noise are added on top.
+
+Everything runs in torch on the batch (``grid_sample``), so augmentation costs a few milliseconds per step.
+All random numbers come from one CPU ``torch.Generator`` so a run is reproducible on any device.
+
+Pixel convention: (0, 0) is the centre of the top-left pixel; with ``align_corners=True`` ``grid_sample`` maps
+normalized -1 and +1 to the centres of the first and last pixels, which is the same convention.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+
+@dataclass
+class Augmentation:
+    """Ranges of the random augmentation (see ``TrainConfig`` for the meaning of each field)."""
+
+    rotation_deg: float = 180.0
+    scale: float = 0.2
+    shift_px: float = 10.0
+    brightness: float = 0.2
+    contrast: float = 0.2
+    colour: float = 0.1
+    noise: float = 0.02
+
+    @classmethod
+    def from_config(cls, cfg) -> Augmentation:
+        """The augmentation ranges of a ``TrainConfig``."""
+        return cls(cfg.rotation_deg, cfg.scale, cfg.shift_px, cfg.brightness, cfg.contrast, cfg.colour,
+                   cfg.noise)
+
+
+def _uniform(n: int, low: float, high: float, generator: torch.Generator | None) -> Tensor:
+    return low + (high - low) * torch.rand(n, generator=generator, dtype=torch.float64)
+
+
+def similarity_matrices(angle: Tensor, scale: Tensor, shift: Tensor, size: tuple[int, int]) -> Tensor:
+    """Similarities about the image centre: ``M = T(c + shift) R(angle) S(scale) T(-c)``.
+
+    Args:
+        angle: (N,) rotation in radians (positive turns u towards v, i.e. clockwise on screen).
+        scale: (N,) isotropic scale factors.
+        shift: (N, 2) translation in pixels along (u, v).
+        size: image size (W, H); the centre is ((W - 1) / 2, (H - 1) / 2) in the pixel-centre convention.
+
+    Returns:
+        M: (N, 3, 3) homogeneous pixel transforms, same dtype as ``angle``.
+    """
+    if angle.ndim != 1 or scale.shape != angle.shape or shift.shape != (*angle.shape, 2):
+        raise ValueError(f"angle (N,), scale (N,), shift (N, 2) expected, got {tuple(angle.shape)}, "
+                         f"{tuple(scale.shape)}, {tuple(shift.shape)}")
+    W, H = size
+    cu, cv = (W - 1) / 2.0, (H - 1) / 2.0
+    c, s = torch.cos(angle) * scale, torch.sin(angle) * scale
+    M = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
+    M[:, 0, 0], M[:, 0, 1] = c, -s
+    M[:, 1, 0], M[:, 1, 1] = s, c
+    # translation: (c + shift) - A c
+    M[:, 0, 2] = cu + shift[:, 0] - (c * cu - s * cv)
+    M[:, 1, 2] = cv + shift[:, 1] - (s * cu + c * cv)
+    M[:, 2, 2] = 1.0
+    return M
+
+
+def random_similarity(n: int, size: tuple[int, int], rotation_deg: float, scale: float, shift_px: float,
+                      generator: torch.Generator | None = None) -> Tensor:
+    """Draw ``n`` random similarities (uniform angle, scale and shift in the given ranges).
+
+    Args:
+        n: number of transforms.
+        size: image size (W, H).
+        rotation_deg: maximum absolute rotation, degrees.
+        scale: maximum relative scale change (scale factor uniform in [1 - scale, 1 + scale]).
+        shift_px: maximum absolute shift along each axis, pixels.
+        generator: CPU random generator.
+
+    Returns:
+        M: (n, 3, 3) float64 on the CPU.
+    """
+    angle = _uniform(n, -1.0, 1.0, generator) * math.radians(rotation_deg)
+    factor = _uniform(n, 1.0 - scale, 1.0 + scale, generator)
+    shift = (_uniform(2 * n, -1.0, 1.0, generator) * shift_px).reshape(n, 2)
+    return similarity_matrices(angle, factor, shift, size)
+
+
+def warp_points(uv: Tensor, M: Tensor) -> Tensor:
+    """Apply pixel transforms to points: ``uv' = M [uv, 1]`` (dehomogenized).
+
+    Args:
+        uv: (*, N, 2) pixel coordinates.
+        M: (*, 3, 3) transforms (broadcast against ``uv``'s leading dims).
+
+    Returns:
+        (*, N, 2) transformed pixel coordinates.
+    """
+    if uv.shape[-1] != 2 or M.shape[-2:] != (3, 3):
+        raise ValueError(f"uv (*, N, 2) and M (*, 3, 3) expected, got {tuple(uv.shape)} and {tuple(M.shape)}")
+    M = M.to(uv.dtype)
+    out = uv @ M[..., :2, :2].transpose(-1, -2) + M[..., None, :2, 2]
+    w = uv @ M[..., 2:3, :2].transpose(-1, -2) + M[..., None, 2:3, 2]
+    return out / w
+
+
+def warp_images(images: Tensor, M: Tensor, padding_mode: str = "zeros") -> Tensor:
+    """Warp images so that source pixel ``p`` lands at ``M p`` (bilinear, pixel-centre convention).
+
+    Args:
+        images: (N, Ch, H, W) float images.
+        M: (N, 3, 3) pixel transforms from the source to the output image.
+        padding_mode: ``grid_sample`` padding for pixels that come from outside the source.
+
+    Returns:
+        (N, Ch, H, W) warped images.
+    """
+    if images.ndim != 4 or M.shape != (images.shape[0], 3, 3):
+        raise ValueError(f"images (N, Ch, H, W) and M (N, 3, 3) expected, got {tuple(images.shape)} and "
+                         f"{tuple(M.shape)}")
+    N, _, H, W = images.shape
+    Minv = torch.linalg.inv(M.to(torch.float64)).to(device=images.device, dtype=torch.float32)
+    v, u = torch.meshgrid(torch.arange(H, device=images.device, dtype=torch.float32),
+                          torch.arange(W, device=images.device, dtype=torch.float32), indexing="ij")
+    grid = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(1, H * W, 3)
+    src = grid @ Minv.transpose(1, 2)  # (N, H*W, 3): output pixel -> source pixel
+    src = src[..., :2] / src[..., 2:3]
+    # align_corners=True: normalized -1 / +1 are the centres of the first / last pixels.
+    scale = torch.tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)], device=images.device)
+    norm = (src * scale - 1.0).reshape(N, H, W, 2)
+    return F.grid_sample(images, norm.to(images.dtype), mode="bilinear", padding_mode=padding_mode,
+                         align_corners=True)
+
+
+def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | None = None) -> Tensor:
+    """Random brightness, contrast, per-channel gain and Gaussian noise; the result is clamped to [0, 1].
+
+    Args:
+        images: (N, 3, H, W) float images in [0, 1].
+        aug: ranges.
+        generator: CPU random generator.
+
+    Returns:
+        (N, 3, H, W) images.
+    """
+    N, Ch = images.shape[:2]
+    dev, dt = images.device, images.dtype
+
+    def draw(*shape: int) -> Tensor:
+        return (torch.rand(*shape, generator=generator) * 2 - 1).to(device=dev, dtype=dt)
+
+    mean = images.mean(dim=(1, 2, 3), keepdim=True)
+    contrast = 1.0 + aug.contrast * draw(N, 1, 1, 1)
+    brightness = aug.brightness * draw(N, 1, 1, 1)
+    gain = 1.0 + aug.colour * draw(N, Ch, 1, 1)
+    out = ((images - mean) * contrast + mean + brightness) * gain
+    if aug.noise > 0:
+        std = aug.noise * torch.rand(N, 1, 1, 1, generator=generator).to(device=dev, dtype=dt)
+        out = out + std * torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
+    return out.clamp_(0.0, 1.0)
+
+
+def augment_views(images: Tensor, K: Tensor, aug: Augmentation, generator: torch.Generator | None = None,
+                  uv: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+    """Augment a batch of multi-view frames, each image independently, keeping the geometry exact.
+
+    Args:
+        images: (B, C, 3, H, W) float images in [0, 1].
+        K: (B, C, 3, 3) intrinsics of those images.
+        aug: augmentation ranges.
+        generator: CPU random generator (all randomness is drawn from it).
+        uv: optional (B, C, N, 2) pixel points (e.g. 2D labels) to move with the images.
+
+    Returns:
+        images: (B, C, 3, H, W) augmented images.
+        K: (B, C, 3, 3) updated intrinsics ``M @ K`` (same dtype and device as the input).
+        uv: (B, C, N, 2) moved points, or None.
+        M: (B, C, 3, 3) float64 CPU transforms that were applied.
+    """
+    if images.ndim != 5 or K.shape != (*images.shape[:2], 3, 3):
+        raise ValueError(f"images (B, C, 3, H, W) and K (B, C, 3, 3) expected, got {tuple(images.shape)} and "
+                         f"{tuple(K.shape)}")
+    B, C, Ch, H, W = images.shape
+    M = random_similarity(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator)
+    flat = warp_images(images.reshape(B * C, Ch, H, W), M)
+    flat = photometric(flat, aug, generator)
+    M = M.reshape(B, C, 3, 3)
+    K_new = (M.to(K.device) @ K.to(torch.float64)).to(K.dtype)
+    uv_new = warp_points(uv, M.to(device=uv.device)) if uv is not None else None
+    return flat.reshape(B, C, Ch, H, W), K_new, uv_new, M
