@@ -1,0 +1,263 @@
+"""Training losses (DESIGN 1): KL to Gaussian targets, supervised and self-supervised terms, weight decay.
+
+Both heatmap losses are ``sum_c sum_k KL(H_ck || P_ck)`` over the terms that have a target, divided by the
+number of frames ``B`` so that the loss scale does not depend on the batch size. They differ only in where
+the 3D point behind the targets comes from:
+
+- supervised: 2D labels triangulated with unit weights (>= 2 labelled cameras needed);
+- self-supervised: the network's own softmax means, triangulated with the paper's confidence weights, then
+  treated as a constant (computed under ``torch.no_grad``, so no gradient can reach it).
+
+The point is then projected into *every* camera, and a term is masked (no target, zero loss) when the
+triangulation is invalid, the point is behind that camera, or its projection falls off the heatmap.
+
+Shapes: ``B`` frames, ``C`` cameras, ``K`` keypoints, ``h w`` heatmap size, ``stride`` image pixels per cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.heatmaps import (
+    confidence_weight,
+    gaussian_targets,
+    heatmap_moments,
+    spatial_log_softmax,
+    spatial_softmax,
+)
+
+__all__ = ["kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
+
+MIN_DEPTH = 1e-6
+"""Camera-frame depth at or below which a projected point counts as behind the camera."""
+
+
+def _shape(x: object) -> object:
+    """Shape of a tensor for error messages, or its type name for anything else."""
+    return tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+
+
+def kl_divergence(target: Tensor, logits: Tensor) -> Tensor:
+    """``KL(target || softmax(logits))`` per heatmap, in float32 (float64 stays float64).
+
+    ``sum target * (log target - log_softmax(logits))`` with ``0 log 0 = 0``; cells where the target is zero
+    contribute exactly zero (also to the gradient), even if their log-probability underflows to ``-inf``.
+
+    Args:
+        target: ``(*, h, w)`` distributions (each summing to 1, or all zeros for "no target").
+        logits: ``(*, h, w)`` network logits; the same shape.
+
+    Returns:
+        ``(*)`` KL divergences (zero for all-zero targets).
+    """
+    if not isinstance(target, Tensor) or not isinstance(logits, Tensor) or target.shape != logits.shape:
+        raise ValueError(
+            "kl_divergence: target and logits must be tensors of the same shape (*, h, w), got "
+            f"{_shape(target)} and {_shape(logits)}"
+        )
+    dtype = torch.promote_types(logits.dtype, torch.float32)
+    log_p = spatial_log_softmax(logits.to(dtype))
+    t = target.to(dtype)
+    pos = t > 0
+    t_safe = torch.where(pos, t, torch.ones_like(t))
+    terms = torch.where(pos, t * (t_safe.log() - log_p), torch.zeros_like(t))
+    return terms.sum(dim=(-1, -2))
+
+
+def kl_loss(target: Tensor, logits: Tensor, mask: Tensor | None = None, normalizer: float = 1.0) -> Tensor:
+    """Sum of ``KL(target || softmax(logits))`` over the unmasked heatmaps, divided by ``normalizer``.
+
+    Args:
+        target: ``(*, h, w)`` Gaussian targets (``heatmaps.gaussian_targets``).
+        logits: ``(*, h, w)`` network logits.
+        mask: ``(*)`` bool, True where the term counts; None for all.
+        normalizer: divisor, the number of frames ``B`` (so the scale does not depend on the batch size).
+
+    Returns:
+        Scalar loss (float32, or float64 for float64 logits). Zero, with zero gradients, when nothing counts.
+    """
+    kl = kl_divergence(target, logits)
+    if mask is not None:
+        if not isinstance(mask, Tensor) or mask.shape != kl.shape:
+            raise ValueError(
+                f"kl_loss: mask must have shape {tuple(kl.shape)} (logits without h, w), got "
+                f"{_shape(mask)}"
+            )
+        kl = torch.where(mask, kl, torch.zeros_like(kl))
+    if not (isinstance(normalizer, (int, float)) and normalizer > 0 and math.isfinite(normalizer)):
+        raise ValueError(f"kl_loss: normalizer must be a positive number, got {normalizer!r}")
+    return kl.sum() / normalizer
+
+
+def _check_logits(fn: str, logits: Tensor, cams: Cameras) -> tuple[int, int, int, int, int]:
+    if not isinstance(logits, Tensor) or logits.ndim != 5:
+        raise ValueError(
+            f"{fn}: logits must have shape (B, C, K, h, w), got {_shape(logits)}"
+        )
+    B, C, K, h, w = logits.shape
+    if not isinstance(cams, Cameras) or tuple(cams.shape) != (B, C):
+        got = tuple(cams.shape) if isinstance(cams, Cameras) else type(cams).__name__
+        raise ValueError(f"{fn}: cams must be Cameras of shape (B, C) = {(B, C)} like logits, got {got}")
+    if B == 0:
+        raise ValueError(f"{fn}: empty batch (B = 0)")
+    return B, C, K, h, w
+
+
+def _reproject_targets(
+    X: Tensor, valid: Tensor, cams: Cameras, h: int, w: int, stride: int, sigma: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Project ``X (B, K, 3)`` into all cameras ``(B, C)`` and render the masked Gaussian targets."""
+    uv, depth = project(cams, X[:, None])  # (B, C, K, 2), (B, C, K)
+    in_front = (depth > MIN_DEPTH) & valid[:, None]
+    targets, mask = gaussian_targets(uv, in_front, h, w, stride, sigma)
+    return targets, mask, uv, depth
+
+
+def supervised_loss(
+    logits: Tensor,
+    cams: Cameras,
+    labels_uv: Tensor,
+    label_mask: Tensor,
+    stride: int,
+    sigma: float,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """``L_sup``: triangulate the 2D labels, reproject into every camera, KL to Gaussian targets.
+
+    A keypoint labelled in at least two cameras is triangulated with unit weights (``geometry``'s solver; the
+    labels are distorted pixel clicks) and its projection gives a target in all C cameras, labelled or not.
+    Keypoints with fewer than two labelled views, degenerate (near-parallel) labelled rays, points behind a
+    camera and projections off the heatmap give masked terms.
+
+    Args:
+        logits: ``(B, C, K, h, w)`` network logits.
+        cams: ``Cameras`` of shape ``(B, C)`` for the images the network saw.
+        labels_uv: ``(B, C, K, 2)`` labelled pixels (any value, even NaN, where not labelled).
+        label_mask: ``(B, C, K)`` bool, True where labelled.
+        stride: heatmap stride (image pixels per cell).
+        sigma: target width in image pixels.
+
+    Returns:
+        ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
+        ``points (B, K, 3)``, ``points_valid (B, K)``, ``weights (B, C, K)`` (the unit triangulation weights),
+        ``target_uv (B, C, K, 2)``, ``depth (B, C, K)``, ``mask (B, C, K)`` (terms that count),
+        ``targets (B, C, K, h, w)`` and ``num_terms`` (scalar, number of valid terms).
+    """
+    fn = "supervised_loss"
+    B, C, K, h, w = _check_logits(fn, logits, cams)
+    if not isinstance(labels_uv, Tensor) or tuple(labels_uv.shape) != (B, C, K, 2):
+        raise ValueError(
+            f"{fn}: labels_uv must have shape (B, C, K, 2) = {(B, C, K, 2)}, "
+            f"got {_shape(labels_uv)}"
+        )
+    if not isinstance(label_mask, Tensor) or tuple(label_mask.shape) != (B, C, K):
+        raise ValueError(
+            f"{fn}: label_mask must have shape (B, C, K) = {(B, C, K)}, "
+            f"got {_shape(label_mask)}"
+        )
+    with torch.no_grad():
+        uv = labels_uv.detach().to(cams.dtype)
+        labelled = label_mask.to(torch.bool) & torch.isfinite(uv).all(dim=-1)
+        # Unlabelled entries get a harmless pixel and zero weight: they must not reach the solver as NaN.
+        uv = torch.where(labelled[..., None], uv, torch.zeros_like(uv))
+        weights = labelled.to(cams.dtype)
+        X, valid = triangulate_pixels(cams, uv, weights)
+        valid = valid & (labelled.sum(dim=1) >= 2)
+        targets, mask, target_uv, depth = _reproject_targets(X, valid, cams, h, w, stride, sigma)
+    loss = kl_loss(targets, logits, mask, normalizer=B)
+    info = {
+        "points": X,
+        "points_valid": valid,
+        "weights": weights,
+        "target_uv": target_uv,
+        "depth": depth,
+        "mask": mask,
+        "targets": targets,
+        "num_terms": mask.sum(),
+    }
+    return loss, info
+
+
+def self_supervised_loss(
+    logits: Tensor,
+    cams: Cameras,
+    stride: int,
+    sigma: float,
+    weights: Tensor | None = None,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
+
+    The softmax means ``m_ck`` and confidence weights ``w_ck`` (DESIGN 1) give ``x~_k`` by weighted
+    triangulation; ``x~`` is a constant (the whole target is computed under ``torch.no_grad``), projected into
+    every camera and rendered as a Gaussian; the gradient flows only through ``log P`` in the KL. Views with
+    non-finite means or weights get weight zero; invalid triangulations, points behind a camera and
+    projections off the heatmap give masked terms.
+
+    Args:
+        logits: ``(B, C, K, h, w)`` network logits.
+        cams: ``Cameras`` of shape ``(B, C)``.
+        stride: heatmap stride (image pixels per cell).
+        sigma: target width in image pixels; also the scale of the confidence weight.
+        weights: optional ``(B, C, K)`` triangulation weights replacing the confidence weights (e.g. all ones
+            for an unweighted ablation).
+
+    Returns:
+        ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
+        ``points (B, K, 3)``, ``points_valid (B, K)``, ``mean_uv (B, C, K, 2)``, ``var (B, C, K)``,
+        ``weights (B, C, K)`` (those used), ``target_uv (B, C, K, 2)``, ``depth (B, C, K)``,
+        ``mask (B, C, K)``, ``targets (B, C, K, h, w)`` and ``num_terms``.
+    """
+    fn = "self_supervised_loss"
+    B, C, K, h, w = _check_logits(fn, logits, cams)
+    if weights is not None and (not isinstance(weights, Tensor) or tuple(weights.shape) != (B, C, K)):
+        raise ValueError(
+            f"{fn}: weights must have shape (B, C, K) = {(B, C, K)}, "
+            f"got {_shape(weights)}"
+        )
+    with torch.no_grad():
+        mean_uv, var = heatmap_moments(spatial_softmax(logits.detach().float()), stride)
+        wts = confidence_weight(var, sigma) if weights is None else weights.detach().float()
+        mean_uv = mean_uv.to(cams.dtype)
+        wts = wts.to(cams.dtype)
+        usable = torch.isfinite(mean_uv).all(dim=-1) & torch.isfinite(wts) & (wts > 0)
+        wts = torch.where(usable, wts, torch.zeros_like(wts))
+        uv = torch.where(usable[..., None], mean_uv, torch.zeros_like(mean_uv))
+        X, valid = triangulate_pixels(cams, uv, wts)
+        targets, mask, target_uv, depth = _reproject_targets(X, valid, cams, h, w, stride, sigma)
+    loss = kl_loss(targets, logits, mask, normalizer=B)
+    info = {
+        "points": X,
+        "points_valid": valid,
+        "mean_uv": mean_uv,
+        "var": var,
+        "weights": wts,
+        "target_uv": target_uv,
+        "depth": depth,
+        "mask": mask,
+        "targets": targets,
+        "num_terms": mask.sum(),
+    }
+    return loss, info
+
+
+def l2_non_bias(model: nn.Module) -> Tensor:
+    """``||theta_non-bias||^2``: sum of squares of the parameters with ``ndim > 1``.
+
+    Convolution and linear weights count; biases and normalization scales/shifts (all 1D) do not.
+
+    Args:
+        model: any module.
+
+    Returns:
+        Scalar tensor (zero if the model has no such parameter).
+    """
+    if not isinstance(model, nn.Module):
+        raise ValueError(f"l2_non_bias: model must be an nn.Module, got {type(model).__name__}")
+    terms = [p.pow(2).sum() for p in model.parameters() if p.ndim > 1]
+    if not terms:
+        p = next(model.parameters(), None)
+        return torch.zeros((), device=None if p is None else p.device)
+    return torch.stack(terms).sum()
