@@ -1,0 +1,129 @@
+"""Calibration check on synthetic rigs: exact labels fit, a perturbed camera is named, noise is not."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
+from s3k.geometry import Cameras
+
+
+def look_at(centre, target=(0.0, 0.0, 0.0)):
+    """World->camera R, t for a camera at ``centre`` looking at ``target`` (OpenCV axes, y roughly down)."""
+    z = np.asarray(target, float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ centre
+
+
+def make_rig(C=4, seed=0):
+    rng = np.random.default_rng(seed)
+    Ks, dists, Rs, ts = [], [], [], []
+    for c in range(C):
+        angle = 2 * np.pi * c / C + rng.uniform(-0.2, 0.2)
+        centre = np.array([np.cos(angle), np.sin(angle), rng.uniform(0.3, 0.8)]) * 1000.0  # millimetres
+        R, t = look_at(centre)
+        Ks.append([[600.0 + 20 * c, 0, 319.5], [0, 600.0 + 20 * c, 239.5], [0, 0, 1]])
+        dists.append([-0.1 * (c % 2), 0.01, 0, 0, 0])
+        Rs.append(R)
+        ts.append(t)
+    return [np.array(a) for a in (Ks, dists, Rs, ts)]
+
+
+def observe(rig, B=30, Kp=5, noise=0.0, seed=1, drop=0.0):
+    """Project random points near the origin with OpenCV; returns uv (B, C, K, 2) and mask (B, C, K)."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-100, 100, (B * Kp, 3))
+    uv = []
+    for K, d, R, t in zip(*rig):
+        p, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, d)
+        uv.append(p.reshape(B, Kp, 2))
+    uv = np.stack(uv, axis=1) + noise * rng.standard_normal((B, len(rig[0]), Kp, 2))
+    mask = rng.uniform(size=uv.shape[:-1]) >= drop
+    uv[~mask] = np.nan  # unlabelled entries may hold anything, NaN included
+    return uv, mask
+
+
+def cameras(rig, rotate=None, angle_deg=0.0):
+    K, d, R, t = (a.copy() for a in rig)
+    if rotate is not None:
+        dR = cv2.Rodrigues(np.array([0.0, 1.0, 0.0]) * np.deg2rad(angle_deg))[0]
+        centre = -R[rotate].T @ t[rotate]
+        R[rotate] = dR @ R[rotate]  # the camera turned about its own y axis, its centre kept
+        t[rotate] = -R[rotate] @ centre
+    return Cameras.from_numpy(K, d, R, t, dtype=torch.float64)
+
+
+NAMES = ["a", "b", "c", "d"]
+
+
+def test_exact_labels_give_zero_residual():
+    rig = make_rig()
+    uv, mask = observe(rig, drop=0.2)
+    res = reprojection_residuals(cameras(rig), uv, mask)
+    loo = leave_one_out_residuals(cameras(rig), uv, mask)
+    assert np.isnan(res[~mask]).all()
+    assert np.nanmax(res) < 1e-6 and np.nanmax(loo) < 1e-6
+    # LOO needs two other views: with 4 cameras and drops, some labelled entries have none.
+    assert np.isfinite(loo[mask]).mean() > 0.5
+    check = check_calibration(cameras(rig), uv, mask, NAMES)
+    assert check.inconsistent == []
+
+
+def test_noise_alone_flags_nothing():
+    rig = make_rig()
+    uv, mask = observe(rig, noise=1.0, drop=0.1)
+    check = check_calibration(cameras(rig), uv, mask, NAMES)
+    assert check.inconsistent == [], check.format()
+    for row in check.cameras:
+        assert 0.3 < row.median_px < 3 and row.loo_median_px >= row.median_px
+
+
+@pytest.mark.parametrize("bad", [0, 2])
+def test_perturbed_camera_is_named(bad):
+    rig = make_rig()
+    uv, mask = observe(rig, noise=1.0, drop=0.1)
+    check = check_calibration(cameras(rig, rotate=bad, angle_deg=2.0), uv, mask, NAMES)
+    assert check.inconsistent == [NAMES[bad]], check.format()
+    text = check.format()
+    assert f"INCONSISTENT: {NAMES[bad]}" in text
+    # With the bad camera left out, the others fit as well as an unperturbed rig.
+    good = check_calibration(cameras(rig), uv, mask, NAMES)
+    for row, ref in zip(check.consistent, good.cameras):
+        if row.name != NAMES[bad]:
+            assert row.median_px == pytest.approx(ref.median_px, rel=0.5)
+    bad_row = next(r for r in check.consistent if r.name == NAMES[bad])
+    assert bad_row.median_px > 10 * good.cameras[bad].median_px
+
+
+def test_copied_parameters_are_named():
+    # The defect of a real recording: one camera carries another camera's parameters.
+    rig = make_rig(C=5, seed=3)
+    uv, mask = observe(rig, noise=0.5)
+    K, d, R, t = (a.copy() for a in rig)
+    K[1], d[1], R[1], t[1] = K[4], d[4], R[4], t[4]
+    check = check_calibration(Cameras.from_numpy(K, d, R, t, dtype=torch.float64), uv, mask, list("abcde"))
+    assert check.inconsistent == ["b"], check.format()
+
+
+def test_three_cameras_gross_error():
+    rig = [a[:3] for a in make_rig()]
+    uv, mask = observe(rig, noise=0.5)
+    assert check_calibration(cameras(rig), uv, mask, NAMES[:3]).inconsistent == []
+    check = check_calibration(cameras(rig, rotate=1, angle_deg=10.0), uv, mask, NAMES[:3])
+    assert check.inconsistent == ["b"], check.format()
+
+
+def test_input_errors():
+    rig = make_rig()
+    uv, mask = observe(rig, B=3)
+    with pytest.raises(ValueError, match="mask must have shape"):
+        reprojection_residuals(cameras(rig), uv, mask[:, :2])
+    with pytest.raises(ValueError, match=r"uv must have shape \(B, C, K, 2\)"):
+        reprojection_residuals(cameras(rig), uv[0], mask[0])
+    with pytest.raises(ValueError, match="3 cameras"):
+        check_calibration(cameras(rig), uv, mask, NAMES[:3])
