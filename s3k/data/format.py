@@ -321,6 +321,7 @@ def _read_metadata(root: Path, P: _Problems) -> _Meta | None:
             "version",
             f"unsupported version {version!r}; this s3k reads version(s) {list(SUPPORTED_VERSIONS)}",
         )
+    n_errors = len(P.errors)
     keypoints = _names(meta, "keypoints", P, folder_safe=False)
     cameras = _names(meta, "cameras", P, folder_safe=True)
     size = meta.get("image_size")
