@@ -60,7 +60,10 @@ class TrainConfig:
     # --- network and targets ---
     image_size: int = _f(0, "resize images so the longer side has this many pixels (0: keep the dataset's "
                             "size)")
-    channels: tuple[int, ...] = _f((16, 32, 32), "U-Net channels per resolution level, finest first")
+    channels: tuple[int, ...] = _f((16, 32, 32, 32), "U-Net channels per level, level 0 at heatmap "
+                                                     "resolution; len - 1 downsamplings by 2")
+    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution")
+    norm: str = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
     stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels")
     sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)")
 
@@ -118,10 +121,12 @@ class TrainConfig:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"config field {name!r} must be > 0, got {getattr(self, name)!r}")
-        non_negative = ["batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size",
-                        "weight_decay", "grad_clip", "rotation_deg", "scale", "shift_px", "brightness",
-                        "contrast", "colour", "noise", "val_every", "threads", "preload_mb", "lr_final",
-                        "collapse_fraction"]
+        non_negative = [
+            "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
+            "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
+            "colour",
+            "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
+        ]
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise ValueError(f"config field {name!r} must be >= 0, got {getattr(self, name)!r}")

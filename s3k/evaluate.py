@@ -1,0 +1,386 @@
+"""``s3k evaluate``: DESIGN 1's metrics of a trained detector on a dataset split, and a report folder.
+
+Metric names are fixed so results compare across runs and versions:
+
+- ``rms_px``: sqrt of the mean over frames, cameras and keypoints (where the ground truth projects inside the
+  image) of the squared distance between the per-view 2D detection and the ground-truth projection, in pixels
+  of the image the model saw.
+- ``rms_px_reproj``: the same for the reprojection of the confidence-weighted triangulated 3D point.
+- ``median_mm``, ``rms_mm``: 3D error of the triangulated point against the ground-truth 3D, millimetres.
+- ``per_keypoint`` and ``per_camera`` breakdowns of the above (3D metrics only per keypoint).
+
+The ground truth is the dataset's 3D points projected into every camera; a dataset without 3D points is scored
+in 2D against its labels (and the 3D metrics are null). Terms where the triangulation is degenerate are left
+out of the reprojection and 3D metrics and counted in ``triangulated_fraction``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+UNIT_TO_MM = {"m": 1000.0, "meter": 1000.0, "meters": 1000.0, "metre": 1000.0, "metres": 1000.0,
+              "cm": 10.0, "mm": 1.0, "millimeter": 1.0, "millimetre": 1.0}
+
+METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm")
+
+
+def mm_per_unit(units: str) -> float:
+    """Millimetres per world unit; NaN for an unknown unit (3D metrics then stay in that unit's scale)."""
+    return UNIT_TO_MM.get(str(units).strip().lower(), float("nan"))
+
+
+def _rms(x: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(x**2))) if x.size else None
+
+
+def _median(x: np.ndarray) -> float | None:
+    return float(np.median(x)) if x.size else None
+
+
+def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X_gt_mask=None,
+                    unit_mm: float = 1000.0, keypoints=None, cameras=None) -> dict[str, Any]:
+    """The evaluation metrics of a set of predictions (pure function of arrays).
+
+    Args:
+        pred_uv: (B, C, K, 2) per-view 2D detections, pixels.
+        reproj_uv: (B, C, K, 2) reprojections of the triangulated points, pixels.
+        gt_uv: (B, C, K, 2) ground-truth 2D (projection of the true 3D point, or a label).
+        gt_mask: (B, C, K) bool, where ``gt_uv`` counts (in front of the camera and inside the image).
+        X: (B, K, 3) triangulated points, world units.
+        X_valid: (B, K) bool, triangulation not degenerate.
+        X_gt: (B, K, 3) ground-truth 3D, or None.
+        X_gt_mask: (B, K) bool, or None (all known).
+        unit_mm: millimetres per world unit.
+        keypoints: K names (default "0", "1", ...).
+        cameras: C names (default "0", "1", ...).
+
+    Returns:
+        ``{"rms_px", "rms_px_reproj", "median_mm", "rms_mm", "per_keypoint": {name: {...}},
+        "per_camera": {name: {"rms_px", "rms_px_reproj", "n_2d"}}, "n_frames", "n_2d", "n_3d",
+        "triangulated_fraction"}``; a metric without any term is None.
+    """
+    pred_uv, reproj_uv, gt_uv = (np.asarray(a, dtype=np.float64) for a in (pred_uv, reproj_uv, gt_uv))
+    gt_mask, X_valid = np.asarray(gt_mask, dtype=bool), np.asarray(X_valid, dtype=bool)
+    X = np.asarray(X, dtype=np.float64)
+    B, C, K = gt_mask.shape
+    if pred_uv.shape != (B, C, K, 2) or reproj_uv.shape != (B, C, K, 2) or gt_uv.shape != (B, C, K, 2):
+        raise ValueError(f"compute_metrics: pred_uv, reproj_uv, gt_uv must be {(B, C, K, 2)} like gt_mask, "
+                         f"got {pred_uv.shape}, {reproj_uv.shape}, {gt_uv.shape}")
+    if X.shape != (B, K, 3) or X_valid.shape != (B, K):
+        raise ValueError(f"compute_metrics: X must be {(B, K, 3)} and X_valid {(B, K)}, got {X.shape}, "
+                         f"{X_valid.shape}")
+    keypoints = [str(k) for k in range(K)] if keypoints is None else list(keypoints)
+    cameras = [str(c) for c in range(C)] if cameras is None else list(cameras)
+
+    err2d = np.linalg.norm(pred_uv - gt_uv, axis=-1)  # (B, C, K)
+    errre = np.linalg.norm(reproj_uv - gt_uv, axis=-1)
+    mask2d = gt_mask & np.isfinite(err2d)
+    maskre = gt_mask & X_valid[:, None, :] & np.isfinite(errre)
+    if X_gt is not None:
+        X_gt = np.asarray(X_gt, dtype=np.float64)
+        known = np.ones((B, K), bool) if X_gt_mask is None else np.asarray(X_gt_mask, dtype=bool)
+        err3d = np.linalg.norm(X - X_gt, axis=-1) * unit_mm  # (B, K)
+        mask3d = known & X_valid & np.isfinite(err3d)
+        denom3d = known
+    else:
+        err3d = np.zeros((B, K))
+        mask3d = np.zeros((B, K), bool)
+        denom3d = X_valid | ~X_valid
+
+    def block(sel2d, selre, sel3d) -> dict[str, Any]:
+        return {
+            "rms_px": _rms(err2d[sel2d]),
+            "rms_px_reproj": _rms(errre[selre]),
+            "median_mm": _median(err3d[sel3d]),
+            "rms_mm": _rms(err3d[sel3d]),
+        }
+
+    out: dict[str, Any] = block(mask2d, maskre, mask3d)
+    out["n_frames"] = int(B)
+    out["n_2d"] = int(mask2d.sum())
+    out["n_3d"] = int(mask3d.sum())
+    n_known = int(denom3d.sum())
+    out["triangulated_fraction"] = float((X_valid & denom3d).sum() / n_known) if n_known else None
+    out["per_keypoint"] = {}
+    for k, name in enumerate(keypoints):
+        sel = np.zeros(K, bool)
+        sel[k] = True
+        d = block(mask2d & sel, maskre & sel, mask3d & sel)
+        d["n_2d"], d["n_3d"] = int((mask2d & sel).sum()), int((mask3d & sel).sum())
+        out["per_keypoint"][name] = d
+    out["per_camera"] = {}
+    for c, name in enumerate(cameras):
+        selc = np.zeros((B, C, K), bool)
+        selc[:, c] = True
+        out["per_camera"][name] = {"rms_px": _rms(err2d[mask2d & selc]),
+                                   "rms_px_reproj": _rms(errre[maskre & selc]),
+                                   "n_2d": int((mask2d & selc).sum())}
+    return out
+
+
+def ground_truth_2d(batch, image_size: tuple[int, int]):
+    """Ground-truth 2D of a ``FrameBatch``: projections of its 3D points, else its labels.
+
+    Returns:
+        ``(gt_uv (B, C, K, 2), gt_mask (B, C, K))`` numpy arrays; the mask keeps points in front of the camera
+        and inside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
+    """
+    import torch
+
+    from s3k.geometry import project
+
+    W, H = image_size
+    if batch.points is not None:
+        uv, depth = project(batch.cams.to(dtype=torch.float64), batch.points.double()[:, None])
+        mask = (depth > 1e-6) & batch.points_mask[:, None, :]
+        uv, mask = uv.numpy(), mask.numpy()
+    elif batch.labels_uv is not None:
+        uv, mask = batch.labels_uv.double().numpy(), batch.labels_mask.numpy().copy()
+    else:
+        raise ValueError("evaluation needs ground-truth 3D points or 2D labels for the split")
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
+    return uv, mask & inside & np.isfinite(uv).all(-1)
+
+
+def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units: str = "m",
+                   keep: int = 0) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Predict every frame of ``store`` and compute :func:`compute_metrics`.
+
+    Args:
+        model: trained network (eval mode).
+        meta: its ``DetectorMeta``.
+        store: a ``FrameStore`` serving labels and/or 3D points.
+        device: model device.
+        batch_size: frames per forward pass.
+        units: world units of the dataset.
+        keep: keep the images and heatmaps of the first ``keep`` frames (for overlays).
+
+    Returns:
+        ``(metrics, arrays)``; arrays holds the concatenated predictions and ground truth (numpy) and the
+        kept images / heatmaps.
+    """
+    from s3k.predict import predict_store
+
+    cols: dict[str, list] = {k: [] for k in ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid",
+                                             "X_gt", "X_gt_mask", "weight", "frame_ids")}
+    kept_images, kept_probs = [], []
+    has3d = True
+    for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, device,
+                                     keep_heatmaps=keep > 0):
+        gt_uv, gt_mask = ground_truth_2d(batch, store.out_size)
+        cols["pred_uv"].append(pred.uv.numpy())
+        cols["reproj_uv"].append(pred.reproj.numpy())
+        cols["gt_uv"].append(gt_uv)
+        cols["gt_mask"].append(gt_mask)
+        cols["X"].append(pred.X.numpy())
+        cols["X_valid"].append(pred.valid.numpy())
+        cols["weight"].append(pred.weight.numpy())
+        cols["frame_ids"].append(np.asarray(batch.frame_ids))
+        if batch.points is None:
+            has3d = False
+        else:
+            cols["X_gt"].append(batch.points.numpy())
+            cols["X_gt_mask"].append(batch.points_mask.numpy())
+        n_kept = sum(len(x) for x in kept_images)
+        if n_kept < keep:
+            kept_images.append(batch.images[: keep - n_kept].numpy())
+            kept_probs.append(pred.probs[: keep - n_kept].numpy())
+    arrays = {k: np.concatenate(v) if v else None for k, v in cols.items()}
+    if not has3d:
+        arrays["X_gt"] = arrays["X_gt_mask"] = None
+    arrays["images"] = np.concatenate(kept_images) if kept_images else None
+    arrays["probs"] = np.concatenate(kept_probs) if kept_probs else None
+    metrics = compute_metrics(arrays["pred_uv"], arrays["reproj_uv"], arrays["gt_uv"], arrays["gt_mask"],
+                              arrays["X"], arrays["X_valid"], arrays["X_gt"], arrays["X_gt_mask"],
+                              mm_per_unit(units), meta.keypoints, store.dataset.cameras)
+    return metrics, arrays
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Drawing
+
+
+_COLOURS = [(230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180), (70, 240, 240),
+            (240, 50, 230), (210, 245, 60), (250, 190, 190), (0, 128, 128)]
+
+
+def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray, true_uv: np.ndarray | None,
+               true_mask: np.ndarray | None = None, scale: int = 3) -> np.ndarray:
+    """One frame's views side by side with heatmaps, predicted (cross) and true (circle) keypoints.
+
+    Args:
+        images: (C, H, W, 3) uint8 RGB.
+        probs: (C, K, h, w) heatmaps (softmax) or None; their per-pixel maximum over K is overlaid.
+        pred_uv: (C, K, 2) predictions, pixels.
+        true_uv: (C, K, 2) ground truth, or None.
+        true_mask: (C, K) bool, or None (all shown).
+        scale: upscaling factor for legibility.
+
+    Returns:
+        (scale * H, C * scale * W, 3) uint8 RGB image.
+    """
+    import cv2
+
+    C, H, W, _ = images.shape
+    tiles = []
+    for c in range(C):
+        tile = cv2.resize(np.ascontiguousarray(images[c]), (W * scale, H * scale),
+                          interpolation=cv2.INTER_NEAREST)
+        if probs is not None:
+            heat = probs[c].max(axis=0)
+            heat = heat / max(float(heat.max()), 1e-12)
+            heat = cv2.resize(heat.astype(np.float32), (W * scale, H * scale), interpolation=cv2.INTER_LINEAR)
+            coloured = cv2.applyColorMap((heat * 255).astype(np.uint8), cv2.COLORMAP_JET)[..., ::-1]
+            alpha = (0.6 * heat)[..., None]
+            tile = (tile * (1 - alpha) + coloured * alpha).astype(np.uint8)
+        tile = np.ascontiguousarray(tile)
+        for k in range(pred_uv.shape[1]):
+            col = _COLOURS[k % len(_COLOURS)]
+
+            def px(uv):
+                return int(round((uv[0] + 0.5) * scale - 0.5)), int(round((uv[1] + 0.5) * scale - 0.5))
+
+            show_true = true_uv is not None and (true_mask is None or true_mask[c, k])
+            if show_true and np.isfinite(true_uv[c, k]).all():
+                cv2.circle(tile, px(true_uv[c, k]), 3 * scale, col, 1, cv2.LINE_AA)
+            if np.isfinite(pred_uv[c, k]).all():
+                cv2.drawMarker(tile, px(pred_uv[c, k]), col, cv2.MARKER_TILTED_CROSS, 3 * scale, 1,
+                               cv2.LINE_AA)
+        cv2.rectangle(tile, (0, 0), (W * scale - 1, H * scale - 1), (255, 255, 255), 1)
+        tiles.append(tile)
+    return np.concatenate(tiles, axis=1)
+
+
+def _fmt(v) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """Human-readable table of a metrics dict."""
+    lines = [f"{'':<16}" + "".join(f"{m:>15}" for m in METRICS)]
+    lines.append(f"{'all':<16}" + "".join(f"{_fmt(metrics[m]):>15}" for m in METRICS))
+    for name, d in metrics["per_keypoint"].items():
+        lines.append(f"{'kp ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+    for name, d in metrics["per_camera"].items():
+        lines.append(f"{'cam ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+    lines.append(f"frames {metrics['n_frames']}, 2D terms {metrics['n_2d']}, 3D terms {metrics['n_3d']}, "
+                 f"triangulated {_fmt(metrics['triangulated_fraction'])}")
+    return "\n".join(lines)
+
+
+def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str, Any], unit_mm: float,
+                 title: str = "") -> list[Path]:
+    """Write metrics.json, plots (error histograms, per-keypoint errors) and view overlays to ``out_dir``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import cv2
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    written.append(out / "metrics.json")
+
+    err2d = np.linalg.norm(arrays["pred_uv"] - arrays["gt_uv"], axis=-1)[arrays["gt_mask"]]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    axes[0].hist(err2d, bins=50, color="tab:blue")
+    axes[0].set_xlabel("2D error per view (px)")
+    axes[0].set_ylabel("count")
+    axes[0].set_title(f"rms_px {_fmt(metrics['rms_px'])}")
+    if arrays.get("X_gt") is not None:
+        e3 = np.linalg.norm(arrays["X"] - arrays["X_gt"], axis=-1) * unit_mm
+        sel = arrays["X_valid"] & arrays["X_gt_mask"]
+        axes[1].hist(e3[sel], bins=50, color="tab:orange")
+        axes[1].set_xlabel("3D error (mm)")
+        axes[1].set_title(f"median_mm {_fmt(metrics['median_mm'])}, rms_mm {_fmt(metrics['rms_mm'])}")
+    else:
+        axes[1].set_axis_off()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(out / "errors_hist.png", dpi=100)
+    plt.close(fig)
+    written.append(out / "errors_hist.png")
+
+    names = list(metrics["per_keypoint"])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    x = np.arange(len(names))
+    for i, m in enumerate(("rms_px", "rms_px_reproj")):
+        axes[0].bar(x + (i - 0.5) * 0.4, [metrics["per_keypoint"][n][m] or 0 for n in names], 0.4, label=m)
+    axes[0].set_xticks(x, names, rotation=30)
+    axes[0].set_ylabel("px")
+    axes[0].legend()
+    for i, m in enumerate(("median_mm", "rms_mm")):
+        axes[1].bar(x + (i - 0.5) * 0.4, [metrics["per_keypoint"][n][m] or 0 for n in names], 0.4, label=m)
+    axes[1].set_xticks(x, names, rotation=30)
+    axes[1].set_ylabel("mm")
+    axes[1].legend()
+    fig.suptitle(f"per-keypoint errors {title}")
+    fig.tight_layout()
+    fig.savefig(out / "per_keypoint.png", dpi=100)
+    plt.close(fig)
+    written.append(out / "per_keypoint.png")
+
+    if arrays.get("images") is not None:
+        for i in range(len(arrays["images"])):
+            img = draw_views(arrays["images"][i], arrays["probs"][i], arrays["pred_uv"][i],
+                             arrays["gt_uv"][i], arrays["gt_mask"][i])
+            path = out / f"overlay_{i:02d}_frame_{arrays['frame_ids'][i]}.png"
+            cv2.imwrite(str(path), img[..., ::-1])
+            written.append(path)
+    return written
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="run folder written by 's3k train'")
+    parser.add_argument("--data", required=True, help="dataset folder")
+    parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    parser.add_argument("--report", metavar="DIR", default=None,
+                        help="write metrics.json, plots and view overlays to DIR")
+    parser.add_argument("--overlays", type=int, default=6, help="frames drawn in the report (default: 6)")
+    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
+    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+
+
+def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch_size: int = 16,
+                 report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
+    """Load a run, evaluate it on ``data``'s ``split`` and optionally write a report; returns the metrics."""
+    from s3k.frames import FrameStore, open_dataset
+    from s3k.predict import pick_device
+    from s3k.run import load_detector
+
+    dev = pick_device(device)
+    model, meta = load_detector(run_dir, dev)
+    ds = open_dataset(data, meta.image_size)
+    ids = np.asarray(ds.frames(split))
+    if len(ids) == 0:
+        raise ValueError(f"{data}: split {split!r} has no frames")
+    store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
+    metrics, arrays = evaluate_store(model, meta, store, dev, batch_size, ds.units,
+                                     keep=overlays if report else 0)
+    metrics["split"] = split
+    metrics["image_size"] = list(meta.image_size)
+    if report:
+        write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})")
+    return metrics
+
+
+def run(args: argparse.Namespace) -> int:
+    metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
+                           args.overlays)
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        print(format_table(metrics))
+        if args.report:
+            print(f"report written to {args.report}", file=sys.stderr)
+    return 0

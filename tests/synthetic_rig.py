@@ -1,0 +1,78 @@
+"""A tiny synthetic multi-view dataset for training tests: coloured dots seen by a static 4-camera rig.
+
+Three keypoints on a rigid triangle with a random pose per frame are drawn as discs of distinct colours into
+every camera, so a detector can in principle learn them; written with ``DatasetWriter`` (no renderer needed).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+KEYPOINTS = ["a", "b", "c"]
+CAMERAS = ["cam0", "cam1", "cam2", "cam3"]
+COLOURS = [(255, 40, 40), (40, 255, 40), (60, 60, 255)]
+LAYOUT = np.array([[0.06, 0.0, 0.0], [-0.04, 0.05, 0.0], [-0.03, -0.05, 0.02]])
+
+
+def rig(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(K (C, 3, 3), dist (C, 5), R (C, 3, 3), t (C, 3)) of 4 cameras 1 m from the origin, looking at it."""
+    Ks, Rs, ts = [], [], []
+    f = size * 2.2
+    for c in range(4):
+        a = 2 * math.pi * c / 4 + 0.3
+        centre = np.array([math.cos(a), math.sin(a), 0.6])
+        centre = centre / np.linalg.norm(centre)
+        z = -centre
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        Rs.append(R)
+        ts.append(-R @ centre)
+        Ks.append(np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]]))
+    return np.stack(Ks), np.zeros((4, 5)), np.stack(Rs), np.stack(ts)
+
+
+def project(K, R, t, X):
+    """(C, 3, 3), (C, 3, 3), (C, 3), (N, 3) -> (C, N, 2)."""
+    x = np.einsum("cij,nj->cni", R, X) + t[:, None]
+    p = np.einsum("cij,cnj->cni", K, x)
+    return p[..., :2] / p[..., 2:3]
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled: int = 8, test: int = 4,
+                 seed: int = 0) -> Path:
+    """Write the dataset to ``path``; returns the path."""
+    from s3k.data.format import DatasetWriter
+
+    rng = np.random.default_rng(seed)
+    K, dist, R, t = rig(size)
+    path = Path(path)
+    with DatasetWriter(path, KEYPOINTS, CAMERAS, (size, size), "m", calibration=(K, dist, R, t)) as w:
+        fid = 0
+        for split, n in (("labelled", labelled), ("unlabelled", unlabelled), ("test", test)):
+            for _ in range(n):
+                X = LAYOUT @ random_rotation(rng).T + rng.uniform(-0.03, 0.03, size=3)
+                uv = project(K, R, t, X)
+                images = np.full((4, size, size, 3), 90, np.uint8)
+                for c in range(4):
+                    for k in range(3):
+                        centre = (int(round(uv[c, k, 0] * 4)), int(round(uv[c, k, 1] * 4)))
+                        cv2.circle(images[c], centre, 8, COLOURS[k], -1, cv2.LINE_AA, shift=2)
+                labels = uv if split == "labelled" else None
+                w.add_frame(fid, split, images, None, labels, points3d=X)
+                fid += 1
+    return path
