@@ -13,6 +13,7 @@ indexed by video frame id. Pixel (0, 0) is the centre of the top-left pixel in a
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 import re
@@ -488,3 +489,277 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
         uv[occupancy[:, ti] == 0] = np.nan
     uv[np.isnan(uv).any(axis=2)] = np.nan
     return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# s3k import
+
+
+def _pairs(values: list[str] | None, option: str) -> dict[str, str]:
+    """``["cam=FILE", ...]`` -> ``{cam: FILE}`` (error naming the option and the value)."""
+    out: dict[str, str] = {}
+    for value in values or []:
+        cam, sep, rest = value.partition("=")
+        if not sep or not cam or not rest:
+            raise ValueError(f"{option} {value!r}: expected CAMERA=FILE")
+        if cam in out:
+            raise ValueError(f"{option}: camera {cam!r} given twice")
+        out[cam] = rest
+    return out
+
+
+def _parse_crops(values: list[str] | None, cameras: list[str]) -> dict[str, tuple[float, ...]]:
+    """``["x0,y0,x1,y1"]`` (every camera) or ``["cam=x0,y0,x1,y1", ...]`` -> ``{cam: box}``."""
+    crops: dict[str, tuple[float, ...]] = {}
+    for value in values or []:
+        cam, sep, box_text = value.rpartition("=")
+        targets = [cam] if sep else list(cameras)
+        if sep and cam not in cameras:
+            raise ValueError(f"--crop {value!r}: unknown camera {cam!r} (cameras: {', '.join(cameras)})")
+        try:
+            box = tuple(float(x) for x in box_text.split(","))
+        except ValueError:
+            box = ()
+        if len(box) != 4 or not box[2] > box[0] or not box[3] > box[1]:
+            raise ValueError(f"--crop {value!r}: expected [CAMERA=]x0,y0,x1,y1 with x1 > x0 and y1 > y0")
+        for t in targets:
+            crops[t] = box
+    return crops
+
+
+def _output_size(boxes: list[tuple[float, ...]], size: str | None, scale: float | None) -> tuple[int, int]:
+    widths = {b[2] - b[0] for b in boxes}
+    heights = {b[3] - b[1] for b in boxes}
+    if scale is not None:
+        if scale <= 0:
+            raise ValueError(f"--scale must be positive, got {scale}")
+        if len(widths) > 1 or len(heights) > 1:
+            raise ValueError("--scale needs crops of one size; give --size W,H for crops of different sizes")
+        return max(1, round(widths.pop() * scale)), max(1, round(heights.pop() * scale))
+    if size is not None:
+        parts = size.split(",")
+        try:
+            nums = [int(p) for p in parts]
+        except ValueError:
+            nums = []
+        if len(nums) == 2 and min(nums) > 0:
+            return nums[0], nums[1]
+        if len(nums) == 1 and nums[0] > 0:
+            # One number: the longer side, aspect ratio kept (crops must share it).
+            if len({round((b[2] - b[0]) / (b[3] - b[1]), 6) for b in boxes}) > 1:
+                raise ValueError("--size PX needs crops of one aspect ratio; give --size W,H")
+            w, h = boxes[0][2] - boxes[0][0], boxes[0][3] - boxes[0][1]
+            s = nums[0] / max(w, h)
+            return max(1, round(w * s)), max(1, round(h * s))
+        raise ValueError(f"--size {size!r}: expected PX (longer side) or W,H")
+    if len(widths) > 1 or len(heights) > 1:
+        raise ValueError("crops of different sizes need --size W,H (or --size PX) to share one image size")
+    w, h = widths.pop(), heights.pop()
+    if w != int(w) or h != int(h):
+        raise ValueError("a crop with a fractional size needs --size")
+    return int(w), int(h)
+
+
+def _split_frames(
+    candidates: np.ndarray, all_frames: np.ndarray, n_labelled: str, n_test: int, seed: int, stride: int
+) -> dict[int, str]:
+    """Random labelled / test frames among ``candidates``; the rest (every ``stride``-th) unlabelled."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(candidates)
+    if n_test < 0:
+        raise ValueError(f"--test must be >= 0, got {n_test}")
+    if n_test > len(order):
+        raise ValueError(f"--test {n_test}: only {len(order)} frames have a keypoint labelled in >= 2 views")
+    test = order[:n_test]
+    rest = order[n_test:]
+    if str(n_labelled) == "all":
+        labelled = rest
+    else:
+        n = int(n_labelled)
+        if n < 0 or n > len(rest):
+            raise ValueError(
+                f"--labelled {n}: {len(rest)} frames with a keypoint labelled in >= 2 views remain after "
+                f"{n_test} test frames"
+            )
+        labelled = rest[:n]
+    splits = {int(f): "unlabelled" for f in all_frames if f % stride == 0}
+    splits.update({int(f): "test" for f in test})
+    splits.update({int(f): "labelled" for f in labelled})
+    return dict(sorted(splits.items()))
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Convert a calibrated multi-camera recording to an s3k dataset: anipose calibration.toml, one video "
+        "per camera, and 2D labels from SLEAP analysis files or DeepLabCut / Lightning Pose CSVs. Frames "
+        "with labels are split into labelled and test frames (test labels are kept for evaluation); the "
+        "other frames are unlabelled (their labels, if any, are not written)."
+    )
+    parser.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
+                        help="one video per camera; the order sets the dataset's camera order")
+    labels = parser.add_mutually_exclusive_group(required=True)
+    labels.add_argument("--sleap", nargs="+", metavar="CAM=FILE.h5", help="SLEAP analysis HDF5 per camera")
+    labels.add_argument("--dlc", nargs="+", metavar="CAM=FILE.csv",
+                        help="DeepLabCut / Lightning Pose label CSV per camera")
+    labels.add_argument("--lightning-pose", metavar="DIR",
+                        help="folder with Lightning Pose's multi-view CSVs CollectedData_<camera>.csv")
+    parser.add_argument("--sleap-track", default=None, help="SLEAP track name or index (if several)")
+    parser.add_argument("--frame-ids-from", choices=["path", "row"], default="path",
+                        help="CSV frame index from the image file name's digits (default) or the row number")
+    parser.add_argument("--out", required=True, help="dataset folder to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    parser.add_argument("--labelled", default="10",
+                        help="number of labelled frames, or 'all' (default 10)")
+    parser.add_argument("--test", type=int, default=0, help="number of test frames (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random split (default 0)")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="keep every STRIDE-th video frame as unlabelled (default 1: all)")
+    parser.add_argument("--min-views", type=int, default=2,
+                        help="a frame can be labelled/test when a keypoint is labelled in this many cameras")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--size", default=None,
+                      help="output image size: W,H or PX (the longer side, aspect kept)")
+    size.add_argument("--scale", type=float, default=None, help="output image scale factor, e.g. 0.25")
+    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
+                        help="crop box in pixel edge coordinates, for every camera or one camera")
+    parser.add_argument("--units", default=None,
+                        help="world length unit of the calibration (default: from the board, e.g. mm)")
+    parser.add_argument("--keypoints", default=None, help="comma-separated keypoints to keep (default all)")
+
+
+def import_recording(args: argparse.Namespace) -> Path:
+    """Do the work of ``s3k import`` (see :func:`configure_parser` for the arguments); returns the folder."""
+    from s3k.data import video
+    from s3k.data.format import DatasetWriter
+    from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
+
+    videos = _pairs(args.videos, "--videos")
+    cameras = list(videos)
+    calib = read_anipose_calibration(args.calibration, units=args.units)
+    try:
+        calib = calib.select(cameras)
+    except KeyError as exc:
+        raise ValueError(f"{args.calibration}: {exc.args[0]}") from None
+
+    # Labels per camera.
+    if args.sleap:
+        files = _pairs(args.sleap, "--sleap")
+        reader = lambda p: read_sleap_analysis(p, track=args.sleap_track)  # noqa: E731
+        kind = "sleap"
+    else:
+        if args.dlc:
+            files = _pairs(args.dlc, "--dlc")
+            kind = "deeplabcut"
+        else:
+            files = {k: str(v) for k, v in find_lightning_pose_csvs(args.lightning_pose, cameras).items()}
+            kind = "lightning-pose"
+        reader = lambda p: read_dlc_csv(p, frame_ids_from=args.frame_ids_from)  # noqa: E731
+    unknown = sorted(set(files) - set(cameras))
+    if unknown:
+        raise ValueError(
+            f"labels given for cameras {unknown} that have no --videos entry ({', '.join(cameras)})"
+        )
+    tables = {cam: reader(path) for cam, path in files.items()}
+    keypoints: list[str] = []
+    for table in tables.values():
+        keypoints += [k for k in table.keypoints if k not in keypoints]
+    if args.keypoints:
+        wanted = [k.strip() for k in args.keypoints.split(",") if k.strip()]
+        missing = [k for k in wanted if k not in keypoints]
+        if missing:
+            raise ValueError(f"--keypoints: {missing} not in the labels ({', '.join(keypoints)})")
+        keypoints = wanted
+
+    # Videos: sizes must match the calibration, frames counted.
+    counts = {}
+    for c, cam in enumerate(cameras):
+        W, H = video.frame_size(videos[cam])
+        if (W, H) != tuple(int(v) for v in calib.size[c]):
+            raise ValueError(
+                f"{videos[cam]}: video is {W}x{H} but {args.calibration} gives camera {cam!r} size "
+                f"{calib.size[c][0]}x{calib.size[c][1]}"
+            )
+        counts[cam] = video.frame_count(videos[cam])
+    n_frames = min(counts.values())
+    if len(set(counts.values())) > 1:
+        print(f"warning: videos have different frame counts {counts}; using the first {n_frames} frames")
+
+    # Crop and resize: one pixel map per camera, applied to K and to the labels.
+    crops = _parse_crops(args.crop, cameras)
+    boxes = [crops.get(cam, (0.0, 0.0, float(calib.size[c][0]), float(calib.size[c][1])))
+             for c, cam in enumerate(cameras)]
+    out_size = _output_size(boxes, args.size, args.scale)
+    maps = [crop_resize_matrix(box, out_size) for box in boxes]
+    K_out = np.stack([resize_crop(None, calib.K[c], boxes[c], out_size)[1] for c in range(len(cameras))])
+
+    C, Kp = len(cameras), len(keypoints)
+    uv = np.full((n_frames, C, Kp, 2), np.nan)
+    for c, cam in enumerate(cameras):
+        if cam not in tables:
+            continue
+        table = tables[cam]
+        beyond = table.frame_ids >= n_frames
+        if beyond.any():
+            print(f"warning: {table.source}: {int(beyond.sum())} labelled frames beyond the video's "
+                  f"{n_frames} frames are ignored")
+        present = [k for k in keypoints if k in table.keypoints]
+        cols = [keypoints.index(k) for k in present]
+        dense = table.dense(n_frames, present)
+        uv[:, c, cols] = transform_points(dense, maps[c])
+    W, H = out_size
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
+    outside = np.isfinite(uv).all(-1) & ~inside
+    if outside.any():
+        print(f"note: {int(outside.sum())} labels fall outside the (cropped) images and are dropped")
+    uv[~inside] = np.nan
+    mask = np.isfinite(uv).all(-1)
+    views = mask.sum(axis=1)  # (F, K)
+    candidates = np.flatnonzero((views >= args.min_views).any(axis=1))
+    if args.stride < 1:
+        raise ValueError(f"--stride must be >= 1, got {args.stride}")
+    splits = _split_frames(candidates, np.arange(n_frames), args.labelled, args.test, args.seed, args.stride)
+
+    source = {
+        "importer": kind,
+        "calibration": str(Path(args.calibration).resolve()),
+        "videos": {cam: str(Path(p).resolve()) for cam, p in videos.items()},
+        "labels": {cam: str(Path(p).resolve()) for cam, p in files.items()},
+        "crop_boxes": {cam: list(b) for cam, b in zip(cameras, boxes)},
+        "source_image_size": {cam: [int(v) for v in calib.size[c]] for c, cam in enumerate(cameras)},
+        "split_seed": args.seed,
+    }
+    writer = DatasetWriter(
+        args.out, keypoints, cameras, out_size, calib.units,
+        calibration=(K_out, calib.dist, calib.R, calib.t), source=source,
+        description=f"imported from {kind} labels and {Path(args.calibration).name}",
+        overwrite=args.overwrite,
+    )
+    wanted = sorted(splits)
+    streams = [video.iter_frames(videos[cam], wanted) for cam in cameras]
+    for frames in zip(*streams):
+        f = frames[0][0]
+        images = []
+        for c, (i, image) in enumerate(frames):
+            if i != f:  # pragma: no cover - iter_frames yields the same ids for every camera
+                raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
+            images.append(resize_crop(image, None, boxes[c], out_size)[0])
+        split = splits[f]
+        labels = (np.nan_to_num(uv[f]), mask[f]) if split != "unlabelled" else None
+        writer.add_frame(f, split, np.stack(images), labels=labels, extra={"video_frame": f})
+    path = writer.close()
+    n = {s: sum(1 for v in splits.values() if v == s) for s in ("labelled", "test", "unlabelled")}
+    n_labels = int(sum(mask[f].sum() for f, s in splits.items() if s != "unlabelled"))
+    print(f"wrote {path}: {len(splits)} frames (labelled {n['labelled']}, test {n['test']}, unlabelled "
+          f"{n['unlabelled']}), {C} cameras {', '.join(cameras)}, {Kp} keypoints, {W}x{H} px, "
+          f"{n_labels} 2D labels, units {calib.units}")
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import_recording(args)
+    except (ValueError, FileNotFoundError, KeyError, IndexError) as exc:
+        print(f"s3k import: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
