@@ -915,7 +915,9 @@ def _parse(root: Path, P: _Problems) -> _Contents | None:
     source = IMAGE_SOURCES[spec.get("type", "png")](root, spec, meta.cameras, frames.ids, frames.columns)
     items = source.check(frames.ids, P)
     if calib is None:
-        return None
+        # Reported already; a NaN placeholder lets check_dataset go on to the images and the summary.
+        lead = (len(meta.cameras),) if meta.calibration == "static" else (len(frames.ids), len(meta.cameras))
+        calib = CameraArrays(*(np.full((*lead, *s), np.nan) for s in ((3, 3), (5,), (3, 3), (3,))))
     return _Contents(root, meta, frames, calib, labels, points, source, items)
 
 

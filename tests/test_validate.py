@@ -1,0 +1,150 @@
+"""`s3k validate`: exit codes, every problem reported with its file and field, and the summary."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from s3k.cli import main
+from s3k.data.format import DatasetWriter
+
+KEYPOINTS = ["front", "tongue", "heel"]
+CAMERAS = ["left", "right"]
+W, H = 20, 14
+
+
+def make_dataset(root: Path) -> Path:
+    """Two cameras, 4 frames (2 labelled, 1 unlabelled, 1 test); every keypoint labelled in both views of
+    the labelled frames except 'heel' in 'right'."""
+    rng = np.random.default_rng(0)
+    K = np.tile([[15.0, 0.0, 9.5], [0.0, 15.0, 6.5], [0.0, 0.0, 1.0]], (2, 1, 1))
+    R = np.tile(np.eye(3), (2, 1, 1))
+    t = np.array([[0.0, 0.0, 1.0], [-0.1, 0.0, 1.0]])
+    rig = (K, np.zeros((2, 5)), R, t)
+    with DatasetWriter(root, KEYPOINTS, CAMERAS, (W, H), calibration=rig) as writer:
+        for frame, split in enumerate(["labelled", "labelled", "unlabelled", "test"]):
+            labels = None
+            if split == "labelled":
+                labels = rng.uniform(1, 12, size=(2, 3, 2))
+                labels[1, 2] = np.nan
+            images = rng.integers(0, 256, size=(2, H, W, 3), dtype=np.uint8)
+            writer.add_frame(frame, split, images, labels=labels, points3d=rng.normal(size=(3, 3)))
+    return root
+
+
+def validate(capsys, *args) -> tuple[int, str]:
+    code = main(["validate", *(str(a) for a in args)])
+    return code, capsys.readouterr().out
+
+
+def test_good_dataset_exits_zero_with_summary(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    code, out = validate(capsys, root)
+    assert code == 0, out
+    assert "ERROR" not in out and "OK" in out
+    assert "frames per split: labelled 2, unlabelled 1, test 1" in out
+    # Labels table: front/tongue labelled in both cameras of 2 frames, heel only in 'left'.
+    table = [line.split() for line in out.splitlines() if line.startswith("  ")]
+    rows = {cells[0]: cells[1:] for cells in table if cells[0] in KEYPOINTS}
+    assert rows == {"front": ["2", "2"], "tongue": ["2", "2"], "heel": ["2", "0"]}
+    assert "ground-truth 3D points: 12" in out
+
+
+def test_corrupted_image_exits_non_zero_naming_it(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    (root / "images" / "right" / "000002.png").write_bytes(b"\x89PNG broken")
+    code, out = validate(capsys, root)
+    assert code != 0
+    assert "ERROR   images/right/000002.png (frame 2, camera right): field 'image': cannot decode" in out
+    assert "UNUSABLE" in out
+
+
+def test_image_of_wrong_size_exits_non_zero(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    cv2.imwrite(str(root / "images" / "left" / "000001.png"), np.zeros((H, W + 2, 3), np.uint8))
+    code, out = validate(capsys, root)
+    assert code != 0
+    assert "images/left/000001.png (frame 1, camera left): field 'size': image is 22x14" in out
+
+
+def test_corrupted_calibration_exits_non_zero_naming_it(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    path = root / "calibration.json"
+    cal = json.loads(path.read_text())
+    cal["cameras"]["right"]["R"][0][0] = 1.5
+    path.write_text(json.dumps(cal))
+    code, out = validate(capsys, root)
+    assert code != 0
+    assert "calibration.json (camera right): field 'cameras.right.R': not a rotation" in out
+
+
+def test_every_problem_is_reported_not_just_the_first(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    (root / "images" / "left" / "000003.png").write_bytes(b"")
+    (root / "images" / "right" / "000000.png").unlink()
+    cal = json.loads((root / "calibration.json").read_text())
+    cal["cameras"]["left"]["K"][0][0] = float("inf")
+    (root / "calibration.json").write_text(json.dumps(cal))
+    labels = root / "labels.csv"
+    labels.write_text(labels.read_text().replace(",tongue,", ",toe,", 1))
+    meta = json.loads((root / "s3k.json").read_text())
+    meta["version"] = 7
+    (root / "s3k.json").write_text(json.dumps(meta))
+    code, out = validate(capsys, root)
+    assert code != 0
+    for text in (
+        "s3k.json: field 'version'",
+        "images/left/000003.png (frame 3, camera left): field 'image'",
+        "images/right/000000.png (frame 0, camera right): field 'image': image file missing",
+        "calibration.json (camera left): field 'cameras.left.K': not finite",
+        "labels.csv line 3 (frame 0): field 'keypoint': unknown keypoint 'toe'",
+    ):
+        assert text in out, out
+    assert "UNUSABLE: 5 error(s)" in out
+
+
+def test_label_outside_image_is_a_warning_unless_strict(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    labels = root / "labels.csv"
+    lines = labels.read_text().splitlines()
+    cells = lines[1].split(",")
+    cells[4] = "-3.0"
+    lines[1] = ",".join(cells)
+    labels.write_text("\n".join(lines) + "\n")
+    code, out = validate(capsys, root)
+    assert code == 0
+    assert "WARNING labels.csv line 2" in out and "field 'v'" in out and "masked" in out
+    code, _ = validate(capsys, root, "--strict")
+    assert code == 1
+
+
+def test_missing_metadata_exits_non_zero(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    (root / "s3k.json").unlink()
+    code, out = validate(capsys, root)
+    assert code != 0 and "s3k.json: file missing" in out
+
+
+def test_no_images_skips_decoding_but_not_existence(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    (root / "images" / "left" / "000002.png").write_bytes(b"junk")
+    code, _ = validate(capsys, root, "--no-images")
+    assert code == 0
+    (root / "images" / "left" / "000002.png").unlink()
+    code, out = validate(capsys, root, "--no-images")
+    assert code != 0 and "images/left/000002.png" in out
+
+
+@pytest.mark.parametrize("limit", [1, 3])
+def test_repeated_problems_are_summarized(tmp_path: Path, capsys, limit: int):
+    root = make_dataset(tmp_path / "ds")
+    for frame in range(4):
+        (root / "images" / "left" / f"{frame:06d}.png").write_bytes(b"junk")
+    code, out = validate(capsys, root, "--max-per-field", limit)
+    assert code != 0
+    assert out.count("field 'image': cannot decode") == limit
+    assert f"... and {4 - limit} more" in out
