@@ -260,3 +260,187 @@ def test_sleap_malformed(tmp_path):
     text.write_text("hello")
     with pytest.raises(ValueError, match="text.h5: not an HDF5 file"):
         imp.read_sleap_analysis(text)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# s3k import, end to end on a tiny synthetic recording
+
+
+def _look_at(centre):
+    z = -np.asarray(centre, float) / np.linalg.norm(centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+W_IMG, H_IMG, N_FRAMES = 64, 48, 12
+CAMS = ["north", "east", "south"]
+KEYPOINTS = ["head", "body", "tail"]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A 3-camera rig in mm, ffv1 videos, SLEAP files and DLC CSVs of the same projected 3D points."""
+    from s3k.data.video import write_video
+
+    root = tmp_path_factory.mktemp("recording")
+    Rs, ts = [], []
+    for c in range(3):
+        angle = 2 * np.pi * c / 3
+        R, t = _look_at(np.array([np.cos(angle), np.sin(angle), 0.5]) * 400.0)
+        Rs.append(R)
+        ts.append(t)
+    K = np.array([[70.0, 0, (W_IMG - 1) / 2], [0, 70.0, (H_IMG - 1) / 2], [0, 0, 1]])
+    calib = imp.RigCalibration(
+        list(CAMS), np.stack([K] * 3), np.zeros((3, 5)), np.stack(Rs), np.stack(ts),
+        np.array([[W_IMG, H_IMG]] * 3), "mm", {"square_length": 20.0},
+    )
+    imp.write_anipose_calibration(root / "calibration.toml", calib)
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-40, 40, (N_FRAMES, len(KEYPOINTS), 3))
+    uv = np.stack(
+        [cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(R)[0], t, K, None)[0].reshape(N_FRAMES, -1, 2)
+         for R, t in zip(Rs, ts)],
+        axis=1,
+    )  # (F, C, K, 2)
+    uv[3, 0, 1] = np.nan  # missing labels
+    uv[5, :, 2] = np.nan
+    frames = {}
+    for c, cam in enumerate(CAMS):
+        # Each frame a distinct pattern so that a frame mix-up is visible.
+        images = [
+            (rng.integers(0, 40, (H_IMG, W_IMG, 3)) + np.array([20 * f, 60 * c, 100])).clip(0, 255)
+            .astype(np.uint8)
+            for f in range(N_FRAMES)
+        ]
+        frames[cam] = images
+        write_video(root / f"{cam}.mkv", images, fps=30, codec="ffv1")
+        loc = uv[:, c, :, :, None]  # (F, K, 2, 1 track)
+        _write_sleap(root / f"{cam}.analysis.h5", loc, nodes=KEYPOINTS)
+        rows = ["scorer" + ",me" * 6, "bodyparts," + ",".join(f"{k},{k}" for k in KEYPOINTS)]
+        rows.append("coords" + ",x,y" * 3)
+        for f in range(0, N_FRAMES, 2):  # DLC: every other frame labelled, written in shuffled order
+            cells = ["" if np.isnan(v) else repr(float(v)) for v in uv[f, c].ravel()]
+            rows.insert(3, f"labeled-data/rec_{cam}/img{f:04d}.png," + ",".join(cells))
+        (root / f"CollectedData_{cam}.csv").write_text("\n".join(rows) + "\n")
+    return {"root": root, "X": X, "uv": uv, "frames": frames, "K": K}
+
+
+def _import(recording, out, *extra, labels="sleap"):
+    from s3k.cli import main
+
+    root = recording["root"]
+    argv = ["import", "--calibration", str(root / "calibration.toml"), "--videos"]
+    argv += [f"{cam}={root / cam}.mkv" for cam in CAMS]
+    if labels == "sleap":
+        argv += ["--sleap"] + [f"{cam}={root / cam}.analysis.h5" for cam in CAMS]
+    elif labels == "dlc":
+        argv += ["--dlc"] + [f"{cam}={root}/CollectedData_{cam}.csv" for cam in CAMS]
+    else:
+        argv += ["--lightning-pose", str(root)]
+    return main(argv + ["--out", str(out), *extra])
+
+
+def _reprojected(ds, frame_ids, X):
+    """Project ground-truth points with the dataset's calibration: must land on its labels."""
+    import torch
+
+    from s3k.geometry import project
+
+    cams = ds.calibration(frame_ids, dtype=np.float64)
+    uv, _ = project(cams, torch.as_tensor(X[frame_ids][:, None], dtype=torch.float64))
+    return uv.numpy()
+
+
+def test_import_sleap(recording, tmp_path, capsys):
+    from s3k.data.format import Dataset
+    from s3k.data.transforms import resize_crop
+
+    out = tmp_path / "ds"
+    assert _import(recording, out, "--labelled", "3", "--test", "4", "--seed", "1", "--scale", "0.5") == 0
+    assert "labelled 3, test 4, unlabelled 5" in capsys.readouterr().out
+    ds = Dataset.open(out)
+    assert ds.cameras == CAMS and ds.keypoints == KEYPOINTS
+    assert ds.image_size == (32, 24) and ds.units == "mm"
+    lab, test, unl = ds.frames("labelled"), ds.frames("test"), ds.frames("unlabelled")
+    assert len(lab) == 3 and len(test) == 4 and len(unl) == 5
+    assert sorted([*lab, *test, *unl]) == list(range(N_FRAMES))
+    # Labels are kept on labelled and test frames only, and follow the resize exactly (K' = M K).
+    ids = np.sort(np.concatenate([lab, test]))
+    uv, mask = ds.labels(ids)
+    ref = recording["uv"][ids]
+    np.testing.assert_array_equal(mask, np.isfinite(ref).all(-1))
+    np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, recording["X"])[mask], atol=1e-3)
+    np.testing.assert_allclose(uv[mask], (0.5 * (ref + 0.5) - 0.5)[mask], atol=1e-3)
+    assert not ds.labels(unl)[1].any()
+    # Images: the right video frame of the right camera, resized by resize_crop.
+    f = int(test[0])
+    images = ds.images([f])[0]
+    for c, cam in enumerate(CAMS):
+        expected = resize_crop(recording["frames"][cam][f], None, None, (32, 24))[0]
+        np.testing.assert_array_equal(images[c], expected)
+    # The same seed gives the same split.
+    assert _import(recording, tmp_path / "again", "--labelled", "3", "--test", "4", "--seed", "1") == 0
+    np.testing.assert_array_equal(Dataset.open(tmp_path / "again").frames("test"), test)
+
+
+def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):
+    from s3k.data.format import Dataset
+
+    crop = ["north=8,4,56,40", "east=0,0,48,36"]  # two crop sizes (48x36 each), one camera uncropped
+    for labels in ("dlc", "lightning-pose"):
+        out = tmp_path / labels
+        code = _import(recording, out, "--labelled", "all", "--test", "2", "--crop", *crop, "--size", "32,24",
+                       labels=labels)
+        assert code == 0
+        ds = Dataset.open(out)
+        assert ds.image_size == (32, 24)
+        ids = np.sort(np.concatenate([ds.frames("labelled"), ds.frames("test")]))
+        np.testing.assert_array_equal(ids, np.arange(0, N_FRAMES, 2))  # only labelled frames can be chosen
+        uv, mask = ds.labels(ids)
+        np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, recording["X"])[mask], atol=1e-3)
+        # Labels outside a crop are dropped, the others kept.
+        ref = recording["uv"][ids]
+        u, v = ref[:, 0, :, 0], ref[:, 0, :, 1]
+        inside = (u >= 8) & (u < 56) & (v >= 4) & (v < 40)
+        np.testing.assert_array_equal(mask[:, 0], inside & np.isfinite(ref[:, 0]).all(-1))
+
+
+def test_import_errors(recording, tmp_path, capsys):
+    root = recording["root"]
+    # A camera missing from the calibration.
+    from s3k.cli import main
+
+    code = main(["import", "--calibration", str(root / "calibration.toml"),
+                 "--videos", f"west={root}/north.mkv",
+                 "--sleap", f"west={root}/north.analysis.h5", "--out", str(tmp_path / "x")])
+    assert code == 1
+    assert "camera 'west' is not in the calibration" in capsys.readouterr().err
+    # Not enough labelled frames for the split.
+    assert _import(recording, tmp_path / "y", "--labelled", "20", labels="dlc") == 1
+    assert "--labelled 20" in capsys.readouterr().err
+    # A malformed CSV names the file and the line.
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for cam in CAMS:
+        text = (root / f"CollectedData_{cam}.csv").read_text()
+        if cam == "east":
+            lines = text.splitlines()
+            lines[4] = lines[4].replace(".", ",", 1) + ",1"  # one cell too many
+            text = "\n".join(lines)
+        (bad / f"CollectedData_{cam}.csv").write_text(text)
+    code = main(["import", "--calibration", str(root / "calibration.toml"), "--videos",
+                 *[f"{cam}={root / cam}.mkv" for cam in CAMS], "--lightning-pose", str(bad),
+                 "--out", str(tmp_path / "z")])
+    assert code == 1
+    assert "CollectedData_east.csv: line 5 has" in capsys.readouterr().err
+    # A video whose size disagrees with the calibration.
+    from s3k.data.video import write_video
+
+    write_video(tmp_path / "small.mkv", [np.zeros((24, 32, 3), np.uint8)], codec="ffv1")
+    code = main(["import", "--calibration", str(root / "calibration.toml"), "--videos",
+                 f"north={tmp_path / 'small.mkv'}", "--sleap", f"north={root}/north.analysis.h5",
+                 "--out", str(tmp_path / "w")])
+    assert code == 1
+    assert "small.mkv: video is 32x24" in capsys.readouterr().err
