@@ -1254,7 +1254,7 @@ class Dataset:
         missing = np.unique(rows[self._filled[rows] == 0])
         if len(missing):
             self._fill(missing)
-        return self._cache[rows]
+        return np.asarray(self._cache[rows])  # fancy indexing copies; asarray drops the memmap subclass
 
     def _check_all_images(self, P: _Problems, only_existing: bool = False, chunk: int = 64) -> None:
         """Decode every image and report unreadable ones and wrong sizes (for ``check_dataset``)."""
