@@ -35,6 +35,7 @@ import logging
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -461,7 +462,10 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
             nonfinite_run += 1
             log.warning("step %d: non-finite loss or gradient (%s); step skipped (%d in a row)", step,
                         ", ".join(f"{k}={v:.4g}" for k, v in terms.items()), nonfinite_run)
-        sched.step()
+        with warnings.catch_warnings():
+            # after a skipped step the scheduler still advances, so that the schedule follows the step count
+            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()`")
+            sched.step()
         step += 1
         te = time.perf_counter()
         t_data += td - ts
@@ -496,6 +500,11 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
             callback(step, terms)
     if bar is not None:
         bar.close()
+    if info.enabled:
+        # DDP keeps parameters identical; normalization statistics are only broadcast at each forward, so
+        # give every rank rank 0's final ones (those that were checkpointed).
+        for buf in net.buffers():
+            dist.broadcast(buf.data, 0)
     timing = {"step_s": t_total / max(n_timed, 1), "loader_fraction": t_data / max(t_total, 1e-12)}
     if n_timed:
         log.info("%s at step %d: %.3f s per step, data loading + augmentation %.1f%% of it", status, step,

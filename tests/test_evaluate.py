@@ -1,0 +1,146 @@
+"""Evaluation metrics on known predictions, the evaluate/predict commands and the report."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
+
+from s3k.cli import main as cli_main
+from s3k.evaluate import compute_metrics, draw_views, mm_per_unit
+from s3k.frames import FrameStore, open_dataset
+from s3k.predict import predict_store
+from s3k.run import load_detector
+from s3k.train import train
+
+
+def test_metrics_by_hand():
+    B, C, K = 2, 2, 2
+    gt = np.zeros((B, C, K, 2))
+    pred = gt.copy()
+    pred[0, 0, 0] = (3, 4)  # 5 px
+    pred[1, 1, 1] = (0, 2)  # 2 px
+    pred[1, 0, 1] = (100, 100)  # masked below: must not count
+    mask = np.ones((B, C, K), bool)
+    mask[1, 0, 1] = False
+    reproj = gt.copy()
+    reproj[:, :, 0] = (1, 0)  # 1 px for keypoint 0 everywhere
+    reproj[0, :, 1] = (0, 50)  # frame 0 keypoint 1 is not triangulated: must not count
+    X_gt = np.zeros((B, K, 3))
+    X = X_gt.copy()
+    X[0, 0, 0] = 0.001  # 1 mm
+    X[1, 0, 1] = 0.002  # 2 mm
+    X[1, 1, 2] = 0.004  # 4 mm
+    X[0, 1] = 9.0  # invalid
+    valid = np.array([[True, False], [True, True]])
+    m = compute_metrics(pred, reproj, gt, mask, X, valid, X_gt, None, 1000.0, ["p", "q"], ["c0", "c1"])
+    # 2D: 7 terms, squared errors 25 and 4
+    assert m["rms_px"] == pytest.approx(math.sqrt((25 + 4) / 7))
+    # reprojection: keypoint 0 in 4 views at 1 px, keypoint 1 of frame 1 in 1 unmasked view at 0 px
+    assert m["rms_px_reproj"] == pytest.approx(math.sqrt(4 / 5))
+    assert m["median_mm"] == pytest.approx(2.0)
+    assert m["rms_mm"] == pytest.approx(math.sqrt((1 + 4 + 16) / 3))
+    assert m["triangulated_fraction"] == pytest.approx(0.75)
+    assert (m["n_frames"], m["n_2d"], m["n_3d"]) == (2, 7, 3)
+    kp = m["per_keypoint"]
+    assert kp["p"]["rms_px"] == pytest.approx(math.sqrt(25 / 4))
+    assert kp["q"]["rms_px"] == pytest.approx(math.sqrt(4 / 3))
+    assert kp["p"]["median_mm"] == pytest.approx(1.5) and kp["q"]["rms_mm"] == pytest.approx(4.0)
+    cam = m["per_camera"]
+    assert cam["c0"]["rms_px"] == pytest.approx(math.sqrt(25 / 3)) and cam["c0"]["n_2d"] == 3
+    assert cam["c1"]["rms_px"] == pytest.approx(math.sqrt(4 / 4))
+    json.dumps(m)  # serializable
+
+
+def test_metrics_without_3d_and_bad_shapes():
+    z = np.zeros((1, 2, 3, 2))
+    m = compute_metrics(z, z, z + 1, np.ones((1, 2, 3), bool), np.zeros((1, 3, 3)), np.ones((1, 3), bool))
+    assert m["rms_px"] == pytest.approx(math.sqrt(2)) and m["median_mm"] is None and m["rms_mm"] is None
+    with pytest.raises(ValueError, match="pred_uv"):
+        compute_metrics(z[:, :1], z, z, np.ones((1, 2, 3), bool), np.zeros((1, 3, 3)), np.ones((1, 3), bool))
+    assert mm_per_unit("m") == 1000 and mm_per_unit("mm") == 1 and math.isnan(mm_per_unit("furlong"))
+
+
+def test_draw_views_shape():
+    probs = np.random.default_rng(0).random((4, 3, 8, 10))
+    pred, true = np.full((4, 3, 2), 5.0), np.full((4, 3, 2), 7.0)
+    img = draw_views(np.zeros((4, 16, 20, 3), np.uint8), probs, pred, true, scale=2)
+    assert img.shape == (32, 160, 3) and img.dtype == np.uint8 and img.max() > 0
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ev")
+    ds = make_dataset(root / "ds", size=32, labelled=3, unlabelled=3, test=3, seed=1)
+    from s3k.config import TrainConfig
+
+    cfg = TrainConfig(steps=2, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
+                      warmup_steps=0, val_every=0, progress=False, threads=1)
+    train(ds, root / "run", cfg)
+    return root, ds, root / "run"
+
+
+def test_evaluate_json_on_known_prediction(trained, capsys):
+    """Ground truth placed at known offsets from the model's own triangulation gives known metrics."""
+    from s3k.data.format import DatasetWriter
+
+    root, ds_path, run = trained
+    model, meta = load_detector(run)
+    ds = open_dataset(ds_path, meta.image_size)
+    test_ids = ds.frames("test")
+    (batch, pred), = list(predict_store(model, FrameStore(ds, test_ids), meta.stride, meta.sigma, 16))
+    assert pred.valid.all()
+    offsets = np.array([[0.001, 0, 0], [0, 0.002, 0], [0, 0, 0.004]])  # 1, 2, 4 mm
+    X_gt = pred.X.double().numpy() + offsets
+    K, dist, R, t = rig(32)
+    known = root / "known"
+    with DatasetWriter(known, KEYPOINTS, CAMERAS, (32, 32), "m", calibration=(K, dist, R, t)) as w:
+        for b, fid in enumerate(test_ids):
+            w.add_frame(int(fid), "test", batch.images[b].numpy(), None, None, points3d=X_gt[b])
+    assert cli_main(["evaluate", str(run), "--data", str(known), "--json", "--device", "cpu"]) == 0
+    m = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert m["median_mm"] == pytest.approx(2.0, abs=1e-3)
+    assert m["rms_mm"] == pytest.approx(math.sqrt((1 + 4 + 16) / 3), abs=1e-3)
+    assert m["per_keypoint"]["c"]["median_mm"] == pytest.approx(4.0, abs=1e-3)
+    gt_uv = np.stack([project(K, R, t, X_gt[b]) for b in range(len(test_ids))])  # (B, C, K, 2)
+    rep_uv = np.stack([project(K, R, t, pred.X[b].double().numpy()) for b in range(len(test_ids))])
+    want_reproj = np.sqrt(np.mean(np.sum((rep_uv - gt_uv) ** 2, -1)))
+    want_px = np.sqrt(np.mean(np.sum((pred.uv.double().numpy() - gt_uv) ** 2, -1)))
+    assert m["rms_px_reproj"] == pytest.approx(want_reproj, rel=1e-3, abs=1e-4)
+    assert m["rms_px"] == pytest.approx(want_px, rel=1e-3, abs=1e-4)
+    assert set(m["per_camera"]) == set(CAMERAS) and m["n_frames"] == len(test_ids)
+
+
+def test_evaluate_table_and_report(trained, capsys, tmp_path):
+    root, ds_path, run = trained
+    rep = tmp_path / "report"
+    args = ["evaluate", str(run), "--data", str(ds_path), "--report", str(rep), "--overlays", "2"]
+    assert cli_main(args) == 0
+    out = capsys.readouterr().out
+    assert "rms_px" in out and "kp a" in out and "cam cam0" in out
+    for name in ("metrics.json", "errors_hist.png", "per_keypoint.png"):
+        assert (rep / name).is_file(), name
+    assert len(list(rep.glob("overlay_*.png"))) == 2
+
+
+def test_predict_csv(trained, tmp_path):
+    root, ds_path, run = trained
+    out = tmp_path / "pred.csv"
+    assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--split", "test"]) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert len(rows) == 3 * len(KEYPOINTS)
+    want = {"frame", "keypoint", "x", "y", "z", "valid", "confidence", "u_cam0", "v_cam3", "w_cam2"}
+    assert want <= set(rows[0])
+    model, meta = load_detector(run)
+    ds = open_dataset(ds_path, meta.image_size)
+    (batch, pred), = list(predict_store(model, FrameStore(ds, ds.frames("test")), meta.stride, meta.sigma))
+    r = rows[1]  # frame 0 of the split, keypoint 1
+    assert int(r["frame"]) == int(batch.frame_ids[0]) and r["keypoint"] == KEYPOINTS[1]
+    assert float(r["x"]) == pytest.approx(float(pred.X[0, 1, 0]), rel=1e-4, abs=1e-7)
+    assert float(r["u_cam2"]) == pytest.approx(float(pred.uv[0, 2, 1, 0]), abs=2e-3)
+    assert torch.isfinite(pred.weight).all()
