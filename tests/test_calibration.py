@@ -127,3 +127,31 @@ def test_input_errors():
         reprojection_residuals(cameras(rig), uv[0], mask[0])
     with pytest.raises(ValueError, match="3 cameras"):
         check_calibration(cameras(rig), uv, mask, NAMES[:3])
+
+
+def _write_dataset(path, rig_written, rig_true, B=12):
+    from s3k.data.format import DatasetWriter
+
+    uv, mask = observe(rig_true, B=B, noise=0.5, drop=0.1)
+    K, d, R, t = rig_written
+    with DatasetWriter(path, [f"k{i}" for i in range(uv.shape[2])], NAMES, (640, 480), "mm",
+                       calibration=(K, d, R, t)) as writer:
+        for b in range(B):
+            split = "labelled" if b % 2 else "test"
+            images = np.zeros((4, 480, 640, 3), np.uint8)
+            writer.add_frame(b, split, images, labels=(np.nan_to_num(uv[b]), mask[b]))
+    return path
+
+
+def test_cli_names_the_bad_camera(tmp_path, capsys):
+    from s3k.cli import main
+
+    rig = make_rig()
+    good = _write_dataset(tmp_path / "good", rig, rig)
+    assert main(["check-calibration", str(good)]) == 0
+    assert "all cameras consistent" in capsys.readouterr().out
+    bad = cameras(rig, rotate=3, angle_deg=2.0).numpy()
+    path = _write_dataset(tmp_path / "bad", [bad[k] for k in ("K", "dist", "R", "t")], rig)
+    assert main(["check-calibration", str(path), "--splits", "labelled"]) == 2
+    out = capsys.readouterr().out
+    assert "INCONSISTENT: d" in out and "6 frames (labelled)" in out
