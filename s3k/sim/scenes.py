@@ -199,7 +199,7 @@ class Scene:
         self._table_geom = self._id(mujoco.mjtObj.mjOBJ_GEOM, "table")
         mat = mujoco.mjtObj.mjOBJ_MATERIAL
         self._table_mats = [self._id(mat, f"table{i}") for i in range(self.num_tables)]
-        self._cam_ids = [self._id(mujoco.mjtObj.mjOBJ_CAMERA, n) for n in self.camera_names]
+        self.camera_ids = [self._id(mujoco.mjtObj.mjOBJ_CAMERA, n) for n in self.camera_names]
         self._light = self._id(mujoco.mjtObj.mjOBJ_LIGHT, "key")
         self._setup()
         mujoco.mj_forward(self.model, self.data)
@@ -298,7 +298,7 @@ class Scene:
 
     def set_cameras(self, eyes: np.ndarray, xmats: np.ndarray) -> None:
         """Places the cameras: positions (C, 3) and MuJoCo orientations (C, 3, 3) in world coordinates."""
-        for i, cam in enumerate(self._cam_ids):
+        for i, cam in enumerate(self.camera_ids):
             self.model.cam_pos[cam] = eyes[i]
             self.model.cam_quat[cam] = _quat_from_mat(xmats[i])
 
@@ -346,7 +346,7 @@ class Scene:
     def calibration(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """OpenCV ``K (C, 3, 3), R (C, 3, 3), t (C, 3)`` of the current cameras (after :meth:`forward`)."""
         Ks, Rs, ts = zip(*(camera_from_model(self.model, self.data, c, self.size, self.size)
-                           for c in self._cam_ids))
+                           for c in self.camera_ids))
         return np.array(Ks), np.array(Rs), np.array(ts)
 
     def forward(self) -> None:
@@ -361,7 +361,7 @@ class Scene:
         X = self.keypoints_world()
         uv, depth = project_points(K, R, t, X)
         groups = (self.OCCLUDER_GROUP,) if self.occlusion_test else None
-        out = self.renderer.render(self.data, self._cam_ids, group_depth=groups)
+        out = self.renderer.render(self.data, self.camera_ids, group_depth=groups)
         visible = in_image(uv, depth, self.size, self.size)
         if self.occlusion_test:
             visible &= ~occluded(uv, depth, out["group_depth"], self.occlusion_tolerance)

@@ -1,0 +1,279 @@
+"""Dataset generation: frame plan, parallel rendering, writing through :class:`s3k.data.format.DatasetWriter`.
+
+Every frame is a pure function of ``(seed, frame_id)``: its randomness comes from
+``numpy.random.default_rng([seed, frame_id])`` and a scene sets its whole state before each capture, so the
+same seed gives the same dataset whatever the number of worker processes. Each worker process builds its own
+scene (one MuJoCo model and one OpenGL renderer); the parent writes frames in frame order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from s3k.sim.scenes import NUM_INSTANCES, NUM_TRAIN_INSTANCES, SCENES, FrameSpec, Scene, SimFrame, make_scene
+
+MODES = ("start", "full")
+
+
+@dataclasses.dataclass
+class SimulateConfig:
+    """Everything that defines a simulated dataset.
+
+    Attributes:
+        scene: "box", "distractors" or "category".
+        size: image width and height in pixels.
+        labelled: number of labelled frames (2D labels in every camera where the keypoint is visible).
+        unlabelled: number of unlabelled frames.
+        test: number of test frames (labels and ground-truth 3D stored for evaluation).
+        seed: dataset seed (textures, shapes and every frame derive from it).
+        mode: distractors only: "start" puts all labelled frames in the first segment of the timeline, "full"
+            spreads them over all training segments.
+        segments: distractors only: number of training segments (distractor sets) on the timeline.
+        test_segments: distractors only: number of test segments, each with a distractor set unseen in
+            training.
+        train_instances: category only: how many of the 12 training instances the labelled and unlabelled
+            frames use (the first N); test frames use the 4 held-out instances.
+    """
+
+    scene: str
+    size: int = 96
+    labelled: int = 10
+    unlabelled: int = 2000
+    test: int = 200
+    seed: int = 0
+    mode: str = "full"
+    segments: int = 6
+    test_segments: int = 2
+    train_instances: int = NUM_TRAIN_INSTANCES
+
+    def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f"scene: unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
+        for name in ("labelled", "unlabelled", "test"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: frame count must be >= 0, got {getattr(self, name)}")
+        if self.labelled + self.unlabelled + self.test == 0:
+            raise ValueError("labelled + unlabelled + test: no frames to render")
+        if self.size < 16:
+            raise ValueError(f"size: images must be at least 16 px, got {self.size}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode: must be one of {MODES}, got {self.mode!r}")
+        if self.segments < 1 or self.test_segments < 1:
+            raise ValueError(f"segments, test_segments: must be >= 1, got {self.segments}, "
+                             f"{self.test_segments}")
+        if not 1 <= self.train_instances <= NUM_TRAIN_INSTANCES:
+            raise ValueError(f"train_instances: must be in [1, {NUM_TRAIN_INSTANCES}], "
+                             f"got {self.train_instances}")
+
+    def describe(self) -> dict:
+        """The parameters that matter for this scene, for the dataset's metadata."""
+        d = {"scene": self.scene, "size": self.size, "labelled": self.labelled, "unlabelled": self.unlabelled,
+             "test": self.test, "seed": self.seed}
+        if self.scene == "distractors":
+            d.update(mode=self.mode, segments=self.segments, test_segments=self.test_segments)
+        if self.scene == "category":
+            d.update(train_instances=self.train_instances,
+                     test_instances=list(range(NUM_TRAIN_INSTANCES, NUM_INSTANCES)))
+        return d
+
+
+def _spread(n: int, parts: int) -> list[int]:
+    """Part index of each of ``n`` items spread evenly over ``parts`` contiguous parts."""
+    return [i * parts // n for i in range(n)]
+
+
+def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
+    """The frames of a dataset in frame-id order.
+
+    ``box`` and ``category``: labelled, then unlabelled, then test frames. ``category`` cycles through the
+    training instances ``0 .. train_instances - 1`` (and the held-out 12-15 for test frames).
+    ``distractors``: frames follow the timeline: training segment 0 (its labelled then unlabelled frames),
+    segment 1, ..., then the test segments (numbered after the training ones).
+    """
+    L, U, T = cfg.labelled, cfg.unlabelled, cfg.test
+    specs: list[FrameSpec] = []
+    if cfg.scene == "distractors":
+        S = cfg.segments
+        lab_seg = [0] * L if cfg.mode == "start" else _spread(L, S)
+        unl_seg = _spread(U, S)
+        order = sorted([(s, 0, i) for i, s in enumerate(lab_seg)]
+                       + [(s, 1, i) for i, s in enumerate(unl_seg)])
+        for s, kind, _ in order:
+            specs.append(FrameSpec(len(specs), "labelled" if kind == 0 else "unlabelled", segment=s))
+        for s in _spread(T, cfg.test_segments):
+            specs.append(FrameSpec(len(specs), "test", segment=S + s))
+        return specs
+    for split, n in (("labelled", L), ("unlabelled", U), ("test", T)):
+        for i in range(n):
+            instance = -1
+            if cfg.scene == "category":
+                instance = (NUM_TRAIN_INSTANCES + i % (NUM_INSTANCES - NUM_TRAIN_INSTANCES) if split == "test"
+                            else i % cfg.train_instances)
+            specs.append(FrameSpec(len(specs), split, instance=instance))
+    return specs
+
+
+def frame_rng(seed: int, frame_id: int) -> np.random.Generator:
+    """The random generator of one frame: a function of ``(seed, frame_id)`` only."""
+    return np.random.default_rng([int(seed), int(frame_id)])
+
+
+# ---------------------------------------------------------------------------------------------- workers
+_WORKER_SCENE: Scene | None = None
+
+
+def _init_worker(scene: str, size: int, seed: int) -> None:
+    global _WORKER_SCENE
+    cv2.setNumThreads(1)
+    _WORKER_SCENE = make_scene(scene, size=size, seed=seed)
+
+
+def _render_chunk(args: tuple[int, list[FrameSpec]]) -> list[SimFrame]:
+    seed, specs = args
+    assert _WORKER_SCENE is not None, "worker not initialised"
+    return [_WORKER_SCENE.frame(s, frame_rng(seed, s.frame_id)) for s in specs]
+
+
+def render_frames(cfg: SimulateConfig, specs: Sequence[FrameSpec], workers: int = 1,
+                  chunk: int = 4) -> Iterator[SimFrame]:
+    """Renders ``specs`` in order, in ``workers`` processes (in this process when ``workers <= 1``)."""
+    if workers <= 1:
+        with make_scene(cfg.scene, size=cfg.size, seed=cfg.seed) as scene:
+            for s in specs:
+                yield scene.frame(s, frame_rng(cfg.seed, s.frame_id))
+        return
+    chunks = [(cfg.seed, list(specs[i:i + chunk])) for i in range(0, len(specs), chunk)]
+    # spawn: a fresh interpreter per worker, so no OpenGL or thread state is inherited from the parent.
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.scene, cfg.size, cfg.seed)) as pool:
+        for frames in pool.imap(_render_chunk, chunks):
+            yield from frames
+
+
+def default_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# ---------------------------------------------------------------------------------------------- writing
+def labels_of(frame: SimFrame) -> tuple[np.ndarray, np.ndarray]:
+    """2D labels of a frame for the writer: ``(uv (C, K, 2), mask (C, K))``, labelled where the keypoint
+    projects inside the image (a keypoint hidden by another object is written as labelled-but-occluded)."""
+    from s3k.sim.scenes import in_image
+
+    H, W = frame.images.shape[1:3]
+    return frame.uv, in_image(frame.uv, frame.depth, W, H)
+
+
+def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, progress: bool = True,
+             overwrite: bool = False, png_compression: int = 1, preview: str | Path | None = None) -> dict:
+    """Renders the dataset ``cfg`` into folder ``out``.
+
+    Labelled and test frames get 2D labels (projections of the ground-truth keypoints, flagged not visible
+    where another object hides them); every frame gets ground-truth 3D keypoints (for evaluation only) and its
+    own calibration (the cameras move every frame).
+
+    Args:
+        cfg: what to render.
+        out: dataset folder to create.
+        workers: rendering processes (default: the CPUs available).
+        progress: show a tqdm progress bar.
+        overwrite: replace an existing non-empty folder.
+        png_compression: 0-9 (1 is fast and only slightly larger).
+        preview: write a contact sheet PNG of the first 3 frames here.
+
+    Returns:
+        A summary: ``{"path", "frames", "images", "seconds", "images_per_s"}``.
+    """
+    from tqdm import tqdm
+
+    from s3k.data.format import DatasetWriter
+
+    workers = default_workers() if workers is None else max(1, int(workers))
+    specs = frame_plan(cfg)
+    scene_cls = SCENES[cfg.scene]
+    cameras = [f"cam{i}" for i in range(4)]
+    t0 = time.perf_counter()
+    writer = DatasetWriter(
+        out, scene_cls.keypoints, cameras, (cfg.size, cfg.size), units="m", per_frame_calibration=True,
+        description=(scene_cls.__doc__ or "").strip().split("\n")[0],
+        source={"generator": "s3k simulate", **cfg.describe()},
+        png_compression=png_compression, overwrite=overwrite,
+    )
+    shown: list[SimFrame] = []
+    with tqdm(total=len(specs), unit="frame", desc=f"simulate {cfg.scene}", disable=not progress) as bar:
+        for frame in render_frames(cfg, specs, workers=min(workers, len(specs))):
+            extra = {}
+            if cfg.scene == "distractors":
+                extra["segment"] = frame.extra["segment"]
+            if cfg.scene == "category":
+                extra["instance"] = frame.extra["instance"]
+            labels = labels_of(frame) if frame.split in ("labelled", "test") else None
+            zeros = np.zeros((len(cameras), 5))
+            writer.add_frame(frame.frame_id, frame.split, frame.images, (frame.K, zeros, frame.R, frame.t),
+                             labels=labels, points3d=frame.points3d, visible=frame.visible, extra=extra)
+            if preview is not None and len(shown) < 3:
+                shown.append(frame)
+            bar.update(1)
+    path = writer.close()
+    seconds = time.perf_counter() - t0
+    if preview is not None:
+        sheet = contact_sheet(shown, scene_cls.keypoints)
+        cv2.imwrite(str(preview), sheet[..., ::-1])
+    n_images = len(specs) * len(cameras)
+    return {"path": str(path), "frames": len(specs), "images": n_images, "seconds": seconds,
+            "images_per_s": n_images / seconds}
+
+
+# ---------------------------------------------------------------------------------------------- preview
+KEYPOINT_COLOURS = [(230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+                    (70, 240, 240)]
+
+
+def contact_sheet(frames: Sequence[SimFrame], keypoints: Sequence[str], scale: int = 1) -> np.ndarray:
+    """A grid of views (rows: frames, columns: cameras) with the keypoints drawn, ``uint8 (h, w, 3)`` RGB.
+
+    A filled dot is a visible keypoint, a ring one that is hidden by another object or (clipped to the border)
+    outside the image. A legend row names the keypoints.
+    """
+    if not frames:
+        raise ValueError("contact_sheet: no frames")
+    rows = []
+    for f in frames:
+        views = []
+        for c in range(f.images.shape[0]):
+            im = f.images[c]
+            if scale != 1:
+                im = cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+            im = np.ascontiguousarray(im)
+            H, W = im.shape[:2]
+            r = max(2, W // 40)
+            for k in range(f.uv.shape[1]):
+                u, v = (f.uv[c, k] + 0.5) * scale - 0.5
+                if not np.isfinite([u, v]).all() or f.depth[c, k] <= 0:
+                    continue
+                p = (int(round(np.clip(u, 0, W - 1))), int(round(np.clip(v, 0, H - 1))))
+                col = KEYPOINT_COLOURS[k % len(KEYPOINT_COLOURS)]
+                cv2.circle(im, p, r + 1, (255, 255, 255), -1 if f.visible[c, k] else 2, cv2.LINE_AA)
+                cv2.circle(im, p, r, col, -1 if f.visible[c, k] else 1, cv2.LINE_AA)
+            views.append(np.pad(im, ((1, 1), (1, 1), (0, 0)), constant_values=255))
+        rows.append(np.concatenate(views, 1))
+    sheet = np.concatenate(rows, 0)
+    legend = np.full((18, sheet.shape[1], 3), 255, np.uint8)
+    x = 6
+    for k, name in enumerate(keypoints):
+        col = KEYPOINT_COLOURS[k % len(KEYPOINT_COLOURS)]
+        cv2.circle(legend, (x + 5, 9), 5, col, -1, cv2.LINE_AA)
+        cv2.putText(legend, name, (x + 14, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        x += 24 + 7 * len(name)
+    return np.concatenate([sheet, legend], 0)
