@@ -1,0 +1,205 @@
+"""Inference speed: 4-view 3D keypoints from camera images, end to end, one frame at a time (DESIGN 5).
+
+Per frame: C uint8 camera images (H, W, 3) -> float [0, 1] channels_last -> U-Net heatmaps (shared weights,
+the C views in one batch) -> softmax means and variances -> confidence weights -> weighted triangulation.
+Timed under ``torch.inference_mode`` after warm-up; the figure is the median over repeated frames.
+
+``flop_fraction`` is the FLOP/s achieved by the network's convolutions (counted by
+``s3k.model.count_conv_flops``) over the machine's float32 matmul FLOP/s measured in the same run, with the
+same threads.
+
+Example::
+
+    python benchmarks/inference.py --size 128
+
+The last line printed is one JSON object (``frames_per_s``, ``flop_fraction``, machine info, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from s3k.geometry import Cameras, triangulate_pixels  # noqa: E402
+from s3k.heatmaps import confidence_weight  # noqa: E402
+from s3k.model import UNet, UNetConfig, count_conv_flops, detect  # noqa: E402
+
+try:  # shared helpers of the benchmarks (machine description, matmul peak, JSON output)
+    from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
+except ImportError:  # pragma: no cover - keeps this script usable on its own
+    emit = machine_info = matmul_flops = None
+
+
+def _machine_info() -> dict:
+    if machine_info is not None:
+        return machine_info()
+    import platform
+
+    return {
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+    }
+
+
+def _matmul_flops(n: int = 1024, repeats: int = 10) -> float:
+    if matmul_flops is not None:
+        return float(matmul_flops())
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    for _ in range(3):
+        a @ b
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        a @ b
+        times.append(time.perf_counter() - t0)
+    return 2 * n**3 / statistics.median(times)
+
+
+def look_at_rig(num_cameras: int, size: int, distance: float = 1.0) -> Cameras:
+    """``(1, C)`` pinhole cameras on a ring around the origin looking at it, 60 degree field of view."""
+    az = torch.linspace(0, 2 * torch.pi, num_cameras + 1)[:-1]
+    el = torch.full_like(az, 0.5)
+    pos = distance * torch.stack([az.cos() * el.cos(), az.sin() * el.cos(), el.sin()], dim=-1)
+    z = -pos / pos.norm(dim=-1, keepdim=True)
+    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0]).expand_as(z))
+    x = x / x.norm(dim=-1, keepdim=True)
+    R = torch.stack([x, torch.linalg.cross(z, x), z], dim=-2)
+    t = -(R @ pos[..., None])[..., 0]
+    f = (size / 2) / torch.tan(torch.tensor(torch.pi / 6))
+    K = torch.tensor([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    return Cameras(K.expand(1, num_cameras, 3, 3), None, R[None], t[None])
+
+
+def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: float, channels_last: bool):
+    """The per-frame function: uint8 frames ``(C, H, W, 3)`` -> ``(X (K, 3), valid (K,))``."""
+
+    def run(frames_u8: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # (C, H, W, 3) -> (1, C, 3, H, W): the permuted view of HWC data is already channels_last.
+        images = frames_u8.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
+        if not channels_last:
+            images = images.contiguous()
+        _, mean_uv, var = detect(model, images[None], stride)
+        weights = confidence_weight(var, sigma)
+        X, valid = triangulate_pixels(cams, mean_uv, weights)
+        return X[0], valid[0]
+
+    return run
+
+
+def time_pipeline(run, frames: torch.Tensor, warmup: int, repeats: int) -> list[float]:
+    """Seconds per frame for ``repeats`` frames after ``warmup`` frames."""
+    times = []
+    with torch.inference_mode():
+        for _ in range(warmup):
+            run(frames)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            run(frames)
+            times.append(time.perf_counter() - t0)
+    return times
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--size", type=int, default=128, help="square image size in pixels (default 128)")
+    p.add_argument("--cameras", type=int, default=4, help="cameras per frame (default 4)")
+    p.add_argument("--keypoints", type=int, default=3, help="keypoints K (default 3)")
+    p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
+    p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
+    p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
+    p.add_argument("--encoder-convs", type=int, default=None, help="extra convs per encoder level")
+    p.add_argument("--norm", type=str, default=None, choices=["batch", "group", "none"])
+    p.add_argument("--sigma", type=float, default=3.0, help="target width in image pixels (confidence scale)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's default)")
+    p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
+    p.add_argument("--repeats", type=int, default=200, help="timed frames (default 200)")
+    p.add_argument("--no-fuse", action="store_true", help="keep BatchNorm separate (not folded into convs)")
+    p.add_argument("--contiguous", action="store_true", help="NCHW instead of channels_last")
+    args = p.parse_args(argv)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    overrides = {
+        k: v
+        for k, v in {
+            "stride": args.stride,
+            "channels": tuple(int(c) for c in args.channels.split(",")) if args.channels else None,
+            "res_blocks": args.res_blocks,
+            "encoder_convs": args.encoder_convs,
+            "norm": args.norm,
+        }.items()
+        if v is not None
+    }
+    config = UNetConfig(**overrides)
+    model = UNet(args.keypoints, config).eval()
+    num_params = sum(q.numel() for q in model.parameters())
+    if not args.no_fuse:
+        model = model.fused()
+    channels_last = not args.contiguous
+    if channels_last:
+        model = model.to(memory_format=torch.channels_last)
+
+    C, S = args.cameras, args.size
+    cams = look_at_rig(C, S)
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 256, (C, S, S, 3), dtype=torch.uint8, generator=gen)
+    flops_per_frame = count_conv_flops(model, torch.rand(C, 3, S, S))
+    run = make_pipeline(model, cams, config.stride, args.sigma, channels_last)
+
+    peak = _matmul_flops()
+    times = time_pipeline(run, frames, args.warmup, args.repeats)
+    peak_after = _matmul_flops()
+    med = statistics.median(times)
+    q = statistics.quantiles(times, n=10)
+    achieved = flops_per_frame / med
+    matmul = max(peak, peak_after)
+    print(
+        f"{S}x{S} px, {C} cameras, K={args.keypoints}, heatmap {S // config.stride}x{S // config.stride}, "
+        f"{num_params} params, {flops_per_frame / 1e6:.1f} MFLOP/frame, threads {torch.get_num_threads()}"
+    )
+    print(
+        f"per frame: median {med * 1e3:.2f} ms (p10 {q[0] * 1e3:.2f}, p90 {q[-1] * 1e3:.2f}) -> "
+        f"{1 / med:.1f} frames/s; conv {achieved / 1e9:.1f} GFLOP/s of matmul {matmul / 1e9:.1f} GFLOP/s "
+        f"({100 * achieved / matmul:.1f}%)"
+    )
+    result = {
+        "benchmark": "inference",
+        "frames_per_s": 1 / med,
+        "flop_fraction": achieved / matmul,
+        "ms_per_frame_median": med * 1e3,
+        "ms_per_frame_p10": q[0] * 1e3,
+        "ms_per_frame_p90": q[-1] * 1e3,
+        "achieved_flops": achieved,
+        "matmul_flops": matmul,
+        "flops_per_frame": flops_per_frame,
+        "size": S,
+        "cameras": C,
+        "keypoints": args.keypoints,
+        "params": num_params,
+        "config": config.to_dict(),
+        "fused": not args.no_fuse,
+        "channels_last": channels_last,
+        "repeats": args.repeats,
+        "machine": _machine_info(),
+    }
+    if emit is not None:
+        emit(result)
+    else:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
