@@ -190,6 +190,8 @@ def test_disk_cache_matches_and_follows_file_changes(tiny):
     # A second process/run reads the same cache.
     again = Dataset.open(root, cache="disk")
     assert again._fingerprint() == ds._fingerprint()
+    again._ensure_cache()
+    assert again._filled.all()  # opening an existing cache keeps what was decoded
     np.testing.assert_array_equal(again.images(ids), np.stack(w["images"]))
     # Rewriting an image changes the fingerprint: the new pixels are seen, not stale cache.
     new = np.full((H, W, 3), 7, np.uint8)

@@ -19,6 +19,7 @@ image files, or in memory) so that random batches are memory copies.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -749,6 +750,21 @@ def decode_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+@contextlib.contextmanager
+def _file_lock(f):
+    """Exclusive advisory lock on an open file (POSIX); a no-op where fcntl is unavailable."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+    try:
+        yield
+    finally:
+        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 class PngImages:
     """One image file per camera per frame at ``pattern`` (default ``images/{camera}/{frame:06d}.png``)."""
 
@@ -1168,11 +1184,16 @@ class Dataset:
             try:
                 base.parent.mkdir(exist_ok=True)
                 data_path, flag_path = base.with_suffix(".u8"), base.with_suffix(".filled")
-                mode = "r+" if data_path.exists() and flag_path.exists() else "w+"
-                if mode == "r+" and data_path.stat().st_size != int(np.prod(shape)):
-                    mode = "w+"
-                self._filled = np.memmap(flag_path, dtype=np.uint8, mode=mode, shape=(len(self),))
-                self._cache = np.memmap(data_path, dtype=np.uint8, mode=mode, shape=shape)
+                # Processes sharing the cache (DDP ranks, parallel runs) must not both create it: one
+                # truncating the file another already writes to would leave frames flagged but black.
+                with open(base.with_suffix(".lock"), "a") as lock, _file_lock(lock):
+                    sizes = {data_path: int(np.prod(shape)), flag_path: len(self)}
+                    if not all(p.exists() and p.stat().st_size == n for p, n in sizes.items()):
+                        for p, n in sizes.items():
+                            with open(p, "wb") as f:
+                                f.truncate(n)  # sparse: disk is used as frames are decoded
+                    self._filled = np.memmap(flag_path, dtype=np.uint8, mode="r+", shape=(len(self),))
+                    self._cache = np.memmap(data_path, dtype=np.uint8, mode="r+", shape=shape)
                 return
             except OSError as exc:
                 warnings.warn(
