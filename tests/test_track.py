@@ -1,0 +1,369 @@
+"""Tests of ``s3k track``: synchronized videos of a tiny synthetic rig -> anipose 3D CSV and overlays.
+
+The rig: 3 cameras about 1 m (1000 mm) from the origin, 64 x 48 px videos (one camera with lens distortion),
+three coloured dots moving in 3D; the detector is a tiny untrained U-Net saved as a run folder (32 x 32 input,
+so frames are padded to the detector's aspect ratio). The network's accuracy is not under test here; the
+pipeline after it is, with heatmaps peaked at known projections.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from s3k import cli
+from s3k.data.importers import RigCalibration, write_anipose_calibration
+from s3k.data.transforms import crop_resize_matrix
+from s3k.data.video import frame_count, frame_size, write_video
+from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, heatmap_size, spatial_softmax
+from s3k.model import UNetConfig
+from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+from s3k.track import (
+    csv_header,
+    fit_box,
+    points_from_logits,
+    prepare_cameras,
+    synchronized_frames,
+)
+
+CAMERAS = ["left", "top", "right"]
+KEYPOINTS = ["nose", "ear", "tail"]
+VIDEO_SIZE = (64, 48)
+NET_SIZE = (32, 32)
+FRAMES = 6
+COLOURS = [(255, 40, 40), (40, 255, 40), (60, 60, 255)]
+
+
+def _look_at(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    z = -centre / np.linalg.norm(centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+def make_rig() -> RigCalibration:
+    W, H = VIDEO_SIZE
+    Rs, ts, Ks = [], [], []
+    for c in range(3):
+        a = 2 * math.pi * c / 3 + 0.4
+        R, t = _look_at(1000.0 * np.array([math.cos(a), math.sin(a), 0.7]) / math.hypot(1, 0.7))
+        Rs.append(R)
+        ts.append(t)
+        Ks.append(np.array([[70.0 + 5 * c, 0, (W - 1) / 2 + c], [0, 72.0, (H - 1) / 2 - c], [0, 0, 1]]))
+    dist = np.zeros((3, 5))
+    dist[1] = [-0.08, 0.01, 0.001, -0.001, 0.0]
+    sizes = np.tile(np.array(VIDEO_SIZE), (3, 1))
+    return RigCalibration(list(CAMERAS), np.stack(Ks), dist, np.stack(Rs), np.stack(ts), sizes, "mm")
+
+
+def rig_cameras(rig: RigCalibration) -> Cameras:
+    return Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
+
+
+def moving_points(n: int) -> np.ndarray:
+    """(n, 3, 3) keypoints in mm near the origin."""
+    base = np.array([[60.0, 0.0, 0.0], [-40.0, 50.0, 10.0], [-30.0, -50.0, 20.0]])
+    s = np.arange(n, dtype=np.float64)[:, None, None]
+    return base + np.concatenate([10 * np.sin(0.5 * s), 8 * np.cos(0.3 * s), 5 * s], axis=-1)
+
+
+def tiny_run(path: Path, stride: int = 2) -> Path:
+    """A run folder holding an untrained tiny detector with non-trivial BatchNorm statistics."""
+    meta = DetectorMeta(
+        keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=stride, sigma=2.0,
+        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=stride).to_dict(), units="mm",
+        source_image_size=NET_SIZE,
+    )
+    torch.manual_seed(0)
+    net = build_model(meta)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.2, 0.2)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.1, 0.1)
+    path.mkdir(parents=True)
+    write_run_config(path, {}, meta)
+    atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> dict:
+    """Videos (mp4) of the dots, calibration.toml and a run folder."""
+    root = tmp_path_factory.mktemp("track")
+    rig = make_rig()
+    calib = root / "calibration.toml"
+    write_anipose_calibration(calib, rig)
+    X = torch.as_tensor(moving_points(FRAMES))
+    uv, _ = project(rig_cameras(rig)[None], X[:, None])  # (F, C, K, 2)
+    videos = {}
+    W, H = VIDEO_SIZE
+    for c, name in enumerate(CAMERAS):
+        frames = []
+        for f in range(FRAMES):
+            img = np.full((H, W, 3), 80, np.uint8)
+            for k in range(3):
+                centre = tuple(int(round(float(v) * 4)) for v in uv[f, c, k])
+                cv2.circle(img, centre, 10, COLOURS[k], -1, cv2.LINE_AA, shift=2)
+            frames.append(img)
+        videos[name] = root / f"{name}.mp4"
+        write_video(videos[name], frames, fps=25)
+    return {"root": root, "rig": rig, "calibration": calib, "videos": videos, "run": tiny_run(root / "run")}
+
+
+def _track(recording, out: Path, *extra: str, order=None) -> int:
+    order = order or CAMERAS
+    args = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out", str(out),
+            "--no-progress", "--videos", *[f"{c}={recording['videos'][c]}" for c in order], *extra]
+    return cli.main(args)
+
+
+def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], np.array([[float(v) for v in r] for r in rows[1:]], dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Input geometry
+
+
+@pytest.mark.parametrize("mode", ["pad", "crop", "stretch"])
+@pytest.mark.parametrize("video, net", [((64, 48), (32, 32)), ((48, 64), (32, 32)), ((60, 30), (64, 32)),
+                                        ((640, 480), (96, 128))])
+def test_fit_box_aspect_and_extent(mode, video, net):
+    x0, y0, x1, y1 = fit_box(video, net, mode)
+    W, H = video
+    if mode == "stretch":
+        assert (x0, y0, x1, y1) == (0, 0, W, H)
+        return
+    # Same aspect ratio as the network input, centred on the frame.
+    assert (x1 - x0) * net[1] == pytest.approx((y1 - y0) * net[0])
+    assert ((x0 + x1) / 2, (y0 + y1) / 2) == pytest.approx((W / 2, H / 2))
+    if mode == "pad":  # contains the frame, touching it on two sides
+        assert x0 <= 0 and y0 <= 0 and x1 >= W and y1 >= H
+        assert min(-x0, -y0) == pytest.approx(0)
+    else:  # inside the frame, touching it on two sides
+        assert x0 >= 0 and y0 >= 0 and x1 <= W and y1 <= H
+        assert min(x0, y0) == pytest.approx(0)
+
+
+def test_fit_box_rejects_unknown_mode():
+    with pytest.raises(ValueError, match="--fit"):
+        fit_box((64, 48), (32, 32), "squash")
+
+
+def test_prepare_cameras_maps_projections_like_resize_crop(recording):
+    """Network-input intrinsics K' = M K: projecting with them equals mapping the video projection by M."""
+    rig = recording["rig"]
+    order = ["right", "left"]
+    inputs, cams = prepare_cameras({c: recording["videos"][c] for c in order}, rig, NET_SIZE, "pad")
+    assert [c.name for c in inputs] == order
+    sel = rig.select(order)
+    np.testing.assert_allclose(cams.numpy()["K"], sel.K)
+    X = torch.as_tensor(moving_points(1)[0])
+    for c, inp in enumerate(inputs):
+        assert inp.video_size == VIDEO_SIZE and inp.fps == pytest.approx(25)
+        np.testing.assert_allclose(inp.M, crop_resize_matrix(fit_box(VIDEO_SIZE, NET_SIZE), NET_SIZE))
+        uv, _ = project(cams[c], X)
+        K_net = torch.as_tensor(inp.M) @ cams.K[c]
+        uv_net, _ = project(Cameras(K_net, cams.dist[c], cams.R[c], cams.t[c]), X)
+        mapped = uv.numpy() @ inp.M[:2, :2].T + inp.M[:2, 2]
+        np.testing.assert_allclose(uv_net.numpy(), mapped, atol=1e-9)
+
+
+def test_synchronized_frames_pairs_by_index(recording):
+    paths = [recording["videos"][c] for c in CAMERAS]
+    got = list(synchronized_frames(paths, start=2, stop=5))
+    assert [i for i, _ in got] == [2, 3, 4]
+    assert all(len(imgs) == 3 and imgs[0].shape == (48, 64, 3) for _, imgs in got)
+    assert list(synchronized_frames(paths, start=4))[-1][0] == FRAMES - 1
+
+
+# ------------------------------------------------------------------------------------------------------------
+# After the network
+
+
+def _peaked_logits(uv_net: torch.Tensor, stride: int, sigma: float) -> torch.Tensor:
+    """Logits whose softmax is the normalized Gaussian target at ``uv_net (B, C, K, 2)``."""
+    h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], stride)
+    target, mask = gaussian_targets(uv_net, None, h, w, stride, sigma)
+    assert bool(mask.all())
+    return target.clamp_min(1e-300).log()
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_points_from_heatmaps_at_known_projections(recording, stride):
+    """Heatmaps peaked where the known 3D points project give those points back, with zero error."""
+    rig = recording["rig"]
+    inputs, cams = prepare_cameras(recording["videos"], rig, NET_SIZE, "pad")
+    maps = np.stack([c.M for c in inputs])
+    X = torch.as_tensor(moving_points(4))  # (B, K, 3)
+    uv, depth = project(cams, X[:, None])  # (B, C, K, 2) video pixels, distorted
+    assert bool((depth > 0).all())
+    M = torch.as_tensor(maps)
+    uv_net = uv @ M[:, :2, :2].transpose(-1, -2) + M[:, None, :2, 2]
+    sigma = 2.0
+    logits = _peaked_logits(uv_net, stride, sigma)
+
+    out = points_from_logits(logits, cams, maps, stride, sigma)
+    assert out.valid.all()
+    np.testing.assert_allclose(out.X, X.numpy(), atol=1e-4)  # mm, at 1 m
+    np.testing.assert_allclose(out.uv, uv.numpy(), atol=1e-6)
+    assert np.all(out.error < 1e-6)
+    assert np.all(out.ncams == 3)
+    assert np.all(out.weight > 0.9)  # a sharp Gaussian of width sigma
+    np.testing.assert_allclose(out.score, out.weight.mean(axis=1))
+    np.testing.assert_allclose(out.reproj, uv.numpy(), atol=1e-6)
+
+    # A flat heatmap in one view: that view is dropped, the point still follows from the other two.
+    flat = logits.clone()
+    flat[:, 1] = 0.0
+    out = points_from_logits(flat, cams, maps, stride, sigma)
+    assert out.valid.all() and np.all(out.ncams == 2)
+    assert not out.used[:, 1].any() and out.used[:, [0, 2]].all()
+    np.testing.assert_allclose(out.X, X.numpy(), atol=1e-4)
+    # ... unless every view is kept (min_weight 0): the flat view's mean at the image centre pulls the point.
+    soft = points_from_logits(flat, cams, maps, stride, sigma, min_weight=0.0)
+    assert np.all(soft.ncams == 3) and np.all(np.abs(soft.X - X.numpy()).max(axis=-1) > 1e-2)
+
+    # Only one informative view: invalid, NaN coordinates and error, finite score.
+    flat[:, 2] = 0.0
+    out = points_from_logits(flat, cams, maps, stride, sigma)
+    assert not out.valid.any() and np.all(out.ncams == 1)
+    assert np.isnan(out.X).all() and np.isnan(out.error).all() and np.isnan(out.reproj).all()
+    assert np.isfinite(out.score).all()
+
+
+def test_points_from_logits_matches_geometry(recording):
+    """Same 2D means and weights -> the same 3D points as s3k.geometry.triangulate_pixels."""
+    rig = recording["rig"]
+    inputs, cams = prepare_cameras(recording["videos"], rig, NET_SIZE, "crop")
+    maps = np.stack([c.M for c in inputs])
+    g = torch.Generator().manual_seed(3)
+    h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], 2)
+    logits = torch.randn(5, 3, 3, h, w, generator=g) * torch.linspace(0.5, 6, 5)[:, None, None, None, None]
+    sigma = 2.0
+    for min_weight in (0.0, 0.3):
+        out = points_from_logits(logits.float(), cams, maps, 2, sigma, min_weight)
+        # The means, mapped back to network pixels, are the heatmap moments of the logits.
+        uv_net, var = heatmap_moments(spatial_softmax(logits.double()), 2)
+        back = out.uv @ maps[:, :2, :2].transpose(0, 2, 1) + maps[:, None, :2, 2]
+        np.testing.assert_allclose(back, uv_net.numpy(), atol=1e-4)
+        np.testing.assert_allclose(out.weight, confidence_weight(var, sigma).numpy(), atol=1e-6)
+        used = out.weight > min_weight
+        np.testing.assert_array_equal(out.used, used)
+        np.testing.assert_array_equal(out.ncams, used.sum(axis=1))
+        wt = torch.as_tensor(np.where(used, out.weight, 0.0))
+        X_ref, valid_ref = triangulate_pixels(cams, torch.as_tensor(out.uv), wt)
+        valid_ref = valid_ref.numpy() & (used.sum(axis=1) >= 2)
+        np.testing.assert_array_equal(out.valid, valid_ref)
+        np.testing.assert_allclose(out.X[valid_ref], X_ref.numpy()[valid_ref], rtol=1e-9, atol=1e-9)
+        # error: mean over the used views of the distance between reprojection and detection
+        reproj, _ = project(cams, torch.as_tensor(np.nan_to_num(out.X))[:, None])
+        d = np.linalg.norm(reproj.numpy() - out.uv, axis=-1)
+        err = (d * used).sum(axis=1) / np.maximum(used.sum(axis=1), 1)
+        np.testing.assert_allclose(out.error[valid_ref], err[valid_ref], rtol=1e-9)
+        assert valid_ref.any()
+
+
+def test_points_from_logits_checks_shapes(recording):
+    inputs, cams = prepare_cameras(recording["videos"], recording["rig"], NET_SIZE)
+    maps = np.stack([c.M for c in inputs])
+    with pytest.raises(ValueError, match="logits"):
+        points_from_logits(torch.zeros(3, 3, 16, 16), cams, maps, 2, 2.0)
+    with pytest.raises(ValueError, match="cams"):
+        points_from_logits(torch.zeros(1, 2, 3, 16, 16), cams, maps, 2, 2.0)
+    with pytest.raises(ValueError, match="pixel_maps"):
+        points_from_logits(torch.zeros(1, 3, 3, 16, 16), cams, maps[:2], 2, 2.0)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The command
+
+
+def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
+    out = tmp_path / "points3d.csv"
+    assert _track(recording, out, "--min-weight", "0", "--batch", "4", "--overlay", str(tmp_path / "ov")) == 0
+    header, values = _read_csv(out)
+    assert header == csv_header(KEYPOINTS)
+    assert header[:6] == ["nose_x", "nose_y", "nose_z", "nose_error", "nose_ncams", "nose_score"]
+    assert header[-1] == "fnum" and len(header) == 6 * len(KEYPOINTS) + 1
+    assert values.shape == (FRAMES, len(header))
+    np.testing.assert_array_equal(values[:, -1], np.arange(FRAMES))
+    per_kp = values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)
+    # min-weight 0: every view counts, so with 3 cameras around the scene every point is defined.
+    assert np.isfinite(per_kp).all()
+    np.testing.assert_array_equal(per_kp[..., 4], 3)
+    assert np.all((per_kp[..., 5] > 0) & (per_kp[..., 5] < 1))
+    assert np.all(per_kp[..., 3] >= 0)
+    for c in CAMERAS:
+        path = tmp_path / "ov" / f"{c}.mp4"
+        assert frame_count(path, exact=True) == FRAMES
+        assert frame_size(path) == VIDEO_SIZE
+
+
+def test_track_default_threshold_nan_where_invalid(recording, tmp_path):
+    out = tmp_path / "points3d.csv"
+    assert _track(recording, out) == 0
+    _, values = _read_csv(out)
+    per_kp = values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)
+    invalid = np.isnan(per_kp[..., 0])
+    # Coordinates and error are NaN together, and exactly where fewer than 2 cameras pass the threshold
+    # (or rays are parallel); ncams and score are always defined.
+    for j in (1, 2, 3):
+        np.testing.assert_array_equal(np.isnan(per_kp[..., j]), invalid)
+    assert np.all(per_kp[..., 4][~invalid] >= 2)
+    assert np.isfinite(per_kp[..., 4:]).all()
+
+
+def test_track_range_batch_and_camera_order_do_not_change_results(recording, tmp_path):
+    full, part = tmp_path / "full.csv", tmp_path / "part.csv"
+    assert _track(recording, full, "--min-weight", "0", "--batch", "8") == 0
+    assert _track(recording, part, "--min-weight", "0", "--batch", "2", "--start", "2", "--stop", "5",
+                  order=["right", "left", "top"]) == 0
+    h1, v1 = _read_csv(full)
+    h2, v2 = _read_csv(part)
+    assert h1 == h2
+    np.testing.assert_array_equal(v2[:, -1], [2, 3, 4])
+    np.testing.assert_allclose(v2, v1[2:5], rtol=1e-4, atol=1e-4)
+
+
+def test_track_errors_name_camera_and_file(recording, tmp_path, capsys):
+    out = tmp_path / "x.csv"
+    v = recording["videos"]
+    base = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out", str(out),
+            "--no-progress", "--videos"]
+
+    assert cli.main(base + [f"left={v['left']}", f"bottom={v['top']}"]) == 1
+    err = capsys.readouterr().err
+    assert "'bottom'" in err and "left, top, right" in err
+
+    missing = tmp_path / "nope.mp4"
+    assert cli.main(base + [f"left={v['left']}", f"top={missing}"]) == 1
+    assert str(missing) in capsys.readouterr().err
+
+    assert cli.main(base + [f"left={v['left']}"]) == 1
+    assert "at least 2 cameras" in capsys.readouterr().err
+
+    assert cli.main(base + [f"left={v['left']}", "top"]) == 1
+    assert "CAMERA=FILE" in capsys.readouterr().err
+
+    small = tmp_path / "small.mp4"
+    write_video(small, [np.zeros((32, 48, 3), np.uint8)] * 2, fps=25)
+    assert cli.main(base + [f"left={v['left']}", f"top={small}"]) == 1
+    err = capsys.readouterr().err
+    assert "'top'" in err and str(small) in err and "48x32" in err and "64x48" in err
+
+    assert cli.main(base + [f"left={v['left']}", f"top={v['top']}", "--start", "3", "--stop", "3"]) == 1
+    assert "--start" in capsys.readouterr().err
+    assert not out.exists()
