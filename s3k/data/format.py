@@ -768,6 +768,8 @@ def _file_lock(f):
 class PngImages:
     """One image file per camera per frame at ``pattern`` (default ``images/{camera}/{frame:06d}.png``)."""
 
+    random_access = True
+
     def __init__(self, root: Path, spec: dict, cameras: list[str], frame_ids: np.ndarray, columns: dict):
         self.root = root
         self.pattern = spec.get("pattern", DEFAULT_IMAGE_PATTERN)
@@ -811,6 +813,8 @@ class PngImages:
 class VideoImages:
     """One video per camera (``spec["videos"][camera]``, relative paths); frame ``f`` is video frame
     ``video_frame`` from frames.csv (the frame id itself when that column is absent)."""
+
+    random_access = False
 
     def __init__(self, root: Path, spec: dict, cameras: list[str], frame_ids: np.ndarray, columns: dict):
         self.root = root
@@ -893,7 +897,8 @@ def register_image_source(type_name: str, factory: Callable[..., Any]) -> None:
 
     ``factory(root, spec, cameras, frame_ids, columns)`` returns an object with ``check(frame_ids, problems)``
     (reports missing files, returns fingerprint strings), ``read_rows(frame_ids, workers)`` (yields
-    ``(i, camera_index, uint8 (H, W, 3) RGB)``) and ``describe(frame, camera_index)`` (text naming the file).
+    ``(i, camera_index, uint8 (H, W, 3) RGB)``) and ``describe(frame, camera_index)`` (text naming the file);
+    a class attribute ``random_access = False`` makes the loader decode all frames in one pass on first use.
     """
     IMAGE_SOURCES[type_name] = factory
 
@@ -1204,8 +1209,9 @@ class Dataset:
         self._cache = np.zeros(shape, dtype=np.uint8)  # pages are allocated on first write
         self._filled = np.zeros(len(self), dtype=np.uint8)
 
-    def _decode_into(self, rows: np.ndarray, out: np.ndarray) -> None:
-        """Decode frames ``rows`` (all cameras) into ``out (len(rows), C, H, W, 3)``, checking sizes."""
+    def _decode_into(self, rows: np.ndarray, out: np.ndarray, out_rows: np.ndarray | None = None) -> None:
+        """Decode frames ``rows`` (all cameras) into ``out[out_rows]`` (default ``out[:len(rows)]``) of shape
+        ``(*, C, H, W, 3)``, checking sizes."""
         W, H = self.source_image_size
         ids = self.frame_ids[rows]
         source = self._c.source
@@ -1226,11 +1232,11 @@ class Dataset:
                 )
             if self._resample:
                 image, _ = resize_crop(image, None, self.crop_box, self.image_size)
-            out[i, c] = image
+            out[i if out_rows is None else out_rows[i], c] = image
 
-    def _decode_rows(self, rows: np.ndarray, out: np.ndarray) -> None:
+    def _decode_rows(self, rows: np.ndarray, out: np.ndarray, out_rows: np.ndarray | None = None) -> None:
         try:
-            self._decode_into(rows, out)
+            self._decode_into(rows, out, out_rows)
         except DatasetError:
             raise
         except ValueError as exc:
@@ -1245,6 +1251,8 @@ class Dataset:
             return
         rows = self._rows(self.frames(split))
         missing = rows[self._filled[rows] == 0]
+        if not getattr(self._c.source, "random_access", True):
+            chunk = max(1, len(missing))  # a video is decoded front to back: one pass for everything
         for start in range(0, len(missing), chunk):
             self._fill(missing[start : start + chunk])
 
@@ -1253,9 +1261,7 @@ class Dataset:
             rows = rows[self._filled[rows] == 0]
             if not len(rows):
                 return
-            buffer = np.empty((len(rows), *self._cache.shape[1:]), dtype=np.uint8)
-            self._decode_rows(rows, buffer)
-            self._cache[rows] = buffer
+            self._decode_rows(rows, self._cache, out_rows=rows)
             if isinstance(self._cache, np.memmap):
                 self._cache.flush()
             self._filled[rows] = 1  # only after the pixels are written, for other processes sharing the file
@@ -1273,7 +1279,9 @@ class Dataset:
             self._decode_rows(rows, out)
             return out
         missing = np.unique(rows[self._filled[rows] == 0])
-        if len(missing):
+        if len(missing) and not getattr(self._c.source, "random_access", True):
+            self.preload()  # decoding a video up to a frame costs as much as decoding them all
+        elif len(missing):
             self._fill(missing)
         return np.asarray(self._cache[rows])  # fancy indexing copies; asarray drops the memmap subclass
 
