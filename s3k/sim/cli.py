@@ -31,7 +31,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
     parser.add_argument("--preview", default=None, metavar="PNG",
-                        help="also write a contact sheet of the first 3 frames (4 views each) to this file")
+                        help="also write a contact sheet of 3 frames (first, middle, last; 4 views each) "
+                             "to this PNG file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

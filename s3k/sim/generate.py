@@ -190,7 +190,9 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
         progress: show a tqdm progress bar.
         overwrite: replace an existing non-empty folder.
         png_compression: 0-9 (1 is fast and only slightly larger).
-        preview: write a contact sheet PNG of the first 3 frames here.
+        preview: write a contact sheet PNG of 3 frames here: the first, the middle and the last (for
+            ``distractors``: first and middle training segments and a test segment; for ``category``: two
+            training instances and a held-out one).
 
     Returns:
         A summary: ``{"path", "frames", "images", "seconds", "images_per_s"}``.
@@ -211,6 +213,7 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
         png_compression=png_compression, overwrite=overwrite,
     )
     shown: list[SimFrame] = []
+    preview_ids = sorted({0, len(specs) // 2, len(specs) - 1})
     with tqdm(total=len(specs), unit="frame", desc=f"simulate {cfg.scene}", disable=not progress) as bar:
         for frame in render_frames(cfg, specs, workers=min(workers, len(specs))):
             extra = {}
@@ -222,7 +225,7 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
             zeros = np.zeros((len(cameras), 5))
             writer.add_frame(frame.frame_id, frame.split, frame.images, (frame.K, zeros, frame.R, frame.t),
                              labels=labels, points3d=frame.points3d, visible=frame.visible, extra=extra)
-            if preview is not None and len(shown) < 3:
+            if preview is not None and frame.frame_id in preview_ids:
                 shown.append(frame)
             bar.update(1)
     path = writer.close()
