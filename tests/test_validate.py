@@ -52,6 +52,8 @@ def test_good_dataset_exits_zero_with_summary(tmp_path: Path, capsys):
     rows = {cells[0]: cells[1:] for cells in table if cells[0] in KEYPOINTS}
     assert rows == {"front": ["2", "2"], "tongue": ["2", "2"], "heel": ["2", "0"]}
     assert "ground-truth 3D points: 12" in out
+    assert "labels (visible, inside the image) per split: labelled 10, unlabelled 0, test 0" in out
+    assert "usable for training): 2 of 2" in out
 
 
 def test_corrupted_image_exits_non_zero_naming_it(tmp_path: Path, capsys):
@@ -120,6 +122,17 @@ def test_label_outside_image_is_a_warning_unless_strict(tmp_path: Path, capsys):
     assert "WARNING labels.csv line 2" in out and "field 'v'" in out and "masked" in out
     code, _ = validate(capsys, root, "--strict")
     assert code == 1
+
+
+def test_labelled_frame_without_two_views_warns(tmp_path: Path, capsys):
+    root = make_dataset(tmp_path / "ds")
+    labels = root / "labels.csv"
+    kept = [line for line in labels.read_text().splitlines() if not line.startswith("1,right,")]
+    labels.write_text("\n".join(kept) + "\n")
+    code, out = validate(capsys, root)
+    assert code == 0
+    assert "WARNING frames.csv line 3 (frame 1): field 'split': labelled frame without any keypoint" in out
+    assert "usable for training): 1 of 2" in out
 
 
 def test_missing_metadata_exits_non_zero(tmp_path: Path, capsys):

@@ -962,6 +962,18 @@ def check_dataset(
     if contents is None:
         return P.items, None
     dataset = Dataset(contents, cache="none", workers=workers)
+    lines = contents.frames.lines
+    labelled = np.flatnonzero(contents.frames.splits == "labelled")
+    seen_twice = (dataset._label_mask[labelled].sum(1) >= 2).any(-1)
+    for row in labelled[~seen_twice]:
+        P.warning(
+            FRAMES_FILE,
+            "split",
+            "labelled frame without any keypoint labelled in 2 or more cameras: the "
+            "supervised loss cannot triangulate it",
+            line=int(lines[row]),
+            frame=int(contents.frames.ids[row]),
+        )
     if check_images and not P.errors:
         dataset._check_all_images(P)
     elif check_images:
@@ -1365,22 +1377,23 @@ class Dataset:
             yield self.batch(ids)
 
     def summary(self) -> dict[str, Any]:
-        """Counts for reports: frames per split, labels per keypoint per camera, 3D points."""
+        """Counts for reports: frames per split, usable labels per split and per keypoint per camera in the
+        labelled split, labelled frames with a keypoint seen by >= 2 cameras (triangulable), 3D points."""
         splits = {s: int((self._c.frames.splits == s).sum()) for s in SPLITS}
-        labelled = self._label_mask
+        in_split = {s: self._c.frames.splits == s for s in SPLITS}
+        train = self._label_mask[in_split["labelled"]]
         per = {
-            k: {c: int(labelled[:, ci, ki].sum()) for ci, c in enumerate(self.cameras)}
+            k: {c: int(train[:, ci, ki].sum()) for ci, c in enumerate(self.cameras)}
             for ki, k in enumerate(self.keypoints)
         }
+        X = self._c.points3d
         return {
             "frames": len(self),
             "splits": splits,
             "labels": per,
-            "labels_total": int(labelled.sum()),
-            "labelled_frames_with_2_views": int((labelled.sum(1) >= 2).any(-1).sum()),
-            "points3d": None
-            if self._c.points3d is None
-            else int(np.isfinite(self._c.points3d).all(-1).sum()),
+            "labels_per_split": {s: int(self._label_mask[m].sum()) for s, m in in_split.items()},
+            "triangulable_labelled_frames": int((train.sum(1) >= 2).any(-1).sum()),
+            "points3d": None if X is None else int(np.isfinite(X).all(-1).sum()),
             "calibration": "static" if self.static_calibration else "per_frame",
             "image_size": self.source_image_size,
             "units": self.units,

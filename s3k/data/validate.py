@@ -50,11 +50,19 @@ def _print_summary(ds: Dataset) -> None:
     print("frames per split: " + ", ".join(f"{name} {s['splits'][name]}" for name in SPLITS))
     width = max(len(k) for k in ds.keypoints)
     cam_width = max(6, *(len(c) for c in ds.cameras))
-    print(f"labels per keypoint and camera (visible, inside the image): {s['labels_total']} in total")
+    print(
+        "labels (visible, inside the image) per split: "
+        + ", ".join(f"{name} {s['labels_per_split'][name]}" for name in SPLITS)
+    )
+    print("labels per keypoint and camera in the labelled split:")
     print(" " * (width + 2) + " ".join(f"{c:>{cam_width}}" for c in ds.cameras))
     for k in ds.keypoints:
         print(f"  {k:<{width}}" + " ".join(f"{s['labels'][k][c]:>{cam_width}}" for c in ds.cameras))
-    print(f"frames with a keypoint labelled in >= 2 cameras: {s['labelled_frames_with_2_views']}")
+    n_lab = s["splits"]["labelled"]
+    print(
+        f"labelled frames with a keypoint labelled in >= 2 cameras (usable for training): "
+        f"{s['triangulable_labelled_frames']} of {n_lab}"
+    )
     if s["points3d"] is None:
         print("ground-truth 3D points: none")
     else:
