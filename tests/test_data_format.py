@@ -344,6 +344,19 @@ CORRUPTIONS = {
         "cameras",
         "duplicate",
     ),
+    "image pattern without camera": (
+        _set_json("s3k.json", ["images"], {"type": "png", "pattern": "images/{frame:06d}.png"}),
+        "s3k.json",
+        "images.pattern",
+        "{camera}",
+    ),
+    "unknown image type": (_set_json("s3k.json", ["images"], {"type": "hdf5"}), "s3k.json", "images", "hdf5"),
+    "keypoint name with a comma": (
+        _set_json("s3k.json", ["keypoints"], ["corner_a", "corner,b", "corner_c"]),
+        "s3k.json",
+        "keypoints",
+        "commas",
+    ),
     "bad split": (
         lambda r: _edit_text(r / "frames.csv", "unlabelled", "unlabeled"),
         "frames.csv",
@@ -478,6 +491,14 @@ def test_per_frame_calibration_not_finite_and_missing_row(tmp_path: Path):
     msg = str(info.value)
     assert "calibration.csv line 2 (frame 10, camera cam0): field 'tx..tz': not finite" in msg
     assert f"(frame {dropped[0]}, camera {dropped[1]}): no calibration row" in msg
+
+
+def test_byte_order_mark_is_accepted(tiny):
+    root, _ = tiny
+    for name in ("s3k.json", "frames.csv", "labels.csv"):
+        path = root / name
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())  # as spreadsheet programs save UTF-8
+    assert len(Dataset.open(root, cache="none").frames("labelled")) == 2
 
 
 def test_every_error_is_collected(tiny):

@@ -66,7 +66,9 @@ CALIBRATION_COLUMNS = ("frame", "camera", *K_COLUMNS, *DIST_COLUMNS, *R_COLUMNS,
 
 # R is a rotation when max |R R^T - I| and |det R - 1| are below this (tolerates 6-digit rounding).
 ROTATION_TOLERANCE = 1e-4
-_NAME_RE = re.compile(r"^[A-Za-z0-9_.+-][A-Za-z0-9_.+ -]*$")
+# Camera names are folder names; keypoint names are CSV cells (written unquoted) and must survive a strip().
+_NAME_RE = re.compile(r"^[A-Za-z0-9_+-][A-Za-z0-9_.+-]*$")
+_BAD_CELL_RE = re.compile(r"[,\"\r\n]|^\s|\s$")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -231,7 +233,7 @@ def _read_csv(root: Path, name: str, required: Sequence[str], P: _Problems) -> t
     """Rows of a CSV as ``(header, [(line, {column: text})])``; lines starting with '#' are comments."""
     path = root / name
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         P.error(name, None, "file missing")
         return None
@@ -271,6 +273,14 @@ def _names(meta: dict, key: str, P: _Problems, folder_safe: bool) -> list[str] |
     if dupes:
         P.error(METADATA_FILE, key, f"duplicate names {dupes}")
         return None
+    bad_cells = [v for v in value if _BAD_CELL_RE.search(v)]
+    if bad_cells:
+        P.error(
+            METADATA_FILE,
+            key,
+            f"names {bad_cells} must not contain commas, quotes, line breaks or leading/trailing spaces",
+        )
+        return None
     if folder_safe:
         bad = [v for v in value if not _NAME_RE.match(v)]
         if bad:
@@ -299,7 +309,7 @@ def _read_metadata(root: Path, P: _Problems) -> _Meta | None:
         P.error(str(root), None, "not a folder")
         return None
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
+        meta = json.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         P.error(METADATA_FILE, None, "file missing: every dataset folder starts with s3k.json")
         return None
@@ -347,6 +357,23 @@ def _read_metadata(root: Path, P: _Problems) -> _Meta | None:
             "images",
             f"must be an object whose 'type' is one of {sorted(IMAGE_SOURCES)}, got {images!r}",
         )
+    elif images.get("type", "png") == "png":
+        pattern = images.get("pattern", DEFAULT_IMAGE_PATTERN)
+        try:
+            ok = isinstance(pattern, str) and pattern.format(camera="a", frame=1) != pattern.format(
+                camera="b", frame=2
+            )
+            ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="a", frame=2)
+            ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="b", frame=1)
+        except (KeyError, IndexError, ValueError, AttributeError):
+            ok = False
+        if not ok:
+            P.error(
+                METADATA_FILE,
+                "images.pattern",
+                "must be a relative path that uses both {camera} and {frame} "
+                f"(e.g. {DEFAULT_IMAGE_PATTERN!r}), got {pattern!r}",
+            )
     skeleton: list[tuple[str, str]] = []
     raw_skeleton = meta.get("skeleton", [])
     if not isinstance(raw_skeleton, list) or not all(
@@ -444,7 +471,7 @@ def _read_frames(root: Path, P: _Problems) -> _Frames | None:
 def _read_static_calibration(root: Path, meta: _Meta, P: _Problems) -> CameraArrays | None:
     name = STATIC_CALIBRATION_FILE
     try:
-        data = json.loads((root / name).read_text(encoding="utf-8"))
+        data = json.loads((root / name).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         P.error(name, None, "file missing (s3k.json says calibration is static)")
         return None
