@@ -1,0 +1,147 @@
+"""Tests of ``s3k export``: ONNX and TorchScript files reproduce the PyTorch detector to 1e-4."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from s3k import cli
+from s3k.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
+from s3k.heatmaps import confidence_weight
+from s3k.model import UNetConfig, detect
+from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, load_detector, write_run_config
+
+pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+SIZE = (40, 32)  # (W, H): not square, heatmap grid not a multiple of 2^depth (padding path of the UNet)
+
+
+def make_run(path: Path, dataset: str | None = None, norm: str = "batch") -> Path:
+    """A run folder with a tiny detector whose BatchNorm statistics are far from the identity."""
+    meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"], image_size=SIZE,
+                        stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 16, 16), res_blocks=1, norm=norm).to_dict())
+    torch.manual_seed(1)
+    net = build_model(meta)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3)
+            m.running_var.uniform_(0.3, 3.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    # Larger head weights than at initialization, so that heatmaps are peaked like a trained model's.
+    net.head.weight.data.normal_(0, 0.5)
+    path.mkdir(parents=True)
+    write_run_config(path, {}, meta, dataset)
+    atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    return make_run(tmp_path_factory.mktemp("export") / "run")
+
+
+def _inputs(n: int = 5, seed: int = 7) -> np.ndarray:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, SIZE[1], SIZE[0], generator=g).numpy()
+
+
+@pytest.mark.parametrize("fmt, suffix", [("onnx", ".onnx"), ("torchscript", ".pt")])
+@pytest.mark.parametrize("with_moments", [False, True])
+def test_export_matches_pytorch(run_dir, tmp_path, fmt, suffix, with_moments):
+    report = export_detector(run_dir, fmt, tmp_path / f"detector{suffix}", with_moments=with_moments)
+    assert report.ok and report.path.is_file()
+    assert set(report.max_diff) == set(report.outputs)
+    assert report.outputs == (["logits", "means", "confidence"] if with_moments else ["logits"])
+
+    # Independently of the verification inside export: another batch size than the traced one, and the
+    # reference from the model as loaded (BatchNorm not folded) through s3k.model.detect.
+    images = _inputs(5)
+    assert len(images) != TRACE_BATCH
+    got = run_exported(report.path, fmt, images)
+    model, meta = load_detector(run_dir)
+    with torch.no_grad():
+        logits, means, var = detect(model, torch.from_numpy(images)[None], meta.stride)
+    h, w = SIZE[1] // 2, SIZE[0] // 2
+    assert got[0].shape == (5, 3, h, w)
+    np.testing.assert_allclose(got[0], logits[0].numpy(), atol=1e-4, rtol=0)
+    assert np.ptp(got[0]) > 1.0  # not a trivially flat output
+    if with_moments:
+        assert got[1].shape == (5, 3, 2) and got[2].shape == (5, 3)
+        np.testing.assert_allclose(got[1], means[0].numpy(), atol=1e-4, rtol=0)
+        np.testing.assert_allclose(got[2], confidence_weight(var[0], meta.sigma).numpy(), atol=1e-4, rtol=0)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_exported_files_carry_the_metadata(run_dir, tmp_path):
+    _, meta = load_detector(run_dir)
+    onnx_path = export_detector(run_dir, "onnx", tmp_path / "d.onnx", with_moments=True).path
+    import onnx
+
+    props = {p.key: p.value for p in onnx.load(str(onnx_path)).metadata_props}
+    doc = json.loads(props[META_KEY])
+    assert doc["keypoints"] == meta.keypoints and doc["image_size"] == list(SIZE)
+    assert doc["outputs"] == ["logits", "means", "confidence"]
+
+    ts_path = export_detector(run_dir, "torchscript", tmp_path / "d.pt").path
+    files = {f"{META_KEY}.json": ""}
+    torch.jit.load(str(ts_path), _extra_files=files)
+    doc = json.loads(files[f"{META_KEY}.json"])
+    assert doc["stride"] == meta.stride and doc["sigma"] == meta.sigma and doc["outputs"] == ["logits"]
+
+
+def test_export_verifies_on_the_runs_dataset(tmp_path):
+    from synthetic_rig import make_dataset
+
+    data = make_dataset(tmp_path / "data", size=32, labelled=1, unlabelled=1, test=1)
+    run = make_run(tmp_path / "run", dataset=str(data), norm="group")
+    meta = load_detector(run)[1]
+    images, source = verification_images(meta, str(data))
+    assert str(data) in source and images.shape == (6, 3, SIZE[1], SIZE[0])
+    assert images.dtype == np.float32 and 0 <= images.min() and images.max() <= 1
+    report = export_detector(run, "onnx", tmp_path / "d.onnx")
+    assert report.ok and str(data) in report.inputs and report.num_images == 6
+
+
+def test_cli_prints_difference_and_fails_on_a_wrong_file(run_dir, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "d.onnx"
+    assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "max |difference| from PyTorch" in text and "logits" in text
+
+    # A file that does not reproduce the model (one weight changed after export) must be rejected.
+    import onnx
+    from onnx import numpy_helper
+
+    import s3k.export as export
+
+    original = export.export_module
+
+    def export_then_corrupt(*args, **kwargs):
+        path = original(*args, **kwargs)
+        model = onnx.load(str(path))
+        init = max(model.graph.initializer, key=lambda t: int(np.prod(t.dims)))
+        arr = numpy_helper.to_array(init).copy()
+        arr.flat[0] += 1.0
+        init.CopyFrom(numpy_helper.from_array(arr, init.name))
+        onnx.save(model, str(path))
+        return path
+
+    monkeypatch.setattr(export, "export_module", export_then_corrupt)
+    assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "does not reproduce" in captured.err and "max |difference|" in captured.out
+
+
+def test_export_errors(run_dir, tmp_path, capsys):
+    with pytest.raises(ValueError, match="--format"):
+        export_detector(run_dir, "tflite", tmp_path / "x")
+    missing = str(tmp_path / "missing")
+    assert cli.main(["export", missing, "--format", "onnx", "--out", str(tmp_path / "x")]) == 1
+    assert "missing" in capsys.readouterr().err
