@@ -18,7 +18,6 @@ The last line printed is one JSON object (``frames_per_s``, ``flop_fraction``, m
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -28,42 +27,10 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.common import emit, matmul_flops  # noqa: E402
 from s3k.geometry import Cameras, triangulate_pixels  # noqa: E402
 from s3k.heatmaps import confidence_weight  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops, detect  # noqa: E402
-
-try:  # shared helpers of the benchmarks (machine description, matmul peak, JSON output)
-    from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
-except ImportError:  # pragma: no cover - keeps this script usable on its own
-    emit = machine_info = matmul_flops = None
-
-
-def _machine_info() -> dict:
-    if machine_info is not None:
-        return machine_info()
-    import platform
-
-    return {
-        "cpu": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-    }
-
-
-def _matmul_flops(n: int = 1024, repeats: int = 10) -> float:
-    if matmul_flops is not None:
-        return float(matmul_flops())
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    for _ in range(3):
-        a @ b
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        a @ b
-        times.append(time.perf_counter() - t0)
-    return 2 * n**3 / statistics.median(times)
 
 
 def look_at_rig(num_cameras: int, size: int, distance: float = 1.0) -> Cameras:
@@ -164,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     peaks, times, round_fps = [], [], []
     time_pipeline(run, frames, args.warmup, 0)
     for _ in range(max(1, args.rounds)):
-        peaks.append(_matmul_flops())
+        peaks.append(matmul_flops(seconds=1.0))
         t = time_pipeline(run, frames, 2, args.repeats)
         round_fps.append(1 / statistics.median(t))
         times += t
@@ -202,12 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         "rounds": args.rounds,
         "frames_per_s_rounds": round_fps,
         "matmul_flops_rounds": peaks,
-        "machine": _machine_info(),
     }
-    if emit is not None:
-        emit(result)
-    else:
-        print(json.dumps(result))
+    emit(result)
     return 0
 
 
