@@ -95,7 +95,7 @@ class CameraSampler:
 
     distance: tuple[float, float] = (0.85, 1.15)
     elevation_deg: tuple[float, float] = (25.0, 70.0)
-    fovy_deg: float = 26.0
+    fovy_deg: float = 22.0
     target: tuple[float, float, float] = (0.0, 0.0, 0.01)
     target_jitter: float = 0.015
     roll_deg: float = 10.0
@@ -621,7 +621,7 @@ class CategoryScene(Scene):
 
     name = "category"
     keypoints = ["handle", "body_centre", "lip"]
-    cameras_sampler = CameraSampler(distance=(0.42, 0.58), elevation_deg=(20.0, 70.0), fovy_deg=26.0,
+    cameras_sampler = CameraSampler(distance=(0.42, 0.58), elevation_deg=(20.0, 70.0), fovy_deg=22.0,
                                     target=(0.0, 0.0, 0.05), target_jitter=0.01)
     placement_radius = 0.03
     _HIDDEN_GROUP = 5
