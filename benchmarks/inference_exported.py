@@ -1,0 +1,219 @@
+"""Inference speed of the exported detector: 4-view 3D keypoints per frame with ONNX Runtime and TorchScript.
+
+The same end-to-end pipeline as ``benchmarks/inference.py`` (C uint8 camera images -> float [0, 1] -> U-Net
+heatmaps of the C views in one batch -> softmax means and variances -> confidence weights -> weighted
+triangulation), with the network run from the file ``s3k export`` writes (BatchNorm folded, batch dimension
+dynamic): in onnxruntime (CPU execution provider, as many intra-op threads as torch uses) and as TorchScript.
+The PyTorch pipeline of ``benchmarks/inference.py`` is timed in the same run for comparison. With
+``--with-moments`` the exported graph also computes the heatmap means and confidences (``s3k export
+--with-moments``), so only the triangulation stays in PyTorch.
+
+Before timing, each exported file is checked against the PyTorch model (largest absolute difference of the
+logits on the benchmark frames, reported as ``max_diff``).
+
+Example::
+
+    python benchmarks/inference_exported.py --size 128
+
+The last line printed is one JSON object: ``frames_per_s`` (ONNX Runtime), ``torchscript_frames_per_s``,
+``pytorch_frames_per_s``, the FLOP fractions, machine info, ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
+from benchmarks.inference import look_at_rig, make_pipeline, time_pipeline  # noqa: E402
+from s3k.export import export_module, output_names, read_out  # noqa: E402
+from s3k.geometry import triangulate_pixels  # noqa: E402
+from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+
+
+def onnx_pipeline(path: Path, cams, stride: int, sigma: float, with_moments: bool, threads: int):
+    """Per-frame function with the network in onnxruntime: uint8 ``(C, H, W, 3)`` -> ``(X (K, 3), valid)``."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+    def run(frames_u8: torch.Tensor):
+        # ORT wants dense NCHW float32.
+        images = frames_u8.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0).contiguous().numpy()
+        outs = session.run(None, {"images": images})
+        if with_moments:
+            means, weights = torch.from_numpy(outs[1]), torch.from_numpy(outs[2])
+        else:
+            means, weights = read_out(torch.from_numpy(outs[0]), stride, sigma)
+        X, valid = triangulate_pixels(cams, means[None].to(cams.dtype), weights[None].to(cams.dtype))
+        return X[0], valid[0]
+
+    return run
+
+
+def torchscript_pipeline(path: Path, cams, stride: int, sigma: float, with_moments: bool,
+                         channels_last: bool):
+    """Per-frame function with the network loaded by ``torch.jit.load`` (frozen for inference)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        module = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.load(str(path)).eval()))
+
+    def run(frames_u8: torch.Tensor):
+        images = frames_u8.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
+        if not channels_last:
+            images = images.contiguous()
+        outs = module(images)
+        if with_moments:
+            means, weights = outs[1], outs[2]
+        else:
+            means, weights = read_out(outs, stride, sigma)
+        X, valid = triangulate_pixels(cams, means[None].to(cams.dtype), weights[None].to(cams.dtype))
+        return X[0], valid[0]
+
+    return run
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--size", type=int, default=128, help="square image size in pixels (default 128)")
+    p.add_argument("--cameras", type=int, default=4, help="cameras per frame (default 4)")
+    p.add_argument("--keypoints", type=int, default=3, help="keypoints K (default 3)")
+    p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
+    p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
+    p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
+    p.add_argument("--sigma", type=float, default=3.0, help="target width in image pixels (confidence scale)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch and onnxruntime threads (default: torch's)")
+    p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
+    p.add_argument("--repeats", type=int, default=100, help="timed frames per round (default 100)")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds of matmul peak and timing")
+    p.add_argument("--with-moments", action="store_true",
+                   help="export means and confidences too (read-out inside the exported graph)")
+    p.add_argument("--keep", default=None, help="folder to keep the exported files in (default: temporary)")
+    args = p.parse_args(argv)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    threads = torch.get_num_threads()
+    torch.manual_seed(0)
+    overrides = {
+        k: v
+        for k, v in {
+            "stride": args.stride,
+            "channels": tuple(int(c) for c in args.channels.split(",")) if args.channels else None,
+            "res_blocks": args.res_blocks,
+        }.items()
+        if v is not None
+    }
+    config = UNetConfig(**overrides)
+    model = UNet(args.keypoints, config).eval()
+    num_params = sum(q.numel() for q in model.parameters())
+    fused = model.fused()
+
+    C, S = args.cameras, args.size
+    cams = look_at_rig(C, S)
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 256, (C, S, S, 3), dtype=torch.uint8, generator=gen)
+    images = frames.permute(0, 3, 1, 2).float().div(255.0).contiguous()
+    flops_per_frame = count_conv_flops(fused, images)
+
+    from s3k.export import DetectorWithMoments, run_exported
+
+    module = DetectorWithMoments(fused, config.stride, args.sigma) if args.with_moments else fused
+    names = output_names(args.with_moments)
+    meta = json.dumps({"benchmark": True, "image_size": [S, S], "stride": config.stride, "sigma": args.sigma})
+    tmp = None
+    if args.keep:
+        folder = Path(args.keep)
+        folder.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.TemporaryDirectory()
+        folder = Path(tmp.name)
+    paths = {
+        "onnx": export_module(module, "onnx", folder / "detector.onnx", (S, S), names, meta),
+        "torchscript": export_module(module, "torchscript", folder / "detector.pt", (S, S), names, meta),
+    }
+    with torch.no_grad():
+        ref = model(images).numpy()
+    max_diff = {fmt: float(np.abs(run_exported(path, fmt, images.numpy())[0] - ref).max())
+                for fmt, path in paths.items()}
+
+    pipelines = {
+        "pytorch": make_pipeline(fused.to(memory_format=torch.channels_last), cams, config.stride, args.sigma,
+                                 True),
+        "onnx": onnx_pipeline(paths["onnx"], cams, config.stride, args.sigma, args.with_moments, threads),
+        "torchscript": torchscript_pipeline(paths["torchscript"], cams, config.stride, args.sigma,
+                                            args.with_moments, channels_last=False),
+    }
+    peaks: list[float] = []
+    times: dict[str, list[float]] = {name: [] for name in pipelines}
+    for run in pipelines.values():
+        time_pipeline(run, frames, args.warmup, 0)
+    # The machine may be shared: interleave the matmul peak and the three pipelines, take medians.
+    for _ in range(max(1, args.rounds)):
+        peaks.append(matmul_flops())
+        for name, run in pipelines.items():
+            times[name] += time_pipeline(run, frames, 2, args.repeats)
+    matmul = statistics.median(peaks)
+    fps = {name: 1 / statistics.median(t) for name, t in times.items()}
+    print(
+        f"{S}x{S} px, {C} cameras, K={args.keypoints}, heatmap {S // config.stride}x{S // config.stride}, "
+        f"{num_params} params, {flops_per_frame / 1e6:.1f} MFLOP/frame, threads {threads}, "
+        f"read-out in {'the exported graph' if args.with_moments else 'PyTorch'}"
+    )
+    for name, t in times.items():
+        med = statistics.median(t)
+        q = statistics.quantiles(t, n=10)
+        diff = f", max |logits - PyTorch| {max_diff[name]:.2g}" if name in max_diff else ""
+        print(f"{name:>12}: median {med * 1e3:.2f} ms/frame (p10 {q[0] * 1e3:.2f}, p90 {q[-1] * 1e3:.2f}) -> "
+              f"{1 / med:.1f} frames/s, conv {100 * flops_per_frame / med / matmul:.1f}% of matmul "
+              f"{matmul / 1e9:.1f} GFLOP/s{diff}")
+    result = {
+        "benchmark": "inference_exported",
+        "frames_per_s": fps["onnx"],
+        "torchscript_frames_per_s": fps["torchscript"],
+        "pytorch_frames_per_s": fps["pytorch"],
+        "flop_fraction": flops_per_frame * fps["onnx"] / matmul,
+        "torchscript_flop_fraction": flops_per_frame * fps["torchscript"] / matmul,
+        "pytorch_flop_fraction": flops_per_frame * fps["pytorch"] / matmul,
+        "ms_per_frame_median": {name: 1e3 * statistics.median(t) for name, t in times.items()},
+        "max_diff": max_diff,
+        "matmul_flops": matmul,
+        "flops_per_frame": flops_per_frame,
+        "size": S,
+        "cameras": C,
+        "keypoints": args.keypoints,
+        "params": num_params,
+        "config": config.to_dict(),
+        "with_moments": args.with_moments,
+        "threads": threads,
+        "repeats": args.repeats,
+        "rounds": args.rounds,
+        "onnxruntime": __import__("onnxruntime").__version__,
+        "machine": machine_info(),
+    }
+    if tmp is not None:
+        tmp.cleanup()
+    emit(result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
