@@ -24,17 +24,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from s3k.sim.generate import SimulateConfig, default_workers, frame_plan, frame_rng, simulate  # noqa: E402
 from s3k.sim.scenes import make_scene  # noqa: E402
 
-try:
-    from benchmarks.common import emit  # type: ignore
-except ImportError:  # the shared helper is optional
 
-    def emit(result: dict) -> None:
+def _emit(result: dict) -> None:
+    """The shared `benchmarks.common.emit` (imported here, not at the top: rendering workers are spawned and
+    re-import this file, and should not load torch)."""
+    try:
+        from benchmarks.common import emit, machine_info
+    except ImportError:  # pragma: no cover - the shared helpers are missing
+        result["machine"] = {"platform": platform.platform(), "cpus": default_workers(),
+                             "load_avg_1min": round(os.getloadavg()[0], 2)}
         print(json.dumps(result), flush=True)
-
-
-def machine() -> dict:
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": default_workers(),
-            "load_average": [round(x, 2) for x in os.getloadavg()], "mujoco_gl": os.environ.get("MUJOCO_GL")}
+        return
+    result["machine"] = {**machine_info(), "mujoco_gl": os.environ.get("MUJOCO_GL")}
+    emit(result)
 
 
 def render_only(scene: str, size: int, frames: int) -> float:
@@ -66,7 +68,7 @@ def main() -> None:
         size_mb = sum(f.stat().st_size for f in (Path(tmp) / "ds").rglob("*") if f.is_file()) / 2**20
     print(f"end to end: {out['images']} images in {out['seconds']:.2f} s = {out['images_per_s']:.0f} "
           f"images/s ({size_mb:.1f} MB on disk)")
-    emit({
+    _emit({
         "benchmark": "render",
         "scene": args.scene,
         "size": args.size,
@@ -77,7 +79,6 @@ def main() -> None:
         "images_per_s": round(out["images_per_s"], 1),
         "render_only_images_per_s": round(single, 1),
         "target_images_per_s": 200,
-        "machine": machine(),
     })
 
 
