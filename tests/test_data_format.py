@@ -201,6 +201,15 @@ def test_disk_cache_matches_and_follows_file_changes(tiny):
     np.testing.assert_array_equal(changed.images(ids[:1])[0, 1], new)
 
 
+def test_cache_folder_from_environment(tiny, tmp_path: Path, monkeypatch):
+    root, w = tiny
+    monkeypatch.setenv("S3K_CACHE_DIR", str(tmp_path / "elsewhere"))
+    ds = Dataset.open(root, cache="disk")
+    np.testing.assert_array_equal(ds.images(ds.frames()), np.stack(w["images"]))
+    assert not (root / ".cache").exists()
+    assert len(list((tmp_path / "elsewhere").glob("*/images-*.u8"))) == 1
+
+
 @pytest.mark.parametrize("cache", ["memory", "none"])
 def test_memory_and_uncached_images_agree(tiny, cache: str):
     root, w = tiny

@@ -1224,29 +1224,44 @@ class Dataset:
         W, H = self.image_size
         shape = (len(self), len(self.cameras), H, W, 3)
         if self._cache_mode == "disk":
-            base = self.path / CACHE_DIR / f"images-{self._fingerprint()}-{W}x{H}"
-            try:
-                base.parent.mkdir(exist_ok=True)
-                data_path, flag_path = base.with_suffix(".u8"), base.with_suffix(".filled")
-                # Processes sharing the cache (DDP ranks, parallel runs) must not both create it: one
-                # truncating the file another already writes to would leave frames flagged but black.
-                with open(base.with_suffix(".lock"), "a") as lock, _file_lock(lock):
-                    sizes = {data_path: int(np.prod(shape)), flag_path: len(self)}
-                    if not all(p.exists() and p.stat().st_size == n for p, n in sizes.items()):
-                        for p, n in sizes.items():
-                            with open(p, "wb") as f:
-                                f.truncate(n)  # sparse: disk is used as frames are decoded
-                    self._filled = np.memmap(flag_path, dtype=np.uint8, mode="r+", shape=(len(self),))
-                    self._cache = np.memmap(data_path, dtype=np.uint8, mode="r+", shape=shape)
-                return
-            except OSError as exc:
-                warnings.warn(
-                    f"{base.parent}: cannot write the image cache ({exc}); caching in memory instead",
-                    DatasetWarning,
-                    stacklevel=3,
-                )
+            name = f"images-{self._fingerprint()}-{W}x{H}"
+            failures = []
+            for folder in self._cache_folders():
+                try:
+                    self._open_disk_cache(folder / name, shape)
+                    return
+                except OSError as exc:
+                    failures.append(f"{folder}: {exc}")
+            warnings.warn(
+                f"cannot write the image cache ({'; '.join(failures)}); caching in memory instead",
+                DatasetWarning,
+                stacklevel=3,
+            )
         self._cache = np.zeros(shape, dtype=np.uint8)  # pages are allocated on first write
         self._filled = np.zeros(len(self), dtype=np.uint8)
+
+    def _cache_folders(self) -> list[Path]:
+        """Where the disk cache may live: ``$S3K_CACHE_DIR`` if set, else ``DATASET/.cache`` and, for
+        read-only datasets, the user's cache folder (file names there include a hash of the dataset path)."""
+        tag = hashlib.sha1(str(self.path.resolve()).encode()).hexdigest()[:8]
+        if os.environ.get("S3K_CACHE_DIR"):
+            return [Path(os.environ["S3K_CACHE_DIR"]) / tag]
+        user = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "s3k" / tag
+        return [self.path / CACHE_DIR, user]
+
+    def _open_disk_cache(self, base: Path, shape: tuple[int, ...]) -> None:
+        base.parent.mkdir(parents=True, exist_ok=True)
+        data_path, flag_path = base.with_suffix(".u8"), base.with_suffix(".filled")
+        # Processes sharing the cache (DDP ranks, parallel runs) must not both create it: one truncating the
+        # file another already writes to would leave frames flagged as decoded but black.
+        with open(base.with_suffix(".lock"), "a") as lock, _file_lock(lock):
+            sizes = {data_path: int(np.prod(shape)), flag_path: len(self)}
+            if not all(p.exists() and p.stat().st_size == n for p, n in sizes.items()):
+                for p, n in sizes.items():
+                    with open(p, "wb") as f:
+                        f.truncate(n)  # sparse: disk is used as frames are decoded
+            self._filled = np.memmap(flag_path, dtype=np.uint8, mode="r+", shape=(len(self),))
+            self._cache = np.memmap(data_path, dtype=np.uint8, mode="r+", shape=shape)
 
     def _decode_into(self, rows: np.ndarray, out: np.ndarray, out_rows: np.ndarray | None = None) -> None:
         """Decode frames ``rows`` (all cameras) into ``out[out_rows]`` (default ``out[:len(rows)]``) of shape
