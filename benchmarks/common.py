@@ -1,0 +1,143 @@
+"""Shared helpers of the benchmarks: what machine a figure was measured on, its matmul peak, JSON output.
+
+Every benchmark ends with `emit(result)`, which prints the result and the machine description as one JSON
+line, the last line of its output, so that scripts can collect figures with ``tail -n 1``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def _cpu_model() -> str:
+    """The CPU's marketing name (from /proc/cpuinfo on Linux, else what `platform` knows)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _cpu_flags() -> list[str]:
+    """The vector extensions that matter for float32 throughput (AVX2/AVX-512/AMX), if known."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.lower().startswith("flags"):
+                    flags = line.split(":", 1)[1].split()
+                    keep = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16")
+                    return [x for x in keep if x in flags]
+    except OSError:
+        pass
+    return []
+
+
+def _memory_gb() -> float | None:
+    try:
+        with open("/proc/meminfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("MemTotal:"):
+                    return round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    return None
+
+
+def machine_info() -> dict[str, Any]:
+    """A description of this machine and software stack, without the hostname or any user name.
+
+    Returns:
+        dict with the CPU model and vector flags, logical cores (and those this process may use), memory,
+        torch/numpy/python versions, torch's intra-op thread count, the OS, and the 1-minute load average at
+        call time (a busy shared machine explains a low figure).
+    """
+    info: dict[str, Any] = {
+        "cpu": _cpu_model(),
+        "cpu_flags": _cpu_flags(),
+        "cpu_count": os.cpu_count(),
+        "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "memory_gb": _memory_gb(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "torch_threads": torch.get_num_threads(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "os": f"{platform.system()} {platform.release()} {platform.machine()}",
+    }
+    if hasattr(os, "getloadavg"):
+        info["load_avg_1min"] = round(os.getloadavg()[0], 2)
+    cv2 = sys.modules.get("cv2")
+    if cv2 is not None:
+        info["opencv"] = cv2.__version__
+    return info
+
+
+def matmul_flops(seconds: float = 2.0, sizes: tuple[int, ...] = (256, 512, 1024, 2048)) -> float:
+    """This machine's float32 matmul throughput with torch and its current thread count, in FLOP/s.
+
+    Square matmuls of each size are timed repeatedly within a share of ``seconds``; the best rate over sizes
+    and repeats is returned (``2 n^3`` FLOPs per product), the figure other benchmarks compare against.
+
+    Args:
+        seconds: total time budget (at least one timed product per size is always run).
+        sizes: square matrix sizes to try.
+
+    Returns:
+        FLOP/s, a float.
+    """
+    gen = torch.Generator().manual_seed(0)
+    best = 0.0
+    share = seconds / max(1, len(sizes))
+    for n in sizes:
+        a = torch.randn(n, n, generator=gen)
+        b = torch.randn(n, n, generator=gen)
+        out = torch.empty(n, n)
+        torch.mm(a, b, out=out)  # warm-up: thread pool, packing buffers
+        flops = 2.0 * n**3
+        start = time.perf_counter()
+        while True:
+            t0 = time.perf_counter()
+            torch.mm(a, b, out=out)
+            dt = time.perf_counter() - t0
+            if dt > 0:
+                best = max(best, flops / dt)
+            if time.perf_counter() - start >= share:
+                break
+    return best
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, torch.Tensor) and x.numel() == 1:
+        return x.item()
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+def emit(result: dict[str, Any]) -> None:
+    """Print ``result`` plus ``machine`` (`machine_info`, unless given) as one JSON line, flushed.
+
+    Call it last: the JSON line is meant to be the final line of a benchmark's output.
+    """
+    out = dict(result)
+    out.setdefault("machine", machine_info())
+    sys.stdout.flush()
+    print(json.dumps(_jsonable(out), default=str, separators=(",", ":")), flush=True)
