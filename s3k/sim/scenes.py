@@ -602,12 +602,13 @@ class MugShape:
     def keypoints(self) -> np.ndarray:
         """(3, 3) in the mug frame: ``handle`` (centre of the handle's ring), ``body_centre``, ``lip`` (rim
         point opposite the handle)."""
-        wall = self.radius_at(self.handle_z)
-        hole_centre = wall + 0.5 * (self.handle_reach - self.handle_tube)
+        outer = self.radius_at(self.handle_z)
+        # The loop's hole runs from the body's outer wall to the inner edge of the handle's tube.
+        inner_edge = outer - 0.6 * self.wall + self.handle_reach - self.handle_tube
         return np.array([
-            [hole_centre, 0.0, self.handle_z],
+            [0.5 * (outer + inner_edge), 0.0, self.handle_z],
             [0.0, 0.0, self.height / 2],
-            [-self.r_top - self.bulge * 0.0, 0.0, self.height],
+            [-(self.r_top - 0.5 * self.wall), 0.0, self.height],  # middle of the rim's thickness
         ])
 
 
