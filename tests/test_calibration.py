@@ -1,5 +1,7 @@
 """Calibration check on synthetic rigs: exact labels fit, a perturbed camera is named, noise is not."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -155,3 +157,71 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
     assert main(["check-calibration", str(path), "--splits", "labelled"]) == 2
     out = capsys.readouterr().out
     assert "INCONSISTENT: d" in out and "6 frames (labelled)" in out
+
+
+def test_recalibrate_from_synthetic_charuco(tmp_path):
+    """Render a ChArUco board seen by 3 cameras; a camera given another's parameters is recovered."""
+    from s3k.calibration import CharucoBoardSpec, detect_charuco, recalibrate_charuco
+    from s3k.data.importers import RigCalibration
+
+    W, H = 640, 480
+    spec = CharucoBoardSpec(5, 7, 30.0, 22.0, 4, 50)
+    board = spec.cv2_board()
+    px_per_mm = 4
+    art = board.generateImage((5 * 30 * px_per_mm, 7 * 30 * px_per_mm), marginSize=0)
+    # The board image maps board (x, y) mm -> art pixels (x, y) * px_per_mm (pixel centres at +0.5).
+    A = np.array([[px_per_mm, 0, -0.5], [0, px_per_mm, -0.5], [0, 0, 1.0]])
+    poses = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), 400.0])) for a in (0.3, 2.2, 4.2)]
+    rig = [None, None, np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])]
+    Ks = np.array([[[600.0 + 60 * c, 0, (W - 1) / 2], [0, 600.0 + 60 * c, (H - 1) / 2], [0, 0, 1]]
+                   for c in range(3)])
+    rng = np.random.default_rng(0)
+    names = ["p", "q", "r"]
+    files = {n: [] for n in names}
+    for i in range(8):
+        # Board pose in the world: near the origin, tilted, its printed side up towards the cameras (the
+        # board's z axis points into the board, so it points down here).
+        R_wb = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0] @ np.diag([1.0, -1.0, -1.0])
+        t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
+        for c, n in enumerate(names):
+            R, t = rig[2][c], rig[3][c]
+            # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
+            Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
+            image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
+            path = tmp_path / f"{n}-{i}.png"
+            cv2.imwrite(str(path), image)
+            files[n].append(path)
+    detections = {n: detect_charuco(files[n], spec) for n in names}
+    assert all(len(d) >= 6 for d in detections.values())
+    truth = RigCalibration(names, Ks, np.zeros((3, 5)), rig[2].copy(), rig[3].copy(), np.array([[W, H]] * 3),
+                           "mm")
+    broken = RigCalibration(names, Ks.copy(), np.zeros((3, 5)), rig[2].copy(), rig[3].copy(),
+                            np.array([[W, H]] * 3), "mm")
+    broken.K[1], broken.R[1], broken.t[1] = broken.K[2], broken.R[2], broken.t[2]  # copied from "r"
+    fix = recalibrate_charuco(broken, "q", detections, spec, ["p", "r"])
+    assert fix.pose_median_px < 0.5
+    np.testing.assert_allclose(fix.K, truth.K[1], rtol=0.005, atol=1e-9)
+    assert abs(fix.dist[0]) < 0.02
+    centre_true = -truth.R[1].T @ truth.t[1]
+    centre_fit = -fix.R.T @ fix.t
+    assert np.linalg.norm(centre_fit - centre_true) < 0.005 * np.linalg.norm(centre_true)
+    angle = np.rad2deg(np.linalg.norm(cv2.Rodrigues(fix.R @ truth.R[1].T)[0]))
+    assert angle < 0.2
+
+
+REAL = Path("/work/shared/data/real/sleap-anipose-minimal_session/minimal_session")
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="real recording not available")
+def test_real_recording_names_side():
+    """The sleap-anipose session's calibration gives camera "side" the parameters of "top"."""
+    from s3k.data.importers import read_anipose_calibration, read_sleap_analysis
+
+    rig = read_anipose_calibration(REAL / "calibration.toml")
+    uv = np.stack(
+        [read_sleap_analysis(REAL / c / f"minimal_{c}_proofread.analysis.h5").uv for c in rig.names], axis=1
+    )
+    cams = Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
+    check = check_calibration(cams, uv, np.isfinite(uv).all(-1), rig.names, image_size=(1280, 1024))
+    assert check.inconsistent == ["side"], check.format()
+    assert "side and top have identical calibration parameters" in check.notes
