@@ -569,7 +569,7 @@ def triangulate_rays(
 
     Args:
         origins: (*, V, 3) ray origins.
-        directions: (*, V, 3) unit ray directions (`pixel_rays` returns unit vectors).
+        directions: (*, V, 3) non-zero ray directions (normalized here; `pixel_rays` returns unit vectors).
         weights: (*, V) non-negative weights, or None for unit weights. All leading dims broadcast.
         min_weight: smallest valid total weight.
         min_rel_det: smallest valid ``det(A) / (trace(A)/3)^3``.
@@ -598,42 +598,92 @@ def triangulate_rays(
     return _triangulate(origins, directions, weights, min_weight, min_rel_det)
 
 
+# Above this many points a batch is solved in chunks that stay in the CPU's L2/L3 cache; every step of the
+# solve is a separate elementwise pass, so keeping its operands cached is what makes large batches fast.
+_TRIANGULATE_CHUNK = 32768
+
+
+def _planar(x: Tensor) -> Tensor:
+    """(N, V, c) -> (c, V, N) contiguous, so that every later op runs on contiguous, vectorizable rows.
+
+    A product with a permutation matrix is a de-interleaving copy that the BLAS does several times faster than
+    ``permute(...).contiguous()`` (which for c = 3 or 1 is a strided gather); it is exact as long as float32
+    matmuls are not allowed to drop precision.
+    """
+    n, v, c = x.shape
+    if n < 4096 or (x.dtype == torch.float32 and torch.get_float32_matmul_precision() != "highest"):
+        return x.permute(2, 1, 0).contiguous()
+    order = torch.arange(c * v, device=x.device).view(v, c).T.reshape(-1)
+    select = torch.eye(c * v, dtype=x.dtype, device=x.device)[order]
+    return torch.mm(select, x.reshape(n, c * v).T).view(c, v, n)
+
+
+def _solve_planar(
+    O: Tensor, D: Tensor, Wv: Tensor, min_weight: float, min_rel_det: float
+) -> tuple[Tensor, Tensor]:
+    """The weighted normal equations for O, D (3, V, N) and Wv (V, N); returns X (N, 3), valid (N,)."""
+    # A = W I - S with S = sum_v w d d^T (its off-diagonal entries enter with a minus sign, folded into the
+    # cofactors below), and b = sum_v w (a - d (d . a)): the weighted sum of each ray's point closest to the
+    # world origin. Normalizing first costs a few passes but keeps I - d d^T an exact projector for directions
+    # that are unit only to rounding (float32 rays are off by ~1e-7, which the solve amplifies several-fold).
+    dd = D[0] * D[0]
+    dd = dd.addcmul_(D[1], D[1]).addcmul_(D[2], D[2])
+    D = D * dd.clamp(min=torch.finfo(D.dtype).tiny).rsqrt()
+    wd = D * Wv
+    s_diag = (wd * D).sum(1)  # sxx, syy, szz
+    sxy, syz = (wd[:2] * D[1:]).sum(1).unbind(0)
+    sxz = (wd[0] * D[2]).sum(0)
+    da = D[0] * O[0]
+    da = da.addcmul_(D[1], O[1]).addcmul_(D[2], O[2])
+    b = (torch.addcmul(O, D, da, value=-1) * Wv).sum(1)
+    W = Wv.sum(0)
+    axx, ayy, azz = (W - s_diag).unbind(0)
+    bx, by, bz = b.unbind(0)
+    # Cofactors of the symmetric A (its adjugate), with a_xy = -sxy etc.
+    cxx = torch.addcmul(ayy * azz, syz, syz, value=-1)
+    cyy = torch.addcmul(axx * azz, sxz, sxz, value=-1)
+    czz = torch.addcmul(axx * ayy, sxy, sxy, value=-1)
+    cxy = torch.addcmul(sxz * syz, sxy, azz)
+    cxz = torch.addcmul(sxy * syz, sxz, ayy)
+    cyz = torch.addcmul(sxy * sxz, axx, syz)
+    det = torch.addcmul(torch.addcmul(axx * cxx, sxy, cxy, value=-1), sxz, cxz, value=-1)
+    tr3 = (axx + ayy + azz) * (1 / 3)
+    # For a PSD A, det/(trace/3)^3 in [0, 1] measures how far A is from singular independently of the weights'
+    # scale; written as a product so that zero weights give False rather than 0/0.
+    valid = (W > min_weight) & (det > min_rel_det * tr3 * tr3 * tr3)
+    inv_det = torch.where(valid, 1 / torch.where(valid, det, torch.ones_like(det)), torch.zeros_like(det))
+    X = torch.stack(
+        [
+            torch.addcmul(torch.addcmul(cxx * bx, cxy, by), cxz, bz),
+            torch.addcmul(torch.addcmul(cxy * bx, cyy, by), cyz, bz),
+            torch.addcmul(torch.addcmul(cxz * bx, cyz, by), czz, bz),
+        ],
+        dim=-1,
+    )
+    return X * inv_det[:, None], valid
+
+
 def _triangulate(
     o: Tensor, d: Tensor, w: Tensor, min_weight: float, min_rel_det: float
 ) -> tuple[Tensor, Tensor]:
-    # A = W I - sum w d d^T and b = sum w (a - d (d . a)): the second is the weighted sum of the points of
-    # each ray closest to the world origin.
-    wd = w[..., None] * d
-    dx, dy, dz = d.unbind(-1)
-    wdx, wdy, wdz = wd.unbind(-1)
-    W = w.sum(-1)
-    sxx = (wdx * dx).sum(-1)
-    syy = (wdy * dy).sum(-1)
-    szz = (wdz * dz).sum(-1)
-    sxy = (wdx * dy).sum(-1)
-    sxz = (wdx * dz).sum(-1)
-    syz = (wdy * dz).sum(-1)
-    axx, ayy, azz = W - sxx, W - syy, W - szz
-    axy, axz, ayz = -sxy, -sxz, -syz
-    da = (d * o).sum(-1, keepdim=True)
-    b = (w[..., None] * o).sum(-2) - (wd * da).sum(-2)
-    bx, by, bz = b.unbind(-1)
-    # Adjugate (A is symmetric, so is its adjugate).
-    cxx = ayy * azz - ayz * ayz
-    cxy = axz * ayz - axy * azz
-    cxz = axy * ayz - axz * ayy
-    cyy = axx * azz - axz * axz
-    cyz = axy * axz - axx * ayz
-    czz = axx * ayy - axy * axy
-    det = axx * cxx + axy * cxy + axz * cxz
-    tr3 = (axx + ayy + azz) / 3
-    valid = (W > min_weight) & (det > min_rel_det * tr3 * tr3 * tr3)
-    inv_det = 1 / torch.where(valid, det, torch.ones_like(det))
-    X = torch.stack(
-        [cxx * bx + cxy * by + cxz * bz, cxy * bx + cyy * by + cyz * bz, cxz * bx + cyz * by + czz * bz], -1
-    ) * inv_det[..., None]
-    X = torch.where(valid[..., None], X, torch.zeros_like(X))
-    return X, valid
+    lead = torch.broadcast_shapes(o.shape[:-2], d.shape[:-2], w.shape[:-1])
+    v = max(o.shape[-2], d.shape[-2], w.shape[-1])
+    n = int(np.prod(lead, dtype=np.int64))
+    o = o.expand(lead + (v, 3)).reshape(n, v, 3)
+    d = d.expand(lead + (v, 3)).reshape(n, v, 3)
+    w = w.expand(lead + (v,)).reshape(n, v, 1)
+    grad = torch.is_grad_enabled() and (o.requires_grad or d.requires_grad or w.requires_grad)
+    if grad or n <= _TRIANGULATE_CHUNK:
+        X, valid = _solve_planar(_planar(o), _planar(d), _planar(w)[0], min_weight, min_rel_det)
+    else:
+        X = o.new_empty(n, 3)
+        valid = torch.empty(n, dtype=torch.bool, device=o.device)
+        for i in range(0, n, _TRIANGULATE_CHUNK):
+            j = min(i + _TRIANGULATE_CHUNK, n)
+            X[i:j], valid[i:j] = _solve_planar(
+                _planar(o[i:j]), _planar(d[i:j]), _planar(w[i:j])[0], min_weight, min_rel_det
+            )
+    return X.reshape(lead + (3,)), valid.reshape(lead)
 
 
 def triangulate_pixels(
