@@ -1,6 +1,7 @@
 """Importers: each parser on tiny files written here in the peer tool's own layout, then ``s3k import``."""
 
 import textwrap
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -444,3 +445,19 @@ def test_import_errors(recording, tmp_path, capsys):
                  "--out", str(tmp_path / "w")])
     assert code == 1
     assert "small.mkv: video is 32x24" in capsys.readouterr().err
+
+
+REAL = Path("/work/shared/data/real/sleap-anipose-minimal_session/minimal_session")
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="real recording not available")
+def test_real_recording_files():
+    rig = imp.read_anipose_calibration(REAL / "calibration.toml")
+    assert rig.names == ["back", "mid", "side", "top"] and rig.units == "mm"  # from board.toml beside it
+    np.testing.assert_array_equal(rig.size, [[1280, 1024]] * 4)
+    table = imp.read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
+    assert table.uv.shape == (120, 15, 2) and len(table.keypoints) == 15 and table.keypoints[0] == "Nose"
+    assert 0 < np.isnan(table.uv[..., 0]).mean() < 0.5  # some nodes are not labelled in this view
+    ok = np.isfinite(table.uv).all(-1)
+    u, v = table.uv[ok].T
+    assert (u >= 0).all() and (v >= 0).all() and (u < 1280).all() and (v < 1024).all()
