@@ -163,10 +163,14 @@ def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | 
     contrast = 1.0 + aug.contrast * draw(N, 1, 1, 1)
     brightness = aug.brightness * draw(N, 1, 1, 1)
     gain = 1.0 + aug.colour * draw(N, Ch, 1, 1)
-    out = ((images - mean) * contrast + mean + brightness) * gain
+    # ((x - mean) * contrast + mean + brightness) * gain, as one multiply-add per pixel
+    scale = contrast * gain
+    offset = (mean * (1.0 - contrast) + brightness) * gain
+    out = torch.addcmul(offset, images, scale)
     if aug.noise > 0:
         std = aug.noise * torch.rand(N, 1, 1, 1, generator=generator).to(device=dev, dtype=dt)
-        out = out + std * torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
+        noise = torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
+        out.addcmul_(noise, std)
     return out.clamp_(0.0, 1.0)
 
 
