@@ -242,10 +242,14 @@ def _read_csv(root: Path, name: str, required: Sequence[str], P: _Problems) -> t
         return None
     header: list[str] | None = None
     rows = []
+    spaced = " " in text or "\t" in text  # files s3k writes have none: skip the per-cell strip
     for line, cells in enumerate(csv.reader(io.StringIO(text)), start=1):
-        if not cells or all(not c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
+        if not cells or cells[0].lstrip().startswith("#"):
             continue
-        cells = [c.strip() for c in cells]
+        if spaced:
+            cells = [c.strip() for c in cells]
+        if len(cells) == 1 and not cells[0]:
+            continue  # a line of blanks
         if header is None:
             header = cells
             missing = [c for c in required if c not in header]
@@ -548,7 +552,11 @@ def _read_per_frame_calibration(
     cam_index = {c: i for i, c in enumerate(meta.cameras)}
     numeric = CALIBRATION_COLUMNS[2:]
     n_errors = len(P.errors)
-    for line, row in rows:
+    try:  # fast path: numpy converts every number at once; any bad cell sends us to the per-cell messages
+        parsed = np.array([[row[col] for col in numeric] for _, row in rows], dtype=np.float64)
+    except ValueError:
+        parsed = None
+    for r, (line, row) in enumerate(rows):
         frame = _parse_int(row["frame"])
         if frame is None or frame not in frames.row_of:
             P.error(name, "frame", f"frame {row['frame']!r} is not listed in {FRAMES_FILE}", line=line)
@@ -575,6 +583,9 @@ def _read_per_frame_calibration(
             )
             continue
         lines[i, c] = line
+        if parsed is not None:
+            values[i, c] = parsed[r]
+            continue
         for j, col in enumerate(numeric):
             value = _parse_float(row[col])
             if value is None:
@@ -808,11 +819,12 @@ class PngImages:
     def check(self, frame_ids: np.ndarray, P: _Problems) -> list[str]:
         """Report missing files; returns fingerprint items (path, size, mtime)."""
         items = []
+        root = str(self.root)
         for frame in frame_ids:
             for cam in self.cameras:
                 rel = self.relpath(frame, cam)
                 try:
-                    st = os.stat(self.root / rel)
+                    st = os.stat(os.path.join(root, rel))
                 except OSError:
                     P.error(rel, "image", "image file missing", frame=int(frame), camera=cam)
                     continue
