@@ -2,14 +2,18 @@
 
 Steps (each skipped when its output already exists, so an interrupted demo continues where it stopped):
 
-1. ``DIR/data``: the box scene at 96 px, 10 labelled, 1500 unlabelled and 150 test frames (MuJoCo).
+1. ``DIR/data``: the box scene at 96 px, 10 labelled, 2000 unlabelled and 200 test frames (MuJoCo).
 2. ``DIR/baseline``: the network trained on the 10 labelled frames only (``--no-unsup``).
 3. ``DIR/s3k``: the same network, same labels, same seed, plus the self-supervised multi-view term on the
    unlabelled frames (labels-only warm-up, then a ramp of alpha).
 4. Both evaluated on the same test frames; the side-by-side table is printed and written with plots to
    ``DIR/report`` (``comparison.md``, ``comparison.json``, ``comparison.png`` and one report per model).
 
-The defaults take about 20-25 minutes on a quiet 2-core CPU. ``--quick`` runs a tiny version (48 px, a few
+The two trainings are independent, so on a machine with at least two cores they run at the same time as two
+``s3k train`` processes of one thread each (``--sequential`` trains one after the other with torch's default
+threads). On a shared 2-core CPU one thread per process is also much faster than two threads per process:
+OpenMP threads that wait for a busy core stall every convolution. The defaults take about 20-25 minutes on a
+2-core CPU. ``--quick`` runs a tiny version (48 px, a few
 dozen frames and steps) in a few minutes; its numbers only show that the pipeline works.
 """
 
@@ -17,6 +21,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -30,8 +37,8 @@ class DemoConfig:
 
     size: int = 96
     labelled: int = 10
-    unlabelled: int = 1500
-    test: int = 150
+    unlabelled: int = 2000
+    test: int = 200
     steps: int = 3000
     warmup_steps: int = 750
     ramp_steps: int = 750
@@ -57,6 +64,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha", type=float, default=None,
                         help=f"S3K alpha after the ramp (default {d.alpha})")
     parser.add_argument("--seed", type=int, default=0, help="dataset and training seed (default 0)")
+    parser.add_argument("--sequential", action="store_true",
+                        help="train the two models one after the other instead of side by side")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -94,7 +103,53 @@ def _plot(results: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
-def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print) -> dict:
+def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, log) -> dict[str, float]:
+    """Train every job at once, each as an ``s3k train`` process with one thread; returns wall times."""
+    procs = []
+    for name, folder, cfg in jobs:
+        folder.mkdir(parents=True, exist_ok=True)
+        cfg_file = folder.parent / f"{folder.name}.train.json"
+        cfg_file.write_text(json.dumps(replace(cfg, threads=1, progress=False).to_dict(), indent=2))
+        cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(folder), "--resume",
+               "--config", str(cfg_file)]
+        console = open(folder.parent / f"{folder.name}.console.txt", "a")
+        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        log(f"[demo] training {name}: {' '.join(cmd)}")
+        procs.append((name, folder, cfg, subprocess.Popen(cmd, stdout=console, stderr=subprocess.STDOUT,
+                                                          env=env), console, time.perf_counter()))
+    times: dict[str, float] = {}
+    last = time.perf_counter()
+    while procs:
+        time.sleep(5)
+        for item in list(procs):
+            name, folder, cfg, proc, console, start = item
+            if proc.poll() is None:
+                continue
+            console.close()
+            procs.remove(item)
+            times[f"train_{folder.name}_s"] = time.perf_counter() - start
+            if proc.returncode != 0:
+                for _, _, _, other, _, _ in procs:
+                    other.terminate()
+                raise RuntimeError(f"training {name} failed (exit {proc.returncode}); see {folder}/train.log "
+                                   f"and {folder.parent / (folder.name + '.console.txt')}")
+            log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
+        if procs and time.perf_counter() - last > 60:
+            last = time.perf_counter()
+            log("[demo] " + "; ".join(f"{n}: {_last_validation(f)}" for n, f, *_ in procs))
+    return times
+
+
+def _last_validation(folder: Path) -> str:
+    try:
+        lines = [x for x in (folder / "train.log").read_text().splitlines() if "validation:" in x]
+    except OSError:
+        return "starting"
+    return lines[-1].split("INFO ", 1)[-1] if lines else "warming up"
+
+
+def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print,
+             parallel: bool = True) -> dict:
     """Run the whole demo into ``out``; returns ``{"baseline": metrics, "s3k": metrics, ...}``."""
     from s3k.evaluate import evaluate_run
     from s3k.sim.generate import SimulateConfig, simulate
@@ -119,15 +174,21 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     runs = {"labels only": replace(base_cfg, unsup=False), "S3K": base_cfg}
     folders = {"labels only": out / "baseline", "S3K": out / "s3k"}
     results: dict[str, dict] = {}
-    for name, cfg in runs.items():
-        folder = folders[name]
-        if not (folder / "model.pt").is_file():
+    todo = [(n, folders[n], cfg) for n, cfg in runs.items() if not (folders[n] / "model.pt").is_file()]
+    if parallel and len(todo) > 1 and (os.cpu_count() or 1) >= 2:
+        timings.update(_train_side_by_side(todo, data, log))
+        import torch
+
+        torch.set_num_threads(1)  # the evaluation below is short; one thread is robust on a shared machine
+    else:
+        for name, folder, cfg in todo:
             log(f"[demo] training {name} ({cfg.steps} steps) into {folder}")
             t = time.perf_counter()
             result = train(data, folder, cfg, resume=True)
             timings[f"train_{folder.name}_s"] = time.perf_counter() - t
             if result.status != "done":
                 raise RuntimeError(f"training {name} stopped early ({result.status}); see {folder}/train.log")
+    for name, folder in folders.items():
         log(f"[demo] evaluating {name} on the test frames")
         results[name] = evaluate_run(folder, data, "test", report=out / "report" / folder.name)
     timings["total_s"] = time.perf_counter() - t0
@@ -151,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     demo = replace(demo, seed=args.seed, **over)
     if args.steps is not None and args.warmup_steps is None:
         demo = replace(demo, warmup_steps=demo.steps // 4, ramp_steps=demo.steps // 4)
-    summary = run_demo(args.out, demo, progress=not args.no_progress)
+    summary = run_demo(args.out, demo, progress=not args.no_progress, parallel=not args.sequential)
     print()
     print(summary["scale"])
     print(comparison_table({k: summary[k] for k in ("labels only", "S3K")}))

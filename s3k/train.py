@@ -299,7 +299,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = Fa
         cfg: configuration.
         resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none).
         callback: optional ``f(step, terms)`` called after every completed step (``step`` counts completed
-            steps); an exception it raises aborts the run like a kill would.
+            steps; ``terms`` holds the loss terms, alpha, the gradient norm and the step's timings
+            ``time_data_s``, ``time_step_s``); an exception it raises aborts the run like a kill would.
 
     Returns:
         A :class:`TrainResult`.
@@ -476,8 +477,11 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
         n_timed += 1
         terms["alpha"] = alpha
         terms["grad_norm"] = float(gnorm)
+        terms["time_data_s"], terms["time_step_s"] = td - ts, te - ts
         if writer is not None and (step % cfg.log_every == 0 or step == 1):
             for k, v in terms.items():
+                if k.startswith("time_"):
+                    continue
                 group = "loss" if k in ("loss", "sup", "unsup", "l2") else "train"
                 writer.add_scalar(f"{group}/{k}", v, step)
             writer.add_scalar("train/lr", sched.get_last_lr()[0], step)

@@ -1,0 +1,103 @@
+"""Training speed: seconds per S3K step, FLOP/s as a fraction of matmul FLOP/s, data-loading share (DESIGN 5).
+
+One step = a labelled batch and an unlabelled batch (default 4 + 4 frames of 4 cameras), each image augmented
+(random similarity + photometric, in torch), one forward pass over all images, supervised + self-supervised
+losses, backward, Adam. The run goes through ``s3k.train.train`` itself, on a small simulated box dataset
+rendered at ``--size`` (or on ``--data``), with the self-supervised term on from the first step.
+
+``flop_fraction`` = (3 x forward convolution FLOPs of one step, the usual forward + backward estimate) /
+(median step time) / (this machine's float32 matmul FLOP/s, measured in the same run with the same threads).
+``loader_fraction`` = median share of the step spent drawing, converting and augmenting the batches.
+
+Example::
+
+    python benchmarks/train_step.py --size 128
+
+The last line printed is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, matmul_flops  # noqa: E402
+from s3k.config import TrainConfig  # noqa: E402
+from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.train import train  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--size", type=int, default=128, help="image size in pixels (default 128)")
+    parser.add_argument("--steps", type=int, default=30, help="timed steps (default 30)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed first steps (default 5)")
+    parser.add_argument("--batch", type=int, default=4,
+                        help="labelled and unlabelled frames per step (default 4)")
+    parser.add_argument("--data", default=None, help="dataset folder (default: render a small box dataset)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data
+        if data is None:
+            os.environ.setdefault("MUJOCO_GL", "osmesa")
+            from s3k.sim.generate import SimulateConfig, simulate
+
+            data = Path(tmp) / "box"
+            simulate(SimulateConfig(scene="box", size=args.size, labelled=10, unlabelled=40, test=0, seed=0),
+                     data, progress=False)
+        cfg = TrainConfig(steps=args.warmup + args.steps, batch_labelled=args.batch,
+                          batch_unlabelled=args.batch, warmup_steps=0, ramp_steps=0, val_every=0,
+                          checkpoint_every=10**9, progress=False, threads=args.threads, seed=0,
+                          image_size=args.size)
+        times: list[tuple[float, float]] = []
+
+        def record(step: int, terms: dict) -> None:
+            if step > args.warmup:
+                times.append((terms["time_step_s"], terms["time_data_s"]))
+
+        peak_before = matmul_flops(seconds=1.0)
+        result = train(data, Path(tmp) / "run", cfg, callback=record)
+        peak_after = matmul_flops(seconds=1.0)
+
+    step_s = statistics.median(t for t, _ in times)
+    loader_fraction = statistics.median(d / t for t, d in times)
+    meta = result.meta
+    W, H = meta.image_size
+    C = len(meta.cameras)
+    n_images = 2 * args.batch * C
+    net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+    fwd = count_conv_flops(net, torch.rand(n_images, 3, H, W))
+    peak = max(peak_before, peak_after)
+    flops_per_step = 3 * fwd
+    emit({
+        "benchmark": "train_step",
+        "size": args.size,
+        "image_size": [W, H],
+        "images_per_step": n_images,
+        "parameters": sum(p.numel() for p in net.parameters()),
+        "steps_timed": len(times),
+        "step_s": step_s,
+        "step_s_mean": statistics.fmean(t for t, _ in times),
+        "loader_fraction": loader_fraction,
+        "train_flops_per_step": flops_per_step,
+        "achieved_flops": flops_per_step / step_s,
+        "matmul_flops": peak,
+        "flop_fraction": flops_per_step / step_s / peak,
+    })
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
