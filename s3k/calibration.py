@@ -546,9 +546,13 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
 def run(args: argparse.Namespace) -> int:
     from s3k.data.format import Dataset
 
-    ds = Dataset.open(args.dataset)
-    splits = [s.strip() for s in args.splits.split(",") if s.strip()]
-    ids = np.concatenate([np.asarray(ds.frames(s)) for s in splits]) if splits else np.zeros(0, int)
+    try:
+        ds = Dataset.open(args.dataset)
+        splits = [s.strip() for s in args.splits.split(",") if s.strip()]
+        ids = np.concatenate([np.asarray(ds.frames(s)) for s in splits]) if splits else np.zeros(0, int)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"s3k check-calibration: error: {exc}", file=sys.stderr)
+        return 1
     if ids.size == 0:
         print(f"{args.dataset}: no frames in splits {splits}")
         return 1

@@ -157,6 +157,10 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
     assert main(["check-calibration", str(path), "--splits", "labelled"]) == 2
     out = capsys.readouterr().out
     assert "INCONSISTENT: d" in out and "6 frames (labelled)" in out
+    assert main(["check-calibration", str(path), "--splits", "labeled"]) == 1
+    assert "unknown split 'labeled'" in capsys.readouterr().err
+    assert main(["check-calibration", str(tmp_path / "nothing")]) == 1
+    assert "nothing" in capsys.readouterr().err
 
 
 def test_recalibrate_from_synthetic_charuco(tmp_path):

@@ -382,8 +382,11 @@ def test_import_sleap(recording, tmp_path, capsys):
         expected = resize_crop(recording["frames"][cam][f], None, None, (32, 24))[0]
         np.testing.assert_array_equal(images[c], expected)
     # The same seed gives the same split.
-    assert _import(recording, tmp_path / "again", "--labelled", "3", "--test", "4", "--seed", "1") == 0
-    np.testing.assert_array_equal(Dataset.open(tmp_path / "again").frames("test"), test)
+    assert _import(recording, tmp_path / "again", "--labelled", "3", "--test", "4", "--seed", "1",
+                   "--stride", "4") == 0
+    again = Dataset.open(tmp_path / "again")
+    np.testing.assert_array_equal(again.frames("test"), test)
+    np.testing.assert_array_equal(again.frames("unlabelled"), [f for f in unl if f % 4 == 0])
 
 
 def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):
