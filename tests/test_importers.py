@@ -464,3 +464,39 @@ def test_real_recording_files():
     ok = np.isfinite(table.uv).all(-1)
     u, v = table.uv[ok].T
     assert (u >= 0).all() and (v >= 0).all() and (u < 1280).all() and (v < 1024).all()
+
+
+def test_output_size_and_crops():
+    full = [(0.0, 0.0, 1280.0, 1024.0)] * 2
+    assert imp._output_size(full, None, None) == (1280, 1024)
+    assert imp._output_size(full, None, 0.25) == (320, 256)
+    assert imp._output_size(full, "320", None) == (320, 256)  # the longer side
+    assert imp._output_size(full, "100,80", None) == (100, 80)
+    mixed = [(0.0, 0.0, 100.0, 50.0), (10.0, 10.0, 90.0, 60.0)]
+    with pytest.raises(ValueError, match="different sizes need --size"):
+        imp._output_size(mixed, None, None)
+    with pytest.raises(ValueError, match="one aspect ratio"):
+        imp._output_size(mixed, "64", None)
+    assert imp._output_size(mixed, "64,32", None) == (64, 32)
+    with pytest.raises(ValueError, match="--size 'big'"):
+        imp._output_size(full, "big", None)
+    crops = imp._parse_crops(["0,0,10,20", "b=1,2,3,4"], ["a", "b"])
+    assert crops == {"a": (0.0, 0.0, 10.0, 20.0), "b": (1.0, 2.0, 3.0, 4.0)}
+    with pytest.raises(ValueError, match="unknown camera 'c'"):
+        imp._parse_crops(["c=0,0,1,1"], ["a", "b"])
+    with pytest.raises(ValueError, match="x1 > x0"):
+        imp._parse_crops(["5,0,1,1"], ["a"])
+    with pytest.raises(ValueError, match="expected CAMERA=FILE"):
+        imp._pairs(["a.mp4"], "--videos")
+
+
+def test_split_frames():
+    splits = imp._split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 2, seed=0, stride=1)
+    values = list(splits.values())
+    assert values.count("labelled") == 2 and values.count("test") == 2 and values.count("unlabelled") == 8
+    assert all(splits[f] == "unlabelled" for f in (0, 2, 4, 6, 8, 10, 11))
+    every = imp._split_frames(np.array([1, 3, 5]), np.arange(6), "all", 1, seed=0, stride=1)
+    assert sorted(f for f, v in every.items() if v != "unlabelled") == [1, 3, 5]
+    assert list(every.values()).count("test") == 1
+    with pytest.raises(ValueError, match="--test 6: only 5 frames"):
+        imp._split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 6, 0, 1)
