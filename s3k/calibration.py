@@ -239,7 +239,7 @@ def check_calibration(
     active = np.ones(C, bool)
     while active.sum() >= 3:
         loo_a = leave_one_out_residuals(cams, uv, mask, active)
-        medians = {c: _stats(loo_a[:, c]) for c in np.flatnonzero(active)}
+        medians = {int(c): _stats(loo_a[:, c]) for c in np.flatnonzero(active)}
         judged = {c: m for c, (n, m, _) in medians.items() if n >= min_points}
         if not judged:
             check.decisions.append("too few points seen by >= 3 cameras to judge")
@@ -255,8 +255,8 @@ def check_calibration(
         else:
             # Three cameras: a bad one inflates both LOO of the others, so compare camera pairs instead. The
             # two-view residual of a pair measures its epipolar consistency; a bad camera is in both bad ones.
-            idx = list(np.flatnonzero(active))
-            pair = {}
+            idx = [int(i) for i in np.flatnonzero(active)]
+            pair: dict[frozenset[int], float] = {}
             for i, a in enumerate(idx):
                 for b in idx[i + 1:]:
                     views = np.zeros(C, bool)
@@ -534,7 +534,8 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
     if args.write_calibration:
         write_anipose_calibration(args.write_calibration, rig)
         print(f"wrote {args.write_calibration}")
-    cams = Cameras.from_numpy(*arrays, dtype=torch.float64)
+    K, dist, R, t = arrays
+    cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
     check = check_calibration(
         cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
     )
