@@ -145,6 +145,8 @@ class CalibrationCheck:
             the residual of its labels against points triangulated from the consistent cameras).
         factor, min_px: the thresholds used.
         notes: other findings (e.g. two cameras with identical parameters, which usually means a copy error).
+        undecided: the test stopped before judging every camera (too few points, or a pair that cannot
+            triangulate).
     """
 
     cameras: list[CameraResidual]
@@ -154,6 +156,7 @@ class CalibrationCheck:
     factor: float = 3.0
     min_px: float = 0.0
     notes: list[str] = field(default_factory=list)
+    undecided: bool = False
 
     def format(self) -> str:
         """A plain-text report."""
@@ -178,7 +181,8 @@ class CalibrationCheck:
             lines.append("residual with the consistent cameras only triangulating:")
             lines += table(self.consistent)
         else:
-            lines.append("all cameras consistent")
+            lines.append("no camera could be judged inconsistent, but the test was incomplete (see above)"
+                         if self.undecided else "all cameras consistent")
         return "\n".join(lines)
 
 
@@ -243,6 +247,7 @@ def check_calibration(
         judged = {c: m for c, (n, m, _) in medians.items() if n >= min_points}
         if not judged:
             check.decisions.append("too few points seen by >= 3 cameras to judge")
+            check.undecided = True
             break
         if active.sum() >= 4:
             worst = max(judged, key=lambda c: judged[c])
@@ -271,6 +276,7 @@ def check_calibration(
                     f"cannot judge {', '.join(names[c] for c in idx)}: {'; '.join(broken)} triangulate no "
                     "point together (same centre, or no shared labels)"
                 )
+                check.undecided = True
                 break
             worst = min(without, key=lambda c: without[c])
             base = without[worst]

@@ -163,11 +163,13 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
     assert "nothing" in capsys.readouterr().err
 
 
-def test_recalibrate_from_synthetic_charuco(tmp_path):
-    """Render a ChArUco board seen by 3 cameras; a camera given another's parameters is recovered."""
-    from s3k.calibration import CharucoBoardSpec, detect_charuco, recalibrate_charuco
+@pytest.fixture(scope="module")
+def charuco_rig(tmp_path_factory):
+    """A ChArUco board rendered in 8 poses for 3 cameras: ``(truth rig, spec, {camera: files})``."""
+    from s3k.calibration import CharucoBoardSpec
     from s3k.data.importers import RigCalibration
 
+    tmp_path = tmp_path_factory.mktemp("charuco")
     W, H = 640, 480
     spec = CharucoBoardSpec(5, 7, 30.0, 22.0, 4, 50)
     board = spec.cv2_board()
@@ -176,7 +178,7 @@ def test_recalibrate_from_synthetic_charuco(tmp_path):
     # The board image maps board (x, y) mm -> art pixels (x, y) * px_per_mm (pixel centres at +0.5).
     A = np.array([[px_per_mm, 0, -0.5], [0, px_per_mm, -0.5], [0, 0, 1.0]])
     poses = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), 400.0])) for a in (0.3, 2.2, 4.2)]
-    rig = [None, None, np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])]
+    Rs, ts = np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])
     Ks = np.array([[[600.0 + 60 * c, 0, (W - 1) / 2], [0, 600.0 + 60 * c, (H - 1) / 2], [0, 0, 1]]
                    for c in range(3)])
     rng = np.random.default_rng(0)
@@ -188,20 +190,35 @@ def test_recalibrate_from_synthetic_charuco(tmp_path):
         R_wb = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0] @ np.diag([1.0, -1.0, -1.0])
         t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
         for c, n in enumerate(names):
-            R, t = rig[2][c], rig[3][c]
+            R, t = Rs[c], ts[c]
             # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
             Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
             image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
             path = tmp_path / f"{n}-{i}.png"
             cv2.imwrite(str(path), image)
             files[n].append(path)
+    truth = RigCalibration(names, Ks, np.zeros((3, 5)), Rs, ts, np.array([[W, H]] * 3), "mm")
+    return truth, spec, files
+
+
+def _copy_camera(rig, dst, src):
+    from s3k.data.importers import RigCalibration
+
+    out = RigCalibration(list(rig.names), rig.K.copy(), rig.dist.copy(), rig.R.copy(), rig.t.copy(),
+                         rig.size.copy(), rig.units)
+    out.K[dst], out.R[dst], out.t[dst] = out.K[src], out.R[src], out.t[src]
+    return out
+
+
+def test_recalibrate_from_synthetic_charuco(charuco_rig):
+    """A camera given another's parameters is recovered from rendered ChArUco views."""
+    from s3k.calibration import detect_charuco, recalibrate_charuco
+
+    truth, spec, files = charuco_rig
+    names = truth.names
     detections = {n: detect_charuco(files[n], spec) for n in names}
     assert all(len(d) >= 6 for d in detections.values())
-    truth = RigCalibration(names, Ks, np.zeros((3, 5)), rig[2].copy(), rig[3].copy(), np.array([[W, H]] * 3),
-                           "mm")
-    broken = RigCalibration(names, Ks.copy(), np.zeros((3, 5)), rig[2].copy(), rig[3].copy(),
-                            np.array([[W, H]] * 3), "mm")
-    broken.K[1], broken.R[1], broken.t[1] = broken.K[2], broken.R[2], broken.t[2]  # copied from "r"
+    broken = _copy_camera(truth, 1, 2)  # "q" carries the parameters of "r"
     fix = recalibrate_charuco(broken, "q", detections, spec, ["p", "r"])
     assert fix.pose_median_px < 0.5
     np.testing.assert_allclose(fix.K, truth.K[1], rtol=0.005, atol=1e-9)
@@ -229,3 +246,40 @@ def test_real_recording_names_side():
     check = check_calibration(cams, uv, np.isfinite(uv).all(-1), rig.names, image_size=(1280, 1024))
     assert check.inconsistent == ["side"], check.format()
     assert "side and top have identical calibration parameters" in check.notes
+
+
+def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
+    from s3k.cli import main
+    from s3k.data.format import DatasetWriter
+    from s3k.data.importers import read_anipose_calibration, write_anipose_calibration
+
+    truth, spec, files = charuco_rig
+    broken = _copy_camera(truth, 1, 2)
+    write_anipose_calibration(tmp_path / "calibration.toml", broken)
+    (tmp_path / "board.toml").write_text(
+        f"board_x = {spec.squares_x}\nboard_y = {spec.squares_y}\nsquare_length = {spec.square_length}\n"
+        f"marker_length = {spec.marker_length}\nmarker_bits = {spec.marker_bits}\n"
+        f"dict_size = {spec.dict_size}\n"
+    )
+    rig = [truth.K, truth.dist, truth.R, truth.t]
+    uv, mask = observe(rig, B=8, Kp=4, noise=0.3)
+    with DatasetWriter(tmp_path / "ds", ["a", "b", "c", "d"], truth.names, (640, 480), "mm",
+                       calibration=(broken.K, broken.dist, broken.R, broken.t),
+                       source={"calibration": str(tmp_path / "calibration.toml")}) as writer:
+        for b in range(8):
+            writer.add_frame(b, "labelled", np.zeros((3, 480, 640, 3), np.uint8),
+                             labels=(np.nan_to_num(uv[b]), mask[b]))
+    out = tmp_path / "fixed.toml"
+    charuco = [f"{n}={files[n][0].parent}/{n}-*.png" for n in truth.names]
+    code = main(["check-calibration", str(tmp_path / "ds"), "--recalibrate", "q", "--charuco", *charuco,
+                 "--write-calibration", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "note: q and r have identical calibration parameters" in text
+    assert "the test was incomplete" in text.split("recalibrated q")[0]
+    assert "recalibrated q from 8 ChArUco frames" in text
+    after = text.split("after recalibrating q:")[1]
+    assert "all cameras consistent" in after
+    fixed = read_anipose_calibration(out)
+    np.testing.assert_allclose(fixed.K[1], truth.K[1], rtol=0.005, atol=1e-9)
+    np.testing.assert_allclose(fixed.K[[0, 2]], truth.K[[0, 2]])
