@@ -7,8 +7,10 @@ before ``K`` and is unchanged). Rays, triangulation and reprojection therefore s
 lets the supervised and self-supervised terms use the augmented views. Brightness, contrast, per-channel
 gain and noise are added on top.
 
-Everything runs in torch on the batch (``grid_sample``), so augmentation costs a few milliseconds per step.
-All random numbers come from one CPU ``torch.Generator`` so a run is reproducible on any device.
+Augmentation runs on the batch: on the CPU the warp is OpenCV's ``warpAffine`` on the uint8 images (about
+0.1 ms per 96 px image, three times faster than ``grid_sample``), on a GPU it is ``grid_sample``; the
+photometric part is a fused multiply-add plus noise drawn from a fixed bank. All random numbers come from one
+CPU ``torch.Generator`` so a run is reproducible on any device.
 
 Pixel convention: (0, 0) is the centre of the top-left pixel; with ``align_corners=True`` ``grid_sample`` maps
 normalized -1 and +1 to the centres of the first and last pixels, which is the same convention.
@@ -19,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.nn import functional as F
@@ -142,13 +145,43 @@ def warp_images(images: Tensor, M: Tensor, padding_mode: str = "zeros") -> Tenso
                          align_corners=True)
 
 
-def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | None = None) -> Tensor:
+class NoiseBank:
+    """A fixed set of standard-normal noise images, drawn once; each image picks one (with a random sign).
+
+    Drawing fresh Gaussian noise for every pixel of every step costs as much as the warp; a bank of a few
+    hundred noise images, each scaled by a random standard deviation, is as good for augmentation. The bank
+    has its own seed, so a resumed run rebuilds the same bank.
+
+    Args:
+        size: number of noise images.
+        seed: seed of the bank.
+    """
+
+    def __init__(self, size: int = 256, seed: int = 0) -> None:
+        self.size, self.seed = size, seed
+        self._bank: Tensor | None = None
+
+    def sample(self, shape: tuple[int, ...], generator: torch.Generator | None, device, dtype) -> Tensor:
+        """``shape = (N, Ch, H, W)`` noise: bank entries chosen with ``generator``, random sign."""
+        N = shape[0]
+        if self._bank is None or tuple(self._bank.shape[1:]) != tuple(shape[1:]) or self._bank.device != \
+                torch.device(device):
+            g = torch.Generator().manual_seed(self.seed)
+            self._bank = torch.randn((self.size, *shape[1:]), generator=g).to(device=device, dtype=dtype)
+        idx = torch.randint(self.size, (N,), generator=generator)
+        sign = (torch.randint(2, (N, 1, 1, 1), generator=generator) * 2 - 1).to(device=device, dtype=dtype)
+        return self._bank[idx.to(device)] * sign
+
+
+def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | None = None,
+                noise_bank: NoiseBank | None = None) -> Tensor:
     """Random brightness, contrast, per-channel gain and Gaussian noise; the result is clamped to [0, 1].
 
     Args:
-        images: (N, 3, H, W) float images in [0, 1].
+        images: (N, 3, H, W) float images in [0, 1] (any memory format; it is kept).
         aug: ranges.
         generator: CPU random generator.
+        noise_bank: draw the noise from this bank instead of fresh ``randn``.
 
     Returns:
         (N, 3, H, W) images.
@@ -169,9 +202,84 @@ def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | 
     out = torch.addcmul(offset, images, scale)
     if aug.noise > 0:
         std = aug.noise * torch.rand(N, 1, 1, 1, generator=generator).to(device=dev, dtype=dt)
-        noise = torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
+        if noise_bank is not None:
+            noise = noise_bank.sample(tuple(images.shape), generator, dev, dt)
+        else:
+            noise = torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
         out.addcmul_(noise, std)
     return out.clamp_(0.0, 1.0)
+
+
+def warp_images_uint8(images: Tensor, M: Tensor) -> Tensor:
+    """CPU warp of uint8 images with OpenCV: source pixel ``p`` lands at ``M p`` (bilinear, zero border).
+
+    OpenCV's ``warpAffine`` uses the same pixel-centre convention (pixel (0, 0) is the centre of the top-left
+    pixel) and samples the source at ``M^-1 p`` for each output pixel ``p``, with coordinates quantized to
+    1/32 pixel.
+
+    Args:
+        images: (N, H, W, Ch) uint8 CPU tensor.
+        M: (N, 3, 3) similarity (affine) transforms.
+
+    Returns:
+        (N, H, W, Ch) uint8 tensor.
+    """
+    import cv2
+
+    if images.ndim != 4 or images.dtype != torch.uint8 or M.shape != (images.shape[0], 3, 3):
+        raise ValueError(f"images (N, H, W, Ch) uint8 and M (N, 3, 3) expected, got {tuple(images.shape)} "
+                         f"{images.dtype} and {tuple(M.shape)}")
+    src = images.numpy()
+    out = np.empty_like(src)
+    A = M[:, :2, :].to(torch.float64).numpy()
+    H, W = src.shape[1:3]
+    for i in range(src.shape[0]):
+        cv2.warpAffine(src[i], A[i], (W, H), dst=out[i], flags=cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return torch.from_numpy(out)
+
+
+def augment_frames(images: Tensor, K: Tensor, aug: Augmentation, generator: torch.Generator | None = None,
+                   uv: Tensor | None = None, device: torch.device | str | None = None,
+                   noise_bank: NoiseBank | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+    """Augment uint8 multi-view frames straight from the loader and convert them to network input.
+
+    On the CPU the warp runs on the uint8 images with OpenCV (:func:`warp_images_uint8`), then the images
+    become float; on a GPU they are moved first and warped with ``grid_sample``. Same random draws, and
+    the same geometry, either way.
+
+    Args:
+        images: (B, C, H, W, 3) uint8 CPU tensor.
+        K: (B, C, 3, 3) intrinsics.
+        aug: augmentation ranges.
+        generator: CPU random generator.
+        uv: optional (B, C, N, 2) pixel points to move with the images.
+        device: where the result goes (default: CPU).
+        noise_bank: optional :class:`NoiseBank` for the pixel noise.
+
+    Returns:
+        images: (B, C, 3, H, W) float in [0, 1] on ``device`` (channels-last strides).
+        K: (B, C, 3, 3) ``M @ K``.
+        uv: moved points or None.
+        M: (B, C, 3, 3) float64 CPU transforms.
+    """
+    if images.ndim != 5 or images.shape[-1] != 3 or K.shape != (*images.shape[:2], 3, 3):
+        raise ValueError(f"images (B, C, H, W, 3) and K (B, C, 3, 3) expected, got {tuple(images.shape)} and "
+                         f"{tuple(K.shape)}")
+    B, C, H, W, Ch = images.shape
+    device = torch.device("cpu") if device is None else torch.device(device)
+    M = random_similarity(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator)
+    if device.type == "cpu":
+        warped = warp_images_uint8(images.reshape(B * C, H, W, Ch), M)
+        flat = warped.permute(0, 3, 1, 2).float().div_(255.0)  # channels-last strides, no copy
+    else:
+        flat = images.reshape(B * C, H, W, Ch).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+        flat = warp_images(flat, M)
+    flat = photometric(flat, aug, generator, noise_bank)
+    M = M.reshape(B, C, 3, 3)
+    K_new = (M.to(K.device) @ K.to(torch.float64)).to(K.dtype)
+    uv_new = warp_points(uv, M.to(device=uv.device)) if uv is not None else None
+    return flat.reshape(B, C, Ch, H, W), K_new, uv_new, M
 
 
 def augment_views(images: Tensor, K: Tensor, aug: Augmentation, generator: torch.Generator | None = None,

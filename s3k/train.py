@@ -45,7 +45,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from s3k.augment import Augmentation, augment_views
+from s3k.augment import Augmentation, NoiseBank, augment_frames
 from s3k.config import TrainConfig, add_config_arguments, config_from_args, config_from_dict
 from s3k.frames import FrameBatch, FrameStore, images_to_float, model_image_size, open_dataset
 from s3k.geometry import Cameras, triangulate_pixels
@@ -191,15 +191,18 @@ def draw_batch(store: FrameStore, n: int, gen: torch.Generator, distinct: bool) 
 
 
 def prepare(batch: FrameBatch, device: torch.device, aug: Augmentation | None, gen: torch.Generator,
-            labels: bool) -> tuple[torch.Tensor, Cameras, torch.Tensor | None, torch.Tensor | None]:
+            labels: bool, noise_bank: NoiseBank | None = None
+            ) -> tuple[torch.Tensor, Cameras, torch.Tensor | None, torch.Tensor | None]:
     """Images (B, C, 3, H, W) float on ``device``, cameras and labels, augmented when ``aug`` is given."""
-    images = images_to_float(batch.images, device)
     cams = batch.cams.to(device=device)
     uv = batch.labels_uv.to(device) if labels and batch.labels_uv is not None else None
     mask = batch.labels_mask.to(device) if labels and batch.labels_mask is not None else None
     if aug is not None:
-        images, K, uv, _ = augment_views(images, cams.K, aug, gen, uv=uv)
+        images, K, uv, _ = augment_frames(batch.images, cams.K, aug, gen, uv=uv, device=device,
+                                          noise_bank=noise_bank)
         cams = Cameras(K, cams.dist, cams.R, cams.t)
+    else:
+        images = images_to_float(batch.images, device)
     return images, cams, uv, mask
 
 
@@ -406,6 +409,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
 
         writer = SummaryWriter(str(out / TENSORBOARD_DIR))
     aug = Augmentation.from_config(cfg) if cfg.augment else None
+    noise_bank = NoiseBank(seed=cfg.seed)
 
     def checkpoint(final: bool = False) -> None:
         rng = _rng_state(gen)
@@ -440,11 +444,12 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
     while step < cfg.steps:
         ts = time.perf_counter()
         alpha = cfg.alpha_at(step)
-        lab = prepare(draw_batch(lab_store, cfg.batch_labelled, gen, True), device, aug, gen, labels=True)
+        lab_batch = draw_batch(lab_store, cfg.batch_labelled, gen, True)
+        lab = prepare(lab_batch, device, aug, gen, True, noise_bank)
         unl = None
         if unl_store is not None and alpha > 0:
-            unl = prepare(draw_batch(unl_store, cfg.batch_unlabelled, gen, False), device, aug, gen,
-                          labels=False)[:2]
+            unl = prepare(draw_batch(unl_store, cfg.batch_unlabelled, gen, False), device, aug, gen, False,
+                          noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
         loss, terms = compute_losses(model, lab, unl, cfg, alpha, net)
