@@ -92,7 +92,8 @@ class TrainConfig:
     # --- execution ---
     seed: int = _f(0, "random seed (batches, augmentation, initialization)")
     device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'")
-    threads: int = _f(0, "torch intra-op threads (0: torch's default)")
+    threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
+                         "since threads waiting for a busy core stall every convolution")
     preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB")
 
     def alpha_at(self, step: int) -> float:

@@ -144,3 +144,23 @@ def test_predict_csv(trained, tmp_path):
     assert float(r["x"]) == pytest.approx(float(pred.X[0, 1, 0]), rel=1e-4, abs=1e-7)
     assert float(r["u_cam2"]) == pytest.approx(float(pred.uv[0, 2, 1, 0]), abs=2e-3)
     assert torch.isfinite(pred.weight).all()
+
+
+def test_resized_run_predicts_in_dataset_pixels(tmp_path):
+    """A network trained at 24 px on 32 px images reports 2D detections in the dataset's own pixels."""
+    from s3k.config import TrainConfig
+
+    ds_path = make_dataset(tmp_path / "ds", size=32, labelled=2, unlabelled=2, test=2, seed=2)
+    cfg = TrainConfig(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
+                      image_size=24, val_every=0, progress=False, threads=1)
+    train(ds_path, tmp_path / "run", cfg)
+    model, meta = load_detector(tmp_path / "run")
+    assert meta.image_size == (24, 24) and meta.source_image_size == (32, 32)
+    out = tmp_path / "p.csv"
+    assert cli_main(["predict", str(tmp_path / "run"), "--data", str(ds_path), "--out", str(out)]) == 0
+    rows = list(csv.DictReader(open(out)))
+    ds = open_dataset(ds_path, meta.image_size)
+    (batch, pred), = list(predict_store(model, FrameStore(ds, ds.frames("test")), meta.stride, meta.sigma))
+    s = 24 / 32  # u_net = s (u + 0.5) - 0.5
+    u_net = float(pred.uv[0, 1, 0, 0])
+    assert float(rows[0]["u_cam1"]) == pytest.approx((u_net + 0.5) / s - 0.5, abs=2e-3)
