@@ -364,6 +364,8 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
     model: nn.Module = net
     if info.enabled:
+        # 1x1 kernels have ambiguous channels-last strides; DDP then copies their (tiny) gradients and warns.
+        warnings.filterwarnings("ignore", message="Grad strides do not match bucket view strides")
         model = nn.parallel.DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda"
                                                     else None)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
