@@ -394,6 +394,7 @@ def _read_metadata(root: Path, P: _Problems) -> _Meta | None:
             skeleton.append((a, b))
     if len(P.errors) > n_errors:
         return None
+    assert keypoints is not None and cameras is not None and size is not None  # else errors were recorded
     return _Meta(meta, keypoints, cameras, (size[0], size[1]), units, mode, dict(images), skeleton)
 
 
@@ -425,7 +426,10 @@ def _read_frames(root: Path, P: _Problems) -> _Frames | None:
     if table is None:
         return None
     header, rows = table
-    ids, splits, lines, extra = [], [], [], {c: [] for c in header if c not in FRAMES_COLUMNS}
+    ids: list[int] = []
+    splits: list[str] = []
+    lines: list[int] = []
+    extra: dict[str, list[str]] = {c: [] for c in header if c not in FRAMES_COLUMNS}
     seen: dict[int, int] = {}
     for line, row in rows:
         frame = _parse_int(row["frame"])
@@ -705,6 +709,7 @@ def _read_labels(root: Path, meta: _Meta, frames: _Frames, P: _Problems) -> _Lab
             uv.append(value)
         if len(uv) < 2:
             continue
+        assert c is not None and k is not None
         i = frames.row_of[frame]
         key = (i, c, k)
         if key in first_line:
@@ -866,7 +871,7 @@ class VideoImages:
         }
 
     def check(self, frame_ids: np.ndarray, P: _Problems) -> list[str]:
-        items = []
+        items: list[str] = []
         if not isinstance(self.videos, dict):
             P.error(METADATA_FILE, "images.videos", "must map each camera name to a video file")
             return items
@@ -902,30 +907,13 @@ class VideoImages:
 
 
 def _iter_video(path: Path, indices: list[int]) -> Iterator[tuple[int, np.ndarray]]:
-    """Decode frames ``indices`` of a video (RGB uint8), with s3k.data.video (PyAV) or OpenCV as fallback."""
+    """Decode frames ``indices`` of a video (RGB uint8) in one front-to-back pass (``s3k.data.video``)."""
+    from s3k.data.video import iter_frames
+
     try:
-        from s3k.data.video import iter_frames
-    except ImportError:
-        iter_frames = None
-    if iter_frames is not None:
-        try:
-            yield from iter_frames(path, indices)
-            return
-        except IndexError as exc:
-            raise ValueError(str(exc)) from exc
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise ValueError(f"{path}: cannot open as a video")
-    targets, last = set(indices), max(indices, default=-1)
-    try:
-        for i in range(last + 1):
-            ok, frame = cap.read()
-            if not ok:
-                raise ValueError(f"{path}: frame {i} requested but the video has {i} frames")
-            if i in targets:
-                yield i, cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-    finally:
-        cap.release()
+        yield from iter_frames(path, indices)
+    except IndexError as exc:  # a frame index beyond the video's end
+        raise ValueError(str(exc)) from exc
 
 
 IMAGE_SOURCES: dict[str, Callable[..., Any]] = {"png": PngImages, "video": VideoImages}
@@ -1075,8 +1063,8 @@ class Dataset:
         if cache not in ("disk", "memory", "none"):
             raise ValueError(f"cache must be 'disk', 'memory' or 'none', got {cache!r}")
         self._cache_mode = cache
-        self._cache: np.ndarray | None = None
-        self._filled: np.ndarray | None = None
+        self._cache: Any = None  # (N, C, H, W, 3) uint8 array or memmap, created on first use
+        self._filled: Any = None  # (N,) uint8, 1 where a frame is decoded
         self._lock = threading.Lock()
         self._sorted = np.argsort(self.frame_ids, kind="stable")
 
@@ -1744,7 +1732,7 @@ class DatasetWriter:
                 raise ValueError("per_frame_calibration=False but frames have different calibrations")
             if same and not self.per_frame_calibration:
                 static = first
-        columns = []
+        columns: list[str] = []
         for _, _, extra in self._frames:
             columns.extend(k for k in extra if k not in columns)
         with open(self.path / FRAMES_FILE, "w", newline="") as f:

@@ -16,16 +16,12 @@ normalized coordinates before ``K`` and is unchanged.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
-
-try:  # torch is a dependency, but keep the numpy path importable without it
-    import torch
-    import torch.nn.functional as F
-except ImportError:  # pragma: no cover
-    torch = None
-    F = None
+import torch
+import torch.nn.functional as F
 
 Box = Sequence[float]
 
@@ -175,18 +171,18 @@ def resize_crop(images, K=None, crop_box: Box | None = None, out_size: Sequence[
     out = _check_out_size(out_size, box)
     M = crop_resize_matrix(box, out)
 
-    new_K = None
+    new_K: Any = None
     if K is not None:
         if tuple(K.shape[-2:]) != (3, 3):
             raise ValueError(f"K must have shape (..., 3, 3), got {tuple(K.shape)}")
-        if torch is not None and isinstance(K, torch.Tensor):
+        if isinstance(K, torch.Tensor):
             new_K = torch.as_tensor(M, dtype=K.dtype, device=K.device) @ K
         else:
             new_K = (M @ np.asarray(K, dtype=np.float64)).astype(np.result_type(K.dtype, np.float32))
 
     if images is None:
         return None, new_K
-    if torch is not None and isinstance(images, torch.Tensor):
+    if isinstance(images, torch.Tensor):
         return _warp_torch(images, box, in_size, out, M), new_K
     images = np.asarray(images)
     lead = images.shape[:-3]
