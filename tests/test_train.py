@@ -194,3 +194,42 @@ def test_alpha_schedule_and_validation():
     assert TrainConfig(unsup=False).alpha_at(10_000) == 0
     with pytest.raises(ValueError, match="batch_labelled"):
         TrainConfig(batch_labelled=0).validate()
+
+
+@pytest.mark.slow  # three training processes: about 20 s
+def test_resume_after_sigkill_matches_uninterrupted(tiny_dataset, tmp_path):
+    """A real kill (SIGKILL of the training process) followed by --resume gives the uninterrupted weights."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = ["--steps", "40", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",
+            "--res_blocks", "1", "--warmup_steps", "2", "--ramp_steps", "2", "--val_every", "0",
+            "--checkpoint_every", "1", "--no-progress", "--threads", "1"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    run = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "s3k.cli", "train", str(tiny_dataset), "--out", str(run), *args]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None:
+            if (run / "checkpoint.pt").exists():
+                time.sleep(0.3)
+                break
+            time.sleep(0.05)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    killed_at = torch.load(run / "checkpoint.pt", weights_only=False)["step"]
+    assert 1 <= killed_at < 40 and not (run / "model.pt").exists()
+    quiet = dict(env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run([*cmd, "--resume"], **quiet)
+    full = tmp_path / "full"
+    subprocess.run([sys.executable, "-m", "s3k.cli", "train", str(tiny_dataset), "--out", str(full), *args],
+                   **quiet)
+    a = torch.load(full / "model.pt", weights_only=False)["model"]
+    b = torch.load(run / "model.pt", weights_only=False)["model"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
