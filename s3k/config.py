@@ -250,7 +250,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
                        help="TOML or JSON file with a flat table of the fields below")
     for f in dataclasses.fields(cls):
         base, _ = _base_type(types_[f.name])
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        else:
+            default = f.default_factory()  # type: ignore[misc,operator]
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
         text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
         flags = [f"--{f.name}"]

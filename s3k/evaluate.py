@@ -138,10 +138,10 @@ def ground_truth_2d(batch, image_size: tuple[int, int]):
 
     W, H = image_size
     if batch.points is not None:
-        uv, depth = project(batch.cams.to(dtype=torch.float64), batch.points.double()[:, None])
-        mask = (depth > 1e-6) & batch.points_mask[:, None, :]
-        uv, mask = uv.numpy(), mask.numpy()
-    elif batch.labels_uv is not None:
+        uv_t, depth = project(batch.cams.to(dtype=torch.float64), batch.points.double()[:, None])
+        mask_t = (depth > 1e-6) & batch.points_mask[:, None, :]
+        uv, mask = uv_t.numpy(), mask_t.numpy()
+    elif batch.labels_uv is not None and batch.labels_mask is not None:
         uv, mask = batch.labels_uv.double().numpy(), batch.labels_mask.numpy().copy()
     else:
         raise ValueError("evaluation needs ground-truth 3D points or 2D labels for the split")
@@ -170,7 +170,8 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
 
     cols: dict[str, list] = {k: [] for k in ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid",
                                              "X_gt", "X_gt_mask", "weight", "frame_ids")}
-    kept_images, kept_probs = [], []
+    kept_images: list[np.ndarray] = []
+    kept_probs: list[np.ndarray] = []
     has3d = True
     for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, device,
                                      keep_heatmaps=keep > 0):
@@ -183,7 +184,7 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
         cols["X_valid"].append(pred.valid.numpy())
         cols["weight"].append(pred.weight.numpy())
         cols["frame_ids"].append(np.asarray(batch.frame_ids))
-        if batch.points is None:
+        if batch.points is None or batch.points_mask is None:
             has3d = False
         else:
             cols["X_gt"].append(batch.points.numpy())
@@ -247,8 +248,8 @@ def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray
             def px(uv):
                 return int(round((uv[0] + 0.5) * scale - 0.5)), int(round((uv[1] + 0.5) * scale - 0.5))
 
-            show_true = true_uv is not None and (true_mask is None or true_mask[c, k])
-            if show_true and np.isfinite(true_uv[c, k]).all():
+            show_true = true_uv is not None and (true_mask is None or bool(true_mask[c, k]))
+            if true_uv is not None and show_true and np.isfinite(true_uv[c, k]).all():
                 cv2.circle(tile, px(true_uv[c, k]), 3 * scale, col, 1, cv2.LINE_AA)
             if np.isfinite(pred_uv[c, k]).all():
                 cv2.drawMarker(tile, px(pred_uv[c, k]), col, cv2.MARKER_TILTED_CROSS, 3 * scale, 1,

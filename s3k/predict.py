@@ -89,9 +89,9 @@ def predict_store(model: torch.nn.Module, store: FrameStore, stride: int, sigma:
     for batch in store.batches(batch_size):
         images = images_to_float(batch.images, device)
         pred = infer(model, images, batch.cams.to(device=device), stride, sigma, keep_heatmaps)
-        pred = Prediction(*(None if v is None else v.cpu() for v in
-                            (pred.uv, pred.var, pred.weight, pred.X, pred.valid, pred.reproj, pred.probs)))
-        yield batch, pred
+        cpu = Prediction(pred.uv.cpu(), pred.var.cpu(), pred.weight.cpu(), pred.X.cpu(), pred.valid.cpu(),
+                         pred.reproj.cpu(), None if pred.probs is None else pred.probs.cpu())
+        yield batch, cpu
 
 
 def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:

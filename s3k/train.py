@@ -274,7 +274,7 @@ def _lr_lambda(cfg: TrainConfig):
 
 
 def _rng_state(gen: torch.Generator) -> dict[str, Any]:
-    state = {"gen": gen.get_state(), "torch": torch.get_rng_state()}
+    state: dict[str, Any] = {"gen": gen.get_state(), "torch": torch.get_rng_state()}
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
@@ -360,7 +360,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
     torch.manual_seed(cfg.seed)
     net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
     # NHWC is the faster convolution layout for these small channel counts on CPU (and fine on GPU).
-    net = net.to(device=device, memory_format=torch.channels_last)
+    net = net.to(device=device, memory_format=torch.channels_last)  # type: ignore[call-overload]
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
     model: nn.Module = net
     if info.enabled:
@@ -415,7 +415,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, callback, info
 
     def checkpoint(final: bool = False) -> None:
         rng = _rng_state(gen)
-        rngs = [None] * info.world
+        rngs: list[Any] = [None] * info.world
         if info.enabled:
             dist.all_gather_object(rngs, rng)
         else:
