@@ -563,3 +563,32 @@ def test_triangulate_rays_gradcheck():
     o, d, w = random_rays((3, 4), seed=54)
     inputs = tuple(x.detach().clone().requires_grad_(True) for x in (o, d, w))
     assert gradcheck(lambda o, d, w: triangulate_rays(o, d, w)[0], inputs)
+
+
+def test_triangulate_rays_large_batch_chunks_agree(monkeypatch):
+    # Large batches take the de-interleaving product and the cache-sized chunk loop; same answers.
+    import s3k.geometry as geometry
+
+    monkeypatch.setattr(geometry, "_TRIANGULATE_CHUNK", 1500)
+    o, d, w = random_rays((5000, 4), seed=60)
+    w[:7] = 0.0
+    with torch.no_grad():
+        X, valid = triangulate_rays(o, d, w)
+    assert not valid[:7].any() and valid[7:].all()
+    torch.testing.assert_close(X[7:], lstsq_reference(o[7:], d[7:], w[7:]), atol=1e-9, rtol=0)
+    torch.testing.assert_close(X[:7], torch.zeros(7, 3, dtype=F64))
+    X32, valid32 = triangulate_rays(o.float(), d.float(), w.float())
+    assert torch.equal(valid32, valid)
+    torch.testing.assert_close(X32.double(), X, atol=1e-4, rtol=0)
+
+
+@pytest.mark.slow
+def test_triangulate_rays_fused_matches_eager():
+    o, d, w = random_rays((300, 4), seed=61)
+    w[:5] = 0.0
+    for dtype in (torch.float32, F64):
+        args = (o.to(dtype), d.to(dtype), w.to(dtype))
+        X, valid = triangulate_rays(*args)
+        Xf, valid_f = triangulate_rays(*args, fused=True)
+        assert torch.equal(valid, valid_f)
+        torch.testing.assert_close(Xf, X, atol=1e-4 if dtype == torch.float32 else 1e-10, rtol=0)
