@@ -161,30 +161,59 @@ class NoiseBank:
         self.size, self.seed = size, seed
         self._bank: Tensor | None = None
 
+    def _ensure(self, like: Tensor) -> Tensor:
+        channels_last = like.ndim == 4 and like.is_contiguous(memory_format=torch.channels_last)
+        fmt = torch.channels_last if channels_last else torch.contiguous_format
+        bank = self._bank
+        if bank is None or tuple(bank.shape[1:]) != tuple(like.shape[1:]) or bank.device != like.device \
+                or bank.dtype != like.dtype or not bank.is_contiguous(memory_format=fmt):
+            g = torch.Generator().manual_seed(self.seed)
+            bank = torch.randn((self.size, *like.shape[1:]), generator=g)
+            self._bank = bank = bank.to(device=like.device, dtype=like.dtype, memory_format=fmt)
+        return bank
+
+    def _draw(self, n: int, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        idx = torch.randint(self.size, (n,), generator=generator)
+        sign = torch.randint(2, (n,), generator=generator) * 2 - 1
+        return idx, sign
+
     def sample(self, shape: tuple[int, ...], generator: torch.Generator | None, device, dtype) -> Tensor:
         """``shape = (N, Ch, H, W)`` noise: bank entries chosen with ``generator``, random sign."""
-        N = shape[0]
-        if self._bank is None or tuple(self._bank.shape[1:]) != tuple(shape[1:]) or self._bank.device != \
-                torch.device(device):
-            g = torch.Generator().manual_seed(self.seed)
-            self._bank = torch.randn((self.size, *shape[1:]), generator=g).to(device=device, dtype=dtype)
-        idx = torch.randint(self.size, (N,), generator=generator)
-        sign = (torch.randint(2, (N, 1, 1, 1), generator=generator) * 2 - 1).to(device=device, dtype=dtype)
-        return self._bank[idx.to(device)] * sign
+        bank = self._ensure(torch.empty((1, *shape[1:]), device=device, dtype=dtype))
+        idx, sign = self._draw(shape[0], generator)
+        return bank[idx.to(bank.device)] * sign.to(device=bank.device, dtype=bank.dtype)[:, None, None, None]
+
+    def add_(self, images: Tensor, std: Tensor, generator: torch.Generator | None) -> Tensor:
+        """``images[i] += std[i] * (random sign) * (random bank entry)``, in place.
+
+        Args:
+            images: (N, Ch, H, W) float images.
+            std: (N,) CPU standard deviations.
+            generator: CPU random generator.
+        """
+        bank = self._ensure(images)
+        idx, sign = self._draw(images.shape[0], generator)
+        scale = (std.double() * sign).tolist()
+        for i, j in enumerate(idx.tolist()):
+            images[i].add_(bank[j], alpha=scale[i])
+        return images
 
 
 def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | None = None,
-                noise_bank: NoiseBank | None = None) -> Tensor:
+                noise_bank: NoiseBank | None = None, input_scale: float = 1.0) -> Tensor:
     """Random brightness, contrast, per-channel gain and Gaussian noise; the result is clamped to [0, 1].
 
     Args:
-        images: (N, 3, H, W) float images in [0, 1] (any memory format; it is kept).
+        images: (N, 3, H, W) float images, in [0, 1] once multiplied by ``input_scale`` (any memory format;
+            it is kept).
         aug: ranges.
         generator: CPU random generator.
         noise_bank: draw the noise from this bank instead of fresh ``randn``.
+        input_scale: factor applied to ``images`` first (1 / 255 for raw 0-255 values), folded into the
+            multiply-add so that it costs nothing.
 
     Returns:
-        (N, 3, H, W) images.
+        (N, 3, H, W) images in [0, 1].
     """
     N, Ch = images.shape[:2]
     dev, dt = images.device, images.dtype
@@ -192,21 +221,21 @@ def photometric(images: Tensor, aug: Augmentation, generator: torch.Generator | 
     def draw(*shape: int) -> Tensor:
         return (torch.rand(*shape, generator=generator) * 2 - 1).to(device=dev, dtype=dt)
 
-    mean = images.mean(dim=(1, 2, 3), keepdim=True)
+    mean = images.mean(dim=(1, 2, 3), keepdim=True) * input_scale
     contrast = 1.0 + aug.contrast * draw(N, 1, 1, 1)
     brightness = aug.brightness * draw(N, 1, 1, 1)
     gain = 1.0 + aug.colour * draw(N, Ch, 1, 1)
-    # ((x - mean) * contrast + mean + brightness) * gain, as one multiply-add per pixel
-    scale = contrast * gain
+    # ((s x - mean) * contrast + mean + brightness) * gain, as one multiply-add per pixel
+    scale = contrast * gain * input_scale
     offset = (mean * (1.0 - contrast) + brightness) * gain
     out = torch.addcmul(offset, images, scale)
     if aug.noise > 0:
-        std = aug.noise * torch.rand(N, 1, 1, 1, generator=generator).to(device=dev, dtype=dt)
+        std = aug.noise * torch.rand(N, generator=generator)
         if noise_bank is not None:
-            noise = noise_bank.sample(tuple(images.shape), generator, dev, dt)
+            noise_bank.add_(out, std, generator)
         else:
             noise = torch.randn(images.shape, generator=generator).to(device=dev, dtype=dt)
-        out.addcmul_(noise, std)
+            out.addcmul_(noise, std.to(device=dev, dtype=dt)[:, None, None, None])
     return out.clamp_(0.0, 1.0)
 
 
@@ -271,11 +300,11 @@ def augment_frames(images: Tensor, K: Tensor, aug: Augmentation, generator: torc
     M = random_similarity(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator)
     if device.type == "cpu":
         warped = warp_images_uint8(images.reshape(B * C, H, W, Ch), M)
-        flat = warped.permute(0, 3, 1, 2).float().div_(255.0)  # channels-last strides, no copy
+        flat = warped.permute(0, 3, 1, 2).float()  # 0-255, channels-last strides
     else:
-        flat = images.reshape(B * C, H, W, Ch).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+        flat = images.reshape(B * C, H, W, Ch).to(device).permute(0, 3, 1, 2).float()
         flat = warp_images(flat, M)
-    flat = photometric(flat, aug, generator, noise_bank)
+    flat = photometric(flat, aug, generator, noise_bank, input_scale=1.0 / 255.0)
     M = M.reshape(B, C, 3, 3)
     K_new = (M.to(K.device) @ K.to(torch.float64)).to(K.dtype)
     uv_new = warp_points(uv, M.to(device=uv.device)) if uv is not None else None
