@@ -12,7 +12,7 @@ its output exists: pointing ``--work`` at a finished ``s3k demo --out DIR`` with
 
 Example::
 
-    python benchmarks/accuracy.py                # about 25 minutes on a 2-core CPU
+    python benchmarks/accuracy.py                # 15-25 minutes on a 2-core CPU
     python benchmarks/accuracy.py --steps 6000   # longer training
 
 The last line printed is one JSON object.
@@ -33,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, machine_info  # noqa: E402
-from s3k.demo import DemoConfig, comparison_table, run_demo  # noqa: E402
+from s3k.demo import DemoConfig, comparison_table, run_demo, schedule_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm")
@@ -61,16 +61,18 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"unlabelled frames (default {d.unlabelled})")
     parser.add_argument("--test", type=int, default=d.test, help=f"test frames (default {d.test})")
     parser.add_argument("--steps", type=int, default=d.steps, help=f"steps per model (default {d.steps})")
-    parser.add_argument("--warmup-steps", type=int, default=None, help="S3K warm-up (default steps / 4)")
+    parser.add_argument("--warmup-steps", type=int, default=None,
+                        help="S3K warm-up (default 750, or steps / 4 when shorter)")
     parser.add_argument("--alpha", type=float, default=d.alpha, help=f"S3K alpha (default {d.alpha})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sequential", action="store_true", help="train one model after the other")
     args = parser.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
-    warm = args.steps // 4 if args.warmup_steps is None else args.warmup_steps
+    sched = schedule_for(args.steps)
+    if args.warmup_steps is not None:
+        sched["warmup_steps"] = args.warmup_steps
     demo = DemoConfig(size=args.size, labelled=10, unlabelled=args.unlabelled, test=args.test,
-                      steps=args.steps, warmup_steps=warm, ramp_steps=args.steps // 4, alpha=args.alpha,
-                      seed=args.seed)
+                      steps=args.steps, alpha=args.alpha, seed=args.seed, **sched)
     t0 = time.perf_counter()
     summary = run_demo(args.work, demo, progress=False, parallel=not args.sequential,
                        log=lambda m: print(m, file=sys.stderr, flush=True))
