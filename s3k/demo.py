@@ -60,7 +60,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     d = DemoConfig()
     parser.add_argument("--out", default="s3k-demo", help="output folder (default: s3k-demo)")
     parser.add_argument("--quick", action="store_true",
-                        help="tiny version (a few minutes) to check the set-up")
+                        help="tiny version (under a minute) to check the set-up")
     parser.add_argument("--unlabelled", type=int, default=None,
                         help=f"unlabelled frames (default {d.unlabelled})")
     parser.add_argument("--test", type=int, default=None, help=f"test frames (default {d.test})")

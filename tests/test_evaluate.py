@@ -164,3 +164,16 @@ def test_resized_run_predicts_in_dataset_pixels(tmp_path):
     s = 24 / 32  # u_net = s (u + 0.5) - 0.5
     u_net = float(pred.uv[0, 1, 0, 0])
     assert float(rows[0]["u_cam1"]) == pytest.approx((u_net + 0.5) / s - 0.5, abs=2e-3)
+
+
+@pytest.mark.slow  # renders a small box scene and trains two tiny models: about 40 s
+def test_demo_quick(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    assert cli_main(["demo", "--out", str(tmp_path / "demo"), "--quick", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "| labels only |" in out and "| S3K |" in out
+    summary = json.loads((tmp_path / "demo" / "report" / "comparison.json").read_text())
+    for name in ("labels only", "S3K"):
+        assert summary[name]["rms_px"] is not None and summary[name]["median_mm"] is not None
+    assert (tmp_path / "demo" / "report" / "comparison.png").is_file()
+    assert (tmp_path / "demo" / "report" / "s3k" / "metrics.json").is_file()
