@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         "config": asdict(demo),
         "minutes_this_call": minutes,
         "timings_s": summary["timings"],
+        "stages_run_in_this_call": summary["stages_run_in_this_call"],
         **{name: {k: m[k] for k in KEYS} for name, m in runs.items()},
         "per_keypoint": {name: m["per_keypoint"] for name, m in runs.items()},
         "median_mm_ratio": (runs["s3k"]["median_mm"] / runs["baseline"]["median_mm"]
