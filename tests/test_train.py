@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import pytest
 import torch
@@ -233,3 +234,47 @@ def test_resume_after_sigkill_matches_uninterrupted(tiny_dataset, tmp_path):
     b = torch.load(run / "model.pt", weights_only=False)["model"]
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_mean_pairwise_distance():
+    from s3k.train import mean_pairwise_distance
+
+    X = torch.tensor([[[0.0, 0, 0], [3, 4, 0], [0, 0, 0]]])
+    assert mean_pairwise_distance(X, torch.tensor([[True, True, True]])) == pytest.approx((5 + 0 + 5) / 3)
+    assert mean_pairwise_distance(X, torch.tensor([[True, True, False]])) == pytest.approx(5.0)
+    assert math.isnan(mean_pairwise_distance(X, torch.tensor([[True, False, False]])))
+
+
+def test_collapse_warning(tiny_dataset, tmp_path):
+    """A network that puts every keypoint at one point triggers the collapse warning once S3K is on."""
+    import logging
+
+    from s3k.frames import FrameStore, open_dataset
+    from s3k.train import labelled_layout, validate
+
+    result = train(tiny_dataset, tmp_path / "run", tiny_config(steps=1, val_every=0))
+    net = result.model
+    with torch.no_grad():  # uniform heatmaps: every keypoint at the image centre
+        net.head.weight.zero_()
+        net.head.bias.zero_()
+    ds = open_dataset(tiny_dataset)
+    ref = labelled_layout(FrameStore(ds, ds.frames("labelled"), labels=True))
+    assert 0.05 < ref < 0.2  # the synthetic triangle's size, metres
+    store = FrameStore(ds, ds.frames("test"), labels=True, points=True)
+    records: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    handler = Keep()
+    train_module.log.addHandler(handler)
+    try:
+        out = validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=0), 5)
+        assert out["layout_ratio"] < 0.05
+        assert any("possible collapse" in r for r in records)
+        records.clear()
+        validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100), 5)
+        assert not any("possible collapse" in r for r in records)  # still in the labels-only warm-up
+    finally:
+        train_module.log.removeHandler(handler)
