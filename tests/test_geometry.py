@@ -559,18 +559,37 @@ def test_undistort_and_pixel_rays_gradcheck():
     assert gradcheck(f, inputs)
 
 
-def test_triangulate_rays_gradcheck():
+@pytest.mark.parametrize("layout", ["interleaved", "planar"])
+def test_triangulate_rays_gradcheck(layout, monkeypatch):
+    # Small batches use the interleaved solve, large ones the planar one; check the gradients of both.
+    import s3k.geometry as geometry
+
+    if layout == "planar":
+        monkeypatch.setattr(geometry, "_PLANAR_MIN", 0)
     o, d, w = random_rays((3, 4), seed=54)
+    w[0, 1] = 0.0
     inputs = tuple(x.detach().clone().requires_grad_(True) for x in (o, d, w))
     assert gradcheck(lambda o, d, w: triangulate_rays(o, d, w)[0], inputs)
+
+
+def test_triangulate_rays_small_and_planar_paths_agree(monkeypatch):
+    import s3k.geometry as geometry
+
+    o, d, w = random_rays((40, 5), seed=55)
+    w[:3] = 0.0
+    X, valid = triangulate_rays(o, d, w)
+    monkeypatch.setattr(geometry, "_PLANAR_MIN", 0)
+    X2, valid2 = triangulate_rays(o, d, w)
+    assert torch.equal(valid, valid2) and valid.sum() == 37
+    torch.testing.assert_close(X2, X, atol=1e-10, rtol=0)
 
 
 def test_triangulate_rays_large_batch_chunks_agree(monkeypatch):
     # Large batches take the de-interleaving product and the cache-sized chunk loop; same answers.
     import s3k.geometry as geometry
 
-    monkeypatch.setattr(geometry, "_TRIANGULATE_CHUNK", 1500)
-    o, d, w = random_rays((5000, 4), seed=60)
+    monkeypatch.setattr(geometry, "_TRIANGULATE_CHUNK", 5000)
+    o, d, w = random_rays((12000, 4), seed=60)
     w[:7] = 0.0
     with torch.no_grad():
         X, valid = triangulate_rays(o, d, w)
