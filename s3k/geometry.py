@@ -752,9 +752,9 @@ def _solve_interleaved(
     o: Tensor, d: Tensor, w: Tensor, min_weight: float, min_rel_det: float
 ) -> tuple[Tensor, Tensor]:
     """`_solve_planar` on (N, V, 3), (N, V, 3), (N, V) inputs, for torch.compile to fuse into one loop."""
-    d = d * (d * d).sum(-1, keepdim=True).clamp(min=torch.finfo(d.dtype).tiny).rsqrt()
+    wn = w / (d * d).sum(-1).clamp(min=torch.finfo(d.dtype).tiny)  # w / |d|^2 normalizes d (see there)
     dx, dy, dz = d.unbind(-1)
-    wdx, wdy, wdz = w * dx, w * dy, w * dz
+    wdx, wdy, wdz = wn * dx, wn * dy, wn * dz
     W = w.sum(-1)
     axx = W - (wdx * dx).sum(-1)
     ayy = W - (wdy * dy).sum(-1)
@@ -763,7 +763,8 @@ def _solve_interleaved(
     syz = (wdy * dz).sum(-1)
     sxz = (wdx * dz).sum(-1)
     da = (d * o).sum(-1, keepdim=True)
-    bx, by, bz = (w[..., None] * (o - d * da)).sum(-2).unbind(-1)
+    wd = torch.stack([wdx, wdy, wdz], -1)
+    bx, by, bz = (w[..., None] * o - wd * da).sum(-2).unbind(-1)
     cxx = ayy * azz - syz * syz
     cyy = axx * azz - sxz * sxz
     czz = axx * ayy - sxy * sxy
