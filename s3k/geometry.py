@@ -190,7 +190,7 @@ class Cameras:
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
     ) -> Cameras:
-        """Build from array-likes. ``R`` may be (*L, 3, 3) matrices or (*L, 3) Rodrigues vectors.
+        """Build from array-likes. ``R`` may be (*L, 3, 3) matrices or Rodrigues vectors shaped like ``t``.
 
         ``dist`` may be ``None`` or have fewer than 5 coefficients (zero padded); more than 5 coefficients are
         accepted only when the extra (rational/thin-prism) terms are zero, since the model here has 5.
@@ -208,10 +208,11 @@ class Cameras:
         if t_.ndim >= 2 and t_.shape[-2:] == (3, 1):
             t_ = t_[..., 0]
         R_ = arr("R", R)
-        if R_.shape[-1:] == (3,) and (R_.ndim == 1 or R_.shape[-2] != 3):
+        # Rodrigues vectors have the shape of t (matrices one more dim): unambiguous even for 3 cameras.
+        if R_.ndim >= 2 and R_.shape[-2:] == (3, 1) and R_.shape[:-1] == t_.shape:
+            R_ = R_[..., 0]
+        if R_.shape == t_.shape:
             R_ = rodrigues_to_matrix(R_)
-        elif R_.ndim >= 2 and R_.shape[-2:] == (3, 1):
-            R_ = rodrigues_to_matrix(R_[..., 0])
         if dist is None:
             d = K_.new_zeros(K_.shape[:-2] + (5,))
         else:

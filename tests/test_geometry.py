@@ -122,6 +122,11 @@ def test_cameras_from_numpy_accepts_opencv_shapes():
     np.testing.assert_allclose(cams.R.numpy(), cv2.Rodrigues(rvec)[0], atol=1e-12)
     np.testing.assert_allclose(cams.t.numpy(), tvec[:, 0])
     np.testing.assert_allclose(cams.dist.numpy(), [0.1, -0.02, 1e-3, 2e-3, 0])
+    # three cameras given by Rodrigues vectors: (3, 3) like t, not one matrix
+    rvecs = rng.normal(size=(3, 3))
+    three = Cameras.from_numpy(np.stack([K] * 3), None, rvecs, rng.normal(size=(3, 3)), dtype=F64)
+    assert three.shape == (3,)
+    np.testing.assert_allclose(three.R[1].numpy(), cv2.Rodrigues(rvecs[1])[0], atol=1e-12)
     with pytest.raises(ValueError, match="rational"):
         Cameras.from_numpy(K, np.r_[np.zeros(5), 0.1, 0, 0], rvec, tvec)
 
