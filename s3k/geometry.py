@@ -201,7 +201,7 @@ class Cameras:
             a = np.asarray(x, dtype=np.float64)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"Cameras.from_numpy: {name} contains non-finite values")
-            return torch.as_tensor(a, dtype=dtype, device=device)
+            return torch.from_numpy(a)  # float64 until the end, so Rodrigues vectors convert exactly
 
         K_ = arr("K", K)
         t_ = arr("t", t)
@@ -231,7 +231,7 @@ class Cameras:
                         "(k1, k2, p1, p2, k3); the rational/thin-prism models are not supported"
                     )
                 d = d[..., :5]
-        return cls(K_, d, R_, t_)
+        return cls(*(x.to(dtype=dtype, device=device) for x in (K_, d, R_, t_)))
 
     def numpy(self) -> dict[str, np.ndarray]:
         """The fields as float64 NumPy arrays: ``{"K", "dist", "R", "t"}`` with the shapes above."""
