@@ -614,7 +614,9 @@ def triangulate_rays(
             f"{getattr(weights, 'shape', type(weights).__name__)}"
         )
     names = ["triangulate_rays: origins", "triangulate_rays: directions", "triangulate_rays: weights"]
-    _broadcast(names, [origins.shape[:-1], directions.shape[:-1], weights.shape])
+    lead = _broadcast(names, [origins.shape[:-1], directions.shape[:-1], weights.shape])
+    if lead[-1] == 0:
+        raise ValueError("triangulate_rays: no views (V = 0)")
     if fused:
         return _triangulate_fused(origins, directions, weights, min_weight, min_rel_det)
     return _triangulate(origins, directions, weights, min_weight, min_rel_det)
@@ -657,21 +659,23 @@ def _solve_planar(
     # both need only w / |d|^2, so directions are normalized for the price of one division per view; that
     # keeps I - d^ d^T an exact projector for float32 rays, unit only to ~1e-7, an error the solve amplifies.
     # Accumulating view by view into (3, N) sums touches each input once and makes no (3, V, N) temporaries.
-    n_views, n = Wv.shape
-    s_diag = O.new_zeros(3, n)  # sxx, syy, szz
-    s_off = O.new_zeros(3, n)  # sxy, syz, sxz
-    b = O.new_zeros(3, n)
     tiny = torch.finfo(O.dtype).tiny
-    for v in range(n_views):
+    for v in range(Wv.shape[0]):
         d, o, w = D[:, v], O[:, v], Wv[v]
         dd = (d[0] * d[0]).addcmul_(d[1], d[1]).addcmul_(d[2], d[2])
         wd = d * (w / dd.clamp(min=tiny))
-        s_diag.addcmul_(wd, d)
-        s_off[:2].addcmul_(wd[:2], d[1:])
-        s_off[2].addcmul_(wd[0], d[2])
         da = (d[0] * o[0]).addcmul_(d[1], o[1]).addcmul_(d[2], o[2])
-        b.addcmul_(o, w).addcmul_(wd, da, value=-1)
-    sxy, syz, sxz = s_off.unbind(0)
+        if v == 0:  # the first view initializes the sums (no zero-filled buffers)
+            s_diag = wd * d  # sxx, syy, szz
+            s_xy_yz = wd[:2] * d[1:]
+            sxz = wd[0] * d[2]
+            b = torch.addcmul(o * w, wd, da, value=-1)
+        else:
+            s_diag.addcmul_(wd, d)
+            s_xy_yz.addcmul_(wd[:2], d[1:])
+            sxz.addcmul_(wd[0], d[2])
+            b.addcmul_(o, w).addcmul_(wd, da, value=-1)
+    sxy, syz = s_xy_yz.unbind(0)
     W = Wv.sum(0)
     axx, ayy, azz = (W - s_diag).unbind(0)
     bx, by, bz = b.unbind(0)

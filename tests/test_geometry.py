@@ -531,6 +531,8 @@ def test_triangulate_rays_shape_errors():
         triangulate_rays(o, d, w[:, :3])
     with pytest.raises(ValueError, match="weights"):
         triangulate_rays(o, d, w.long())
+    with pytest.raises(ValueError, match="no views"):
+        triangulate_rays(o[:, :0], d[:, :0], w[:, :0])
 
 
 # ----------------------------------------------------------------------------------------------------------
