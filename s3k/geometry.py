@@ -629,7 +629,7 @@ _TRIANGULATE_CHUNK = 131072
 _PLANAR_MIN = 2048
 
 
-def _planar(x: Tensor, select: Tensor | None = None) -> Tensor:
+def _planar(x: Tensor, select: Tensor | None = None, out: Tensor | None = None) -> Tensor:
     """(N, V, c) -> (c, V, N) contiguous, so that every later op runs on contiguous, vectorizable rows.
 
     A product with a permutation matrix is a de-interleaving copy that the BLAS does several times faster than
@@ -641,6 +641,8 @@ def _planar(x: Tensor, select: Tensor | None = None) -> Tensor:
         return x.permute(2, 1, 0).contiguous()
     if select is None:
         select = _planar_select(v, c, x.dtype, x.device)
+    if out is not None:  # a reused buffer: no fresh pages to fault in for every chunk
+        return torch.mm(select, x.reshape(n, c * v).T, out=out[: c * v * n].view(c * v, n)).view(c, v, n)
     return torch.mm(select, x.reshape(n, c * v).T).view(c, v, n)
 
 
@@ -723,9 +725,11 @@ def _triangulate(
         valid = torch.empty(n, dtype=torch.bool, device=o.device)
         sel3 = _planar_select(v, 3, o.dtype, o.device)
         sel1 = _planar_select(v, 1, o.dtype, o.device)
+        buf_o, buf_d, buf_w = (o.new_empty(c * v * _TRIANGULATE_CHUNK) for c in (3, 3, 1))
         for i in range(0, n, _TRIANGULATE_CHUNK):
             j = min(i + _TRIANGULATE_CHUNK, n)
-            O, D, Wv = _planar(o[i:j], sel3), _planar(d[i:j], sel3), _planar(w[i:j], sel1)[0]
+            O, D = _planar(o[i:j], sel3, buf_o), _planar(d[i:j], sel3, buf_d)
+            Wv = _planar(w[i:j], sel1, buf_w)[0]
             X[i:j], valid[i:j] = _solve_planar(O, D, Wv, min_weight, min_rel_det)
     return X.reshape(lead + (3,)), valid.reshape(lead)
 
