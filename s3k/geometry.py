@@ -586,12 +586,13 @@ def triangulate_rays(
     Args:
         origins: (*, V, 3) ray origins.
         directions: (*, V, 3) non-zero ray directions (normalized here; `pixel_rays` returns unit vectors).
-        weights: (*, V) non-negative weights, or None for unit weights. All leading dims broadcast.
+        weights: (*, V) non-negative weights (cast to the rays' dtype), or None for unit weights. All leading
+            dims broadcast.
         min_weight: smallest valid total weight.
         min_rel_det: smallest valid ``det(A) / (trace(A)/3)^3``.
         fused: run the same solve as one ``torch.compile``'d loop over the points (reads each input once
             instead of a few dozen vectorized passes; several times faster on large batches). The first call
-            in a process compiles for tens of seconds (cached on disk by torch), so use it for large or
+            in a process compiles (10-60 s on 2 cores; cached on disk by torch), so use it for large or
             repeated batches, e.g. offline tracking; needs a C++ compiler on CPU.
 
     Returns:
@@ -613,6 +614,11 @@ def triangulate_rays(
             f"triangulate_rays: weights: expected a floating tensor of shape (*, V), got "
             f"{getattr(weights, 'shape', type(weights).__name__)}"
         )
+    if origins.dtype != directions.dtype:
+        raise ValueError(
+            f"triangulate_rays: origins ({origins.dtype}) and directions ({directions.dtype}) differ in dtype"
+        )
+    weights = weights.to(origins.dtype)
     names = ["triangulate_rays: origins", "triangulate_rays: directions", "triangulate_rays: weights"]
     lead = _broadcast(names, [origins.shape[:-1], directions.shape[:-1], weights.shape])
     if lead[-1] == 0:
@@ -840,6 +846,8 @@ def triangulate_pixels(
     if len(cams.shape) < 1:
         raise ValueError("triangulate_pixels: cameras need a view dim (the last leading dim)")
     _check_last("triangulate_pixels: uv", uv, (2,), min_ndim=3)
+    if uv.dtype != cams.dtype:
+        raise ValueError(f"triangulate_pixels: uv dtype {uv.dtype} differs from the cameras' {cams.dtype}")
     lead = _broadcast(["triangulate_pixels: uv", "cameras"], [uv.shape[:-2], cams.shape])
     n = uv.shape[-2]
     if weights is None:

@@ -398,6 +398,8 @@ def test_triangulate_pixels_weights_broadcast_and_shape_errors():
         triangulate_pixels(cams, uv, torch.ones(2, 5, dtype=F64))
     with pytest.raises(ValueError, match="uv"):
         triangulate_pixels(cams, uv[0])
+    with pytest.raises(ValueError, match="dtype"):
+        triangulate_pixels(cams, uv.float())
     with pytest.raises(ValueError, match="view dim"):
         triangulate_pixels(cams[0], uv[0, None])
 
@@ -531,6 +533,10 @@ def test_triangulate_rays_shape_errors():
         triangulate_rays(o, d, w[:, :3])
     with pytest.raises(ValueError, match="weights"):
         triangulate_rays(o, d, w.long())
+    with pytest.raises(ValueError, match="dtype"):
+        triangulate_rays(o.float(), d, w)
+    w32 = w.float()
+    torch.testing.assert_close(triangulate_rays(o, d, w32)[0], triangulate_rays(o, d, w32.double())[0])
     with pytest.raises(ValueError, match="no views"):
         triangulate_rays(o[:, :0], d[:, :0], w[:, :0])
 
