@@ -12,7 +12,7 @@ Layout for ``channels = (c0, c1, ..., cD)`` and heatmap stride ``s``::
       down: conv 3x3 stride 2 (+ extra convs) -> (N, c1, H/2s, W/2s)     level 1
       ...                                     -> (N, cD, H/2^D s, ...)   level D (bottom)
       bottom: res_blocks x [3 convs of cD channels + identity]
-      up (per level, D-1 ... 0): 1x1 conv to c_l, nearest x2 + skip of level l (one broadcast add), conv 3x3
+      up (per level, D-1 ... 0): 1x1 conv to c_l, nearest x2, + skip of level l, conv 3x3
       head: 1x1 conv c0 -> K (a GEMM)         -> (N, K, H/s, W/s) logits
 
 The stem's kernel is ``2 s`` wide with padding ``s / 2`` (3x3 at ``s = 1``), so each heatmap cell's receptive
@@ -155,21 +155,6 @@ class HeatmapHead(nn.Conv2d):
         return super().forward(x)
 
 
-def upsample2_add(x: Tensor, skip: Tensor) -> Tensor:
-    """``nearest_upsample_x2(x) + skip`` in one broadcast addition (no upsampled copy of ``x``).
-
-    Args:
-        x: ``(N, C, h, w)``.
-        skip: ``(N, C, 2h, 2w)``.
-
-    Returns:
-        ``(N, C, 2h, 2w)`` in the memory format of ``skip``.
-    """
-    n, c, h, w = x.shape
-    out = skip.unflatten(3, (w, 2)).unflatten(2, (h, 2)) + x[:, :, :, None, :, None]
-    return out.reshape(skip.shape)
-
-
 class Up(nn.Module):
     """Decoder step: 1x1 conv to the skip's channels at low resolution, nearest x2, add the skip, 3x3 conv."""
 
@@ -179,7 +164,7 @@ class Up(nn.Module):
         self.conv = ConvNormAct(cout, cout, norm=norm)
 
     def forward(self, x: Tensor, skip: Tensor) -> Tensor:
-        return self.conv(upsample2_add(self.reduce(x), skip))
+        return self.conv(F.interpolate(self.reduce(x), scale_factor=2.0, mode="nearest") + skip)
 
 
 class UNet(nn.Module):

@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from s3k.heatmaps import heatmap_moments, spatial_softmax
-from s3k.model import HeatmapHead, UNet, UNetConfig, count_conv_flops, detect, upsample2_add
+from s3k.model import HeatmapHead, UNet, UNetConfig, count_conv_flops, detect
 
 
 def _randomize_norm_stats(net: nn.Module, seed: int = 0) -> None:
@@ -104,18 +104,6 @@ def test_same_weights_serve_every_camera():
     torch.testing.assert_close(var, ref_var)
     with pytest.raises(ValueError, match=r"\(B, C, 3, H, W\)"):
         detect(net, images[0])
-
-
-@pytest.mark.parametrize("channels_last", [False, True])
-def test_upsample2_add_matches_interpolate(channels_last):
-    x, skip = torch.randn(2, 5, 3, 4), torch.randn(2, 5, 6, 8)
-    if channels_last:
-        cl = torch.channels_last
-        x, skip = x.contiguous(memory_format=cl), skip.contiguous(memory_format=cl)
-    ref = nn.functional.interpolate(x, scale_factor=2.0, mode="nearest") + skip
-    out = upsample2_add(x, skip)
-    torch.testing.assert_close(out, ref, rtol=0, atol=0)
-    assert out.is_contiguous(memory_format=torch.channels_last) == channels_last
 
 
 def test_heatmap_head_matches_conv_in_both_layouts():
