@@ -15,7 +15,10 @@ from s3k.sim.scenes import (
     DistractorScene,
     DistractorSpec,
     FrameSpec,
+    in_image,
     make_scene,
+    occluded,
+    sight_lines_blocked,
 )
 
 mujoco = pytest.importorskip("mujoco")
@@ -154,6 +157,36 @@ def test_keypoint_hidden_by_distractor_is_not_visible():
         seg = scene.renderer.render(scene.data, scene.camera_ids[:1], segmentation=True)["segmentation"][0]
         u, v = np.rint(hidden.uv[0, 0]).astype(int)
         assert seg[v, u] == scene.occluder_geoms()[0]
+
+
+def test_occlusion_shortcut_matches_full_depth_test():
+    """Skipping the occluder depth render for cameras whose sight lines miss every occluder's bounding sphere
+    gives the same flags as rendering it for all cameras."""
+    with DistractorScene(size=48, seed=2) as scene:
+        blocked_any = False
+        for i in range(8):
+            spec = FrameSpec(i, "unlabelled", segment=i % 3)
+            scene.sample(spec, frame_rng(2, i))
+            frame = scene.capture(spec)
+            full = scene.renderer.render(scene.data, scene.camera_ids, group_depth=(scene.OCCLUDER_GROUP,))
+            expected = in_image(frame.uv, frame.depth, 48, 48) & ~occluded(
+                frame.uv, frame.depth, full["group_depth"], scene.occlusion_tolerance)
+            np.testing.assert_array_equal(frame.visible, expected)
+            g = scene.occluder_geoms()
+            blocked_any |= sight_lines_blocked(scene.data.cam_xpos[scene.camera_ids], frame.points3d,
+                                               scene.data.geom_xpos[g], scene.model.geom_rbound[g]).any()
+        assert blocked_any  # the shortcut was not trivially "render nothing"
+
+
+def test_sight_lines_blocked_against_sampling():
+    rng = np.random.default_rng(0)
+    eyes, points = rng.normal(0, 1, (3, 3)), rng.normal(0, 1, (4, 3))
+    centres, radii = rng.normal(0, 1, (5, 3)), rng.uniform(0.05, 0.4, 5)
+    s = np.linspace(0, 1, 20001)
+    seg = eyes[:, None, None, :] + s[:, None] * (points[None, :, None, :] - eyes[:, None, None, :])  # C,K,S,3
+    dist = np.linalg.norm(seg[:, :, :, None, :] - centres, axis=-1).min(axis=2)  # C, K, M
+    np.testing.assert_array_equal(sight_lines_blocked(eyes, points, centres, radii),
+                                  (dist < radii).any(axis=(1, 2)))
 
 
 def test_distractor_test_sets_are_unseen_in_training():

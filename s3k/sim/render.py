@@ -64,6 +64,7 @@ class MultiViewRenderer:
         segmentation: bool = False,
         depth: bool = False,
         group_depth: tuple[int, ...] | None = None,
+        group_depth_cameras: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """Renders ``cameras`` of the current ``data``.
 
@@ -73,6 +74,8 @@ class MultiViewRenderer:
             segmentation: also return the geom id per pixel.
             depth: also return the camera-frame depth per pixel.
             group_depth: also return the depth of only the geoms in these geom groups (e.g. the occluders).
+            group_depth_cameras: bool (C,): render ``group_depth`` only for these cameras (the others get
+                ``inf``, as if nothing were drawn); default all.
 
         Returns:
             ``{"rgb": uint8 (C, H, W, 3)}``, plus ``"segmentation": int32 (C, H, W)`` (geom id, -1 where
@@ -87,7 +90,9 @@ class MultiViewRenderer:
         if depth:
             out["depth"] = np.empty((C, H, W), np.float32)
         if group_depth is not None:
-            out["group_depth"] = np.empty((C, H, W), np.float32)
+            out["group_depth"] = np.full((C, H, W), np.inf, np.float32)
+            if group_depth_cameras is None:
+                group_depth_cameras = np.ones(C, bool)
             groups = range(len(self._group_option.geomgroup))
             self._group_option.geomgroup[:] = [1 if g in group_depth else 0 for g in groups]
         r = self._renderer
@@ -105,7 +110,7 @@ class MultiViewRenderer:
                 r.enable_depth_rendering()
                 r.render(out=out["depth"][i])
                 r.disable_depth_rendering()
-            if group_depth is not None:
+            if group_depth is not None and group_depth_cameras[i]:
                 r.update_scene(data, camera=cam, scene_option=self._group_option)
                 r.enable_depth_rendering()
                 r.render(out=out["group_depth"][i])

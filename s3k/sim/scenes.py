@@ -360,8 +360,14 @@ class Scene:
         K, R, t = self.calibration()
         X = self.keypoints_world()
         uv, depth = project_points(K, R, t, X)
-        groups = (self.OCCLUDER_GROUP,) if self.occlusion_test else None
-        out = self.renderer.render(self.data, self.camera_ids, group_depth=groups)
+        groups, cams = None, None
+        if self.occlusion_test:
+            groups = (self.OCCLUDER_GROUP,)
+            # Only cameras where an occluder's bounding sphere meets a line of sight need the depth render.
+            geoms = self.occluder_geoms()
+            eyes = self.data.cam_xpos[self.camera_ids]
+            cams = sight_lines_blocked(eyes, X, self.data.geom_xpos[geoms], self.model.geom_rbound[geoms])
+        out = self.renderer.render(self.data, self.camera_ids, group_depth=groups, group_depth_cameras=cams)
         visible = in_image(uv, depth, self.size, self.size)
         if self.occlusion_test:
             visible &= ~occluded(uv, depth, out["group_depth"], self.occlusion_tolerance)
@@ -379,6 +385,21 @@ def in_image(uv: np.ndarray, depth: np.ndarray, width: int, height: int) -> np.n
     """bool (C, K): in front of the camera and inside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``."""
     u, v = uv[..., 0], uv[..., 1]
     return (depth > 1e-6) & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+
+
+def sight_lines_blocked(
+    eyes: np.ndarray, points: np.ndarray, centres: np.ndarray, radii: np.ndarray
+) -> np.ndarray:
+    """bool (C,): whether any sphere (``centres (M, 3)``, ``radii (M,)``) meets a segment from a camera centre
+    ``eyes (C, 3)`` to a point ``points (K, 3)``; a cheap test that rules occlusion out for most cameras."""
+    if len(centres) == 0:
+        return np.zeros(len(eyes), bool)
+    d = points[None, :, :] - eyes[:, None, :]  # (C, K, 3) sight lines
+    rel = centres[None, :, :] - eyes[:, None, :]  # (C, M, 3)
+    s = np.einsum("ckj,cmj->ckm", d, rel) / np.maximum((d * d).sum(-1), 1e-12)[..., None]
+    closest = eyes[:, None, None, :] + np.clip(s, 0.0, 1.0)[..., None] * d[:, :, None, :]  # (C, K, M, 3)
+    dist = np.linalg.norm(closest - centres[None, None], axis=-1)
+    return (dist < radii[None, None, :]).any(axis=(1, 2))
 
 
 def occluded(uv: np.ndarray, depth: np.ndarray, occluder_depth: np.ndarray, tolerance: float) -> np.ndarray:
