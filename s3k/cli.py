@@ -19,7 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("s3k.predict", "write per-frame 3D keypoints of a dataset as CSV"),
     "demo": ("s3k.demo", "simulate the box scene, train S3K and the baseline, compare them"),
     "experiment": ("s3k.experiments", "run one of the paper's experiments as a resumable sweep"),
-    "import": ("s3k.data.importers", "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP) to a dataset"),
+    "import": (
+        "s3k.data.importers",
+        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP) to a dataset",
+    ),
     "check-calibration": ("s3k.calibration", "reprojection residual per camera from the labels"),
     "track": ("s3k.track", "3D keypoints from synchronized videos, anipose CSV out"),
     "export": ("s3k.export", "export a trained detector to ONNX or TorchScript"),
