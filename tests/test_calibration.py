@@ -230,7 +230,8 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
     assert angle < 0.2
 
 
-REAL = Path("/work/shared/data/real/sleap-anipose-minimal_session/minimal_session")
+# the shared recording beside the repository (../shared); tests that need it skip when it is absent
+REAL = Path(__file__).resolve().parents[2] / "shared/data/real/sleap-anipose-minimal_session/minimal_session"
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="real recording not available")
