@@ -2,7 +2,7 @@
 # The worked real example of docs/real-example.md, end to end: import the sleap-anipose minimal_session
 # recording, find and recalibrate its defective camera, re-import cropped around the arena, train S3K and the
 # labels-only baseline on the same 10 labelled frames, evaluate both on 40 held-out proofread frames, track all
-# 120 frames to an anipose 3D CSV and draw the tracked keypoints on the 4 views.
+# 120 frames to an anipose 3D CSV, draw the tracked keypoints on the 4 views and export the detector to ONNX.
 #
 #   bash scripts/real-example.sh [RECORDING_DIR]
 #
@@ -67,8 +67,12 @@ done
 echo "== 5. track all 120 frames of the videos"
 s3k track "$OUT/run-s3k" --videos "${videos[@]}" --calibration "$OUT/calibration_fixed.toml" \
   --crop "${crops[@]}" --out "$PUB/tracked-s3k.csv" --no-progress
-python scripts/tracked_views.py --data "$OUT/crop" --csv "$PUB/tracked-s3k.csv" --frames 1,59,118 \
-  --out "$PUB/tracked-views.png"
+# two held-out frames (dots: tracked; rings: proofread) and an unlabelled one between them
+python scripts/tracked_views.py --data "$OUT/crop" --csv "$PUB/tracked-s3k.csv" --frames 1,59,117 \
+  --out "$PUB/tracked-views.jpg"
+
+echo "== 6. export the S3K detector to ONNX, checked against PyTorch on the recording's frames"
+s3k export "$OUT/run-s3k" --format onnx --out "$OUT/detector.onnx" | tee "$PUB/export-onnx.txt"
 
 python - "$PUB" "$STEPS" <<'EOF'
 import json, subprocess, sys

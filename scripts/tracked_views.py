@@ -4,7 +4,7 @@ Each tracked 3D point is projected into every camera of the dataset's (static) c
 filled dot; the dataset's own 2D labels of that frame, when it has any, are drawn as rings, so a test frame
 shows tracked (dot) against proofread (ring). One row per frame, one column per camera.
 
-    python scripts/tracked_views.py --data DATASET --csv tracked.csv --frames 1,60,119 --out views.png
+    python scripts/tracked_views.py --data DATASET --csv tracked.csv --frames 1,59,117 --out views.jpg
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--data", required=True, type=Path, help="dataset folder (static calibration)")
     p.add_argument("--csv", required=True, type=Path, help="3D CSV written by 's3k track'")
     p.add_argument("--frames", required=True, help="comma-separated dataset frame ids to draw")
-    p.add_argument("--zoom", type=int, default=3, help="image magnification (default 3)")
-    p.add_argument("--out", required=True, type=Path, help="PNG to write")
+    p.add_argument("--zoom", type=int, default=2, help="image magnification (default 2)")
+    p.add_argument("--out", required=True, type=Path, help="image to write (.png, or .jpg for a small file)")
     a = p.parse_args(argv)
 
     ds = Dataset.open(a.data)
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"{a.csv}: no row with fnum {fnum} (dataset frame {fid})")
         X = torch.from_numpy(tracked[fnum])
         ok = torch.isfinite(X).all(-1)
-        uv, in_front = project(cams, torch.nan_to_num(X).expand(len(ds.cameras), -1, -1))
+        uv, depth = project(cams, torch.nan_to_num(X).expand(len(ds.cameras), -1, -1))
         img = ds.images([fid])[0]
         lab_uv, lab_mask = ds.labels([fid])
         tiles = []
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> None:
                 if lab_mask[0, c, k]:
                     u, v = (lab_uv[0, c, k] * a.zoom).round().astype(int)
                     cv2.circle(t, (int(u), int(v)), 2 * a.zoom, colours[k], 1, cv2.LINE_AA)
-                if ok[k] and in_front[c, k]:
+                if ok[k] and depth[c, k] > 0:
                     u, v = (uv[c, k].numpy() * a.zoom).round().astype(int)
                     cv2.circle(t, (int(u), int(v)), a.zoom, colours[k], -1, cv2.LINE_AA)
             title = f"{name} frame {fnum} ({ds.split_of([fid])[0]})"
@@ -74,7 +74,9 @@ def main(argv: list[str] | None = None) -> None:
             tiles.append(t)
         rows.append(np.concatenate(tiles, axis=1))
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(a.out), np.concatenate(rows, axis=0))
+    params = [cv2.IMWRITE_JPEG_QUALITY, 85] if a.out.suffix.lower() in (".jpg", ".jpeg") else []
+    if not cv2.imwrite(str(a.out), np.concatenate(rows, axis=0), params):
+        raise SystemExit(f"{a.out}: could not write the image (unknown extension?)")
     print(f"wrote {a.out}")
 
 
