@@ -64,9 +64,14 @@ for m in s3k baseline; do
   s3k evaluate "$OUT/run-$m" --data "$OUT/crop" --json > "$PUB/metrics-$m.json"
 done
 
-echo "== 5. track all 120 frames of the videos"
-s3k track "$OUT/run-s3k" --videos "${videos[@]}" --calibration "$OUT/calibration_fixed.toml" \
-  --crop "${crops[@]}" --out "$PUB/tracked-s3k.csv" --no-progress
+echo "== 5. track all 120 frames of the videos with both models; 3D error against the proofread labels"
+for m in s3k baseline; do
+  s3k track "$OUT/run-$m" --videos "${videos[@]}" --calibration "$OUT/calibration_fixed.toml" \
+    --crop "${crops[@]}" --out "$PUB/tracked-$m.csv" --no-progress
+  python scripts/tracked_vs_labels.py --csv "$PUB/tracked-$m.csv" --calibration "$OUT/calibration_fixed.toml" \
+    --data "$OUT/crop" --sleap "${sleap[@]}" > "$PUB/tracked-vs-labels-$m.json"
+  cat "$PUB/tracked-vs-labels-$m.json"
+done
 # two held-out frames (dots: tracked; rings: proofread) and an unlabelled one between them
 python scripts/tracked_views.py --data "$OUT/crop" --csv "$PUB/tracked-s3k.csv" --frames 1,59,117 \
   --out "$PUB/tracked-views.jpg"
@@ -86,6 +91,8 @@ for m in ("s3k", "baseline"):
     r = json.loads((pub / f"metrics-{m}.json").read_text())
     out[m] = {k: r.get(k) for k in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "n_frames", "n_2d")}
     out[m]["rms_px_per_camera"] = {c: v.get("rms_px") for c, v in r.get("per_camera", {}).items()}
+    t = json.loads((pub / f"tracked-vs-labels-{m}.json").read_text())
+    out[m]["tracked_3d_vs_proofread_" + t["units"]] = t["per_split"]
 (pub / "results.json").write_text(json.dumps(out, indent=1) + "\n")
 print(json.dumps(out))
 EOF
