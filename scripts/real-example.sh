@@ -84,8 +84,9 @@ import json, subprocess, sys
 from pathlib import Path
 pub, steps = Path(sys.argv[1]), int(sys.argv[2])
 rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                            text=True).stdout.strip())
+# "-dirty": the code that produced the figures differs from the revision (documentation edits do not count)
+dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "s3k", "scripts",
+                             "benchmarks", "pyproject.toml"], capture_output=True, text=True).stdout.strip())
 out = {"command": "bash scripts/real-example.sh", "revision": rev + ("-dirty" if dirty else ""), "steps": steps}
 for m in ("s3k", "baseline"):
     r = json.loads((pub / f"metrics-{m}.json").read_text())
