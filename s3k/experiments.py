@@ -47,7 +47,7 @@ import traceback
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -684,7 +684,9 @@ def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[st
     data_dir = opts.out / "data"
     exp_dir.mkdir(parents=True, exist_ok=True)
     log(describe_plan(runs, exp_dir, data_dir, opts.scale))
-    trained, skipped, failed = [], [], []
+    trained: list[str] = []
+    skipped: list[str] = []
+    failed: list[str] = []
     for i, spec in enumerate(runs):
         finished = (exp_dir / "runs" / spec.name / RESULT_FILE).is_file()
         if finished:
@@ -723,7 +725,7 @@ def load_results(exp_dir: Path) -> list[dict[str, Any]]:
     return out
 
 
-def _stats(values: list[float]) -> dict[str, Any]:
+def _stats(values: Sequence[float | None]) -> dict[str, Any]:
     v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
     if not v.size:
         return {"mean": None, "std": None, "n": 0, "values": []}
@@ -760,11 +762,11 @@ def aggregate(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         points.append(point)
     order = ("mode", "instances", "labelled", "alpha", "unlabelled")
 
-    def key(p: dict[str, Any]) -> tuple:
+    def sort_key(p: dict[str, Any]) -> tuple:
         vals = [p["params"].get(k) for k in order]
         return tuple((0, v, "") if isinstance(v, (int, float)) else (1, 0, str(v)) for v in vals)
 
-    points.sort(key=key)
+    points.sort(key=sort_key)
     return points
 
 
@@ -866,7 +868,7 @@ def findings(experiment: str, points: list[dict[str, Any]],
             if u_max:
                 st = _stat(points, "test", metric, mode="start", labelled=L, unlabelled=u_max)
                 fu = _stat(points, "test", metric, mode="full", labelled=L, unlabelled=u_max)
-                if None not in (st, fu, st0, fu0):
+                if st is not None and fu is not None and st0 is not None and fu0 is not None:
                     g1, g0 = st["mean"] - fu["mean"], st0["mean"] - fu0["mean"]
                     add(f"{L} labelled: self-supervision narrows the start-vs-full gap",
                         f"gap {_fmt(g1)} with vs {_fmt(g0)} without {unit}",
@@ -882,23 +884,24 @@ def findings(experiment: str, points: list[dict[str, Any]],
             tr = [_stat(points, "train", metric, instances=n) for n in ns]
             te = [_stat(points, "test", metric, instances=n) for n in ns]
             if all(v is not None for v in tr + te):
-                g0, g1 = te[0]["mean"] - tr[0]["mean"], te[-1]["mean"] - tr[-1]["mean"]
+                trs, tes = cast(list[dict[str, Any]], tr), cast(list[dict[str, Any]], te)
+                g0, g1 = tes[0]["mean"] - trs[0]["mean"], tes[-1]["mean"] - trs[-1]["mean"]
                 add("the gap between training and held-out instances shrinks with more instances",
                     f"held-out - training: {_fmt(g0)} ({ns[0]}) -> {_fmt(g1)} ({ns[-1]}) {unit}",
-                    _smaller(g1, g0, 0.02 * te[0]["mean"]))
+                    _smaller(g1, g0, 0.02 * tes[0]["mean"]))
     elif experiment == "alpha":
         alphas = values("alpha")
-        best = {}
+        best: dict[Any, Any] = {}  # labelled -> the alpha of the lowest error
         for L in values("labelled"):
-            errs = {a: _stat(points, "test", metric, labelled=L, alpha=a) for a in alphas}
-            errs = {a: e for a, e in errs.items() if e is not None}
-            if errs:
-                best[L] = min(errs, key=lambda a: errs[a]["mean"])
+            by_alpha = {a: _stat(points, "test", metric, labelled=L, alpha=a) for a in alphas}
+            found = {a: e for a, e in by_alpha.items() if e is not None}
+            if found:
+                best[L] = min(found, key=lambda a: found[a]["mean"])
         if len(best) >= 2:
-            lo, hi = min(best), max(best)
-            add(f"small alpha is best with few labels, alpha near 1 with more ({lo} vs {hi} labelled)",
-                f"best alpha {best[lo]:g} at {lo} labelled, {best[hi]:g} at {hi}",
-                best[lo] < best[hi] if best[lo] != best[hi] else False)
+            l_lo, l_hi = min(best), max(best)
+            add(f"small alpha is best with few labels, alpha near 1 with more ({l_lo} vs {l_hi} labelled)",
+                f"best alpha {best[l_lo]:g} at {l_lo} labelled, {best[l_hi]:g} at {l_hi}",
+                best[l_lo] < best[l_hi] if best[l_lo] != best[l_hi] else False)
     return out
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -93,7 +94,8 @@ class UNetConfig:
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"UNetConfig: unknown fields {unknown}; known: {sorted(names)}")
-        return cls(**{k: tuple(v) if k == "channels" else v for k, v in d.items()})
+        kwargs: dict[str, Any] = {k: tuple(v) if k == "channels" else v for k, v in d.items()}
+        return cls(**kwargs)
 
 
 def _norm(kind: str, channels: int) -> nn.Module:
@@ -151,6 +153,7 @@ class HeatmapHead(nn.Conv2d):
         if x.ndim == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
             n, c, h, w = x.shape
             y = torch.matmul(self.weight[:, :, 0, 0], x.reshape(n, c, h * w))
+            assert self.bias is not None  # nn.Conv2d(cin, cout, 1) has a bias
             return (y + self.bias[:, None]).reshape(n, -1, h, w)
         return super().forward(x)
 
@@ -254,7 +257,7 @@ class UNet(nn.Module):
         net = copy.deepcopy(self).eval()
         for mod in net.modules():
             if isinstance(mod, ConvNormAct) and isinstance(mod[1], nn.BatchNorm2d):
-                mod[0] = torch.nn.utils.fusion.fuse_conv_bn_eval(mod[0], mod[1])
+                mod[0] = torch.nn.utils.fusion.fuse_conv_bn_eval(cast(nn.Conv2d, mod[0]), mod[1])
                 mod[1] = nn.Identity()
         return net
 
@@ -275,7 +278,7 @@ def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple
         shape = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
         raise ValueError(f"detect: images must have shape (B, C, 3, H, W), got {shape}")
     if stride is None:
-        stride = model.config.stride
+        stride = cast(int, model.config.stride)
     B, C = images.shape[:2]
     flat = images.reshape(B * C, *images.shape[2:])
     logits = model(flat)

@@ -341,7 +341,7 @@ class Mp4Writer:
         self.path = Path(path)
         self._container = av.open(str(self.path), mode="w")
         self._rate = Fraction(fps).limit_denominator(1001) if fps > 0 else Fraction(30)
-        self._stream = None
+        self._stream: av.VideoStream | None = None
         self.frames = 0
 
     def write(self, image: np.ndarray) -> None:
@@ -371,7 +371,7 @@ def keypoint_colours(n: int) -> list[tuple[int, int, int]]:
 
     hsv = np.array([[[int(180 * k / max(n, 1)), 230, 255] for k in range(n)]], dtype=np.uint8)
     rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
-    return [tuple(int(v) for v in c) for c in rgb]
+    return [(int(c[0]), int(c[1]), int(c[2])) for c in rgb]
 
 
 def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np.ndarray,
@@ -521,7 +521,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
         raise ValueError(f"--start {start}: the videos have {n_video} frames")
 
     # BatchNorm folded into the convolutions, channels_last: the fast CPU form of the same network.
-    net = model.fused().to(memory_format=torch.channels_last)
+    net = model.fused().to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # stub lacks it
     writers = []
     if overlay is not None:
         Path(overlay).mkdir(parents=True, exist_ok=True)

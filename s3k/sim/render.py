@@ -55,7 +55,13 @@ class MultiViewRenderer:
         self._group_option = mujoco.MjvOption()
         # Free the OpenGL context before the interpreter tears modules down (MuJoCo's finaliser fails then).
         ref = weakref.ref(self)
-        atexit.register(lambda: ref() is not None and ref().close())
+
+        def close_at_exit() -> None:
+            renderer = ref()
+            if renderer is not None:
+                renderer.close()
+
+        atexit.register(close_at_exit)
 
     def render(
         self,
@@ -110,7 +116,7 @@ class MultiViewRenderer:
                 r.enable_depth_rendering()
                 r.render(out=out["depth"][i])
                 r.disable_depth_rendering()
-            if group_depth is not None and group_depth_cameras[i]:
+            if group_depth is not None and group_depth_cameras is not None and group_depth_cameras[i]:
                 r.update_scene(data, camera=cam, scene_option=self._group_option)
                 r.enable_depth_rendering()
                 r.render(out=out["group_depth"][i])

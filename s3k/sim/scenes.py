@@ -525,7 +525,8 @@ class DistractorScene(BoxScene):
             for m in mats:
                 if rng.uniform() < 0.6:
                     dims = (rng.uniform(0.12, 0.26), rng.uniform(0.06, 0.14), rng.uniform(0.015, 0.05))
-                    specs.append(DistractorSpec("box", tuple(float(x) for x in dims), int(m)))
+                    size = (float(dims[0]), float(dims[1]), float(dims[2]))
+                    specs.append(DistractorSpec("box", size, int(m)))
                 else:
                     d = rng.uniform(0.05, 0.1)
                     specs.append(DistractorSpec("cylinder", (d, d, float(rng.uniform(0.06, 0.2))), int(m)))

@@ -49,6 +49,9 @@ def stripes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     """Bands of 2-4 colours at a random angle and period (periodic along the texture's edges)."""
     cols = np.stack([random_colour(rng) for _ in range(rng.integers(2, 5))])
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    # numpy integers (not python ints): they set the dtype of ``phase`` below.
+    fx: int | np.integer
+    fy: int | np.integer
     fx, fy = rng.integers(0, 6), rng.integers(0, 6)
     if fx == 0 and fy == 0:
         fx = 3
@@ -239,11 +242,11 @@ def table_texture(rng: np.random.Generator, res: int = 256) -> np.ndarray:
         sy = (np.floor(y * n) % 2)[..., None]
         img = 255 - (255 - a) * (0.2 + 0.4 * sx + 0.4 * sy)
     elif kind == 2:  # speckled laminate
-        n = _periodic_noise(rng, res, res, 32)
-        img = a * (0.8 + 0.4 * n[..., None])
+        speckle = _periodic_noise(rng, res, res, 32)
+        img = a * (0.8 + 0.4 * speckle[..., None])
     else:  # blotchy mat
-        n = _periodic_noise(rng, res, res, 6)[..., None]
-        img = a * n + b * (1 - n)
+        blotch = _periodic_noise(rng, res, res, 6)[..., None]
+        img = a * blotch + b * (1 - blotch)
     noise = rng.normal(0, 6, size=(res, res, 1))
     return np.clip(img + noise, 0, 255).astype(np.uint8)
 
