@@ -8,4 +8,5 @@ export MUJOCO_GL=${MUJOCO_GL:-osmesa} PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-osm
 marker=(-m "not slow")
 if [ "${1:-}" = "--slow" ]; then marker=(-m "slow or not slow"); shift; fi
 ruff check .
+mypy  # the type checker configured in pyproject.toml (package s3k)
 python -m pytest -q "${marker[@]}" "$@"
