@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shlex
 import sys
 
 # name -> (module, one-line help)
@@ -62,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"s3k {name}", description=text)
     module.configure_parser(parser)
     args = parser.parse_args(rest)
+    args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it
     return int(module.run(args) or 0)
 
 

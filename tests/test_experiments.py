@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import socket
 import subprocess
 import sys
@@ -221,6 +222,10 @@ def test_label_efficiency_sweep_cli_resumes_and_summarizes(workspace, capsys):
     assert (exp / "summary.json").is_file() and (exp / "error_vs_labelled.png").is_file()
     assert {p.name for p in pub.iterdir()} == {"summary.json", "README.md", "error_vs_labelled.png",
                                                "error_vs_total_frames.png"}
+    # each run recorded the command that made it; the summary and its page say it
+    summary = json.loads((pub / "summary.json").read_text())
+    assert summary["commands"] == [shlex.join(["s3k", *argv])] and summary["runs_without_provenance"] == 0
+    assert f"Command: `{shlex.join(['s3k', *argv])}`" in (pub / "README.md").read_text()
     # different settings in the same folder are refused, not mixed
     assert cli_main([*argv, "--steps", "3"]) == 2
 
