@@ -10,8 +10,10 @@ import json
 import math
 import os
 import platform
+import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -82,6 +84,22 @@ def machine_info() -> dict[str, Any]:
     if cv2 is not None:
         info["opencv"] = cv2.__version__
     return info
+
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def git_revision() -> str:
+    """HEAD of the repository these benchmarks are in, ``+modified`` when tracked files differ from it,
+    ``unknown`` without git."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=_ROOT, capture_output=True, text=True,
+                             check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=_ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        return rev.stdout.strip() + ("+modified" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def matmul_flops(seconds: float = 2.0, sizes: tuple[int, ...] = (256, 512, 1024, 2048)) -> float:

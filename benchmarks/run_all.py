@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks.common import git_revision  # noqa: E402
 
 # name -> (arguments after `python`, the headline figures to take medians of)
 BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
@@ -32,14 +34,6 @@ BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
     "train_step": (["benchmarks/train_step.py", "--size", "128"],
                    ["step_s", "flop_fraction", "loader_fraction"]),
 }
-
-
-def _revision() -> str:
-    rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
-                         text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
-                           capture_output=True, text=True).stdout.strip()
-    return rev + ("-dirty" if dirty else "")
 
 
 def _numbers(result: dict, prefix: str = "") -> dict[str, float]:
@@ -68,7 +62,7 @@ def main(argv: list[str] | None = None) -> None:
 
     given = argv if argv is not None else sys.argv[1:]
     record: dict = {"command": " ".join(["python benchmarks/run_all.py", *given]),
-                    "git_revision": _revision(), "date": time.strftime("%Y-%m-%d"), "benchmarks": {}}
+                    "git_revision": git_revision(), "date": time.strftime("%Y-%m-%d"), "benchmarks": {}}
     medians: dict[str, dict[str, float]] = {}
     for name in names:
         cmd, headline = BENCHMARKS[name]

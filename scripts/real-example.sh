@@ -80,14 +80,13 @@ echo "== 6. export the S3K detector to ONNX, checked against PyTorch on the reco
 s3k export "$OUT/run-s3k" --format onnx --out "$OUT/detector.onnx" | tee "$PUB/export-onnx.txt"
 
 python - "$PUB" "$STEPS" <<'EOF'
-import json, subprocess, sys
+import json, sys
 from pathlib import Path
+from s3k.experiments import source_revision
 pub, steps = Path(sys.argv[1]), int(sys.argv[2])
-rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-# "-dirty": the code that produced the figures differs from the revision (documentation edits do not count)
-dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "s3k", "scripts",
-                             "benchmarks", "pyproject.toml"], capture_output=True, text=True).stdout.strip())
-out = {"command": "bash scripts/real-example.sh", "revision": rev + ("-dirty" if dirty else ""), "steps": steps}
+# "-dirty": the s3k code that produced the figures differs from the revision
+rev = source_revision() or "unknown"
+out = {"command": "bash scripts/real-example.sh", "revision": rev, "steps": steps}
 for m in ("s3k", "baseline"):
     r = json.loads((pub / f"metrics-{m}.json").read_text())
     out[m] = {k: r.get(k) for k in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "n_frames", "n_2d")}
