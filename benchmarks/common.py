@@ -136,6 +136,78 @@ def matmul_flops(seconds: float = 2.0, sizes: tuple[int, ...] = (256, 512, 1024,
     return best
 
 
+def _median_time(fn, repeats: int) -> float:
+    fn()  # warm-up: oneDNN primitive creation, packing buffers
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def conv_ceiling(net: torch.nn.Module, images: torch.Tensor, peak: float, repeats: int = 7) -> dict[str, Any]:
+    """How fast the network's convolutions alone run for training, layer by layer, against ``peak``.
+
+    Each ``nn.Conv2d`` of ``net`` (a copy, same weights and memory format) is timed on its own, forward and
+    backward on an input of the shape it sees in ``net(images)`` (no input gradient for the first layer, as in
+    training). ``conv_only_fraction`` is ``3 x`` the forward FLOPs of all layers (the numerator of a training
+    step's ``flop_fraction``) over the summed layer times over ``peak``: the ``flop_fraction`` a step would
+    reach if everything but the convolutions took no time. ``gemm_fraction`` times each layer's forward as the
+    plain matrix product of its im2col form, ``(N h w, C_in k k) @ (C_in k k, C_out)``, the shape a GEMM
+    library sees for these channel counts, without the im2col copy.
+
+    Returns:
+        ``{"layers": [...], "conv_only_fraction", "gemm_fraction", "conv_train_s"}``.
+    """
+    import copy
+
+    seen: list[tuple[torch.nn.Conv2d, tuple[int, ...], tuple[int, ...]]] = []
+
+    def hook(mod: torch.nn.Module, inp: tuple[torch.Tensor, ...], out: torch.Tensor) -> None:
+        seen.append((mod, tuple(inp[0].shape), tuple(out.shape)))  # type: ignore[arg-type]
+
+    handles = [m.register_forward_hook(hook) for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    try:
+        with torch.no_grad():
+            net(images)
+    finally:
+        for h in handles:
+            h.remove()
+    gen = torch.Generator().manual_seed(0)
+    layers = []
+    for i, (mod, in_shape, out_shape) in enumerate(seen):
+        conv = copy.deepcopy(mod).train()
+        x = torch.rand(in_shape, generator=gen).contiguous(memory_format=torch.channels_last)
+        x.requires_grad_(i > 0)
+        grad = torch.rand(out_shape, generator=gen).contiguous(memory_format=torch.channels_last)
+        kh, kw = mod.kernel_size
+        k = mod.in_channels // mod.groups * kh * kw
+        m = out_shape[0] * out_shape[2] * out_shape[3]
+        fwd = 2 * k * out_shape[1] * m
+
+        def train_pass(conv=conv, x=x, grad=grad) -> None:
+            conv.zero_grad(set_to_none=True)
+            x.grad = None
+            conv(x).backward(grad)
+
+        a = torch.rand(m, k, generator=gen)
+        b = torch.rand(k, out_shape[1], generator=gen)
+        t_train = _median_time(train_pass, repeats)
+        t_gemm = _median_time(lambda a=a, b=b: torch.mm(a, b), repeats)
+        layers.append({
+            "layer": f"{mod.in_channels}->{mod.out_channels} k{kh} s{mod.stride[0]} "
+                     f"out {out_shape[2]}x{out_shape[3]}",
+            "forward_flops": fwd, "train_s": t_train, "train_fraction": 3 * fwd / t_train / peak,
+            "gemm_s": t_gemm, "gemm_fraction": fwd / t_gemm / peak,
+        })
+    fwd_total = sum(layer["forward_flops"] for layer in layers)
+    train_s = sum(layer["train_s"] for layer in layers)
+    gemm_s = sum(layer["gemm_s"] for layer in layers)
+    return {"layers": layers, "conv_train_s": train_s, "conv_only_fraction": 3 * fwd_total / train_s / peak,
+            "gemm_fraction": fwd_total / gemm_s / peak}
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, float) and not math.isfinite(x):
         return None

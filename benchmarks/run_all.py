@@ -32,7 +32,8 @@ BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
                            ["frames_per_s", "torchscript_frames_per_s", "pytorch_frames_per_s", "max_diff"]),
     "render": (["benchmarks/render.py", "--size", "128"], ["images_per_s"]),
     "train_step": (["benchmarks/train_step.py", "--size", "128"],
-                   ["step_s", "flop_fraction", "loader_fraction"]),
+                   ["step_s", "flop_fraction", "loader_fraction", "conv_only_fraction",
+                    "gemm_fraction"]),
 }
 
 

@@ -8,6 +8,11 @@ rendered at ``--size`` (or on ``--data``), with the self-supervised term on from
 ``flop_fraction`` = (3 x forward convolution FLOPs of one step, the usual forward + backward estimate) /
 (median step time) / (this machine's float32 matmul FLOP/s, measured in the same run with the same threads).
 ``loader_fraction`` = median share of the step spent drawing, converting and augmenting the batches.
+``conv_only_fraction`` = the same numerator over the time of the network's convolutions alone, each timed
+forward + backward on its own (``benchmarks.common.conv_ceiling``): the ceiling of ``flop_fraction`` for this
+network on this machine, reached only if nothing but the convolutions took time. ``gemm_fraction`` = the
+convolutions' forward FLOPs over the time of plain matrix products of their im2col shapes. Per-layer figures
+are printed above the JSON line (``--no-layers`` skips them).
 
 Example::
 
@@ -29,7 +34,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, matmul_flops  # noqa: E402
+from benchmarks.common import conv_ceiling, emit, matmul_flops  # noqa: E402
 from s3k.config import TrainConfig  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
 from s3k.train import train  # noqa: E402
@@ -44,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="labelled and unlabelled frames per step (default 4)")
     parser.add_argument("--data", default=None, help="dataset folder (default: render a small box dataset)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    parser.add_argument("--no-layers", action="store_true",
+                        help="skip timing the convolutions one by one (conv_only_fraction, gemm_fraction)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -81,6 +88,14 @@ def main(argv: list[str] | None = None) -> int:
     fwd = count_conv_flops(net, torch.rand(n_images, 3, H, W))
     peak = max(peak_before, peak_after)
     flops_per_step = 3 * fwd
+    ceiling: dict = {}
+    if not args.no_layers:
+        images = torch.rand(n_images, 3, H, W).contiguous(memory_format=torch.channels_last)
+        layers = conv_ceiling(net.to(memory_format=torch.channels_last), images, peak)
+        for layer in layers.pop("layers"):
+            print(f"{layer['layer']:28s} train {1e3 * layer['train_s']:7.2f} ms  fraction "
+                  f"{layer['train_fraction']:.2f}   im2col GEMM fraction {layer['gemm_fraction']:.2f}")
+        ceiling = {**layers, "conv_share_of_step": layers["conv_train_s"] / step_s}
     emit({
         "benchmark": "train_step",
         "size": args.size,
@@ -95,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         "achieved_flops": flops_per_step / step_s,
         "matmul_flops": peak,
         "flop_fraction": flops_per_step / step_s / peak,
+        **ceiling,
     })
     return 0
 
