@@ -54,6 +54,7 @@ __all__ = [
     "fit_box",
     "points_from_logits",
     "prepare_cameras",
+    "read_csv",
     "synchronized_frames",
     "track_videos",
 ]
@@ -428,6 +429,36 @@ def csv_rows(fnums: Sequence[int], tracked: Tracked) -> list[list[str]]:
             row += [_fmt(tracked.error[b, k]), str(int(tracked.ncams[b, k])), f"{tracked.score[b, k]:.6f}"]
         rows.append(row + [str(int(fnum))])
     return rows
+
+
+def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray]:
+    """The 3D points of a CSV written by :func:`track_videos` (anipose's layout): ``{fnum: (K, 3)}``.
+
+    Args:
+        path: the CSV file.
+        keypoints: names of the keypoints to read, in the order wanted.
+
+    Returns:
+        One ``(K, 3)`` float array per frame number, NaN where a keypoint was not triangulated.
+
+    Raises:
+        ValueError: a keypoint's ``_x/_y/_z`` column or ``fnum`` is missing, or a value is not a number;
+            the message names the file, the column and the line.
+    """
+    out: dict[int, np.ndarray] = {}
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        wanted = [f"{k}_{a}" for k in keypoints for a in "xyz"] + ["fnum"]
+        missing = [c for c in wanted if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}; has {reader.fieldnames}")
+        for row in reader:
+            try:
+                xyz = np.array([[float(row[f"{k}_{a}"] or "nan") for a in "xyz"] for k in keypoints])
+                out[int(row["fnum"])] = xyz
+            except ValueError as e:
+                raise ValueError(f"{path}, line {reader.line_num}: {e}") from None
+    return out
 
 
 @dataclass

@@ -10,7 +10,6 @@ shows tracked (dot) against proofread (ring). One row per frame, one column per 
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import cv2
@@ -19,16 +18,7 @@ import torch
 
 from s3k.data.format import Dataset
 from s3k.geometry import project
-
-
-def read_tracked(path: Path, keypoints: list[str]) -> dict[int, np.ndarray]:
-    """``{fnum: (K, 3)}`` from an anipose 3D CSV; NaN where a keypoint was not triangulated."""
-    out: dict[int, np.ndarray] = {}
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            xyz = np.array([[float(row[f"{k}_{a}"] or "nan") for a in "xyz"] for k in keypoints])
-            out[int(row["fnum"])] = xyz
-    return out
+from s3k.track import read_csv
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -41,7 +31,7 @@ def main(argv: list[str] | None = None) -> None:
     a = p.parse_args(argv)
 
     ds = Dataset.open(a.data)
-    tracked = read_tracked(a.csv, list(ds.keypoints))
+    tracked = read_csv(a.csv, list(ds.keypoints))
     cams = ds.rig(dtype=np.float64)
     video_frame = ({int(f): int(v) for f, v in zip(ds.frames(), ds.column("video_frame"))}
                    if "video_frame" in ds.frame_columns else {})

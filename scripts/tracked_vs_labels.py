@@ -16,11 +16,11 @@ import json
 
 import numpy as np
 import torch
-from tracked_views import read_tracked
 
 from s3k.data.format import Dataset
 from s3k.data.importers import read_anipose_calibration, read_sleap_analysis
 from s3k.geometry import Cameras, triangulate_pixels
+from s3k.track import read_csv
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> None:
     X, valid = triangulate_pixels(cams, torch.from_numpy(np.nan_to_num(uv)), torch.from_numpy(seen * 1.0))
     X, valid = X.numpy(), valid.numpy() & (seen.sum(1) >= 2)
 
-    tracked = read_tracked(a.csv, keypoints)
+    tracked = read_csv(a.csv, keypoints)
     ds = Dataset.open(a.data)
     video = ds.column("video_frame").astype(int) if "video_frame" in ds.frame_columns else ds.frames()
     split = dict(zip(video.tolist(), ds.split_of(ds.frames()).tolist()))

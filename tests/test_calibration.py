@@ -1,11 +1,10 @@
 """Calibration check on synthetic rigs: exact labels fit, a perturbed camera is named, noise is not."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 import torch
+from real_recording import REAL, needs_real
 
 from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
 from s3k.geometry import Cameras
@@ -230,11 +229,9 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
     assert angle < 0.2
 
 
-# the shared recording beside the repository (../shared); tests that need it skip when it is absent
-REAL = Path(__file__).resolve().parents[2] / "shared/data/real/sleap-anipose-minimal_session/minimal_session"
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real recording not available")
+@needs_real
 def test_real_recording_names_side():
     """The sleap-anipose session's calibration gives camera "side" the parameters of "top"."""
     from s3k.data.importers import read_anipose_calibration, read_sleap_analysis

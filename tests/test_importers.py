@@ -1,11 +1,11 @@
 """Importers: each parser on tiny files written here in the peer tool's own layout, then ``s3k import``."""
 
 import textwrap
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from real_recording import REAL, needs_real
 
 from s3k.data import importers as imp
 
@@ -450,11 +450,9 @@ def test_import_errors(recording, tmp_path, capsys):
     assert "small.mkv: video is 32x24" in capsys.readouterr().err
 
 
-# the shared recording beside the repository (../shared); tests that need it skip when it is absent
-REAL = Path(__file__).resolve().parents[2] / "shared/data/real/sleap-anipose-minimal_session/minimal_session"
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="real recording not available")
+@needs_real
 def test_real_recording_files():
     rig = imp.read_anipose_calibration(REAL / "calibration.toml")
     assert rig.names == ["back", "mid", "side", "top"] and rig.units == "mm"  # from board.toml beside it

@@ -30,6 +30,7 @@ from s3k.track import (
     fit_box,
     points_from_logits,
     prepare_cameras,
+    read_csv,
     synchronized_frames,
 )
 
@@ -324,6 +325,22 @@ def test_track_default_threshold_nan_where_invalid(recording, tmp_path):
         np.testing.assert_array_equal(np.isnan(per_kp[..., j]), invalid)
     assert np.all(per_kp[..., 4][~invalid] >= 2)
     assert np.isfinite(per_kp[..., 4:]).all()
+    # read_csv gives back the points, NaN included, keyed by frame number, in the order asked for.
+    points = read_csv(out, KEYPOINTS[::-1])
+    assert sorted(points) == list(range(FRAMES))
+    for f in range(FRAMES):
+        np.testing.assert_array_equal(points[f], per_kp[f, ::-1, :3])
+
+
+def test_read_csv_names_file_and_missing_column(tmp_path):
+    path = tmp_path / "points3d.csv"
+    path.write_text(",".join(csv_header(["nose"])) + "\n1,2,3,0.5,2,0.9,7\n")
+    np.testing.assert_array_equal(read_csv(path, ["nose"])[7], [[1.0, 2.0, 3.0]])
+    with pytest.raises(ValueError, match=r"points3d\.csv.*tail_x"):
+        read_csv(path, ["nose", "tail"])
+    path.write_text(",".join(csv_header(["nose"])) + "\n1,oops,3,0.5,2,0.9,7\n")
+    with pytest.raises(ValueError, match=r"points3d\.csv, line 2"):
+        read_csv(path, ["nose"])
 
 
 def test_track_range_batch_and_camera_order_do_not_change_results(recording, tmp_path):
