@@ -172,6 +172,26 @@ def test_findings_follow_the_numbers():
     assert ex.findings("alpha", alpha)[0]["reproduced"] is True
 
 
+def test_domain_shift_gap_verdict_compares_sizes():
+    def ds(values):  # (mode, unlabelled) -> error
+        return ex.aggregate([fake_result({"mode": m, "labelled": 10, "unlabelled": U, "seed": 0}, v)
+                             for (m, U), v in values.items()])
+
+    def gap_verdict(values):
+        (f,) = [x for x in ex.findings("domain-shift", ds(values)) if "gap" in x["finding"]]
+        return f["reproduced"]
+
+    # start 10 px worse without unlabelled frames, 1 px with: the gap closes
+    assert gap_verdict({("start", 0): 30, ("full", 0): 20, ("start", 100): 16, ("full", 100): 15}) is True
+    # it widens
+    assert gap_verdict({("start", 0): 30, ("full", 0): 25, ("start", 100): 30, ("full", 100): 15}) is False
+    # start overtakes full by more than the gap was: not a narrower gap
+    assert gap_verdict({("start", 0): 30, ("full", 0): 25, ("start", 100): 10, ("full", 100): 20}) is False
+    # start is not worse to begin with: nothing to close
+    assert gap_verdict({("start", 0): 20, ("full", 0): 25, ("start", 100): 15, ("full", 100): 15}) == (
+        "no gap without unlabelled frames")
+
+
 def test_plots_and_readme_without_runs(tmp_path):
     (tmp_path / "category" / "runs").mkdir(parents=True)
     summary = ex.summarize(tmp_path / "category")
