@@ -162,18 +162,9 @@ def conv_ceiling(net: torch.nn.Module, images: torch.Tensor, peak: float, repeat
     """
     import copy
 
-    seen: list[tuple[torch.nn.Conv2d, tuple[int, ...], tuple[int, ...]]] = []
+    from s3k.model import conv_layers
 
-    def hook(mod: torch.nn.Module, inp: tuple[torch.Tensor, ...], out: torch.Tensor) -> None:
-        seen.append((mod, tuple(inp[0].shape), tuple(out.shape)))  # type: ignore[arg-type]
-
-    handles = [m.register_forward_hook(hook) for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
-    try:
-        with torch.no_grad():
-            net(images)
-    finally:
-        for h in handles:
-            h.remove()
+    seen = conv_layers(net, images)
     gen = torch.Generator().manual_seed(0)
     layers = []
     for i, (mod, in_shape, out_shape) in enumerate(seen):

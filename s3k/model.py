@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from s3k.heatmaps import heatmap_moments, heatmap_size, spatial_softmax
 
-__all__ = ["UNetConfig", "UNet", "detect", "count_conv_flops"]
+__all__ = ["UNetConfig", "UNet", "detect", "conv_layers", "count_conv_flops"]
 
 _NORMS = ("batch", "group", "none")
 
@@ -288,6 +288,24 @@ def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple
     return logits, mean_uv, var
 
 
+def conv_layers(model: nn.Module, images: Tensor) -> list[tuple[nn.Conv2d, torch.Size, torch.Size]]:
+    """Every ``nn.Conv2d`` of ``model`` in call order, with the input and output shapes it sees in one forward
+    pass on ``images`` (run without gradients)."""
+    seen: list[tuple[nn.Conv2d, torch.Size, torch.Size]] = []
+
+    def hook(mod: nn.Conv2d, inp: tuple[Tensor, ...], out: Tensor) -> None:
+        seen.append((mod, inp[0].shape, out.shape))
+
+    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
+    try:
+        with torch.no_grad():
+            model(images)
+    finally:
+        for h in handles:
+            h.remove()
+    return seen
+
+
 def count_conv_flops(model: nn.Module, images: Tensor) -> int:
     """Floating-point operations of the model's convolutions for one forward pass on ``images``.
 
@@ -303,18 +321,8 @@ def count_conv_flops(model: nn.Module, images: Tensor) -> int:
         The FLOP count as an int.
     """
     total = 0
-
-    def hook(mod: nn.Conv2d, _inp: tuple[Tensor, ...], out: Tensor) -> None:
-        nonlocal total
+    for mod, _in_shape, out_shape in conv_layers(model, images):
         kh, kw = mod.kernel_size
         per_out = 2 * (mod.in_channels // mod.groups) * kh * kw + (1 if mod.bias is not None else 0)
-        total += per_out * out.numel()
-
-    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
-    try:
-        with torch.no_grad():
-            model(images)
-    finally:
-        for h in handles:
-            h.remove()
+        total += per_out * out_shape.numel()
     return total

@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from s3k.heatmaps import heatmap_moments, spatial_softmax
-from s3k.model import HeatmapHead, UNet, UNetConfig, count_conv_flops, detect
+from s3k.model import HeatmapHead, UNet, UNetConfig, conv_layers, count_conv_flops, detect
 
 
 def _randomize_norm_stats(net: nn.Module, seed: int = 0) -> None:
@@ -150,3 +150,13 @@ def test_count_conv_flops_closed_form():
     one = count_conv_flops(net, torch.rand(1, 3, 64, 64))
     assert count_conv_flops(net, torch.rand(4, 3, 64, 64)) == 4 * one
     assert count_conv_flops(net, torch.rand(1, 3, 128, 128)) == 4 * one
+
+
+def test_conv_layers_lists_every_convolution_with_its_shapes():
+    net = UNet(3, UNetConfig(channels=(8, 16), res_blocks=1, stride=2)).eval()
+    layers = conv_layers(net, torch.rand(2, 3, 32, 32))
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [m for m, _, _ in layers] == convs  # each once, in call order (here module order)
+    assert tuple(layers[0][1]) == (2, 3, 32, 32) and tuple(layers[0][2]) == (2, 8, 16, 16)  # stem
+    assert tuple(layers[-1][2]) == (2, 3, 16, 16)  # head: K heatmaps at stride 2
+    assert all(not p.requires_grad or p.grad is None for p in net.parameters())
