@@ -34,7 +34,7 @@ def tiny_config(**over) -> TrainConfig:
     return TrainConfig(**base)
 
 
-def test_two_step_cli_run(tiny_dataset, tmp_path):
+def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
     run = tmp_path / "run"
     code = cli_main(["train", str(tiny_dataset), "--out", str(run), "--steps", "2", "--batch-labelled", "2",
                      "--batch_unlabelled", "2", "--channels", "8,16,16", "--warmup_steps", "0",
@@ -55,8 +55,10 @@ def test_two_step_cli_run(tiny_dataset, tmp_path):
     log = (run / "train.log").read_text()
     assert "step 1 validation" in log and "rms_px" in log
     # the same folder again without --resume is refused
-    with pytest.raises(FileExistsError):
-        cli_main(["train", str(tiny_dataset), "--out", str(run), "--steps", "2", "--no-progress"])
+    capsys.readouterr()
+    assert cli_main(["train", str(tiny_dataset), "--out", str(run), "--steps", "2", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("s3k train: error: ") and str(run) in err[0]
 
 
 def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, monkeypatch):

@@ -1,0 +1,116 @@
+"""The `s3k` command: one subcommand per module of this package.
+
+A command's module (``s3k/cli/<name>.py``) defines ``configure_parser(parser)`` and ``run(args) -> int``; it
+parses and checks the options and calls library functions with typed arguments. Argument parsing lives only
+here: library modules never see an ``argparse.Namespace``. Modules are imported only when their command runs,
+so ``s3k --help`` stays fast and a missing optional dependency affects one command.
+
+Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
+missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
+status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import shlex
+import sys
+
+# name -> (module in s3k.cli, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("simulate", "render a simulated multi-view dataset (box, distractors, category)"),
+    "validate": ("validate", "check a dataset folder and report every problem found"),
+    "train": ("train", "train a keypoint detector (S3K or labels-only)"),
+    "evaluate": ("evaluate", "compute rms_px, rms_px_reproj, median_mm, rms_mm and write a report"),
+    "predict": ("predict", "write per-frame 3D keypoints of a dataset as CSV"),
+    "demo": ("demo", "simulate the box scene, train S3K and the baseline, compare them"),
+    "experiment": ("experiment", "run one of the paper's experiments as a resumable sweep"),
+    "import": (
+        "import_",
+        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP) to a dataset",
+    ),
+    "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
+    "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
+    "export": ("export", "export a trained detector to ONNX or TorchScript"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    lines = "\n".join(f"  {name:<18} {text}" for name, (_, text) in COMMANDS.items())
+    parser = argparse.ArgumentParser(
+        prog="s3k",
+        description="Semantic 3D keypoints from a calibrated multi-camera rig.",
+        epilog=f"commands:\n{lines}\n\nRun 's3k COMMAND --help' for a command's options; "
+               "'s3k --debug COMMAND ...' (or S3K_DEBUG=1) shows a traceback on error.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    parser.add_argument("command", nargs="?", choices=list(COMMANDS), metavar="COMMAND")
+    return parser
+
+
+def describe_error(exc: BaseException) -> str | None:
+    """The one-line message for an error a user can fix, or None for a bug (which keeps its traceback).
+
+    User errors are :class:`s3k.errors.UserError` (and the data layer's ``DatasetError``, a subclass) and
+    the operating system's refusals (missing file, permission, full disk), which are reported with the path
+    they name.
+    """
+    from s3k.errors import UserError
+
+    if isinstance(exc, UserError):
+        return str(exc)
+    if isinstance(exc, OSError):
+        what = exc.strerror or str(exc)
+        name = exc.filename
+        if name is not None:
+            extra = f" -> {exc.filename2}" if getattr(exc, "filename2", None) else ""
+            return f"{name}{extra}: {what}"
+        return what
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = os.environ.get("S3K_DEBUG", "") not in ("", "0")
+    while argv and argv[0] == "--debug":
+        debug, argv = True, argv[1:]
+    top = _top_parser()
+    if not argv or argv[0].startswith("-"):
+        args = top.parse_args(argv)
+        if args.version:
+            from s3k import __version__
+
+            print(__version__)
+        else:
+            top.print_help()
+        return 0
+    name, rest = argv[0], argv[1:]
+    if "--debug" in rest:
+        debug, rest = True, [a for a in rest if a != "--debug"]
+    if name not in COMMANDS:
+        top.error(f"unknown command {name!r}; choose from {', '.join(COMMANDS)}")
+    module_name, text = COMMANDS[name]
+    module = importlib.import_module(f"s3k.cli.{module_name}")
+    parser = argparse.ArgumentParser(prog=f"s3k {name}", description=text)
+    module.configure_parser(parser)
+    args = parser.parse_args(rest)
+    args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"s3k {name}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one place that turns user errors into one line
+        message = None if debug else describe_error(exc)
+        if message is None:
+            raise
+        print(f"s3k {name}: error: {message}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
