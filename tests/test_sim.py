@@ -320,3 +320,12 @@ def test_simulate_writes_a_valid_dataset(tmp_path, args):
         seg = set(ds.column("segment", ds.frames("labelled")).astype(int))
         assert seg == ({0} if "start" in args else {0, 1})
     assert main(["validate", str(out)]) == 0
+
+
+def test_simulate_cli_bad_option_is_one_line(tmp_path, capsys):
+    from s3k.cli import main
+
+    assert main(["simulate", "box", "--out", str(tmp_path / "d"), "--size", "8", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["s3k simulate: error: size (--size): images must be at least 16 px, got 8"]
+    assert not (tmp_path / "d").exists()

@@ -1,5 +1,59 @@
-"""`s3k simulate`: command-line front end of :mod:`s3k.sim.cli`."""
+"""``s3k simulate SCENE --out DIR``: render one of the paper's simulated datasets (see docs/scenes.md)."""
 
-from s3k.sim.cli import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+import sys
+
+from s3k.sim.scenes import NUM_TRAIN_INSTANCES, SCENES
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
+    parser.add_argument("--out", required=True, help="dataset folder to create")
+    parser.add_argument("--size", type=int, default=96, help="image width and height in pixels (default 96)")
+    parser.add_argument("--labelled", type=int, default=10, help="labelled frames (default 10)")
+    parser.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
+    parser.add_argument("--test", type=int, default=200, help="test frames (default 200)")
+    parser.add_argument("--seed", type=int, default=0, help="same seed, same dataset (default 0)")
+    parser.add_argument("--mode", choices=["start", "full"], default=None,
+                        help="distractors: labelled frames from the first distractor segment only (start) or "
+                             "spread over the whole timeline (full, the default)")
+    parser.add_argument("--segments", type=int, default=6,
+                        help="distractors: training segments (distractor sets) on the timeline (default 6)")
+    parser.add_argument("--test-segments", type=int, default=2,
+                        help="distractors: test segments, with distractor sets unseen in training "
+                             "(default 2)")
+    parser.add_argument("--train-instances", type=int, default=None,
+                        help=f"category: train on the first N of the {NUM_TRAIN_INSTANCES} training "
+                             f"instances (default {NUM_TRAIN_INSTANCES}); test frames use the 4 held out")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
+    parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
+    parser.add_argument("--preview", default=None, metavar="PNG",
+                        help="also write a contact sheet of 3 frames (first, middle, last; 4 views each) "
+                             "to this PNG file")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.sim.generate import SimulateConfig, simulate
+
+    if args.mode is not None and args.scene != "distractors":
+        print(f"s3k simulate: --mode applies to the distractors scene only; ignored for {args.scene}",
+              file=sys.stderr)
+    if args.train_instances is not None and args.scene != "category":
+        print(f"s3k simulate: --train-instances applies to the category scene only; ignored for {args.scene}",
+              file=sys.stderr)
+    cfg = SimulateConfig(
+        scene=args.scene, size=args.size, labelled=args.labelled, unlabelled=args.unlabelled,
+        test=args.test, seed=args.seed, mode=args.mode or "full", segments=args.segments,
+        test_segments=args.test_segments,
+        train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
+    )
+    summary = simulate(cfg, args.out, workers=args.workers, progress=not args.no_progress,
+                       overwrite=args.overwrite, preview=args.preview)
+    print(f"wrote {summary['path']}: {summary['frames']} frames ({cfg.labelled} labelled, {cfg.unlabelled} "
+          f"unlabelled, {cfg.test} test), 4 cameras, {cfg.size}x{cfg.size} px, in {summary['seconds']:.1f} s "
+          f"({summary['images_per_s']:.0f} images/s)")
+    return 0

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from s3k.errors import UserError
 from s3k.sim.scenes import NUM_INSTANCES, NUM_TRAIN_INSTANCES, SCENES, FrameSpec, Scene, SimFrame, make_scene
 
 MODES = ("start", "full")
@@ -56,21 +57,22 @@ class SimulateConfig:
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
-            raise ValueError(f"scene: unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
+            raise UserError(f"scene: unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
         for name in ("labelled", "unlabelled", "test"):
             if getattr(self, name) < 0:
-                raise ValueError(f"{name}: frame count must be >= 0, got {getattr(self, name)}")
+                raise UserError(f"{name} (--{name}): frame count must be >= 0, got {getattr(self, name)}")
         if self.labelled + self.unlabelled + self.test == 0:
-            raise ValueError("labelled + unlabelled + test: no frames to render")
+            raise UserError("labelled + unlabelled + test: no frames to render",
+                            hint="give --labelled, --unlabelled or --test a positive count")
         if self.size < 16:
-            raise ValueError(f"size: images must be at least 16 px, got {self.size}")
+            raise UserError(f"size (--size): images must be at least 16 px, got {self.size}")
         if self.mode not in MODES:
-            raise ValueError(f"mode: must be one of {MODES}, got {self.mode!r}")
+            raise UserError(f"mode (--mode): must be one of {MODES}, got {self.mode!r}")
         if self.segments < 1 or self.test_segments < 1:
-            raise ValueError(f"segments, test_segments: must be >= 1, got {self.segments}, "
-                             f"{self.test_segments}")
+            raise UserError(f"segments, test_segments (--segments, --test-segments): must be >= 1, "
+                            f"got {self.segments}, {self.test_segments}")
         if not 1 <= self.train_instances <= NUM_TRAIN_INSTANCES:
-            raise ValueError(f"train_instances: must be in [1, {NUM_TRAIN_INSTANCES}], "
+            raise UserError(f"train_instances (--train-instances): must be in [1, {NUM_TRAIN_INSTANCES}], "
                              f"got {self.train_instances}")
 
     def describe(self) -> dict:
