@@ -329,3 +329,24 @@ def test_simulate_cli_bad_option_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["s3k simulate: error: size (--size): images must be at least 16 px, got 8"]
     assert not (tmp_path / "d").exists()
+
+
+def test_sampling_seed_changes_frames_not_the_object(monkeypatch):
+    import s3k.sim.generate as gen
+
+    built = []
+    real = gen.make_scene
+
+    def recording(name, size=128, seed=0, **kw):
+        built.append(seed)
+        return real(name, size=size, seed=seed, **kw)
+
+    monkeypatch.setattr(gen, "make_scene", recording)
+    frames = {}
+    for seed in (1, 2):
+        cfg = SimulateConfig("box", size=32, labelled=1, unlabelled=0, test=0, seed=seed)
+        frames[seed] = next(iter(render_frames(cfg, frame_plan(cfg), workers=1)))
+    other = SimulateConfig("box", size=32, labelled=1, unlabelled=0, test=0, seed=1, object_seed=5)
+    next(iter(render_frames(other, frame_plan(other), workers=1)))
+    assert built == [0, 0, 5]  # the scene (its look) follows object_seed only
+    assert not np.array_equal(frames[1].points3d, frames[2].points3d)  # the frames follow seed

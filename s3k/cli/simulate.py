@@ -15,7 +15,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--labelled", type=int, default=10, help="labelled frames (default 10)")
     parser.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     parser.add_argument("--test", type=int, default=200, help="test frames (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="same seed, same dataset (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="sampling seed: object poses, cameras and lighting (default 0)")
+    parser.add_argument("--object-seed", type=int, default=0,
+                        help="the scene's look: box texture, category shapes, distractor sets (default 0: "
+                             "the same object whatever --seed)")
     parser.add_argument("--mode", choices=["start", "full"], default=None,
                         help="distractors: labelled frames from the first distractor segment only (start) or "
                              "spread over the whole timeline (full, the default)")
@@ -47,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
     cfg = SimulateConfig(
         scene=args.scene, size=args.size, labelled=args.labelled, unlabelled=args.unlabelled,
-        test=args.test, seed=args.seed, mode=args.mode or "full", segments=args.segments,
-        test_segments=args.test_segments,
+        test=args.test, seed=args.seed, object_seed=args.object_seed, mode=args.mode or "full",
+        segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
     )
     summary = simulate(cfg, args.out, workers=args.workers, progress=not args.no_progress,

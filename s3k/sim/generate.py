@@ -1,8 +1,11 @@
 """Dataset generation: frame plan, parallel rendering, writing through :class:`s3k.data.format.DatasetWriter`.
 
-Every frame is a pure function of ``(seed, frame_id)``: its randomness comes from
-``numpy.random.default_rng([seed, frame_id])`` and a scene sets its whole state before each capture, so the
-same seed gives the same dataset whatever the number of worker processes. Each worker process builds its own
+Two seeds, kept apart: ``object_seed`` fixes the scene's look (textures, object shapes, distractor sets),
+``seed`` draws the frames (poses, cameras, lighting). So datasets rendered with different ``seed`` show the
+same object, and a model trained on one is tested fairly on another. Every frame is a pure function of
+``(object_seed, seed, frame_id)``: its randomness comes from ``numpy.random.default_rng([seed, frame_id])``
+and a scene sets its whole state before each capture, so the same seeds give the same dataset whatever the
+number of worker processes. Each worker process builds its own
 scene (one MuJoCo model and one OpenGL renderer); the parent writes frames in frame order.
 """
 
@@ -34,7 +37,9 @@ class SimulateConfig:
         labelled: number of labelled frames (2D labels in every camera where the keypoint is visible).
         unlabelled: number of unlabelled frames.
         test: number of test frames (labels and ground-truth 3D stored for evaluation).
-        seed: dataset seed (textures, shapes and every frame derive from it).
+        seed: sampling seed: object poses, cameras and lighting of every frame derive from it.
+        object_seed: the scene's look: box texture, category instances' shapes and textures, distractor
+            sets. Fixed per scene (0) unless asked otherwise, so that ``seed`` changes the frames only.
         mode: distractors only: "start" puts all labelled frames in the first segment of the timeline, "full"
             spreads them over all training segments.
         segments: distractors only: number of training segments (distractor sets) on the timeline.
@@ -50,6 +55,7 @@ class SimulateConfig:
     unlabelled: int = 2000
     test: int = 200
     seed: int = 0
+    object_seed: int = 0
     mode: str = "full"
     segments: int = 6
     test_segments: int = 2
@@ -64,6 +70,9 @@ class SimulateConfig:
         if self.labelled + self.unlabelled + self.test == 0:
             raise UserError("labelled + unlabelled + test: no frames to render",
                             hint="give --labelled, --unlabelled or --test a positive count")
+        if self.seed < 0 or self.object_seed < 0:
+            raise UserError(f"seed, object_seed (--seed, --object-seed): must be >= 0, got {self.seed}, "
+                            f"{self.object_seed}")
         if self.size < 16:
             raise UserError(f"size (--size): images must be at least 16 px, got {self.size}")
         if self.mode not in MODES:
@@ -78,7 +87,7 @@ class SimulateConfig:
     def describe(self) -> dict:
         """The parameters that matter for this scene, for the dataset's metadata."""
         d = {"scene": self.scene, "size": self.size, "labelled": self.labelled, "unlabelled": self.unlabelled,
-             "test": self.test, "seed": self.seed}
+             "test": self.test, "seed": self.seed, "object_seed": self.object_seed}
         if self.scene == "distractors":
             d.update(mode=self.mode, segments=self.segments, test_segments=self.test_segments)
         if self.scene == "category":
@@ -135,7 +144,7 @@ _WORKER_SCENE: Scene | None = None
 def _init_worker(scene: str, size: int, seed: int) -> None:
     global _WORKER_SCENE
     cv2.setNumThreads(1)
-    _WORKER_SCENE = make_scene(scene, size=size, seed=seed)
+    _WORKER_SCENE = make_scene(scene, size=size, seed=seed)  # the object seed: the scene's look
 
 
 def _render_chunk(args: tuple[int, list[FrameSpec]]) -> list[SimFrame]:
@@ -148,14 +157,14 @@ def render_frames(cfg: SimulateConfig, specs: Sequence[FrameSpec], workers: int 
                   chunk: int = 4) -> Iterator[SimFrame]:
     """Renders ``specs`` in order, in ``workers`` processes (in this process when ``workers <= 1``)."""
     if workers <= 1:
-        with make_scene(cfg.scene, size=cfg.size, seed=cfg.seed) as scene:
+        with make_scene(cfg.scene, size=cfg.size, seed=cfg.object_seed) as scene:
             for s in specs:
                 yield scene.frame(s, frame_rng(cfg.seed, s.frame_id))
         return
     chunks = [(cfg.seed, list(specs[i:i + chunk])) for i in range(0, len(specs), chunk)]
     # spawn: a fresh interpreter per worker, so no OpenGL or thread state is inherited from the parent.
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.scene, cfg.size, cfg.seed)) as pool:
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.scene, cfg.size, cfg.object_seed)) as pool:
         for frames in pool.imap(_render_chunk, chunks):
             yield from frames
 

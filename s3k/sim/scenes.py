@@ -1,6 +1,6 @@
 """The paper's simulated scenes: ``box``, ``distractors`` and ``category``.
 
-A scene owns one compiled MuJoCo model (textures baked from the dataset seed), its ``MjData`` and a renderer.
+A scene owns one compiled MuJoCo model (textures baked from the object seed), its ``MjData`` and a renderer.
 Frames are made in two steps so that tests can stage exact situations:
 
 1. ``scene.sample(spec, rng)`` draws a random state for frame ``spec`` (object pose, distractors, instance,
@@ -167,7 +167,8 @@ class Scene:
 
     Args:
         size: image width and height in pixels.
-        seed: dataset seed; the scene's textures and object shapes derive from it.
+        seed: object seed: the scene's textures, object shapes and distractor sets derive from it (the
+            frames' poses and cameras come from the generator passed to :meth:`frame`).
         num_cameras: number of cameras (the paper uses 4).
     """
 
