@@ -1,19 +1,30 @@
-"""``s3k experiment``: sweep plans, frame selection, dataset views, toy sweeps, resumption and summaries."""
+"""``s3k experiment``: sweep plans, frame selection, dataset views, locks, toy sweeps, resumption, findings
+and summaries."""
 
 from __future__ import annotations
 
 import json
+import os
 import shlex
-import socket
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic_rig import make_dataset
 
+import s3k
 import s3k.experiments as ex
 from s3k.cli import main as cli_main
+from s3k.config import TrainConfig
+from s3k.data import Dataset
+from s3k.experiments.findings import lower
+from s3k.experiments.report import readme
+from s3k.experiments.runner import LOCK_FILE, run_one
+from s3k.experiments.views import make_view, select_frames
+from s3k.fileio import file_lock
 
 pytest.importorskip("mujoco")
 
@@ -55,7 +66,7 @@ def test_small_and_full_grids_follow_the_paper(tmp_path):
         seeds.setdefault((r.labelled, r.unlabelled), set()).add(r.seed)
     for (L, _), s in seeds.items():
         assert len(s) == (3 if L in (3, 10) else 1)  # seeds where the claims are made
-    assert {r.cfg.steps for r in full} == {ex.TrainConfig().steps}
+    assert {r.cfg.steps for r in full} == {TrainConfig().steps}
     assert {r.pool.size for r in full} == {96}
     cat = ex.plan(ex.Options("category", tmp_path, scale="full"))
     assert sorted({r.params["instances"] for r in cat}) == sorted(ex.PAPER_CATEGORY_TEST_PX)
@@ -71,7 +82,7 @@ def test_small_and_full_grids_follow_the_paper(tmp_path):
     assert {r.pool.name for r in alpha} == {r.pool.name for r in small}
     # warm-up and ramp keep the default proportions of the schedule
     cfg = small[0].cfg
-    default = ex.TrainConfig()
+    default = TrainConfig()
     assert cfg.warmup_steps / cfg.steps == pytest.approx(default.warmup_steps / default.steps)
 
 
@@ -89,10 +100,20 @@ def test_plan_overrides_and_errors(tmp_path):
         ex.plan(ex.Options("nope", tmp_path))
 
 
-def test_cli_rejects_bad_train_field(tmp_path, capsys):
+def test_cli_rejects_bad_train_field_in_one_line(tmp_path, capsys):
     code = cli_main(["experiment", "alpha", "--out", str(tmp_path), "--scale", "toy", "--set", "nope=1"])
-    assert code == 2
-    assert "nope" in capsys.readouterr().err
+    assert code == 1
+    err = capsys.readouterr().err
+    assert err.startswith("s3k experiment: error: --set: unknown field 'nope'") and err.count("\n") == 1
+    assert cli_main(["experiment", "alpha", "--out", str(tmp_path), "--set", "lr=-1"]) == 1
+    assert "'lr' must be > 0" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
+
+
+def test_summarize_only_without_runs_is_one_line(tmp_path, capsys):
+    assert cli_main(["experiment", "alpha", "--out", str(tmp_path), "--summarize-only"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nothing to summarize" in err and "--out" in err
 
 
 def test_dry_run_prints_the_estimate_and_runs_nothing(tmp_path, capsys):
@@ -121,19 +142,60 @@ def test_stratified_pick_nests_balances_and_sorts():
         ex.stratified_pick(ids, None, 61, np.random.default_rng(0))
 
 
+# ----------------------------------------------------------------------------------------------------- views
+def test_view_holds_the_chosen_frames_of_the_pool_with_linked_images(tmp_path):
+    pool = Dataset.open(make_dataset(tmp_path / "pool", labelled=6, unlabelled=5, test=3), cache="none")
+    frames = select_frames(pool, 4, 2, seed=1)
+    assert set(frames["labelled"]) <= set(pool.frames("labelled")) and len(frames["labelled"]) == 4
+    assert frames["unlabelled"].tolist() == select_frames(pool, 1, 2, seed=5)["unlabelled"].tolist()
+    spare = sorted(set(pool.frames("unlabelled")) - set(frames["unlabelled"]))[:1]
+    frames["test"] = np.concatenate([frames["test"], spare])  # a frame that changes split
+    view = make_view(pool, tmp_path / "views" / "v", frames, {"seed": 1})
+    assert (view / "images").is_symlink()
+    ds = Dataset.open(view, cache="none")
+    assert ds.source == {"view_of": "../../pool", "pool_source": None, "seed": 1}
+    for split, ids in frames.items():
+        assert sorted(ds.frames(split).tolist()) == sorted(ids.tolist())
+    ids = ds.frames()
+    np.testing.assert_array_equal(ds.images(ids), pool.images(ids))
+    for a, b in zip(ds.labels(ids), pool.labels(ids)):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(ds.points3d(ids), pool.points3d(ids)):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(ds.calibration_arrays(ids), pool.calibration_arrays(ids)):
+        np.testing.assert_array_equal(a, b)
+    assert ds.static_calibration and len(ds) == 4 + 2 + 3 + 1
+    assert [p.name for p in (tmp_path / "views").iterdir()] == ["v"]  # no temporary left
+
+
 # ------------------------------------------------------------------------------------------------------ locks
-def test_lock_refuses_while_held_and_takes_over_a_dead_holder(tmp_path):
-    lock = tmp_path / "run.lock"
-    with ex._claim(lock) as first:
-        assert first and lock.is_file()
-        with ex._claim(lock) as second:
-            assert not second
-    assert not lock.exists()
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True, check=True)
-    lock.write_text(f"{int(dead.stdout)} {socket.gethostname()}")
-    with ex._claim(lock) as mine:
+def test_run_held_by_a_live_process_is_skipped_and_a_killed_holder_leaves_no_claim(tmp_path):
+    spec = ex.plan(toy_options("label-efficiency", tmp_path))[0]
+    run_dir = tmp_path / "label-efficiency" / "runs" / spec.name
+    run_dir.mkdir(parents=True)
+    messages: list[str] = []
+
+    def attempt():
+        return run_one(spec, tmp_path / "label-efficiency", tmp_path / "data",
+                       toy_options("label-efficiency", tmp_path), messages.append)
+
+    with file_lock(run_dir / LOCK_FILE) as mine:  # another holder of the claim, in this process
         assert mine
+        assert attempt() is None
+    assert messages == [f"{spec.name}: being trained by another process; skipped"]
+    assert not (tmp_path / "data").exists()  # skipped before touching any data
+    code = ("import sys, time\nfrom s3k.fileio import file_lock\nwith file_lock(sys.argv[1]):\n"
+            "    print('held', flush=True)\n    time.sleep(600)\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(s3k.__file__).parents[1])}
+    holder = subprocess.Popen([sys.executable, "-c", code, str(run_dir / LOCK_FILE)], stdout=subprocess.PIPE,
+                              text=True, env=env)
+    assert holder.stdout.readline() == "held\n"
+    with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
+        assert not mine
+    holder.send_signal(signal.SIGKILL)
+    holder.wait()
+    with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
+        assert mine  # the kernel freed the dead holder's claim
 
 
 # ------------------------------------------------------------------------------------------------ summaries
@@ -192,6 +254,51 @@ def test_domain_shift_gap_verdict_compares_sizes():
         "no gap without unlabelled frames")
 
 
+def test_category_findings_follow_the_numbers():
+    def cat(errors):  # instances -> (held-out error, training-instance error)
+        results = []
+        for n, (test, train) in errors.items():
+            r = fake_result({"instances": n, "labelled": 30, "unlabelled": 9, "seed": 0}, test)
+            r["metrics"]["train"] = dict(r["metrics"]["test"], rms_px=train)
+            results.append(r)
+        return [f["reproduced"] for f in ex.findings("category", ex.aggregate(results))]
+
+    # more instances: held-out error 30 -> 15, gap to training instances 20 -> 3
+    assert cat({1: (30, 10), 6: (20, 12), 12: (15, 12)}) == [True, True]
+    # held-out error rises and the gap widens
+    assert cat({1: (15, 12), 12: (30, 10)}) == [False, False]
+    # a single instance count measures nothing
+    assert cat({12: (15, 12)}) == []
+
+
+def test_lower_margin_is_two_standard_errors_or_two_percent():
+    def s(mean, std=None, n=1):
+        return {"mean": mean, "std": std, "n": n}
+
+    # three seeds of std 2: two standard errors of the difference are 2 sqrt(8/3) = 3.27
+    assert lower(s(10, 2, 3), s(13, 2, 3)) == "within noise"
+    assert lower(s(10, 2, 3), s(13.5, 2, 3)) is True
+    assert lower(s(13.5, 2, 3), s(10, 2, 3)) is False
+    # single seeds: 2 % of the larger mean
+    assert lower(s(10), s(10.2)) == "within noise"
+    assert lower(s(10), s(10.3)) is True
+    assert lower(None, s(10)) is None
+    assert [ex.verdict(v) for v in (True, False, "within noise", None)] == ["yes", "no", "within noise",
+                                                                          "not measured"]
+
+
+PUBLISHED = sorted((Path(__file__).parents[1] / "docs" / "results").glob("*/summary.json"))
+
+
+@pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: p.parent.name)
+def test_published_summaries_give_their_findings_again(path):
+    summary = json.loads(path.read_text())
+    assert ex.findings(summary["experiment"], summary["points"]) == summary["findings"]
+    page = readme(summary)
+    for f in summary["findings"]:
+        assert f"| {f['finding']} | {f['measured']} | {ex.verdict(f['reproduced'])} |" in page
+
+
 def test_plots_and_readme_without_runs(tmp_path):
     (tmp_path / "category" / "runs").mkdir(parents=True)
     summary = ex.summarize(tmp_path / "category")
@@ -247,7 +354,8 @@ def test_label_efficiency_sweep_cli_resumes_and_summarizes(workspace, capsys):
     assert summary["commands"] == [shlex.join(["s3k", *argv])] and summary["runs_without_provenance"] == 0
     assert f"Command: `{shlex.join(['s3k', *argv])}`" in (pub / "README.md").read_text()
     # different settings in the same folder are refused, not mixed
-    assert cli_main([*argv, "--steps", "3"]) == 2
+    assert cli_main([*argv, "--steps", "3"]) == 1
+    assert "finished with other settings (steps: 2 there, 3 now" in capsys.readouterr().err
 
 
 def test_alpha_sweep_resumes_after_a_kill_during_evaluation(workspace, monkeypatch):
@@ -264,7 +372,8 @@ def test_alpha_sweep_resumes_after_a_kill_during_evaluation(workspace, monkeypat
     first = ex.plan(toy_options("alpha", workspace))[0]
     run_dir = workspace / "alpha" / "runs" / first.name
     assert (run_dir / "model.pt").is_file() and not (run_dir / "result.json").exists()
-    assert not (run_dir / "run.lock").exists()
+    with file_lock(run_dir / LOCK_FILE, blocking=False) as free:
+        assert free  # the interrupted process left no claim behind
     trained_at = (run_dir / "model.pt").stat().st_mtime_ns
     monkeypatch.setattr(s3k.evaluate, "evaluate_run", real)
     outcome = ex.run_experiment(toy_options("alpha", workspace), log=lambda m: None)
@@ -293,8 +402,6 @@ def test_category_sweep_evaluates_training_and_held_out_instances(workspace):
     summary = json.loads((workspace / "category" / "summary.json").read_text())
     assert summary["paper"]["category_test_px"]["12"] == ex.PAPER_CATEGORY_TEST_PX[12]
     # views are small: tables filtered, images linked to the rendered dataset
-    from s3k.data.format import Dataset
-
     pool = next((workspace / "data").glob("category-i2-*"))
     view = next((workspace / "data" / "views" / pool.name).glob("L*"))
     assert (view / "images").is_symlink()

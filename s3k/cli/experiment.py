@@ -1,5 +1,137 @@
-"""`s3k experiment`: command-line front end of :mod:`s3k.experiments`."""
+"""`s3k experiment NAME --out DIR`: a paper experiment as a resumable sweep (:mod:`s3k.experiments`)."""
 
-from s3k.experiments import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+from pathlib import Path
+from typing import Any
+
+from s3k.errors import UserError
+from s3k.experiments import (
+    DESCRIPTIONS,
+    EXPERIMENTS,
+    SCALES,
+    SUMMARY_FILE,
+    Options,
+    describe_plan,
+    plan,
+    publish,
+    run_experiment,
+    summarize,
+    verdict,
+)
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    lines = "\n".join(f"  {name:<18} {text}" for name, text in DESCRIPTIONS.items())
+    scales = "\n".join(f"  {name:<6} {s.size} px, {s.steps} steps, {s.test} test frames, up to "
+                       f"{s.pool_unlabelled} unlabelled, {s.seeds} seed(s) at claim points"
+                       for name, s in SCALES.items())
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = (f"experiments:\n{lines}\n\nscales:\n{scales}\n\nA finished run (runs/NAME/result.json) "
+                     "is never redone: rerun the same command to continue a killed sweep.")
+    parser.add_argument("name", choices=EXPERIMENTS, metavar="NAME",
+                        help="experiment: " + ", ".join(EXPERIMENTS))
+    parser.add_argument("--out", required=True, metavar="DIR",
+                        help="workspace: data/ (shared by experiments), NAME/runs/, NAME/summary.json, plots")
+    parser.add_argument("--scale", choices=list(SCALES), default="small",
+                        help="toy (seconds; tests), small (about 1 h per experiment on 2 CPU cores), full "
+                             "(whole grid, default training scale; hours). Default: small")
+    parser.add_argument("--seeds", type=int, default=None, help="seeds at the points carrying a claim "
+                        "(default: the scale's)")
+    parser.add_argument("--seeds-other", type=int, default=1, help="seeds at the other points (default 1)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="training steps per run (default: the scale's)")
+    parser.add_argument("--size", type=int, default=None, metavar="PX",
+                        help="image size in pixels (default: the scale's)")
+    parser.add_argument("--test", type=int, default=None, help="test frames (default: the scale's)")
+    parser.add_argument("--data-seed", type=int, default=0, help="seed of the rendered datasets (default 0)")
+    parser.add_argument("--labelled", type=_int_list, default=None, metavar="N,N,...",
+                        help="labelled counts of the grid")
+    parser.add_argument("--unlabelled", type=_int_list, default=None, metavar="N,N,...",
+                        help="unlabelled counts of the grid (0: labels-only baseline)")
+    parser.add_argument("--instances", type=_int_list, default=None, metavar="N,N,...",
+                        help="category: training instance counts")
+    parser.add_argument("--alphas", type=_float_list, default=None, metavar="A,A,...",
+                        help="alpha: values of alpha")
+    parser.add_argument("--modes", type=lambda s: [m for m in s.split(",") if m], default=None,
+                        metavar="start,full", help="domain-shift: labelling modes")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
+    parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch threads per run (0: torch's default; 1 when running two sweeps at once)")
+    parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: CPUs)")
+    parser.add_argument("--dry-run", action="store_true", help="print the runs and the estimate, run nothing")
+    parser.add_argument("--summarize-only", action="store_true",
+                        help="only (re)write summary.json, plots and README.md from the finished runs")
+    parser.add_argument("--publish", default=None, metavar="DIR",
+                        help="then copy summary.json, README.md and plots to DIR (e.g. docs/results/NAME)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def options_from_args(args: argparse.Namespace) -> Options:
+    """:class:`Options` from parsed arguments (``--set`` values are checked when the plan is made)."""
+    overrides: dict[str, Any] = {}
+    for item in args.set:
+        if "=" not in item:
+            raise UserError(f"--set: expected FIELD=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        overrides[k.strip().replace("-", "_")] = v.strip()
+    for name in ("seeds", "steps", "size", "test"):
+        v = getattr(args, name)
+        if v is not None and v <= 0:
+            raise UserError(f"--{name}: must be > 0, got {v}")
+    return Options(experiment=args.name, out=Path(args.out), scale=args.scale, seeds=args.seeds,
+                   seeds_other=args.seeds_other, steps=args.steps, size=args.size, test=args.test,
+                   data_seed=args.data_seed, labelled=args.labelled, unlabelled=args.unlabelled,
+                   instances=args.instances, alphas=args.alphas, modes=args.modes,
+                   train_overrides=overrides, device=args.device, threads=args.threads, workers=args.workers,
+                   progress=not args.no_progress, command=getattr(args, "command_line", None))
+
+
+def run(args: argparse.Namespace) -> int:
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+
+    exp_dir = Path(args.out) / args.name
+    failed: list[str] = []
+    if args.summarize_only:
+        if not (exp_dir / "runs").is_dir():
+            raise UserError(f"{exp_dir / 'runs'} does not exist: nothing to summarize",
+                            hint="check --out, or run the sweep first")
+        summary = summarize(exp_dir, args.name)
+    else:
+        opts = options_from_args(args)
+        runs = plan(opts)
+        if args.dry_run:
+            log(describe_plan(runs, exp_dir, Path(args.out) / "data", args.scale))
+            for r in runs:
+                log(f"  {r.name:<28} pool {r.pool.name}, ~{r.estimated_cpu_s() / 60:.1f} CPU-min")
+            return 0
+        outcome = run_experiment(opts, log)
+        summary, failed = outcome["summary"], outcome["failed"]
+        log(f"trained {len(outcome['trained'])}, already finished or held elsewhere "
+            f"{len(outcome['skipped'])}, failed {len(failed)}")
+    log(f"summary: {exp_dir / SUMMARY_FILE} ({summary['runs']} runs, {len(summary['points'])} points); "
+        f"figures: {', '.join(summary['figures'])}")
+    for f in summary["findings"]:
+        log(f"  {verdict(f['reproduced']):<12} {f['finding']}: {f['measured']}")
+    if args.publish:
+        copied = publish(exp_dir, Path(args.publish))
+        log(f"published {len(copied)} files to {args.publish}")
+    return 1 if failed else 0

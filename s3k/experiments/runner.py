@@ -1,0 +1,235 @@
+"""Running a sweep: each run trained, evaluated and recorded once, resumable, shareable between processes.
+
+A run with a ``result.json`` is never redone (and one made with other settings is refused); a run killed
+during training continues from its last checkpoint. Several invocations may share a workspace: each run is
+claimed with a lock on ``run.lock`` beside it, and a run whose lock is held by a live process is skipped.
+The lock is the kernel's (``flock``), so a process killed at any moment leaves no stale claim.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import socket
+import subprocess
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import s3k
+from s3k.config import TrainConfig
+from s3k.errors import UserError
+from s3k.experiments.findings import fmt, to_paper_px
+from s3k.experiments.grid import (
+    DESCRIPTIONS,
+    PAPER_SIZE,
+    RENDER_IMAGES_PER_S,
+    RESULT_FILE,
+    Options,
+    RunSpec,
+    plan,
+)
+from s3k.experiments.report import summarize
+from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
+from s3k.fileio import atomic_write_json, file_lock
+
+#: Config fields that do not change a run's result: a finished run is kept when only these differ.
+_NEUTRAL_FIELDS = ("progress", "device", "threads", "preload_mb", "val_every", "val_frames", "log_every",
+                   "checkpoint_every")
+
+LOCK_FILE = "run.lock"
+
+
+class SettingsChanged(UserError):
+    """A run folder holds a run made with other settings; the sweep stops rather than mix them."""
+
+
+def _differences(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
+    now = cfg.to_dict()
+    return [f"{k}: {saved.get(k)!r} there, {v!r} now" for k, v in now.items()
+            if k not in _NEUTRAL_FIELDS and saved.get(k) != v]
+
+
+def _check_same(saved: dict[str, Any], cfg: TrainConfig, where: Path, what: str) -> None:
+    diff = _differences(saved, cfg)
+    if diff:
+        raise SettingsChanged(f"{where}: {what} with other settings ({'; '.join(diff)})",
+                              hint="use another --out")
+
+
+def checkpoint_step(run_dir: Path) -> int:
+    """The step of ``run_dir``'s last checkpoint, 0 when there is none or it cannot be read (training then
+    decides what to do with it). Loaded with ``weights_only=True``: a crafted file runs no code."""
+    path = run_dir / "checkpoint.pt"
+    if not path.is_file():
+        return 0
+    import torch
+
+    with contextlib.suppress(Exception):
+        return int(torch.load(path, map_location="cpu", weights_only=True)["step"])
+    return 0
+
+
+def source_revision() -> str | None:
+    """The git commit of the s3k source in use (``-dirty`` when its files differ from it), or None when s3k
+    is not run from a git checkout or git is unavailable."""
+    pkg = Path(s3k.__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=10)
+        if rev.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(pkg), "status", "--porcelain", "--untracked-files=no", "--",
+                                "."], capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return rev.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
+            log: Callable[[str], None] = print) -> dict[str, Any] | None:
+    """Train and evaluate one run unless finished; returns its result (None: another process has it).
+
+    Raises:
+        SettingsChanged: the run folder holds a run made with other settings (names the fields).
+    """
+    run_dir = exp_dir / "runs" / spec.name
+    result_path = run_dir / RESULT_FILE
+    if result_path.is_file():
+        result = json.loads(result_path.read_text())
+        _check_same(result["config"], spec.cfg, result_path, "finished")
+        return result
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
+        if not mine:
+            log(f"{spec.name}: being trained by another process; skipped")
+            return None
+        if result_path.is_file():  # finished by another process meanwhile
+            return json.loads(result_path.read_text())
+        if (run_dir / "config.json").is_file():
+            saved = json.loads((run_dir / "config.json").read_text())["config"]
+            _check_same(saved, spec.cfg, run_dir, "a run is there")
+        result = _train_and_evaluate(spec, exp_dir, data_dir, opts, log)
+        atomic_write_json(result, result_path)
+    m, size = result["metrics"]["test"], result["image_size"][0]
+    log(f"{spec.name}: rms_px {fmt(m['rms_px'])} ({fmt(to_paper_px(m['rms_px'], size))} at {PAPER_SIZE} px), "
+        f"median_mm {fmt(m['median_mm'])}, {result['wall_time_s']['total']:.0f} s")
+    return result
+
+
+def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
+                        log: Callable[[str], None]) -> dict[str, Any]:
+    """The data, training and evaluation of one claimed run; returns its result record."""
+    from s3k.data import Dataset
+    from s3k.evaluate import evaluate_run
+    from s3k.train import train
+
+    run_dir = exp_dir / "runs" / spec.name
+    t0 = time.perf_counter()
+    pool_dir, _ = ensure_pool(data_dir, spec.pool, opts.workers, opts.progress, log)
+    pool = Dataset.open(pool_dir, cache="none")
+    frames = select_frames(pool, spec.labelled, spec.unlabelled, spec.seed, spec.pool.seed)
+    views = data_dir / "views" / spec.pool.name
+    view = make_view(pool, views / f"L{spec.labelled}-s{spec.seed}-U{spec.unlabelled}",
+                     {k: v for k, v in frames.items() if len(v)},
+                     {"labelled": spec.labelled, "unlabelled": spec.unlabelled, "seed": spec.seed})
+    t_data = time.perf_counter() - t0
+    start_step = checkpoint_step(run_dir)
+    log(f"{spec.name}: training {spec.cfg.steps} steps "
+        f"({'S3K' if spec.cfg.unsup else 'labels only'}, {spec.labelled} labelled, {spec.unlabelled} "
+        f"unlabelled, seed {spec.seed})" + (f", resuming at step {start_step}" if start_step else ""))
+    t1 = time.perf_counter()
+    trained = train(view, run_dir, spec.cfg, resume=True)
+    t_train = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    metrics = {"test": evaluate_run(run_dir, view, "test", device=opts.device)}
+    if spec.eval_train:
+        # training instances, on frames never labelled: the unlabelled frames every seed shares
+        eval_ids = select_frames(pool, 0, min(spec.pool.unlabelled, spec.pool.test), 0,
+                                 spec.pool.seed)["unlabelled"]
+        train_view = make_view(pool, views / "train-instances-eval", {"test": eval_ids},
+                               {"purpose": "evaluation on training instances"})
+        metrics["train"] = evaluate_run(run_dir, train_view, "test", device=opts.device)
+        drop_cache(train_view)
+    t_eval = time.perf_counter() - t2
+    drop_cache(view)
+    size = metrics["test"]["image_size"][0]
+    return {
+        "experiment": spec.experiment, "run": spec.name, "params": spec.params,
+        "status": trained.status, "steps": trained.step, "image_size": metrics["test"]["image_size"],
+        "px_to_paper": PAPER_SIZE / size, "scale": opts.scale,
+        "data": {"pool": spec.pool.name, "pool_spec": dataclasses.asdict(spec.pool),
+                 "view": os.path.relpath(view, exp_dir),
+                 "frames": {k: len(v) for k, v in frames.items()}},
+        "config": spec.cfg.to_dict(), "metrics": metrics,
+        "wall_time_s": {"data": t_data, "train": t_train, "evaluate": t_eval,
+                        "total": time.perf_counter() - t0},
+        "train_timing": trained.timing, "resumed_from_step": start_step,
+        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "host": socket.gethostname(),
+        "command": opts.command, "code_revision": source_revision(),
+    }
+
+
+def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale: str) -> str:
+    """What a sweep will do: runs, datasets to render, estimated CPU time."""
+    if not runs:
+        return f"scale {scale}: no runs"
+    pools = {r.pool.name: r.pool for r in runs}
+    todo = [r for r in runs if not (exp_dir / "runs" / r.name / RESULT_FILE).is_file()]
+    done = len(runs) - len(todo)
+    missing = [p for n, p in pools.items() if not (data_dir / n / "s3k.json").is_file()]
+    cpu = sum(r.estimated_cpu_s() for r in todo) + sum(p.images() for p in missing) / RENDER_IMAGES_PER_S
+    n_base = sum(not r.cfg.unsup for r in runs)
+    sizes = sorted({r.pool.size for r in runs})
+    steps = sorted({r.cfg.steps for r in runs})
+    return (f"{runs[0].experiment} ({DESCRIPTIONS[runs[0].experiment]}), scale {scale}: {len(runs)} runs "
+            f"({n_base} labels-only, {len(runs) - n_base} S3K; {done} already finished), "
+            f"{len(pools)} dataset(s) ({len(missing)} to render, "
+            f"{sum(p.images() for p in missing)} images), {'/'.join(map(str, sizes))} px, "
+            f"{'/'.join(map(str, steps))} steps; estimated {cpu / 3600:.2f} CPU-hours left "
+            f"(one process, one thread per run; about half the wall time with two invocations in parallel)")
+
+
+def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every missing run of a sweep, then summarize. Returns ``{"trained", "skipped", "failed",
+    "summary"}`` (run names trained now, already finished or held by another process, failed).
+
+    Raises:
+        UserError: the options do not make a plan (see :func:`plan`).
+        SettingsChanged: a run folder holds a run made with other settings.
+    """
+    runs = plan(opts)
+    exp_dir = opts.out / opts.experiment
+    data_dir = opts.out / "data"
+    exp_dir.mkdir(parents=True, exist_ok=True)
+    log(describe_plan(runs, exp_dir, data_dir, opts.scale))
+    trained: list[str] = []
+    skipped: list[str] = []
+    failed: list[str] = []
+    for i, spec in enumerate(runs):
+        finished = (exp_dir / "runs" / spec.name / RESULT_FILE).is_file()
+        if finished:
+            run_one(spec, exp_dir, data_dir, opts, log)  # checks the settings match
+            skipped.append(spec.name)
+            continue
+        log(f"[{i + 1}/{len(runs)}] {spec.name}")
+        try:
+            result = run_one(spec, exp_dir, data_dir, opts, log)
+        except (KeyboardInterrupt, SettingsChanged):
+            raise
+        except ValueError as exc:
+            log(f"{spec.name}: FAILED: {exc}")
+            failed.append(spec.name)
+            continue
+        except Exception as exc:  # one broken run must not stop the sweep
+            log(f"{spec.name}: FAILED: {exc}\n{traceback.format_exc()}")
+            failed.append(spec.name)
+            continue
+        (trained if result is not None else skipped).append(spec.name)
+    summary = summarize(exp_dir, opts.experiment)
+    return {"trained": trained, "skipped": skipped, "failed": failed, "summary": summary}
