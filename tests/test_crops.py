@@ -6,7 +6,7 @@ import torch
 
 from s3k.crops import crop_images, crop_maps, metric_crop_boxes
 from s3k.data.transforms import crop_resize_matrix
-from s3k.geometry import Cameras, project, rodrigues_to_matrix
+from s3k.geometry import Cameras, project
 
 
 def _rig(distances, f=247.0, size=96, dtype=torch.float64):
