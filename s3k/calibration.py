@@ -362,7 +362,7 @@ def detect_charuco(image_paths, board: CharucoBoardSpec, min_corners: int = 6) -
     """
     import cv2
 
-    from s3k.data.importers import frame_id_from_path
+    from s3k.data.labels2d import frame_id_from_path
 
     detector = cv2.aruco.CharucoDetector(board.cv2_board())
     found = {}
@@ -400,7 +400,7 @@ def recalibrate_charuco(
     ``reference`` cameras (trusted, from ``rig``) at the same instants.
 
     Args:
-        rig: :class:`s3k.data.importers.RigCalibration` (full-resolution intrinsics).
+        rig: :class:`s3k.data.rig.Rig` (full-resolution intrinsics).
         camera: the camera to recalibrate.
         detections: ``{camera: detect_charuco(...)}`` for ``camera`` and the reference cameras.
         board: the board.
@@ -408,8 +408,9 @@ def recalibrate_charuco(
     """
     import cv2
 
-    c = rig.names.index(camera)
+    c = rig.index(camera)
     W, H = (int(v) for v in rig.size[c])
+    cams = rig.cameras.numpy()
     corners3d = board.cv2_board().getChessboardCorners().astype(np.float64)  # (N, 3) board frame
     own = detections.get(camera, {})
     if len(own) < 3:
@@ -427,15 +428,15 @@ def recalibrate_charuco(
     for key, (ids, pts) in own.items():
         placed = []
         for ref in reference:
-            r = rig.names.index(ref)
+            r = rig.index(ref)
             if key not in detections.get(ref, {}):
                 continue
             rids, rpts = detections[ref][key]
-            ok, rvec, tvec = cv2.solvePnP(corners3d[rids], rpts, rig.K[r], rig.dist[r])
+            ok, rvec, tvec = cv2.solvePnP(corners3d[rids], rpts, cams["K"][r], cams["dist"][r])
             if not ok:
                 continue
             X_cam = corners3d @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3)
-            placed.append((X_cam - rig.t[r]) @ rig.R[r])  # world = R^T (x_cam - t)
+            placed.append((X_cam - cams["t"][r]) @ cams["R"][r])  # world = R^T (x_cam - t)
         if placed:
             world_pts.append(np.mean(placed, axis=0)[ids])
             image_pts.append(pts)
@@ -493,7 +494,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
     import glob
 
-    from s3k.data.importers import _pairs, read_anipose_calibration, write_anipose_calibration
+    from s3k.cli.options import camera_pairs
+    from s3k.data.anipose import read_anipose_calibration, write_anipose_calibration
     from s3k.data.transforms import crop_resize_matrix
 
     targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
@@ -509,7 +511,7 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
         if cam not in rig.names:
             raise ValueError(f"{toml_path}: no camera {cam!r} (it has {', '.join(rig.names)})")
     board = read_board_toml(args.board or Path(toml_path).parent / "board.toml")
-    patterns = _pairs(args.charuco, "--charuco") if args.charuco else {}
+    patterns = camera_pairs(args.charuco, "--charuco") if args.charuco else {}
     reference = [c for c in ds.cameras if c not in targets and c not in flagged]
     if len(reference) < 1:
         raise ValueError("recalibration needs at least one trusted camera besides those recalibrated")
@@ -520,12 +522,12 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
         if not files:
             raise FileNotFoundError(f"no ChArUco images for camera {cam!r} at {pattern} (give --charuco)")
         detections[cam] = detect_charuco(files, board)
-    arrays = [np.array(a) for a in ds.calibration_arrays(ids, dtype=np.float64)]
+    arrays = ds.calibration(ids, dtype=np.float64).numpy()
     crop_boxes = source.get("crop_boxes", {})
     for cam in targets:
         fix = recalibrate_charuco(rig, cam, detections, board, reference)
-        c = rig.names.index(cam)
-        rig.K[c], rig.dist[c], rig.R[c], rig.t[c] = fix.K, fix.dist, fix.R, fix.t
+        c = rig.index(cam)
+        rig = rig.replace_camera(cam, fix.K, fix.dist, fix.R, fix.t)
         print(f"recalibrated {cam} from {len(detections[cam])} ChArUco frames: intrinsics rms "
               f"{fix.intrinsics_rms_px:.2f} px, f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}; pose from "
               f"{fix.corners} board corners in {fix.frames} frames placed by {', '.join(reference)}: median "
@@ -535,13 +537,12 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
         box = crop_boxes.get(cam, (0.0, 0.0, W, H))
         M = crop_resize_matrix(box, ds.source_image_size)
         d = ds.cameras.index(cam)
-        arrays[0][:, d] = ds.pixel_map @ M @ fix.K
-        arrays[1][:, d], arrays[2][:, d], arrays[3][:, d] = fix.dist, fix.R, fix.t
+        arrays["K"][:, d] = ds.pixel_map @ M @ fix.K
+        arrays["dist"][:, d], arrays["R"][:, d], arrays["t"][:, d] = fix.dist, fix.R, fix.t
     if args.write_calibration:
         write_anipose_calibration(args.write_calibration, rig)
         print(f"wrote {args.write_calibration}")
-    K, dist, R, t = arrays
-    cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
+    cams = Cameras.from_numpy(arrays["K"], arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
     check = check_calibration(
         cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
     )
@@ -551,7 +552,7 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.format import Dataset
+    from s3k.data import Dataset
 
     try:
         ds = Dataset.open(args.dataset)

@@ -68,7 +68,7 @@ def images_to_float(images: Tensor, device: torch.device | str | None = None) ->
 
 def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "disk"):
     """Open a dataset, resized to ``out_size`` (W, H) when given (intrinsics and labels follow exactly)."""
-    from s3k.data.format import Dataset
+    from s3k.data import Dataset
 
     ds = Dataset.open(path, cache=cache)
     if out_size is not None and tuple(ds.image_size) != tuple(out_size):
@@ -80,7 +80,7 @@ class FrameStore:
     """Frames ``frame_ids`` of ``dataset``, served as tensors.
 
     Args:
-        dataset: an opened ``s3k.data.format.Dataset`` at the network's input size (:func:`open_dataset`).
+        dataset: an opened ``s3k.data.Dataset`` at the network's input size (:func:`open_dataset`).
         frame_ids: frame ids to serve.
         preload_mb: decode everything into memory when it takes at most this many MiB.
         labels: also serve 2D labels.

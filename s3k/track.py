@@ -142,7 +142,7 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
 
     Args:
         videos: ``{camera: video path}``; the order is the camera order of the outputs.
-        calibration: a ``RigCalibration`` (``s3k.data.importers.read_anipose_calibration``).
+        calibration: a :class:`s3k.data.rig.Rig` (``s3k.data.anipose.read_anipose_calibration``).
         net_size: ``(w, h)`` network input size.
         fit: see :func:`fit_box` (for cameras without an explicit crop box).
         crops: optional ``{camera: (x0, y0, x1, y1)}`` boxes, as given to ``s3k import --crop``.
@@ -182,8 +182,7 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
         box = tuple(float(v) for v in crops.get(name, fit_box(size, net_size, fit)))
         inputs.append(CameraInput(name, Path(path), size, video.frame_rate(path), box,
                                   crop_resize_matrix(box, net_size)))
-    cams = Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
-    return inputs, cams
+    return inputs, rig.cameras
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -520,7 +519,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     from tqdm import tqdm
 
     from s3k.data import video
-    from s3k.data.importers import read_anipose_calibration
+    from s3k.data.anipose import read_anipose_calibration
     from s3k.predict import pick_device
     from s3k.run import load_detector
 
@@ -632,11 +631,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.importers import _parse_crops
+    from s3k.cli.options import parse_crops
 
     try:
         videos = parse_videos(args.videos)
-        crops = _parse_crops(args.crop, list(videos)) if args.crop else None
+        crops = parse_crops(args.crop, list(videos)) if args.crop else None
         summary = track_videos(
             args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
             start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit, crops=crops,

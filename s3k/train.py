@@ -297,7 +297,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = Fa
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
 
     Args:
-        data: dataset folder (``s3k.data.format``), with labelled and (for S3K) unlabelled frames.
+        data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames.
         out: run folder (created); see ``s3k.run``.
         cfg: configuration.
         resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none).

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from s3k.data.format import Dataset
+from s3k.data import Dataset
 from s3k.geometry import project
 from s3k.track import read_csv
 

@@ -17,9 +17,10 @@ import json
 import numpy as np
 import torch
 
-from s3k.data.format import Dataset
-from s3k.data.importers import read_anipose_calibration, read_sleap_analysis
-from s3k.geometry import Cameras, triangulate_pixels
+from s3k.data import Dataset
+from s3k.data.anipose import read_anipose_calibration
+from s3k.data.sleap import read_sleap_analysis
+from s3k.geometry import triangulate_pixels
 from s3k.track import read_csv
 
 
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     keypoints = list(tables[0].keypoints)
     uv = np.stack([t.uv for t in tables], axis=1)  # (T, C, K, 2), NaN where not placed
     seen = np.isfinite(uv).all(-1)
-    cams = Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
+    cams = rig.cameras
     X, valid = triangulate_pixels(cams, torch.from_numpy(np.nan_to_num(uv)), torch.from_numpy(seen * 1.0))
     X, valid = X.numpy(), valid.numpy() & (seen.sum(1) >= 2)
 

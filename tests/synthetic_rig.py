@@ -56,7 +56,7 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled: int = 8, test: int = 4,
                  seed: int = 0) -> Path:
     """Write the dataset to ``path``; returns the path."""
-    from s3k.data.format import DatasetWriter
+    from s3k.data import DatasetWriter
 
     rng = np.random.default_rng(seed)
     K, dist, R, t = rig(size)

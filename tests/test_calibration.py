@@ -131,7 +131,7 @@ def test_input_errors():
 
 
 def _write_dataset(path, rig_written, rig_true, B=12):
-    from s3k.data.format import DatasetWriter
+    from s3k.data import DatasetWriter
 
     uv, mask = observe(rig_true, B=B, noise=0.5, drop=0.1)
     K, d, R, t = rig_written
@@ -166,7 +166,7 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
 def charuco_rig(tmp_path_factory):
     """A ChArUco board rendered in 8 poses for 3 cameras: ``(truth rig, spec, {camera: files})``."""
     from s3k.calibration import CharucoBoardSpec
-    from s3k.data.importers import RigCalibration
+    from s3k.data.rig import Rig
 
     tmp_path = tmp_path_factory.mktemp("charuco")
     W, H = 640, 480
@@ -196,17 +196,15 @@ def charuco_rig(tmp_path_factory):
             path = tmp_path / f"{n}-{i}.png"
             cv2.imwrite(str(path), image)
             files[n].append(path)
-    truth = RigCalibration(names, Ks, np.zeros((3, 5)), Rs, ts, np.array([[W, H]] * 3), "mm")
+    cams = Cameras.from_numpy(Ks, np.zeros((3, 5)), Rs, ts, dtype=torch.float64)
+    truth = Rig(names, cams, np.array([[W, H]] * 3), "mm")
     return truth, spec, files
 
 
 def _copy_camera(rig, dst, src):
-    from s3k.data.importers import RigCalibration
-
-    out = RigCalibration(list(rig.names), rig.K.copy(), rig.dist.copy(), rig.R.copy(), rig.t.copy(),
-                         rig.size.copy(), rig.units)
-    out.K[dst], out.R[dst], out.t[dst] = out.K[src], out.R[src], out.t[src]
-    return out
+    """``rig`` with camera ``dst`` given the parameters of camera ``src`` (its distortion kept)."""
+    a = rig.cameras.numpy()
+    return rig.replace_camera(rig.names[dst], a["K"][src], a["dist"][dst], a["R"][src], a["t"][src])
 
 
 def test_recalibrate_from_synthetic_charuco(charuco_rig):
@@ -220,12 +218,13 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
     broken = _copy_camera(truth, 1, 2)  # "q" carries the parameters of "r"
     fix = recalibrate_charuco(broken, "q", detections, spec, ["p", "r"])
     assert fix.pose_median_px < 0.5
-    np.testing.assert_allclose(fix.K, truth.K[1], rtol=0.005, atol=1e-9)
+    true = truth.cameras.numpy()
+    np.testing.assert_allclose(fix.K, true["K"][1], rtol=0.005, atol=1e-9)
     assert abs(fix.dist[0]) < 0.02
-    centre_true = -truth.R[1].T @ truth.t[1]
+    centre_true = -true["R"][1].T @ true["t"][1]
     centre_fit = -fix.R.T @ fix.t
     assert np.linalg.norm(centre_fit - centre_true) < 0.005 * np.linalg.norm(centre_true)
-    angle = np.rad2deg(np.linalg.norm(cv2.Rodrigues(fix.R @ truth.R[1].T)[0]))
+    angle = np.rad2deg(np.linalg.norm(cv2.Rodrigues(fix.R @ true["R"][1].T)[0]))
     assert angle < 0.2
 
 
@@ -234,22 +233,22 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
 @needs_real
 def test_real_recording_names_side():
     """The sleap-anipose session's calibration gives camera "side" the parameters of "top"."""
-    from s3k.data.importers import read_anipose_calibration, read_sleap_analysis
+    from s3k.data.anipose import read_anipose_calibration
+    from s3k.data.sleap import read_sleap_analysis
 
     rig = read_anipose_calibration(REAL / "calibration.toml")
     uv = np.stack(
         [read_sleap_analysis(REAL / c / f"minimal_{c}_proofread.analysis.h5").uv for c in rig.names], axis=1
     )
-    cams = Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
-    check = check_calibration(cams, uv, np.isfinite(uv).all(-1), rig.names, image_size=(1280, 1024))
+    check = check_calibration(rig.cameras, uv, np.isfinite(uv).all(-1), rig.names, image_size=(1280, 1024))
     assert check.inconsistent == ["side"], check.format()
     assert "side and top have identical calibration parameters" in check.notes
 
 
 def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
     from s3k.cli import main
-    from s3k.data.format import DatasetWriter
-    from s3k.data.importers import read_anipose_calibration, write_anipose_calibration
+    from s3k.data import DatasetWriter
+    from s3k.data.anipose import read_anipose_calibration, write_anipose_calibration
 
     truth, spec, files = charuco_rig
     broken = _copy_camera(truth, 1, 2)
@@ -259,10 +258,11 @@ def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
         f"marker_length = {spec.marker_length}\nmarker_bits = {spec.marker_bits}\n"
         f"dict_size = {spec.dict_size}\n"
     )
-    rig = [truth.K, truth.dist, truth.R, truth.t]
+    t = truth.cameras.numpy()
+    rig = [t["K"], t["dist"], t["R"], t["t"]]
     uv, mask = observe(rig, B=8, Kp=4, noise=0.3)
     with DatasetWriter(tmp_path / "ds", ["a", "b", "c", "d"], truth.names, (640, 480), "mm",
-                       calibration=(broken.K, broken.dist, broken.R, broken.t),
+                       calibration=broken.cameras,
                        source={"calibration": str(tmp_path / "calibration.toml")}) as writer:
         for b in range(8):
             writer.add_frame(b, "labelled", np.zeros((3, 480, 640, 3), np.uint8),
@@ -279,5 +279,6 @@ def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
     after = text.split("after recalibrating q:")[1]
     assert "all cameras consistent" in after
     fixed = read_anipose_calibration(out)
-    np.testing.assert_allclose(fixed.K[1], truth.K[1], rtol=0.005, atol=1e-9)
-    np.testing.assert_allclose(fixed.K[[0, 2]], truth.K[[0, 2]])
+    K_fixed, K_true = fixed.cameras.numpy()["K"], truth.cameras.numpy()["K"]
+    np.testing.assert_allclose(K_fixed[1], K_true[1], rtol=0.005, atol=1e-9)
+    np.testing.assert_allclose(K_fixed[[0, 2]], K_true[[0, 2]])

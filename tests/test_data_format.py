@@ -10,15 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from s3k.data.format import (
-    CALIBRATION_COLUMNS,
-    Dataset,
-    DatasetError,
-    DatasetWarning,
-    DatasetWriter,
-    RandomBatches,
-    check_dataset,
-)
+from s3k.data import Dataset, DatasetError, DatasetWarning, DatasetWriter, check_dataset
+from s3k.data.tables import CALIBRATION_COLUMNS
 from s3k.data.transforms import crop_resize_matrix, resize_crop
 
 KEYPOINTS = ["corner_a", "corner_b", "corner_c"]
@@ -126,10 +119,10 @@ def test_round_trip_same_arrays(tmp_path: Path, per_frame: bool):
     pick = [list(ids).index(f) for f in order]
     np.testing.assert_array_equal(ds.images(order), np.stack([w["images"][i] for i in pick]))
 
-    cal = ds.calibration_arrays(order)
+    cal = ds.calibration(order, dtype=np.float64).numpy()
     for j, name in enumerate(("K", "dist", "R", "t")):
         expected = np.stack([w["cal"][i][j] for i in pick])
-        np.testing.assert_array_equal(getattr(cal, name), expected)  # exact: floats are written in full
+        np.testing.assert_array_equal(cal[name], expected)  # exact: floats are written in full
 
     uv, mask = ds.labels(order)
     uv_w = np.stack([w["uv"][i] for i in pick])
@@ -189,15 +182,15 @@ def test_disk_cache_matches_and_follows_file_changes(tiny):
     np.testing.assert_array_equal(ds.images(ids), np.stack(w["images"]))
     # A second process/run reads the same cache.
     again = Dataset.open(root, cache="disk")
-    assert again._fingerprint() == ds._fingerprint()
-    again._ensure_cache()
-    assert again._filled.all()  # opening an existing cache keeps what was decoded
+    assert again.fingerprint() == ds.fingerprint()
+    again._cache.open()
+    assert again._cache.filled.all()  # opening an existing cache keeps what was decoded
     np.testing.assert_array_equal(again.images(ids), np.stack(w["images"]))
     # Rewriting an image changes the fingerprint: the new pixels are seen, not stale cache.
     new = np.full((H, W, 3), 7, np.uint8)
     cv2.imwrite(str(root / "images" / "cam1" / f"{ids[0]:06d}.png"), new)
     changed = Dataset.open(root, cache="disk")
-    assert changed._fingerprint() != ds._fingerprint()
+    assert changed.fingerprint() != ds.fingerprint()
     np.testing.assert_array_equal(changed.images(ids[:1])[0, 1], new)
 
 
@@ -229,7 +222,8 @@ def test_open_resized_updates_images_K_and_labels(tiny):
     expected, _ = resize_crop(full.images(ids), None, None, size)
     np.testing.assert_array_equal(ds.images(ids), expected)
     M = crop_resize_matrix((0, 0, W, H), size)
-    np.testing.assert_allclose(ds.calibration_arrays(ids).K, M @ full.calibration_arrays(ids).K, atol=1e-12)
+    K, K_full = ds.calibration(ids, np.float64).K.numpy(), full.calibration(ids, np.float64).K.numpy()
+    np.testing.assert_allclose(K, M @ K_full, atol=1e-12)
     uv_full, mask_full = full.labels(ids)
     uv, mask = ds.labels(ids)
     np.testing.assert_array_equal(mask, mask_full)
@@ -250,38 +244,6 @@ def test_open_cropped_masks_labels_outside_the_crop(tiny):
     uv, mask = ds.labels(ids)
     np.testing.assert_array_equal(mask, mask_full & inside)
     np.testing.assert_allclose(uv[mask], uv_full[mask] - [4, 2], atol=1e-5)
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Batches
-
-
-def test_random_batches_seeded_and_cover_each_epoch():
-    ids = np.arange(100, 110)
-    a = [b.tolist() for b in RandomBatches(ids, 5, seed=3, steps=4)]
-    b = [b.tolist() for b in RandomBatches(ids, 5, seed=3, steps=4)]
-    c = [b.tolist() for b in RandomBatches(ids, 5, seed=4, steps=4)]
-    assert a == b and a != c
-    assert all(len(x) == 5 for x in a)
-    assert sorted(a[0] + a[1]) == ids.tolist() and sorted(a[2] + a[3]) == ids.tolist()
-    # More frames per batch than frames: batches span epochs.
-    big = list(RandomBatches([1, 2, 3], 5, seed=0, steps=2))
-    assert all(len(x) == 5 for x in big)
-    partial = list(RandomBatches(ids, 4, seed=0, steps=3, drop_last=False))
-    assert [len(x) for x in partial] == [4, 4, 2]
-
-
-def test_dataset_batches_shapes(tiny):
-    root, _ = tiny
-    ds = Dataset.open(root, cache="memory")
-    batches = list(ds.batches("labelled", 3, seed=0, steps=2))
-    assert len(batches) == 2
-    b = batches[0]
-    C, K = len(CAMERAS), len(KEYPOINTS)
-    assert b["images"].shape == (3, C, H, W, 3) and b["images"].dtype == np.uint8
-    assert b["uv"].shape == (3, C, K, 2) and b["label_mask"].shape == (3, C, K)
-    assert b["points3d"].shape == (3, K, 3)
-    assert set(b["frame_ids"].tolist()) <= set(ds.frames("labelled").tolist())
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -497,7 +459,7 @@ def test_per_frame_calibration_not_finite_and_missing_row(tmp_path: Path):
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(DatasetError) as info:
         Dataset.open(root)
-    msg = str(info.value)
+    msg = "\n".join(str(p) for p in info.value.problems)
     assert "calibration.csv line 2 (frame 10, camera cam0): field 'tx..tz': not finite" in msg
     assert f"(frame {dropped[0]}, camera {dropped[1]}): no calibration row" in msg
 
@@ -646,4 +608,37 @@ def test_video_dataset_reads_frames_by_video_index(tmp_path: Path):
     ds = Dataset.open(tmp_path / "ds", cache="memory")
     np.testing.assert_array_equal(ds.images([101, 102, 100]), frames[[0, 3, 2]])
     problems, _ = check_dataset(tmp_path / "ds")
-    assert not problems
+    # The videos decode; without labelled frames the dataset has nothing to train on.
+    assert [(p.file, p.severity) for p in problems] == [("labels.csv", "error")]
+    assert "no labelled frame has a usable label (0 labelled frames)" in problems[0].message
+
+
+def test_dataset_error_is_one_line_user_error_with_every_problem(tiny):
+    from s3k.errors import UserError
+
+    root, _ = tiny
+    CORRUPTIONS["bad split"][0](root)
+    CORRUPTIONS["label unknown keypoint"][0](root)
+    CORRUPTIONS["missing image"][0](root)
+    with pytest.raises(DatasetError) as info:
+        Dataset.open(root)
+    error = info.value
+    assert isinstance(error, UserError)
+    assert "\n" not in str(error)
+    assert str(error) == f"dataset {root}: {error.problems[0]} (and {len(error.problems) - 1} more errors)"
+    assert str(error).startswith(f"dataset {root}: frames.csv line ")
+    assert len(error.problems) >= 3
+
+
+def test_truncated_png_raises_one_line_naming_the_file(tiny):
+    root, _ = tiny
+    path = root / "images" / "cam1" / "000013.png"
+    path.write_bytes(path.read_bytes()[:60])  # cut inside the pixel data
+    for cache in ("none", "memory"):
+        ds = Dataset.open(root, cache=cache)
+        with pytest.raises(DatasetError) as info:
+            ds.images([10, 13])
+        assert str(info.value) == (
+            f"dataset {root}: images/cam1/000013.png (frame 13, camera cam1): field 'image': cannot decode as "
+            "an image (truncated or not an image file)"
+        )

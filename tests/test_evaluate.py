@@ -87,7 +87,7 @@ def trained(tmp_path_factory):
 
 def test_evaluate_json_on_known_prediction(trained, capsys):
     """Ground truth placed at known offsets from the model's own triangulation gives known metrics."""
-    from s3k.data.format import DatasetWriter
+    from s3k.data import DatasetWriter
 
     root, ds_path, run = trained
     model, meta = load_detector(run)

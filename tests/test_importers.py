@@ -5,9 +5,15 @@ import textwrap
 import cv2
 import numpy as np
 import pytest
+import torch
 from real_recording import REAL, needs_real
 
-from s3k.data import importers as imp
+from s3k.cli.options import camera_pairs, parse_crops, parse_size
+from s3k.data import anipose, dlc, labels2d, sleap
+from s3k.data import recording as rec
+from s3k.data.rig import Rig
+from s3k.errors import UserError
+from s3k.geometry import Cameras
 
 # ------------------------------------------------------------------------------------------------------------
 # anipose calibration.toml
@@ -39,19 +45,22 @@ square_length = 24.0
 def test_read_anipose_calibration(tmp_path):
     path = tmp_path / "calibration.toml"
     path.write_text(TOML)
-    calib = imp.read_anipose_calibration(path)
+    calib = anipose.read_anipose_calibration(path)
     assert calib.names == ["left", "right"]
     assert calib.units == "mm"  # square_length 24 in the board's unit
     np.testing.assert_array_equal(calib.size, [[64, 48], [64, 48]])
-    np.testing.assert_allclose(calib.K[0], [[80, 0, 31.5], [0, 81, 23.5], [0, 0, 1]])
-    np.testing.assert_allclose(calib.dist[0], [-0.1, 0.01, 0, 0, 0])
-    np.testing.assert_allclose(calib.R[0], cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0], atol=1e-12)
-    np.testing.assert_allclose(calib.R[1], cv2.Rodrigues(np.array([0.0, 1.2, 0.0]))[0], atol=1e-12)
-    np.testing.assert_allclose(calib.t[1], [-250, 0, 200])
+    cams = calib.cameras.numpy()
+    np.testing.assert_allclose(cams["K"][0], [[80, 0, 31.5], [0, 81, 23.5], [0, 0, 1]])
+    np.testing.assert_allclose(cams["dist"][0], [-0.1, 0.01, 0, 0, 0])
+    np.testing.assert_allclose(cams["R"][0], cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0], atol=1e-12)
+    np.testing.assert_allclose(cams["R"][1], cv2.Rodrigues(np.array([0.0, 1.2, 0.0]))[0], atol=1e-12)
+    np.testing.assert_allclose(cams["t"][1], [-250, 0, 200])
     # Camera centre: the point that maps to the camera origin.
-    np.testing.assert_allclose(calib.R[1] @ calib.centres()[1] + calib.t[1], 0, atol=1e-9)
+    centre = calib.cameras.centres().numpy()[1]
+    np.testing.assert_allclose(cams["R"][1] @ centre + cams["t"][1], 0, atol=1e-9)
     right = calib.select(["right"])
-    assert right.names == ["right"] and right.K.shape == (1, 3, 3)
+    assert right.names == ["right"] and tuple(right.cameras.K.shape) == (1, 3, 3)
+    np.testing.assert_array_equal(right.cameras.K.numpy()[0], cams["K"][1])
     with pytest.raises(KeyError, match="'middle'.*left, right"):
         calib.select(["middle"])
 
@@ -59,24 +68,25 @@ def test_read_anipose_calibration(tmp_path):
 def test_anipose_round_trip(tmp_path):
     path = tmp_path / "calibration.toml"
     path.write_text(TOML)
-    calib = imp.read_anipose_calibration(path)
+    calib = anipose.read_anipose_calibration(path)
     out = tmp_path / "out" / "calibration.toml"
     out.parent.mkdir()
-    imp.write_anipose_calibration(out, calib)
-    again = imp.read_anipose_calibration(out)  # no board.toml there: the unit comes from the metadata
+    anipose.write_anipose_calibration(out, calib)
+    again = anipose.read_anipose_calibration(out)  # no board.toml there: the unit comes from the metadata
     assert again.names == calib.names and again.units == "mm"
-    for name in ("K", "dist", "R", "t", "size"):
-        np.testing.assert_allclose(getattr(again, name), getattr(calib, name), atol=1e-12, err_msg=name)
+    np.testing.assert_array_equal(again.size, calib.size)
+    for name, value in again.cameras.numpy().items():
+        np.testing.assert_allclose(value, calib.cameras.numpy()[name], atol=1e-12, err_msg=name)
     assert again.metadata["square_length"] == 24.0
 
 
 def test_units_from_board_toml(tmp_path):
     path = tmp_path / "calibration.toml"
     path.write_text(TOML.split("[metadata]")[0])
-    assert imp.read_anipose_calibration(path).units == "unknown"
+    assert anipose.read_anipose_calibration(path).units == "unknown"
     (tmp_path / "board.toml").write_text("board_x = 8\nboard_y = 11\nsquare_length = 0.024\n")
-    assert imp.read_anipose_calibration(path).units == "m"
-    assert imp.read_anipose_calibration(path, units="cm").units == "cm"
+    assert anipose.read_anipose_calibration(path).units == "m"
+    assert anipose.read_anipose_calibration(path, units="cm").units == "cm"
 
 
 @pytest.mark.parametrize(
@@ -89,19 +99,36 @@ def test_units_from_board_toml(tmp_path):
         (lambda s: s.replace("translation = [ 10.0", "translation = [ 'a'"), r"\[cam_0\] translation"),
         (lambda s: s.replace("[cam_1]", "[cam_1]\nfisheye = true"), "fisheye"),
         (lambda s: s.replace("[cam_1]", "[cam_1"), "not valid TOML"),
+        (lambda s: s.replace("distortions = [ -0.1", "distortions = [ 'a'"),
+         r"calibration.toml: \[cam_0\] distortions must be numbers, got \['a', "),
+        (lambda s: "[board]\nsquare_length = 24.0\n", "not an anipose calibration: no camera sections"),
     ],
 )
 def test_anipose_malformed(tmp_path, edit, match):
     path = tmp_path / "calibration.toml"
     path.write_text(edit(TOML))
-    with pytest.raises(ValueError, match=match) as info:
-        imp.read_anipose_calibration(path)
-    assert "calibration.toml" in str(info.value)
+    with pytest.raises(UserError, match=match) as info:
+        anipose.read_anipose_calibration(path)
+    assert "calibration.toml" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_bad_calibration_value_is_one_line_naming_file_section_field(tmp_path, capsys):
+    from s3k.cli import main
+
+    path = tmp_path / "calibration.toml"
+    path.write_text(TOML.replace("distortions = [ -0.1", "distortions = [ 'a'"))
+    code = main(["import", "--calibration", str(path), "--videos", "left=l.mkv", "right=r.mkv",
+                 "--sleap", "left=l.h5", "--out", str(tmp_path / "ds")])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == [
+        f"s3k import: error: {path}: [cam_0] distortions must be numbers, got ['a', 0.01, 0.0, 0.0, 0.0]"
+    ]
 
 
 def test_anipose_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.toml"):
-        imp.read_anipose_calibration(tmp_path / "nope.toml")
+        anipose.read_anipose_calibration(tmp_path / "nope.toml")
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -120,7 +147,7 @@ labeled-data/session1_top/img0100.png,1,2,,3,NaN,NaN
 def test_read_dlc_csv(tmp_path):
     path = tmp_path / "CollectedData_top.csv"
     path.write_text(DLC)
-    table = imp.read_dlc_csv(path)
+    table = dlc.read_dlc_csv(path)
     assert table.keypoints == ["nose", "ear", "tail"]
     np.testing.assert_array_equal(table.frame_ids, [7, 42, 100])  # from image names, sorted
     assert table.uv.shape == (3, 3, 2)
@@ -133,7 +160,7 @@ def test_read_dlc_csv(tmp_path):
     assert dense.shape == (101, 2, 2)
     np.testing.assert_array_equal(dense[7, 0], [50, 60])
     assert np.isnan(dense[8]).all()
-    by_row = imp.read_dlc_csv(path, frame_ids_from="row")
+    by_row = dlc.read_dlc_csv(path, frame_ids_from="row")
     np.testing.assert_array_equal(by_row.frame_ids, [0, 1, 2])
 
 
@@ -150,7 +177,7 @@ def test_read_dlc_csv_split_index_columns_and_likelihood(tmp_path):
     )
     path = tmp_path / "CollectedData.csv"
     path.write_text(text)
-    table = imp.read_dlc_csv(path)
+    table = dlc.read_dlc_csv(path)
     assert table.keypoints == ["nose"]
     np.testing.assert_array_equal(table.frame_ids, [1, 3])
     np.testing.assert_array_equal(table.uv[:, 0], [[7, 8], [5, 6]])
@@ -171,23 +198,23 @@ def test_dlc_malformed(tmp_path, edit, match):
     path = tmp_path / "labels.csv"
     path.write_text(edit(DLC))
     with pytest.raises(ValueError, match=match) as info:
-        imp.read_dlc_csv(path)
+        dlc.read_dlc_csv(path)
     assert "labels.csv" in str(info.value)
 
 
 def test_lightning_pose_multiview_layout(tmp_path):
     for view in ("top", "side"):
         (tmp_path / f"CollectedData_{view}.csv").write_text(DLC)
-    found = imp.find_lightning_pose_csvs(tmp_path, ["top", "side"])
+    found = dlc.find_lightning_pose_csvs(tmp_path, ["top", "side"])
     assert found["side"].name == "CollectedData_side.csv"
     with pytest.raises(FileNotFoundError, match="CollectedData_back.csv"):
-        imp.find_lightning_pose_csvs(tmp_path, ["back"])
+        dlc.find_lightning_pose_csvs(tmp_path, ["back"])
 
 
 def test_frame_id_from_path():
-    assert imp.frame_id_from_path("labeled-data/s1_cam2/img0042.png") == 42
-    assert imp.frame_id_from_path("C:\\data\\cam2\\frame_12_000031.jpg") == 31
-    assert imp.frame_id_from_path("labeled-data/s1/image.png") is None
+    assert labels2d.frame_id_from_path("labeled-data/s1_cam2/img0042.png") == 42
+    assert labels2d.frame_id_from_path("C:\\data\\cam2\\frame_12_000031.jpg") == 31
+    assert labels2d.frame_id_from_path("labeled-data/s1/image.png") is None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -221,7 +248,7 @@ def test_read_sleap_analysis(tmp_path):
     loc = _locations()
     path = tmp_path / "cam.analysis.h5"
     _write_sleap(path, loc)
-    table = imp.read_sleap_analysis(path)
+    table = sleap.read_sleap_analysis(path)
     assert table.keypoints == ["head", "body", "tail"]
     np.testing.assert_array_equal(table.frame_ids, np.arange(5))
     np.testing.assert_array_equal(table.uv, loc[..., 0])
@@ -235,13 +262,13 @@ def test_read_sleap_untransposed_and_tracks(tmp_path):
     path = tmp_path / "cam.h5"
     _write_sleap(path, loc, occupancy, transpose=False, names=["mouse_a", "mouse_b"])
     with pytest.raises(ValueError, match="2 tracks \\(mouse_a, mouse_b\\)"):
-        imp.read_sleap_analysis(path)
-    table = imp.read_sleap_analysis(path, track="mouse_b")
+        sleap.read_sleap_analysis(path)
+    table = sleap.read_sleap_analysis(path, track="mouse_b")
     np.testing.assert_array_equal(table.uv[[0, 1, 2, 4]], loc[[0, 1, 2, 4], :, :, 1])
     assert np.isnan(table.uv[3]).all()  # track not occupied in frame 3
-    np.testing.assert_array_equal(imp.read_sleap_analysis(path, track=0).uv, loc[..., 0])
+    np.testing.assert_array_equal(sleap.read_sleap_analysis(path, track=0).uv, loc[..., 0])
     with pytest.raises(ValueError, match="no track 'mouse_c'"):
-        imp.read_sleap_analysis(path, track="mouse_c")
+        sleap.read_sleap_analysis(path, track="mouse_c")
 
 
 def test_sleap_malformed(tmp_path):
@@ -252,15 +279,15 @@ def test_sleap_malformed(tmp_path):
         f["tracks"] = np.zeros((1, 2, 4, 5))
         f["node_names"] = np.array([b"a", b"b", b"c"])
     with pytest.raises(ValueError, match=r"bad.h5: 'tracks' has shape \(1, 2, 4, 5\)"):
-        imp.read_sleap_analysis(path)
+        sleap.read_sleap_analysis(path)
     with h5py.File(path, "w") as f:
         f["tracks"] = np.zeros((1, 2, 3, 5))
     with pytest.raises(ValueError, match="bad.h5: no 'node_names'"):
-        imp.read_sleap_analysis(path)
+        sleap.read_sleap_analysis(path)
     text = tmp_path / "text.h5"
     text.write_text("hello")
     with pytest.raises(ValueError, match="text.h5: not an HDF5 file"):
-        imp.read_sleap_analysis(text)
+        sleap.read_sleap_analysis(text)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -293,11 +320,10 @@ def recording(tmp_path_factory):
         Rs.append(R)
         ts.append(t)
     K = np.array([[70.0, 0, (W_IMG - 1) / 2], [0, 70.0, (H_IMG - 1) / 2], [0, 0, 1]])
-    calib = imp.RigCalibration(
-        list(CAMS), np.stack([K] * 3), np.zeros((3, 5)), np.stack(Rs), np.stack(ts),
-        np.array([[W_IMG, H_IMG]] * 3), "mm", {"square_length": 20.0},
-    )
-    imp.write_anipose_calibration(root / "calibration.toml", calib)
+    cams = Cameras.from_numpy(np.stack([K] * 3), np.zeros((3, 5)), np.stack(Rs), np.stack(ts),
+                              dtype=torch.float64)
+    calib = Rig(list(CAMS), cams, np.array([[W_IMG, H_IMG]] * 3), "mm", {"square_length": 20.0})
+    anipose.write_anipose_calibration(root / "calibration.toml", calib)
     rng = np.random.default_rng(0)
     X = rng.uniform(-40, 40, (N_FRAMES, len(KEYPOINTS), 3))
     uv = np.stack(
@@ -355,7 +381,7 @@ def _reprojected(ds, frame_ids, X):
 
 
 def test_import_sleap(recording, tmp_path, capsys):
-    from s3k.data.format import Dataset
+    from s3k.data import Dataset
     from s3k.data.transforms import resize_crop
 
     out = tmp_path / "ds"
@@ -389,8 +415,32 @@ def test_import_sleap(recording, tmp_path, capsys):
     np.testing.assert_array_equal(again.frames("unlabelled"), [f for f in unl if f % 4 == 0])
 
 
+def test_import_recording_takes_typed_arguments(recording, tmp_path):
+    """The library call gives the dataset the command line gives for the same options."""
+    from s3k.data import Dataset
+
+    root = recording["root"]
+    path = rec.import_recording(
+        root / "calibration.toml", {cam: root / f"{cam}.mkv" for cam in CAMS}, tmp_path / "lib",
+        sleap={cam: root / f"{cam}.analysis.h5" for cam in CAMS}, labelled=3, test=2, seed=1, size=(32, 24),
+        crops={"north": (8.0, 4.0, 56.0, 40.0)}, keypoints=["tail", "head"],
+    )
+    assert path == tmp_path / "lib"
+    assert _import(recording, tmp_path / "cli", "--labelled", "3", "--test", "2", "--seed", "1", "--size",
+                   "32,24", "--crop", "north=8,4,56,40", "--keypoints", "tail,head") == 0
+    lib, cli = Dataset.open(path, cache="none"), Dataset.open(tmp_path / "cli", cache="none")
+    assert lib.keypoints == ["tail", "head"] and lib.cameras == CAMS
+    for split in ("labelled", "test", "unlabelled"):
+        np.testing.assert_array_equal(lib.frames(split), cli.frames(split))
+    ids = lib.frames()
+    np.testing.assert_array_equal(lib.labels(ids)[0], cli.labels(ids)[0])
+    np.testing.assert_array_equal(lib.calibration(ids).K.numpy(), cli.calibration(ids).K.numpy())
+    with pytest.raises(UserError, match="exactly one of --sleap, --dlc, --lightning-pose"):
+        rec.import_recording(root / "calibration.toml", {"north": root / "north.mkv"}, tmp_path / "x")
+
+
 def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):
-    from s3k.data.format import Dataset
+    from s3k.data import Dataset
 
     crop = ["north=8,4,56,40", "east=0,0,48,36"]  # two crop sizes (48x36 each), one camera uncropped
     for labels in ("dlc", "lightning-pose"):
@@ -454,10 +504,10 @@ def test_import_errors(recording, tmp_path, capsys):
 
 @needs_real
 def test_real_recording_files():
-    rig = imp.read_anipose_calibration(REAL / "calibration.toml")
+    rig = anipose.read_anipose_calibration(REAL / "calibration.toml")
     assert rig.names == ["back", "mid", "side", "top"] and rig.units == "mm"  # from board.toml beside it
     np.testing.assert_array_equal(rig.size, [[1280, 1024]] * 4)
-    table = imp.read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
+    table = sleap.read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
     assert table.uv.shape == (120, 15, 2) and len(table.keypoints) == 15 and table.keypoints[0] == "Nose"
     assert 0 < np.isnan(table.uv[..., 0]).mean() < 0.5  # some nodes are not labelled in this view
     ok = np.isfinite(table.uv).all(-1)
@@ -467,35 +517,35 @@ def test_real_recording_files():
 
 def test_output_size_and_crops():
     full = [(0.0, 0.0, 1280.0, 1024.0)] * 2
-    assert imp._output_size(full, None, None) == (1280, 1024)
-    assert imp._output_size(full, None, 0.25) == (320, 256)
-    assert imp._output_size(full, "320", None) == (320, 256)  # the longer side
-    assert imp._output_size(full, "100,80", None) == (100, 80)
+    assert rec.output_size(full, None, None) == (1280, 1024)
+    assert rec.output_size(full, None, 0.25) == (320, 256)
+    assert rec.output_size(full, parse_size("320"), None) == (320, 256)  # the longer side
+    assert rec.output_size(full, parse_size("100,80"), None) == (100, 80)
     mixed = [(0.0, 0.0, 100.0, 50.0), (10.0, 10.0, 90.0, 60.0)]
-    with pytest.raises(ValueError, match="different sizes need --size"):
-        imp._output_size(mixed, None, None)
-    with pytest.raises(ValueError, match="one aspect ratio"):
-        imp._output_size(mixed, "64", None)
-    assert imp._output_size(mixed, "64,32", None) == (64, 32)
-    with pytest.raises(ValueError, match="--size 'big'"):
-        imp._output_size(full, "big", None)
-    crops = imp._parse_crops(["0,0,10,20", "b=1,2,3,4"], ["a", "b"])
+    with pytest.raises(UserError, match="different sizes need --size"):
+        rec.output_size(mixed, None, None)
+    with pytest.raises(UserError, match="one aspect ratio"):
+        rec.output_size(mixed, 64, None)
+    assert rec.output_size(mixed, (64, 32), None) == (64, 32)
+    with pytest.raises(UserError, match="--size 'big'"):
+        parse_size("big")
+    crops = parse_crops(["0,0,10,20", "b=1,2,3,4"], ["a", "b"])
     assert crops == {"a": (0.0, 0.0, 10.0, 20.0), "b": (1.0, 2.0, 3.0, 4.0)}
-    with pytest.raises(ValueError, match="unknown camera 'c'"):
-        imp._parse_crops(["c=0,0,1,1"], ["a", "b"])
-    with pytest.raises(ValueError, match="x1 > x0"):
-        imp._parse_crops(["5,0,1,1"], ["a"])
-    with pytest.raises(ValueError, match="expected CAMERA=FILE"):
-        imp._pairs(["a.mp4"], "--videos")
+    with pytest.raises(UserError, match="unknown camera 'c'"):
+        parse_crops(["c=0,0,1,1"], ["a", "b"])
+    with pytest.raises(UserError, match="x1 > x0"):
+        parse_crops(["5,0,1,1"], ["a"])
+    with pytest.raises(UserError, match="expected CAMERA=FILE"):
+        camera_pairs(["a.mp4"], "--videos")
 
 
 def test_split_frames():
-    splits = imp._split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 2, seed=0, stride=1)
+    splits = rec.split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 2, seed=0, stride=1)
     values = list(splits.values())
     assert values.count("labelled") == 2 and values.count("test") == 2 and values.count("unlabelled") == 8
     assert all(splits[f] == "unlabelled" for f in (0, 2, 4, 6, 8, 10, 11))
-    every = imp._split_frames(np.array([1, 3, 5]), np.arange(6), "all", 1, seed=0, stride=1)
+    every = rec.split_frames(np.array([1, 3, 5]), np.arange(6), "all", 1, seed=0, stride=1)
     assert sorted(f for f, v in every.items() if v != "unlabelled") == [1, 3, 5]
     assert list(every.values()).count("test") == 1
     with pytest.raises(ValueError, match="--test 6: only 5 frames"):
-        imp._split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 6, 0, 1)
+        rec.split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 6, 0, 1)

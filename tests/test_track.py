@@ -18,7 +18,8 @@ import pytest
 import torch
 
 from s3k import cli
-from s3k.data.importers import RigCalibration, write_anipose_calibration
+from s3k.data.anipose import write_anipose_calibration
+from s3k.data.rig import Rig
 from s3k.data.transforms import crop_resize_matrix
 from s3k.data.video import frame_count, frame_size, write_video
 from s3k.geometry import Cameras, project, triangulate_pixels
@@ -50,7 +51,7 @@ def _look_at(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, -R @ centre
 
 
-def make_rig() -> RigCalibration:
+def make_rig() -> Rig:
     W, H = VIDEO_SIZE
     Rs, ts, Ks = [], [], []
     for c in range(3):
@@ -62,11 +63,8 @@ def make_rig() -> RigCalibration:
     dist = np.zeros((3, 5))
     dist[1] = [-0.08, 0.01, 0.001, -0.001, 0.0]
     sizes = np.tile(np.array(VIDEO_SIZE), (3, 1))
-    return RigCalibration(list(CAMERAS), np.stack(Ks), dist, np.stack(Rs), np.stack(ts), sizes, "mm")
-
-
-def rig_cameras(rig: RigCalibration) -> Cameras:
-    return Cameras.from_numpy(rig.K, rig.dist, rig.R, rig.t, dtype=torch.float64)
+    cams = Cameras.from_numpy(np.stack(Ks), dist, np.stack(Rs), np.stack(ts), dtype=torch.float64)
+    return Rig(list(CAMERAS), cams, sizes, "mm")
 
 
 def moving_points(n: int) -> np.ndarray:
@@ -105,7 +103,7 @@ def recording(tmp_path_factory) -> dict:
     calib = root / "calibration.toml"
     write_anipose_calibration(calib, rig)
     X = torch.as_tensor(moving_points(FRAMES))
-    uv, _ = project(rig_cameras(rig)[None], X[:, None])  # (F, C, K, 2)
+    uv, _ = project(rig.cameras[None], X[:, None])  # (F, C, K, 2)
     videos = {}
     W, H = VIDEO_SIZE
     for c, name in enumerate(CAMERAS):
@@ -170,7 +168,7 @@ def test_prepare_cameras_maps_projections_like_resize_crop(recording):
     inputs, cams = prepare_cameras({c: recording["videos"][c] for c in order}, rig, NET_SIZE, "pad")
     assert [c.name for c in inputs] == order
     sel = rig.select(order)
-    np.testing.assert_allclose(cams.numpy()["K"], sel.K)
+    np.testing.assert_allclose(cams.numpy()["K"], sel.cameras.numpy()["K"])
     X = torch.as_tensor(moving_points(1)[0])
     for c, inp in enumerate(inputs):
         assert inp.video_size == VIDEO_SIZE and inp.fps == pytest.approx(25)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from s3k.cli import main
-from s3k.data.format import DatasetWriter
+from s3k.data import DatasetWriter
 
 KEYPOINTS = ["front", "tongue", "heel"]
 CAMERAS = ["left", "right"]
@@ -27,12 +27,14 @@ def make_dataset(root: Path) -> Path:
     rig = (K, np.zeros((2, 5)), R, t)
     with DatasetWriter(root, KEYPOINTS, CAMERAS, (W, H), calibration=rig) as writer:
         for frame, split in enumerate(["labelled", "labelled", "unlabelled", "test"]):
+            X = rng.uniform(-0.3, 0.3, size=(3, 3))  # about 1 in front of both cameras
             labels = None
             if split == "labelled":
-                labels = rng.uniform(1, 12, size=(2, 3, 2))
+                cam = X[None] + t[:, None]  # (C, K, 3) camera coordinates (R = I)
+                labels = np.einsum("cij,ckj->cki", K, cam / cam[..., 2:])[..., :2]
                 labels[1, 2] = np.nan
             images = rng.integers(0, 256, size=(2, H, W, 3), dtype=np.uint8)
-            writer.add_frame(frame, split, images, labels=labels, points3d=rng.normal(size=(3, 3)))
+            writer.add_frame(frame, split, images, labels=labels, points3d=X)
     return root
 
 
@@ -131,7 +133,10 @@ def test_labelled_frame_without_two_views_warns(tmp_path: Path, capsys):
     labels.write_text("\n".join(kept) + "\n")
     code, out = validate(capsys, root)
     assert code == 0
-    assert "WARNING frames.csv line 3 (frame 1): field 'split': labelled frame without any keypoint" in out
+    assert (
+        "WARNING frames.csv line 3 (frame 1): field 'split': labelled frame without a usable label: "
+        "no keypoint is labelled in 2 or more cameras" in out
+    )
     assert "usable for training): 1 of 2" in out
 
 
@@ -161,3 +166,43 @@ def test_repeated_problems_are_summarized(tmp_path: Path, capsys, limit: int):
     assert code != 0
     assert out.count("field 'image': cannot decode") == limit
     assert f"... and {4 - limit} more" in out
+
+
+def _set_camera_like(root: Path, camera: str, like: str) -> None:
+    path = root / "calibration.json"
+    cal = json.loads(path.read_text())
+    cal["cameras"][camera] = cal["cameras"][like]
+    path.write_text(json.dumps(cal))
+
+
+def test_usable_label_count_counts_triangulable_keypoints(tmp_path: Path):
+    from s3k.data import Dataset, usable_label_count, usable_labels
+
+    root = make_dataset(tmp_path / "ds")
+    ds = Dataset.open(root, cache="none")
+    # front and tongue in both cameras of both labelled frames; heel only in 'left'.
+    np.testing.assert_array_equal(usable_labels(ds), [[True, True, False], [True, True, False]])
+    assert usable_label_count(ds) == 4
+    assert usable_label_count(Dataset.open(root, image_size=(10, 7), cache="none")) == 4  # any image size
+    _set_camera_like(root, "right", "left")  # both views from one centre: the rays meet at the camera
+    assert usable_label_count(Dataset.open(root, cache="none")) == 0
+
+
+@pytest.mark.parametrize("case", ["one camera", "degenerate"])
+def test_no_usable_label_is_unusable(tmp_path: Path, capsys, case: str):
+    root = make_dataset(tmp_path / "ds")
+    if case == "one camera":
+        labels = root / "labels.csv"
+        kept = [line for line in labels.read_text().splitlines() if ",right," not in line]
+        labels.write_text("\n".join(kept) + "\n")
+    else:
+        _set_camera_like(root, "right", "left")
+    code, out = validate(capsys, root)
+    assert code == 1
+    errors = [line for line in out.splitlines() if line.startswith("ERROR")]
+    assert errors == [
+        "ERROR   labels.csv: no labelled frame has a usable label (2 labelled frames): training needs a keypoint "
+        "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its image"
+    ]
+    assert "usable for training): 0 of 2" in out
+    assert out.splitlines()[-1].startswith("UNUSABLE: 1 error(s), 2 warning(s)")

@@ -1,5 +1,78 @@
-"""`s3k import`: command-line front end of :mod:`s3k.data.importers`."""
+"""`s3k import`: a calibrated recording to a dataset (:func:`s3k.data.recording.import_recording`)."""
 
-from s3k.data.importers import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+
+from s3k.cli.options import camera_pairs, parse_crops, parse_size
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Convert a calibrated multi-camera recording to an s3k dataset: anipose calibration.toml, one video "
+        "per camera, and 2D labels from SLEAP analysis files or DeepLabCut / Lightning Pose CSVs. Frames "
+        "with labels are split into labelled and test frames (test labels are kept for evaluation); the "
+        "other frames are unlabelled (their labels, if any, are not written)."
+    )
+    parser.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
+                        help="one video per camera; the order sets the dataset's camera order")
+    labels = parser.add_mutually_exclusive_group(required=True)
+    labels.add_argument("--sleap", nargs="+", metavar="CAM=FILE.h5", help="SLEAP analysis HDF5 per camera")
+    labels.add_argument("--dlc", nargs="+", metavar="CAM=FILE.csv",
+                        help="DeepLabCut / Lightning Pose label CSV per camera")
+    labels.add_argument("--lightning-pose", metavar="DIR",
+                        help="folder with Lightning Pose's multi-view CSVs CollectedData_<camera>.csv")
+    parser.add_argument("--sleap-track", default=None, help="SLEAP track name or index (if several)")
+    parser.add_argument("--frame-ids-from", choices=["path", "row"], default="path",
+                        help="CSV frame index from the image file name's digits (default) or the row number")
+    parser.add_argument("--out", required=True, help="dataset folder to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    parser.add_argument("--labelled", default="10",
+                        help="number of labelled frames, or 'all' (default 10)")
+    parser.add_argument("--test", type=int, default=0, help="number of test frames (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random split (default 0)")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="keep every STRIDE-th video frame as unlabelled (default 1: all)")
+    parser.add_argument("--min-views", type=int, default=2,
+                        help="a frame can be labelled/test when a keypoint is labelled in this many cameras")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--size", default=None,
+                      help="output image size: W,H or PX (the longer side, aspect kept)")
+    size.add_argument("--scale", type=float, default=None, help="output image scale factor, e.g. 0.25")
+    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
+                        help="crop box in pixel edge coordinates, for every camera or one camera")
+    parser.add_argument("--units", default=None,
+                        help="world length unit of the calibration (default: from the board, e.g. mm)")
+    parser.add_argument("--keypoints", default=None, help="comma-separated keypoints to keep (default all)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.data.recording import import_recording
+
+    videos = camera_pairs(args.videos, "--videos")
+    import_recording(
+        args.calibration, dict(videos), args.out,
+        sleap=camera_pairs(args.sleap, "--sleap") if args.sleap else None,
+        dlc=camera_pairs(args.dlc, "--dlc") if args.dlc else None,
+        lightning_pose=args.lightning_pose,
+        sleap_track=args.sleap_track,
+        frame_ids_from=args.frame_ids_from,
+        overwrite=args.overwrite,
+        labelled=args.labelled if args.labelled == "all" else _count(args.labelled, "--labelled"),
+        test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views,
+        size=parse_size(args.size), scale=args.scale,
+        crops=parse_crops(args.crop, list(videos)) if args.crop else None,
+        units=args.units,
+        keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
+    )
+    return 0
+
+
+def _count(text: str, option: str) -> int:
+    from s3k.errors import UserError
+
+    try:
+        return int(text)
+    except ValueError:
+        raise UserError(f"{option} {text!r}: expected a number of frames or 'all'") from None

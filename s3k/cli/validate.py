@@ -1,5 +1,30 @@
-"""`s3k validate`: command-line front end of :mod:`s3k.data.validate`."""
+"""`s3k validate`: check a dataset folder, report every problem (:func:`s3k.data.validate.validate_dataset`).
 
-from s3k.data.validate import configure_parser, run
+The exit status is 0 for a usable dataset (warnings allowed unless ``--strict``) and 1 otherwise.
+"""
 
-__all__ = ["configure_parser", "run"]
+from __future__ import annotations
+
+import argparse
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset folder (holds s3k.json)")
+    parser.add_argument(
+        "--no-images", action="store_true", help="only check that image files exist, do not decode them"
+    )
+    parser.add_argument("--workers", type=int, default=None, help="image decoding threads (default: CPUs)")
+    parser.add_argument(
+        "--max-per-field", type=int, default=10, help="print at most this many problems per file and field"
+    )
+    parser.add_argument("--strict", action="store_true", help="exit non-zero on warnings too")
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.data.validate import validate_dataset
+
+    ok = validate_dataset(
+        args.dataset, check_images=not args.no_images, workers=args.workers,
+        max_per_field=args.max_per_field, strict=args.strict,
+    )
+    return 0 if ok else 1

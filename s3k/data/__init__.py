@@ -1,16 +1,44 @@
 """The dataset layer: the folder format, its loader and writer, importers, image and video sources.
 
 Import the public names from here (``from s3k.data import Dataset``); the modules behind them may move.
+
+Modules, one job each:
+
+- :mod:`~s3k.data.problems`: what the checks find (``Problem``, ``DatasetError``, ``DatasetWarning``).
+- :mod:`~s3k.data.tables`: readers of ``s3k.json``, ``frames.csv``, ``labels.csv``, ``points3d.csv``.
+- :mod:`~s3k.data.cameras`: readers and checks of ``calibration.json`` / ``calibration.csv``.
+- :mod:`~s3k.data.sources`: image sources (PNG files, videos; ``register_image_source`` for more).
+- :mod:`~s3k.data.cache`: the decoded-image cache.
+- :mod:`~s3k.data.dataset`: ``Dataset`` (open, validate, serve frames) and ``check_dataset``.
+- :mod:`~s3k.data.usable`: which labels give the supervised loss a target (``usable_labels``).
+- :mod:`~s3k.data.writer`: ``DatasetWriter``.
+- :mod:`~s3k.data.validate`: the report of ``s3k validate``.
+- :mod:`~s3k.data.rig`: ``Rig``, a calibration file's content (names, sizes, units, ``Cameras``).
+- importers, one per format: :mod:`~s3k.data.anipose` (calibration TOML), :mod:`~s3k.data.dlc`
+  (DeepLabCut / Lightning Pose CSVs), :mod:`~s3k.data.sleap` (SLEAP analysis HDF5), and
+  :mod:`~s3k.data.recording` (``import_recording``: a recording to a dataset).
+- :mod:`~s3k.data.transforms` (crop/resize maps) and :mod:`~s3k.data.video` (video I/O).
 """
 
-from s3k.data.format import (
-    SPLITS,
-    Dataset,
-    DatasetError,
-    DatasetWarning,
-    DatasetWriter,
-    Problem,
-    check_dataset,
-)
+from s3k.data.dataset import Dataset, check_dataset
+from s3k.data.problems import DatasetError, DatasetWarning, Problem
+from s3k.data.rig import Rig
+from s3k.data.sources import ImageReadError, register_image_source
+from s3k.data.tables import SPLITS
+from s3k.data.usable import usable_label_count, usable_labels
+from s3k.data.writer import DatasetWriter
 
-__all__ = ["SPLITS", "Dataset", "DatasetError", "DatasetWarning", "DatasetWriter", "Problem", "check_dataset"]
+__all__ = [
+    "SPLITS",
+    "Dataset",
+    "DatasetError",
+    "DatasetWarning",
+    "DatasetWriter",
+    "ImageReadError",
+    "Problem",
+    "Rig",
+    "check_dataset",
+    "register_image_source",
+    "usable_label_count",
+    "usable_labels",
+]

@@ -1,29 +1,19 @@
-"""``s3k validate DATASET``: run every check on a dataset folder and print what is wrong and what is there.
+"""The report of ``s3k validate DATASET``: every problem, then what is there.
 
-Unlike :meth:`s3k.data.format.Dataset.open`, which stops with the errors of the tables, this collects every
-problem (tables, calibration, image files and their pixels), prints each one naming the file, the field and
-the line/frame/camera, then a summary: frames per split and labels per keypoint per camera. The exit code is
-0 for a usable dataset (warnings allowed unless ``--strict``) and 1 otherwise.
+Unlike :meth:`s3k.data.Dataset.open`, which stops with the errors of the tables, this collects every problem
+(tables, calibration, image files and their pixels, labels that give no training target), prints each one
+naming the file, the field and the line/frame/camera, then a summary: frames per split and labels per keypoint
+per camera. The dataset is usable when there is no error (and, with ``strict``, no warning).
 """
 
 from __future__ import annotations
 
-import argparse
 from collections import Counter
+from pathlib import Path
 
-from s3k.data.format import SPLITS, Dataset, Problem, check_dataset
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", help="dataset folder (holds s3k.json)")
-    parser.add_argument(
-        "--no-images", action="store_true", help="only check that image files exist, do not decode them"
-    )
-    parser.add_argument("--workers", type=int, default=None, help="image decoding threads (default: CPUs)")
-    parser.add_argument(
-        "--max-per-field", type=int, default=10, help="print at most this many problems per file and field"
-    )
-    parser.add_argument("--strict", action="store_true", help="exit non-zero on warnings too")
+from s3k.data.dataset import Dataset, check_dataset
+from s3k.data.problems import Problem
+from s3k.data.tables import SPLITS
 
 
 def _print_problems(problems: list[Problem], limit: int) -> None:
@@ -60,8 +50,9 @@ def _print_summary(ds: Dataset) -> None:
         print(f"  {k:<{width}}" + " ".join(f"{s['labels'][k][c]:>{cam_width}}" for c in ds.cameras))
     n_lab = s["splits"]["labelled"]
     print(
-        f"labelled frames with a keypoint labelled in >= 2 cameras (usable for training): "
-        f"{s['triangulable_labelled_frames']} of {n_lab}"
+        f"labelled frames with a keypoint labelled in >= 2 cameras: {s['triangulable_labelled_frames']} of "
+        f"{n_lab}; with a usable label (triangulated in front of a camera, inside its image; usable for "
+        f"training): {s['usable_labelled_frames']} of {n_lab}"
     )
     if s["points3d"] is None:
         print("ground-truth 3D points: none")
@@ -69,18 +60,37 @@ def _print_summary(ds: Dataset) -> None:
         print(f"ground-truth 3D points: {s['points3d']}")
 
 
-def run(args: argparse.Namespace) -> int:
-    problems, dataset = check_dataset(args.dataset, check_images=not args.no_images, workers=args.workers)
+def validate_dataset(
+    path: str | Path,
+    *,
+    check_images: bool = True,
+    workers: int | None = None,
+    max_per_field: int = 10,
+    strict: bool = False,
+) -> bool:
+    """Check a dataset folder and print the report; True when it is usable.
+
+    Args:
+        path: dataset folder.
+        check_images: decode every image (False: only check that the files exist).
+        workers: image decoding threads (default: CPUs).
+        max_per_field: print at most this many problems per file and field.
+        strict: warnings make the dataset fail too.
+
+    Returns:
+        False when there is an error (``UNUSABLE``) or, with ``strict``, a warning.
+    """
+    problems, dataset = check_dataset(path, check_images=check_images, workers=workers)
     errors = [p for p in problems if p.severity == "error"]
     warnings = [p for p in problems if p.severity == "warning"]
-    _print_problems(problems, args.max_per_field)
+    _print_problems(problems, max_per_field)
     if dataset is not None:
         _print_summary(dataset)
     if errors:
-        print(f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {args.dataset}")
-        return 1
-    if warnings and args.strict:
-        print(f"FAILED (--strict): {len(warnings)} warning(s) in {args.dataset}")
-        return 1
-    print(f"OK: {args.dataset} ({len(warnings)} warning(s))")
-    return 0
+        print(f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {path}")
+        return False
+    if warnings and strict:
+        print(f"FAILED (--strict): {len(warnings)} warning(s) in {path}")
+        return False
+    print(f"OK: {path} ({len(warnings)} warning(s))")
+    return True

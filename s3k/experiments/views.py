@@ -127,13 +127,13 @@ def write_frames(dataset: Dataset, out: Path, splits: Mapping[int, str], chunk: 
     for start in range(0, len(ids), chunk):
         part = ids[start:start + chunk]
         images = dataset.images(part)  # (B, C, H, W, 3)
-        cal = dataset.calibration_arrays(part)  # (B, C, ...) float64, exact
+        cams = dataset.calibration(part, dtype=np.float64)  # (B, C), exact
         uv, mask = dataset.labels(part)  # (B, C, K, 2), (B, C, K)
         points = dataset.points3d(part)  # (B, K, 3), (B, K) or None
         X = None if points is None else np.where(points[1][..., None], points[0], np.nan)
         extra = {c: dataset.column(c, part) for c in columns}
         for b, frame in enumerate(part.tolist()):
-            writer.add_frame(frame, splits[frame], images[b], tuple(a[b] for a in cal),
+            writer.add_frame(frame, splits[frame], images[b], cams[b],
                              labels=(uv[b], mask[b]), points3d=None if X is None else X[b],
                              extra={c: v[b] for c, v in extra.items()})
     return writer.close()

@@ -1,4 +1,4 @@
-"""Dataset generation: frame plan, parallel rendering, writing through :class:`s3k.data.format.DatasetWriter`.
+"""Dataset generation: frame plan, parallel rendering, writing through :class:`s3k.data.DatasetWriter`.
 
 Two seeds, kept apart: ``object_seed`` fixes the scene's look (textures, object shapes, distractor sets),
 ``seed`` draws the frames (poses, cameras, lighting). So datasets rendered with different ``seed`` show the
@@ -210,7 +210,7 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
     """
     from tqdm import tqdm
 
-    from s3k.data.format import DatasetWriter
+    from s3k.data import DatasetWriter
 
     workers = default_workers() if workers is None else max(1, int(workers))
     specs = frame_plan(cfg)

@@ -1,0 +1,56 @@
+"""2D labels of one camera as the importers return them: :class:`LabelTable`, and frame numbers from image
+file names (:func:`frame_id_from_path`).
+
+Pixel (0, 0) is the centre of the top-left pixel in DeepLabCut, Lightning Pose and SLEAP, as in s3k.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from s3k.errors import UserError
+
+
+@dataclass
+class LabelTable:
+    """2D keypoints of one camera.
+
+    Attributes:
+        keypoints: ``K`` names.
+        frame_ids: ``(F,)`` int64 video frame indices, increasing.
+        uv: ``(F, K, 2)`` float64 pixels; NaN where unlabelled.
+        source: the file it came from (for messages).
+    """
+
+    keypoints: list[str]
+    frame_ids: np.ndarray
+    uv: np.ndarray
+    source: str = ""
+
+    def dense(self, num_frames: int, keypoints: list[str] | None = None) -> np.ndarray:
+        """``(num_frames, K', 2)`` indexed by frame id (NaN where absent), keypoints in the given order."""
+        keypoints = self.keypoints if keypoints is None else keypoints
+        order = []
+        for name in keypoints:
+            if name not in self.keypoints:
+                raise UserError(f"{self.source}: no keypoint {name!r} (it has {', '.join(self.keypoints)})")
+            order.append(self.keypoints.index(name))
+        out = np.full((num_frames, len(keypoints), 2), np.nan)
+        keep = self.frame_ids < num_frames
+        out[self.frame_ids[keep]] = self.uv[keep][:, order]
+        return out
+
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def frame_id_from_path(image_path: str) -> int | None:
+    """The frame index in an image path: the last run of digits in the file's stem (``img0042.png`` -> 42)."""
+    stem = Path(image_path.replace("\\", "/")).stem
+    runs = _DIGITS.findall(stem)
+    return int(runs[-1]) if runs else None
+

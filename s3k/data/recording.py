@@ -1,0 +1,259 @@
+"""A calibrated multi-camera recording -> an s3k dataset (the work of ``s3k import``).
+
+The recording is an anipose ``calibration.toml`` (:mod:`s3k.data.anipose`), one video per camera
+(:mod:`s3k.data.video`) and 2D labels per camera: SLEAP analysis files (:mod:`s3k.data.sleap`) or DeepLabCut /
+Lightning Pose CSVs (:mod:`s3k.data.dlc`). Frames whose labels have a keypoint in ``min_views`` cameras are
+split at random into labelled and test frames; every ``stride``-th other frame is unlabelled. Images may be
+cropped and resized on the way; intrinsics and labels follow exactly (``K' = M K``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from s3k.data.anipose import read_anipose_calibration
+from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
+from s3k.data.labels2d import LabelTable
+from s3k.data.sleap import read_sleap_analysis
+from s3k.errors import UserError
+
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
+
+
+def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None, scale: float | None) -> tuple[int, int]:
+    """The dataset's image size ``(W, H)`` for crops ``boxes``: ``size`` as ``(W, H)`` or as the longer side
+    (aspect kept; crops must share it), or the crop size times ``scale``, or the crop size itself."""
+    widths = {b[2] - b[0] for b in boxes}
+    heights = {b[3] - b[1] for b in boxes}
+    if scale is not None:
+        if scale <= 0:
+            raise UserError(f"--scale must be positive, got {scale}")
+        if len(widths) > 1 or len(heights) > 1:
+            raise UserError("--scale needs crops of one size; give --size W,H for crops of different sizes")
+        return max(1, round(widths.pop() * scale)), max(1, round(heights.pop() * scale))
+    if isinstance(size, int):
+        if size <= 0:
+            raise UserError(f"--size {size}: must be positive")
+        # One number: the longer side, aspect ratio kept (crops must share it).
+        if len({round((b[2] - b[0]) / (b[3] - b[1]), 6) for b in boxes}) > 1:
+            raise UserError("--size PX needs crops of one aspect ratio; give --size W,H")
+        w, h = boxes[0][2] - boxes[0][0], boxes[0][3] - boxes[0][1]
+        s = size / max(w, h)
+        return max(1, round(w * s)), max(1, round(h * s))
+    if size is not None:
+        if len(size) != 2 or min(size) <= 0:
+            raise UserError(f"--size {size}: expected two positive integers W,H")
+        return int(size[0]), int(size[1])
+    if len(widths) > 1 or len(heights) > 1:
+        raise UserError("crops of different sizes need --size W,H (or --size PX) to share one image size")
+    w, h = widths.pop(), heights.pop()
+    if w != int(w) or h != int(h):
+        raise UserError("a crop with a fractional size needs --size")
+    return int(w), int(h)
+
+
+def split_frames(
+    candidates: np.ndarray, all_frames: np.ndarray, n_labelled: int | str, n_test: int, seed: int, stride: int
+) -> dict[int, str]:
+    """Random labelled / test frames among ``candidates``; the rest (every ``stride``-th) unlabelled.
+    ``n_labelled`` is a count or ``"all"``."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(candidates)
+    if n_test < 0:
+        raise UserError(f"--test must be >= 0, got {n_test}")
+    if n_test > len(order):
+        raise UserError(f"--test {n_test}: only {len(order)} frames have a keypoint labelled in >= 2 views")
+    test = order[:n_test]
+    rest = order[n_test:]
+    if str(n_labelled) == "all":
+        labelled = rest
+    else:
+        n = int(n_labelled)
+        if n < 0 or n > len(rest):
+            raise UserError(
+                f"--labelled {n}: {len(rest)} frames with a keypoint labelled in >= 2 views remain after "
+                f"{n_test} test frames"
+            )
+        labelled = rest[:n]
+    splits = {int(f): "unlabelled" for f in all_frames if f % stride == 0}
+    splits.update({int(f): "test" for f in test})
+    splits.update({int(f): "labelled" for f in labelled})
+    return dict(sorted(splits.items()))
+
+
+def import_recording(
+    calibration: str | Path,
+    videos: Mapping[str, str | Path],
+    out: str | Path,
+    *,
+    sleap: Mapping[str, str | Path] | None = None,
+    dlc: Mapping[str, str | Path] | None = None,
+    lightning_pose: str | Path | None = None,
+    sleap_track: str | int | None = None,
+    frame_ids_from: str = "path",
+    overwrite: bool = False,
+    labelled: int | str = 10,
+    test: int = 0,
+    seed: int = 0,
+    stride: int = 1,
+    min_views: int = 2,
+    size: int | tuple[int, int] | None = None,
+    scale: float | None = None,
+    crops: Mapping[str, Sequence[float]] | None = None,
+    units: str | None = None,
+    keypoints: Sequence[str] | None = None,
+) -> Path:
+    """Convert a recording to a dataset folder; returns the folder.
+
+    Args:
+        calibration: anipose ``calibration.toml``.
+        videos: ``{camera: video}``; the order sets the dataset's camera order.
+        out: dataset folder to write.
+        sleap: ``{camera: SLEAP analysis .h5}`` (give exactly one of ``sleap``, ``dlc``, ``lightning_pose``).
+        dlc: ``{camera: DeepLabCut / Lightning Pose label CSV}``.
+        lightning_pose: folder with Lightning Pose's multi-view ``CollectedData_<camera>.csv``.
+        sleap_track: SLEAP track name or index (when a file has several).
+        frame_ids_from: CSV frame index from the image file name's digits (``"path"``) or the row (``"row"``).
+        overwrite: replace an existing dataset folder.
+        labelled: number of labelled frames, or ``"all"``.
+        test: number of test frames (their labels are kept for evaluation).
+        seed: seed of the random split.
+        stride: keep every ``stride``-th video frame as unlabelled.
+        min_views: a frame can be labelled/test when a keypoint is labelled in this many cameras.
+        size: output image size ``(W, H)``, or the longer side in pixels (aspect kept).
+        scale: output image scale factor (instead of ``size``).
+        crops: ``{camera: (x0, y0, x1, y1)}`` crop boxes in pixel edge coordinates (default: whole image).
+        units: world length unit of the calibration (default: from the file or its board).
+        keypoints: keypoints to keep, in this order (default: all, in the label files' order).
+    """
+    from s3k.data import video
+    from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
+    from s3k.data.writer import DatasetWriter
+
+    given = [name for name, v in (("sleap", sleap), ("dlc", dlc), ("lightning_pose", lightning_pose)) if v]
+    if len(given) != 1:
+        raise UserError(f"give labels from exactly one of --sleap, --dlc, --lightning-pose (got {len(given)})")
+    if stride < 1:
+        raise UserError(f"--stride must be >= 1, got {stride}")
+    cameras = list(videos)
+    rig = read_anipose_calibration(calibration, units=units)
+    try:
+        rig = rig.select(cameras)
+    except KeyError as exc:
+        raise UserError(f"{calibration}: {exc.args[0]}") from None
+
+    # Labels per camera.
+    reader: Callable[[str | Path], LabelTable]
+    if sleap:
+        files = dict(sleap)
+        reader = lambda p: read_sleap_analysis(p, track=sleap_track)  # noqa: E731
+        kind = "sleap"
+    else:
+        if dlc:
+            files = dict(dlc)
+            kind = "deeplabcut"
+        else:
+            assert lightning_pose is not None
+            files = {k: str(v) for k, v in find_lightning_pose_csvs(lightning_pose, cameras).items()}
+            kind = "lightning-pose"
+        reader = lambda p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
+    unknown = sorted(set(files) - set(cameras))
+    if unknown:
+        raise UserError(f"labels given for cameras {unknown} that have no --videos entry ({', '.join(cameras)})")
+    tables = {cam: reader(path) for cam, path in files.items()}
+    names: list[str] = []
+    for table in tables.values():
+        names += [k for k in table.keypoints if k not in names]
+    if keypoints:
+        missing = [k for k in keypoints if k not in names]
+        if missing:
+            raise UserError(f"--keypoints: {missing} not in the labels ({', '.join(names)})")
+        names = list(keypoints)
+
+    # Videos: sizes must match the calibration, frames counted.
+    counts = {}
+    for c, cam in enumerate(cameras):
+        W, H = video.frame_size(videos[cam])
+        if (W, H) != tuple(int(v) for v in rig.size[c]):
+            raise UserError(
+                f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
+                f"{rig.size[c][0]}x{rig.size[c][1]}"
+            )
+        counts[cam] = video.frame_count(videos[cam])
+    n_frames = min(counts.values())
+    if len(set(counts.values())) > 1:
+        print(f"warning: videos have different frame counts {counts}; using the first {n_frames} frames")
+
+    # Crop and resize: one pixel map per camera, applied to K and to the labels.
+    boxes: list[Box] = [(0.0, 0.0, float(W), float(H)) for W, H in rig.size]
+    for cam, box in (crops or {}).items():
+        if cam not in cameras or len(box) != 4:
+            raise UserError(f"--crop {cam}={box}: need one of the cameras ({', '.join(cameras)}) and x0,y0,x1,y1")
+        boxes[cameras.index(cam)] = (float(box[0]), float(box[1]), float(box[2]), float(box[3]))
+    out_size = output_size(boxes, size, scale)
+    maps = [crop_resize_matrix(box, out_size) for box in boxes]
+    arrays = rig.cameras.numpy()
+    K_out = np.stack([resize_crop(None, arrays["K"][c], boxes[c], out_size)[1] for c in range(len(cameras))])
+
+    C, Kp = len(cameras), len(names)
+    uv = np.full((n_frames, C, Kp, 2), np.nan)
+    for c, cam in enumerate(cameras):
+        if cam not in tables:
+            continue
+        table = tables[cam]
+        beyond = table.frame_ids >= n_frames
+        if beyond.any():
+            print(f"warning: {table.source}: {int(beyond.sum())} labelled frames beyond the video's "
+                  f"{n_frames} frames are ignored")
+        present = [k for k in names if k in table.keypoints]
+        cols = [names.index(k) for k in present]
+        dense = table.dense(n_frames, present)
+        uv[:, c, cols] = transform_points(dense, maps[c])
+    W, H = out_size
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
+    outside = np.isfinite(uv).all(-1) & ~inside
+    if outside.any():
+        print(f"note: {int(outside.sum())} labels fall outside the (cropped) images and are dropped")
+    uv[~inside] = np.nan
+    mask = np.isfinite(uv).all(-1)
+    views = mask.sum(axis=1)  # (F, K)
+    candidates = np.flatnonzero((views >= min_views).any(axis=1))
+    splits = split_frames(candidates, np.arange(n_frames), labelled, test, seed, stride)
+
+    source = {
+        "importer": kind,
+        "calibration": str(Path(calibration).resolve()),
+        "videos": {cam: str(Path(p).resolve()) for cam, p in videos.items()},
+        "labels": {cam: str(Path(p).resolve()) for cam, p in files.items()},
+        "crop_boxes": {cam: list(b) for cam, b in zip(cameras, boxes)},
+        "source_image_size": {cam: [int(v) for v in rig.size[c]] for c, cam in enumerate(cameras)},
+        "split_seed": seed,
+    }
+    writer = DatasetWriter(
+        out, names, cameras, out_size, rig.units,
+        calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source,
+        description=f"imported from {kind} labels and {Path(calibration).name}",
+        overwrite=overwrite,
+    )
+    wanted = sorted(splits)
+    streams = [video.iter_frames(videos[cam], wanted) for cam in cameras]
+    for frames in zip(*streams):
+        f = frames[0][0]
+        images = []
+        for c, (i, image) in enumerate(frames):
+            if i != f:  # pragma: no cover - iter_frames yields the same ids for every camera
+                raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
+            images.append(resize_crop(image, None, boxes[c], out_size)[0])
+        split = splits[f]
+        frame_labels = (np.nan_to_num(uv[f]), mask[f]) if split != "unlabelled" else None
+        writer.add_frame(f, split, np.stack(images), labels=frame_labels, extra={"video_frame": f})
+    path = writer.close()
+    n = {s: sum(1 for v in splits.values() if v == s) for s in ("labelled", "test", "unlabelled")}
+    n_labels = int(sum(mask[f].sum() for f, s in splits.items() if s != "unlabelled"))
+    print(f"wrote {path}: {len(splits)} frames (labelled {n['labelled']}, test {n['test']}, unlabelled "
+          f"{n['unlabelled']}), {C} cameras {', '.join(cameras)}, {Kp} keypoints, {W}x{H} px, "
+          f"{n_labels} 2D labels, units {rig.units}")
+    return path

@@ -1,0 +1,92 @@
+"""SLEAP analysis HDF5 files (``sleap-convert --format analysis``): :func:`read_sleap_analysis`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from s3k.data.labels2d import LabelTable
+from s3k.errors import UserError
+
+
+def _decode(values) -> list[str]:
+    return [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(values).reshape(-1)]
+
+
+def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> LabelTable:
+    """Read a SLEAP analysis HDF5 file (``sleap-convert --format analysis``).
+
+    SLEAP writes MATLAB-ordered arrays: ``tracks (n_tracks, 2, n_nodes, n_frames)``, ``track_occupancy
+    (n_frames, n_tracks)``, ``node_names (n_nodes,)``, ``track_names (n_tracks,)``. Files written without the
+    transposition (``tracks (n_frames, n_nodes, 2, n_tracks)``) are recognized too. Missing points are NaN;
+    frames where the track is not occupied are NaN.
+
+    Args:
+        path: the ``.h5`` file.
+        track: track name or index; may be omitted when the file holds one track.
+
+    Returns:
+        The labels of every video frame (``frame_ids = 0..n_frames-1``).
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: SLEAP analysis file not found")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as exc:
+        raise UserError(f"{path}: not an HDF5 file ({exc})") from exc
+    with h5:
+        for key in ("tracks", "node_names"):
+            if key not in h5:
+                raise UserError(f"{path}: no {key!r} dataset (is this a SLEAP analysis file?)")
+        nodes = _decode(h5["node_names"][()])
+        tracks = np.asarray(h5["tracks"][()], dtype=np.float64)
+        names = _decode(h5["track_names"][()]) if "track_names" in h5 else None
+        occupancy = np.asarray(h5["track_occupancy"][()]) if "track_occupancy" in h5 else None
+    n_nodes = len(nodes)
+    if tracks.ndim != 4:
+        raise UserError(f"{path}: 'tracks' has shape {tracks.shape}, expected 4 dimensions")
+    n_tracks = len(names) if names is not None else None
+    transposed = tracks.shape[1] == 2 and tracks.shape[2] == n_nodes
+    plain = tracks.shape[2] == 2 and tracks.shape[1] == n_nodes
+    if transposed and plain and n_tracks is not None:
+        transposed = tracks.shape[0] == n_tracks
+    if transposed:
+        tracks = tracks.transpose(3, 2, 1, 0)  # -> (frames, nodes, 2, tracks)
+    elif not plain:
+        raise UserError(
+            f"{path}: 'tracks' has shape {tracks.shape}; with {n_nodes} node_names expected "
+            f"(n_tracks, 2, {n_nodes}, n_frames) or (n_frames, {n_nodes}, 2, n_tracks)"
+        )
+    n_frames, _, _, n_tracks = tracks.shape
+    if names is None:
+        names = [f"track_{i}" for i in range(n_tracks)]
+    if len(names) != n_tracks:
+        raise UserError(f"{path}: 'track_names' has {len(names)} names, 'tracks' has {n_tracks} tracks")
+    if track is None:
+        if n_tracks != 1:
+            raise UserError(f"{path}: {n_tracks} tracks ({', '.join(names)}); choose one")
+        ti = 0
+    elif isinstance(track, int) or (isinstance(track, str) and track.isdigit() and track not in names):
+        ti = int(track)
+        if not 0 <= ti < n_tracks:
+            raise UserError(f"{path}: track index {ti} out of range (0..{n_tracks - 1})")
+    else:
+        if track not in names:
+            raise UserError(f"{path}: no track {track!r} (tracks: {', '.join(names)})")
+        ti = names.index(track)
+    uv = tracks[:, :, :, ti].copy()
+    if occupancy is not None:
+        if occupancy.shape == (n_tracks, n_frames) and occupancy.shape != (n_frames, n_tracks):
+            occupancy = occupancy.T
+        if occupancy.shape != (n_frames, n_tracks):
+            raise UserError(
+                f"{path}: 'track_occupancy' has shape {occupancy.shape}, expected ({n_frames}, {n_tracks})"
+            )
+        uv[occupancy[:, ti] == 0] = np.nan
+    uv[np.isnan(uv).any(axis=2)] = np.nan
+    return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path))
+

@@ -1,0 +1,339 @@
+"""Writing a dataset folder (``docs/dataset-format.md``) frame by frame: :class:`DatasetWriter`.
+
+Images are written as each frame is added; the tables and, last, ``s3k.json`` are written by
+:meth:`DatasetWriter.close`, so a folder without ``s3k.json`` is an unfinished one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from s3k.data.cameras import camera_defects, camera_tuple
+from s3k.data.problems import Problems
+from s3k.data.tables import (
+    CALIBRATION_COLUMNS,
+    DEFAULT_IMAGE_PATTERN,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    FRAMES_COLUMNS,
+    FRAMES_FILE,
+    LABELS_COLUMNS,
+    LABELS_FILE,
+    METADATA_FILE,
+    NAME_RE,
+    PER_FRAME_CALIBRATION_FILE,
+    POINTS3D_COLUMNS,
+    POINTS3D_FILE,
+    SPLITS,
+    STATIC_CALIBRATION_FILE,
+    check_names,
+)
+
+Calibration = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # K (C, 3, 3), dist (C, 5), R, t (C, 3)
+
+
+def _json_text(data: Any) -> str:
+    """Indented JSON with each list of scalars on one line, so matrices read row by row."""
+    text = json.dumps(data, indent=2)
+    return re.sub(r"\[\s+([^\[\]{}]+?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
+
+
+def _fmt(x: float) -> str:
+    """Shortest text that reads back to the same float64."""
+    return repr(float(x))
+
+
+class DatasetWriter:
+    """Write a dataset folder frame by frame; tables and s3k.json are written by :meth:`close`.
+
+    Args:
+        path: folder to create (must be absent or empty unless ``overwrite``).
+        keypoints: keypoint names (``K``).
+        cameras: camera names (``C``), used as folder names.
+        image_size: ``(W, H)`` of every image.
+        units: world units of calibration and 3D points.
+        calibration: a static rig (``Cameras (C,)`` or ``(K, dist, R, t)`` arrays); then ``add_frame`` needs
+            none. Without it every frame brings its own, written as a static rig when all are identical
+            (unless ``per_frame_calibration=True``).
+        per_frame_calibration: force per-frame (True) or static (False; frames must agree) calibration.
+        skeleton, description, source: optional metadata (``source`` may be a string or a JSON object).
+        videos: ``{camera: video file}`` to copy into ``videos/``; frames then carry no images and are
+            ``video_frame`` (``extra``, default the frame id) of each video.
+        png_compression: 0-9, OpenCV's PNG compression level.
+        overwrite: replace an existing non-empty folder.
+
+    Example:
+        >>> with DatasetWriter("ds", ["a"], ["cam0", "cam1"], (64, 48)) as w:  # doctest: +SKIP
+        ...     w.add_frame(0, "labelled", images, cams, labels)
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        keypoints: Sequence[str],
+        cameras: Sequence[str],
+        image_size: Sequence[int],
+        units: str = "m",
+        *,
+        calibration: Any = None,
+        per_frame_calibration: bool | None = None,
+        skeleton: Sequence[Sequence[str]] | None = None,
+        description: str | None = None,
+        source: Any = None,
+        videos: dict[str, str | Path] | None = None,
+        png_compression: int = 3,
+        overwrite: bool = False,
+    ):
+        self.path = Path(path)
+        self.keypoints, self.cameras = list(keypoints), list(cameras)
+        P = Problems()
+        meta = {"keypoints": self.keypoints, "cameras": self.cameras}
+        check_names(meta, "keypoints", P, folder_safe=False)
+        check_names(meta, "cameras", P, folder_safe=True)
+        if P.errors:
+            raise ValueError("; ".join(f"{p.field}: {p.message}" for p in P.errors))
+        if len(image_size) != 2 or any(int(s) != s or s <= 0 for s in image_size):
+            raise ValueError(f"image_size must be (W, H) positive integers, got {image_size!r}")
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.units = units
+        for a, b in skeleton or []:
+            for n in (a, b):
+                if n not in self.keypoints:
+                    raise ValueError(f"skeleton: unknown keypoint {n!r}; keypoints are {self.keypoints}")
+        self.skeleton = [list(e) for e in skeleton or []]
+        self.description, self.source = description, source
+        self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
+        self.static = None if calibration is None else self._check_calibration(calibration, "calibration")
+        if self.static is not None and per_frame_calibration:
+            raise ValueError("per_frame_calibration=True contradicts a static calibration argument")
+        self.per_frame_calibration = per_frame_calibration
+        if self.path.exists() and any(self.path.iterdir()):
+            if not overwrite:
+                raise FileExistsError(f"{self.path}: folder exists and is not empty (pass overwrite=True)")
+            shutil.rmtree(self.path)
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.videos = None
+        if videos is not None:
+            missing = sorted(set(self.cameras) - set(videos))
+            if missing:
+                raise ValueError(f"videos: no video for cameras {missing}")
+            (self.path / "videos").mkdir()
+            self.videos = {}
+            for cam in self.cameras:
+                src = Path(videos[cam])
+                rel = f"videos/{cam}{src.suffix}"
+                shutil.copyfile(src, self.path / rel)
+                self.videos[cam] = rel
+        else:
+            for cam in self.cameras:
+                (self.path / "images" / cam).mkdir(parents=True, exist_ok=True)
+        self._frames: list[tuple[int, str, dict]] = []
+        self._seen: set[int] = set()
+        self._calibrations: list[Calibration] = []
+        self._labels: list[str] = []
+        self._points: list[str] = []
+        self._closed = False
+
+    def _check_calibration(self, calibration: Any, arg: str) -> Calibration:
+        cal = camera_tuple(calibration)
+        C = len(self.cameras)
+        for name, value, shape in zip(("K", "dist", "R", "t"), cal, ((C, 3, 3), (C, 5), (C, 3, 3), (C, 3))):
+            if value.shape != shape:
+                raise ValueError(f"{arg}.{name} must have shape {shape}, got {value.shape}")
+        for c, found in enumerate(camera_defects(*cal)):
+            for fld, message in found:
+                raise ValueError(f"{arg}.{fld} of camera {self.cameras[c]!r}: {message}")
+        return cal
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+
+    def add_frame(
+        self,
+        frame_id: int,
+        split: str,
+        images: Any = None,
+        calibration: Any = None,
+        labels: Any = None,
+        points3d: Any = None,
+        visible: Any = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        """Add one frame.
+
+        Args:
+            frame_id: non-negative integer, unique.
+            split: ``"labelled" | "unlabelled" | "test"``.
+            images: ``uint8 (C, H, W, 3)`` RGB (or a sequence / ``{camera: image}``); None for video datasets.
+            calibration: this frame's ``Cameras (C,)`` or ``(K, dist, R, t)``; None with a static rig.
+            labels: ``uv (C, K, 2)`` pixels, NaN where not labelled; or ``(uv, mask (C, K))``; or None.
+            points3d: ground truth ``(K, 3)`` (NaN rows are skipped), or None.
+            visible: ``(C, K)`` bool; False writes a labelled-but-occluded row (``visible = 0``, masked).
+            extra: more frames.csv columns for this frame, e.g. ``{"instance": 3, "segment": 0}``.
+        """
+        if self._closed:
+            raise RuntimeError(f"{self.path}: writer is closed")
+        if isinstance(frame_id, bool) or int(frame_id) != frame_id or frame_id < 0:
+            raise ValueError(f"frame_id must be a non-negative integer, got {frame_id!r}")
+        frame_id = int(frame_id)
+        if frame_id in self._seen:
+            raise ValueError(f"frame_id {frame_id} added twice")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {list(SPLITS)}, got {split!r}")
+        C, Kp = len(self.cameras), len(self.keypoints)
+        W, H = self.image_size
+        extra = dict(extra or {})
+        for key in extra:
+            if key in FRAMES_COLUMNS or not NAME_RE.match(str(key)) or "," in str(key):
+                raise ValueError(f"extra column name {key!r} is reserved or not a plain name")
+
+        if calibration is None:
+            if self.static is None:
+                raise ValueError("calibration is required (the writer has no static calibration)")
+            cal = self.static
+        else:
+            cal = self._check_calibration(calibration, "calibration")
+            if self.static is not None and not all(np.array_equal(a, b) for a, b in zip(cal, self.static)):
+                raise ValueError("calibration differs from the writer's static calibration")
+
+        if self.videos is None:
+            if images is None:
+                raise ValueError("images are required (C, H, W, 3) uint8")
+            if isinstance(images, dict):
+                images = [images[c] for c in self.cameras]
+            imgs = [np.asarray(im) for im in images]
+            if len(imgs) != C:
+                raise ValueError(f"images: expected {C} cameras, got {len(imgs)}")
+            for c, im in enumerate(imgs):
+                if im.shape != (H, W, 3) or im.dtype != np.uint8:
+                    raise ValueError(
+                        f"images[{c}] ({self.cameras[c]}) must be uint8 {(H, W, 3)}, got "
+                        f"{im.dtype} {im.shape}"
+                    )
+        elif images is not None:
+            raise ValueError("this writer stores videos; pass images=None and extra={'video_frame': i}")
+
+        label_rows = []
+        if labels is not None:
+            if isinstance(labels, tuple):
+                uv, lmask = (np.asarray(x) for x in labels)
+            else:
+                uv = np.asarray(labels, dtype=np.float64)
+                lmask = np.isfinite(uv).all(-1)
+            uv = np.asarray(uv, dtype=np.float64)
+            if uv.shape != (C, Kp, 2) or lmask.shape != (C, Kp):
+                raise ValueError(f"labels must be uv {(C, Kp, 2)} (and mask {(C, Kp)}), got {uv.shape}")
+            vis = np.ones((C, Kp), bool) if visible is None else np.asarray(visible, bool)
+            if vis.shape != (C, Kp):
+                raise ValueError(f"visible must have shape {(C, Kp)}, got {vis.shape}")
+            for c, k in zip(*np.nonzero(lmask.astype(bool))):
+                u, v = uv[c, k]
+                if vis[c, k] and not (np.isfinite(u) and np.isfinite(v)):
+                    raise ValueError(f"labels[{c}, {k}] is marked labelled but not finite: {uv[c, k]}")
+                cells = ["" if not np.isfinite(x) else _fmt(x) for x in (u, v)]
+                label_rows.append(
+                    f"{frame_id},{self.cameras[c]},{self.keypoints[k]},{cells[0]},{cells[1]},{int(vis[c, k])}"
+                )
+        point_rows = []
+        if points3d is not None:
+            X = np.asarray(points3d, dtype=np.float64)
+            if X.shape != (Kp, 3):
+                raise ValueError(f"points3d must have shape {(Kp, 3)}, got {X.shape}")
+            for k in range(Kp):
+                if np.isfinite(X[k]).all():
+                    point_rows.append(f"{frame_id},{self.keypoints[k]},{','.join(_fmt(x) for x in X[k])}")
+
+        if self.videos is None:
+            for c, im in enumerate(imgs):
+                rel = DEFAULT_IMAGE_PATTERN.format(camera=self.cameras[c], frame=frame_id)
+                ok, data = cv2.imencode(".png", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), self.png_params)
+                if not ok:  # pragma: no cover
+                    raise ValueError(f"{rel}: PNG encoding failed")
+                data.tofile(str(self.path / rel))
+        self._seen.add(frame_id)
+        self._frames.append((frame_id, split, extra))
+        self._calibrations.append(cal)
+        self._labels.extend(label_rows)
+        self._points.extend(point_rows)
+
+    def close(self) -> Path:
+        """Write frames.csv, calibration, labels.csv, points3d.csv and (last) s3k.json; returns the folder."""
+        if self._closed:
+            return self.path
+        if not self._frames:
+            raise ValueError(f"{self.path}: no frames added")
+        static = self.static
+        if static is None:
+            first = self._calibrations[0]
+            same = all(all(np.array_equal(a, b) for a, b in zip(first, cal)) for cal in self._calibrations)
+            if self.per_frame_calibration is False and not same:
+                raise ValueError("per_frame_calibration=False but frames have different calibrations")
+            if same and not self.per_frame_calibration:
+                static = first
+        columns: list[str] = []
+        for _, _, extra in self._frames:
+            columns.extend(k for k in extra if k not in columns)
+        with open(self.path / FRAMES_FILE, "w", newline="") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow([*FRAMES_COLUMNS, *columns])
+            for frame, split, extra in self._frames:
+                writer.writerow([frame, split, *(extra.get(k, "") for k in columns)])
+        if static is not None:
+            K, dist, R, t = static
+            cams = {
+                cam: {"K": K[c].tolist(), "dist": dist[c].tolist(), "R": R[c].tolist(), "t": t[c].tolist()}
+                for c, cam in enumerate(self.cameras)
+            }
+            (self.path / STATIC_CALIBRATION_FILE).write_text(_json_text({"cameras": cams}))
+        else:
+            with open(self.path / PER_FRAME_CALIBRATION_FILE, "w") as f:
+                f.write(",".join(CALIBRATION_COLUMNS) + "\n")
+                for (frame, _, _), cal in zip(self._frames, self._calibrations):
+                    for c, cam in enumerate(self.cameras):
+                        K, dist, R, t = cal
+                        nums = [*K[c].ravel(), *dist[c], *R[c].ravel(), *t[c]]
+                        f.write(f"{frame},{cam}," + ",".join(_fmt(x) for x in nums) + "\n")
+        if self._labels:
+            (self.path / LABELS_FILE).write_text(
+                ",".join(LABELS_COLUMNS) + "\n" + "\n".join(self._labels) + "\n"
+            )
+        if self._points:
+            (self.path / POINTS3D_FILE).write_text(
+                ",".join(POINTS3D_COLUMNS) + "\n" + "\n".join(self._points) + "\n"
+            )
+        meta: dict[str, Any] = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "keypoints": self.keypoints,
+            "cameras": self.cameras,
+            "image_size": list(self.image_size),
+            "units": self.units,
+            "calibration": "static" if static is not None else "per_frame",
+            "images": (
+                {"type": "png", "pattern": DEFAULT_IMAGE_PATTERN}
+                if self.videos is None
+                else {"type": "video", "videos": self.videos}
+            ),
+        }
+        if self.skeleton:
+            meta["skeleton"] = self.skeleton
+        if self.description is not None:
+            meta["description"] = self.description
+        if self.source is not None:
+            meta["source"] = self.source
+        (self.path / METADATA_FILE).write_text(_json_text(meta))
+        self._closed = True
+        return self.path
