@@ -7,7 +7,6 @@ last row is not ``[0, 0, 1]``, an ``R`` that is not a rotation, or a value that 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +21,10 @@ from s3k.data.tables import (
     STATIC_CALIBRATION_FILE,
     Frames,
     Meta,
+    locate,
     parse_float,
-    parse_int,
     read_csv,
+    read_json,
 )
 from s3k.geometry import Cameras
 
@@ -95,16 +95,8 @@ def camera_defects(
 
 def read_static_calibration(root: Path, meta: Meta, P: Problems) -> Cameras | None:
     name = STATIC_CALIBRATION_FILE
-    try:
-        data = json.loads((root / name).read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        P.error(name, None, "file missing (s3k.json says calibration is static)")
-        return None
-    except json.JSONDecodeError as exc:
-        P.error(name, None, f"not valid JSON: {exc.msg}", line=exc.lineno)
-        return None
-    except (OSError, UnicodeDecodeError) as exc:
-        P.error(name, None, f"cannot read: {exc}")
+    ok, data = read_json(root, name, "file missing (s3k.json says calibration is static)", P)
+    if not ok:
         return None
     cams = data.get("cameras") if isinstance(data, dict) else None
     if not isinstance(cams, dict):
@@ -170,7 +162,6 @@ def read_per_frame_calibration(
     N, C = len(frames.ids), len(meta.cameras)
     values = np.full((N, C, 26), np.nan)
     lines = np.zeros((N, C), dtype=np.int64)
-    cam_index = {c: i for i, c in enumerate(meta.cameras)}
     numeric = CALIBRATION_COLUMNS[2:]
     n_errors = len(P.errors)
     try:  # fast path: numpy converts every number at once; any bad cell sends us to the per-cell messages
@@ -178,21 +169,10 @@ def read_per_frame_calibration(
     except ValueError:
         parsed = None
     for r, (line, row) in enumerate(rows):
-        frame = parse_int(row["frame"])
-        if frame is None or frame not in frames.row_of:
-            P.error(name, "frame", f"frame {row['frame']!r} is not listed in {FRAMES_FILE}", line=line)
+        found = locate(name, line, row, frames, P, camera=meta.cameras)
+        if found is None:
             continue
-        c = cam_index.get(row["camera"])
-        if c is None:
-            P.error(
-                name,
-                "camera",
-                f"unknown camera {row['camera']!r}; s3k.json cameras are {meta.cameras}",
-                line=line,
-                frame=frame,
-            )
-            continue
-        i = frames.row_of[frame]
+        frame, i, (c,) = found
         if lines[i, c]:
             P.error(
                 name,

@@ -15,6 +15,7 @@ import re
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,6 +93,20 @@ def read_csv(root: Path, name: str, required: Sequence[str], P: Problems) -> tup
     return header, rows
 
 
+def read_json(root: Path, name: str, missing: str, P: Problems) -> tuple[bool, Any]:
+    """``(True, content)`` of the JSON file ``root / name``, or ``(False, None)`` after reporting why it cannot
+    be read (``missing`` is the message for an absent file)."""
+    try:
+        return True, json.loads((root / name).read_text(encoding="utf-8-sig"))
+    except FileNotFoundError:
+        P.error(name, None, missing)
+    except json.JSONDecodeError as exc:
+        P.error(name, None, f"not valid JSON: {exc.msg}", line=exc.lineno)
+    except (OSError, UnicodeDecodeError) as exc:
+        P.error(name, None, f"cannot read: {exc}")
+    return False, None
+
+
 def check_names(meta: dict, key: str, P: Problems, folder_safe: bool) -> list[str] | None:
     value = meta.get(key)
     if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
@@ -134,20 +149,11 @@ class Meta:
 
 def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta | None:
     """``s3k.json``; ``image_types`` are the known ``images.type`` values (:mod:`s3k.data.sources`)."""
-    path = root / METADATA_FILE
     if not root.is_dir():
         P.error(str(root), None, "not a folder")
         return None
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        P.error(METADATA_FILE, None, "file missing: every dataset folder starts with s3k.json")
-        return None
-    except json.JSONDecodeError as exc:
-        P.error(METADATA_FILE, None, f"not valid JSON: {exc.msg}", line=exc.lineno)
-        return None
-    except (OSError, UnicodeDecodeError) as exc:
-        P.error(METADATA_FILE, None, f"cannot read: {exc}")
+    ok, meta = read_json(root, METADATA_FILE, "file missing: every dataset folder starts with s3k.json", P)
+    if not ok:
         return None
     if not isinstance(meta, dict):
         P.error(METADATA_FILE, None, "must hold a JSON object")
@@ -303,6 +309,28 @@ def read_frames(root: Path, P: Problems) -> Frames | None:
     )
 
 
+def locate(
+    name: str, line: int, row: dict, frames: Frames, P: Problems, **known: list[str]
+) -> tuple[int, int, list[int]] | None:
+    """Where a table row belongs: ``(frame id, its row in frames.csv, [position of row[column] among the
+    s3k.json names for each column=names in known])``, or None after reporting a frame that frames.csv does
+    not list or an unknown camera/keypoint name (every unknown name is reported)."""
+    frame = parse_int(row["frame"])
+    if frame is None or frame not in frames.row_of:
+        P.error(name, "frame", f"frame {row['frame']!r} is not listed in {FRAMES_FILE}", line=line)
+        return None
+    found = []
+    for column, names in known.items():
+        value = row[column]
+        if value in names:
+            found.append(names.index(value))
+        else:
+            P.error(name, column, f"unknown {column} {value!r}; s3k.json {column}s are {names}", line=line,
+                    frame=frame)
+    if len(found) < len(known):
+        return None
+    return frame, frames.row_of[frame], found
+
 @dataclass
 class Labels:
     uv: np.ndarray  # (N, C, K, 2) float64, NaN where absent
@@ -326,36 +354,14 @@ def read_labels(root: Path, meta: Meta, frames: Frames, P: Problems) -> Labels:
     if table is None:
         return labels
     _, rows = table
-    cam_index = {c: i for i, c in enumerate(meta.cameras)}
-    kp_index = {k: i for i, k in enumerate(meta.keypoints)}
     W, H = meta.image_size
     first_line: dict[tuple[int, int, int], int] = {}
     for line, row in rows:
-        frame = parse_int(row["frame"])
-        where = {"line": line, "frame": frame if frame is not None else row["frame"]}
-        if frame is None or frame not in frames.row_of:
-            P.error(name, "frame", f"frame {row['frame']!r} is not listed in {FRAMES_FILE}", **where)
+        found = locate(name, line, row, frames, P, camera=meta.cameras, keypoint=meta.keypoints)
+        if found is None:
             continue
-        c, k = cam_index.get(row["camera"]), kp_index.get(row["keypoint"])
-        bad = False
-        if c is None:
-            P.error(
-                name,
-                "camera",
-                f"unknown camera {row['camera']!r}; s3k.json cameras are {meta.cameras}",
-                **where,
-            )
-            bad = True
-        if k is None:
-            P.error(
-                name,
-                "keypoint",
-                f"unknown keypoint {row['keypoint']!r}; s3k.json keypoints are {meta.keypoints}",
-                **where,
-            )
-            bad = True
-        if bad:
-            continue
+        frame, i, (c, k) = found
+        where: dict[str, Any] = {"line": line, "frame": frame}
         where.update(camera=row["camera"], keypoint=row["keypoint"])
         vis_text = row.get("visible", "1") or "1"
         if vis_text.lower() in ("1", "true"):
@@ -380,8 +386,6 @@ def read_labels(root: Path, meta: Meta, frames: Frames, P: Problems) -> Labels:
             uv.append(value)
         if len(uv) < 2:
             continue
-        assert c is not None and k is not None
-        i = frames.row_of[frame]
         key = (i, c, k)
         if key in first_line:
             P.error(
@@ -415,31 +419,19 @@ def read_points3d(root: Path, meta: Meta, frames: Frames, P: Problems) -> np.nda
     if table is None:
         return None
     _, rows = table
-    kp_index = {k: i for i, k in enumerate(meta.keypoints)}
     X = np.full((len(frames.ids), len(meta.keypoints), 3), np.nan)
     first_line: dict[tuple[int, int], int] = {}
     for line, row in rows:
-        frame = parse_int(row["frame"])
-        if frame is None or frame not in frames.row_of:
-            P.error(name, "frame", f"frame {row['frame']!r} is not listed in {FRAMES_FILE}", line=line)
+        found = locate(name, line, row, frames, P, keypoint=meta.keypoints)
+        if found is None:
             continue
-        k = kp_index.get(row["keypoint"])
-        if k is None:
-            P.error(
-                name,
-                "keypoint",
-                f"unknown keypoint {row['keypoint']!r}; s3k.json keypoints are {meta.keypoints}",
-                line=line,
-                frame=frame,
-            )
-            continue
+        frame, i, (k,) = found
         where = {"line": line, "frame": frame, "keypoint": row["keypoint"]}
         xyz = [parse_float(row[c]) for c in "xyz"]
         bad = [c for c, value in zip("xyz", xyz) if value is None or not np.isfinite(value)]
         if bad:
             P.error(name, bad[0], f"must be a finite number, got {row[bad[0]]!r}", **where)
             continue
-        i = frames.row_of[frame]
         if (i, k) in first_line:
             P.error(name, None, f"point given twice (first on line {first_line[(i, k)]})", **where)
             continue
