@@ -639,6 +639,6 @@ def test_truncated_png_raises_one_line_naming_the_file(tiny):
         with pytest.raises(DatasetError) as info:
             ds.images([10, 13])
         assert str(info.value) == (
-            f"dataset {root}: images/cam1/000013.png (frame 13, camera cam1): field 'image': cannot decode as "
-            "an image (truncated or not an image file)"
+            f"dataset {root}: images/cam1/000013.png (frame 13, camera cam1): field 'image': cannot decode "
+            "as an image (truncated or not an image file)"
         )

@@ -201,8 +201,9 @@ def test_no_usable_label_is_unusable(tmp_path: Path, capsys, case: str):
     assert code == 1
     errors = [line for line in out.splitlines() if line.startswith("ERROR")]
     assert errors == [
-        "ERROR   labels.csv: no labelled frame has a usable label (2 labelled frames): training needs a keypoint "
-        "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its image"
+        "ERROR   labels.csv: no labelled frame has a usable label (2 labelled frames): training needs a "
+        "keypoint labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its "
+        "image"
     ]
     assert "usable for training): 0 of 2" in out
     assert out.splitlines()[-1].startswith("UNUSABLE: 1 error(s), 2 warning(s)")

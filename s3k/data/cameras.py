@@ -210,11 +210,11 @@ def read_per_frame_calibration(
     present = (lines > 0).reshape(-1)
     defects = camera_defects(K.reshape(-1, 3, 3), dist.reshape(-1, 5), R.reshape(-1, 3, 3), t.reshape(-1, 3))
     column_of = {"K": "K00..K22", "dist": "k1..k3", "R": "R00..R22", "t": "tx..tz"}
-    for flat, found in enumerate(defects):
+    for flat, camera_found in enumerate(defects):
         if not present[flat]:
             continue
         i, c = divmod(flat, C)
-        for fld, message in found:
+        for fld, message in camera_found:
             # A value that failed to parse was already reported; don't report its NaN again.
             P.error(
                 name,

@@ -46,6 +46,7 @@ from s3k.data.tables import (
     read_points3d,
 )
 from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
+from s3k.data.usable import usable_labels
 from s3k.geometry import Cameras
 
 
@@ -122,8 +123,6 @@ def check_dataset(
 
 def _report_usable_labels(dataset: Dataset, P: Problems) -> None:
     """Warn about each labelled frame without a usable label; an error when no labelled frame has one."""
-    from s3k.data.usable import usable_labels
-
     ids = dataset.frames("labelled")
     usable = usable_labels(dataset).any(axis=1)
     _, mask = dataset.labels(ids)
@@ -450,8 +449,6 @@ class Dataset:
         """Counts for reports: frames per split, usable labels per split and per keypoint per camera in the
         labelled split, labelled frames with a keypoint seen by >= 2 cameras (triangulable) and with a usable
         label (:func:`s3k.data.usable.usable_labels`), 3D points."""
-        from s3k.data.usable import usable_labels
-
         splits = {s: int((self._c.frames.splits == s).sum()) for s in SPLITS}
         in_split = {s: self._c.frames.splits == s for s in SPLITS}
         train = self._label_mask[in_split["labelled"]]

@@ -173,7 +173,8 @@ def register_image_source(type_name: str, factory: Callable[..., Any]) -> None:
 
     ``factory(root, spec, cameras, frame_ids, columns)`` returns an object with ``check(frame_ids, problems)``
     (reports missing files, returns fingerprint strings), ``read_rows(frame_ids, workers)`` (yields
-    ``(i, camera_index, uint8 (H, W, 3) RGB)``) and ``describe(frame, camera_index)`` (text naming the file);
-    a class attribute ``random_access = False`` makes the loader decode all frames in one pass on first use.
+    ``(i, camera_index, uint8 (H, W, 3) RGB)``; raises :class:`ImageReadError` naming the file it cannot
+    read) and ``describe(frame, camera_index)`` (text naming the file); a class attribute
+    ``random_access = False`` makes the loader decode all frames in one pass on first use.
     """
     IMAGE_SOURCES[type_name] = factory

@@ -108,6 +108,8 @@ def read_json(root: Path, name: str, missing: str, P: Problems) -> tuple[bool, A
 
 
 def check_names(meta: dict, key: str, P: Problems, folder_safe: bool) -> list[str] | None:
+    """The names ``meta[key]`` (keypoints or cameras), or None after reporting why they cannot be used:
+    empty, repeated, holding CSV-breaking characters or, with ``folder_safe``, unusable as folder names."""
     value = meta.get(key)
     if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
         P.error(METADATA_FILE, key, f"must be a non-empty list of non-empty strings, got {value!r}")
