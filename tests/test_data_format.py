@@ -630,7 +630,7 @@ def test_dataset_error_is_one_line_user_error_with_every_problem(tiny):
     assert len(error.problems) >= 3
 
 
-def test_truncated_png_raises_one_line_naming_the_file(tiny):
+def test_truncated_png_raises_one_line_naming_the_file(tiny, capfd):
     root, _ = tiny
     path = root / "images" / "cam1" / "000013.png"
     path.write_bytes(path.read_bytes()[:60])  # cut inside the pixel data
@@ -642,3 +642,4 @@ def test_truncated_png_raises_one_line_naming_the_file(tiny):
             f"dataset {root}: images/cam1/000013.png (frame 13, camera cam1): field 'image': cannot decode "
             "as an image (truncated or not an image file)"
         )
+    assert capfd.readouterr().err == ""  # the decoder's own warnings are not printed besides the message

@@ -20,6 +20,10 @@ from s3k.data.problems import Problem, Problems
 from s3k.data.tables import DEFAULT_IMAGE_PATTERN, METADATA_FILE
 from s3k.errors import UserError
 
+# OpenCV's decoders print their own WARN/ERROR lines (and libpng's) for a corrupt file; s3k reports each
+# unreadable image once, naming the file, so the decoder's lines would only repeat it without the name.
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
 
 class ImageReadError(UserError):
     """An image (or video frame) that cannot be read or decoded; names the file and, when known, the frame
