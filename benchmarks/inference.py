@@ -28,9 +28,9 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, matmul_flops  # noqa: E402
-from s3k.geometry import Cameras, triangulate_pixels  # noqa: E402
-from s3k.heatmaps import confidence_weight  # noqa: E402
-from s3k.model import UNet, UNetConfig, count_conv_flops, detect  # noqa: E402
+from s3k.geometry import Cameras  # noqa: E402
+from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.readout import read_out  # noqa: E402
 
 
 def look_at_rig(num_cameras: int, size: int, distance: float = 1.0) -> Cameras:
@@ -56,10 +56,9 @@ def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: flo
         images = frames_u8.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
         if not channels_last:
             images = images.contiguous()
-        _, mean_uv, var = detect(model, images[None], stride)
-        weights = confidence_weight(var, sigma)
-        X, valid = triangulate_pixels(cams, mean_uv, weights)
-        return X[0], valid[0]
+        logits = model(images)
+        result = read_out(logits[None], cams, stride, sigma)
+        return result.X[0], result.valid[0]
 
     return run
 

@@ -36,9 +36,19 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
 from benchmarks.inference import look_at_rig, make_pipeline, time_pipeline  # noqa: E402
-from s3k.export import export_module, output_names, read_out  # noqa: E402
-from s3k.geometry import triangulate_pixels  # noqa: E402
+from s3k.export import export_module, output_names  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.readout import read_out, select_views, triangulate  # noqa: E402
+
+
+def points_of_outputs(outs, cams, stride: int, sigma: float, with_moments: bool):
+    """The exported file's outputs for one frame's C images -> ``(X (K, 3), valid (K,))`` (s3k.readout)."""
+    if not with_moments:
+        result = read_out(torch.as_tensor(outs[0])[None], cams, stride, sigma)
+        return result.X[0], result.valid[0]
+    means, weights = torch.as_tensor(outs[1])[None], torch.as_tensor(outs[2])[None]
+    X, valid = triangulate(cams, means, weights, select_views(means, weights))
+    return X[0], valid[0]
 
 
 def onnx_pipeline(path: Path, cams, stride: int, sigma: float, with_moments: bool, threads: int):
@@ -55,13 +65,7 @@ def onnx_pipeline(path: Path, cams, stride: int, sigma: float, with_moments: boo
     def run(frames_u8: torch.Tensor):
         # ORT wants dense NCHW float32.
         images = frames_u8.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0).contiguous().numpy()
-        outs = session.run(None, {"images": images})
-        if with_moments:
-            means, weights = torch.from_numpy(outs[1]), torch.from_numpy(outs[2])
-        else:
-            means, weights = read_out(torch.from_numpy(outs[0]), stride, sigma)
-        X, valid = triangulate_pixels(cams, means[None].to(cams.dtype), weights[None].to(cams.dtype))
-        return X[0], valid[0]
+        return points_of_outputs(session.run(None, {"images": images}), cams, stride, sigma, with_moments)
 
     return run
 
@@ -80,12 +84,7 @@ def torchscript_pipeline(path: Path, cams, stride: int, sigma: float, with_momen
         if not channels_last:
             images = images.contiguous()
         outs = module(images)
-        if with_moments:
-            means, weights = outs[1], outs[2]
-        else:
-            means, weights = read_out(outs, stride, sigma)
-        X, valid = triangulate_pixels(cams, means[None].to(cams.dtype), weights[None].to(cams.dtype))
-        return X[0], valid[0]
+        return points_of_outputs(outs if with_moments else (outs,), cams, stride, sigma, with_moments)
 
     return run
 

@@ -16,14 +16,15 @@ out of the reprojection and 3D metrics and counted in ``triangulated_fraction``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from s3k.draw import draw_views
+from s3k.errors import UserError
 
 UNIT_TO_MM = {"m": 1000.0, "meter": 1000.0, "meters": 1000.0, "metre": 1000.0, "metres": 1000.0,
               "cm": 10.0, "mm": 1.0, "millimeter": 1.0, "millimetre": 1.0}
@@ -144,9 +145,26 @@ def ground_truth_2d(batch, image_size: tuple[int, int]):
     elif batch.labels_uv is not None and batch.labels_mask is not None:
         uv, mask = batch.labels_uv.double().numpy(), batch.labels_mask.numpy().copy()
     else:
-        raise ValueError("evaluation needs ground-truth 3D points or 2D labels for the split")
+        raise UserError("evaluation needs ground-truth 3D points or 2D labels for the split")
     inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
     return uv, mask & inside & np.isfinite(uv).all(-1)
+
+
+def keypoint_order(model_keypoints, dataset_keypoints) -> np.ndarray:
+    """Index of each of the model's keypoints among the dataset's, matched by name.
+
+    Raises:
+        UserError: the names differ, naming the keypoints missing from the dataset and those it has extra.
+    """
+    model_kp, data_kp = [str(k) for k in model_keypoints], [str(k) for k in dataset_keypoints]
+    missing = [k for k in model_kp if k not in data_kp]
+    extra = [k for k in data_kp if k not in model_kp]
+    if missing or extra:
+        parts = ([f"missing {', '.join(missing)}"] if missing else []) + \
+                ([f"extra {', '.join(extra)}"] if extra else [])
+        raise UserError(f"the dataset's keypoints do not match the model's ({'; '.join(parts)}): the model "
+                        f"has {', '.join(model_kp)}; the dataset has {', '.join(data_kp)}")
+    return np.array([data_kp.index(k) for k in model_kp], dtype=np.int64)
 
 
 def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units: str = "m",
@@ -162,6 +180,8 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
         units: world units of the dataset.
         keep: keep the images and heatmaps of the first ``keep`` frames (for overlays).
 
+    The ground truth's keypoints are matched to the model's by name (:func:`keypoint_order`).
+
     Returns:
         ``(metrics, arrays)``; arrays holds the concatenated predictions and ground truth (numpy) and the
         kept images / heatmaps.
@@ -173,26 +193,29 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
     kept_images: list[np.ndarray] = []
     kept_probs: list[np.ndarray] = []
     has3d = True
+    order = keypoint_order(meta.keypoints, store.dataset.keypoints)
     for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, device,
                                      keep_heatmaps=keep > 0):
         gt_uv, gt_mask = ground_truth_2d(batch, store.out_size)
+        gt_uv, gt_mask = gt_uv[:, :, order], gt_mask[:, :, order]
         cols["pred_uv"].append(pred.uv.numpy())
         cols["reproj_uv"].append(pred.reproj.numpy())
         cols["gt_uv"].append(gt_uv)
         cols["gt_mask"].append(gt_mask)
         cols["X"].append(pred.X.numpy())
         cols["X_valid"].append(pred.valid.numpy())
-        cols["weight"].append(pred.weight.numpy())
+        cols["weight"].append(pred.weights.numpy())
         cols["frame_ids"].append(np.asarray(batch.frame_ids))
         if batch.points is None or batch.points_mask is None:
             has3d = False
         else:
-            cols["X_gt"].append(batch.points.numpy())
-            cols["X_gt_mask"].append(batch.points_mask.numpy())
+            cols["X_gt"].append(batch.points.numpy()[:, order])
+            cols["X_gt_mask"].append(batch.points_mask.numpy()[:, order])
         n_kept = sum(len(x) for x in kept_images)
         if n_kept < keep:
             kept_images.append(batch.images[: keep - n_kept].numpy())
-            kept_probs.append(pred.probs[: keep - n_kept].numpy())
+            assert pred.probs is not None  # asked for with keep_heatmaps
+            kept_probs.append(pred.probs[: keep - n_kept].float().numpy())
     arrays = {k: np.concatenate(v) if v else None for k, v in cols.items()}
     if not has3d:
         arrays["X_gt"] = arrays["X_gt_mask"] = None
@@ -202,61 +225,6 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
                               arrays["X"], arrays["X_valid"], arrays["X_gt"], arrays["X_gt_mask"],
                               mm_per_unit(units), meta.keypoints, store.dataset.cameras)
     return metrics, arrays
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Drawing
-
-
-_COLOURS = [(230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180), (70, 240, 240),
-            (240, 50, 230), (210, 245, 60), (250, 190, 190), (0, 128, 128)]
-
-
-def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray, true_uv: np.ndarray | None,
-               true_mask: np.ndarray | None = None, scale: int = 3) -> np.ndarray:
-    """One frame's views side by side with heatmaps, predicted (cross) and true (circle) keypoints.
-
-    Args:
-        images: (C, H, W, 3) uint8 RGB.
-        probs: (C, K, h, w) heatmaps (softmax) or None; their per-pixel maximum over K is overlaid.
-        pred_uv: (C, K, 2) predictions, pixels.
-        true_uv: (C, K, 2) ground truth, or None.
-        true_mask: (C, K) bool, or None (all shown).
-        scale: upscaling factor for legibility.
-
-    Returns:
-        (scale * H, C * scale * W, 3) uint8 RGB image.
-    """
-    import cv2
-
-    C, H, W, _ = images.shape
-    tiles = []
-    for c in range(C):
-        tile = cv2.resize(np.ascontiguousarray(images[c]), (W * scale, H * scale),
-                          interpolation=cv2.INTER_NEAREST)
-        if probs is not None:
-            heat = probs[c].max(axis=0)
-            heat = heat / max(float(heat.max()), 1e-12)
-            heat = cv2.resize(heat.astype(np.float32), (W * scale, H * scale), interpolation=cv2.INTER_LINEAR)
-            coloured = cv2.applyColorMap((heat * 255).astype(np.uint8), cv2.COLORMAP_JET)[..., ::-1]
-            alpha = (0.6 * heat)[..., None]
-            tile = (tile * (1 - alpha) + coloured * alpha).astype(np.uint8)
-        tile = np.ascontiguousarray(tile)
-        for k in range(pred_uv.shape[1]):
-            col = _COLOURS[k % len(_COLOURS)]
-
-            def px(uv):
-                return int(round((uv[0] + 0.5) * scale - 0.5)), int(round((uv[1] + 0.5) * scale - 0.5))
-
-            show_true = true_uv is not None and (true_mask is None or bool(true_mask[c, k]))
-            if true_uv is not None and show_true and np.isfinite(true_uv[c, k]).all():
-                cv2.circle(tile, px(true_uv[c, k]), 3 * scale, col, 1, cv2.LINE_AA)
-            if np.isfinite(pred_uv[c, k]).all():
-                cv2.drawMarker(tile, px(pred_uv[c, k]), col, cv2.MARKER_TILTED_CROSS, 3 * scale, 1,
-                               cv2.LINE_AA)
-        cv2.rectangle(tile, (0, 0), (W * scale - 1, H * scale - 1), (255, 255, 255), 1)
-        tiles.append(tile)
-    return np.concatenate(tiles, axis=1)
 
 
 def _fmt(v) -> str:
@@ -340,18 +308,6 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     return written
 
 
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", help="run folder written by 's3k train'")
-    parser.add_argument("--data", required=True, help="dataset folder")
-    parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
-    parser.add_argument("--report", metavar="DIR", default=None,
-                        help="write metrics.json, plots and view overlays to DIR")
-    parser.add_argument("--overlays", type=int, default=6, help="frames drawn in the report (default: 6)")
-    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
-
-
 def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch_size: int = 16,
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
     """Load a run, evaluate it on ``data``'s ``split`` and optionally write a report; returns the metrics."""
@@ -362,9 +318,10 @@ def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch
     dev = pick_device(device)
     model, meta = load_detector(run_dir, dev)
     ds = open_dataset(data, meta.image_size)
+    keypoint_order(meta.keypoints, ds.keypoints)  # refuse a mismatch before predicting anything
     ids = np.asarray(ds.frames(split))
     if len(ids) == 0:
-        raise ValueError(f"{data}: split {split!r} has no frames")
+        raise UserError(f"{data}: split {split!r} has no frames", hint="choose another --split")
     store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
     metrics, arrays = evaluate_store(model, meta, store, dev, batch_size, ds.units,
                                      keep=overlays if report else 0)
@@ -373,15 +330,3 @@ def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch
     if report:
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})")
     return metrics
-
-
-def run(args: argparse.Namespace) -> int:
-    metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
-                           args.overlays)
-    if args.json:
-        print(json.dumps(metrics))
-    else:
-        print(format_table(metrics))
-        if args.report:
-            print(f"report written to {args.report}", file=sys.stderr)
-    return 0

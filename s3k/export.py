@@ -18,7 +18,6 @@ JSON), so a consumer needs no other file.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import warnings
@@ -29,7 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
+from s3k import readout
+from s3k.errors import UserError
+from s3k.heatmaps import confidence_weight
 
 __all__ = [
     "FORMATS",
@@ -38,6 +39,7 @@ __all__ = [
     "ExportReport",
     "export_detector",
     "export_module",
+    "exported_moments",
     "reference_outputs",
     "run_exported",
     "verification_images",
@@ -67,17 +69,17 @@ class DetectorWithMoments(nn.Module):
     def forward(self, images: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(N, 3, H, W)`` -> ``logits (N, K, h, w)``, ``means (N, K, 2)`` pixels, ``confidence (N, K)``."""
         logits = self.net(images)
-        means, confidence = read_out(logits, self.stride, self.sigma)
+        means, confidence = exported_moments(logits, self.stride, self.sigma)
         return logits, means, confidence
 
 
-def read_out(logits: Tensor, stride: int, sigma: float) -> tuple[Tensor, Tensor]:
-    """Softmax means and confidence weights of logits ``(*, h, w)``, computed in float64, returned float32.
+def exported_moments(logits: Tensor, stride: int, sigma: float) -> tuple[Tensor, Tensor]:
+    """Softmax means and confidence weights of logits ``(*, h, w)``: :mod:`s3k.readout`'s, returned float32.
 
-    Float64 keeps the sums over ``h * w`` cells independent of the summation order of a runtime, so exported
-    and PyTorch read-outs differ only through their logits.
+    The read-out's float64 keeps the sums over ``h * w`` cells independent of the summation order of a
+    runtime, so exported and PyTorch read-outs differ only through their logits.
     """
-    means, var = heatmap_moments(spatial_softmax(logits.to(torch.float64)), stride)
+    _probs, means, var = readout.moments(logits, stride)
     return means.to(torch.float32), confidence_weight(var, sigma).to(torch.float32)
 
 
@@ -151,7 +153,7 @@ def export_module(module: nn.Module, fmt: str, out: str | Path, image_size: tupl
                 traced = torch.jit.trace(module, (example,), check_trace=False)
             torch.jit.save(traced, str(out), _extra_files={f"{META_KEY}.json": meta_json})
         else:
-            raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+            raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     return out
 
 
@@ -185,7 +187,7 @@ def reference_outputs(model: nn.Module, images: np.ndarray, stride: int, sigma: 
         logits = model(torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32))).float()
         outs = [logits]
         if with_moments:
-            outs += list(read_out(logits, stride, sigma))
+            outs += list(exported_moments(logits, stride, sigma))
     return [o.numpy() for o in outs]
 
 
@@ -263,7 +265,7 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
     from s3k.run import load_detector, read_run_config
 
     if fmt not in FORMATS:
-        raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+        raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     model, meta = load_detector(run_dir, "cpu", checkpoint)
     net = model.fused() if fuse else model
     module: nn.Module = DetectorWithMoments(net, meta.stride, meta.sigma) if with_moments else net
@@ -287,40 +289,3 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
             raise ValueError(f"{path}: output {name} has shape {g.shape}, PyTorch gives {r.shape}")
         report.max_diff[name] = float(np.max(np.abs(g.astype(np.float64) - r))) if g.size else 0.0
     return report
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.description = (
-        "Export a trained detector: images (N, 3, H, W) in [0, 1] -> heatmap logits (and, with "
-        "--with-moments, means and confidences), then verify the file against PyTorch."
-    )
-    parser.add_argument("run", help="run folder written by 's3k train'")
-    parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
-    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt)")
-    parser.add_argument("--with-moments", action="store_true",
-                        help="also output means (N, K, 2) in pixels and confidence (N, K)")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset version (default 17)")
-    parser.add_argument("--no-fuse", action="store_true", help="keep BatchNorm layers (default: folded)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
-                        help="largest allowed difference from PyTorch (default 1e-4)")
-    parser.add_argument("--verify-data", default=None,
-                        help="dataset folder whose frames are used to verify (default: the run's dataset)")
-    parser.add_argument("--checkpoint", default=None, help="file in the run folder to export instead")
-
-
-def run(args: argparse.Namespace) -> int:
-    try:
-        report = export_detector(args.run, args.format, args.out, with_moments=args.with_moments,
-                                 fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,
-                                 verify_data=args.verify_data, checkpoint=args.checkpoint)
-    except (ValueError, FileNotFoundError, KeyError, RuntimeError, ImportError) as exc:
-        print(f"s3k export: error: {exc}", file=sys.stderr)
-        return 1
-    diffs = ", ".join(f"{k} {v:.3g}" for k, v in report.max_diff.items())
-    print(f"wrote {report.path} ({report.format}; outputs: {', '.join(report.outputs)})")
-    print(f"max |difference| from PyTorch on {report.inputs}: {diffs} (tolerance {report.tolerance:g})")
-    if not report.ok:
-        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model within "
-              f"{report.tolerance:g}", file=sys.stderr)
-        return 1
-    return 0

@@ -21,14 +21,9 @@ import math
 import torch
 from torch import Tensor, nn
 
+from s3k import readout
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import (
-    confidence_weight,
-    gaussian_targets,
-    heatmap_moments,
-    spatial_log_softmax,
-    spatial_softmax,
-)
+from s3k.heatmaps import confidence_weight, gaussian_targets, spatial_log_softmax
 
 __all__ = ["kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
 
@@ -218,14 +213,15 @@ def self_supervised_loss(
             f"got {_shape(weights)}"
         )
     with torch.no_grad():
-        mean_uv, var = heatmap_moments(spatial_softmax(logits.detach().float()), stride)
-        wts = confidence_weight(var, sigma) if weights is None else weights.detach().float()
-        mean_uv = mean_uv.to(cams.dtype)
-        wts = wts.to(cams.dtype)
-        usable = torch.isfinite(mean_uv).all(dim=-1) & torch.isfinite(wts) & (wts > 0)
-        wts = torch.where(usable, wts, torch.zeros_like(wts))
-        uv = torch.where(usable[..., None], mean_uv, torch.zeros_like(mean_uv))
-        X, valid = triangulate_pixels(cams, uv, wts)
+        # The read-out every command uses (float64, every finite view with positive weight); the point is
+        # then a constant in the cameras' dtype for the target rendering below.
+        _probs, mean_uv, var = readout.moments(logits.detach(), stride)
+        wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
+        used = readout.select_views(mean_uv, wts)
+        X, valid = readout.triangulate(cams, mean_uv, wts, used)
+        X = X.to(cams.dtype)
+        mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)
+        wts = torch.where(used, wts, torch.zeros_like(wts)).to(cams.dtype)
         targets, mask, target_uv, depth = _reproject_targets(X, valid, cams, h, w, stride, sigma)
     loss = kl_loss(targets, logits, mask, normalizer=B)
     info = {

@@ -30,7 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from s3k.heatmaps import heatmap_moments, heatmap_size, spatial_softmax
+from s3k import readout
+from s3k.heatmaps import heatmap_size
 
 __all__ = ["UNetConfig", "UNet", "detect", "conv_layers", "count_conv_flops"]
 
@@ -272,7 +273,7 @@ def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple
 
     Returns:
         ``(logits (B, C, K, h, w), mean_uv (B, C, K, 2), var (B, C, K))``: the moments of the spatial softmax,
-        in image pixels (``heatmaps.heatmap_moments``).
+        in image pixels, float64 (:func:`s3k.readout.moments`).
     """
     if not isinstance(images, Tensor) or images.ndim != 5:
         shape = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
@@ -283,8 +284,7 @@ def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple
     flat = images.reshape(B * C, *images.shape[2:])
     logits = model(flat)
     logits = logits.reshape(B, C, *logits.shape[1:])
-    # Moments in float32 even under reduced-precision autocast: the mean is a sum over h * w cells.
-    mean_uv, var = heatmap_moments(spatial_softmax(logits.float()), stride)
+    _probs, mean_uv, var = readout.moments(logits, stride)
     return logits, mean_uv, var
 
 

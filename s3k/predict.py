@@ -1,97 +1,71 @@
-"""``s3k predict``: per-frame 3D keypoints (with confidence and per-view 2D detections) of a dataset as CSV.
+"""``s3k predict``: per-frame 3D keypoints of a dataset, written in the 3D CSV of ``s3k track``.
 
-Inference uses only images and calibration: the shared network gives one heatmap per camera and keypoint,
-its softmax mean is the 2D detection and its spread the confidence weight ``w`` (DESIGN 1), and the
-confidence-weighted triangulation gives the 3D point.
-
-CSV columns (one row per frame and keypoint)::
-
-    frame, keypoint, x, y, z, valid, confidence, u_<cam>, v_<cam>, w_<cam> for every camera
-
-``x, y, z`` are in the dataset's world units (empty when the triangulation is degenerate, ``valid = 0``);
-``confidence`` is the mean of the per-view weights ``w``; ``u, v`` are in the dataset's own image pixels
-(pixel (0, 0) is the centre of the top-left pixel).
+Inference uses only images and calibration: the shared network gives one heatmap per camera and keypoint, and
+:mod:`s3k.readout` turns them into 2D detections, confidence weights and confidence-weighted 3D points (the
+same read-out as ``s3k evaluate`` and ``s3k track``). The CSV is anipose's 3D layout
+(:mod:`s3k.tracks_csv`): ``fnum`` is the dataset frame id, ``x, y, z`` are in the dataset's world units and
+``error`` is in the dataset's own image pixels.
 """
 
 from __future__ import annotations
 
-import argparse
-import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from s3k.frames import FrameStore, images_to_float
-from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
+from s3k.geometry import Cameras
+from s3k.readout import ReadOut, read_out
 
-
-@dataclass
-class Prediction:
-    """Network output for a batch of frames.
-
-    Attributes:
-        uv: (B, C, K, 2) per-view 2D detections (softmax means), network-input pixels.
-        var: (B, C, K) heatmap variances, squared pixels.
-        weight: (B, C, K) confidence weights.
-        X: (B, K, 3) confidence-weighted triangulation, world units (zeros where invalid).
-        valid: (B, K) triangulation validity.
-        reproj: (B, C, K, 2) reprojection of X into every view.
-        probs: (B, C, K, h, w) heatmaps (softmax), or None.
-    """
-
-    uv: Tensor
-    var: Tensor
-    weight: Tensor
-    X: Tensor
-    valid: Tensor
-    reproj: Tensor
-    probs: Tensor | None = None
+__all__ = ["PredictSummary", "infer", "pick_device", "predict_dataset", "predict_store", "split_frames"]
 
 
 @torch.no_grad()
-def infer(model: torch.nn.Module, images: Tensor, cams: Cameras, stride: int, sigma: float,
-          keep_heatmaps: bool = False) -> Prediction:
+def infer(model: torch.nn.Module, images: torch.Tensor, cams: Cameras, stride: int, sigma: float,
+          keep_heatmaps: bool = False, pixel_maps: np.ndarray | None = None) -> ReadOut:
     """2D detections, confidences and triangulated 3D keypoints for a batch of frames.
 
     Args:
         model: network mapping (N, 3, H, W) to (N, K, h, w) logits (eval mode).
         images: (B, C, 3, H, W) float in [0, 1], on the model's device.
-        cams: cameras (B, C) of those images.
+        cams: cameras (B, C) of those images, or of the original images with ``pixel_maps``.
         stride: heatmap stride.
         sigma: target width in image pixels (for the confidence weight).
         keep_heatmaps: also return the softmax heatmaps.
+        pixel_maps: see :func:`s3k.readout.read_out`.
 
     Returns:
-        A :class:`Prediction` (tensors on the model's device).
+        A :class:`s3k.readout.ReadOut` (tensors on the model's device).
     """
     if images.ndim != 5:
         raise ValueError(f"infer: images must be (B, C, 3, H, W), got {tuple(images.shape)}")
     B, C = images.shape[:2]
-    logits = model(images.reshape(B * C, *images.shape[2:])).float()
+    logits = model(images.reshape(B * C, *images.shape[2:]))
     logits = logits.reshape(B, C, *logits.shape[1:])
-    probs = spatial_softmax(logits)
-    uv, var = heatmap_moments(probs, stride)
-    w = confidence_weight(var, sigma)
-    cams = cams.to(device=uv.device, dtype=uv.dtype)
-    X, valid = triangulate_pixels(cams, uv, w)
-    reproj, _depth = project(cams, X[:, None])
-    return Prediction(uv, var, w, X, valid, reproj, probs if keep_heatmaps else None)
+    return read_out(logits, cams, stride, sigma, pixel_maps, keep_heatmaps=keep_heatmaps)
 
 
 def predict_store(model: torch.nn.Module, store: FrameStore, stride: int, sigma: float, batch_size: int = 16,
-                  device: str | torch.device = "cpu", keep_heatmaps: bool = False):
-    """Run :func:`infer` over every frame of ``store``; yields ``(FrameBatch, Prediction)`` on the CPU."""
+                  device: str | torch.device = "cpu", keep_heatmaps: bool = False,
+                  pixel_map: np.ndarray | None = None):
+    """Run :func:`infer` over every frame of ``store``; yields ``(FrameBatch, ReadOut)`` on the CPU.
+
+    (Unannotated so that callers may index ``ReadOut.probs`` they asked for with ``keep_heatmaps``.)
+
+    Results are in the pixels the network saw, or with ``pixel_map`` (``(3, 3)``, the dataset's map from its
+    own image pixels to the network's, ``Dataset.pixel_map``) in the dataset's own pixels.
+    """
     for batch in store.batches(batch_size):
         images = images_to_float(batch.images, device)
-        pred = infer(model, images, batch.cams.to(device=device), stride, sigma, keep_heatmaps)
-        cpu = Prediction(pred.uv.cpu(), pred.var.cpu(), pred.weight.cpu(), pred.X.cpu(), pred.valid.cpu(),
-                         pred.reproj.cpu(), None if pred.probs is None else pred.probs.cpu())
-        yield batch, cpu
+        cams, maps = batch.cams, None
+        if pixel_map is not None:
+            C = len(store.dataset.cameras)
+            maps = np.repeat(np.asarray(pixel_map, dtype=np.float64)[None], C, axis=0)
+            Minv = torch.as_tensor(np.linalg.inv(pixel_map), dtype=cams.dtype)
+            cams = Cameras(Minv @ cams.K, cams.dist, cams.R, cams.t)  # K = M^-1 K' (an affine map)
+        yield batch, infer(model, images, cams.to(device=device), stride, sigma, keep_heatmaps, maps).cpu()
 
 
 def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:
@@ -99,16 +73,6 @@ def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:
     if name == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
     return torch.device(name)
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", help="run folder written by 's3k train'")
-    parser.add_argument("--data", required=True, help="dataset folder")
-    parser.add_argument("--out", required=True, help="output CSV file")
-    parser.add_argument("--split", default="test",
-                        help="split to predict: labelled, unlabelled, test, or 'all' (default: test)")
-    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
 
 
 def split_frames(dataset, split: str) -> np.ndarray:
@@ -124,40 +88,49 @@ def split_frames(dataset, split: str) -> np.ndarray:
     return np.asarray(list(dict.fromkeys(ids)))
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass
+class PredictSummary:
+    """What :func:`predict_dataset` wrote."""
+
+    path: Path
+    frames: int
+    keypoints: list[str]
+    warnings: list[str]
+
+
+def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, split: str = "test",
+                    batch_size: int = 16, device: str = "auto", overwrite: bool = False) -> PredictSummary:
+    """Predict the frames of a dataset split and write the 3D CSV (:mod:`s3k.tracks_csv`).
+
+    Args:
+        run_dir: run folder of ``s3k train``.
+        data: dataset folder.
+        out: CSV file to write; never a file of the dataset.
+        split: ``labelled``, ``unlabelled``, ``test`` or ``all``.
+        batch_size: frames per forward pass.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``...
+        overwrite: replace an existing ``out``.
+
+    Raises:
+        UserError: ``out`` is a file of the dataset, or exists without ``overwrite``.
+    """
     from s3k.frames import open_dataset
     from s3k.run import load_detector
+    from s3k.tracks_csv import check_output, csv_rows, write_csv
 
-    device = pick_device(args.device)
-    model, meta = load_detector(args.run, device)
-    ds = open_dataset(args.data, meta.image_size)
+    out = check_output(out, overwrite, dataset=data)
+    dev = pick_device(device)
+    model, meta = load_detector(run_dir, dev)
+    ds = open_dataset(data, meta.image_size)
+    warnings = []
     if list(ds.keypoints) != list(meta.keypoints):
-        print(f"warning: dataset keypoints {ds.keypoints} differ from the model's {meta.keypoints}; "
-              "columns use the model's names", file=sys.stderr)
-    ids = split_frames(ds, args.split)
-    store = FrameStore(ds, ids, preload_mb=0)
-    Minv = np.linalg.inv(ds.pixel_map)  # network-input pixels -> stored-image pixels
-    cams = list(ds.cameras)
-    header = ["frame", "keypoint", "x", "y", "z", "valid", "confidence"]
-    for c in cams:
-        header += [f"u_{c}", f"v_{c}", f"w_{c}"]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+        warnings.append(f"dataset keypoints {ds.keypoints} differ from the model's {meta.keypoints}; "
+                        "columns use the model's names")
+    store = FrameStore(ds, split_frames(ds, split), preload_mb=0)
     n = 0
-    with open(out, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(header)
-        for batch, pred in predict_store(model, store, meta.stride, meta.sigma, args.batch_size, device):
-            uv = pred.uv.double().numpy() @ Minv[:2, :2].T + Minv[:2, 2]
-            for b, fid in enumerate(batch.frame_ids):
-                for k, name in enumerate(meta.keypoints):
-                    ok = bool(pred.valid[b, k])
-                    xyz = [f"{v:.6g}" for v in pred.X[b, k].tolist()] if ok else ["", "", ""]
-                    row = [fid, name, *xyz, int(ok), f"{float(pred.weight[b, :, k].mean()):.4f}"]
-                    for c in range(len(cams)):
-                        row += [f"{uv[b, c, k, 0]:.3f}", f"{uv[b, c, k, 1]:.3f}",
-                                f"{float(pred.weight[b, c, k]):.4f}"]
-                    writer.writerow(row)
+    with write_csv(out, meta.keypoints) as writer:
+        for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, dev,
+                                         pixel_map=ds.pixel_map):
+            writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
             n += len(batch.frame_ids)
-    print(f"wrote {n} frames x {len(meta.keypoints)} keypoints to {out}")
-    return 0
+    return PredictSummary(out, n, list(meta.keypoints), warnings)

@@ -8,14 +8,15 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
 
 from s3k.cli import main as cli_main
-from s3k.evaluate import compute_metrics, draw_views, mm_per_unit
+from s3k.draw import draw_views
+from s3k.evaluate import compute_metrics, mm_per_unit
 from s3k.frames import FrameStore, open_dataset
 from s3k.predict import predict_store
 from s3k.run import load_detector
+from s3k.tracks_csv import csv_header, read_csv
 from s3k.train import train
 
 
@@ -128,26 +129,25 @@ def test_evaluate_table_and_report(trained, capsys, tmp_path):
     assert len(list(rep.glob("overlay_*.png"))) == 2
 
 
-def test_predict_csv(trained, tmp_path):
+def test_predict_writes_the_track_csv(trained, tmp_path):
     root, ds_path, run = trained
     out = tmp_path / "pred.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--split", "test"]) == 0
-    rows = list(csv.DictReader(open(out)))
-    assert len(rows) == 3 * len(KEYPOINTS)
-    want = {"frame", "keypoint", "x", "y", "z", "valid", "confidence", "u_cam0", "v_cam3", "w_cam2"}
-    assert want <= set(rows[0])
+    assert out.read_text().splitlines()[0].split(",") == csv_header(KEYPOINTS)
     model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
     (batch, pred), = list(predict_store(model, FrameStore(ds, ds.frames("test")), meta.stride, meta.sigma))
-    r = rows[1]  # frame 0 of the split, keypoint 1
-    assert int(r["frame"]) == int(batch.frame_ids[0]) and r["keypoint"] == KEYPOINTS[1]
-    assert float(r["x"]) == pytest.approx(float(pred.X[0, 1, 0]), rel=1e-4, abs=1e-7)
-    assert float(r["u_cam2"]) == pytest.approx(float(pred.uv[0, 2, 1, 0]), abs=2e-3)
-    assert torch.isfinite(pred.weight).all()
+    points = read_csv(out, KEYPOINTS)
+    assert sorted(points) == sorted(int(f) for f in batch.frame_ids)
+    for b, fid in enumerate(batch.frame_ids):
+        np.testing.assert_allclose(points[int(fid)], pred.X[b].numpy(), rtol=1e-6, atol=1e-9)
+    rows = list(csv.DictReader(open(out)))
+    assert float(rows[0]["b_score"]) == pytest.approx(float(pred.weights[0, :, 1].mean()), abs=1e-6)
+    assert int(rows[0]["b_ncams"]) == len(CAMERAS)  # every view is used (the read-out's default)
 
 
 def test_resized_run_predicts_in_dataset_pixels(tmp_path):
-    """A network trained at 24 px on 32 px images reports 2D detections in the dataset's own pixels."""
+    """A network trained at 24 px on 32 px images: the same points, errors in the dataset's pixels."""
     from s3k.config import TrainConfig
 
     ds_path = make_dataset(tmp_path / "ds", size=32, labelled=2, unlabelled=2, test=2, seed=2)
@@ -156,14 +156,75 @@ def test_resized_run_predicts_in_dataset_pixels(tmp_path):
     train(ds_path, tmp_path / "run", cfg)
     model, meta = load_detector(tmp_path / "run")
     assert meta.image_size == (24, 24) and meta.source_image_size == (32, 32)
+    ds = open_dataset(ds_path, meta.image_size)
+    store = FrameStore(ds, ds.frames("test"))
+    (_, net), = list(predict_store(model, store, meta.stride, meta.sigma))
+    (_, own), = list(predict_store(model, store, meta.stride, meta.sigma, pixel_map=ds.pixel_map))
+    s = 24 / 32  # u_net = s (u + 0.5) - 0.5
+    np.testing.assert_allclose(own.uv.numpy(), (net.uv.numpy() + 0.5) / s - 0.5, atol=1e-9)
+    # The same points and errors up to the float32 rounding of the stored cameras (0.1 um at 1 m).
+    np.testing.assert_allclose(own.X.numpy(), net.X.numpy(), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(own.error.numpy(), net.error.numpy() / s, rtol=1e-3, atol=1e-5)
     out = tmp_path / "p.csv"
     assert cli_main(["predict", str(tmp_path / "run"), "--data", str(ds_path), "--out", str(out)]) == 0
     rows = list(csv.DictReader(open(out)))
+    assert float(rows[0]["a_error"]) == pytest.approx(float(own.error[0, 0]), rel=1e-6)
+
+
+def test_predict_refuses_to_overwrite(trained, tmp_path, capsys):
+    root, ds_path, run = trained
+    labels = ds_path / "labels.csv"
+    before = labels.read_bytes()
+    for extra in ([], ["--overwrite"]):  # a file of the dataset: never
+        assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(labels), *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(labels) in err and "file of the dataset" in err
+    assert labels.read_bytes() == before
+    out = tmp_path / "pred.csv"
+    out.write_text("keep me\n")
+    assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(out) in err and "--overwrite" in err
+    assert out.read_text() == "keep me\n"
+    assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--overwrite"]) == 0
+    assert out.read_text().startswith("a_x,")
+
+
+def test_evaluate_matches_keypoints_by_name(trained, tmp_path, capsys):
+    """Keypoints in another order are matched by name; other names are refused in one line naming them."""
+    from s3k.data.format import DatasetWriter
+
+    root, ds_path, run = trained
+    model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
-    (batch, pred), = list(predict_store(model, FrameStore(ds, ds.frames("test")), meta.stride, meta.sigma))
-    s = 24 / 32  # u_net = s (u + 0.5) - 0.5
-    u_net = float(pred.uv[0, 1, 0, 0])
-    assert float(rows[0]["u_cam1"]) == pytest.approx((u_net + 0.5) / s - 0.5, abs=2e-3)
+    ids = ds.frames("test")
+    (batch, _), = list(predict_store(model, FrameStore(ds, ids, points=True), meta.stride, meta.sigma))
+    X = batch.points.double().numpy()
+    K, dist, R, t = rig(32)
+
+    def write(path, names, order):
+        with DatasetWriter(path, names, CAMERAS, (32, 32), "m", calibration=(K, dist, R, t)) as w:
+            for b, fid in enumerate(ids):
+                w.add_frame(int(fid), "test", batch.images[b].numpy(), None, None, points3d=X[b][order])
+        return path
+
+    same = write(tmp_path / "same", KEYPOINTS, [0, 1, 2])
+    shuffled = write(tmp_path / "shuffled", [KEYPOINTS[i] for i in (2, 0, 1)], [2, 0, 1])
+    assert cli_main(["evaluate", str(run), "--data", str(same), "--json"]) == 0
+    m_same = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert cli_main(["evaluate", str(run), "--data", str(shuffled), "--json"]) == 0
+    m_shuffled = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm"):
+        assert m_shuffled[key] == pytest.approx(m_same[key], rel=1e-9)
+    for kp in KEYPOINTS:
+        assert m_shuffled["per_keypoint"][kp] == pytest.approx(m_same["per_keypoint"][kp], rel=1e-9)
+
+    other = write(tmp_path / "other", ["a", "b", "tail"], [0, 1, 2])
+    assert cli_main(["evaluate", str(run), "--data", str(other), "--json"]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert captured.out == "" and len(err.splitlines()) == 1
+    assert err.startswith("s3k evaluate: error:") and "missing c" in err and "extra tail" in err
 
 
 @pytest.mark.slow  # renders a small box scene and trains two tiny models: about 40 s

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -21,19 +22,14 @@ from s3k import cli
 from s3k.data.anipose import write_anipose_calibration
 from s3k.data.rig import Rig
 from s3k.data.transforms import crop_resize_matrix
-from s3k.data.video import frame_count, frame_size, write_video
+from s3k.data.video import frame_count, frame_size, synchronized_frames, write_video
 from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, heatmap_size, spatial_softmax
 from s3k.model import UNetConfig
+from s3k.readout import read_out
 from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
-from s3k.track import (
-    csv_header,
-    fit_box,
-    points_from_logits,
-    prepare_cameras,
-    read_csv,
-    synchronized_frames,
-)
+from s3k.track import fit_box, prepare_cameras
+from s3k.tracks_csv import csv_header, read_csv
 
 CAMERAS = ["left", "top", "right"]
 KEYPOINTS = ["nose", "ear", "tail"]
@@ -192,6 +188,14 @@ def test_synchronized_frames_pairs_by_index(recording):
 # After the network
 
 
+def points_from_logits(logits, cams, maps, stride, sigma, min_weight=0.5) -> SimpleNamespace:
+    """``read_out`` in the videos' pixels, as numpy arrays (a threshold of 0.5 drops flat heatmaps)."""
+    r = read_out(logits, cams, stride, sigma, maps, min_weight)
+    return SimpleNamespace(X=r.X.numpy(), valid=r.valid.numpy(), error=r.error.numpy(), ncams=r.ncams.numpy(),
+                           score=r.score.numpy(), uv=r.uv.numpy(), weight=r.weights.numpy(),
+                           used=r.used.numpy(), reproj=r.reproj.numpy())
+
+
 def _peaked_logits(uv_net: torch.Tensor, stride: int, sigma: float) -> torch.Tensor:
     """Logits whose softmax is the normalized Gaussian target at ``uv_net (B, C, K, 2)``."""
     h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], stride)
@@ -280,6 +284,7 @@ def test_points_from_logits_checks_shapes(recording):
     maps = np.stack([c.M for c in inputs])
     with pytest.raises(ValueError, match="logits"):
         points_from_logits(torch.zeros(3, 3, 16, 16), cams, maps, 2, 2.0)
+    assert cams.shape == (3,)
     with pytest.raises(ValueError, match="cams"):
         points_from_logits(torch.zeros(1, 2, 3, 16, 16), cams, maps, 2, 2.0)
     with pytest.raises(ValueError, match="pixel_maps"):
@@ -311,9 +316,9 @@ def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
         assert frame_size(path) == VIDEO_SIZE
 
 
-def test_track_default_threshold_nan_where_invalid(recording, tmp_path):
+def test_track_threshold_nan_where_invalid(recording, tmp_path):
     out = tmp_path / "points3d.csv"
-    assert _track(recording, out) == 0
+    assert _track(recording, out, "--min-weight", "0.5") == 0
     _, values = _read_csv(out)
     per_kp = values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)
     invalid = np.isnan(per_kp[..., 0])

@@ -1,5 +1,45 @@
-"""`s3k export`: command-line front end of :mod:`s3k.export`."""
+"""`s3k export`: export a trained detector to ONNX or TorchScript and verify it (:mod:`s3k.export`)."""
 
-from s3k.export import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+import sys
+
+from s3k.errors import UserError
+from s3k.export import DEFAULT_TOLERANCE, FORMATS, export_detector
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Export a trained detector: images (N, 3, H, W) in [0, 1] -> heatmap logits (and, with "
+        "--with-moments, means and confidences), then verify the file against PyTorch."
+    )
+    parser.add_argument("run", help="run folder written by 's3k train'")
+    parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
+    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt)")
+    parser.add_argument("--with-moments", action="store_true",
+                        help="also output means (N, K, 2) in pixels and confidence (N, K)")
+    parser.add_argument("--opset", type=int, default=17, help="ONNX opset version (default 17)")
+    parser.add_argument("--no-fuse", action="store_true", help="keep BatchNorm layers (default: folded)")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+                        help="largest allowed difference from PyTorch (default 1e-4)")
+    parser.add_argument("--verify-data", default=None,
+                        help="dataset folder whose frames are used to verify (default: the run's dataset)")
+    parser.add_argument("--checkpoint", default=None, help="file in the run folder to export instead")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        report = export_detector(args.run, args.format, args.out, with_moments=args.with_moments,
+                                 fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,
+                                 verify_data=args.verify_data, checkpoint=args.checkpoint)
+    except ImportError as exc:  # onnx / onnxruntime are optional
+        raise UserError(f"--format {args.format} needs a package that is not installed ({exc})") from exc
+    diffs = ", ".join(f"{k} {v:.3g}" for k, v in report.max_diff.items())
+    print(f"wrote {report.path} ({report.format}; outputs: {', '.join(report.outputs)})")
+    print(f"max |difference| from PyTorch on {report.inputs}: {diffs} (tolerance {report.tolerance:g})")
+    if not report.ok:
+        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model within "
+              f"{report.tolerance:g}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,5 +1,30 @@
-"""`s3k predict`: command-line front end of :mod:`s3k.predict`."""
+"""`s3k predict`: 3D keypoints of a dataset's frames as CSV (:mod:`s3k.predict`)."""
 
-from s3k.predict import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+import sys
+
+from s3k.predict import predict_dataset
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = ("Predict 3D keypoints of a dataset's frames; writes the 3D CSV of 's3k track' "
+                          "(anipose's layout, fnum = dataset frame id).")
+    parser.add_argument("run", help="run folder written by 's3k train'")
+    parser.add_argument("--data", required=True, help="dataset folder")
+    parser.add_argument("--out", required=True, help="output CSV file (never a file of the dataset)")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    parser.add_argument("--split", default="test",
+                        help="split to predict: labelled, unlabelled, test, or 'all' (default: test)")
+    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
+    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+
+
+def run(args: argparse.Namespace) -> int:
+    summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
+                              args.overwrite)
+    for text in summary.warnings:
+        print(f"warning: {text}", file=sys.stderr)
+    print(f"wrote {summary.frames} frames x {len(summary.keypoints)} keypoints to {summary.path}")
+    return 0

@@ -1,5 +1,79 @@
-"""`s3k track`: command-line front end of :mod:`s3k.track`."""
+"""`s3k track`: 3D keypoints from synchronized videos of a calibrated rig (:mod:`s3k.track`)."""
 
-from s3k.track import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from s3k.errors import UserError
+from s3k.readout import DEFAULT_MIN_WEIGHT
+from s3k.track import FIT_MODES, track_videos
+
+
+def parse_videos(values: Sequence[str]) -> dict[str, Path]:
+    """``["CAM=FILE", ...]`` -> ``{camera: path}`` with errors naming the bad value."""
+    out: dict[str, Path] = {}
+    for value in values:
+        cam, sep, path = value.partition("=")
+        if not sep or not cam or not path:
+            raise UserError(f"--videos {value!r}: expected CAMERA=FILE")
+        if cam in out:
+            raise UserError(f"--videos: camera {cam!r} is given twice")
+        out[cam] = Path(path)
+    return out
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Track synchronized videos of a calibrated rig to 3D keypoints with a trained detector; writes "
+        "anipose's 3D CSV (<kp>_x, _y, _z, _error, _ncams, _score per keypoint, then fnum) in the "
+        "calibration's units."
+    )
+    parser.add_argument("run", help="run folder written by 's3k train'")
+    parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
+                        help="one video per camera, camera names as in the calibration")
+    parser.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    parser.add_argument("--out", required=True, help="CSV file to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    parser.add_argument("--overlay", default=None, metavar="DIR",
+                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn")
+    parser.add_argument("--batch", type=int, default=8, help="frames per forward pass (default 8)")
+    parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
+    parser.add_argument("--stop", type=int, default=None,
+                        help="frame index to stop before (default: the end of the shortest video)")
+    parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
+                        help="confidence weight a view needs to be used (default 0: every view, weighted by "
+                        "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
+                        "spread exceeds 2 sigma)")
+    parser.add_argument("--fit", choices=FIT_MODES, default="pad",
+                        help="when the video's aspect ratio differs from the detector's input: pad "
+                        "(default), crop or stretch")
+    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
+                        help="crop box in pixel edge coordinates, as given to 's3k import --crop'")
+    parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
+    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.cli.options import parse_crops
+
+    videos = parse_videos(args.videos)
+    crops = parse_crops(args.crop, list(videos)) if args.crop else None
+    summary = track_videos(
+        args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
+        start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit, crops=crops,
+        device=args.device, units=args.units, progress=not args.no_progress, overwrite=args.overwrite,
+    )
+    print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
+    for kp, f, e in zip(summary.keypoints, summary.valid_fraction, summary.median_error_px):
+        print(f"  {kp}: {100 * f:.0f}% valid, median error {e:.2f} px")
+    if summary.frames and not any(summary.passing_fraction):
+        print(f"warning: no keypoint has two views with a confidence weight above --min-weight "
+              f"{summary.min_weight:g} in any frame; every point is nan (lower --min-weight)",
+              file=sys.stderr)
+    if args.overlay:
+        print(f"overlay videos in {args.overlay}")
+    return 0

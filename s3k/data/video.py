@@ -1,4 +1,5 @@
-"""Video decoding with PyAV: frame count, random access to frame ``i``, iteration, extraction to PNG.
+"""Video I/O with PyAV: frame count, random access to frame ``i``, iteration (also of several videos in
+lockstep), extraction to PNG, and encoding.
 
 Frame ``i`` is the ``i``-th frame in presentation order, counted from 0, which is how SLEAP, DeepLabCut and
 anipose number frames. Random access seeks to the key frame before the frame's timestamp and decodes forward;
@@ -9,11 +10,14 @@ Images are ``uint8 (H, W, 3)`` RGB arrays.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from s3k.errors import UserError
 
 
 def _av():
@@ -32,10 +36,10 @@ def _open(path: str | Path):
     try:
         container = av.open(str(path))
     except Exception as exc:  # PyAV raises several error types for unreadable files
-        raise ValueError(f"{path}: cannot open as a video ({exc})") from exc
+        raise UserError(f"{path}: cannot open as a video ({exc})") from exc
     if not container.streams.video:
         container.close()
-        raise ValueError(f"{path}: no video stream")
+        raise UserError(f"{path}: no video stream")
     return container, container.streams.video[0]
 
 
@@ -164,6 +168,100 @@ def extract_frames(
     return written
 
 
+def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
+                        stop: int | None = None) -> Iterator[tuple[int, list[np.ndarray]]]:
+    """Decode several videos in lockstep: yields ``(i, [image (H, W, 3) uint8 RGB per video])``.
+
+    Frame ``i`` of every video is one instant (a synchronized rig). Frames before ``start`` are decoded but
+    not converted. Stops at ``stop`` (exclusive) or when the shortest video ends.
+    """
+    containers = []
+    try:
+        decoders = []
+        for path in paths:
+            container, stream = _open(path)
+            containers.append(container)
+            stream.thread_type = "AUTO"
+            decoders.append(container.decode(stream))
+        for i, frames in enumerate(zip(*decoders)):
+            if stop is not None and i >= stop:
+                return
+            if i >= start:
+                yield i, [f.to_ndarray(format="rgb24") for f in frames]
+    finally:
+        for container in containers:
+            container.close()
+
+
+class VideoWriter:
+    """Incremental encoder of ``(H, W, 3) uint8`` RGB frames of one size (use as a context manager).
+
+    Args:
+        path: output file; the container follows the extension (``.mp4``, ``.avi``, ``.mkv``...).
+        fps: frame rate (30 when not positive).
+        codec: an FFmpeg encoder name (``libx264``, ``mpeg4``, ``ffv1``...). ``ffv1`` (in ``.mkv``/``.avi``)
+            stores RGB exactly, which tests that compare pixels need.
+        lossless: ask libx264 for ``qp=0`` in 4:4:4 (nearly exact: only the RGB/YUV conversion rounds).
+
+    Frames of odd width or height are padded by one edge pixel for the 4:2:0 formats, which need even sizes.
+    """
+
+    def __init__(self, path: str | Path, fps: float = 30.0, codec: str = "libx264", lossless: bool = False) -> None:
+        self.path = Path(path)
+        self.codec = codec
+        self.lossless = lossless
+        self._rate = Fraction(fps).limit_denominator(1001) if fps > 0 else Fraction(30)
+        self._container = _av().open(str(self.path), mode="w")
+        self._stream: Any = None  # created with the first frame, whose size it takes
+        self._size: tuple[int, int] | None = None
+        self.frames = 0
+
+    def _pix_fmt(self) -> str:
+        if self.codec == "ffv1":
+            return "bgr0"
+        return "yuv444p" if self.lossless and self.codec == "libx264" else "yuv420p"
+
+    def write(self, image: np.ndarray) -> None:
+        """Encode one frame (the same size as the first)."""
+        av = _av()
+        image = np.ascontiguousarray(image, dtype=np.uint8)
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"{self.path}: frame {self.frames} has shape {image.shape}, expected (H, W, 3)")
+        H, W = image.shape[:2]
+        if self._size is None:
+            self._size = (W, H)
+            options = {"qp": "0"} if self.lossless and self.codec == "libx264" else {}
+            self._stream = self._container.add_stream(self.codec, rate=self._rate, options=options)
+            pix_fmt = self._pix_fmt()
+            even = pix_fmt == "yuv420p"
+            self._stream.width, self._stream.height = (W + W % 2, H + H % 2) if even else (W, H)
+            self._stream.pix_fmt = pix_fmt
+        elif (W, H) != self._size:
+            raise ValueError(f"{self.path}: frame {self.frames} is {W}x{H}, the first was "
+                             f"{self._size[0]}x{self._size[1]}")
+        pad = (self._stream.height - H, self._stream.width - W)
+        if any(pad):
+            image = np.pad(image, ((0, pad[0]), (0, pad[1]), (0, 0)), mode="edge")
+        frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+        for packet in self._stream.encode(frame):
+            self._container.mux(packet)
+        self.frames += 1
+
+    def close(self) -> None:
+        """Flush the encoder and close the file."""
+        if self._stream is not None:
+            for packet in self._stream.encode():
+                self._container.mux(packet)
+            self._stream = None
+        self._container.close()
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def write_video(
     path: str | Path,
     frames: Iterable[np.ndarray],
@@ -171,46 +269,12 @@ def write_video(
     codec: str = "libx264",
     lossless: bool = False,
 ) -> int:
-    """Encode ``(H, W, 3) uint8`` RGB frames to a video file (H and W even for yuv420p codecs).
-
-    Args:
-        path: output file; the container follows the extension (``.mp4``, ``.avi``, ``.mkv``...).
-        frames: the images, all the same size.
-        fps: frame rate.
-        codec: an FFmpeg encoder name (``libx264``, ``mpeg4``, ``ffv1``...). ``ffv1`` (in ``.mkv``/``.avi``)
-            stores RGB exactly, which tests that compare pixels need.
-        lossless: ask libx264 for ``qp=0`` in 4:4:4 (nearly exact: only the RGB/YUV conversion rounds).
+    """Encode ``(H, W, 3) uint8`` RGB frames to a video file (:class:`VideoWriter`'s arguments).
 
     Returns:
         The number of frames written.
     """
-    av = _av()
-    rate = Fraction(fps).limit_denominator(1001)
-    n = 0
-    with av.open(str(path), mode="w") as container:
-        stream = None
+    with VideoWriter(path, fps, codec, lossless) as writer:
         for image in frames:
-            image = np.ascontiguousarray(image, dtype=np.uint8)
-            if image.ndim != 3 or image.shape[2] != 3:
-                raise ValueError(f"{path}: frame {n} has shape {image.shape}, expected (H, W, 3)")
-            if stream is None:
-                options = {"qp": "0"} if lossless and codec == "libx264" else {}
-                stream = container.add_stream(codec, rate=rate, options=options)
-                stream.width, stream.height = image.shape[1], image.shape[0]
-                if codec == "ffv1":
-                    stream.pix_fmt = "bgr0"
-                else:
-                    stream.pix_fmt = "yuv444p" if lossless and codec == "libx264" else "yuv420p"
-            elif (image.shape[1], image.shape[0]) != (stream.width, stream.height):
-                raise ValueError(
-                    f"{path}: frame {n} is {image.shape[1]}x{image.shape[0]}, "
-                    f"the first was {stream.width}x{stream.height}"
-                )
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
-            for packet in stream.encode(frame):
-                container.mux(packet)
-            n += 1
-        if stream is not None:
-            for packet in stream.encode():
-                container.mux(packet)
-    return n
+            writer.write(image)
+    return writer.frames

@@ -1,0 +1,182 @@
+"""The read-out: heatmap logits -> 2D detections, confidences and 3D keypoints (everything after the network).
+
+Every caller uses these functions: ``s3k predict``, ``s3k evaluate``, ``s3k track``, ``s3k export
+--with-moments``, :func:`s3k.model.detect`, the self-supervised loss (:mod:`s3k.losses`) and the inference
+benchmarks, so what is trained, scored and shipped is the same maths. Per view ``c`` and keypoint ``k``:
+
+1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` (the 2D detection, in the
+   network-input pixels, pixel (0, 0) the centre of the top-left pixel) and its variance ``var_ck``.
+2. :func:`s3k.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread.
+3. :func:`select_views`: which views enter the triangulation.
+4. :func:`triangulate`: the confidence-weighted triangulation of the selected views (lens distortion
+   included), valid where at least two views are used and the rays are not near-parallel.
+5. :func:`read_out` also maps the detections into the cameras' own pixels (``pixel_maps``), reprojects the
+   3D point into every camera and measures the reprojection residuals.
+
+Precision: float64 from the softmax on, whatever the logits' dtype. The mean is a sum over ``h * w`` cells
+and the triangulation solves normal equations whose conditioning degrades with near-parallel rays; float64
+makes both independent of summation order and of the runtime (PyTorch, ONNX Runtime, TorchScript give the
+same points up to their logits), and its cost is negligible next to the network. Results are float64.
+
+View selection: a view is used when its mean and weight are finite and its weight is above ``min_weight``;
+used views are weighted by their confidence ``w``. The default ``min_weight = 0`` uses every view, weighted:
+the paper's rule and the one training's self-supervised target uses, so that ``s3k evaluate`` scores exactly
+the points ``s3k predict`` and ``s3k track`` write. A higher threshold (``s3k track --min-weight``) drops
+uncertain views outright instead of down-weighting them (the weight is 0.5 at a spread of 2 sigma).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
+
+__all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "ReadOut", "moments", "read_out", "select_views", "triangulate"]
+
+DTYPE = torch.float64
+"""Precision of the read-out (see the module docstring)."""
+
+DEFAULT_MIN_WEIGHT = 0.0
+"""Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
+
+
+def moments(logits: Tensor, stride: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Spatial softmax of logits ``(*, h, w)`` and its moments, in float64.
+
+    Returns:
+        ``(probs (*, h, w), mean_uv (*, 2), var (*))``: the heatmaps, their means in network-input pixels and
+        their variances in squared pixels (:func:`s3k.heatmaps.heatmap_moments`).
+    """
+    probs = spatial_softmax(logits.to(DTYPE))
+    mean_uv, var = heatmap_moments(probs, stride)
+    return probs, mean_uv, var
+
+
+def select_views(uv: Tensor, weights: Tensor, min_weight: float = DEFAULT_MIN_WEIGHT) -> Tensor:
+    """The views that enter the triangulation: finite ``uv (*, 2)`` and ``weights (*)`` above ``min_weight``.
+
+    Returns:
+        ``(*)`` bool.
+    """
+    return torch.isfinite(uv).all(dim=-1) & torch.isfinite(weights) & (weights > min_weight)
+
+
+def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
+    """Confidence-weighted triangulation of the used views, in float64.
+
+    Args:
+        cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames) in the pixels of ``uv``.
+        uv: ``(B, C, K, 2)`` detections.
+        weights: ``(B, C, K)`` confidence weights.
+        used: ``(B, C, K)`` bool (:func:`select_views`); the other views get weight zero.
+
+    Returns:
+        ``(X (B, K, 3), valid (B, K))``: float64 points, zeros where invalid (fewer than two used views,
+        near-parallel rays).
+    """
+    cams = cams.to(device=uv.device, dtype=DTYPE)
+    # Unused views get a harmless pixel and zero weight: NaN must not reach the solver.
+    uv = torch.where(used[..., None], uv.to(DTYPE), torch.zeros((), dtype=DTYPE, device=uv.device))
+    w = torch.where(used, weights.to(DTYPE), torch.zeros((), dtype=DTYPE, device=uv.device))
+    X, valid = triangulate_pixels(cams, uv, w)
+    return X, valid & (used.sum(dim=1) >= 2)
+
+
+@dataclass
+class ReadOut:
+    """The read-out of a batch of synchronized frames (float64 tensors, on the logits' device).
+
+    Attributes:
+        uv: ``(B, C, K, 2)`` per-view 2D detections (softmax means) in the cameras' pixels.
+        var: ``(B, C, K)`` heatmap variances, squared network-input pixels.
+        weights: ``(B, C, K)`` confidence weights.
+        used: ``(B, C, K)`` bool, the view entered the triangulation (:func:`select_views`).
+        X: ``(B, K, 3)`` triangulated points in world units, NaN where invalid.
+        valid: ``(B, K)`` bool, the triangulation is defined.
+        reproj: ``(B, C, K, 2)`` reprojection of ``X`` into every camera, NaN where invalid.
+        residual: ``(B, C, K)`` distance between ``reproj`` and ``uv``, pixels, NaN where invalid.
+        probs: ``(B, C, K, h, w)`` heatmaps (softmax), or None.
+    """
+
+    uv: Tensor
+    var: Tensor
+    weights: Tensor
+    used: Tensor
+    X: Tensor
+    valid: Tensor
+    reproj: Tensor
+    residual: Tensor
+    probs: Tensor | None = None
+
+    @property
+    def ncams(self) -> Tensor:
+        """``(B, K)`` number of views used."""
+        return self.used.sum(dim=1)
+
+    @property
+    def score(self) -> Tensor:
+        """``(B, K)`` mean confidence weight over all views."""
+        return self.weights.mean(dim=1)
+
+    @property
+    def error(self) -> Tensor:
+        """``(B, K)`` mean reprojection residual over the views used, pixels, NaN where invalid."""
+        res = torch.where(self.used, self.residual, torch.zeros_like(self.residual))
+        error = res.sum(dim=1) / self.ncams.clamp_min(1)
+        return torch.where(self.valid, error, torch.full_like(error, float("nan")))
+
+    def cpu(self) -> ReadOut:
+        """The same read-out with every tensor on the CPU."""
+        return ReadOut(self.uv.cpu(), self.var.cpu(), self.weights.cpu(), self.used.cpu(), self.X.cpu(),
+                       self.valid.cpu(), self.reproj.cpu(), self.residual.cpu(),
+                       None if self.probs is None else self.probs.cpu())
+
+
+def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
+             pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
+             keep_heatmaps: bool = False) -> ReadOut:
+    """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
+
+    Args:
+        logits: ``(B, C, K, h, w)`` network outputs.
+        cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames), in the pixels the results are given in.
+        stride: heatmap stride (network-input pixels per cell).
+        sigma: target width in network-input pixels (the confidence weight's scale).
+        pixel_maps: ``(C, 3, 3)`` affine maps from the cameras' pixels to the network-input pixels (for
+            cameras of the original images that were cropped and resized for the network), or None when
+            ``cams`` are the network input's cameras.
+        min_weight: views with a confidence weight at or below this are not used.
+        keep_heatmaps: also return the softmax heatmaps.
+
+    Returns:
+        A :class:`ReadOut`.
+    """
+    if not isinstance(logits, Tensor) or logits.ndim != 5:
+        shape = tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__
+        raise ValueError(f"read_out: logits must be (B, C, K, h, w), got {shape}")
+    B, C = logits.shape[:2]
+    if tuple(cams.shape) not in ((C,), (B, C)):
+        raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
+                         f"got {tuple(cams.shape)}")
+    probs, uv, var = moments(logits, stride)
+    weights = confidence_weight(var, sigma)
+    if pixel_maps is not None:
+        maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
+        if maps.shape != (C, 3, 3):
+            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3), got {tuple(maps.shape)}")
+        Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
+        uv = uv @ Minv[:, :2, :2].transpose(-1, -2) + Minv[:, None, :2, 2]
+    used = select_views(uv, weights, min_weight)
+    cams = cams.to(device=logits.device, dtype=DTYPE)
+    X, valid = triangulate(cams, uv, weights, used)
+    reproj, _depth = project(cams, X[:, None])  # (B, C, K, 2)
+    nan = torch.tensor(float("nan"), dtype=DTYPE, device=logits.device)
+    X = torch.where(valid[..., None], X, nan)
+    reproj = torch.where(valid[:, None, :, None], reproj, nan)
+    residual = torch.linalg.vector_norm(reproj - uv, dim=-1)
+    return ReadOut(uv, var, weights, used, X, valid, reproj, residual, probs if keep_heatmaps else None)

@@ -1,0 +1,111 @@
+"""The 3D keypoints CSV of ``s3k predict`` and ``s3k track``: anipose's 3D layout, its writer and its reader.
+
+Columns, one row per frame::
+
+    <kp>_x, <kp>_y, <kp>_z, <kp>_error, <kp>_ncams, <kp>_score   for every keypoint, then fnum
+
+``x, y, z`` are in the world units of the calibration; ``error`` is the mean reprojection error, in pixels of
+the cameras' images, over the cameras used; ``ncams`` the number of cameras used; ``score`` the mean
+confidence weight over all cameras; ``fnum`` the frame number (video frame index, or dataset frame id).
+Where the triangulation is degenerate ``x, y, z`` and ``error`` are ``nan`` (:mod:`s3k.readout`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from s3k.errors import UserError
+from s3k.fileio import atomic_path
+from s3k.readout import ReadOut
+
+__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "write_csv"]
+
+
+def csv_header(keypoints: Sequence[str]) -> list[str]:
+    """anipose's 3D CSV columns: ``<kp>_x, _y, _z, _error, _ncams, _score`` per keypoint, then ``fnum``."""
+    cols = []
+    for kp in keypoints:
+        cols += [f"{kp}_x", f"{kp}_y", f"{kp}_z", f"{kp}_error", f"{kp}_ncams", f"{kp}_score"]
+    return cols + ["fnum"]
+
+
+def _fmt(v: float) -> str:
+    return "nan" if not np.isfinite(v) else f"{v:.8g}"
+
+
+def csv_rows(fnums: Sequence[int], result: ReadOut) -> list[list[str]]:
+    """One CSV row per frame of ``result`` (columns of :func:`csv_header`)."""
+    X, error = result.X.cpu().numpy(), result.error.cpu().numpy()
+    ncams, score = result.ncams.cpu().numpy(), result.score.cpu().numpy()
+    rows = []
+    for b, fnum in enumerate(fnums):
+        row: list[str] = []
+        for k in range(X.shape[1]):
+            row += [_fmt(v) for v in X[b, k]]
+            row += [_fmt(error[b, k]), str(int(ncams[b, k])), f"{score[b, k]:.6f}"]
+        rows.append(row + [str(int(fnum))])
+    return rows
+
+
+def check_output(path: str | Path, overwrite: bool, dataset: str | Path | None = None) -> Path:
+    """Refuse an output file that would replace a file of ``dataset``, or an existing file without overwrite.
+
+    Raises:
+        UserError: naming the file (and ``--overwrite`` where it helps).
+    """
+    path = Path(path)
+    if dataset is not None and path.exists():
+        root = Path(dataset).resolve()
+        if path.resolve().is_relative_to(root):
+            raise UserError(f"--out {path} is a file of the dataset {dataset}; write the output elsewhere")
+    if path.is_dir():
+        raise UserError(f"--out {path} is a folder; give a file name")
+    if path.exists() and not overwrite:
+        raise UserError(f"--out {path} exists", hint="pass --overwrite to replace it")
+    return path
+
+
+@contextlib.contextmanager
+def write_csv(path: str | Path, keypoints: Sequence[str]) -> Iterator[csv.Writer]:  # type: ignore[name-defined]
+    """Open the CSV for writing (header written); the file appears complete, or not at all, on exit."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(csv_header(keypoints))
+        yield writer
+
+
+def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray]:
+    """The 3D points of a CSV written by :func:`write_csv`: ``{fnum: (K, 3)}``.
+
+    Args:
+        path: the CSV file.
+        keypoints: names of the keypoints to read, in the order wanted.
+
+    Returns:
+        One ``(K, 3)`` float array per frame number, NaN where a keypoint was not triangulated.
+
+    Raises:
+        UserError: a keypoint's ``_x/_y/_z`` column or ``fnum`` is missing, or a value is not a number;
+            the message names the file, the column and the line.
+    """
+    out: dict[int, np.ndarray] = {}
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        wanted = [f"{k}_{a}" for k in keypoints for a in "xyz"] + ["fnum"]
+        missing = [c for c in wanted if c not in (reader.fieldnames or [])]
+        if missing:
+            raise UserError(f"{path}: missing column(s) {missing}; has {reader.fieldnames}")
+        for row in reader:
+            try:
+                xyz = np.array([[float(row[f"{k}_{a}"] or "nan") for a in "xyz"] for k in keypoints])
+                out[int(row["fnum"])] = xyz
+            except ValueError as e:
+                raise UserError(f"{path}, line {reader.line_num}: {e}") from None
+    return out
