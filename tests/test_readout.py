@@ -1,0 +1,167 @@
+"""The read-out (s3k.readout) and its callers: the same logits give the same 3D points everywhere.
+
+The logits are Gaussians at the projections of known 3D points plus noise, so the triangulations are well
+defined but not exact; a stand-in network returns them whatever the images, so every caller (predict,
+evaluate, track's pixel-mapped path, export's graph, model.detect, the self-supervised loss, the benchmarks)
+reads out the same numbers.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from synthetic_rig import KEYPOINTS, make_dataset
+from torch import nn
+
+from s3k.data.transforms import crop_resize_matrix
+from s3k.evaluate import evaluate_store
+from s3k.export import DetectorWithMoments
+from s3k.frames import FrameStore, images_to_float, open_dataset
+from s3k.geometry import Cameras, project
+from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_softmax
+from s3k.losses import self_supervised_loss
+from s3k.model import detect
+from s3k.predict import infer, predict_store
+from s3k.readout import read_out, select_views, triangulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
+
+from benchmarks.inference import make_pipeline  # noqa: E402
+from benchmarks.inference_exported import points_of_outputs  # noqa: E402
+
+SIZE, STRIDE, SIGMA = 32, 2, 2.0
+
+
+class FixedLogits(nn.Module):
+    """A network stand-in: returns the same ``(N, K, h, w)`` logits for any ``N`` images."""
+
+    def __init__(self, logits: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("logits", logits)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        assert images.shape[0] == self.logits.shape[0], "one logit map per image"
+        return self.logits + 0.0 * images.sum()  # keeps the graph connected to the input for tracing
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A dataset's test frames, their cameras (B, C) and float32 logits peaked near the true points."""
+    path = make_dataset(tmp_path_factory.mktemp("readout") / "ds", size=SIZE, labelled=1, unlabelled=1, test=3)
+    ds = open_dataset(path, (SIZE, SIZE))
+    store = FrameStore(ds, ds.frames("test"), points=True)
+    batch = store.get(np.arange(len(store)))
+    uv, _ = project(batch.cams.to(dtype=torch.float64), batch.points.double()[:, None])  # (B, C, K, 2)
+    h = w = SIZE // STRIDE
+    target, mask = gaussian_targets(uv, None, h, w, STRIDE, SIGMA)
+    assert bool(mask.all())
+    g = torch.Generator().manual_seed(0)
+    logits = (target.clamp_min(1e-30).log() + 0.5 * torch.randn(target.shape, generator=g, dtype=torch.float64))
+    logits = logits.clamp_min(-40.0).float()  # what a network outputs
+    return SimpleNamespace(store=store, batch=batch, logits=logits, B=len(store), C=logits.shape[1])
+
+
+def test_every_caller_reads_out_the_same_points(scene):
+    B, C, K = scene.logits.shape[:3]
+    flat = scene.logits.reshape(B * C, *scene.logits.shape[2:])
+    net = FixedLogits(flat).eval()
+    cams = scene.batch.cams  # (B, C) float32, the network input's cameras
+    images = images_to_float(scene.batch.images)
+    ref = read_out(scene.logits, cams, STRIDE, SIGMA)
+    assert ref.valid.all() and ref.X.dtype == torch.float64
+    # Noise moved the detections: the points are not the truth, so agreement below is not by construction.
+    assert float((ref.X - scene.batch.points.double()).abs().max()) > 1e-4
+    X, valid = ref.X.numpy(), ref.valid.numpy()
+
+    def same(got_X, got_valid, atol=1e-12):
+        np.testing.assert_array_equal(np.asarray(got_valid), valid)
+        np.testing.assert_allclose(np.asarray(got_X, dtype=np.float64), X, rtol=0, atol=atol)
+
+    # s3k predict (library path) and s3k evaluate (through predict_store).
+    pred = infer(net, images, cams, STRIDE, SIGMA)
+    same(pred.X, pred.valid)
+    (_, stored), = list(predict_store(net, scene.store, STRIDE, SIGMA, batch_size=B))
+    same(stored.X, stored.valid)
+    meta = SimpleNamespace(stride=STRIDE, sigma=SIGMA, keypoints=list(KEYPOINTS))
+    _, arrays = evaluate_store(net, meta, scene.store, batch_size=B)
+    same(arrays["X"], arrays["X_valid"])
+    np.testing.assert_allclose(arrays["pred_uv"], ref.uv.numpy(), rtol=0, atol=1e-12)
+
+    # s3k track: detections mapped to the original images' pixels (here a crop of a larger frame) and
+    # triangulated in those cameras, K = M^-1 K'. Only the float64 round trip through M differs.
+    M = crop_resize_matrix((-6.0, 3.0, 58.0, 67.0), (SIZE, SIZE))
+    maps = np.repeat(M[None], C, axis=0)
+    K_video = torch.as_tensor(np.linalg.inv(M)) @ cams.K.double()
+    video_cams = Cameras(K_video, cams.dist.double(), cams.R.double(), cams.t.double())
+    tracked = read_out(scene.logits, video_cams, STRIDE, SIGMA, maps)
+    same(tracked.X, tracked.valid, atol=1e-9)
+    back = tracked.uv.numpy() @ M[:2, :2].T + M[:2, 2]
+    np.testing.assert_allclose(back, ref.uv.numpy(), rtol=0, atol=1e-9)
+
+    # s3k export --with-moments: the graph's means and confidences (float32 outputs) triangulated.
+    with torch.no_grad():
+        _, means, conf = DetectorWithMoments(net, STRIDE, SIGMA)(images.reshape(B * C, *images.shape[2:]))
+    means, conf = means.reshape(B, C, K, 2), conf.reshape(B, C, K)
+    np.testing.assert_allclose(means.numpy(), ref.uv.numpy(), rtol=0, atol=1e-5)
+    X_exp, valid_exp = triangulate(cams, means, conf, select_views(means, conf))
+    same(X_exp, valid_exp, atol=1e-6)  # float32 means: a micrometre at 1 m
+
+    # model.detect's moments.
+    with torch.no_grad():
+        _, mean_uv, var = detect(net, images, STRIDE)
+    w = confidence_weight(var, SIGMA)
+    same(*triangulate(cams, mean_uv, w, select_views(mean_uv, w)))
+
+    # Training's self-supervised target: the same point, in the cameras' float32.
+    _, info = self_supervised_loss(scene.logits, cams, STRIDE, SIGMA)
+    same(info["points"], info["points_valid"], atol=1e-7)
+
+    # The inference benchmarks' per-frame functions (one frame of C images).
+    one = FixedLogits(scene.logits[0]).eval()
+    frame_u8 = scene.batch.images[0]  # (C, H, W, 3)
+    with torch.inference_mode():
+        X0, valid0 = make_pipeline(one, cams[:1], STRIDE, SIGMA, channels_last=True)(frame_u8)
+    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-12)
+    assert bool(valid0.all())
+    X0, valid0 = points_of_outputs([scene.logits[0].numpy()], cams[:1], STRIDE, SIGMA, with_moments=False)
+    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-12)
+    X0, _ = points_of_outputs([None, means[0], conf[0]], cams[:1], STRIDE, SIGMA, with_moments=True)
+    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-6)
+
+
+def test_read_out_fields(scene):
+    """Moments in float64, weights, views used, residuals and their summaries, by definition."""
+    r = read_out(scene.logits, scene.batch.cams, STRIDE, SIGMA, keep_heatmaps=True)
+    probs = spatial_softmax(scene.logits.double())
+    mean, var = heatmap_moments(probs, STRIDE)
+    torch.testing.assert_close(r.probs, probs)
+    torch.testing.assert_close(r.uv, mean)
+    torch.testing.assert_close(r.weights, confidence_weight(var, SIGMA))
+    assert r.used.all() and (r.ncams == scene.C).all()  # every finite view (weights are always > 0)
+    reproj, _ = project(scene.batch.cams.to(dtype=torch.float64), r.X[:, None])
+    torch.testing.assert_close(r.reproj, reproj)
+    torch.testing.assert_close(r.residual, (reproj - mean).norm(dim=-1))
+    torch.testing.assert_close(r.error, r.residual.mean(dim=1))
+    torch.testing.assert_close(r.score, r.weights.mean(dim=1))
+
+
+def test_min_weight_drops_views_and_invalid_points_are_nan(scene):
+    logits = scene.logits.clone()
+    logits[:, 1:] = 0.0  # flat heatmaps in all but one camera: weight about 0.05
+    soft = read_out(logits, scene.batch.cams, STRIDE, SIGMA)
+    assert soft.valid.all()  # every view counts, weighted
+    hard = read_out(logits, scene.batch.cams, STRIDE, SIGMA, min_weight=0.5)
+    assert (hard.ncams == 1).all() and not hard.valid.any()
+    assert torch.isnan(hard.X).all() and torch.isnan(hard.reproj).all() and torch.isnan(hard.error).all()
+    assert torch.isfinite(hard.score).all()
+    with pytest.raises(ValueError, match="logits"):
+        read_out(logits[0], scene.batch.cams, STRIDE, SIGMA)
+    with pytest.raises(ValueError, match="cams"):
+        read_out(logits[:, :2], scene.batch.cams, STRIDE, SIGMA)
+    with pytest.raises(ValueError, match="pixel_maps"):
+        read_out(logits, scene.batch.cams, STRIDE, SIGMA, np.eye(3)[None])
