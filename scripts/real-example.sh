@@ -67,7 +67,7 @@ done
 echo "== 5. track all 120 frames of the videos with both models; 3D error against the proofread labels"
 for m in s3k baseline; do
   s3k track "$OUT/run-$m" --videos "${videos[@]}" --calibration "$OUT/calibration_fixed.toml" \
-    --crop "${crops[@]}" --out "$PUB/tracked-$m.csv" --no-progress
+    --crop "${crops[@]}" --min-weight 0.5 --out "$PUB/tracked-$m.csv" --overwrite --no-progress
   python scripts/tracked_vs_labels.py --csv "$PUB/tracked-$m.csv" --calibration "$OUT/calibration_fixed.toml" \
     --data "$OUT/crop" --sleap "${sleap[@]}" > "$PUB/tracked-vs-labels-$m.json"
   cat "$PUB/tracked-vs-labels-$m.json"
