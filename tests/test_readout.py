@@ -52,7 +52,8 @@ class FixedLogits(nn.Module):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """A dataset's test frames, their cameras (B, C) and float32 logits peaked near the true points."""
-    path = make_dataset(tmp_path_factory.mktemp("readout") / "ds", size=SIZE, labelled=1, unlabelled=1, test=3)
+    root = tmp_path_factory.mktemp("readout")
+    path = make_dataset(root / "ds", size=SIZE, labelled=1, unlabelled=1, test=3)
     ds = open_dataset(path, (SIZE, SIZE))
     store = FrameStore(ds, ds.frames("test"), points=True)
     batch = store.get(np.arange(len(store)))
@@ -61,7 +62,8 @@ def scene(tmp_path_factory):
     target, mask = gaussian_targets(uv, None, h, w, STRIDE, SIGMA)
     assert bool(mask.all())
     g = torch.Generator().manual_seed(0)
-    logits = (target.clamp_min(1e-30).log() + 0.5 * torch.randn(target.shape, generator=g, dtype=torch.float64))
+    noise = torch.randn(target.shape, generator=g, dtype=torch.float64)
+    logits = target.clamp_min(1e-30).log() + 0.5 * noise
     logits = logits.clamp_min(-40.0).float()  # what a network outputs
     return SimpleNamespace(store=store, batch=batch, logits=logits, B=len(store), C=logits.shape[1])
 

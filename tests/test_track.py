@@ -435,11 +435,11 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
                         sigma=2.0, model=UNetConfig(channels=(8, 8), stride=2).to_dict(), units="mm",
                         source_image_size=NET_SIZE)
     oracle = OracleDetector(uv_net, meta.stride, meta.sigma)
-    monkeypatch.setattr(s3k.run, "load_detector", lambda run_dir, device="cpu", checkpoint=None: (oracle, meta))
+    monkeypatch.setattr(s3k.run, "load_detector", lambda *args, **kwargs: (oracle, meta))
 
     out = tmp_path / "points3d.csv"
-    args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out), "--no-progress",
-            "--batch", "4", "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
+    args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out),
+            "--no-progress", "--batch", "4", "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
     assert cli.main(args) == 0
     assert oracle.calls == 2 and "warning" not in capsys.readouterr().err
     points = read_csv(out, KEYPOINTS)
