@@ -2,7 +2,8 @@
 
 Every caller uses these functions: ``s3k predict``, ``s3k evaluate``, ``s3k track``, ``s3k export
 --with-moments``, :func:`s3k.model.detect`, the self-supervised loss (:mod:`s3k.losses`) and the inference
-benchmarks, so what is trained, scored and shipped is the same maths. Per view ``c`` and keypoint ``k``:
+benchmarks, so what is trained, scored and shipped is the same maths (docs/method.md, "Heatmaps",
+"Confidence", "Triangulation"). Per view ``c`` and keypoint ``k``:
 
 1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` (the 2D detection, in the
    network-input pixels, pixel (0, 0) the centre of the top-left pixel) and its variance ``var_ck``.
