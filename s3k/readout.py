@@ -29,6 +29,7 @@ uncertain views outright instead of down-weighting them (the weight is 0.5 at a 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -80,10 +81,13 @@ def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tup
         ``(X (B, K, 3), valid (B, K))``: float64 points, zeros where invalid (fewer than two used views,
         near-parallel rays).
     """
-    cams = cams.to(device=uv.device, dtype=DTYPE)
-    # Unused views get a harmless pixel and zero weight: NaN must not reach the solver.
-    uv = torch.where(used[..., None], uv.to(DTYPE), torch.zeros((), dtype=DTYPE, device=uv.device))
-    w = torch.where(used, weights.to(DTYPE), torch.zeros((), dtype=DTYPE, device=uv.device))
+    if cams.dtype != DTYPE or cams.K.device != uv.device:
+        cams = cams.to(device=uv.device, dtype=DTYPE)
+    uv, w = uv.to(DTYPE), weights.to(DTYPE)
+    if not bool(used.all()):  # the common case, every view used, skips the masking
+        # Unused views get a harmless pixel and zero weight: NaN must not reach the solver.
+        zero = torch.zeros((), dtype=DTYPE, device=uv.device)
+        uv, w = torch.where(used[..., None], uv, zero), torch.where(used, w, zero)
     X, valid = triangulate_pixels(cams, uv, w)
     return X, valid & (used.sum(dim=1) >= 2)
 
@@ -99,9 +103,11 @@ class ReadOut:
         used: ``(B, C, K)`` bool, the view entered the triangulation (:func:`select_views`).
         X: ``(B, K, 3)`` triangulated points in world units, NaN where invalid.
         valid: ``(B, K)`` bool, the triangulation is defined.
-        reproj: ``(B, C, K, 2)`` reprojection of ``X`` into every camera, NaN where invalid.
-        residual: ``(B, C, K)`` distance between ``reproj`` and ``uv``, pixels, NaN where invalid.
+        cams: the cameras ``(B, C)`` or ``(C,)`` of ``uv``, float64.
         probs: ``(B, C, K, h, w)`` heatmaps (softmax), or None.
+
+    The reprojections and residuals are computed when first asked for: a caller that wants only the points
+    (the per-frame inference benchmark) does not pay for them.
     """
 
     uv: Tensor
@@ -110,9 +116,19 @@ class ReadOut:
     used: Tensor
     X: Tensor
     valid: Tensor
-    reproj: Tensor
-    residual: Tensor
+    cams: Cameras
     probs: Tensor | None = None
+
+    @cached_property
+    def reproj(self) -> Tensor:
+        """``(B, C, K, 2)`` reprojection of ``X`` into every camera, NaN where invalid."""
+        reproj, _depth = project(self.cams, self.X[:, None])
+        return torch.where(self.valid[:, None, :, None], reproj, torch.full_like(reproj, float("nan")))
+
+    @cached_property
+    def residual(self) -> Tensor:
+        """``(B, C, K)`` distance between ``reproj`` and ``uv``, pixels, NaN where invalid."""
+        return torch.linalg.vector_norm(self.reproj - self.uv, dim=-1)
 
     @property
     def ncams(self) -> Tensor:
@@ -134,7 +150,7 @@ class ReadOut:
     def cpu(self) -> ReadOut:
         """The same read-out with every tensor on the CPU."""
         return ReadOut(self.uv.cpu(), self.var.cpu(), self.weights.cpu(), self.used.cpu(), self.X.cpu(),
-                       self.valid.cpu(), self.reproj.cpu(), self.residual.cpu(),
+                       self.valid.cpu(), self.cams.to(device="cpu"),
                        None if self.probs is None else self.probs.cpu())
 
 
@@ -173,11 +189,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
         uv = uv @ Minv[:, :2, :2].transpose(-1, -2) + Minv[:, None, :2, 2]
     used = select_views(uv, weights, min_weight)
-    cams = cams.to(device=logits.device, dtype=DTYPE)
+    if cams.dtype != DTYPE or cams.K.device != logits.device:
+        cams = cams.to(device=logits.device, dtype=DTYPE)
     X, valid = triangulate(cams, uv, weights, used)
-    reproj, _depth = project(cams, X[:, None])  # (B, C, K, 2)
-    nan = torch.tensor(float("nan"), dtype=DTYPE, device=logits.device)
-    X = torch.where(valid[..., None], X, nan)
-    reproj = torch.where(valid[:, None, :, None], reproj, nan)
-    residual = torch.linalg.vector_norm(reproj - uv, dim=-1)
-    return ReadOut(uv, var, weights, used, X, valid, reproj, residual, probs if keep_heatmaps else None)
+    X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
+    return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

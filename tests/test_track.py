@@ -279,18 +279,6 @@ def test_points_from_logits_matches_geometry(recording):
         assert valid_ref.any()
 
 
-def test_points_from_logits_checks_shapes(recording):
-    inputs, cams = prepare_cameras(recording["videos"], recording["rig"], NET_SIZE)
-    maps = np.stack([c.M for c in inputs])
-    with pytest.raises(ValueError, match="logits"):
-        points_from_logits(torch.zeros(3, 3, 16, 16), cams, maps, 2, 2.0)
-    assert cams.shape == (3,)
-    with pytest.raises(ValueError, match="cams"):
-        points_from_logits(torch.zeros(1, 2, 3, 16, 16), cams, maps, 2, 2.0)
-    with pytest.raises(ValueError, match="pixel_maps"):
-        points_from_logits(torch.zeros(1, 3, 3, 16, 16), cams, maps[:2], 2, 2.0)
-
-
 # ------------------------------------------------------------------------------------------------------------
 # The command
 
