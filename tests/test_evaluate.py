@@ -192,7 +192,7 @@ def test_predict_refuses_to_overwrite(trained, tmp_path, capsys):
 
 def test_evaluate_matches_keypoints_by_name(trained, tmp_path, capsys):
     """Keypoints in another order are matched by name; other names are refused in one line naming them."""
-    from s3k.data.format import DatasetWriter
+    from s3k.data import DatasetWriter
 
     root, ds_path, run = trained
     model, meta = load_detector(run)
