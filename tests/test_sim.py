@@ -9,17 +9,8 @@ from s3k.sim import textures
 from s3k.sim.camera import look_at_xmat, mujoco_to_opencv, project_points
 from s3k.sim.generate import SimulateConfig, contact_sheet, frame_plan, frame_rng, render_frames
 from s3k.sim.render import MultiViewRenderer
-from s3k.sim.scenes import (
-    NUM_TRAIN_INSTANCES,
-    CategoryScene,
-    DistractorScene,
-    DistractorSpec,
-    FrameSpec,
-    in_image,
-    make_scene,
-    occluded,
-    sight_lines_blocked,
-)
+from s3k.sim.scene import NUM_TRAIN_INSTANCES, FrameSpec, in_image, occluded, sight_lines_blocked
+from s3k.sim.scenes import CategoryScene, DistractorScene, DistractorSpec, make_scene
 
 mujoco = pytest.importorskip("mujoco")
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from s3k.sim.scenes import NUM_TRAIN_INSTANCES, SCENES
+from s3k.sim.scene import NUM_TRAIN_INSTANCES
+from s3k.sim.scenes import SCENES
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

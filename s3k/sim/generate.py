@@ -22,7 +22,8 @@ import cv2
 import numpy as np
 
 from s3k.errors import UserError
-from s3k.sim.scenes import NUM_INSTANCES, NUM_TRAIN_INSTANCES, SCENES, FrameSpec, Scene, SimFrame, make_scene
+from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, FrameSpec, Scene, SimFrame
+from s3k.sim.scenes import SCENES, make_scene
 
 MODES = ("start", "full")
 
@@ -180,7 +181,7 @@ def default_workers() -> int:
 def labels_of(frame: SimFrame) -> tuple[np.ndarray, np.ndarray]:
     """2D labels of a frame for the writer: ``(uv (C, K, 2), mask (C, K))``, labelled where the keypoint
     projects inside the image (a keypoint hidden by another object is written as labelled-but-occluded)."""
-    from s3k.sim.scenes import in_image
+    from s3k.sim.scene import in_image
 
     H, W = frame.images.shape[1:3]
     return frame.uv, in_image(frame.uv, frame.depth, W, H)
