@@ -50,16 +50,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test", type=int, default=d.test, help=f"test frames (default {d.test})")
     parser.add_argument("--steps", type=int, default=d.steps, help=f"steps per model (default {d.steps})")
     parser.add_argument("--warmup-steps", type=int, default=None,
-                        help="S3K warm-up (default 750, or steps / 4 when shorter)")
+                        help=f"S3K warm-up (default {d.warmup_steps}, or steps / 4 when shorter)")
     parser.add_argument("--alpha", type=float, default=d.alpha, help=f"S3K alpha (default {d.alpha})")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=d.seed)
     parser.add_argument("--sequential", action="store_true", help="train one model after the other")
     args = parser.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     sched = schedule_for(args.steps)
     if args.warmup_steps is not None:
         sched["warmup_steps"] = args.warmup_steps
-    demo = DemoConfig(size=args.size, labelled=10, unlabelled=args.unlabelled, test=args.test,
+    demo = DemoConfig(size=args.size, labelled=d.labelled, unlabelled=args.unlabelled, test=args.test,
                       steps=args.steps, alpha=args.alpha, seed=args.seed, **sched)
     t0 = time.perf_counter()
     summary = run_demo(args.work, demo, progress=False, parallel=not args.sequential,

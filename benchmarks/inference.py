@@ -28,6 +28,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, matmul_flops  # noqa: E402
+from s3k.config import TrainConfig  # noqa: E402
 from s3k.geometry import Cameras  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
 from s3k.readout import read_out  # noqa: E402
@@ -86,7 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
     p.add_argument("--encoder-convs", type=int, default=None, help="extra convs per encoder level")
     p.add_argument("--norm", type=str, default=None, choices=["batch", "group", "none"])
-    p.add_argument("--sigma", type=float, default=3.0, help="target width in image pixels (confidence scale)")
+    sigma = TrainConfig().sigma_px()
+    p.add_argument("--sigma", type=float, default=sigma,
+                   help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's default)")
     p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
     p.add_argument("--repeats", type=int, default=100, help="timed frames per round (default 100)")

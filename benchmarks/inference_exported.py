@@ -36,6 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
 from benchmarks.inference import look_at_rig, make_pipeline, time_pipeline  # noqa: E402
+from s3k.config import TrainConfig  # noqa: E402
 from s3k.export import export_module, output_names  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
 from s3k.readout import read_out, select_views, triangulate  # noqa: E402
@@ -97,7 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
     p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
     p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
-    p.add_argument("--sigma", type=float, default=3.0, help="target width in image pixels (confidence scale)")
+    sigma = TrainConfig().sigma_px()
+    p.add_argument("--sigma", type=float, default=sigma,
+                   help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch and onnxruntime threads (default: torch's)")
     p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")

@@ -35,7 +35,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import conv_ceiling, emit, matmul_flops  # noqa: E402
-from s3k.config import TrainConfig  # noqa: E402
+from s3k.config import TrainConfig, default_of  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
 from s3k.train import train  # noqa: E402
 
@@ -45,8 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=128, help="image size in pixels (default 128)")
     parser.add_argument("--steps", type=int, default=30, help="timed steps (default 30)")
     parser.add_argument("--warmup", type=int, default=5, help="untimed first steps (default 5)")
-    parser.add_argument("--batch", type=int, default=4,
-                        help="labelled and unlabelled frames per step (default 4)")
+    batch = default_of("batch_labelled")
+    parser.add_argument("--batch", type=int, default=batch,
+                        help=f"labelled and unlabelled frames per step (default {batch})")
     parser.add_argument("--data", default=None, help="dataset folder (default: render a small box dataset)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-layers", action="store_true",
@@ -64,10 +65,10 @@ def main(argv: list[str] | None = None) -> int:
             data = Path(tmp) / "box"
             simulate(SimulateConfig(scene="box", size=args.size, labelled=10, unlabelled=40, test=0, seed=0),
                      data, progress=False)
-        cfg = TrainConfig(steps=args.warmup + args.steps, batch_labelled=args.batch,
-                          batch_unlabelled=args.batch, warmup_steps=0, ramp_steps=0, val_every=0,
-                          checkpoint_every=10**9, progress=False, threads=args.threads, seed=0,
-                          image_size=args.size)
+        cfg = TrainConfig.from_flat(steps=args.warmup + args.steps, batch_labelled=args.batch,
+                                    batch_unlabelled=args.batch, warmup_steps=0, ramp_steps=0, val_every=0,
+                                    checkpoint_every=10**9, progress=False, threads=args.threads, seed=0,
+                                    image_size=args.size)
         times: list[tuple[float, float]] = []
 
         def record(step: int, terms: dict) -> None:

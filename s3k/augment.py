@@ -19,31 +19,16 @@ normalized -1 and +1 to the centres of the first and last pixels, which is the s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from s3k.config import AugmentationConfig
 
-@dataclass
-class Augmentation:
-    """Ranges of the random augmentation (see ``TrainConfig`` for the meaning of each field)."""
-
-    rotation_deg: float = 180.0
-    scale: float = 0.2
-    shift_px: float = 10.0
-    brightness: float = 0.2
-    contrast: float = 0.2
-    colour: float = 0.1
-    noise: float = 0.02
-
-    @classmethod
-    def from_config(cls, cfg) -> Augmentation:
-        """The augmentation ranges of a ``TrainConfig``."""
-        return cls(cfg.rotation_deg, cfg.scale, cfg.shift_px, cfg.brightness, cfg.contrast, cfg.colour,
-                   cfg.noise)
+# The ranges live in the configuration (one definition of each field, its default and its documentation).
+Augmentation = AugmentationConfig
 
 
 def _uniform(n: int, low: float, high: float, generator: torch.Generator | None) -> Tensor:
@@ -305,36 +290,6 @@ def augment_frames(images: Tensor, K: Tensor, aug: Augmentation, generator: torc
         flat = images.reshape(B * C, H, W, Ch).to(device).permute(0, 3, 1, 2).float()
         flat = warp_images(flat, M)
     flat = photometric(flat, aug, generator, noise_bank, input_scale=1.0 / 255.0)
-    M = M.reshape(B, C, 3, 3)
-    K_new = (M.to(K.device) @ K.to(torch.float64)).to(K.dtype)
-    uv_new = warp_points(uv, M.to(device=uv.device)) if uv is not None else None
-    return flat.reshape(B, C, Ch, H, W), K_new, uv_new, M
-
-
-def augment_views(images: Tensor, K: Tensor, aug: Augmentation, generator: torch.Generator | None = None,
-                  uv: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-    """Augment a batch of multi-view frames, each image independently, keeping the geometry exact.
-
-    Args:
-        images: (B, C, 3, H, W) float images in [0, 1].
-        K: (B, C, 3, 3) intrinsics of those images.
-        aug: augmentation ranges.
-        generator: CPU random generator (all randomness is drawn from it).
-        uv: optional (B, C, N, 2) pixel points (e.g. 2D labels) to move with the images.
-
-    Returns:
-        images: (B, C, 3, H, W) augmented images.
-        K: (B, C, 3, 3) updated intrinsics ``M @ K`` (same dtype and device as the input).
-        uv: (B, C, N, 2) moved points, or None.
-        M: (B, C, 3, 3) float64 CPU transforms that were applied.
-    """
-    if images.ndim != 5 or K.shape != (*images.shape[:2], 3, 3):
-        raise ValueError(f"images (B, C, 3, H, W) and K (B, C, 3, 3) expected, got {tuple(images.shape)} and "
-                         f"{tuple(K.shape)}")
-    B, C, Ch, H, W = images.shape
-    M = random_similarity(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator)
-    flat = warp_images(images.reshape(B * C, Ch, H, W), M)
-    flat = photometric(flat, aug, generator)
     M = M.reshape(B, C, 3, 3)
     K_new = (M.to(K.device) @ K.to(torch.float64)).to(K.dtype)
     uv_new = warp_points(uv, M.to(device=uv.device)) if uv is not None else None

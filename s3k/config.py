@@ -1,21 +1,26 @@
 """Typed, documented configuration for training, loaded from a TOML/JSON file and command-line overrides.
 
-Every field of :class:`TrainConfig` carries its documentation in ``metadata["help"]``; the same text is
-shown by ``s3k train --help`` next to the field's default. Values are resolved in this order, later winning:
+:class:`TrainConfig` groups its fields in sections (``model``, ``augmentation``, ``schedule``,
+``self_supervision``, ``monitoring``, ``execution``), each a dataclass whose fields carry their documentation
+in ``metadata["help"]``; ``s3k train --help`` shows that text next to the field's default. Field names are
+unique across sections, so a configuration is also a flat table of field names: the command line
+(``--steps``, ``--alpha``), config files and ``RUN/config.json`` use that flat form, and ``cfg.steps`` reads
+``cfg.schedule.steps``. Values are resolved in this order, later winning:
 
 1. the dataclass defaults,
 2. a config file (``--config FILE``, TOML or JSON, a flat table of field names),
 3. command-line overrides ``--field value`` (``--field-name`` also works; booleans are ``--flag/--no-flag``).
 
 Example:
-    >>> cfg = TrainConfig()
-    >>> cfg.alpha_at(0), cfg.alpha_at(cfg.warmup_steps + cfg.ramp_steps)
-    (0.0, 0.5)
+    >>> cfg = TrainConfig.from_flat(steps=100, unsup=False)
+    >>> cfg.schedule.steps, cfg.steps, cfg.alpha_at(10_000)
+    (100, 100, 0.0)
+    >>> TrainConfig().alpha_at(TrainConfig().warmup_steps + TrainConfig().ramp_steps)
+    0.5
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import types
@@ -24,40 +29,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from s3k.errors import UserError
 
-def _f(default: Any, help: str) -> Any:
-    """A dataclass field with a default and its documentation."""
-    if isinstance(default, (list, dict)):
-        return field(default_factory=lambda: type(default)(default), metadata={"help": help})
-    return field(default=default, metadata={"help": help})
+
+def _f(default: Any, help: str, resumable: bool = False) -> Any:
+    """A dataclass field with a default and its documentation.
+
+    ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
+    not what it learns from); every other field must match the run being resumed.
+    """
+    return field(default=default, metadata={"help": help, "resumable": resumable})
 
 
 @dataclass
-class TrainConfig:
-    """Everything that defines a training run; written to ``RUN/config.json``.
+class ModelConfig:
+    """The network and its heatmap targets."""
 
-    Defaults are sized for a 2-core CPU: 96-128 px images, a U-Net of about 100k parameters, heatmaps at
-    stride 2 and a few thousand steps.
-    """
-
-    # --- schedule ---
-    steps: int = _f(3000, "number of optimizer steps")
-    batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)")
-    batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term")
-    lr: float = _f(1e-3, "Adam learning rate at the start")
-    lr_final: float = _f(0.05, "learning rate at the last step as a fraction of lr (cosine decay)")
-    weight_decay: float = _f(1e-5, "lambda: weight of the squared L2 norm of non-bias parameters")
-    grad_clip: float = _f(10.0, "clip the global gradient norm to this value (0: no clipping)")
-
-    # --- self-supervision ---
-    unsup: bool = _f(True, "use the self-supervised multi-view term; --no-unsup trains the labels-only "
-                           "baseline (same network, no unlabelled batch)")
-    alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)")
-    warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
-                                "avoids locking in a collapse from a random network")
-    ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up")
-
-    # --- network and targets ---
     image_size: int = _f(0, "resize images so the longer side has this many pixels (0: keep the dataset's "
                             "size)")
     channels: tuple[int, ...] = _f((16, 32, 32, 32), "U-Net channels per level, level 0 at heatmap "
@@ -67,7 +54,11 @@ class TrainConfig:
     stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels")
     sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)")
 
-    # --- augmentation (geometry stays exact: K <- M K) ---
+
+@dataclass
+class AugmentationConfig:
+    """Random per-image augmentation; the geometry stays exact (``K <- M K``, ``s3k.augment``)."""
+
     augment: bool = _f(True, "augment every image with a random similarity and photometric changes")
     rotation_deg: float = _f(180.0, "maximum in-plane rotation of the augmentation, degrees")
     scale: float = _f(0.2, "maximum relative scale change of the augmentation (0.2: x0.8 to x1.2)")
@@ -77,24 +68,109 @@ class TrainConfig:
     colour: float = _f(0.1, "maximum relative per-channel gain change")
     noise: float = _f(0.02, "maximum standard deviation of additive Gaussian pixel noise")
 
-    # --- monitoring ---
-    val_every: int = _f(250, "validate (metrics, collapse check, images) every this many steps (0: never)")
-    val_frames: int = _f(16, "frames used for validation")
-    val_split: str = _f("test", "split used for validation; falls back to 'unlabelled' when absent or empty")
+
+@dataclass
+class ScheduleConfig:
+    """Optimization: steps, batches, learning rate."""
+
+    steps: int = _f(3000, "number of optimizer steps", resumable=True)
+    batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)")
+    batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term")
+    lr: float = _f(1e-3, "Adam learning rate at the start")
+    lr_final: float = _f(0.05, "learning rate at the last step as a fraction of lr (cosine decay)")
+    weight_decay: float = _f(1e-5, "lambda: weight of the squared L2 norm of non-bias parameters")
+    grad_clip: float = _f(10.0, "clip the global gradient norm to this value (0: no clipping)")
+
+
+@dataclass
+class SelfSupervisionConfig:
+    """The self-supervised multi-view term and its schedule."""
+
+    unsup: bool = _f(True, "use the self-supervised multi-view term; --no-unsup trains the labels-only "
+                           "baseline (same network, no unlabelled batch)")
+    alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)")
+    warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
+                                "avoids locking in a collapse from a random network")
+    ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up")
+
+
+@dataclass
+class MonitoringConfig:
+    """Validation, logs and checkpoints."""
+
+    val_every: int = _f(250, "validate (metrics, collapse check, images) every this many steps (0: never)",
+                        resumable=True)
+    val_frames: int = _f(16, "frames used for validation", resumable=True)
+    val_split: str = _f("test", "split used for validation; falls back to 'unlabelled' when absent or empty",
+                        resumable=True)
     collapse_fraction: float = _f(0.3, "warn of a collapse when the mean pairwise distance of the "
                                        "triangulated keypoints falls below this fraction of the labelled "
-                                       "layout's")
-    log_every: int = _f(25, "write loss terms to TensorBoard every this many steps")
-    checkpoint_every: int = _f(500, "write RUN/checkpoint.pt every this many steps (and at the end)")
-    max_nonfinite: int = _f(20, "stop cleanly after this many consecutive steps with a non-finite loss")
-    progress: bool = _f(True, "show a progress bar")
+                                       "layout's", resumable=True)
+    log_every: int = _f(25, "write loss terms to TensorBoard every this many steps", resumable=True)
+    checkpoint_every: int = _f(500, "write RUN/checkpoint.pt every this many steps (and at the end)",
+                               resumable=True)
+    max_nonfinite: int = _f(20, "stop cleanly after this many consecutive steps with a non-finite loss",
+                            resumable=True)
+    progress: bool = _f(True, "show a progress bar", resumable=True)
 
-    # --- execution ---
+
+@dataclass
+class ExecutionConfig:
+    """Randomness and where and how the computation runs."""
+
     seed: int = _f(0, "random seed (batches, augmentation, initialization)")
-    device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'")
+    device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
-                         "since threads waiting for a busy core stall every convolution")
-    preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB")
+                         "since threads waiting for a busy core stall every convolution", resumable=True)
+    preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB",
+                         resumable=True)
+
+
+def _section(cls: type, help: str) -> Any:
+    return field(default_factory=cls, metadata={"help": help})
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run; written (flat) to ``RUN/config.json``.
+
+    Defaults are sized for a 2-core CPU: 96-128 px images, a U-Net of about 100k parameters, heatmaps at
+    stride 2 and a few thousand steps. Read a field as ``cfg.schedule.steps`` or, since field names are unique
+    across sections, ``cfg.steps``; build one from flat values with :meth:`from_flat` and change fields with
+    :meth:`replace`.
+    """
+
+    model: ModelConfig = _section(ModelConfig, "network and targets")
+    augmentation: AugmentationConfig = _section(AugmentationConfig, "augmentation")
+    schedule: ScheduleConfig = _section(ScheduleConfig, "schedule")
+    self_supervision: SelfSupervisionConfig = _section(SelfSupervisionConfig, "self-supervision")
+    monitoring: MonitoringConfig = _section(MonitoringConfig, "monitoring")
+    execution: ExecutionConfig = _section(ExecutionConfig, "execution")
+
+    def __getattr__(self, name: str) -> Any:
+        # Only called when ordinary lookup fails: a flat field name reads its section's field.
+        section = _FIELD_SECTION.get(name)
+        if section is None:
+            raise AttributeError(f"{type(self).__name__} has no field {name!r}")
+        return getattr(self.__dict__[section], name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        section = _FIELD_SECTION.get(name)
+        if section is not None:  # a flat name sets the section's field (never a stray attribute)
+            setattr(self.__dict__[section], name, value)
+        else:
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_flat(cls, base: TrainConfig | None = None, where: str = "config", **values: Any) -> TrainConfig:
+        """A configuration from flat field values over ``base`` (or the defaults), e.g.
+        ``TrainConfig.from_flat(steps=100, unsup=False)``; values are checked and converted to the field
+        types (a list gives a tuple); an unknown name raises ``ValueError`` naming it and ``where``."""
+        return config_from_dict(cls, values, base=base, where=where)
+
+    def replace(self, **values: Any) -> TrainConfig:
+        """A copy with the flat fields ``values`` changed."""
+        return self.from_flat(base=self, **values)
 
     def alpha_at(self, step: int) -> float:
         """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha.
@@ -105,51 +181,97 @@ class TrainConfig:
         Returns:
             The alpha used at that step (always 0 for the labels-only baseline).
         """
-        if not self.unsup or step < self.warmup_steps:
+        s = self.self_supervision
+        if not s.unsup or step < s.warmup_steps:
             return 0.0
-        if self.ramp_steps <= 0:
-            return float(self.alpha)
-        return float(self.alpha) * min(1.0, (step - self.warmup_steps + 1) / self.ramp_steps)
+        if s.ramp_steps <= 0:
+            return float(s.alpha)
+        return float(s.alpha) * min(1.0, (step - s.warmup_steps + 1) / s.ramp_steps)
 
     def sigma_px(self) -> float:
         """Target Gaussian width in image pixels."""
-        return float(self.sigma) * int(self.stride)
+        return float(self.model.sigma) * int(self.model.stride)
 
     def validate(self) -> None:
-        """Raise ``ValueError`` naming the field when a value is out of range."""
+        """Raise ``UserError`` naming the field when a value is out of range."""
         positive = ["steps", "batch_labelled", "stride", "lr", "sigma", "val_frames", "max_nonfinite",
                     "checkpoint_every", "log_every"]
         for name in positive:
             if getattr(self, name) <= 0:
-                raise ValueError(f"config field {name!r} must be > 0, got {getattr(self, name)!r}")
+                raise UserError(f"config field {name!r} must be > 0, got {getattr(self, name)!r}")
         non_negative = [
             "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
             "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
-            "colour",
-            "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
+            "colour", "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
         ]
         for name in non_negative:
             if getattr(self, name) < 0:
-                raise ValueError(f"config field {name!r} must be >= 0, got {getattr(self, name)!r}")
+                raise UserError(f"config field {name!r} must be >= 0, got {getattr(self, name)!r}")
         if self.unsup and self.batch_unlabelled <= 0:
-            raise ValueError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
+            raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
         if not self.channels or any(c <= 0 for c in self.channels):
-            raise ValueError(f"config field 'channels' must be positive integers, got {self.channels!r}")
+            raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
         if self.scale >= 1:
-            raise ValueError(f"config field 'scale' must be < 1, got {self.scale!r}")
+            raise UserError(f"config field 'scale' must be < 1, got {self.scale!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary of all fields."""
-        out = dataclasses.asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
+        """JSON-ready flat dictionary of all fields (tuples as lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in flat_values(self).items()}
+
+
+_FIELD_SECTION: dict[str, str] = {
+    leaf.name: section.name
+    for section in dataclasses.fields(TrainConfig)
+    for leaf in dataclasses.fields(section.default_factory)  # type: ignore[arg-type]
+}
 
 
 # ----------------------------------------------------------------------------------------------------
-# Generic dataclass <-> file / argparse plumbing (works for any dataclass with documented fields).
+# Generic dataclass <-> file / argparse plumbing. A configuration class is a dataclass whose fields are
+# either documented values or sections (dataclasses of documented values); leaves are addressed by their
+# (unique) names.
 
 
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+def _is_section(tp: Any) -> bool:
+    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
+def leaf_fields(cls: type) -> list[tuple[str | None, dataclasses.Field, Any]]:
+    """``(section name or None, field, type)`` of every value field of ``cls``, sections expanded."""
+    out: list[tuple[str | None, dataclasses.Field, Any]] = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if _is_section(tp):
+            inner = typing.get_type_hints(tp)
+            out.extend((f.name, g, inner[g.name]) for g in dataclasses.fields(tp))
+        else:
+            out.append((None, f, tp))
+    return out
+
+
+def flat_values(cfg: Any) -> dict[str, Any]:
+    """The leaf values of a configuration, by field name."""
+    return {f.name: getattr(getattr(cfg, s) if s else cfg, f.name) for s, f, _ in leaf_fields(type(cfg))}
+
+
+def resumable_fields(cls: type = TrainConfig) -> set[str]:
+    """Names of the fields ``--resume`` may change."""
+    return {f.name for _, f, _ in leaf_fields(cls) if f.metadata.get("resumable")}
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory()  # type: ignore[misc,operator]
+
+
+def default_of(name: str, cls: type = TrainConfig) -> Any:
+    """The default of the field ``name`` of ``cls``, for settings elsewhere that start from it."""
+    for _, f, _ in leaf_fields(cls):
+        if f.name == name:
+            return _default(f)
+    raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 
 def _base_type(tp: Any) -> tuple[Any, bool]:
@@ -165,13 +287,13 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
     """Convert ``value`` (from JSON/TOML or a command-line string) to the field type ``tp``.
 
     Raises:
-        ValueError: naming ``where`` (file and field) and the offending value.
+        UserError: naming ``where`` (file and field) and the offending value.
     """
     base, optional = _base_type(tp)
     if value is None or (optional and isinstance(value, str) and value.lower() in ("none", "null")):
         if optional:
             return None
-        raise ValueError(f"{where}: null is not allowed")
+        raise UserError(f"{where}: null is not allowed")
     try:
         if typing.get_origin(base) is tuple:
             (inner, *_rest) = typing.get_args(base)
@@ -201,7 +323,7 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
                 raise ValueError("expected a string")
             return value
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{where}: invalid value {value!r} ({exc})") from None
+        raise UserError(f"{where}: invalid value {value!r} ({exc})") from None
     raise ValueError(f"{where}: unsupported field type {tp!r}")
 
 
@@ -209,77 +331,54 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     """Read a flat table of field values from a ``.toml`` or ``.json`` file."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"config file {path} does not exist")
+        raise UserError(f"config file {path} does not exist")
     if path.suffix.lower() == ".toml":
         try:
             import tomllib
         except ModuleNotFoundError:  # Python < 3.11
             import tomli as tomllib  # type: ignore[no-redef]
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+        try:
+            with open(path, "rb") as fh:
+                data = tomllib.load(fh)
+        except tomllib.TOMLDecodeError as exc:
+            raise UserError(f"config file {path}: not valid TOML ({exc})") from None
     elif path.suffix.lower() == ".json":
-        data = json.loads(path.read_text())
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError(f"config file {path}: not valid JSON ({exc})") from None
     else:
-        raise ValueError(f"config file {path}: expected a .toml or .json file")
+        raise UserError(f"config file {path}: expected a .toml or .json file")
     if not isinstance(data, dict):
-        raise ValueError(f"config file {path}: expected a table of field names")
+        raise UserError(f"config file {path}: expected a table of field names")
     return data
 
 
 def config_from_dict(cls: type, data: dict[str, Any], base: Any = None, where: str = "config") -> Any:
-    """Build a ``cls`` instance from ``data`` over ``base`` (or the defaults); unknown keys are errors."""
-    types_ = _field_types(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    values = dataclasses.asdict(base) if base is not None else {}
-    for key, value in data.items():
-        if key not in names:
-            raise ValueError(f"{where}: unknown field {key!r}; known fields: {', '.join(sorted(names))}")
-        values[key] = coerce(types_[key], value, f"{where}: field {key!r}")
-    return cls(**values)
+    """Build a ``cls`` instance from the flat table ``data`` over ``base`` (or the defaults).
 
-
-def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig) -> None:
-    """Add ``--config FILE`` and one ``--field value`` option per field of ``cls`` to ``parser``.
-
-    Options default to ``argparse.SUPPRESS`` so that only values given on the command line override the file;
-    each option's help shows the field's documentation and its default.
+    A value may also be given inside its section (``{"schedule": {"steps": 10}}``). Unknown names raise
+    ``UserError`` naming ``where`` and the field; values are converted to the field types.
     """
-    types_ = _field_types(cls)
-    group = parser.add_argument_group("configuration (defaults < --config file < command line)")
-    group.add_argument("--config", metavar="FILE", default=None,
-                       help="TOML or JSON file with a flat table of the fields below")
+    leaves = {f.name: (s, tp) for s, f, tp in leaf_fields(cls)}
+    sections = {s for s, _, _ in leaf_fields(cls) if s}
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        if key in sections and isinstance(value, dict):
+            flat.update(value)
+        else:
+            flat[key] = value
+    values = flat_values(base) if base is not None else {}
+    for key, value in flat.items():
+        if key not in leaves:
+            raise UserError(f"{where}: unknown field {key!r}; known fields: {', '.join(sorted(leaves))}")
+        values[key] = coerce(leaves[key][1], value, f"{where}: field {key!r}")
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
-        base, _ = _base_type(types_[f.name])
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        else:
-            default = f.default_factory()  # type: ignore[misc,operator]
-        shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
-        text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
-        flags = [f"--{f.name}"]
-        if "_" in f.name:
-            flags.append(f"--{f.name.replace('_', '-')}")
-        if base is bool:
-            group.add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction,
-                               default=argparse.SUPPRESS, help=text)
-        else:
-            is_tuple = typing.get_origin(base) is tuple
-            metavar = "N,N,..." if is_tuple else getattr(base, "__name__", "V").upper()
-            group.add_argument(*flags, dest=f.name, default=argparse.SUPPRESS, metavar=metavar, help=text)
-
-
-def config_from_args(args: argparse.Namespace, cls: type = TrainConfig, base: Any = None) -> Any:
-    """Resolve defaults (or ``base``) < ``args.config`` file < explicit command-line options."""
-    cfg = base if base is not None else cls()
-    if getattr(args, "config", None):
-        data = read_config_file(args.config)
-        cfg = config_from_dict(cls, data, base=cfg, where=f"config file {args.config}")
-    overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
-    if overrides:
-        cfg = config_from_dict(cls, overrides, base=cfg, where="command line")
-    return cfg
-
-
-def explicit_overrides(args: argparse.Namespace, cls: type = TrainConfig) -> dict[str, Any]:
-    """The fields given explicitly on the command line (raw values)."""
-    return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+        if _is_section(hints[f.name]):
+            inner = {g.name: values[g.name] for g in dataclasses.fields(hints[f.name]) if g.name in values}
+            kwargs[f.name] = hints[f.name](**inner)
+        elif f.name in values:
+            kwargs[f.name] = values[f.name]
+    return cls(**kwargs)

@@ -20,60 +20,38 @@ pipeline works.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
-from s3k.config import TrainConfig
+from s3k.config import TrainConfig, default_of
 
 
 @dataclass
 class DemoConfig:
-    """Sizes of the demo."""
+    """Sizes of the demo; the self-supervision schedule and the seed start from ``TrainConfig``'s."""
 
     size: int = 96
     labelled: int = 10
     unlabelled: int = 2000
     test: int = 200
     steps: int = 4000
-    warmup_steps: int = 750
-    ramp_steps: int = 750
-    alpha: float = 0.5
-    seed: int = 0
+    warmup_steps: int = default_of("warmup_steps")
+    ramp_steps: int = default_of("ramp_steps")
+    alpha: float = default_of("alpha")
+    seed: int = default_of("seed")
 
 
 def schedule_for(steps: int) -> dict[str, int]:
-    """Warm-up and ramp lengths for a run of ``steps``: 750 each, or a quarter of the run when shorter."""
-    n = min(750, steps // 4)
-    return {"warmup_steps": n, "ramp_steps": n}
+    """Warm-up and ramp lengths for a run of ``steps``: the defaults, or a quarter of the run when shorter."""
+    return {name: min(default_of(name), steps // 4) for name in ("warmup_steps", "ramp_steps")}
 
 
 QUICK = DemoConfig(size=48, labelled=10, unlabelled=40, test=12, steps=60, warmup_steps=20, ramp_steps=20)
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    d = DemoConfig()
-    parser.add_argument("--out", default="s3k-demo", help="output folder (default: s3k-demo)")
-    parser.add_argument("--quick", action="store_true",
-                        help="tiny version (under a minute) to check the set-up")
-    parser.add_argument("--unlabelled", type=int, default=None,
-                        help=f"unlabelled frames (default {d.unlabelled})")
-    parser.add_argument("--test", type=int, default=None, help=f"test frames (default {d.test})")
-    parser.add_argument("--steps", type=int, default=None,
-                        help=f"training steps per model (default {d.steps})")
-    parser.add_argument("--warmup-steps", type=int, default=None,
-                        help=f"S3K labels-only warm-up steps (default {d.warmup_steps})")
-    parser.add_argument("--alpha", type=float, default=None,
-                        help=f"S3K alpha after the ramp (default {d.alpha})")
-    parser.add_argument("--seed", type=int, default=0, help="dataset and training seed (default 0)")
-    parser.add_argument("--sequential", action="store_true",
-                        help="train the two models one after the other instead of side by side")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def comparison_table(results: dict[str, dict]) -> str:
@@ -116,7 +94,7 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
     for name, folder, cfg in jobs:
         folder.mkdir(parents=True, exist_ok=True)
         cfg_file = folder.parent / f"{folder.name}.train.json"
-        cfg_file.write_text(json.dumps(replace(cfg, threads=1, progress=False).to_dict(), indent=2))
+        cfg_file.write_text(json.dumps(cfg.replace(threads=1, progress=False).to_dict(), indent=2))
         cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(folder), "--resume",
                "--config", str(cfg_file)]
         console = open(folder.parent / f"{folder.name}.console.txt", "a")
@@ -175,10 +153,11 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
                              test=demo.test, seed=demo.seed)
         simulate(sim, data, progress=progress, overwrite=True)
         timings["simulate_s"] = time.perf_counter() - t
-    base_cfg = TrainConfig(steps=demo.steps, warmup_steps=demo.warmup_steps, ramp_steps=demo.ramp_steps,
-                           alpha=demo.alpha, seed=demo.seed, progress=progress,
-                           val_every=max(demo.steps // 6, 1), checkpoint_every=max(demo.steps // 6, 1))
-    runs = {"labels only": replace(base_cfg, unsup=False), "S3K": base_cfg}
+    base_cfg = TrainConfig.from_flat(steps=demo.steps, warmup_steps=demo.warmup_steps,
+                                     ramp_steps=demo.ramp_steps, alpha=demo.alpha, seed=demo.seed,
+                                     progress=progress, val_every=max(demo.steps // 6, 1),
+                                     checkpoint_every=max(demo.steps // 6, 1))
+    runs = {"labels only": base_cfg.replace(unsup=False), "S3K": base_cfg}
     folders = {"labels only": out / "baseline", "S3K": out / "s3k"}
     results: dict[str, dict] = {}
     todo = [(n, folders[n], cfg) for n, cfg in runs.items() if not (folders[n] / "model.pt").is_file()]
@@ -227,21 +206,3 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     (report / "comparison.json").write_text(json.dumps(summary, indent=2) + "\n")
     _plot(results, report / "comparison.png")
     return summary
-
-
-def run(args: argparse.Namespace) -> int:
-    demo = QUICK if args.quick else DemoConfig()
-    over = {k: v for k, v in (("unlabelled", args.unlabelled), ("test", args.test), ("steps", args.steps),
-                              ("warmup_steps", args.warmup_steps), ("alpha", args.alpha)) if v is not None}
-    demo = replace(demo, seed=args.seed, **over)
-    if args.steps is not None and args.warmup_steps is None:
-        demo = replace(demo, **schedule_for(demo.steps))
-    summary = run_demo(args.out, demo, progress=not args.no_progress, parallel=not args.sequential)
-    print()
-    print(summary["scale"])
-    print(comparison_table({k: summary[k] for k in ("labels only", "S3K")}))
-    t = summary["timings"]
-    total = t.get("total_s", t["this_call_s"])
-    print(f"\nreport: {Path(args.out) / 'report'} (total {total / 60:.1f} min, "
-          f"this call {t['this_call_s'] / 60:.1f} min)")
-    return 0

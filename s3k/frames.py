@@ -71,9 +71,7 @@ def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "di
     from s3k.data import Dataset
 
     ds = Dataset.open(path, cache=cache)
-    if out_size is not None and tuple(ds.image_size) != tuple(out_size):
-        ds = Dataset.open(path, image_size=tuple(out_size), cache=cache)
-    return ds
+    return ds if out_size is None else ds.resized(out_size)
 
 
 class FrameStore:

@@ -8,21 +8,25 @@ Layout of ``RUN/``::
     train.log        the log, including non-finite-loss and collapse warnings
     tensorboard/     TensorBoard event files (loss terms, validation metrics, images)
 
-Every file is written atomically (write ``NAME.tmp`` then ``os.replace``), so a run killed at any moment
-leaves the previous complete checkpoint in place.
+Every file is written atomically (``s3k.fileio``), so a run killed at any moment leaves the previous complete
+checkpoint in place. The ``.pt`` files hold only tensors and plain containers (the configuration and meta as
+dicts) and are read with ``torch.load(..., weights_only=True)`` (:func:`load_torch_file`), so loading a run
+never runs code from the file.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from s3k.errors import UserError
+from s3k.fileio import atomic_path, atomic_write_json
 from s3k.model import UNet, UNetConfig
 
 CONFIG_FILE = "config.json"
@@ -30,6 +34,9 @@ CHECKPOINT_FILE = "checkpoint.pt"
 MODEL_FILE = "model.pt"
 LOG_FILE = "train.log"
 TENSORBOARD_DIR = "tensorboard"
+# every file a run holds: what --overwrite may delete
+RUN_FILES = (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE, LOG_FILE, TENSORBOARD_DIR)
+MODEL_FORMAT = "s3k-model/1"
 
 
 @dataclass
@@ -74,34 +81,68 @@ class DetectorMeta:
 
 
 def atomic_save(obj: Any, path: str | Path) -> None:
-    """``torch.save`` to ``path.tmp`` then rename over ``path`` (never a half-written file)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    """``torch.save`` to a temporary file then rename it over ``path`` (never a half-written file).
+
+    ``obj`` must hold only tensors, dicts, lists, tuples, numbers, strings and None, so that
+    :func:`load_torch_file` can read it back without running any pickled code.
+    """
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
-def atomic_write_text(text: str, path: str | Path) -> None:
-    """Write text to ``path.tmp`` then rename over ``path``."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def load_torch_file(path: str | Path, what: str, keys: Sequence[str]) -> dict[str, Any]:
+    """Read an s3k ``.pt`` file (a dict holding ``keys``) with ``weights_only=True``: nothing in it runs.
+
+    Args:
+        path: the file.
+        what: what it should be, for the message ("model", "checkpoint").
+        keys: keys the dict must have.
+
+    Raises:
+        UserError: naming the file when it is unreadable, truncated, holds anything but tensors and plain
+            containers (a foreign or crafted pickle), or lacks ``keys``.
+    """
+    refusal = f"{path}: not an s3k {what} or written by an older s3k"
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError:
+        raise  # missing or unreadable: the CLI names the file and the system's reason
+    except Exception as exc:  # noqa: BLE001 - the unpickler and the zip reader raise many kinds
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{refusal} (reading it failed: {reason[:200]})", hint="retrain") from exc
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise UserError(f"{refusal} (it lacks {' or '.join(repr(k) for k in keys)})", hint="retrain")
+    return state
+
+
+def save_model_file(path: str | Path, model: dict[str, Any], meta: DetectorMeta, step: int) -> None:
+    """Write ``RUN/model.pt``: the final weights (a state dict), :class:`DetectorMeta` as a dict, the step."""
+    atomic_save({"format": MODEL_FORMAT, "model": model, "meta": meta.to_dict(), "step": step}, path)
 
 
 def write_run_config(run_dir: str | Path, config: dict[str, Any], meta: DetectorMeta,
-                     dataset: str | None = None) -> None:
-    """Write ``RUN/config.json``: {"config": ..., "meta": ..., "dataset": ...}."""
-    doc = {"config": config, "meta": meta.to_dict(), "dataset": dataset}
-    atomic_write_text(json.dumps(doc, indent=2) + "\n", Path(run_dir) / CONFIG_FILE)
+                     dataset: str | None = None, **extra: Any) -> None:
+    """Write ``RUN/config.json``: {"config": ..., "meta": ..., "dataset": ..., **extra}."""
+    doc = {"config": config, "meta": meta.to_dict(), "dataset": dataset, **extra}
+    atomic_write_json(doc, Path(run_dir) / CONFIG_FILE)
 
 
 def read_run_config(run_dir: str | Path) -> dict[str, Any]:
-    """Read ``RUN/config.json``; raises FileNotFoundError naming the file when absent."""
+    """Read ``RUN/config.json``.
+
+    Raises:
+        UserError: naming the file when it is absent or not an s3k run configuration.
+    """
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not an s3k run folder")
-    return json.loads(path.read_text())
+        raise UserError(f"{path} not found: {run_dir} is not an s3k run folder")
+    try:
+        doc = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
+        raise UserError(f"{path}: not an s3k run configuration (no 'config' table)")
+    return doc
 
 
 def build_model(meta: DetectorMeta) -> UNet:
@@ -133,13 +174,16 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
     for name in names:
         path = run_dir / name
         if path.is_file():
-            state = torch.load(path, map_location="cpu", weights_only=False)
+            state = load_torch_file(path, "model", ("meta", "model"))
             break
     else:
-        raise FileNotFoundError(f"{run_dir}: no {' or '.join(names)} (train first, or check the path)")
-    if "meta" not in state or "model" not in state:
-        raise ValueError(f"{path}: not an s3k model file (missing 'meta' or 'model')")
-    meta = DetectorMeta.from_dict(state["meta"])
-    model = build_model(meta)
-    model.load_state_dict(state["model"])
+        raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
+    try:
+        meta = DetectorMeta.from_dict(state["meta"])
+        model = build_model(meta)
+        model.load_state_dict(state["model"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+        raise UserError(f"{path}: not an s3k model or written by an older s3k (its content does not fit: "
+                        f"{reason})", hint="retrain") from exc
     return model.to(device).eval(), meta

@@ -54,8 +54,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled: int = 8, test: int = 4,
-                 seed: int = 0) -> Path:
-    """Write the dataset to ``path``; returns the path."""
+                 seed: int = 0, label_cameras: int = 4) -> Path:
+    """Write the dataset to ``path``; returns the path. Labels are given in the first ``label_cameras``
+    cameras (1: no keypoint can be triangulated from the labels)."""
     from s3k.data import DatasetWriter
 
     rng = np.random.default_rng(seed)
@@ -72,7 +73,10 @@ def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled
                     for k in range(3):
                         centre = (int(round(uv[c, k, 0] * 4)), int(round(uv[c, k, 1] * 4)))
                         cv2.circle(images[c], centre, 8, COLOURS[k], -1, cv2.LINE_AA, shift=2)
-                labels = uv if split == "labelled" else None
+                labels = None
+                if split == "labelled":
+                    labels = uv.copy()
+                    labels[label_cameras:] = np.nan
                 w.add_frame(fid, split, images, None, labels, points3d=X)
                 fid += 1
     return path

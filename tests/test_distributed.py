@@ -24,9 +24,9 @@ SCRIPT = textwrap.dedent(
     data, out, dump = sys.argv[1:4]
     dist.init_process_group("gloo")
     rank = dist.get_rank()
-    cfg = TrainConfig(steps=2, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
-                      warmup_steps=0, ramp_steps=1, val_every=1, val_frames=2, checkpoint_every=1,
-                      progress=False, threads=1, device="cpu")
+    cfg = TrainConfig.from_flat(steps=2, batch_labelled=2, batch_unlabelled=2, channels=(8, 16),
+                                res_blocks=1, warmup_steps=0, ramp_steps=1, val_every=1, val_frames=2,
+                                checkpoint_every=1, progress=False, threads=1, device="cpu")
     result = train(data, out, cfg)
     # the model of each rank, plus proof that the ranks saw different frames
     torch.save({"state": result.model.state_dict(), "step": result.step}, f"{dump}/rank{rank}.pt")
@@ -52,10 +52,10 @@ def test_two_ranks_identical_weights(tmp_path: Path):
            str(tmp_path)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    r0 = torch.load(tmp_path / "rank0.pt", weights_only=False)
-    r1 = torch.load(tmp_path / "rank1.pt", weights_only=False)
+    r0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    r1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
     assert r0["step"] == r1["step"] == 2
-    init = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    init = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     for k, v in r0["state"].items():
         assert torch.equal(v, r1["state"][k]), k
     # only rank 0 writes the run folder, and it holds the trained weights

@@ -80,8 +80,8 @@ def trained(tmp_path_factory):
     ds = make_dataset(root / "ds", size=32, labelled=3, unlabelled=3, test=3, seed=1)
     from s3k.config import TrainConfig
 
-    cfg = TrainConfig(steps=2, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
-                      warmup_steps=0, val_every=0, progress=False, threads=1)
+    cfg = TrainConfig.from_flat(steps=2, batch_labelled=2, batch_unlabelled=2, channels=(8, 16),
+                                res_blocks=1, warmup_steps=0, val_every=0, progress=False, threads=1)
     train(ds, root / "run", cfg)
     return root, ds, root / "run"
 
@@ -151,8 +151,8 @@ def test_resized_run_predicts_in_dataset_pixels(tmp_path):
     from s3k.config import TrainConfig
 
     ds_path = make_dataset(tmp_path / "ds", size=32, labelled=2, unlabelled=2, test=2, seed=2)
-    cfg = TrainConfig(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
-                      image_size=24, val_every=0, progress=False, threads=1)
+    cfg = TrainConfig.from_flat(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16),
+                                res_blocks=1, image_size=24, val_every=0, progress=False, threads=1)
     train(ds_path, tmp_path / "run", cfg)
     model, meta = load_detector(tmp_path / "run")
     assert meta.image_size == (24, 24) and meta.source_image_size == (32, 32)

@@ -1,24 +1,26 @@
-"""Training: a 2-step run, exact resume after a kill, non-finite losses, configuration handling."""
+"""Training: a 2-step run, learning, exact resume after a kill, non-finite losses, sampling, configuration."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 
+import numpy as np
 import pytest
 import torch
 from synthetic_rig import KEYPOINTS, make_dataset
 
-import s3k.train as train_module
+import s3k.train.loop as loop_module
 from s3k.cli import main as cli_main
-from s3k.config import (
-    TrainConfig,
-    add_config_arguments,
-    config_from_args,
-)
+from s3k.cli.config_options import add_config_arguments, config_from_args
+from s3k.config import TrainConfig, config_from_dict, leaf_fields
+from s3k.errors import UserError
+from s3k.frames import FrameStore, open_dataset
+from s3k.model import UNet, UNetConfig
 from s3k.run import load_detector
-from s3k.train import train
+from s3k.train import draw_batch, train
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,7 @@ def tiny_config(**over) -> TrainConfig:
                 warmup_steps=1, ramp_steps=2, val_every=2, val_frames=4, checkpoint_every=2, log_every=1,
                 progress=False, threads=1)
     base.update(over)
-    return TrainConfig(**base)
+    return TrainConfig.from_flat(**base)
 
 
 def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
@@ -50,7 +52,7 @@ def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
     assert meta.sigma == pytest.approx(TrainConfig().sigma * 2)
     logits = model(torch.rand(4, 3, 32, 32))
     assert logits.shape == (4, 3, 16, 16) and torch.isfinite(logits).all()
-    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=True)
     assert ckpt["step"] == 2
     log = (run / "train.log").read_text()
     assert "step 1 validation" in log and "rms_px" in log
@@ -63,13 +65,13 @@ def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
 
 def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, monkeypatch):
     seen = []
-    real = train_module.compute_losses
+    real = loop_module.compute_losses
 
     def spy(model, lab, unl, cfg, alpha, wd_model):
         seen.append((unl is None, alpha))
         return real(model, lab, unl, cfg, alpha, wd_model)
 
-    monkeypatch.setattr(train_module, "compute_losses", spy)
+    monkeypatch.setattr(loop_module, "compute_losses", spy)
     result = train(tiny_dataset, tmp_path / "base", tiny_config(unsup=False, steps=3, val_every=0))
     assert result.status == "done" and seen == [(True, 0.0)] * 3
     seen.clear()
@@ -94,7 +96,7 @@ def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
 
     with pytest.raises(Killed):
         train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
-    assert torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=False)["step"] == 2
+    assert torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)["step"] == 2
     assert not (tmp_path / "killed" / "model.pt").exists()
     resumed = train(tiny_dataset, tmp_path / "killed", cfg, resume=True)
     assert resumed.step == 4
@@ -102,8 +104,8 @@ def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    opt_a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)
-    opt_b = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=False)
+    opt_a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)
+    opt_b = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)
     for pa, pb in zip(opt_a["optimizer"]["state"].values(), opt_b["optimizer"]["state"].values()):
         assert torch.equal(pa["exp_avg"], pb["exp_avg"]) and torch.equal(pa["exp_avg_sq"], pb["exp_avg_sq"])
     assert opt_a["scheduler"] == opt_b["scheduler"]
@@ -111,7 +113,7 @@ def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
 
 
 def _inject_nan(monkeypatch, bad_calls):
-    real = train_module.compute_losses
+    real = loop_module.compute_losses
     calls = {"n": 0}
 
     def poisoned(*args):
@@ -122,7 +124,7 @@ def _inject_nan(monkeypatch, bad_calls):
             loss = loss * float("nan")
         return loss, terms
 
-    monkeypatch.setattr(train_module, "compute_losses", poisoned)
+    monkeypatch.setattr(loop_module, "compute_losses", poisoned)
 
 
 def test_nonfinite_step_is_reported_and_skipped(tiny_dataset, tmp_path, monkeypatch):
@@ -132,7 +134,7 @@ def test_nonfinite_step_is_reported_and_skipped(tiny_dataset, tmp_path, monkeypa
     log = (tmp_path / "run" / "train.log").read_text()
     assert "step 1: non-finite loss" in log and "step skipped" in log
     assert all(torch.isfinite(v).all() for v in result.model.state_dict().values() if v.is_floating_point())
-    ckpt = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
 
 
@@ -143,8 +145,7 @@ def test_skipped_step_leaves_model_unchanged(tiny_dataset, tmp_path, monkeypatch
     result = train(tiny_dataset, tmp_path / "run", cfg)
     assert result.status == "nonfinite" and result.step == 3
     torch.manual_seed(cfg.seed)
-    fresh = train_module.UNet(len(KEYPOINTS), train_module.UNetConfig(channels=cfg.channels,
-                                                                        res_blocks=cfg.res_blocks))
+    fresh = UNet(len(KEYPOINTS), UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks))
     for (k, a), b in zip(fresh.state_dict().items(), result.model.state_dict().values()):
         assert torch.equal(a, b), k
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
@@ -170,9 +171,7 @@ def _parser():
 
 def test_help_shows_every_field_with_doc_and_default():
     text = _parser().format_help()
-    import dataclasses
-
-    for f in dataclasses.fields(TrainConfig):
+    for _, f, _ in leaf_fields(TrainConfig):
         assert f"--{f.name}" in text, f.name
     assert "(default: 750)" in text and "labels-only steps before the self-supervised term" in text
     assert "--no-unsup" in text
@@ -191,51 +190,125 @@ def test_config_file_then_command_line(tmp_path):
         config_from_args(_parser().parse_args(["--steps", "abc"]))
 
 
+def test_flat_and_nested_configuration():
+    cfg = TrainConfig.from_flat(steps=12, channels=[8, 16], unsup=False)
+    assert (cfg.schedule.steps, cfg.model.channels, cfg.self_supervision.unsup) == (12, (8, 16), False)
+    assert (cfg.steps, cfg.channels, cfg.unsup) == (12, (8, 16), False)
+    flat = cfg.to_dict()
+    assert flat["channels"] == [8, 16] and len(flat) == len(leaf_fields(TrainConfig))
+    assert config_from_dict(TrainConfig, flat) == cfg  # what config.json holds reads back
+    assert config_from_dict(TrainConfig, {"schedule": {"steps": 12}, "unsup": False}).steps == 12
+    assert cfg.replace(lr=0.1).lr == 0.1 and cfg.lr == TrainConfig().lr
+    with pytest.raises(UserError, match="stepz"):
+        TrainConfig.from_flat(stepz=3)
+    names = [f.name for _, f, _ in leaf_fields(TrainConfig)]
+    assert len(names) == len(set(names))  # unique across sections: the flat form is unambiguous
+
+
 def test_alpha_schedule_and_validation():
-    cfg = TrainConfig(warmup_steps=10, ramp_steps=4, alpha=0.8)
+    cfg = TrainConfig.from_flat(warmup_steps=10, ramp_steps=4, alpha=0.8)
     assert [cfg.alpha_at(s) for s in (0, 9, 10, 11, 13, 100)] == pytest.approx([0, 0, 0.2, 0.4, 0.8, 0.8])
-    assert TrainConfig(unsup=False).alpha_at(10_000) == 0
-    with pytest.raises(ValueError, match="batch_labelled"):
-        TrainConfig(batch_labelled=0).validate()
+    assert TrainConfig.from_flat(unsup=False).alpha_at(10_000) == 0
+    with pytest.raises(UserError, match="batch_labelled"):
+        TrainConfig.from_flat(batch_labelled=0).validate()
 
 
-@pytest.mark.slow  # three training processes: about 20 s
+KILL_SCRIPT = """
+import os, signal, sys
+from s3k.config import TrainConfig
+from s3k.train import train
+
+data, out, steps, kill_at = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+cfg = TrainConfig.from_flat(steps=steps, batch_labelled=2, batch_unlabelled=2, channels=(8, 16),
+                            res_blocks=1, warmup_steps=1, ramp_steps=2, val_every=0, checkpoint_every=2,
+                            progress=False, threads=1)
+
+
+def kill(step, terms):
+    if step == kill_at:  # the process kills itself: no clean-up of any kind runs after this step
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+train(data, out, cfg, callback=kill)
+"""
+
+
 def test_resume_after_sigkill_matches_uninterrupted(tiny_dataset, tmp_path):
-    """A real kill (SIGKILL of the training process) followed by --resume gives the uninterrupted weights."""
+    """A training process SIGKILLed at step 3 (by itself, so the step is known), then ``--resume``d, ends
+    with the weights of an uninterrupted run."""
     import os
     import signal
     import subprocess
     import sys
-    import time
 
-    args = ["--steps", "40", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",
-            "--res_blocks", "1", "--warmup_steps", "2", "--ramp_steps", "2", "--val_every", "0",
-            "--checkpoint_every", "1", "--no-progress", "--threads", "1"]
+    script = tmp_path / "kill.py"
+    script.write_text(KILL_SCRIPT)
+    run, full = tmp_path / "killed", tmp_path / "full"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    run = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(tiny_dataset), "--out", str(run), *args]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 120
-        while time.time() < deadline and proc.poll() is None:
-            if (run / "checkpoint.pt").exists():
-                time.sleep(0.3)
-                break
-            time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGKILL)
-    finally:
-        proc.wait()
-    killed_at = torch.load(run / "checkpoint.pt", weights_only=False)["step"]
-    assert 1 <= killed_at < 40 and not (run / "model.pt").exists()
-    quiet = dict(env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    subprocess.run([*cmd, "--resume"], **quiet)
-    full = tmp_path / "full"
-    subprocess.run([sys.executable, "-m", "s3k.cli", "train", str(tiny_dataset), "--out", str(full), *args],
-                   **quiet)
-    a = torch.load(full / "model.pt", weights_only=False)["model"]
-    b = torch.load(run / "model.pt", weights_only=False)["model"]
+    proc = subprocess.run([sys.executable, str(script), str(tiny_dataset), str(run), "4", "3"], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["step"] == 2  # the step-3 state died with it
+    assert not (run / "model.pt").exists()
+    options = ["--steps", "4", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",
+               "--res_blocks", "1", "--warmup_steps", "1", "--ramp_steps", "2", "--val_every", "0",
+               "--checkpoint_every", "2", "--no-progress", "--threads", "1"]
+    assert cli_main(["train", str(tiny_dataset), "--out", str(run), "--resume"]) == 0
+    assert cli_main(["train", str(tiny_dataset), "--out", str(full), *options]) == 0
+    a = torch.load(full / "model.pt", weights_only=True)["model"]
+    b = torch.load(run / "model.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def _labelled_error(net, meta, dataset_path) -> float:
+    from s3k.evaluate import evaluate_store
+
+    ds = open_dataset(dataset_path, meta.image_size)
+    store = FrameStore(ds, ds.frames("labelled"), labels=True, points=True)
+    net.eval()
+    metrics, _ = evaluate_store(net, meta, store, "cpu")
+    return metrics["rms_px"]
+
+
+def test_a_few_dozen_steps_lower_the_error(tmp_path):
+    """40 labels-only steps on the dot scene bring the 2D error on the labelled frames well below the
+    untrained network's (fixed seeds: the same numbers on every run; measured 3.8 -> 1.3 px)."""
+    data = make_dataset(tmp_path / "ds", size=32, labelled=6, unlabelled=0, test=0, seed=3)
+    cfg = tiny_config(steps=40, unsup=False, augment=False, val_every=0, checkpoint_every=40, lr=3e-2,
+                      lr_final=1.0, batch_labelled=4)
+    result = train(data, tmp_path / "run", cfg)
+    torch.manual_seed(cfg.seed)  # the network train() starts from
+    untrained = UNet(len(KEYPOINTS), UNetConfig.from_dict(result.meta.model))
+    before = _labelled_error(untrained, result.meta, data)
+    after = _labelled_error(result.model, result.meta, data)
+    assert after < 0.6 * before, (before, after)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# sampling
+
+
+def test_draw_batch_distinct_reproducible_and_covering(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    store = FrameStore(ds, ds.frames("unlabelled"), labels=False)  # 8 frames
+    ids = set(store.frame_ids.tolist())
+
+    def draw(seed, n, distinct):
+        return draw_batch(store, n, torch.Generator().manual_seed(seed), distinct).frame_ids.tolist()
+
+    for seed in range(20):
+        assert len(set(draw(seed, 5, True))) == 5  # labelled batches: no frame twice
+    assert draw(7, 5, True) == draw(7, 5, True) and draw(7, 5, False) == draw(7, 5, False)
+    assert draw(7, 5, True) != draw(8, 5, True)
+    assert len(draw(0, 20, True)) == 20  # more than the store holds: repeats are allowed then
+    gen = torch.Generator().manual_seed(0)
+    seen = {i for _ in range(30) for i in draw_batch(store, 2, gen, True).frame_ids.tolist()}
+    assert seen == ids  # every frame is reachable
+    batch = draw_batch(store, 3, torch.Generator().manual_seed(1), False)
+    assert batch.images.shape == (3, 4, 32, 32, 3) and batch.images.dtype == torch.uint8
+    np.testing.assert_array_equal(batch.images.numpy(), ds.images(batch.frame_ids))
 
 
 def test_mean_pairwise_distance():
@@ -249,9 +322,6 @@ def test_mean_pairwise_distance():
 
 def test_collapse_warning(tiny_dataset, tmp_path):
     """A network that puts every keypoint at one point triggers the collapse warning once S3K is on."""
-    import logging
-
-    from s3k.frames import FrameStore, open_dataset
     from s3k.train import labelled_layout, validate
 
     result = train(tiny_dataset, tmp_path / "run", tiny_config(steps=1, val_every=0))
@@ -260,7 +330,7 @@ def test_collapse_warning(tiny_dataset, tmp_path):
         net.head.weight.zero_()
         net.head.bias.zero_()
     ds = open_dataset(tiny_dataset)
-    ref = labelled_layout(FrameStore(ds, ds.frames("labelled"), labels=True))
+    ref = labelled_layout(ds, ds.frames("labelled"))
     assert 0.05 < ref < 0.2  # the synthetic triangle's size, metres
     store = FrameStore(ds, ds.frames("test"), labels=True, points=True)
     records: list[str] = []
@@ -270,7 +340,8 @@ def test_collapse_warning(tiny_dataset, tmp_path):
             records.append(record.getMessage())
 
     handler = Keep()
-    train_module.log.addHandler(handler)
+    logger = logging.getLogger("s3k.train")
+    logger.addHandler(handler)
     try:
         out = validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=0), 5)
         assert out["layout_ratio"] < 0.05
@@ -279,4 +350,4 @@ def test_collapse_warning(tiny_dataset, tmp_path):
         validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100), 5)
         assert not any("possible collapse" in r for r in records)  # still in the labels-only warm-up
     finally:
-        train_module.log.removeHandler(handler)
+        logger.removeHandler(handler)

@@ -251,6 +251,15 @@ class Dataset:
             warnings.warn(f"dataset {path}: {shown}{more}", DatasetWarning, stacklevel=2)
         return cls(contents, image_size=image_size, crop_box=crop_box, cache=cache, workers=workers)
 
+    def resized(self, image_size: Sequence[int]) -> Dataset:
+        """The same dataset served at ``image_size`` (W, H) (intrinsics and labels follow exactly), without
+        reading and checking the folder again; ``self`` when the size already matches."""
+        if tuple(image_size) == self.image_size:
+            return self
+        full = self.crop_box == (0, 0, *self.source_image_size)
+        return Dataset(self._c, image_size=image_size, crop_box=None if full else self.crop_box,
+                       cache=self._cache.mode, workers=self._workers)
+
     def __len__(self) -> int:
         return len(self.frame_ids)
 

@@ -1,0 +1,52 @@
+"""Command-line options derived from a configuration dataclass (``s3k.config``): one ``--field`` per field.
+
+Options default to ``argparse.SUPPRESS``, so that only values given on the command line override the config
+file (or, for ``train --resume``, the run's saved configuration).
+"""
+
+from __future__ import annotations
+
+import argparse
+import typing
+from typing import Any
+
+from s3k.config import TrainConfig, _base_type, _default, config_from_dict, leaf_fields, read_config_file
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig) -> None:
+    """Add ``--config FILE`` and one ``--field value`` option per field of ``cls`` to ``parser``, one
+    argument group per section; each option's help shows the field's documentation and its default."""
+    group = parser.add_argument_group("configuration (defaults < --config file < command line)")
+    group.add_argument("--config", metavar="FILE", default=None,
+                       help="TOML or JSON file with a flat table of the fields below")
+    groups: dict[str | None, Any] = {None: group}
+    for section, f, tp in leaf_fields(cls):
+        if section is not None and section not in groups:
+            groups[section] = parser.add_argument_group(f"configuration: {section.replace('_', '-')}")
+        base, _ = _base_type(tp)
+        default = _default(f)
+        shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
+        text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
+        flags = [f"--{f.name}"]
+        if "_" in f.name:
+            flags.append(f"--{f.name.replace('_', '-')}")
+        if base is bool:
+            groups[section].add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction,
+                                         default=argparse.SUPPRESS, help=text)
+        else:
+            is_tuple = typing.get_origin(base) is tuple
+            metavar = "N,N,..." if is_tuple else getattr(base, "__name__", "V").upper()
+            groups[section].add_argument(*flags, dest=f.name, default=argparse.SUPPRESS, metavar=metavar,
+                                         help=text)
+
+
+def config_from_args(args: argparse.Namespace, cls: type = TrainConfig, base: Any = None) -> Any:
+    """Resolve defaults (or ``base``) < ``args.config`` file < explicit command-line options."""
+    cfg = base if base is not None else cls()
+    if getattr(args, "config", None):
+        where = f"config file {args.config}"
+        cfg = config_from_dict(cls, read_config_file(args.config), base=cfg, where=where)
+    given = {f.name: getattr(args, f.name) for _, f, _ in leaf_fields(cls) if hasattr(args, f.name)}
+    if given:
+        cfg = config_from_dict(cls, given, base=cfg, where="command line")
+    return cfg

@@ -1,0 +1,44 @@
+"""``s3k train DATASET --out RUN``: semi-supervised training of the keypoint network (S3K, DESIGN 1).
+
+Each step draws a labelled batch and, once the self-supervised term is on, an unlabelled batch; both are
+augmented per image with a random similarity that updates the intrinsics (``s3k.augment``), go through the
+network in one forward pass, and give
+
+    L = L_sup + alpha(step) * L_unsup + weight_decay * ||theta_non-bias||^2.
+
+``alpha(step)`` is 0 for ``warmup_steps`` labels-only steps, then rises linearly to ``alpha`` over
+``ramp_steps`` (``TrainConfig.alpha_at``): from a random network the self-supervised term would lock in a
+collapse (every keypoint at one confident 3D point), so the labels first shape the heatmaps. ``--no-unsup``
+trains the labels-only baseline: same network, same labels, no unlabelled batch.
+
+Robustness:
+
+- a step whose loss or gradient is not finite is reported with its step number in the log and skipped
+  (parameters, optimizer and normalization statistics unchanged); after ``max_nonfinite`` consecutive ones
+  the run stops cleanly with exit status 1; such a state is never checkpointed.
+- ``RUN/checkpoint.pt`` (written atomically, read with ``weights_only=True``) holds the model, optimizer,
+  scheduler, every rank's RNG states and the step; ``--resume`` continues a killed run exactly where its last
+  checkpoint left it, after checking that the configuration and the dataset are the run's.
+
+The rooms:
+
+- :mod:`s3k.train.loop`: :func:`train`, the set-up and the loop (one step, logging, checkpoints, stops).
+- :mod:`s3k.train.checkpoint`: the checkpoint format, its one writer and one reader.
+- :mod:`s3k.train.run_folder`: the checks before anything is written, ``--resume`` compatibility, history.
+- :mod:`s3k.train.sampling`: random batches, augmented, on the device.
+- :mod:`s3k.train.validation`: periodic validation and the labelled layout it compares with.
+- :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc_per_node N`` each rank draws from its
+  own shard of the frames; only rank 0 writes logs and checkpoints).
+"""
+
+from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
+from s3k.train.distributed import DistInfo, init_distributed, shard
+from s3k.train.loop import TrainResult, compute_losses, train
+from s3k.train.sampling import draw_batch, prepare
+from s3k.train.validation import labelled_layout, mean_pairwise_distance, validate
+
+__all__ = [
+    "DistInfo", "TrainResult", "compute_losses", "draw_batch", "init_distributed", "labelled_layout",
+    "load_checkpoint", "mean_pairwise_distance", "prepare", "read_checkpoint_step", "shard", "train",
+    "validate",
+]

@@ -1,0 +1,465 @@
+"""The training loop: set-up, one step, logging, checkpoints, the stop conditions.
+
+:func:`train` opens the dataset once, makes every check that can refuse the run before anything is written
+(``run_folder``; no labelled frame with a usable target; S3K without unlabelled frames), builds or restores
+the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.steps``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from s3k.augment import NoiseBank
+from s3k.config import TrainConfig
+from s3k.data import usable_label_count
+from s3k.errors import UserError
+from s3k.frames import FrameStore, model_image_size, open_dataset
+from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.model import UNet, UNetConfig
+from s3k.run import CHECKPOINT_FILE, LOG_FILE, MODEL_FILE, TENSORBOARD_DIR, DetectorMeta, save_model_file
+from s3k.train import checkpoint as ckpt
+from s3k.train import run_folder
+from s3k.train.distributed import (
+    DistInfo,
+    all_ranks,
+    broadcast_buffers,
+    finish_distributed,
+    gather,
+    init_distributed,
+    shard,
+    wrap_model,
+)
+from s3k.train.sampling import draw_batch, prepare
+from s3k.train.validation import labelled_layout, validate
+
+log = logging.getLogger("s3k.train")
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns.
+
+    Attributes:
+        model: the trained network (unwrapped from DDP), in train mode.
+        meta: its :class:`DetectorMeta`.
+        step: completed steps.
+        status: "done", "nonfinite" (stopped after too many non-finite steps).
+        history: per validation, a dict of step and metrics.
+        timing: mean seconds per step and the fraction spent loading + augmenting data.
+    """
+
+    model: nn.Module
+    meta: DetectorMeta
+    step: int
+    status: str
+    history: list[dict[str, Any]] = field(default_factory=list)
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Logging
+
+
+class _TqdmHandler(logging.Handler):
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        with contextlib.suppress(Exception):
+            tqdm.write(self.format(record))
+
+
+def _setup_logging(run_dir: Path, main: bool) -> None:
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    for h in list(log.handlers):
+        if getattr(h, "_s3k", False):
+            log.removeHandler(h)
+            h.close()
+    handlers: list[logging.Handler] = [logging.NullHandler()]
+    if main:
+        fh = logging.FileHandler(run_dir / LOG_FILE)
+        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+        th = _TqdmHandler()
+        th.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+        handlers = [fh, th]
+    for h in handlers:
+        h._s3k = True  # type: ignore[attr-defined]
+        log.addHandler(h)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The loss of one step
+
+
+def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
+                   weight_decay_model: nn.Module) -> tuple[torch.Tensor, dict[str, float]]:
+    """The training loss of one step (one forward pass over labelled and unlabelled images).
+
+    Args:
+        model: the (possibly DDP-wrapped) network.
+        lab: (images (Bl, C, 3, H, W), cams (Bl, C), labels_uv (Bl, C, K, 2), labels_mask (Bl, C, K)).
+        unl: (images (Bu, C, 3, H, W), cams (Bu, C)) or None when the self-supervised term is off.
+        cfg: configuration (stride, sigma, weight decay).
+        alpha: weight of the self-supervised term at this step.
+        weight_decay_model: the unwrapped network (for the L2 term).
+
+    Returns:
+        ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
+    """
+    images_l, cams_l, uv_l, mask_l = lab
+    Bl, C = images_l.shape[:2]
+    images = images_l if unl is None else torch.cat([images_l, unl[0]])
+    flat = images.reshape(-1, *images.shape[2:]).contiguous(memory_format=torch.channels_last)
+    logits = model(flat)
+    logits = logits.float().reshape(images.shape[0], C, *logits.shape[1:])
+    sigma = cfg.sigma_px()
+    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma)
+    loss = l_sup
+    terms = {"sup": float(l_sup.detach())}
+    if unl is not None:
+        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma)
+        loss = loss + alpha * l_uns
+        terms["unsup"] = float(l_uns.detach())
+        terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
+        terms["unsup_weight"] = float(info_u["weights"].mean())
+    if cfg.weight_decay > 0:
+        l2 = l2_non_bias(weight_decay_model)
+        loss = loss + cfg.weight_decay * l2
+        terms["l2"] = float(l2.detach())
+    terms["loss"] = float(loss.detach())
+    return loss, terms
+
+
+def _lr_lambda(cfg: TrainConfig):
+    def f(step: int) -> float:
+        frac = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
+        return cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
+
+    return f
+
+
+def _all_finite(module: nn.Module) -> bool:
+    return all(bool(torch.isfinite(t).all()) for t in list(module.parameters()) + list(module.buffers())
+               if t.is_floating_point())
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Set-up
+
+
+@dataclass
+class _Data:
+    """The dataset opened once at the network's input size, and the frames each role uses."""
+
+    ds: Any
+    source_size: tuple[int, int]
+    labelled: np.ndarray
+    unlabelled: np.ndarray
+    val: np.ndarray
+
+
+def _open_data(data: Path, cfg: TrainConfig) -> _Data:
+    """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
+    ds = open_dataset(data)
+    source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
+    ds = ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride))
+    labelled = np.asarray(ds.frames("labelled"))
+    if len(labelled) == 0:
+        raise UserError(f"{data}: the 'labelled' split is empty; training needs labelled frames")
+    if usable_label_count(ds, "labelled") == 0:
+        raise UserError(f"{data}: none of the {len(labelled)} labelled frames gives a training target (a "
+                        "keypoint labelled in >= 2 cameras, triangulated, projecting inside an image)",
+                        hint="check the labels and the calibration with 's3k validate'")
+    unlabelled = np.asarray(ds.frames("unlabelled"))
+    if cfg.unsup and len(unlabelled) == 0:
+        raise UserError(f"{data}: the 'unlabelled' split is empty, S3K needs unlabelled frames",
+                        hint="add unlabelled frames or pass --no-unsup for the labels-only baseline")
+    val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
+        else np.zeros(0, np.int64)
+    if len(val) == 0:
+        val = unlabelled if len(unlabelled) else labelled
+    val = val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
+    return _Data(ds, source_size, labelled, unlabelled, val)
+
+
+def _meta(d: _Data, cfg: TrainConfig) -> DetectorMeta:
+    return DetectorMeta(
+        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
+        stride=cfg.stride, sigma=cfg.sigma_px(),
+        model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
+                         norm=cfg.norm).to_dict(),
+        units=d.ds.units, source_image_size=d.source_size,
+    )
+
+
+def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
+               overwrite: bool, command: str | None, info: DistInfo) -> dict[str, Any] | None:
+    """Check the run folder (and the run being resumed) then write its configuration; returns the
+    checkpoint to resume from, or None. Nothing is written unless every check passes."""
+    ckpt_path = out / CHECKPOINT_FILE
+    state = ckpt.load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
+    if not info.main:
+        return state
+    identity = run_folder.dataset_identity(d.ds)
+    changed = run_folder.check_resume(out, cfg, identity, data) if state is not None else {}
+    if overwrite:
+        run_folder.clear_run(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _setup_logging(out, info.main)
+    run_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
+    if changed:
+        log.info("resumed with changed settings: %s",
+                 ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in changed.items()))
+    return state
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The loop
+
+
+class _Loop:
+    """The network, optimizer, schedule and random stream of one rank, and the step counter."""
+
+    def __init__(self, cfg: TrainConfig, meta: DetectorMeta, device: torch.device, info: DistInfo,
+                 out: Path) -> None:
+        self.cfg, self.meta, self.device, self.info, self.out = cfg, meta, device, info, out
+        torch.manual_seed(cfg.seed)
+        net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+        # NHWC is the faster convolution layout for these small channel counts on CPU (and fine on GPU).
+        self.net = net.to(device=device, memory_format=torch.channels_last)  # type: ignore[call-overload]
+        self.model = wrap_model(self.net, device, info)
+        self.gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
+        self.step, self.nonfinite_run = 0, 0
+
+    def restore(self, state: dict[str, Any], path: Path) -> None:
+        """Continue from a checkpoint (``checkpoint.load_checkpoint``)."""
+        try:
+            self.net.load_state_dict(state["model"])
+            self.opt.load_state_dict(state["optimizer"])
+            self.sched.load_state_dict(state["scheduler"])
+        except (KeyError, RuntimeError, ValueError) as exc:
+            raise UserError(f"{path}: does not fit this network ({str(exc).splitlines()[0][:200]})",
+                            hint="resume with the run's settings, or choose another --out") from exc
+        self.step, self.nonfinite_run = int(state["step"]), int(state.get("nonfinite_run", 0))
+        rng = state["rng"]
+        if len(rng) == self.info.world:
+            ckpt.set_rng_state(self.gen, rng[self.info.rank])
+        else:
+            log.warning("checkpoint was written by %d ranks, now %d: random streams re-seeded", len(rng),
+                        self.info.world)
+            self.gen.manual_seed(self.cfg.seed * 1000 + self.info.rank + 7919 * self.step)
+        log.info("resumed from %s at step %d", path, self.step)
+
+    def save(self, final: bool = False) -> None:
+        """Write the checkpoint (and at the end ``model.pt``) from rank 0, unless the model is not finite."""
+        rngs = gather(ckpt.rng_state(self.gen), self.info)
+        if not self.info.main:
+            return
+        if not _all_finite(self.net):
+            log.error("step %d: model holds non-finite values; checkpoint not written", self.step)
+            return
+        ckpt.save_checkpoint(self.out / CHECKPOINT_FILE, step=self.step, model=self.net.state_dict(),
+                             optimizer=self.opt.state_dict(), scheduler=self.sched.state_dict(), rng=rngs,
+                             nonfinite_run=self.nonfinite_run, meta=self.meta.to_dict(),
+                             config=self.cfg.to_dict())
+        if final:
+            save_model_file(self.out / MODEL_FILE, self.net.state_dict(), self.meta, self.step)
+
+    def train_step(self, lab_store: FrameStore, unl_store: FrameStore | None, aug, noise_bank
+                   ) -> dict[str, float]:
+        """One optimizer step (skipped, with the state unchanged, when the loss or gradient is not finite)."""
+        cfg, net = self.cfg, self.net
+        ts = time.perf_counter()
+        alpha = cfg.alpha_at(self.step)
+        lab = prepare(draw_batch(lab_store, cfg.batch_labelled, self.gen, True), self.device, aug, self.gen,
+                      True, noise_bank)
+        unl = None
+        if unl_store is not None and alpha > 0:
+            unl = prepare(draw_batch(unl_store, cfg.batch_unlabelled, self.gen, False), self.device, aug,
+                          self.gen, False, noise_bank)[:2]
+        td = time.perf_counter()
+        buffers = [b.detach().clone() for b in net.buffers()]
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
+        gnorm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        if all_ranks(bool(torch.isfinite(loss) and torch.isfinite(gnorm)), self.device, self.info):
+            self.opt.step()
+            self.nonfinite_run = 0
+        else:
+            self.opt.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                for b, saved in zip(net.buffers(), buffers):
+                    b.copy_(saved)
+            self.nonfinite_run += 1
+            log.warning("step %d: non-finite loss or gradient (%s); step skipped (%d in a row)", self.step,
+                        ", ".join(f"{k}={v:.4g}" for k, v in terms.items()), self.nonfinite_run)
+        with warnings.catch_warnings():
+            # after a skipped step the scheduler still advances, so that the schedule follows the step count
+            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler")
+            self.sched.step()
+        self.step += 1
+        terms["alpha"] = alpha
+        terms["grad_norm"] = float(gnorm)
+        terms["time_data_s"], terms["time_step_s"] = td - ts, time.perf_counter() - ts
+        return terms
+
+
+class _Monitor:
+    """TensorBoard scalars, the progress bar and the step timings (rank 0 only writes)."""
+
+    def __init__(self, cfg: TrainConfig, out: Path, info: DistInfo, step: int) -> None:
+        self.cfg = cfg
+        self.writer = None
+        self.bar = None
+        if info.main:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(out / TENSORBOARD_DIR))
+            if cfg.progress:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=cfg.steps, initial=step, desc="S3K" if cfg.unsup else "labels only",
+                                dynamic_ncols=True, smoothing=0.05)
+        self.t_data = self.t_total = 0.0
+        self.n_timed = 0
+
+    def record(self, step: int, terms: dict[str, float], lr: float) -> None:
+        self.t_data += terms["time_data_s"]
+        self.t_total += terms["time_step_s"]
+        self.n_timed += 1
+        if self.writer is not None and (step % self.cfg.log_every == 0 or step == 1):
+            for k, v in terms.items():
+                if not k.startswith("time_"):
+                    group = "loss" if k in ("loss", "sup", "unsup", "l2") else "train"
+                    self.writer.add_scalar(f"{group}/{k}", v, step)
+            self.writer.add_scalar("train/lr", lr, step)
+            self.writer.add_scalar("time/step_s", self.t_total / self.n_timed, step)
+            self.writer.add_scalar("time/data_fraction", self.t_data / max(self.t_total, 1e-12), step)
+        if self.bar is not None:
+            self.bar.update(1)
+            if step % 5 == 0 or step == self.cfg.steps:
+                shown = ("loss", "sup", "unsup", "alpha")
+                self.bar.set_postfix({k: f"{terms[k]:.3g}" for k in shown if k in terms})
+
+    def close(self, status: str, step: int) -> dict[str, float]:
+        """Close the bar and writer; returns the mean step time and the data-loading fraction."""
+        if self.bar is not None:
+            self.bar.close()
+        timing = {"step_s": self.t_total / max(self.n_timed, 1),
+                  "loader_fraction": self.t_data / max(self.t_total, 1e-12)}
+        if self.n_timed:
+            log.info("%s at step %d: %.3f s per step, data loading + augmentation %.1f%% of it", status, step,
+                     timing["step_s"], 100 * timing["loader_fraction"])
+        if self.writer is not None:
+            self.writer.close()
+        return timing
+
+
+def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
+          overwrite: bool = False, command: str | None = None) -> TrainResult:
+    """Train a detector on the dataset folder ``data`` into the run folder ``out``.
+
+    Args:
+        data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames.
+        out: run folder (created); see ``s3k.run``.
+        cfg: configuration.
+        resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none); the configuration and
+            the dataset must match the run's except for ``s3k.config.resumable_fields``.
+        callback: optional ``f(step, terms)`` called after every completed step (``step`` counts completed
+            steps; ``terms`` holds the loss terms, alpha, the gradient norm and the step's timings
+            ``time_data_s``, ``time_step_s``); an exception it raises aborts the run like a kill would.
+        overwrite: replace the run in ``out`` (only the files a run holds are deleted).
+        command: the command line, recorded in the run's history.
+
+    Returns:
+        A :class:`TrainResult`.
+
+    Raises:
+        UserError: before anything is written, naming what is wrong (see ``s3k.train.run_folder``).
+    """
+    cfg.validate()
+    info = init_distributed(cfg.device)
+    try:
+        return _train(Path(data), Path(out), cfg, resume, overwrite, callback, command, info)
+    finally:
+        finish_distributed(info)
+
+
+def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
+           command: str | None, info: DistInfo) -> TrainResult:
+    from s3k.predict import pick_device
+
+    device = pick_device(cfg.device, info.local_rank)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    if info.main:
+        run_folder.check_out(out, resume, overwrite)  # before the dataset is read: the cheap refusals first
+    d = _open_data(data, cfg)
+    meta = _meta(d, cfg)
+    state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
+    if not info.main:
+        _setup_logging(out, False)
+    loop = _Loop(cfg, meta, device, info, out)
+    if state is not None:
+        loop.restore(state, out / CHECKPOINT_FILE)
+        del state
+    elif resume:
+        log.info("no checkpoint in %s: starting a new run", out)
+
+    t0 = time.perf_counter()
+    lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
+    unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
+    val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
+    ref_layout = labelled_layout(d.ds, d.labelled)
+    size = meta.image_size
+    log.info("dataset %s: %d labelled, %d unlabelled frames, %d cameras, keypoints %s; images %dx%d "
+             "(stored %dx%d), heatmaps stride %d, sigma %.2f px; %s, %d parameters; %s on %s x%d; "
+             "frames loaded in %.1f s (preloaded: %s)", data, len(d.labelled), len(d.unlabelled),
+             len(meta.cameras), meta.keypoints, size[0], size[1], d.source_size[0], d.source_size[1],
+             cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
+             sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
+             device, info.world, time.perf_counter() - t0, lab_store.preloaded)
+    log.info("labelled layout: mean pairwise keypoint distance %.4g %s", ref_layout, meta.units)
+
+    monitor = _Monitor(cfg, out, info, loop.step)
+    aug = cfg.augmentation if cfg.augment else None
+    noise_bank = NoiseBank(seed=cfg.seed)
+    history: list[dict[str, Any]] = []
+    status = "done"
+    loop.net.train()
+    while loop.step < cfg.steps:
+        terms = loop.train_step(lab_store, unl_store, aug, noise_bank)
+        step = loop.step
+        monitor.record(step, terms, float(loop.sched.get_last_lr()[0]))
+        if loop.nonfinite_run >= cfg.max_nonfinite:
+            log.error("stopping at step %d after %d consecutive non-finite steps; the last checkpoint is "
+                      "the last good state", step, loop.nonfinite_run)
+            status = "nonfinite"
+            break
+        if info.main and cfg.val_every > 0 and (step % cfg.val_every == 0 or step == cfg.steps):
+            history.append(validate(loop.net, meta, val_store, device, ref_layout, cfg, step, monitor.writer))
+            loop.net.train()
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            loop.save(final=step == cfg.steps)
+        if callback is not None:
+            callback(step, terms)
+    broadcast_buffers(loop.net, info)
+    timing = monitor.close(status, loop.step)
+    return TrainResult(loop.net, meta, loop.step, status, history, timing)

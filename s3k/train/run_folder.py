@@ -1,0 +1,134 @@
+"""Starting a run in its folder: the checks made before anything is written, and the run's history.
+
+Before a single file is written, :func:`check_out` refuses an ``--out`` that is a file, is not writable, or
+already holds a run (unless ``--resume`` or ``--overwrite``), and :func:`check_resume` compares the call with
+the run being resumed: every field of the configuration outside the few a resume may change
+(``s3k.config.resumable_fields``: more steps, threads, progress, validation cadence, ...) must match, and so
+must the dataset's identity (:func:`dataset_identity`: keypoints, cameras and a fingerprint of its tables).
+A refusal names the field with its value there and now, and leaves ``config.json`` untouched. Allowed
+changes are recorded in ``config.json``'s ``"history"``: one entry per start of the run with the time, the
+command line and the fields that changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from s3k.config import TrainConfig, config_from_dict, resumable_fields
+from s3k.errors import UserError
+from s3k.run import (
+    CHECKPOINT_FILE,
+    CONFIG_FILE,
+    MODEL_FILE,
+    RUN_FILES,
+    DetectorMeta,
+    read_run_config,
+    write_run_config,
+)
+
+
+def is_run_folder(out: Path) -> bool:
+    """True when ``out`` holds what ``s3k train`` writes (a configuration, checkpoint or model)."""
+    return any((out / name).exists() for name in (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE))
+
+
+def check_out(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse an ``--out`` that cannot take this run (a file, read-only, holding a run without --resume)."""
+    if resume and overwrite:
+        raise UserError("--resume and --overwrite exclude each other", hint="pass one of them")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file, not a run folder", hint="choose another --out")
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: {existing} is not writable", hint="choose another --out")
+    if not resume and not overwrite and is_run_folder(out):
+        raise UserError(f"{out} already holds a run", hint="pass --resume to continue it or --overwrite to "
+                                                           "replace it, or choose another --out")
+
+
+def clear_run(out: Path) -> None:
+    """Delete the files of the run in ``out`` (``--overwrite``); other files in the folder are kept."""
+    if not is_run_folder(out):
+        return  # not a run: nothing of ours to delete
+    for name in RUN_FILES:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+
+
+def dataset_identity(ds: Any) -> dict[str, Any]:
+    """What must stay the same for a run to be resumed on a dataset: keypoint and camera names and a
+    fingerprint (SHA-256 of the metadata, the frame ids and their splits, the labels and the calibration)."""
+    ids = ds.frames()
+    h = hashlib.sha256()
+    h.update(json.dumps(ds.metadata, sort_keys=True, default=str).encode())
+    h.update(np.asarray(ids, dtype=np.int64).tobytes())
+    h.update("\n".join(map(str, ds.split_of(ids))).encode())
+    uv, mask = ds.labels(ids)
+    h.update(np.ascontiguousarray(uv, dtype=np.float32).tobytes())
+    h.update(np.ascontiguousarray(mask, dtype=bool).tobytes())
+    for part in ds.calibration_arrays(ids):
+        h.update(np.ascontiguousarray(part, dtype=np.float64).tobytes())
+    return {"keypoints": list(ds.keypoints), "cameras": list(ds.cameras), "fingerprint": h.hexdigest()[:32]}
+
+
+def _shown(value: Any) -> str:
+    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Path) -> dict[str, list[Any]]:
+    """Compare this call with the run in ``out``; return the allowed changes ``{field: [old, new]}``.
+
+    Raises:
+        UserError: naming the first field or dataset property that differs where it must not.
+    """
+    doc = read_run_config(out)
+    where = str(out / CONFIG_FILE)
+    old = config_from_dict(TrainConfig, doc["config"], where=where).to_dict()
+    new = cfg.to_dict()
+    free = resumable_fields()
+    changed: dict[str, list[Any]] = {}
+    for name, value in new.items():
+        if old[name] == value:
+            continue
+        if name not in free:
+            raise UserError(f"--resume: {name} is {_shown(value)} now but {_shown(old[name])} in {where}",
+                            hint=f"pass --{name} {_shown(old[name])} to continue the run, or choose another "
+                                 "--out")
+        changed[name] = [old[name], value]
+    saved = doc.get("dataset_identity")
+    if saved is None:  # written before identities were recorded: the names are all that can be compared
+        meta = DetectorMeta.from_dict(doc["meta"])
+        saved = {"keypoints": meta.keypoints, "cameras": meta.cameras}
+    for key in ("keypoints", "cameras", "fingerprint"):
+        if key in saved and saved[key] != identity[key]:
+            raise UserError(f"--resume: dataset {data} has {key} {_shown(identity[key])}, the run in {out} "
+                            f"was trained on {_shown(saved[key])} ({doc.get('dataset')})",
+                            hint="resume with the run's dataset, or choose another --out")
+    return changed
+
+
+def write_start(out: Path, cfg: TrainConfig, meta: DetectorMeta, data: Path, identity: dict[str, Any],
+                resumed: bool, changed: dict[str, list[Any]], command: str | None) -> None:
+    """Write ``config.json`` for this start of the run, appending to its history."""
+    history: list[dict[str, Any]] = []
+    if resumed and (out / CONFIG_FILE).is_file():
+        history = list(read_run_config(out).get("history", []))
+    entry: dict[str, Any] = {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                             "event": "resumed" if resumed else "created", "command": command}
+    if changed:
+        entry["changed"] = changed
+    write_run_config(out, cfg.to_dict(), meta, str(data), dataset_identity=identity,
+                     history=[*history, entry])

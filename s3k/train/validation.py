@@ -1,0 +1,109 @@
+"""Periodic validation during training and the reference quantities it compares against.
+
+Every ``val_every`` steps the validation frames are predicted: the metrics (``s3k.evaluate``), an image of
+predicted vs true keypoints with heatmaps (TensorBoard), and a collapse check: a warning when the mean
+pairwise distance between the triangulated keypoints falls below ``collapse_fraction`` of the labelled
+layout's (:func:`labelled_layout`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from s3k.config import TrainConfig
+from s3k.frames import FrameStore
+from s3k.geometry import triangulate_pixels
+from s3k.run import DetectorMeta
+
+log = logging.getLogger("s3k.train")
+
+
+def mean_pairwise_distance(X: torch.Tensor, valid: torch.Tensor) -> float:
+    """Mean distance over all pairs of valid keypoints of every frame.
+
+    Args:
+        X: (B, K, 3) points.
+        valid: (B, K) bool.
+
+    Returns:
+        The mean (NaN when no frame has two valid keypoints).
+    """
+    d = torch.cdist(X.double(), X.double())  # (B, K, K)
+    K = X.shape[1]
+    pair = valid[:, :, None] & valid[:, None, :] & torch.triu(torch.ones(K, K, dtype=torch.bool), 1)
+    return float(d[pair].mean()) if pair.any() else float("nan")
+
+
+def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> float:
+    """Mean pairwise distance of the keypoints triangulated from the labels (the reference layout size).
+
+    Reads labels and calibration only (no image); a keypoint labelled in >= 2 cameras is triangulated with
+    unit weights, as the supervised loss does.
+    """
+    total, count = 0.0, 0
+    for i in range(0, len(frame_ids), chunk):
+        ids = frame_ids[i:i + chunk]
+        uv, mask = dataset.labels(ids)
+        labelled = torch.from_numpy(np.asarray(mask, dtype=bool))  # (B, C, K)
+        # float32 as the network's batches hold them (frames.FrameStore), solved in float64
+        cams = dataset.calibration(ids).to(dtype=torch.float64)
+        uv_t = torch.from_numpy(np.asarray(uv, dtype=np.float32)).double()
+        X, valid = triangulate_pixels(cams, uv_t, labelled.double())
+        valid = valid & (labelled.sum(dim=1) >= 2)
+        d = mean_pairwise_distance(X, valid)
+        if math.isfinite(d):
+            n = int(valid.sum())
+            total += d * n
+            count += n
+    return total / count if count else float("nan")
+
+
+@torch.no_grad()
+def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
+             ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
+    """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
+    from s3k.evaluate import draw_views, evaluate_store
+    from s3k.predict import predict_store
+
+    record: dict[str, Any] = {"step": step}
+    if store is None or len(store) == 0:
+        return record
+    net.eval()
+    try:
+        metrics, arrays = evaluate_store(net, meta, store, device, 16, meta.units, keep=1)
+        X, valid = torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["X_valid"])
+        for m in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm"):
+            record[m] = metrics[m]
+    except ValueError:  # no ground truth on this split: collapse check only
+        preds = list(predict_store(net, store, meta.stride, meta.sigma, 16, device, keep_heatmaps=True))
+        X = torch.cat([p.X for _, p in preds])
+        valid = torch.cat([p.valid for _, p in preds])
+        arrays = {"images": preds[0][0].images[:1].numpy(), "probs": preds[0][1].probs[:1].numpy(),
+                  "pred_uv": preds[0][1].uv[:1].numpy(), "gt_uv": None, "gt_mask": None}
+    layout = mean_pairwise_distance(X, valid)
+    ratio = layout / ref_layout if ref_layout and math.isfinite(ref_layout) else float("nan")
+    record["layout_ratio"] = ratio
+    record["triangulated"] = float(valid.float().mean())
+    shown = ", ".join(f"{k} {v:.3g}" for k, v in record.items() if k != "step" and v is not None)
+    log.info("step %d validation: %s", step, shown)
+    # A network that has not learnt yet also puts every keypoint at the image centre; warn only once the
+    # self-supervised term, which can lock such a state in, is on.
+    if math.isfinite(ratio) and ratio < cfg.collapse_fraction and cfg.alpha_at(step - 1) > 0:
+        log.warning("step %d: possible collapse: triangulated keypoints are %.0f%% as far apart as in the "
+                    "labelled layout (threshold %.0f%%)", step, 100 * ratio, 100 * cfg.collapse_fraction)
+    if writer is not None:
+        for k, v in record.items():
+            if k != "step" and v is not None and math.isfinite(v):
+                writer.add_scalar(f"val/{k}", v, step)
+        gt = arrays["gt_uv"][0] if arrays.get("gt_uv") is not None else None
+        gm = arrays["gt_mask"][0] if arrays.get("gt_mask") is not None else None
+        img = draw_views(arrays["images"][0], arrays["probs"][0], arrays["pred_uv"][0], gt, gm, scale=2)
+        writer.add_image("val/keypoints", img, step, dataformats="HWC")
+        writer.flush()
+    return record
