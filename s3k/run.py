@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,9 +108,12 @@ def load_torch_file(path: str | Path, what: str, keys: Sequence[str]) -> dict[st
         state = torch.load(path, map_location="cpu", weights_only=True)
     except OSError:
         raise  # missing or unreadable: the CLI names the file and the system's reason
-    except Exception as exc:  # noqa: BLE001 - the unpickler and the zip reader raise many kinds
+    except pickle.UnpicklingError as exc:  # weights_only refused an object: nothing of it was run
+        raise UserError(f"{refusal} (it holds objects other than tensors and plain values)",
+                        hint="retrain") from exc
+    except Exception as exc:  # noqa: BLE001 - the zip reader and the unpickler raise many kinds
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{refusal} (reading it failed: {reason[:200]})", hint="retrain") from exc
+        raise UserError(f"{refusal} (unreadable: {reason[:200]})", hint="retrain") from exc
     if not isinstance(state, dict) or any(k not in state for k in keys):
         raise UserError(f"{refusal} (it lacks {' or '.join(repr(k) for k in keys)})", hint="retrain")
     return state

@@ -88,6 +88,13 @@ def _shown(value: Any) -> str:
     return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
 
 
+def _option(name: str, value: Any) -> str:
+    """The command-line option that sets field ``name`` to ``value``."""
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {_shown(value)}"
+
+
 def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Path) -> dict[str, list[Any]]:
     """Compare this call with the run in ``out``; return the allowed changes ``{field: [old, new]}``.
 
@@ -105,7 +112,7 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
             continue
         if name not in free:
             raise UserError(f"--resume: {name} is {_shown(value)} now but {_shown(old[name])} in {where}",
-                            hint=f"pass --{name} {_shown(old[name])} to continue the run, or choose another "
+                            hint=f"pass {_option(name, old[name])} to continue the run, or choose another "
                                  "--out")
         changed[name] = [old[name], value]
     saved = doc.get("dataset_identity")
@@ -114,9 +121,13 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
         saved = {"keypoints": meta.keypoints, "cameras": meta.cameras}
     for key in ("keypoints", "cameras", "fingerprint"):
         if key in saved and saved[key] != identity[key]:
-            raise UserError(f"--resume: dataset {data} has {key} {_shown(identity[key])}, the run in {out} "
-                            f"was trained on {_shown(saved[key])} ({doc.get('dataset')})",
-                            hint="resume with the run's dataset, or choose another --out")
+            what = key
+            if key == "fingerprint":
+                what = "tables (frames, splits, labels, calibration) differ: fingerprint"
+            raise UserError(f"--resume: dataset {data} is not the one the run in {out} was trained on "
+                            f"({doc.get('dataset')}): {what} {_shown(identity[key])} now, "
+                            f"{_shown(saved[key])} there", hint="resume with the run's dataset, or choose "
+                                                                 "another --out")
     return changed
 
 

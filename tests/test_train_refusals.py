@@ -1,0 +1,206 @@
+"""What ``s3k train`` refuses before writing anything, ``--resume``'s checks and history, and crafted pickles.
+
+Every refusal goes through ``s3k.cli.main``: one line ``s3k train: error: ...`` naming the culprit, exit 1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+import torch
+from synthetic_rig import make_dataset
+
+from s3k.cli import main as cli_main
+from s3k.errors import UserError
+from s3k.run import load_detector
+from s3k.train import read_checkpoint_step
+
+TINY = ["--steps", "2", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",
+        "--res_blocks", "1", "--warmup_steps", "0", "--val_every", "0", "--checkpoint_every", "1",
+        "--no-progress", "--threads", "1"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("data") / "ds", size=32, labelled=3, unlabelled=3, test=2)
+
+
+@pytest.fixture(scope="module")
+def finished_run(dataset, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
+    assert cli_main(["train", str(dataset), "--out", str(run), *TINY]) == 0
+    return run
+
+
+def refused(capsys, argv: list[str], *needles: str) -> str:
+    """Run the command; assert exit 1 and one error line holding every needle; return the line."""
+    capsys.readouterr()
+    assert cli_main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    line = err[0]
+    assert line.startswith(f"s3k {argv[0]}: error: "), line
+    for needle in needles:
+        assert needle in line, (needle, line)
+    return line
+
+
+def test_existing_run_without_resume(capsys, dataset, finished_run):
+    refused(capsys, ["train", str(dataset), "--out", str(finished_run), *TINY], str(finished_run), "--resume",
+            "--overwrite")
+
+
+def test_out_is_a_file(capsys, dataset, tmp_path):
+    target = tmp_path / "file.txt"
+    target.write_text("x")
+    refused(capsys, ["train", str(dataset), "--out", str(target), *TINY], str(target), "is a file")
+    assert target.read_text() == "x"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_out_in_read_only_folder(capsys, dataset, tmp_path):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        refused(capsys, ["train", str(dataset), "--out", str(folder / "run"), *TINY], str(folder),
+                "not writable")
+    finally:
+        folder.chmod(0o755)
+
+
+def test_no_usable_label(capsys, tmp_path):
+    """Labels in one camera only: nothing can be triangulated, so no supervised target exists."""
+    data = make_dataset(tmp_path / "one-view", size=32, labelled=3, unlabelled=3, test=0, label_cameras=1)
+    refused(capsys, ["train", str(data), "--out", str(tmp_path / "run"), *TINY], str(data),
+            "none of the 3 labelled frames")
+    assert not (tmp_path / "run").exists()
+
+
+def test_s3k_without_unlabelled_frames_names_no_unsup(capsys, tmp_path):
+    data = make_dataset(tmp_path / "no-unl", size=32, labelled=3, unlabelled=0, test=0)
+    refused(capsys, ["train", str(data), "--out", str(tmp_path / "run"), *TINY], "unlabelled", "--no-unsup")
+    assert not (tmp_path / "run").exists()
+    assert cli_main(["train", str(data), "--out", str(tmp_path / "run"), *TINY, "--no-unsup"]) == 0
+
+
+def test_overwrite_replaces_a_run_and_keeps_other_files(dataset, tmp_path):
+    run = tmp_path / "run"
+    assert cli_main(["train", str(dataset), "--out", str(run), *TINY]) == 0
+    (run / "notes.txt").write_text("mine")
+    assert cli_main(["train", str(dataset), "--out", str(run), *TINY, "--steps", "1", "--overwrite"]) == 0
+    assert read_checkpoint_step(run / "checkpoint.pt") == 1
+    assert (run / "notes.txt").read_text() == "mine"
+    history = json.loads((run / "config.json").read_text())["history"]
+    assert [h["event"] for h in history] == ["created"]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# --resume
+
+
+def _copy_run(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_resume_refuses_an_incompatible_change_and_leaves_config_untouched(capsys, dataset, finished_run,
+                                                                           tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    before = (run / "config.json").read_bytes()
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", "--channels", "8,32"],
+            "channels", "8,32", "8,16")
+    for flag, fix in ((["--lr", "0.5"], "--lr 0.001"), (["--seed", "3"], "--seed 0"),
+                      (["--no-unsup"], "--unsup"), (["--stride", "4"], "--stride 2")):
+        refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", *flag], fix)
+    assert (run / "config.json").read_bytes() == before
+    # and a plain --resume still works afterwards
+    assert cli_main(["train", str(dataset), "--out", str(run), "--resume"]) == 0
+
+
+def test_resume_refuses_another_dataset(capsys, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    before = (run / "config.json").read_bytes()
+    other = make_dataset(tmp_path / "other", size=32, labelled=3, unlabelled=3, test=2, seed=5)
+    refused(capsys, ["train", str(other), "--out", str(run), "--resume"], "fingerprint", str(other))
+    assert (run / "config.json").read_bytes() == before
+
+
+def test_resume_records_allowed_changes(dataset, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    argv = ["train", str(dataset), "--out", str(run), "--resume", "--steps", "3", "--threads", "2"]
+    assert cli_main(argv) == 0
+    doc = json.loads((run / "config.json").read_text())
+    assert doc["config"]["steps"] == 3 and read_checkpoint_step(run / "checkpoint.pt") == 3
+    created, resumed = doc["history"]
+    assert created["event"] == "created" and resumed["event"] == "resumed"
+    assert resumed["changed"] == {"steps": [2, 3], "threads": [1, 2]}
+    assert resumed["command"].startswith("s3k train ") and "--steps 3" in resumed["command"]
+
+
+def test_old_flat_config_json_still_resumes(dataset, finished_run, tmp_path):
+    """A run whose config.json predates the dataset identity and history is resumed (names checked)."""
+    run = _copy_run(finished_run, tmp_path / "run")
+    doc = json.loads((run / "config.json").read_text())
+    del doc["dataset_identity"], doc["history"]
+    (run / "config.json").write_text(json.dumps(doc))
+    assert cli_main(["train", str(dataset), "--out", str(run), "--resume", "--steps", "3"]) == 0
+
+
+# ---------------------------------------------------------------------------------------------------------
+# crafted and foreign .pt files
+
+
+class _Payload:
+    """Unpickling this runs ``exec`` of a statement that creates a marker file."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (exec, (f"open({str(self.marker)!r}, 'w').close()",))
+
+
+def _craft(path: Path, marker: Path, real: dict) -> None:
+    torch.save({**real, "model": _Payload(marker)}, path)
+
+
+def test_crafted_model_pt_is_refused_and_runs_nothing(capsys, dataset, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    marker = tmp_path / "ran"
+    real = torch.load(run / "model.pt", weights_only=True)
+    _craft(run / "model.pt", marker, real)
+    with pytest.raises(UserError, match="not an s3k model"):
+        load_detector(run)
+    refused(capsys, ["evaluate", str(run), "--data", str(dataset)], str(run / "model.pt"), "not an s3k model",
+            "retrain")
+    assert not marker.exists()
+
+
+def test_crafted_checkpoint_is_refused_on_resume_and_runs_nothing(capsys, dataset, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    before = (run / "config.json").read_bytes()
+    marker = tmp_path / "ran"
+    real = torch.load(run / "checkpoint.pt", weights_only=True)
+    _craft(run / "checkpoint.pt", marker, real)
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", "--steps", "3"],
+            str(run / "checkpoint.pt"), "not an s3k checkpoint")
+    assert not marker.exists()
+    assert (run / "config.json").read_bytes() == before
+
+
+def test_foreign_and_truncated_files_are_refused(capsys, dataset, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    torch.save({"weights": torch.zeros(2)}, run / "model.pt")  # loads, but is not an s3k model
+    with pytest.raises(UserError, match="not an s3k model"):
+        load_detector(run)
+    data = (run / "checkpoint.pt").read_bytes()
+    (run / "checkpoint.pt").write_bytes(data[: len(data) // 2])
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume"], str(run / "checkpoint.pt"))
+    with pytest.raises(UserError, match="checkpoint"):
+        read_checkpoint_step(run / "checkpoint.pt")
