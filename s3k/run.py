@@ -135,11 +135,12 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
     """Read ``RUN/config.json``.
 
     Raises:
-        UserError: naming the file when it is absent or not an s3k run configuration.
+        FileNotFoundError: naming the file when it is absent.
+        UserError: naming the file when it is not an s3k run configuration.
     """
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
-        raise UserError(f"{path} not found: {run_dir} is not an s3k run folder")
+        raise FileNotFoundError(f"{path} not found: {run_dir} is not an s3k run folder")
     try:
         doc = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

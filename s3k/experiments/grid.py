@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from s3k.config import TrainConfig, config_from_dict
+from s3k.config import TrainConfig
 from s3k.errors import UserError
 
 #: The paper's image size (pixels) and training length (batches): errors are also shown at this scale.
@@ -241,7 +241,7 @@ def train_config(opts: Options, scale: Scale, steps: int, seed: int, unsup: bool
     values.update(opts.train_overrides)
     values.update(seed=seed, unsup=unsup, alpha=alpha)
     try:
-        cfg = config_from_dict(TrainConfig, values, where="--set")
+        cfg = TrainConfig.from_flat(where="--set", **values)
         cfg.validate()
     except UserError:
         raise

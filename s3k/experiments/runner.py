@@ -36,6 +36,7 @@ from s3k.experiments.grid import (
 from s3k.experiments.report import summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
 from s3k.fileio import atomic_write_json, file_lock
+from s3k.run import CHECKPOINT_FILE
 
 #: Config fields that do not change a run's result: a finished run is kept when only these differ.
 _NEUTRAL_FIELDS = ("progress", "device", "threads", "preload_mb", "val_every", "val_frames", "log_every",
@@ -63,14 +64,14 @@ def _check_same(saved: dict[str, Any], cfg: TrainConfig, where: Path, what: str)
 
 def checkpoint_step(run_dir: Path) -> int:
     """The step of ``run_dir``'s last checkpoint, 0 when there is none or it cannot be read (training then
-    decides what to do with it). Loaded with ``weights_only=True``: a crafted file runs no code."""
-    path = run_dir / "checkpoint.pt"
+    decides what to do with it). Read by the checkpoint's own reader: a crafted file runs no code."""
+    from s3k.train import read_checkpoint_step
+
+    path = run_dir / CHECKPOINT_FILE
     if not path.is_file():
         return 0
-    import torch
-
-    with contextlib.suppress(Exception):
-        return int(torch.load(path, map_location="cpu", weights_only=True)["step"])
+    with contextlib.suppress(UserError, OSError):
+        return read_checkpoint_step(path)
     return 0
 
 
