@@ -79,8 +79,8 @@ def dataset_identity(ds: Any) -> dict[str, Any]:
     uv, mask = ds.labels(ids)
     h.update(np.ascontiguousarray(uv, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(mask, dtype=bool).tobytes())
-    for part in ds.calibration_arrays(ids):
-        h.update(np.ascontiguousarray(part, dtype=np.float64).tobytes())
+    for name, part in sorted(ds.calibration(ids, dtype=np.float64).numpy().items()):
+        h.update(name.encode() + np.ascontiguousarray(part).tobytes())
     return {"keypoints": list(ds.keypoints), "cameras": list(ds.cameras), "fingerprint": h.hexdigest()[:32]}
 
 
