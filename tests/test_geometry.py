@@ -575,7 +575,7 @@ def test_undistort_and_pixel_rays_gradcheck():
 @pytest.mark.parametrize("layout", ["interleaved", "planar"])
 def test_triangulate_rays_gradcheck(layout, monkeypatch):
     # Small batches use the interleaved solve, large ones the planar one; check the gradients of both.
-    import s3k.geometry as geometry
+    import s3k.geometry.triangulation as geometry
 
     if layout == "planar":
         monkeypatch.setattr(geometry, "_PLANAR_MIN", 0)
@@ -586,7 +586,7 @@ def test_triangulate_rays_gradcheck(layout, monkeypatch):
 
 
 def test_triangulate_rays_small_and_planar_paths_agree(monkeypatch):
-    import s3k.geometry as geometry
+    import s3k.geometry.triangulation as geometry
 
     o, d, w = random_rays((40, 5), seed=55)
     w[:3] = 0.0
@@ -599,7 +599,7 @@ def test_triangulate_rays_small_and_planar_paths_agree(monkeypatch):
 
 def test_triangulate_rays_large_batch_chunks_agree(monkeypatch):
     # Large batches take the de-interleaving product and the cache-sized chunk loop; same answers.
-    import s3k.geometry as geometry
+    import s3k.geometry.triangulation as geometry
 
     monkeypatch.setattr(geometry, "_TRIANGULATE_CHUNK", 5000)
     o, d, w = random_rays((12000, 4), seed=60)

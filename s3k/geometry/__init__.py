@@ -1,0 +1,37 @@
+"""Camera geometry, pure torch: the OpenCV camera model, rays, rotations and weighted triangulation.
+
+Everything here broadcasts over leading dimensions, works in float32 and float64 and is differentiable.
+Conventions (docs/method.md#conventions): ``x_cam = R @ x_world + t``; pixel (0, 0) is the centre of the
+top-left pixel, u right, v down; ``K`` is a general 3x3 (skew allowed, so warps ``K <- M @ K`` stay exact);
+``dist = (k1, k2, p1, p2, k3)`` as in OpenCV. Dimension names: ``L`` the leading dims of a camera set (e.g.
+``(C,)`` for a rig, ``(B, C)`` per frame), ``N`` points, ``V`` views of one point.
+
+:mod:`s3k.geometry.cameras` holds the camera model, :mod:`s3k.geometry.triangulation` the solver.
+"""
+
+from s3k.geometry.cameras import (
+    Cameras,
+    camera_centres,
+    distort,
+    matrix_to_rodrigues,
+    pixel_rays,
+    project,
+    rodrigues_to_matrix,
+    undistort,
+    undistort_pixels,
+)
+from s3k.geometry.triangulation import triangulate_pixels, triangulate_rays
+
+__all__ = [
+    "Cameras",
+    "camera_centres",
+    "distort",
+    "matrix_to_rodrigues",
+    "pixel_rays",
+    "project",
+    "rodrigues_to_matrix",
+    "triangulate_pixels",
+    "triangulate_rays",
+    "undistort",
+    "undistort_pixels",
+]
