@@ -1,9 +1,9 @@
-"""Accuracy on the box scene: S3K against the labels-only baseline on the same labels (DESIGN 5).
+"""Accuracy on the box scene: S3K against the labels-only baseline on the same labels (docs/method.md#performance-targets).
 
 Renders the box scene (10 labelled frames, thousands of unlabelled ones, a test set), trains the network
 with and without the self-supervised term (same seed, same labelled batches, same augmentation), evaluates
 both on the same test frames and writes ``docs/results/accuracy/accuracy.json`` and ``accuracy.png`` with the
-command, the git revision, the scale and the machine. DESIGN's targets: median 3D error <= 5 mm and at most
+command, the git revision, the scale and the machine. The targets: median 3D error <= 5 mm and at most
 half the baseline's; the figures are stated at this scale (96 px, thousands of steps), not the paper's
 (400 px, 150k steps).
 

@@ -31,7 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
 from s3k.geometry import triangulate_rays  # noqa: E402
 
-TARGET = 10e6  # solves per second (docs: DESIGN 5)
+TARGET = 10e6  # solves per second (docs/method.md#performance-targets)
 
 
 def make_rays(n: int, views: int, seed: int, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:

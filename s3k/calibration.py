@@ -1,6 +1,7 @@
 """Calibration check from 2D labels (the ``s3k check-calibration`` command).
 
-Labels seen by >= 2 cameras are triangulated (unit weights, DESIGN 1's solver) and reprojected:
+Labels seen by >= 2 cameras are triangulated (unit weights, the solver of docs/method.md#triangulation) and
+reprojected:
 
 - **residual**: triangulate from every labelled view, reproject into each labelled view; median and RMS of
   the pixel distance per camera. A bad camera pulls every point it sees, which spreads its error over the rig.
@@ -19,10 +20,10 @@ Residuals are in pixels of the dataset's images; proofread tracker output is typ
 
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -456,82 +457,81 @@ def recalibrate_charuco(
 
 
 # ------------------------------------------------------------------------------------------------------------
-# CLI
+# Recalibrating cameras of a dataset
 
 
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.description = (
-        "Triangulate the dataset's 2D labels and report each camera's reprojection residual, a leave-one-"
-        "camera-out check, and the cameras inconsistent with the others (exit code 2 when any). Optionally "
-        "recalibrate a camera from ChArUco frames and show the residual after the fix."
-    )
-    parser.add_argument("dataset", help="dataset folder (s3k import or s3k simulate)")
-    parser.add_argument(
-        "--splits", default="labelled,test",
-        help="comma-separated splits whose labels are used (default: labelled,test)",
-    )
-    parser.add_argument("--factor", type=float, default=3.0,
-                        help="flag a camera whose leave-one-out residual exceeds FACTOR x the others' "
-                        "(default 3)")
-    parser.add_argument("--min-px", type=float, default=None,
-                        help="never flag a camera whose residual is below this many pixels "
-                        "(default: 0.5%% of the image diagonal)")
-    fix = parser.add_argument_group("recalibration from ChArUco frames")
-    fix.add_argument("--recalibrate", nargs="+", default=None, metavar="CAM",
-                     help="cameras to recalibrate ('flagged': those the check names)")
-    fix.add_argument("--calibration", default=None,
-                     help="the recording's anipose calibration.toml (default: the one the dataset was "
-                     "imported from)")
-    fix.add_argument("--board", default=None, help="anipose board.toml (default: beside the calibration)")
-    fix.add_argument("--charuco", nargs="+", default=None, metavar="CAM=GLOB",
-                     help="calibration images per camera (default: <calibration dir>/<camera>/"
-                     "calibration_images/*.jpg); files of one board position share their last number")
-    fix.add_argument("--write-calibration", default=None, metavar="TOML",
-                     help="write the calibration with the recalibrated cameras (anipose format, full "
-                     "resolution)")
+@dataclass
+class DatasetRecalibration:
+    """Cameras of a dataset with some of them recalibrated from ChArUco frames.
+
+    Attributes:
+        cameras: ``Cameras (B, C)`` float64 in the dataset's pixels (the importer's crop and resize applied).
+        rig: the recording's calibration with the recalibrated cameras (full resolution, for writing back).
+        fixes: ``{camera: Recalibration}`` of each recalibrated camera.
+        reference: the trusted cameras that placed the board.
+        frames: ``{camera: number of ChArUco frames}`` used.
+    """
+
+    cameras: Cameras
+    rig: Any
+    fixes: dict[str, Recalibration]
+    reference: list[str]
+    frames: dict[str, int]
 
 
-def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
+def recalibrate_dataset(
+    ds, ids, targets: list[str], flagged: list[str], *, calibration: str | Path | None = None,
+    board: str | Path | None = None, charuco: dict[str, str] | None = None,
+) -> DatasetRecalibration:
+    """Recalibrate ``targets`` of dataset ``ds`` from ChArUco frames; unflagged cameras are the reference.
+
+    Args:
+        ds: an open ``s3k.data.Dataset`` imported from a recording.
+        ids: frame ids whose calibration is returned.
+        targets: cameras to recalibrate.
+        flagged: cameras the check named (never used as reference).
+        calibration: the recording's anipose ``calibration.toml`` (default: the one the dataset names).
+        board: anipose ``board.toml`` (default: beside the calibration).
+        charuco: ``{camera: glob}`` of calibration images (default:
+            ``<calibration dir>/<camera>/calibration_images/*.jpg``).
+    """
     import glob
 
-    from s3k.cli.options import camera_pairs
-    from s3k.data.anipose import read_anipose_calibration, write_anipose_calibration
+    from s3k.data.anipose import read_anipose_calibration
     from s3k.data.transforms import crop_resize_matrix
+    from s3k.errors import UserError
 
-    targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
-    if not targets:
-        print("recalibration: no camera to recalibrate")
-        return 0
     source = ds.source if isinstance(ds.source, dict) else {}
-    toml_path = args.calibration or source.get("calibration")
+    toml_path = calibration or source.get("calibration")
     if not toml_path:
-        raise ValueError("--recalibrate needs --calibration (the dataset does not name its calibration file)")
+        raise UserError("recalibration needs the recording's calibration.toml (the dataset does not name it)",
+                        hint="pass --calibration")
     rig = read_anipose_calibration(toml_path)
     for cam in [*targets, *ds.cameras]:
         if cam not in rig.names:
-            raise ValueError(f"{toml_path}: no camera {cam!r} (it has {', '.join(rig.names)})")
-    board = read_board_toml(args.board or Path(toml_path).parent / "board.toml")
-    patterns = camera_pairs(args.charuco, "--charuco") if args.charuco else {}
+            raise UserError(f"{toml_path}: no camera {cam!r} (it has {', '.join(rig.names)})")
+    board_spec = read_board_toml(board or Path(toml_path).parent / "board.toml")
+    patterns = charuco or {}
     reference = [c for c in ds.cameras if c not in targets and c not in flagged]
     if len(reference) < 1:
-        raise ValueError("recalibration needs at least one trusted camera besides those recalibrated")
+        raise UserError("recalibration needs at least one trusted camera besides those recalibrated",
+                        hint="name fewer cameras in --recalibrate")
     detections = {}
     for cam in [*targets, *reference]:
         pattern = patterns.get(cam, str(Path(toml_path).parent / cam / "calibration_images" / "*.jpg"))
         files = sorted(glob.glob(pattern))
         if not files:
-            raise FileNotFoundError(f"no ChArUco images for camera {cam!r} at {pattern} (give --charuco)")
-        detections[cam] = detect_charuco(files, board)
+            raise UserError(f"no ChArUco images for camera {cam!r} at {pattern}",
+                            hint="pass --charuco CAM=GLOB")
+        detections[cam] = detect_charuco(files, board_spec)
     arrays = ds.calibration(ids, dtype=np.float64).numpy()
     crop_boxes = source.get("crop_boxes", {})
+    fixes = {}
     for cam in targets:
-        fix = recalibrate_charuco(rig, cam, detections, board, reference)
+        fix = recalibrate_charuco(rig, cam, detections, board_spec, reference)
+        fixes[cam] = fix
         c = rig.index(cam)
         rig = rig.replace_camera(cam, fix.K, fix.dist, fix.R, fix.t)
-        print(f"recalibrated {cam} from {len(detections[cam])} ChArUco frames: intrinsics rms "
-              f"{fix.intrinsics_rms_px:.2f} px, f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}; pose from "
-              f"{fix.corners} board corners in {fix.frames} frames placed by {', '.join(reference)}: median "
-              f"{fix.pose_median_px:.2f} px")
         # Into the dataset's pixels: the importer's crop box and output size (K' = M K).
         W, H = (float(v) for v in rig.size[c])
         box = crop_boxes.get(cam, (0.0, 0.0, W, H))
@@ -539,43 +539,5 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
         d = ds.cameras.index(cam)
         arrays["K"][:, d] = ds.pixel_map @ M @ fix.K
         arrays["dist"][:, d], arrays["R"][:, d], arrays["t"][:, d] = fix.dist, fix.R, fix.t
-    if args.write_calibration:
-        write_anipose_calibration(args.write_calibration, rig)
-        print(f"wrote {args.write_calibration}")
     cams = Cameras.from_numpy(arrays["K"], arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
-    check = check_calibration(
-        cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
-    )
-    print(f"after recalibrating {', '.join(targets)}:")
-    print(check.format())
-    return 2 if check.inconsistent else 0
-
-
-def run(args: argparse.Namespace) -> int:
-    from s3k.data import Dataset
-
-    try:
-        ds = Dataset.open(args.dataset)
-        splits = [s.strip() for s in args.splits.split(",") if s.strip()]
-        ids = np.concatenate([np.asarray(ds.frames(s)) for s in splits]) if splits else np.zeros(0, int)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"s3k check-calibration: error: {exc}", file=sys.stderr)
-        return 1
-    if ids.size == 0:
-        print(f"{args.dataset}: no frames in splits {splits}")
-        return 1
-    uv, mask = ds.labels(ids)
-    cams = ds.calibration(ids, dtype=np.float64)
-    print(f"{args.dataset}: {len(ds.cameras)} cameras, {len(ids)} frames ({', '.join(splits)}), "
-          f"{int(mask.sum())} labels, image {ds.image_size[0]}x{ds.image_size[1]} px")
-    check = check_calibration(
-        cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
-    )
-    print(check.format())
-    if args.recalibrate:
-        try:
-            return _recalibrate(args, ds, ids, uv, mask, check.inconsistent)
-        except (ValueError, FileNotFoundError) as exc:
-            print(f"s3k check-calibration: error: {exc}", file=sys.stderr)
-            return 1
-    return 2 if check.inconsistent else 0
+    return DatasetRecalibration(cams, rig, fixes, reference, {c: len(detections[c]) for c in targets})

@@ -227,7 +227,7 @@ _FIELD_SECTION: dict[str, str] = {
 
 
 # ----------------------------------------------------------------------------------------------------
-# Generic dataclass <-> file / argparse plumbing. A configuration class is a dataclass whose fields are
+# Generic dataclass <-> file / command-line plumbing. A configuration class is a dataclass whose fields are
 # either documented values or sections (dataclasses of documented values); leaves are addressed by their
 # (unique) names.
 

@@ -55,7 +55,7 @@ QUICK = DemoConfig(size=48, labelled=10, unlabelled=40, test=12, steps=60, warmu
 
 
 def comparison_table(results: dict[str, dict]) -> str:
-    """Markdown table of the DESIGN metrics, one row per model."""
+    """Markdown table of the metrics of docs/method.md#metrics, one row per model."""
     metrics = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm")
     lines = ["| model | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
     for name, m in results.items():

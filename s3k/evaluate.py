@@ -1,4 +1,4 @@
-"""``s3k evaluate``: DESIGN 1's metrics of a trained detector on a dataset split, and a report folder.
+"""``s3k evaluate``: the metrics of docs/method.md#metrics of a trained detector on a dataset split, and a report folder.
 
 Metric names are fixed so results compare across runs and versions:
 

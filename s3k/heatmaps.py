@@ -1,6 +1,6 @@
 """Heatmaps: the cell-to-pixel map, Gaussian targets, spatial softmax, moments and confidence weights.
 
-Every function here works in image pixels (DESIGN 2: pixel (0, 0) is the centre of the top-left pixel, u to
+Every function here works in image pixels (docs/method.md#conventions: pixel (0, 0) is the centre of the top-left pixel, u to
 the right, v down) even when the heatmap is at a reduced stride. The only place that converts a heatmap cell
 index into an image pixel is :func:`cell_centres`; targets and moments both go through it, so a Gaussian
 rendered at ``uv`` has its softmax mean at ``uv`` at every stride.
@@ -106,7 +106,7 @@ def heatmap_size(H: int, W: int, stride: int) -> tuple[int, int]:
 def gaussian_targets(
     uv: Tensor, valid: Tensor | None, h: int, w: int, stride: int, sigma: float
 ) -> tuple[Tensor, Tensor]:
-    """Normalized Gaussian target heatmaps centred on image points (DESIGN 1, "Targets").
+    """Normalized Gaussian target heatmaps centred on image points (docs/method.md#targets).
 
     ``target[..., i, j]`` is proportional to ``exp(-((u_j - u)^2 + (v_i - v)^2) / (2 sigma^2))`` with
     ``(u_j, v_i)`` the cell centres of :func:`cell_centres`, and sums to 1 over the heatmap. It is computed as
@@ -181,7 +181,7 @@ def spatial_log_softmax(logits: Tensor) -> Tensor:
 
 
 def spatial_softmax(logits: Tensor) -> Tensor:
-    """Softmax over the last two (spatial) dimensions: ``P_ck`` of DESIGN 1.
+    """Softmax over the last two (spatial) dimensions: ``P_ck`` of docs/method.md#heatmaps.
 
     Args:
         logits: ``(*, h, w)``.
@@ -195,7 +195,7 @@ def spatial_softmax(logits: Tensor) -> Tensor:
 
 
 def heatmap_moments(probs: Tensor, stride: int) -> tuple[Tensor, Tensor]:
-    """Mean and spread of heatmap distributions, in image pixels (DESIGN 1, "Moments of a heatmap").
+    """Mean and spread of heatmap distributions, in image pixels (docs/method.md#heatmaps).
 
     ``mean = sum P (u, v)``; ``var = (var_u + var_v) / 2``, the mean of the per-axis variances, so a Gaussian
     of width ``sigma`` gives ``sqrt(var) = sigma``. Both are computed from the row and column marginals, with
@@ -227,7 +227,7 @@ def heatmap_moments(probs: Tensor, stride: int) -> tuple[Tensor, Tensor]:
 
 
 def confidence_weight(var: Tensor, sigma: float) -> Tensor:
-    """Per-view confidence from a heatmap's spread (paper sec. 3.2.1, DESIGN 1).
+    """Per-view confidence from a heatmap's spread (paper sec. 3.2.1, docs/method.md#confidence).
 
     ``w = sigmoid(3 tanh(5 (1 - sqrt(var) / (2 sigma))))``: 0.5 at a spread of ``2 sigma``, about 0.95 at or
     below ``sigma``, towards ``sigmoid(-3) = 0.047`` for wide heatmaps. ``var`` is clamped at 1e-12 px^2

@@ -1,4 +1,4 @@
-"""The keypoint network: a small U-Net mapping one camera image to K heatmap logits (DESIGN 1, "Network").
+"""The keypoint network: a small U-Net mapping one camera image to K heatmap logits (docs/method.md#network).
 
 One set of weights serves every camera: callers fold frames and cameras ``(B, C)`` into the batch ``N``
 (:func:`detect` does it). The network is built for CPU speed: plain 3x3 convolutions, BatchNorm (folded into

@@ -1,5 +1,95 @@
-"""`s3k check-calibration`: command-line front end of :mod:`s3k.calibration`."""
+"""``s3k check-calibration DATASET``: per-camera reprojection residuals from the labels, the cameras
+inconsistent with the others, and their recalibration from ChArUco frames (:mod:`s3k.calibration`)."""
 
-from s3k.calibration import configure_parser, run
+from __future__ import annotations
 
-__all__ = ["configure_parser", "run"]
+import argparse
+
+import numpy as np
+
+from s3k.cli.options import camera_pairs
+from s3k.errors import UserError
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Triangulate the dataset's 2D labels and report each camera's reprojection residual, a leave-one-"
+        "camera-out check, and the cameras inconsistent with the others (exit code 2 when any). Optionally "
+        "recalibrate a camera from ChArUco frames and show the residual after the fix."
+    )
+    parser.add_argument("dataset", help="dataset folder (s3k import or s3k simulate)")
+    parser.add_argument(
+        "--splits", default="labelled,test",
+        help="comma-separated splits whose labels are used (default: labelled,test)",
+    )
+    parser.add_argument("--factor", type=float, default=3.0,
+                        help="flag a camera whose leave-one-out residual exceeds FACTOR x the others' "
+                        "(default 3)")
+    parser.add_argument("--min-px", type=float, default=None,
+                        help="never flag a camera whose residual is below this many pixels "
+                        "(default: 0.5%% of the image diagonal)")
+    fix = parser.add_argument_group("recalibration from ChArUco frames")
+    fix.add_argument("--recalibrate", nargs="+", default=None, metavar="CAM",
+                     help="cameras to recalibrate ('flagged': those the check names)")
+    fix.add_argument("--calibration", default=None,
+                     help="the recording's anipose calibration.toml (default: the one the dataset was "
+                     "imported from)")
+    fix.add_argument("--board", default=None, help="anipose board.toml (default: beside the calibration)")
+    fix.add_argument("--charuco", nargs="+", default=None, metavar="CAM=GLOB",
+                     help="calibration images per camera (default: <calibration dir>/<camera>/"
+                     "calibration_images/*.jpg); files of one board position share their last number")
+    fix.add_argument("--write-calibration", default=None, metavar="TOML",
+                     help="write the calibration with the recalibrated cameras (anipose format, full "
+                     "resolution)")
+
+
+def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
+    from s3k.calibration import check_calibration, recalibrate_dataset
+    from s3k.data.anipose import write_anipose_calibration
+
+    targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
+    if not targets:
+        print("recalibration: no camera to recalibrate")
+        return 0
+    patterns = camera_pairs(args.charuco, "--charuco") if args.charuco else None
+    fixed = recalibrate_dataset(ds, ids, targets, flagged, calibration=args.calibration, board=args.board,
+                                charuco=patterns)
+    for cam, fix in fixed.fixes.items():
+        print(f"recalibrated {cam} from {fixed.frames[cam]} ChArUco frames: intrinsics rms "
+              f"{fix.intrinsics_rms_px:.2f} px, f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}; pose from "
+              f"{fix.corners} board corners in {fix.frames} frames placed by {', '.join(fixed.reference)}: "
+              f"median {fix.pose_median_px:.2f} px")
+    if args.write_calibration:
+        write_anipose_calibration(args.write_calibration, fixed.rig)
+        print(f"wrote {args.write_calibration}")
+    check = check_calibration(fixed.cameras, uv, mask, list(ds.cameras), factor=args.factor,
+                              min_px=args.min_px, image_size=ds.image_size)
+    print(f"after recalibrating {', '.join(targets)}:")
+    print(check.format())
+    return 2 if check.inconsistent else 0
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.calibration import check_calibration
+    from s3k.data import Dataset
+
+    ds = Dataset.open(args.dataset)
+    splits = [s.strip() for s in args.splits.split(",") if s.strip()]
+    unknown = [s for s in splits if s not in ("labelled", "unlabelled", "test")]
+    if unknown:
+        raise UserError(f"--splits: unknown split {unknown[0]!r}; choose from labelled, unlabelled, test")
+    ids = np.concatenate([np.asarray(ds.frames(s)) for s in splits]) if splits else np.zeros(0, int)
+    if ids.size == 0:
+        raise UserError(f"{args.dataset}: no frames in splits {', '.join(splits) or '(none)'}",
+                        hint="choose others with --splits")
+    uv, mask = ds.labels(ids)
+    cams = ds.calibration(ids, dtype=np.float64)
+    print(f"{args.dataset}: {len(ds.cameras)} cameras, {len(ids)} frames ({', '.join(splits)}), "
+          f"{int(mask.sum())} labels, image {ds.image_size[0]}x{ds.image_size[1]} px")
+    check = check_calibration(
+        cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
+    )
+    print(check.format())
+    if args.recalibrate:
+        return _recalibrate(args, ds, ids, uv, mask, check.inconsistent)
+    return 2 if check.inconsistent else 0

@@ -1,6 +1,6 @@
 """The one function that resizes or crops images and updates the intrinsics with them.
 
-Convention (DESIGN 2): pixel ``(0, 0)`` is the centre of the top-left pixel, so pixel column ``i`` covers
+Convention (docs/method.md#conventions): pixel ``(0, 0)`` is the centre of the top-left pixel, so pixel column ``i`` covers
 ``[i - 0.5, i + 0.5]`` in pixel coordinates. A crop box ``(x0, y0, x1, y1)`` is given in pixel *edge*
 coordinates, where column ``i`` covers ``[i, i + 1)``: the whole image is ``(0, 0, W, H)`` and an integer box
 keeps columns ``x0 .. x1 - 1`` and rows ``y0 .. y1 - 1``. Mapping the box onto an output of ``(w, h)`` pixels
