@@ -1,4 +1,6 @@
-"""Accuracy on the box scene: S3K against the labels-only baseline on the same labels (docs/method.md#performance-targets).
+"""Accuracy on the box scene: S3K against the labels-only baseline on the same labels.
+
+Targets: docs/method.md#performance-targets.
 
 Renders the box scene (10 labelled frames, thousands of unlabelled ones, a test set), trains the network
 with and without the self-supervised term (same seed, same labelled batches, same augmentation), evaluates

@@ -1,4 +1,6 @@
-"""Inference speed: 4-view 3D keypoints from camera images, end to end, one frame at a time (docs/method.md#performance-targets).
+"""Inference speed: 4-view 3D keypoints from camera images, end to end, one frame at a time.
+
+Targets: docs/method.md#performance-targets.
 
 Per frame: C uint8 camera images (H, W, 3) -> float [0, 1] channels_last -> U-Net heatmaps (shared weights,
 the C views in one batch) -> softmax means and variances -> confidence weights -> weighted triangulation.

@@ -1,4 +1,6 @@
-"""Training speed: seconds per S3K step, FLOP/s as a fraction of matmul FLOP/s, data-loading share (docs/method.md#performance-targets).
+"""Training speed: seconds per S3K step, FLOP/s as a fraction of matmul FLOP/s, data-loading share.
+
+Targets: docs/method.md#performance-targets.
 
 One step = a labelled batch and an unlabelled batch (default 4 + 4 frames of 4 cameras), each image augmented
 (random similarity + photometric, in torch), one forward pass over all images, supervised + self-supervised

@@ -1,4 +1,4 @@
-"""``s3k evaluate``: the metrics of docs/method.md#metrics of a trained detector on a dataset split, and a report folder.
+"""``s3k evaluate``: a trained detector's metrics (docs/method.md#metrics) on a dataset split, and a report.
 
 Metric names are fixed so results compare across runs and versions:
 

@@ -1,9 +1,9 @@
 """Heatmaps: the cell-to-pixel map, Gaussian targets, spatial softmax, moments and confidence weights.
 
-Every function here works in image pixels (docs/method.md#conventions: pixel (0, 0) is the centre of the top-left pixel, u to
-the right, v down) even when the heatmap is at a reduced stride. The only place that converts a heatmap cell
-index into an image pixel is :func:`cell_centres`; targets and moments both go through it, so a Gaussian
-rendered at ``uv`` has its softmax mean at ``uv`` at every stride.
+Every function here works in image pixels (docs/method.md#conventions: pixel (0, 0) is the centre of the
+top-left pixel, u to the right, v down) even when the heatmap is at a reduced stride. The only place that
+converts a heatmap cell index into an image pixel is :func:`cell_centres`; targets and moments both go
+through it, so a Gaussian rendered at ``uv`` has its softmax mean at ``uv`` at every stride.
 
 Shapes: ``*`` any leading dimensions (typically ``(B, C, K)``), ``h w`` heatmap size, ``H W`` image size.
 """

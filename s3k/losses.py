@@ -1,4 +1,6 @@
-"""Training losses (docs/method.md#losses): KL to Gaussian targets, supervised and self-supervised terms, weight decay.
+"""Training losses: KL to Gaussian targets, supervised and self-supervised terms, weight decay.
+
+The maths: docs/method.md#losses.
 
 Both heatmap losses are ``sum_c sum_k KL(H_ck || P_ck)`` over the terms that have a target, divided by the
 number of frames ``B`` so that the loss scale does not depend on the batch size. They differ only in where
@@ -185,11 +187,11 @@ def self_supervised_loss(
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
 
-    The softmax means ``m_ck`` and confidence weights ``w_ck`` (docs/method.md#confidence) give ``x~_k`` by weighted
-    triangulation; ``x~`` is a constant (the whole target is computed under ``torch.no_grad``), projected into
-    every camera and rendered as a Gaussian; the gradient flows only through ``log P`` in the KL. Views with
-    non-finite means or weights get weight zero; invalid triangulations, points behind a camera and
-    projections off the heatmap give masked terms.
+    The softmax means ``m_ck`` and confidence weights ``w_ck`` (docs/method.md#confidence) give ``x~_k`` by
+    weighted triangulation; ``x~`` is a constant (the whole target is computed under ``torch.no_grad``),
+    projected into every camera and rendered as a Gaussian; the gradient flows only through ``log P`` in the
+    KL. Views with non-finite means or weights get weight zero; invalid triangulations, points behind a
+    camera and projections off the heatmap give masked terms.
 
     Args:
         logits: ``(B, C, K, h, w)`` network logits.

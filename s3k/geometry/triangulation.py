@@ -25,7 +25,9 @@ def triangulate_rays(
     min_rel_det: float = 1e-5,
     fused: bool = False,
 ) -> tuple[Tensor, Tensor]:
-    """Weighted least-squares intersection of rays (docs/method.md#triangulation: paper eq. 2 with the weight in both sums).
+    """Weighted least-squares intersection of rays (paper eq. 2 with the weight in both sums).
+
+    The maths and the correction to the paper: docs/method.md#triangulation.
 
     ``x = (sum_v w_v (I - d_v d_v^T))^-1  sum_v w_v (I - d_v d_v^T) a_v`` minimizes the weighted sum of
     squared distances to the rays. The 3x3 system is solved in closed form (adjugate / determinant), batched.

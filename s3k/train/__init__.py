@@ -1,4 +1,6 @@
-"""``s3k train DATASET --out RUN``: semi-supervised training of the keypoint network (S3K, docs/method.md#losses).
+"""``s3k train DATASET --out RUN``: semi-supervised training of the keypoint network (S3K).
+
+The losses: docs/method.md#losses.
 
 Each step draws a labelled batch and, once the self-supervised term is on, an unlabelled batch; both are
 augmented per image with a random similarity that updates the intrinsics (``s3k.augment``), go through the
