@@ -106,13 +106,21 @@ def load_torch_file(path: str | Path, what: str, keys: Sequence[str]) -> dict[st
     refusal = f"{path}: not an s3k {what} or written by an older s3k"
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except OSError:
-        raise  # missing or unreadable: the CLI names the file and the system's reason
+    except OSError as exc:
+        if exc.filename is not None:
+            raise  # missing or unreadable: the CLI names the file and the system's reason
+        # torch's reader raises a bare EINVAL for a zip cut short near its end
+        raise UserError(f"{path}: not a complete {what} file (truncated or damaged)",
+                        hint="copy it again or retrain") from exc
     except pickle.UnpicklingError as exc:  # weights_only refused an object: nothing of it was run
         raise UserError(f"{refusal} (it holds objects other than tensors and plain values)",
                         hint="retrain") from exc
     except Exception as exc:  # noqa: BLE001 - the zip reader and the unpickler raise many kinds
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = str(exc).strip()
+        if "zip archive" in text or "central directory" in text:
+            raise UserError(f"{path}: not a complete {what} file (truncated or damaged)",
+                            hint="copy it again or retrain") from exc
+        reason = text.splitlines()[0] if text else type(exc).__name__
         raise UserError(f"{refusal} (unreadable: {reason[:200]})", hint="retrain") from exc
     if not isinstance(state, dict) or any(k not in state for k in keys):
         raise UserError(f"{refusal} (it lacks {' or '.join(repr(k) for k in keys)})", hint="retrain")

@@ -204,3 +204,11 @@ def test_foreign_and_truncated_files_are_refused(capsys, dataset, finished_run, 
     refused(capsys, ["train", str(dataset), "--out", str(run), "--resume"], str(run / "checkpoint.pt"))
     with pytest.raises(UserError, match="checkpoint"):
         read_checkpoint_step(run / "checkpoint.pt")
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9, 0.99])
+def test_truncated_model_is_one_line_naming_the_file(capsys, dataset, finished_run, tmp_path, fraction):
+    run = _copy_run(finished_run, tmp_path / "run")
+    data = (run / "model.pt").read_bytes()
+    (run / "model.pt").write_bytes(data[: int(len(data) * fraction)])
+    refused(capsys, ["evaluate", str(run), "--data", str(dataset)], str(run / "model.pt"), "truncated")
