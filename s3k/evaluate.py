@@ -7,6 +7,10 @@ Metric names are fixed so results compare across runs and versions:
   of the image the model saw.
 - ``rms_px_reproj``: the same for the reprojection of the confidence-weighted triangulated 3D point.
 - ``median_mm``, ``rms_mm``: 3D error of the triangulated point against the ground-truth 3D, millimetres.
+- ``pck_5mm``, ``pck_10mm``: share of the keypoints with ground-truth 3D whose triangulated point is within
+  5 / 10 mm of it (a failed triangulation counts as a miss).
+- ``mm_per_px``: the size of one pixel of the image the model saw at the workspace centre (where the
+  cameras' optical axes meet), from the calibration: what turns this rig's pixel errors into millimetres.
 - ``per_keypoint`` and ``per_camera`` breakdowns of the above (3D metrics only per keypoint).
 
 The ground truth is the dataset's 3D points projected into every camera; a dataset without 3D points is scored
@@ -29,7 +33,7 @@ from s3k.errors import UserError
 UNIT_TO_MM = {"m": 1000.0, "meter": 1000.0, "meters": 1000.0, "metre": 1000.0, "metres": 1000.0,
               "cm": 10.0, "mm": 1.0, "millimeter": 1.0, "millimetre": 1.0}
 
-METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm")
+METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "pck_5mm", "pck_10mm")
 
 
 def mm_per_unit(units: str) -> float:
@@ -63,7 +67,8 @@ def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X
         cameras: C names (default "0", "1", ...).
 
     Returns:
-        ``{"rms_px", "rms_px_reproj", "median_mm", "rms_mm", "per_keypoint": {name: {...}},
+        ``{"rms_px", "rms_px_reproj", "median_mm", "rms_mm", "pck_5mm", "pck_10mm",
+        "per_keypoint": {name: {...}},
         "per_camera": {name: {"rms_px", "rms_px_reproj", "n_2d"}}, "n_frames", "n_2d", "n_3d",
         "triangulated_fraction"}``; a metric without any term is None.
     """
@@ -95,15 +100,25 @@ def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X
         mask3d = np.zeros((B, K), bool)
         denom3d = X_valid | ~X_valid
 
-    def block(sel2d, selre, sel3d) -> dict[str, Any]:
+    def block(sel: np.ndarray) -> dict[str, Any]:
+        """The metrics over the keypoints ``sel (K,)``."""
+        s2, sr, s3 = mask2d & sel, maskre & sel, mask3d & sel
+        n_known = int((denom3d & sel).sum()) if X_gt is not None else 0
+
+        def pck(threshold_mm: float) -> float | None:
+            # share of keypoints with known ground truth within the threshold; a failed triangulation misses
+            return float((s3 & (err3d <= threshold_mm)).sum() / n_known) if n_known else None
+
         return {
-            "rms_px": _rms(err2d[sel2d]),
-            "rms_px_reproj": _rms(errre[selre]),
-            "median_mm": _median(err3d[sel3d]),
-            "rms_mm": _rms(err3d[sel3d]),
+            "rms_px": _rms(err2d[s2]),
+            "rms_px_reproj": _rms(errre[sr]),
+            "median_mm": _median(err3d[s3]),
+            "rms_mm": _rms(err3d[s3]),
+            "pck_5mm": pck(5.0),
+            "pck_10mm": pck(10.0),
         }
 
-    out: dict[str, Any] = block(mask2d, maskre, mask3d)
+    out: dict[str, Any] = block(np.ones(K, bool))
     out["n_frames"] = int(B)
     out["n_2d"] = int(mask2d.sum())
     out["n_3d"] = int(mask3d.sum())
@@ -113,7 +128,7 @@ def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X
     for k, name in enumerate(keypoints):
         sel = np.zeros(K, bool)
         sel[k] = True
-        d = block(mask2d & sel, maskre & sel, mask3d & sel)
+        d = block(sel)
         d["n_2d"], d["n_3d"] = int((mask2d & sel).sum()), int((mask3d & sel).sum())
         out["per_keypoint"][name] = d
     out["per_camera"] = {}
@@ -124,6 +139,36 @@ def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X
                                    "rms_px_reproj": _rms(errre[maskre & selc]),
                                    "n_2d": int((mask2d & selc).sum())}
     return out
+
+
+def pixel_sizes_mm(cams, unit_mm: float = 1000.0) -> np.ndarray:
+    """Size of one image pixel at the workspace centre, in millimetres, per frame and camera.
+
+    The workspace centre is where the cameras look: the point nearest to their optical axes (the rays
+    through each principal point), triangulated with unit weights; a pixel there spans ``z / f`` world units
+    (``z`` its depth in the camera, ``f`` the geometric mean of the focal lengths). This is ``mm_per_px``:
+    what turns a pixel error of this rig into millimetres.
+
+    Args:
+        cams: ``Cameras (B, C)`` (or ``(C,)`` for a rig).
+        unit_mm: millimetres per world unit.
+
+    Returns:
+        ``(B, C)`` (or ``(C,)``) float64, NaN where the axes do not meet (fewer than two cameras, parallel
+        axes) or the centre is behind a camera.
+    """
+    import torch
+
+    from s3k.geometry import project, triangulate_pixels
+
+    cams = cams.to(torch.float64)
+    principal = cams.K[..., :2, 2][..., None, :]  # (*L, 1, 2)
+    centre, valid = triangulate_pixels(cams, principal)  # (*L[:-1], 1, 3)
+    _, depth = project(cams, centre[..., None, :, :])  # (*L, 1)
+    focal = torch.sqrt(cams.K[..., 0, 0].abs() * cams.K[..., 1, 1].abs())
+    size = depth[..., 0] / focal * unit_mm
+    ok = valid[..., None, 0] & (depth[..., 0] > 0)
+    return torch.where(ok, size, torch.full_like(size, float("nan"))).numpy()
 
 
 def ground_truth_2d(batch, image_size: tuple[int, int]):
@@ -189,7 +234,7 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
     from s3k.predict import predict_store
 
     cols: dict[str, list] = {k: [] for k in ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid",
-                                             "X_gt", "X_gt_mask", "weight", "frame_ids")}
+                                             "X_gt", "X_gt_mask", "weight", "frame_ids", "mm_per_px")}
     kept_images: list[np.ndarray] = []
     kept_probs: list[np.ndarray] = []
     has3d = True
@@ -206,6 +251,7 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
         cols["X_valid"].append(pred.valid.numpy())
         cols["weight"].append(pred.weights.numpy())
         cols["frame_ids"].append(np.asarray(batch.frame_ids))
+        cols["mm_per_px"].append(pixel_sizes_mm(batch.cams, mm_per_unit(units)))
         if batch.points is None or batch.points_mask is None:
             has3d = False
         else:
@@ -224,6 +270,9 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
     metrics = compute_metrics(arrays["pred_uv"], arrays["reproj_uv"], arrays["gt_uv"], arrays["gt_mask"],
                               arrays["X"], arrays["X_valid"], arrays["X_gt"], arrays["X_gt_mask"],
                               mm_per_unit(units), meta.keypoints, store.dataset.cameras)
+    sizes = arrays["mm_per_px"]
+    finite = sizes[np.isfinite(sizes)] if sizes is not None else np.zeros(0)
+    metrics["mm_per_px"] = float(np.median(finite)) if finite.size else None
     return metrics, arrays
 
 
@@ -240,7 +289,8 @@ def format_table(metrics: dict[str, Any]) -> str:
     for name, d in metrics["per_camera"].items():
         lines.append(f"{'cam ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
     lines.append(f"frames {metrics['n_frames']}, 2D terms {metrics['n_2d']}, 3D terms {metrics['n_3d']}, "
-                 f"triangulated {_fmt(metrics['triangulated_fraction'])}")
+                 f"triangulated {_fmt(metrics['triangulated_fraction'])}, "
+                 f"mm_per_px {_fmt(metrics.get('mm_per_px'))}")
     return "\n".join(lines)
 
 

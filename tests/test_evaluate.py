@@ -238,3 +238,54 @@ def test_demo_quick(tmp_path, capsys):
         assert summary[name]["rms_px"] is not None and summary[name]["median_mm"] is not None
     assert (tmp_path / "demo" / "report" / "comparison.png").is_file()
     assert (tmp_path / "demo" / "report" / "s3k" / "metrics.json").is_file()
+
+
+def test_pck_counts_misses_and_failed_triangulations():
+    from s3k.evaluate import compute_metrics
+
+    B, C, K = 4, 2, 2
+    uv = np.zeros((B, C, K, 2))
+    gt_mask = np.ones((B, C, K), bool)
+    X_gt = np.zeros((B, K, 3))
+    X = np.zeros((B, K, 3))
+    # errors of keypoint 0 in mm: 1, 4, 7, 20; keypoint 1: 3, 3, 12 and one failed triangulation
+    X[:, 0, 0] = np.array([1, 4, 7, 20]) / 1000
+    X[:, 1, 1] = np.array([3, 3, 12, 0]) / 1000
+    valid = np.ones((B, K), bool)
+    valid[3, 1] = False
+    m = compute_metrics(uv, uv, uv, gt_mask, X, valid, X_gt, None, 1000.0, ["a", "b"], ["c0", "c1"])
+    assert m["pck_5mm"] == pytest.approx(4 / 8) and m["pck_10mm"] == pytest.approx(5 / 8)
+    assert m["per_keypoint"]["a"]["pck_5mm"] == pytest.approx(2 / 4)
+    assert m["per_keypoint"]["b"]["pck_10mm"] == pytest.approx(2 / 4)
+    assert m["median_mm"] == pytest.approx(np.median([1, 4, 7, 20, 3, 3, 12]))
+    no3d = compute_metrics(uv, uv, uv, gt_mask, X, valid)
+    assert no3d["pck_5mm"] is None
+
+
+@pytest.mark.parametrize("distance,f", [(1.0, 247.0), (2.5, 400.0)])
+def test_mm_per_px_at_the_workspace_centre(distance, f):
+    import torch
+
+    from s3k.evaluate import pixel_sizes_mm
+    from s3k.geometry import Cameras
+
+    # four cameras on a circle, all looking at (0.1, -0.2, 0.3): the point their optical axes meet
+    target = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    Ks, Rs, ts = [], [], []
+    for i in range(4):
+        a = 2 * np.pi * i / 4
+        direction = torch.tensor([np.cos(a), np.sin(a), 0.5], dtype=torch.float64) / np.sqrt(1.25)
+        centre = target + distance * direction
+        z = (target - centre) / (target - centre).norm()
+        x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        x = x / x.norm()
+        R = torch.stack([x, torch.linalg.cross(z, x), z])
+        Ks.append(torch.tensor([[f, 0, 47.5], [0, f, 47.5], [0, 0, 1]], dtype=torch.float64))
+        Rs.append(R)
+        ts.append(-R @ centre)
+    cams = Cameras(K=torch.stack(Ks)[None], dist=None, R=torch.stack(Rs)[None], t=torch.stack(ts)[None])
+    sizes = pixel_sizes_mm(cams, 1000.0)
+    assert sizes.shape == (1, 4)
+    np.testing.assert_allclose(sizes, 1000.0 * distance / f, rtol=1e-9)
+    # one camera alone has no workspace centre
+    assert np.isnan(pixel_sizes_mm(cams[:, :1], 1000.0)).all()
