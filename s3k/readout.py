@@ -24,6 +24,7 @@ used views are weighted by their confidence ``w``. The default ``min_weight = 0`
 the paper's rule and the one training's self-supervised target uses, so that ``s3k evaluate`` scores exactly
 the points ``s3k predict`` and ``s3k track`` write. A higher threshold (``s3k track --min-weight``) drops
 uncertain views outright instead of down-weighting them (the weight is 0.5 at a spread of 2 sigma).
+:func:`reject_outliers` (``max_residual_px``) also drops views that miss the other views' consensus.
 """
 
 from __future__ import annotations
@@ -38,7 +39,16 @@ from torch import Tensor
 from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
 
-__all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "ReadOut", "moments", "read_out", "select_views", "triangulate"]
+__all__ = [
+    "DEFAULT_MIN_WEIGHT",
+    "DTYPE",
+    "ReadOut",
+    "moments",
+    "read_out",
+    "reject_outliers",
+    "select_views",
+    "triangulate",
+]
 
 DTYPE = torch.float64
 """Precision of the read-out (see the module docstring)."""
@@ -90,6 +100,41 @@ def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tup
         uv, w = torch.where(used[..., None], uv, zero), torch.where(used, w, zero)
     X, valid = triangulate_pixels(cams, uv, w)
     return X, valid & (used.sum(dim=1) >= 2)
+
+
+def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, max_residual_px: float,
+                    min_views: int = 2) -> Tensor:
+    """Drop, one at a time, the used view that misses the others' consensus by more than ``max_residual_px``.
+
+    A view whose detection lies on the wrong object (an occluded keypoint, a symmetric corner) pulls the
+    weighted least-squares point towards its own ray however small its weight; its confidence does not show
+    it (a confused heatmap can be sharp), but its reprojection residual does. Each round triangulates the
+    used views, and in every (frame, keypoint) whose largest residual exceeds the threshold drops that view,
+    as long as more than ``min_views`` remain; at most ``C - min_views`` rounds.
+
+    Args:
+        cams, uv, weights, used: as for :func:`triangulate`.
+        max_residual_px: largest reprojection residual a view may keep, in the pixels of ``uv``.
+        min_views: never drop below this many views.
+
+    Returns:
+        ``used (B, C, K)`` with the outlying views removed.
+    """
+    C = uv.shape[1]
+    used = used.clone()
+    for _ in range(max(0, C - min_views)):
+        X, valid = triangulate(cams, uv, weights, used)
+        cams64 = cams.to(device=uv.device, dtype=DTYPE)
+        reproj, _ = project(cams64, X[:, None])
+        residual = torch.linalg.vector_norm(reproj - uv.to(DTYPE), dim=-1)  # (B, C, K)
+        residual = torch.where(used & valid[:, None], residual, torch.full_like(residual, -1.0))
+        worst, c_worst = residual.max(dim=1)  # (B, K)
+        drop = (worst > max_residual_px) & (used.sum(dim=1) > min_views)
+        if not bool(drop.any()):
+            break
+        hit = torch.nn.functional.one_hot(c_worst, C).permute(0, 2, 1).bool() & drop[:, None]
+        used = used & ~hit
+    return used
 
 
 @dataclass
@@ -156,7 +201,7 @@ class ReadOut:
 
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
-             keep_heatmaps: bool = False) -> ReadOut:
+             keep_heatmaps: bool = False, max_residual_px: float | None = None) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
     Args:
@@ -169,6 +214,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             ``cams`` are the network input's cameras.
         min_weight: views with a confidence weight at or below this are not used.
         keep_heatmaps: also return the softmax heatmaps.
+        max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
+            (:func:`reject_outliers`), in the pixels of ``cams``.
 
     Returns:
         A :class:`ReadOut`.
@@ -191,6 +238,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
         cams = cams.to(device=logits.device, dtype=DTYPE)
+    if max_residual_px is not None:
+        used = reject_outliers(cams, uv, weights, used, max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

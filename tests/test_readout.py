@@ -167,3 +167,44 @@ def test_min_weight_drops_views_and_invalid_points_are_nan(scene):
         read_out(logits[:, :2], scene.batch.cams, STRIDE, SIGMA)
     with pytest.raises(ValueError, match="pixel_maps"):
         read_out(logits, scene.batch.cams, STRIDE, SIGMA, np.eye(3)[None])
+
+
+def _rig_views(B=5):
+    """A 4-camera rig, B frames of the synthetic layout and their exact projections."""
+    from synthetic_rig import LAYOUT, rig
+
+    K, dist, R, t = rig(64)
+    cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    X = torch.as_tensor(LAYOUT)[None] + 0.02 * torch.randn(B, 1, 3, generator=gen, dtype=torch.float64)
+    uv, _ = project(cams, X[:, None])  # (B, C, K, 2)
+    return cams, X, uv
+
+
+def test_outlier_rejection_ignores_a_corrupted_view():
+    from s3k.readout import reject_outliers
+
+    cams, X, uv = _rig_views()
+    weights = torch.full(uv.shape[:-1], 0.9, dtype=torch.float64)
+    bad = uv.clone()
+    bad[:, 2, 0] += torch.tensor([25.0, -15.0], dtype=torch.float64)  # camera 2 sees keypoint 0 elsewhere
+    used = select_views(bad, weights)
+    plain, _ = triangulate(cams, bad, weights, used)
+    assert (plain[:, 0] - X[:, 0]).norm(dim=-1).min() > 1e-3  # the weighted point is pulled off
+    kept = reject_outliers(cams, bad, weights, used, max_residual_px=3.0)
+    assert not kept[:, 2, 0].any() and kept[:, :, 1:].all() and kept[:, [0, 1, 3], 0].all()
+    robust, valid = triangulate(cams, bad, weights, kept)
+    assert valid.all()
+    torch.testing.assert_close(robust, X, atol=1e-9, rtol=0)
+    # the same through read_out's option, and nothing is dropped from consistent views
+    assert reject_outliers(cams, uv, weights, select_views(uv, weights), 3.0).all()
+
+
+def test_outlier_rejection_keeps_at_least_min_views():
+    from s3k.readout import reject_outliers
+
+    cams, X, uv = _rig_views()
+    noisy = uv + 10.0 * torch.randn(uv.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    weights = torch.ones(uv.shape[:-1], dtype=torch.float64)
+    kept = reject_outliers(cams, noisy, weights, select_views(noisy, weights), max_residual_px=0.01)
+    assert (kept.sum(dim=1) == 2).all()  # every view misses by more than 0.01 px: down to two views, no fewer
