@@ -3,9 +3,9 @@
 Training, evaluation and prediction read frames through :class:`FrameStore` so that all three see the images
 at the same size and with the same intrinsics (``Dataset.open(image_size=...)``, which resizes with
 ``s3k.data.transforms.resize_crop``, ``K' = M K``). When a
-split fits in ``preload_mb`` it is decoded once into memory, which keeps data loading a small fraction of a
-training step; otherwise each batch is read from the dataset on demand (the dataset keeps its own uint8
-image cache on disk).
+split fits in ``preload_mb`` it is decoded up front into the dataset's uint8 image cache and the store serves
+batches straight from that cache (no copy of its own), which keeps data loading a small fraction of a
+training step; otherwise each batch is read from the dataset on demand.
 """
 
 from __future__ import annotations
@@ -77,13 +77,18 @@ def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "di
 class FrameStore:
     """Frames ``frame_ids`` of ``dataset``, served as tensors.
 
+    A preloaded store keeps every image at hand without copying it: its images are the dataset's own cache
+    (``Dataset.cached_images``, a memmap with ``cache="disk"``), so training holds each image once however
+    many stores (labelled, unlabelled, validation) serve it. Only a dataset opened with ``cache="none"``
+    gets its images copied into the store. Cameras, labels and points are read once into small arrays.
+
     Args:
         dataset: an opened ``s3k.data.Dataset`` at the network's input size (:func:`open_dataset`).
         frame_ids: frame ids to serve.
-        preload_mb: decode everything into memory when it takes at most this many MiB.
+        preload_mb: decode everything up front when it takes at most this many MiB.
         labels: also serve 2D labels.
         points: also serve ground-truth 3D points when the dataset has them.
-        chunk: frames per read while preloading.
+        chunk: frames per read while preloading without a dataset cache.
     """
 
     def __init__(self, dataset, frame_ids, preload_mb: int = 2048, labels: bool = False, points: bool = False,
@@ -94,10 +99,21 @@ class FrameStore:
         self.want_labels, self.want_points = labels, points
         C = len(dataset.cameras)
         nbytes = len(self.frame_ids) * C * self.out_size[0] * self.out_size[1] * 3
+        # Preloaded: every frame but the images, and the images as (N, C, H, W, 3) with the row of each
+        # frame in it (the dataset's cache and its rows, or a copy in frame order).
         self._cache: FrameBatch | None = None
+        self._image_rows = np.arange(len(self.frame_ids))
         if len(self.frame_ids) and nbytes <= preload_mb * 2**20:
-            parts = [self._read(self.frame_ids[i:i + chunk]) for i in range(0, len(self.frame_ids), chunk)]
-            self._cache = _concat(parts)
+            shared = dataset.cached_images(self.frame_ids)
+            if shared is None:
+                W, H = self.out_size
+                images = torch.empty((len(self.frame_ids), C, H, W, 3), dtype=torch.uint8)
+                for i in range(0, len(self.frame_ids), chunk):
+                    images[i:i + chunk] = torch.from_numpy(dataset.images(self.frame_ids[i:i + chunk]))
+            else:
+                array, self._image_rows = shared
+                images = torch.from_numpy(array)
+            self._cache = self._read(self.frame_ids, images)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -106,13 +122,21 @@ class FrameStore:
     def preloaded(self) -> bool:
         return self._cache is not None
 
-    def _read(self, ids: np.ndarray) -> FrameBatch:
+    @property
+    def image_array(self) -> Tensor | None:
+        """A preloaded store's images, ``uint8 (N, C, H, W, 3)`` (the dataset's cache when it has one); None
+        when each batch is read from the dataset."""
+        return None if self._cache is None else self._cache.images
+
+    def _read(self, ids: np.ndarray, images: Tensor | None = None) -> FrameBatch:
+        """Frames ``ids``, their images read from the dataset unless given."""
         ds = self.dataset
-        images = np.ascontiguousarray(ds.images(ids))
+        if images is None:
+            images = torch.from_numpy(np.ascontiguousarray(ds.images(ids)))
         cams = ds.calibration(ids)
         if cams.dtype != torch.float32:
             cams = cams.to(dtype=torch.float32)
-        batch = FrameBatch(frame_ids=np.asarray(ids), images=torch.from_numpy(images), cams=cams)
+        batch = FrameBatch(frame_ids=np.asarray(ids), images=images, cams=cams)
         if self.want_labels:
             uv, mask = ds.labels(ids)
             mask = np.asarray(mask, dtype=bool) & np.isfinite(uv).all(axis=-1)
@@ -128,7 +152,7 @@ class FrameStore:
         return batch
 
     def get(self, positions) -> FrameBatch:
-        """Frames at ``positions`` (indices into ``frame_ids``)."""
+        """Frames at ``positions`` (indices into ``frame_ids``); the images are a copy."""
         positions = np.asarray(positions, dtype=np.int64)
         if self._cache is None:
             return self._read(self.frame_ids[positions])
@@ -136,7 +160,7 @@ class FrameStore:
         c = self._cache
         return FrameBatch(
             frame_ids=c.frame_ids[positions],
-            images=c.images[idx],
+            images=c.images[torch.from_numpy(self._image_rows[positions])],
             cams=c.cams[idx],
             labels_uv=None if c.labels_uv is None else c.labels_uv[idx],
             labels_mask=None if c.labels_mask is None else c.labels_mask[idx],
@@ -148,20 +172,3 @@ class FrameStore:
         """Iterate over all frames in order, ``batch_size`` at a time."""
         for i in range(0, len(self), batch_size):
             yield self.get(np.arange(i, min(i + batch_size, len(self))))
-
-
-def _concat(parts: list[FrameBatch]) -> FrameBatch:
-    def cat(name: str) -> Tensor | None:
-        vals = [getattr(p, name) for p in parts]
-        return None if any(v is None for v in vals) else torch.cat(vals)
-
-    cams = Cameras(*(torch.cat([getattr(p.cams, f) for p in parts]) for f in ("K", "dist", "R", "t")))
-    return FrameBatch(
-        frame_ids=np.concatenate([p.frame_ids for p in parts]),
-        images=torch.cat([p.images for p in parts]),
-        cams=cams,
-        labels_uv=cat("labels_uv"),
-        labels_mask=cat("labels_mask"),
-        points=cat("points"),
-        points_mask=cat("points_mask"),
-    )

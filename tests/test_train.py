@@ -290,6 +290,45 @@ def test_a_few_dozen_steps_lower_the_error(tmp_path):
 # sampling
 
 
+def test_training_holds_each_image_once(tiny_dataset, tmp_path, monkeypatch):
+    """The stores training fills (labelled, unlabelled, validation) serve their images from the dataset's
+    own image cache, not from copies, and serve exactly the dataset's images in frame order."""
+    stores: list[FrameStore] = []
+
+    class Recorded(FrameStore):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            stores.append(self)
+
+    monkeypatch.setattr(loop_module, "FrameStore", Recorded)
+    train(tiny_dataset, tmp_path / "run", tiny_config(steps=1, val_every=1))
+    assert len(stores) == 3
+    ds = stores[0].dataset
+    cache, _ = ds.cached_images(ds.frames())
+    for store in stores:
+        assert store.dataset is ds and store.preloaded
+        assert store.image_array is not None and store.image_array.data_ptr() == cache.ctypes.data
+        assert store.image_array.shape == cache.shape  # the whole cache: a view, not a per-store copy
+        batch = store.get(np.arange(len(store))[::-1].copy())
+        np.testing.assert_array_equal(batch.frame_ids, store.frame_ids[::-1])
+        np.testing.assert_array_equal(batch.images.numpy(), ds.images(batch.frame_ids))
+
+
+@pytest.mark.parametrize("cache", ["disk", "memory", "none"])
+def test_preloaded_store_copies_only_without_a_dataset_cache(tiny_dataset, cache):
+    ds = open_dataset(tiny_dataset, cache=cache)
+    ids = ds.frames("unlabelled")[::-1]
+    store = FrameStore(ds, ids, chunk=3)
+    shared = ds.cached_images(ids)
+    assert store.image_array is not None
+    if shared is None:  # cache="none": the store's copy is the only one
+        assert cache == "none" and store.image_array.shape[0] == len(ids)
+    else:
+        assert store.image_array.data_ptr() == shared[0].ctypes.data
+    np.testing.assert_array_equal(store.get(np.arange(len(ids))).images.numpy(), ds.images(ids))
+    assert not FrameStore(ds, ids, preload_mb=0).preloaded
+
+
 def test_draw_batch_distinct_reproducible_and_covering(tiny_dataset):
     ds = open_dataset(tiny_dataset)
     store = FrameStore(ds, ds.frames("unlabelled"), labels=False)  # 8 frames

@@ -411,12 +411,33 @@ class Dataset:
             out = np.empty((len(rows), len(self.cameras), H, W, 3), dtype=np.uint8)
             self._decode_into(rows, out)
             return out
+        self._fill(rows)
+        return self._cache.read(rows)
+
+    def cached_images(self, frame_ids) -> tuple[np.ndarray, np.ndarray] | None:
+        """The image cache itself, with ``frame_ids`` decoded into it: ``(uint8 (N, C, H, W, 3), rows (B,))``
+        where ``array[rows]`` are the images of ``frame_ids`` (:meth:`images`); None with ``cache="none"``.
+
+        The array is the cache's own memory (a memmap with ``cache="disk"``), not a copy, so that a reader
+        keeping every image at hand (``frames.FrameStore``) holds no second copy of them; it must not write
+        to it.
+
+        Raises:
+            DatasetError: as :meth:`images`.
+        """
+        rows = self._rows(frame_ids)
+        if not self._cache.open():
+            return None
+        self._fill(rows)
+        return self._cache.array, rows
+
+    def _fill(self, rows: np.ndarray) -> None:
+        """Decode the ``rows`` not cached yet into the (open) cache."""
         missing = self._cache.missing(rows)
         if len(missing) and not getattr(self._c.source, "random_access", True):
             self.preload()  # decoding a video up to a frame costs as much as decoding them all
         elif len(missing):
             self._cache.fill(missing, self._decode_into)
-        return self._cache.read(rows)
 
     def _check_all_images(self, P: Problems, only_existing: bool = False, chunk: int = 64) -> None:
         """Decode every image and report unreadable ones and wrong sizes (for ``check_dataset``)."""
