@@ -60,8 +60,16 @@ def test_out_is_a_file(capsys, dataset, tmp_path):
     assert target.read_text() == "x"
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
-def test_out_in_read_only_folder(capsys, dataset, tmp_path):
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_out_in_read_only_folder(capsys, dataset):
+    """A folder where no one, root included, can create the run: refused before training, naming it."""
+    out = Path("/proc/s3k-no-such-run/run")
+    refused(capsys, ["train", str(dataset), "--out", str(out), *TINY], str(out), "/proc is not writable",
+            "--out")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may create files in a folder without write permission")
+def test_out_in_folder_without_write_permission(capsys, dataset, tmp_path):
     folder = tmp_path / "ro"
     folder.mkdir()
     folder.chmod(0o555)
@@ -70,6 +78,7 @@ def test_out_in_read_only_folder(capsys, dataset, tmp_path):
                 "not writable")
     finally:
         folder.chmod(0o755)
+    assert list(folder.iterdir()) == []
 
 
 def test_no_usable_label(capsys, tmp_path):

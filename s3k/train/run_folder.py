@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -49,11 +50,24 @@ def check_out(out: Path, resume: bool, overwrite: bool) -> None:
     existing = out
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
-    if not os.access(existing, os.W_OK | os.X_OK):
+    if not _can_create_in(existing):
         raise UserError(f"--out {out}: {existing} is not writable", hint="choose another --out")
     if not resume and not overwrite and is_run_folder(out):
         raise UserError(f"{out} already holds a run", hint="pass --resume to continue it or --overwrite to "
                                                            "replace it, or choose another --out")
+
+
+def _can_create_in(folder: Path) -> bool:
+    """True when a file can be created in ``folder``, found by creating (and removing) an empty one:
+    ``os.access`` says yes to root for a folder without write permission and to anyone for a pseudo file
+    system that refuses new files (/proc), where the run would only fail on its first write."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".s3k-write-probe-", dir=folder)
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(probe)
+    return True
 
 
 def clear_run(out: Path) -> None:
