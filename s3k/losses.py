@@ -104,14 +104,29 @@ def _check_logits(fn: str, logits: Tensor, cams: Cameras) -> tuple[int, int, int
     return B, C, K, h, w
 
 
-def _reproject_targets(
-    X: Tensor, valid: Tensor, cams: Cameras, h: int, w: int, stride: int, sigma: float
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Project ``X (B, K, 3)`` into all cameras ``(B, C)`` and render the masked Gaussian targets."""
-    uv, depth = project(cams, X[:, None])  # (B, C, K, 2), (B, C, K)
-    in_front = (depth > MIN_DEPTH) & valid[:, None]
-    targets, mask = gaussian_targets(uv, in_front, h, w, stride, sigma)
-    return targets, mask, uv, depth
+def _reprojection_loss(
+    logits: Tensor, X: Tensor, valid: Tensor, cams: Cameras, stride: int, sigma: float, **views: Tensor
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The KL of ``logits (B, C, K, h, w)`` to Gaussian targets at the projections of the points
+    ``X (B, K, 3)`` (constants) in all cameras ``(B, C)``, and the losses' ``info`` dict: the points, the
+    per-view tensors ``views`` that gave them, then the targets and their mask."""
+    B, _, _, h, w = logits.shape
+    with torch.no_grad():
+        uv, depth = project(cams, X[:, None])  # (B, C, K, 2), (B, C, K)
+        in_front = (depth > MIN_DEPTH) & valid[:, None]
+        targets, mask = gaussian_targets(uv, in_front, h, w, stride, sigma)
+    loss = kl_loss(targets, logits, mask, normalizer=B)
+    info = {
+        "points": X,
+        "points_valid": valid,
+        **views,
+        "target_uv": uv,
+        "depth": depth,
+        "mask": mask,
+        "targets": targets,
+        "num_terms": mask.sum(),
+    }
+    return loss, info
 
 
 def supervised_loss(
@@ -163,19 +178,7 @@ def supervised_loss(
         weights = labelled.to(cams.dtype)
         X, valid = triangulate_pixels(cams, uv, weights)
         valid = valid & (labelled.sum(dim=1) >= 2)
-        targets, mask, target_uv, depth = _reproject_targets(X, valid, cams, h, w, stride, sigma)
-    loss = kl_loss(targets, logits, mask, normalizer=B)
-    info = {
-        "points": X,
-        "points_valid": valid,
-        "weights": weights,
-        "target_uv": target_uv,
-        "depth": depth,
-        "mask": mask,
-        "targets": targets,
-        "num_terms": mask.sum(),
-    }
-    return loss, info
+    return _reprojection_loss(logits, X, valid, cams, stride, sigma, weights=weights)
 
 
 def self_supervised_loss(
@@ -224,21 +227,7 @@ def self_supervised_loss(
         X = X.to(cams.dtype)
         mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)
         wts = torch.where(used, wts, torch.zeros_like(wts)).to(cams.dtype)
-        targets, mask, target_uv, depth = _reproject_targets(X, valid, cams, h, w, stride, sigma)
-    loss = kl_loss(targets, logits, mask, normalizer=B)
-    info = {
-        "points": X,
-        "points_valid": valid,
-        "mean_uv": mean_uv,
-        "var": var,
-        "weights": wts,
-        "target_uv": target_uv,
-        "depth": depth,
-        "mask": mask,
-        "targets": targets,
-        "num_terms": mask.sum(),
-    }
-    return loss, info
+    return _reprojection_loss(logits, X, valid, cams, stride, sigma, mean_uv=mean_uv, var=var, weights=wts)
 
 
 def l2_non_bias(model: nn.Module) -> Tensor:
