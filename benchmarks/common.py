@@ -1,4 +1,5 @@
-"""Shared helpers of the benchmarks: what machine a figure was measured on, its matmul peak, JSON output.
+"""Shared helpers of the benchmarks: what machine a figure was measured on, its matmul peak, JSON output, and
+the network, frames and interleaved timing rounds of the two inference benchmarks.
 
 Every benchmark ends with `emit(result)`, which prints the result and the machine description as one JSON
 line, the last line of its output, so that scripts can collect figures with ``tail -n 1``.
@@ -6,6 +7,7 @@ line, the last line of its output, so that scripts can collect figures with ``ta
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -13,6 +15,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -197,6 +200,113 @@ def conv_ceiling(net: torch.nn.Module, images: torch.Tensor, peak: float, repeat
     gemm_s = sum(layer["gemm_s"] for layer in layers)
     return {"layers": layers, "conv_train_s": train_s, "conv_only_fraction": 3 * fwd_total / train_s / peak,
             "gemm_fraction": fwd_total / gemm_s / peak}
+
+
+def add_network_options(p: argparse.ArgumentParser, threads_help: str) -> None:
+    """The options of the inference benchmarks: the frames (size, cameras, keypoints), the network
+    (``UNetConfig`` overrides, see :func:`build_network`), the confidence scale and the timing."""
+    from s3k.config import TrainConfig
+
+    p.add_argument("--size", type=int, default=128, help="square image size in pixels (default 128)")
+    p.add_argument("--cameras", type=int, default=4, help="cameras per frame (default 4)")
+    p.add_argument("--keypoints", type=int, default=3, help="keypoints K (default 3)")
+    p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
+    p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
+    p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
+    p.add_argument("--encoder-convs", type=int, default=None, help="extra convs per encoder level")
+    p.add_argument("--norm", type=str, default=None, choices=["batch", "group", "none"])
+    sigma = TrainConfig().sigma_px()
+    p.add_argument("--sigma", type=float, default=sigma,
+                   help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
+    p.add_argument("--threads", type=int, default=None, help=threads_help)
+    p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
+    p.add_argument("--repeats", type=int, default=100, help="timed frames per round (default 100)")
+    p.add_argument("--rounds", type=int, default=3,
+                   help="rounds of matmul peak + timed frames, interleaved (default 3)")
+
+
+def build_network(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, int]:
+    """Set ``--threads``, seed torch with 0 and build the untrained U-Net of the options, in eval mode.
+
+    Returns:
+        ``(config, model, parameter count)``; ``config`` is the ``UNetConfig`` with the options' overrides.
+    """
+    from s3k.model import UNet, UNetConfig
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    overrides = {
+        k: v
+        for k, v in {
+            "stride": args.stride,
+            "channels": tuple(int(c) for c in args.channels.split(",")) if args.channels else None,
+            "res_blocks": args.res_blocks,
+            "encoder_convs": args.encoder_convs,
+            "norm": args.norm,
+        }.items()
+        if v is not None
+    }
+    config = UNetConfig(**overrides)
+    model = UNet(args.keypoints, config).eval()
+    return config, model, sum(q.numel() for q in model.parameters())
+
+
+def random_frames(args: argparse.Namespace) -> torch.Tensor:
+    """The benchmark's frame: ``uint8 (C, S, S, 3)`` noise, the same on every run."""
+    gen = torch.Generator().manual_seed(0)
+    return torch.randint(0, 256, (args.cameras, args.size, args.size, 3), dtype=torch.uint8, generator=gen)
+
+
+def time_frames(run: Callable[[torch.Tensor], Any], frames: torch.Tensor, warmup: int,
+                repeats: int) -> list[float]:
+    """Seconds per frame of ``run(frames)`` for ``repeats`` frames after ``warmup`` frames."""
+    times = []
+    with torch.inference_mode():
+        for _ in range(warmup):
+            run(frames)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            run(frames)
+            times.append(time.perf_counter() - t0)
+    return times
+
+
+def interleaved_rounds(pipelines: dict[str, Callable[[torch.Tensor], Any]], frames: torch.Tensor,
+                       args: argparse.Namespace, matmul_seconds: float,
+                       ) -> tuple[list[float], dict[str, list[list[float]]]]:
+    """Time each pipeline ``args.repeats`` frames per round, ``args.rounds`` rounds (at least one), each
+    after a matmul peak: the machine may be shared, so the peaks and the frames are measured side by side
+    and compared by their medians. Every pipeline first runs ``args.warmup`` untimed frames.
+
+    Returns:
+        ``(peaks, times)``: the matmul FLOP/s of each round, and per pipeline the seconds per frame of
+        each round.
+    """
+    peaks: list[float] = []
+    times: dict[str, list[list[float]]] = {name: [] for name in pipelines}
+    for run in pipelines.values():
+        time_frames(run, frames, args.warmup, 0)
+    for _ in range(max(1, args.rounds)):
+        peaks.append(matmul_flops(seconds=matmul_seconds))
+        for name, run in pipelines.items():
+            times[name].append(time_frames(run, frames, 2, args.repeats))
+    return peaks, times
+
+
+def network_summary(args: argparse.Namespace, config: Any, params: int, flops_per_frame: float) -> str:
+    """The first printed line of an inference benchmark: frames, heatmap, network and threads."""
+    S, h = args.size, args.size // config.stride
+    return (f"{S}x{S} px, {args.cameras} cameras, K={args.keypoints}, heatmap {h}x{h}, {params} params, "
+            f"{flops_per_frame / 1e6:.1f} MFLOP/frame, threads {torch.get_num_threads()}")
+
+
+def network_fields(args: argparse.Namespace, config: Any, params: int, flops_per_frame: float,
+                   matmul: float) -> dict[str, Any]:
+    """The result fields the inference benchmarks share: the matmul peak, the network and its frames."""
+    return {"matmul_flops": matmul, "flops_per_frame": flops_per_frame, "size": args.size,
+            "cameras": args.cameras, "keypoints": args.keypoints, "params": params,
+            "config": config.to_dict()}
 
 
 def _jsonable(x: Any) -> Any:

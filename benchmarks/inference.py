@@ -23,16 +23,22 @@ import argparse
 import os
 import statistics
 import sys
-import time
 
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, matmul_flops  # noqa: E402
-from s3k.config import TrainConfig  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    add_network_options,
+    build_network,
+    emit,
+    interleaved_rounds,
+    network_fields,
+    network_summary,
+    random_frames,
+)
 from s3k.geometry import Cameras  # noqa: E402
-from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.model import count_conv_flops  # noqa: E402
 from s3k.readout import read_out  # noqa: E402
 
 
@@ -66,58 +72,14 @@ def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: flo
     return run
 
 
-def time_pipeline(run, frames: torch.Tensor, warmup: int, repeats: int) -> list[float]:
-    """Seconds per frame for ``repeats`` frames after ``warmup`` frames."""
-    times = []
-    with torch.inference_mode():
-        for _ in range(warmup):
-            run(frames)
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            run(frames)
-            times.append(time.perf_counter() - t0)
-    return times
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", type=int, default=128, help="square image size in pixels (default 128)")
-    p.add_argument("--cameras", type=int, default=4, help="cameras per frame (default 4)")
-    p.add_argument("--keypoints", type=int, default=3, help="keypoints K (default 3)")
-    p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
-    p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
-    p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
-    p.add_argument("--encoder-convs", type=int, default=None, help="extra convs per encoder level")
-    p.add_argument("--norm", type=str, default=None, choices=["batch", "group", "none"])
-    sigma = TrainConfig().sigma_px()
-    p.add_argument("--sigma", type=float, default=sigma,
-                   help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's default)")
-    p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
-    p.add_argument("--repeats", type=int, default=100, help="timed frames per round (default 100)")
-    p.add_argument("--rounds", type=int, default=3,
-                   help="rounds of matmul peak + timed frames, interleaved (default 3)")
+    add_network_options(p, threads_help="torch threads (default: torch's default)")
     p.add_argument("--no-fuse", action="store_true", help="keep BatchNorm separate (not folded into convs)")
     p.add_argument("--contiguous", action="store_true", help="NCHW instead of channels_last")
     args = p.parse_args(argv)
 
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
-    overrides = {
-        k: v
-        for k, v in {
-            "stride": args.stride,
-            "channels": tuple(int(c) for c in args.channels.split(",")) if args.channels else None,
-            "res_blocks": args.res_blocks,
-            "encoder_convs": args.encoder_convs,
-            "norm": args.norm,
-        }.items()
-        if v is not None
-    }
-    config = UNetConfig(**overrides)
-    model = UNet(args.keypoints, config).eval()
-    num_params = sum(q.numel() for q in model.parameters())
+    config, model, num_params = build_network(args)
     if not args.no_fuse:
         model = model.fused()
     channels_last = not args.contiguous
@@ -126,27 +88,18 @@ def main(argv: list[str] | None = None) -> int:
 
     C, S = args.cameras, args.size
     cams = look_at_rig(C, S)
-    gen = torch.Generator().manual_seed(0)
-    frames = torch.randint(0, 256, (C, S, S, 3), dtype=torch.uint8, generator=gen)
+    frames = random_frames(args)
     flops_per_frame = count_conv_flops(model, torch.rand(C, 3, S, S))
     run = make_pipeline(model, cams, config.stride, args.sigma, channels_last)
 
-    # The machine may be shared: interleave the matmul peak with the timed frames and take medians of both.
-    peaks, times, round_fps = [], [], []
-    time_pipeline(run, frames, args.warmup, 0)
-    for _ in range(max(1, args.rounds)):
-        peaks.append(matmul_flops(seconds=1.0))
-        t = time_pipeline(run, frames, 2, args.repeats)
-        round_fps.append(1 / statistics.median(t))
-        times += t
+    peaks, rounds = interleaved_rounds({"pytorch": run}, frames, args, matmul_seconds=1.0)
+    round_fps = [1 / statistics.median(t) for t in rounds["pytorch"]]
+    times = [x for t in rounds["pytorch"] for x in t]
     med = statistics.median(times)
     q = statistics.quantiles(times, n=10)
     achieved = flops_per_frame / med
     matmul = statistics.median(peaks)
-    print(
-        f"{S}x{S} px, {C} cameras, K={args.keypoints}, heatmap {S // config.stride}x{S // config.stride}, "
-        f"{num_params} params, {flops_per_frame / 1e6:.1f} MFLOP/frame, threads {torch.get_num_threads()}"
-    )
+    print(network_summary(args, config, num_params, flops_per_frame))
     print(
         f"per frame: median {med * 1e3:.2f} ms (p10 {q[0] * 1e3:.2f}, p90 {q[-1] * 1e3:.2f}) -> "
         f"{1 / med:.1f} frames/s; conv {achieved / 1e9:.1f} GFLOP/s of matmul {matmul / 1e9:.1f} GFLOP/s "
@@ -160,13 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         "ms_per_frame_p10": q[0] * 1e3,
         "ms_per_frame_p90": q[-1] * 1e3,
         "achieved_flops": achieved,
-        "matmul_flops": matmul,
-        "flops_per_frame": flops_per_frame,
-        "size": S,
-        "cameras": C,
-        "keypoints": args.keypoints,
-        "params": num_params,
-        "config": config.to_dict(),
+        **network_fields(args, config, num_params, flops_per_frame, matmul),
         "fused": not args.no_fuse,
         "channels_last": channels_last,
         "repeats": args.repeats,

@@ -34,11 +34,19 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
-from benchmarks.inference import look_at_rig, make_pipeline, time_pipeline  # noqa: E402
-from s3k.config import TrainConfig  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    add_network_options,
+    build_network,
+    emit,
+    interleaved_rounds,
+    machine_info,
+    network_fields,
+    network_summary,
+    random_frames,
+)
+from benchmarks.inference import look_at_rig, make_pipeline  # noqa: E402
 from s3k.export import export_module, output_names  # noqa: E402
-from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.model import count_conv_flops  # noqa: E402
 from s3k.readout import read_out, select_views, triangulate  # noqa: E402
 
 
@@ -92,47 +100,19 @@ def torchscript_pipeline(path: Path, cams, stride: int, sigma: float, with_momen
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", type=int, default=128, help="square image size in pixels (default 128)")
-    p.add_argument("--cameras", type=int, default=4, help="cameras per frame (default 4)")
-    p.add_argument("--keypoints", type=int, default=3, help="keypoints K (default 3)")
-    p.add_argument("--stride", type=int, default=None, help="heatmap stride (default: UNetConfig's)")
-    p.add_argument("--channels", type=str, default=None, help="comma-separated channels per level")
-    p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
-    sigma = TrainConfig().sigma_px()
-    p.add_argument("--sigma", type=float, default=sigma,
-                   help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch and onnxruntime threads (default: torch's)")
-    p.add_argument("--warmup", type=int, default=20, help="untimed frames first (default 20)")
-    p.add_argument("--repeats", type=int, default=100, help="timed frames per round (default 100)")
-    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds of matmul peak and timing")
+    add_network_options(p, threads_help="torch and onnxruntime threads (default: torch's)")
     p.add_argument("--with-moments", action="store_true",
                    help="export means and confidences too (read-out inside the exported graph)")
     p.add_argument("--keep", default=None, help="folder to keep the exported files in (default: temporary)")
     args = p.parse_args(argv)
 
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
+    config, model, num_params = build_network(args)
     threads = torch.get_num_threads()
-    torch.manual_seed(0)
-    overrides = {
-        k: v
-        for k, v in {
-            "stride": args.stride,
-            "channels": tuple(int(c) for c in args.channels.split(",")) if args.channels else None,
-            "res_blocks": args.res_blocks,
-        }.items()
-        if v is not None
-    }
-    config = UNetConfig(**overrides)
-    model = UNet(args.keypoints, config).eval()
-    num_params = sum(q.numel() for q in model.parameters())
     fused = model.fused()
 
     C, S = args.cameras, args.size
     cams = look_at_rig(C, S)
-    gen = torch.Generator().manual_seed(0)
-    frames = torch.randint(0, 256, (C, S, S, 3), dtype=torch.uint8, generator=gen)
+    frames = random_frames(args)
     images = frames.permute(0, 3, 1, 2).float().div(255.0).contiguous()
     flops_per_frame = count_conv_flops(fused, images)
 
@@ -164,22 +144,12 @@ def main(argv: list[str] | None = None) -> int:
         "torchscript": torchscript_pipeline(paths["torchscript"], cams, config.stride, args.sigma,
                                             args.with_moments, channels_last=False),
     }
-    peaks: list[float] = []
-    times: dict[str, list[float]] = {name: [] for name in pipelines}
-    for run in pipelines.values():
-        time_pipeline(run, frames, args.warmup, 0)
-    # The machine may be shared: interleave the matmul peak and the three pipelines, take medians.
-    for _ in range(max(1, args.rounds)):
-        peaks.append(matmul_flops())
-        for name, run in pipelines.items():
-            times[name] += time_pipeline(run, frames, 2, args.repeats)
+    peaks, rounds = interleaved_rounds(pipelines, frames, args, matmul_seconds=2.0)
+    times = {name: [x for t in per_round for x in t] for name, per_round in rounds.items()}
     matmul = statistics.median(peaks)
     fps = {name: 1 / statistics.median(t) for name, t in times.items()}
-    print(
-        f"{S}x{S} px, {C} cameras, K={args.keypoints}, heatmap {S // config.stride}x{S // config.stride}, "
-        f"{num_params} params, {flops_per_frame / 1e6:.1f} MFLOP/frame, threads {threads}, "
-        f"read-out in {'the exported graph' if args.with_moments else 'PyTorch'}"
-    )
+    print(f"{network_summary(args, config, num_params, flops_per_frame)}, "
+          f"read-out in {'the exported graph' if args.with_moments else 'PyTorch'}")
     for name, t in times.items():
         med = statistics.median(t)
         q = statistics.quantiles(t, n=10)
@@ -197,13 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         "pytorch_flop_fraction": flops_per_frame * fps["pytorch"] / matmul,
         "ms_per_frame_median": {name: 1e3 * statistics.median(t) for name, t in times.items()},
         "max_diff": max_diff,
-        "matmul_flops": matmul,
-        "flops_per_frame": flops_per_frame,
-        "size": S,
-        "cameras": C,
-        "keypoints": args.keypoints,
-        "params": num_params,
-        "config": config.to_dict(),
+        **network_fields(args, config, num_params, flops_per_frame, matmul),
         "with_moments": args.with_moments,
         "threads": threads,
         "repeats": args.repeats,
