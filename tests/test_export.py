@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_detector import save_run
 
 from s3k import cli
 from s3k.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
 from s3k.heatmaps import confidence_weight
 from s3k.model import UNetConfig, detect
-from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, load_detector, write_run_config
+from s3k.run import DetectorMeta, load_detector
 
 pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
@@ -26,20 +27,8 @@ def make_run(path: Path, dataset: str | None = None, norm: str = "batch") -> Pat
     meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"], image_size=SIZE,
                         stride=2, sigma=2.0,
                         model=UNetConfig(channels=(8, 16, 16), res_blocks=1, norm=norm).to_dict())
-    torch.manual_seed(1)
-    net = build_model(meta)
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.3, 0.3)
-            m.running_var.uniform_(0.3, 3.0)
-            m.weight.data.uniform_(0.5, 1.5)
-            m.bias.data.uniform_(-0.2, 0.2)
     # Larger head weights than at initialization, so that heatmaps are peaked like a trained model's.
-    net.head.weight.data.normal_(0, 0.5)
-    path.mkdir(parents=True)
-    write_run_config(path, {}, meta, dataset)
-    atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
-    return path
+    return save_run(path, meta, seed=1, dataset=dataset, head_std=0.5)
 
 
 @pytest.fixture(scope="module")

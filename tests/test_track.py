@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from tiny_detector import save_run
 
 from s3k import cli
 from s3k.data.anipose import write_anipose_calibration
@@ -27,7 +28,7 @@ from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, heatmap_size, spatial_softmax
 from s3k.model import UNetConfig
 from s3k.readout import read_out
-from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+from s3k.run import DetectorMeta
 from s3k.track import fit_box, prepare_cameras
 from s3k.tracks_csv import csv_header, read_csv
 
@@ -77,18 +78,7 @@ def tiny_run(path: Path, stride: int = 2) -> Path:
         model=UNetConfig(channels=(8, 8), res_blocks=1, stride=stride).to_dict(), units="mm",
         source_image_size=NET_SIZE,
     )
-    torch.manual_seed(0)
-    net = build_model(meta)
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.2, 0.2)
-            m.running_var.uniform_(0.5, 2.0)
-            m.weight.data.uniform_(0.5, 1.5)
-            m.bias.data.uniform_(-0.1, 0.1)
-    path.mkdir(parents=True)
-    write_run_config(path, {}, meta)
-    atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
-    return path
+    return save_run(path, meta, seed=0)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,33 @@
+"""A run folder holding an untrained tiny detector, for the tests of the commands that load one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+
+
+def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = None,
+             head_std: float | None = None) -> Path:
+    """Write ``path/config.json`` and ``path/model.pt`` with the network of ``meta`` drawn from ``seed``.
+
+    Its BatchNorm layers get statistics far from the identity, so that folding them into the convolutions
+    (export) and eval-mode inference are exercised. ``head_std`` redraws the head's weights with that spread,
+    for heatmaps peaked like a trained model's.
+    """
+    torch.manual_seed(seed)
+    net = build_model(meta)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3)
+            m.running_var.uniform_(0.3, 3.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    if head_std is not None:
+        net.head.weight.data.normal_(0, head_std)
+    path.mkdir(parents=True)
+    write_run_config(path, {}, meta, dataset)
+    atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
+    return path
