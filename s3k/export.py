@@ -208,17 +208,10 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
             from s3k.frames import open_dataset
 
             ds = open_dataset(dataset, (W, H), cache="none")
-            ids: list = []
-            for split in ("test", "unlabelled", "labelled"):
-                try:
-                    ids.extend(np.asarray(ds.frames(split)).tolist())
-                except (KeyError, ValueError):
-                    continue
-                if len(ids) * len(ds.cameras) >= count:
-                    break
             n_frames = max(1, -(-count // len(ds.cameras)))
-            if ids:
-                imgs = np.asarray(ds.images(np.asarray(ids[:n_frames])))  # (B, C, H, W, 3) uint8
+            ids = ds.frames(("test", "unlabelled", "labelled"))[:n_frames]
+            if len(ids):
+                imgs = np.asarray(ds.images(ids))  # (B, C, H, W, 3) uint8
                 imgs = imgs.reshape(-1, H, W, 3)[:count].transpose(0, 3, 1, 2).astype(np.float32) / 255.0
                 return np.ascontiguousarray(imgs), f"{len(imgs)} images of dataset {dataset}"
         except (ValueError, FileNotFoundError, KeyError, OSError) as exc:

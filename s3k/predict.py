@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from s3k.data.tables import SPLITS
 from s3k.frames import FrameStore, images_to_float
 from s3k.geometry import Cameras
 from s3k.readout import ReadOut, read_out
@@ -76,16 +77,8 @@ def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:
 
 
 def split_frames(dataset, split: str) -> np.ndarray:
-    """Frame ids of a split, or of every split for 'all' (in split order, without repeats)."""
-    if split != "all":
-        return np.asarray(dataset.frames(split))
-    ids: list = []
-    for s in ("labelled", "unlabelled", "test"):
-        try:
-            ids.extend(np.asarray(dataset.frames(s)).tolist())
-        except (KeyError, ValueError):
-            continue
-    return np.asarray(list(dict.fromkeys(ids)))
+    """Frame ids of a split, or of every split for 'all' (labelled, unlabelled, then test frames)."""
+    return np.asarray(dataset.frames(SPLITS if split == "all" else split))
 
 
 @dataclass

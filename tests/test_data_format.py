@@ -147,6 +147,19 @@ def test_calibration_returns_cameras(tiny):
     assert tuple(rig.K.shape) == (len(CAMERAS), 3, 3)
 
 
+def test_frames_of_several_splits_follow_the_order_given(tiny):
+    root, w = tiny
+    ds = Dataset.open(root, cache="none")
+    split = np.asarray(w["splits"])
+    ids = np.asarray(w["ids"])
+    np.testing.assert_array_equal(ds.frames(("test", "labelled")),
+                                  np.concatenate([ids[split == "test"], ids[split == "labelled"]]))
+    assert sorted(ds.frames(("labelled", "unlabelled", "test")).tolist()) == sorted(ids.tolist())
+    assert ds.frames(()).dtype == np.int64 and len(ds.frames(())) == 0
+    with pytest.raises(ValueError, match="'train'"):
+        ds.frames(("test", "train"))
+
+
 def test_no_points3d_gives_none(tmp_path: Path):
     write_dataset(tmp_path / "ds", points=False)
     ds = Dataset.open(tmp_path / "ds", cache="none")

@@ -272,13 +272,16 @@ class Dataset:
 
     # -- tables ------------------------------------------------------------------------------------------
 
-    def frames(self, split: str | None = None) -> np.ndarray:
-        """Frame ids ``(N,)`` of a split (``"labelled" | "unlabelled" | "test"``), or all when None."""
+    def frames(self, split: str | Sequence[str] | None = None) -> np.ndarray:
+        """Frame ids ``(N,)`` of a split (``"labelled" | "unlabelled" | "test"``), of several splits one after
+        the other (each frame is in one split), or all in file order when None."""
         if split is None:
             return self.frame_ids.copy()
-        if split not in SPLITS:
-            raise ValueError(f"unknown split {split!r}; use one of {list(SPLITS)}")
-        return self.frame_ids[self._c.frames.splits == split]
+        names = [split] if isinstance(split, str) else list(split)
+        for name in names:
+            if name not in SPLITS:
+                raise ValueError(f"unknown split {name!r}; use one of {list(SPLITS)}")
+        return np.concatenate([self.frame_ids[:0], *(self.frame_ids[self._c.frames.splits == n] for n in names)])
 
     def split_of(self, frame_ids) -> np.ndarray:
         """Split name of each frame id."""
