@@ -1,0 +1,151 @@
+"""How precise a refining pass on scale-normalized crops can be, given a coarse 3D estimate.
+
+A diagnostic for the error budget of the coarse-to-fine detector (docs/accuracy.md). It renders the box
+scene at ``--render`` px, and for one keypoint writes a dataset whose "cameras" are crops: each view cut
+around the keypoint's *true* 3D position plus a random 3D offset (``--jitter-mm`` per axis, standing in for
+the coarse pass's error), sized from a metric extent (``--extent-mm``) and resampled to ``--crop`` px with
+``K' = M K`` (:mod:`s3k.crops`). It trains the labels-only baseline and S3K on it (same steps, same seed) and
+reports the keypoint's 3D error on the test frames and on the labelled frames (the fit).
+
+Because the crop centre comes from the ground truth, the figure is what the refining pass adds when the
+coarse pass is within the jitter; a real coarse pass has outliers too.
+
+Example::
+
+    python benchmarks/oracle_crops.py --work runs/oracle-crops            # about 1 CPU-hour on 2 cores
+    python benchmarks/oracle_crops.py --work runs/oracle-crops --steps 8000
+
+The last line printed is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, git_revision  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, size: int, jitter_m: float,
+                    seed: int = 123) -> None:
+    """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point."""
+    import torch
+
+    from s3k.crops import crop_images, crop_maps, metric_crop_boxes
+    from s3k.data import Dataset, DatasetWriter
+
+    ds = Dataset.open(source, cache="none")
+    rng = np.random.default_rng(seed)
+    name = ds.keypoints[keypoint]
+    tmp = out.with_name(out.name + ".tmp")
+    with DatasetWriter(tmp, [name], ds.cameras, (size, size), ds.units, per_frame_calibration=True,
+                       overwrite=True, description=f"crops of {extent_m * 1000:g} mm around {name}",
+                       source={"oracle_crops_of": str(source)}) as w:
+        for split in ("labelled", "unlabelled", "test"):
+            ids = ds.frames(split)
+            for start in range(0, len(ids), 32):
+                chunk = ids[start:start + 32]
+                images = ds.images(chunk)  # (B, C, H, W, 3)
+                cams = ds.calibration(chunk, np.float64)
+                cal = cams.numpy()
+                X, _ = ds.points3d(chunk)
+                centre = torch.as_tensor(X[:, keypoint], dtype=torch.float64)
+                centre = centre + torch.as_tensor(rng.normal(0.0, jitter_m, (len(chunk), 3)))
+                boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent_m)
+                B, C = boxes.shape[:2]
+                t = torch.as_tensor(images, dtype=torch.float32).reshape(B * C, *images.shape[2:])
+                crops = crop_images(t.permute(0, 3, 1, 2), boxes.reshape(B * C, 4).float(), (size, size))
+                crops_u8 = crops.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()
+                crops_u8 = crops_u8.reshape(B, C, size, size, 3)
+                M = crop_maps(boxes, (size, size)).numpy()  # (B, C, 3, 3)
+                uv, mask = ds.labels(chunk)
+                uv_crop = np.einsum("bcij,bckj->bcki", M[..., :2, :2], uv.astype(np.float64))
+                uv_crop = uv_crop + M[:, :, None, :2, 2]
+                for b, frame in enumerate(chunk):
+                    labels = None
+                    if split != "unlabelled":
+                        lab = np.where(mask[b][..., None], uv_crop[b], np.nan)[:, keypoint:keypoint + 1]
+                        inside = ((lab >= -0.5) & (lab <= size - 0.5)).all(-1, keepdims=True)
+                        labels = np.where(inside, lab, np.nan)
+                    w.add_frame(int(frame), split, crops_u8[b],
+                                (M[b] @ cal["K"][b], cal["dist"][b], cal["R"][b], cal["t"][b]),
+                                labels, points3d=X[b][keypoint:keypoint + 1])
+    os.replace(tmp, out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--work", default=str(ROOT / "runs" / "oracle-crops"), help="working folder")
+    p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
+    p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
+    p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
+    p.add_argument("--keypoint", type=int, default=0, help="keypoint index (default 0)")
+    p.add_argument("--extent-mm", type=float, default=80.0, help="crop side at the point (default 80)")
+    p.add_argument("--crop", type=int, default=64, help="crop size in pixels (default 64)")
+    p.add_argument("--jitter-mm", type=float, default=8.0, help="crop centre offset per axis, sd (default 8)")
+    p.add_argument("--steps", type=int, default=4000, help="training steps per model (default 4000)")
+    p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--out", default=None, help="also write the JSON result to this file")
+    args = p.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    render = work / f"box{args.render}"
+    if not (render / "s3k.json").is_file():
+        from s3k.sim.generate import SimulateConfig, simulate
+
+        simulate(SimulateConfig("box", size=args.render, labelled=10, unlabelled=args.unlabelled,
+                                test=args.test), render, workers=1, progress=False, overwrite=True)
+    view = work / f"crops-k{args.keypoint}-{args.extent_mm:g}mm-{args.crop}px-j{args.jitter_mm:g}"
+    if not (view / "s3k.json").is_file():
+        write_crop_view(render, view, args.keypoint, args.extent_mm / 1000, args.crop, args.jitter_mm / 1000)
+    models = {"labels_only": ["--no-unsup"], "s3k": []}
+    procs = {}
+    for name, extra in models.items():
+        run = work / "runs" / f"{view.name}-{name}-{args.steps}-s{args.seed}"
+        if (run / "model.pt").is_file():
+            continue
+        cmd = [sys.executable, "-m", "s3k.cli", "train", str(view), "--out", str(run), "--steps",
+               str(args.steps), "--seed", str(args.seed), "--threads", "1", "--no-progress", *extra]
+        if run.exists():
+            cmd.append("--resume")
+        procs[name] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+    for name, proc in procs.items():
+        if proc.wait() != 0:
+            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
+    from s3k.evaluate import evaluate_run
+
+    result: dict = {"benchmark": "oracle_crops", "command": " ".join(["python", *sys.argv]),
+                    "git_revision": git_revision(),
+                    "scale": f"box rendered at {args.render} px, crops {args.extent_mm:g} mm -> {args.crop} "
+                             f"px, centre jitter {args.jitter_mm:g} mm per axis, {args.steps} steps",
+                    "keypoint": args.keypoint}
+    for name in models:
+        run = work / "runs" / f"{view.name}-{name}-{args.steps}-s{args.seed}"
+        result[name] = {}
+        for split in ("test", "labelled"):
+            m = evaluate_run(run, view, split=split, device="cpu")
+            result[name][split] = {k: m[k] for k in ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm",
+                                                     "mm_per_px")}
+    result["minutes_this_call"] = (time.perf_counter() - t0) / 60
+    if args.out:
+        from s3k.fileio import atomic_write_json
+
+        atomic_write_json(result, args.out)
+    emit(result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
