@@ -92,6 +92,9 @@ class SelfSupervisionConfig:
     warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
                                 "avoids locking in a collapse from a random network")
     ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up")
+    outlier_px: float = _f(0.0, "leave out of each pseudo-label the views whose detection misses the other "
+                                "views' consensus by more than this many image pixels, one at a time "
+                                "(0: every view, weighted by its confidence, as in the paper)")
 
 
 @dataclass

@@ -187,6 +187,7 @@ def self_supervised_loss(
     stride: int,
     sigma: float,
     weights: Tensor | None = None,
+    max_residual_px: float | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
 
@@ -203,6 +204,9 @@ def self_supervised_loss(
         sigma: target width in image pixels; also the scale of the confidence weight.
         weights: optional ``(B, C, K)`` triangulation weights replacing the confidence weights (e.g. all ones
             for an unweighted ablation).
+        max_residual_px: if given, views whose detection misses the others' consensus by more than this
+            many pixels do not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get
+            its target, so they learn from the others.
 
     Returns:
         ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
@@ -223,6 +227,8 @@ def self_supervised_loss(
         _probs, mean_uv, var = readout.moments(logits.detach(), stride)
         wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
         used = readout.select_views(mean_uv, wts)
+        if max_residual_px is not None:
+            used = readout.reject_outliers(cams, mean_uv, wts, used, max_residual_px)
         X, valid = readout.triangulate(cams, mean_uv, wts, used)
         X = X.to(cams.dtype)
         mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)

@@ -320,3 +320,19 @@ def test_l2_non_bias_skips_biases_and_norm_parameters():
         else:
             assert p.grad is None, name
     assert float(l2_non_bias(nn.ReLU())) == 0.0
+
+
+def test_self_supervised_pseudo_label_leaves_out_a_view_off_the_consensus():
+    cams, X = _rig(), _points()
+    uv = _project_all(cams, X)
+    confused = uv.clone()
+    confused[:, 1, 0] += torch.tensor([9.0, -7.0], dtype=torch.float64)  # a sharp heatmap on the wrong spot
+    logits = _logits_at(confused).float()
+    _, plain = self_supervised_loss(logits, cams, STRIDE, SIGMA)
+    _, robust = self_supervised_loss(logits, cams, STRIDE, SIGMA, max_residual_px=2.0)
+    assert (plain["points"][:, 0] - X[:, 0]).norm(dim=-1).min() > 1e-3
+    torch.testing.assert_close(robust["points"], X, atol=2e-4, rtol=0)
+    assert (robust["weights"][:, 1, 0] == 0).all() and (robust["weights"][:, :, 1:] > 0).all()
+    # the confused view still gets the consensus as its target
+    assert robust["mask"][:, 1, 0].all()
+    torch.testing.assert_close(robust["target_uv"][:, 1, 0], uv[:, 1, 0], atol=0.05, rtol=0)

@@ -128,7 +128,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     loss = l_sup
     terms = {"sup": float(l_sup.detach())}
     if unl is not None:
-        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma)
+        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
+                                             max_residual_px=cfg.outlier_px or None)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
