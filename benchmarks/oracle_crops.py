@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jitter-mm", type=float, default=8.0, help="crop centre offset per axis, sd (default 8)")
     p.add_argument("--steps", type=int, default=4000, help="training steps per model (default 4000)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--s3k-options", default="",
+                   help="more 's3k train' options for the S3K model, e.g. '--outlier-px 6 --alpha 0.25'")
     p.add_argument("--out", default=None, help="also write the JSON result to this file")
     args = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -110,10 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     view = work / f"crops-k{args.keypoint}-{args.extent_mm:g}mm-{args.crop}px-j{args.jitter_mm:g}"
     if not (view / "s3k.json").is_file():
         write_crop_view(render, view, args.keypoint, args.extent_mm / 1000, args.crop, args.jitter_mm / 1000)
-    models = {"labels_only": ["--no-unsup"], "s3k": []}
+    extra_s3k = args.s3k_options.split()
+    tag = "".join(o.lstrip("-").replace("-", "") for o in extra_s3k)
+    models = {"labels_only": ["--no-unsup"], "s3k": extra_s3k}
+    suffix = {"labels_only": "", "s3k": tag}
+    runs = {name: work / "runs" / f"{view.name}-{name}{suffix[name]}-{args.steps}-s{args.seed}"
+            for name in models}
     procs = {}
     for name, extra in models.items():
-        run = work / "runs" / f"{view.name}-{name}-{args.steps}-s{args.seed}"
+        run = runs[name]
         if (run / "model.pt").is_file():
             continue
         cmd = [sys.executable, "-m", "s3k.cli", "train", str(view), "--out", str(run), "--steps",
@@ -131,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
                     "scale": f"box rendered at {args.render} px, crops {args.extent_mm:g} mm -> {args.crop} "
                              f"px, centre jitter {args.jitter_mm:g} mm per axis, {args.steps} steps",
                     "keypoint": args.keypoint}
+    result["s3k_options"] = args.s3k_options
     for name in models:
-        run = work / "runs" / f"{view.name}-{name}-{args.steps}-s{args.seed}"
+        run = runs[name]
         result[name] = {}
         for split in ("test", "labelled"):
             m = evaluate_run(run, view, split=split, device="cpu")
