@@ -1,8 +1,9 @@
 """How precise a refining pass on scale-normalized crops can be, given a coarse 3D estimate.
 
 A diagnostic for the error budget of the coarse-to-fine detector (docs/accuracy.md). It renders the box
-scene at ``--render`` px, and for one keypoint writes a dataset whose "cameras" are crops: each view cut
-around the keypoint's *true* 3D position plus a random 3D offset (``--jitter-mm`` per axis, standing in for
+scene at ``--render`` px, and for one keypoint (or, with ``--keypoint -1``, the whole object) writes a dataset
+whose "cameras" are crops: each view cut around the keypoint's *true* 3D position (the object's: the mean of
+its keypoints) plus a random 3D offset (``--jitter-mm`` per axis, standing in for
 the coarse pass's error), sized from a metric extent (``--extent-mm``) and resampled to ``--crop`` px with
 ``K' = M K`` (:mod:`s3k.crops`). It trains the labels-only baseline and S3K on it (same steps, same seed) and
 reports the keypoint's 3D error on the test frames and on the labelled frames (the fit).
@@ -38,7 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, size: int, jitter_m: float,
                     seed: int = 123) -> None:
-    """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point."""
+    """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point; with
+    ``keypoint < 0`` of every keypoint, crops centred on the jittered mean of the true points."""
     import torch
 
     from s3k.crops import crop_images, crop_maps, metric_crop_boxes
@@ -46,9 +48,11 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
 
     ds = Dataset.open(source, cache="none")
     rng = np.random.default_rng(seed)
-    name = ds.keypoints[keypoint]
+    kps = slice(None) if keypoint < 0 else slice(keypoint, keypoint + 1)
+    names = ds.keypoints[kps]
+    name = "the object" if keypoint < 0 else names[0]
     tmp = out.with_name(out.name + ".tmp")
-    with DatasetWriter(tmp, [name], ds.cameras, (size, size), ds.units, per_frame_calibration=True,
+    with DatasetWriter(tmp, names, ds.cameras, (size, size), ds.units, per_frame_calibration=True,
                        overwrite=True, description=f"crops of {extent_m * 1000:g} mm around {name}",
                        source={"oracle_crops_of": str(source)}) as w:
         for split in ("labelled", "unlabelled", "test"):
@@ -59,7 +63,7 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
                 cams = ds.calibration(chunk, np.float64)
                 cal = cams.numpy()
                 X, _ = ds.points3d(chunk)
-                centre = torch.as_tensor(X[:, keypoint], dtype=torch.float64)
+                centre = torch.as_tensor(X[:, kps].mean(axis=1), dtype=torch.float64)
                 centre = centre + torch.as_tensor(rng.normal(0.0, jitter_m, (len(chunk), 3)))
                 boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent_m)
                 B, C = boxes.shape[:2]
@@ -74,12 +78,12 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
                 for b, frame in enumerate(chunk):
                     labels = None
                     if split != "unlabelled":
-                        lab = np.where(mask[b][..., None], uv_crop[b], np.nan)[:, keypoint:keypoint + 1]
+                        lab = np.where(mask[b][..., None], uv_crop[b], np.nan)[:, kps]
                         inside = ((lab >= -0.5) & (lab <= size - 0.5)).all(-1, keepdims=True)
                         labels = np.where(inside, lab, np.nan)
                     w.add_frame(int(frame), split, crops_u8[b],
                                 (M[b] @ cal["K"][b], cal["dist"][b], cal["R"][b], cal["t"][b]),
-                                labels, points3d=X[b][keypoint:keypoint + 1])
+                                labels, points3d=X[b][kps])
     os.replace(tmp, out)
 
 
@@ -89,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
     p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
-    p.add_argument("--keypoint", type=int, default=0, help="keypoint index (default 0)")
+    p.add_argument("--keypoint", type=int, default=0,
+                   help="keypoint index (default 0); -1: crops of the whole object, every keypoint")
     p.add_argument("--extent-mm", type=float, default=80.0, help="crop side at the point (default 80)")
     p.add_argument("--crop", type=int, default=64, help="crop size in pixels (default 64)")
     p.add_argument("--jitter-mm", type=float, default=8.0, help="crop centre offset per axis, sd (default 8)")
@@ -109,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
 
         simulate(SimulateConfig("box", size=args.render, labelled=10, unlabelled=args.unlabelled,
                                 test=args.test), render, workers=1, progress=False, overwrite=True)
-    view = work / f"crops-k{args.keypoint}-{args.extent_mm:g}mm-{args.crop}px-j{args.jitter_mm:g}"
+    which = "all" if args.keypoint < 0 else args.keypoint
+    view = work / f"crops-k{which}-{args.extent_mm:g}mm-{args.crop}px-j{args.jitter_mm:g}"
     if not (view / "s3k.json").is_file():
         write_crop_view(render, view, args.keypoint, args.extent_mm / 1000, args.crop, args.jitter_mm / 1000)
     extra_s3k = args.s3k_options.split()
@@ -146,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
             m = evaluate_run(run, view, split=split, device="cpu")
             result[name][split] = {k: m[k] for k in ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm",
                                                      "mm_per_px")}
+            result[name][split]["median_mm_per_keypoint"] = {
+                kp: d["median_mm"] for kp, d in m["per_keypoint"].items()}
     result["minutes_this_call"] = (time.perf_counter() - t0) / 60
     if args.out:
         from s3k.fileio import atomic_write_json
