@@ -221,3 +221,16 @@ def test_truncated_model_is_one_line_naming_the_file(capsys, dataset, finished_r
     data = (run / "model.pt").read_bytes()
     (run / "model.pt").write_bytes(data[: int(len(data) * fraction)])
     refused(capsys, ["evaluate", str(run), "--data", str(dataset)], str(run / "model.pt"), "truncated")
+
+
+def test_corrupt_image_is_one_line_naming_the_file(capsys, dataset, finished_run, tmp_path):
+    import shutil
+
+    data = tmp_path / "ds"
+    shutil.copytree(dataset, data, ignore=shutil.ignore_patterns(".cache*"))
+    png = sorted((data / "images" / "cam0").glob("*.png"))[0]
+    png.write_bytes(png.read_bytes()[:60])
+    name = f"images/cam0/{png.name}"
+    refused(capsys, ["train", str(data), "--out", str(tmp_path / "run"), *TINY], name, "cannot decode")
+    refused(capsys, ["evaluate", str(finished_run), "--data", str(data), "--split", "labelled"], name,
+            "cannot decode")

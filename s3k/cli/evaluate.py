@@ -14,7 +14,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "rms_mm; keypoints are matched to the dataset's by name.")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--data", required=True, help="dataset folder")
-    parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
+    parser.add_argument("--split", default="test", choices=["labelled", "unlabelled", "test"],
+                        help="split to evaluate (default: test)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
                         help="write metrics.json, plots and view overlays to DIR")

@@ -15,7 +15,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset folder")
     parser.add_argument("--out", required=True, help="output CSV file (never a file of the dataset)")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--split", default="test",
+    parser.add_argument("--split", default="test", choices=["labelled", "unlabelled", "test", "all"],
                         help="split to predict: labelled, unlabelled, test, or 'all' (default: test)")
     parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
