@@ -41,50 +41,22 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
                     seed: int = 123) -> None:
     """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point; with
     ``keypoint < 0`` of every keypoint, crops centred on the jittered mean of the true points."""
-    import torch
-
-    from s3k.crops import crop_images, crop_maps, metric_crop_boxes
-    from s3k.data import Dataset, DatasetWriter
+    from s3k.data import Dataset
+    from s3k.refine import write_crop_dataset
 
     ds = Dataset.open(source, cache="none")
     rng = np.random.default_rng(seed)
     kps = slice(None) if keypoint < 0 else slice(keypoint, keypoint + 1)
-    names = ds.keypoints[kps]
-    name = "the object" if keypoint < 0 else names[0]
-    tmp = out.with_name(out.name + ".tmp")
-    with DatasetWriter(tmp, names, ds.cameras, (size, size), ds.units, per_frame_calibration=True,
-                       overwrite=True, description=f"crops of {extent_m * 1000:g} mm around {name}",
-                       source={"oracle_crops_of": str(source)}) as w:
-        for split in ("labelled", "unlabelled", "test"):
-            ids = ds.frames(split)
-            for start in range(0, len(ids), 32):
-                chunk = ids[start:start + 32]
-                images = ds.images(chunk)  # (B, C, H, W, 3)
-                cams = ds.calibration(chunk, np.float64)
-                cal = cams.numpy()
-                X, _ = ds.points3d(chunk)
-                centre = torch.as_tensor(X[:, kps].mean(axis=1), dtype=torch.float64)
-                centre = centre + torch.as_tensor(rng.normal(0.0, jitter_m, (len(chunk), 3)))
-                boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent_m)
-                B, C = boxes.shape[:2]
-                t = torch.as_tensor(images, dtype=torch.float32).reshape(B * C, *images.shape[2:])
-                crops = crop_images(t.permute(0, 3, 1, 2), boxes.reshape(B * C, 4).float(), (size, size))
-                crops_u8 = crops.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()
-                crops_u8 = crops_u8.reshape(B, C, size, size, 3)
-                M = crop_maps(boxes, (size, size)).numpy()  # (B, C, 3, 3)
-                uv, mask = ds.labels(chunk)
-                uv_crop = np.einsum("bcij,bckj->bcki", M[..., :2, :2], uv.astype(np.float64))
-                uv_crop = uv_crop + M[:, :, None, :2, 2]
-                for b, frame in enumerate(chunk):
-                    labels = None
-                    if split != "unlabelled":
-                        lab = np.where(mask[b][..., None], uv_crop[b], np.nan)[:, kps]
-                        inside = ((lab >= -0.5) & (lab <= size - 0.5)).all(-1, keepdims=True)
-                        labels = np.where(inside, lab, np.nan)
-                    w.add_frame(int(frame), split, crops_u8[b],
-                                (M[b] @ cal["K"][b], cal["dist"][b], cal["R"][b], cal["t"][b]),
-                                labels, points3d=X[b][kps])
-    os.replace(tmp, out)
+    centres = {}
+    for split in ("labelled", "unlabelled", "test"):
+        ids = ds.frames(split)
+        X, _ = ds.points3d(ids)
+        truth = X[:, kps].mean(axis=1)
+        for frame, c, offset in zip(ids, truth, rng.normal(0.0, jitter_m, (len(ids), 3))):
+            centres[int(frame)] = c + offset
+    name = "the object" if keypoint < 0 else ds.keypoints[keypoint]
+    write_crop_dataset(source, out, centres, extent_m, size, ds.keypoints[kps],
+                       description=f"crops of {extent_m * 1000:g} mm around {name} (true point + jitter)")
 
 
 def main(argv: list[str] | None = None) -> int:
