@@ -7,7 +7,14 @@ import pytest
 
 from s3k.sim import textures
 from s3k.sim.camera import look_at_xmat, mujoco_to_opencv, project_points
-from s3k.sim.generate import SimulateConfig, contact_sheet, frame_plan, frame_rng, render_frames
+from s3k.sim.generate import (
+    SimulateConfig,
+    contact_sheet,
+    frame_plan,
+    frame_rng,
+    render_frames,
+    scene_mm_per_px,
+)
 from s3k.sim.render import MultiViewRenderer
 from s3k.sim.scene import NUM_TRAIN_INSTANCES, FrameSpec, in_image, occluded, sight_lines_blocked
 from s3k.sim.scenes import CategoryScene, DistractorScene, DistractorSpec, make_scene
@@ -221,6 +228,28 @@ def test_worker_processes_give_the_same_frames():
     two = list(render_frames(cfg, specs, workers=2, chunk=2))
     assert [f.frame_id for f in two] == [s.frame_id for s in specs]
     _assert_same(one, two)
+
+
+# ------------------------------------------------------------------------------------------ pixel size
+def test_scene_pixel_size_follows_the_image_size_and_the_rendered_rigs():
+    import torch
+
+    from s3k.evaluate import pixel_sizes_mm
+    from s3k.geometry import Cameras
+
+    at96 = scene_mm_per_px("box", 96, frames=6)
+    assert scene_mm_per_px("box", 192, frames=6) == pytest.approx(at96 / 2, rel=1e-9)
+    # one pixel is the camera's distance (0.85-1.15 m) over f = 48 / tan(11 deg) = 247 px
+    f = 48 / np.tan(np.deg2rad(11.0))
+    assert 850 / f < at96 < 1150 / f
+    # the rigs are those of the rendered frames of `s3k simulate box --test 6`
+    cfg = SimulateConfig("box", size=32, labelled=0, unlabelled=0, test=6)
+    frames = list(render_frames(cfg, frame_plan(cfg)))
+    cams = Cameras.from_numpy(np.stack([fr.K for fr in frames]), None, np.stack([fr.R for fr in frames]),
+                              np.stack([fr.t for fr in frames]), dtype=torch.float64)
+    rendered = float(np.median(pixel_sizes_mm(cams, 1000.0)))
+    assert scene_mm_per_px("box", 32, frames=6) == pytest.approx(rendered, rel=1e-12)
+    assert rendered == pytest.approx(at96 * 3, rel=1e-9)
 
 
 # ------------------------------------------------------------------------------------------ frame plan

@@ -12,6 +12,7 @@ scene (one MuJoCo model and one OpenGL renderer); the parent writes frames in fr
 from __future__ import annotations
 
 import dataclasses
+import functools
 import multiprocessing as mp
 import os
 import time
@@ -136,6 +137,36 @@ def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
 def frame_rng(seed: int, frame_id: int) -> np.random.Generator:
     """The random generator of one frame: a function of ``(seed, frame_id)`` only."""
     return np.random.default_rng([int(seed), int(frame_id)])
+
+
+@functools.cache
+def scene_mm_per_px(scene: str, size: int, frames: int = 200, seed: int = 0, object_seed: int = 0) -> float:
+    """The median size in millimetres of one pixel at the workspace centre of ``scene`` at ``size`` px.
+
+    The camera rigs are those of the ``frames`` test frames of ``s3k simulate SCENE --size SIZE --test FRAMES
+    --seed SEED`` (no labelled or unlabelled frames): each frame's state is drawn as rendering draws it, so
+    the same rigs, but nothing is rendered. A rig's pixel size is :func:`s3k.evaluate.pixel_sizes_mm` (the
+    point nearest to the cameras' optical axes, its depth over the focal length), per camera; this is their
+    median over frames and cameras: what turns a pixel error of this scene at this size into millimetres on
+    the object. The focal length grows with the image size and nothing else does, so it scales as 1 / size.
+    """
+    import torch
+
+    from s3k.evaluate import pixel_sizes_mm
+    from s3k.geometry import Cameras
+
+    cfg = SimulateConfig(scene, size=size, labelled=0, unlabelled=0, test=frames, seed=seed,
+                         object_seed=object_seed)
+    rigs = []
+    with make_scene(scene, size=size, seed=object_seed) as sim:
+        for spec in frame_plan(cfg):
+            sim.sample(spec, frame_rng(seed, spec.frame_id))
+            sim.forward()
+            rigs.append(sim.calibration())
+    K, R, t = (np.stack(a) for a in zip(*rigs))  # (F, C, 3, 3), (F, C, 3, 3), (F, C, 3)
+    cams = Cameras.from_numpy(K, None, R, t, dtype=torch.float64)
+    sizes = pixel_sizes_mm(cams, 1000.0)  # (F, C); the scenes are in metres
+    return float(np.median(sizes[np.isfinite(sizes)]))
 
 
 # ---------------------------------------------------------------------------------------------- workers
