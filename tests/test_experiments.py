@@ -20,11 +20,13 @@ import s3k.experiments as ex
 from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
 from s3k.data import Dataset
+from s3k.errors import UserError
 from s3k.experiments.findings import lower
 from s3k.experiments.report import readme
 from s3k.experiments.runner import LOCK_FILE, run_one
 from s3k.experiments.views import make_view, select_frames
 from s3k.fileio import file_lock
+from s3k.sim.generate import scene_mm_per_px
 
 pytest.importorskip("mujoco")
 
@@ -207,15 +209,38 @@ def fake_result(params: dict, rms_px: float, size: int = 64, split_train: bool =
             "metrics": {"test": dict(metrics), **({"train": dict(metrics)} if split_train else {})}}
 
 
-def test_aggregate_scales_to_paper_pixels_and_averages_seeds():
+#: A pixel size for the fake results (image size -> mm per pixel at the workspace centre).
+MM_PER_PX = {64: 6.0}
+
+
+def test_aggregate_gives_millimetres_and_averages_seeds():
     results = [fake_result({"labelled": 3, "unlabelled": 0, "seed": s, "method": "no_unsup"}, v)
                for s, v in enumerate([2.0, 4.0, 6.0])]
-    (point,) = ex.aggregate(results)
+    (point,) = ex.aggregate(results, MM_PER_PX)
     assert point["seeds"] == [0, 1, 2]
     s = point["test"]["rms_px"]
     assert s["mean"] == pytest.approx(4.0) and s["std"] == pytest.approx(np.std([2, 4, 6], ddof=1))
-    assert point["test"]["rms_px_400"]["mean"] == pytest.approx(4.0 * 400 / 64)
+    mm = point["test"]["rms_mm_2d"]
+    assert mm["values"] == pytest.approx([12.0, 24.0, 36.0]) and mm["std"] == pytest.approx(6.0 * s["std"])
+    assert point["test"]["rms_mm_2d_reproj"]["mean"] == pytest.approx(2.0 * 6.0)
     assert point["test"]["median_mm"]["values"] == [6.0, 12.0, 18.0]
+    assert "rms_px_400" not in point["test"]
+    # an image size without a pixel size gets no millimetres, not a wrong number
+    (point,) = ex.aggregate(results, {})
+    assert point["test"]["rms_mm_2d"]["mean"] is None and point["test"]["rms_px"]["mean"] == 4.0
+
+
+def test_findings_verdicts_do_not_depend_on_the_unit():
+    values = {(L, U): v for (L, U), v in zip([(3, 0), (3, 300), (3, 3000), (10, 0), (10, 3000)],
+                                            [[10, 11, 12], [9, 11, 12], [2, 3, 4], [5, 6, 9], [9, 10, 11]])}
+    results = [fake_result({"labelled": L, "unlabelled": U, "seed": s}, v)
+               for (L, U), vs in values.items() for s, v in enumerate(vs)]
+    points = ex.aggregate(results, MM_PER_PX)
+    by_unit = {m: [f["reproduced"] for f in ex.findings("label-efficiency", points, metric=m)]
+               for m in ("rms_px", "rms_mm_2d")}
+    assert by_unit["rms_px"] == by_unit["rms_mm_2d"] == [True, False, "within noise"]
+    f = ex.findings("label-efficiency", points)[0]
+    assert f["measured"] == "18.00 +- 6.00 vs 66.00 +- 6.00 mm (per-view RMS)"
 
 
 def test_findings_follow_the_numbers():
@@ -223,22 +248,22 @@ def test_findings_follow_the_numbers():
         return [fake_result({"labelled": L, "unlabelled": U, "seed": s, "method": "x"}, v)
                 for s, v in enumerate(values)]
 
-    better = ex.aggregate(le(3, 0, [10, 11, 12]) + le(3, 300, [5, 6, 7]) + le(3, 3000, [2, 3, 4]))
+    better = ex.aggregate(le(3, 0, [10, 11, 12]) + le(3, 300, [5, 6, 7]) + le(3, 3000, [2, 3, 4]), MM_PER_PX)
     f = ex.findings("label-efficiency", better)
     assert [x["reproduced"] for x in f] == [True, True]
-    worse = ex.aggregate(le(3, 0, [2, 3, 4]) + le(3, 300, [5, 6, 7]))
+    worse = ex.aggregate(le(3, 0, [2, 3, 4]) + le(3, 300, [5, 6, 7]), MM_PER_PX)
     assert ex.findings("label-efficiency", worse)[0]["reproduced"] is False
-    noisy = ex.aggregate(le(3, 0, [2, 9, 4]) + le(3, 300, [5, 1, 7]))
+    noisy = ex.aggregate(le(3, 0, [2, 9, 4]) + le(3, 300, [5, 1, 7]), MM_PER_PX)
     assert ex.findings("label-efficiency", noisy)[0]["reproduced"] == "within noise"
     alpha = ex.aggregate([fake_result({"labelled": L, "unlabelled": 9, "alpha": a, "seed": 0}, v)
-                          for L, a, v in [(3, 0.1, 1), (3, 1.0, 2), (30, 0.1, 2), (30, 1.0, 1)]])
+                          for L, a, v in [(3, 0.1, 1), (3, 1.0, 2), (30, 0.1, 2), (30, 1.0, 1)]], MM_PER_PX)
     assert ex.findings("alpha", alpha)[0]["reproduced"] is True
 
 
 def test_domain_shift_gap_verdict_compares_sizes():
     def ds(values):  # (mode, unlabelled) -> error
         return ex.aggregate([fake_result({"mode": m, "labelled": 10, "unlabelled": U, "seed": 0}, v)
-                             for (m, U), v in values.items()])
+                             for (m, U), v in values.items()], MM_PER_PX)
 
     def gap_verdict(values):
         (f,) = [x for x in ex.findings("domain-shift", ds(values)) if "gap" in x["finding"]]
@@ -262,7 +287,7 @@ def test_category_findings_follow_the_numbers():
             r = fake_result({"instances": n, "labelled": 30, "unlabelled": 9, "seed": 0}, test)
             r["metrics"]["train"] = dict(r["metrics"]["test"], rms_px=train)
             results.append(r)
-        return [f["reproduced"] for f in ex.findings("category", ex.aggregate(results))]
+        return [f["reproduced"] for f in ex.findings("category", ex.aggregate(results, MM_PER_PX))]
 
     # more instances: held-out error 30 -> 15, gap to training instances 20 -> 3
     assert cat({1: (30, 10), 6: (20, 12), 12: (15, 12)}) == [True, True]
@@ -298,6 +323,72 @@ def test_published_summaries_give_their_findings_again(path):
     page = readme(summary)
     for f in summary["findings"]:
         assert f"| {f['finding']} | {f['measured']} | {ex.verdict(f['reproduced'])} |" in page
+
+
+@pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: p.parent.name)
+def test_published_verdicts_are_those_of_the_pixel_errors(path):
+    # The claims compare errors at one image size, so millimetres (pixels x one pixel size) must give the
+    # verdicts the pixel errors give (and so the ones the pixels scaled to 400 px gave before).
+    summary = json.loads(path.read_text())
+    in_px = ex.findings(summary["experiment"], summary["points"], metric="rms_px")
+    assert [f["reproduced"] for f in in_px] == [f["reproduced"] for f in summary["findings"]]
+    for p in summary["points"]:
+        factor = summary["mm_per_px"][str(p["image_size"][0])]
+        for split in ("test", "train"):
+            if split in p:
+                assert p[split]["rms_mm_2d"]["values"] == pytest.approx(
+                    [v * factor for v in p[split]["rms_px"]["values"]])
+
+
+def old_summary(points: list[dict]) -> dict:
+    """A summary as written before the millimetre fields: pixel errors x 400 / size, no mm_per_px."""
+    for p in points:
+        for m in ("rms_px", "rms_px_reproj"):
+            st, k = p["test"][m], 400 / p["image_size"][0]
+            p["test"][f"{m}_400"] = dict(st, mean=st["mean"] * k, std=st["std"] * k,
+                                         values=[v * k for v in st["values"]])
+        for m in ("rms_mm_2d", "rms_mm_2d_reproj"):
+            del p["test"][m]
+    return {"experiment": "label-efficiency", "description": "", "runs": len(points) * 3, "scales": ["small"],
+            "image_sizes": [64], "steps": [10], "paper": {"image_size": 400, "steps": 150000},
+            "error_metric": "rms_px_400: rms_px x 400 / image size (pixels at the paper's image scale)",
+            "points": points, "findings": ex.findings("label-efficiency", points, metric="rms_px_400"),
+            "generated_at": "2026-11-30T03:40:41Z", "commands": ["s3k experiment label-efficiency --out W"],
+            "code_revisions": ["728e85c"], "runs_without_provenance": 0, "figures": ["error_vs_labelled.png"]}
+
+
+def test_summarize_only_from_an_old_summary_without_runs(tmp_path):
+    results = [fake_result({"labelled": L, "unlabelled": U, "seed": s}, v)
+               for (L, U), vs in {(3, 0): [10, 11, 12], (3, 9): [2, 3, 4], (10, 0): [5, 6, 7],
+                                  (10, 9): [5, 6, 8]}.items() for s, v in enumerate(vs)]
+    old = old_summary(ex.aggregate(results, {}))
+    exp = tmp_path / "label-efficiency"
+    exp.mkdir()
+    (exp / "summary.json").write_text(json.dumps(old))
+    (exp / "README.md").write_text("# old\n\n## Findings\n\nold table\n\n## Reading\n\nWritten by hand.\n")
+    assert cli_main(["experiment", "label-efficiency", "--out", str(tmp_path), "--summarize-only"]) == 0
+    new = json.loads((exp / "summary.json").read_text())
+    factor = new["mm_per_px"]["64"]
+    assert factor == pytest.approx(scene_mm_per_px("box", 64))
+    test = new["points"][0]["test"]
+    assert test["rms_mm_2d"]["values"] == pytest.approx([factor * v for v in test["rms_px"]["values"]])
+    assert "rms_px_400" not in test and new["paper"]["mm_per_px"] == ex.PAPER_MM_PER_PX
+    assert [f["reproduced"] for f in new["findings"]] == [f["reproduced"] for f in old["findings"]]
+    assert [f["reproduced"] for f in new["findings"]] == [True, "within noise"]
+    # what the summary said about the runs is kept, and where this came from is said
+    for key in ("runs", "scales", "image_sizes", "steps", "commands", "code_revisions"):
+        assert new[key] == old[key]
+    assert new["resummarized_from"]["generated_at"] == old["generated_at"]
+    page = (exp / "README.md").read_text()
+    assert "Re-summarized by `s3k experiment label-efficiency --summarize-only`" in page
+    assert "Command: `s3k experiment label-efficiency --out W`" in page and "`728e85c`" in page
+    assert page.endswith("\n## Reading\n\nWritten by hand.\n") and "old table" not in page
+    assert all((exp / f).stat().st_size > 1000 for f in new["figures"])
+    # again: the same summary (the source stays the summary of the runs)
+    assert ex.resummarize(exp)["resummarized_from"] == new["resummarized_from"]
+    assert json.loads((exp / "summary.json").read_text())["points"] == new["points"]
+    with pytest.raises(UserError, match="a summary of experiment 'label-efficiency', not 'alpha'"):
+        ex.resummarize(exp, "alpha")
 
 
 def test_plots_and_readme_without_runs(tmp_path):

@@ -16,6 +16,7 @@ from s3k.experiments import (
     describe_plan,
     plan,
     publish,
+    resummarize,
     run_experiment,
     summarize,
     verdict,
@@ -78,7 +79,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: CPUs)")
     parser.add_argument("--dry-run", action="store_true", help="print the runs and the estimate, run nothing")
     parser.add_argument("--summarize-only", action="store_true",
-                        help="only (re)write summary.json, plots and README.md from the finished runs")
+                        help="only (re)write summary.json, plots and README.md from the finished runs "
+                             "(without NAME/runs/: from the grid points of NAME/summary.json)")
     parser.add_argument("--publish", default=None, metavar="DIR",
                         help="then copy summary.json, README.md and plots to DIR (e.g. docs/results/NAME)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -111,10 +113,14 @@ def run(args: argparse.Namespace) -> int:
     exp_dir = Path(args.out) / args.name
     failed: list[str] = []
     if args.summarize_only:
-        if not (exp_dir / "runs").is_dir():
+        if (exp_dir / "runs").is_dir():
+            summary = summarize(exp_dir, args.name)
+        elif (exp_dir / SUMMARY_FILE).is_file():  # the run folders are gone: from the summary's grid points
+            summary = resummarize(exp_dir, args.name)
+            log(f"re-summarized from {exp_dir / SUMMARY_FILE} (no {exp_dir / 'runs'})")
+        else:
             raise UserError(f"{exp_dir / 'runs'} does not exist: nothing to summarize",
                             hint="check --out, or run the sweep first")
-        summary = summarize(exp_dir, args.name)
     else:
         opts = options_from_args(args)
         runs = plan(opts)

@@ -8,7 +8,7 @@ Experiments (section numbers of Vecerik et al., CoRL 2020):
 - ``domain-shift`` (4.2): distractors scene, labels from the first distractor set only ("start") or spread
   over the whole timeline ("full"), over labelled and unlabelled counts; test on distractor sets never seen.
 - ``category`` (4.3): category scene, trained on 1-12 instances, evaluated on the training instances (frames
-  never labelled) and on the 4 held-out ones; compared with the paper's table (400 px).
+  never labelled) and on the 4 held-out ones; compared with the paper's table (400 px, in millimetres).
 - ``alpha`` (appendix C): weight of the self-supervised term at a few labelled counts.
 
 Layout of ``DIR`` (one DIR can hold every experiment of one scale; they share the rendered data)::
@@ -16,7 +16,7 @@ Layout of ``DIR`` (one DIR can hold every experiment of one scale; they share th
     DIR/data/<pool>/                 a rendered dataset per (scene, mode, instances, size, frame counts, seed)
     DIR/data/views/<pool>/<view>/    a run's frames of a pool: its tables, images linked, not copied
     DIR/<experiment>/runs/<run>/     the training run folder (s3k.run) and result.json once finished
-    DIR/<experiment>/summary.json    per grid point: mean, std and values over seeds; findings
+    DIR/<experiment>/summary.json    per grid point: mean, std and values over seeds; findings; mm per px
     DIR/<experiment>/*.png, README.md
 
 Resuming: a run with a ``result.json`` is never redone; a run killed during training continues from its last
@@ -38,6 +38,7 @@ from s3k.experiments.grid import (
     DESCRIPTIONS,
     EXPERIMENTS,
     PAPER_CATEGORY_TEST_PX,
+    PAPER_MM_PER_PX,
     SCALES,
     SUMMARY_FILE,
     Options,
@@ -45,10 +46,10 @@ from s3k.experiments.grid import (
     RunSpec,
     plan,
 )
-from s3k.experiments.report import publish, summarize
+from s3k.experiments.report import publish, resummarize, summarize
 from s3k.experiments.runner import describe_plan, run_experiment
 from s3k.experiments.views import stratified_pick
 
-__all__ = ["DESCRIPTIONS", "EXPERIMENTS", "PAPER_CATEGORY_TEST_PX", "SCALES", "SUMMARY_FILE", "Options",
-           "PoolSpec", "RunSpec", "aggregate", "describe_plan", "findings", "plan", "publish",
-           "run_experiment", "stratified_pick", "summarize", "verdict"]
+__all__ = ["DESCRIPTIONS", "EXPERIMENTS", "PAPER_CATEGORY_TEST_PX", "PAPER_MM_PER_PX", "SCALES",
+           "SUMMARY_FILE", "Options", "PoolSpec", "RunSpec", "aggregate", "describe_plan", "findings", "plan",
+           "publish", "resummarize", "run_experiment", "stratified_pick", "summarize", "verdict"]

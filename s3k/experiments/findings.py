@@ -1,29 +1,37 @@
 """Statistics over seeds and the paper's findings checked against them.
 
-:func:`aggregate` turns run results into grid points (mean, std and values over seeds of every metric, also at
-the paper's image scale); :func:`findings` states each of the paper's claims with the numbers measured here
-and a verdict: True, False, "within noise" (see :func:`lower`) or None when a point it needs is missing.
+:func:`aggregate` turns run results into grid points (mean, std and values over seeds of every metric, the
+per-view pixel errors also in millimetres on the object); :func:`findings` states each of the paper's claims
+with the numbers measured here and a verdict: True, False, "within noise" (see :func:`lower`) or None when a
+point it needs is missing.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, cast
 
 import numpy as np
 
-from s3k.experiments.grid import PAPER_CATEGORY_TEST_PX, PAPER_SIZE
+from s3k.experiments.grid import PAPER_CATEGORY_TEST_PX, PAPER_MM_PER_PX
 
-METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm")
+METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "pck_5mm", "pck_10mm")
+
+#: Per-view errors in millimetres on the object: the pixel error they derive from (x the scene's mm_per_px).
+MM_2D = {"rms_mm_2d": "rms_px", "rms_mm_2d_reproj": "rms_px_reproj"}
+
+#: How a finding names the unit of its metric.
+UNITS = {"rms_mm_2d": "mm (per-view RMS)", "rms_mm_2d_reproj": "mm (reprojection RMS)", "rms_px": "px",
+         "rms_px_reproj": "px", "median_mm": "mm (median 3D)", "rms_mm": "mm (RMS 3D)"}
 
 Verdict = bool | str | None
 
 
-def to_paper_px(v: float | None, size: int) -> float | None:
-    """A pixel error at ``size`` px expressed at the paper's image size (x 400 / size)."""
-    return None if v is None else v * PAPER_SIZE / size
+def paper_mm(px: float) -> float:
+    """A pixel figure of the paper (400 px images) in millimetres at its workspace centre."""
+    return px * PAPER_MM_PER_PX
 
 
 def fmt(v: Any, digits: int = 2) -> str:
@@ -39,12 +47,39 @@ def _stats(values: Sequence[float | None]) -> dict[str, Any]:
             "values": [float(x) for x in v]}
 
 
-def aggregate(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def _scaled(s: dict[str, Any], factor: float | None) -> dict[str, Any]:
+    """Statistics from :func:`_stats` of a quantity times ``factor`` (none when ``factor`` is None)."""
+    if factor is None or s.get("mean") is None:
+        return _stats([])
+    return {"mean": s["mean"] * factor, "std": None if s.get("std") is None else s["std"] * factor,
+            "n": s["n"], "values": [v * factor for v in s["values"]]}
+
+
+def add_mm(point: dict[str, Any], mm_per_px: Mapping[int, float | None]) -> dict[str, Any]:
+    """Give each split of a grid point the per-view errors in millimetres (:data:`MM_2D`).
+
+    ``rms_mm_2d = rms_px x mm_per_px[image size]``: the per-view error at the workspace centre, in mm on the
+    object, which compares across image sizes, cameras and with the paper. The pixel errors scaled to the
+    paper's image size that summaries used to hold (``rms_px_400``, ``rms_px_reproj_400``) are dropped: image
+    size alone does not make pixels comparable.
+    """
+    factor = mm_per_px.get(point["image_size"][0])
+    for block in point.values():
+        if isinstance(block, dict) and "rms_px" in block:
+            for name, px in MM_2D.items():
+                block[name] = _scaled(block[px], factor)
+            for old in ("rms_px_400", "rms_px_reproj_400"):
+                block.pop(old, None)
+    return point
+
+
+def aggregate(results: Sequence[dict[str, Any]], mm_per_px: Mapping[int, float | None]
+              ) -> list[dict[str, Any]]:
     """One entry per grid point (params without the seed): statistics over seeds of every metric.
 
-    Each split's metrics get ``rms_px_400`` and ``rms_px_reproj_400``: pixel errors x 400 / image size, the
-    paper's image scale. Runs that did not finish normally (status other than "done") are listed, not
-    averaged.
+    ``mm_per_px`` maps an image size to the size of a pixel of the experiment's scene at its workspace
+    centre; each split also gets the per-view errors in millimetres from it (:func:`add_mm`). Runs that did
+    not finish normally (status other than "done") are listed, not averaged.
     """
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in results:
@@ -58,14 +93,9 @@ def aggregate(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                                  "image_size": rs[0]["image_size"], "steps": rs[0]["config"]["steps"],
                                  "wall_time_s": _stats([r["wall_time_s"]["total"] for r in rs])["mean"]}
         for split in sorted({s for r in ok for s in r["metrics"]}):
-            block = {}
-            for m in METRICS:
-                block[m] = _stats([r["metrics"][split].get(m) for r in ok if split in r["metrics"]])
-            for m in ("rms_px", "rms_px_reproj"):
-                block[f"{m}_400"] = _stats([to_paper_px(r["metrics"][split].get(m), r["image_size"][0])
-                                            for r in ok if split in r["metrics"]])
-            point[split] = block
-        points.append(point)
+            point[split] = {m: _stats([r["metrics"][split].get(m) for r in ok if split in r["metrics"]])
+                            for m in METRICS}
+        points.append(add_mm(point, mm_per_px))
     order = ("mode", "instances", "labelled", "alpha", "unlabelled")
 
     def sort_key(p: dict[str, Any]) -> tuple:
@@ -134,8 +164,11 @@ def mean_std(s: dict[str, Any] | None) -> str:
 
 
 def findings(experiment: str, points: list[dict[str, Any]],
-             metric: str = "rms_px_400") -> list[dict[str, Any]]:
-    """The paper's findings checked against these points.
+             metric: str = "rms_mm_2d") -> list[dict[str, Any]]:
+    """The paper's findings checked against these points, on ``metric`` (default: the per-view error in mm).
+
+    Each claim compares errors of one experiment, measured at one image size and scene, so a verdict does not
+    depend on the unit: pixels and the millimetres they convert to at one pixel size give the same verdicts.
 
     Returns:
         ``[{"finding", "measured", "reproduced"}]``; ``reproduced`` is True, False, "within noise" (see
@@ -146,7 +179,7 @@ def findings(experiment: str, points: list[dict[str, Any]],
     def add(text: str, measured: str, holds: Verdict) -> None:
         out.append({"finding": text, "measured": measured, "reproduced": holds})
 
-    unit = "px@400" if metric.endswith("_400") else metric
+    unit = UNITS.get(metric, metric)
     if experiment == "label-efficiency":
         Us = param_values(points, "unlabelled")
         u_max = max(Us) if Us else 0
@@ -194,8 +227,8 @@ def findings(experiment: str, points: list[dict[str, Any]],
             lo = _stat(points, "test", metric, instances=ns[0])
             hi = _stat(points, "test", metric, instances=ns[-1])
             add(f"more training instances, lower error on the held-out instances ({ns[0]} vs {ns[-1]})",
-                f"{mean_std(lo)} -> {mean_std(hi)} {unit} (paper {PAPER_CATEGORY_TEST_PX.get(ns[0], '-')} -> "
-                f"{PAPER_CATEGORY_TEST_PX.get(ns[-1], '-')})", lower(hi, lo))
+                f"{mean_std(lo)} -> {mean_std(hi)} {unit} (paper {_paper(ns[0], metric)} -> "
+                f"{_paper(ns[-1], metric)})", lower(hi, lo))
             tr = [_stat(points, "train", metric, instances=n) for n in ns]
             te = [_stat(points, "test", metric, instances=n) for n in ns]
             if all(v is not None for v in tr + te):
@@ -218,6 +251,14 @@ def findings(experiment: str, points: list[dict[str, Any]],
                 f"best alpha {best[l_lo]:g} at {l_lo} labelled, {best[l_hi]:g} at {l_hi}",
                 best[l_lo] < best[l_hi] if best[l_lo] != best[l_hi] else False)
     return out
+
+
+def _paper(instances: int, metric: str) -> str:
+    """The paper's held-out error at ``instances`` training instances in the unit of ``metric``."""
+    px = PAPER_CATEGORY_TEST_PX.get(instances)
+    if px is None:
+        return "-"
+    return f"{fmt(paper_mm(px), 1)} mm" if metric in MM_2D else f"{px} px at 400 px"
 
 
 def verdict(reproduced: Verdict) -> str:

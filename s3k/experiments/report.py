@@ -1,24 +1,41 @@
 """What a sweep reports: ``summary.json``, the figures and the ``README.md`` page of an experiment folder.
 
 :func:`summarize` rebuilds all three from the runs' ``result.json`` files (``--summarize-only``);
-:func:`publish` copies them to a results folder such as ``docs/results/NAME``.
+:func:`resummarize` from the grid points of an existing ``summary.json`` when the run folders are gone (e.g.
+the published ``docs/results/NAME``); :func:`publish` copies them to a results folder. Errors are compared in
+millimetres: 3D errors as measured, per-view pixel errors times the scene's pixel size at the workspace centre
+(:func:`s3k.sim.generate.scene_mm_per_px`), the paper's pixel figures times :data:`PAPER_MM_PER_PX`.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from s3k.experiments.findings import aggregate, findings, mean_std, param_values, verdict
+import s3k
+from s3k.errors import UserError
+from s3k.experiments.findings import (
+    add_mm,
+    aggregate,
+    findings,
+    fmt,
+    mean_std,
+    paper_mm,
+    param_values,
+    verdict,
+)
 from s3k.experiments.grid import (
     DESCRIPTIONS,
+    EXPERIMENT_SCENES,
     PAPER_CATEGORY_TEST_PX,
+    PAPER_MM_PER_PX,
     PAPER_SIZE,
     PAPER_STEPS,
     RESULT_FILE,
@@ -26,10 +43,41 @@ from s3k.experiments.grid import (
 )
 from s3k.fileio import atomic_write_json, atomic_write_text
 
+#: What a summary says about the runs it summarizes (kept as they are when it is re-summarized).
+_RUN_FIELDS = ("runs", "scales", "image_sizes", "steps", "commands", "code_revisions",
+               "runs_without_provenance")
+
+#: Sections of README.md that :func:`readme` writes; any other ``## `` section after them is kept.
+_GENERATED_SECTIONS = ("## Findings", "## Figures")
+
+
+def source_revision() -> str | None:
+    """The git commit of the s3k source in use (``-dirty`` when its files differ from it), or None when s3k
+    is not run from a git checkout or git is unavailable."""
+    pkg = Path(s3k.__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=10)
+        if rev.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(pkg), "status", "--porcelain", "--untracked-files=no", "--",
+                                "."], capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return rev.stdout.strip() + ("-dirty" if dirty else "")
+
 
 def load_results(exp_dir: Path) -> list[dict[str, Any]]:
     """Every ``result.json`` under ``exp_dir/runs``, sorted by run name."""
     return [json.loads(path.read_text()) for path in sorted((exp_dir / "runs").glob(f"*/{RESULT_FILE}"))]
+
+
+def scene_pixel_sizes(experiment: str, sizes: Sequence[int]) -> dict[int, float]:
+    """Millimetres per pixel at the workspace centre of ``experiment``'s scene, per image size."""
+    from s3k.sim.generate import scene_mm_per_px
+
+    scene = EXPERIMENT_SCENES.get(experiment)
+    return {int(s): scene_mm_per_px(scene, int(s)) for s in sizes} if scene else {}
 
 
 def summarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
@@ -37,28 +85,85 @@ def summarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
     exp_dir = Path(exp_dir)
     experiment = experiment or exp_dir.name
     results = load_results(exp_dir)
-    points = aggregate(results)
-    summary: dict[str, Any] = {
-        "experiment": experiment, "description": DESCRIPTIONS.get(experiment, ""),
-        "runs": len(results), "scales": sorted({r.get("scale", "?") for r in results}),
-        "image_sizes": sorted({r["image_size"][0] for r in results}),
+    sizes = sorted({r["image_size"][0] for r in results})
+    mm_per_px = scene_pixel_sizes(experiment, sizes)
+    runs = {
+        "runs": len(results), "scales": sorted({r.get("scale", "?") for r in results}), "image_sizes": sizes,
         "steps": sorted({r["config"]["steps"] for r in results}),
-        "paper": {"image_size": PAPER_SIZE, "steps": PAPER_STEPS},
-        "error_metric": "rms_px_400: rms_px x 400 / image size (pixels at the paper's image scale)",
-        "points": points, "findings": findings(experiment, points),
-        "generated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         # provenance as the runs recorded it (runs made before it was recorded count as unrecorded)
         "commands": sorted({r["command"] for r in results if r.get("command")}),
         "code_revisions": sorted({r["code_revision"] for r in results if r.get("code_revision")}),
         "runs_without_provenance": sum(1 for r in results if not r.get("command")),
     }
+    return _write(exp_dir, experiment, aggregate(results, mm_per_px), mm_per_px, runs)
+
+
+def resummarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
+    """Rewrite ``summary.json``, the plots and ``README.md`` of a folder from its ``summary.json`` alone.
+
+    For results whose run folders are not kept: the grid points (statistics over seeds per metric) are taken
+    as they are, given the millimetre errors of this revision (:func:`add_mm`; a summary written before
+    they existed loads too), and the findings, figures and page are made again. What the summary says about
+    the runs (count, scale, commands, revisions) is kept, and ``resummarized_from`` records which summary of
+    the runs this came from.
+
+    Raises:
+        UserError: ``experiment`` is given and the summary is of another experiment.
+    """
+    exp_dir = Path(exp_dir)
+    old = json.loads((exp_dir / SUMMARY_FILE).read_text())
+    if experiment is not None and old["experiment"] != experiment:
+        raise UserError(f"{exp_dir / SUMMARY_FILE}: a summary of experiment {old['experiment']!r}, not "
+                        f"{experiment!r}", hint="check NAME and --out")
+    experiment = old["experiment"]
+    mm_per_px = scene_pixel_sizes(experiment, old["image_sizes"])
+    points = [add_mm(p, mm_per_px) for p in old["points"]]
+    runs = {k: old.get(k, 0 if k in ("runs", "runs_without_provenance") else []) for k in _RUN_FIELDS}
+    source = old.get("resummarized_from") or {"generated_at": old.get("generated_at"),
+                                              "summary_revision": old.get("summary_revision")}
+    return _write(exp_dir, experiment, points, mm_per_px, runs, resummarized_from=source)
+
+
+def _write(exp_dir: Path, experiment: str, points: list[dict[str, Any]], mm_per_px: Mapping[int, float],
+           runs: dict[str, Any], resummarized_from: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The summary of ``points``, written with its figures and page (keeping hand-written page sections)."""
+    summary: dict[str, Any] = {
+        "experiment": experiment, "description": DESCRIPTIONS.get(experiment, ""),
+        **{k: runs[k] for k in ("runs", "scales", "image_sizes", "steps")},
+        "paper": {"image_size": PAPER_SIZE, "steps": PAPER_STEPS, "mm_per_px": PAPER_MM_PER_PX},
+        "mm_per_px": {str(s): v for s, v in sorted(mm_per_px.items())},
+        "mm_per_px_source": f"s3k.sim.generate.scene_mm_per_px({EXPERIMENT_SCENES.get(experiment)!r}, size): "
+                            "median over the cameras of 200 frames drawn as s3k simulate draws them of the "
+                            "size of one pixel at the point nearest to the cameras' optical axes",
+        "error_metric": "rms_mm_2d: rms_px x mm_per_px at the run's image size (the per-view 2D error at the "
+                        "workspace centre, mm on the object)",
+        "points": points, "findings": findings(experiment, points),
+        "generated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "summary_revision": source_revision(),
+        **{k: runs[k] for k in ("commands", "code_revisions", "runs_without_provenance")},
+    }
+    if resummarized_from is not None:
+        summary["resummarized_from"] = resummarized_from
     if experiment == "category":
         summary["paper"]["category_test_px"] = {str(k): v for k, v in PAPER_CATEGORY_TEST_PX.items()}
-    figures = plot(experiment, points, exp_dir)
+    figures = plot(experiment, points, exp_dir, mm_per_px)
     summary["figures"] = [p.name for p in figures]
+    notes = _notes(exp_dir / "README.md")
     atomic_write_json(summary, exp_dir / SUMMARY_FILE)
-    atomic_write_text(readme(summary), exp_dir / "README.md")
+    atomic_write_text(readme(summary) + notes, exp_dir / "README.md")
     return summary
+
+
+def _notes(page: Path) -> str:
+    """The hand-written sections of an existing page: from its first ``## `` heading that :func:`readme` does
+    not write to the end ("" when there is no page or none)."""
+    if not page.is_file():
+        return ""
+    lines = page.read_text().splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        if line.startswith("## ") and line.strip() not in _GENERATED_SECTIONS:
+            return "\n" + "".join(lines[i:])
+    return ""
 
 
 def _series(points, split: str, metric: str, x_key: str, **where) -> tuple[list, list, list]:
@@ -84,11 +189,16 @@ def _finish(ax, xlabel: str, log: bool = True) -> None:
     ax.legend(fontsize=8)
 
 
-_PANELS = (("rms_px_400", f"rms 2D error (px at {PAPER_SIZE} px)"), ("median_mm", "median 3D error (mm)"))
+_PANELS = (("rms_mm_2d", "per-view RMS error (mm at the workspace centre)"),
+           ("median_mm", "median 3D error (mm)"))
 
 
-def plot(experiment: str, points: list[dict[str, Any]], out_dir: Path) -> list[Path]:
-    """Write the experiment's figures (PNG) to ``out_dir``; returns their paths."""
+def plot(experiment: str, points: list[dict[str, Any]], out_dir: Path,
+         mm_per_px: Mapping[int, float] | None = None) -> list[Path]:
+    """Write the experiment's figures (PNG) to ``out_dir``; returns their paths.
+
+    ``mm_per_px`` (per image size) is only named in the caption.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -98,8 +208,10 @@ def plot(experiment: str, points: list[dict[str, Any]], out_dir: Path) -> list[P
     written: list[Path] = []
     sizes = sorted({p["image_size"][0] for p in points})
     steps = sorted({p["steps"] for p in points})
-    scale_note = (f"{'/'.join(map(str, sizes))} px, {'/'.join(map(str, steps))} steps "
-                  f"(paper: {PAPER_SIZE} px, {PAPER_STEPS // 1000}k batches); bars: std over seeds")
+    pixels = "/".join(fmt((mm_per_px or {}).get(s)) for s in sizes)
+    scale_note = (f"{'/'.join(map(str, sizes))} px ({pixels} mm per pixel), {'/'.join(map(str, steps))} "
+                  f"steps (paper: {PAPER_SIZE} px, {PAPER_MM_PER_PX} mm per pixel, {PAPER_STEPS // 1000}k "
+                  "batches); bars: std over seeds")
 
     def figure(name: str, draw: Callable[[Any, str, str], None], title: str, panels=_PANELS) -> None:
         fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4))
@@ -168,10 +280,10 @@ def plot(experiment: str, points: list[dict[str, Any]], out_dir: Path) -> list[P
                 x, y, e = _series(points, split, metric, "instances")
                 ax.errorbar(x, y, yerr=e, marker="o", capsize=3, linestyle=style,
                             label=f"{'training' if split == 'train' else 'held-out'} instances")
-            if metric == "rms_px_400":
+            if metric == "rms_mm_2d":
                 n = sorted(PAPER_CATEGORY_TEST_PX)
-                ax.plot(n, [PAPER_CATEGORY_TEST_PX[k] for k in n], "k:", marker="s",
-                        label="paper, held-out (400 px)")
+                ax.plot(n, [paper_mm(PAPER_CATEGORY_TEST_PX[k]) for k in n], "k:", marker="s",
+                        label=f"paper, held-out (400 px, {PAPER_MM_PER_PX} mm per pixel)")
             _finish(ax, "training instances", log=False)
 
         figure("error_vs_instances", per_instances, "Category: error on training and held-out instances "
@@ -188,16 +300,28 @@ def plot(experiment: str, points: list[dict[str, Any]], out_dir: Path) -> list[P
 
 
 def readme(summary: dict[str, Any]) -> str:
-    """A short Markdown page of a summary: scale, table of points, findings, figures."""
+    """A short Markdown page of a summary: scale, provenance, table of points, findings, figures."""
     exp = summary["experiment"]
     sizes = "/".join(map(str, summary["image_sizes"])) or "-"
     steps = "/".join(map(str, summary["steps"])) or "-"
+    pixels = ", ".join(f"{fmt(v)} mm at {s} px" for s, v in summary.get("mm_per_px", {}).items()) or "-"
     lines = [f"# {exp}: {summary['description']}", "",
              f"{summary['runs']} runs, scale {', '.join(summary['scales']) or '-'}: {sizes} px images, "
-             f"{steps} steps (paper: {PAPER_SIZE} px, {PAPER_STEPS} batches). Errors in pixels are also "
-             f"given at the paper's scale (x {PAPER_SIZE} / image size, column `px@400`). "
-             "Mean +- std over seeds.", "",
-             "Generated by `s3k experiment ... --summarize-only` from `runs/*/result.json`.", ""]
+             f"{steps} steps (paper: {PAPER_SIZE} px, {PAPER_STEPS} batches). Errors are in millimetres: "
+             "the median and RMS 3D error of the triangulated points, and the per-view RMS 2D error on the "
+             f"object (`rms_mm_2d`: `rms_px` x the size of one pixel at the workspace centre, {pixels}); the "
+             f"paper's pixel figures at {PAPER_MM_PER_PX} mm per pixel (the paper's own figure for its "
+             f"{PAPER_SIZE} px images). Mean +- std over seeds.", ""]
+    source = summary.get("resummarized_from")
+    rev = summary.get("summary_revision")
+    if source:
+        lines += [f"Re-summarized by `s3k experiment {exp} --summarize-only`"
+                  + (f" at revision `{rev}`" if rev else "")
+                  + f" from the grid points of the summary of the runs written {source.get('generated_at')} "
+                  "(the run folders are not kept here); the runs were made as follows.", ""]
+    else:
+        lines += ["Generated by `s3k experiment ... --summarize-only` from `runs/*/result.json`"
+                  + (f" at revision `{rev}`." if rev else "."), ""]
     for c in summary.get("commands", []):
         lines.append(f"Command: `{c}`  ")
     if summary.get("code_revisions"):
@@ -211,16 +335,17 @@ def readme(summary: dict[str, Any]) -> str:
     keys = [k for k in ("mode", "instances", "alpha", "labelled", "unlabelled", "method")
             if any(k in p["params"] for p in summary["points"])]
     splits = ["test"] + (["train"] if any("train" in p for p in summary["points"]) else [])
-    head = keys + ["seeds"] + [f"{s} px@400" for s in splits] + [f"{s} median mm" for s in splits]
+    columns = (("rms_px", "rms px"), ("rms_mm_2d", "per-view mm"), ("median_mm", "median 3D mm"),
+               ("rms_mm", "RMS 3D mm"))
+    head = keys + ["seeds"] + [f"{s} {name}" for s in splits for _, name in columns]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in summary["points"]:
         row = [str(p["params"].get(k, "")) for k in keys] + [str(len(p["seeds"]))]
-        row += [mean_std(p[s]["rms_px_400"]) if s in p else "-" for s in splits]
-        row += [mean_std(p[s]["median_mm"]) if s in p else "-" for s in splits]
+        row += [mean_std(p[s].get(m)) if s in p else "-" for s in splits for m, _ in columns]
         lines.append("| " + " | ".join(row) + " |")
     if exp == "category":
-        lines += ["", "Paper (400 px, held-out instances): " + ", ".join(
-            f"{n}: {v}" for n, v in PAPER_CATEGORY_TEST_PX.items()) + " px."]
+        lines += ["", f"Paper (400 px, held-out instances, {PAPER_MM_PER_PX} mm per pixel): " + ", ".join(
+            f"{n}: {v} px = {fmt(paper_mm(v), 1)} mm" for n, v in PAPER_CATEGORY_TEST_PX.items()) + "."]
     lines += ["", "## Findings", "", "| paper finding | measured | reproduced? |", "|---|---|---|"]
     for f in summary["findings"]:
         lines.append(f"| {f['finding']} | {f['measured']} | {verdict(f['reproduced'])} |")

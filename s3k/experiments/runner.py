@@ -13,27 +13,24 @@ import dataclasses
 import json
 import os
 import socket
-import subprocess
 import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import s3k
 from s3k.config import TrainConfig
 from s3k.errors import UserError
-from s3k.experiments.findings import fmt, to_paper_px
+from s3k.experiments.findings import fmt
 from s3k.experiments.grid import (
     DESCRIPTIONS,
-    PAPER_SIZE,
     RENDER_IMAGES_PER_S,
     RESULT_FILE,
     Options,
     RunSpec,
     plan,
 )
-from s3k.experiments.report import summarize
+from s3k.experiments.report import source_revision, summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
 from s3k.fileio import atomic_write_json, file_lock
 from s3k.run import CHECKPOINT_FILE
@@ -75,22 +72,6 @@ def checkpoint_step(run_dir: Path) -> int:
     return 0
 
 
-def source_revision() -> str | None:
-    """The git commit of the s3k source in use (``-dirty`` when its files differ from it), or None when s3k
-    is not run from a git checkout or git is unavailable."""
-    pkg = Path(s3k.__file__).resolve().parent
-    try:
-        rev = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True,
-                             timeout=10)
-        if rev.returncode != 0:
-            return None
-        dirty = subprocess.run(["git", "-C", str(pkg), "status", "--porcelain", "--untracked-files=no", "--",
-                                "."], capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return rev.stdout.strip() + ("-dirty" if dirty else "")
-
-
 def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
             log: Callable[[str], None] = print) -> dict[str, Any] | None:
     """Train and evaluate one run unless finished; returns its result (None: another process has it).
@@ -116,8 +97,9 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
             _check_same(saved, spec.cfg, run_dir, "a run is there")
         result = _train_and_evaluate(spec, exp_dir, data_dir, opts, log)
         atomic_write_json(result, result_path)
-    m, size = result["metrics"]["test"], result["image_size"][0]
-    log(f"{spec.name}: rms_px {fmt(m['rms_px'])} ({fmt(to_paper_px(m['rms_px'], size))} at {PAPER_SIZE} px), "
+    m = result["metrics"]["test"]
+    mm_2d = m["rms_px"] * m["mm_per_px"] if m.get("rms_px") is not None and m.get("mm_per_px") else None
+    log(f"{spec.name}: rms_px {fmt(m['rms_px'])} ({fmt(mm_2d)} mm at {fmt(m.get('mm_per_px'))} mm per px), "
         f"median_mm {fmt(m['median_mm'])}, {result['wall_time_s']['total']:.0f} s")
     return result
 
@@ -158,11 +140,10 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
         drop_cache(train_view)
     t_eval = time.perf_counter() - t2
     drop_cache(view)
-    size = metrics["test"]["image_size"][0]
     return {
         "experiment": spec.experiment, "run": spec.name, "params": spec.params,
         "status": trained.status, "steps": trained.step, "image_size": metrics["test"]["image_size"],
-        "px_to_paper": PAPER_SIZE / size, "scale": opts.scale,
+        "scale": opts.scale,
         "data": {"pool": spec.pool.name, "pool_spec": dataclasses.asdict(spec.pool),
                  "view": os.path.relpath(view, exp_dir),
                  "frames": {k: len(v) for k, v in frames.items()}},
