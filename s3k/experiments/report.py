@@ -119,8 +119,8 @@ def resummarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
     mm_per_px = scene_pixel_sizes(experiment, old["image_sizes"])
     points = [add_mm(p, mm_per_px) for p in old["points"]]
     runs = {k: old.get(k, 0 if k in ("runs", "runs_without_provenance") else []) for k in _RUN_FIELDS}
-    source = old.get("resummarized_from") or {"generated_at": old.get("generated_at"),
-                                              "summary_revision": old.get("summary_revision")}
+    source = old.get("resummarized_from") or {k: old[k] for k in ("generated_at", "summary_revision")
+                                              if old.get(k) is not None}
     return _write(exp_dir, experiment, points, mm_per_px, runs, resummarized_from=source)
 
 
