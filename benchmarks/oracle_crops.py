@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    revision = git_revision()  # the code that trains, read before anything else changes the checkout
     render = work / f"box{args.render}"
     if not (render / "s3k.json").is_file():
         from s3k.sim.generate import SimulateConfig, simulate
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     from s3k.evaluate import evaluate_run
 
     result: dict = {"benchmark": "oracle_crops", "command": " ".join(["python", *sys.argv]),
-                    "git_revision": git_revision(),
+                    "git_revision": revision,
                     "scale": f"box rendered at {args.render} px, crops {args.extent_mm:g} mm -> {args.crop} "
                              f"px, centre jitter {args.jitter_mm:g} mm per axis, {args.steps} steps",
                     "keypoint": args.keypoint}
