@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from s3k.config import TrainConfig, default_of
+from s3k.run import PROGRESS_FILE
 
 
 @dataclass
@@ -88,8 +89,13 @@ def _plot(results: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, log) -> dict[str, float]:
-    """Train every job at once, each as an ``s3k train`` process with one thread; returns wall times."""
+def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, log,
+                        progress: bool = False) -> dict[str, float]:
+    """Train every job at once, each as an ``s3k train`` process with one thread; returns wall times.
+
+    With ``progress`` each job gets a live bar (step, rate, ETA from the run's ``progress.json``, and its last
+    validation figures); without, the last validation of each is logged every minute.
+    """
     procs = []
     for name, folder, cfg in jobs:
         folder.mkdir(parents=True, exist_ok=True)
@@ -102,10 +108,14 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
         log(f"[demo] training {name}: {' '.join(cmd)}")
         procs.append((name, folder, cfg, subprocess.Popen(cmd, stdout=console, stderr=subprocess.STDOUT,
                                                           env=env), console, time.perf_counter()))
+    # after the commands are logged, so that no log line lands between the bars
+    bars = _ProgressBars([(name, folder, cfg.steps) for name, folder, cfg in jobs]) if progress else None
     times: dict[str, float] = {}
     last = time.perf_counter()
     while procs:
-        time.sleep(5)
+        time.sleep(2 if bars is not None else 5)
+        if bars is not None:
+            bars.update()
         for item in list(procs):
             name, folder, cfg, proc, console, start = item
             if proc.poll() is None:
@@ -116,13 +126,56 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
             if proc.returncode != 0:
                 for _, _, _, other, _, _ in procs:
                     other.terminate()
+                if bars is not None:
+                    bars.close()
                 raise RuntimeError(f"training {name} failed (exit {proc.returncode}); see {folder}/train.log "
                                    f"and {folder.parent / (folder.name + '.console.txt')}")
-            log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
-        if procs and time.perf_counter() - last > 60:
+            if bars is None:
+                log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
+        if bars is None and procs and time.perf_counter() - last > 60:
             last = time.perf_counter()
             log("[demo] " + "; ".join(f"{n}: {_last_validation(f)}" for n, f, *_ in procs))
+    if bars is not None:
+        bars.update()
+        bars.close()
+        for name, folder, _ in jobs:
+            log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
     return times
+
+
+class _ProgressBars:
+    """One tqdm bar per training, fed from each run's ``progress.json`` and ``train.log``."""
+
+    def __init__(self, jobs: list[tuple[str, Path, int]]) -> None:
+        from tqdm import tqdm
+
+        width = max(len(name) for name, _, _ in jobs)
+        self.jobs = [(folder, tqdm(total=steps, desc=f"{name:<{width}}", position=i, dynamic_ncols=True,
+                                   unit="step", smoothing=0.1))
+                     for i, (name, folder, steps) in enumerate(jobs)]
+
+    def update(self) -> None:
+        for folder, bar in self.jobs:
+            try:
+                step = int(json.loads((folder / PROGRESS_FILE).read_text())["step"])
+            except (OSError, ValueError, KeyError):
+                continue
+            if step > bar.n:
+                bar.update(step - bar.n)
+            bar.set_postfix_str(_short_validation(folder), refresh=True)
+
+    def close(self) -> None:
+        for _, bar in self.jobs:
+            bar.close()
+
+
+def _short_validation(folder: Path) -> str:
+    """The last validation's 3D figures, e.g. ``val median 7.7 mm, rms 9.4 mm`` (empty before the first)."""
+    text = _last_validation(folder)
+    parts = dict(p.strip().split(" ", 1) for p in text.split(":", 1)[-1].split(",") if " " in p.strip())
+    if "median_mm" not in parts:
+        return ""
+    return f"val median {parts['median_mm']} mm, rms {parts.get('rms_mm', '?')} mm"
 
 
 def _last_validation(folder: Path) -> str:
@@ -162,7 +215,7 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     results: dict[str, dict] = {}
     todo = [(n, folders[n], cfg) for n, cfg in runs.items() if not (folders[n] / "model.pt").is_file()]
     if parallel and len(todo) > 1 and (os.cpu_count() or 1) >= 2:
-        timings.update(_train_side_by_side(todo, data, log))
+        timings.update(_train_side_by_side(todo, data, log, progress=progress))
         import torch
 
         torch.set_num_threads(1)  # the evaluation below is short; one thread is robust on a shared machine

@@ -36,7 +36,8 @@ MODEL_FILE = "model.pt"
 LOG_FILE = "train.log"
 TENSORBOARD_DIR = "tensorboard"
 # every file a run holds: what --overwrite may delete
-RUN_FILES = (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE, LOG_FILE, TENSORBOARD_DIR)
+PROGRESS_FILE = "progress.json"
+RUN_FILES = (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE, LOG_FILE, TENSORBOARD_DIR, PROGRESS_FILE)
 MODEL_FORMAT = "s3k-model/1"
 
 

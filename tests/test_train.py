@@ -52,6 +52,7 @@ def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
     assert meta.sigma == pytest.approx(TrainConfig().sigma * 2)
     logits = model(torch.rand(4, 3, 32, 32))
     assert logits.shape == (4, 3, 16, 16) and torch.isfinite(logits).all()
+    assert json.loads((run / "progress.json").read_text())["step"] == 2  # for monitors such as s3k demo
     ckpt = torch.load(run / "checkpoint.pt", weights_only=True)
     assert ckpt["step"] == 2
     log = (run / "train.log").read_text()

@@ -27,7 +27,15 @@ from s3k.errors import UserError
 from s3k.frames import FrameStore, model_image_size, open_dataset
 from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.model import UNet, UNetConfig
-from s3k.run import CHECKPOINT_FILE, LOG_FILE, MODEL_FILE, TENSORBOARD_DIR, DetectorMeta, save_model_file
+from s3k.run import (
+    CHECKPOINT_FILE,
+    LOG_FILE,
+    MODEL_FILE,
+    PROGRESS_FILE,
+    TENSORBOARD_DIR,
+    DetectorMeta,
+    save_model_file,
+)
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import (
@@ -321,12 +329,18 @@ class _Loop:
 
 
 class _Monitor:
-    """TensorBoard scalars, the progress bar and the step timings (rank 0 only writes)."""
+    """TensorBoard scalars, the progress bar, ``RUN/progress.json`` and the step timings (rank 0 only writes).
+
+    ``progress.json`` (``{"step", "steps", "seconds"}``, rewritten atomically every ``log_every`` steps) lets
+    another process follow a training without parsing its log (``s3k demo`` draws its bars from it).
+    """
 
     def __init__(self, cfg: TrainConfig, out: Path, info: DistInfo, step: int) -> None:
         self.cfg = cfg
         self.writer = None
         self.bar = None
+        self.progress_file = out / PROGRESS_FILE if info.main else None
+        self.started = time.perf_counter()
         if info.main:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -351,6 +365,11 @@ class _Monitor:
             self.writer.add_scalar("train/lr", lr, step)
             self.writer.add_scalar("time/step_s", self.t_total / self.n_timed, step)
             self.writer.add_scalar("time/data_fraction", self.t_data / max(self.t_total, 1e-12), step)
+        if self.progress_file is not None and (step % self.cfg.log_every == 0 or step == self.cfg.steps):
+            from s3k.fileio import atomic_write_json
+
+            atomic_write_json({"step": step, "steps": self.cfg.steps,
+                               "seconds": time.perf_counter() - self.started}, self.progress_file)
         if self.bar is not None:
             self.bar.update(1)
             if step % 5 == 0 or step == self.cfg.steps:
