@@ -1,7 +1,7 @@
 """The paper's simulated scenes: ``box``, ``distractors`` and ``category`` (docs/scenes.md).
 
 Each is a :class:`s3k.sim.scene.Scene`; :func:`make_scene` builds one by name. The shared records
-(:class:`FrameSpec`, :class:`SimFrame`) and visibility helpers are re-exported from :mod:`s3k.sim.scene`.
+(:class:`FrameSpec`, :class:`SimFrame`) and the visibility helpers live in :mod:`s3k.sim.scene`.
 """
 
 from __future__ import annotations
