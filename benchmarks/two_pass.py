@@ -1,0 +1,125 @@
+"""Coarse-to-fine on the box scene: a coarse pass on the whole image, a refining pass on crops around it.
+
+The coarse detector trains on the whole image resized to ``--coarse-size`` px (S3K, as ``s3k demo``); its
+3D estimates of every frame (labelled, unlabelled and test: the same rule at training and at test) centre one
+crop of the whole object per view, ``--extent-mm`` wide at the estimate's depth, cut from the
+``--render`` px images and resampled to ``--crop`` px (:func:`s3k.refine.write_crop_dataset`). The refining
+detector trains on those crops with and without the self-supervised term, and is evaluated on the test
+frames' crops: its triangulated points are the two-pass detector's 3D keypoints. Both refining models use the
+same crops (from the S3K coarse pass), so the comparison isolates the refining pass.
+
+Example::
+
+    python benchmarks/two_pass.py --work runs/two-pass     # about 1.5 CPU-hours on 2 cores
+
+The last line printed is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, git_revision  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+FIGURES = ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm", "mm_per_px")
+
+
+def _train_all(jobs: dict[str, list[str]]) -> None:
+    """Run ``s3k train`` commands side by side, one thread each; skip those whose model exists."""
+    procs = {}
+    for name, cmd in jobs.items():
+        out = Path(cmd[cmd.index("--out") + 1])
+        if (out / "model.pt").is_file():
+            continue
+        full = [sys.executable, "-m", "s3k.cli", "train", *cmd, "--threads", "1", "--no-progress"]
+        if out.exists():
+            full.append("--resume")
+        procs[name] = subprocess.Popen(full, stdout=subprocess.DEVNULL,
+                                       env=dict(os.environ, OMP_NUM_THREADS="1"))
+    for name, proc in procs.items():
+        if proc.wait() != 0:
+            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--work", default=str(ROOT / "runs" / "two-pass"), help="working folder")
+    p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
+    p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
+    p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
+    p.add_argument("--coarse-size", type=int, default=96, help="coarse pass image size (default 96)")
+    p.add_argument("--coarse-steps", type=int, default=4000, help="coarse training steps (default 4000)")
+    p.add_argument("--extent-mm", type=float, default=250.0, help="crop side at the estimate (default 250)")
+    p.add_argument("--crop", type=int, default=128, help="crop size in pixels (default 128)")
+    p.add_argument("--steps", type=int, default=4000, help="refining training steps (default 4000)")
+    p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--out", default=None, help="also write the JSON result to this file")
+    args = p.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    revision = git_revision()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    render = work / f"box{args.render}"
+    if not (render / "s3k.json").is_file():
+        from s3k.sim.generate import SimulateConfig, simulate
+
+        simulate(SimulateConfig("box", size=args.render, labelled=10, unlabelled=args.unlabelled,
+                                test=args.test), render, workers=1, progress=False, overwrite=True)
+    coarse = work / f"coarse-{args.coarse_size}px-{args.coarse_steps}-s{args.seed}"
+    _train_all({"coarse": [str(render), "--out", str(coarse), "--image-size", str(args.coarse_size),
+                           "--steps", str(args.coarse_steps), "--seed", str(args.seed)]})
+    estimates = work / f"{coarse.name}.csv"
+    if not estimates.is_file():
+        subprocess.run([sys.executable, "-m", "s3k.cli", "predict", str(coarse), "--data", str(render),
+                        "--split", "all", "--out", str(estimates)], check=True, stdout=subprocess.DEVNULL)
+    view = work / f"crops-{coarse.name}-{args.extent_mm:g}mm-{args.crop}px"
+    from s3k.data import Dataset
+    from s3k.refine import object_centres, write_crop_dataset
+    from s3k.tracks_csv import read_csv
+
+    keypoints = Dataset.open(render, cache="none").keypoints
+    centres = object_centres(read_csv(estimates, keypoints))
+    if not (view / "s3k.json").is_file():
+        # a frame the coarse pass could not triangulate is cropped around the mean estimate (the workspace)
+        middle = np.median(np.stack(list(centres.values())), axis=0)
+        write_crop_dataset(render, view, centres, args.extent_mm / 1000, args.crop,
+                           fallback=lambda frame: middle, overwrite=True,
+                           description=f"crops of {args.extent_mm:g} mm around {coarse.name}'s estimates")
+    fine = {name: work / f"{view.name}-{name}-{args.steps}-s{args.seed}" for name in ("labels_only", "s3k")}
+    _train_all({name: [str(view), "--out", str(run), "--steps", str(args.steps), "--seed", str(args.seed),
+                       *(["--no-unsup"] if name == "labels_only" else [])] for name, run in fine.items()})
+    from s3k.evaluate import evaluate_run
+
+    scale = (f"box rendered at {args.render} px; coarse S3K at {args.coarse_size} px, {args.coarse_steps} "
+             f"steps; object crops {args.extent_mm:g} mm -> {args.crop} px; refining {args.steps} steps")
+    result: dict = {"benchmark": "two_pass", "command": " ".join(["python", *sys.argv]),
+                    "git_revision": revision, "scale": scale,
+                    "coarse_estimates": len(centres)}
+    coarse_test = evaluate_run(coarse, render, split="test", device="cpu")
+    result["coarse_s3k"] = {"test": {k: coarse_test[k] for k in FIGURES}}
+    for name, run in fine.items():
+        m = evaluate_run(run, view, split="test", device="cpu")
+        result[name] = {"test": {k: m[k] for k in FIGURES},
+                        "median_mm_per_keypoint": {kp: d["median_mm"] for kp, d in m["per_keypoint"].items()}}
+    result["minutes_this_call"] = (time.perf_counter() - t0) / 60
+    if args.out:
+        from s3k.fileio import atomic_write_json
+
+        atomic_write_json(result, args.out)
+    emit(result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
