@@ -332,3 +332,53 @@ def emit(result: dict[str, Any]) -> None:
     out.setdefault("machine", machine_info())
     sys.stdout.flush()
     print(json.dumps(_jsonable(out), default=str, separators=(",", ":")), flush=True)
+
+
+# ---------------------------------------------------------------------------------------------- crop studies
+#: The figures the crop benchmarks (oracle_crops.py, two_pass.py) report per model and split.
+CROP_FIGURES = ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm", "mm_per_px")
+
+
+def ensure_box_render(work: Path, size: int, unlabelled: int, test: int) -> Path:
+    """``work/box{size}``: the box scene (10 labelled frames) rendered once, reused when it exists."""
+    render = work / f"box{size}"
+    if not (render / "s3k.json").is_file():
+        from s3k.sim.generate import SimulateConfig, simulate
+
+        simulate(SimulateConfig("box", size=size, labelled=10, unlabelled=unlabelled, test=test), render,
+                 workers=1, progress=False, overwrite=True)
+    return render
+
+
+def train_side_by_side(jobs: dict[str, list[str]]) -> None:
+    """Run ``s3k train ARGS`` for every job at once, one thread each; a job whose model exists is skipped,
+    one with a folder is resumed."""
+    procs = {}
+    for name, args in jobs.items():
+        out = Path(args[args.index("--out") + 1])
+        if (out / "model.pt").is_file():
+            continue
+        cmd = [sys.executable, "-m", "s3k.cli", "train", *args, "--threads", "1", "--no-progress"]
+        if out.exists():
+            cmd.append("--resume")
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        procs[name] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
+    for name, proc in procs.items():
+        if proc.wait() != 0:
+            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
+
+
+def crop_figures(metrics: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(CROP_FIGURES of an evaluate metrics dict, {keypoint: median_mm})``."""
+    return ({k: metrics[k] for k in CROP_FIGURES},
+            {kp: d["median_mm"] for kp, d in metrics["per_keypoint"].items()})
+
+
+def finish(result: dict[str, Any], started: float, out: str | None) -> None:
+    """Add the call's minutes, write ``result`` to ``out`` (atomically, if given) and print it last."""
+    result["minutes_this_call"] = (time.perf_counter() - started) / 60
+    if out:
+        from s3k.fileio import atomic_write_json
+
+        atomic_write_json(result, out)
+    emit(result)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, git_revision  # noqa: E402
+from benchmarks.common import crop_figures, ensure_box_render, finish, git_revision, train_side_by_side  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,12 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     revision = git_revision()  # the code that trains, read before anything else changes the checkout
-    render = work / f"box{args.render}"
-    if not (render / "s3k.json").is_file():
-        from s3k.sim.generate import SimulateConfig, simulate
-
-        simulate(SimulateConfig("box", size=args.render, labelled=10, unlabelled=args.unlabelled,
-                                test=args.test), render, workers=1, progress=False, overwrite=True)
+    render = ensure_box_render(work, args.render, args.unlabelled, args.test)
     which = "all" if args.keypoint < 0 else args.keypoint
     view = work / f"crops-k{which}-{args.extent_mm:g}mm-{args.crop}px-j{args.jitter_mm:g}"
     if not (view / "s3k.json").is_file():
@@ -97,19 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     suffix = {"labels_only": "", "s3k": tag}
     runs = {name: work / "runs" / f"{view.name}-{name}{suffix[name]}-{args.steps}-s{args.seed}"
             for name in models}
-    procs = {}
-    for name, extra in models.items():
-        run = runs[name]
-        if (run / "model.pt").is_file():
-            continue
-        cmd = [sys.executable, "-m", "s3k.cli", "train", str(view), "--out", str(run), "--steps",
-               str(args.steps), "--seed", str(args.seed), "--threads", "1", "--no-progress", *extra]
-        if run.exists():
-            cmd.append("--resume")
-        procs[name] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
-    for name, proc in procs.items():
-        if proc.wait() != 0:
-            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
+    train_side_by_side({name: [str(view), "--out", str(runs[name]), "--steps", str(args.steps), "--seed",
+                                str(args.seed), *extra] for name, extra in models.items()})
     from s3k.evaluate import evaluate_run
 
     result: dict = {"benchmark": "oracle_crops", "command": " ".join(["python", *sys.argv]),
@@ -122,17 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         run = runs[name]
         result[name] = {}
         for split in ("test", "labelled"):
-            m = evaluate_run(run, view, split=split, device="cpu")
-            result[name][split] = {k: m[k] for k in ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm",
-                                                     "mm_per_px")}
-            result[name][split]["median_mm_per_keypoint"] = {
-                kp: d["median_mm"] for kp, d in m["per_keypoint"].items()}
-    result["minutes_this_call"] = (time.perf_counter() - t0) / 60
-    if args.out:
-        from s3k.fileio import atomic_write_json
-
-        atomic_write_json(result, args.out)
-    emit(result)
+            figures, per_keypoint = crop_figures(evaluate_run(run, view, split=split, device="cpu"))
+            result[name][split] = {**figures, "median_mm_per_keypoint": per_keypoint}
+    finish(result, t0, args.out)
     return 0
 
 

@@ -28,27 +28,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, git_revision  # noqa: E402
+from benchmarks.common import crop_figures, ensure_box_render, finish, git_revision, train_side_by_side  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-FIGURES = ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm", "mm_per_px")
-
-
-def _train_all(jobs: dict[str, list[str]]) -> None:
-    """Run ``s3k train`` commands side by side, one thread each; skip those whose model exists."""
-    procs = {}
-    for name, cmd in jobs.items():
-        out = Path(cmd[cmd.index("--out") + 1])
-        if (out / "model.pt").is_file():
-            continue
-        full = [sys.executable, "-m", "s3k.cli", "train", *cmd, "--threads", "1", "--no-progress"]
-        if out.exists():
-            full.append("--resume")
-        procs[name] = subprocess.Popen(full, stdout=subprocess.DEVNULL,
-                                       env=dict(os.environ, OMP_NUM_THREADS="1"))
-    for name, proc in procs.items():
-        if proc.wait() != 0:
-            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,14 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    render = work / f"box{args.render}"
-    if not (render / "s3k.json").is_file():
-        from s3k.sim.generate import SimulateConfig, simulate
-
-        simulate(SimulateConfig("box", size=args.render, labelled=10, unlabelled=args.unlabelled,
-                                test=args.test), render, workers=1, progress=False, overwrite=True)
+    render = ensure_box_render(work, args.render, args.unlabelled, args.test)
     coarse = work / f"coarse-{args.coarse_size}px-{args.coarse_steps}-s{args.seed}"
-    _train_all({"coarse": [str(render), "--out", str(coarse), "--image-size", str(args.coarse_size),
+    train_side_by_side({"coarse": [str(render), "--out", str(coarse), "--image-size", str(args.coarse_size),
                            "--steps", str(args.coarse_steps), "--seed", str(args.seed)]})
     estimates = work / f"{coarse.name}.csv"
     if not estimates.is_file():
@@ -97,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
                            fallback=lambda frame: middle, overwrite=True,
                            description=f"crops of {args.extent_mm:g} mm around {coarse.name}'s estimates")
     fine = {name: work / f"{view.name}-{name}-{args.steps}-s{args.seed}" for name in ("labels_only", "s3k")}
-    _train_all({name: [str(view), "--out", str(run), "--steps", str(args.steps), "--seed", str(args.seed),
-                       *(["--no-unsup"] if name == "labels_only" else [])] for name, run in fine.items()})
+    train_side_by_side({name: [str(view), "--out", str(run), "--steps", str(args.steps), "--seed",
+                                str(args.seed), *(["--no-unsup"] if name == "labels_only" else [])]
+                        for name, run in fine.items()})
     from s3k.evaluate import evaluate_run
 
     scale = (f"box rendered at {args.render} px; coarse S3K at {args.coarse_size} px, {args.coarse_steps} "
@@ -107,17 +85,11 @@ def main(argv: list[str] | None = None) -> int:
                     "git_revision": revision, "scale": scale,
                     "coarse_estimates": len(centres)}
     coarse_test = evaluate_run(coarse, render, split="test", device="cpu")
-    result["coarse_s3k"] = {"test": {k: coarse_test[k] for k in FIGURES}}
+    result["coarse_s3k"] = {"test": crop_figures(coarse_test)[0]}
     for name, run in fine.items():
-        m = evaluate_run(run, view, split="test", device="cpu")
-        result[name] = {"test": {k: m[k] for k in FIGURES},
-                        "median_mm_per_keypoint": {kp: d["median_mm"] for kp, d in m["per_keypoint"].items()}}
-    result["minutes_this_call"] = (time.perf_counter() - t0) / 60
-    if args.out:
-        from s3k.fileio import atomic_write_json
-
-        atomic_write_json(result, args.out)
-    emit(result)
+        figures, per_keypoint = crop_figures(evaluate_run(run, view, split="test", device="cpu"))
+        result[name] = {"test": figures, "median_mm_per_keypoint": per_keypoint}
+    finish(result, t0, args.out)
     return 0
 
 
