@@ -122,11 +122,13 @@ def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, ma
     """
     C = uv.shape[1]
     used = used.clone()
+    # the read-out's precision once, not per round
+    cams = cams.to(device=uv.device, dtype=DTYPE)
+    uv, weights = uv.to(DTYPE), weights.to(DTYPE)
     for _ in range(max(0, C - min_views)):
         X, valid = triangulate(cams, uv, weights, used)
-        cams64 = cams.to(device=uv.device, dtype=DTYPE)
-        reproj, _ = project(cams64, X[:, None])
-        residual = torch.linalg.vector_norm(reproj - uv.to(DTYPE), dim=-1)  # (B, C, K)
+        reproj, _ = project(cams, X[:, None])
+        residual = torch.linalg.vector_norm(reproj - uv, dim=-1)  # (B, C, K)
         residual = torch.where(used & valid[:, None], residual, torch.full_like(residual, -1.0))
         worst, c_worst = residual.max(dim=1)  # (B, K)
         drop = (worst > max_residual_px) & (used.sum(dim=1) > min_views)
