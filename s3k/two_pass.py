@@ -99,9 +99,8 @@ def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
         cams = dataset.calibration(ids, dtype=np.float64)
         m = torch.from_numpy(mask)
         X, valid = triangulate_pixels(cams, torch.from_numpy(uv).to(torch.float64), m.to(torch.float64))
-        valid = (valid & (m.sum(dim=1) >= 2)).numpy()
-        X = np.where(valid[..., None], X.numpy(), np.nan)
-        for points in X:
+        ok = (valid & (m.sum(dim=1) >= 2)).numpy()
+        for points in np.where(ok[..., None], X.numpy(), np.nan):
             if np.isfinite(points).all(axis=-1).sum() < 2:
                 continue
             c = extent_middle(points)
