@@ -33,7 +33,7 @@ import torch
 
 from s3k.errors import UserError
 
-__all__ = ["TWO_PASS_FILE", "CropRule", "crop_centres", "crop_rule_from_labels", "evaluate_two_pass",
+__all__ = ["TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres", "crop_rule_from_labels", "evaluate_two_pass",
            "is_two_pass", "predict_two_pass", "read_two_pass", "train_two_pass"]
 
 TWO_PASS_FILE = "two_pass.json"
@@ -106,7 +106,7 @@ def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
             c = extent_middle(points)
             radius = max(radius, float(np.nanmax(np.linalg.norm(points - c, axis=-1))))
     if radius <= 0:
-        raise UserError(f"{dataset.root}: no labelled frame has two keypoints triangulated from its labels, "
+        raise UserError(f"{dataset.path}: no labelled frame has two keypoints triangulated from its labels, "
                         "so the crop's extent cannot be set", hint="label at least two keypoints in two "
                         "cameras of a frame, or give the extent with --crop-extent")
     return CropRule(extent=2 * radius * (1 + margin), size=int(size), margin=float(margin))
@@ -272,3 +272,58 @@ def predict_two_pass(run_dir: str | Path, data: str | Path, out: Path, split: st
         crops = write_crops(Path(data), Path(tmp) / "crops", estimates, rule,
                             splits=None if split == "all" else (split,))
         return predict_dataset(fine, crops, out, split, batch_size, device, overwrite=True)
+
+
+class TwoPassDetector:
+    """Both passes of a two-pass run, for frames at their native resolution (``s3k track``).
+
+    :meth:`refine` takes the coarse pass's read-out of a batch of frames and the original images, cuts each
+    view around the middle of the coarse keypoints by the run's crop rule (the rule its refining pass was
+    trained with), and returns the refining pass's read-out in the original images' pixels and world frame.
+    """
+
+    def __init__(self, run_dir: str | Path, device: str | torch.device = "cpu"):
+        from s3k.run import load_detector
+
+        self.rule, coarse, fine = read_two_pass(run_dir)
+        self.coarse, self.coarse_meta = load_detector(coarse, device)
+        self.fine, self.fine_meta = load_detector(fine, device)
+        self.device = torch.device(device)
+        self._last_centre: np.ndarray | None = None
+
+    @torch.inference_mode()
+    def refine(self, originals, coarse, cams, min_weight: float = 0.0):
+        """The refining pass's :class:`s3k.readout.ReadOut` of a batch of frames.
+
+        Args:
+            originals: ``B`` frames, each ``C`` images ``(H_c, W_c, 3)`` uint8 (cameras may differ in size).
+            coarse: the coarse pass's read-out of those frames (its ``X (B, K, 3)``, NaN where invalid).
+            cams: the cameras ``(C,)`` of the original images.
+            min_weight: as for :func:`s3k.readout.read_out`.
+        """
+        from s3k.crops import crop_images, crop_maps, metric_crop_boxes
+        from s3k.readout import read_out
+
+        B, C = len(originals), len(originals[0])
+        centres = []
+        for X in coarse.X.cpu().numpy():
+            c = extent_middle(X)
+            if c is None:  # the coarse pass lost the object: look where it was last seen
+                c = self._last_centre if self._last_centre is not None else np.zeros(3)
+            self._last_centre = c
+            centres.append(c)
+        cams = cams.to(dtype=torch.float64)
+        centre = torch.as_tensor(np.stack(centres))[:, None, :]  # (B, 1, 3)
+        boxes, _ = metric_crop_boxes(cams, centre, self.rule.extent)  # (B, C, 4)
+        size = (self.rule.size, self.rule.size)
+        crops = torch.empty(B, C, 3, *size)
+        for c in range(C):
+            images = torch.from_numpy(np.stack([frame[c] for frame in originals])).permute(0, 3, 1, 2)
+            crops[:, c] = crop_images(images.float(), boxes[:, c].float(), size)
+        # the refining pass was trained on crops stored as 8-bit images: quantize them the same way
+        x = crops.round_().clamp_(0, 255).div_(255.0).to(self.device)
+        logits = self.fine(x.reshape(B * C, 3, *size))
+        logits = logits.reshape(B, C, *logits.shape[1:])
+        maps = crop_maps(boxes, size)  # (B, C, 3, 3): original pixels -> crop pixels
+        return read_out(logits, cams.to(self.device), self.fine_meta.stride, self.fine_meta.sigma, maps,
+                        min_weight)
