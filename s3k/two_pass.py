@@ -33,8 +33,9 @@ import torch
 
 from s3k.errors import UserError
 
-__all__ = ["TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres", "crop_rule_from_labels", "evaluate_two_pass",
-           "is_two_pass", "predict_two_pass", "read_two_pass", "train_two_pass"]
+__all__ = ["TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres", "crop_rule_from_labels",
+           "evaluate_two_pass", "extent_middle", "is_two_pass", "predict_two_pass", "read_two_pass",
+           "train_two_pass"]
 
 TWO_PASS_FILE = "two_pass.json"
 
