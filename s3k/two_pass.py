@@ -308,11 +308,11 @@ class TwoPassDetector:
         B, C = len(originals), len(originals[0])
         centres = []
         for X in coarse.X.cpu().numpy():
-            c = extent_middle(X)
-            if c is None:  # the coarse pass lost the object: look where it was last seen
-                c = self._last_centre if self._last_centre is not None else np.zeros(3)
-            self._last_centre = c
-            centres.append(c)
+            middle = extent_middle(X)
+            if middle is None:  # the coarse pass lost the object: look where it was last seen
+                middle = self._last_centre if self._last_centre is not None else np.zeros(3)
+            self._last_centre = middle
+            centres.append(middle)
         cams = cams.to(dtype=torch.float64)
         centre = torch.as_tensor(np.stack(centres))[:, None, :]  # (B, 1, 3)
         boxes, _ = metric_crop_boxes(cams, centre, self.rule.extent)  # (B, C, 4)
