@@ -121,6 +121,11 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     out = tmp_path / "p.csv"
     assert cli.main(["predict", str(run), "--data", str(data), "--out", str(out)]) == 0
     assert sorted(read_csv(out, KEYPOINTS)) == list(source.frames("test"))
+    # a command that needs one network names the two
+    capsys.readouterr()
+    assert cli.main(["export", str(run), "--format", "torchscript", "--out", str(tmp_path / "m.pt")]) == 1
+    err = capsys.readouterr().err
+    assert "two-pass" in err and str(run / "fine") in err and len(err.strip().splitlines()) == 1
 
 
 class _GreyOracle(torch.nn.Module):
