@@ -131,6 +131,11 @@ def test_slp_per_camera_files_and_camera_map(rec, tmp_path):
     _, uv = _all_labels(tmp_path / "ds")
     np.testing.assert_array_equal(uv[:6, :2], rec["uv"][:6, :2])
     assert np.isnan(uv[:, 2:]).all()
+    # Per-camera files holding several videos: each camera's entry of --camera-map picks its video.
+    both = _project(tmp_path / "both.slp", rec, names=["x/view_0.avi", "x/view_1.avi"])
+    assert _import(rec, tmp_path / "both", "--sleap", f"cam0={both}", f"cam1={both}",
+                   extra=["--camera-map", "cam0=view_0", "cam1=view_1"]) == 0
+    np.testing.assert_array_equal(_all_labels(tmp_path / "both")[1][:6, :2], rec["uv"][:6, :2])
     # One project whose video names are not the cameras': --camera-map (file stem or index).
     names = [f"/data/top_{c}.mp4" for c in range(4)]
     slp = _project(tmp_path / "renamed.slp", rec, names=names)
@@ -158,6 +163,17 @@ def test_slp_tracks(rec, tmp_path, capsys):
     _, b = _all_labels(tmp_path / "all" / "mouse_b")
     np.testing.assert_array_equal(a[:6], rec["uv"][:6])
     np.testing.assert_array_equal(b[:6], rec["uv"][:6] + 10)
+    # The analysis HDF5 reader names the option too.
+    import h5py
+
+    h5 = tmp_path / "two.analysis.h5"
+    with h5py.File(h5, "w") as f:
+        f["tracks"] = np.zeros((2, 2, 3, 4))  # (tracks, xy, nodes, frames), as SLEAP writes it
+        f["node_names"] = np.array([k.encode() for k in KPS])
+        f["track_names"] = np.array([b"mouse_a", b"mouse_b"])
+    assert _import(rec, tmp_path / "h", "--sleap", f"cam0={h5}") == 1
+    err = capsys.readouterr().err
+    assert "2 tracks (mouse_a, mouse_b); choose one with --sleap-track NAME or INDEX" in err
     # Without tracks, two instances in a frame: choose by index.
     untracked = _project(tmp_path / "untracked.slp", rec, instances=2)
     assert _import(rec, tmp_path / "y", "--sleap", str(untracked)) == 1

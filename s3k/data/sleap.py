@@ -122,7 +122,8 @@ def read_sleap_file(path: str | Path, camera: str, track: str | int | None = Non
     if Path(path).suffix.lower() == ".slp":
         from s3k.data.slp import read_slp
 
-        tables = read_slp(path, [camera], camera_map=camera_map, track=track, predictions=predictions)
+        mine = {camera: camera_map[camera]} if camera_map and camera in camera_map else None
+        tables = read_slp(path, [camera], camera_map=mine, track=track, predictions=predictions)
         return tables[camera]
     return read_sleap_analysis(path, track=track)
 
