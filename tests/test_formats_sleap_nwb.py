@@ -7,6 +7,7 @@ import csv
 import numpy as np
 import pytest
 import torch
+from real_recording import REAL, needs_real
 from synthetic_rig import LAYOUT, project, random_rotation, rig
 
 from s3k.cli import main
@@ -457,3 +458,18 @@ def test_export_tracks_to_nwb(rec, tmp_path, capsys):
         np.testing.assert_allclose(nwb.devices["cam3"].intrinsic_matrix[:], rec["rig"][0][3])
     assert main(["export-tracks", str(path), "--format", "nwb", "--out", str(out), "--fps", "50"]) == 1
     assert "--overwrite" in capsys.readouterr().err
+
+
+@needs_real
+def test_real_sleap_project_matches_its_analysis_file():
+    """SLEAP's own files of the real recording: the project's predictions are the analysis file's points."""
+    from s3k.data.sleap import read_sleap_analysis
+    from s3k.data.slp import read_slp
+
+    slp = REAL / "back" / "minimal_back_proofread.slp"
+    with pytest.raises(UserError, match="only 120 predicted; pass --accept-predictions"):
+        read_slp(slp, ["back"])
+    table = read_slp(slp, ["back"], predictions=True)["back"]  # one video (a Windows path): camera back
+    analysis = read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
+    assert table.keypoints == analysis.keypoints and len(table.keypoints) == 15
+    np.testing.assert_array_equal(table.dense(120), analysis.uv)
