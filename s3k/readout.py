@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
+from s3k.heatmaps import confidence_weight, heatmap_moments, peak_window_mean, spatial_softmax
 
 __all__ = [
     "DEFAULT_MIN_WEIGHT",
@@ -57,8 +57,14 @@ DEFAULT_MIN_WEIGHT = 0.0
 """Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
 
 
-def moments(logits: Tensor, stride: int) -> tuple[Tensor, Tensor, Tensor]:
+def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """Spatial softmax of logits ``(*, h, w)`` and its moments, in float64.
+
+    Args:
+        logits: ``(*, h, w)``.
+        stride: heatmap stride.
+        window: 0 for the whole heatmap's mean; else the mean within this many cells of the peak
+            (:func:`s3k.heatmaps.peak_window_mean`). The variance is always the whole heatmap's.
 
     Returns:
         ``(probs (*, h, w), mean_uv (*, 2), var (*))``: the heatmaps, their means in network-input pixels and
@@ -66,6 +72,8 @@ def moments(logits: Tensor, stride: int) -> tuple[Tensor, Tensor, Tensor]:
     """
     probs = spatial_softmax(logits.to(DTYPE))
     mean_uv, var = heatmap_moments(probs, stride)
+    if window:
+        mean_uv = peak_window_mean(probs, stride, window)
     return probs, mean_uv, var
 
 

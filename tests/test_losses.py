@@ -355,3 +355,15 @@ def test_self_supervised_pseudo_label_from_target_logits():
     assert same.item() == pytest.approx(own.item(), abs=1e-7)
     with pytest.raises(ValueError, match="target_logits"):
         self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=teacher[:, :2])
+
+
+def test_self_supervised_pseudo_label_window_ignores_spread_probability():
+    """Heatmaps with mass spread over them: the whole-heatmap means are pulled inwards, so the pseudo-label
+    is off the true point; with a window around each peak it is on it."""
+    cams, X = _rig(), _points()
+    target, _ = gaussian_targets(_project_all(cams, X), None, h, w, STRIDE, SIGMA)
+    logits = (0.8 * target + 0.2 / (h * w)).log().float()
+    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA)
+    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, window=5)
+    assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
+    torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)

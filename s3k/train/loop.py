@@ -147,7 +147,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
                                              max_residual_px=cfg.outlier_px or None,
-                                             target_logits=target_logits)
+                                             target_logits=target_logits, window=cfg.pseudo_window)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
