@@ -222,8 +222,8 @@ def test_peak_window_mean_removes_the_pull_of_spread_probability():
         probs = (1 - spread) * target + spread / (32 * 32)
         whole, _ = heatmap_moments(probs, 2)
         torch.testing.assert_close(whole, uv + spread * (centre - uv), atol=1e-3, rtol=0)
-        # what spread stays inside the window pulls towards the peak cell, a hundredth of a pixel here
-        torch.testing.assert_close(peak_window_mean(probs, 2, 5), uv, atol=0.02, rtol=0)
+        # what spread stays inside the window pulls towards the peak cell: a few hundredths of a pixel
+        torch.testing.assert_close(peak_window_mean(probs, 2, 5), uv, atol=0.05, rtol=0)
     # a second mode far away moves the whole mean, not the windowed one
     far, _ = gaussian_targets(torch.tensor([5.0, 5.0], dtype=torch.float64), None, 32, 32, 2, 3.0)
     two = 0.7 * target[1] + 0.3 * far
