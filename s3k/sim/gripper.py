@@ -1,7 +1,9 @@
 """A simulated parallel-jaw gripper: a mocap-driven palm with two slide fingers under position actuators.
 
-The palm is a mocap body, so the caller sets its pose each control step (a Cartesian robot with a perfect
-arm); the fingers are bodies on slide joints along the palm's y axis, each driven by a position actuator
+The caller sets a mocap target's pose each control step (a Cartesian robot with a stiff arm); the hand (a
+free body, gravity compensated) follows it through a weld equality constraint. A mocap body moved by hand
+has no velocity in the dynamics, so friction could not drag a grasped object along with it; the welded hand
+has a real velocity. The fingers are bodies on slide joints along the palm's y axis, each driven by a position actuator
 whose target is how far the finger has closed (0 open, ``FINGER_TRAVEL`` shut). Contacts between fingers and
 objects carry the load, so a grasp holds only when friction and the actuators' force do.
 
@@ -25,29 +27,35 @@ FINGER_HALF_THICKNESS = 0.005
 TCP_OFFSET = np.array([0.0, 0.0, -0.075])
 
 
-def gripper_xml(name: str = "gripper", group: int = 2, rgba: str = "0.35 0.37 0.4 1") -> tuple[str, str]:
-    """(worldbody XML, actuator XML) of a gripper called ``name`` whose geoms are in geom group ``group``.
+def gripper_xml(name: str = "gripper", group: int = 2, rgba: str = "0.35 0.37 0.4 1") -> tuple[str, str, str]:
+    """(worldbody XML, actuator XML, equality XML) of a gripper called ``name`` whose geoms are in geom group
+    ``group``.
 
-    The bodies are ``name`` (mocap palm), ``name_left`` and ``name_right`` (fingers); the actuators
-    ``name_left`` and ``name_right`` take the closing distance in metres.
+    The bodies are ``name_target`` (mocap), ``name`` (the hand, a free body welded to the target),
+    ``name_left`` and ``name_right`` (fingers); the actuators ``name_left`` and ``name_right`` take the
+    closing distance in metres.
     """
     fh = FINGER_HALF_THICKNESS
     o = FINGER_OPEN_HALF
     inertial = '<inertial pos="0 0 -0.045" mass="0.05" diaginertia="2e-5 2e-5 1e-5"/>'
+    hand_inertial = '<inertial pos="0 0 0.02" mass="0.5" diaginertia="5e-4 5e-4 5e-4"/>'
     finger_geom = (f'type="box" size="0.012 {fh} 0.0375" pos="0 0 -0.0475" rgba="{rgba}" group="{group}" '
                    'friction="1.5 0.02 0.001" condim="4" solref="0.005 1"')
     body = f"""
-<body name="{name}" mocap="true" pos="0 0 0.4">
+<body name="{name}_target" mocap="true" pos="0 0 0.4"/>
+<body name="{name}" pos="0 0 0.4" gravcomp="1">
+  <freejoint name="{name}"/>
+  {hand_inertial}
   <geom name="{name}_palm" type="box" size="0.02 0.045 0.01" rgba="{rgba}" group="{group}"
         contype="0" conaffinity="0"/>
   <geom name="{name}_wrist" type="cylinder" size="0.015 0.04" pos="0 0 0.05" rgba="{rgba}"
         group="{group}" contype="0" conaffinity="0"/>
-  <body name="{name}_left" pos="0 {o} 0">
+  <body name="{name}_left" pos="0 {o} 0" gravcomp="1">
     {inertial}
     <joint name="{name}_left" type="slide" axis="0 -1 0" range="0 {FINGER_TRAVEL}" damping="2"/>
     <geom name="{name}_left" {finger_geom}/>
   </body>
-  <body name="{name}_right" pos="0 {-o} 0">
+  <body name="{name}_right" pos="0 {-o} 0" gravcomp="1">
     {inertial}
     <joint name="{name}_right" type="slide" axis="0 1 0" range="0 {FINGER_TRAVEL}" damping="2"/>
     <geom name="{name}_right" {finger_geom}/>
@@ -56,7 +64,8 @@ def gripper_xml(name: str = "gripper", group: int = 2, rgba: str = "0.35 0.37 0.
     actuators = "".join(
         f'<position name="{name}_{s}" joint="{name}_{s}" kp="400" ctrlrange="0 {FINGER_TRAVEL}" '
         f'forcerange="-25 25"/>' for s in ("left", "right"))
-    return body, actuators
+    equality = f'<weld body1="{name}" body2="{name}_target" solref="0.01 1"/>'
+    return body, actuators, equality
 
 
 class Gripper:
@@ -73,29 +82,42 @@ class Gripper:
         self.body = mujoco.mj_name2id(model, obj.mjOBJ_BODY, name)
         if self.body < 0:
             raise KeyError(f"no gripper body {name!r} in the model")
-        self.mocap = int(model.body_mocapid[self.body])
+        self.target = mujoco.mj_name2id(model, obj.mjOBJ_BODY, f"{name}_target")
+        self.mocap = int(model.body_mocapid[self.target])
+        free = mujoco.mj_name2id(model, obj.mjOBJ_JOINT, name)
+        self.free_qpos, self.free_qvel = int(model.jnt_qposadr[free]), int(model.jnt_dofadr[free])
         self.joints = [mujoco.mj_name2id(model, obj.mjOBJ_JOINT, f"{name}_{s}") for s in ("left", "right")]
         self.qpos = [int(model.jnt_qposadr[j]) for j in self.joints]
         self.qvel = [int(model.jnt_dofadr[j]) for j in self.joints]
         self.actuators = [mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, f"{name}_{s}") for s in ("left", "right")]
         self.geoms = np.flatnonzero(np.isin(model.geom_bodyid, [self.body, self.body + 1, self.body + 2]))
 
-    def set_pose(self, data: mujoco.MjData, tcp: np.ndarray, rot: np.ndarray) -> None:
-        """Puts the tool centre point at ``tcp (3,)`` with palm rotation ``rot (3, 3)`` (world)."""
+    def set_pose(self, data: mujoco.MjData, tcp: np.ndarray, rot: np.ndarray, kinematic: bool = False) -> None:
+        """Moves the target to put the tool centre point at ``tcp (3,)`` with palm rotation ``rot (3, 3)``
+        (world); ``kinematic`` also puts the hand there at once, at rest (for renders and resets)."""
         rot = np.asarray(rot, dtype=np.float64).reshape(3, 3)
-        data.mocap_pos[self.mocap] = np.asarray(tcp, dtype=np.float64) - rot @ TCP_OFFSET
+        pos = np.asarray(tcp, dtype=np.float64) - rot @ TCP_OFFSET
         q = np.empty(4)
         mujoco.mju_mat2Quat(q, rot.ravel())
+        data.mocap_pos[self.mocap] = pos
         data.mocap_quat[self.mocap] = q
+        if kinematic:
+            data.qpos[self.free_qpos:self.free_qpos + 7] = [*pos, *q]
+            data.qvel[self.free_qvel:self.free_qvel + 6] = 0.0
 
     def tcp(self, data: mujoco.MjData) -> np.ndarray:
-        """World position (3,) of the tool centre point."""
-        return data.mocap_pos[self.mocap] + self.rotation(data) @ TCP_OFFSET
+        """World position (3,) of the hand's tool centre point (after a forward pass or step)."""
+        return data.xpos[self.body] + self.rotation(data) @ TCP_OFFSET
 
     def rotation(self, data: mujoco.MjData) -> np.ndarray:
-        mat = np.empty(9)
-        mujoco.mju_quat2Mat(mat, data.mocap_quat[self.mocap])
-        return mat.reshape(3, 3)
+        """The hand's rotation (3, 3) in world."""
+        return data.xmat[self.body].reshape(3, 3).copy()
+
+    def velocity(self, data: mujoco.MjData) -> np.ndarray:
+        """The hand's (linear (3,), angular (3,)) velocity in world, stacked (6,)."""
+        out = np.empty(6)
+        mujoco.mj_objectVelocity(self.model, data, mujoco.mjtObj.mjOBJ_BODY, self.body, out, 0)
+        return np.concatenate([out[3:], out[:3]])
 
     def set_fingers(self, data: mujoco.MjData, closed: float, kinematic: bool = False) -> None:
         """Sets the fingers' target closing (0 open .. ``FINGER_TRAVEL`` shut); ``kinematic`` also puts the

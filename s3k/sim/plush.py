@@ -173,7 +173,7 @@ class PlushScene(Scene):
         bodies += toy_xml("toy", self.shape)
         for i, sh in enumerate(self.distractor_shapes):
             bodies += toy_xml(f"distractor{i}", sh, group=self.OCCLUDER_GROUP)
-        grip, self._actuator_xml = gripper_xml("gripper", group=self.OCCLUDER_GROUP)
+        grip, self._actuator_xml, self._equality_xml = gripper_xml("gripper", group=self.OCCLUDER_GROUP)
         return "", bodies + grip
 
     def _xml(self) -> str:
@@ -182,7 +182,8 @@ class PlushScene(Scene):
         xml = xml.replace("<compiler inertiafromgeom=\"false\"/>",
                           '<compiler inertiafromgeom="false" angle="degree"/>\n'
                           '  <option timestep="0.002" cone="elliptic" impratio="5"/>')
-        return xml.replace("</mujoco>", f"<actuator>{self._actuator_xml}</actuator>\n</mujoco>")
+        return xml.replace("</mujoco>", f"<actuator>{self._actuator_xml}</actuator>\n"
+                                       f"<equality>{self._equality_xml}</equality>\n</mujoco>")
 
     def _setup(self):
         obj = mujoco.mjtObj
@@ -261,7 +262,7 @@ class PlushScene(Scene):
         """The gripper somewhere above the workspace, clear of the toys, at a random yaw and opening."""
         tcp = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(0.14, 0.32)])
         yaw = rng.uniform(0, 2 * np.pi)
-        self.gripper.set_pose(self.data, tcp, yaw_rotation(yaw))
+        self.gripper.set_pose(self.data, tcp, yaw_rotation(yaw), kinematic=True)
         self.gripper.set_fingers(self.data, rng.uniform(0, 1) * 0.025, kinematic=True)
         return {"gripper_tcp": tcp.tolist(), "gripper_yaw": float(yaw)}
 
