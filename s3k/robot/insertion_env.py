@@ -152,8 +152,8 @@ class InsertionEnv(gym.Env):
         self._sites = [mujoco.mj_name2id(self.model, obj.mjOBJ_SITE, n) for n in KEYPOINTS]
         self._socket_mocap = int(self.model.body_mocapid[mujoco.mj_name2id(self.model, obj.mjOBJ_BODY, "socket")])
         self._cams = [mujoco.mj_name2id(self.model, obj.mjOBJ_CAMERA, f"cam{i}") for i in range(4)]
-        sampler = CameraSampler(distance=(0.7, 0.8), elevation_deg=(30.0, 60.0), fovy_deg=40.0,
-                                target=(0.0, 0.0, 0.1), target_jitter=0.0, roll_deg=0.0)
+        sampler = CameraSampler(distance=(0.45, 0.55), elevation_deg=(30.0, 60.0), fovy_deg=40.0,
+                                target=(0.0, 0.0, 0.08), target_jitter=0.0, roll_deg=0.0)
         eyes, mats = sampler.sample(np.random.default_rng([camera_seed, 0x1A5]), 4)
         for c, e, m in zip(self._cams, eyes, mats):
             self.model.cam_pos[c] = e
