@@ -134,3 +134,15 @@ def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: i
     successes = sum(r["success"] for r in results)
     return {"successes": successes, "trials": trials, "success_rate": successes / trials, "paw": paw,
             "seed": seed, "object_seed": object_seed, "size": size, "per_trial": results}
+
+
+def detector_keypoints(detector) -> KeypointSource:
+    """A :data:`KeypointSource` that renders the four views and runs ``detector`` (a
+    :class:`s3k.robot.detect.RunDetector` asked for the scene's keypoints) on them."""
+
+    def source(scene: PlushScene, spec: FrameSpec) -> np.ndarray:
+        frame = scene.capture(spec)
+        X, _ = detector(frame.images, frame.K, frame.R, frame.t)
+        return X
+
+    return source

@@ -1,0 +1,119 @@
+"""``s3k robot``: the keypoints-in-the-loop experiments (docs/robot.md).
+
+- ``s3k robot grasp RUN --trials 30 --out FILE``: grasp the plush toy's paw at the detected keypoint on the
+  held-out arrangements (``--ground-truth``: at the true keypoint, the upper bound; RUN not needed);
+- ``s3k robot train-agent --out DIR --agent keypoints|beta_vae --steps N --seed S [--resume]``: TD3 with
+  demonstrations on the cable-insertion environment, checkpointed;
+- ``s3k robot summarize --out docs/results/robot/summary.json ...``: the summary of what was measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    g = sub.add_parser("grasp", help="grasp trials on the plush scene's held-out arrangements")
+    g.add_argument("run", nargs="?", default=None, help="trained s3k run (plush keypoints) that detects the paw")
+    g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
+    g.add_argument("--trials", type=int, default=30, help="grasp trials, over arrangements 7, 8, 9 (default 30)")
+    g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
+    g.add_argument("--seed", type=int, default=0, help="draws each trial's lighting and gripper start (0)")
+    g.add_argument("--object-seed", type=int, default=0,
+                   help="the plush scene's look and arrangements: that of the run's dataset (default 0)")
+    g.add_argument("--size", type=int, default=None,
+                   help="rendered image size (default: the run's network input; 96 with --ground-truth)")
+    g.add_argument("--paw", default="front_left_paw", choices=["front_left_paw", "front_right_paw"],
+                   help="which front paw to grasp (default front_left_paw)")
+    g.add_argument("--device", default="cpu", help="torch device of the detector (default cpu)")
+
+    t = sub.add_parser("train-agent", help="train a TD3 agent on cable insertion (resumable)")
+    t.add_argument("--out", required=True, help="agent run folder to create (or to --resume)")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    from s3k.robot.agents import AgentConfig
+
+    for f in dataclasses.fields(AgentConfig):
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default
+        kind = {int: int, float: float}.get(type(default), str)
+        t.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
+                       help=f"(default {default})")
+
+    s = sub.add_parser("summarize", help="write docs/results/robot/summary.json from measured runs")
+    s.add_argument("--out", required=True, help="summary JSON to write")
+    s.add_argument("--grasp-s3k", default=None, help="s3k robot grasp result with the S3K run")
+    s.add_argument("--grasp-labels-only", default=None, help="... with the labels-only run")
+    s.add_argument("--grasp-ground-truth", default=None, help="... with --ground-truth")
+    s.add_argument("--rl-keypoints", nargs="*", default=[], metavar="DIR", help="keypoint agent runs (seeds)")
+    s.add_argument("--rl-beta-vae", nargs="*", default=[], metavar="DIR", help="beta-VAE agent runs (seeds)")
+    s.add_argument("--machine", default=None, help="a description of the machine the runs took place on")
+
+
+def _grasp(args: argparse.Namespace) -> int:
+    from s3k.errors import UserError
+    from s3k.fileio import atomic_write_json
+    from s3k.robot.grasp import detector_keypoints, ground_truth_keypoints, run_trials
+    from s3k.sim.plush import PlushScene
+
+    if args.trials < 1:
+        raise UserError(f"--trials: must be >= 1, got {args.trials}")
+    if args.ground_truth:
+        source, size, label = ground_truth_keypoints, args.size or 96, "ground_truth"
+    else:
+        if args.run is None:
+            raise UserError("RUN: give a trained run, or --ground-truth for the upper bound")
+        from s3k.robot.detect import RunDetector
+
+        detector = RunDetector(args.run, PlushScene.keypoints, device=args.device)
+        W, H = detector.image_size
+        size = args.size or W
+        if args.size is None and W != H:
+            raise UserError(f"run {args.run}: its network input is {W}x{H}; the plush scene renders square "
+                            "images", hint="give --size")
+        source, label = detector_keypoints(detector), str(args.run)
+
+    def progress(i: int, r) -> None:
+        print(f"trial {i + 1}/{args.trials}: {'success' if r.success else 'failure'} (paw lifted "
+              f"{100 * r.lift:.1f} cm, aim error {r.aim_error_mm:.1f} mm)", file=sys.stderr)
+
+    result = run_trials(source, args.trials, size=size, seed=args.seed, object_seed=args.object_seed,
+                        paw=args.paw, progress=progress)
+    result["detector"] = label
+    atomic_write_json(result, args.out)
+    print(f"wrote {args.out}: {result['successes']}/{result['trials']} grasps lifted the paw 10 cm")
+    return 0
+
+
+def _train_agent(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from s3k.robot.agents import AgentConfig, train_agent
+
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(AgentConfig)
+             if getattr(args, f.name) is not None}
+    base = {}
+    config_file = Path(args.out) / "config.json"
+    if args.resume and config_file.is_file():
+        base = json.loads(config_file.read_text())
+    cfg = AgentConfig(**{**base, **given})
+    result = train_agent(args.out, cfg, resume=args.resume)
+    print(json.dumps(result))
+    return 0
+
+
+def _summarize(args: argparse.Namespace) -> int:
+    from s3k.robot.results import write_summary
+
+    summary = write_summary(args.out, grasp_s3k=args.grasp_s3k, grasp_labels_only=args.grasp_labels_only,
+                            grasp_ground_truth=args.grasp_ground_truth, rl_keypoints=args.rl_keypoints,
+                            rl_beta_vae=args.rl_beta_vae, machine=args.machine)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    return {"grasp": _grasp, "train-agent": _train_agent, "summarize": _summarize}[args.action](args)
