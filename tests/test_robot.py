@@ -136,7 +136,8 @@ def test_run_detector_reads_the_true_points_and_grasps(monkeypatch, tmp_path):
     # The network's keypoint order differs from the scene's: the detector must reorder by name.
     names = PlushScene.keypoints[::-1]
     meta = DetectorMeta(keypoints=names, cameras=[f"cam{i}" for i in range(4)], image_size=(size, size),
-                        stride=stride, sigma=sigma, model=UNetConfig(channels=(8, 8), stride=stride).to_dict())
+                        stride=stride, sigma=sigma,
+                        model=UNetConfig(channels=(8, 8), stride=stride).to_dict())
     oracle = _Oracle(torch.zeros(0))
     monkeypatch.setattr(s3k.robot.detect, "load_detector", lambda *a, **k: (oracle, meta))
     detector = RunDetector(tmp_path, PlushScene.keypoints)
@@ -183,11 +184,13 @@ def test_summary_holds_only_what_was_measured(tmp_path):
     g.write_text(json.dumps({"successes": 27, "trials": 30}))
     run = tmp_path / "kp0"
     run.mkdir()
-    (run / "progress.json").write_text(json.dumps({"final": {"seed": 0, "success_rate": 0.5, "env_steps": 100}}))
+    final = {"seed": 0, "success_rate": 0.5, "env_steps": 100}
+    (run / "progress.json").write_text(json.dumps({"final": final}))
     out = tmp_path / "summary.json"
     s = write_summary(out, grasp_ground_truth=g, rl_keypoints=[run])
     assert s["grasp_success"] == {"s3k": None, "labels_only": None, "ground_truth": 0.9, "trials": 30}
-    assert s["rl_final_success"] == {"keypoints": {"mean": 0.5, "per_seed": [{"seed": 0, "success_rate": 0.5}]},
+    assert s["rl_final_success"] == {"keypoints": {"mean": 0.5,
+                                                   "per_seed": [{"seed": 0, "success_rate": 0.5}]},
                                      "beta_vae": None, "env_steps": 100}
     assert json.loads(out.read_text()) == s
     bad = tmp_path / "bad.json"

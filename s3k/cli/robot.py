@@ -18,9 +18,11 @@ import sys
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     g = sub.add_parser("grasp", help="grasp trials on the plush scene's held-out arrangements")
-    g.add_argument("run", nargs="?", default=None, help="trained s3k run (plush keypoints) that detects the paw")
+    g.add_argument("run", nargs="?", default=None,
+                   help="trained s3k run (plush keypoints) that detects the paw")
     g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
-    g.add_argument("--trials", type=int, default=30, help="grasp trials, over arrangements 7, 8, 9 (default 30)")
+    g.add_argument("--trials", type=int, default=30,
+                   help="grasp trials, over arrangements 7, 8, 9 (default 30)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
     g.add_argument("--seed", type=int, default=0, help="draws each trial's lighting and gripper start (0)")
     g.add_argument("--object-seed", type=int, default=0,
@@ -41,7 +43,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         default = f.default
         kind = {int: int, float: float}.get(type(default), str)
         t.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
-                       help=f"(default {default})")
+                       help=f"{f.metadata['help']} (default {default})")
 
     s = sub.add_parser("summarize", help="write docs/results/robot/summary.json from measured runs")
     s.add_argument("--out", required=True, help="summary JSON to write")
@@ -56,11 +58,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def _grasp(args: argparse.Namespace) -> int:
     from s3k.errors import UserError
     from s3k.fileio import atomic_write_json
-    from s3k.robot.grasp import detector_keypoints, ground_truth_keypoints, run_trials
+    from s3k.robot.grasp import KeypointSource, detector_keypoints, ground_truth_keypoints, run_trials
     from s3k.sim.plush import PlushScene
 
     if args.trials < 1:
         raise UserError(f"--trials: must be >= 1, got {args.trials}")
+    source: KeypointSource
     if args.ground_truth:
         source, size, label = ground_truth_keypoints, args.size or 96, "ground_truth"
     else:
@@ -91,6 +94,13 @@ def _grasp(args: argparse.Namespace) -> int:
 def _train_agent(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from s3k.errors import UserError
+
+    try:
+        import gymnasium  # noqa: F401
+        import stable_baselines3  # noqa: F401
+    except ImportError as exc:
+        raise UserError(f"s3k robot train-agent needs {exc.name}", hint="pip install 's3k[robot]'") from exc
     from s3k.robot.agents import AgentConfig, train_agent
 
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(AgentConfig)

@@ -30,57 +30,50 @@ AGENTS = ("keypoints", "beta_vae")
 BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
 
+def _field(default, text: str):
+    return dataclasses.field(default=default, metadata={"help": text})
+
+
 @dataclasses.dataclass
 class AgentConfig:
-    """One agent training run.
+    """One agent training run; every field's meaning is in its ``metadata["help"]`` (the ``--help`` of
+    ``s3k robot train-agent``)."""
 
-    Attributes:
-        agent: "keypoints" (observations: gripper state + 3D keypoints) or "beta_vae" (gripper state + a
-            10-D beta-VAE latent of the four views).
-        steps: environment steps to train for (the run's total; ``--resume`` continues towards it).
-        seed: seed of the agent, the environment and the demonstrations.
-        demos: scripted demonstration episodes put in the replay buffer before training.
-        checkpoint_every: environment steps between checkpoints.
-        eval_episodes: episodes of the deterministic policy at each evaluation (and at the end).
-        learning_starts: environment steps before gradient updates begin (demonstrations count).
-        batch_size, buffer_size, learning_rate, action_noise: TD3's.
-        run: an s3k run whose detector gives the keypoint observations from four rendered views (None:
-            ground-truth keypoints). The reward always uses the environment's keypoints.
-        image_size: width and height of the rendered views (detector and beta-VAE).
-        vae_latent, vae_beta, vae_images, vae_steps: the beta-VAE's latent size, beta, how many unlabelled
-            frames of the environment it is trained on, and its training steps.
-        threads: torch threads (the networks are small: one thread is fastest, and several runs can share
-            the machine).
-    """
-
-    agent: str = "keypoints"
-    steps: int = 20000
-    seed: int = 0
-    demos: int = 10
-    checkpoint_every: int = 1000
-    eval_episodes: int = 10
-    learning_starts: int = 100
-    batch_size: int = 128
-    buffer_size: int = 200_000
-    learning_rate: float = 1e-3
-    action_noise: float = 0.1
-    run: str | None = None
-    image_size: int = 64
-    vae_latent: int = 10
-    vae_beta: float = 4.0
-    vae_images: int = 2000
-    vae_steps: int = 3000
-    threads: int = 1
+    agent: str = _field("keypoints", "keypoints (observations: gripper state + 3D keypoints) or beta_vae "
+                                     "(gripper state + a beta-VAE latent of the four views)")
+    steps: int = _field(20000, "environment steps to train for, in all (--resume continues towards it)")
+    seed: int = _field(0, "seed of the agent, the environment and the demonstrations")
+    demos: int = _field(10, "scripted demonstration episodes put in the replay buffer before training")
+    checkpoint_every: int = _field(1000, "environment steps between checkpoints of agent and replay buffer")
+    eval_episodes: int = _field(10, "episodes of the deterministic policy in the final evaluation")
+    learning_starts: int = _field(100, "the agent's own environment steps before gradient updates begin "
+                                       "(the demonstrations are in the buffer already)")
+    batch_size: int = _field(128, "TD3's minibatch size")
+    buffer_size: int = _field(200_000, "replay buffer capacity (transitions)")
+    learning_rate: float = _field(1e-3, "TD3's learning rate (actor and critics)")
+    action_noise: float = _field(0.1, "standard deviation of TD3's Gaussian exploration noise")
+    run: str | None = _field(None, "an s3k run whose detector gives the keypoint observations from four "
+                                   "rendered views (default: ground-truth keypoints); the reward always "
+                                   "uses the environment's keypoints")
+    image_size: int = _field(64, "width and height of the rendered views (detector and beta-VAE)")
+    vae_latent: int = _field(10, "beta-VAE latent size")
+    vae_beta: float = _field(4.0, "beta-VAE's beta (weight of the KL term)")
+    vae_images: int = _field(2000, "unlabelled frames of the environment the beta-VAE is trained on")
+    vae_steps: int = _field(3000, "beta-VAE training steps")
+    threads: int = _field(1, "torch threads (the networks are small: one thread is fastest, and several "
+                             "runs can share the machine)")
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
             raise UserError(f"agent (--agent): must be one of {', '.join(AGENTS)}, got {self.agent!r}")
         for name in ("steps", "checkpoint_every", "batch_size", "buffer_size", "image_size"):
             if getattr(self, name) < 1:
-                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 1, "
+                                f"got {getattr(self, name)}")
         for name in ("demos", "eval_episodes", "learning_starts"):
             if getattr(self, name) < 0:
-                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 0, got {getattr(self, name)}")
+                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 0, "
+                                f"got {getattr(self, name)}")
 
     def identity(self) -> dict:
         """What a resumed run must share with the one it continues (everything but ``steps``)."""
@@ -117,7 +110,7 @@ def collect_images(cfg: AgentConfig, n: int, seed: int) -> np.ndarray:
     noise (so they cover the states an agent visits)."""
     env = InsertionEnv(image_size=cfg.image_size)
     rng = np.random.default_rng(seed)
-    frames = []
+    frames: list[np.ndarray] = []
     obs, _ = env.reset(seed=seed)
     while len(frames) < n:
         frames.append(env.views()[0])
@@ -152,16 +145,18 @@ def evaluate_agent(model, env: gym.Env, episodes: int, seed: int) -> dict:
     successes, true_successes, returns = 0, 0, []
     for ep in range(episodes):
         obs, _ = env.reset(seed=10_000_000 + seed * 1000 + ep)
-        done, ret, info = False, 0.0, {}
+        done, ret = False, 0.0
+        info: dict = {}
         while not done:
             action, _ = model.predict(obs, deterministic=True)
             obs, reward, term, trunc, info = env.step(action)
-            ret += reward
+            ret += float(reward)
             done = term or trunc
         successes += bool(info.get("is_success"))
         true_successes += bool(info.get("true_success"))
         returns.append(ret)
-    return {"success_rate": successes / max(episodes, 1), "true_success_rate": true_successes / max(episodes, 1),
+    n = max(episodes, 1)
+    return {"success_rate": successes / n, "true_success_rate": true_successes / n,
             "mean_return": float(np.mean(returns)) if returns else None, "episodes": episodes}
 
 
@@ -176,7 +171,8 @@ def save_checkpoint(model, folder: Path, state: dict) -> None:
     rb = model.replay_buffer
     n = rb.buffer_size if rb.full else rb.pos
     buf = io.BytesIO()
-    np.savez(buf, **{f: getattr(rb, f)[:n] for f in BUFFER_FIELDS}, pos=np.array(rb.pos), full=np.array(rb.full))
+    arrays = {f: getattr(rb, f)[:n] for f in BUFFER_FIELDS}
+    np.savez(buf, **arrays, pos=np.array(rb.pos), full=np.array(rb.full))
     atomic_write_bytes(buf.getvalue(), folder / "replay.npz")
     atomic_write_json(state, folder / "state.json")
 
@@ -195,7 +191,8 @@ def load_checkpoint(model, folder: Path) -> dict:
         rb = model.replay_buffer
         n = len(z["actions"])
         if n > rb.buffer_size:
-            raise UserError(f"{folder / 'replay.npz'}: {n} transitions do not fit a buffer of {rb.buffer_size}")
+            raise UserError(f"{folder / 'replay.npz'}: {n} transitions do not fit a buffer of "
+                            f"{rb.buffer_size}", hint="give the run's --buffer-size")
         for f in BUFFER_FIELDS:
             getattr(rb, f)[:n] = z[f]
         rb.pos, rb.full = int(z["pos"]), bool(z["full"])
@@ -222,7 +219,8 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
     config_file = out / "config.json"
     if resume:
         if not config_file.is_file():
-            raise UserError(f"{out}: no agent run to resume (no config.json)", hint="drop --resume to start one")
+            raise UserError(f"{out}: no agent run to resume (no config.json)",
+                            hint="drop --resume to start one")
         old = AgentConfig(**json.loads(config_file.read_text()))
         if old.identity() != cfg.identity():
             diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
@@ -254,18 +252,22 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
                 learning_starts=cfg.learning_starts, batch_size=cfg.batch_size, action_noise=noise,
                 seed=cfg.seed, device="cpu", verbose=0)
     progress_file = out / "progress.json"
-    progress = json.loads(progress_file.read_text()) if resume and progress_file.is_file() else {"evaluations": []}
+    progress: dict = {"evaluations": []}
+    if resume and progress_file.is_file():
+        progress = json.loads(progress_file.read_text())
     if resume and (ckpt / "state.json").is_file():
         state = load_checkpoint(model, ckpt)
-        log(f"resumed at {state['env_steps']} environment steps ({model.replay_buffer.pos} transitions)")
+        held = model.replay_buffer.pos if model.replay_buffer is not None else 0
+        log(f"resumed at {state['env_steps']} environment steps ({held} transitions)")
     else:
         demo_steps = add_demonstrations(model, env, cfg.demos, cfg.seed)
         state = {"env_steps": 0, "updates": 0, "episodes": 0, "demonstration_steps": demo_steps}
         log(f"{cfg.demos} demonstrations: {demo_steps} transitions in the replay buffer")
         # learning_starts counts the agent's own steps; the demonstrations are already there to learn from.
     while model.num_timesteps < cfg.steps:
-        chunk = min(cfg.checkpoint_every - model.num_timesteps % cfg.checkpoint_every, cfg.steps - model.num_timesteps)
-        model.learn(total_timesteps=chunk, reset_num_timesteps=False, log_interval=None)
+        to_checkpoint = cfg.checkpoint_every - model.num_timesteps % cfg.checkpoint_every
+        chunk = min(to_checkpoint, cfg.steps - model.num_timesteps)
+        model.learn(total_timesteps=chunk, reset_num_timesteps=False, log_interval=1_000_000)
         state.update(env_steps=int(model.num_timesteps), updates=int(model._n_updates),
                      episodes=int(model._episode_num))
         save_checkpoint(model, ckpt, state)

@@ -34,7 +34,8 @@ class BetaVAE(nn.Module):
         ch = 3 * views
         self.encoder = nn.Sequential(
             nn.Conv2d(ch, width, 4, 2, 1), nn.ReLU(), nn.Conv2d(width, width, 4, 2, 1), nn.ReLU(),
-            nn.Conv2d(width, 2 * width, 4, 2, 1), nn.ReLU(), nn.Conv2d(2 * width, 2 * width, 4, 2, 1), nn.ReLU(),
+            nn.Conv2d(width, 2 * width, 4, 2, 1), nn.ReLU(),
+            nn.Conv2d(2 * width, 2 * width, 4, 2, 1), nn.ReLU(),
             nn.Flatten())
         s = size // 16
         self._shape = (2 * width, s, s)
@@ -91,7 +92,7 @@ def train_beta_vae(images: np.ndarray, latent: int = 10, beta: float = 4.0, step
         loss.backward()
         opt.step()
         if log is not None and (step % 100 == 0 or step == steps - 1):
-            log(step, float(loss), parts)
+            log(step, float(loss.detach()), parts)
     return vae.eval()
 
 

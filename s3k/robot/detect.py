@@ -50,7 +50,8 @@ class RunDetector:
     @torch.no_grad()
     def __call__(self, images: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """3D keypoints ``X (N, 3)`` (NaN where not triangulated) and ``valid (N,)`` from one multi-view frame."""
+        """3D keypoints ``X (N, 3)`` (NaN where not triangulated) and ``valid (N,)`` of one multi-view
+        frame."""
         W, H = self.image_size
         if images.shape[1:3] != (H, W):
             images, K = resize_crop(images, K, None, (W, H))

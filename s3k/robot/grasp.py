@@ -89,7 +89,8 @@ def grasp(scene: PlushScene, paw: np.ndarray, body: np.ndarray, paw_name: str = 
     _move(scene, target, target + np.array([0.0, 0.0, lift]), rot, 1.0)
     _hold(scene, 0.3)
     rise = float(scene.toy_keypoint(paw_name)[2] - true0[2])
-    return GraspResult(success=rise >= SUCCESS_LIFT, lift=rise, target=target.tolist(), paw_true=true0.tolist(),
+    return GraspResult(success=rise >= SUCCESS_LIFT, lift=rise, target=target.tolist(),
+                       paw_true=true0.tolist(),
                        aim_error_mm=float(np.linalg.norm(paw - true0) * 1000))
 
 
@@ -102,7 +103,8 @@ def ground_truth_keypoints(scene: PlushScene, spec: FrameSpec) -> np.ndarray:
 
 
 def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: int = 0, object_seed: int = 0,
-               paw: str = "front_left_paw", progress: Callable[[int, GraspResult], None] | None = None) -> dict:
+               paw: str = "front_left_paw",
+               progress: Callable[[int, GraspResult], None] | None = None) -> dict:
     """Grasp trials on the held-out arrangements (7, 8, 9 in turn).
 
     Each trial sets its arrangement, draws lighting and the gripper's start pose from ``(seed, trial)``

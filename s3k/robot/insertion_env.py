@@ -43,6 +43,8 @@ MAX_SPEED = 0.1  # m/s at action 1
 MAX_ANGULAR = 0.6  # rad/s at action 1
 SUCCESS_DISTANCE = 0.025
 KEYPOINTS = ["plug_tip", "plug_base", "socket"]
+# Metres, m/s, rad/s: far beyond the workspace and the speeds; observations are clipped to it.
+OBS_BOUND = 10.0
 PLUG_HALF = (0.006, 0.006, 0.02)  # half extents: a 1.2 x 1.2 x 4 cm plug
 HOLE_HALF = 0.008  # a 1.6 cm square hole
 HOLE_DEPTH = 0.045
@@ -74,7 +76,8 @@ def _model_xml(size: int) -> str:
 <body name="plug" pos="0 0 {-LINK_LENGTH}">
   <inertial pos="0 0 {-pz}" mass="0.02" diaginertia="3e-6 3e-6 5e-7"/>
   <joint name="plug" type="ball" stiffness="0.01" damping="0.006"/>
-  <geom type="box" size="{px} {py} {pz}" pos="0 0 {-pz}" rgba="0.9 0.85 0.2 1" {col} friction="0.3 0.005 0.0001"/>
+  <geom type="box" size="{px} {py} {pz}" pos="0 0 {-pz}" rgba="0.9 0.85 0.2 1" {col}
+        friction="0.3 0.005 0.0001"/>
   <geom type="box" size="{px * 0.5} {py * 1.05} {pz * 0.3}" pos="0 0 {-1.75 * pz}" rgba="0.75 0.2 0.1 1"
         contype="0" conaffinity="0"/>
   <site name="plug_base" pos="0 0 0" size="0.002"/>
@@ -100,7 +103,8 @@ def _model_xml(size: int) -> str:
     <map znear="0.01" zfar="10"/>
   </visual>
   <asset>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.55 0.5 0.45" rgb2="0.45 0.4 0.36" width="64" height="64"/>
+    <texture name="grid" type="2d" builtin="checker" rgb1="0.55 0.5 0.45" rgb2="0.45 0.4 0.36"
+             width="64" height="64"/>
     <material name="grid" texture="grid" texrepeat="8 8"/>
   </asset>
   <worldbody>
@@ -150,7 +154,8 @@ class InsertionEnv(gym.Env):
         self.gripper = Gripper(self.model, "gripper")
         obj = mujoco.mjtObj
         self._sites = [mujoco.mj_name2id(self.model, obj.mjOBJ_SITE, n) for n in KEYPOINTS]
-        self._socket_mocap = int(self.model.body_mocapid[mujoco.mj_name2id(self.model, obj.mjOBJ_BODY, "socket")])
+        socket = mujoco.mj_name2id(self.model, obj.mjOBJ_BODY, "socket")
+        self._socket_mocap = int(self.model.body_mocapid[socket])
         self._cams = [mujoco.mj_name2id(self.model, obj.mjOBJ_CAMERA, f"cam{i}") for i in range(4)]
         sampler = CameraSampler(distance=(0.45, 0.55), elevation_deg=(30.0, 60.0), fovy_deg=40.0,
                                 target=(0.0, 0.0, 0.08), target_jitter=0.0, roll_deg=0.0)
@@ -162,7 +167,7 @@ class InsertionEnv(gym.Env):
         self.substeps = int(round(1.0 / CONTROL_HZ / self.model.opt.timestep))
         self.max_steps = int(round(EPISODE_SECONDS * CONTROL_HZ))
         self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (24,), np.float32)
+        self.observation_space = gym.spaces.Box(-OBS_BOUND, OBS_BOUND, (24,), np.float32)
         self._steps = 0
         self._keypoints = np.zeros((3, 3))
         self._target_pos = np.zeros(3)
@@ -202,7 +207,7 @@ class InsertionEnv(gym.Env):
         kp = self._observe_keypoints()
         self._keypoints = kp
         parts = [self.gripper.tcp(self.data), R[:, 0], R[:, 1], self.gripper.velocity(self.data), kp.ravel()]
-        return np.concatenate(parts).astype(np.float32)
+        return np.clip(np.concatenate(parts), -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
     def distance(self, keypoints: np.ndarray | None = None) -> float:
         """``|plug_tip - socket| + |plug_base - socket|`` of ``keypoints`` (default: the observed ones)."""
@@ -258,7 +263,8 @@ class InsertionEnv(gym.Env):
             reward += self.max_steps - self._steps  # the steps left, at the full reward
         terminated = success or strayed
         truncated = not terminated and self._steps >= self.max_steps
-        info = {"distance": distance, "true_distance": true_distance, "is_success": success, "strayed": strayed,
+        info = {"distance": distance, "true_distance": true_distance, "is_success": success,
+                "strayed": strayed,
                 "true_success": true_distance < SUCCESS_DISTANCE}
         return obs, float(reward), terminated, truncated, info
 

@@ -54,7 +54,8 @@ def rl_final(runs: Sequence[str | Path]) -> dict | None:
 
 
 def write_summary(out: str | Path, *, grasp_s3k=None, grasp_labels_only=None, grasp_ground_truth=None,
-                  rl_keypoints: Sequence = (), rl_beta_vae: Sequence = (), machine: str | None = None) -> dict:
+                  rl_keypoints: Sequence = (), rl_beta_vae: Sequence = (),
+                  machine: str | None = None) -> dict:
     """Writes the summary (atomically) and returns it."""
     rates = {name: grasp_rate(p) for name, p in (("s3k", grasp_s3k), ("labels_only", grasp_labels_only),
                                                   ("ground_truth", grasp_ground_truth))}

@@ -144,7 +144,8 @@ def _plush_plan(L: int, U: int, T: int) -> list[FrameSpec]:
 
     A = TRAIN_ARRANGEMENTS
     order = sorted([(a, 0) for a in _spread(L, A)] + [(a, 1) for a in _spread(U, A)])
-    specs = [FrameSpec(i, "labelled" if kind == 0 else "unlabelled", segment=a) for i, (a, kind) in enumerate(order)]
+    specs = [FrameSpec(i, "labelled" if kind == 0 else "unlabelled", segment=a)
+             for i, (a, kind) in enumerate(order)]
     for a in _spread(T, NUM_ARRANGEMENTS - A):
         specs.append(FrameSpec(len(specs), "test", segment=A + a))
     return specs

@@ -3,9 +3,10 @@
 The caller sets a mocap target's pose each control step (a Cartesian robot with a stiff arm); the hand (a
 free body, gravity compensated) follows it through a weld equality constraint. A mocap body moved by hand
 has no velocity in the dynamics, so friction could not drag a grasped object along with it; the welded hand
-has a real velocity. The fingers are bodies on slide joints along the palm's y axis, each driven by a position actuator
-whose target is how far the finger has closed (0 open, ``FINGER_TRAVEL`` shut). Contacts between fingers and
-objects carry the load, so a grasp holds only when friction and the actuators' force do.
+has a real velocity. The fingers are bodies on slide joints along the palm's y axis, each driven by a
+position actuator whose target is how far the finger has closed (0 open, ``FINGER_TRAVEL`` shut).
+Contacts between fingers and objects carry the load, so a grasp holds only when friction and the actuators'
+force do.
 
 Gripper frame: the fingers hang down along -z from the palm; the tool centre point (TCP) lies between the
 fingertips, ``TCP_OFFSET`` below the palm's origin. A palm rotation of identity closes the fingers along
@@ -89,10 +90,12 @@ class Gripper:
         self.joints = [mujoco.mj_name2id(model, obj.mjOBJ_JOINT, f"{name}_{s}") for s in ("left", "right")]
         self.qpos = [int(model.jnt_qposadr[j]) for j in self.joints]
         self.qvel = [int(model.jnt_dofadr[j]) for j in self.joints]
-        self.actuators = [mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, f"{name}_{s}") for s in ("left", "right")]
+        self.actuators = [mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, f"{name}_{s}")
+                          for s in ("left", "right")]
         self.geoms = np.flatnonzero(np.isin(model.geom_bodyid, [self.body, self.body + 1, self.body + 2]))
 
-    def set_pose(self, data: mujoco.MjData, tcp: np.ndarray, rot: np.ndarray, kinematic: bool = False) -> None:
+    def set_pose(self, data: mujoco.MjData, tcp: np.ndarray, rot: np.ndarray,
+                 kinematic: bool = False) -> None:
         """Moves the target to put the tool centre point at ``tcp (3,)`` with palm rotation ``rot (3, 3)``
         (world); ``kinematic`` also puts the hand there at once, at rest (for renders and resets)."""
         rot = np.asarray(rot, dtype=np.float64).reshape(3, 3)

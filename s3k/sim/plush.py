@@ -49,8 +49,10 @@ class ToyShape:
 
     @staticmethod
     def random(rng: np.random.Generator) -> ToyShape:
-        colour = tuple(float(c) for c in rng.uniform(0.2, 0.95, 3))
-        sock = tuple(float(c) for c in rng.uniform(0.1, 0.9, 3))
+        r, g, b = (float(c) for c in rng.uniform(0.2, 0.95, 3))
+        colour = (r, g, b)
+        r, g, b = (float(c) for c in rng.uniform(0.1, 0.9, 3))
+        sock = (r, g, b)
         return ToyShape(body_radius=rng.uniform(0.025, 0.035), body_half=rng.uniform(0.03, 0.05),
                         head_radius=rng.uniform(0.022, 0.034), leg_radius=rng.uniform(0.009, 0.013),
                         leg_length=rng.uniform(0.055, 0.085), leg_splay=rng.uniform(0.2, 0.5),
@@ -71,7 +73,8 @@ class ToyShape:
                          self.leg_line(-1)[1], self.tail_line()[1]])
 
     def head_centre(self) -> np.ndarray:
-        return np.array([self.body_half + 0.6 * self.body_radius, 0.0, self.body_radius + 0.7 * self.head_radius])
+        return np.array([self.body_half + 0.6 * self.body_radius, 0.0,
+                         self.body_radius + 0.7 * self.head_radius])
 
     def tail_line(self) -> tuple[np.ndarray, np.ndarray]:
         r = 0.007
@@ -89,13 +92,15 @@ def toy_xml(name: str, shape: ToyShape, group: int = 0) -> str:
     head = s.head_centre()
     hr = s.head_radius
     eyes = "".join(
-        f'<geom type="sphere" size="{0.18 * hr:.4g}" pos="{_fmt(head + hr * np.array([0.8, side * 0.35, 0.4]))}" '
+        f'<geom type="sphere" size="{0.18 * hr:.4g}" '
+        f'pos="{_fmt(head + hr * np.array([0.8, side * 0.35, 0.4]))}" '
         f'rgba="{dark}" contype="0" conaffinity="0" group="{group}" mass="0"/>' for side in (1, -1))
     nose = (f'<geom type="sphere" size="{0.2 * hr:.4g}" pos="{_fmt(head + hr * np.array([0.95, 0, 0]))}" '
             f'rgba="{dark}" contype="0" conaffinity="0" group="{group}" mass="0"/>')
     hind = "".join(
-        f'<geom type="capsule" size="{s.leg_radius:.4g}" fromto="{-s.body_half * 0.7:.4g} {side * s.body_radius * 0.6:.4g} '
-        f'{s.leg_radius:.4g} {-s.body_half * 0.7 - 0.02:.4g} {side * (s.body_radius + 0.03):.4g} {s.leg_radius:.4g}" '
+        f'<geom type="capsule" size="{s.leg_radius:.4g}" '
+        f'fromto="{-s.body_half * 0.7:.4g} {side * s.body_radius * 0.6:.4g} {s.leg_radius:.4g} '
+        f'{-s.body_half * 0.7 - 0.02:.4g} {side * (s.body_radius + 0.03):.4g} {s.leg_radius:.4g}" '
         f'rgba="{col}" {g}/>' for side in (1, -1))
     legs = ""
     for side, label, sock in ((1, "left", s.left_sock), (-1, "right", s.right_sock)):
@@ -104,10 +109,13 @@ def toy_xml(name: str, shape: ToyShape, group: int = 0) -> str:
         legs += f"""
     <body name="{name}_{label}_leg" pos="{_fmt(hip)}">
       <inertial pos="{_fmt((paw - hip) / 2)}" mass="0.012" diaginertia="6e-6 6e-6 1e-6"/>
-      <joint name="{name}_{label}_leg" type="hinge" axis="{_fmt([-math.sin(s.leg_splay) * side, math.cos(s.leg_splay), 0])}"
+      <joint name="{name}_{label}_leg" type="hinge"
+             axis="{_fmt([-math.sin(s.leg_splay) * side, math.cos(s.leg_splay), 0])}"
              range="-80 4" stiffness="0.02" damping="0.01"/>
-      <geom type="capsule" size="{s.leg_radius:.4g}" fromto="0 0 0 {_fmt(sock_start - hip)}" rgba="{col}" {g}/>
-      <geom type="capsule" size="{s.leg_radius * 1.05:.4g}" fromto="{_fmt(sock_start - hip)} {_fmt(paw - hip)}"
+      <geom type="capsule" size="{s.leg_radius:.4g}" fromto="0 0 0 {_fmt(sock_start - hip)}"
+            rgba="{col}" {g}/>
+      <geom type="capsule" size="{s.leg_radius * 1.05:.4g}"
+            fromto="{_fmt(sock_start - hip)} {_fmt(paw - hip)}"
             rgba="{_fmt([*sock, 1.0])}" {g}/>
       <site name="{name}_kp{2 if side == 1 else 3}" pos="{_fmt(paw - hip)}" size="0.003"/>
     </body>"""
@@ -168,7 +176,8 @@ class PlushScene(Scene):
         self.shape = ToyShape()
         self.distractor_shapes = [ToyShape.random(np.random.default_rng([self.seed, 0x7011, i]))
                                   for i in range(self.num_distractors)]
-        bodies = (f'<geom name="floor" type="plane" size="3 3 0.1" rgba="0 0 0 0" group="{self._FLOOR_GROUP}" '
+        bodies = (f'<geom name="floor" type="plane" size="3 3 0.1" rgba="0 0 0 0" '
+                  f'group="{self._FLOOR_GROUP}" '
                   'friction="1 0.02 0.001"/>')
         bodies += toy_xml("toy", self.shape)
         for i, sh in enumerate(self.distractor_shapes):
