@@ -7,11 +7,11 @@ tip, inside it). The left front paw wears a white sock and the right one a dark 
 apart. Two distractor toys of the same build in other colours and proportions lie around it.
 
 The scene is made of **arrangements**: arrangement ``a`` fixes where the three toys lie (a pure function of
-the object seed and ``a``) and one camera rig; within an arrangement the toys and cameras stay still while
-the gripper and the lighting change from frame to frame. Arrangements ``0 .. 6`` are for training (one
-labelled frame each, the rest unlabelled but still: the labelled frame's 3D label holds for all of them),
-``7 .. 9`` are held out for testing (and for the grasp trials of ``s3k robot grasp``). The frames carry
-the arrangement in the dataset's ``segment`` column.
+the object seed and ``a``), one camera rig, the table and a base lighting; within an arrangement the toys and
+cameras stay still while the gripper moves and the lighting changes a little from frame to frame.
+Arrangements ``0 .. 6`` are for training (one labelled frame each, the rest unlabelled but still: the
+labelled frame's 3D label holds for all of them), ``7 .. 9`` are held out for testing (and for the grasp
+trials of ``s3k robot grasp``). The frames carry the arrangement in the dataset's ``segment`` column.
 
 Unlike the other scenes the toys and the gripper are dynamic (free joints, collisions with an invisible
 floor at the table top), so :mod:`s3k.robot.grasp` can grasp in the very model the dataset was rendered from.
@@ -277,21 +277,37 @@ class PlushScene(Scene):
 
     # ------------------------------------------------------------------ Scene interface
     def sample(self, spec: FrameSpec, rng: np.random.Generator) -> dict:
-        """Arrangement ``spec.segment`` (toys and cameras still), then this frame's lighting and gripper."""
+        """Arrangement ``spec.segment`` (toys, cameras, table and a base lighting, all still), then this
+        frame's lighting (a small change of the base) and gripper."""
         if not 0 <= spec.segment < NUM_ARRANGEMENTS:
             raise ValueError(f"plush scene: every frame needs an arrangement (FrameSpec.segment in "
                              f"[0, {NUM_ARRANGEMENTS})), got {spec.segment}")
-        extra = self.sample_environment(rng)
-        # The table's look belongs to the arrangement: only the lighting and the gripper change within one.
-        table_rng = np.random.default_rng([self.seed, 0x7AB, spec.segment])
-        table = int(table_rng.integers(self.num_tables))
-        self.model.geom_matid[self._table_geom] = self._table_mats[table]
-        self.model.mat_rgba[self._table_mats[table]] = [*table_rng.uniform(0.75, 1.0, 3), 1.0]
-        extra["table"] = table
+        extra = self.arrangement_environment(spec.segment, rng)
         arr = self.set_arrangement(spec.segment)
         extra.update(self.place_gripper_randomly(rng))
         extra["arrangement"] = arr.index
         return extra
+
+    def arrangement_environment(self, index: int, rng: np.random.Generator) -> dict:
+        """The table and lighting of arrangement ``index``, the lighting changed a little by ``rng``.
+
+        The light moves by about 10 degrees and its strength by 10% from frame to frame: the frames of an
+        arrangement look alike (a 3D label carries over to them unchanged; propagation compares images),
+        while the lighting still varies over the dataset as in the other scenes.
+        """
+        m = self.model
+        base = np.random.default_rng([self.seed, 0x7AB, index])
+        table = int(base.integers(self.num_tables))
+        m.geom_matid[self._table_geom] = self._table_mats[table]
+        m.mat_rgba[self._table_mats[table]] = [*base.uniform(0.75, 1.0, 3), 1.0]
+        az = base.uniform(0, 2 * np.pi) + rng.uniform(-0.15, 0.15)
+        el = np.deg2rad(base.uniform(30, 85) + rng.uniform(-5, 5))
+        m.light_dir[self._light] = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        colour = base.uniform(0.35, 0.8) * base.uniform(0.9, 1.1, 3)
+        m.light_diffuse[self._light] = colour * rng.uniform(0.9, 1.1)
+        m.light_ambient[self._light] = base.uniform(0.1, 0.35) * rng.uniform(0.9, 1.1) * np.ones(3)
+        m.vis.headlight.diffuse[:] = base.uniform(0.1, 0.35) * rng.uniform(0.9, 1.1) * np.ones(3)
+        return {"table": table}
 
     def sample_objects(self, spec, rng):  # the arrangement is placed by sample()
         return {}
