@@ -88,7 +88,18 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     out = tmp_path / "agent"
     cfg = AgentConfig(steps=30, demos=1, checkpoint_every=15, eval_episodes=1, learning_starts=5,
                       batch_size=16, buffer_size=500)
-    first = train_agent(out, cfg, log=lambda s: None)
+
+    def killed_after_first_checkpoint(line: str) -> None:
+        if line.startswith("checkpoint at 15"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # a run killed after its first checkpoint...
+        train_agent(out, cfg, log=killed_after_first_checkpoint)
+    assert json.loads((out / "checkpoint" / "state.json").read_text())["env_steps"] == 15
+    assert not (out / "progress.json").exists()
+    log: list[str] = []
+    first = train_agent(out, cfg, resume=True, log=log.append)  # ...resumes from it
+    assert any("resumed at 15" in line for line in log)
     state = json.loads((out / "checkpoint" / "state.json").read_text())
     assert first["env_steps"] == 30 and state["env_steps"] == 30 and state["updates"] > 0
     demo = state["demonstration_steps"]
@@ -111,7 +122,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
         torch.testing.assert_close(model.policy.state_dict()[k], v)
     assert model.replay_buffer.pos == demo + 30 and model.num_timesteps == 30
 
-    log: list[str] = []
+    log.clear()
     second = train_agent(out, AgentConfig(**{**cfg.__dict__, "steps": 45}), resume=True, log=log.append)
     assert any("resumed at 30" in line for line in log)
     assert second["env_steps"] == 45
@@ -121,6 +132,20 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
         assert len(z["actions"]) == demo + 45
     progress = json.loads((out / "progress.json").read_text())
     assert [e["env_steps"] for e in progress["evaluations"]] == [30, 45]
+
+
+def test_checkpoint_survives_a_kill_between_its_renames(tmp_path):
+    from s3k.robot.agents import checkpoint_folder
+
+    ckpt = tmp_path / "checkpoint"
+    assert checkpoint_folder(ckpt) is None
+    old = tmp_path / "checkpoint.old"
+    old.mkdir()
+    (old / "state.json").write_text("{}")
+    assert checkpoint_folder(ckpt) == old  # the previous checkpoint had moved aside, the new not yet in
+    ckpt.mkdir()
+    (ckpt / "state.json").write_text("{}")
+    assert checkpoint_folder(ckpt) == ckpt
 
 
 def test_beta_vae_learns_and_feeds_the_latent_observation():

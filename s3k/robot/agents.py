@@ -4,10 +4,10 @@ keypoint observations or on a beta-VAE latent of the views (the baseline), train
 A run folder ``OUT/`` holds ``config.json`` (the :class:`AgentConfig`), ``vae.pt`` (beta-VAE agent),
 ``checkpoint/`` (``agent.pt``: the policy's and optimizers' state dicts; ``replay.npz``: the filled part of
 the replay buffer; ``state.json``: environment steps, gradient updates, episodes) and ``progress.json`` (the
-evaluations so far). A checkpoint is written every ``checkpoint_every`` environment steps, each file
-atomically and ``state.json`` last, so a killed run resumes (``--resume``) from its last complete checkpoint
-with its replay buffer; nothing is read with ``pickle``: state dicts through ``torch.load(weights_only=True)``
-and the buffer through ``numpy.load(allow_pickle=False)``.
+evaluations so far). A checkpoint is written every ``checkpoint_every`` environment steps, all its files
+into a new folder that then replaces the previous one, so a killed run resumes (``--resume``) from its last
+complete checkpoint with its replay buffer; nothing is read with ``pickle``: state dicts through
+``torch.load(weights_only=True)`` and the buffer through ``numpy.load(allow_pickle=False)``.
 """
 
 from __future__ import annotations
@@ -162,19 +162,42 @@ def evaluate_agent(model, env: gym.Env, episodes: int, seed: int) -> dict:
 
 # ---------------------------------------------------------------------------------------------- checkpoints
 def save_checkpoint(model, folder: Path, state: dict) -> None:
-    """Writes the agent, its replay buffer and ``state.json`` (last: it marks the checkpoint complete)."""
+    """Writes the agent, its replay buffer and ``state.json`` into ``folder`` as one unit.
+
+    They are written into ``folder.tmp`` first, which then takes the place of ``folder`` by two renames (the
+    previous checkpoint is kept as ``folder.old`` in between), so a kill at any point leaves one complete
+    checkpoint: :func:`checkpoint_folder` finds it.
+    """
+    import shutil
+
     from s3k.run import atomic_save
 
-    folder.mkdir(parents=True, exist_ok=True)
+    tmp, old = folder.with_name(folder.name + ".tmp"), folder.with_name(folder.name + ".old")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
     atomic_save({"policy": model.policy.state_dict(), "actor_optimizer": model.actor.optimizer.state_dict(),
-                 "critic_optimizer": model.critic.optimizer.state_dict()}, folder / "agent.pt")
+                 "critic_optimizer": model.critic.optimizer.state_dict()}, tmp / "agent.pt")
     rb = model.replay_buffer
     n = rb.buffer_size if rb.full else rb.pos
     buf = io.BytesIO()
     arrays = {f: getattr(rb, f)[:n] for f in BUFFER_FIELDS}
     np.savez(buf, **arrays, pos=np.array(rb.pos), full=np.array(rb.full))
-    atomic_write_bytes(buf.getvalue(), folder / "replay.npz")
-    atomic_write_json(state, folder / "state.json")
+    atomic_write_bytes(buf.getvalue(), tmp / "replay.npz")
+    atomic_write_json(state, tmp / "state.json")
+    if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def checkpoint_folder(folder: Path) -> Path | None:
+    """The complete checkpoint to resume from: ``folder``, or ``folder.old`` when a kill came between the
+    two renames of :func:`save_checkpoint`; None when there is none."""
+    for candidate in (folder, folder.with_name(folder.name + ".old")):
+        if (candidate / "state.json").is_file():
+            return candidate
+    return None
 
 
 def load_checkpoint(model, folder: Path) -> dict:
@@ -255,8 +278,9 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
     progress: dict = {"evaluations": []}
     if resume and progress_file.is_file():
         progress = json.loads(progress_file.read_text())
-    if resume and (ckpt / "state.json").is_file():
-        state = load_checkpoint(model, ckpt)
+    found = checkpoint_folder(ckpt) if resume else None
+    if found is not None:
+        state = load_checkpoint(model, found)
         held = model.replay_buffer.pos if model.replay_buffer is not None else 0
         log(f"resumed at {state['env_steps']} environment steps ({held} transitions)")
     else:
