@@ -90,7 +90,7 @@ def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
 
     result = run_trials(ground_truth_keypoints, trials=3, size=32)
     assert result["successes"] == 3 and result["trials"] == 3
-    assert all(t["lift"] >= SUCCESS_LIFT for t in result["per_trial"])
+    assert all(t["lift"] >= SUCCESS_LIFT and t["held_mm"] < 40 for t in result["per_trial"])
     assert [t["arrangement"] for t in result["per_trial"]] == [7, 8, 9]
 
     def off_by_6cm(scene, spec):
@@ -101,6 +101,15 @@ def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
     missed = run_trials(off_by_6cm, trials=2, size=32)
     assert missed["successes"] == 0
     assert all(abs(t["lift"]) < 0.02 for t in missed["per_trial"])
+
+    def other_paw(scene, spec):  # a detector that swaps the paws: the toy is lifted by the wrong leg
+        X = scene.keypoints_world().copy()
+        X[[2, 3]] = X[[3, 2]]
+        return X
+
+    swapped = run_trials(other_paw, trials=3, size=32)
+    assert swapped["successes"] == 0
+    assert all(t["held_mm"] > 40 for t in swapped["per_trial"])
 
 
 def _oracle_logits(uv: np.ndarray, h: int, w: int, stride: int, sigma: float) -> torch.Tensor:

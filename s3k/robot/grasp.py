@@ -3,7 +3,9 @@
 The primitive takes two 3D points, the paw to grasp and a second keypoint (the body): the gripper turns so
 that its fingers close across the leg (the jaw's x axis along the body -> paw direction), moves above a
 point a little behind the paw's end (towards the body, so the fingers grip the leg rather than slide off
-its end), descends, closes and lifts. Success is the *true* paw lifted at least 10 cm above where it lay.
+its end), descends, closes and lifts. Success is the *true* paw lifted at least 10 cm above where it lay
+*and* held: still within 4 cm of the gripper's tool centre point (a grasp of another leg or of the tail
+lifts the whole toy, the paw with it, but is not a grasp by the paw).
 
 Physics runs in the plush scene's own model (:class:`s3k.sim.plush.PlushScene`): the toys are free bodies
 and the gripper's fingers are position-controlled slide joints, so a grasp holds only through contact.
@@ -22,17 +24,19 @@ from s3k.sim.gripper import yaw_rotation
 from s3k.sim.plush import TRAIN_ARRANGEMENTS, PlushScene
 from s3k.sim.scene import FrameSpec
 
-#: The paw lifted this high (metres) is a success.
+#: The paw lifted this high (metres), and held this close to the tool centre point, is a success.
 SUCCESS_LIFT = 0.10
+HELD_DISTANCE = 0.04
 
 
 @dataclasses.dataclass
 class GraspResult:
-    """What one grasp did: ``success``, how high the true paw rose (``lift``, metres), the points it aimed
-    at and where the true paw was."""
+    """What one grasp did: ``success``, how high the true paw rose (``lift``, metres), how far it ended
+    from the tool centre point (``held_mm``), the point aimed at and where the true paw was."""
 
     success: bool
     lift: float
+    held_mm: float
     target: list[float]
     paw_true: list[float]
     aim_error_mm: float
@@ -88,8 +92,11 @@ def grasp(scene: PlushScene, paw: np.ndarray, body: np.ndarray, paw_name: str = 
     _hold(scene, 0.4)
     _move(scene, target, target + np.array([0.0, 0.0, lift]), rot, 1.0)
     _hold(scene, 0.3)
-    rise = float(scene.toy_keypoint(paw_name)[2] - true0[2])
-    return GraspResult(success=rise >= SUCCESS_LIFT, lift=rise, target=target.tolist(),
+    paw_now = scene.toy_keypoint(paw_name)
+    rise = float(paw_now[2] - true0[2])
+    held = float(np.linalg.norm(paw_now - scene.gripper.tcp(scene.data)))
+    return GraspResult(success=rise >= SUCCESS_LIFT and held <= HELD_DISTANCE, lift=rise,
+                       held_mm=held * 1000, target=target.tolist(),
                        paw_true=true0.tolist(),
                        aim_error_mm=float(np.linalg.norm(paw - true0) * 1000))
 
@@ -127,7 +134,7 @@ def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: i
             X = np.asarray(source(scene, spec), dtype=np.float64)
             if not np.isfinite(X[[k_paw, k_body]]).all():
                 true = scene.toy_keypoint(paw)
-                r = GraspResult(False, 0.0, [math.nan] * 3, true.tolist(), math.nan)
+                r = GraspResult(False, 0.0, math.nan, [math.nan] * 3, true.tolist(), math.nan)
             else:
                 r = grasp(scene, X[k_paw], X[k_body], paw_name=paw)
             results.append({"arrangement": spec.segment, **dataclasses.asdict(r)})
