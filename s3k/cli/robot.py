@@ -81,14 +81,15 @@ def _grasp(args: argparse.Namespace) -> int:
 
     def progress(i: int, r) -> None:
         print(f"trial {i + 1}/{args.trials}: {'success' if r.success else 'failure'} (paw lifted "
-              f"{100 * r.lift:.1f} cm, {r.held_mm:.0f} mm from the gripper; aim error {r.aim_error_mm:.1f} mm)",
-              file=sys.stderr)
+              f"{100 * r.lift:.1f} cm, {r.held_mm:.0f} mm from the gripper; aim error "
+              f"{r.aim_error_mm:.1f} mm)", file=sys.stderr)
 
     result = run_trials(source, args.trials, size=size, seed=args.seed, object_seed=args.object_seed,
                         paw=args.paw, progress=progress)
     result["detector"] = label
     atomic_write_json(result, args.out)
-    print(f"wrote {args.out}: {result['successes']}/{result['trials']} grasps lifted the paw 10 cm, held by it")
+    print(f"wrote {args.out}: {result['successes']}/{result['trials']} grasps lifted the paw 10 cm, "
+          "held by it")
     return 0
 
 
