@@ -183,3 +183,31 @@ def test_beta_vae_agent_trains_a_few_steps(tmp_path):
                       image_size=32)
     result = train_agent(tmp_path / "vae", cfg, log=lambda s: None)
     assert result["env_steps"] == 10 and (tmp_path / "vae" / "vae.pt").is_file()
+
+
+def test_insertion_dataset_labels_are_the_keypoints_projections(tmp_path):
+    from s3k.cli import main
+    from s3k.data import Dataset, usable_labels
+    from s3k.robot.insertion_env import KEYPOINTS
+    from s3k.sim.camera import project_points
+
+    out = tmp_path / "insertion"
+    assert main(["robot", "simulate-insertion", "--out", str(out), "--size", "32", "--labelled", "3",
+                 "--unlabelled", "6", "--test", "2", "--no-progress"]) == 0
+    ds = Dataset.open(out)
+    assert ds.keypoints == KEYPOINTS and ds.static_calibration
+    assert (len(ds.frames("labelled")), len(ds.frames("unlabelled")), len(ds.frames("test"))) == (3, 6, 2)
+    # The rig is the environment's: an agent's detector sees the same cameras.
+    env = InsertionEnv(image_size=32)
+    env.reset(seed=0)
+    _, K, R, t = env.views()
+    rig = ds.rig().numpy()
+    np.testing.assert_allclose(rig["R"], R, atol=1e-6)
+    np.testing.assert_allclose(rig["K"], K, atol=1e-4)
+    ids = ds.frames("labelled")
+    uv, mask = ds.labels(ids)
+    X, _ = ds.points3d(ids)
+    for b in range(len(ids)):
+        proj, _ = project_points(K, R, t, np.asarray(X[b], dtype=np.float64))
+        np.testing.assert_allclose(np.asarray(uv[b])[mask[b]], proj[mask[b]], atol=1e-3)
+    assert usable_labels(ds, "labelled").all()

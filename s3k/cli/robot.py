@@ -4,6 +4,8 @@
   held-out arrangements (``--ground-truth``: at the true keypoint, the upper bound; RUN not needed);
 - ``s3k robot train-agent --out DIR --agent keypoints|beta_vae --steps N --seed S [--resume]``: TD3 with
   demonstrations on the cable-insertion environment, checkpointed;
+- ``s3k robot simulate-insertion --out D``: a keypoint dataset of the insertion environment, to train the
+  detector an agent can read its keypoints with (``train-agent --run RUN``);
 - ``s3k robot summarize --out docs/results/robot/summary.json ...``: the summary of what was measured.
 """
 
@@ -44,6 +46,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         kind = {int: int, float: float}.get(type(default), str)
         t.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
                        help=f"{f.metadata['help']} (default {default})")
+
+    d = sub.add_parser("simulate-insertion",
+                       help="a keypoint dataset of the insertion environment (to train its detector)")
+    d.add_argument("--out", required=True, help="dataset folder to create")
+    d.add_argument("--size", type=int, default=64, help="image width and height (default 64)")
+    d.add_argument("--labelled", type=int, default=10, help="labelled frames (default 10)")
+    d.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
+    d.add_argument("--test", type=int, default=200,
+                   help="test frames, from episodes of their own (default 200)")
+    d.add_argument("--seed", type=int, default=0, help="draws the episodes (default 0)")
+    d.add_argument("--overwrite", action="store_true", help="replace --out if it exists and is not empty")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     s = sub.add_parser("summarize", help="write docs/results/robot/summary.json from measured runs")
     s.add_argument("--out", required=True, help="summary JSON to write")
@@ -117,6 +131,16 @@ def _train_agent(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulate_insertion(args: argparse.Namespace) -> int:
+    from s3k.robot.insertion_data import write_insertion_dataset
+
+    summary = write_insertion_dataset(args.out, args.labelled, args.unlabelled, args.test, size=args.size,
+                                      seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress)
+    print(f"wrote {summary['path']}: {summary['frames']} frames ({args.labelled} labelled, {args.unlabelled} "
+          f"unlabelled, {args.test} test), 4 cameras, {args.size}x{args.size} px")
+    return 0
+
+
 def _summarize(args: argparse.Namespace) -> int:
     from s3k.robot.results import write_summary
 
@@ -128,4 +152,6 @@ def _summarize(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    return {"grasp": _grasp, "train-agent": _train_agent, "summarize": _summarize}[args.action](args)
+    actions = {"grasp": _grasp, "train-agent": _train_agent, "simulate-insertion": _simulate_insertion,
+               "summarize": _summarize}
+    return actions[args.action](args)
