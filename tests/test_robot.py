@@ -209,3 +209,25 @@ def test_summary_holds_only_what_was_measured(tmp_path):
     (run / "progress.json").write_text(json.dumps({"evaluations": []}))
     with pytest.raises(UserError, match="no final evaluation"):
         write_summary(out, rl_keypoints=[run])
+
+
+def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
+    from tiny_detector import save_run
+
+    from s3k.cli import main
+    from s3k.model import UNetConfig
+    from s3k.run import DetectorMeta
+
+    dataset = tmp_path / "plush-data"
+    dataset.mkdir()
+    (dataset / "s3k.json").write_text(json.dumps({"source": {"scene": "plush", "object_seed": 3}}))
+    meta = DetectorMeta(keypoints=list(PlushScene.keypoints), cameras=[f"cam{i}" for i in range(4)],
+                        image_size=(32, 32), stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0, dataset=str(dataset))
+    out = tmp_path / "grasp.json"
+    assert main(["robot", "grasp", str(run), "--trials", "1", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["trials"] == 1 and doc["detector"] == str(run)
+    assert doc["object_seed"] == 3 and doc["size"] == 32
+    assert len(doc["per_trial"]) == 1 and np.isfinite(doc["per_trial"][0]["aim_error_mm"])

@@ -27,8 +27,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                    help="grasp trials, over arrangements 7, 8, 9 (default 30)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
     g.add_argument("--seed", type=int, default=0, help="draws each trial's lighting and gripper start (0)")
-    g.add_argument("--object-seed", type=int, default=0,
-                   help="the plush scene's look and arrangements: that of the run's dataset (default 0)")
+    g.add_argument("--object-seed", type=int, default=None,
+                   help="the plush scene's look and arrangements (default: that of the run's dataset when "
+                        "its s3k.json can be read, else 0)")
     g.add_argument("--size", type=int, default=None,
                    help="rendered image size (default: the run's network input; 96 with --ground-truth)")
     g.add_argument("--paw", default="front_left_paw", choices=["front_left_paw", "front_right_paw"],
@@ -69,6 +70,24 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--machine", default=None, help="a description of the machine the runs took place on")
 
 
+def _dataset_object_seed(run: str) -> int | None:
+    """The ``object_seed`` of the plush dataset run ``run`` was trained on, when its metadata says so."""
+    from pathlib import Path
+
+    from s3k.run import read_run_config
+
+    dataset = read_run_config(run).get("dataset")
+    try:
+        source = json.loads((Path(str(dataset)) / "s3k.json").read_text()).get("source") or {}
+    except (OSError, ValueError, AttributeError):
+        return None
+    if source.get("scene") != "plush" or not isinstance(source.get("object_seed"), int):
+        return None
+    print(f"s3k robot grasp: the plush scene of --object-seed {source['object_seed']}, as in {dataset}",
+          file=sys.stderr)
+    return int(source["object_seed"])
+
+
 def _grasp(args: argparse.Namespace) -> int:
     from s3k.errors import UserError
     from s3k.fileio import atomic_write_json
@@ -92,6 +111,10 @@ def _grasp(args: argparse.Namespace) -> int:
             raise UserError(f"run {args.run}: its network input is {W}x{H}; the plush scene renders square "
                             "images", hint="give --size")
         source, label = detector_keypoints(detector), str(args.run)
+        if args.object_seed is None:
+            args.object_seed = _dataset_object_seed(args.run)
+    if args.object_seed is None:
+        args.object_seed = 0
 
     def progress(i: int, r) -> None:
         print(f"trial {i + 1}/{args.trials}: {'success' if r.success else 'failure'} (paw lifted "

@@ -84,7 +84,7 @@ class AgentConfig:
         return d
 
 
-def make_env(cfg: AgentConfig, out: Path | None = None, vae=None) -> gym.Env:
+def make_env(cfg: AgentConfig, vae=None) -> gym.Env:
     """The environment an agent of ``cfg`` sees (the beta-VAE agent's wraps the views' latent)."""
     detector = None
     if cfg.run is not None:
@@ -268,7 +268,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
             vae = train_beta_vae(images, cfg.vae_latent, cfg.vae_beta, cfg.vae_steps, seed=cfg.seed,
                                  log=lambda s, loss, p: log(f"beta-VAE step {s}: loss {loss:.1f}"))
             save_vae(vae, out / "vae.pt", cfg.vae_beta)
-    env = make_env(cfg, out, vae)
+    env = make_env(cfg, vae)
     env.reset(seed=cfg.seed)
     noise = NormalActionNoise(np.zeros(6), cfg.action_noise * np.ones(6))
     model = TD3("MlpPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
