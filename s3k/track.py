@@ -130,15 +130,16 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
     inputs = []
     for c, (name, path) in enumerate(videos.items()):
         if not video.exists(path):
-            raise FileNotFoundError(f"--videos {name}={path}: no such video file, image folder or image pattern")
+            raise FileNotFoundError(f"--videos {name}={path}: no such video file, image folder or image "
+                                    "pattern")
         size = video.frame_size(path)
         calib_size = (int(rig.size[c][0]), int(rig.size[c][1]))
         if size != calib_size:
             raise UserError(
                 f"camera {name!r}: video {path} is {size[0]}x{size[1]} pixels but the calibration gives "
-                f"{calib_size[0]}x{calib_size[1]}; the intrinsics apply only to images of the calibrated size",
-                hint=f"if the video is the calibrated image cropped or padded by a few pixels, declare it with "
-                f"--video-region {name}=X0,Y0,X1,Y1",
+                f"{calib_size[0]}x{calib_size[1]}; the intrinsics apply only to images of the calibrated "
+                "size", hint="if the video is the calibrated image cropped or padded by a few pixels, "
+                f"declare it with --video-region {name}=X0,Y0,X1,Y1",
             )
         box = tuple(float(v) for v in crops.get(name, fit_box(size, net_size, fit)))
         inputs.append(CameraInput(name, Path(path), size, video.frame_rate(path), box,
@@ -359,12 +360,12 @@ def empty_result_hint(summary: TrackSummary) -> str | None:
     if not summary.frames or any(summary.valid_fraction):
         return None
     if not any(summary.passing_fraction):
-        why = (f"no keypoint has two views with a confidence weight above --min-weight {summary.min_weight:g} "
-               "in any frame")
+        why = ("no keypoint has two views with a confidence weight above --min-weight "
+               f"{summary.min_weight:g} in any frame")
     else:
         why = "the views of every keypoint triangulate to no valid point"
-    return (f"every keypoint is 0% valid ({why}), so {summary.path} holds only nan: the detector finds nothing "
-            "confident in these videos. A briefly trained model does this: train longer (check it with "
-            "'s3k evaluate RUN DATASET' first), make sure the videos show what it was trained on, and "
+    return (f"every keypoint is 0% valid ({why}), so {summary.path} holds only nan: the detector finds "
+            "nothing confident in these videos. A briefly trained model does this: train longer (check it "
+            "with 's3k evaluate RUN DATASET' first), make sure the videos show what it was trained on, and "
             + ("lower --min-weight (0 uses every view)" if summary.min_weight > 0
                else "check that the calibration matches the videos"))

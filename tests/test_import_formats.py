@@ -16,7 +16,7 @@ import pytest
 from test_importers import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
 from s3k.cli import main
-from s3k.data import Dataset, anipose, check_dataset
+from s3k.data import anipose, check_dataset
 from s3k.data.calibration_files import calibration_format, read_calibration
 from s3k.data.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d_pose
 from s3k.data.safe_pickle import load_pickle
@@ -223,9 +223,9 @@ def test_pickles_load_with_a_restricted_unpickler(tmp_path):
 
 def test_pose2sim_config_is_not_an_anipose_calibration(tmp_path, capsys):
     config = tmp_path / "Config.toml"
-    config.write_text('[project]\nmulti_person = false\nframe_rate = "auto"\n\n[pose]\nvid_img_extension = "mp4"\n'
-                      '\n[calibration]\ncalibration_type = "convert"\n[calibration.convert]\nconvert_from = "qualisys"'
-                      '\n')
+    config.write_text('[project]\nmulti_person = false\nframe_rate = "auto"\n\n[pose]\n'
+                      'vid_img_extension = "mp4"\n\n[calibration]\ncalibration_type = "convert"\n'
+                      '[calibration.convert]\nconvert_from = "qualisys"\n')
     code = main(["import", "--calibration", str(config), "--videos", "a=a.mp4", "--keypoints", "x",
                  "--out", str(tmp_path / "ds")])
     err = capsys.readouterr().err
@@ -256,7 +256,8 @@ def _sequences(recording, root):  # noqa: F811
 
     for cam in CAMS:
         extract_frames(recording["root"] / f"{cam}.mkv", root / cam, pattern="img_{:04d}.png")
-    return {"north": root / "north", "east": root / "east" / "*.png", "south": root / "south" / "img_%04d.png"}
+    return {"north": root / "north", "east": root / "east" / "*.png",
+            "south": root / "south" / "img_%04d.png"}
 
 
 def test_import_image_sequences_like_videos(recording, tmp_path):  # noqa: F811
@@ -366,8 +367,9 @@ def test_import_openpose_json(recording, tmp_path):  # noqa: F811
             if f == 7:
                 scores[2] = 0.2  # below --min-score: unlabelled
             decoy = _person(rng.uniform(0, 40, (3, 2)), [0.3, 0.3, 0.3])  # a less confident person
+            real = _person(uv[f, c], scores)
             data = {"version": 1.3, "people": [{"person_id": [-1], "pose_keypoints_2d": decoy},
-                                               {"person_id": [-1], "pose_keypoints_2d": _person(uv[f, c], scores)}]}
+                                               {"person_id": [-1], "pose_keypoints_2d": real}]}
             (folder / f"rec_{f:012d}_keypoints.json").write_text(json.dumps(data))
     args = ["--openpose", *[f"{cam}={tmp_path / 'op' / cam}" for cam in CAMS], "--labelled", "all"]
     assert _run(recording, recording["root"] / "calibration.toml", tmp_path / "ds", *args) == 0

@@ -17,8 +17,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "any, are not written). Without labels every frame is unlabelled. See docs/importing.md."
     )
     parser.add_argument("--calibration", required=True,
-                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml (a file or a "
-                        "folder of one file per camera) or DeepFly3D .pkl; chosen by content")
+                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml (a file "
+                        "or a folder of one file per camera) or DeepFly3D .pkl; chosen by content")
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
                         "pattern 'dir/img_%%05d.jpg'); the order sets the dataset's camera order")
@@ -63,7 +63,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
     parser.add_argument("--keypoints", default=None,
-                        help="comma-separated keypoints to keep (default all); names them when no labels are given")
+                        help="comma-separated keypoints to keep (default all); names them when no labels are "
+                        "given")
 
 
 def run(args: argparse.Namespace) -> int:

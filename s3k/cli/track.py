@@ -39,7 +39,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
                         "DeepFly3D .pkl (as for 's3k import')")
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
-                        help="the region of the calibrated image a camera's video shows (as for 's3k import')")
+                        help="the region of the calibrated image a camera's video shows (as for "
+                        "'s3k import')")
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",

@@ -73,10 +73,10 @@ def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
             if node is None:
                 raise UserError(f"{path}: not a camera calibration: no field {' / '.join(names)}")
         assert kkey and rkey and tkey
-        K = _matrix(path, kkey, knode).reshape(-1)
-        if K.size != 9:
-            raise UserError(f"{path}: {kkey} has {K.size} values, expected 3x3")
-        K = K.reshape(3, 3).T if jarvis else K.reshape(3, 3)
+        k_flat = _matrix(path, kkey, knode).reshape(-1)
+        if k_flat.size != 9:
+            raise UserError(f"{path}: {kkey} has {k_flat.size} values, expected 3x3")
+        K = k_flat.reshape(3, 3).T if jarvis else k_flat.reshape(3, 3)
         if abs(K[2, 2]) < 1e-12 or abs(np.linalg.det(K)) < 1e-12:
             raise UserError(f"{path}: {kkey} is singular: {K.tolist()}")
         d = np.zeros(5)
@@ -85,13 +85,14 @@ def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
             if raw.size > 5 and np.any(raw[5:] != 0):
                 raise UserError(f"{path}: {dkey} has {raw.size} coefficients; s3k supports (k1, k2, p1, p2, k3)")
             d[: min(5, raw.size)] = raw[:5]
-        R = _matrix(path, rkey, rnode).reshape(-1)
-        if R.size == 3:
-            R = cv2.Rodrigues(R)[0]
-        elif R.size == 9:
-            R = R.reshape(3, 3).T if jarvis else R.reshape(3, 3)
+        r_flat = _matrix(path, rkey, rnode).reshape(-1)
+        if r_flat.size == 3:
+            R = cv2.Rodrigues(r_flat)[0]
+        elif r_flat.size == 9:
+            R = r_flat.reshape(3, 3).T if jarvis else r_flat.reshape(3, 3)
         else:
-            raise UserError(f"{path}: {rkey} has {R.size} values, expected a 3x3 matrix or a Rodrigues vector")
+            raise UserError(f"{path}: {rkey} has {r_flat.size} values, expected a 3x3 matrix or a Rodrigues "
+                            "vector")
         t = _matrix(path, tkey, tnode).reshape(-1)
         if t.size != 3:
             raise UserError(f"{path}: {tkey} has {t.size} values, expected 3")
@@ -119,5 +120,6 @@ def read_opencv_calibration(path: str | Path, units: str | None = None) -> Rig:
         raise FileNotFoundError(f"{path}: calibration file not found")
     parts = [_read_one(f) for f in files]
     names = [f.name.split(".")[0] for f in files]
-    cams = Cameras.from_numpy(*(np.stack([p[i] for p in parts]) for i in range(4)), dtype=torch.float64)
+    K, dist, R, t = (np.stack([p[i] for p in parts]) for i in range(4))  # type: ignore[misc]
+    cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
     return Rig(names, cams, np.array([p[4] for p in parts]), units or "unknown", {"format": "opencv"})

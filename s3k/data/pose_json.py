@@ -104,7 +104,7 @@ def read_mmpose_json(path: str | Path, min_score: float = 0.5) -> LabelTable:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: MMPose predictions file not found")
     data = _load_json(path)
-    meta = {}
+    meta: dict = {}
     if isinstance(data, dict) and "instance_info" in data:
         meta = data.get("meta_info") or {}
         data = data["instance_info"]

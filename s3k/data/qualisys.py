@@ -47,7 +47,12 @@ def read_qualisys_calibration(path: str | Path, units: str | None = None) -> Rig
     if not cameras:
         raise UserError(f"{path}: not a Qualisys calibration: no <cameras><camera> elements")
     flip = np.diag([1.0, -1.0, -1.0])
-    names, Ks, dists, Rs, ts, sizes = [], [], [], [], [], []
+    names: list[str] = []
+    Ks: list[np.ndarray] = []
+    dists: list[list[float]] = []
+    Rs: list[np.ndarray] = []
+    ts: list[np.ndarray] = []
+    sizes: list[list[int]] = []
     for cam in cameras:
         serial = cam.get("serial") or f"camera_{len(names)}"
         parts = {tag: cam.find(tag) for tag in ("fov_video", "intrinsic", "transform")}
