@@ -143,8 +143,8 @@ def _report_usable_labels(dataset: Dataset, P: Problems) -> None:
     if not len(ids):
         # A recording imported without labels: valid, but training needs labels added first.
         P.warning(
-            FRAMES_FILE, "split", "no labelled frames: the dataset can be inspected and labelled, but training "
-            "needs labelled frames (add them to frames.csv and labels.csv, or import with labels)",
+            FRAMES_FILE, "split", "no labelled frames: the dataset can be inspected and labelled, but "
+            "training needs labelled frames (add them to frames.csv and labels.csv, or import with labels)",
         )
     elif not usable.any():
         P.error(
@@ -174,8 +174,8 @@ def _report_label_coverage(dataset: Dataset, P: Problems) -> None:
             continue
         absent = [name for k, name in enumerate(dataset.keypoints) if counts[:, k].any() and not counts[c, k]]
         if absent:
-            P.warning(LABELS_FILE, "keypoint", f"keypoint sets differ between cameras: this camera has no label "
-                      f"of {', '.join(absent)}, which other cameras have", camera=cam)
+            P.warning(LABELS_FILE, "keypoint", "keypoint sets differ between cameras: this camera has no "
+                      f"label of {', '.join(absent)}, which other cameras have", camera=cam)
 
 
 def _torch_dtype(dtype: Any) -> torch.dtype:

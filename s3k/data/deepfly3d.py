@@ -68,8 +68,8 @@ def _camera_entries(data: object, path: Path) -> dict[int, dict]:
         raise UserError(f"{path}: not a DeepFly3D pickle (expected a dict, found {type(data).__name__})")
     cams = {k: v for k, v in data.items() if isinstance(k, (int, np.integer)) and isinstance(v, dict)}
     if not cams:
-        raise UserError(f"{path}: not a DeepFly3D calibration: no camera entries (integer keys 0, 1, ... with "
-                        "R, tvec, intr, distort)")
+        raise UserError(f"{path}: not a DeepFly3D calibration: no camera entries (integer keys 0, 1, ... "
+                        "with R, tvec, intr, distort)")
     return {int(k): cams[k] for k in sorted(cams)}
 
 
@@ -81,7 +81,8 @@ def _array(path: Path, cam: int, entry: dict, key: str, shape: tuple[int, ...]) 
     except (TypeError, ValueError):
         raise UserError(f"{path}: camera {cam} {key!r} is not numbers") from None
     if value.size != int(np.prod(shape)) or not np.isfinite(value).all():
-        raise UserError(f"{path}: camera {cam} {key!r} must be {shape} finite numbers, got shape {value.shape}")
+        raise UserError(f"{path}: camera {cam} {key!r} must be {shape} finite numbers, got shape "
+                        f"{value.shape}")
     return value.reshape(shape)
 
 

@@ -59,7 +59,8 @@ def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
-        raise UserError(f"{path}: not an OpenCV YAML/XML file ({str(exc).strip().splitlines()[-1]})") from None
+        reason = str(exc).strip().splitlines()[-1]
+        raise UserError(f"{path}: not an OpenCV YAML/XML file ({reason})") from None
     try:
         if not fs.isOpened():
             raise UserError(f"{path}: not an OpenCV YAML/XML file")
@@ -83,7 +84,8 @@ def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         if dnode is not None:
             raw = _matrix(path, str(dkey), dnode).reshape(-1)
             if raw.size > 5 and np.any(raw[5:] != 0):
-                raise UserError(f"{path}: {dkey} has {raw.size} coefficients; s3k supports (k1, k2, p1, p2, k3)")
+                raise UserError(f"{path}: {dkey} has {raw.size} coefficients; s3k supports (k1, k2, p1, p2, "
+                                "k3)")
             d[: min(5, raw.size)] = raw[:5]
         r_flat = _matrix(path, rkey, rnode).reshape(-1)
         if r_flat.size == 3:

@@ -109,8 +109,8 @@ def read_mmpose_json(path: str | Path, min_score: float = 0.5) -> LabelTable:
         meta = data.get("meta_info") or {}
         data = data["instance_info"]
     if not isinstance(data, list) or not all(isinstance(f, dict) and "instances" in f for f in data):
-        raise UserError(f"{path}: not MMPose predictions (expected a list of {{frame_id, instances}} entries, "
-                        "or a dict with 'instance_info')")
+        raise UserError(f"{path}: not MMPose predictions (expected a list of {{frame_id, instances}} "
+                        "entries, or a dict with 'instance_info')")
     frames: dict[int, np.ndarray] = {}
     n_points = None
     for i, entry in enumerate(data):
@@ -118,13 +118,15 @@ def read_mmpose_json(path: str | Path, min_score: float = 0.5) -> LabelTable:
         for inst in entry["instances"] or []:
             try:
                 kp = np.asarray(inst["keypoints"], dtype=np.float64).reshape(-1, 2)
-                score = np.asarray(inst.get("keypoint_scores", np.ones(len(kp))), dtype=np.float64).reshape(-1)
+                score = np.asarray(inst.get("keypoint_scores", np.ones(len(kp))), dtype=np.float64)
+                score = score.reshape(-1)
             except (KeyError, TypeError, ValueError):
                 raise UserError(f"{path}: frame entry {i}: an instance without numeric 'keypoints'") from None
             if len(score) != len(kp):
                 raise UserError(f"{path}: frame entry {i}: {len(kp)} keypoints but {len(score)} scores")
             if n_points is not None and len(kp) != n_points:
-                raise UserError(f"{path}: frame entry {i}: {len(kp)} keypoints, earlier frames have {n_points}")
+                raise UserError(f"{path}: frame entry {i}: {len(kp)} keypoints, earlier frames have "
+                                f"{n_points}")
             n_points = len(kp)
             people.append(np.concatenate([kp, score[:, None]], axis=1))
         best = _best(people)

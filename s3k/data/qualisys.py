@@ -31,7 +31,8 @@ def _attr(path: Path, element: ET.Element, serial: str, key: str) -> float:
     try:
         return float(value)
     except ValueError:
-        raise UserError(f"{path}: camera {serial!r} <{element.tag}> {key}={value!r} is not a number") from None
+        raise UserError(f"{path}: camera {serial!r} <{element.tag}> {key}={value!r} is not a number") \
+            from None
 
 
 def read_qualisys_calibration(path: str | Path, units: str | None = None) -> Rig:

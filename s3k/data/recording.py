@@ -125,7 +125,7 @@ def _all_or_nothing(out: Path):
 
 def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], units: str | None,
                  regions: Mapping[str, Sequence[float]] | None) -> tuple[Rig, dict[str, tuple[int, int]]]:
-    """The calibration's cameras of ``videos`` at the videos' sizes (after ``regions``), and the video sizes."""
+    """The calibration's cameras of ``videos`` at the videos' sizes (after ``regions``); the video sizes."""
     from s3k.data import video
 
     cameras = list(videos)
@@ -142,7 +142,8 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
     if regions:
         unknown = sorted(set(regions) - set(cameras))
         if unknown:
-            raise UserError(f"--video-region: cameras {unknown} have no --videos entry ({', '.join(cameras)})")
+            raise UserError(f"--video-region: cameras {unknown} have no --videos entry "
+                            f"({', '.join(cameras)})")
         try:
             rig = rig.with_video_regions({cam: tuple(box) for cam, box in regions.items()})  # type: ignore[misc]
         except ValueError as exc:
@@ -153,8 +154,8 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
             raise UserError(
                 f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
                 f"{rig.size[c][0]}x{rig.size[c][1]}",
-                hint=f"if the video is the calibrated image cropped or padded by a few pixels, declare it with "
-                f"--video-region {cam}=X0,Y0,X1,Y1",
+                hint="if the video is the calibrated image cropped or padded by a few pixels, declare it "
+                f"with --video-region {cam}=X0,Y0,X1,Y1",
             )
     return rig, sizes
 
@@ -167,8 +168,8 @@ def _label_tables(
     none)."""
     from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
 
-    given = [(opt, v) for opt, v in zip(LABEL_OPTIONS, (sleap, dlc, lightning_pose, openpose, mmpose, deepfly3d))
-             if v]
+    values = (sleap, dlc, lightning_pose, openpose, mmpose, deepfly3d)
+    given = [(opt, v) for opt, v in zip(LABEL_OPTIONS, values) if v]
     if len(given) > 1:
         raise UserError(f"give labels from at most one of {', '.join(LABEL_OPTIONS)} (got "
                         f"{', '.join(opt for opt, _ in given)})")
@@ -202,7 +203,8 @@ def _label_tables(
         reader = lambda p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
     unknown = sorted(set(files) - set(cameras))
     if unknown:
-        raise UserError(f"labels given for cameras {unknown} that have no --videos entry ({', '.join(cameras)})")
+        raise UserError(f"labels given for cameras {unknown} that have no --videos entry "
+                        f"({', '.join(cameras)})")
     return kind, {cam: str(p) for cam, p in files.items()}, {cam: reader(path) for cam, path in files.items()}
 
 
@@ -401,5 +403,6 @@ def import_recording(
           f"{n['unlabelled']}), {C} cameras {', '.join(cameras)}, {Kp} keypoints, {W}x{H} px, "
           f"{n_labels} 2D labels, units {rig.units}")
     if rig.units == "unknown":
-        _warn(f"{calibration} does not give its world unit; pass --units (e.g. mm) so that 3D errors have one")
+        _warn(f"{calibration} does not give its world unit; pass --units (e.g. mm) so that 3D errors have "
+              "one")
     return out

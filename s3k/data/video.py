@@ -228,7 +228,8 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
             if stop is not None and i >= stop:
                 return
             if i >= start:
-                yield i, [_read_image(f) if isinstance(f, Path) else f.to_ndarray(format="rgb24") for f in frames]
+                yield i, [_read_image(f) if isinstance(f, Path) else f.to_ndarray(format="rgb24")
+                          for f in frames]
     finally:
         for container in containers:
             container.close()
