@@ -465,3 +465,14 @@ def test_dlc_keypoint_sets_that_differ_are_reported(recording, tmp_path, capsys)
     assert [(p.camera, p.severity) for p in differ] == [("east", "warning")]
     assert "tail" in differ[0].message
     assert not ds.labels(ds.frames("labelled"))[1][:, 1, 2].any()
+
+
+def test_video_region_with_padding_moves_the_principal_point_out(recording):  # noqa: F811
+    rig = _rig(recording)
+    padded = rig.with_video_regions({"east": (0, -4, W_IMG, H_IMG + 4)})
+    assert padded.size.tolist() == [[W_IMG, H_IMG], [W_IMG, H_IMG + 8], [W_IMG, H_IMG]]
+    K, ref = padded.cameras.numpy()["K"], rig.cameras.numpy()["K"]
+    np.testing.assert_allclose(K[1, 1, 2], ref[1, 1, 2] + 4)
+    np.testing.assert_array_equal(K[[0, 2]], ref[[0, 2]])
+    with pytest.raises(ValueError, match="whole-pixel size"):
+        rig.with_video_regions({"east": (0, 0, 10.5, 10)})
