@@ -211,9 +211,9 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames), in the pixels the results are given in.
         stride: heatmap stride (network-input pixels per cell).
         sigma: target width in network-input pixels (the confidence weight's scale).
-        pixel_maps: ``(C, 3, 3)`` affine maps from the cameras' pixels to the network-input pixels (for
-            cameras of the original images that were cropped and resized for the network), or None when
-            ``cams`` are the network input's cameras.
+        pixel_maps: ``(C, 3, 3)`` or per frame ``(B, C, 3, 3)`` affine maps from the cameras' pixels to the
+            network-input pixels (for cameras of the original images that were cropped and resized for the
+            network), or None when ``cams`` are the network input's cameras.
         min_weight: views with a confidence weight at or below this are not used.
         keep_heatmaps: also return the softmax heatmaps.
         max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
@@ -233,10 +233,11 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     weights = confidence_weight(var, sigma)
     if pixel_maps is not None:
         maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
-        if maps.shape != (C, 3, 3):
-            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3), got {tuple(maps.shape)}")
+        if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
+            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
+                             f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
-        uv = uv @ Minv[:, :2, :2].transpose(-1, -2) + Minv[:, None, :2, 2]
+        uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
         cams = cams.to(device=logits.device, dtype=DTYPE)

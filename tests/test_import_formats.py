@@ -458,8 +458,8 @@ def test_dlc_keypoint_sets_that_differ_are_reported(recording, tmp_path, capsys)
         files.append(f"{cam}={tmp_path / cam}.csv")
     assert _run(recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files, "--labelled",
                 "all") == 0
-    err = capsys.readouterr().err
-    assert f"warning: {tmp_path / 'east.csv'}: no keypoint 'tail'" in err
+    out = capsys.readouterr().out
+    assert f"warning: camera east: keypoints tail have no labels in {tmp_path / 'east.csv'}" in out
     problems, ds = check_dataset(tmp_path / "ds")
     differ = [p for p in problems if "keypoint sets differ" in p.message]
     assert [(p.camera, p.severity) for p in differ] == [("east", "warning")]

@@ -336,3 +336,22 @@ def test_self_supervised_pseudo_label_leaves_out_a_view_off_the_consensus():
     # the confused view still gets the consensus as its target
     assert robust["mask"][:, 1, 0].all()
     torch.testing.assert_close(robust["target_uv"][:, 1, 0], uv[:, 1, 0], atol=0.05, rtol=0)
+
+
+def test_self_supervised_pseudo_label_from_target_logits():
+    """With a teacher's logits the pseudo-label is the teacher's point, and the KL trains the student's."""
+    cams, X = _rig(), _points()
+    student = _logits_at(_project_all(cams, X + 0.01)).float().requires_grad_(True)
+    teacher = _logits_at(_project_all(cams, X)).float()
+    loss, info = self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=teacher)
+    torch.testing.assert_close(info["points"], X, atol=1e-4, rtol=0)  # the teacher's, not the student's
+    own, own_info = self_supervised_loss(student, cams, STRIDE, SIGMA)
+    torch.testing.assert_close(own_info["points"], X + 0.01, atol=1e-4, rtol=0)
+    assert loss.item() > 10 * abs(own.item())  # the student is pulled towards the teacher's point
+    loss.backward()
+    assert student.grad is not None and student.grad.abs().sum() > 0
+    # the same logits as target: the same loss as without a teacher
+    same, _ = self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=student.detach())
+    assert same.item() == pytest.approx(own.item(), abs=1e-7)
+    with pytest.raises(ValueError, match="target_logits"):
+        self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=teacher[:, :2])

@@ -29,11 +29,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("experiment", "run one of the paper's experiments as a resumable sweep"),
     "import": (
         "import_",
-        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP) to a dataset",
+        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP, NWB) to a dataset",
     ),
     "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
     "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
     "export": ("export", "export a trained detector to ONNX or TorchScript"),
+    "export-labels": ("export_labels", "a dataset's 2D labels for DeepLabCut, Lightning Pose, SLEAP, NWB"),
+    "export-tracks": ("export_tracks", "write 3D keypoints (track / predict CSV) as NWB"),
 }
 
 

@@ -24,13 +24,13 @@ import numpy as np
 
 from s3k.data.calibration_files import read_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
-from s3k.data.labels2d import LabelTable
+from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
-from s3k.data.sleap import read_sleap_analysis
+from s3k.data.sleap import read_sleap_file
 from s3k.errors import UserError
 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
-LABEL_OPTIONS = ("--sleap", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
+LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
 
 
 def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None, scale: float | None) -> tuple[int, int]:
@@ -161,15 +161,17 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
 
 
 def _label_tables(
-    cameras: list[str], sizes: dict[str, tuple[int, int]], *, sleap, dlc, lightning_pose, openpose, mmpose,
-    deepfly3d, sleap_track, frame_ids_from: str, min_score: float,
+    cameras: list[str], sizes: dict[str, tuple[int, int]], *, sleap, sleap_project, nwb, dlc, lightning_pose,
+    openpose, mmpose, deepfly3d, sleap_track, camera_map, accept_predictions, frame_ids_from: str,
+    min_score: float,
 ) -> tuple[str, dict[str, str], dict[str, LabelTable]]:
     """``(kind, {camera: file}, {camera: LabelTable})`` of the one label option given (``"none"``, {}, {} for
     none)."""
     from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
 
-    values = (sleap, dlc, lightning_pose, openpose, mmpose, deepfly3d)
-    given = [(opt, v) for opt, v in zip(LABEL_OPTIONS, values) if v]
+    options = ("--sleap", "--sleap", *LABEL_OPTIONS[1:])
+    values = (sleap, sleap_project, nwb, dlc, lightning_pose, openpose, mmpose, deepfly3d)
+    given = [(opt, v) for opt, v in zip(options, values) if v]
     if len(given) > 1:
         raise UserError(f"give labels from at most one of {', '.join(LABEL_OPTIONS)} (got "
                         f"{', '.join(opt for opt, _ in given)})")
@@ -184,38 +186,40 @@ def _label_tables(
             raise UserError(f"--deepfly3d {deepfly3d}: no camera camera_0, camera_1, ... among --videos "
                             f"({', '.join(cameras)})")
         return "deepfly3d", {cam: str(deepfly3d) for cam in tables}, tables
-    reader: Callable[[str | Path], LabelTable]
+    if sleap_project or nwb:
+        from s3k.data.nwb import read_nwb
+        from s3k.data.slp import read_slp
+
+        if sleap_project:
+            tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
+                              predictions=accept_predictions)
+        else:
+            tables = read_nwb(nwb, cameras, camera_map=camera_map, predictions=accept_predictions)
+        source = str(sleap_project or nwb)
+        return ("sleap" if sleap_project else "nwb"), {cam: source for cam in tables}, tables
+    reader: Callable[[str, str | Path], LabelTable]
     if option == "--sleap":
         files, kind = dict(sleap), "sleap"
-        reader = lambda p: read_sleap_analysis(p, track=sleap_track)  # noqa: E731
+        reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
     elif option == "--openpose":
         files, kind = dict(openpose), "openpose"
-        reader = lambda p: read_openpose_folder(p, min_score)  # noqa: E731
+        reader = lambda _cam, p: read_openpose_folder(p, min_score)  # noqa: E731
     elif option == "--mmpose":
         files, kind = dict(mmpose), "mmpose"
-        reader = lambda p: read_mmpose_json(p, min_score)  # noqa: E731
+        reader = lambda _cam, p: read_mmpose_json(p, min_score)  # noqa: E731
     else:
         if dlc:
             files, kind = dict(dlc), "deeplabcut"
         else:
             files = {k: str(v) for k, v in find_lightning_pose_csvs(lightning_pose, cameras).items()}
             kind = "lightning-pose"
-        reader = lambda p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
+        reader = lambda _cam, p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
     unknown = sorted(set(files) - set(cameras))
     if unknown:
         raise UserError(f"labels given for cameras {unknown} that have no --videos entry "
                         f"({', '.join(cameras)})")
-    return kind, {cam: str(p) for cam, p in files.items()}, {cam: reader(path) for cam, path in files.items()}
-
-
-def _report_keypoint_sets(tables: dict[str, LabelTable], names: list[str]) -> None:
-    """Warn, naming the file, about each keypoint a camera's labels do not have (keypoint sets that differ
-    between cameras are merged by name)."""
-    for table in tables.values():
-        missing = [k for k in names if k not in table.keypoints]
-        if missing:
-            _warn(f"{table.source}: no keypoint {', '.join(repr(k) for k in missing)} (other cameras' labels "
-                  "have them; this camera is unlabelled for them)")
+    tables = {cam: reader(cam, path) for cam, path in files.items()}
+    return kind, {cam: str(p) for cam, p in files.items()}, tables
 
 
 def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
@@ -245,6 +249,10 @@ def import_recording(
     deepfly3d: str | Path | None = None,
     min_score: float = 0.5,
     sleap_track: str | int | None = None,
+    sleap_project: str | Path | None = None,
+    nwb: str | Path | None = None,
+    camera_map: Mapping[str, str] | None = None,
+    accept_predictions: bool = False,
     frame_ids_from: str = "path",
     overwrite: bool = False,
     labelled: int | str = 10,
@@ -266,16 +274,22 @@ def import_recording(
             read_calibration` reads.
         videos: ``{camera: video or image sequence}``; the order sets the dataset's camera order.
         out: dataset folder to write (all or nothing: written beside it and renamed at the end).
-        sleap: ``{camera: SLEAP analysis .h5}``. Give at most one of ``sleap``, ``dlc``, ``lightning_pose``,
-            ``openpose``, ``mmpose``, ``deepfly3d``; with none every frame is unlabelled (``keypoints``
-            then names the keypoints).
+        sleap: ``{camera: SLEAP analysis .h5 or project .slp}``. Give at most one of ``sleap``,
+            ``sleap_project``, ``nwb``, ``dlc``, ``lightning_pose``, ``openpose``, ``mmpose``,
+            ``deepfly3d``; with none every frame is unlabelled (``keypoints`` then names the keypoints).
         dlc: ``{camera: DeepLabCut / Lightning Pose label CSV}``.
         lightning_pose: folder with Lightning Pose's multi-view ``CollectedData_<camera>.csv``.
         openpose: ``{camera: folder of OpenPose *_keypoints.json}``.
         mmpose: ``{camera: MMPose / RTMPose predictions .json}``.
         deepfly3d: a DeepFly3D ``df3d_result*.pkl`` (cameras ``camera_0`` ...).
         min_score: detections (OpenPose, MMPose) below this score are unlabelled.
-        sleap_track: SLEAP track name or index (when a file has several).
+        sleap_track: SLEAP track name or index (when a file has several); in a project without tracks,
+            the instance index in each frame.
+        sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
+        nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.nwb`).
+        camera_map: ``{camera: video or camera name in the project / NWB file}`` where names differ.
+        accept_predictions: use SLEAP predicted instances / NWB pose estimation series as labels where a
+            frame has no labels by a person.
         frame_ids_from: CSV frame index from the image file name's digits (``"path"``) or the row (``"row"``).
         overwrite: replace an existing dataset folder.
         labelled: number of labelled frames, or ``"all"``.
@@ -304,8 +318,9 @@ def import_recording(
 
     # Labels per camera.
     kind, files, tables = _label_tables(
-        cameras, sizes, sleap=sleap, dlc=dlc, lightning_pose=lightning_pose, openpose=openpose, mmpose=mmpose,
-        deepfly3d=deepfly3d, sleap_track=sleap_track, frame_ids_from=frame_ids_from, min_score=min_score)
+        cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc, lightning_pose=lightning_pose,
+        openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d, sleap_track=sleap_track, camera_map=camera_map,
+        accept_predictions=accept_predictions, frame_ids_from=frame_ids_from, min_score=min_score)
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
@@ -322,7 +337,6 @@ def import_recording(
             raise UserError(f"--keypoints: {missing} not in the labels ({', '.join(names)})")
     if keypoints:
         names = list(keypoints)
-    _report_keypoint_sets(tables, names)
 
     # Frames: the count each video decodes to.
     counts = _frame_counts(videos)
@@ -355,6 +369,9 @@ def import_recording(
         cols = [names.index(k) for k in present]
         dense = table.dense(n_frames, present)
         uv[:, c, cols] = transform_points(dense, maps[c])
+    if tables:
+        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files):
+            print(line)
     W, H = out_size
     inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
     outside = np.isfinite(uv).all(-1) & ~inside
