@@ -33,7 +33,8 @@ from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.readout import DEFAULT_MIN_WEIGHT, read_out
 
-__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "fit_box", "prepare_cameras", "track_videos"]
+__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
+           "track_videos"]
 
 FIT_MODES = ("pad", "crop", "stretch")
 
@@ -128,14 +129,17 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
     crops = crops or {}
     inputs = []
     for c, (name, path) in enumerate(videos.items()):
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"--videos {name}={path}: video file not found")
+        if not video.exists(path):
+            raise FileNotFoundError(f"--videos {name}={path}: no such video file, image folder or image "
+                                    "pattern")
         size = video.frame_size(path)
         calib_size = (int(rig.size[c][0]), int(rig.size[c][1]))
         if size != calib_size:
             raise UserError(
                 f"camera {name!r}: video {path} is {size[0]}x{size[1]} pixels but the calibration gives "
-                f"{calib_size[0]}x{calib_size[1]}; the intrinsics apply only to images of the calibrated size"
+                f"{calib_size[0]}x{calib_size[1]}; the intrinsics apply only to images of the calibrated "
+                "size", hint="if the video is the calibrated image cropped or padded by a few pixels, "
+                f"declare it with --video-region {name}=X0,Y0,X1,Y1",
             )
         box = tuple(float(v) for v in crops.get(name, fit_box(size, net_size, fit)))
         inputs.append(CameraInput(name, Path(path), size, video.frame_rate(path), box,
@@ -232,13 +236,15 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                  overlay: str | Path | None = None, batch: int = 8, start: int = 0, stop: int | None = None,
                  min_weight: float = DEFAULT_MIN_WEIGHT, fit: str = "pad",
                  crops: dict[str, tuple[float, ...]] | None = None, device: str = "auto",
-                 units: str | None = None, progress: bool = True, overwrite: bool = False) -> TrackSummary:
+                 units: str | None = None, progress: bool = True, overwrite: bool = False,
+                 video_regions: dict[str, tuple[float, ...]] | None = None) -> TrackSummary:
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).
 
     Args:
         run_dir: run folder of ``s3k train`` (``s3k.run.load_detector``).
-        videos: ``{camera: video}``; camera names as in the calibration, at least two.
-        calibration: anipose ``calibration.toml``.
+        videos: ``{camera: video or image sequence}``; camera names as in the calibration, at least two.
+        calibration: a calibration file of any format :func:`s3k.data.calibration_files.read_calibration`
+            reads.
         out: CSV file to write.
         overlay: folder for one MP4 per camera with the keypoints drawn, or None.
         batch: frames per forward pass (each has C images).
@@ -251,6 +257,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
         units: world unit of the calibration when the file does not say.
         progress: show a tqdm progress bar.
         overwrite: replace an existing ``out``.
+        video_regions: ``{camera: (x0, y0, x1, y1)}``, the region of the calibrated image each video shows
+            (:meth:`s3k.data.rig.Rig.with_video_regions`).
 
     Returns:
         A :class:`TrackSummary`.
@@ -258,7 +266,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     from tqdm import tqdm
 
     from s3k.data import video
-    from s3k.data.anipose import read_anipose_calibration
+    from s3k.data.calibration_files import read_calibration
     from s3k.draw import draw_overlay, keypoint_colours
     from s3k.predict import pick_device
     from s3k.run import load_detector
@@ -275,7 +283,14 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     if not 0 <= min_weight < 1:
         raise UserError(f"--min-weight must be in [0, 1), got {min_weight}")
     out = check_output(out, overwrite)
-    calib = read_anipose_calibration(calibration, units=units)
+    calib = read_calibration(calibration, units=units)
+    calib = calib.with_sizes({cam: video.frame_size(p) for cam, p in videos.items()
+                              if cam in calib.names and video.exists(p)})
+    if video_regions:
+        try:
+            calib = calib.with_video_regions(video_regions)  # type: ignore[arg-type]
+        except (KeyError, ValueError) as exc:
+            raise UserError(f"--video-region: {exc.args[0]}") from None
     dev = pick_device(device)
     two_pass = TwoPassDetector(run_dir, dev) if is_two_pass(run_dir) else None
     model, meta = (two_pass.coarse, two_pass.coarse_meta) if two_pass else load_detector(run_dir, dev)
@@ -344,3 +359,19 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     frac = [float(valid[:, k].mean()) if len(valid) else 0.0 for k in range(K)]
     pas = [float(ok[:, k].mean()) if len(ok) else 0.0 for k in range(K)]
     return TrackSummary(n, list(meta.keypoints), frac, med, pas, min_weight, calib.units, out)
+
+
+def empty_result_hint(summary: TrackSummary) -> str | None:
+    """What to say when no keypoint got a 3D point in any frame (the CSV is all ``nan``), else None."""
+    if not summary.frames or any(summary.valid_fraction):
+        return None
+    if not any(summary.passing_fraction):
+        why = ("no keypoint has two views with a confidence weight above --min-weight "
+               f"{summary.min_weight:g} in any frame")
+    else:
+        why = "the views of every keypoint triangulate to no valid point"
+    return (f"every keypoint is 0% valid ({why}), so {summary.path} holds only nan: the detector finds "
+            "nothing confident in these videos. A briefly trained model does this: train longer (check it "
+            "with 's3k evaluate RUN DATASET' first), make sure the videos show what it was trained on, and "
+            + ("lower --min-weight (0 uses every view)" if summary.min_weight > 0
+               else "check that the calibration matches the videos"))

@@ -621,9 +621,9 @@ def test_video_dataset_reads_frames_by_video_index(tmp_path: Path):
     ds = Dataset.open(tmp_path / "ds", cache="memory")
     np.testing.assert_array_equal(ds.images([101, 102, 100]), frames[[0, 3, 2]])
     problems, _ = check_dataset(tmp_path / "ds")
-    # The videos decode; without labelled frames the dataset has nothing to train on.
-    assert [(p.file, p.severity) for p in problems] == [("labels.csv", "error")]
-    assert "no labelled frame has a usable label (0 labelled frames)" in problems[0].message
+    # The videos decode; without labelled frames the dataset is valid but has nothing to train on yet.
+    assert [(p.file, p.severity) for p in problems] == [("frames.csv", "warning")]
+    assert "no labelled frames: the dataset can be inspected and labelled" in problems[0].message
 
 
 def test_dataset_error_is_one_line_user_error_with_every_problem(tiny):

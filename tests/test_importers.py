@@ -435,8 +435,11 @@ def test_import_recording_takes_typed_arguments(recording, tmp_path):
     ids = lib.frames()
     np.testing.assert_array_equal(lib.labels(ids)[0], cli.labels(ids)[0])
     np.testing.assert_array_equal(lib.calibration(ids).K.numpy(), cli.calibration(ids).K.numpy())
-    with pytest.raises(UserError, match="exactly one of --sleap, --dlc, --lightning-pose"):
+    with pytest.raises(UserError, match="no labels given: name the keypoints with --keypoints"):
         rec.import_recording(root / "calibration.toml", {"north": root / "north.mkv"}, tmp_path / "x")
+    with pytest.raises(UserError, match="at most one of .*got --sleap, --dlc"):
+        rec.import_recording(root / "calibration.toml", {"north": root / "north.mkv"}, tmp_path / "x",
+                             sleap={"north": root / "north.analysis.h5"}, dlc={"north": root / "x.csv"})
 
 
 def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):

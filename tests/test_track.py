@@ -440,3 +440,45 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(out) in err and "--overwrite" in err
     assert out.read_bytes() == before
+
+
+def test_track_reads_image_sequences_like_videos(recording, tmp_path):
+    from s3k.data.video import extract_frames
+
+    videos = {}
+    for c in CAMERAS:
+        pattern = "frame{:03d}.jpg" if c == CAMERAS[0] else "frame{:03d}.png"
+        extract_frames(recording["videos"][c], tmp_path / "seq" / c, pattern=pattern)
+        videos[c] = tmp_path / "seq" / c
+    videos[CAMERAS[1]] = tmp_path / "seq" / CAMERAS[1] / "frame%03d.png"  # a printf pattern
+    assert _track(recording, tmp_path / "video.csv", "--min-weight", "0") == 0
+    args = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out",
+            str(tmp_path / "seq.csv"), "--no-progress", "--min-weight", "0",
+            "--videos", *[f"{c}={p}" for c, p in videos.items()]]
+    # The first camera's frames went through JPEG: compare the cameras whose PNGs are exact.
+    assert cli.main(args) == 0
+    _, from_video = _read_csv(tmp_path / "video.csv")
+    _, from_seq = _read_csv(tmp_path / "seq.csv")
+    assert from_seq.shape == from_video.shape
+    np.testing.assert_array_equal(from_seq[:, -1], np.arange(FRAMES))
+    assert np.isfinite(from_seq[:, :-1]).all()
+    exact = {c: tmp_path / "seq" / c for c in CAMERAS}
+    for c in CAMERAS:
+        extract_frames(recording["videos"][c], tmp_path / "png" / c)
+        exact[c] = tmp_path / "png" / c
+    args[5] = str(tmp_path / "png.csv")
+    args[args.index("--videos") + 1:] = [f"{c}={p}" for c, p in exact.items()]
+    assert cli.main(args) == 0
+    _, from_png = _read_csv(tmp_path / "png.csv")
+    np.testing.assert_array_equal(from_png, from_video)
+
+
+def test_track_says_why_every_point_is_nan(recording, tmp_path, capsys):
+    # The untrained detector's confidence weights never reach 0.99: no view is used, the CSV is all nan.
+    assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
+    _, values = _read_csv(tmp_path / "empty.csv")
+    assert np.isnan(values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)[..., 0]).all()
+    err = capsys.readouterr().err
+    assert "every keypoint is 0% valid" in err and "train longer" in err and "lower --min-weight" in err
+    assert _track(recording, tmp_path / "full.csv", "--min-weight", "0", "--overwrite") == 0
+    assert "0% valid" not in capsys.readouterr().err

@@ -206,4 +206,5 @@ def test_no_usable_label_is_unusable(tmp_path: Path, capsys, case: str):
         "image"
     ]
     assert "usable for training): 0 of 2" in out
-    assert out.splitlines()[-1].startswith("UNUSABLE: 1 error(s), 2 warning(s)")
+    # the two labelled frames without a usable label, and the right camera without heel (or any) labels
+    assert out.splitlines()[-1].startswith("UNUSABLE: 1 error(s), 3 warning(s)")

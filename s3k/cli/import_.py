@@ -12,16 +12,21 @@ from s3k.errors import UserError
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
-        "Convert a calibrated multi-camera recording to an s3k dataset: anipose calibration.toml, one video "
-        "per camera, and 2D labels from SLEAP (analysis files or projects), NWB (ndx-pose) or DeepLabCut / "
-        "Lightning Pose CSVs. Frames "
-        "with labels are split into labelled and test frames (test labels are kept for evaluation); the "
-        "other frames are unlabelled (their labels, if any, are not written)."
+        "Convert a calibrated multi-camera recording to an s3k dataset: a calibration (anipose TOML, "
+        "Qualisys .qca.txt, OpenCV/JARVIS YAML or XML, DeepFly3D pickle), one video or image sequence per "
+        "camera, and optionally 2D labels (SLEAP analysis files or projects, NWB (ndx-pose), DeepLabCut / "
+        "Lightning Pose CSVs, OpenPose or MMPose JSON, a DeepFly3D pose result). Frames with labels are "
+        "split into labelled and test frames (test labels are kept for evaluation); the other frames are "
+        "unlabelled (their labels, if any, are not written). Without labels every frame is unlabelled. "
+        "See docs/importing.md."
     )
-    parser.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    parser.add_argument("--calibration", required=True,
+                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml (a file "
+                        "or a folder of one file per camera) or DeepFly3D .pkl; chosen by content")
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
-                        help="one video per camera; the order sets the dataset's camera order")
-    labels = parser.add_mutually_exclusive_group(required=True)
+                        help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
+                        "pattern 'dir/img_%%05d.jpg'); the order sets the dataset's camera order")
+    labels = parser.add_mutually_exclusive_group()
     labels.add_argument("--sleap", nargs="+", metavar="CAM=FILE",
                         help="SLEAP analysis HDF5 (.h5) or project (.slp) per camera, or one FILE.slp "
                              "project with a video per camera (matched by video file stem, SLEAP session "
@@ -33,6 +38,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="DeepLabCut / Lightning Pose label CSV per camera")
     labels.add_argument("--lightning-pose", metavar="DIR",
                         help="folder with Lightning Pose's multi-view CSVs CollectedData_<camera>.csv")
+    labels.add_argument("--openpose", nargs="+", metavar="CAM=DIR",
+                        help="folder of OpenPose *_keypoints.json per camera (detections, see --min-score)")
+    labels.add_argument("--mmpose", nargs="+", metavar="CAM=FILE.json",
+                        help="MMPose / RTMPose predictions JSON per camera (detections, see --min-score)")
+    labels.add_argument("--deepfly3d", metavar="FILE.pkl",
+                        help="DeepFly3D df3d_result*.pkl (its points2d, cameras camera_0, camera_1, ...)")
+    parser.add_argument("--min-score", type=float, default=0.5,
+                        help="OpenPose / MMPose points scored below this are unlabelled (default 0.5)")
     parser.add_argument("--sleap-track", default=None,
                         help="SLEAP track name or index when several animals are labelled (in a project "
                              "without tracks: the instance index in each frame); 'all' writes one dataset "
@@ -61,9 +74,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--scale", type=float, default=None, help="output image scale factor, e.g. 0.25")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box in pixel edge coordinates, for every camera or one camera")
+    parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
+                        help="the region of the calibrated image a camera's video shows, in pixel edge "
+                        "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
+                        "calibrated at 1920x1088 (the intrinsics follow)")
     parser.add_argument("--units", default=None,
-                        help="world length unit of the calibration (default: from the board, e.g. mm)")
-    parser.add_argument("--keypoints", default=None, help="comma-separated keypoints to keep (default all)")
+                        help="world length unit of the calibration (default: from the file or its board, "
+                        "e.g. mm)")
+    parser.add_argument("--keypoints", default=None,
+                        help="comma-separated keypoints to keep (default all); names them when no labels are "
+                        "given")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
         accept_predictions=args.accept_predictions,
         dlc=camera_pairs(args.dlc, "--dlc") if args.dlc else None,
         lightning_pose=args.lightning_pose,
+        openpose=camera_pairs(args.openpose, "--openpose") if args.openpose else None,
+        mmpose=camera_pairs(args.mmpose, "--mmpose") if args.mmpose else None,
+        deepfly3d=args.deepfly3d, min_score=args.min_score,
         frame_ids_from=args.frame_ids_from,
         overwrite=args.overwrite,
         labelled=args.labelled if args.labelled == "all" else _count(args.labelled, "--labelled"),
@@ -88,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         crops=parse_crops(args.crop, list(videos)) if args.crop else None,
         units=args.units,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
+        video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
+        if args.video_region else None,
     )
     if args.sleap_track != "all":
         import_recording(args.calibration, dict(videos), args.out, sleap_track=args.sleap_track, **common)

@@ -21,21 +21,24 @@ def camera_pairs(values: list[str] | None, option: str) -> dict[str, str]:
     return out
 
 
-def parse_crops(values: list[str] | None, cameras: list[str]) -> dict[str, tuple[float, ...]]:
-    """``--crop`` values ``["x0,y0,x1,y1"]`` (every camera) or ``["cam=x0,y0,x1,y1", ...]`` ->
-    ``{cam: box}``."""
+def parse_crops(values: list[str] | None, cameras: list[str], option: str = "--crop",
+                every: bool = True) -> dict[str, tuple[float, ...]]:
+    """``--crop`` values ``["x0,y0,x1,y1"]`` (every camera, unless ``every=False``) or
+    ``["cam=x0,y0,x1,y1", ...]`` -> ``{cam: box}``; ``option`` names the option in errors."""
     crops: dict[str, tuple[float, ...]] = {}
     for value in values or []:
         cam, sep, box_text = value.rpartition("=")
         targets = [cam] if sep else list(cameras)
+        if not sep and not every:
+            raise UserError(f"{option} {value!r}: expected CAMERA=x0,y0,x1,y1")
         if sep and cam not in cameras:
-            raise UserError(f"--crop {value!r}: unknown camera {cam!r} (cameras: {', '.join(cameras)})")
+            raise UserError(f"{option} {value!r}: unknown camera {cam!r} (cameras: {', '.join(cameras)})")
         try:
             box = tuple(float(x) for x in box_text.split(","))
         except ValueError:
             box = ()
         if len(box) != 4 or not box[2] > box[0] or not box[3] > box[1]:
-            raise UserError(f"--crop {value!r}: expected [CAMERA=]x0,y0,x1,y1 with x1 > x0 and y1 > y0")
+            raise UserError(f"{option} {value!r}: expected [CAMERA=]x0,y0,x1,y1 with x1 > x0 and y1 > y0")
         for t in targets:
             crops[t] = box
     return crops

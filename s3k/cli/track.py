@@ -9,7 +9,7 @@ from pathlib import Path
 
 from s3k.errors import UserError
 from s3k.readout import DEFAULT_MIN_WEIGHT
-from s3k.track import FIT_MODES, track_videos
+from s3k.track import FIT_MODES, empty_result_hint, track_videos
 
 
 def parse_videos(values: Sequence[str]) -> dict[str, Path]:
@@ -33,8 +33,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
-                        help="one video per camera, camera names as in the calibration")
-    parser.add_argument("--calibration", required=True, help="anipose calibration.toml")
+                        help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
+                        "pattern 'dir/img_%%05d.jpg'), camera names as in the calibration")
+    parser.add_argument("--calibration", required=True,
+                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
+                        "DeepFly3D .pkl (as for 's3k import')")
+    parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
+                        help="the region of the calibrated image a camera's video shows (as for "
+                        "'s3k import')")
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
@@ -66,14 +72,15 @@ def run(args: argparse.Namespace) -> int:
         args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
         start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit, crops=crops,
         device=args.device, units=args.units, progress=not args.no_progress, overwrite=args.overwrite,
+        video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
+        if args.video_region else None,
     )
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
     for kp, f, e in zip(summary.keypoints, summary.valid_fraction, summary.median_error_px):
         print(f"  {kp}: {100 * f:.0f}% valid, median error {e:.2f} px")
-    if summary.frames and not any(summary.passing_fraction):
-        print(f"warning: no keypoint has two views with a confidence weight above --min-weight "
-              f"{summary.min_weight:g} in any frame; every point is nan (lower --min-weight)",
-              file=sys.stderr)
+    hint = empty_result_hint(summary)
+    if hint:
+        print(f"warning: {hint}", file=sys.stderr)
     if args.overlay:
         print(f"overlay videos in {args.overlay}")
     return 0

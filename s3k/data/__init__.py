@@ -14,11 +14,15 @@ Modules, one job each:
 - :mod:`~s3k.data.writer`: ``DatasetWriter``.
 - :mod:`~s3k.data.validate`: the report of ``s3k validate``.
 - :mod:`~s3k.data.rig`: ``Rig``, a calibration file's content (names, sizes, units, ``Cameras``).
-- importers, one per format: :mod:`~s3k.data.anipose` (calibration TOML), :mod:`~s3k.data.dlc`
+- importers, one per format: calibrations :mod:`~s3k.data.anipose` (TOML), :mod:`~s3k.data.qualisys`
+  (``.qca.txt``), :mod:`~s3k.data.opencv_calib` (OpenCV / JARVIS YAML, XML), :mod:`~s3k.data.deepfly3d`
+  (pickles, also its 2D poses), chosen by :mod:`~s3k.data.calibration_files`; labels :mod:`~s3k.data.dlc`
   (DeepLabCut / Lightning Pose CSVs), :mod:`~s3k.data.sleap` (SLEAP analysis HDF5), :mod:`~s3k.data.slp`
-  (SLEAP projects), :mod:`~s3k.data.nwb` (NWB with ndx-pose), and :mod:`~s3k.data.recording`
+  (SLEAP projects), :mod:`~s3k.data.nwb` (NWB with ndx-pose), :mod:`~s3k.data.pose_json` (OpenPose, MMPose
+  JSON); :mod:`~s3k.data.safe_pickle` (the restricted unpickler) and :mod:`~s3k.data.recording`
   (``import_recording``: a recording to a dataset); :mod:`~s3k.data.label_export` writes labels back out.
-- :mod:`~s3k.data.transforms` (crop/resize maps) and :mod:`~s3k.data.video` (video I/O).
+- :mod:`~s3k.data.transforms` (crop/resize maps), :mod:`~s3k.data.video` (video I/O) and
+  :mod:`~s3k.data.imageseq` (image sequences read in place of videos).
 """
 
 from s3k.data.dataset import Dataset, check_dataset

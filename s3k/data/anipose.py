@@ -53,6 +53,22 @@ def _numbers(path: Path, section: str, table: dict, key: str, shape: tuple[int, 
     return value
 
 
+def _project_square_length(path: Path) -> float | None:
+    """``[calibration] board_square_side_length`` of the anipose project ``config.toml`` in the calibration's
+    folder or one of its three parents (anipose keeps ``calibration.toml`` in ``SESSION/calibration/``)."""
+    for folder in [path.parent, *path.parent.parents][:4]:
+        config = folder / "config.toml"
+        if config.is_file() and config.resolve() != path.resolve():
+            try:
+                section = tomllib.loads(config.read_text(encoding="utf-8")).get("calibration", {})
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
+                continue
+            value = section.get("board_square_side_length") if isinstance(section, dict) else None
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                return float(value)
+    return None
+
+
 def _load_toml(path: Path, what: str) -> dict:
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
@@ -67,8 +83,9 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         path: the TOML file.
         units: world length unit; by default ``[metadata] units`` if present (s3k writes it), else inferred
             from the board's ``square_length`` in ``[metadata]`` or in a ``board.toml`` beside the file
-            (anipose's world unit is the unit of the board's square length: ``"mm"`` for lengths >= 1, ``"m"``
-            below), else ``"unknown"``.
+            or ``board_square_side_length`` in the anipose project's ``config.toml`` (in the file's folder or
+            up to three folders above; anipose's world unit is the unit of the board's square length: ``"mm"``
+            for lengths >= 1, ``"m"`` below), else ``"unknown"``.
 
     Returns:
         The rig, cameras in file order.
@@ -84,11 +101,16 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
     metadata = data.get("metadata", {})
     if not isinstance(metadata, dict):
         raise UserError(f"{path}: [metadata] must be a table")
-    sections = [k for k, v in data.items() if k != "metadata" and isinstance(v, dict)]
-    if not any(any(f in data[s] for f in CAMERA_FIELDS) for s in sections):
+    # A camera section has most of the camera fields; other tools' TOML files (a Pose2Sim Config.toml) have
+    # sections that share a field name or two.
+    sections = [k for k, v in data.items() if k != "metadata" and isinstance(v, dict)
+                and sum(f in v for f in CAMERA_FIELDS) >= 3]
+    if not sections:
+        other = " (it looks like a Pose2Sim Config.toml; give the calibration file it produced)" \
+            if "project" in data else ""
         raise UserError(
             f"{path}: not an anipose calibration: no camera sections ([cam_0], [cam_1], ... with "
-            f"{', '.join(CAMERA_FIELDS)})"
+            f"{', '.join(CAMERA_FIELDS)}){other}"
         )
     names: list[str] = []
     Ks, dists, rvecs, ts, sizes = [], [], [], [], []
@@ -125,6 +147,8 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         board = path.parent / "board.toml"
         if square is None and board.is_file():
             square = _load_toml(board, "a board.toml").get("square_length")
+        if square is None:
+            square = _project_square_length(path)
         try:
             units = _units_from_board(float(square) if square is not None else None)
         except (TypeError, ValueError):

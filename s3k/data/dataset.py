@@ -113,6 +113,7 @@ def check_dataset(
     dataset = Dataset(contents, cache="none", workers=workers)
     if contents.calibration_ok:  # else its errors are reported and nothing can be triangulated
         _report_usable_labels(dataset, P)
+    _report_label_coverage(dataset, P)
     if check_images and not P.errors:
         dataset._check_all_images(P)
     elif check_images:
@@ -139,12 +140,42 @@ def _report_usable_labels(dataset: Dataset, P: Problems) -> None:
             FRAMES_FILE, "split", f"labelled frame without a usable label: {why}; the supervised loss has no "
             "target in it", line=int(frames.lines[frames.row_of[frame]]), frame=frame,
         )
-    if not usable.any():
+    if not len(ids):
+        # A recording imported without labels: valid, but training needs labels added first.
+        P.warning(
+            FRAMES_FILE, "split", "no labelled frames: the dataset can be inspected and labelled, but "
+            "training needs labelled frames (add them to frames.csv and labels.csv, or import with labels)",
+        )
+    elif not usable.any():
         P.error(
             LABELS_FILE, None,
             f"no labelled frame has a usable label ({len(ids)} labelled frames): training needs a keypoint "
             "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its image",
         )
+
+
+def _report_label_coverage(dataset: Dataset, P: Problems) -> None:
+    """Warn about a camera or a keypoint without any label in the labelled split, and about keypoints some
+    cameras have labels of and others none (keypoint sets that differ between cameras)."""
+    ids = dataset.frames("labelled")
+    if not len(ids):
+        return
+    _, mask = dataset.labels(ids)
+    counts = mask.sum(axis=0)  # (C, K)
+    bare_cams = [c for c in range(len(dataset.cameras)) if not counts[c].any()]
+    for c in bare_cams:
+        P.warning(LABELS_FILE, "camera", "camera has no label in the labelled frames",
+                  camera=dataset.cameras[c])
+    for k, name in enumerate(dataset.keypoints):
+        if not counts[:, k].any():
+            P.warning(LABELS_FILE, "keypoint", "keypoint has no label in the labelled frames", keypoint=name)
+    for c, cam in enumerate(dataset.cameras):
+        if c in bare_cams:
+            continue
+        absent = [name for k, name in enumerate(dataset.keypoints) if counts[:, k].any() and not counts[c, k]]
+        if absent:
+            P.warning(LABELS_FILE, "keypoint", "keypoint sets differ between cameras: this camera has no "
+                      f"label of {', '.join(absent)}, which other cameras have", camera=cam)
 
 
 def _torch_dtype(dtype: Any) -> torch.dtype:

@@ -1,26 +1,36 @@
 """A calibrated multi-camera recording -> an s3k dataset (the work of ``s3k import``).
 
-The recording is an anipose ``calibration.toml`` (:mod:`s3k.data.anipose`), one video per camera
-(:mod:`s3k.data.video`) and 2D labels per camera: SLEAP analysis files (:mod:`s3k.data.sleap`) or DeepLabCut /
-Lightning Pose CSVs (:mod:`s3k.data.dlc`). Frames whose labels have a keypoint in ``min_views`` cameras are
-split at random into labelled and test frames; every ``stride``-th other frame is unlabelled. Images may be
-cropped and resized on the way; intrinsics and labels follow exactly (``K' = M K``).
+The recording is a calibration (anipose ``calibration.toml``, Qualisys ``.qca.txt``, OpenCV / JARVIS YAML or
+XML, DeepFly3D pickle: :mod:`s3k.data.calibration_files`), one video or image sequence per camera
+(:mod:`s3k.data.video`) and, optionally, 2D labels per camera: SLEAP analysis files (:mod:`s3k.data.sleap`),
+DeepLabCut / Lightning Pose CSVs (:mod:`s3k.data.dlc`), OpenPose or MMPose JSON (:mod:`s3k.data.pose_json`)
+or a DeepFly3D pose result (:mod:`s3k.data.deepfly3d`). Frames whose labels have a keypoint in ``min_views``
+cameras are split at random into labelled and test frames; every ``stride``-th other frame is unlabelled
+(without labels every kept frame is). Images may be cropped and resized on the way; intrinsics and labels
+follow exactly (``K' = M K``). The dataset is written to a temporary folder beside ``out`` and renamed at the
+end, so a failed import leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from s3k.data.anipose import read_anipose_calibration
+from s3k.data.calibration_files import read_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
 from s3k.data.labels2d import LabelTable, coverage_warnings
+from s3k.data.rig import Rig
 from s3k.data.sleap import read_sleap_file
 from s3k.errors import UserError
 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
+LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
 
 
 def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None, scale: float | None) -> tuple[int, int]:
@@ -84,6 +94,148 @@ def split_frames(
     return dict(sorted(splits.items()))
 
 
+def _warn(message: str) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Refuse ``out`` before any work: a file, or a non-empty folder without ``overwrite``."""
+    if out.is_file():
+        raise UserError(f"--out {out}: is a file, not a dataset folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UserError(f"--out {out}: folder exists and is not empty", hint="pass --overwrite to replace it")
+
+
+@contextlib.contextmanager
+def _all_or_nothing(out: Path):
+    """Yield a temporary folder beside ``out``; on success it replaces ``out``, on any error it is removed."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.importing-{os.getpid()}"
+    old = out.parent / f".{out.name}.replaced-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        yield tmp
+        if out.exists():
+            os.replace(out, old)
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], units: str | None,
+                 regions: Mapping[str, Sequence[float]] | None) -> tuple[Rig, dict[str, tuple[int, int]]]:
+    """The calibration's cameras of ``videos`` at the videos' sizes (after ``regions``); the video sizes."""
+    from s3k.data import video
+
+    cameras = list(videos)
+    rig = read_calibration(calibration, units=units)
+    try:
+        rig = rig.select(cameras)
+    except KeyError as exc:
+        raise UserError(f"{calibration}: {exc.args[0]}") from None
+    missing = [f"{cam}={p}" for cam, p in videos.items() if not video.exists(p)]
+    if missing:
+        raise UserError(f"--videos {missing[0]}: no such video file, image folder or image pattern")
+    sizes = {cam: video.frame_size(videos[cam]) for cam in cameras}
+    rig = rig.with_sizes(sizes)
+    if regions:
+        unknown = sorted(set(regions) - set(cameras))
+        if unknown:
+            raise UserError(f"--video-region: cameras {unknown} have no --videos entry "
+                            f"({', '.join(cameras)})")
+        try:
+            rig = rig.with_video_regions({cam: tuple(box) for cam, box in regions.items()})  # type: ignore[misc]
+        except ValueError as exc:
+            raise UserError(f"--video-region {exc}") from None
+    for c, cam in enumerate(cameras):
+        W, H = sizes[cam]
+        if (W, H) != tuple(int(v) for v in rig.size[c]):
+            raise UserError(
+                f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
+                f"{rig.size[c][0]}x{rig.size[c][1]}",
+                hint="if the video is the calibrated image cropped or padded by a few pixels, declare it "
+                f"with --video-region {cam}=X0,Y0,X1,Y1",
+            )
+    return rig, sizes
+
+
+def _label_tables(
+    cameras: list[str], sizes: dict[str, tuple[int, int]], *, sleap, sleap_project, nwb, dlc, lightning_pose,
+    openpose, mmpose, deepfly3d, sleap_track, camera_map, accept_predictions, frame_ids_from: str,
+    min_score: float,
+) -> tuple[str, dict[str, str], dict[str, LabelTable]]:
+    """``(kind, {camera: file}, {camera: LabelTable})`` of the one label option given (``"none"``, {}, {} for
+    none)."""
+    from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
+
+    options = ("--sleap", "--sleap", *LABEL_OPTIONS[1:])
+    values = (sleap, sleap_project, nwb, dlc, lightning_pose, openpose, mmpose, deepfly3d)
+    given = [(opt, v) for opt, v in zip(options, values) if v]
+    if len(given) > 1:
+        raise UserError(f"give labels from at most one of {', '.join(LABEL_OPTIONS)} (got "
+                        f"{', '.join(opt for opt, _ in given)})")
+    if not given:
+        return "none", {}, {}
+    option = given[0][0]
+    if option == "--deepfly3d":
+        from s3k.data.deepfly3d import read_deepfly3d_pose
+
+        tables = read_deepfly3d_pose(deepfly3d, sizes)
+        if not tables:
+            raise UserError(f"--deepfly3d {deepfly3d}: no camera camera_0, camera_1, ... among --videos "
+                            f"({', '.join(cameras)})")
+        return "deepfly3d", {cam: str(deepfly3d) for cam in tables}, tables
+    if sleap_project or nwb:
+        from s3k.data.nwb import read_nwb
+        from s3k.data.slp import read_slp
+
+        if sleap_project:
+            tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
+                              predictions=accept_predictions)
+        else:
+            tables = read_nwb(nwb, cameras, camera_map=camera_map, predictions=accept_predictions)
+        source = str(sleap_project or nwb)
+        return ("sleap" if sleap_project else "nwb"), {cam: source for cam in tables}, tables
+    reader: Callable[[str, str | Path], LabelTable]
+    if option == "--sleap":
+        files, kind = dict(sleap), "sleap"
+        reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
+    elif option == "--openpose":
+        files, kind = dict(openpose), "openpose"
+        reader = lambda _cam, p: read_openpose_folder(p, min_score)  # noqa: E731
+    elif option == "--mmpose":
+        files, kind = dict(mmpose), "mmpose"
+        reader = lambda _cam, p: read_mmpose_json(p, min_score)  # noqa: E731
+    else:
+        if dlc:
+            files, kind = dict(dlc), "deeplabcut"
+        else:
+            files = {k: str(v) for k, v in find_lightning_pose_csvs(lightning_pose, cameras).items()}
+            kind = "lightning-pose"
+        reader = lambda _cam, p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
+    unknown = sorted(set(files) - set(cameras))
+    if unknown:
+        raise UserError(f"labels given for cameras {unknown} that have no --videos entry "
+                        f"({', '.join(cameras)})")
+    tables = {cam: reader(cam, path) for cam, path in files.items()}
+    return kind, {cam: str(p) for cam, p in files.items()}, tables
+
+
+def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
+    """Frames each video decodes to; a warning when the container header says otherwise."""
+    from s3k.data import video
+
+    counts = {}
+    for cam, path in videos.items():
+        decoded = video.frame_count(path, exact=True)
+        header = video.frame_count(path)
+        if header != decoded:
+            _warn(f"{path}: the header says {header} frames but {decoded} decode; using {decoded}")
+        counts[cam] = decoded
+    return counts
+
+
 def import_recording(
     calibration: str | Path,
     videos: Mapping[str, str | Path],
@@ -92,6 +244,10 @@ def import_recording(
     sleap: Mapping[str, str | Path] | None = None,
     dlc: Mapping[str, str | Path] | None = None,
     lightning_pose: str | Path | None = None,
+    openpose: Mapping[str, str | Path] | None = None,
+    mmpose: Mapping[str, str | Path] | None = None,
+    deepfly3d: str | Path | None = None,
+    min_score: float = 0.5,
     sleap_track: str | int | None = None,
     sleap_project: str | Path | None = None,
     nwb: str | Path | None = None,
@@ -109,17 +265,24 @@ def import_recording(
     crops: Mapping[str, Sequence[float]] | None = None,
     units: str | None = None,
     keypoints: Sequence[str] | None = None,
+    video_regions: Mapping[str, Sequence[float]] | None = None,
 ) -> Path:
     """Convert a recording to a dataset folder; returns the folder.
 
     Args:
-        calibration: anipose ``calibration.toml``.
-        videos: ``{camera: video}``; the order sets the dataset's camera order.
-        out: dataset folder to write.
-        sleap: ``{camera: SLEAP analysis .h5 or project .slp}`` (give exactly one of ``sleap``,
-            ``sleap_project``, ``nwb``, ``dlc``, ``lightning_pose``).
+        calibration: a calibration file (or folder) of any format :func:`s3k.data.calibration_files.
+            read_calibration` reads.
+        videos: ``{camera: video or image sequence}``; the order sets the dataset's camera order.
+        out: dataset folder to write (all or nothing: written beside it and renamed at the end).
+        sleap: ``{camera: SLEAP analysis .h5 or project .slp}``. Give at most one of ``sleap``,
+            ``sleap_project``, ``nwb``, ``dlc``, ``lightning_pose``, ``openpose``, ``mmpose``,
+            ``deepfly3d``; with none every frame is unlabelled (``keypoints`` then names the keypoints).
         dlc: ``{camera: DeepLabCut / Lightning Pose label CSV}``.
         lightning_pose: folder with Lightning Pose's multi-view ``CollectedData_<camera>.csv``.
+        openpose: ``{camera: folder of OpenPose *_keypoints.json}``.
+        mmpose: ``{camera: MMPose / RTMPose predictions .json}``.
+        deepfly3d: a DeepFly3D ``df3d_result*.pkl`` (cameras ``camera_0`` ...).
+        min_score: detections (OpenPose, MMPose) below this score are unlabelled.
         sleap_track: SLEAP track name or index (when a file has several); in a project without tracks,
             the instance index in each frame.
         sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
@@ -139,81 +302,47 @@ def import_recording(
         crops: ``{camera: (x0, y0, x1, y1)}`` crop boxes in pixel edge coordinates (default: whole image).
         units: world length unit of the calibration (default: from the file or its board).
         keypoints: keypoints to keep, in this order (default: all, in the label files' order).
+        video_regions: ``{camera: (x0, y0, x1, y1)}``: the region of the calibrated image each video shows
+            (:meth:`s3k.data.rig.Rig.with_video_regions`), for videos a few pixels smaller or larger.
     """
     from s3k.data import video
     from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
     from s3k.data.writer import DatasetWriter
 
-    given = [v for v in (sleap, sleap_project, nwb, dlc, lightning_pose) if v]
-    if len(given) != 1:
-        raise UserError(
-            f"give labels from exactly one of --sleap, --dlc, --lightning-pose, --nwb (got {len(given)})"
-        )
+    out = Path(out)
+    _check_out(out, overwrite)
     if stride < 1:
         raise UserError(f"--stride must be >= 1, got {stride}")
     cameras = list(videos)
-    rig = read_anipose_calibration(calibration, units=units)
-    try:
-        rig = rig.select(cameras)
-    except KeyError as exc:
-        raise UserError(f"{calibration}: {exc.args[0]}") from None
+    rig, sizes = _prepare_rig(calibration, videos, units, video_regions)
 
     # Labels per camera.
-    reader: Callable[[str, str | Path], LabelTable]
-    files: dict[str, str | Path]
-    tables: dict[str, LabelTable] | None = None
-    if sleap_project or nwb:
-        from s3k.data.nwb import read_nwb
-        from s3k.data.slp import read_slp
-
-        if sleap_project:
-            tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
-                              predictions=accept_predictions)
-        else:
-            assert nwb is not None
-            tables = read_nwb(nwb, cameras, camera_map=camera_map, predictions=accept_predictions)
-        files = {cam: Path(sleap_project or nwb or "") for cam in tables}
-        kind = "sleap" if sleap_project else "nwb"
-    elif sleap:
-        files = dict(sleap)
-        reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
-        kind = "sleap"
-    else:
-        if dlc:
-            files = dict(dlc)
-            kind = "deeplabcut"
-        else:
-            assert lightning_pose is not None
-            files = {k: str(v) for k, v in find_lightning_pose_csvs(lightning_pose, cameras).items()}
-            kind = "lightning-pose"
-        reader = lambda _cam, p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
-    unknown = sorted(set(files) - set(cameras))
-    if unknown:
-        raise UserError(f"labels given for cameras {unknown} that have no --videos entry ({', '.join(cameras)})")
-    if tables is None:
-        tables = {cam: reader(cam, path) for cam, path in files.items()}
+    kind, files, tables = _label_tables(
+        cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc, lightning_pose=lightning_pose,
+        openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d, sleap_track=sleap_track, camera_map=camera_map,
+        accept_predictions=accept_predictions, frame_ids_from=frame_ids_from, min_score=min_score)
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
-    if keypoints:
+    if not tables:
+        if not keypoints:
+            raise UserError("no labels given: name the keypoints with --keypoints a,b,c (every frame is "
+                            f"imported unlabelled), or give labels with one of {', '.join(LABEL_OPTIONS)}")
+        if test:
+            raise UserError(f"--test {test}: test frames need labels, and none are given")
+        labelled = 0
+    elif keypoints:
         missing = [k for k in keypoints if k not in names]
         if missing:
             raise UserError(f"--keypoints: {missing} not in the labels ({', '.join(names)})")
+    if keypoints:
         names = list(keypoints)
 
-    # Videos: sizes must match the calibration, frames counted.
-    counts = {}
-    for c, cam in enumerate(cameras):
-        W, H = video.frame_size(videos[cam])
-        if (W, H) != tuple(int(v) for v in rig.size[c]):
-            raise UserError(
-                f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
-                f"{rig.size[c][0]}x{rig.size[c][1]}"
-            )
-        counts[cam] = video.frame_count(videos[cam])
+    # Frames: the count each video decodes to.
+    counts = _frame_counts(videos)
     n_frames = min(counts.values())
     if len(set(counts.values())) > 1:
-        print(f"warning: videos have different frame counts {counts}; using the first {n_frames} frames")
+        _warn(f"videos have different frame counts {counts}; using the first {n_frames} frames")
 
     # Crop and resize: one pixel map per camera, applied to K and to the labels.
     boxes: list[Box] = [(0.0, 0.0, float(W), float(H)) for W, H in rig.size]
@@ -234,15 +363,15 @@ def import_recording(
         table = tables[cam]
         beyond = table.frame_ids >= n_frames
         if beyond.any():
-            print(f"warning: {table.source}: {int(beyond.sum())} labelled frames beyond the video's "
-                  f"{n_frames} frames are ignored")
+            _warn(f"{table.source}: {int(beyond.sum())} labelled frames beyond the video's {n_frames} frames "
+                  "are ignored")
         present = [k for k in names if k in table.keypoints]
         cols = [names.index(k) for k in present]
         dense = table.dense(n_frames, present)
         uv[:, c, cols] = transform_points(dense, maps[c])
-    sources = {cam: str(path) for cam, path in files.items()}
-    for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, sources):
-        print(line)
+    if tables:
+        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files):
+            print(line)
     W, H = out_size
     inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
     outside = np.isfinite(uv).all(-1) & ~inside
@@ -263,28 +392,34 @@ def import_recording(
         "source_image_size": {cam: [int(v) for v in rig.size[c]] for c, cam in enumerate(cameras)},
         "split_seed": seed,
     }
-    writer = DatasetWriter(
-        out, names, cameras, out_size, rig.units,
-        calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source,
-        description=f"imported from {kind} labels and {Path(calibration).name}",
-        overwrite=overwrite,
-    )
+    if video_regions:
+        source["video_regions"] = {cam: [float(v) for v in box] for cam, box in video_regions.items()}
+    what = f"{kind} labels" if tables else "no labels"
     wanted = sorted(splits)
-    streams = [video.iter_frames(videos[cam], wanted) for cam in cameras]
-    for frames in zip(*streams):
-        f = frames[0][0]
-        images = []
-        for c, (i, image) in enumerate(frames):
-            if i != f:  # pragma: no cover - iter_frames yields the same ids for every camera
-                raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
-            images.append(resize_crop(image, None, boxes[c], out_size)[0])
-        split = splits[f]
-        frame_labels = (np.nan_to_num(uv[f]), mask[f]) if split != "unlabelled" else None
-        writer.add_frame(f, split, np.stack(images), labels=frame_labels, extra={"video_frame": f})
-    path = writer.close()
+    with _all_or_nothing(out) as tmp:
+        writer = DatasetWriter(
+            tmp, names, cameras, out_size, rig.units,
+            calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source,
+            description=f"imported from {what} and {Path(calibration).name}",
+        )
+        streams = [video.iter_frames(videos[cam], wanted) for cam in cameras]
+        for frames in zip(*streams):
+            f = frames[0][0]
+            images = []
+            for c, (i, image) in enumerate(frames):
+                if i != f:  # pragma: no cover - iter_frames yields the same ids for every camera
+                    raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
+                images.append(resize_crop(image, None, boxes[c], out_size)[0])
+            split = splits[f]
+            frame_labels = (np.nan_to_num(uv[f]), mask[f]) if split != "unlabelled" else None
+            writer.add_frame(f, split, np.stack(images), labels=frame_labels, extra={"video_frame": f})
+        writer.close()
     n = {s: sum(1 for v in splits.values() if v == s) for s in ("labelled", "test", "unlabelled")}
     n_labels = int(sum(mask[f].sum() for f, s in splits.items() if s != "unlabelled"))
-    print(f"wrote {path}: {len(splits)} frames (labelled {n['labelled']}, test {n['test']}, unlabelled "
+    print(f"wrote {out}: {len(splits)} frames (labelled {n['labelled']}, test {n['test']}, unlabelled "
           f"{n['unlabelled']}), {C} cameras {', '.join(cameras)}, {Kp} keypoints, {W}x{H} px, "
           f"{n_labels} 2D labels, units {rig.units}")
-    return path
+    if rig.units == "unknown":
+        _warn(f"{calibration} does not give its world unit; pass --units (e.g. mm) so that 3D errors have "
+              "one")
+    return out

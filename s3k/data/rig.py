@@ -59,3 +59,37 @@ class Rig:
             arrays[key][c] = np.asarray(value, dtype=np.float64).reshape(arrays[key][c].shape)
         cams = Cameras.from_numpy(arrays["K"], arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
         return Rig(list(self.names), cams, self.size.copy(), self.units, dict(self.metadata))
+
+    def with_sizes(self, sizes: dict[str, tuple[int, int]]) -> Rig:
+        """A copy where cameras whose image size the file does not give (size 0, e.g. JARVIS and DeepFly3D
+        calibrations) take ``sizes[name]`` (their videos' sizes)."""
+        size = self.size.copy()
+        for c, name in enumerate(self.names):
+            if (size[c] <= 0).any() and name in sizes:
+                size[c] = sizes[name]
+        return Rig(list(self.names), self.cameras, size, self.units, dict(self.metadata))
+
+    def with_video_regions(self, regions: dict[str, tuple[float, float, float, float]]) -> Rig:
+        """A copy whose camera ``name`` has the image that region ``(x0, y0, x1, y1)`` (pixel edge coordinates
+        of the calibrated image) of its calibrated image becomes: size ``(x1 - x0, y1 - y0)`` and intrinsics
+        ``K' = M K`` (:func:`s3k.data.transforms.resize_crop`). A video of 1080 rows calibrated at 1088, the
+        encoder's 8 rows of padding cut at the bottom, is region ``(0, 0, W, 1080)``; a region reaching
+        outside the calibrated image declares padding added to the video.
+
+        Raises:
+            KeyError: an unknown camera. ValueError: a region of fractional or non-positive size.
+        """
+        from s3k.data.transforms import resize_crop
+
+        arrays = self.cameras.numpy()
+        size = self.size.copy()
+        for name, box in regions.items():
+            c = self.index(name)
+            x0, y0, x1, y1 = (float(v) for v in box)
+            w, h = x1 - x0, y1 - y0
+            if w <= 0 or h <= 0 or w != int(w) or h != int(h):
+                raise ValueError(f"camera {name!r}: region {box} must have a positive whole-pixel size")
+            arrays["K"][c] = resize_crop(None, arrays["K"][c], (x0, y0, x1, y1), (int(w), int(h)))[1]
+            size[c] = (int(w), int(h))
+        cams = Cameras.from_numpy(arrays["K"], arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
+        return Rig(list(self.names), cams, size, self.units, dict(self.metadata))

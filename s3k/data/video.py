@@ -5,7 +5,9 @@ Frame ``i`` is the ``i``-th frame in presentation order, counted from 0, which i
 anipose number frames. Random access seeks to the key frame before the frame's timestamp and decodes forward;
 it assumes a constant frame rate (what camera rigs record) and checks the frame it lands on.
 
-Images are ``uint8 (H, W, 3)`` RGB arrays.
+Images are ``uint8 (H, W, 3)`` RGB arrays. Wherever a video file is accepted, an image sequence (a folder of
+images, a glob or a printf pattern; :mod:`s3k.data.imageseq`) is accepted too: frame ``i`` is its ``i``-th
+image, and its frame rate is :data:`SEQUENCE_FPS`.
 """
 
 from __future__ import annotations
@@ -17,7 +19,16 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data import imageseq
 from s3k.errors import UserError
+
+SEQUENCE_FPS = 30.0  # an image sequence records no frame rate; this one is used for overlay videos
+
+
+def _read_image(path: Path) -> np.ndarray:
+    from s3k.data.sources import decode_image
+
+    return decode_image(path)
 
 
 def _av():
@@ -26,6 +37,16 @@ def _av():
     except ImportError as exc:  # pragma: no cover - av is a declared dependency
         raise ImportError("reading videos needs PyAV: pip install av") from exc
     return av
+
+
+def exists(path: str | Path) -> bool:
+    """True when ``path`` is a file or an image sequence with at least one image."""
+    if not imageseq.is_sequence(path):
+        return Path(path).is_file()
+    try:
+        return bool(imageseq.sequence_files(path))
+    except UserError:
+        return False
 
 
 def _open(path: str | Path):
@@ -54,6 +75,8 @@ def frame_count(path: str | Path, exact: bool = False) -> int:
     Returns:
         The number of frames.
     """
+    if imageseq.is_sequence(path):
+        return len(imageseq.sequence_files(path))
     container, stream = _open(path)
     with container:
         if stream.frames and not exact:
@@ -63,6 +86,9 @@ def frame_count(path: str | Path, exact: bool = False) -> int:
 
 def frame_size(path: str | Path) -> tuple[int, int]:
     """Image size ``(W, H)`` of the first video stream."""
+    if imageseq.is_sequence(path):
+        H, W = _read_image(imageseq.sequence_files(path)[0]).shape[:2]
+        return W, H
     container, stream = _open(path)
     with container:
         return int(stream.codec_context.width), int(stream.codec_context.height)
@@ -70,6 +96,8 @@ def frame_size(path: str | Path) -> tuple[int, int]:
 
 def frame_rate(path: str | Path) -> float:
     """Average frame rate (frames per second) of the first video stream."""
+    if imageseq.is_sequence(path):
+        return SEQUENCE_FPS
     container, stream = _open(path)
     with container:
         rate = stream.average_rate or stream.guessed_rate
@@ -89,6 +117,13 @@ def iter_frames(path: str | Path, frame_ids: Iterable[int] | None = None) -> Ite
     wanted = None if frame_ids is None else sorted({int(i) for i in frame_ids})
     if wanted is not None and wanted and wanted[0] < 0:
         raise IndexError(f"{path}: negative frame index {wanted[0]}")
+    if imageseq.is_sequence(path):
+        files = imageseq.sequence_files(path)
+        if wanted and wanted[-1] >= len(files):
+            raise IndexError(f"{path}: frame {wanted[-1]} requested but the sequence has {len(files)} images")
+        for i in range(len(files)) if wanted is None else wanted:
+            yield i, _read_image(files[i])
+        return
     container, stream = _open(path)
     with container:
         stream.thread_type = "AUTO"
@@ -115,6 +150,9 @@ def read_frame(path: str | Path, index: int) -> np.ndarray:
     index = int(index)
     if index < 0:
         raise IndexError(f"{path}: negative frame index {index}")
+    if imageseq.is_sequence(path):
+        for _, image in iter_frames(path, [index]):
+            return image
     container, stream = _open(path)
     with container:
         rate = stream.average_rate or stream.guessed_rate
@@ -177,8 +215,11 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
     """
     containers = []
     try:
-        decoders = []
+        decoders: list[Iterator[Any]] = []
         for path in paths:
+            if imageseq.is_sequence(path):
+                decoders.append(iter(imageseq.sequence_files(path)))
+                continue
             container, stream = _open(path)
             containers.append(container)
             stream.thread_type = "AUTO"
@@ -187,7 +228,8 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
             if stop is not None and i >= stop:
                 return
             if i >= start:
-                yield i, [f.to_ndarray(format="rgb24") for f in frames]
+                yield i, [_read_image(f) if isinstance(f, Path) else f.to_ndarray(format="rgb24")
+                          for f in frames]
     finally:
         for container in containers:
             container.close()
