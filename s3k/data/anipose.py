@@ -132,7 +132,8 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         d = _numbers(path, section, table, "distortions", None)
         if d.size > 5 and np.any(d[5:] != 0):
             raise UserError(
-                f"{path}: [{section}] distortions has {d.size} coefficients; s3k supports (k1, k2, p1, p2, k3)"
+                f"{path}: [{section}] distortions has {d.size} coefficients; "
+                "s3k supports (k1, k2, p1, p2, k3)"
             )
         names.append(name)
         Ks.append(K / K[2, 2])
@@ -154,7 +155,8 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         except (TypeError, ValueError):
             raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
     # Rodrigues vectors (C, 3) have the shape of t: from_numpy converts them to matrices.
-    cams = Cameras.from_numpy(np.stack(Ks), np.stack(dists), np.stack(rvecs), np.stack(ts), dtype=torch.float64)
+    cams = Cameras.from_numpy(np.stack(Ks), np.stack(dists), np.stack(rvecs), np.stack(ts),
+                              dtype=torch.float64)
     return Rig(names, cams, np.stack(sizes), units, dict(metadata))
 
 

@@ -119,5 +119,6 @@ class ImageCache:
             self.filled[rows] = 1  # only after the pixels are written, for other processes sharing the file
 
     def read(self, rows: np.ndarray) -> np.ndarray:
-        """``uint8 (len(rows), C, H, W, 3)``, a copy (fancy indexing copies; asarray drops the memmap type)."""
+        """``uint8 (len(rows), C, H, W, 3)``, a copy (fancy indexing copies; asarray drops the memmap
+        type)."""
         return np.asarray(self.array[rows])

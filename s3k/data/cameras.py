@@ -1,8 +1,8 @@
 """The dataset's calibration tables: ``calibration.json`` (a static rig) or ``calibration.csv`` (per frame).
 
-Both give the rig as one :class:`s3k.geometry.Cameras` in float64, leading dims ``(C,)`` for a static rig or
-``(N, C)`` per frame, in the stored images' pixels. The checks report a camera whose ``K`` is singular or whose
-last row is not ``[0, 0, 1]``, an ``R`` that is not a rotation, or a value that is not finite.
+Both give the rig as one :class:`s3k.geometry.Cameras` in float64, leading dims ``(C,)`` for a static rig
+or ``(N, C)`` per frame, in the stored images' pixels. The checks report a camera whose ``K`` is singular or
+whose last row is not ``[0, 0, 1]``, an ``R`` that is not a rotation, or a value that is not finite.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import torch
 from s3k.data.problems import Problems
 from s3k.data.tables import (
     CALIBRATION_COLUMNS,
-    FRAMES_FILE,
     PER_FRAME_CALIBRATION_FILE,
     STATIC_CALIBRATION_FILE,
     Frames,
@@ -27,8 +26,6 @@ from s3k.data.tables import (
     read_json,
 )
 from s3k.geometry import Cameras
-
-
 
 # R is a rotation when max |R R^T - I| and |det R - 1| are below this (tolerates 6-digit rounding).
 ROTATION_TOLERANCE = 1e-4
@@ -44,7 +41,8 @@ def cameras_of(K: Any, dist: Any, R: Any, t: Any) -> Cameras:
 
 
 def camera_tuple(calibration: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(K, dist, R, t)`` float64 arrays of a ``Cameras`` or of a ``(K, dist, R, t)`` sequence of array-likes."""
+    """``(K, dist, R, t)`` float64 arrays of a ``Cameras`` or of a ``(K, dist, R, t)`` sequence of
+    array-likes."""
     if isinstance(calibration, Cameras):
         a = calibration.numpy()
         return a["K"], a["dist"], a["R"], a["t"]

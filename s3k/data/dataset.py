@@ -150,7 +150,8 @@ def _report_usable_labels(dataset: Dataset, P: Problems) -> None:
         P.error(
             LABELS_FILE, None,
             f"no labelled frame has a usable label ({len(ids)} labelled frames): training needs a keypoint "
-            "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its image",
+            "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its "
+            "image",
         )
 
 
@@ -312,7 +313,8 @@ class Dataset:
         for name in names:
             if name not in SPLITS:
                 raise ValueError(f"unknown split {name!r}; use one of {list(SPLITS)}")
-        return np.concatenate([self.frame_ids[:0], *(self.frame_ids[self._c.frames.splits == n] for n in names)])
+        splits = self._c.frames.splits
+        return np.concatenate([self.frame_ids[:0], *(self.frame_ids[splits == n] for n in names)])
 
     def split_of(self, frame_ids) -> np.ndarray:
         """Split name of each frame id."""
@@ -336,8 +338,8 @@ class Dataset:
         return rows
 
     def calibration(self, frame_ids, dtype: Any = np.float32) -> Cameras:
-        """``Cameras`` with leading dims ``(B, C)`` for ``frame_ids``, intrinsics of the returned images (after
-        resize/crop). ``dtype``: numpy or torch float32/float64 (``.numpy()`` gives float64 arrays)."""
+        """``Cameras`` with leading dims ``(B, C)`` for ``frame_ids``, intrinsics of the returned images
+        (after resize/crop). ``dtype``: numpy or torch float32/float64 (``.numpy()`` gives float64 arrays)."""
         rows = torch.from_numpy(self._rows(frame_ids))
         cal = self._c.calibration
         if self.static_calibration:
@@ -363,8 +365,8 @@ class Dataset:
         return Cameras(*(x.to(dtype=to).contiguous() for x in (K, cams.dist, cams.R, cams.t)))
 
     def labels(self, frame_ids, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray]:
-        """2D labels of ``frame_ids``: ``uv (B, C, K, 2)`` of ``dtype`` (pixels of the returned images, 0 where
-        masked; ``np.float64`` keeps labels.csv's values exactly) and ``mask (B, C, K) bool`` (labelled,
+        """2D labels of ``frame_ids``: ``uv (B, C, K, 2)`` of ``dtype`` (pixels of the returned images, 0
+        where masked; ``np.float64`` keeps labels.csv's values exactly) and ``mask (B, C, K) bool`` (labelled,
         visible, inside the image)."""
         rows = self._rows(frame_ids)
         return self._label_uv[rows].astype(dtype), self._label_mask[rows].copy()
@@ -528,7 +530,8 @@ class Dataset:
             "labels": per,
             "labels_per_split": {s: int(self._label_mask[m].sum()) for s, m in in_split.items()},
             "triangulable_labelled_frames": int((train.sum(1) >= 2).any(-1).sum()),
-            "usable_labelled_frames": int(usable_labels(self).any(axis=1).sum()) if self._c.calibration_ok else 0,
+            "usable_labelled_frames": (int(usable_labels(self).any(axis=1).sum())
+                                       if self._c.calibration_ok else 0),
             "points3d": None if X is None else int(np.isfinite(X).all(-1).sum()),
             "calibration": "static" if self.static_calibration else "per_frame",
             "image_size": self.source_image_size,

@@ -144,7 +144,8 @@ def read_nwb(
                 data = [np.asarray(series[n].data[:], dtype=np.float64)[:, :2] for n in names]
                 uv = np.stack(data, axis=1)  # (T, K, 2)
                 uv[np.isnan(uv).any(axis=2)] = np.nan
-                tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv, f"{path} ({pe.name})")
+                tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv,
+                                           f"{path} ({pe.name})")
     if not any(np.isfinite(t.uv).any() for t in tables.values()):
         if estimations and not predictions:
             raise UserError(f"{path}: no training frames (labels), only {len(estimations)} PoseEstimation "

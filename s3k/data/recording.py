@@ -33,7 +33,8 @@ Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordina
 LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
 
 
-def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None, scale: float | None) -> tuple[int, int]:
+def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None,
+                scale: float | None) -> tuple[int, int]:
     """The dataset's image size ``(W, H)`` for crops ``boxes``: ``size`` as ``(W, H)`` or as the longer side
     (aspect kept; crops must share it), or the crop size times ``scale``, or the crop size itself."""
     widths = {b[2] - b[0] for b in boxes}
@@ -318,9 +319,10 @@ def import_recording(
 
     # Labels per camera.
     kind, files, tables = _label_tables(
-        cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc, lightning_pose=lightning_pose,
-        openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d, sleap_track=sleap_track, camera_map=camera_map,
-        accept_predictions=accept_predictions, frame_ids_from=frame_ids_from, min_score=min_score)
+        cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc,
+        lightning_pose=lightning_pose, openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d,
+        sleap_track=sleap_track, camera_map=camera_map, accept_predictions=accept_predictions,
+        frame_ids_from=frame_ids_from, min_score=min_score)
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
@@ -348,7 +350,8 @@ def import_recording(
     boxes: list[Box] = [(0.0, 0.0, float(W), float(H)) for W, H in rig.size]
     for cam, box in (crops or {}).items():
         if cam not in cameras or len(box) != 4:
-            raise UserError(f"--crop {cam}={box}: need one of the cameras ({', '.join(cameras)}) and x0,y0,x1,y1")
+            raise UserError(f"--crop {cam}={box}: need one of the cameras ({', '.join(cameras)}) and "
+                            "x0,y0,x1,y1")
         boxes[cameras.index(cam)] = (float(box[0]), float(box[1]), float(box[2]), float(box[3]))
     out_size = output_size(boxes, size, scale)
     maps = [crop_resize_matrix(box, out_size) for box in boxes]

@@ -151,7 +151,8 @@ class VideoImages:
             images = dict(_iter_video(self.root / rel, rel, cam, sorted(set(wanted))))
             for i, index in enumerate(wanted):
                 if index not in images:
-                    raise ImageReadError(rel, f"video frame {index} not found", frame=int(frame_ids[i]), camera=cam)
+                    raise ImageReadError(rel, f"video frame {index} not found", frame=int(frame_ids[i]),
+                                         camera=cam)
                 yield i, c, images[index]
 
     def describe(self, frame: int, c: int) -> str:

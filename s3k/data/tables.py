@@ -94,8 +94,8 @@ def read_csv(root: Path, name: str, required: Sequence[str], P: Problems) -> tup
 
 
 def read_json(root: Path, name: str, missing: str, P: Problems) -> tuple[bool, Any]:
-    """``(True, content)`` of the JSON file ``root / name``, or ``(False, None)`` after reporting why it cannot
-    be read (``missing`` is the message for an absent file)."""
+    """``(True, content)`` of the JSON file ``root / name``, or ``(False, None)`` after reporting why it
+    cannot be read (``missing`` is the message for an absent file)."""
     try:
         return True, json.loads((root / name).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:

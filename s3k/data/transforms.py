@@ -1,10 +1,11 @@
 """The one function that resizes or crops images and updates the intrinsics with them.
 
-Convention (docs/method.md#conventions): pixel ``(0, 0)`` is the centre of the top-left pixel, so pixel column ``i`` covers
-``[i - 0.5, i + 0.5]`` in pixel coordinates. A crop box ``(x0, y0, x1, y1)`` is given in pixel *edge*
-coordinates, where column ``i`` covers ``[i, i + 1)``: the whole image is ``(0, 0, W, H)`` and an integer box
-keeps columns ``x0 .. x1 - 1`` and rows ``y0 .. y1 - 1``. Mapping the box onto an output of ``(w, h)`` pixels
-scales by ``s_x = w / (x1 - x0)``, ``s_y = h / (y1 - y0)`` and sends a pixel coordinate ``u`` to
+Convention (docs/method.md#conventions): pixel ``(0, 0)`` is the centre of the top-left pixel, so pixel
+column ``i`` covers ``[i - 0.5, i + 0.5]`` in pixel coordinates. A crop box ``(x0, y0, x1, y1)`` is given in
+pixel *edge* coordinates, where column ``i`` covers ``[i, i + 1)``: the whole image is ``(0, 0, W, H)`` and
+an integer box keeps columns ``x0 .. x1 - 1`` and rows ``y0 .. y1 - 1``. Mapping the box onto an output of
+``(w, h)`` pixels scales by ``s_x = w / (x1 - x0)``, ``s_y = h / (y1 - y0)`` and sends a pixel coordinate
+``u`` to
 
     u' = s_x (u + 0.5 - x0) - 0.5,
 

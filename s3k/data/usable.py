@@ -52,5 +52,6 @@ def usable_labels(dataset: Dataset, split: str = "labelled", chunk: int = 1024) 
 
 
 def usable_label_count(dataset: Dataset, split: str = "labelled") -> int:
-    """Number of usable labelled keypoints (frame, keypoint pairs) in ``split``; 0 means nothing to train on."""
+    """Number of usable labelled keypoints (frame, keypoint pairs) in ``split``; 0 means nothing to train
+    on."""
     return int(usable_labels(dataset, split).sum())

@@ -248,7 +248,8 @@ class VideoWriter:
     Frames of odd width or height are padded by one edge pixel for the 4:2:0 formats, which need even sizes.
     """
 
-    def __init__(self, path: str | Path, fps: float = 30.0, codec: str = "libx264", lossless: bool = False) -> None:
+    def __init__(self, path: str | Path, fps: float = 30.0, codec: str = "libx264",
+                 lossless: bool = False) -> None:
         self.path = Path(path)
         self.codec = codec
         self.lossless = lossless
