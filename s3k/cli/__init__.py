@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
     "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
     "export": ("export", "export a trained detector to ONNX or TorchScript"),
+    "label": ("label", "label keypoints in the browser; 'label propagate' copies labels over still frames"),
 }
 
 
