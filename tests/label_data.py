@@ -2,7 +2,7 @@
 
 Frames 0-3 are a still stretch (one pose, identical images); frames 4 and 5 have other poses; frame 6 is a
 test frame. Variants: per-frame calibration (camera 1 moves in frame 2, so a stretch over it is not still),
-video-backed (ffv1, exact), and lens distortion in camera 2. No labels: the tests make them.
+video-backed (ffv1, exact), and strong lens distortion in camera 2. No labels: the tests make them.
 """
 
 from __future__ import annotations
@@ -44,9 +44,12 @@ def make_label_dataset(path: str | Path, size: int = 96, per_frame: bool = False
 
     rng = np.random.default_rng(seed)
     K, dist, R, t = rig(size)
-    if distortion:
-        dist = dist.copy()
-        dist[2] = [-0.2, 0.05, 0.0, 0.0, 0.0]
+    if distortion:  # camera 2 turned 7 degrees, so the object lies off its axis, where distortion bends
+        a = np.radians(7.0)
+        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        R, t, dist = R.copy(), t.copy(), dist.copy()
+        R[2], t[2] = turn @ R[2], turn @ t[2]
+        dist[2] = [-6.0, 0.0, 0.0, 0.0, 0.0]
     poses = []
     still = LAYOUT @ random_rotation(rng).T
     for i in range(len(SPLITS)):

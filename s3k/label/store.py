@@ -359,8 +359,12 @@ class LabelStore:
 
     def _append_history(self, entries: list[dict[str, Any]]) -> None:
         data = "".join(json.dumps(e, separators=(",", ":")) + "\n" for e in entries)
-        fd = os.open(self.root / HISTORY_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        fd = os.open(self.root / HISTORY_FILE, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
         try:
+            size = os.fstat(fd).st_size
+            if size and os.pread(fd, 1, size - 1) != b"\n":
+                data = "\n" + data  # after a line cut short by a crash: start a new line
+
             os.write(fd, data.encode("utf-8"))
             os.fsync(fd)
         finally:
