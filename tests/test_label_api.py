@@ -90,7 +90,8 @@ def test_click_epipolar_triangulate_reproject_and_store(truth):
     body = click(client, 1, 2, "cam2", "b", moved).json()
     assert body["geometry"]["b"]["views"]["cam2"]["residual"] > 0.3
     last = client.get("/api/frame/1/history").json()[-1]
-    np.testing.assert_allclose([last["changes"][0]["before"]["u"], last["changes"][0]["before"]["v"]], uv[2, 1])
+    before = last["changes"][0]["before"]
+    np.testing.assert_allclose([before["u"], before["v"]], uv[2, 1])
 
 
 def test_epipolar_curve_follows_lens_distortion(tmp_path):
@@ -250,7 +251,8 @@ def test_propagate_refuses_a_moving_camera_and_from_the_command_line(tmp_path, c
     uv, mask = Dataset.open(truth.path).labels([3])
     np.testing.assert_allclose(uv[0][mask[0]], truth.uv(3)[mask[0]], atol=1e-3)
     code = cli.main(["label", "propagate", str(truth.path), "--frames", "4:5"])
-    assert code == 1 and "no frame there has a keypoint labelled in 2 or more views" in capsys.readouterr().err
+    assert code == 1
+    assert "no frame there has a keypoint labelled in 2 or more views" in capsys.readouterr().err
 
 
 def tiny_run(path, size=32):

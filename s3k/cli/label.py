@@ -51,7 +51,8 @@ def _frames(text: str | None) -> tuple[int, int]:
 def run(args: argparse.Namespace) -> int:
     propagate = args.dataset == "propagate" and not Path("propagate", "s3k.json").is_file()
     if propagate and args.target is None:
-        raise UserError("s3k label propagate needs the dataset folder: s3k label propagate DATASET --frames A:B")
+        raise UserError("s3k label propagate needs the dataset folder",
+                        hint="s3k label propagate DATASET --frames A:B")
     if propagate:
         from s3k.label.propagate import DEFAULT_MAX_DIFF, propagate_labels
 
