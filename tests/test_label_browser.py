@@ -206,3 +206,43 @@ def test_a_stale_tab_shows_the_newer_labels(tmp_path, browser):
         assert tab2.evaluate("document.body.dataset.version") == "1"
         label = tab2.evaluate("s3kLabel.app.frame.labels[0]")
         assert (round(label["u"]), round(label["v"])) == (20, 30)
+
+
+@pytest.mark.skipif(not SHOTS, reason="photographs the app for docs/labelling.md: S3K_SCREENSHOTS=docs/img")
+def test_screenshots_of_the_box_scene(tmp_path, browser):
+    """The docs' pictures: the simulated box scene labelled in the app (and, with S3K_LABEL_RUN=RUN, a
+    trained run's suggestions and ranking)."""
+    pytest.importorskip("mujoco")
+    import torch
+
+    from s3k.geometry import project
+    from s3k.sim.generate import SimulateConfig, simulate
+
+    data = tmp_path / "box"
+    simulate(SimulateConfig("box", size=128, labelled=0, unlabelled=6, test=0, seed=5), data, workers=1,
+             progress=False)
+    ds = Dataset.open(data)
+    X, _ = ds.points3d([0])
+    cams = ds.calibration([0], np.float64)
+    uv = project(cams, torch.as_tensor(X, dtype=torch.float64)[:, None].expand(-1, 4, -1, -1))[0][0].numpy()
+    with Server(data) as url:
+        page = browser.new_page(viewport={"width": 1400, "height": 470})
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        page.locator("#keypoints li").nth(1).click()
+        page.mouse.click(*page_xy(page, "cam0", uv[0, 1]))
+        wait_version(page, 1)
+        page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
+        shot(page, "label-epipolar.png")
+        page.mouse.click(*page_xy(page, "cam3", uv[3, 1]))
+        wait_version(page, 2)
+        page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
+        shot(page, "label-reprojection.png")
+    run = os.environ.get("S3K_LABEL_RUN")
+    if run:
+        with Server(data, Path(run)) as url:
+            page = browser.new_page(viewport={"width": 1400, "height": 470})
+            page.goto(url + "?frame=3")
+            page.wait_for_selector("body[data-ready='1']")
+            page.wait_for_selector("#ranking li")
+            shot(page, "label-suggestions.png")

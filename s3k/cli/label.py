@@ -18,7 +18,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "every view. 's3k label propagate DATASET --frames A:B [--from F]' copies frame F's 3D labels to the "
         "still frames A..B instead.")
     parser.usage = ("s3k label DATASET [--run RUN] [--port PORT] [--host HOST]\n"
-                    "       s3k label propagate DATASET --frames A:B [--from F] [--max-diff GREY]")
+                    "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT]")
     parser.add_argument("dataset", help="dataset folder (or 'propagate' followed by the dataset folder)")
     parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
     parser.add_argument("--run", help="a trained run: its predictions are offered as suggestions and the "
@@ -33,9 +33,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
     group.add_argument("--from", dest="source", type=int, help="frame whose labels are copied (default: the "
                        "frame of the stretch with the most keypoints labelled in two or more views)")
-    group.add_argument("--max-diff", type=float, default=None,
-                       help="largest mean absolute image difference from the source frame, grey levels "
-                            "0-255 (default: 2)")
+    group.add_argument("--max-changed", type=float, default=None,
+                       help="largest percentage of a camera's pixels that may differ from the source frame "
+                            "by more than 24 grey levels in a still frame (default: 0.2)")
 
 
 def _frames(text: str | None) -> tuple[int, int]:
@@ -54,18 +54,18 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("s3k label propagate needs the dataset folder",
                         hint="s3k label propagate DATASET --frames A:B")
     if propagate:
-        from s3k.label.propagate import DEFAULT_MAX_DIFF, propagate_labels
+        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
 
         first, last = _frames(args.frames)
         result = propagate_labels(args.target, first, last, args.source,
-                                  DEFAULT_MAX_DIFF if args.max_diff is None else args.max_diff,
+                                  DEFAULT_MAX_CHANGED if args.max_changed is None else args.max_changed,
                                   labeller=args.labeller)
         print(f"copied frame {result.source}'s {len(result.keypoints)} keypoint(s) "
               f"({', '.join(result.keypoints)}) to {len(result.frames)} frame(s): {result.labels} labels")
         return 0
     if args.target is not None:
         raise UserError(f"unexpected argument {args.target!r}; did you mean 's3k label propagate DATASET'?")
-    for name in ("frames", "source", "max_diff"):
+    for name in ("frames", "source", "max_changed"):
         if getattr(args, name) is not None:
             raise UserError(f"--{name.replace('_', '-')} belongs to 's3k label propagate DATASET'")
     try:

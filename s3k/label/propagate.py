@@ -4,9 +4,11 @@ When the cameras and the object are still for a stretch of frames, the labels of
 them: each keypoint labelled in two or more views of the source frame is triangulated (unit weights, as the
 supervised loss does) and reprojected into every camera of every frame of the stretch, as 2D labels; a view
 where the source frame marks the keypoint occluded gets the same mark. The stretch must really be still:
-every frame's calibration must equal the source frame's, and its images must differ from the source frame's
-by at most ``max_diff`` grey levels (the mean absolute difference over pixels and channels, 0-255, in the
-camera where it is largest). The first frame that breaks either is named and nothing is written.
+every frame's calibration must equal the source frame's, and in no camera may more than ``max_changed``
+percent of its pixels differ from the source frame's by more than ``CHANGE_LEVEL`` grey levels (in any
+channel, 0-255). A share of changed pixels, not a mean difference, so that a small object moving in a large
+still image is caught, and a video codec's noise of a few grey levels is not. The first frame that breaks
+either is named and nothing is written.
 """
 
 from __future__ import annotations
@@ -20,11 +22,13 @@ from s3k.errors import UserError
 from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
 
-__all__ = ["DEFAULT_MAX_DIFF", "PropagateResult", "image_difference", "propagate_labels"]
+__all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "propagate_labels"]
 
-DEFAULT_MAX_DIFF = 2.0
-"""Largest mean absolute image difference (grey levels, 0-255) of a still frame: rendering is exact and a
-video codec's noise on a still scene stays below about one level."""
+CHANGE_LEVEL = 24
+"""A pixel has changed when a channel differs by more than this many grey levels (0-255)."""
+
+DEFAULT_MAX_CHANGED = 0.2
+"""Largest share of changed pixels, in percent of a camera's image, of a still frame."""
 
 
 @dataclass
@@ -37,13 +41,15 @@ class PropagateResult:
     labels: int
 
 
-def image_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Mean absolute difference of two frames' images ``uint8 (C, H, W, 3)``, per camera ``(C,)``."""
-    return np.abs(a.astype(np.int16) - b.astype(np.int16)).mean(axis=(1, 2, 3))
+def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Percent of the pixels of two frames' images ``uint8 (C, H, W, 3)`` that changed (a channel differs by
+    more than :data:`CHANGE_LEVEL`), per camera ``(C,)``."""
+    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1)
+    return 100.0 * (diff > CHANGE_LEVEL).mean(axis=(1, 2))
 
 
 def propagate_labels(data: str | Path, first: int, last: int, source: int | None = None,
-                     max_diff: float = DEFAULT_MAX_DIFF, store: LabelStore | None = None,
+                     max_changed: float = DEFAULT_MAX_CHANGED, store: LabelStore | None = None,
                      labeller: str | None = None) -> PropagateResult:
     """Copy the 3D labels of frame ``source`` to every frame with an id in ``first..last`` (inclusive).
 
@@ -52,7 +58,7 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         first, last: the stretch of frame ids.
         source: the frame whose labels are copied (it need not lie in the stretch); by default the frame of
             the stretch with the most keypoints labelled in two or more views.
-        max_diff: largest mean absolute image difference (grey levels) a still frame may have in any camera.
+        max_changed: largest percentage of changed pixels a still frame may have in any camera.
         store: the dataset's open :class:`LabelStore` (the labelling app passes its own); opened if None.
         labeller: name for the history when the store is opened here.
 
@@ -106,12 +112,12 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
                 raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s calibration ({name}) "
                                 f"differs from frame {source}'s",
                                 hint="choose --frames where the cameras do not move")
-        diff = image_difference(ref_images, ds.images([f])[0])
-        c = int(np.argmax(diff))
-        if diff[c] > max_diff:
-            raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s image differs from frame "
-                            f"{source}'s by {diff[c]:.2f} grey levels (more than {max_diff:g})",
-                            hint="choose --frames where nothing moves, or raise --max-diff")
+        changed = changed_pixels(ref_images, ds.images([f])[0])
+        c = int(np.argmax(changed))
+        if changed[c] > max_changed:
+            raise UserError(f"frame {f} is not still: {changed[c]:.2f}% of camera {ds.cameras[c]}'s pixels "
+                            f"differ from frame {source}'s (more than {max_changed:g}%)",
+                            hint="choose --frames where nothing moves, or raise --max-changed")
     W, H = ds.source_image_size
     uv_src, _ = store.arrays(source)
     i_src = store.row(source)

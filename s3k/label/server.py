@@ -13,7 +13,7 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   ``version`` is stale, 400 naming the field when an edit is invalid.
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking``: with a run, frames of a split ordered by the run's doubt, worst first.
-- ``POST /api/propagate``: ``{"first", "last", "source", "max_diff"}``,
+- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
   :func:`s3k.label.propagate.propagate_labels`.
 
 Files are served only from the package's ``static`` folder; images only by frame id and camera name, so no
@@ -65,7 +65,7 @@ class PropagateIn(BaseModel):
     first: int
     last: int
     source: int | None = None
-    max_diff: float | None = None
+    max_changed: float | None = None
 
 
 class LabelApp:
@@ -202,11 +202,11 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
-        from s3k.label.propagate import DEFAULT_MAX_DIFF, propagate_labels
+        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
 
+        limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
-            result = propagate_labels(state.root, body.first, body.last, body.source,
-                                      body.max_diff if body.max_diff is not None else DEFAULT_MAX_DIFF,
+            result = propagate_labels(state.root, body.first, body.last, body.source, limit,
                                       store=state.store)
         except UserError as exc:
             return _error(400, str(exc))
@@ -220,8 +220,11 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce=print) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
+    import torch
     import uvicorn
 
+    # a request's geometry is a handful of tiny tensors: one thread each is fastest and leaves the cores free
+    torch.set_num_threads(1)
     loopback = host in LOOPBACK
     token = None if loopback else secrets.token_urlsafe(18)
     app = create_app(data, run, token, labeller, device,

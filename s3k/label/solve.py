@@ -17,7 +17,7 @@ import torch
 from s3k.geometry import Cameras, pixel_rays, project
 from s3k.readout import DTYPE, triangulate
 
-__all__ = ["epipolar_curve", "frame_geometry", "triangulate_labels"]
+__all__ = ["epipolar_curves", "frame_geometry", "triangulate_labels"]
 
 EPIPOLAR_SAMPLES = 160
 
@@ -47,28 +47,31 @@ def triangulate_labels(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> dict[
     return {"X": X, "valid": valid, "reproj": reproj, "residual": residual}
 
 
-def epipolar_curve(cams: Cameras, source: int, uv: np.ndarray, target: int,
-                   image_size: tuple[int, int]) -> list[list[float]]:
-    """The view ray of pixel ``uv`` of camera ``source`` as seen by camera ``target``: a polyline of pixels.
+def epipolar_curves(cams: Cameras, source: int, uv: np.ndarray,
+                    image_size: tuple[int, int]) -> list[list[list[float]]]:
+    """The view ray of pixel ``uv`` of camera ``source`` as every camera sees it: one polyline per camera
+    (empty for ``source`` itself).
 
-    Points of the ray are taken at distances spaced geometrically from 1/100 to 100 times the distance
-    between the two camera centres, projected (with distortion), and those in front of the target camera and
-    near its image (within one image size of it) kept, so the curve reaches the image's borders.
+    Points of the ray are taken at distances spaced geometrically from 1/100 to 100 times the largest
+    distance between ``source`` and another camera centre, projected (with distortion) into each camera, and
+    those in front of it and near its image (within one image size of it) kept, so that the curve reaches
+    the image's borders: a straight line without distortion, a curve with it.
     """
     cams = cams.to(dtype=DTYPE)
-    src = cams[source]
-    origin, direction = pixel_rays(src, torch.as_tensor(np.asarray(uv, dtype=np.float64)).reshape(1, 2))
+    click = torch.as_tensor(np.asarray(uv, dtype=np.float64)).reshape(1, 2)
+    origin, direction = pixel_rays(cams[source], click)
     centres = cams.centres()
-    baseline = float(torch.linalg.vector_norm(centres[target] - centres[source]))
+    baseline = float(torch.linalg.vector_norm(centres - centres[source], dim=-1).max())
     scale = baseline if baseline > 0 else 1.0
     s = torch.logspace(-2, 2, EPIPOLAR_SAMPLES, dtype=DTYPE) * scale
     X = origin[0] + s[:, None] * direction[0]
-    pix_t, depth_t = project(cams[target], X)
+    C = len(cams.K)
+    pix_t, depth_t = project(cams, X.expand(C, -1, -1))  # every camera at once
     W, H = image_size
     pix, depth = pix_t.numpy(), depth_t.numpy()
-    near = ((pix[:, 0] > -W) & (pix[:, 0] < 2 * W) & (pix[:, 1] > -H) & (pix[:, 1] < 2 * H))
+    near = (pix[..., 0] > -W) & (pix[..., 0] < 2 * W) & (pix[..., 1] > -H) & (pix[..., 1] < 2 * H)
     keep = (depth > 1e-6) & near
-    return [[float(a), float(b)] for a, b in pix[keep]]
+    return [[] if c == source else pix[c][keep[c]].tolist() for c in range(C)]
 
 
 def _num(x: float) -> float | None:
@@ -97,8 +100,8 @@ def frame_geometry(cams: Cameras, uv: np.ndarray, mask: np.ndarray, keypoints: l
         seen = np.flatnonzero(mask[:, k])
         if len(seen) == 1:
             c0 = int(seen[0])
-            item["epipolar"] = {cam: epipolar_curve(cams, c0, uv[c0, k], c, image_size)
-                                for c, cam in enumerate(cameras) if c != c0}
+            curves = epipolar_curves(cams, c0, uv[c0, k], image_size)
+            item["epipolar"] = {cam: curves[c] for c, cam in enumerate(cameras) if c != c0}
             item["epipolar_from"] = cameras[c0]
         out[kp] = item
     return out
