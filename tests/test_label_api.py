@@ -363,3 +363,15 @@ def test_labels_csv_rewrite_keeps_other_rows_exact(truth):
         ("0", "cam0", "a"), ("0", "cam2", "c"), ("5", "cam1", "b")]
     assert float(got[0]["u"]) == 1.0 / 3.0  # full precision
     assert torch.isfinite(torch.tensor([float(r["u"]) for r in got])).all()
+
+
+def test_a_port_in_use_is_one_line(truth, capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert cli.main(["label", str(truth.path), "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot serve on 127.0.0.1:{port}" in err and "--port" in err

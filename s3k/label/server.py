@@ -220,8 +220,19 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce=print) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
+    import socket
+
     import torch
     import uvicorn
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family) as probe:  # a port in use is the user's to change, said in one line
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise UserError(f"cannot serve on {host}:{port}: {exc.strerror}",
+                            hint="pass another --port (or --host)") from None
 
     # a request's geometry is a handful of tiny tensors: one thread each is fastest and leaves the cores free
     torch.set_num_threads(1)

@@ -7,6 +7,7 @@ const TOKEN = new URLSearchParams(location.search).get("token");
 const app = {
   meta: null, frames: [], frameIndex: 0, frame: null, kp: 0, brightness: 1,
   views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
+  versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
 };
 
 function colour(k, n) { return `hsl(${Math.round((360 * k) / Math.max(n, 1) + 10) % 360}, 85%, 58%)`; }
@@ -240,6 +241,7 @@ function selectKeypoint(k, redraw = true) {
 
 function showFrame(state) {
   app.frame = state;
+  app.versions[state.frame] = state.version;
   const f = state.frame;
   for (const view of Object.values(app.views)) {
     const src = `api/frame/${f}/image/${encodeURIComponent(view.cam)}`;
@@ -277,20 +279,23 @@ function saveEdits(edits, source) {
   setStatus("saving", "pending");
   const frame = app.frame.frame;
   app.queue = app.queue.then(async () => {
-    const version = app.frame && app.frame.frame === frame ? app.frame.version : null;
+    const version = app.versions[frame];
     const r = await api(`api/frame/${frame}/label`, { method: "POST",
       body: JSON.stringify({ version, edits, source }) });
     app.pending -= 1;
     if (r.status === 409) {
+      app.versions[frame] = r.body.current.version;
       if (app.frame.frame === frame) showFrame(r.body.current);
       setStatus(`not saved: ${r.body.detail}; showing the newer labels`, "error");
       return;
     }
     if (!r.ok) {
-      setStatus(`not saved: ${r.body ? r.body.detail : r.status}`, "error");
+      const detail = r.body && typeof r.body.detail === "string" ? r.body.detail : `HTTP ${r.status}`;
+      setStatus(`not saved: ${detail}`, "error");
       if (app.frame.frame === frame) await loadFrame(app.frameIndex);
       return;
     }
+    app.versions[frame] = r.body.version;
     if (app.frame.frame === frame) showFrame(r.body);
     const entry = app.frames.find((x) => x.frame === frame);
     if (entry) { entry.split = r.body.split; entry.labels = r.body.labels.filter((l) => l.visible).length; }
