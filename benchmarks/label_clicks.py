@@ -9,9 +9,9 @@ within ``--tol`` px of the truth is good enough. Three ways of working, each on 
 - ``reprojection``: for each keypoint, click the first two views where it is visible; the app triangulates
   and reprojects it into the others; where a reprojection misses the truth by more than ``--tol`` in a view
   where the keypoint is visible, drag it there (one click) and look again.
-- ``suggestions`` (with ``--run``): accept the run's suggestions for the whole frame (one click), then
-  correct every view whose stored position misses by more than ``--tol``: drag it (visible) or mark it not
-  visible (hidden), one click each; a visible keypoint with no suggestion inside the image is clicked.
+- ``suggestions`` (with ``--run``): for each keypoint whose suggestion lies within ``--tol`` of the truth in
+  every view where it is visible, accept it (one click, the app's ``a``); label the others the
+  ``reprojection`` way.
 
 Each way is scored by the clicks per frame and by the 3D error of the triangulated labels (what the
 supervised loss uses) against the ground truth.
@@ -70,6 +70,8 @@ class Labeller:
         self.client, self.t, self.noise, self.tol = client, truth, noise, tol
         self.rng = np.random.default_rng(seed)
         self.clicks = 0
+        self.accepted = 0  # keypoints whose suggestion was accepted as it was
+        self.suggestion_px: list[float] = []  # suggestion errors in views where the keypoint is visible
 
     def state(self, frame: int) -> dict[str, Any]:
         return self.client.get(f"/api/frame/{frame}").json()
@@ -100,38 +102,45 @@ class Labeller:
                     self.post(frame, [self.aim(i, c, k)], "click")
 
     def reprojection(self, i: int, frame: int) -> None:
-        C, K = self.t["visible"].shape[1:]
-        for k in range(K):
-            seen = [c for c in range(C) if self.t["visible"][i, c, k]]
-            clicked = seen[:2]
-            for c in clicked:
-                state = self.post(frame, [self.aim(i, c, k)], "click")
-            while len(seen) >= 2:
-                views = state["geometry"][self.t["keypoints"][k]]["views"]
-                wrong = [c for c in seen if c not in clicked
-                         and self.off(i, c, k, views[self.t["cameras"][c]]["reproj"])]
-                if not wrong:
-                    break
-                clicked.append(wrong[0])
-                state = self.post(frame, [self.aim(i, wrong[0], k)], "drag")
+        for k in range(self.t["visible"].shape[2]):
+            self.reprojection_keypoint(i, frame, k)
+
+    def reprojection_keypoint(self, i: int, frame: int, k: int) -> None:
+        C = self.t["visible"].shape[1]
+        seen = [c for c in range(C) if self.t["visible"][i, c, k]]
+        clicked = seen[:2]
+        for c in clicked:
+            state = self.post(frame, [self.aim(i, c, k)], "click")
+        while len(seen) >= 2:
+            views = state["geometry"][self.t["keypoints"][k]]["views"]
+            wrong = [c for c in seen if c not in clicked
+                     and self.off(i, c, k, views[self.t["cameras"][c]]["reproj"])]
+            if not wrong:
+                break
+            clicked.append(wrong[0])
+            state = self.post(frame, [self.aim(i, wrong[0], k)], "drag")
 
     def suggestions(self, i: int, frame: int) -> None:
         W, H = self.t["size"]
         sug = self.state(frame)["suggestions"]
-        edits = [{"camera": cam, "keypoint": kp, "u": s["u"], "v": s["v"]}
-                 for kp, views in sug.items() for cam, s in views.items()
-                 if -0.5 <= s["u"] <= W - 0.5 and -0.5 <= s["v"] <= H - 0.5]
-        state = self.post(frame, edits, "accept") if edits else self.state(frame)
-        stored = {(lab["camera"], lab["keypoint"]): (lab["u"], lab["v"]) for lab in state["labels"]}
-        C, K = self.t["visible"].shape[1:]
         for k, kp in enumerate(self.t["keypoints"]):
-            for c, cam in enumerate(self.t["cameras"]):
-                at = stored.get((cam, kp))
-                if self.t["visible"][i, c, k]:
-                    if self.off(i, c, k, at):
-                        self.post(frame, [self.aim(i, c, k)], "drag")
-                elif at is not None and self.off(i, c, k, at):
-                    self.post(frame, [{"camera": cam, "keypoint": kp, "visible": False}], "not visible")
+            views = sug.get(kp, {})
+            inside = {cam: s for cam, s in views.items()
+                      if -0.5 <= s["u"] <= W - 0.5 and -0.5 <= s["v"] <= H - 0.5}
+            seen = [c for c in range(len(self.t["cameras"])) if self.t["visible"][i, c, k]]
+            for c in seen:
+                s = inside.get(self.t["cameras"][c])
+                if s is not None:
+                    self.suggestion_px.append(float(np.linalg.norm([s["u"], s["v"]] - self.t["uv"][i, c, k])))
+            at = {c: (inside[cam]["u"], inside[cam]["v"]) if cam in inside else None
+                  for c, cam in enumerate(self.t["cameras"])}
+            good = len(seen) >= 2 and not any(self.off(i, c, k, at[c]) for c in seen)
+            if good:
+                self.accepted += 1
+                self.post(frame, [{"camera": cam, "keypoint": kp, "u": s["u"], "v": s["v"]}
+                                  for cam, s in inside.items()], "accept")
+            else:
+                self.reprojection_keypoint(i, frame, k)
 
 
 def run_way(way: str, data: Path, truth: dict[str, Any], frames: list[int], run: Path | None, noise: float,
@@ -166,7 +175,13 @@ def run_way(way: str, data: Path, truth: dict[str, Any], frames: list[int], run:
                     missing += 1
                 else:
                     errors.append(float(np.linalg.norm(np.asarray(point) - truth["points"][i, k])) * scale)
-    return {"clicks_per_frame": float(np.mean(per_frame)), "clicks_min": int(min(per_frame)),
+    extra = {}
+    if way == "suggestions":
+        px = np.asarray(person.suggestion_px)
+        extra = {"keypoints_accepted": person.accepted,
+                 "suggestion_median_px": float(np.median(px)) if len(px) else None,
+                 "suggestion_within_tol": float(np.mean(px <= tol)) if len(px) else None}
+    return {**extra, "clicks_per_frame": float(np.mean(per_frame)), "clicks_min": int(min(per_frame)),
             "clicks_max": int(max(per_frame)), "clicks_total": int(sum(per_frame)),
             "median_3d_error_mm": float(np.median(errors)) if errors else None,
             "max_3d_error_mm": float(np.max(errors)) if errors else None, "untriangulated": missing}

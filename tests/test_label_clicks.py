@@ -43,3 +43,25 @@ def test_noisy_clicks_are_corrected_until_every_view_is_close(truth):
     reproj = run_way("reprojection", data, t, frames, None, noise=1.0, tol=1.0, seed=1)
     assert 3 * 3 * 2 <= reproj["clicks_total"] <= 3 * 12 - 1
     assert reproj["untriangulated"] == 0 and reproj["median_3d_error_mm"] < 5.0
+
+
+def test_suggestions_are_accepted_only_where_right(truth, tmp_path, monkeypatch):
+    from test_label_api import tiny_run
+
+    from s3k.label.suggest import Suggestions
+
+    data, frames, t = truth
+    run = tiny_run(tmp_path / "run")
+    # an untrained run's suggestions are nowhere near: every keypoint is labelled by reprojection instead
+    untrained = run_way("suggestions", data, t, frames, run, noise=0.0, tol=1.5, seed=0)
+    assert untrained["keypoints_accepted"] == 0 and untrained["clicks_total"] == 3 * 3 * 2
+
+    def perfect(self, frame, cameras):  # suggestions at the true projections
+        return {kp: {cam: {"u": float(t["uv"][frame, c, k, 0]), "v": float(t["uv"][frame, c, k, 1]),
+                           "weight": 1.0, "residual": 0.0} for c, cam in enumerate(cameras)}
+                for k, kp in enumerate(KEYPOINTS)}
+
+    monkeypatch.setattr(Suggestions, "suggestion", perfect)
+    right = run_way("suggestions", data, t, frames, run, noise=0.0, tol=1.5, seed=0)
+    assert right["keypoints_accepted"] == 9 and right["clicks_total"] == 9
+    assert right["suggestion_median_px"] == 0.0 and right["max_3d_error_mm"] < 1e-3

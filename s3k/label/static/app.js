@@ -48,6 +48,7 @@ function buildViews() {
       `<span class="spacer"></span><button class="occlude" title="the current keypoint is not visible in this view (x)">not visible</button>` +
       `<button class="remove" title="remove the current keypoint's label in this view (Delete)">remove</button></div>`;
     div.querySelector(".name").textContent = cam;
+    div.querySelector(".residual").title = "residual: pixels between the label and the reprojection of the 3D point";
     const svg = el("svg", { viewBox: `${-0.5} ${-0.5} ${W} ${H}`, "data-camera": cam });
     const image = el("image", { x: -0.5, y: -0.5, width: W, height: H, preserveAspectRatio: "none" }, svg);
     const overlay = el("g", { class: "overlay" }, svg);
@@ -171,6 +172,7 @@ function drawView(view, preview = null) {
     }
     const sug = suggestions[kp] && suggestions[kp][view.cam];
     if (sug && !lab) {
+      el("circle", { class: "suggestion-halo", cx: sug.u, cy: sug.v, r: 7 * s }, layer);
       el("circle", { class: "suggestion", cx: sug.u, cy: sug.v, r: 7 * s, stroke: col, "data-keypoint": kp,
                      "data-kind": "suggestion", "data-draggable": "1" }, layer);
     }
@@ -207,7 +209,7 @@ function drawView(view, preview = null) {
   const lab = labelOf(view.cam, current);
   let text = "";
   if (lab && !lab.visible) text = "not visible";
-  else if (res !== null && res !== undefined) text = `residual ${res.toFixed(2)} px`;
+  else if (res !== null && res !== undefined) text = `${res.toFixed(2)} px`;
   view.div.querySelector(".residual").textContent = text;
 }
 
@@ -387,6 +389,7 @@ async function start() {
   app.meta = r.body;
   app.frames = r.body.frames;
   document.getElementById("dataset").textContent = r.body.path;
+  document.getElementById("dataset").title = r.body.path;
   buildViews();
   document.getElementById("prev-frame").addEventListener("click", () => loadFrame(app.frameIndex - 1));
   document.getElementById("next-frame").addEventListener("click", () => loadFrame(app.frameIndex + 1));
