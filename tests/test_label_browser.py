@@ -1,7 +1,8 @@
 """The labelling page driven in a headless Chromium (Playwright, Debian's /usr/bin/chromium) against a server
 started here on a free port, over a small generated dataset whose true projections are known.
 
-With ``S3K_SCREENSHOTS=DIR`` set, the page is also photographed into DIR (``docs/img`` for the docs).
+With ``S3K_SCREENSHOTS=DIR`` set, a last test photographs the page on the simulated box scene into DIR
+(``docs/img`` for docs/labelling.md; ``S3K_LABEL_RUN=RUN`` adds a trained run's suggestions).
 """
 
 from __future__ import annotations
@@ -129,7 +130,6 @@ def test_label_by_clicking_in_two_views(tmp_path, browser):
         for c in (1, 2, 3):
             assert distance_to(polyline(page, CAMERAS[c], "a"), uv[c, 0]) < 0.6
         assert page.locator(".view[data-camera=cam0] polyline.epipolar").count() == 0
-        shot(page, "label-epipolar.png")
 
         # a second view: triangulated and reprojected into every view, with residuals
         page.mouse.click(*page_xy(page, "cam1", uv[1, 0]))
@@ -140,7 +140,6 @@ def test_label_by_clicking_in_two_views(tmp_path, browser):
         assert page.inner_text(".view[data-camera=cam0] .residual").endswith(" px")
         state = page.evaluate("s3kLabel.app.frame")
         np.testing.assert_allclose(state["geometry"]["a"]["point"], truth.points[4, 0], atol=3e-3)
-        shot(page, "label-reprojection.png")
 
         # zoomed in, a click lands where it is aimed, closer than a screen pixel of the full view
         cam3 = page.locator(".view[data-camera=cam3] svg")
