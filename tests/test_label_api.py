@@ -375,3 +375,10 @@ def test_a_port_in_use_is_one_line(truth, capsys):
         assert cli.main(["label", str(truth.path), "--port", str(port)]) == 1
     err = capsys.readouterr().err
     assert f"cannot serve on 127.0.0.1:{port}" in err and "--port" in err
+
+
+def test_a_save_without_edits_changes_nothing(truth):
+    client = TestClient(create_app(truth.path))
+    r = client.post("/api/frame/2/label", json={"version": 0, "edits": []})
+    assert r.status_code == 200 and r.json()["version"] == 0
+    assert not (truth.path / HISTORY_FILE).exists() and not (truth.path / "labels.csv").exists()

@@ -71,7 +71,10 @@ def browser():
 def shot(page, name: str) -> None:
     if SHOTS:
         Path(SHOTS).mkdir(parents=True, exist_ok=True)
-        page.screenshot(path=str(Path(SHOTS) / name))
+        bottom = page.evaluate("Math.ceil(document.querySelector('#views').getBoundingClientRect().bottom)")
+        width = page.viewport_size["width"]
+        clip = {"x": 0, "y": 0, "width": width, "height": bottom + 8}
+        page.screenshot(path=str(Path(SHOTS) / name), clip=clip)
 
 
 def page_xy(page, camera: str, uv) -> tuple[float, float]:

@@ -252,12 +252,18 @@ class LabelStore:
             StaleVersion: ``version`` is older than the stored one (nothing is written).
             UserError: an unknown frame, camera or keypoint, or a visible label outside the image.
         """
+        if not edits:
+            self.refresh()
+            return self.frame_labels(frame)
         return self.save_many({frame: edits}, {frame: version}, source)[frame]
 
     def save_many(self, edits: dict[int, list[Edit]], versions: dict[int, int | None] | None = None,
                   source: str = "click") -> dict[int, dict[str, Any]]:
         """:meth:`save` for several frames in one write of the table (``versions`` per frame)."""
         versions = versions or {}
+        edits = {f: es for f, es in edits.items() if es}  # nothing to change: no new version either
+        if not edits:
+            return {}
         with self._mutex, file_lock(self.root / LOCK_FILE):
             if self._file_stamp() != self._stamp:
                 self._load()
