@@ -95,6 +95,13 @@ class SelfSupervisionConfig:
     outlier_px: float = _f(0.0, "leave out of each pseudo-label the views whose detection misses the other "
                                 "views' consensus by more than this many image pixels, one at a time "
                                 "(0: every view, weighted by its confidence, as in the paper)")
+    pseudo_window: int = _f(0, "read each view's detection for the pseudo-label as its heatmap's mean within "
+                               "this many heatmap cells of the peak (0: the whole heatmap's mean, as in the "
+                               "paper, which probability spread over the heatmap pulls towards its centre)")
+    teacher_ema: float = _f(0.0, "pseudo-labels from a teacher: a copy of the network whose weights follow "
+                                 "the trained ones as an exponential moving average with this decay per "
+                                 "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "
+                                 "the paper")
 
 
 @dataclass
@@ -206,6 +213,7 @@ class TrainConfig:
             "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
             "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
             "colour", "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
+            "pseudo_window",
         ]
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -216,6 +224,8 @@ class TrainConfig:
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
         if self.scale >= 1:
             raise UserError(f"config field 'scale' must be < 1, got {self.scale!r}")
+        if not 0 <= self.teacher_ema < 1:
+            raise UserError(f"config field 'teacher_ema' must be in [0, 1), got {self.teacher_ema!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready flat dictionary of all fields (tuples as lists)."""

@@ -2,20 +2,22 @@
 
 Steps (each skipped when its output already exists, so an interrupted demo continues where it stopped):
 
-1. ``DIR/data``: the box scene at 96 px, 10 labelled, 2000 unlabelled and 200 test frames (MuJoCo).
-2. ``DIR/baseline``: the network trained on the 10 labelled frames only (``--no-unsup``).
-3. ``DIR/s3k``: the same network, same labels, same seed, plus the self-supervised multi-view term on the
-   unlabelled frames (labels-only warm-up, then a ramp of alpha).
-4. Both evaluated on the same test frames; the side-by-side table is printed and written with plots to
-   ``DIR/report`` (``comparison.md``, ``comparison.json``, ``comparison.png`` and one report per model).
+1. ``DIR/data``: the box scene at 256 px, 10 labelled, 2000 unlabelled and 200 test frames (MuJoCo).
+2. ``DIR/baseline``: the coarse-to-fine detector (``s3k train --two-pass``: a coarse pass on the whole image
+   at 96 px, a refining pass on 128 px crops around its estimate) trained on the 10 labelled frames only
+   (``--no-unsup``).
+3. ``DIR/s3k``: the same detector, same labels, same seed, plus the self-supervised multi-view term on the
+   unlabelled frames in both passes (labels-only warm-up, then a ramp of alpha).
+4. Both evaluated on the same test frames through both passes; the side-by-side table is printed and written
+   with plots to ``DIR/report`` (``comparison.md``, ``comparison.json``, ``comparison.png`` and one report per
+   model).
 
 The two trainings are independent, so on a machine with at least two cores they run at the same time as two
 ``s3k train`` processes of one thread each (``--sequential`` trains one after the other with torch's default
 threads). On a shared 2-core CPU one thread per process is also much faster than two threads per process:
-OpenMP threads that wait for a busy core stall every convolution. The defaults (4000 steps per model, S3K with
-750 labels-only steps then a 750-step ramp of alpha to 0.5) take 15-25 minutes on a 2-core CPU. ``--quick``
-runs a tiny version (48 px, a few dozen frames and steps) in under a minute; its numbers only show that the
-pipeline works.
+OpenMP threads that wait for a busy core stall every convolution. ``--one-pass`` trains one network on the
+whole image at 96 px instead (the demo before the coarse-to-fine detector). ``--quick`` runs a tiny version
+(48 px, a few dozen frames and steps) in under a minute; its numbers only show that the pipeline works.
 """
 
 from __future__ import annotations
@@ -36,11 +38,15 @@ from s3k.run import PROGRESS_FILE
 class DemoConfig:
     """Sizes of the demo; the self-supervision schedule and the seed start from ``TrainConfig``'s."""
 
-    size: int = 96
+    size: int = 256
     labelled: int = 10
     unlabelled: int = 2000
     test: int = 200
-    steps: int = 4000
+    steps: int = 2500
+    two_pass: bool = True
+    coarse_size: int = 96
+    coarse_steps: int = 2000
+    crop_size: int = 128
     warmup_steps: int = default_of("warmup_steps")
     ramp_steps: int = default_of("ramp_steps")
     alpha: float = default_of("alpha")
@@ -52,7 +58,24 @@ def schedule_for(steps: int) -> dict[str, int]:
     return {name: min(default_of(name), steps // 4) for name in ("warmup_steps", "ramp_steps")}
 
 
-QUICK = DemoConfig(size=48, labelled=10, unlabelled=40, test=12, steps=60, warmup_steps=20, ramp_steps=20)
+QUICK = DemoConfig(size=64, labelled=10, unlabelled=40, test=12, steps=40, warmup_steps=10, ramp_steps=10,
+                   coarse_size=32, coarse_steps=40, crop_size=32)
+
+
+def _pass_options(demo: DemoConfig) -> list[str]:
+    """The ``s3k train`` options of the demo's detector besides its configuration file."""
+    if not demo.two_pass:
+        return []
+    return ["--two-pass", "--coarse-size", str(demo.coarse_size), "--coarse-steps", str(demo.coarse_steps),
+            "--crop-size", str(demo.crop_size)]
+
+
+def _total_steps(demo: DemoConfig) -> int:
+    return demo.coarse_steps + demo.steps if demo.two_pass else demo.steps
+
+
+def _finished(folder: Path, demo: DemoConfig) -> bool:
+    return (folder / ("two_pass.json" if demo.two_pass else "model.pt")).is_file()
 
 
 def comparison_table(results: dict[str, dict]) -> str:
@@ -90,7 +113,8 @@ def _plot(results: dict[str, dict], path: Path) -> None:
 
 
 def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, log,
-                        progress: bool = False) -> dict[str, float]:
+                        progress: bool = False, options: list[str] | None = None,
+                        coarse_steps: int = 0) -> dict[str, float]:
     """Train every job at once, each as an ``s3k train`` process with one thread; returns wall times.
 
     With ``progress`` each job gets a live bar (step, rate, ETA from the run's ``progress.json``, and its last
@@ -102,14 +126,15 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
         cfg_file = folder.parent / f"{folder.name}.train.json"
         cfg_file.write_text(json.dumps(cfg.replace(threads=1, progress=False).to_dict(), indent=2))
         cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(folder), "--resume",
-               "--config", str(cfg_file)]
+               "--config", str(cfg_file), *(options or [])]
         console = open(folder.parent / f"{folder.name}.console.txt", "a")
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
         log(f"[demo] training {name}: {' '.join(cmd)}")
         procs.append((name, folder, cfg, subprocess.Popen(cmd, stdout=console, stderr=subprocess.STDOUT,
                                                           env=env), console, time.perf_counter()))
     # after the commands are logged, so that no log line lands between the bars
-    bars = _ProgressBars([(name, folder, cfg.steps) for name, folder, cfg in jobs]) if progress else None
+    totals = [(name, folder, coarse_steps + cfg.steps) for name, folder, cfg in jobs]
+    bars = _ProgressBars(totals, coarse_steps) if progress else None
     times: dict[str, float] = {}
     last = time.perf_counter()
     while procs:
@@ -134,7 +159,8 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
                 log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
         if bars is None and procs and time.perf_counter() - last > 60:
             last = time.perf_counter()
-            log("[demo] " + "; ".join(f"{n}: {_last_validation(f)}" for n, f, *_ in procs))
+            log("[demo] " + "; ".join(f"{n}: {_last_validation(_current_pass(f, coarse_steps)[1])}"
+                                      for n, f, *_ in procs))
     if bars is not None:
         bars.update()
         bars.close()
@@ -146,9 +172,10 @@ def _train_side_by_side(jobs: list[tuple[str, Path, TrainConfig]], data: Path, l
 class _ProgressBars:
     """One tqdm bar per training, fed from each run's ``progress.json`` and ``train.log``."""
 
-    def __init__(self, jobs: list[tuple[str, Path, int]]) -> None:
+    def __init__(self, jobs: list[tuple[str, Path, int]], coarse_steps: int = 0) -> None:
         from tqdm import tqdm
 
+        self.coarse_steps = coarse_steps
         width = max(len(name) for name, _, _ in jobs)
         self.jobs = [(folder, tqdm(total=steps, desc=f"{name:<{width}}", position=i, dynamic_ncols=True,
                                    unit="step", smoothing=0.1))
@@ -156,17 +183,33 @@ class _ProgressBars:
 
     def update(self) -> None:
         for folder, bar in self.jobs:
-            try:
-                step = int(json.loads((folder / PROGRESS_FILE).read_text())["step"])
-            except (OSError, ValueError, KeyError):
+            step, current = _current_pass(folder, self.coarse_steps)
+            if step is None:
                 continue
             if step > bar.n:
                 bar.update(step - bar.n)
-            bar.set_postfix_str(_short_validation(folder), refresh=True)
+            bar.set_postfix_str(_short_validation(current), refresh=True)
 
     def close(self) -> None:
         for _, bar in self.jobs:
             bar.close()
+
+
+def _current_pass(folder: Path, coarse_steps: int) -> tuple[int | None, Path]:
+    """``(steps done over both passes, the folder of the pass under way)`` of a run (None before its first
+    step); a one-pass run is its own pass."""
+    def step(run: Path) -> int | None:
+        try:
+            return int(json.loads((run / PROGRESS_FILE).read_text())["step"])
+        except (OSError, ValueError, KeyError):
+            return None
+
+    if not coarse_steps:
+        return step(folder), folder
+    fine = step(folder / "fine")
+    if fine is not None:
+        return coarse_steps + fine, folder / "fine"
+    return step(folder / "coarse"), folder / "coarse"
 
 
 def _short_validation(folder: Path) -> str:
@@ -192,6 +235,7 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     from s3k.evaluate import evaluate_run
     from s3k.sim.generate import SimulateConfig, simulate
     from s3k.train import train
+    from s3k.two_pass import train_two_pass
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -210,23 +254,31 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
                                      ramp_steps=demo.ramp_steps, alpha=demo.alpha, seed=demo.seed,
                                      progress=progress, val_every=max(demo.steps // 6, 1),
                                      checkpoint_every=max(demo.steps // 6, 1))
+    if not demo.two_pass:
+        base_cfg = base_cfg.replace(image_size=demo.coarse_size)
     runs = {"labels only": base_cfg.replace(unsup=False), "S3K": base_cfg}
     folders = {"labels only": out / "baseline", "S3K": out / "s3k"}
     results: dict[str, dict] = {}
-    todo = [(n, folders[n], cfg) for n, cfg in runs.items() if not (folders[n] / "model.pt").is_file()]
+    todo = [(n, folders[n], cfg) for n, cfg in runs.items() if not _finished(folders[n], demo)]
     if parallel and len(todo) > 1 and (os.cpu_count() or 1) >= 2:
-        timings.update(_train_side_by_side(todo, data, log, progress=progress))
+        timings.update(_train_side_by_side(todo, data, log, progress=progress, options=_pass_options(demo),
+                                           coarse_steps=demo.coarse_steps if demo.two_pass else 0))
         import torch
 
         torch.set_num_threads(1)  # the evaluation below is short; one thread is robust on a shared machine
     else:
         for name, folder, cfg in todo:
-            log(f"[demo] training {name} ({cfg.steps} steps) into {folder}")
+            log(f"[demo] training {name} ({_total_steps(demo)} steps) into {folder}")
             t = time.perf_counter()
-            result = train(data, folder, cfg, resume=True)
+            if demo.two_pass:
+                train_two_pass(data, folder, cfg, coarse_size=demo.coarse_size,
+                               coarse_steps=demo.coarse_steps, crop_size=demo.crop_size, resume=True, log=log)
+            else:
+                result = train(data, folder, cfg, resume=True)
+                if result.status != "done":
+                    raise RuntimeError(f"training {name} stopped early ({result.status}); see "
+                                       f"{folder}/train.log")
             timings[f"train_{folder.name}_s"] = time.perf_counter() - t
-            if result.status != "done":
-                raise RuntimeError(f"training {name} stopped early ({result.status}); see {folder}/train.log")
     t = time.perf_counter()
     for name, folder in folders.items():
         log(f"[demo] evaluating {name} on the test frames")
@@ -251,8 +303,11 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     table = comparison_table(results)
     report = out / "report"
     report.mkdir(parents=True, exist_ok=True)
-    scale = (f"box scene, {demo.size} px, {demo.labelled} labelled + {demo.unlabelled} unlabelled frames, "
-             f"{demo.test} test frames, {demo.steps} steps per model (the paper: 400 px, 150k steps)")
+    passes = (f"two passes: coarse {demo.coarse_size} px, {demo.coarse_steps} steps; crops "
+              f"{demo.crop_size} px, {demo.steps} steps" if demo.two_pass
+              else f"one pass at {demo.coarse_size} px, {demo.steps} steps")
+    scale = (f"box scene rendered at {demo.size} px, {demo.labelled} labelled + {demo.unlabelled} unlabelled "
+             f"frames, {demo.test} test frames; {passes} per model (the paper: 400 px, 150k steps)")
     (report / "comparison.md").write_text(f"# S3K vs labels only\n\n{scale}\n\n{table}\n")
     summary = {"scale": scale, "config": demo.__dict__, "timings": timings, "stages_run_in_this_call": ran,
                **{name: results[name] for name in results}}

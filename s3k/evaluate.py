@@ -360,7 +360,13 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
 
 def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch_size: int = 16,
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
-    """Load a run, evaluate it on ``data``'s ``split`` and optionally write a report; returns the metrics."""
+    """Load a run, evaluate it on ``data``'s ``split`` and optionally write a report; returns the metrics.
+
+    A two-pass run (``s3k train --two-pass``) is evaluated through both passes (:mod:`s3k.two_pass`)."""
+    from s3k.two_pass import evaluate_two_pass, is_two_pass
+
+    if is_two_pass(run_dir):
+        return evaluate_two_pass(run_dir, data, split, device, batch_size, report, overlays)
     from s3k.frames import FrameStore, open_dataset
     from s3k.predict import pick_device
     from s3k.run import load_detector

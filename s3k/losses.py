@@ -188,6 +188,8 @@ def self_supervised_loss(
     sigma: float,
     weights: Tensor | None = None,
     max_residual_px: float | None = None,
+    target_logits: Tensor | None = None,
+    window: int = 0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
 
@@ -207,6 +209,10 @@ def self_supervised_loss(
         max_residual_px: if given, views whose detection misses the others' consensus by more than this
             many pixels do not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get
             its target, so they learn from the others.
+        target_logits: optional ``(B, C, K, h, w)`` logits of the same images from which the pseudo-label is
+            read out instead of ``logits`` (a teacher network's); the KL still trains ``logits``.
+        window: the detections that make the pseudo-label are the heatmaps' means within this many cells of
+            their peaks (:func:`s3k.heatmaps.peak_window_mean`); 0: the whole heatmaps' means.
 
     Returns:
         ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
@@ -221,10 +227,14 @@ def self_supervised_loss(
             f"{fn}: weights must have shape (B, C, K) = {(B, C, K)}, "
             f"got {_shape(weights)}"
         )
+    if target_logits is not None and tuple(target_logits.shape) != tuple(logits.shape):
+        raise ValueError(f"{fn}: target_logits must have the shape of logits {tuple(logits.shape)}, "
+                         f"got {_shape(target_logits)}")
+    source = logits if target_logits is None else target_logits
     with torch.no_grad():
         # The read-out every command uses (float64, every finite view with positive weight); the point is
         # then a constant in the cameras' dtype for the target rendering below.
-        _probs, mean_uv, var = readout.moments(logits.detach(), stride)
+        _probs, mean_uv, var = readout.moments(source.detach(), stride, window)
         wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
         used = readout.select_views(mean_uv, wts)
         if max_residual_px is not None:

@@ -110,8 +110,11 @@ def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, spli
     from s3k.frames import open_dataset
     from s3k.run import load_detector
     from s3k.tracks_csv import check_output, csv_rows, write_csv
+    from s3k.two_pass import is_two_pass, predict_two_pass
 
     out = check_output(out, overwrite, dataset=data)
+    if is_two_pass(run_dir):
+        return predict_two_pass(run_dir, data, out, split, batch_size, device)
     dev = pick_device(device)
     model, meta = load_detector(run_dir, dev)
     ds = open_dataset(data, meta.image_size)

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, heatmap_moments, spatial_softmax
+from s3k.heatmaps import confidence_weight, heatmap_moments, peak_window_mean, spatial_softmax
 
 __all__ = [
     "DEFAULT_MIN_WEIGHT",
@@ -57,8 +57,14 @@ DEFAULT_MIN_WEIGHT = 0.0
 """Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
 
 
-def moments(logits: Tensor, stride: int) -> tuple[Tensor, Tensor, Tensor]:
+def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """Spatial softmax of logits ``(*, h, w)`` and its moments, in float64.
+
+    Args:
+        logits: ``(*, h, w)``.
+        stride: heatmap stride.
+        window: 0 for the whole heatmap's mean; else the mean within this many cells of the peak
+            (:func:`s3k.heatmaps.peak_window_mean`). The variance is always the whole heatmap's.
 
     Returns:
         ``(probs (*, h, w), mean_uv (*, 2), var (*))``: the heatmaps, their means in network-input pixels and
@@ -66,6 +72,8 @@ def moments(logits: Tensor, stride: int) -> tuple[Tensor, Tensor, Tensor]:
     """
     probs = spatial_softmax(logits.to(DTYPE))
     mean_uv, var = heatmap_moments(probs, stride)
+    if window:
+        mean_uv = peak_window_mean(probs, stride, window)
     return probs, mean_uv, var
 
 
@@ -211,9 +219,9 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames), in the pixels the results are given in.
         stride: heatmap stride (network-input pixels per cell).
         sigma: target width in network-input pixels (the confidence weight's scale).
-        pixel_maps: ``(C, 3, 3)`` affine maps from the cameras' pixels to the network-input pixels (for
-            cameras of the original images that were cropped and resized for the network), or None when
-            ``cams`` are the network input's cameras.
+        pixel_maps: ``(C, 3, 3)`` or per frame ``(B, C, 3, 3)`` affine maps from the cameras' pixels to the
+            network-input pixels (for cameras of the original images that were cropped and resized for the
+            network), or None when ``cams`` are the network input's cameras.
         min_weight: views with a confidence weight at or below this are not used.
         keep_heatmaps: also return the softmax heatmaps.
         max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
@@ -233,10 +241,11 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     weights = confidence_weight(var, sigma)
     if pixel_maps is not None:
         maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
-        if maps.shape != (C, 3, 3):
-            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3), got {tuple(maps.shape)}")
+        if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
+            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
+                             f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
-        uv = uv @ Minv[:, :2, :2].transpose(-1, -2) + Minv[:, None, :2, 2]
+        uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
         cams = cams.to(device=logits.device, dtype=DTYPE)

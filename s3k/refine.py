@@ -39,6 +39,7 @@ def object_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
 def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int, np.ndarray], extent: float,
                        size: int, keypoints: Sequence[str] | None = None, *,
                        fallback: Callable[[int], np.ndarray] | None = None, chunk: int = 32,
+                       splits: Sequence[str] | None = None,
                        overwrite: bool = False, description: str | None = None) -> Path:
     """Write the crops of every frame of ``source`` around ``centres`` as a dataset at ``out``.
 
@@ -52,6 +53,7 @@ def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int
         fallback: ``frame -> (3,)`` centre for frames without an estimate; without one such a frame is an
             error naming it.
         chunk: frames per batch.
+        splits: the splits to crop (default all three); the others are left out of ``out``.
         overwrite: replace ``out`` if it exists.
         description: stored in the new dataset's metadata.
 
@@ -78,7 +80,7 @@ def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int
     source_meta = {"crops_of": str(source), "extent": extent, "size": size}
     with DatasetWriter(tmp, names, ds.cameras, (size, size), ds.units, per_frame_calibration=True,
                        overwrite=True, description=description, source=source_meta) as writer:
-        for split in ("labelled", "unlabelled", "test"):
+        for split in splits or ("labelled", "unlabelled", "test"):
             ids = np.asarray(ds.frames(split))
             for start in range(0, len(ids), chunk):
                 frames = ids[start:start + chunk]

@@ -191,6 +191,10 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
             state = load_torch_file(path, "model", ("meta", "model"))
             break
     else:
+        if (run_dir / "two_pass.json").is_file():  # s3k.two_pass.TWO_PASS_FILE (that module imports this one)
+            raise UserError(f"{run_dir} is a two-pass run; this needs one detector: {run_dir / 'coarse'} or "
+                            f"{run_dir / 'fine'}", hint="give one of them (the crop rule that joins them is "
+                            "in two_pass.json)")
         raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
     try:
         meta = DetectorMeta.from_dict(state["meta"])

@@ -263,6 +263,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     from s3k.predict import pick_device
     from s3k.run import load_detector
     from s3k.tracks_csv import check_output, csv_rows, write_csv
+    from s3k.two_pass import TwoPassDetector, is_two_pass
 
     if len(videos) < 2:
         raise UserError(f"--videos: triangulation needs at least 2 cameras, got {len(videos)} "
@@ -276,7 +277,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     out = check_output(out, overwrite)
     calib = read_anipose_calibration(calibration, units=units)
     dev = pick_device(device)
-    model, meta = load_detector(run_dir, dev)
+    two_pass = TwoPassDetector(run_dir, dev) if is_two_pass(run_dir) else None
+    model, meta = (two_pass.coarse, two_pass.coarse_meta) if two_pass else load_detector(run_dir, dev)
     net_size = (int(meta.image_size[0]), int(meta.image_size[1]))
     inputs, cams = prepare_cameras(videos, calib, net_size, fit, crops)
     pixel_maps = np.stack([c.M for c in inputs])
@@ -307,7 +309,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     try:
         with write_csv(out, meta.keypoints) as writer, torch.inference_mode():
             bar = tqdm(total=end - start, unit="frame", disable=not progress, desc="track")
-            frames = _prefetch(_frame_batches(inputs, net_size, batch, start, end, overlay is not None))
+            originals_needed = overlay is not None or two_pass is not None
+            frames = _prefetch(_frame_batches(inputs, net_size, batch, start, end, originals_needed))
             for fnums, images, originals in frames:
                 x = torch.from_numpy(images).to(dev)  # (B, C, h, w, 3) uint8
                 B, C = x.shape[:2]
@@ -315,7 +318,10 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                 x = x.permute(0, 1, 4, 2, 3).float().div_(255.0).reshape(B * C, 3, net_size[1], net_size[0])
                 logits = net(x)
                 logits = logits.reshape(B, C, *logits.shape[1:])
-                result = read_out(logits, cams, meta.stride, meta.sigma, pixel_maps, min_weight).cpu()
+                result = read_out(logits, cams, meta.stride, meta.sigma, pixel_maps, min_weight)
+                if two_pass is not None:  # the crops around the coarse estimate, at the videos' resolution
+                    result = two_pass.refine(originals, result, cams, min_weight)
+                result = result.cpu()
                 writer.writerows(csv_rows(fnums, result))
                 reproj, uv, used = result.reproj.numpy(), result.uv.numpy(), result.used.numpy()
                 for c, w in enumerate(writers):

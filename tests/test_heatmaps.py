@@ -208,3 +208,26 @@ def test_confidence_weight_through_moments_gradcheck():
     assert torch.autograd.gradcheck(
         lambda x: confidence_weight(heatmap_moments(spatial_softmax(x), 2)[1], 1.5), (logits,)
     )
+
+
+def test_peak_window_mean_removes_the_pull_of_spread_probability():
+    """Probability spread evenly over the heatmap pulls the whole mean towards the centre in proportion to the
+    spread and the distance; the mean within a window around the peak stays on the Gaussian's centre."""
+    from s3k.heatmaps import peak_window_mean
+
+    uv = torch.tensor([[14.3, 48.6], [40.0, 31.5], [48.8, 16.2]], dtype=torch.float64)
+    target, _ = gaussian_targets(uv, None, 32, 32, 2, 3.0)
+    centre = torch.tensor([31.5, 31.5], dtype=torch.float64)
+    for spread in (0.0, 0.05, 0.2):
+        probs = (1 - spread) * target + spread / (32 * 32)
+        whole, _ = heatmap_moments(probs, 2)
+        torch.testing.assert_close(whole, uv + spread * (centre - uv), atol=1e-3, rtol=0)
+        # what spread stays inside the window pulls towards the peak cell: a few hundredths of a pixel
+        torch.testing.assert_close(peak_window_mean(probs, 2, 5), uv, atol=0.05, rtol=0)
+    # a second mode far away moves the whole mean, not the windowed one
+    far, _ = gaussian_targets(torch.tensor([5.0, 5.0], dtype=torch.float64), None, 32, 32, 2, 3.0)
+    two = 0.7 * target[1] + 0.3 * far
+    assert (heatmap_moments(two, 2)[0] - uv[1]).norm() > 5
+    torch.testing.assert_close(peak_window_mean(two, 2, 5), uv[1], atol=5e-3, rtol=0)
+    with pytest.raises(ValueError, match="radius"):
+        peak_window_mean(target, 2, 0)

@@ -336,3 +336,34 @@ def test_self_supervised_pseudo_label_leaves_out_a_view_off_the_consensus():
     # the confused view still gets the consensus as its target
     assert robust["mask"][:, 1, 0].all()
     torch.testing.assert_close(robust["target_uv"][:, 1, 0], uv[:, 1, 0], atol=0.05, rtol=0)
+
+
+def test_self_supervised_pseudo_label_from_target_logits():
+    """With a teacher's logits the pseudo-label is the teacher's point, and the KL trains the student's."""
+    cams, X = _rig(), _points()
+    student = _logits_at(_project_all(cams, X + 0.01)).float().requires_grad_(True)
+    teacher = _logits_at(_project_all(cams, X)).float()
+    loss, info = self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=teacher)
+    torch.testing.assert_close(info["points"], X, atol=1e-4, rtol=0)  # the teacher's, not the student's
+    own, own_info = self_supervised_loss(student, cams, STRIDE, SIGMA)
+    torch.testing.assert_close(own_info["points"], X + 0.01, atol=1e-4, rtol=0)
+    assert loss.item() > 10 * abs(own.item())  # the student is pulled towards the teacher's point
+    loss.backward()
+    assert student.grad is not None and student.grad.abs().sum() > 0
+    # the same logits as target: the same loss as without a teacher
+    same, _ = self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=student.detach())
+    assert same.item() == pytest.approx(own.item(), abs=1e-7)
+    with pytest.raises(ValueError, match="target_logits"):
+        self_supervised_loss(student, cams, STRIDE, SIGMA, target_logits=teacher[:, :2])
+
+
+def test_self_supervised_pseudo_label_window_ignores_spread_probability():
+    """Heatmaps with mass spread over them: the whole-heatmap means are pulled inwards, so the pseudo-label
+    is off the true point; with a window around each peak it is on it."""
+    cams, X = _rig(), _points()
+    target, _ = gaussian_targets(_project_all(cams, X), None, h, w, STRIDE, SIGMA)
+    logits = (0.8 * target + 0.2 / (h * w)).log().float()
+    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA)
+    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, window=5)
+    assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
+    torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)

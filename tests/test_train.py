@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,9 +69,9 @@ def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, 
     seen = []
     real = loop_module.compute_losses
 
-    def spy(model, lab, unl, cfg, alpha, wd_model):
+    def spy(model, lab, unl, cfg, alpha, wd_model, teacher=None):
         seen.append((unl is None, alpha))
-        return real(model, lab, unl, cfg, alpha, wd_model)
+        return real(model, lab, unl, cfg, alpha, wd_model, teacher)
 
     monkeypatch.setattr(loop_module, "compute_losses", spy)
     result = train(tiny_dataset, tmp_path / "base", tiny_config(unsup=False, steps=3, val_every=0))
@@ -391,3 +392,57 @@ def test_collapse_warning(tiny_dataset, tmp_path):
         assert not any("possible collapse" in r for r in records)  # still in the labels-only warm-up
     finally:
         logger.removeHandler(handler)
+
+
+def test_teacher_follows_the_network_and_resumes_exactly(tiny_dataset, tmp_path):
+    """--teacher_ema: the teacher is saved in the checkpoint, lags the network as an exponential moving
+    average, and a killed run resumes to the same network and teacher as an uninterrupted one."""
+    cfg = tiny_config(steps=4, checkpoint_every=2, teacher_ema=0.5)
+    full = train(tiny_dataset, tmp_path / "full", cfg)
+    state = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)
+    net, teacher = state["model"], state["teacher"]
+    name = next(k for k, v in net.items() if v.ndim == 4)
+    assert not torch.equal(net[name], teacher[name])  # it lags
+    assert torch.equal(net[next(k for k in net if "running_mean" in k)],
+                       teacher[next(k for k in net if "running_mean" in k)])
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_three(step, terms):
+        if step == 3:
+            raise Killed
+
+    with pytest.raises(Killed):
+        train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
+    resumed = train(tiny_dataset, tmp_path / "killed", cfg, resume=True)
+    a, b = _state(full), _state(resumed)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    again = torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)["teacher"]
+    for k in teacher:
+        assert torch.equal(teacher[k], again[k]), k
+    # without a teacher the checkpoint has none; a decay of 1 would never move it
+    train(tiny_dataset, tmp_path / "plain", tiny_config(steps=2, checkpoint_every=2))
+    assert "teacher" not in torch.load(tmp_path / "plain" / "checkpoint.pt", weights_only=True)
+    with pytest.raises(UserError, match="teacher_ema"):
+        tiny_config(teacher_ema=1.0).validate()
+
+
+def test_teacher_update_is_the_moving_average():
+    from s3k.run import DetectorMeta
+    from s3k.train.distributed import DistInfo
+    from s3k.train.loop import _Loop
+
+    cfg = tiny_config(teacher_ema=0.75)
+    meta = DetectorMeta(keypoints=["a"], cameras=["c"], image_size=(32, 32), stride=2, sigma=3.0,
+                        model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict(), units="m",
+                        source_image_size=(32, 32))
+    loop = _Loop(cfg, meta, torch.device("cpu"), DistInfo(), Path("."))
+    before = [p.detach().clone() for p in loop.teacher.parameters()]
+    with torch.no_grad():
+        for p in loop.net.parameters():
+            p.add_(1.0)
+    loop.update_teacher()
+    for t, b in zip(loop.teacher.parameters(), before):
+        torch.testing.assert_close(t, b + 0.25)

@@ -20,7 +20,7 @@ import sys
 
 # name -> (module in s3k.cli, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "simulate": ("simulate", "render a simulated multi-view dataset (box, distractors, category)"),
+    "simulate": ("simulate", "render a simulated multi-view dataset (box, distractors, category, plush)"),
     "validate": ("validate", "check a dataset folder and report every problem found"),
     "train": ("train", "train a keypoint detector (S3K or labels-only)"),
     "evaluate": ("evaluate", "compute rms_px, rms_px_reproj, median_mm, rms_mm and write a report"),
@@ -29,11 +29,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("experiment", "run one of the paper's experiments as a resumable sweep"),
     "import": (
         "import_",
-        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP) to a dataset",
+        "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP, NWB) to a dataset",
     ),
     "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
     "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
     "export": ("export", "export a trained detector to ONNX or TorchScript"),
+    "export-labels": ("export_labels", "a dataset's 2D labels for DeepLabCut, Lightning Pose, SLEAP, NWB"),
+    "export-tracks": ("export_tracks", "write 3D keypoints (track / predict CSV) as NWB"),
+    "robot": ("robot", "keypoints in the loop: plush grasp trials, cable-insertion agents, their summary"),
     "label": ("label", "label keypoints in the browser; 'label propagate' copies labels over still frames"),
 }
 

@@ -18,7 +18,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help=f"unlabelled frames (default {d.unlabelled})")
     parser.add_argument("--test", type=int, default=None, help=f"test frames (default {d.test})")
     parser.add_argument("--steps", type=int, default=None,
-                        help=f"training steps per model (default {d.steps})")
+                        help=f"training steps of the refining pass, or of the one pass (default {d.steps})")
+    parser.add_argument("--coarse-steps", type=int, default=None,
+                        help=f"training steps of the coarse pass (default {d.coarse_steps})")
+    parser.add_argument("--one-pass", action="store_true",
+                        help=f"one network on the whole image at {d.coarse_size} px instead of the "
+                             "coarse-to-fine detector")
     parser.add_argument("--warmup-steps", type=int, default=None,
                         help=f"S3K labels-only warm-up steps (default {d.warmup_steps})")
     parser.add_argument("--alpha", type=float, default=None,
@@ -33,10 +38,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     demo = QUICK if args.quick else DemoConfig()
     over = {k: v for k, v in (("unlabelled", args.unlabelled), ("test", args.test), ("steps", args.steps),
-                              ("warmup_steps", args.warmup_steps), ("alpha", args.alpha)) if v is not None}
-    demo = replace(demo, seed=args.seed, **over)
+                              ("coarse_steps", args.coarse_steps), ("warmup_steps", args.warmup_steps),
+                              ("alpha", args.alpha)) if v is not None}
+    demo = replace(demo, seed=args.seed, two_pass=not args.one_pass, **over)
     if args.steps is not None and args.warmup_steps is None:
-        demo = replace(demo, **schedule_for(demo.steps))
+        schedule = schedule_for(demo.steps)
+        demo = replace(demo, warmup_steps=schedule["warmup_steps"], ramp_steps=schedule["ramp_steps"])
     summary = run_demo(args.out, demo, progress=not args.no_progress, parallel=not args.sequential)
     print()
     print(summary["scale"])

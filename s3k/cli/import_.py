@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import re
+from typing import Any
 
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
+from s3k.errors import UserError
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Convert a calibrated multi-camera recording to an s3k dataset: anipose calibration.toml, one video "
-        "per camera, and 2D labels from SLEAP analysis files or DeepLabCut / Lightning Pose CSVs. Frames "
+        "per camera, and 2D labels from SLEAP (analysis files or projects), NWB (ndx-pose) or DeepLabCut / "
+        "Lightning Pose CSVs. Frames "
         "with labels are split into labelled and test frames (test labels are kept for evaluation); the "
         "other frames are unlabelled (their labels, if any, are not written)."
     )
@@ -18,12 +22,27 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
                         help="one video per camera; the order sets the dataset's camera order")
     labels = parser.add_mutually_exclusive_group(required=True)
-    labels.add_argument("--sleap", nargs="+", metavar="CAM=FILE.h5", help="SLEAP analysis HDF5 per camera")
+    labels.add_argument("--sleap", nargs="+", metavar="CAM=FILE",
+                        help="SLEAP analysis HDF5 (.h5) or project (.slp) per camera, or one FILE.slp "
+                             "project with a video per camera (matched by video file stem, SLEAP session "
+                             "camera name or --camera-map)")
+    labels.add_argument("--nwb", metavar="FILE.nwb",
+                        help="NWB file with ndx-pose training frames (or, with --accept-predictions, pose "
+                             "estimation series) per camera")
     labels.add_argument("--dlc", nargs="+", metavar="CAM=FILE.csv",
                         help="DeepLabCut / Lightning Pose label CSV per camera")
     labels.add_argument("--lightning-pose", metavar="DIR",
                         help="folder with Lightning Pose's multi-view CSVs CollectedData_<camera>.csv")
-    parser.add_argument("--sleap-track", default=None, help="SLEAP track name or index (if several)")
+    parser.add_argument("--sleap-track", default=None,
+                        help="SLEAP track name or index when several animals are labelled (in a project "
+                             "without tracks: the instance index in each frame); 'all' writes one dataset "
+                             "per track, OUT/<track>")
+    parser.add_argument("--camera-map", nargs="+", default=None, metavar="CAM=NAME",
+                        help="the video (file name, stem or index) or camera name that holds each camera's "
+                             "labels in a SLEAP project or NWB file, where names differ")
+    parser.add_argument("--accept-predictions", action="store_true",
+                        help="use SLEAP predicted instances / NWB pose estimation series as labels where no "
+                             "person labelled the frame")
     parser.add_argument("--frame-ids-from", choices=["path", "row"], default="path",
                         help="CSV frame index from the image file name's digits (default) or the row number")
     parser.add_argument("--out", required=True, help="dataset folder to write")
@@ -51,12 +70,16 @@ def run(args: argparse.Namespace) -> int:
     from s3k.data.recording import import_recording
 
     videos = camera_pairs(args.videos, "--videos")
-    import_recording(
-        args.calibration, dict(videos), args.out,
-        sleap=camera_pairs(args.sleap, "--sleap") if args.sleap else None,
+    project = args.sleap[0] if args.sleap and len(args.sleap) == 1 and "=" not in args.sleap[0] else None
+    if project is not None and not project.lower().endswith(".slp"):
+        raise UserError(f"--sleap {project!r}: expected CAMERA=FILE, or one project FILE.slp")
+    common: dict[str, Any] = dict(
+        sleap=camera_pairs(args.sleap, "--sleap") if args.sleap and project is None else None,
+        sleap_project=project, nwb=args.nwb,
+        camera_map=camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None,
+        accept_predictions=args.accept_predictions,
         dlc=camera_pairs(args.dlc, "--dlc") if args.dlc else None,
         lightning_pose=args.lightning_pose,
-        sleap_track=args.sleap_track,
         frame_ids_from=args.frame_ids_from,
         overwrite=args.overwrite,
         labelled=args.labelled if args.labelled == "all" else _count(args.labelled, "--labelled"),
@@ -66,12 +89,25 @@ def run(args: argparse.Namespace) -> int:
         units=args.units,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
     )
+    if args.sleap_track != "all":
+        import_recording(args.calibration, dict(videos), args.out, sleap_track=args.sleap_track, **common)
+        return 0
+    from pathlib import Path
+
+    from s3k.data.sleap import sleap_tracks
+
+    files = [project] if project else list((common["sleap"] or {}).values())
+    if not files:
+        raise UserError("--sleap-track all needs SLEAP labels (--sleap)")
+    tracks = sleap_tracks(files)
+    for i, track in enumerate(tracks):
+        folder = track if re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9_.+-]*", track) else f"track_{i}"
+        print(f"track {track} -> {Path(args.out) / folder}")
+        import_recording(args.calibration, dict(videos), Path(args.out) / folder, sleap_track=track, **common)
     return 0
 
 
 def _count(text: str, option: str) -> int:
-    from s3k.errors import UserError
-
     try:
         return int(text)
     except ValueError:

@@ -13,7 +13,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
     parser.add_argument("--size", type=int, default=96, help="image width and height in pixels (default 96)")
-    parser.add_argument("--labelled", type=int, default=10, help="labelled frames (default 10)")
+    parser.add_argument("--labelled", type=int, default=None,
+                        help="labelled frames (default 10; plush: 7, one per training arrangement)")
     parser.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     parser.add_argument("--test", type=int, default=200, help="test frames (default 200)")
     parser.add_argument("--seed", type=int, default=0,
@@ -51,7 +52,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"s3k simulate: --train-instances applies to the category scene only; ignored for {args.scene}",
               file=sys.stderr)
     cfg = SimulateConfig(
-        scene=args.scene, size=args.size, labelled=args.labelled, unlabelled=args.unlabelled,
+        scene=args.scene, size=args.size,
+        labelled=args.labelled if args.labelled is not None else (7 if args.scene == "plush" else 10),
+        unlabelled=args.unlabelled,
         test=args.test, seed=args.seed, object_seed=args.object_seed, mode=args.mode or "full",
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,

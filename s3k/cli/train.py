@@ -24,12 +24,32 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "preloading and the validation, logging and checkpoint cadence)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
+    two = parser.add_argument_group(
+        "two passes (coarse-to-fine; docs/accuracy.md)",
+        "--two-pass trains a coarse detector on the whole image, crops every view around its 3D estimate "
+        "(a fixed extent in world units, so the object has one size in every crop) and trains a refining "
+        "detector on the crops; the options below the configuration apply to both passes, --image-size to "
+        "neither")
+    two.add_argument("--two-pass", action="store_true", help="train the coarse-to-fine detector")
+    two.add_argument("--coarse-size", type=int, default=96, metavar="PX",
+                     help="the coarse pass's image size, longer side (default 96)")
+    two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
+                     help="the coarse pass's steps (default: --steps)")
+    two.add_argument("--crop-size", type=int, default=128, metavar="PX",
+                     help="crop size in pixels, the refining pass's input (default 128)")
+    two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
+                     help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
+                          "frame's keypoints) x (1 + F) (default 0.3)")
+    two.add_argument("--crop-extent", type=float, default=None, metavar="W",
+                     help="crop side in world units at the estimate's depth (default: from the labels)")
     add_config_arguments(parser, TrainConfig)
 
 
 def run(args: argparse.Namespace) -> int:
     from s3k.train import train
 
+    if args.two_pass:
+        return _run_two_pass(args)
     base = None
     if args.resume and (Path(args.out) / CONFIG_FILE).is_file():
         saved = read_run_config(args.out)["config"]
@@ -38,3 +58,17 @@ def run(args: argparse.Namespace) -> int:
     result = train(args.dataset, args.out, cfg, resume=args.resume, overwrite=args.overwrite,
                    command=getattr(args, "command_line", None))
     return 0 if result.status == "done" else 1
+
+
+def _run_two_pass(args: argparse.Namespace) -> int:
+    from s3k.errors import UserError
+    from s3k.two_pass import train_two_pass
+
+    cfg = config_from_args(args, TrainConfig)
+    if cfg.image_size:
+        raise UserError("--image-size does not apply to --two-pass",
+                        hint="set the coarse pass's size with --coarse-size and the crops' with --crop-size")
+    train_two_pass(args.dataset, args.out, cfg, coarse_size=args.coarse_size, coarse_steps=args.coarse_steps,
+                   crop_size=args.crop_size, margin=args.crop_margin, extent=args.crop_extent,
+                   resume=args.resume, overwrite=args.overwrite, command=getattr(args, "command_line", None))
+    return 0

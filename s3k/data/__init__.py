@@ -15,8 +15,9 @@ Modules, one job each:
 - :mod:`~s3k.data.validate`: the report of ``s3k validate``.
 - :mod:`~s3k.data.rig`: ``Rig``, a calibration file's content (names, sizes, units, ``Cameras``).
 - importers, one per format: :mod:`~s3k.data.anipose` (calibration TOML), :mod:`~s3k.data.dlc`
-  (DeepLabCut / Lightning Pose CSVs), :mod:`~s3k.data.sleap` (SLEAP analysis HDF5), and
-  :mod:`~s3k.data.recording` (``import_recording``: a recording to a dataset).
+  (DeepLabCut / Lightning Pose CSVs), :mod:`~s3k.data.sleap` (SLEAP analysis HDF5), :mod:`~s3k.data.slp`
+  (SLEAP projects), :mod:`~s3k.data.nwb` (NWB with ndx-pose), and :mod:`~s3k.data.recording`
+  (``import_recording``: a recording to a dataset); :mod:`~s3k.data.label_export` writes labels back out.
 - :mod:`~s3k.data.transforms` (crop/resize maps) and :mod:`~s3k.data.video` (video I/O).
 """
 

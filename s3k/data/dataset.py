@@ -331,11 +331,12 @@ class Dataset:
         to = _torch_dtype(dtype)
         return Cameras(*(x.to(dtype=to).contiguous() for x in (K, cams.dist, cams.R, cams.t)))
 
-    def labels(self, frame_ids) -> tuple[np.ndarray, np.ndarray]:
-        """2D labels of ``frame_ids``: ``uv (B, C, K, 2) float32`` (pixels of the returned images, 0 where
-        masked) and ``mask (B, C, K) bool`` (labelled, visible, inside the image)."""
+    def labels(self, frame_ids, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray]:
+        """2D labels of ``frame_ids``: ``uv (B, C, K, 2)`` of ``dtype`` (pixels of the returned images, 0 where
+        masked; ``np.float64`` keeps labels.csv's values exactly) and ``mask (B, C, K) bool`` (labelled,
+        visible, inside the image)."""
         rows = self._rows(frame_ids)
-        return self._label_uv[rows].astype(np.float32), self._label_mask[rows].copy()
+        return self._label_uv[rows].astype(dtype), self._label_mask[rows].copy()
 
     def points3d(self, frame_ids) -> tuple[np.ndarray, np.ndarray] | None:
         """Ground-truth 3D ``(X (B, K, 3) float32, mask (B, K) bool)`` in dataset units, or None when the

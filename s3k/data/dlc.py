@@ -143,3 +143,33 @@ def find_lightning_pose_csvs(folder: str | Path, views: list[str]) -> dict[str, 
         found[view] = hit
     return found
 
+
+
+def write_dlc_csv(path: str | Path, table: LabelTable, image_paths: list[str], scorer: str = "s3k") -> Path:
+    """Write labels as a DeepLabCut / Lightning Pose label CSV (header rows scorer/bodyparts/coords, then
+    one row per image: its path, then ``x, y`` per bodypart, empty where unlabelled).
+
+    Args:
+        path: the CSV (written beside, then renamed).
+        table: the labels; one row per entry of ``table.frame_ids``.
+        image_paths: the image path of each row, relative to the project folder (``labeled-data/...``).
+        scorer: the scorer (annotator) name of the header.
+    """
+    from s3k.fileio import atomic_path
+
+    if len(image_paths) != len(table.frame_ids):
+        raise ValueError(f"{len(image_paths)} image paths for {len(table.frame_ids)} frames")
+    header = [
+        ["scorer"] + [scorer] * (2 * len(table.keypoints)),
+        ["bodyparts"] + [k for k in table.keypoints for _ in (0, 1)],
+        ["coords"] + ["x", "y"] * len(table.keypoints),
+    ]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerows(header)
+        for image, uv in zip(image_paths, table.uv):
+            # repr: the shortest text that reads back to the same float64
+            writer.writerow([image] + ["" if not np.isfinite(x) else repr(float(x)) for x in uv.ravel()])
+    return path

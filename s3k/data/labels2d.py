@@ -54,3 +54,30 @@ def frame_id_from_path(image_path: str) -> int | None:
     runs = _DIGITS.findall(stem)
     return int(runs[-1]) if runs else None
 
+
+
+def coverage_warnings(mask: np.ndarray, cameras: list[str], keypoints: list[str],
+                      sources: dict[str, str] | None = None) -> list[str]:
+    """One line per camera without any label, per keypoint without a label in any camera, and per camera
+    missing some keypoints that other cameras have (what an importer prints before writing a dataset).
+
+    Args:
+        mask: ``(F, C, K)`` bool, labelled.
+        cameras, keypoints: the ``C`` and ``K`` names.
+        sources: ``{camera: label file}`` to name in the lines.
+    """
+    sources = sources or {}
+    lines = []
+    per_camera = np.asarray(mask, dtype=bool).any(axis=0).reshape(len(cameras), len(keypoints))
+    for c, cam in enumerate(cameras):
+        where = f" in {sources[cam]}" if cam in sources else " (no label file)"
+        if not per_camera[c].any():
+            lines.append(f"warning: camera {cam} has no labels{where}")
+            continue
+        missing = [k for i, k in enumerate(keypoints) if not per_camera[c, i] and per_camera[:, i].any()]
+        if missing:
+            lines.append(f"warning: camera {cam}: keypoints {', '.join(missing)} have no labels{where}")
+    for i, k in enumerate(keypoints):
+        if not per_camera[:, i].any():
+            lines.append(f"warning: keypoint {k} has no labels in any camera")
+    return lines

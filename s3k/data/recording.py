@@ -16,8 +16,8 @@ import numpy as np
 
 from s3k.data.anipose import read_anipose_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
-from s3k.data.labels2d import LabelTable
-from s3k.data.sleap import read_sleap_analysis
+from s3k.data.labels2d import LabelTable, coverage_warnings
+from s3k.data.sleap import read_sleap_file
 from s3k.errors import UserError
 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
@@ -93,6 +93,10 @@ def import_recording(
     dlc: Mapping[str, str | Path] | None = None,
     lightning_pose: str | Path | None = None,
     sleap_track: str | int | None = None,
+    sleap_project: str | Path | None = None,
+    nwb: str | Path | None = None,
+    camera_map: Mapping[str, str] | None = None,
+    accept_predictions: bool = False,
     frame_ids_from: str = "path",
     overwrite: bool = False,
     labelled: int | str = 10,
@@ -112,10 +116,17 @@ def import_recording(
         calibration: anipose ``calibration.toml``.
         videos: ``{camera: video}``; the order sets the dataset's camera order.
         out: dataset folder to write.
-        sleap: ``{camera: SLEAP analysis .h5}`` (give exactly one of ``sleap``, ``dlc``, ``lightning_pose``).
+        sleap: ``{camera: SLEAP analysis .h5 or project .slp}`` (give exactly one of ``sleap``,
+            ``sleap_project``, ``nwb``, ``dlc``, ``lightning_pose``).
         dlc: ``{camera: DeepLabCut / Lightning Pose label CSV}``.
         lightning_pose: folder with Lightning Pose's multi-view ``CollectedData_<camera>.csv``.
-        sleap_track: SLEAP track name or index (when a file has several).
+        sleap_track: SLEAP track name or index (when a file has several); in a project without tracks,
+            the instance index in each frame.
+        sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
+        nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.nwb`).
+        camera_map: ``{camera: video or camera name in the project / NWB file}`` where names differ.
+        accept_predictions: use SLEAP predicted instances / NWB pose estimation series as labels where a
+            frame has no labels by a person.
         frame_ids_from: CSV frame index from the image file name's digits (``"path"``) or the row (``"row"``).
         overwrite: replace an existing dataset folder.
         labelled: number of labelled frames, or ``"all"``.
@@ -133,9 +144,11 @@ def import_recording(
     from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
     from s3k.data.writer import DatasetWriter
 
-    given = [name for name, v in (("sleap", sleap), ("dlc", dlc), ("lightning_pose", lightning_pose)) if v]
+    given = [v for v in (sleap, sleap_project, nwb, dlc, lightning_pose) if v]
     if len(given) != 1:
-        raise UserError(f"give labels from exactly one of --sleap, --dlc, --lightning-pose (got {len(given)})")
+        raise UserError(
+            f"give labels from exactly one of --sleap, --dlc, --lightning-pose, --nwb (got {len(given)})"
+        )
     if stride < 1:
         raise UserError(f"--stride must be >= 1, got {stride}")
     cameras = list(videos)
@@ -146,10 +159,24 @@ def import_recording(
         raise UserError(f"{calibration}: {exc.args[0]}") from None
 
     # Labels per camera.
-    reader: Callable[[str | Path], LabelTable]
-    if sleap:
+    reader: Callable[[str, str | Path], LabelTable]
+    files: dict[str, str | Path]
+    tables: dict[str, LabelTable] | None = None
+    if sleap_project or nwb:
+        from s3k.data.nwb import read_nwb
+        from s3k.data.slp import read_slp
+
+        if sleap_project:
+            tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
+                              predictions=accept_predictions)
+        else:
+            assert nwb is not None
+            tables = read_nwb(nwb, cameras, camera_map=camera_map, predictions=accept_predictions)
+        files = {cam: Path(sleap_project or nwb or "") for cam in tables}
+        kind = "sleap" if sleap_project else "nwb"
+    elif sleap:
         files = dict(sleap)
-        reader = lambda p: read_sleap_analysis(p, track=sleap_track)  # noqa: E731
+        reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
         kind = "sleap"
     else:
         if dlc:
@@ -159,11 +186,12 @@ def import_recording(
             assert lightning_pose is not None
             files = {k: str(v) for k, v in find_lightning_pose_csvs(lightning_pose, cameras).items()}
             kind = "lightning-pose"
-        reader = lambda p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
+        reader = lambda _cam, p: read_dlc_csv(p, frame_ids_from=frame_ids_from)  # noqa: E731
     unknown = sorted(set(files) - set(cameras))
     if unknown:
         raise UserError(f"labels given for cameras {unknown} that have no --videos entry ({', '.join(cameras)})")
-    tables = {cam: reader(path) for cam, path in files.items()}
+    if tables is None:
+        tables = {cam: reader(cam, path) for cam, path in files.items()}
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
@@ -212,6 +240,9 @@ def import_recording(
         cols = [names.index(k) for k in present]
         dense = table.dense(n_frames, present)
         uv[:, c, cols] = transform_points(dense, maps[c])
+    sources = {cam: str(path) for cam, path in files.items()}
+    for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, sources):
+        print(line)
     W, H = out_size
     inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
     outside = np.isfinite(uv).all(-1) & ~inside

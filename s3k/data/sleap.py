@@ -1,13 +1,17 @@
-"""SLEAP analysis HDF5 files (``sleap-convert --format analysis``): :func:`read_sleap_analysis`."""
+"""SLEAP analysis HDF5 files (``sleap-convert --format analysis``): :func:`read_sleap_analysis`,
+:func:`sleap_analysis_tracks`. SLEAP projects (``.slp``) are read by :mod:`s3k.data.slp`."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
+
+TRACK_HINT = "choose one with --sleap-track NAME or INDEX (or --sleap-track all for one dataset per track)"
 
 
 def _decode(values) -> list[str]:
@@ -68,7 +72,7 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
         raise UserError(f"{path}: 'track_names' has {len(names)} names, 'tracks' has {n_tracks} tracks")
     if track is None:
         if n_tracks != 1:
-            raise UserError(f"{path}: {n_tracks} tracks ({', '.join(names)}); choose one")
+            raise UserError(f"{path}: {n_tracks} tracks ({', '.join(names)})", hint=TRACK_HINT)
         ti = 0
     elif isinstance(track, int) or (isinstance(track, str) and track.isdigit() and track not in names):
         ti = int(track)
@@ -76,7 +80,8 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
             raise UserError(f"{path}: track index {ti} out of range (0..{n_tracks - 1})")
     else:
         if track not in names:
-            raise UserError(f"{path}: no track {track!r} (tracks: {', '.join(names)})")
+            raise UserError(f"{path}: no track {track!r} (tracks: {', '.join(names)})",
+                            hint="give a track name or index with --sleap-track")
         ti = names.index(track)
     uv = tracks[:, :, :, ti].copy()
     if occupancy is not None:
@@ -88,5 +93,49 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
             )
         uv[occupancy[:, ti] == 0] = np.nan
     uv[np.isnan(uv).any(axis=2)] = np.nan
+    if not np.isfinite(uv).any():
+        what = f"track {names[ti]!r} has no labelled point" if n_frames else "the file holds 0 frames"
+        raise UserError(f"{path}: no labelled frames ({what})")
     return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path))
 
+
+
+def sleap_analysis_tracks(path: str | Path) -> list[str]:
+    """Track names of a SLEAP analysis file (``track_<i>`` where it names none)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            if "track_names" in h5:
+                return _decode(h5["track_names"][()])
+            if "tracks" in h5:
+                return [f"track_{i}" for i in range(int(h5["tracks"].shape[0]))]
+    except OSError as exc:
+        raise UserError(f"{path}: not an HDF5 file ({exc})") from exc
+    raise UserError(f"{path}: no 'tracks' dataset (is this a SLEAP analysis file?)")
+
+
+def read_sleap_file(path: str | Path, camera: str, track: str | int | None = None,
+                    camera_map: Mapping[str, str] | None = None, predictions: bool = False) -> LabelTable:
+    """One camera's labels from a SLEAP analysis file (``.h5``) or project (``.slp``, its video of
+    ``camera``; :func:`s3k.data.slp.read_slp`)."""
+    if Path(path).suffix.lower() == ".slp":
+        from s3k.data.slp import read_slp
+
+        mine = {camera: camera_map[camera]} if camera_map and camera in camera_map else None
+        tables = read_slp(path, [camera], camera_map=mine, track=track, predictions=predictions)
+        return tables[camera]
+    return read_sleap_analysis(path, track=track)
+
+
+def sleap_tracks(paths: list[str | Path]) -> list[str]:
+    """The track names of SLEAP files (analysis ``.h5`` or project ``.slp``), in first-seen order."""
+    from s3k.data.slp import slp_tracks
+
+    names: list[str] = []
+    for path in paths:
+        found = slp_tracks(path) if Path(path).suffix.lower() == ".slp" else sleap_analysis_tracks(path)
+        names += [n for n in found if n not in names]
+    if not names:
+        raise UserError(f"{', '.join(str(p) for p in paths)}: no tracks; drop --sleap-track all")
+    return names

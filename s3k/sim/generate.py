@@ -34,7 +34,8 @@ class SimulateConfig:
     """Everything that defines a simulated dataset.
 
     Attributes:
-        scene: "box", "distractors" or "category".
+        scene: "box", "distractors", "category" or "plush" (labelled frames spread over the 7 training
+            arrangements, test frames over the 3 held-out ones).
         size: image width and height in pixels.
         labelled: number of labelled frames (2D labels in every camera where the keypoint is visible).
         unlabelled: number of unlabelled frames.
@@ -124,6 +125,8 @@ def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
         for s in _spread(T, cfg.test_segments):
             specs.append(FrameSpec(len(specs), "test", segment=S + s))
         return specs
+    if cfg.scene == "plush":
+        return _plush_plan(L, U, T)
     for split, n in (("labelled", L), ("unlabelled", U), ("test", T)):
         for i in range(n):
             instance = -1
@@ -131,6 +134,20 @@ def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
                 instance = (NUM_TRAIN_INSTANCES + i % (NUM_INSTANCES - NUM_TRAIN_INSTANCES) if split == "test"
                             else i % cfg.train_instances)
             specs.append(FrameSpec(len(specs), split, instance=instance))
+    return specs
+
+
+def _plush_plan(L: int, U: int, T: int) -> list[FrameSpec]:
+    """``plush``: arrangement by arrangement (the ``segment``), each training arrangement's labelled frames
+    first, then its unlabelled ones; then the test arrangements' frames."""
+    from s3k.sim.plush import NUM_ARRANGEMENTS, TRAIN_ARRANGEMENTS
+
+    A = TRAIN_ARRANGEMENTS
+    order = sorted([(a, 0) for a in _spread(L, A)] + [(a, 1) for a in _spread(U, A)])
+    specs = [FrameSpec(i, "labelled" if kind == 0 else "unlabelled", segment=a)
+             for i, (a, kind) in enumerate(order)]
+    for a in _spread(T, NUM_ARRANGEMENTS - A):
+        specs.append(FrameSpec(len(specs), "test", segment=A + a))
     return specs
 
 
@@ -260,7 +277,7 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
     with tqdm(total=len(specs), unit="frame", desc=f"simulate {cfg.scene}", disable=not progress) as bar:
         for frame in render_frames(cfg, specs, workers=min(workers, len(specs))):
             extra = {}
-            if cfg.scene == "distractors":
+            if cfg.scene in ("distractors", "plush"):
                 extra["segment"] = frame.extra["segment"]
             if cfg.scene == "category":
                 extra["instance"] = frame.extra["instance"]

@@ -1,7 +1,8 @@
-"""The paper's simulated scenes: ``box``, ``distractors`` and ``category`` (docs/scenes.md).
+"""The paper's simulated scenes: ``box``, ``distractors`` and ``category`` (docs/scenes.md), and ``plush``.
 
 Each is a :class:`s3k.sim.scene.Scene`; :func:`make_scene` builds one by name. The shared records
-(:class:`FrameSpec`, :class:`SimFrame`) and the visibility helpers live in :mod:`s3k.sim.scene`.
+(:class:`FrameSpec`, :class:`SimFrame`) and the visibility helpers live in :mod:`s3k.sim.scene`; the plush
+toy scene of the grasping experiment (docs/robot.md) in :mod:`s3k.sim.plush`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import mujoco
 import numpy as np
 
 from s3k.sim import meshes, textures
+from s3k.sim.plush import PlushScene
 from s3k.sim.scene import (
     BOX_DIMS,
     NUM_INSTANCES,
@@ -316,11 +318,12 @@ class CategoryScene(Scene):
         return self._mug_geoms[self.instance]
 
 
-SCENES: dict[str, type[Scene]] = {"box": BoxScene, "distractors": DistractorScene, "category": CategoryScene}
+SCENES: dict[str, type[Scene]] = {"box": BoxScene, "distractors": DistractorScene, "category": CategoryScene,
+                                  "plush": PlushScene}
 
 
 def make_scene(name: str, size: int = 128, seed: int = 0, **kwargs) -> Scene:
-    """Builds scene ``name`` ("box", "distractors" or "category")."""
+    """Builds scene ``name`` ("box", "distractors", "category" or "plush")."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
     return SCENES[name](size=size, seed=seed, **kwargs)

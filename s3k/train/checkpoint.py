@@ -14,6 +14,7 @@ loading never runs code from the file::
     nonfinite_run  consecutive non-finite steps before this one
     meta           ``DetectorMeta.to_dict()``
     config         ``TrainConfig.to_dict()`` (flat)
+    teacher        the teacher network's state dict (``--teacher_ema``; absent without one)
 """
 
 from __future__ import annotations
@@ -47,11 +48,15 @@ def set_rng_state(gen: torch.Generator, state: dict[str, Any]) -> None:
 
 def save_checkpoint(path: str | Path, *, step: int, model: dict[str, Any], optimizer: dict[str, Any],
                     scheduler: dict[str, Any], rng: list[dict[str, Any]], nonfinite_run: int,
-                    meta: dict[str, Any], config: dict[str, Any]) -> None:
+                    meta: dict[str, Any], config: dict[str, Any], teacher: dict[str, Any] | None = None
+                    ) -> None:
     """Write the checkpoint atomically (a kill leaves the previous one in place)."""
-    atomic_save({"format": CHECKPOINT_FORMAT, "step": step, "model": model, "optimizer": optimizer,
-                 "scheduler": scheduler, "rng": rng, "nonfinite_run": nonfinite_run, "meta": meta,
-                 "config": config}, path)
+    state = {"format": CHECKPOINT_FORMAT, "step": step, "model": model, "optimizer": optimizer,
+             "scheduler": scheduler, "rng": rng, "nonfinite_run": nonfinite_run, "meta": meta,
+             "config": config}
+    if teacher is not None:
+        state["teacher"] = teacher
+    atomic_save(state, path)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -8,6 +8,7 @@ the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.steps`
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 import time
@@ -111,7 +112,8 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
-                   weight_decay_model: nn.Module) -> tuple[torch.Tensor, dict[str, float]]:
+                   weight_decay_model: nn.Module, teacher: nn.Module | None = None
+                   ) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
     Args:
@@ -121,6 +123,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         cfg: configuration (stride, sigma, weight decay).
         alpha: weight of the self-supervised term at this step.
         weight_decay_model: the unwrapped network (for the L2 term).
+        teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
+            (``--teacher_ema``); without one they come from ``model``'s own logits.
 
     Returns:
         ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
@@ -136,8 +140,14 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     loss = l_sup
     terms = {"sup": float(l_sup.detach())}
     if unl is not None:
+        target_logits = None
+        if teacher is not None:
+            with torch.no_grad():
+                flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
+                target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             max_residual_px=cfg.outlier_px or None)
+                                             max_residual_px=cfg.outlier_px or None,
+                                             target_logits=target_logits, window=cfg.pseudo_window)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
@@ -252,6 +262,21 @@ class _Loop:
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
+        self.teacher: nn.Module | None = None
+        if cfg.unsup and cfg.teacher_ema > 0:
+            # in eval mode (running normalization statistics, copied from the network at every update)
+            self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
+
+    def update_teacher(self) -> None:
+        """teacher <- decay * teacher + (1 - decay) * network for the weights; the network's normalization
+        statistics are copied (they are already running averages)."""
+        if self.teacher is None:
+            return
+        with torch.no_grad():
+            for tp, p in zip(self.teacher.parameters(), self.net.parameters()):
+                tp.lerp_(p, 1.0 - self.cfg.teacher_ema)
+            for tb, b in zip(self.teacher.buffers(), self.net.buffers()):
+                tb.copy_(b)
 
     def restore(self, state: dict[str, Any], path: Path) -> None:
         """Continue from a checkpoint (``checkpoint.load_checkpoint``)."""
@@ -259,6 +284,8 @@ class _Loop:
             self.net.load_state_dict(state["model"])
             self.opt.load_state_dict(state["optimizer"])
             self.sched.load_state_dict(state["scheduler"])
+            if self.teacher is not None:
+                self.teacher.load_state_dict(state.get("teacher") or state["model"])
         except (KeyError, RuntimeError, ValueError) as exc:
             raise UserError(f"{path}: does not fit this network ({str(exc).splitlines()[0][:200]})",
                             hint="resume with the run's settings, or choose another --out") from exc
@@ -283,7 +310,8 @@ class _Loop:
         ckpt.save_checkpoint(self.out / CHECKPOINT_FILE, step=self.step, model=self.net.state_dict(),
                              optimizer=self.opt.state_dict(), scheduler=self.sched.state_dict(), rng=rngs,
                              nonfinite_run=self.nonfinite_run, meta=self.meta.to_dict(),
-                             config=self.cfg.to_dict())
+                             config=self.cfg.to_dict(),
+                             teacher=None if self.teacher is None else self.teacher.state_dict())
         if final:
             save_model_file(self.out / MODEL_FILE, self.net.state_dict(), self.meta, self.step)
 
@@ -301,13 +329,14 @@ class _Loop:
                           self.gen, False, noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
-        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net)
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
         gnorm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
         if all_ranks(bool(torch.isfinite(loss) and torch.isfinite(gnorm)), self.device, self.info):
             self.opt.step()
+            self.update_teacher()
             self.nonfinite_run = 0
         else:
             self.opt.zero_grad(set_to_none=True)

@@ -1,0 +1,33 @@
+"""`s3k export-tracks`: the 3D CSV of `s3k track` / `s3k predict` as NWB
+(:func:`s3k.data.label_export.export_tracks`)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Write 3D keypoints (the anipose-style CSV of 's3k track' or 's3k predict') as an NWB file: an "
+        "ndx-pose MultiCameraPoseEstimation with one series (x, y, z, confidence) per keypoint."
+    )
+    parser.add_argument("csv", help="3D keypoints CSV")
+    parser.add_argument("--format", required=True, choices=["nwb"], help="output format")
+    parser.add_argument("--out", required=True, help="FILE.nwb to write")
+    parser.add_argument("--fps", type=float, required=True,
+                        help="frame rate of the videos; timestamps are fnum / fps seconds")
+    parser.add_argument("--calibration", default=None,
+                        help="anipose calibration.toml of the rig (stored as calibrated cameras; gives the "
+                             "unit)")
+    parser.add_argument("--units", default=None,
+                        help="world length unit (default: the calibration's, else m)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing file")
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.data.label_export import export_tracks
+
+    path, units = export_tracks(args.csv, args.format, args.out, fps=args.fps, calibration=args.calibration,
+                                units=args.units, overwrite=args.overwrite)
+    print(f"wrote {path} (units {units})")
+    return 0

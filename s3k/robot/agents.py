@@ -1,0 +1,307 @@
+"""Agents for cable insertion: Stable-Baselines3 TD3 with scripted demonstrations in its replay buffer, on
+keypoint observations or on a beta-VAE latent of the views (the baseline), trained as a resumable run.
+
+A run folder ``OUT/`` holds ``config.json`` (the :class:`AgentConfig`), ``vae.pt`` (beta-VAE agent),
+``checkpoint/`` (``agent.pt``: the policy's and optimizers' state dicts; ``replay.npz``: the filled part of
+the replay buffer; ``state.json``: environment steps, gradient updates, episodes) and ``progress.json`` (the
+evaluations so far). A checkpoint is written every ``checkpoint_every`` environment steps, all its files
+into a new folder that then replaces the previous one, so a killed run resumes (``--resume``) from its last
+complete checkpoint with its replay buffer; nothing is read with ``pickle``: state dicts through
+``torch.load(weights_only=True)`` and the buffer through ``numpy.load(allow_pickle=False)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from s3k.errors import UserError
+from s3k.fileio import atomic_write_bytes, atomic_write_json
+from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action
+
+AGENTS = ("keypoints", "beta_vae")
+BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def _field(default, text: str):
+    return dataclasses.field(default=default, metadata={"help": text})
+
+
+@dataclasses.dataclass
+class AgentConfig:
+    """One agent training run; every field's meaning is in its ``metadata["help"]`` (the ``--help`` of
+    ``s3k robot train-agent``)."""
+
+    agent: str = _field("keypoints", "keypoints (observations: gripper state + 3D keypoints) or beta_vae "
+                                     "(gripper state + a beta-VAE latent of the four views)")
+    steps: int = _field(20000, "environment steps to train for, in all (--resume continues towards it)")
+    seed: int = _field(0, "seed of the agent, the environment and the demonstrations")
+    demos: int = _field(10, "scripted demonstration episodes put in the replay buffer before training")
+    checkpoint_every: int = _field(1000, "environment steps between checkpoints of agent and replay buffer")
+    eval_episodes: int = _field(10, "episodes of the deterministic policy in the final evaluation")
+    learning_starts: int = _field(100, "the agent's own environment steps before gradient updates begin "
+                                       "(the demonstrations are in the buffer already)")
+    batch_size: int = _field(128, "TD3's minibatch size")
+    buffer_size: int = _field(200_000, "replay buffer capacity (transitions)")
+    learning_rate: float = _field(1e-3, "TD3's learning rate (actor and critics)")
+    action_noise: float = _field(0.1, "standard deviation of TD3's Gaussian exploration noise")
+    run: str | None = _field(None, "an s3k run whose detector gives the keypoint observations from four "
+                                   "rendered views (default: ground-truth keypoints); the reward always "
+                                   "uses the environment's keypoints")
+    image_size: int = _field(64, "width and height of the rendered views (detector and beta-VAE)")
+    vae_latent: int = _field(10, "beta-VAE latent size")
+    vae_beta: float = _field(4.0, "beta-VAE's beta (weight of the KL term)")
+    vae_images: int = _field(2000, "unlabelled frames of the environment the beta-VAE is trained on")
+    vae_steps: int = _field(3000, "beta-VAE training steps")
+    threads: int = _field(1, "torch threads (the networks are small: one thread is fastest, and several "
+                             "runs can share the machine)")
+
+    def __post_init__(self) -> None:
+        if self.agent not in AGENTS:
+            raise UserError(f"agent (--agent): must be one of {', '.join(AGENTS)}, got {self.agent!r}")
+        for name in ("steps", "checkpoint_every", "batch_size", "buffer_size", "image_size"):
+            if getattr(self, name) < 1:
+                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 1, "
+                                f"got {getattr(self, name)}")
+        for name in ("demos", "eval_episodes", "learning_starts"):
+            if getattr(self, name) < 0:
+                raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 0, "
+                                f"got {getattr(self, name)}")
+
+    def identity(self) -> dict:
+        """What a resumed run must share with the one it continues (everything but ``steps``)."""
+        d = dataclasses.asdict(self)
+        d.pop("steps")
+        d.pop("eval_episodes")
+        d.pop("threads")
+        return d
+
+
+def make_env(cfg: AgentConfig, vae=None) -> gym.Env:
+    """The environment an agent of ``cfg`` sees (the beta-VAE agent's wraps the views' latent)."""
+    detector = None
+    if cfg.run is not None:
+        from s3k.robot.detect import RunDetector
+
+        detector = RunDetector(cfg.run, KEYPOINTS)
+    env: gym.Env = InsertionEnv(detector=detector, image_size=cfg.image_size, camera_seed=0)
+    if cfg.agent == "beta_vae":
+        from s3k.robot.beta_vae import LatentObservation
+
+        env = LatentObservation(env, vae)
+    return env
+
+
+def _state_obs(env: gym.Env, obs: np.ndarray) -> np.ndarray:
+    """The keypoint observation the demonstrator reads (the beta-VAE wrapper keeps it aside)."""
+    last = getattr(env, "last_state", None)
+    return obs if last is None else last
+
+
+def collect_images(cfg: AgentConfig, n: int, seed: int) -> np.ndarray:
+    """``n`` unlabelled frames ``uint8 (n, 4, S, S, 3)`` of the environment, under the demonstrator with
+    noise (so they cover the states an agent visits)."""
+    env = InsertionEnv(image_size=cfg.image_size)
+    rng = np.random.default_rng(seed)
+    frames: list[np.ndarray] = []
+    obs, _ = env.reset(seed=seed)
+    while len(frames) < n:
+        frames.append(env.views()[0])
+        action = scripted_action(obs) + rng.normal(0.0, 0.5, 6)
+        obs, _, term, trunc, _ = env.step(np.clip(action, -1, 1))
+        if term or trunc:
+            obs, _ = env.reset(seed=int(rng.integers(1 << 31)))
+    env.close()
+    return np.stack(frames)
+
+
+def add_demonstrations(model, env: gym.Env, episodes: int, seed: int) -> int:
+    """Runs the scripted demonstrator for ``episodes`` and adds its transitions to ``model``'s replay
+    buffer; returns how many."""
+    n = 0
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed * 100_003 + ep)
+        done = False
+        while not done:
+            action = scripted_action(_state_obs(env, obs))
+            next_obs, reward, term, trunc, info = env.step(action)
+            done = term or trunc
+            model.replay_buffer.add(obs[None], next_obs[None], action[None], np.array([reward]),
+                                    np.array([done]), [{**info, "TimeLimit.truncated": trunc and not term}])
+            obs = next_obs
+            n += 1
+    return n
+
+
+def evaluate_agent(model, env: gym.Env, episodes: int, seed: int) -> dict:
+    """Success rate of the deterministic policy over ``episodes`` (fixed seeds, so evaluations compare)."""
+    successes, true_successes, returns = 0, 0, []
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=10_000_000 + seed * 1000 + ep)
+        done, ret = False, 0.0
+        info: dict = {}
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, reward, term, trunc, info = env.step(action)
+            ret += float(reward)
+            done = term or trunc
+        successes += bool(info.get("is_success"))
+        true_successes += bool(info.get("true_success"))
+        returns.append(ret)
+    n = max(episodes, 1)
+    return {"success_rate": successes / n, "true_success_rate": true_successes / n,
+            "mean_return": float(np.mean(returns)) if returns else None, "episodes": episodes}
+
+
+# ---------------------------------------------------------------------------------------------- checkpoints
+def save_checkpoint(model, folder: Path, state: dict) -> None:
+    """Writes the agent, its replay buffer and ``state.json`` into ``folder`` as one unit.
+
+    They are written into ``folder.tmp`` first, which then takes the place of ``folder`` by two renames (the
+    previous checkpoint is kept as ``folder.old`` in between), so a kill at any point leaves one complete
+    checkpoint: :func:`checkpoint_folder` finds it.
+    """
+    import shutil
+
+    from s3k.run import atomic_save
+
+    tmp, old = folder.with_name(folder.name + ".tmp"), folder.with_name(folder.name + ".old")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    atomic_save({"policy": model.policy.state_dict(), "actor_optimizer": model.actor.optimizer.state_dict(),
+                 "critic_optimizer": model.critic.optimizer.state_dict()}, tmp / "agent.pt")
+    rb = model.replay_buffer
+    n = rb.buffer_size if rb.full else rb.pos
+    buf = io.BytesIO()
+    arrays = {f: getattr(rb, f)[:n] for f in BUFFER_FIELDS}
+    np.savez(buf, **arrays, pos=np.array(rb.pos), full=np.array(rb.full))
+    atomic_write_bytes(buf.getvalue(), tmp / "replay.npz")
+    atomic_write_json(state, tmp / "state.json")
+    if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def checkpoint_folder(folder: Path) -> Path | None:
+    """The complete checkpoint to resume from: ``folder``, or ``folder.old`` when a kill came between the
+    two renames of :func:`save_checkpoint`; None when there is none."""
+    for candidate in (folder, folder.with_name(folder.name + ".old")):
+        if (candidate / "state.json").is_file():
+            return candidate
+    return None
+
+
+def load_checkpoint(model, folder: Path) -> dict:
+    """Restores what :func:`save_checkpoint` wrote into ``model``; returns ``state.json``."""
+    from s3k.run import load_torch_file
+
+    state = json.loads((folder / "state.json").read_text())
+    saved = load_torch_file(folder / "agent.pt", "agent checkpoint", ["policy", "actor_optimizer",
+                                                                     "critic_optimizer"])
+    model.policy.load_state_dict(saved["policy"])
+    model.actor.optimizer.load_state_dict(saved["actor_optimizer"])
+    model.critic.optimizer.load_state_dict(saved["critic_optimizer"])
+    with np.load(folder / "replay.npz", allow_pickle=False) as z:
+        rb = model.replay_buffer
+        n = len(z["actions"])
+        if n > rb.buffer_size:
+            raise UserError(f"{folder / 'replay.npz'}: {n} transitions do not fit a buffer of "
+                            f"{rb.buffer_size}", hint="give the run's --buffer-size")
+        for f in BUFFER_FIELDS:
+            getattr(rb, f)[:n] = z[f]
+        rb.pos, rb.full = int(z["pos"]), bool(z["full"])
+    model.num_timesteps = int(state["env_steps"])
+    model._n_updates = int(state["updates"])
+    model._episode_num = int(state.get("episodes", 0))
+    return state
+
+
+# ---------------------------------------------------------------------------------------------- training
+def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
+                log: Callable[[str], None] = print) -> dict:
+    """Trains (or with ``resume`` continues) the agent of ``cfg`` in run folder ``out``.
+
+    Returns the final evaluation: ``{"agent", "seed", "env_steps", "success_rate", "true_success_rate",
+    "mean_return", "episodes", "demonstration_steps", "wall_time_s"}`` (also written to ``progress.json``).
+    """
+    import torch
+    from stable_baselines3 import TD3
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    out = Path(out)
+    ckpt = out / "checkpoint"
+    config_file = out / "config.json"
+    if resume:
+        if not config_file.is_file():
+            raise UserError(f"{out}: no agent run to resume (no config.json)",
+                            hint="drop --resume to start one")
+        old = AgentConfig(**json.loads(config_file.read_text()))
+        if old.identity() != cfg.identity():
+            diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
+            raise UserError(f"{out}: --resume with other settings than the run's ({', '.join(diff)})",
+                            hint="give the run's settings or a new --out")
+    elif out.exists() and any(out.iterdir()):
+        raise UserError(f"{out}: exists and is not empty", hint="pass --resume to continue it or a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(dataclasses.asdict(cfg), config_file)
+    t0 = time.perf_counter()
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    vae = None
+    if cfg.agent == "beta_vae":
+        from s3k.robot.beta_vae import load_vae, save_vae, train_beta_vae
+
+        if (out / "vae.pt").is_file():
+            vae = load_vae(out / "vae.pt")
+        else:
+            log(f"beta-VAE: collecting {cfg.vae_images} unlabelled frames of the environment")
+            images = collect_images(cfg, cfg.vae_images, cfg.seed)
+            vae = train_beta_vae(images, cfg.vae_latent, cfg.vae_beta, cfg.vae_steps, seed=cfg.seed,
+                                 log=lambda s, loss, p: log(f"beta-VAE step {s}: loss {loss:.1f}"))
+            save_vae(vae, out / "vae.pt", cfg.vae_beta)
+    env = make_env(cfg, vae)
+    env.reset(seed=cfg.seed)
+    noise = NormalActionNoise(np.zeros(6), cfg.action_noise * np.ones(6))
+    model = TD3("MlpPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
+                learning_starts=cfg.learning_starts, batch_size=cfg.batch_size, action_noise=noise,
+                seed=cfg.seed, device="cpu", verbose=0)
+    progress_file = out / "progress.json"
+    progress: dict = {"evaluations": []}
+    if resume and progress_file.is_file():
+        progress = json.loads(progress_file.read_text())
+    found = checkpoint_folder(ckpt) if resume else None
+    if found is not None:
+        state = load_checkpoint(model, found)
+        held = model.replay_buffer.pos if model.replay_buffer is not None else 0
+        log(f"resumed at {state['env_steps']} environment steps ({held} transitions)")
+    else:
+        demo_steps = add_demonstrations(model, env, cfg.demos, cfg.seed)
+        state = {"env_steps": 0, "updates": 0, "episodes": 0, "demonstration_steps": demo_steps}
+        log(f"{cfg.demos} demonstrations: {demo_steps} transitions in the replay buffer")
+        # learning_starts counts the agent's own steps; the demonstrations are already there to learn from.
+    while model.num_timesteps < cfg.steps:
+        to_checkpoint = cfg.checkpoint_every - model.num_timesteps % cfg.checkpoint_every
+        chunk = min(to_checkpoint, cfg.steps - model.num_timesteps)
+        model.learn(total_timesteps=chunk, reset_num_timesteps=False, log_interval=1_000_000)
+        state.update(env_steps=int(model.num_timesteps), updates=int(model._n_updates),
+                     episodes=int(model._episode_num))
+        save_checkpoint(model, ckpt, state)
+        log(f"checkpoint at {model.num_timesteps} environment steps")
+    result = evaluate_agent(model, env, cfg.eval_episodes, cfg.seed)
+    result.update(agent=cfg.agent, seed=cfg.seed, env_steps=int(model.num_timesteps),
+                  demonstration_steps=int(state.get("demonstration_steps", 0)),
+                  wall_time_s=time.perf_counter() - t0)
+    progress["evaluations"].append(result)
+    progress["final"] = result
+    atomic_write_json(progress, progress_file)
+    env.close()
+    return result

@@ -1,0 +1,73 @@
+"""The robot experiments' summary, ``docs/results/robot/summary.json``, from what the runs wrote.
+
+Only measured figures go in: a field whose run was not given stays ``null``. The grasp figures come from
+the JSON files of ``s3k robot grasp`` (one per detector: s3k, labels only, ground truth); the RL figures from
+the ``progress.json`` of ``s3k robot train-agent`` runs (one per seed and agent), their final evaluation.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from collections.abc import Sequence
+from pathlib import Path
+
+from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
+
+
+def _read_json(path: str | Path, what: str) -> dict:
+    try:
+        doc = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not a {what} JSON file ({exc.msg} at line {exc.lineno})") from exc
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: not a {what} JSON file (not an object)")
+    return doc
+
+
+def grasp_rate(path: str | Path | None) -> tuple[float | None, int | None]:
+    """``(success_rate, trials)`` of an ``s3k robot grasp`` result file, or ``(None, None)``."""
+    if path is None:
+        return None, None
+    doc = _read_json(path, "grasp result")
+    if "successes" not in doc or "trials" not in doc:
+        raise UserError(f"{path}: not an s3k robot grasp result (no 'successes' or 'trials')")
+    return doc["successes"] / doc["trials"], int(doc["trials"])
+
+
+def rl_final(runs: Sequence[str | Path]) -> dict | None:
+    """``{"mean", "per_seed", "env_steps"}`` of the final success rates of agent runs, or None."""
+    if not runs:
+        return None
+    per_seed, steps = [], set()
+    for run in runs:
+        doc = _read_json(Path(run) / "progress.json", "agent progress")
+        final = doc.get("final")
+        if not final:
+            raise UserError(f"{run}/progress.json: the run has no final evaluation yet",
+                            hint="finish it with s3k robot train-agent --resume")
+        per_seed.append({"seed": final["seed"], "success_rate": final["success_rate"]})
+        steps.add(int(final["env_steps"]))
+    return {"mean": statistics.fmean(p["success_rate"] for p in per_seed), "per_seed": per_seed,
+            "env_steps": sorted(steps)}
+
+
+def write_summary(out: str | Path, *, grasp_s3k=None, grasp_labels_only=None, grasp_ground_truth=None,
+                  rl_keypoints: Sequence = (), rl_beta_vae: Sequence = (),
+                  machine: str | None = None) -> dict:
+    """Writes the summary (atomically) and returns it."""
+    rates = {name: grasp_rate(p) for name, p in (("s3k", grasp_s3k), ("labels_only", grasp_labels_only),
+                                                  ("ground_truth", grasp_ground_truth))}
+    trials = sorted({t for _, t in rates.values() if t is not None})
+    kp, vae = rl_final(rl_keypoints), rl_final(rl_beta_vae)
+    env_steps = sorted({s for r in (kp, vae) if r is not None for s in r.pop("env_steps")})
+    summary = {
+        "grasp_success": {name: rate for name, (rate, _) in rates.items()} | {
+            "trials": trials[0] if len(trials) == 1 else (trials or None)},
+        "rl_final_success": {"keypoints": kp, "beta_vae": vae,
+                             "env_steps": env_steps[0] if len(env_steps) == 1 else (env_steps or None)},
+        "machine": machine,
+    }
+    atomic_write_json(summary, out)
+    return summary

@@ -1,0 +1,233 @@
+"""Tests of keypoints in the loop: the plush scene, the grasp primitive, the detector read-out of a run, the
+summary writer (s3k/sim/plush.py, s3k/robot/grasp.py, s3k/robot/detect.py, s3k/robot/results.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from s3k.errors import UserError
+from s3k.sim.generate import SimulateConfig, frame_plan, frame_rng
+from s3k.sim.plush import NUM_ARRANGEMENTS, TRAIN_ARRANGEMENTS, PlushScene
+from s3k.sim.scene import FrameSpec
+
+mujoco = pytest.importorskip("mujoco")
+
+
+# ------------------------------------------------------------------------------------------ plush scene
+def test_plush_labelled_frames_project_onto_the_toy():
+    """Every visible keypoint of each training arrangement's labelled frame lands on the toy in a
+    segmentation render (the keypoints lie inside the toy, so their projections are on its silhouette)."""
+    with PlushScene(size=64, seed=0) as scene:
+        own = set(scene.own_geoms().tolist())
+        checked = 0
+        for a in range(TRAIN_ARRANGEMENTS):
+            frame = scene.frame(FrameSpec(a, "labelled", segment=a), frame_rng(0, a))
+            assert frame.images.shape == (4, 64, 64, 3)
+            assert frame.images.std() > 10  # something is drawn
+            seg = scene.renderer.render(scene.data, scene.camera_ids, segmentation=True)["segmentation"]
+            for c, k in zip(*np.nonzero(frame.visible)):
+                u, v = np.rint(frame.uv[c, k]).astype(int)
+                assert seg[c, v, u] in own, (a, c, scene.keypoints[k])
+                checked += 1
+        assert checked >= 0.8 * TRAIN_ARRANGEMENTS * 4 * len(scene.keypoints)
+
+
+def test_plush_arrangement_is_still_while_gripper_and_light_move():
+    with PlushScene(size=32, seed=0) as scene:
+        f0 = scene.frame(FrameSpec(0, "labelled", segment=2), frame_rng(0, 0))
+        f1 = scene.frame(FrameSpec(1, "unlabelled", segment=2), frame_rng(0, 1))
+        other = scene.frame(FrameSpec(2, "unlabelled", segment=3), frame_rng(0, 2))
+    # Same arrangement: same cameras and keypoints (what label propagation needs); the gripper moved.
+    for a, b in ((f0.K, f1.K), (f0.R, f1.R), (f0.t, f1.t), (f0.points3d, f1.points3d)):
+        np.testing.assert_array_equal(a, b)
+    assert f0.extra["gripper_tcp"] != f1.extra["gripper_tcp"]
+    assert np.abs(f0.images.astype(int) - f1.images.astype(int)).max() > 0
+    assert np.abs(f0.points3d - other.points3d).max() > 0.01
+    assert not np.allclose(f0.R, other.R)
+
+
+def test_plush_frame_plan_one_labelled_frame_per_training_arrangement():
+    specs = frame_plan(SimulateConfig("plush", labelled=7, unlabelled=21, test=6))
+    labelled = [s.segment for s in specs if s.split == "labelled"]
+    assert labelled == list(range(TRAIN_ARRANGEMENTS))
+    assert {s.segment for s in specs if s.split == "unlabelled"} == set(range(TRAIN_ARRANGEMENTS))
+    assert {s.segment for s in specs if s.split == "test"} == set(range(TRAIN_ARRANGEMENTS, NUM_ARRANGEMENTS))
+    assert [s.frame_id for s in specs] == list(range(len(specs)))
+    with PlushScene(size=16, seed=0) as scene, pytest.raises(ValueError, match="arrangement"):
+        scene.sample(FrameSpec(0, "labelled"), frame_rng(0, 0))
+
+
+def test_simulate_plush_writes_a_dataset_with_arrangements(tmp_path):
+    from s3k.cli import main
+    from s3k.data import Dataset, usable_labels
+
+    out = tmp_path / "plush"
+    assert main(["simulate", "plush", "--out", str(out), "--size", "32", "--unlabelled", "7", "--test", "3",
+                 "--workers", "1", "--no-progress"]) == 0
+    ds = Dataset.open(out)
+    assert ds.keypoints == PlushScene.keypoints
+    lab, unl = ds.frames("labelled"), ds.frames("unlabelled")
+    assert len(lab) == TRAIN_ARRANGEMENTS and len(unl) == 7
+    seg_lab = ds.column("segment", lab).astype(int)
+    seg_unl = ds.column("segment", unl).astype(int)
+    assert sorted(seg_lab) == list(range(TRAIN_ARRANGEMENTS))
+    # The labelled frame's 3D label holds for the arrangement's unlabelled frames: same calibration, same
+    # ground truth; every keypoint of the labelled frame triangulates from its labels.
+    for f, s in zip(unl, seg_unl):
+        g = lab[list(seg_lab).index(s)]
+        np.testing.assert_allclose(ds.calibration([f]).numpy()["R"], ds.calibration([g]).numpy()["R"])
+        np.testing.assert_allclose(ds.points3d([f])[0], ds.points3d([g])[0])
+    assert usable_labels(ds, "labelled").mean() > 0.9
+
+
+# ------------------------------------------------------------------------------------------ grasp
+def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
+    from s3k.robot.grasp import SUCCESS_LIFT, ground_truth_keypoints, run_trials
+
+    result = run_trials(ground_truth_keypoints, trials=3, size=32)
+    assert result["successes"] == 3 and result["trials"] == 3
+    assert all(t["lift"] >= SUCCESS_LIFT and t["held_mm"] < 40 for t in result["per_trial"])
+    assert [t["arrangement"] for t in result["per_trial"]] == [7, 8, 9]
+
+    def off_by_6cm(scene, spec):
+        X = scene.keypoints_world().copy()
+        X[:, 0] += 0.06
+        return X
+
+    missed = run_trials(off_by_6cm, trials=2, size=32)
+    assert missed["successes"] == 0
+    assert all(abs(t["lift"]) < 0.02 for t in missed["per_trial"])
+
+    def other_paw(scene, spec):  # a detector that swaps the paws: the toy is lifted by the wrong leg
+        X = scene.keypoints_world().copy()
+        X[[2, 3]] = X[[3, 2]]
+        return X
+
+    swapped = run_trials(other_paw, trials=3, size=32)
+    assert swapped["successes"] == 0
+    assert all(t["held_mm"] > 40 for t in swapped["per_trial"])
+
+
+def _oracle_logits(uv: np.ndarray, h: int, w: int, stride: int, sigma: float) -> torch.Tensor:
+    """Logits ``(C, K, h, w)`` of a Gaussian of width ``sigma`` image pixels at ``uv (C, K, 2)``."""
+    from s3k.heatmaps import cell_centres
+
+    u, v = cell_centres(h, w, stride)
+    uv_t = torch.as_tensor(uv, dtype=torch.float32)
+    du = (u[None, None, None, :] - uv_t[..., 0, None, None]) ** 2
+    dv = (v[None, None, :, None] - uv_t[..., 1, None, None]) ** 2
+    return -(du + dv) / (2 * sigma**2)
+
+
+class _Oracle(torch.nn.Module):
+    def __init__(self, logits: torch.Tensor):
+        super().__init__()
+        self.logits = logits
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.logits.to(images.dtype)
+
+
+def test_run_detector_reads_the_true_points_and_grasps(monkeypatch, tmp_path):
+    """Through RunDetector (rendered views -> network -> s3k's read-out), an oracle network whose heatmaps
+    peak at the true projections gives the true 3D points, and the grasp at them succeeds."""
+    import s3k.robot.detect
+    from s3k.model import UNetConfig
+    from s3k.robot.detect import RunDetector
+    from s3k.robot.grasp import detector_keypoints, run_trials
+    from s3k.run import DetectorMeta
+
+    size, stride, sigma = 64, 2, 2.0
+    # The network's keypoint order differs from the scene's: the detector must reorder by name.
+    names = PlushScene.keypoints[::-1]
+    meta = DetectorMeta(keypoints=names, cameras=[f"cam{i}" for i in range(4)], image_size=(size, size),
+                        stride=stride, sigma=sigma,
+                        model=UNetConfig(channels=(8, 8), stride=stride).to_dict())
+    oracle = _Oracle(torch.zeros(0))
+    monkeypatch.setattr(s3k.robot.detect, "load_detector", lambda *a, **k: (oracle, meta))
+    detector = RunDetector(tmp_path, PlushScene.keypoints)
+    inner = detector_keypoints(detector)
+    errors = []
+
+    def source(scene, spec):
+        from s3k.sim.camera import project_points
+
+        scene.forward()
+        K, R, t = scene.calibration()
+        truth = scene.keypoints_world()
+        uv, _ = project_points(K, R, t, truth[::-1])  # in the network's order
+        oracle.logits = _oracle_logits(uv, size // stride, size // stride, stride, sigma)
+        X = inner(scene, spec)
+        errors.append(np.linalg.norm(X - truth, axis=1))
+        return X
+
+    result = run_trials(source, trials=3, size=size)
+    err = np.concatenate(errors)
+    assert np.nanmax(err) < 0.004, err  # millimetres: the read-out of exact heatmaps
+    assert result["successes"] == 3
+
+    with pytest.raises(UserError, match="no keypoint 'nose'"):
+        RunDetector(tmp_path, ["head", "nose"])
+
+
+def test_grasp_command_ground_truth_and_refusal(tmp_path, capsys):
+    from s3k.cli import main
+
+    out = tmp_path / "grasp.json"
+    assert main(["robot", "grasp", "--ground-truth", "--trials", "1", "--size", "32", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["successes"] == 1 and doc["trials"] == 1 and doc["detector"] == "ground_truth"
+    assert main(["robot", "grasp", "--trials", "1", "--out", str(out)]) == 1
+    assert "RUN" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ summary
+def test_summary_holds_only_what_was_measured(tmp_path):
+    from s3k.robot.results import write_summary
+
+    g = tmp_path / "gt.json"
+    g.write_text(json.dumps({"successes": 27, "trials": 30}))
+    run = tmp_path / "kp0"
+    run.mkdir()
+    final = {"seed": 0, "success_rate": 0.5, "env_steps": 100}
+    (run / "progress.json").write_text(json.dumps({"final": final}))
+    out = tmp_path / "summary.json"
+    s = write_summary(out, grasp_ground_truth=g, rl_keypoints=[run])
+    assert s["grasp_success"] == {"s3k": None, "labels_only": None, "ground_truth": 0.9, "trials": 30}
+    assert s["rl_final_success"] == {"keypoints": {"mean": 0.5,
+                                                   "per_seed": [{"seed": 0, "success_rate": 0.5}]},
+                                     "beta_vae": None, "env_steps": 100}
+    assert json.loads(out.read_text()) == s
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    with pytest.raises(UserError, match="bad.json"):
+        write_summary(out, grasp_s3k=bad)
+    (run / "progress.json").write_text(json.dumps({"evaluations": []}))
+    with pytest.raises(UserError, match="no final evaluation"):
+        write_summary(out, rl_keypoints=[run])
+
+
+def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
+    from tiny_detector import save_run
+
+    from s3k.cli import main
+    from s3k.model import UNetConfig
+    from s3k.run import DetectorMeta
+
+    dataset = tmp_path / "plush-data"
+    dataset.mkdir()
+    (dataset / "s3k.json").write_text(json.dumps({"source": {"scene": "plush", "object_seed": 3}}))
+    meta = DetectorMeta(keypoints=list(PlushScene.keypoints), cameras=[f"cam{i}" for i in range(4)],
+                        image_size=(32, 32), stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0, dataset=str(dataset))
+    out = tmp_path / "grasp.json"
+    assert main(["robot", "grasp", str(run), "--trials", "1", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["trials"] == 1 and doc["detector"] == str(run)
+    assert doc["object_seed"] == 3 and doc["size"] == 32
+    assert len(doc["per_trial"]) == 1 and np.isfinite(doc["per_trial"][0]["aim_error_mm"])

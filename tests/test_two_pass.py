@@ -1,0 +1,200 @@
+"""Tests of the coarse-to-fine detector (``s3k train --two-pass``, :mod:`s3k.two_pass`)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from synthetic_rig import KEYPOINTS, LAYOUT, make_dataset, random_rotation
+from test_track import CAMERAS as TRACK_CAMERAS
+from test_track import KEYPOINTS as TRACK_KEYPOINTS
+from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
+
+from s3k import cli
+from s3k.crops import crop_maps, metric_crop_boxes
+from s3k.data import Dataset
+from s3k.data.anipose import write_anipose_calibration
+from s3k.data.video import write_video
+from s3k.geometry import project
+from s3k.heatmaps import gaussian_targets, heatmap_size
+from s3k.model import UNetConfig
+from s3k.run import DetectorMeta
+from s3k.track import prepare_cameras
+from s3k.tracks_csv import read_csv
+from s3k.two_pass import (
+    TWO_PASS_FILE,
+    CropRule,
+    crop_centres,
+    crop_rule_from_labels,
+    extent_middle,
+    read_two_pass,
+)
+
+
+def _farthest_pair_radius(X: np.ndarray) -> float:
+    d = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    i, j = np.unravel_index(np.argmax(d), d.shape)
+    return float(np.linalg.norm(X - 0.5 * (X[i] + X[j]), axis=-1).max())
+
+
+def test_extent_middle_is_the_rectangle_centre_in_any_orientation():
+    """Three corners of a 199 x 105 mm lid: the middle is the lid's centre, equally far from each corner,
+    however the lid is turned (a bounding box in world axes would move with the rotation)."""
+    corners = np.array([[-99.5, 52.5, 0.0], [99.5, 52.5, 0.0], [99.5, -52.5, 0.0]])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        R, shift = random_rotation(rng), rng.uniform(-500, 500, 3)
+        X = corners @ R.T + shift
+        c = extent_middle(X)
+        np.testing.assert_allclose(c, shift, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(X - c, axis=-1), np.hypot(199, 105) / 2, rtol=1e-12)
+    # the mean of the corners is not the centre: it lies towards the right-angle corner
+    assert np.linalg.norm(corners.mean(0)) > 30
+
+
+def test_extent_middle_ignores_missing_keypoints():
+    X = np.array([[0.0, 0, 0], [np.nan, np.nan, np.nan], [2.0, 0, 0]])
+    np.testing.assert_allclose(extent_middle(X), [1.0, 0, 0])
+    np.testing.assert_allclose(extent_middle(X[:2]), [0.0, 0, 0])  # one keypoint: itself
+    assert extent_middle(np.full((3, 3), np.nan)) is None
+    centres = crop_centres({4: X, 5: np.full((3, 3), np.nan)})
+    assert list(centres) == [4]
+
+
+def test_crop_rule_from_labels_covers_every_keypoint_with_the_margin(tmp_path):
+    ds = Dataset.open(make_dataset(tmp_path / "d", size=48, labelled=5), cache="none")
+    r = _farthest_pair_radius(LAYOUT)  # the labels are exact projections of the rigid layout
+    for margin in (0.0, 0.3):
+        rule = crop_rule_from_labels(ds, size=64, margin=margin)
+        assert rule.size == 64 and rule.margin == margin
+        assert rule.extent == pytest.approx(2 * r * (1 + margin), rel=1e-6)
+
+
+def test_crop_rule_needs_triangulated_labels(tmp_path):
+    from s3k.errors import UserError
+
+    ds = Dataset.open(make_dataset(tmp_path / "d", size=32, labelled=3, label_cameras=1), cache="none")
+    with pytest.raises(UserError, match="--crop-extent"):
+        crop_rule_from_labels(ds, size=64)
+
+
+def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
+    run = tmp_path / "run"
+    args = ["train", str(data), "--out", str(run), "--two-pass", "--steps", "3", "--coarse-size", "32",
+            "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1", "--val_every", "0",
+            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1"]
+    assert cli.main(args) == 0
+    rule, coarse, fine = read_two_pass(run)
+    assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
+    assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
+    assert json.loads((coarse / "config.json").read_text())["config"]["image_size"] == 32
+    crops = Dataset.open(run / "crops", cache="none")
+    source = Dataset.open(data, cache="none")
+    assert crops.image_size == (32, 32) and list(crops.keypoints) == KEYPOINTS
+    for split in ("labelled", "unlabelled", "test"):
+        np.testing.assert_array_equal(crops.frames(split), source.frames(split))
+    # the crops' cameras see the ground truth where the labels put it (K' = M K)
+    ids = crops.frames("labelled")
+    uv, mask = crops.labels(ids)
+    X, _ = crops.points3d(ids)
+    proj, _ = project(crops.calibration(ids, np.float64), torch.as_tensor(X, dtype=torch.float64)[:, None])
+    np.testing.assert_allclose(proj.numpy()[mask], uv[mask], atol=1e-3)
+
+    # a complete run: --resume does nothing more; without --resume or --overwrite the folder is kept
+    before = (fine / "model.pt").stat().st_mtime_ns
+    assert cli.main([*args, "--resume"]) == 0
+    assert (fine / "model.pt").stat().st_mtime_ns == before
+    capsys.readouterr()
+    assert cli.main(args) == 1
+    assert "--resume" in capsys.readouterr().err
+    assert cli.main([*args, "--image-size", "48"]) == 1
+    assert "--coarse-size" in capsys.readouterr().err
+
+    # evaluate and predict go through both passes, on the source dataset's own images
+    assert cli.main(["evaluate", str(run), "--data", str(data), "--json"]) == 0
+    metrics = json.loads(capsys.readouterr().out)
+    assert metrics["two_pass"]["size"] == 32 and metrics["two_pass"]["coarse_frames_placed"] == 3
+    assert metrics["n_frames"] == 3 and metrics["image_size"] == [32, 32]
+    out = tmp_path / "p.csv"
+    assert cli.main(["predict", str(run), "--data", str(data), "--out", str(out)]) == 0
+    assert sorted(read_csv(out, KEYPOINTS)) == list(source.frames("test"))
+    # a command that needs one network names the two
+    capsys.readouterr()
+    assert cli.main(["export", str(run), "--format", "torchscript", "--out", str(tmp_path / "m.pt")]) == 1
+    err = capsys.readouterr().err
+    assert "two-pass" in err and str(run / "fine") in err and len(err.strip().splitlines()) == 1
+
+
+class _GreyOracle(torch.nn.Module):
+    """A network stand-in that reads frame ``f`` and camera ``c`` from an image's centre (grey level
+    ``20 + 10 f + 3 c``) and answers with precomputed logits ``(F, C, K, h, w)``."""
+
+    def __init__(self, logits: torch.Tensor):
+        super().__init__()
+        self.logits = logits.float()
+        self.calls = 0
+
+    def fused(self):
+        return self
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        H, W = images.shape[-2:]
+        level = (images[:, 0, H // 2, W // 2] * 255).round().long() - 20
+        self.calls += 1
+        return self.logits[level // 10, (level % 10) // 3]
+
+
+def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
+    """``s3k track`` with a two-pass run: the coarse pass is off by 8 mm, the refining pass sees crops cut
+    around the coarse estimate from the full-resolution videos and gives the true points back: the crop
+    boxes, their pixel maps and the read-out in video pixels compose exactly."""
+    import s3k.run
+
+    rig = make_rig()
+    calib = tmp_path / "calibration.toml"
+    write_anipose_calibration(calib, rig)
+    F, (W, H) = 6, VIDEO_SIZE
+    videos = {}
+    for c, name in enumerate(TRACK_CAMERAS):  # lossless, one grey level per frame and camera
+        videos[name] = tmp_path / f"{name}.mkv"
+        write_video(videos[name], [np.full((H, W, 3), 20 + 10 * f + 3 * c, np.uint8) for f in range(F)],
+                    fps=25, codec="ffv1")
+    X = torch.as_tensor(moving_points(F))  # (F, K, 3) mm
+    inputs, cams = prepare_cameras(videos, rig, NET_SIZE, "pad")
+    M = torch.as_tensor(np.stack([c.M for c in inputs]))
+    X_coarse = X + torch.tensor([8.0, 0.0, 0.0])
+    uv, _ = project(cams, X_coarse[:, None])
+    coarse = _GreyOracle(_peaked_logits(uv @ M[:, :2, :2].transpose(-1, -2) + M[:, None, :2, 2], 2, 2.0))
+    # the refining oracle's answer: the true points in the crops the run's rule cuts around the coarse points
+    rule = CropRule(extent=400.0, size=40)
+    centres = torch.as_tensor(np.stack([extent_middle(x) for x in X_coarse.numpy()]))[:, None]
+    boxes, _ = metric_crop_boxes(cams, centres, rule.extent)
+    maps = crop_maps(boxes, (rule.size, rule.size))  # (F, C, 3, 3)
+    uv_true, _ = project(cams, X[:, None])
+    uv_crop = uv_true @ maps[..., :2, :2].transpose(-1, -2) + maps[..., None, :2, 2]
+    h, w = heatmap_size(rule.size, rule.size, 2)
+    target, inside = gaussian_targets(uv_crop, None, h, w, 2, 2.0)
+    assert bool(inside.all())
+    fine = _GreyOracle(target.clamp_min(1e-300).log())
+
+    def meta(size):
+        return DetectorMeta(keypoints=list(TRACK_KEYPOINTS), cameras=list(TRACK_CAMERAS), image_size=size,
+                            stride=2, sigma=2.0, model=UNetConfig(channels=(8, 8), stride=2).to_dict(),
+                            units="mm", source_image_size=size)
+
+    passes = {"coarse": (coarse, meta(NET_SIZE)), "fine": (fine, meta((rule.size, rule.size)))}
+    monkeypatch.setattr(s3k.run, "load_detector", lambda path, *a, **k: passes[str(path).split("/")[-1]])
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / TWO_PASS_FILE).write_text(json.dumps({"extent": rule.extent, "size": rule.size, "coarse": "coarse",
+                                                 "fine": "fine"}))
+    out = tmp_path / "points3d.csv"
+    assert cli.main(["track", str(run), "--calibration", str(calib), "--out", str(out), "--no-progress",
+                     "--batch", "4", "--min-weight", "0", "--videos",
+                     *[f"{c}={videos[c]}" for c in TRACK_CAMERAS]]) == 0
+    assert coarse.calls == 2 and fine.calls == 2
+    got = np.stack([read_csv(out, TRACK_KEYPOINTS)[f] for f in range(F)])
+    np.testing.assert_allclose(got, X.numpy(), rtol=0, atol=1e-3)  # the truth, not the coarse points
