@@ -1,5 +1,5 @@
-"""``s3k label`` as a real server process: a SIGKILL mid-session loses no acknowledged click, and bound to
-another interface than the loopback it refuses requests without the printed token."""
+"""``s3k label`` as a real server process: a SIGKILL while clicks arrive loses no acknowledged click, and
+bound to another interface than the loopback it refuses requests without the printed token."""
 
 from __future__ import annotations
 
