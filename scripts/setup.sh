@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 # Installs everything s3k needs on a fresh Debian/Ubuntu machine into ./.venv:
-# system libraries (OSMesa for MuJoCo's CPU rendering), PyTorch, then s3k with its dev, formats and robot
-# extras.
+# system libraries (OSMesa for MuJoCo's CPU rendering, Chromium for the labelling app's browser test),
+# PyTorch, then s3k with its dev, formats, robot and label extras.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_apt=()
 [ -e /usr/lib/x86_64-linux-gnu/libOSMesa.so.8 ] || [ -e /usr/lib/aarch64-linux-gnu/libOSMesa.so.8 ] \
     || ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || need_apt+=(libosmesa6)
+# The browser the labelling app's tests drive (Playwright with this executable; never a downloaded build).
+[ -x /usr/bin/chromium ] || need_apt+=(chromium fonts-liberation)
 if [ ${#need_apt[@]} -gt 0 ]; then
     SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
     export DEBIAN_FRONTEND=noninteractive
@@ -22,4 +24,4 @@ python -m pip install -q --upgrade pip </dev/null
 # PyTorch first, so that nothing below pulls a multi-GB CUDA build; a GPU machine may preinstall its own.
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0" </dev/null \
     || python -m pip install -q "torch>=2.2,<3" </dev/null
-python -m pip install -q -e ".[dev,formats,robot]" </dev/null
+python -m pip install -q -e ".[dev,formats,robot,label]" </dev/null

@@ -37,6 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export-labels": ("export_labels", "a dataset's 2D labels for DeepLabCut, Lightning Pose, SLEAP, NWB"),
     "export-tracks": ("export_tracks", "write 3D keypoints (track / predict CSV) as NWB"),
     "robot": ("robot", "keypoints in the loop: plush grasp trials, cable-insertion agents, their summary"),
+    "label": ("label", "label keypoints in the browser; 'label propagate' copies labels over still frames"),
 }
 
 

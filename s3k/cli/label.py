@@ -1,0 +1,77 @@
+"""`s3k label`: label keypoints in the browser (:mod:`s3k.label`), and `s3k label propagate`.
+
+``s3k label DATASET [--run RUN]`` serves the app on 127.0.0.1; ``s3k label propagate DATASET --frames A:B
+[--from F]`` copies one frame's 3D labels to a still stretch of frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from s3k.errors import UserError
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Label keypoints in the browser: click a keypoint in two views, s3k triangulates it and shows it in "
+        "every view. 's3k label propagate DATASET --frames A:B [--from F]' copies frame F's 3D labels to the "
+        "still frames A..B instead.")
+    parser.usage = ("s3k label DATASET [--run RUN] [--port PORT] [--host HOST]\n"
+                    "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT]")
+    parser.add_argument("dataset", help="dataset folder (or 'propagate' followed by the dataset folder)")
+    parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
+    parser.add_argument("--run", help="a trained run: its predictions are offered as suggestions and the "
+                        "unlabelled frames ranked by its multi-view disagreement")
+    parser.add_argument("--port", type=int, default=8765, help="port to serve on (default: 8765)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="interface to serve on (default: 127.0.0.1); any other requires the random "
+                             "token in the printed URL")
+    parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
+    parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
+    group = parser.add_argument_group("propagate")
+    group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
+    group.add_argument("--from", dest="source", type=int, help="frame whose labels are copied (default: the "
+                       "frame of the stretch with the most keypoints labelled in two or more views)")
+    group.add_argument("--max-changed", type=float, default=None,
+                       help="largest percentage of a camera's pixels that may differ from the source frame "
+                            "by more than 24 grey levels in a still frame (default: 0.2)")
+
+
+def _frames(text: str | None) -> tuple[int, int]:
+    if not text:
+        raise UserError("s3k label propagate needs --frames A:B")
+    a, sep, b = text.partition(":")
+    try:
+        return (int(a), int(b)) if sep else (int(a), int(a))
+    except ValueError:
+        raise UserError(f"--frames {text!r}: expected A:B with integer frame ids") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    propagate = args.dataset == "propagate" and not Path("propagate", "s3k.json").is_file()
+    if propagate and args.target is None:
+        raise UserError("s3k label propagate needs the dataset folder",
+                        hint="s3k label propagate DATASET --frames A:B")
+    if propagate:
+        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
+
+        first, last = _frames(args.frames)
+        result = propagate_labels(args.target, first, last, args.source,
+                                  DEFAULT_MAX_CHANGED if args.max_changed is None else args.max_changed,
+                                  labeller=args.labeller)
+        print(f"copied frame {result.source}'s {len(result.keypoints)} keypoint(s) "
+              f"({', '.join(result.keypoints)}) to {len(result.frames)} frame(s): {result.labels} labels")
+        return 0
+    if args.target is not None:
+        raise UserError(f"unexpected argument {args.target!r}; did you mean 's3k label propagate DATASET'?")
+    for name in ("frames", "source", "max_changed"):
+        if getattr(args, name) is not None:
+            raise UserError(f"--{name.replace('_', '-')} belongs to 's3k label propagate DATASET'")
+    try:
+        from s3k.label.server import serve
+    except ImportError as exc:
+        raise UserError(f"s3k label needs FastAPI and uvicorn ({exc})",
+                        hint="pip install 'fastapi>=0.110' 'uvicorn>=0.29'") from None
+    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device)
+    return 0

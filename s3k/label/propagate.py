@@ -1,0 +1,144 @@
+"""Copying a frame's 3D labels to a stretch of frames where nothing moves (``s3k label propagate``).
+
+When the cameras and the object are still for a stretch of frames, the labels of one frame hold for all of
+them: each keypoint labelled in two or more views of the source frame is triangulated (unit weights, as the
+supervised loss does) and reprojected into every camera of every frame of the stretch, as 2D labels; a view
+where the source frame marks the keypoint occluded gets the same mark. The stretch must really be still:
+every frame's calibration must equal the source frame's, and in no camera may more than ``max_changed``
+percent of its pixels differ from the source frame's by more than ``CHANGE_LEVEL`` grey levels (in any
+channel, 0-255). A share of changed pixels, not a mean difference, so that a small object moving in a large
+still image is caught, and a video codec's noise of a few grey levels is not. The first frame that breaks
+either is named and nothing is written.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from s3k.errors import UserError
+from s3k.label.solve import triangulate_labels
+from s3k.label.store import Edit, LabelStore
+
+__all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "propagate_labels"]
+
+CHANGE_LEVEL = 24
+"""A pixel has changed when a channel differs by more than this many grey levels (0-255)."""
+
+DEFAULT_MAX_CHANGED = 0.2
+"""Largest share of changed pixels, in percent of a camera's image, of a still frame."""
+
+
+@dataclass
+class PropagateResult:
+    """What :func:`propagate_labels` wrote."""
+
+    source: int
+    frames: list[int]
+    keypoints: list[str]
+    labels: int
+
+
+def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Percent of the pixels of two frames' images ``uint8 (C, H, W, 3)`` that changed (a channel differs by
+    more than :data:`CHANGE_LEVEL`), per camera ``(C,)``."""
+    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1)
+    return 100.0 * (diff > CHANGE_LEVEL).mean(axis=(1, 2))
+
+
+def propagate_labels(data: str | Path, first: int, last: int, source: int | None = None,
+                     max_changed: float = DEFAULT_MAX_CHANGED, store: LabelStore | None = None,
+                     labeller: str | None = None) -> PropagateResult:
+    """Copy the 3D labels of frame ``source`` to every frame with an id in ``first..last`` (inclusive).
+
+    Args:
+        data: dataset folder.
+        first, last: the stretch of frame ids.
+        source: the frame whose labels are copied (it need not lie in the stretch); by default the frame of
+            the stretch with the most keypoints labelled in two or more views.
+        max_changed: largest percentage of changed pixels a still frame may have in any camera.
+        store: the dataset's open :class:`LabelStore` (the labelling app passes its own); opened if None.
+        labeller: name for the history when the store is opened here.
+
+    Returns:
+        A :class:`PropagateResult`.
+
+    Raises:
+        UserError: an empty stretch, a source frame without a keypoint labelled in two views, or a frame of
+            the stretch whose calibration or images differ from the source frame's (named, with the option
+            that changes the threshold).
+    """
+    from s3k.data import Dataset
+
+    ds = Dataset.open(data, cache="none")
+    store = store or LabelStore.open(data, labeller=labeller)
+    store.refresh()
+    if last < first:
+        raise UserError(f"--frames {first}:{last}: the last frame comes before the first")
+    ids = [int(f) for f in ds.frame_ids if first <= f <= last]
+    if not ids:
+        raise UserError(f"--frames {first}:{last}: no frame of {ds.path} has an id in that range")
+
+    def solved(frame: int) -> dict[str, np.ndarray]:
+        uv, mask = store.arrays(frame)
+        return triangulate_labels(ds.calibration([frame], np.float64)[0], uv, mask)
+
+    if source is None:
+        counts = [(int(solved(f)["valid"].sum()), -i, f) for i, f in enumerate(ids)]
+        best = max(counts)
+        if best[0] == 0:
+            raise UserError(f"--frames {first}:{last}: no frame there has a keypoint labelled in 2 or more "
+                            "views", hint="label one frame first, or pass --from FRAME")
+        source = best[2]
+    elif source not in store.frames.row_of:
+        raise UserError(f"--from {source}: frame {source} is not listed in {ds.path / 'frames.csv'}")
+    tri = solved(source)
+    if not tri["valid"].any():
+        raise UserError(f"--from {source}: frame {source} has no keypoint labelled in 2 or more views",
+                        hint="label it in a second view first")
+    # Still: the same calibration and (nearly) the same images as the source frame, checked before writing.
+    ref_cams = ds.calibration([source], np.float64).numpy()
+    ref_images = ds.images([source])[0]
+    for f in ids:
+        if f == source:
+            continue
+        cams = ds.calibration([f], np.float64).numpy()
+        for name in ("K", "dist", "R", "t"):
+            a, b = ref_cams[name], cams[name]
+            if not np.allclose(a, b, rtol=1e-9, atol=1e-12):
+                c = int(np.argmax(np.abs(a - b).reshape(len(ds.cameras), -1).max(axis=1)))
+                raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s calibration ({name}) "
+                                f"differs from frame {source}'s",
+                                hint="choose --frames where the cameras do not move")
+        changed = changed_pixels(ref_images, ds.images([f])[0])
+        c = int(np.argmax(changed))
+        if changed[c] > max_changed:
+            raise UserError(f"frame {f} is not still: {changed[c]:.2f}% of camera {ds.cameras[c]}'s pixels "
+                            f"differ from frame {source}'s (more than {max_changed:g}%)",
+                            hint="choose --frames where nothing moves, or raise --max-changed")
+    W, H = ds.source_image_size
+    uv_src, _ = store.arrays(source)
+    i_src = store.row(source)
+    edits: dict[int, list[Edit]] = {}
+    keypoints = [kp for k, kp in enumerate(ds.keypoints) if tri["valid"][k]]
+    for f in ids:
+        if f == source:
+            continue
+        items = []
+        for k, kp in enumerate(ds.keypoints):
+            if not tri["valid"][k]:
+                continue
+            for c, cam in enumerate(ds.cameras):
+                if store.present[i_src, c, k] and not store.visible[i_src, c, k]:
+                    items.append(Edit(cam, kp, visible=False))
+                    continue
+                u, v = tri["reproj"][c, k]
+                if np.isfinite(u) and -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5:
+                    items.append(Edit(cam, kp, float(u), float(v)))
+        if items:
+            edits[f] = items
+    if edits:
+        store.save_many(edits, None, source=f"propagate from {source}")
+    return PropagateResult(int(source), sorted(edits), keypoints, sum(len(e) for e in edits.values()))

@@ -1,0 +1,248 @@
+"""The labelling app's web server (``s3k label``): a FastAPI application over one dataset folder.
+
+The browser shows the views and takes the clicks; every computation is here, with s3k's calibration and
+geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
+:class:`~s3k.label.store.LabelStore` (saved on disk before the reply). The API, all JSON except the images:
+
+- ``GET /api/meta``: keypoints, cameras, image size, frames with their splits and label counts.
+- ``GET /api/frame/{frame}``: the frame's labels, its version, the geometry (3D points, reprojections,
+  residuals, epipolar curves) and, with a run, the run's suggestions.
+- ``GET /api/frame/{frame}/image/{camera}``: the stored image, PNG.
+- ``POST /api/frame/{frame}/label``: ``{"version", "edits": [{"camera", "keypoint", "u", "v", "visible",
+  "remove"}], "source"}``; answers the new frame state, 409 with the newer state (``current``) when
+  ``version`` is stale, 400 naming the field when an edit is invalid.
+- ``GET /api/frame/{frame}/history``: the frame's edit log.
+- ``GET /api/ranking``: with a run, frames of a split ordered by the run's doubt, worst first.
+- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
+  :func:`s3k.label.propagate.propagate_labels`.
+
+Files are served only from the package's ``static`` folder; images only by frame id and camera name, so no
+request names a path. Bound to another interface than the loopback, every request must carry the token the
+server printed (``?token=`` in the first URL, then a cookie).
+"""
+
+from __future__ import annotations
+
+import hmac
+import secrets
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from fastapi import Body, FastAPI, HTTPException, Request
+from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel
+
+from s3k.errors import UserError
+from s3k.label.solve import frame_geometry
+from s3k.label.store import Edit, LabelStore, StaleVersion
+
+__all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
+
+STATIC = Path(__file__).parent / "static"
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+TOKEN_COOKIE = "s3k_token"
+
+
+class EditIn(BaseModel):
+    camera: str
+    keypoint: str
+    u: float | None = None
+    v: float | None = None
+    visible: bool = True
+    remove: bool = False
+
+
+class SaveIn(BaseModel):
+    version: int
+    edits: list[EditIn]
+    source: str = "click"
+
+
+class PropagateIn(BaseModel):
+    first: int
+    last: int
+    source: int | None = None
+    max_changed: float | None = None
+
+
+class LabelApp:
+    """The state behind the API: the dataset, its label store and the optional run's suggestions."""
+
+    def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
+                 device: str = "cpu") -> None:
+        from s3k.data import Dataset
+
+        self.root = Path(data)
+        self.dataset = Dataset.open(self.root)
+        self.store = LabelStore.open(self.root, labeller=labeller)
+        self.suggestions = None
+        if run is not None:
+            from s3k.label.suggest import Suggestions
+
+            self.suggestions = Suggestions(run, self.root, device)
+
+    def frame_state(self, frame: int) -> dict[str, Any]:
+        self.store.refresh()
+        state = self.store.frame_labels(frame)
+        uv, mask = self.store.arrays(frame)
+        cams = self.dataset.calibration([frame], np.float64)[0]
+        state["geometry"] = frame_geometry(cams, uv, mask, self.dataset.keypoints, self.dataset.cameras,
+                                           self.dataset.source_image_size)
+        if self.suggestions is not None:
+            state["suggestions"] = self.suggestions.suggestion(frame, self.dataset.cameras)
+        return state
+
+    def meta(self) -> dict[str, Any]:
+        self.store.refresh()
+        s = self.store
+        counts = (s.present & s.visible).sum(axis=(1, 2))
+        frames = [{"frame": int(f), "split": str(s.frames.splits[i]), "labels": int(counts[i])}
+                  for i, f in enumerate(s.frames.ids)]
+        ds = self.dataset
+        return {"keypoints": ds.keypoints, "cameras": ds.cameras, "image_size": list(ds.source_image_size),
+                "units": ds.units, "skeleton": ds.skeleton, "calibration":
+                "static" if ds.static_calibration else "per_frame", "frames": frames,
+                "run": self.suggestions is not None, "path": str(self.root)}
+
+
+def _error(status: int, message: str, **extra: Any) -> JSONResponse:
+    return JSONResponse({"detail": message, **extra}, status_code=status)
+
+
+def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
+               labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None
+               ) -> FastAPI:
+    """The labelling app for the dataset ``data``.
+
+    Args:
+        data: dataset folder.
+        run: a trained run folder whose predictions are offered as suggestions, or None.
+        token: when given, every request must carry it (``?token=`` or the cookie set by the first page).
+        labeller: name written into the edit history.
+        device: where the run's detector runs.
+        allowed_hosts: ``Host`` header values accepted (None: any), so that a web page elsewhere cannot
+            reach a loopback server through a name that resolves to 127.0.0.1.
+    """
+    state = LabelApp(data, run, labeller, device)
+    app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
+    app.state.label = state
+
+    @app.middleware("http")
+    async def guard(request: Request, call_next):
+        if allowed_hosts is not None:
+            host = request.headers.get("host", "").rsplit(":", 1)[0].strip("[]")
+            if host not in allowed_hosts:
+                return _error(400, f"host {host!r} refused; open the URL s3k label printed")
+        given = None
+        if token is not None:
+            given = request.query_params.get("token") or request.cookies.get(TOKEN_COOKIE) \
+                or request.headers.get("x-s3k-token")
+            if given is None or not hmac.compare_digest(given, token):
+                return _error(403, "missing or wrong token; open the URL s3k label printed (with ?token=...)")
+        response = await call_next(request)
+        if token is not None and request.query_params.get("token"):
+            response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        return response
+
+    def frame_or_404(frame: int) -> int:
+        if frame not in state.store.frames.row_of:
+            raise HTTPException(404, f"frame {frame} is not in {state.root / 'frames.csv'}")
+        return frame
+
+    @app.get("/")
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
+
+    @app.get("/api/meta")
+    def meta() -> dict[str, Any]:
+        return state.meta()
+
+    @app.get("/api/frame/{frame}")
+    def frame(frame: int) -> dict[str, Any]:
+        return state.frame_state(frame_or_404(frame))
+
+    @app.get("/api/frame/{frame}/image/{camera}")
+    def image(frame: int, camera: str) -> Response:
+        frame_or_404(frame)
+        if camera not in state.dataset.cameras:
+            raise HTTPException(404, f"unknown camera {camera!r}")
+        rgb = state.dataset.images([frame])[0, state.dataset.cameras.index(camera)]
+        ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
+            raise HTTPException(500, "could not encode the image")
+        return Response(png.tobytes(), media_type="image/png", headers={"Cache-Control": "max-age=3600"})
+
+    @app.post("/api/frame/{frame}/label")
+    def save(frame: int, body: SaveIn) -> Any:
+        frame_or_404(frame)
+        edits = [Edit(e.camera, e.keypoint, e.u, e.v, e.visible, e.remove) for e in body.edits]
+        try:
+            state.store.save(frame, edits, body.version, source=body.source[:40])
+        except StaleVersion as exc:
+            return _error(409, str(exc), current=state.frame_state(frame))
+        except UserError as exc:
+            return _error(400, str(exc))
+        return state.frame_state(frame)
+
+    @app.get("/api/frame/{frame}/history")
+    def history(frame: int) -> list[dict[str, Any]]:
+        return state.store.history(frame_or_404(frame))
+
+    @app.get("/api/ranking")
+    def ranking(split: str = "unlabelled", limit: int = 100) -> Any:
+        if state.suggestions is None:
+            return _error(404, "no run: start s3k label with --run RUN to rank frames")
+        if split not in ("labelled", "unlabelled", "test", "all"):
+            return _error(400, f"unknown split {split!r}")
+        ids = state.dataset.frames(None if split == "all" else split)
+        return state.suggestions.ranking(ids)[: max(0, limit)]
+
+    @app.post("/api/propagate")
+    def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
+        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
+
+        limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
+        try:
+            result = propagate_labels(state.root, body.first, body.last, body.source, limit,
+                                      store=state.store)
+        except UserError as exc:
+            return _error(400, str(exc))
+        return {"source": result.source, "frames": result.frames, "keypoints": result.keypoints,
+                "labels": result.labels}
+
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    return app
+
+
+def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
+          labeller: str | None = None, device: str = "cpu", announce=print) -> None:
+    """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
+    import socket
+
+    import torch
+    import uvicorn
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family) as probe:  # a port in use is the user's to change, said in one line
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise UserError(f"cannot serve on {host}:{port}: {exc.strerror}",
+                            hint="pass another --port (or --host)") from None
+
+    # a request's geometry is a handful of tiny tensors: one thread each is fastest and leaves the cores free
+    torch.set_num_threads(1)
+    loopback = host in LOOPBACK
+    token = None if loopback else secrets.token_urlsafe(18)
+    app = create_app(data, run, token, labeller, device,
+                     allowed_hosts=[*LOOPBACK, host] if loopback else None)
+    shown = f"[{host}]" if ":" in host else host
+    url = f"http://{shown}:{port}/" + ("" if token is None else f"?token={token}")
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
+    server = uvicorn.Server(config)
+    announce(f"s3k label: serving {data} at {url} (Ctrl-C to stop)")
+    server.run()

@@ -1,0 +1,425 @@
+// s3k label: the page. Everything geometric (triangulation, reprojection, residuals, epipolar curves) comes
+// from the server; this file only draws what it is given and sends clicks.
+"use strict";
+
+const SVG = "http://www.w3.org/2000/svg";
+const TOKEN = new URLSearchParams(location.search).get("token");
+const app = {
+  meta: null, frames: [], frameIndex: 0, frame: null, kp: 0, brightness: 1,
+  views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
+  versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
+};
+
+function colour(k, n) { return `hsl(${Math.round((360 * k) / Math.max(n, 1) + 10) % 360}, 85%, 58%)`; }
+
+async function api(path, options = {}) {
+  const headers = Object.assign({ "Content-Type": "application/json" }, options.headers || {});
+  if (TOKEN) headers["X-S3K-Token"] = TOKEN;
+  const response = await fetch(path, Object.assign({}, options, { headers }));
+  let body = null;
+  try { body = await response.json(); } catch (e) { body = null; }
+  return { ok: response.ok, status: response.status, body };
+}
+
+function setStatus(text, kind) {
+  const el = document.getElementById("status");
+  el.textContent = text;
+  el.className = kind || "";
+}
+
+function el(tag, attrs = {}, parent = null) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  if (parent) parent.appendChild(node);
+  return node;
+}
+
+// ---- views ---------------------------------------------------------------------------------------------
+
+function buildViews() {
+  const [W, H] = app.meta.image_size;
+  const box = document.getElementById("views");
+  box.innerHTML = "";
+  for (const cam of app.meta.cameras) {
+    const div = document.createElement("div");
+    div.className = "view";
+    div.dataset.camera = cam;
+    div.innerHTML = `<div class="bar"><span class="name"></span><span class="residual"></span>` +
+      `<span class="spacer"></span><button class="occlude" title="the current keypoint is not visible in this view (x)">not visible</button>` +
+      `<button class="remove" title="remove the current keypoint's label in this view (Delete)">remove</button></div>`;
+    div.querySelector(".name").textContent = cam;
+    div.querySelector(".residual").title = "residual: pixels between the label and the reprojection of the 3D point";
+    const svg = el("svg", { viewBox: `${-0.5} ${-0.5} ${W} ${H}`, "data-camera": cam });
+    const image = el("image", { x: -0.5, y: -0.5, width: W, height: H, preserveAspectRatio: "none" }, svg);
+    const overlay = el("g", { class: "overlay" }, svg);
+    div.appendChild(svg);
+    box.appendChild(div);
+    const view = { cam, div, svg, image, overlay, box: [-0.5, -0.5, W, H] };
+    app.views[cam] = view;
+    div.querySelector(".occlude").addEventListener("click", () => markOccluded(cam));
+    div.querySelector(".remove").addEventListener("click", () => removeLabel(cam));
+    div.addEventListener("pointerenter", () => { app.hover = cam; div.classList.add("hover"); });
+    div.addEventListener("pointerleave", () => { if (app.hover === cam) app.hover = null; div.classList.remove("hover"); });
+    attachPointer(view);
+    svg.addEventListener("wheel", (ev) => { ev.preventDefault(); zoom(view, ev); }, { passive: false });
+  }
+}
+
+function toImage(view, clientX, clientY) {
+  const pt = view.svg.createSVGPoint();
+  pt.x = clientX; pt.y = clientY;
+  const p = pt.matrixTransform(view.svg.getScreenCTM().inverse());
+  return [p.x, p.y];
+}
+
+function toClient(cam, u, v) {  // for tests and tools: where image pixel (u, v) of a view is on the page
+  const view = app.views[cam];
+  const pt = view.svg.createSVGPoint();
+  pt.x = u; pt.y = v;
+  const p = pt.matrixTransform(view.svg.getScreenCTM());
+  return [p.x, p.y];
+}
+
+function unitsPerPixel(view) { return view.box[2] / Math.max(view.svg.clientWidth, 1); }
+
+function setBox(view, box) {
+  view.box = box;
+  view.svg.setAttribute("viewBox", box.join(" "));
+  drawView(view);
+}
+
+function zoom(view, ev) {
+  const [u, v] = toImage(view, ev.clientX, ev.clientY);
+  const f = Math.exp(Math.sign(ev.deltaY) * 0.15);
+  const [x, y, w, h] = view.box;
+  const [W] = app.meta.image_size;
+  const nw = Math.min(Math.max(w * f, 4), W * 4);
+  const s = nw / w;
+  setBox(view, [u - (u - x) * s, v - (v - y) * s, w * s, h * s]);
+}
+
+function resetZoom() {
+  const [W, H] = app.meta.image_size;
+  for (const view of Object.values(app.views)) setBox(view, [-0.5, -0.5, W, H]);
+}
+
+function attachPointer(view) {
+  let drag = null;
+  view.svg.addEventListener("pointerdown", (ev) => {
+    if (ev.button !== 0 && ev.button !== 1) return;
+    const target = ev.target.closest("[data-keypoint]");
+    const mode = ev.button === 0 && target && target.dataset.draggable === "1" ? "point" : "pan";
+    if (mode === "point") selectKeypoint(app.meta.keypoints.indexOf(target.dataset.keypoint), false);
+    drag = { mode, x: ev.clientX, y: ev.clientY, moved: false, button: ev.button, box: view.box.slice(),
+             kp: target ? target.dataset.keypoint : null, kind: target ? target.dataset.kind : null };
+    view.svg.setPointerCapture(ev.pointerId);
+  });
+  view.svg.addEventListener("pointermove", (ev) => {
+    if (!drag) return;
+    if (Math.hypot(ev.clientX - drag.x, ev.clientY - drag.y) > 3) drag.moved = true;
+    if (!drag.moved) return;
+    if (drag.mode === "pan") {
+      const s = unitsPerPixel(view);
+      const [x, y, w, h] = drag.box;
+      setBox(view, [x - (ev.clientX - drag.x) * s, y - (ev.clientY - drag.y) * s, w, h]);
+    } else {
+      const [u, v] = toImage(view, ev.clientX, ev.clientY);
+      drag.to = [u, v];
+      drawView(view, { kp: drag.kp, uv: [u, v] });
+    }
+  });
+  view.svg.addEventListener("pointerup", (ev) => {
+    if (!drag) return;
+    const d = drag;
+    drag = null;
+    if (d.mode === "point" && d.moved && d.to) {
+      saveEdits([{ camera: view.cam, keypoint: d.kp, u: d.to[0], v: d.to[1], visible: true }], "drag");
+    } else if (!d.moved && d.button === 0) {
+      const [u, v] = toImage(view, ev.clientX, ev.clientY);
+      const kp = app.meta.keypoints[app.kp];
+      saveEdits([{ camera: view.cam, keypoint: kp, u, v, visible: true }], "click");
+    }
+  });
+}
+
+// ---- drawing -------------------------------------------------------------------------------------------
+
+function labelOf(cam, kp) {
+  return (app.frame ? app.frame.labels : []).find((l) => l.camera === cam && l.keypoint === kp) || null;
+}
+
+function drawView(view, preview = null) {
+  const g = view.overlay;
+  while (g.firstChild) g.removeChild(g.firstChild);
+  if (!app.frame) return;
+  const s = unitsPerPixel(view);
+  const kps = app.meta.keypoints;
+  const current = kps[app.kp];
+  const geometry = app.frame.geometry || {};
+  const suggestions = app.frame.suggestions || {};
+  const order = kps.map((_, k) => k).filter((k) => k !== app.kp).concat([app.kp]);  // current on top
+  for (const k of order) {
+    const kp = kps[k];
+    const col = colour(k, kps.length);
+    const isCurrent = kp === current;
+    const layer = el("g", { class: isCurrent ? "kp current" : "kp dim", "data-kp": kp }, g);
+    const geo = geometry[kp] || { views: {}, epipolar: {} };
+    const lab = labelOf(view.cam, kp);
+    const rp = geo.views[view.cam] ? geo.views[view.cam].reproj : null;
+    if (isCurrent && geo.epipolar && geo.epipolar[view.cam] && geo.epipolar[view.cam].length > 1) {
+      el("polyline", { class: "epipolar", stroke: col, "data-keypoint": kp,
+                       points: geo.epipolar[view.cam].map((p) => p.join(",")).join(" ") }, layer);
+    }
+    const sug = suggestions[kp] && suggestions[kp][view.cam];
+    if (sug && !lab) {
+      el("circle", { class: "suggestion-halo", cx: sug.u, cy: sug.v, r: 7 * s }, layer);
+      el("circle", { class: "suggestion", cx: sug.u, cy: sug.v, r: 7 * s, stroke: col, "data-keypoint": kp,
+                     "data-kind": "suggestion", "data-draggable": "1" }, layer);
+    }
+    let at = lab && lab.visible && lab.u !== null ? [lab.u, lab.v] : null;
+    if (preview && preview.kp === kp) at = preview.uv;
+    if (rp) {
+      if (at) el("line", { class: "residual-line", x1: at[0], y1: at[1], x2: rp[0], y2: rp[1] }, layer);
+      const r = 5 * s;
+      const rot = `rotate(45 ${rp[0]} ${rp[1]})`;
+      el("rect", { class: "reproj-halo", x: rp[0] - r, y: rp[1] - r, width: 2 * r, height: 2 * r, transform: rot },
+         layer);
+      el("rect", { class: "reproj", x: rp[0] - r, y: rp[1] - r, width: 2 * r, height: 2 * r, stroke: col,
+                   transform: rot, "data-keypoint": kp, "data-kind": "reproj", "data-draggable": at ? "0" : "1" },
+         layer);
+    }
+    if (at) {
+      const mark = el("g", { class: "label", "data-keypoint": kp, "data-kind": "label", "data-draggable": "1" }, layer);
+      el("circle", { class: "marker", cx: at[0], cy: at[1], r: 5 * s, fill: "none", stroke: "#fff" }, mark);
+      el("circle", { class: "marker-core", cx: at[0], cy: at[1], r: 2.5 * s, fill: col, stroke: "#000" }, mark);
+      el("circle", { cx: at[0], cy: at[1], r: 11 * s, fill: "transparent" }, mark);  // easier to grab
+    } else if (lab && !lab.visible) {
+      const [W] = app.meta.image_size;
+      const r = 6 * s;
+      const x = 8 * s + (k % 8) * 16 * s;
+      const y = 8 * s;
+      const mark = el("g", { class: "occluded", "data-keypoint": kp, "data-kind": "occluded", stroke: col }, layer);
+      el("line", { x1: x - r, y1: y - r, x2: x + r, y2: y + r }, mark);
+      el("line", { x1: x - r, y1: y + r, x2: x + r, y2: y - r }, mark);
+      void W;
+    }
+  }
+  const geo = geometry[current];
+  const res = geo && geo.views[view.cam] ? geo.views[view.cam].residual : null;
+  const lab = labelOf(view.cam, current);
+  let text = "";
+  if (lab && !lab.visible) text = "not visible";
+  else if (res !== null && res !== undefined) text = `${res.toFixed(2)} px`;
+  view.div.querySelector(".residual").textContent = text;
+}
+
+function drawAll() { for (const view of Object.values(app.views)) drawView(view); drawKeypointList(); }
+
+function drawKeypointList() {
+  const list = document.getElementById("keypoints");
+  list.innerHTML = "";
+  app.meta.keypoints.forEach((kp, k) => {
+    const li = document.createElement("li");
+    li.dataset.keypoint = kp;
+    if (k === app.kp) li.classList.add("current");
+    const n = app.frame ? app.frame.labels.filter((l) => l.keypoint === kp && l.visible).length : 0;
+    const point = app.frame && app.frame.geometry[kp] && app.frame.geometry[kp].point;
+    li.innerHTML = `<span class="swatch"></span><span class="name"></span><span class="state"></span>`;
+    li.querySelector(".swatch").style.background = colour(k, app.meta.keypoints.length);
+    li.querySelector(".name").textContent = kp;
+    li.querySelector(".state").textContent = `${n} view${n === 1 ? "" : "s"}${point ? ", 3D" : ""}`;
+    li.addEventListener("click", () => selectKeypoint(k));
+    list.appendChild(li);
+  });
+}
+
+function selectKeypoint(k, redraw = true) {
+  const n = app.meta.keypoints.length;
+  app.kp = ((k % n) + n) % n;
+  if (redraw) drawAll();
+}
+
+// ---- frames and saving ---------------------------------------------------------------------------------
+
+function showFrame(state) {
+  app.frame = state;
+  app.versions[state.frame] = state.version;
+  const f = state.frame;
+  for (const view of Object.values(app.views)) {
+    const src = `api/frame/${f}/image/${encodeURIComponent(view.cam)}`;
+    if (view.image.getAttribute("href") !== src) view.image.setAttribute("href", src);
+  }
+  document.getElementById("frame-input").value = f;
+  document.getElementById("frame-info").textContent = `${state.split}, version ${state.version} ` +
+    `(${app.frameIndex + 1} of ${app.frames.length})`;
+  document.body.dataset.frame = f;
+  document.body.dataset.version = state.version;
+  drawAll();
+  for (const li of document.querySelectorAll("#ranking li")) li.classList.toggle("current", +li.dataset.frame === f);
+}
+
+async function loadFrame(index) {
+  if (!app.frames.length) return;
+  app.frameIndex = Math.min(Math.max(index, 0), app.frames.length - 1);
+  const f = app.frames[app.frameIndex].frame;
+  await app.queue;
+  const r = await api(`api/frame/${f}`);
+  if (!r.ok) { setStatus(r.body ? r.body.detail : `error ${r.status}`, "error"); return; }
+  showFrame(r.body);
+  if (!app.pending) setStatus(`frame ${f}`, "");
+}
+
+function saveEdits(edits, source) {
+  if (!app.frame) return Promise.resolve();
+  // optimistic display; the server's answer replaces it
+  for (const e of edits) {
+    app.frame.labels = app.frame.labels.filter((l) => !(l.camera === e.camera && l.keypoint === e.keypoint));
+    if (!e.remove) app.frame.labels.push({ camera: e.camera, keypoint: e.keypoint, u: e.u ?? null, v: e.v ?? null, visible: e.visible });
+  }
+  drawAll();
+  app.pending += 1;
+  setStatus("saving", "pending");
+  const frame = app.frame.frame;
+  app.queue = app.queue.then(async () => {
+    const version = app.versions[frame];
+    const r = await api(`api/frame/${frame}/label`, { method: "POST",
+      body: JSON.stringify({ version, edits, source }) });
+    app.pending -= 1;
+    if (r.status === 409) {
+      app.versions[frame] = r.body.current.version;
+      if (app.frame.frame === frame) showFrame(r.body.current);
+      setStatus(`not saved: ${r.body.detail}; showing the newer labels`, "error");
+      return;
+    }
+    if (!r.ok) {
+      const detail = r.body && typeof r.body.detail === "string" ? r.body.detail : `HTTP ${r.status}`;
+      setStatus(`not saved: ${detail}`, "error");
+      if (app.frame.frame === frame) await loadFrame(app.frameIndex);
+      return;
+    }
+    app.versions[frame] = r.body.version;
+    if (app.frame.frame === frame) showFrame(r.body);
+    const entry = app.frames.find((x) => x.frame === frame);
+    if (entry) { entry.split = r.body.split; entry.labels = r.body.labels.filter((l) => l.visible).length; }
+    if (!app.pending) setStatus(`saved (frame ${frame}, version ${r.body.version})`, "saved");
+  });
+  return app.queue;
+}
+
+function markOccluded(cam) {
+  const kp = app.meta.keypoints[app.kp];
+  return saveEdits([{ camera: cam, keypoint: kp, visible: false }], "not visible");
+}
+
+function removeLabel(cam) {
+  const kp = app.meta.keypoints[app.kp];
+  if (!labelOf(cam, kp)) return Promise.resolve();
+  return saveEdits([{ camera: cam, keypoint: kp, remove: true }], "remove");
+}
+
+function acceptSuggestions(all) {
+  const sug = (app.frame && app.frame.suggestions) || {};
+  const kps = all ? app.meta.keypoints : [app.meta.keypoints[app.kp]];
+  const edits = [];
+  for (const kp of kps) {
+    for (const [cam, s] of Object.entries(sug[kp] || {})) {
+      const [W, H] = app.meta.image_size;
+      if (labelOf(cam, kp) || s.u < -0.5 || s.v < -0.5 || s.u > W - 0.5 || s.v > H - 0.5) continue;
+      edits.push({ camera: cam, keypoint: kp, u: s.u, v: s.v, visible: true });
+    }
+  }
+  if (edits.length) return saveEdits(edits, "accept");
+  return Promise.resolve();
+}
+
+async function loadRanking() {
+  const r = await api("api/ranking?split=unlabelled&limit=200");
+  if (!r.ok) return;
+  app.ranking = r.body;
+  const list = document.getElementById("ranking");
+  list.innerHTML = "";
+  for (const row of r.body) {
+    const li = document.createElement("li");
+    li.dataset.frame = row.frame;
+    li.textContent = `frame ${row.frame}: ${row.score.toFixed(2)}`;
+    li.title = `residual ${row.residual_px === null ? "-" : row.residual_px.toFixed(2)} px, worst view ` +
+      `${row.worst_view_px === null ? "-" : row.worst_view_px.toFixed(2)} px, confidence ${row.confidence.toFixed(2)}`;
+    li.addEventListener("click", () => gotoFrame(row.frame));
+    list.appendChild(li);
+  }
+  document.getElementById("ranking-box").hidden = false;
+}
+
+function gotoFrame(f) {
+  const i = app.frames.findIndex((x) => x.frame === +f);
+  if (i >= 0) return loadFrame(i);
+  setStatus(`no frame ${f}`, "error");
+  return Promise.resolve();
+}
+
+function nextRanked() {
+  if (!app.ranking.length) return;
+  const cur = app.frame ? app.frame.frame : null;
+  const i = app.ranking.findIndex((r) => r.frame === cur);
+  gotoFrame(app.ranking[(i + 1) % app.ranking.length].frame);
+}
+
+// ---- start ---------------------------------------------------------------------------------------------
+
+function onKey(ev) {
+  if (ev.target.tagName === "INPUT") return;
+  const k = ev.key;
+  if (k === "ArrowRight" || k === ".") loadFrame(app.frameIndex + 1);
+  else if (k === "ArrowLeft" || k === ",") loadFrame(app.frameIndex - 1);
+  else if (k === "ArrowDown" || (k === "Tab" && !ev.shiftKey)) selectKeypoint(app.kp + 1);
+  else if (k === "ArrowUp" || (k === "Tab" && ev.shiftKey)) selectKeypoint(app.kp - 1);
+  else if (k === "x" && app.hover) markOccluded(app.hover);
+  else if ((k === "Delete" || k === "Backspace") && app.hover) removeLabel(app.hover);
+  else if (k === "a") acceptSuggestions(false);
+  else if (k === "A") acceptSuggestions(true);
+  else if (k === "n") nextRanked();
+  else if (k === "0") resetZoom();
+  else return;
+  ev.preventDefault();
+}
+
+async function start() {
+  const r = await api("api/meta");
+  if (!r.ok) { setStatus(r.body ? r.body.detail : `error ${r.status}`, "error"); return; }
+  app.meta = r.body;
+  app.frames = r.body.frames;
+  document.getElementById("dataset").textContent = r.body.path;
+  document.getElementById("dataset").title = r.body.path;
+  buildViews();
+  document.getElementById("prev-frame").addEventListener("click", () => loadFrame(app.frameIndex - 1));
+  document.getElementById("next-frame").addEventListener("click", () => loadFrame(app.frameIndex + 1));
+  document.getElementById("frame-input").addEventListener("change", (ev) => gotoFrame(ev.target.value));
+  document.getElementById("reset-zoom").addEventListener("click", resetZoom);
+  document.getElementById("brightness").addEventListener("input", (ev) => {
+    app.brightness = +ev.target.value;
+    for (const view of Object.values(app.views)) view.image.style.filter = `brightness(${app.brightness})`;
+  });
+  document.getElementById("accept-one").addEventListener("click", () => acceptSuggestions(false));
+  document.getElementById("accept-all").addEventListener("click", () => acceptSuggestions(true));
+  document.getElementById("propagate").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const first = +document.getElementById("prop-first").value;
+    const last = +document.getElementById("prop-last").value;
+    await app.queue;
+    const p = await api("api/propagate", { method: "POST",
+      body: JSON.stringify({ first, last, source: app.frame.frame }) });
+    if (!p.ok) { setStatus(`not propagated: ${p.body.detail}`, "error"); return; }
+    setStatus(`copied to ${p.body.frames.length} frames (${p.body.labels} labels)`, "saved");
+    await loadFrame(app.frameIndex);
+  });
+  window.addEventListener("keydown", onKey);
+  window.addEventListener("resize", drawAll);
+  if (r.body.run) { document.getElementById("suggest-tools").hidden = false; loadRanking(); }
+  const want = new URLSearchParams(location.search).get("frame");
+  const i = want === null ? 0 : Math.max(0, app.frames.findIndex((x) => x.frame === +want));
+  await loadFrame(i);
+  document.body.dataset.ready = "1";
+}
+
+window.s3kLabel = { app, toClient, saveEdits, loadFrame, gotoFrame };
+start();

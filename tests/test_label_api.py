@@ -1,0 +1,384 @@
+"""The labelling app's API (``s3k.label.server``) through Starlette's test client, on small generated datasets
+(``label_data``): saving, loading, history, version conflicts, propagation, suggestions and ranking from a
+tiny run, path traversal, the token off the loopback."""
+
+from __future__ import annotations
+
+import csv
+import json
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from label_data import make_label_dataset
+from synthetic_rig import CAMERAS, KEYPOINTS
+from tiny_detector import save_run
+
+pytest.importorskip("fastapi")
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+from s3k import cli
+from s3k.data import Dataset
+from s3k.label.server import create_app
+from s3k.label.store import HISTORY_FILE, LabelStore
+from s3k.model import UNetConfig
+from s3k.run import DetectorMeta
+
+
+def click(client, frame, version, camera, keypoint, uv, **extra):
+    edit = {"camera": camera, "keypoint": keypoint, "u": float(uv[0]), "v": float(uv[1]), **extra}
+    return client.post(f"/api/frame/{frame}/label", json={"version": version, "edits": [edit]})
+
+
+def rows(path):
+    with open(path / "labels.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def polyline_distance(points, p):
+    """Distance from p to a polyline."""
+    pts = np.asarray(points)
+    a, b = pts[:-1], pts[1:]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0, 1)
+    return float(np.linalg.norm(a + t[:, None] * ab - p, axis=-1).min())
+
+
+@pytest.fixture
+def truth(tmp_path):
+    return make_label_dataset(tmp_path / "ds")
+
+
+def test_click_epipolar_triangulate_reproject_and_store(truth):
+    client = TestClient(create_app(truth.path, labeller="ann"))
+    uv = truth.uv(1)
+    first = client.get("/api/frame/1").json()
+    assert first["version"] == 0 and first["labels"] == [] and first["split"] == "unlabelled"
+    r = click(client, 1, 0, "cam0", "b", uv[0, 1])
+    assert r.status_code == 200
+    body = r.json()
+    assert body["version"] == 1
+    geo = body["geometry"]["b"]
+    assert geo["point"] is None and geo["epipolar_from"] == "cam0"
+    for c in (1, 2, 3):  # the true projection lies on the epipolar line of the click
+        assert polyline_distance(geo["epipolar"][CAMERAS[c]], uv[c, 1]) < 0.05
+    body = click(client, 1, 1, "cam2", "b", uv[2, 1]).json()
+    geo = body["geometry"]["b"]
+    assert body["version"] == 2 and geo["epipolar"] == {}
+    np.testing.assert_allclose(geo["point"], truth.points[1, 1], atol=1e-6)
+    for c, cam in enumerate(CAMERAS):
+        np.testing.assert_allclose(geo["views"][cam]["reproj"], uv[c, 1], atol=1e-4)
+    assert geo["views"]["cam0"]["residual"] < 1e-4 and geo["views"]["cam1"]["residual"] is None
+    # on disk, read back by the dataset loader and by a new app
+    ds = Dataset.open(truth.path)
+    got, mask = ds.labels([1])
+    assert mask[0, :, 1].tolist() == [True, False, True, False]
+    np.testing.assert_allclose(got[0, [0, 2], 1], uv[[0, 2], 1], atol=1e-4)
+    assert ds.split_of([1])[0] == "labelled"  # a labelled unlabelled frame joins the labelled split
+    again = TestClient(create_app(truth.path)).get("/api/frame/1").json()
+    assert again["version"] == 2 and len(again["labels"]) == 2
+    history = client.get("/api/frame/1/history").json()
+    assert [h["version"] for h in history] == [1, 2]
+    assert history[0]["labeller"] == "ann" and history[0]["changes"][0]["before"] is None
+    assert history[0]["split"] == {"before": "unlabelled", "after": "labelled"}
+    # a drag is one more version, its history holds the position before
+    moved = uv[2, 1] + [1.5, -0.5]
+    body = click(client, 1, 2, "cam2", "b", moved).json()
+    assert body["geometry"]["b"]["views"]["cam2"]["residual"] > 0.3
+    last = client.get("/api/frame/1/history").json()[-1]
+    before = last["changes"][0]["before"]
+    np.testing.assert_allclose([before["u"], before["v"]], uv[2, 1])
+
+
+def test_epipolar_curve_follows_lens_distortion(tmp_path):
+    truth = make_label_dataset(tmp_path / "ds", distortion=True)
+    client = TestClient(create_app(truth.path))
+    uv = truth.uv(4)
+    geo = click(client, 4, 0, "cam0", "a", uv[0, 0]).json()["geometry"]["a"]
+    curve = np.asarray(geo["epipolar"]["cam2"])  # cam2 has strong radial distortion
+    assert polyline_distance(curve, uv[2, 0]) < 0.05
+    # where a pinhole model of cam2 would put the point: the distortion matters there
+    K, _, R, t = truth.calibration[4]
+    x = K[2] @ (R[2] @ truth.points[4, 0] + t[2])
+    assert np.linalg.norm(x[:2] / x[2] - uv[2, 0]) > 1.0
+    geo = click(client, 4, 1, "cam2", "a", uv[2, 0]).json()["geometry"]["a"]
+    np.testing.assert_allclose(geo["point"], truth.points[4, 0], atol=1e-5)
+
+
+def test_stale_version_is_refused_with_the_newer_labels(truth):
+    app = create_app(truth.path)
+    tab1, tab2 = TestClient(app), TestClient(app)
+    v1 = tab1.get("/api/frame/2").json()["version"]
+    v2 = tab2.get("/api/frame/2").json()["version"]
+    assert click(tab1, 2, v1, "cam1", "a", (30.0, 40.0)).status_code == 200
+    r = click(tab2, 2, v2, "cam1", "a", (50.0, 20.0))
+    assert r.status_code == 409
+    assert "version 0" in r.json()["detail"]
+    current = r.json()["current"]
+    assert current["version"] == 1
+    assert current["labels"] == [{"camera": "cam1", "keypoint": "a", "u": 30.0, "v": 40.0, "visible": True}]
+    assert [(r["u"], r["v"]) for r in rows(truth.path)] == [("30.0", "40.0")]
+    # the same store in another process (a second server) is refused too: versions come from the history
+    other = LabelStore.open(truth.path)
+    from s3k.label.store import Edit, StaleVersion
+
+    with pytest.raises(StaleVersion):
+        other.save(2, [Edit("cam2", "a", 10.0, 10.0)], version=0)
+    assert other.save(2, [Edit("cam2", "a", 10.0, 10.0)], version=1)["version"] == 2
+    # the app sees it at its next request and refuses the first tab's old version
+    assert click(tab1, 2, 1, "cam3", "a", (5.0, 5.0)).status_code == 409
+
+
+def test_not_visible_and_remove(truth):
+    client = TestClient(create_app(truth.path))
+    body = client.post("/api/frame/3/label", json={"version": 0, "edits": [
+        {"camera": "cam3", "keypoint": "c", "visible": False}]}).json()
+    assert body["labels"] == [{"camera": "cam3", "keypoint": "c", "u": None, "v": None, "visible": False}]
+    assert rows(truth.path) == [{"frame": "3", "camera": "cam3", "keypoint": "c", "u": "", "v": "",
+                                 "visible": "0"}]
+    uv, mask = Dataset.open(truth.path).labels([3])
+    assert not mask.any()
+    body = client.post("/api/frame/3/label", json={"version": 1, "edits": [
+        {"camera": "cam3", "keypoint": "c", "remove": True}]}).json()
+    assert body["labels"] == [] and body["version"] == 2
+    assert rows(truth.path) == []
+
+
+def test_invalid_edits_are_refused_and_change_nothing(truth):
+    client = TestClient(create_app(truth.path))
+    r = click(client, 0, 0, "cam9", "a", (3, 3))
+    assert r.status_code == 400 and "cam9" in r.json()["detail"]
+    r = click(client, 0, 0, "cam0", "zz", (3, 3))
+    assert r.status_code == 400 and "zz" in r.json()["detail"]
+    r = click(client, 0, 0, "cam0", "a", (96.0, 3.0))
+    assert r.status_code == 400 and "outside the 96x96 image" in r.json()["detail"]
+    r = client.post("/api/frame/0/label", json={"version": 0, "edits": [{"camera": "cam0", "keypoint": "a"}]})
+    assert r.status_code == 400 and "needs u and v" in r.json()["detail"]
+    assert click(client, 99, 0, "cam0", "a", (3, 3)).status_code == 404
+    assert not (truth.path / "labels.csv").exists() and not (truth.path / HISTORY_FILE).exists()
+    assert client.get("/api/frame/0").json()["version"] == 0
+
+
+def test_files_outside_the_app_are_never_served(truth):
+    client = TestClient(create_app(truth.path))
+    secret = (truth.path / "s3k.json").read_text()
+    assert client.get("/static/app.js").status_code == 200
+    assert client.get("/").status_code == 200
+    for url in ["/static/../s3k.json", "/static/..%2Fs3k.json", "/static/%2e%2e/%2e%2e/%2e%2e/etc/passwd",
+                "/static/..%2F..%2F..%2F..%2Fetc%2Fpasswd", "/api/frame/0/image/..%2Fs3k.json",
+                "/api/frame/0/image/..%2F..%2Fs3k.json", "/api/frame/0/image/%2Fetc%2Fpasswd",
+                "/s3k.json", "/labels.csv", "/api/frame/..%2Fs3k.json"]:
+        r = client.get(url)
+        assert r.status_code in (404, 422), url
+        assert secret not in r.text and "root:" not in r.text, url
+
+
+def test_images_of_png_and_video_datasets(tmp_path):
+    for kind in ("png", "video"):
+        truth = make_label_dataset(tmp_path / kind, video=kind == "video")
+        client = TestClient(create_app(truth.path))
+        r = client.get("/api/frame/5/image/cam2")
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        image = cv2.cvtColor(cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR),
+                             cv2.COLOR_BGR2RGB)
+        np.testing.assert_array_equal(image, Dataset.open(truth.path).images([5])[0, 2])
+        uv = truth.uv(5)
+        click(client, 5, 0, "cam0", "a", uv[0, 0])
+        geo = click(client, 5, 1, "cam3", "a", uv[3, 0]).json()["geometry"]["a"]
+        np.testing.assert_allclose(geo["point"], truth.points[5, 0], atol=1e-5)
+
+
+def test_per_frame_calibration_is_the_frames_own(tmp_path):
+    truth = make_label_dataset(tmp_path / "ds", per_frame=True)
+    client = TestClient(create_app(truth.path))
+    uv = truth.uv(2)  # camera 1 moved in frame 2
+    click(client, 2, 0, "cam1", "c", uv[1, 2])
+    geo = click(client, 2, 1, "cam3", "c", uv[3, 2]).json()["geometry"]["c"]
+    np.testing.assert_allclose(geo["point"], truth.points[2, 2], atol=1e-6)
+
+
+def label_frame(client, truth, frame, views=(0, 1)):
+    uv = truth.uv(frame)
+    version = client.get(f"/api/frame/{frame}").json()["version"]
+    edits = [{"camera": CAMERAS[c], "keypoint": kp, "u": float(uv[c, k, 0]), "v": float(uv[c, k, 1])}
+             for k, kp in enumerate(KEYPOINTS) for c in views]
+    r = client.post(f"/api/frame/{frame}/label", json={"version": version, "edits": edits})
+    assert r.status_code == 200
+    return r.json()
+
+
+def test_propagate_over_a_still_stretch(truth):
+    client = TestClient(create_app(truth.path))
+    label_frame(client, truth, 0)
+    client.post("/api/frame/0/label", json={"version": 1, "edits": [
+        {"camera": "cam2", "keypoint": "a", "visible": False}]})
+    r = client.post("/api/propagate", json={"first": 0, "last": 3})
+    assert r.status_code == 200, r.text
+    assert r.json() == {"source": 0, "frames": [1, 2, 3], "keypoints": KEYPOINTS, "labels": 3 * 12}
+    ds = Dataset.open(truth.path)
+    uv, mask = ds.labels([1, 2, 3])
+    expected = np.ones((3, 4, 3), bool)
+    expected[:, 2, 0] = False  # occluded in the source frame: marked occluded, not reprojected
+    assert (mask == expected).all()
+    for i, f in enumerate([1, 2, 3]):
+        np.testing.assert_allclose(uv[i][expected[i]], truth.uv(f)[expected[i]], atol=1e-3)
+    hist = client.get("/api/frame/2/history").json()
+    assert hist[-1]["source"] == "propagate from 0"
+    # frame 4 moved: refused, naming it, and nothing written
+    before = (truth.path / "labels.csv").read_text()
+    r = client.post("/api/propagate", json={"first": 0, "last": 5})
+    assert r.status_code == 400
+    assert "frame 4 is not still" in r.json()["detail"] and "--max-changed" in r.json()["detail"]
+    assert (truth.path / "labels.csv").read_text() == before
+    # with a looser threshold the same stretch is accepted
+    r = client.post("/api/propagate", json={"first": 0, "last": 5, "max_changed": 100.0})
+    assert r.status_code == 200 and r.json()["frames"] == [1, 2, 3, 4, 5]
+
+
+def test_propagate_refuses_a_moving_camera_and_from_the_command_line(tmp_path, capsys):
+    truth = make_label_dataset(tmp_path / "ds", per_frame=True)
+    client = TestClient(create_app(truth.path))
+    label_frame(client, truth, 0)
+    code = cli.main(["label", "propagate", str(truth.path), "--frames", "0:3"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "frame 2 is not still: camera cam1's calibration (t) differs from frame 0's" in err
+    assert len(err.strip().splitlines()) == 1
+    code = cli.main(["label", "propagate", str(truth.path), "--frames", "3:3", "--from", "0"])
+    assert code == 0, capsys.readouterr().err
+    assert "to 1 frame(s): 12 labels" in capsys.readouterr().out
+    uv, mask = Dataset.open(truth.path).labels([3])
+    np.testing.assert_allclose(uv[0][mask[0]], truth.uv(3)[mask[0]], atol=1e-3)
+    code = cli.main(["label", "propagate", str(truth.path), "--frames", "4:5"])
+    assert code == 1
+    assert "no frame there has a keypoint labelled in 2 or more views" in capsys.readouterr().err
+
+
+def tiny_run(path, size=32):
+    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(size, size), stride=2,
+                        sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(),
+                        units="m", source_image_size=(96, 96))
+    return save_run(path, meta, seed=0, head_std=0.5)
+
+
+def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
+    from s3k.frames import FrameStore, open_dataset
+    from s3k.predict import predict_store
+    from s3k.run import load_detector
+
+    run = tiny_run(tmp_path / "run")
+    assert TestClient(create_app(truth.path)).get("/api/ranking").status_code == 404
+    client = TestClient(create_app(truth.path, run=run))
+    assert client.get("/api/meta").json()["run"] is True
+    # what predict_store reads, in the dataset's pixels
+    model, meta = load_detector(run)
+    ds = open_dataset(truth.path, meta.image_size)
+    ids = ds.frames("unlabelled")
+    (batch, ro), = list(predict_store(model, FrameStore(ds, ids, preload_mb=0), meta.stride, meta.sigma,
+                                      batch_size=len(ids), pixel_map=ds.pixel_map))
+    sug = client.get(f"/api/frame/{ids[0]}").json()["suggestions"]
+    for k, kp in enumerate(KEYPOINTS):
+        for c, cam in enumerate(CAMERAS):
+            want = ro.reproj[0, c, k] if ro.valid[0, k] else ro.uv[0, c, k]
+            np.testing.assert_allclose([sug[kp][cam]["u"], sug[kp][cam]["v"]], want.numpy(), atol=1e-6)
+            assert sug[kp][cam]["weight"] == pytest.approx(float(ro.weights[0, c, k]))
+    # the ranking: every unlabelled frame once, worst first, scored by the documented formula
+    ranking = client.get("/api/ranking").json()
+    assert sorted(r["frame"] for r in ranking) == sorted(ids.tolist())
+    scores = [r["score"] for r in ranking]
+    assert scores == sorted(scores, reverse=True)
+    sigma = meta.sigma * truth.size / meta.image_size[0]
+    w, res = ro.weights.numpy(), np.nan_to_num(ro.residual.numpy())
+    doubt = ((w * res).sum(1) / w.sum(1) + res.max(1)) / sigma + (1 - w.mean(1))
+    doubt = np.where(ro.valid.numpy(), doubt, 100.0).mean(1)
+    by_frame = {r["frame"]: r["score"] for r in ranking}
+    np.testing.assert_allclose([by_frame[int(f)] for f in ids], doubt, rtol=1e-9)
+    # accepting a suggestion stores it
+    f = int(ids[0])
+    edits = [{"camera": cam, "keypoint": "a", "u": sug["a"][cam]["u"], "v": sug["a"][cam]["v"]}
+             for cam in CAMERAS
+             if -0.5 <= sug["a"][cam]["u"] <= 95.5 and -0.5 <= sug["a"][cam]["v"] <= 95.5]
+    r = client.post(f"/api/frame/{f}/label", json={"version": 0, "edits": edits, "source": "accept"})
+    assert r.status_code == 200 and len(r.json()["labels"]) == len(edits)
+    assert client.get(f"/api/frame/{f}/history").json()[-1]["source"] == "accept"
+
+
+def test_a_run_with_other_keypoints_is_refused(truth, tmp_path):
+    meta = DetectorMeta(keypoints=["nose"], cameras=list(CAMERAS), image_size=(32, 32), stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0)
+    with pytest.raises(ValueError, match=r"keypoints \['nose'\] of the run are not in the dataset"):
+        create_app(truth.path, run=run)
+
+
+def test_token_and_host_guards(truth):
+    guarded = TestClient(create_app(truth.path, token="s3cret"))
+    assert guarded.get("/api/meta").status_code == 403
+    assert guarded.get("/api/meta?token=wrong").status_code == 403
+    assert guarded.post("/api/frame/0/label", json={"version": 0, "edits": []}).status_code == 403
+    assert guarded.get("/").status_code == 403
+    r = guarded.get("/?token=s3cret")
+    assert r.status_code == 200 and "s3k_token" in r.headers["set-cookie"]
+    assert guarded.get("/api/meta").status_code == 200  # the cookie from the first page
+    fresh = TestClient(create_app(truth.path, token="s3cret"))
+    assert fresh.get("/api/frame/0", headers={"X-S3K-Token": "s3cret"}).status_code == 200
+    local = TestClient(create_app(truth.path, allowed_hosts=["127.0.0.1", "localhost"]),
+                       base_url="http://127.0.0.1:8765")
+    assert local.get("/api/meta").status_code == 200
+    assert local.get("/api/meta", headers={"host": "evil.example:8765"}).status_code == 400
+
+
+def test_history_survives_a_torn_last_line(truth):
+    client = TestClient(create_app(truth.path))
+    click(client, 0, 0, "cam0", "a", (10.0, 10.0))
+    with open(truth.path / HISTORY_FILE, "a") as f:
+        f.write('{"frame": 0, "vers')  # a write cut short, never acknowledged
+    client = TestClient(create_app(truth.path))
+    assert client.get("/api/frame/0").json()["version"] == 1
+    assert click(client, 0, 1, "cam1", "a", (11.0, 12.0)).status_code == 200
+    lines = (truth.path / HISTORY_FILE).read_text().splitlines()
+    assert json.loads(lines[-1])["version"] == 2
+
+
+def test_cli_refuses_options_of_the_other_form(truth, capsys):
+    assert cli.main(["label", str(truth.path), "--frames", "0:3"]) == 1
+    assert "--frames belongs to 's3k label propagate DATASET'" in capsys.readouterr().err
+    assert cli.main(["label", "propagate", str(truth.path), "--frames", "a:b"]) == 1
+    assert "--frames 'a:b'" in capsys.readouterr().err
+
+
+def test_labels_csv_rewrite_keeps_other_rows_exact(truth):
+    store = LabelStore.open(truth.path)
+    from s3k.label.store import Edit
+
+    store.save(0, [Edit("cam0", "a", 1.0 / 3.0, 2.5)], version=0)
+    store.save(5, [Edit("cam1", "b", 7.25, 8.0)], version=0)
+    store.save(0, [Edit("cam2", "c", 3.0, 4.0)], version=1)
+    got = rows(truth.path)
+    assert [(r["frame"], r["camera"], r["keypoint"]) for r in got] == [
+        ("0", "cam0", "a"), ("0", "cam2", "c"), ("5", "cam1", "b")]
+    assert float(got[0]["u"]) == 1.0 / 3.0  # full precision
+    assert torch.isfinite(torch.tensor([float(r["u"]) for r in got])).all()
+
+
+def test_a_port_in_use_is_one_line(truth, capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert cli.main(["label", str(truth.path), "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot serve on 127.0.0.1:{port}" in err and "--port" in err
+
+
+def test_a_save_without_edits_changes_nothing(truth):
+    client = TestClient(create_app(truth.path))
+    r = client.post("/api/frame/2/label", json={"version": 0, "edits": []})
+    assert r.status_code == 200 and r.json()["version"] == 0
+    assert not (truth.path / HISTORY_FILE).exists() and not (truth.path / "labels.csv").exists()

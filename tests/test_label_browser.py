@@ -1,0 +1,250 @@
+"""The labelling page driven in a headless Chromium (Playwright, Debian's /usr/bin/chromium) against a server
+started here on a free port, over a small generated dataset whose true projections are known.
+
+With ``S3K_SCREENSHOTS=DIR`` set, a last test photographs the page on the simulated box scene into DIR
+(``docs/img`` for docs/labelling.md; ``S3K_LABEL_RUN=RUN`` adds a trained run's suggestions).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from label_data import make_label_dataset
+from synthetic_rig import CAMERAS
+
+CHROMIUM = "/usr/bin/chromium"
+if shutil.which(CHROMIUM) is None:
+    pytest.skip(f"no Chromium at {CHROMIUM} (scripts/setup.sh installs Debian's chromium)",
+                allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api")
+uvicorn = pytest.importorskip("uvicorn")
+
+from s3k.data import Dataset  # noqa: E402
+from s3k.label.server import create_app  # noqa: E402
+from s3k.label.store import LabelStore  # noqa: E402
+
+SHOTS = os.environ.get("S3K_SCREENSHOTS")
+
+
+class Server:
+    """The app on a free loopback port, in a thread of this process."""
+
+    def __init__(self, data: Path, run: Path | None = None) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        config = uvicorn.Config(create_app(data, run), host="127.0.0.1", port=self.port, log_level="warning")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self) -> str:
+        self.thread.start()
+        deadline = time.monotonic() + 30
+        while not self.server.started:
+            assert time.monotonic() < deadline and self.thread.is_alive(), "server did not start"
+            time.sleep(0.02)
+        return f"http://127.0.0.1:{self.port}/"
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+
+
+@pytest.fixture
+def browser():
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def shot(page, name: str) -> None:
+    if SHOTS:
+        Path(SHOTS).mkdir(parents=True, exist_ok=True)
+        bottom = page.evaluate("Math.ceil(document.querySelector('#views').getBoundingClientRect().bottom)")
+        width = page.viewport_size["width"]
+        clip = {"x": 0, "y": 0, "width": width, "height": bottom + 8}
+        page.screenshot(path=str(Path(SHOTS) / name), clip=clip)
+
+
+def page_xy(page, camera: str, uv) -> tuple[float, float]:
+    x, y = page.evaluate("([c, u, v]) => s3kLabel.toClient(c, u, v)", [camera, float(uv[0]), float(uv[1])])
+    return x, y
+
+
+def wait_version(page, version: int) -> None:
+    page.wait_for_function(f"document.body.dataset.version === '{version}'")
+    page.wait_for_function("document.getElementById('status').className === 'saved'")
+
+
+def polyline(page, camera: str, keypoint: str) -> np.ndarray:
+    text = page.get_attribute(f".view[data-camera={camera}] polyline.epipolar[data-keypoint={keypoint}]",
+                              "points")
+    return np.array([[float(x) for x in p.split(",")] for p in text.split()])
+
+
+def distance_to(points: np.ndarray, p) -> float:
+    a, b = points[:-1], points[1:]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0, 1)
+    return float(np.linalg.norm(a + t[:, None] * ab - p, axis=-1).min())
+
+
+def reproj_centre(page, camera: str, keypoint: str) -> np.ndarray:
+    rect = page.locator(f".view[data-camera={camera}] rect.reproj[data-keypoint={keypoint}]")
+    x, y, w = (float(rect.get_attribute(a)) for a in ("x", "y", "width"))
+    return np.array([x + w / 2, y + w / 2])
+
+
+def test_label_by_clicking_in_two_views(tmp_path, browser):
+    truth = make_label_dataset(tmp_path / "ds", size=96)
+    uv = truth.uv(4)
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 720})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        assert page.locator(".view svg").count() == 4  # every view of the frame, side by side
+        boxes = [page.locator(f".view[data-camera={c}]").bounding_box() for c in CAMERAS]
+        assert len({round(b["y"]) for b in boxes}) == 1
+        for _ in range(4):  # keyboard: to frame 4
+            page.keyboard.press("ArrowRight")
+        page.wait_for_function("document.body.dataset.frame === '4'")
+        assert page.inner_text("#keypoints li.current .name") == "a"
+        page.keyboard.press("ArrowDown")
+        assert page.inner_text("#keypoints li.current .name") == "b"
+        page.keyboard.press("ArrowUp")
+        assert page.inner_text("#keypoints li.current .name") == "a"
+
+        # one view: the epipolar line of the click in the others, through the true projections
+        page.mouse.click(*page_xy(page, "cam0", uv[0, 0]))
+        wait_version(page, 1)
+        for c in (1, 2, 3):
+            assert distance_to(polyline(page, CAMERAS[c], "a"), uv[c, 0]) < 0.6
+        assert page.locator(".view[data-camera=cam0] polyline.epipolar").count() == 0
+
+        # a second view: triangulated and reprojected into every view, with residuals
+        page.mouse.click(*page_xy(page, "cam1", uv[1, 0]))
+        wait_version(page, 2)
+        assert page.locator("polyline.epipolar").count() == 0
+        for c in (2, 3):
+            np.testing.assert_allclose(reproj_centre(page, CAMERAS[c], "a"), uv[c, 0], atol=1.0)
+        assert page.inner_text(".view[data-camera=cam0] .residual").endswith(" px")
+        state = page.evaluate("s3kLabel.app.frame")
+        np.testing.assert_allclose(state["geometry"]["a"]["point"], truth.points[4, 0], atol=3e-3)
+
+        # zoomed in, a click lands where it is aimed, closer than a screen pixel of the full view
+        cam3 = page.locator(".view[data-camera=cam3] svg")
+        page.mouse.move(*page_xy(page, "cam3", uv[3, 0]))
+        for _ in range(8):
+            page.mouse.wheel(0, -100)
+        page.wait_for_function("s3kLabel.app.views.cam3.box[2] < 40")
+        assert float(cam3.get_attribute("viewBox").split()[2]) < 40
+        page.mouse.click(*page_xy(page, "cam3", uv[3, 0]))
+        wait_version(page, 3)
+        page.keyboard.press("0")  # reset zoom
+
+        # "not visible": the key x over a view, and the view's button
+        page.mouse.move(*page_xy(page, "cam2", (5, 5)))
+        page.keyboard.press("x")
+        wait_version(page, 4)
+        page.locator("#keypoints li[data-keypoint=b]").click()
+        page.locator(".view[data-camera=cam1] button.occlude").click()
+        wait_version(page, 5)
+
+        # drag a point to correct it
+        page.locator("#keypoints li[data-keypoint=a]").click()
+        start = page_xy(page, "cam1", uv[1, 0])
+        target = page_xy(page, "cam1", uv[1, 0] + [4.0, 3.0])
+        page.mouse.move(*start)
+        page.mouse.down()
+        page.mouse.move((start[0] + target[0]) / 2, (start[1] + target[1]) / 2)
+        page.mouse.move(*target)
+        page.mouse.up()
+        wait_version(page, 6)
+
+        # brightness
+        page.locator("#brightness").fill("2")
+        assert "brightness(2)" in page.get_attribute(".view[data-camera=cam0] image", "style")
+        assert errors == []
+
+    # what is on disk
+    ds = Dataset.open(truth.path)
+    got, mask = ds.labels([4])
+    assert mask[0, :, 0].tolist() == [True, True, False, True]
+    np.testing.assert_allclose(got[0, 0, 0], uv[0, 0], atol=0.4)
+    np.testing.assert_allclose(got[0, 3, 0], uv[3, 0], atol=0.1)  # clicked zoomed in
+    np.testing.assert_allclose(got[0, 1, 0], uv[1, 0] + [4.0, 3.0], atol=0.4)  # dragged
+    with open(truth.path / "labels.csv") as f:
+        rows = {(r["camera"], r["keypoint"]): r for r in csv.DictReader(f)}
+    assert rows[("cam2", "a")]["visible"] == "0" and rows[("cam1", "b")]["visible"] == "0"
+    sources = [e["source"] for e in LabelStore.open(truth.path).history(4)]
+    assert sources == ["click", "click", "click", "not visible", "not visible", "drag"]
+
+
+def test_a_stale_tab_shows_the_newer_labels(tmp_path, browser):
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    with Server(truth.path) as url:
+        tab1, tab2 = browser.new_page(), browser.new_page()
+        for tab in (tab1, tab2):
+            tab.goto(url)
+            tab.wait_for_selector("body[data-ready='1']")
+        tab1.mouse.click(*page_xy(tab1, "cam0", (20, 30)))
+        wait_version(tab1, 1)
+        tab2.mouse.click(*page_xy(tab2, "cam0", (40, 10)))
+        tab2.wait_for_function("document.getElementById('status').className === 'error'")
+        assert "changed since version 0" in tab2.inner_text("#status")
+        assert tab2.evaluate("document.body.dataset.version") == "1"
+        label = tab2.evaluate("s3kLabel.app.frame.labels[0]")
+        assert (round(label["u"]), round(label["v"])) == (20, 30)
+
+
+@pytest.mark.skipif(not SHOTS, reason="photographs the app for docs/labelling.md: S3K_SCREENSHOTS=docs/img")
+def test_screenshots_of_the_box_scene(tmp_path, browser):
+    """The docs' pictures: the simulated box scene labelled in the app (and, with S3K_LABEL_RUN=RUN, a
+    trained run's suggestions and ranking)."""
+    pytest.importorskip("mujoco")
+    import torch
+
+    from s3k.geometry import project
+    from s3k.sim.generate import SimulateConfig, simulate
+
+    data = tmp_path / "box"
+    simulate(SimulateConfig("box", size=128, labelled=0, unlabelled=6, test=0, seed=5), data, workers=1,
+             progress=False)
+    ds = Dataset.open(data)
+    X, _ = ds.points3d([0])
+    cams = ds.calibration([0], np.float64)
+    uv = project(cams, torch.as_tensor(X, dtype=torch.float64)[:, None].expand(-1, 4, -1, -1))[0][0].numpy()
+    with Server(data) as url:
+        page = browser.new_page(viewport={"width": 1400, "height": 470})
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        page.locator("#keypoints li").nth(1).click()
+        page.mouse.click(*page_xy(page, "cam0", uv[0, 1]))
+        wait_version(page, 1)
+        page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
+        shot(page, "label-epipolar.png")
+        page.mouse.click(*page_xy(page, "cam3", uv[3, 1]))
+        wait_version(page, 2)
+        page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
+        shot(page, "label-reprojection.png")
+    run = os.environ.get("S3K_LABEL_RUN")
+    if run:
+        with Server(data, Path(run)) as url:
+            page = browser.new_page(viewport={"width": 1400, "height": 470})
+            page.goto(url + "?frame=3")
+            page.wait_for_selector("body[data-ready='1']")
+            page.wait_for_selector("#ranking li")
+            shot(page, "label-suggestions.png")
