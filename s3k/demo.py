@@ -42,7 +42,7 @@ class DemoConfig:
     labelled: int = 10
     unlabelled: int = 2000
     test: int = 200
-    steps: int = 2500
+    steps: int = 2000
     two_pass: bool = True
     coarse_size: int = 96
     coarse_steps: int = 2000
