@@ -21,6 +21,7 @@ the crops at training (labelled and unlabelled frames) and at inference (``s3k e
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 from collections.abc import Mapping
@@ -246,33 +247,39 @@ def evaluate_two_pass(run_dir: str | Path, data: str | Path, split: str = "test"
     """Metrics of a two-pass run on ``data``'s ``split``: the coarse pass places every frame, the refining
     pass detects in the crops around it (cut from ``data``'s own images) and its triangulated points are the
     run's 3D keypoints. Pixel metrics are in crop pixels; 3D metrics in millimetres."""
-    from s3k.data import Dataset
     from s3k.evaluate import evaluate_run
 
-    rule, coarse, fine = read_two_pass(run_dir)
-    ds = Dataset.open(data, cache="none")
-    with tempfile.TemporaryDirectory(prefix="s3k-two-pass-") as tmp:
-        estimates = coarse_estimates(coarse, Path(data), Path(tmp) / "coarse.csv", split, ds.keypoints)
-        crops = write_crops(Path(data), Path(tmp) / "crops", estimates, rule, splits=(split,))
+    rule, _, fine = read_two_pass(run_dir)
+    with _split_crops(run_dir, data, split) as (crops, placed):
         metrics = evaluate_run(fine, crops, split=split, device=device, batch_size=batch_size, report=report,
                                overlays=overlays)
-    metrics["two_pass"] = {**asdict(rule), "coarse_frames_placed": len(crop_centres(estimates))}
+    metrics["two_pass"] = {**asdict(rule), "coarse_frames_placed": placed}
     return metrics
 
 
 def predict_two_pass(run_dir: str | Path, data: str | Path, out: Path, split: str = "test",
                      batch_size: int = 16, device: str = "auto"):
     """:func:`s3k.predict.predict_dataset` through both passes; the CSV's ``error`` is in crop pixels."""
-    from s3k.data import Dataset
     from s3k.predict import predict_dataset
 
-    rule, coarse, fine = read_two_pass(run_dir)
-    ds = Dataset.open(data, cache="none")
+    _, _, fine = read_two_pass(run_dir)
+    with _split_crops(run_dir, data, split) as (crops, _placed):
+        return predict_dataset(fine, crops, out, split, batch_size, device, overwrite=True)
+
+
+@contextlib.contextmanager
+def _split_crops(run_dir: str | Path, data: str | Path, split: str):
+    """``(crop dataset, frames the coarse pass placed)`` of ``data``'s ``split`` (``all``: every split) by the
+    run's rule, in a temporary folder removed on exit: what evaluating and predicting a two-pass run share."""
+    from s3k.data import Dataset
+
+    rule, coarse, _ = read_two_pass(run_dir)
+    keypoints = Dataset.open(data, cache="none").keypoints
     with tempfile.TemporaryDirectory(prefix="s3k-two-pass-") as tmp:
-        estimates = coarse_estimates(coarse, Path(data), Path(tmp) / "coarse.csv", split, ds.keypoints)
+        estimates = coarse_estimates(coarse, Path(data), Path(tmp) / "coarse.csv", split, keypoints)
         crops = write_crops(Path(data), Path(tmp) / "crops", estimates, rule,
                             splits=None if split == "all" else (split,))
-        return predict_dataset(fine, crops, out, split, batch_size, device, overwrite=True)
+        yield crops, len(crop_centres(estimates))
 
 
 class TwoPassDetector:

@@ -85,16 +85,19 @@ def _state(result):
     return {k: v.clone() for k, v in result.model.state_dict().items()}
 
 
+class Killed(Exception):
+    pass
+
+
+def kill_after_three(step, terms):
+    """A training callback that aborts the run after its third step, as a kill would."""
+    if step == 3:
+        raise Killed
+
+
 def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
     cfg = tiny_config(steps=4, checkpoint_every=2)
     full = train(tiny_dataset, tmp_path / "full", cfg)
-
-    class Killed(Exception):
-        pass
-
-    def kill_after_three(step, terms):
-        if step == 3:
-            raise Killed
 
     with pytest.raises(Killed):
         train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
@@ -405,13 +408,6 @@ def test_teacher_follows_the_network_and_resumes_exactly(tiny_dataset, tmp_path)
     assert not torch.equal(net[name], teacher[name])  # it lags
     assert torch.equal(net[next(k for k in net if "running_mean" in k)],
                        teacher[next(k for k in net if "running_mean" in k)])
-
-    class Killed(Exception):
-        pass
-
-    def kill_after_three(step, terms):
-        if step == 3:
-            raise Killed
 
     with pytest.raises(Killed):
         train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
