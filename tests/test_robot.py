@@ -191,16 +191,27 @@ def test_summary_holds_only_what_was_measured(tmp_path):
 
     g = tmp_path / "gt.json"
     g.write_text(json.dumps({"successes": 27, "trials": 30}))
-    run = tmp_path / "kp0"
-    run.mkdir()
-    final = {"seed": 0, "success_rate": 0.5, "env_steps": 100}
-    (run / "progress.json").write_text(json.dumps({"final": final}))
+    runs = []
+    for seed, curve in enumerate(([0.0, 0.2, 0.5], [0.1, 0.6, 0.9])):  # two seeds' evaluations
+        run = tmp_path / f"kp{seed}"
+        run.mkdir()
+        evals = [{"env_steps": 50 * (i + 1), "success_rate": r} for i, r in enumerate(curve)]
+        final = {"seed": seed, "success_rate": curve[-1], "env_steps": 150, "cpu_seconds": 1800.0}
+        (run / "progress.json").write_text(json.dumps({"evaluations": evals, "final": final}))
+        runs.append(run)
     out = tmp_path / "summary.json"
-    s = write_summary(out, grasp_ground_truth=g, rl_keypoints=[run])
+    s = write_summary(out, grasp_ground_truth=g, rl_keypoints=runs)
     assert s["grasp_success"] == {"s3k": None, "labels_only": None, "ground_truth": 0.9, "trials": 30}
-    assert s["rl_final_success"] == {"keypoints": {"mean": 0.5,
-                                                   "per_seed": [{"seed": 0, "success_rate": 0.5}]},
-                                     "beta_vae": None, "env_steps": 100}
+    kp = s["rl_final_success"]["keypoints"]
+    assert kp["per_seed"] == [{"seed": 0, "success_rate": 0.5}, {"seed": 1, "success_rate": 0.9}]
+    assert kp["mean"] == pytest.approx(0.7) and (kp["min"], kp["max"]) == (0.5, 0.9)
+    assert kp["cpu_hours"] == pytest.approx(1.0)
+    assert s["rl_final_success"]["beta_vae"] is None and s["rl_final_success"]["env_steps"] == 150
+    curve = s["rl_success_curve"]["keypoints"]
+    assert curve["env_steps"] == [50, 100, 150] and curve["seeds"] == 2
+    assert curve["mean"] == pytest.approx([0.05, 0.4, 0.7])
+    assert curve["min"] == [0.0, 0.2, 0.5] and curve["max"] == [0.1, 0.6, 0.9]
+    assert s["rl_success_curve"]["beta_vae"] is None
     assert json.loads(out.read_text()) == s
     bad = tmp_path / "bad.json"
     bad.write_text("{")

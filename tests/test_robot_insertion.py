@@ -96,7 +96,9 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     with pytest.raises(KeyboardInterrupt):  # a run killed after its first checkpoint...
         train_agent(out, cfg, log=killed_after_first_checkpoint)
     assert json.loads((out / "checkpoint" / "state.json").read_text())["env_steps"] == 15
-    assert not (out / "progress.json").exists()
+    # The curve so far is saved with the checkpoint: one evaluation at 15 steps, no final one yet.
+    progress = json.loads((out / "progress.json").read_text())
+    assert [e["env_steps"] for e in progress["evaluations"]] == [15] and "final" not in progress
     log: list[str] = []
     first = train_agent(out, cfg, resume=True, log=log.append)  # ...resumes from it
     assert any("resumed at 15" in line for line in log)
@@ -131,7 +133,9 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     with np.load(out / "checkpoint" / "replay.npz", allow_pickle=False) as z:
         assert len(z["actions"]) == demo + 45
     progress = json.loads((out / "progress.json").read_text())
-    assert [e["env_steps"] for e in progress["evaluations"]] == [30, 45]
+    # One evaluation per checkpoint, none repeated across the resumptions; the final one is the last.
+    assert [e["env_steps"] for e in progress["evaluations"]] == [15, 30, 45]
+    assert progress["final"]["env_steps"] == 45 and progress["final"]["cpu_seconds"] > 0
 
 
 def test_checkpoint_survives_a_kill_between_its_renames(tmp_path):

@@ -45,7 +45,11 @@ class AgentConfig:
     seed: int = _field(0, "seed of the agent, the environment and the demonstrations")
     demos: int = _field(10, "scripted demonstration episodes put in the replay buffer before training")
     checkpoint_every: int = _field(1000, "environment steps between checkpoints of agent and replay buffer")
-    eval_episodes: int = _field(10, "episodes of the deterministic policy in the final evaluation")
+    eval_episodes: int = _field(10, "episodes of the deterministic policy in each evaluation (the same "
+                                    "episodes every time)")
+    eval_every: int = _field(0, "environment steps between evaluations of the deterministic policy, on a "
+                                "separate environment, for the success-rate curve (0: at every checkpoint); "
+                                "the last one is at --steps")
     learning_starts: int = _field(100, "the agent's own environment steps before gradient updates begin "
                                        "(the demonstrations are in the buffer already)")
     batch_size: int = _field(128, "TD3's minibatch size")
@@ -70,7 +74,7 @@ class AgentConfig:
             if getattr(self, name) < 1:
                 raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 1, "
                                 f"got {getattr(self, name)}")
-        for name in ("demos", "eval_episodes", "learning_starts"):
+        for name in ("demos", "eval_episodes", "learning_starts", "eval_every"):
             if getattr(self, name) < 0:
                 raise UserError(f"{name} (--{name.replace('_', '-')}): must be >= 0, "
                                 f"got {getattr(self, name)}")
@@ -80,6 +84,7 @@ class AgentConfig:
         d = dataclasses.asdict(self)
         d.pop("steps")
         d.pop("eval_episodes")
+        d.pop("eval_every")
         d.pop("threads")
         return d
 
@@ -231,7 +236,9 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
     """Trains (or with ``resume`` continues) the agent of ``cfg`` in run folder ``out``.
 
     Returns the final evaluation: ``{"agent", "seed", "env_steps", "success_rate", "true_success_rate",
-    "mean_return", "episodes", "demonstration_steps", "wall_time_s"}`` (also written to ``progress.json``).
+    "mean_return", "episodes", "demonstration_steps", "wall_time_s", "cpu_seconds"}`` (``progress.json``'s
+    ``final``; its ``evaluations`` hold the curve, one every ``eval_every`` steps). ``cpu_seconds`` is the
+    process CPU time of the run over all its resumptions, the beta-VAE's training included.
     """
     import torch
     from stable_baselines3 import TD3
@@ -253,7 +260,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         raise UserError(f"{out}: exists and is not empty", hint="pass --resume to continue it or a new --out")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(dataclasses.asdict(cfg), config_file)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     vae = None
@@ -287,21 +294,41 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         demo_steps = add_demonstrations(model, env, cfg.demos, cfg.seed)
         state = {"env_steps": 0, "updates": 0, "episodes": 0, "demonstration_steps": demo_steps}
         log(f"{cfg.demos} demonstrations: {demo_steps} transitions in the replay buffer")
+    cpu_before = float(state.get("cpu_seconds", 0.0))  # this process's CPU time adds to the earlier runs'
+
         # learning_starts counts the agent's own steps; the demonstrations are already there to learn from.
+    # Evaluations on an environment of their own, so that the training episode in progress is not disturbed.
+    eval_env = make_env(cfg, vae)
+    eval_every = cfg.eval_every or cfg.checkpoint_every
+    done_steps = int(model.num_timesteps)
+    # A resumed run keeps the evaluations up to its checkpoint (later ones were of a policy now lost).
+    progress["evaluations"] = [e for e in progress["evaluations"] if e["env_steps"] <= done_steps]
+    result: dict | None = None
     while model.num_timesteps < cfg.steps:
-        to_checkpoint = cfg.checkpoint_every - model.num_timesteps % cfg.checkpoint_every
-        chunk = min(to_checkpoint, cfg.steps - model.num_timesteps)
+        now = int(model.num_timesteps)
+        chunk = min(cfg.checkpoint_every - now % cfg.checkpoint_every, eval_every - now % eval_every,
+                    cfg.steps - now)
         model.learn(total_timesteps=chunk, reset_num_timesteps=False, log_interval=1_000_000)
-        state.update(env_steps=int(model.num_timesteps), updates=int(model._n_updates),
-                     episodes=int(model._episode_num))
-        save_checkpoint(model, ckpt, state)
-        log(f"checkpoint at {model.num_timesteps} environment steps")
-    result = evaluate_agent(model, env, cfg.eval_episodes, cfg.seed)
-    result.update(agent=cfg.agent, seed=cfg.seed, env_steps=int(model.num_timesteps),
-                  demonstration_steps=int(state.get("demonstration_steps", 0)),
-                  wall_time_s=time.perf_counter() - t0)
-    progress["evaluations"].append(result)
+        now = int(model.num_timesteps)
+        if now % eval_every == 0 or now >= cfg.steps:
+            result = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
+            result.update(agent=cfg.agent, seed=cfg.seed, env_steps=now)
+            progress["evaluations"].append(result)
+            log(f"evaluation at {now} environment steps: success rate {result['success_rate']:.2f}")
+        if now % cfg.checkpoint_every == 0 or now >= cfg.steps:
+            state.update(env_steps=now, updates=int(model._n_updates), episodes=int(model._episode_num),
+                         cpu_seconds=cpu_before + time.process_time() - c0)
+            save_checkpoint(model, ckpt, state)
+            atomic_write_json(progress, progress_file)
+            log(f"checkpoint at {now} environment steps")
+    if result is None or result["env_steps"] != int(model.num_timesteps):  # resumed at or past --steps
+        result = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
+        result.update(agent=cfg.agent, seed=cfg.seed, env_steps=int(model.num_timesteps))
+        progress["evaluations"].append(result)
+    result.update(demonstration_steps=int(state.get("demonstration_steps", 0)),
+                  wall_time_s=time.perf_counter() - t0, cpu_seconds=cpu_before + time.process_time() - c0)
     progress["final"] = result
     atomic_write_json(progress, progress_file)
     env.close()
+    eval_env.close()
     return result

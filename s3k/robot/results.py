@@ -2,7 +2,8 @@
 
 Only measured figures go in: a field whose run was not given stays ``null``. The grasp figures come from
 the JSON files of ``s3k robot grasp`` (one per detector: s3k, labels only, ground truth); the RL figures from
-the ``progress.json`` of ``s3k robot train-agent`` runs (one per seed and agent), their final evaluation.
+the ``progress.json`` of ``s3k robot train-agent`` runs (one per seed and agent): their final evaluation,
+their CPU time, and the success-rate curve over seeds (mean, min, max at each evaluation step).
 """
 
 from __future__ import annotations
@@ -36,21 +37,45 @@ def grasp_rate(path: str | Path | None) -> tuple[float | None, int | None]:
     return doc["successes"] / doc["trials"], int(doc["trials"])
 
 
+def _progress(run: str | Path) -> dict:
+    doc = _read_json(Path(run) / "progress.json", "agent progress")
+    if not doc.get("final"):
+        raise UserError(f"{run}/progress.json: the run has no final evaluation yet",
+                        hint="finish it with s3k robot train-agent --resume")
+    return doc
+
+
 def rl_final(runs: Sequence[str | Path]) -> dict | None:
-    """``{"mean", "per_seed", "env_steps"}`` of the final success rates of agent runs, or None."""
+    """``{"mean", "min", "max", "per_seed", "env_steps", "cpu_hours"}`` of the final success rates of agent
+    runs (one per seed), or None."""
     if not runs:
         return None
-    per_seed, steps = [], set()
+    per_seed, steps, cpu = [], set(), []
     for run in runs:
-        doc = _read_json(Path(run) / "progress.json", "agent progress")
-        final = doc.get("final")
-        if not final:
-            raise UserError(f"{run}/progress.json: the run has no final evaluation yet",
-                            hint="finish it with s3k robot train-agent --resume")
+        final = _progress(run)["final"]
         per_seed.append({"seed": final["seed"], "success_rate": final["success_rate"]})
         steps.add(int(final["env_steps"]))
-    return {"mean": statistics.fmean(p["success_rate"] for p in per_seed), "per_seed": per_seed,
-            "env_steps": sorted(steps)}
+        cpu.append(final.get("cpu_seconds"))
+    rates = [p["success_rate"] for p in per_seed]
+    cpu_hours = None if None in cpu else round(sum(cpu) / 3600, 3)
+    return {"mean": statistics.fmean(rates), "min": min(rates), "max": max(rates), "per_seed": per_seed,
+            "env_steps": sorted(steps), "cpu_hours": cpu_hours}
+
+
+def rl_curve(runs: Sequence[str | Path]) -> dict | None:
+    """The success-rate curve over seeds: ``{"env_steps": [...], "mean": [...], "min": [...], "max": [...],
+    "seeds": n}`` at the evaluation steps every run has, or None."""
+    if not runs:
+        return None
+    curves = []
+    for run in runs:
+        curves.append({int(e["env_steps"]): float(e["success_rate"]) for e in _progress(run)["evaluations"]})
+    steps = sorted(set.intersection(*(set(c) for c in curves)))
+    return {"env_steps": steps,
+            "mean": [statistics.fmean(c[s] for c in curves) for s in steps],
+            "min": [min(c[s] for c in curves) for s in steps],
+            "max": [max(c[s] for c in curves) for s in steps],
+            "seeds": len(curves)}
 
 
 def write_summary(out: str | Path, *, grasp_s3k=None, grasp_labels_only=None, grasp_ground_truth=None,
@@ -62,11 +87,13 @@ def write_summary(out: str | Path, *, grasp_s3k=None, grasp_labels_only=None, gr
     trials = sorted({t for _, t in rates.values() if t is not None})
     kp, vae = rl_final(rl_keypoints), rl_final(rl_beta_vae)
     env_steps = sorted({s for r in (kp, vae) if r is not None for s in r.pop("env_steps")})
+    curves = {"keypoints": rl_curve(rl_keypoints), "beta_vae": rl_curve(rl_beta_vae)}
     summary = {
         "grasp_success": {name: rate for name, (rate, _) in rates.items()} | {
             "trials": trials[0] if len(trials) == 1 else (trials or None)},
         "rl_final_success": {"keypoints": kp, "beta_vae": vae,
                              "env_steps": env_steps[0] if len(env_steps) == 1 else (env_steps or None)},
+        "rl_success_curve": curves,
         "machine": machine,
     }
     atomic_write_json(summary, out)

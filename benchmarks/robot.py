@@ -1,0 +1,219 @@
+"""The robot experiments end to end: the plush grasp (S3K, labels only, ground truth) and the cable-insertion
+agents (keypoints from a trained detector, and the beta-VAE baseline) over seeds, into
+``docs/results/robot/summary.json`` and ``docs/results/robot/rl-success.png``.
+
+Stages, each skipped when its output exists (a killed training or agent resumes), so the same command
+continues an interrupted benchmark:
+
+1. ``s3k simulate plush`` (``--plush-size`` px; 7 labelled frames, one per training arrangement, the first
+   of its stretch; ``--plush-unlabelled`` more frames over the training arrangements; ``--plush-test`` over
+   the 3 held-out ones).
+2. ``s3k label propagate``: each training arrangement's labelled frame copied to the first ``--propagate``
+   frames of its stretch. The toys and cameras are still there while the gripper and the light move, so the
+   image check is lifted (``--max-changed 100``): the gripper changes 2-50% of a view's pixels.
+3. Two plush detectors, S3K and labels only (``--no-unsup``), same labels, steps and seed, side by side.
+4. ``s3k robot grasp`` with each and with the ground truth, ``--trials`` each.
+5. ``s3k robot simulate-insertion`` and one S3K detector of the insertion keypoints.
+6. ``s3k robot train-agent`` for each of ``--seeds``: the keypoint agent reading the detector
+   (``--run``), and the beta-VAE agent; two at a time, one thread each.
+7. ``s3k robot summarize``, then the success-rate curves' plot.
+
+Example::
+
+    python benchmarks/robot.py                       # about 2 hours on 2 cores
+    python benchmarks/robot.py --seeds 1 --agent-steps 2000 --work runs/robot-small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.accuracy import run_jobs  # noqa: E402
+from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+S3K = [sys.executable, "-m", "s3k.cli"]
+
+
+def sh(cmd: list[str]) -> None:
+    print("$ " + " ".join(str(c) for c in cmd[2:]), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+
+def plush_data(args, work: Path) -> Path:
+    data = work / "plush"
+    done = work / "plush.propagated"
+    if not (data / "s3k.json").is_file():
+        sh(S3K + ["simulate", "plush", "--out", str(data), "--size", str(args.plush_size), "--unlabelled",
+                  str(args.plush_unlabelled), "--test", str(args.plush_test), "--no-progress", "--overwrite"])
+    if not done.is_file():
+        from s3k.data import Dataset
+
+        ds = Dataset.open(data, cache="none")
+        for first in ds.frames("labelled"):  # one per training arrangement, the first frame of its stretch
+            sh(S3K + ["label", "propagate", str(data), "--frames", f"{first}:{first + args.propagate - 1}",
+                      "--from", str(first), "--max-changed", "100"])
+        done.write_text("")
+    return data
+
+
+def agent_command(args, out: Path, agent: str, seed: int, detector: Path | None) -> list[str]:
+    cmd = S3K + ["robot", "train-agent", "--out", str(out), "--agent", agent, "--seed", str(seed),
+                 "--steps", str(args.agent_steps), "--checkpoint-every", str(args.eval_every),
+                 "--eval-episodes", str(args.eval_episodes), "--threads", "1"]
+    if detector is not None:
+        cmd += ["--run", str(detector)]
+    if (out / "config.json").is_file():
+        cmd.append("--resume")
+    return cmd
+
+
+def plot(summary: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, label, colour in (("keypoints", "keypoints (S3K detector)", "C0"),
+                                ("beta_vae", "beta-VAE latent", "C1")):
+        c = summary["rl_success_curve"].get(name)
+        if not c:
+            continue
+        ax.plot(c["env_steps"], c["mean"], color=colour, label=f"{label}, mean of {c['seeds']} seeds")
+        ax.fill_between(c["env_steps"], c["min"], c["max"], color=colour, alpha=0.2)
+    ax.set_xlabel("environment steps (4 Hz)")
+    ax.set_ylabel("success rate (deterministic policy)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("Cable insertion: min-max band over seeds", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--work", default="runs/robot", help="where datasets and runs go (default runs/robot)")
+    p.add_argument("--results", default=str(ROOT / "docs/results/robot"),
+                   help="folder of summary.json and the plot (default docs/results/robot)")
+    p.add_argument("--plush-size", type=int, default=96)
+    p.add_argument("--plush-unlabelled", type=int, default=700)
+    p.add_argument("--plush-test", type=int, default=60)
+    p.add_argument("--propagate", type=int, default=20,
+                   help="frames of each training arrangement that get its labelled frame's labels (20)")
+    p.add_argument("--detector-steps", type=int, default=4000, help="training steps of every detector (4000)")
+    p.add_argument("--trials", type=int, default=30, help="grasp trials per detector (30)")
+    p.add_argument("--insertion-size", type=int, default=64)
+    p.add_argument("--seeds", type=int, default=3, help="agent seeds per agent (3)")
+    p.add_argument("--agent-steps", type=int, default=10000, help="environment steps per agent (10000)")
+    p.add_argument("--eval-every", type=int, default=1000,
+                   help="environment steps between the agents' checkpoints and evaluations (1000)")
+    p.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (20)")
+    p.add_argument("--parallel", type=int, default=2, help="jobs at a time, one thread each (2)")
+    args = p.parse_args(argv)
+    work = Path(args.work).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    results = Path(args.results)
+    results.mkdir(parents=True, exist_ok=True)
+    started = time.time()
+
+    # --- the grasp
+    plush = plush_data(args, work)
+    runs = {"s3k": work / "plush-s3k", "labels_only": work / "plush-labels-only"}
+    jobs = []
+    for name, run in runs.items():
+        if not (run / "model.pt").is_file():
+            cmd = S3K + ["train", str(plush), "--out", str(run), "--steps", str(args.detector_steps),
+                         "--threads", "1", "--no-progress", *(["--no-unsup"] if name == "labels_only" else [])]
+            jobs.append((f"plush {name}", cmd + (["--resume"] if run.exists() else []),
+                         work / f"plush-{name}.cpu.json"))
+    run_jobs(jobs, args.parallel)
+    grasps = {}
+    for name in ("s3k", "labels_only", "ground_truth"):
+        out = work / f"grasp-{name}.json"
+        if not out.is_file():
+            what = ["--ground-truth", "--size", str(args.plush_size)] if name == "ground_truth" \
+                else [str(runs[name])]
+            sh(S3K + ["robot", "grasp", *what, "--trials", str(args.trials), "--out", str(out)])
+        grasps[name] = out
+
+    # --- the insertion agents
+    insertion = work / "insertion"
+    if not (insertion / "s3k.json").is_file():
+        sh(S3K + ["robot", "simulate-insertion", "--out", str(insertion), "--size", str(args.insertion_size),
+                  "--no-progress", "--overwrite"])
+    detector = work / "insertion-s3k"
+    if not (detector / "model.pt").is_file():
+        cmd = S3K + ["train", str(insertion), "--out", str(detector), "--steps", str(args.detector_steps),
+                     "--threads", "1", "--no-progress"]
+        run_jobs([("insertion detector", cmd + (["--resume"] if detector.exists() else []),
+                   work / "insertion-s3k.cpu.json")], 1)
+    agents: dict[str, list[Path]] = {"keypoints": [], "beta_vae": []}
+    jobs = []
+    for seed in range(args.seeds):
+        for agent in agents:
+            out = work / "rl" / f"{agent}-{seed}"
+            agents[agent].append(out)
+            progress = out / "progress.json"
+            if progress.is_file() and json.loads(progress.read_text()).get("final", {}).get("env_steps") \
+                    == args.agent_steps:
+                continue
+            out.parent.mkdir(parents=True, exist_ok=True)
+            jobs.append((f"{agent} agent, seed {seed}",
+                         agent_command(args, out, agent, seed, detector if agent == "keypoints" else None),
+                         work / "rl" / f"{agent}-{seed}.cpu.json"))
+    run_jobs(jobs, args.parallel)
+
+    # --- the summary
+    machine = machine_info()
+    sh(S3K + ["robot", "summarize", "--out", str(results / "summary.json"),
+              "--grasp-s3k", str(grasps["s3k"]), "--grasp-labels-only", str(grasps["labels_only"]),
+              "--grasp-ground-truth", str(grasps["ground_truth"]),
+              "--rl-keypoints", *map(str, agents["keypoints"]), "--rl-beta-vae", *map(str, agents["beta_vae"]),
+              "--machine", f"{machine['cpu']}, {machine['cpu_count']} cores"])
+    summary = json.loads((results / "summary.json").read_text())
+    detectors = {}
+    for name, run in {**runs, "insertion": detector}.items():
+        data = insertion if name == "insertion" else plush
+        path = run.with_name(run.name + "-test.json")
+        if not path.is_file():
+            from s3k.evaluate import evaluate_run
+
+            path.write_text(json.dumps(evaluate_run(run, data, split="test", device="cpu"), default=float))
+        m = json.loads(path.read_text())
+        detectors[name] = {k: m.get(k) for k in ("median_mm", "rms_mm", "pck_10mm", "rms_px")}
+    cpu = {}
+    for record in sorted(work.glob("**/*.cpu.json")):
+        cpu[str(record.relative_to(work)).removesuffix(".cpu.json")] = round(
+            json.loads(record.read_text())["cpu_minutes"], 1)
+    summary.update({
+        "command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "git_revision": git_revision(),
+        "machine": machine,
+        "scale": (f"plush {args.plush_size} px, 7 labelled frames propagated to {args.propagate} frames each, "
+                  f"{args.plush_unlabelled} frames in all over 7 training arrangements, {args.plush_test} test "
+                  f"frames over 3 held-out ones; detectors {args.detector_steps} steps; {args.trials} grasps "
+                  f"each; insertion views {args.insertion_size} px, {args.seeds} seeds x 2 agents x "
+                  f"{args.agent_steps} environment steps, evaluation every {args.eval_every} steps over "
+                  f"{args.eval_episodes} episodes"),
+        "detectors_test": detectors,
+        "cpu_minutes": cpu,
+        "wall_minutes_this_invocation": round((time.time() - started) / 60, 1),
+    })
+    (results / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    plot(summary, results / "rl-success.png")
+    emit(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
