@@ -133,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, run in runs.items():
         if not (run / "model.pt").is_file():
             cmd = S3K + ["train", str(plush), "--out", str(run), "--steps", str(args.detector_steps),
-                         "--threads", "1", "--no-progress", *(["--no-unsup"] if name == "labels_only" else [])]
+                         "--threads", "1", "--no-progress"]
+            cmd += ["--no-unsup"] if name == "labels_only" else []
             jobs.append((f"plush {name}", cmd + (["--resume"] if run.exists() else []),
                          work / f"plush-{name}.cpu.json"))
     run_jobs(jobs, args.parallel)
@@ -178,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     sh(S3K + ["robot", "summarize", "--out", str(results / "summary.json"),
               "--grasp-s3k", str(grasps["s3k"]), "--grasp-labels-only", str(grasps["labels_only"]),
               "--grasp-ground-truth", str(grasps["ground_truth"]),
-              "--rl-keypoints", *map(str, agents["keypoints"]), "--rl-beta-vae", *map(str, agents["beta_vae"]),
+              "--rl-keypoints", *map(str, agents["keypoints"]),
+              "--rl-beta-vae", *map(str, agents["beta_vae"]),
               "--machine", f"{machine['cpu']}, {machine['cpu_count']} cores"])
     summary = json.loads((results / "summary.json").read_text())
     detectors = {}
@@ -199,8 +201,9 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "git_revision": git_revision(),
         "machine": machine,
-        "scale": (f"plush {args.plush_size} px, 7 labelled frames propagated to {args.propagate} frames each, "
-                  f"{args.plush_unlabelled} frames in all over 7 training arrangements, {args.plush_test} test "
+        "scale": (f"plush {args.plush_size} px, 7 labelled frames propagated to {args.propagate} frames "
+                  f"each, {args.plush_unlabelled} more over the 7 training arrangements, "
+                  f"{args.plush_test} test "
                   f"frames over 3 held-out ones; detectors {args.detector_steps} steps; {args.trials} grasps "
                   f"each; insertion views {args.insertion_size} px, {args.seeds} seeds x 2 agents x "
                   f"{args.agent_steps} environment steps, evaluation every {args.eval_every} steps over "
