@@ -84,6 +84,44 @@ def test_simulate_plush_writes_a_dataset_with_arrangements(tmp_path):
     assert usable_labels(ds, "labelled").mean() > 0.9
 
 
+def test_plush_label_propagated_over_an_arrangement_lands_on_the_true_pixel(tmp_path, capsys):
+    """The plush workflow: one labelled frame per arrangement, copied with ``s3k label propagate`` to the
+    arrangement's other frames (the gripper moves there, hence --max-changed), lands on the projection of the
+    true keypoint in every view of every frame of the stretch."""
+    from s3k.cli import main
+    from s3k.data import Dataset
+    from s3k.sim.camera import project_points
+
+    out = tmp_path / "plush"
+    assert main(["simulate", "plush", "--out", str(out), "--size", "48", "--unlabelled", "21", "--test", "3",
+                 "--workers", "1", "--no-progress"]) == 0
+    ds = Dataset.open(out, cache="none")
+    first = int(ds.frames("labelled")[1])  # arrangement 1: frames first..first+3
+    stretch = [f for f in ds.frame_ids if first < f <= first + 3]
+    assert (ds.column("segment", stretch).astype(int) == 1).all()
+    # The gripper moved: the default still check refuses, naming the option.
+    assert main(["label", "propagate", str(out), "--frames", f"{first}:{first + 3}"]) == 1
+    assert "--max-changed" in capsys.readouterr().err
+    stretch_arg = ["--frames", f"{first}:{first + 3}"]
+    assert main(["label", "propagate", str(out), *stretch_arg, "--max-changed", "100"]) == 0
+    ds = Dataset.open(out, cache="none")
+    assert set(ds.split_of(stretch)) == {"labelled"}  # the stretch's frames now count as labelled
+    _, src_mask = ds.labels([first])
+    uv, mask = ds.labels(stretch)
+    X, _ = ds.points3d(stretch)
+    cams = ds.calibration(stretch, np.float64).numpy()
+    checked = 0
+    for i in range(len(stretch)):
+        truth, _ = project_points(cams["K"][i], cams["R"][i], cams["t"][i], X[i].astype(np.float64))
+        for c in range(len(ds.cameras)):
+            for k in range(len(ds.keypoints)):
+                if src_mask[0, c, k]:
+                    assert mask[i, c, k]
+                    np.testing.assert_allclose(uv[i, c, k], truth[c, k], atol=1e-3)
+                    checked += 1
+    assert checked >= 0.8 * len(stretch) * len(ds.cameras) * len(ds.keypoints)
+
+
 # ------------------------------------------------------------------------------------------ grasp
 def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
     from s3k.robot.grasp import SUCCESS_LIFT, ground_truth_keypoints, run_trials
