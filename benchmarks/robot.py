@@ -115,8 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--insertion-size", type=int, default=64)
     p.add_argument("--seeds", type=int, default=3, help="agent seeds per agent (3)")
     p.add_argument("--agent-steps", type=int, default=10000, help="environment steps per agent (10000)")
-    p.add_argument("--eval-every", type=int, default=1000,
-                   help="environment steps between the agents' checkpoints and evaluations (1000)")
+    p.add_argument("--eval-every", type=int, default=2000,
+                   help="environment steps between the agents' checkpoints and evaluations (2000)")
     p.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (20)")
     p.add_argument("--parallel", type=int, default=2, help="jobs at a time, one thread each (2)")
     args = p.parse_args(argv)

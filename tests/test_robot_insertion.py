@@ -87,7 +87,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
 
     out = tmp_path / "agent"
     cfg = AgentConfig(steps=30, demos=1, checkpoint_every=15, eval_episodes=1, learning_starts=5,
-                      batch_size=16, buffer_size=500)
+                      batch_size=16, buffer_size=500, bc_pretrain=10)
 
     def killed_after_first_checkpoint(line: str) -> None:
         if line.startswith("checkpoint at 15"):
@@ -98,7 +98,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     assert json.loads((out / "checkpoint" / "state.json").read_text())["env_steps"] == 15
     # The curve so far is saved with the checkpoint: one evaluation at 15 steps, no final one yet.
     progress = json.loads((out / "progress.json").read_text())
-    assert [e["env_steps"] for e in progress["evaluations"]] == [15] and "final" not in progress
+    assert [e["env_steps"] for e in progress["evaluations"]] == [0, 15] and "final" not in progress
     log: list[str] = []
     first = train_agent(out, cfg, resume=True, log=log.append)  # ...resumes from it
     assert any("resumed at 15" in line for line in log)
@@ -134,7 +134,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
         assert len(z["actions"]) == demo + 45
     progress = json.loads((out / "progress.json").read_text())
     # One evaluation per checkpoint, none repeated across the resumptions; the final one is the last.
-    assert [e["env_steps"] for e in progress["evaluations"]] == [15, 30, 45]
+    assert [e["env_steps"] for e in progress["evaluations"]] == [0, 15, 30, 45]
     assert progress["final"]["env_steps"] == 45 and progress["final"]["cpu_seconds"] > 0
 
 
@@ -184,7 +184,7 @@ def test_beta_vae_agent_trains_a_few_steps(tmp_path):
 
     cfg = AgentConfig(agent="beta_vae", steps=10, demos=1, checkpoint_every=5, eval_episodes=1,
                       learning_starts=2, batch_size=8, buffer_size=200, vae_images=16, vae_steps=5,
-                      image_size=32)
+                      image_size=32, bc_pretrain=5)
     result = train_agent(tmp_path / "vae", cfg, log=lambda s: None)
     assert result["env_steps"] == 10 and (tmp_path / "vae" / "vae.pt").is_file()
 
