@@ -215,3 +215,35 @@ def test_insertion_dataset_labels_are_the_keypoints_projections(tmp_path):
         proj, _ = project_points(K, R, t, np.asarray(X[b], dtype=np.float64))
         np.testing.assert_allclose(np.asarray(uv[b])[mask[b]], proj[mask[b]], atol=1e-3)
     assert usable_labels(ds, "labelled").all()
+
+
+def test_pretraining_fits_the_actor_to_the_demonstrations_and_the_q_term_can_be_switched_off():
+    """The demonstration agent's pretraining is behaviour cloning: the actor's error on the demonstrated
+    actions falls; with bc_weight 0 and the Q-term off the actor does not move at all."""
+    import torch
+
+    from s3k.robot.agents import AgentConfig, add_demonstrations, make_env, td3_with_demonstrations
+
+    torch.manual_seed(0)
+    cfg = AgentConfig(demos=2, buffer_size=500, batch_size=32)
+    env = make_env(cfg)
+    model = td3_with_demonstrations()("MlpPolicy", env, buffer_size=500, batch_size=32, seed=0, device="cpu")
+    n = add_demonstrations(model, env, cfg.demos, seed=0)
+    obs = model.replay_buffer.observations[:n, 0]
+    acts = model.replay_buffer.actions[:n, 0]
+
+    def error() -> float:
+        with torch.no_grad():
+            return float(((model.actor(torch.as_tensor(obs)) - torch.as_tensor(acts)) ** 2).sum(-1).mean())
+
+    model.set_demonstrations(obs, acts, weight=0.0, batch=16, q_weight=1.0)
+    frozen = {k: v.clone() for k, v in model.actor.state_dict().items()}
+    model.pretrain(20, 32)  # Q-term off during pretraining, no BC: the actor is untouched
+    for k, v in model.actor.state_dict().items():
+        torch.testing.assert_close(v, frozen[k])
+    assert model.q_weight == 1.0  # restored after pretraining
+    before = error()
+    model.set_demonstrations(obs, acts, weight=20.0, batch=16, q_weight=1.0)
+    model.pretrain(300, 32)
+    assert error() < 0.3 * before
+    env.close()
