@@ -43,6 +43,12 @@ ROOT = Path(__file__).resolve().parents[1]
 S3K = [sys.executable, "-m", "s3k.cli"]
 
 
+def note_revision(work: Path) -> None:
+    """Records the revision a stage ran at (a resumed benchmark may span several)."""
+    with open(work / "revisions.txt", "a", encoding="utf-8") as f:
+        f.write(git_revision() + "\n")
+
+
 def sh(cmd: list[str]) -> None:
     print("$ " + " ".join(str(c) for c in cmd[2:]), file=sys.stderr, flush=True)
     subprocess.run(cmd, check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
@@ -137,11 +143,14 @@ def main(argv: list[str] | None = None) -> int:
             cmd += ["--no-unsup"] if name == "labels_only" else []
             jobs.append((f"plush {name}", cmd + (["--resume"] if run.exists() else []),
                          work / f"plush-{name}.cpu.json"))
+    if jobs:
+        note_revision(work)
     run_jobs(jobs, args.parallel)
     grasps = {}
     for name in ("s3k", "labels_only", "ground_truth"):
         out = work / f"grasp-{name}.json"
         if not out.is_file():
+            note_revision(work)
             what = ["--ground-truth", "--size", str(args.plush_size)] if name == "ground_truth" \
                 else [str(runs[name])]
             sh(S3K + ["robot", "grasp", *what, "--trials", str(args.trials), "--out", str(out)])
@@ -172,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
             jobs.append((f"{agent} agent, seed {seed}",
                          agent_command(args, out, agent, seed, detector if agent == "keypoints" else None),
                          work / "rl" / f"{agent}-{seed}.cpu.json"))
+    if jobs:
+        note_revision(work)
     run_jobs(jobs, args.parallel)
 
     # --- the summary
@@ -200,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     summary.update({
         "command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "git_revision": git_revision(),
+        "runs_git_revisions": sorted(set((work / "revisions.txt").read_text().split()))
+        if (work / "revisions.txt").is_file() else [],
         "machine": machine,
         "scale": (f"plush {args.plush_size} px, 7 labelled frames propagated to {args.propagate} frames "
                   f"each, {args.plush_unlabelled} more over the 7 training arrangements, "

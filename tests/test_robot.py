@@ -233,15 +233,18 @@ def test_summary_holds_only_what_was_measured(tmp_path):
     for seed, curve in enumerate(([0.0, 0.2, 0.5], [0.1, 0.6, 0.9])):  # two seeds' evaluations
         run = tmp_path / f"kp{seed}"
         run.mkdir()
-        evals = [{"env_steps": 50 * (i + 1), "success_rate": r} for i, r in enumerate(curve)]
-        final = {"seed": seed, "success_rate": curve[-1], "env_steps": 150, "cpu_seconds": 1800.0}
+        # the detected success (by the agent's own keypoints) lags the true one by 0.1
+        evals = [{"env_steps": 50 * (i + 1), "success_rate": r - 0.1 * (r > 0), "true_success_rate": r}
+                 for i, r in enumerate(curve)]
+        final = {**evals[-1], "seed": seed, "env_steps": 150, "cpu_seconds": 1800.0}
         (run / "progress.json").write_text(json.dumps({"evaluations": evals, "final": final}))
         runs.append(run)
     out = tmp_path / "summary.json"
     s = write_summary(out, grasp_ground_truth=g, rl_keypoints=runs)
     assert s["grasp_success"] == {"s3k": None, "labels_only": None, "ground_truth": 0.9, "trials": 30}
     kp = s["rl_final_success"]["keypoints"]
-    assert kp["per_seed"] == [{"seed": 0, "success_rate": 0.5}, {"seed": 1, "success_rate": 0.9}]
+    assert [(p["seed"], p["success_rate"]) for p in kp["per_seed"]] == [(0, 0.5), (1, 0.9)]
+    assert [p["detected_success_rate"] for p in kp["per_seed"]] == pytest.approx([0.4, 0.8])
     assert kp["mean"] == pytest.approx(0.7) and (kp["min"], kp["max"]) == (0.5, 0.9)
     assert kp["cpu_hours"] == pytest.approx(1.0)
     assert s["rl_final_success"]["beta_vae"] is None and s["rl_final_success"]["env_steps"] == 150
