@@ -18,6 +18,10 @@ continues an interrupted benchmark:
    (``--run``), and the beta-VAE agent; two at a time, one thread each.
 7. ``s3k robot summarize``, then the success-rate curves' plot.
 
+``--agent-ablation`` instead trains the keypoint agent on ground-truth keypoints, one seed, in four
+variants (plain TD3 with demonstrations in its buffer only; the Q-term off: behaviour cloning; the Q-term at
+full weight; the defaults) and writes their success-rate curves to ``agent-ablation.json``.
+
 Example::
 
     python benchmarks/robot.py                       # about 2 hours on 2 cores
@@ -41,6 +45,12 @@ from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 S3K = [sys.executable, "-m", "s3k.cli"]
+ABLATION = {  # agent variants on ground-truth keypoints: name -> train-agent options
+    "td3_demos_in_buffer_only": ["--bc-weight", "0", "--bc-pretrain", "0", "--q-weight", "1"],
+    "behaviour_cloning_only": ["--q-weight", "0"],
+    "q_term_full_weight": ["--q-weight", "1"],
+    "default": [],
+}
 
 
 def note_revision(work: Path) -> None:
@@ -106,6 +116,38 @@ def plot(summary: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def agent_ablation(args, work: Path, results: Path, argv) -> int:
+    jobs, runs = [], {}
+    for name, options in ABLATION.items():
+        out = work / "rl-ablation" / name
+        runs[name] = out
+        progress = out / "progress.json"
+        if progress.is_file() and json.loads(progress.read_text()).get("final", {}).get("env_steps") \
+                == args.ablation_steps:
+            continue
+        out.parent.mkdir(parents=True, exist_ok=True)
+        cmd = S3K + ["robot", "train-agent", "--out", str(out), "--seed", "0", "--steps",
+                     str(args.ablation_steps), "--checkpoint-every", "1000", "--eval-episodes",
+                     str(args.eval_episodes), "--threads", "1", *options]
+        jobs.append((f"ablation {name}", cmd + (["--resume"] if (out / "config.json").is_file() else []),
+                     work / "rl-ablation" / f"{name}.cpu.json"))
+    run_jobs(jobs, args.parallel)
+    curves = {}
+    for name, out in runs.items():
+        evals = json.loads((out / "progress.json").read_text())["evaluations"]
+        curves[name] = {"options": " ".join(ABLATION[name]) or "(defaults)",
+                        "env_steps": [e["env_steps"] for e in evals],
+                        "success_rate": [e["true_success_rate"] for e in evals]}
+    result = {"command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "git_revision": git_revision(), "machine": machine_info(),
+              "scale": f"keypoint agent on ground-truth keypoints, seed 0, {args.ablation_steps} environment "
+                       f"steps, evaluation every 1000 steps over {args.eval_episodes} episodes",
+              "curves": curves}
+    (results / "agent-ablation.json").write_text(json.dumps(result, indent=2) + "\n")
+    emit(result)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--work", default="runs/robot", help="where datasets and runs go (default runs/robot)")
@@ -125,12 +167,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="environment steps between the agents' checkpoints and evaluations (2000)")
     p.add_argument("--eval-episodes", type=int, default=20, help="episodes per evaluation (20)")
     p.add_argument("--parallel", type=int, default=2, help="jobs at a time, one thread each (2)")
+    p.add_argument("--agent-ablation", action="store_true",
+                   help="run the agent variants on ground-truth keypoints instead (seed 0)")
+    p.add_argument("--ablation-steps", type=int, default=4000)
     args = p.parse_args(argv)
     work = Path(args.work).resolve()
     work.mkdir(parents=True, exist_ok=True)
     results = Path(args.results)
     results.mkdir(parents=True, exist_ok=True)
     started = time.time()
+    if args.agent_ablation:
+        return agent_ablation(args, work, results, argv)
 
     # --- the grasp
     plush = plush_data(args, work)
