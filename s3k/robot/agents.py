@@ -59,8 +59,7 @@ class AgentConfig:
     q_weight: float = _field(0.1, "weight of the critic's term -Q(s, pi(s)) / max(mean |Q|, 1) in the "
                                   "actor's loss (TD3's own actor loss is this term alone)")
     bc_weight: float = _field(20.0, "weight of the behaviour-cloning term on the demonstrations in the "
-                                   "actor's loss, Q-filtered: only where the critic rates the demonstrated "
-                                   "action above the policy's (0: plain TD3)")
+                                    "actor's loss (0: TD3's actor loss alone)")
     bc_batch: int = _field(64, "demonstration transitions per update for the behaviour-cloning term")
     bc_pretrain: int = _field(2000, "gradient updates on the demonstrations alone before the agent first "
                                     "acts: the actor by behaviour cloning only, the critics by TD learning")
@@ -110,11 +109,10 @@ def td3_with_demonstrations():
     demonstrations alone (the Q-term off) while the critics learn their values. Built on first use so that
     importing s3k does not import Stable-Baselines3.
 
-    Why these weights (measured on the insertion task, ground-truth keypoints, one seed): plain TD3 with the
-    demonstrations only in its buffer had not succeeded once after 4000 steps; behaviour cloning alone
-    inserts in 9 of 10 episodes, but a Q-term of full weight undoes it within 250 environment steps (the
-    critic, fitted to a few hundred demonstration steps, rates unseen actions wildly); at weight 0.1 the
-    policy dips and recovers.
+    What each part does on the insertion task (``benchmarks/robot.py --agent-ablation``, docs/robot.md):
+    TD3 with the demonstrations only in its buffer does not succeed once in 4000 steps; behaviour cloning
+    alone inserts at once; the Q-term, its critic fitted to few transitions, steers the actor away within a
+    thousand steps even at weight 0.1, from which the policy climbs back slowly.
     """
     import torch as th
     import torch.nn.functional as F
@@ -126,7 +124,7 @@ def td3_with_demonstrations():
         demo_actions: th.Tensor | None = None
         bc_weight: float = 0.0
         bc_batch: int = 64
-        q_filter: bool = True
+        q_filter: bool = False
         q_weight: float = 1.0
 
         def pretrain(self, updates: int, batch_size: int) -> None:
