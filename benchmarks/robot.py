@@ -107,11 +107,11 @@ def plot(summary: dict, path: Path) -> None:
         ax.plot(c["env_steps"], c["mean"], color=colour, label=f"{label}, mean of {c['seeds']} seeds")
         ax.fill_between(c["env_steps"], c["min"], c["max"], color=colour, alpha=0.2)
     ax.set_xlabel("environment steps (4 Hz)")
-    ax.set_ylabel("success rate (deterministic policy)")
+    ax.set_ylabel("plug in: success rate")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
-    ax.set_title("Cable insertion: min-max band over seeds", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("Cable insertion, deterministic policy; band: min-max over seeds", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -261,13 +261,14 @@ def main(argv: list[str] | None = None) -> int:
         "runs_git_revisions": sorted(set((work / "revisions.txt").read_text().split()))
         if (work / "revisions.txt").is_file() else [],
         "machine": machine,
-        "scale": (f"plush {args.plush_size} px, 7 labelled frames propagated to {args.propagate} frames "
-                  f"each, {args.plush_unlabelled} more over the 7 training arrangements, "
-                  f"{args.plush_test} test "
-                  f"frames over 3 held-out ones; detectors {args.detector_steps} steps; {args.trials} grasps "
-                  f"each; insertion views {args.insertion_size} px, {args.seeds} seeds x 2 agents x "
-                  f"{args.agent_steps} environment steps, evaluation every {args.eval_every} steps over "
-                  f"{args.eval_episodes} episodes"),
+        "scale": (f"plush {args.plush_size} px: 7 labelled frames (one per training arrangement) propagated "
+                  f"to the first {args.propagate} frames of their arrangement "
+                  f"({7 * args.propagate} labelled), "
+                  f"the other {args.plush_unlabelled - 7 * (args.propagate - 1)} training frames unlabelled, "
+                  f"{args.plush_test} test frames over the 3 held-out arrangements; detectors "
+                  f"{args.detector_steps} steps; {args.trials} grasps each; insertion views "
+                  f"{args.insertion_size} px, {args.seeds} seeds x 2 agents x {args.agent_steps} environment "
+                  f"steps, evaluation every {args.eval_every} steps over {args.eval_episodes} episodes"),
         "detectors_test": detectors,
         "cpu_minutes": cpu,
         "wall_minutes_this_invocation": round((time.time() - started) / 60, 1),
