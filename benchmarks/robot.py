@@ -176,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     results = Path(args.results)
     results.mkdir(parents=True, exist_ok=True)
     started = time.time()
+    revision = git_revision()  # before anything here writes into the repository's docs
     if args.agent_ablation:
         return agent_ablation(args, work, results, argv)
 
@@ -257,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
             json.loads(record.read_text())["cpu_minutes"], 1)
     summary.update({
         "command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "git_revision": git_revision(),
+        "git_revision": revision,
         "runs_git_revisions": sorted(set((work / "revisions.txt").read_text().split()))
         if (work / "revisions.txt").is_file() else [],
         "machine": machine,
