@@ -147,7 +147,9 @@ def td3_with_demonstrations():
             self.policy.set_training_mode(True)
             if getattr(self, "_logger", None) is not None:  # no logger before learn(): the pretraining
                 self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-            use_bc = self.bc_weight > 0 and self.demo_obs is not None and len(self.demo_obs) > 0
+            demo_obs, demo_actions = self.demo_obs, self.demo_actions
+            use_bc = self.bc_weight > 0 and demo_obs is not None and len(demo_obs) > 0
+            assert self.replay_buffer is not None
             for _ in range(gradient_steps):
                 self._n_updates += 1
                 batch = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
@@ -159,7 +161,7 @@ def td3_with_demonstrations():
                     next_q = next_q.min(dim=1, keepdim=True)[0]
                     target = batch.rewards + (1 - batch.dones) * self.gamma * next_q
                 qs = self.critic(batch.observations, batch.actions)
-                critic_loss = sum(F.mse_loss(q, target) for q in qs)
+                critic_loss = th.stack([F.mse_loss(q, target) for q in qs]).sum()
                 self.critic.optimizer.zero_grad()
                 critic_loss.backward()
                 self.critic.optimizer.step()
@@ -167,9 +169,9 @@ def td3_with_demonstrations():
                     continue
                 q_pi = self.critic.q1_forward(batch.observations, self.actor(batch.observations))
                 actor_loss = -self.q_weight * q_pi.mean() / q_pi.abs().mean().detach().clamp_min(1.0)
-                if use_bc:
-                    idx = th.randint(len(self.demo_obs), (self.bc_batch,))
-                    s_d, a_d = self.demo_obs[idx], self.demo_actions[idx]
+                if use_bc and demo_obs is not None and demo_actions is not None:
+                    idx = th.randint(len(demo_obs), (self.bc_batch,))
+                    s_d, a_d = demo_obs[idx], demo_actions[idx]
                     pi_d = self.actor(s_d)
                     better = th.ones(len(idx), 1)
                     if self.q_filter:
