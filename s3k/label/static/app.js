@@ -264,6 +264,10 @@ async function loadFrame(index) {
   const f = app.frames[app.frameIndex].frame;
   await app.queue;
   const r = await api(`api/frame/${f}`);
+  // keys pressed in quick succession load several frames at once and their answers may come back in any
+  // order: only the frame navigated to last is shown (an earlier answer arriving late would put the next
+  // clicks on the wrong frame)
+  if (app.frames[app.frameIndex].frame !== f) return;
   if (!r.ok) { setStatus(r.body ? r.body.detail : `error ${r.status}`, "error"); return; }
   showFrame(r.body);
   if (!app.pending) setStatus(`frame ${f}`, "");
