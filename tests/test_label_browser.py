@@ -210,6 +210,31 @@ def test_a_stale_tab_shows_the_newer_labels(tmp_path, browser):
         assert (round(label["u"]), round(label["v"])) == (20, 30)
 
 
+def test_a_late_answer_for_an_earlier_frame_does_not_replace_the_frame_navigated_to(tmp_path, browser):
+    """Keys pressed in quick succession load several frames at once; frame 3's answer held back until frame
+    4 is shown must not replace it (the next clicks would label the wrong frame)."""
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    with Server(truth.path) as url:
+        page = browser.new_page()
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        held: list = []
+        page.route("**/api/frame/3", lambda route: held.append(route))
+        for _ in range(4):  # frames 1, 2, 3, 4 requested at once
+            page.keyboard.press("ArrowRight")
+        page.wait_for_function("document.body.dataset.frame === '4'")
+        assert len(held) == 1  # frame 3's request waits
+        with page.expect_response("**/api/frame/3"):
+            held[0].continue_()
+        page.wait_for_function("s3kLabel.app.loading === 0")  # every answer handled, the late one too
+        assert page.evaluate("s3kLabel.app.frame.frame") == 4
+        assert page.evaluate("document.body.dataset.frame") == "4"
+        page.mouse.click(*page_xy(page, "cam0", (20, 30)))
+        wait_version(page, 1)
+    _, mask = Dataset.open(truth.path).labels([3, 4])
+    assert not mask[0].any() and mask[1, 0, 0]  # the click went to frame 4
+
+
 @pytest.mark.skipif(not SHOTS, reason="photographs the app for docs/labelling.md: S3K_SCREENSHOTS=docs/img")
 def test_screenshots_of_the_box_scene(tmp_path, browser):
     """The docs' pictures: the simulated box scene labelled in the app (and, with S3K_LABEL_RUN=RUN, a

@@ -7,6 +7,7 @@ const TOKEN = new URLSearchParams(location.search).get("token");
 const app = {
   meta: null, frames: [], frameIndex: 0, frame: null, kp: 0, brightness: 1,
   views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
+  loading: 0,  // frame loads not yet answered
   versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
 };
 
@@ -262,8 +263,14 @@ async function loadFrame(index) {
   if (!app.frames.length) return;
   app.frameIndex = Math.min(Math.max(index, 0), app.frames.length - 1);
   const f = app.frames[app.frameIndex].frame;
-  await app.queue;
-  const r = await api(`api/frame/${f}`);
+  app.loading += 1;
+  let r;
+  try {
+    await app.queue;
+    r = await api(`api/frame/${f}`);
+  } finally {
+    app.loading -= 1;
+  }
   // keys pressed in quick succession load several frames at once and their answers may come back in any
   // order: only the frame navigated to last is shown (an earlier answer arriving late would put the next
   // clicks on the wrong frame)
