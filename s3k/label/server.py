@@ -46,18 +46,9 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 TOKEN_COOKIE = "s3k_token"
 
 
-class EditIn(BaseModel):
-    camera: str
-    keypoint: str
-    u: float | None = None
-    v: float | None = None
-    visible: bool = True
-    remove: bool = False
-
-
 class SaveIn(BaseModel):
     version: int
-    edits: list[EditIn]
+    edits: list[Edit]  # the store's own dataclass, validated field by field
     source: str = "click"
 
 
@@ -178,7 +169,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     @app.post("/api/frame/{frame}/label")
     def save(frame: int, body: SaveIn) -> Any:
         frame_or_404(frame)
-        edits = [Edit(e.camera, e.keypoint, e.u, e.v, e.visible, e.remove) for e in body.edits]
+        edits = list(body.edits)
         try:
             state.store.save(frame, edits, body.version, source=body.source[:40])
         except StaleVersion as exc:
