@@ -40,7 +40,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.accuracy import run_jobs  # noqa: E402
+from benchmarks.accuracy import evaluate, run_jobs  # noqa: E402
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -244,13 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = json.loads((results / "summary.json").read_text())
     detectors = {}
     for name, run in {**runs, "insertion": detector}.items():
-        data = insertion if name == "insertion" else plush
-        path = run.with_name(run.name + "-test.json")
-        if not path.is_file():
-            from s3k.evaluate import evaluate_run
-
-            path.write_text(json.dumps(evaluate_run(run, data, split="test", device="cpu"), default=float))
-        m = json.loads(path.read_text())
+        m = evaluate(run, insertion if name == "insertion" else plush)  # RUN-test.json, written once
         detectors[name] = {k: m.get(k) for k in ("median_mm", "rms_mm", "pck_10mm", "rms_px")}
     cpu = {}
     for record in sorted(work.glob("**/*.cpu.json")):

@@ -191,10 +191,10 @@ def td3_with_demonstrations():
     return TD3Demonstrations
 
 
-def make_env(cfg: AgentConfig, vae=None) -> gym.Env:
-    """The environment an agent of ``cfg`` sees (the beta-VAE agent's wraps the views' latent)."""
-    detector = None
-    if cfg.run is not None:
+def make_env(cfg: AgentConfig, vae=None, detector=None) -> gym.Env:
+    """The environment an agent of ``cfg`` sees (the beta-VAE agent's wraps the views' latent); ``detector``
+    (stateless) may be shared between environments, else ``cfg.run``'s is loaded."""
+    if detector is None and cfg.run is not None:
         from s3k.robot.detect import RunDetector
 
         detector = RunDetector(cfg.run, KEYPOINTS)
@@ -377,6 +377,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
                                  log=lambda s, loss, p: log(f"beta-VAE step {s}: loss {loss:.1f}"))
             save_vae(vae, out / "vae.pt", cfg.vae_beta)
     env = make_env(cfg, vae)
+    detector = getattr(env.unwrapped, "detector", None)  # shared with the evaluation environment
     env.reset(seed=cfg.seed)
     noise = NormalActionNoise(np.zeros(6), cfg.action_noise * np.ones(6))
     agent_class = td3_with_demonstrations()
@@ -407,13 +408,20 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
                              cfg.bc_batch, bool(cfg.q_filter), cfg.q_weight)
     cpu_before = float(state.get("cpu_seconds", 0.0))  # this process's CPU time adds to the earlier runs'
     # Evaluations on an environment of their own, so that the training episode in progress is not disturbed.
-    eval_env = make_env(cfg, vae)
+    eval_env = make_env(cfg, vae, detector)
+
+    def evaluate_at(steps: int) -> dict:
+        """The deterministic policy's evaluation, appended to the curve."""
+        result = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
+        result.update(agent=cfg.agent, seed=cfg.seed, env_steps=steps)
+        progress["evaluations"].append(result)
+        log(f"evaluation at {steps} environment steps: success rate {result['success_rate']:.2f}")
+        return result
+
     if found is None:
         if cfg.bc_pretrain and n_demo:
             model.pretrain(cfg.bc_pretrain, cfg.batch_size)
-        result0 = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
-        progress["evaluations"].append({**result0, "agent": cfg.agent, "seed": cfg.seed, "env_steps": 0})
-        log(f"evaluation at 0 environment steps: success rate {result0['success_rate']:.2f}")
+        evaluate_at(0)
     eval_every = cfg.eval_every or cfg.checkpoint_every
     done_steps = int(model.num_timesteps)
     # A resumed run keeps the evaluations up to its checkpoint (later ones were of a policy now lost).
@@ -426,10 +434,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         model.learn(total_timesteps=chunk, reset_num_timesteps=False, log_interval=1_000_000)
         now = int(model.num_timesteps)
         if now % eval_every == 0 or now >= cfg.steps:
-            result = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
-            result.update(agent=cfg.agent, seed=cfg.seed, env_steps=now)
-            progress["evaluations"].append(result)
-            log(f"evaluation at {now} environment steps: success rate {result['success_rate']:.2f}")
+            result = evaluate_at(now)
         if now % cfg.checkpoint_every == 0 or now >= cfg.steps:
             state.update(env_steps=now, updates=int(model._n_updates), episodes=int(model._episode_num),
                          cpu_seconds=cpu_before + time.process_time() - c0)
@@ -437,9 +442,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
             atomic_write_json(progress, progress_file)
             log(f"checkpoint at {now} environment steps")
     if result is None or result["env_steps"] != int(model.num_timesteps):  # resumed at or past --steps
-        result = evaluate_agent(model, eval_env, cfg.eval_episodes, cfg.seed)
-        result.update(agent=cfg.agent, seed=cfg.seed, env_steps=int(model.num_timesteps))
-        progress["evaluations"].append(result)
+        result = evaluate_at(int(model.num_timesteps))
     result.update(demonstration_steps=int(state.get("demonstration_steps", 0)),
                   wall_time_s=time.perf_counter() - t0, cpu_seconds=cpu_before + time.process_time() - c0)
     progress["final"] = result
