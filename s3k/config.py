@@ -102,6 +102,10 @@ class SelfSupervisionConfig:
                                  "the trained ones as an exponential moving average with this decay per "
                                  "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "
                                  "the paper")
+    layout_tol: float = _f(0.0, "rigid objects: leave out of the self-supervised term the pseudo-label "
+                                "keypoints whose distances to the others differ from the labelled frames' "
+                                "(median over them) by more than this fraction, e.g. 0.2, so that keypoints "
+                                "detected together on one spot teach nothing; 0: off (deformable objects)")
 
 
 @dataclass
@@ -213,7 +217,7 @@ class TrainConfig:
             "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
             "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
             "colour", "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
-            "pseudo_window",
+            "pseudo_window", "layout_tol",
         ]
         for name in non_negative:
             if getattr(self, name) < 0:

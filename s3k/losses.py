@@ -190,6 +190,8 @@ def self_supervised_loss(
     max_residual_px: float | None = None,
     target_logits: Tensor | None = None,
     window: int = 0,
+    layout: Tensor | None = None,
+    layout_tol: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
 
@@ -213,6 +215,9 @@ def self_supervised_loss(
             read out instead of ``logits`` (a teacher network's); the KL still trains ``logits``.
         window: the detections that make the pseudo-label are the heatmaps' means within this many cells of
             their peaks (:func:`s3k.heatmaps.peak_window_mean`); 0: the whole heatmaps' means.
+        layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
+            and a relative tolerance; pseudo-label keypoints that break the layout by more
+            (:func:`s3k.readout.reject_layout`) give no term.
 
     Returns:
         ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
@@ -240,6 +245,8 @@ def self_supervised_loss(
         if max_residual_px is not None:
             used = readout.reject_outliers(cams, mean_uv, wts, used, max_residual_px)
         X, valid = readout.triangulate(cams, mean_uv, wts, used)
+        if layout is not None and layout_tol > 0:
+            valid = readout.reject_layout(X, valid, layout, layout_tol)
         X = X.to(cams.dtype)
         mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)
         wts = torch.where(used, wts, torch.zeros_like(wts)).to(cams.dtype)

@@ -24,7 +24,8 @@ used views are weighted by their confidence ``w``. The default ``min_weight = 0`
 the paper's rule and the one training's self-supervised target uses, so that ``s3k evaluate`` scores exactly
 the points ``s3k predict`` and ``s3k track`` write. A higher threshold (``s3k track --min-weight``) drops
 uncertain views outright instead of down-weighting them (the weight is 0.5 at a spread of 2 sigma).
-:func:`reject_outliers` (``max_residual_px``) also drops views that miss the other views' consensus.
+:func:`reject_outliers` (``max_residual_px``) also drops views that miss the other views' consensus;
+:func:`reject_layout` drops 3D keypoints whose distances to the others break a rigid object's layout.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ __all__ = [
     "ReadOut",
     "moments",
     "read_out",
+    "reject_layout",
     "reject_outliers",
     "select_views",
     "triangulate",
@@ -145,6 +147,46 @@ def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, ma
         hit = torch.nn.functional.one_hot(c_worst, C).permute(0, 2, 1).bool() & drop[:, None]
         used = used & ~hit
     return used
+
+
+def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Tensor:
+    """Drop the 3D keypoints that break a rigid object's layout; ``valid (B, K)`` with them removed.
+
+    A network that has not learnt a pose can detect several keypoints on one spot, sharply and consistently
+    in every view: the views agree, so neither the confidence nor :func:`reject_outliers` sees it, and a
+    pseudo-label made of such points teaches the collapse. A pair of keypoints breaks the layout when its
+    distance differs from the reference ``distances`` by more than ``tol`` of it. In every frame the keypoint
+    in the most broken pairs (then the largest relative deviation) is dropped, one at a time, until no
+    broken pair is left; a keypoint that was in a broken pair and is left with no intact one is dropped too
+    (its place cannot be vouched for). Pairs whose reference is NaN are not checked, so a keypoint with
+    nothing to check against is kept.
+
+    Args:
+        X: ``(B, K, 3)`` points (NaN where invalid).
+        valid: ``(B, K)`` bool.
+        distances: ``(K, K)`` reference distances (``s3k.train.labelled_distances``), NaN where unknown.
+        tol: largest relative deviation a pair may have (e.g. 0.2).
+    """
+    B, K = valid.shape
+    ref = distances.to(device=X.device, dtype=DTYPE)
+    P = torch.nan_to_num(X.to(DTYPE))
+    rel = (torch.cdist(P, P) - ref).abs() / ref  # NaN where the reference is unknown
+    off_diagonal = ~torch.eye(K, dtype=torch.bool, device=X.device)
+    checked = valid[:, :, None] & valid[:, None, :] & off_diagonal & torch.isfinite(rel)
+    broken = checked & (rel > tol)
+    keep = valid.clone()
+    rel = torch.nan_to_num(rel)
+    for _ in range(K):
+        live = broken & keep[:, :, None] & keep[:, None, :]
+        count = live.sum(dim=-1)  # (B, K)
+        if not bool(count.any()):
+            break
+        excess = (rel * live).sum(dim=-1)
+        worst = (count + excess / (1.0 + excess)).argmax(dim=-1)  # count first, the deviation breaks ties
+        drop = count.amax(dim=-1) > 0
+        keep[drop, worst[drop]] = False
+    intact = checked & ~broken & keep[:, :, None] & keep[:, None, :]
+    return keep & ~(broken.any(dim=-1) & ~intact.any(dim=-1))
 
 
 @dataclass

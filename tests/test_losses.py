@@ -367,3 +367,25 @@ def test_self_supervised_pseudo_label_window_ignores_spread_probability():
     _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, window=5)
     assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
     torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)
+
+
+def test_self_supervised_layout_check_masks_a_collapsed_pseudo_label():
+    """Every keypoint's heatmaps on one spot: the views agree, so the pseudo-label is valid and teaches the
+    collapse; held to the labelled layout it gives no term. An intact layout is untouched."""
+    cams, X = _rig(), _points()
+    ref = torch.cdist(X[0], X[0]).fill_diagonal_(float("nan"))
+    same = X.clone()
+    same[0] = X[0]
+    same[1] = X[0] + 0.01  # frame 1 is frame 0's layout, moved
+    collapsed = same.clone()
+    collapsed[1] = X[0, :1].expand(3, 3)  # frame 1: every keypoint at keypoint 0's place
+    _, plain = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA)
+    assert plain["points_valid"].all()
+    loss, held = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA,
+                                      layout=ref, layout_tol=0.2)
+    assert held["points_valid"][0].all() and not held["points_valid"][1].any()
+    assert held["mask"][0].all() and not held["mask"][1].any()
+    _, intact = self_supervised_loss(_logits_at(_project_all(cams, same)).float(), cams, STRIDE, SIGMA,
+                                     layout=ref, layout_tol=0.2)
+    assert intact["points_valid"].all()
+

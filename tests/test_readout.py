@@ -200,6 +200,31 @@ def test_outlier_rejection_ignores_a_corrupted_view():
     assert reject_outliers(cams, uv, weights, select_views(uv, weights), 3.0).all()
 
 
+def test_layout_rejection_drops_collapsed_and_misplaced_keypoints():
+    from s3k.readout import reject_layout
+
+    layout = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [0, 0.2, 0]], dtype=torch.float64)
+    ref = torch.cdist(layout, layout).fill_diagonal_(float("nan"))
+    misplaced = layout.clone()
+    misplaced[2] = torch.tensor([0.05, 0.01, 0.0], dtype=torch.float64)  # keypoint 2 detected between 0 and 1
+    collapsed = torch.full((3, 3), 0.03, dtype=torch.float64)  # all three on one spot
+    shifted = layout + torch.tensor([0.3, -0.1, 0.5], dtype=torch.float64)  # the layout moved: intact
+    X = torch.stack([layout, misplaced, collapsed, shifted])
+    valid = torch.ones(4, 3, dtype=torch.bool)
+    kept = reject_layout(X, valid, ref, tol=0.2)
+    assert kept.tolist() == [[True] * 3, [True, True, False], [False] * 3, [True] * 3]
+    # a keypoint already invalid is not checked against, and one with no pair to check is kept
+    partial = valid.clone()
+    partial[1, 0] = False  # misplaced frame without keypoint 0: 1-2 is broken, nothing vouches for either
+    partial[3, 1:] = False  # one keypoint alone: nothing to check
+    assert reject_layout(X, partial, ref, 0.2).tolist() == [[True] * 3, [False] * 3, [False] * 3,
+                                                            [True, False, False]]
+    unknown = ref.clone()
+    unknown[:] = float("nan")  # no reference: nothing is dropped
+    assert reject_layout(X, valid, unknown, 0.2).all()
+    assert reject_layout(X, valid, ref, tol=10.0).all()  # everything within a loose tolerance
+
+
 def test_outlier_rejection_keeps_at_least_min_views():
     from s3k.readout import reject_outliers
 

@@ -69,9 +69,9 @@ def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, 
     seen = []
     real = loop_module.compute_losses
 
-    def spy(model, lab, unl, cfg, alpha, wd_model, teacher=None):
+    def spy(model, lab, unl, cfg, alpha, wd_model, teacher=None, layout=None):
         seen.append((unl is None, alpha))
-        return real(model, lab, unl, cfg, alpha, wd_model, teacher)
+        return real(model, lab, unl, cfg, alpha, wd_model, teacher, layout)
 
     monkeypatch.setattr(loop_module, "compute_losses", spy)
     result = train(tiny_dataset, tmp_path / "base", tiny_config(unsup=False, steps=3, val_every=0))
@@ -362,6 +362,32 @@ def test_mean_pairwise_distance():
     assert mean_pairwise_distance(X, torch.tensor([[True, True, True]])) == pytest.approx((5 + 0 + 5) / 3)
     assert mean_pairwise_distance(X, torch.tensor([[True, True, False]])) == pytest.approx(5.0)
     assert math.isnan(mean_pairwise_distance(X, torch.tensor([[True, False, False]])))
+
+
+def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
+    """The labelled frames' triangulated keypoints give the synthetic triangle's side lengths; a dataset
+    whose labels triangulate nothing is refused by --layout_tol, naming it."""
+    from synthetic_rig import LAYOUT
+
+    from s3k.train import labelled_distances
+
+    ds = open_dataset(tiny_dataset)
+    d = labelled_distances(ds, ds.frames("labelled")).numpy()
+    truth = np.linalg.norm(LAYOUT[:, None] - LAYOUT[None], axis=-1)
+    off = ~np.eye(3, dtype=bool)
+    np.testing.assert_allclose(d[off], truth[off], rtol=2e-3)
+    assert np.isnan(np.diag(d)).all()
+    one = make_dataset(tmp_path / "one-keypoint", labelled=2, unlabelled=2, test=1)
+    labels = (one / "labels.csv").read_text().splitlines()
+    (one / "labels.csv").write_text("\n".join([labels[0]] + [r for r in labels[1:] if ",a," in r]) + "\n")
+    assert np.isnan(labelled_distances(open_dataset(one), np.arange(2)).numpy()).all()
+    with pytest.raises(UserError, match="layout_tol"):
+        train(one, tmp_path / "run", tiny_config(steps=1, layout_tol=0.2))
+    assert not (tmp_path / "run").exists()
+    train(one, tmp_path / "run", tiny_config(steps=1))  # without it the same labels train
+    held = train(tiny_dataset, tmp_path / "held", tiny_config(steps=2, warmup_steps=0, ramp_steps=0,
+                                                             layout_tol=0.2))
+    assert held.status == "done"
 
 
 def test_collapse_warning(tiny_dataset, tmp_path):

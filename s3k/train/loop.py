@@ -50,7 +50,7 @@ from s3k.train.distributed import (
     wrap_model,
 )
 from s3k.train.sampling import draw_batch, prepare
-from s3k.train.validation import labelled_layout, validate
+from s3k.train.validation import labelled_distances, labelled_layout, validate
 
 log = logging.getLogger("s3k.train")
 
@@ -112,8 +112,8 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
-                   weight_decay_model: nn.Module, teacher: nn.Module | None = None
-                   ) -> tuple[torch.Tensor, dict[str, float]]:
+                   weight_decay_model: nn.Module, teacher: nn.Module | None = None,
+                   layout: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
     Args:
@@ -125,6 +125,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         weight_decay_model: the unwrapped network (for the L2 term).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
             (``--teacher_ema``); without one they come from ``model``'s own logits.
+        layout: ``(K, K)`` distances between the labelled keypoints (:func:`labelled_distances`) that
+            ``cfg.layout_tol`` holds the pseudo-labels to.
 
     Returns:
         ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
@@ -147,7 +149,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
                                              max_residual_px=cfg.outlier_px or None,
-                                             target_logits=target_logits, window=cfg.pseudo_window)
+                                             target_logits=target_logits, window=cfg.pseudo_window,
+                                             layout=layout, layout_tol=cfg.layout_tol)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
@@ -212,6 +215,18 @@ def _open_data(data: Path, cfg: TrainConfig) -> _Data:
     return _Data(ds, source_size, labelled, unlabelled, val)
 
 
+def _reference_layout(data: Path, d: _Data, cfg: TrainConfig) -> torch.Tensor | None:
+    """The labelled keypoints' distances that ``--layout_tol`` holds pseudo-labels to (None when off)."""
+    if not (cfg.unsup and cfg.layout_tol > 0):
+        return None
+    layout = labelled_distances(d.ds, d.labelled)
+    if not bool(torch.isfinite(layout).any()):
+        raise UserError(f"{data}: no labelled frame has two keypoints triangulated from its labels, so "
+                        "--layout_tol has no layout to hold the pseudo-labels to",
+                        hint="label two keypoints in two cameras of a frame, or leave --layout_tol at 0")
+    return layout
+
+
 def _meta(d: _Data, cfg: TrainConfig) -> DetectorMeta:
     return DetectorMeta(
         keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
@@ -263,6 +278,7 @@ class _Loop:
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
+        self.layout: torch.Tensor | None = None  # the rigid layout of --layout_tol
         if cfg.unsup and cfg.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
@@ -329,7 +345,7 @@ class _Loop:
                           self.gen, False, noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
-        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher)
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher, self.layout)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
@@ -461,11 +477,13 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     if info.main:
         run_folder.check_out(out, resume, overwrite)  # before the dataset is read: the cheap refusals first
     d = _open_data(data, cfg)
+    layout = _reference_layout(data, d, cfg)
     meta = _meta(d, cfg)
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
         _setup_logging(out, False)
     loop = _Loop(cfg, meta, device, info, out)
+    loop.layout = layout
     if state is not None:
         loop.restore(state, out / CHECKPOINT_FILE)
         del state

@@ -40,13 +40,12 @@ def mean_pairwise_distance(X: torch.Tensor, valid: torch.Tensor) -> float:
     return float(d[pair].mean()) if pair.any() else float("nan")
 
 
-def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> float:
-    """Mean pairwise distance of the keypoints triangulated from the labels (the reference layout size).
+def _labelled_points(dataset: Any, frame_ids: np.ndarray, chunk: int = 256):
+    """``(X (B, K, 3), valid (B, K))`` per chunk of ``frame_ids``: the keypoints triangulated from the labels.
 
     Reads labels and calibration only (no image); a keypoint labelled in >= 2 cameras is triangulated with
     unit weights, as the supervised loss does.
     """
-    total, count = 0.0, 0
     for i in range(0, len(frame_ids), chunk):
         ids = frame_ids[i:i + chunk]
         uv, mask = dataset.labels(ids)
@@ -55,7 +54,13 @@ def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> fl
         cams = dataset.calibration(ids).to(dtype=torch.float64)
         uv_t = torch.from_numpy(np.asarray(uv, dtype=np.float32)).double()
         X, valid = triangulate_pixels(cams, uv_t, labelled.double())
-        valid = valid & (labelled.sum(dim=1) >= 2)
+        yield X, valid & (labelled.sum(dim=1) >= 2)
+
+
+def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> float:
+    """Mean pairwise distance of the keypoints triangulated from the labels (the reference layout size)."""
+    total, count = 0.0, 0
+    for X, valid in _labelled_points(dataset, frame_ids, chunk):
         d = mean_pairwise_distance(X, valid)
         if math.isfinite(d):
             n = int(valid.sum())
@@ -64,7 +69,23 @@ def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> fl
     return total / count if count else float("nan")
 
 
-@torch.no_grad()
+def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> torch.Tensor:
+    """``(K, K)`` float64: for every pair of keypoints the median over the labelled frames of their distance,
+    triangulated from the labels (NaN for a pair no frame has both of, and on the diagonal); the rigid layout
+    that ``--layout_tol`` holds pseudo-labels to."""
+    K = len(dataset.keypoints)
+    rows = []
+    for X, valid in _labelled_points(dataset, frame_ids, chunk):
+        d = torch.cdist(torch.nan_to_num(X), torch.nan_to_num(X))
+        pair = valid[:, :, None] & valid[:, None, :]
+        rows.append(torch.where(pair, d, torch.full_like(d, float("nan"))))
+    if not rows:
+        return torch.full((K, K), float("nan"), dtype=torch.float64)
+    out = torch.nanmedian(torch.cat(rows), dim=0).values
+    out.fill_diagonal_(float("nan"))
+    return out
+
+
 def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
              ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
     """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
