@@ -1,0 +1,137 @@
+"""Where a detector's 3D error comes from, by the object's pose: the test frames grouped by which way the
+plane of the first three keypoints faces (its normal up, down, or on a side: more than 45 degrees from the
+world's vertical), and the frames where the keypoints are detected drawn together (their mean pairwise
+distance below half the true one: a collapse, whatever the confidence says).
+
+Each RUN is read with its DATA (a two-pass run with its full-resolution dataset, or any run with the dataset
+it reads, e.g. a refining pass with its crops). Prints one JSON line and writes it to ``--out``.
+
+Example::
+
+    python benchmarks/error_by_pose.py runs/accuracy-box/s3k-seed2 runs/accuracy-box/box384-seed2 \\
+        runs/accuracy-box/labels_only-seed2 runs/accuracy-box/box384-seed2 --out by-pose.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+
+COLLAPSE_RATIO = 0.5
+
+
+def pose_classes(X: np.ndarray) -> np.ndarray:
+    """``(B,)`` "normal up", "normal down" or "on a side" from true points ``X (B, K >= 3, 3)``: the normal of
+    the plane through keypoints 0, 1, 2 (``(X1 - X0) x (X2 - X1)``) against the world's z axis."""
+    n = np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 1])
+    cos = n[:, 2] / np.linalg.norm(n, axis=-1)
+    side = np.where(cos < -np.sqrt(0.5), "normal down", "on a side")
+    return np.where(cos > np.sqrt(0.5), "normal up", side)
+
+
+def mean_pairwise(X: np.ndarray) -> np.ndarray:
+    """``(B,)`` mean distance over the pairs of keypoints of each frame (NaN pairs ignored)."""
+    d = np.linalg.norm(X[:, :, None] - X[:, None], axis=-1)
+    iu = np.triu_indices(X.shape[1], 1)
+    return np.nanmean(d[:, iu[0], iu[1]], axis=-1)
+
+
+def _stats(err: np.ndarray) -> dict:
+    err = err[np.isfinite(err)]
+    if not len(err):
+        return {"n": 0}
+    return {"n": int(len(err)), "median_mm": float(np.median(err)),
+            "rms_mm": float(np.sqrt(np.mean(err ** 2))), "pck_10mm": float(np.mean(err <= 10.0)),
+            "share_of_squared_error": float(np.sum(err ** 2))}
+
+
+def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
+    """The error table of predictions ``pred`` against ``truth`` (both ``(B, K, 3)`` in world units, ``mm``
+    millimetres each)."""
+    err = mm * np.linalg.norm(pred - truth, axis=-1)  # (B, K)
+    classes = pose_classes(truth)
+    collapsed = mean_pairwise(pred) < COLLAPSE_RATIO * mean_pairwise(truth)
+    total = float(np.nansum(err ** 2))
+    out = {"all": _stats(err.ravel()), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
+           "frames": int(len(err))}
+    for name in ("normal up", "normal down", "on a side"):
+        sel = classes == name
+        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel())}
+        out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
+    out["collapsed"] = _stats(err[collapsed].ravel())
+    out["not_collapsed"] = _stats(err[~collapsed].ravel())
+    for part in (out["all"], out["collapsed"], out["not_collapsed"], *out["by_pose"].values()):
+        if "share_of_squared_error" in part:
+            part["share_of_squared_error"] /= total
+    return out
+
+
+def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(predicted, true, mm per world unit)`` points of ``data``'s ``split`` by ``run``."""
+    from s3k.data import Dataset
+    from s3k.evaluate import mm_per_unit
+    from s3k.predict import predict_dataset
+    from s3k.tracks_csv import read_csv
+    from s3k.two_pass import is_two_pass, predict_two_pass
+
+    ds = Dataset.open(data, cache="none")
+    ids = ds.frames(split)
+    truth = ds.points3d(ids)
+    if truth is None:
+        raise SystemExit(f"{data}: no ground-truth 3D points (points3d.csv)")
+    with tempfile.TemporaryDirectory() as tmp:
+        csv = Path(tmp) / "points.csv"
+        if is_two_pass(run):
+            predict_two_pass(run, data, csv, split=split, device="cpu")
+        else:
+            predict_dataset(run, data, csv, split=split, device="cpu", overwrite=True)
+        points = read_csv(csv, ds.keypoints)
+    pred = np.stack([points.get(int(f), np.full((len(ds.keypoints), 3), np.nan)) for f in ids])
+    X, mask = truth
+    return pred, np.where(mask[..., None], X, np.nan), mm_per_unit(ds.units)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="run folders, each followed by its dataset")
+    p.add_argument("--split", default="test", help="split to read (default test)")
+    p.add_argument("--out", default=None, help="JSON file to write")
+    args = p.parse_args(argv)
+    if len(args.pairs) % 2:
+        p.error("give each RUN followed by its DATA")
+    import torch
+
+    torch.set_num_threads(1)
+    runs = {}
+    for run, data in zip(args.pairs[::2], args.pairs[1::2]):
+        pred, truth, mm = predictions(Path(run), Path(data), args.split)
+        runs[run] = {"data": data, **by_pose(pred, truth, mm)}
+        a = runs[run]
+        poses = "; ".join(f"{k} {v.get('median_mm', np.nan):.1f}/{v.get('rms_mm', np.nan):.1f} mm "
+                          f"({v['frames']} frames)" for k, v in a["by_pose"].items())
+        print(f"{run}: median {a['all']['median_mm']:.2f} mm, RMS {a['all']['rms_mm']:.1f} mm; collapsed "
+              f"{a['collapsed_frames']}/{a['frames']} frames ("
+              f"{100 * a['collapsed'].get('share_of_squared_error', 0):.0f}% of the squared error); {poses}",
+              file=sys.stderr)
+    result = {"command": " ".join(["python", "benchmarks/error_by_pose.py",
+                                   *(sys.argv[1:] if argv is None else argv)]),
+              "git_revision": git_revision(), "split": args.split, "runs": runs}
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({**result, "machine": machine_info()}, indent=2) + "\n")
+    emit(result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,35 @@
+"""benchmarks/error_by_pose.py: the pose classes and the collapse count on a case with known answers."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
+
+from benchmarks.error_by_pose import by_pose, pose_classes  # noqa: E402
+
+FLAT = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.1, 0.05, 0]])  # counter-clockwise seen from above: normal up
+
+
+def test_pose_classes_and_collapse():
+    down = FLAT[::-1].copy()  # the same triangle in the other order: its normal points down
+    side = FLAT[:, [0, 2, 1]] + [0, 0, 0.2]  # in the x-z plane: normal horizontal
+    truth = np.stack([FLAT, down, side, FLAT + 0.3])
+    assert pose_classes(truth).tolist() == ["normal up", "normal down", "on a side", "normal up"]
+    pred = truth + np.array([0.001, 0.0, 0.0])  # 1 mm off everywhere...
+    pred[3] = truth[3].mean(axis=0)  # ...but frame 3: every keypoint at the centroid
+    out = by_pose(pred, truth, mm=1000.0)
+    assert out["frames"] == 4 and out["collapsed_frames"] == 1
+    assert out["by_pose"]["normal up"]["collapsed_frames"] == 1
+    assert out["by_pose"]["normal down"]["median_mm"] == pytest.approx(1.0)
+    assert out["by_pose"]["on a side"]["rms_mm"] == pytest.approx(1.0)
+    assert out["not_collapsed"]["median_mm"] == pytest.approx(1.0) and out["not_collapsed"]["n"] == 9
+    centroid_err = 1000 * np.linalg.norm(truth[3] - truth[3].mean(axis=0), axis=-1)
+    assert out["collapsed"]["median_mm"] == pytest.approx(np.median(centroid_err))
+    assert out["collapsed"]["share_of_squared_error"] + out["not_collapsed"]["share_of_squared_error"] \
+        == pytest.approx(1.0)
+    assert out["all"]["pck_10mm"] == pytest.approx(9 / 12)
