@@ -61,6 +61,18 @@ def render(args, seed: int, work: Path) -> Path:
     return out
 
 
+def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
+    """Link ``source``'s renders and labels-only runs (with their CPU and test records) into ``work``."""
+    for s in seeds:
+        run = source / f"labels_only-seed{s}"
+        if not finished(run, args.passes):
+            raise SystemExit(f"{run}: no finished labels-only run to reuse (--labels-only-from)")
+        for name in (f"{args.scene}{args.render}-seed{s}", run.name, run.name + "-cpu.json",
+                     run.name + "-test.json"):
+            if (source / name).exists() and not (work / name).exists():
+                (work / name).symlink_to((source / name).resolve())
+
+
 def train_command(args, data: Path, run: Path, seed: int, model: str) -> list[str]:
     cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--seed", str(seed),
            "--steps", str(args.steps), "--threads", "1", "--no-progress", *MODELS[model]]
@@ -138,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--coarse-steps", type=int, default=None, help="coarse pass steps (default --steps)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")
     p.add_argument("--parallel", type=int, default=2, help="trainings at once, one thread each (default 2)")
+    p.add_argument("--labels-only-from", metavar="WORK", default=None,
+                   help="take the renders and the finished labels-only runs of an earlier working folder "
+                        "instead of making them again (labels only reads none of the self-supervision "
+                        "options, so a comparison of those trains S3K alone)")
     args = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     work = Path(args.work or ROOT / "runs" / f"accuracy-{args.scene}")
@@ -147,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     revision = git_revision()
     t0 = time.perf_counter()
     seeds = list(range(args.seeds))
+    if args.labels_only_from:
+        reuse_labels_only(Path(args.labels_only_from), work, seeds, args)
     data = {s: render(args, s, work) for s in seeds}
     runs = {(s, m): work / f"{m}-seed{s}" for s in seeds for m in MODELS}
     jobs = [(f"{m} seed {s}", train_command(args, data[s], run, s, m), run.with_name(run.name + "-cpu.json"))
@@ -166,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(),
         "scale": scale,
         "seeds": seeds,
+        **({"labels_only_from": args.labels_only_from} if args.labels_only_from else {}),
         "train_cpu_minutes_per_model": max(c["cpu_minutes"] for c in cpu.values()),
         "train_wall_minutes_per_model": max(c["wall_minutes"] for c in cpu.values()),
     }
