@@ -92,26 +92,59 @@ def finished(run: Path, passes: int) -> bool:
     return (run / ("two_pass.json" if passes == 2 else "model.pt")).is_file()
 
 
-def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int) -> None:
-    """Run the training commands ``parallel`` at a time; each one's CPU minutes are added to its record."""
+def _cpu_minutes_so_far(pid: int) -> float | None:
+    """CPU minutes a running process (and the children it has waited for) has used so far; None without
+    Linux's /proc."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    ticks = sum(int(fields[i]) for i in (11, 12, 13, 14))  # user, system, and the waited-for children's
+    return ticks / os.sysconf("SC_CLK_TCK") / 60
+
+
+def _read_record(record: Path) -> dict:
+    return json.loads(record.read_text()) if record.is_file() else {"cpu_minutes": 0.0, "wall_minutes": 0.0}
+
+
+def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: float = 10.0) -> None:
+    """Run the training commands ``parallel`` at a time; each one's CPU minutes are added to its record.
+
+    A running job's minutes so far are written to its record every ``poll_s`` seconds as
+    ``unfinished_cpu_minutes``, so a run interrupted with this process (a closed session) still counts the
+    time it spent when the same command resumes it."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     pending, running = list(jobs), {}
     while pending or running:
         while pending and len(running) < parallel:
             name, cmd, record = pending.pop(0)
+            spent = _read_record(record)
+            spent["cpu_minutes"] += spent.pop("unfinished_cpu_minutes", 0.0)
+            spent["wall_minutes"] += spent.pop("unfinished_wall_minutes", 0.0)
+            record.write_text(json.dumps(spent) + "\n")
             print(f"training {name}", file=sys.stderr, flush=True)
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
             running[proc.pid] = (name, record, time.time())
-        pid, status, usage = os.wait4(-1, 0)
+        pid, status, usage = os.wait4(-1, os.WNOHANG)
+        if pid == 0:
+            for job, (_, record, started) in running.items():
+                minutes = _cpu_minutes_so_far(job)
+                if minutes is not None:
+                    spent = _read_record(record)
+                    spent["unfinished_cpu_minutes"] = minutes
+                    spent["unfinished_wall_minutes"] = (time.time() - started) / 60
+                    record.write_text(json.dumps(spent) + "\n")
+            time.sleep(poll_s)
+            continue
         if pid not in running:
             continue
         name, record, started = running.pop(pid)
         code = os.waitstatus_to_exitcode(status)
         if code != 0:
             raise SystemExit(f"training {name} failed (exit {code}); run the same command again to resume it")
-        spent = {"cpu_minutes": 0.0, "wall_minutes": 0.0}
-        if record.is_file():
-            spent = json.loads(record.read_text())
+        spent = _read_record(record)
+        spent.pop("unfinished_cpu_minutes", None)
+        spent.pop("unfinished_wall_minutes", None)
         spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
         spent["wall_minutes"] += (time.time() - started) / 60
         record.write_text(json.dumps(spent) + "\n")

@@ -3,6 +3,7 @@ are linked, not made again, and an unfinished run is refused."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -32,3 +33,25 @@ def test_labels_only_runs_are_linked_from_an_earlier_working_folder(tmp_path):
     (old / "labels_only-seed2").mkdir()
     with pytest.raises(SystemExit, match="labels_only-seed2"):
         reuse_labels_only(old, new, [2], args)
+
+
+def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
+    """A record left with the unfinished minutes of a run whose benchmark process died is folded into the
+    total when the run resumes; a finished job leaves no unfinished entry."""
+    import json
+
+    from benchmarks.accuracy import _cpu_minutes_so_far, run_jobs
+
+    record = tmp_path / "s3k-seed0-cpu.json"
+    record.write_text(json.dumps({"cpu_minutes": 2.0, "wall_minutes": 3.0, "unfinished_cpu_minutes": 1.5,
+                                  "unfinished_wall_minutes": 2.5}))
+    burn = [sys.executable, "-c",
+            "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.2: pass"]
+    run_jobs([("s3k seed 0", burn, record)], parallel=1, poll_s=0.05)
+    spent = json.loads(record.read_text())
+    assert set(spent) == {"cpu_minutes", "wall_minutes"}
+    assert spent["cpu_minutes"] > 3.5 and spent["wall_minutes"] > 5.5  # 2 + 1.5 before, plus this run
+    assert _cpu_minutes_so_far(os.getpid()) > 0  # what is written while a job runs
+    with pytest.raises(SystemExit, match="s3k seed 1 failed"):
+        fail = [sys.executable, "-c", "raise SystemExit(3)"]
+        run_jobs([("s3k seed 1", fail, tmp_path / "r.json")], parallel=1, poll_s=0.05)
