@@ -92,12 +92,14 @@ class SelfSupervisionConfig:
     warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
                                 "avoids locking in a collapse from a random network")
     ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up")
-    outlier_px: float = _f(0.0, "leave out of each pseudo-label the views whose detection misses the other "
-                                "views' consensus by more than this many image pixels, one at a time "
-                                "(0: every view, weighted by its confidence, as in the paper)")
-    pseudo_window: int = _f(0, "read each view's detection for the pseudo-label as its heatmap's mean within "
+    outlier_px: float = _f(6.0, "leave out of each pseudo-label the views whose detection misses the other "
+                                "views' consensus by more than this many image pixels, one at a time (the "
+                                "default is twice the target width; 0: every view, weighted by its "
+                                "confidence, as in the paper)")
+    pseudo_window: int = _f(5, "read each view's detection for the pseudo-label as its heatmap's mean within "
                                "this many heatmap cells of the peak (0: the whole heatmap's mean, as in the "
-                               "paper, which probability spread over the heatmap pulls towards its centre)")
+                               "paper, which probability spread over the heatmap pulls towards its centre "
+                               "and, trained on, draws the keypoints together)")
     teacher_ema: float = _f(0.0, "pseudo-labels from a teacher: a copy of the network whose weights follow "
                                  "the trained ones as an exponential moving average with this decay per "
                                  "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "

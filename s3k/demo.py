@@ -7,7 +7,8 @@ Steps (each skipped when its output already exists, so an interrupted demo conti
    at 96 px, a refining pass on 128 px crops around its estimate) trained on the 10 labelled frames only
    (``--no-unsup``).
 3. ``DIR/s3k``: the same detector, same labels, same seed, plus the self-supervised multi-view term on the
-   unlabelled frames in both passes (labels-only warm-up, then a ramp of alpha).
+   unlabelled frames in both passes (labels-only warm-up, then a ramp of alpha), its pseudo-labels held to
+   the box's labelled layout (``--layout_tol 0.2``: the box is rigid).
 4. Both evaluated on the same test frames through both passes; the side-by-side table is printed and written
    with plots to ``DIR/report`` (``comparison.md``, ``comparison.json``, ``comparison.png`` and one report per
    model).
@@ -50,6 +51,7 @@ class DemoConfig:
     warmup_steps: int = default_of("warmup_steps")
     ramp_steps: int = default_of("ramp_steps")
     alpha: float = default_of("alpha")
+    layout_tol: float = 0.2  # the box is rigid: S3K's pseudo-labels are held to the labelled corners' layout
     seed: int = default_of("seed")
 
 
@@ -252,6 +254,7 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
         timings["simulate_s"] = time.perf_counter() - t
     base_cfg = TrainConfig.from_flat(steps=demo.steps, warmup_steps=demo.warmup_steps,
                                      ramp_steps=demo.ramp_steps, alpha=demo.alpha, seed=demo.seed,
+                                     layout_tol=demo.layout_tol,
                                      progress=progress, val_every=max(demo.steps // 6, 1),
                                      checkpoint_every=max(demo.steps // 6, 1))
     if not demo.two_pass:
