@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -212,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")
              + (f"; train options {args.train_options!r}" if args.train_options else ""))
     summary = {
-        "command": " ".join(["python", "benchmarks/accuracy.py", *(sys.argv[1:] if argv is None else argv)]),
+        "command": shlex.join(["python", "benchmarks/accuracy.py",
+                               *(sys.argv[1:] if argv is None else argv)]),
         "git_revision": revision,
         "machine": machine_info(),
         "scale": scale,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{a['collapsed_frames']}/{a['frames']} frames ("
               f"{100 * a['collapsed'].get('share_of_squared_error', 0):.0f}% of the squared error); {poses}",
               file=sys.stderr)
-    result = {"command": " ".join(["python", "benchmarks/error_by_pose.py",
+    result = {"command": shlex.join(["python", "benchmarks/error_by_pose.py",
                                    *(sys.argv[1:] if argv is None else argv)]),
               "git_revision": git_revision(), "split": args.split, "runs": runs}
     if args.out:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                                 str(args.seed), *extra] for name, extra in models.items()})
     from s3k.evaluate import evaluate_run
 
-    result: dict = {"benchmark": "oracle_crops", "command": " ".join(["python", *sys.argv]),
+    result: dict = {"benchmark": "oracle_crops", "command": shlex.join(["python", *sys.argv]),
                     "git_revision": revision,
                     "scale": f"box rendered at {args.render} px, crops {args.extent_mm:g} mm -> {args.crop} "
                              f"px, centre jitter {args.jitter_mm:g} mm per axis, {args.steps} steps",

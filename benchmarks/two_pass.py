@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
 
     scale = (f"box rendered at {args.render} px; coarse S3K at {args.coarse_size} px, {args.coarse_steps} "
              f"steps; object crops {args.extent_mm:g} mm -> {args.crop} px; refining {args.steps} steps")
-    result: dict = {"benchmark": "two_pass", "command": " ".join(["python", *sys.argv]),
+    result: dict = {"benchmark": "two_pass", "command": shlex.join(["python", *sys.argv]),
                     "git_revision": revision, "scale": scale,
                     "coarse_estimates": len(centres)}
     coarse_test = evaluate_run(coarse, render, split="test", device="cpu")
