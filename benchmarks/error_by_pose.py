@@ -47,13 +47,14 @@ def mean_pairwise(X: np.ndarray) -> np.ndarray:
     return np.nanmean(d[:, iu[0], iu[1]], axis=-1)
 
 
-def _stats(err: np.ndarray) -> dict:
+def _stats(err: np.ndarray, total: float) -> dict:
+    """Median, RMS and share within 10 mm of ``err``, and its part of the ``total`` squared error."""
     err = err[np.isfinite(err)]
     if not len(err):
         return {"n": 0}
     return {"n": int(len(err)), "median_mm": float(np.median(err)),
             "rms_mm": float(np.sqrt(np.mean(err ** 2))), "pck_10mm": float(np.mean(err <= 10.0)),
-            "share_of_squared_error": float(np.sum(err ** 2))}
+            "share_of_squared_error": float(np.sum(err ** 2)) / total}
 
 
 def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
@@ -63,17 +64,14 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
     classes = pose_classes(truth)
     collapsed = mean_pairwise(pred) < COLLAPSE_RATIO * mean_pairwise(truth)
     total = float(np.nansum(err ** 2))
-    out = {"all": _stats(err.ravel()), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
+    out = {"all": _stats(err.ravel(), total), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
            "frames": int(len(err))}
     for name in ("normal up", "normal down", "on a side"):
         sel = classes == name
-        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel())}
+        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel(), total)}
         out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
-    out["collapsed"] = _stats(err[collapsed].ravel())
-    out["not_collapsed"] = _stats(err[~collapsed].ravel())
-    for part in (out["all"], out["collapsed"], out["not_collapsed"], *out["by_pose"].values()):
-        if "share_of_squared_error" in part:
-            part["share_of_squared_error"] /= total
+    out["collapsed"] = _stats(err[collapsed].ravel(), total)
+    out["not_collapsed"] = _stats(err[~collapsed].ravel(), total)
     return out
 
 

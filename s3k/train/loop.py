@@ -266,7 +266,7 @@ class _Loop:
     """The network, optimizer, schedule and random stream of one rank, and the step counter."""
 
     def __init__(self, cfg: TrainConfig, meta: DetectorMeta, device: torch.device, info: DistInfo,
-                 out: Path) -> None:
+                 out: Path, layout: torch.Tensor | None = None) -> None:
         self.cfg, self.meta, self.device, self.info, self.out = cfg, meta, device, info, out
         torch.manual_seed(cfg.seed)
         net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
@@ -278,7 +278,7 @@ class _Loop:
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
-        self.layout: torch.Tensor | None = None  # the rigid layout of --layout_tol
+        self.layout = layout  # the rigid layout of --layout_tol (None when off)
         if cfg.unsup and cfg.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
@@ -482,8 +482,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
         _setup_logging(out, False)
-    loop = _Loop(cfg, meta, device, info, out)
-    loop.layout = layout
+    loop = _Loop(cfg, meta, device, info, out, layout)
     if state is not None:
         loop.restore(state, out / CHECKPOINT_FILE)
         del state
