@@ -105,7 +105,12 @@ def _cpu_minutes_so_far(pid: int) -> float | None:
 
 
 def _read_record(record: Path) -> dict:
-    return json.loads(record.read_text()) if record.is_file() else {"cpu_minutes": 0.0, "wall_minutes": 0.0}
+    """A training's CPU record, with the minutes of an interrupted attempt (``unfinished_*``) folded in: they
+    were spent, whether the run was then resumed or had already finished when its benchmark process died."""
+    spent = json.loads(record.read_text()) if record.is_file() else {"cpu_minutes": 0.0, "wall_minutes": 0.0}
+    spent["cpu_minutes"] += spent.pop("unfinished_cpu_minutes", 0.0)
+    spent["wall_minutes"] += spent.pop("unfinished_wall_minutes", 0.0)
+    return spent
 
 
 def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: float = 10.0) -> None:
@@ -120,8 +125,6 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         while pending and len(running) < parallel:
             name, cmd, record = pending.pop(0)
             spent = _read_record(record)
-            spent["cpu_minutes"] += spent.pop("unfinished_cpu_minutes", 0.0)
-            spent["wall_minutes"] += spent.pop("unfinished_wall_minutes", 0.0)
             record.write_text(json.dumps(spent) + "\n")
             print(f"training {name}", file=sys.stderr, flush=True)
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
@@ -131,7 +134,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
             for job, (_, record, started) in running.items():
                 minutes = _cpu_minutes_so_far(job)
                 if minutes is not None:
-                    spent = _read_record(record)
+                    spent = json.loads(record.read_text())
                     spent["unfinished_cpu_minutes"] = minutes
                     spent["unfinished_wall_minutes"] = (time.time() - started) / 60
                     record.write_text(json.dumps(spent) + "\n")
@@ -143,7 +146,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         code = os.waitstatus_to_exitcode(status)
         if code != 0:
             raise SystemExit(f"training {name} failed (exit {code}); run the same command again to resume it")
-        spent = _read_record(record)
+        spent = json.loads(record.read_text())
         spent.pop("unfinished_cpu_minutes", None)
         spent.pop("unfinished_wall_minutes", None)
         spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
@@ -205,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             for (s, m), run in runs.items() if not finished(run, args.passes)]
     run_jobs(jobs, args.parallel)
     metrics = {key: evaluate(run, data[key[0]]) for key, run in runs.items()}
-    cpu = {key: json.loads(run.with_name(run.name + "-cpu.json").read_text()) for key, run in runs.items()}
+    cpu = {key: _read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}
     scale = (f"{args.scene} rendered at {args.render} px, 10 labelled + {args.unlabelled} unlabelled + "
              f"{args.test} test frames; " + (
                  f"two passes: coarse {args.coarse_size} px, {args.coarse_steps or args.steps} steps; crops "
