@@ -100,6 +100,10 @@ class SelfSupervisionConfig:
                                "this many heatmap cells of the peak (0: the whole heatmap's mean, as in the "
                                "paper, which probability spread over the heatmap pulls towards its centre "
                                "and, trained on, draws the keypoints together)")
+    coord_weight: float = _f(0.0, "weight of a second term on every heatmap with a target: the distance from "
+                                  "the heatmap's mean (the read-out's detection) to the target's centre, in "
+                                  "target widths; the KL alone leaves the mean free to lean towards the "
+                                  "object's inside by a pixel or so, this trains the detection itself")
     teacher_ema: float = _f(0.0, "pseudo-labels from a teacher: a copy of the network whose weights follow "
                                  "the trained ones as an exponential moving average with this decay per "
                                  "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "
@@ -219,7 +223,7 @@ class TrainConfig:
             "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
             "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
             "colour", "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
-            "pseudo_window", "layout_tol",
+            "pseudo_window", "layout_tol", "coord_weight",
         ]
         for name in non_negative:
             if getattr(self, name) < 0:

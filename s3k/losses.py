@@ -25,9 +25,9 @@ from torch import Tensor, nn
 
 from s3k import readout
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, gaussian_targets, spatial_log_softmax
+from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_log_softmax
 
-__all__ = ["kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
+__all__ = ["coord_loss", "kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
 
 MIN_DEPTH = 1e-6
 """Camera-frame depth at or below which a projected point counts as behind the camera."""
@@ -104,18 +104,36 @@ def _check_logits(fn: str, logits: Tensor, cams: Cameras) -> tuple[int, int, int
     return B, C, K, h, w
 
 
+def coord_loss(logits: Tensor, target_uv: Tensor, mask: Tensor, stride: int, sigma: float) -> Tensor:
+    """Sum over the unmasked heatmaps of the distance from the softmax mean of ``logits (*, h, w)`` to
+    ``target_uv (*, 2)``, in units of ``sigma`` image pixels, divided by the number of frames (dim 0).
+
+    The KL to a Gaussian is minimal when the heatmap is that Gaussian, but a heatmap that misses it by a
+    little can keep its mass off-centre: its mean, the detection, is not what the KL measures. This term is;
+    its gradient moves the mean towards the target. The distance is smoothed near zero (``sqrt(d^2 + 0.01)``).
+    """
+    mean_uv, _ = heatmap_moments(spatial_log_softmax(logits.float()).exp(), stride)
+    t = torch.where(mask[..., None], target_uv.to(mean_uv.dtype), mean_uv.detach())
+    d = torch.sqrt((((mean_uv - t) / sigma) ** 2).sum(dim=-1) + 0.01) - 0.1
+    return torch.where(mask, d, torch.zeros_like(d)).sum() / logits.shape[0]
+
+
 def _reprojection_loss(
-    logits: Tensor, X: Tensor, valid: Tensor, cams: Cameras, stride: int, sigma: float, **views: Tensor
+    logits: Tensor, X: Tensor, valid: Tensor, cams: Cameras, stride: int, sigma: float,
+    coord_weight: float = 0.0, **views: Tensor
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The KL of ``logits (B, C, K, h, w)`` to Gaussian targets at the projections of the points
-    ``X (B, K, 3)`` (constants) in all cameras ``(B, C)``, and the losses' ``info`` dict: the points, the
-    per-view tensors ``views`` that gave them, then the targets and their mask."""
+    ``X (B, K, 3)`` (constants) in all cameras ``(B, C)``, plus ``coord_weight`` times :func:`coord_loss`,
+    and the losses' ``info`` dict: the points, the per-view tensors ``views`` that gave them, then the
+    targets and their mask."""
     B, _, _, h, w = logits.shape
     with torch.no_grad():
         uv, depth = project(cams, X[:, None])  # (B, C, K, 2), (B, C, K)
         in_front = (depth > MIN_DEPTH) & valid[:, None]
         targets, mask = gaussian_targets(uv, in_front, h, w, stride, sigma)
     loss = kl_loss(targets, logits, mask, normalizer=B)
+    if coord_weight > 0:
+        loss = loss + coord_weight * coord_loss(logits, uv, mask, stride, sigma)
     info = {
         "points": X,
         "points_valid": valid,
@@ -136,6 +154,7 @@ def supervised_loss(
     label_mask: Tensor,
     stride: int,
     sigma: float,
+    coord_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_sup``: triangulate the 2D labels, reproject into every camera, KL to Gaussian targets.
 
@@ -151,6 +170,7 @@ def supervised_loss(
         label_mask: ``(B, C, K)`` bool, True where labelled.
         stride: heatmap stride (image pixels per cell).
         sigma: target width in image pixels.
+        coord_weight: weight of :func:`coord_loss` added to the KL (0: the KL alone).
 
     Returns:
         ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
@@ -178,7 +198,7 @@ def supervised_loss(
         weights = labelled.to(cams.dtype)
         X, valid = triangulate_pixels(cams, uv, weights)
         valid = valid & (labelled.sum(dim=1) >= 2)
-    return _reprojection_loss(logits, X, valid, cams, stride, sigma, weights=weights)
+    return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, weights=weights)
 
 
 def self_supervised_loss(
@@ -192,6 +212,7 @@ def self_supervised_loss(
     window: int = 0,
     layout: Tensor | None = None,
     layout_tol: float = 0.0,
+    coord_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
 
@@ -218,6 +239,7 @@ def self_supervised_loss(
         layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
             and a relative tolerance; pseudo-label keypoints that break the layout by more
             (:func:`s3k.readout.reject_layout`) give no term.
+        coord_weight: weight of :func:`coord_loss` added to the KL (0: the KL alone).
 
     Returns:
         ``(loss, info)``: scalar loss (sum of KL over valid terms / B) and a dict of detached tensors:
@@ -250,7 +272,8 @@ def self_supervised_loss(
         X = X.to(cams.dtype)
         mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)
         wts = torch.where(used, wts, torch.zeros_like(wts)).to(cams.dtype)
-    return _reprojection_loss(logits, X, valid, cams, stride, sigma, mean_uv=mean_uv, var=var, weights=wts)
+    return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, mean_uv=mean_uv, var=var,
+                              weights=wts)
 
 
 def l2_non_bias(model: nn.Module) -> Tensor:

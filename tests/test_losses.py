@@ -389,3 +389,48 @@ def test_self_supervised_layout_check_masks_a_collapsed_pseudo_label():
                                      layout=ref, layout_tol=0.2)
     assert intact["points_valid"].all()
 
+
+
+def test_coord_loss_is_the_mean_distance_in_target_widths_and_pulls_the_mean_in():
+    """A heatmap whose mean sits on the target costs nothing; one whose mass leans 2 pixels off costs its
+    distance over sigma (smoothed near zero); a gradient step moves the mean towards the target; masked terms
+    cost nothing."""
+    from s3k.losses import coord_loss
+
+    stride, sigma = 2, 3.0
+    target_uv = torch.tensor([[[20.3, 30.7], [10.0, 12.0]]])  # (B=1, K=2, 2)
+    on, _ = gaussian_targets(target_uv, None, 32, 32, stride, sigma)
+    mask = torch.tensor([[True, False]])
+    assert float(coord_loss(on.log(), target_uv, mask, stride, sigma)) == pytest.approx(0.0, abs=1e-4)
+    off_uv = target_uv + torch.tensor([2.0, 0.0])
+    off, _ = gaussian_targets(off_uv, None, 32, 32, stride, sigma)
+    logits = off.log().clone().requires_grad_(True)
+    loss = coord_loss(logits, target_uv, mask, stride, sigma)
+    assert float(loss.detach()) == pytest.approx(((2.0 / sigma) ** 2 + 0.01) ** 0.5 - 0.1, abs=1e-3)
+    loss.backward()
+    with torch.no_grad():
+        moved = heatmap_moments(spatial_softmax(logits - 20.0 * logits.grad), stride)[0]
+    assert float(moved[0, 0, 0]) < float(off_uv[0, 0, 0])  # towards 20.3
+    assert torch.equal(logits.grad[0, 1], torch.zeros_like(logits.grad[0, 1]))  # the masked term
+    assert float(coord_loss(off.log(), target_uv, torch.zeros_like(mask), stride, sigma)) == 0.0
+
+
+def test_coord_weight_adds_the_coordinate_term_to_both_losses():
+    """With ``coord_weight`` the supervised and self-supervised losses grow by that times ``coord_loss`` of
+    their own targets, which ``info`` reports."""
+    from s3k.losses import coord_loss
+
+    cams = _rig()
+    uv, _ = project(cams, _points()[:, None])
+    logits = _logits_at(uv + torch.tensor([1.5, -1.0], dtype=uv.dtype)).float()  # off the labels
+    labelled = torch.ones(uv.shape[:-1], dtype=torch.bool)
+    base, info = supervised_loss(logits, cams, uv, labelled, STRIDE, SIGMA)
+    plus, _ = supervised_loss(logits, cams, uv, labelled, STRIDE, SIGMA, coord_weight=0.5)
+    extra = coord_loss(logits, info["target_uv"], info["mask"], STRIDE, SIGMA)
+    assert info["mask"].any() and float(extra) > 0
+    assert float(plus - base) == pytest.approx(0.5 * float(extra), rel=1e-4)
+    base_u, info_u = self_supervised_loss(logits, cams, STRIDE, SIGMA)
+    plus_u, _ = self_supervised_loss(logits, cams, STRIDE, SIGMA, coord_weight=2.0)
+    extra_u = coord_loss(logits, info_u["target_uv"], info_u["mask"], STRIDE, SIGMA)
+    assert info_u["mask"].any()
+    assert float(plus_u - base_u) == pytest.approx(2.0 * float(extra_u), rel=1e-5)

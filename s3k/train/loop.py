@@ -138,7 +138,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     logits = model(flat)
     logits = logits.float().reshape(images.shape[0], C, *logits.shape[1:])
     sigma = cfg.sigma_px()
-    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma)
+    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma,
+                                   coord_weight=cfg.coord_weight)
     loss = l_sup
     terms = {"sup": float(l_sup.detach())}
     if unl is not None:
@@ -150,7 +151,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
                                              max_residual_px=cfg.outlier_px or None,
                                              target_logits=target_logits, window=cfg.pseudo_window,
-                                             layout=layout, layout_tol=cfg.layout_tol)
+                                             layout=layout, layout_tol=cfg.layout_tol,
+                                             coord_weight=cfg.coord_weight)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
