@@ -1,7 +1,10 @@
 """Where a detector's 3D error comes from, by the object's pose: the test frames grouped by which way the
 plane of the first three keypoints faces (its normal up, down, or on a side: more than 45 degrees from the
 world's vertical), and the frames where the keypoints are detected drawn together (their mean pairwise
-distance below half the true one: a collapse, whatever the confidence says).
+distance below half the true one: a collapse, whatever the confidence says). Within each pose, the error's
+constant part: each keypoint's mean error in the frame of the true keypoints (x from keypoint 0 to 1, y
+from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
+``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs.
 
 Each RUN is read with its DATA (a two-pass run with its full-resolution dataset, or any run with the dataset
 it reads, e.g. a refining pass with its crops). Prints one JSON line and writes it to ``--out``.
@@ -47,6 +50,28 @@ def mean_pairwise(X: np.ndarray) -> np.ndarray:
     return np.nanmean(d[:, iu[0], iu[1]], axis=-1)
 
 
+def keypoint_frames(X: np.ndarray) -> np.ndarray:
+    """``(B, 3, 3)`` rotations whose rows are the axes of the frame of true keypoints ``X (B, K >= 3, 3)``:
+    x along ``X1 - X0``, y the part of ``X1 - X2`` square to x, z = x cross y."""
+    x = X[:, 1] - X[:, 0]
+    x = x / np.linalg.norm(x, axis=-1, keepdims=True)
+    y = X[:, 1] - X[:, 2]
+    y = y - (y * x).sum(-1, keepdims=True) * x
+    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    return np.stack([x, y, np.cross(x, y)], axis=1)
+
+
+def bias(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
+    """Each keypoint's mean error in the frame of the true keypoints (:func:`keypoint_frames`), mm, and the
+    median 3D error once that mean is taken away."""
+    e = mm * np.einsum("bij,bkj->bki", keypoint_frames(truth), pred - truth)  # (B, K, 3)
+    mean = np.nanmean(e, axis=0) if len(e) else np.full(e.shape[1:], np.nan)
+    rest = np.linalg.norm(e - mean, axis=-1)
+    rest = rest[np.isfinite(rest)]
+    return {"bias_mm": np.round(mean, 3).tolist(),
+            "median_mm_without_bias": float(np.median(rest)) if len(rest) else float("nan")}
+
+
 def _stats(err: np.ndarray, total: float) -> dict:
     """Median, RMS and share within 10 mm of ``err``, and its part of the ``total`` squared error."""
     err = err[np.isfinite(err)]
@@ -68,7 +93,8 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
            "frames": int(len(err))}
     for name in ("normal up", "normal down", "on a side"):
         sel = classes == name
-        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel(), total)}
+        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel(), total),
+                                **bias(pred[sel], truth[sel], mm)}
         out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
     out["collapsed"] = _stats(err[collapsed].ravel(), total)
     out["not_collapsed"] = _stats(err[~collapsed].ravel(), total)

@@ -33,3 +33,26 @@ def test_pose_classes_and_collapse():
     assert out["collapsed"]["share_of_squared_error"] + out["not_collapsed"]["share_of_squared_error"] \
         == pytest.approx(1.0)
     assert out["all"]["pck_10mm"] == pytest.approx(9 / 12)
+    # "normal down" (one frame, the triangle reversed): its keypoint frame's y (keypoint 2 to 1) runs along
+    # world x, so 1 mm along x is 1 mm along y, and nothing is left once that constant is taken away
+    np.testing.assert_allclose(out["by_pose"]["normal down"]["bias_mm"], [[0.0, 1.0, 0.0]] * 3, atol=1e-9)
+    assert out["by_pose"]["normal down"]["median_mm_without_bias"] == pytest.approx(0.0)
+
+
+def test_bias_separates_a_lean_from_scatter():
+    """Keypoints pushed 2 mm along the keypoints' own normal in every frame, whatever the frame's rotation,
+    plus +-1 mm of scatter along x: a bias of (0, 0, 2) mm and 1 mm left without it."""
+    from benchmarks.error_by_pose import bias, keypoint_frames
+
+    rng = np.random.default_rng(0)
+    truth, pred = [], []
+    for i in range(8):
+        a = rng.uniform(0, 2 * np.pi)
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        X = FLAT @ R.T + rng.normal(size=3)
+        axes = keypoint_frames(X[None])[0]
+        truth.append(X)
+        pred.append(X + 0.002 * axes[2] + (0.001 if i % 2 else -0.001) * axes[0])
+    out = bias(np.array(pred), np.array(truth), mm=1000.0)
+    np.testing.assert_allclose(out["bias_mm"], [[0.0, 0.0, 2.0]] * 3, atol=1e-6)
+    assert out["median_mm_without_bias"] == pytest.approx(1.0)
