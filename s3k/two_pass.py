@@ -174,9 +174,10 @@ def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule
 
 
 def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int = 96,
-                   coarse_steps: int | None = None, crop_size: int = 128, margin: float = 0.3,
-                   extent: float | None = None, resume: bool = False, overwrite: bool = False,
-                   command: str | None = None, log=print) -> dict[str, Any]:
+                   coarse_steps: int | None = None, coarse_rotation: float | None = None,
+                   crop_size: int = 128, margin: float = 0.3, extent: float | None = None,
+                   resume: bool = False, overwrite: bool = False, command: str | None = None,
+                   log=print) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
     complete, so ``resume`` continues a killed run at the stage where it stopped.
 
@@ -186,6 +187,9 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         cfg: :class:`s3k.config.TrainConfig` of both passes (``image_size`` is set per pass).
         coarse_size: the coarse pass's image size (longer side, px).
         coarse_steps: the coarse pass's steps (default: ``cfg.steps``).
+        coarse_rotation: the coarse pass's augmentation rotation range, degrees (default:
+            ``cfg.rotation_deg``): wide for a coarse pass that must find the object in any pose, while the
+            refining pass keeps a narrow one for precision.
         crop_size: crop size in pixels (the refining pass's input).
         margin: relative margin of the crop's extent (:func:`crop_rule_from_labels`).
         extent: the crop's side in world units (default: from the labels).
@@ -213,7 +217,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     rule = (CropRule(float(extent), int(crop_size), 0.0) if extent is not None
             else crop_rule_from_labels(ds, crop_size, margin))
     results: dict[str, Any] = {"rule": rule}
-    coarse_cfg = cfg.replace(image_size=coarse_size, steps=coarse_steps or cfg.steps)
+    coarse_cfg = cfg.replace(image_size=coarse_size, steps=coarse_steps or cfg.steps,
+                             rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation)
     results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass")
     log(f"coarse pass: estimating every frame of {data}")
     estimates = coarse_estimates(out / "coarse", data, out / "estimates.csv", "all", ds.keypoints)

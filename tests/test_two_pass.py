@@ -85,9 +85,12 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     run = tmp_path / "run"
     args = ["train", str(data), "--out", str(run), "--two-pass", "--steps", "3", "--coarse-size", "32",
             "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1", "--val_every", "0",
-            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1"]
+            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1",
+            "--rotation_deg", "15", "--coarse-rotation", "180"]
     assert cli.main(args) == 0
     rule, coarse, fine = read_two_pass(run)
+    assert json.loads((coarse / "config.json").read_text())["config"]["rotation_deg"] == 180
+    assert json.loads((fine / "config.json").read_text())["config"]["rotation_deg"] == 15
     assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
     assert json.loads((coarse / "config.json").read_text())["config"]["image_size"] == 32

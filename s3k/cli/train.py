@@ -35,6 +35,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's image size, longer side (default 96)")
     two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
+    two.add_argument("--coarse-rotation", type=float, default=None, metavar="DEG",
+                     help="the coarse pass's augmentation rotation range in degrees (default: "
+                          "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
+                          "object in any pose and a precise refining pass")
     two.add_argument("--crop-size", type=int, default=128, metavar="PX",
                      help="crop size in pixels, the refining pass's input (default 128)")
     two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
@@ -69,6 +73,7 @@ def _run_two_pass(args: argparse.Namespace) -> int:
         raise UserError("--image-size does not apply to --two-pass",
                         hint="set the coarse pass's size with --coarse-size and the crops' with --crop-size")
     train_two_pass(args.dataset, args.out, cfg, coarse_size=args.coarse_size, coarse_steps=args.coarse_steps,
-                   crop_size=args.crop_size, margin=args.crop_margin, extent=args.crop_extent,
+                   coarse_rotation=args.coarse_rotation, crop_size=args.crop_size, margin=args.crop_margin,
+                   extent=args.crop_extent,
                    resume=args.resume, overwrite=args.overwrite, command=getattr(args, "command_line", None))
     return 0
