@@ -25,7 +25,13 @@ from torch import Tensor, nn
 
 from s3k import readout
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_log_softmax
+from s3k.heatmaps import (
+    confidence_weight,
+    gaussian_targets,
+    heatmap_moments,
+    spatial_log_softmax,
+    spatial_softmax,
+)
 
 __all__ = ["coord_loss", "kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
 
@@ -112,7 +118,7 @@ def coord_loss(logits: Tensor, target_uv: Tensor, mask: Tensor, stride: int, sig
     little can keep its mass off-centre: its mean, the detection, is not what the KL measures. This term is;
     its gradient moves the mean towards the target. The distance is smoothed near zero (``sqrt(d^2 + 0.01)``).
     """
-    mean_uv, _ = heatmap_moments(spatial_log_softmax(logits.float()).exp(), stride)
+    mean_uv, _ = heatmap_moments(spatial_softmax(logits.float()), stride)
     t = torch.where(mask[..., None], target_uv.to(mean_uv.dtype), mean_uv.detach())
     d = torch.sqrt((((mean_uv - t) / sigma) ** 2).sum(dim=-1) + 0.01) - 0.1
     return torch.where(mask, d, torch.zeros_like(d)).sum() / logits.shape[0]
