@@ -37,6 +37,7 @@ from benchmarks.common import (  # noqa: E402
     network_summary,
     random_frames,
 )
+from s3k.config import TrainConfig  # noqa: E402
 from s3k.geometry import Cameras  # noqa: E402
 from s3k.model import count_conv_flops  # noqa: E402
 from s3k.readout import read_out  # noqa: E402
@@ -57,8 +58,10 @@ def look_at_rig(num_cameras: int, size: int, distance: float = 1.0) -> Cameras:
     return Cameras(K.expand(1, num_cameras, 3, 3), None, R[None], t[None])
 
 
-def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: float, channels_last: bool):
-    """The per-frame function: uint8 frames ``(C, H, W, 3)`` -> ``(X (K, 3), valid (K,))``."""
+def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: float, channels_last: bool,
+                  max_residual_px: float | None = None):
+    """The per-frame function: uint8 frames ``(C, H, W, 3)`` -> ``(X (K, 3), valid (K,))``; with
+    ``max_residual_px``, the views that miss the others' consensus are dropped (:func:`read_out`)."""
 
     def run(frames_u8: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # (C, H, W, 3) -> (1, C, 3, H, W): the permuted view of HWC data is already channels_last.
@@ -66,7 +69,7 @@ def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: flo
         if not channels_last:
             images = images.contiguous()
         logits = model(images)
-        result = read_out(logits[None], cams, stride, sigma)
+        result = read_out(logits[None], cams, stride, sigma, max_residual_px=max_residual_px)
         return result.X[0], result.valid[0]
 
     return run
@@ -77,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     add_network_options(p, threads_help="torch threads (default: torch's default)")
     p.add_argument("--no-fuse", action="store_true", help="keep BatchNorm separate (not folded into convs)")
     p.add_argument("--contiguous", action="store_true", help="NCHW instead of channels_last")
+    p.add_argument("--outlier-px", type=float, default=TrainConfig().outlier_px,
+                   help="the read-out's outlier threshold, network pixels (default: a detector trained with "
+                        "the defaults; 0: every view)")
     args = p.parse_args(argv)
 
     config, model, num_params = build_network(args)
@@ -90,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     cams = look_at_rig(C, S)
     frames = random_frames(args)
     flops_per_frame = count_conv_flops(model, torch.rand(C, 3, S, S))
-    run = make_pipeline(model, cams, config.stride, args.sigma, channels_last)
+    run = make_pipeline(model, cams, config.stride, args.sigma, channels_last, args.outlier_px or None)
 
     peaks, rounds = interleaved_rounds({"pytorch": run}, frames, args, matmul_seconds=1.0)
     round_fps = [1 / statistics.median(t) for t in rounds["pytorch"]]
@@ -116,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         **network_fields(args, config, num_params, flops_per_frame, matmul),
         "fused": not args.no_fuse,
         "channels_last": channels_last,
+        "outlier_px": args.outlier_px,
         "repeats": args.repeats,
         "rounds": args.rounds,
         "frames_per_s_rounds": round_fps,

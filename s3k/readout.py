@@ -267,7 +267,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         min_weight: views with a confidence weight at or below this are not used.
         keep_heatmaps: also return the softmax heatmaps.
         max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
-            (:func:`reject_outliers`), in the pixels of ``cams``.
+            (:func:`reject_outliers`), in the network-input pixels (the pixels the threshold has at training,
+            ``--outlier_px``, whatever the size of the original images).
 
     Returns:
         A :class:`ReadOut`.
@@ -281,6 +282,10 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                          f"got {tuple(cams.shape)}")
     probs, uv, var = moments(logits, stride)
     weights = confidence_weight(var, sigma)
+    used = select_views(uv, weights, min_weight)
+    if cams.dtype != DTYPE or cams.K.device != logits.device:
+        cams = cams.to(device=logits.device, dtype=DTYPE)
+    net_cams, net_uv = cams, uv  # the cameras of the network-input pixels and the detections in them
     if pixel_maps is not None:
         maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
         if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
@@ -288,11 +293,10 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                              f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
         uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
-    used = select_views(uv, weights, min_weight)
-    if cams.dtype != DTYPE or cams.K.device != logits.device:
-        cams = cams.to(device=logits.device, dtype=DTYPE)
+        if max_residual_px is not None:  # an affine map of the pixels is K' = M K
+            net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)
     if max_residual_px is not None:
-        used = reject_outliers(cams, uv, weights, used, max_residual_px)
+        used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

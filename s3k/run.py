@@ -54,6 +54,9 @@ class DetectorMeta:
         model: ``UNetConfig.to_dict()`` of the network.
         units: world units of the training dataset's calibration (e.g. "m").
         source_image_size: (W, H) of the training dataset's images.
+        outlier_px: at read-out, a view whose detection misses the others' consensus by more than this many
+            network-input pixels does not enter the triangulation (the threshold the training's
+            ``--outlier_px`` held its pseudo-labels to); 0: every view enters.
     """
 
     keypoints: list[str]
@@ -64,6 +67,12 @@ class DetectorMeta:
     model: dict[str, Any] = field(default_factory=dict)
     units: str = "m"
     source_image_size: tuple[int, int] | None = None
+    outlier_px: float = 0.0
+
+    @property
+    def max_residual_px(self) -> float | None:
+        """``outlier_px`` as :func:`s3k.readout.read_out` takes it (None: off)."""
+        return self.outlier_px if self.outlier_px > 0 else None
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -164,6 +173,16 @@ def build_model(meta: DetectorMeta) -> UNet:
     return UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
 
 
+def _older_run_meta(run_dir: Path) -> dict[str, Any]:
+    """What a detector trained before its meta kept the read-out's outlier threshold takes from its run's
+    ``config.json``: the ``--outlier_px`` it was trained with (nothing when that is missing)."""
+    try:
+        value = json.loads((run_dir / "config.json").read_text())["config"]["outlier_px"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    return {"outlier_px": float(value)} if isinstance(value, (int, float)) else {}
+
+
 def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
                   checkpoint: str | None = None) -> tuple[UNet, DetectorMeta]:
     """Load a trained detector from a run folder, in eval mode.
@@ -197,7 +216,7 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
                             "in two_pass.json)")
         raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
     try:
-        meta = DetectorMeta.from_dict(state["meta"])
+        meta = DetectorMeta.from_dict({**_older_run_meta(run_dir), **state["meta"]})
         model = build_model(meta)
         model.load_state_dict(state["model"])
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:

@@ -333,7 +333,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                 x = x.permute(0, 1, 4, 2, 3).float().div_(255.0).reshape(B * C, 3, net_size[1], net_size[0])
                 logits = net(x)
                 logits = logits.reshape(B, C, *logits.shape[1:])
-                result = read_out(logits, cams, meta.stride, meta.sigma, pixel_maps, min_weight)
+                result = read_out(logits, cams, meta.stride, meta.sigma, pixel_maps, min_weight,
+                                  max_residual_px=meta.max_residual_px)
                 if two_pass is not None:  # the crops around the coarse estimate, at the videos' resolution
                     result = two_pass.refine(originals, result, cams, min_weight)
                 result = result.cpu()

@@ -339,4 +339,4 @@ class TwoPassDetector:
         logits = logits.reshape(B, C, *logits.shape[1:])
         maps = crop_maps(boxes, size)  # (B, C, 3, 3): original pixels -> crop pixels
         return read_out(logits, cams.to(self.device), self.fine_meta.stride, self.fine_meta.sigma, maps,
-                        min_weight)
+                        min_weight, max_residual_px=self.fine_meta.max_residual_px)

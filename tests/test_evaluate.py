@@ -143,7 +143,41 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
         np.testing.assert_allclose(points[int(fid)], pred.X[b].numpy(), rtol=1e-6, atol=1e-9)
     rows = list(csv.DictReader(open(out)))
     assert float(rows[0]["b_score"]) == pytest.approx(float(pred.weights[0, :, 1].mean()), abs=1e-6)
-    assert int(rows[0]["b_ncams"]) == len(CAMERAS)  # every view is used (the read-out's default)
+    assert int(rows[0]["b_ncams"]) == len(CAMERAS)  # an untrained network's views agree within --outlier_px
+
+
+def test_detector_reads_out_with_its_training_outlier_threshold(tmp_path):
+    """A detector keeps its training's --outlier_px and s3k predict drops the views that miss the others'
+    consensus by more; a run trained before the meta kept it takes it from its config.json."""
+    from s3k.config import TrainConfig
+    from s3k.run import MODEL_FILE, atomic_save, load_torch_file
+
+    ds_path = make_dataset(tmp_path / "ds", size=32, labelled=2, unlabelled=2, test=3, seed=4)
+    cfg = TrainConfig.from_flat(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
+                                val_every=0, progress=False, threads=1, outlier_px=0.01)
+    run = tmp_path / "run"
+    train(ds_path, run, cfg)
+    model, meta = load_detector(run)
+    assert meta.outlier_px == 0.01 and meta.max_residual_px == 0.01
+    ds = open_dataset(ds_path, meta.image_size)
+    store = FrameStore(ds, ds.frames("test"))
+    (_, every), = list(predict_store(model, store, meta.stride, meta.sigma))
+    (_, kept), = list(predict_store(model, store, meta.stride, meta.sigma, max_residual_px=0.01))
+    assert int(kept.used.sum()) < int(every.used.sum())  # an untrained network's views disagree slightly
+    out = tmp_path / "p.csv"
+    assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out)]) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert [int(r["a_ncams"]) for r in rows] == kept.used[:, :, 0].sum(dim=1).tolist()
+    points = read_csv(out, KEYPOINTS)
+    for b, fid in enumerate(ds.frames("test")):
+        np.testing.assert_allclose(points[int(fid)], kept.X[b].numpy(), rtol=1e-6, atol=1e-9)
+    # a model file without the field: the run's config.json gives it
+    state = load_torch_file(run / MODEL_FILE, "model", ("meta", "model"))
+    del state["meta"]["outlier_px"]
+    atomic_save(state, run / MODEL_FILE)
+    assert load_detector(run)[1].outlier_px == 0.01
+    (run / "config.json").unlink()
+    assert load_detector(run)[1].max_residual_px is None
 
 
 def test_resized_run_predicts_in_dataset_pixels(tmp_path):

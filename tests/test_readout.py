@@ -89,7 +89,7 @@ def test_every_caller_reads_out_the_same_points(scene):
     same(pred.X, pred.valid)
     (_, stored), = list(predict_store(net, scene.store, STRIDE, SIGMA, batch_size=B))
     same(stored.X, stored.valid)
-    meta = SimpleNamespace(stride=STRIDE, sigma=SIGMA, keypoints=list(KEYPOINTS))
+    meta = SimpleNamespace(stride=STRIDE, sigma=SIGMA, keypoints=list(KEYPOINTS), max_residual_px=None)
     _, arrays = evaluate_store(net, meta, scene.store, batch_size=B)
     same(arrays["X"], arrays["X_valid"])
     np.testing.assert_allclose(arrays["pred_uv"], ref.uv.numpy(), rtol=0, atol=1e-12)
@@ -233,3 +233,28 @@ def test_outlier_rejection_keeps_at_least_min_views():
     weights = torch.ones(uv.shape[:-1], dtype=torch.float64)
     kept = reject_outliers(cams, noisy, weights, select_views(noisy, weights), max_residual_px=0.01)
     assert (kept.sum(dim=1) == 2).all()  # every view misses by more than 0.01 px: down to two views, no fewer
+
+
+def test_outlier_threshold_is_in_network_pixels_whatever_the_pixel_maps(scene):
+    """A detector's ``--outlier_px`` holds in the pixels it saw: read out through a pixel map (track, the
+    refining pass's crops) it drops the same views, and gives the same points, as in the network's cameras."""
+    cams = scene.batch.cams
+    logits = scene.logits.clone()
+    logits[:, 2, 0] = logits[:, 2, 0].roll(shifts=(3, -2), dims=(-2, -1))  # camera 2: keypoint 0 elsewhere
+    plain = read_out(logits, cams, STRIDE, SIGMA)
+    # Network pixels: camera 2's keypoint 0 misses by more, the noisy views by less than the threshold but by
+    # more than a third of it (in pixels three times as fine they would miss by more).
+    threshold = 1.0
+    assert float(plain.residual[:, 2, 0].min()) > threshold
+    ref = read_out(logits, cams, STRIDE, SIGMA, max_residual_px=threshold)
+    assert not ref.used[:, 2, 0].any() and int(ref.used.sum()) == int(plain.used.sum()) - scene.B
+    assert float(ref.residual[ref.used].max()) > threshold / 3
+    assert (ref.X[:, 0] - plain.X[:, 0]).norm(dim=-1).min() > 1e-4  # the outlier moved the plain point
+    # The same frames in video pixels three times as fine as the network's: M scales by 1/3.
+    M = crop_resize_matrix((-6.0, 3.0, 3 * SIZE - 6.0, 3 * SIZE + 3.0), (SIZE, SIZE))
+    maps = np.repeat(M[None], scene.C, axis=0)
+    video = Cameras(torch.as_tensor(np.linalg.inv(M)) @ cams.K.double(), cams.dist.double(), cams.R.double(),
+                    cams.t.double())
+    tracked = read_out(logits, video, STRIDE, SIGMA, maps, max_residual_px=threshold)
+    assert torch.equal(tracked.used, ref.used)
+    torch.testing.assert_close(tracked.X, ref.X, rtol=0, atol=1e-9)

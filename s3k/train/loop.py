@@ -235,7 +235,7 @@ def _meta(d: _Data, cfg: TrainConfig) -> DetectorMeta:
         stride=cfg.stride, sigma=cfg.sigma_px(),
         model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
                          norm=cfg.norm).to_dict(),
-        units=d.ds.units, source_image_size=d.source_size,
+        units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
     )
 
 
