@@ -165,6 +165,19 @@ def evaluate(run: Path, data: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def _without_notes(argv: list[str]) -> list[str]:
+    """``argv`` without ``--notes TEXT`` / ``--notes=TEXT``."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--notes":
+            skip = True
+        elif not a.startswith("--notes="):
+            out.append(a)
+    return out
+
+
 def _stats(values: list[float]) -> dict:
     return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
             "per_seed": values}
@@ -191,6 +204,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="take the renders and the finished labels-only runs of an earlier working folder "
                         "instead of making them again (labels only reads none of the self-supervision "
                         "options, so a comparison of those trains S3K alone)")
+    p.add_argument("--notes", default=None,
+                   help="text kept in summary.json, e.g. the revision the runs were trained at when the "
+                        "summary is written again from finished runs (left out of the recorded command)")
     args = p.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     work = Path(args.work or ROOT / "runs" / f"accuracy-{args.scene}")
@@ -216,8 +232,8 @@ def main(argv: list[str] | None = None) -> int:
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")
              + (f"; train options {args.train_options!r}" if args.train_options else ""))
     summary = {
-        "command": shlex.join(["python", "benchmarks/accuracy.py",
-                               *(sys.argv[1:] if argv is None else argv)]),
+        "command": shlex.join(["python", "benchmarks/accuracy.py", *_without_notes(
+            sys.argv[1:] if argv is None else argv)]),
         "git_revision": revision,
         "machine": machine_info(),
         "scale": scale,
@@ -245,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
         "train_cpu_minutes_at_most_60": summary["train_cpu_minutes_per_model"] <= 60.0,
     }
     summary["targets"] = TARGETS
+    if args.notes:
+        summary["notes"] = args.notes
     summary["minutes_this_call"] = (time.perf_counter() - t0) / 60
     results.mkdir(parents=True, exist_ok=True)
     (results / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -59,3 +59,11 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
     with pytest.raises(SystemExit, match="s3k seed 1 failed"):
         fail = [sys.executable, "-c", "raise SystemExit(3)"]
         run_jobs([("s3k seed 1", fail, tmp_path / "r.json")], parallel=1, poll_s=0.05)
+
+
+def test_notes_stay_out_of_the_recorded_command():
+    from benchmarks.accuracy import _without_notes
+
+    argv = ["--seeds", "3", "--notes", "trained at abc1234", "--work", "runs/w", "--notes=again"]
+    assert _without_notes(argv) == ["--seeds", "3", "--work", "runs/w"]
+    assert _without_notes(["--seeds", "3"]) == ["--seeds", "3"]
