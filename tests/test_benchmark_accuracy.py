@@ -67,3 +67,18 @@ def test_notes_stay_out_of_the_recorded_command():
     argv = ["--seeds", "3", "--notes", "trained at abc1234", "--work", "runs/w", "--notes=again"]
     assert _without_notes(argv) == ["--seeds", "3", "--work", "runs/w"]
     assert _without_notes(["--seeds", "3"]) == ["--seeds", "3"]
+
+
+def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
+    import s3k.evaluate
+    from benchmarks import accuracy
+
+    calls = []
+    monkeypatch.setattr(s3k.evaluate, "evaluate_run",
+                        lambda run, data, split, device: calls.append(run) or {"median_mm": 2.0})
+    run = tmp_path / "s3k-seed0"
+    cache = tmp_path / "s3k-seed0-test.json"
+    cache.write_text('{"median_mm": 5.0}\n')  # no read-out mark: every view entered
+    assert accuracy.evaluate(run, tmp_path / "data")["median_mm"] == 2.0 and calls == [run]
+    assert accuracy.evaluate(run, tmp_path / "data") == {"median_mm": 2.0, "readout": accuracy.READOUT}
+    assert calls == [run]  # the new evaluation is the cache now
