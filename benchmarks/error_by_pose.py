@@ -1,9 +1,10 @@
 """Where a detector's 3D error comes from, by the object's pose: the test frames grouped by which way the
 plane of the first three keypoints faces (its normal up, down, or on a side: more than 45 degrees from the
-world's vertical), and the frames where the keypoints are detected drawn together (their mean pairwise
-distance below half the true one: a collapse, whatever the confidence says). Within each pose, the error's
-constant part: each keypoint's mean error in the frame of the true keypoints (x from keypoint 0 to 1, y
-from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
+world's vertical); the frames where the keypoints are detected drawn together (their mean pairwise distance
+below half the true one: a collapse, whatever the confidence says), and the frames where a keypoint is
+detected nearer another keypoint's true place than its own (swapped: a symmetric confusion). Within each
+pose, the error's constant part: each keypoint's mean error in the frame of the true keypoints (x from
+keypoint 0 to 1, y from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
 ``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs.
 
 Each RUN is read with its DATA (a two-pass run with its full-resolution dataset, or any run with the dataset
@@ -82,22 +83,35 @@ def _stats(err: np.ndarray, total: float) -> dict:
             "share_of_squared_error": float(np.sum(err ** 2)) / total}
 
 
+def swapped_frames(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``(B,)`` bool: some keypoint is detected nearer another keypoint's true place than its own (a symmetric
+    confusion, e.g. a box standing on its end taken upside down)."""
+    d = np.linalg.norm(pred[:, :, None] - truth[:, None], axis=-1)  # (B, K detected, K true)
+    d = np.where(np.isfinite(d), d, np.inf)
+    own = np.diagonal(d, axis1=1, axis2=2)
+    return (np.isfinite(own) & (d.min(axis=-1) < own)).any(axis=-1)
+
+
 def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
     """The error table of predictions ``pred`` against ``truth`` (both ``(B, K, 3)`` in world units, ``mm``
     millimetres each)."""
     err = mm * np.linalg.norm(pred - truth, axis=-1)  # (B, K)
     classes = pose_classes(truth)
     collapsed = mean_pairwise(pred) < COLLAPSE_RATIO * mean_pairwise(truth)
+    swapped = swapped_frames(pred, truth) & ~collapsed
     total = float(np.nansum(err ** 2))
     out = {"all": _stats(err.ravel(), total), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
-           "frames": int(len(err))}
+           "swapped_frames": int(swapped.sum()), "frames": int(len(err))}
     for name in ("normal up", "normal down", "on a side"):
         sel = classes == name
         out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel(), total),
                                 **bias(pred[sel], truth[sel], mm)}
         out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
+        out["by_pose"][name]["swapped_frames"] = int((swapped & sel).sum())
     out["collapsed"] = _stats(err[collapsed].ravel(), total)
     out["not_collapsed"] = _stats(err[~collapsed].ravel(), total)
+    out["swapped"] = _stats(err[swapped].ravel(), total)
+    out["neither"] = _stats(err[~collapsed & ~swapped].ravel(), total)
     return out
 
 
@@ -146,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"({v['frames']} frames)" for k, v in a["by_pose"].items())
         print(f"{run}: median {a['all']['median_mm']:.2f} mm, RMS {a['all']['rms_mm']:.1f} mm; collapsed "
               f"{a['collapsed_frames']}/{a['frames']} frames ("
-              f"{100 * a['collapsed'].get('share_of_squared_error', 0):.0f}% of the squared error); {poses}",
+              f"{100 * a['collapsed'].get('share_of_squared_error', 0):.0f}% of the squared error), swapped "
+              f"{a['swapped_frames']} ({100 * a['swapped'].get('share_of_squared_error', 0):.0f}%); {poses}",
               file=sys.stderr)
     result = {"command": shlex.join(["python", "benchmarks/error_by_pose.py",
                                    *(sys.argv[1:] if argv is None else argv)]),

@@ -56,3 +56,22 @@ def test_bias_separates_a_lean_from_scatter():
     out = bias(np.array(pred), np.array(truth), mm=1000.0)
     np.testing.assert_allclose(out["bias_mm"], [[0.0, 0.0, 2.0]] * 3, atol=1e-6)
     assert out["median_mm_without_bias"] == pytest.approx(1.0)
+
+
+def test_swapped_frames_count_symmetric_confusions():
+    """A frame whose first two keypoints trade places is swapped; a frame off by a little, a collapsed frame
+    (counted as collapsed) and a frame without a detection are not."""
+    from benchmarks.error_by_pose import swapped_frames
+
+    truth = np.stack([FLAT] * 4)
+    pred = truth + 0.002
+    pred[1, [0, 1]] = FLAT[[1, 0]]  # keypoints 0 and 1 detected on each other's corners
+    pred[2] = FLAT.mean(axis=0)  # collapsed onto the centroid
+    pred[3] = np.nan  # nothing detected
+    assert swapped_frames(pred, truth).tolist() == [False, True, True, False]
+    out = by_pose(pred, truth, mm=1000.0)
+    assert out["collapsed_frames"] == 1 and out["swapped_frames"] == 1  # the collapse is not counted twice
+    assert out["by_pose"]["normal up"]["swapped_frames"] == 1
+    assert out["swapped"]["n"] == 3 and out["swapped"]["median_mm"] == pytest.approx(100.0)
+    assert out["neither"]["n"] == 3
+    assert out["neither"]["median_mm"] == pytest.approx(1000 * np.sqrt(3) * 0.002)
