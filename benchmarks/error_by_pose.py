@@ -48,7 +48,9 @@ def mean_pairwise(X: np.ndarray) -> np.ndarray:
     """``(B,)`` mean distance over the pairs of keypoints of each frame (NaN pairs ignored)."""
     d = np.linalg.norm(X[:, :, None] - X[:, None], axis=-1)
     iu = np.triu_indices(X.shape[1], 1)
-    return np.nanmean(d[:, iu[0], iu[1]], axis=-1)
+    pairs = d[:, iu[0], iu[1]]
+    n = np.isfinite(pairs).sum(axis=-1)
+    return np.where(n > 0, np.nansum(pairs, axis=-1) / np.maximum(n, 1), np.nan)  # NaN: no pair detected
 
 
 def keypoint_frames(X: np.ndarray) -> np.ndarray:
