@@ -334,6 +334,16 @@ def emit(result: dict[str, Any]) -> None:
     print(json.dumps(_jsonable(out), default=str, separators=(",", ":")), flush=True)
 
 
+def write_and_emit(result: dict[str, Any], out: str | Path | None) -> None:
+    """Write ``result`` with ``machine`` to the JSON file ``out`` (when given, folders made), then
+    :func:`emit` it."""
+    result = {**result, "machine": result.get("machine") or machine_info()}
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(_jsonable(result), indent=2, default=str) + "\n")
+    emit(result)
+
+
 # ---------------------------------------------------------------------------------------------- crop studies
 #: The figures the crop benchmarks (oracle_crops.py, two_pass.py) report per model and split.
 CROP_FIGURES = ("rms_px", "median_mm", "rms_mm", "pck_5mm", "pck_10mm", "mm_per_px")

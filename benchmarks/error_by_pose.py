@@ -19,7 +19,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shlex
 import sys
@@ -30,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from benchmarks.common import git_revision, write_and_emit  # noqa: E402
 
 COLLAPSE_RATIO = 0.5
 
@@ -168,10 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": shlex.join(["python", "benchmarks/error_by_pose.py",
                                    *(sys.argv[1:] if argv is None else argv)]),
               "git_revision": git_revision(), "split": args.split, "runs": runs}
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({**result, "machine": machine_info()}, indent=2) + "\n")
-    emit(result)
+    write_and_emit(result, args.out)
     return 0
 
 

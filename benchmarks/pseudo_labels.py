@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from benchmarks.common import git_revision, write_and_emit  # noqa: E402
 from benchmarks.error_by_pose import bias, pose_classes  # noqa: E402
 
 POSES = ("normal up", "normal down", "on a side")
@@ -123,10 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {row['frames']} frames, {100 * row['kept']:.0f}% of keypoints kept; kept median "
               f"{k.get('median_mm', np.nan):.1f} mm, RMS {k.get('rms_mm', np.nan):.1f} mm; dropped median "
               f"{row['dropped_error'].get('median_mm', np.nan):.1f} mm", file=sys.stderr)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({**result, "machine": machine_info()}, indent=2) + "\n")
-    emit(result)
+    write_and_emit(result, args.out)
     return 0
 
 
