@@ -40,7 +40,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from benchmarks.common import emit, git_revision, machine_info, without_notes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
@@ -173,19 +173,6 @@ def evaluate(run: Path, data: Path) -> dict:
     return metrics
 
 
-def _without_notes(argv: list[str]) -> list[str]:
-    """``argv`` without ``--notes TEXT`` / ``--notes=TEXT``."""
-    out, skip = [], False
-    for a in argv:
-        if skip:
-            skip = False
-        elif a == "--notes":
-            skip = True
-        elif not a.startswith("--notes="):
-            out.append(a)
-    return out
-
-
 def _stats(values: list[float]) -> dict:
     return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
             "per_seed": values}
@@ -240,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")
              + (f"; train options {args.train_options!r}" if args.train_options else ""))
     summary = {
-        "command": shlex.join(["python", "benchmarks/accuracy.py", *_without_notes(
+        "command": shlex.join(["python", "benchmarks/accuracy.py", *without_notes(
             sys.argv[1:] if argv is None else argv)]),
         "git_revision": revision,
         "machine": machine_info(),

@@ -334,6 +334,20 @@ def emit(result: dict[str, Any]) -> None:
     print(json.dumps(_jsonable(out), default=str, separators=(",", ":")), flush=True)
 
 
+def without_notes(argv: list[str]) -> list[str]:
+    """``argv`` without ``--notes TEXT`` / ``--notes=TEXT``: a benchmark's recorded command, its notes kept
+    apart."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--notes":
+            skip = True
+        elif not a.startswith("--notes="):
+            out.append(a)
+    return out
+
+
 def write_and_emit(result: dict[str, Any], out: str | Path | None) -> None:
     """Write ``result`` with ``machine`` to the JSON file ``out`` (when given, folders made), then
     :func:`emit` it."""

@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from benchmarks.common import git_revision, without_notes, write_and_emit  # noqa: E402
 
 COLLAPSE_RATIO = 0.5
 
@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="run folders, each followed by its dataset")
     p.add_argument("--split", default="test", help="split to read (default test)")
     p.add_argument("--out", default=None, help="JSON file to write")
+    p.add_argument("--notes", default=None, help="text kept in the JSON, e.g. how the runs were trained")
     args = p.parse_args(argv)
     if len(args.pairs) % 2:
         p.error("give each RUN followed by its DATA")
@@ -165,8 +166,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{a['swapped_frames']} ({100 * a['swapped'].get('share_of_squared_error', 0):.0f}%); {poses}",
               file=sys.stderr)
     result = {"command": shlex.join(["python", "benchmarks/error_by_pose.py",
-                                   *(sys.argv[1:] if argv is None else argv)]),
-              "git_revision": git_revision(), "split": args.split, "runs": runs}
+                                   *without_notes(sys.argv[1:] if argv is None else argv)]),
+              "git_revision": git_revision(), "split": args.split, "runs": runs,
+              **({"notes": args.notes} if args.notes else {})}
     write_and_emit(result, args.out)
     return 0
 

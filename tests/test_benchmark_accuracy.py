@@ -62,11 +62,11 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
 
 
 def test_notes_stay_out_of_the_recorded_command():
-    from benchmarks.accuracy import _without_notes
+    from benchmarks.common import without_notes
 
     argv = ["--seeds", "3", "--notes", "trained at abc1234", "--work", "runs/w", "--notes=again"]
-    assert _without_notes(argv) == ["--seeds", "3", "--work", "runs/w"]
-    assert _without_notes(["--seeds", "3"]) == ["--seeds", "3"]
+    assert without_notes(argv) == ["--seeds", "3", "--work", "runs/w"]
+    assert without_notes(["--seeds", "3"]) == ["--seeds", "3"]
 
 
 def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
