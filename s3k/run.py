@@ -216,7 +216,8 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
                             "in two_pass.json)")
         raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
     try:
-        meta = DetectorMeta.from_dict({**_older_run_meta(run_dir), **state["meta"]})
+        older = {} if "outlier_px" in state["meta"] else _older_run_meta(run_dir)
+        meta = DetectorMeta.from_dict({**older, **state["meta"]})
         model = build_model(meta)
         model.load_state_dict(state["model"])
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
