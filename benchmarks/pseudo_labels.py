@@ -74,7 +74,7 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     from s3k.config import TrainConfig
     from s3k.evaluate import mm_per_unit
     from s3k.frames import FrameStore, images_to_float, open_dataset
-    from s3k.losses import self_supervised_loss
+    from s3k.losses import pseudo_labels as make_pseudo_labels
     from s3k.run import load_detector
     from s3k.train.validation import labelled_distances
 
@@ -94,11 +94,11 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
             B, C = images.shape[:2]
             logits = model(images.reshape(B * C, *images.shape[2:])).float()
             logits = logits.reshape(B, C, *logits.shape[1:])
-            _loss, info = self_supervised_loss(
+            X, valid, *_views = make_pseudo_labels(
                 logits, batch.cams, meta.stride, meta.sigma, max_residual_px=cfg.outlier_px or None,
                 window=cfg.pseudo_window, layout=layout, layout_tol=cfg.layout_tol)
-            pseudo.append(info["points"].double().numpy())
-            kept.append(info["points_valid"].numpy())
+            pseudo.append(X.double().numpy())
+            kept.append(valid.numpy())
             truth.append(np.where(got[1][..., None], got[0], np.nan))
     return np.concatenate(pseudo), np.concatenate(kept), np.concatenate(truth), mm_per_unit(ds.units)
 

@@ -33,7 +33,8 @@ from s3k.heatmaps import (
     spatial_softmax,
 )
 
-__all__ = ["coord_loss", "kl_divergence", "kl_loss", "supervised_loss", "self_supervised_loss", "l2_non_bias"]
+__all__ = ["coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels", "self_supervised_loss",
+           "supervised_loss"]
 
 MIN_DEPTH = 1e-6
 """Camera-frame depth at or below which a projected point counts as behind the camera."""
@@ -264,22 +265,43 @@ def self_supervised_loss(
         raise ValueError(f"{fn}: target_logits must have the shape of logits {tuple(logits.shape)}, "
                          f"got {_shape(target_logits)}")
     source = logits if target_logits is None else target_logits
-    with torch.no_grad():
-        # The read-out every command uses (float64, every finite view with positive weight); the point is
-        # then a constant in the cameras' dtype for the target rendering below.
-        _probs, mean_uv, var = readout.moments(source.detach(), stride, window)
-        wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
-        used = readout.select_views(mean_uv, wts)
-        if max_residual_px is not None:
-            used = readout.reject_outliers(cams, mean_uv, wts, used, max_residual_px)
-        X, valid = readout.triangulate(cams, mean_uv, wts, used)
-        if layout is not None and layout_tol > 0:
-            valid = readout.reject_layout(X, valid, layout, layout_tol)
-        X = X.to(cams.dtype)
-        mean_uv, var = mean_uv.to(cams.dtype), var.to(cams.dtype)
-        wts = torch.where(used, wts, torch.zeros_like(wts)).to(cams.dtype)
+    X, valid, mean_uv, var, wts = pseudo_labels(source, cams, stride, sigma, weights, max_residual_px, window,
+                                                layout, layout_tol)
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, mean_uv=mean_uv, var=var,
                               weights=wts)
+
+
+@torch.no_grad()
+def pseudo_labels(
+    logits: Tensor,
+    cams: Cameras,
+    stride: int,
+    sigma: float,
+    weights: Tensor | None = None,
+    max_residual_px: float | None = None,
+    window: int = 0,
+    layout: Tensor | None = None,
+    layout_tol: float = 0.0,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The pseudo-labels of :func:`self_supervised_loss`, without its loss: the network's own detections of
+    ``logits (B, C, K, h, w)`` triangulated by the read-out every command uses (float64, every finite view
+    with positive weight; the arguments as there), each point a constant in the cameras' dtype.
+
+    Returns:
+        ``(X (B, K, 3), valid (B, K), mean_uv (B, C, K, 2), var (B, C, K), weights (B, C, K))``: the points,
+        which of them give a term, the detections, their variances and the weights used (zero for a view left
+        out).
+    """
+    _probs, mean_uv, var = readout.moments(logits.detach(), stride, window)
+    wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
+    used = readout.select_views(mean_uv, wts)
+    if max_residual_px is not None:
+        used = readout.reject_outliers(cams, mean_uv, wts, used, max_residual_px)
+    X, valid = readout.triangulate(cams, mean_uv, wts, used)
+    if layout is not None and layout_tol > 0:
+        valid = readout.reject_layout(X, valid, layout, layout_tol)
+    wts = torch.where(used, wts, torch.zeros_like(wts))
+    return (X.to(cams.dtype), valid, mean_uv.to(cams.dtype), var.to(cams.dtype), wts.to(cams.dtype))
 
 
 def l2_non_bias(model: nn.Module) -> Tensor:
