@@ -32,6 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.common import git_revision, without_notes, write_and_emit  # noqa: E402
 
 COLLAPSE_RATIO = 0.5
+POSES = ("normal up", "normal down", "on a side")  # the classes of pose_classes
 
 
 def pose_classes(X: np.ndarray) -> np.ndarray:
@@ -74,14 +75,17 @@ def bias(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
             "median_mm_without_bias": float(np.median(rest)) if len(rest) else float("nan")}
 
 
-def _stats(err: np.ndarray, total: float) -> dict:
-    """Median, RMS and share within 10 mm of ``err``, and its part of the ``total`` squared error."""
+def error_stats(err: np.ndarray, total: float | None = None) -> dict:
+    """Median, RMS and share within 10 mm of the errors ``err`` (mm, NaN ignored), and with ``total`` their
+    part of that total squared error."""
     err = err[np.isfinite(err)]
     if not len(err):
         return {"n": 0}
-    return {"n": int(len(err)), "median_mm": float(np.median(err)),
-            "rms_mm": float(np.sqrt(np.mean(err ** 2))), "pck_10mm": float(np.mean(err <= 10.0)),
-            "share_of_squared_error": float(np.sum(err ** 2)) / total}
+    out = {"n": int(len(err)), "median_mm": float(np.median(err)),
+           "rms_mm": float(np.sqrt(np.mean(err ** 2))), "pck_10mm": float(np.mean(err <= 10.0))}
+    if total is not None:
+        out["share_of_squared_error"] = float(np.sum(err ** 2)) / total
+    return out
 
 
 def swapped_frames(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -101,18 +105,18 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
     collapsed = mean_pairwise(pred) < COLLAPSE_RATIO * mean_pairwise(truth)
     swapped = swapped_frames(pred, truth) & ~collapsed
     total = float(np.nansum(err ** 2))
-    out = {"all": _stats(err.ravel(), total), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
+    out = {"all": error_stats(err.ravel(), total), "by_pose": {}, "collapsed_frames": int(collapsed.sum()),
            "swapped_frames": int(swapped.sum()), "frames": int(len(err))}
-    for name in ("normal up", "normal down", "on a side"):
+    for name in POSES:
         sel = classes == name
-        out["by_pose"][name] = {"frames": int(sel.sum()), **_stats(err[sel].ravel(), total),
+        out["by_pose"][name] = {"frames": int(sel.sum()), **error_stats(err[sel].ravel(), total),
                                 **bias(pred[sel], truth[sel], mm)}
         out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
         out["by_pose"][name]["swapped_frames"] = int((swapped & sel).sum())
-    out["collapsed"] = _stats(err[collapsed].ravel(), total)
-    out["not_collapsed"] = _stats(err[~collapsed].ravel(), total)
-    out["swapped"] = _stats(err[swapped].ravel(), total)
-    out["neither"] = _stats(err[~collapsed & ~swapped].ravel(), total)
+    out["collapsed"] = error_stats(err[collapsed].ravel(), total)
+    out["not_collapsed"] = error_stats(err[~collapsed].ravel(), total)
+    out["swapped"] = error_stats(err[swapped].ravel(), total)
+    out["neither"] = error_stats(err[~collapsed & ~swapped].ravel(), total)
     return out
 
 

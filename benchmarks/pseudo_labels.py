@@ -32,17 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, write_and_emit  # noqa: E402
-from benchmarks.error_by_pose import bias, pose_classes  # noqa: E402
-
-POSES = ("normal up", "normal down", "on a side")
-
-
-def _errors(err: np.ndarray) -> dict:
-    err = err[np.isfinite(err)]
-    if not len(err):
-        return {"n": 0}
-    return {"n": int(len(err)), "median_mm": float(np.median(err)),
-            "rms_mm": float(np.sqrt(np.mean(err ** 2))), "pck_10mm": float(np.mean(err <= 10.0))}
+from benchmarks.error_by_pose import POSES, bias, error_stats, pose_classes  # noqa: E402
 
 
 def table(pseudo: np.ndarray, kept: np.ndarray, truth: np.ndarray, mm: float) -> dict:
@@ -62,8 +52,8 @@ def table(pseudo: np.ndarray, kept: np.ndarray, truth: np.ndarray, mm: float) ->
         k = kept[sel]
         kept_pts = np.where(k[..., None], pseudo[sel], np.nan)
         out[name] = {"frames": int(sel.sum()), "kept": float(k.mean()) if k.size else float("nan"),
-                     "kept_error": {**_errors(err[sel][k]), **bias(kept_pts, truth[sel], mm)},
-                     "dropped_error": _errors(err[sel][~k])}
+                     "kept_error": {**error_stats(err[sel][k]), **bias(kept_pts, truth[sel], mm)},
+                     "dropped_error": error_stats(err[sel][~k])}
     return out
 
 
