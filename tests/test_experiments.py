@@ -504,3 +504,51 @@ def test_category_sweep_evaluates_training_and_held_out_instances(workspace):
         assert set(ds.frames(split)) <= set(full.frames(split))
     ids = ds.frames("test")
     np.testing.assert_array_equal(ds.images(ids), full.images(ids))
+
+
+# ------------------------------------------------------------------------------------------------- two passes
+def test_two_pass_plan_renders_larger_pools_and_refuses_stray_options(tmp_path):
+    runs = ex.plan(ex.Options("label-efficiency", tmp_path, scale="full", labelled=[10], unlabelled=[0, 3000],
+                              two_pass=True, coarse_steps=500, coarse_rotation=180.0))
+    assert {r.pool.size for r in runs} == {4 * 96}  # crops are cut from renders of about the paper's size
+    assert all(r.two_pass == {"coarse_size": 96, "coarse_steps": 500, "coarse_rotation": 180.0,
+                              "crop_size": 128} for r in runs)
+    one = ex.plan(ex.Options("label-efficiency", tmp_path, scale="full", labelled=[10], unlabelled=[0, 3000]))
+    assert all(r.two_pass is None for r in one)
+    # the estimate counts both passes: a short coarse pass costs less than a whole one
+    whole = ex.plan(ex.Options("label-efficiency", tmp_path, scale="full", labelled=[10], unlabelled=[3000],
+                               two_pass=True, render=200))
+    assert {r.pool.size for r in whole} == {200}
+    assert runs[-1].estimated_cpu_s() < whole[-1].estimated_cpu_s()
+    with pytest.raises(UserError, match="--render.*apply only to two-pass"):
+        ex.plan(ex.Options("label-efficiency", tmp_path, render=384))
+    with pytest.raises(UserError, match="image_size does not apply to two-pass"):
+        ex.plan(ex.Options("label-efficiency", tmp_path, two_pass=True, train_overrides={"image_size": "64"}))
+
+
+def test_two_pass_sweep_records_its_passes_and_crop_pixels(tmp_path, capsys):
+    argv = ["experiment", "label-efficiency", "--out", str(tmp_path), "--scale", "toy", "--no-progress",
+            "--threads", "1", "--workers", "1", "--two-pass", "--render", "64", "--coarse-rotation", "90"]
+    assert cli_main(argv) == 0
+    runs = ex.plan(toy_options("label-efficiency", tmp_path, two_pass=True, render=64, coarse_rotation=90.0))
+    sizes = []
+    for r in runs:
+        run_dir = tmp_path / "label-efficiency" / "runs" / r.name
+        result = json.loads((run_dir / "result.json").read_text())
+        assert result["two_pass"] == {"coarse_size": 32, "coarse_steps": 2, "coarse_rotation": 90.0,
+                                      "crop_size": 32}
+        coarse = json.loads((run_dir / "coarse" / "config.json").read_text())["config"]
+        assert coarse["rotation_deg"] == 90.0 and coarse["image_size"] == 32
+        assert (run_dir / "fine" / "model.pt").is_file() and result["image_size"] == [32, 32]
+        assert result["metrics"]["test"]["two_pass"]["size"] == 32
+        sizes.append(result["metrics"]["test"]["mm_per_px"])
+    summary = json.loads((tmp_path / "label-efficiency" / "summary.json").read_text())
+    # pixel errors are crop pixels: they become millimetres with the crops' pixel size, not the scene's
+    assert summary["mm_per_px"] == {"32": pytest.approx(float(np.mean(sizes)))}
+    assert summary["mm_per_px"]["32"] != pytest.approx(scene_mm_per_px("box", 32))
+    assert summary["two_pass"] == [json.loads(json.dumps(runs[0].two_pass))]
+    assert "Two passes" in (tmp_path / "label-efficiency" / "README.md").read_text()
+    capsys.readouterr()
+    # the same folder does not take one-pass runs
+    assert cli_main(argv[:9]) == 1
+    assert "finished with other passes" in capsys.readouterr().err

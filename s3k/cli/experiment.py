@@ -71,6 +71,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="alpha: values of alpha")
     parser.add_argument("--modes", type=lambda s: [m for m in s.split(",") if m], default=None,
                         metavar="start,full", help="domain-shift: labelling modes")
+    two = parser.add_argument_group(
+        "two passes (coarse-to-fine, as s3k train --two-pass)",
+        "--two-pass trains every run as a coarse pass on the whole image at --size px and a refining pass on "
+        "crops around its estimate, cut from pools rendered at --render px; --set applies to both passes")
+    two.add_argument("--two-pass", action="store_true", help="train every run coarse-to-fine")
+    two.add_argument("--render", type=int, default=None, metavar="PX",
+                     help="the pools' image size (default: 4 x --size, 384 at the full scale)")
+    two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
+                     help="the coarse pass's steps (default: --steps)")
+    two.add_argument("--coarse-rotation", type=float, default=None, metavar="DEG",
+                     help="the coarse pass's augmentation rotation range in degrees (default: rotation_deg)")
+    two.add_argument("--crop-size", type=int, default=None, metavar="PX",
+                     help="the refining pass's crop size in pixels (default: the scale's, 128 at small/full)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
@@ -94,15 +107,17 @@ def options_from_args(args: argparse.Namespace) -> Options:
             raise UserError(f"--set: expected FIELD=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         overrides[k.strip().replace("-", "_")] = v.strip()
-    for name in ("seeds", "steps", "size", "test"):
+    for name in ("seeds", "steps", "size", "test", "render", "coarse_steps", "crop_size"):
         v = getattr(args, name)
         if v is not None and v <= 0:
-            raise UserError(f"--{name}: must be > 0, got {v}")
+            raise UserError(f"--{name.replace('_', '-')}: must be > 0, got {v}")
     return Options(experiment=args.name, out=Path(args.out), scale=args.scale, seeds=args.seeds,
                    seeds_other=args.seeds_other, steps=args.steps, size=args.size, test=args.test,
                    data_seed=args.data_seed, labelled=args.labelled, unlabelled=args.unlabelled,
                    instances=args.instances, alphas=args.alphas, modes=args.modes,
-                   train_overrides=overrides, device=args.device, threads=args.threads, workers=args.workers,
+                   train_overrides=overrides, two_pass=args.two_pass, render=args.render,
+                   coarse_steps=args.coarse_steps, coarse_rotation=args.coarse_rotation,
+                   crop_size=args.crop_size, device=args.device, threads=args.threads, workers=args.workers,
                    progress=not args.no_progress, command=getattr(args, "command_line", None))
 
 

@@ -24,6 +24,10 @@ checkpoint (``train(..., resume=True)``); a dataset is rendered into ``NAME.tmp`
 Several invocations on one DIR may run at the same time (e.g. one per core with ``--threads 1``): a run being
 trained by a live process is skipped (a lock on ``run.lock``), a pool being rendered is waited for.
 
+Two passes (``Options.two_pass``, ``--two-pass``): every run is trained coarse-to-fine as ``s3k train
+--two-pass`` trains it (:mod:`s3k.two_pass`), from pools rendered larger than the coarse pass's input; its
+run folder holds ``coarse/``, ``crops/`` and ``fine/``, and its pixel errors are in crop pixels.
+
 Seeds: run seed ``s`` trains with ``TrainConfig.seed = s`` on its own random choice of labelled frames from
 the pool (nested: the first 3 of a seed's 10); the unlabelled and test frames do not depend on the seed, so
 the runs of one grid point differ in the labelled frames and the initialization.

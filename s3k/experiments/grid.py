@@ -52,6 +52,7 @@ class Scale:
         pool_unlabelled: unlabelled frames rendered per dataset.
         seeds: seeds at the points that carry a claim; other points get one seed.
         train: further TrainConfig fields of this scale (e.g. a smaller network for tests).
+        crop_size: the refining pass's input in pixels when the runs train two passes.
     """
 
     size: int
@@ -61,13 +62,14 @@ class Scale:
     pool_unlabelled: int
     seeds: int
     train: dict[str, Any] = field(default_factory=dict)
+    crop_size: int = 128
 
 
 SCALES: dict[str, Scale] = {
     # seconds per experiment; what the tests run
     "toy": Scale(size=32, steps=2, test=2, pool_labelled=3, pool_unlabelled=4, seeds=1,
                  train={"channels": (8, 16, 16), "res_blocks": 1, "batch_labelled": 2, "batch_unlabelled": 2,
-                        "val_every": 0, "checkpoint_every": 1}),
+                        "val_every": 0, "checkpoint_every": 1}, crop_size=32),
     # about an hour per experiment on a 2-core CPU
     "small": Scale(size=64, steps=2000, test=200, pool_labelled=100, pool_unlabelled=1000, seeds=3),
     # the whole grid at the default training scale (TrainConfig defaults: 96 px, 3000 steps)
@@ -106,6 +108,10 @@ DESCRIPTIONS = {
     "alpha": "appendix C: weight alpha of the self-supervised term",
 }
 EXPERIMENTS = tuple(GRIDS)
+
+#: With two passes the pool is rendered this many times larger than the coarse pass's input (384 px for 96:
+#: the crops are cut from images of about the paper's 400 px).
+TWO_PASS_RENDER_FACTOR = 4
 
 # Rough cost model for the printed estimate: CPU seconds per training step on one thread, a + b * pixels,
 # fitted to timed 30-step runs at 64 and 96 px on this project's 2-core machine; and images rendered per
@@ -170,8 +176,12 @@ class RunSpec:
         pool: the dataset the frames come from.
         labelled, unlabelled: frames picked from the pool for training (all test frames are used).
         seed: run seed (training seed and choice of labelled frames).
-        cfg: training configuration.
+        cfg: training configuration (of both passes when ``two_pass`` is set).
         eval_train: also evaluate on training-instance frames (category).
+        two_pass: None for one pass on the whole image; else the keyword arguments of
+            :func:`s3k.two_pass.train_two_pass` besides the configuration (``coarse_size``, ``coarse_steps``,
+            ``coarse_rotation``, ``crop_size``): a coarse pass on the whole image resized, a refining pass on
+            crops around its estimate.
     """
 
     experiment: str
@@ -183,12 +193,19 @@ class RunSpec:
     seed: int
     cfg: TrainConfig
     eval_train: bool = False
+    two_pass: dict[str, Any] | None = None
 
     def estimated_cpu_s(self) -> float:
         c = self.cfg
-        warm = min(c.steps, c.warmup_steps) if c.unsup else c.steps
-        return warm * step_seconds(self.pool.size, False) + (c.steps - warm) * step_seconds(self.pool.size,
-                                                                                             True)
+
+        def one_pass(steps: int, size: int) -> float:
+            warm = min(steps, c.warmup_steps) if c.unsup else steps
+            return warm * step_seconds(size, False) + (steps - warm) * step_seconds(size, True)
+
+        if self.two_pass is None:
+            return one_pass(c.steps, self.pool.size)
+        return (one_pass(self.two_pass["coarse_steps"], self.two_pass["coarse_size"])
+                + one_pass(c.steps, self.two_pass["crop_size"]))
 
 
 @dataclass
@@ -204,6 +221,11 @@ class Options:
         data_seed: seed of the rendered datasets.
         labelled, unlabelled, instances, alphas, modes: grid axes replacing the scale's (None: keep).
         train_overrides: TrainConfig fields for every run (``--set FIELD=VALUE``; values may be text).
+        two_pass: train every run coarse-to-fine (``s3k train --two-pass``): the pools are rendered at
+            ``render`` px (None: :data:`TWO_PASS_RENDER_FACTOR` x ``size``), the coarse pass sees them at
+            ``size`` px for ``coarse_steps`` (None: ``steps``) with rotations up to ``coarse_rotation``
+            degrees (None: the configuration's), the refining pass ``crop_size`` px crops (None: the
+            scale's).
         command: the command line of the sweep, recorded in each run's result.
         device, threads, progress: how runs execute (they do not change a run's result).
         workers: rendering processes (None: one per CPU).
@@ -224,6 +246,11 @@ class Options:
     alphas: list[float] | None = None
     modes: list[str] | None = None
     train_overrides: dict[str, Any] = field(default_factory=dict)
+    two_pass: bool = False
+    render: int | None = None
+    coarse_steps: int | None = None
+    coarse_rotation: float | None = None
+    crop_size: int | None = None
     command: str | None = None
     device: str = "cpu"
     threads: int = 0
@@ -287,6 +314,14 @@ def plan(opts: Options) -> list[RunSpec]:
     size = opts.size or scale.size
     steps = opts.steps or scale.steps
     test = opts.test or scale.test
+    two_pass = None
+    if opts.two_pass:
+        two_pass = {"coarse_size": size, "coarse_steps": opts.coarse_steps or steps,
+                    "coarse_rotation": opts.coarse_rotation, "crop_size": opts.crop_size or scale.crop_size}
+        size = opts.render or TWO_PASS_RENDER_FACTOR * size  # the pools' size: the crops are cut from them
+    elif any(v is not None for v in (opts.render, opts.coarse_steps, opts.coarse_rotation, opts.crop_size)):
+        raise UserError("--render, --coarse-steps, --coarse-rotation and --crop-size apply only to two-pass "
+                        "runs", hint="add --two-pass, or leave them out")
     if any(n <= 0 for n in grid["labelled"]) or any(n < 0 for n in grid["unlabelled"]):
         raise UserError(f"--labelled must be > 0 and --unlabelled >= 0, got {grid['labelled']}, "
                         f"{grid['unlabelled']}")
@@ -299,8 +334,11 @@ def plan(opts: Options) -> list[RunSpec]:
             eval_train: bool = False) -> None:
         for s in range(_seed_count(opts, scale, claim)):
             cfg = train_config(opts, scale, steps, s, U > 0, alpha)
+            if two_pass is not None and cfg.image_size:
+                raise UserError("--set image_size does not apply to two-pass runs",
+                                hint="set the coarse pass's size with --size and the crops' with --crop-size")
             p = dict(params, labelled=L, unlabelled=U, seed=s, method="s3k" if U > 0 else "no_unsup")
-            runs.append(RunSpec(exp, f"{name}-s{s}", p, pool, L, U, s, cfg, eval_train))
+            runs.append(RunSpec(exp, f"{name}-s{s}", p, pool, L, U, s, cfg, eval_train, two_pass))
 
     if exp == "label-efficiency":
         pool = PoolSpec(EXPERIMENT_SCENES[exp], size, pool_l, pool_u, test, opts.data_seed)

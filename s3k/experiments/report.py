@@ -44,7 +44,7 @@ from s3k.experiments.grid import (
 from s3k.fileio import atomic_write_json, atomic_write_text
 
 #: What a summary says about the runs it summarizes (kept as they are when it is re-summarized).
-_RUN_FIELDS = ("runs", "scales", "image_sizes", "steps", "commands", "code_revisions",
+_RUN_FIELDS = ("runs", "scales", "image_sizes", "steps", "two_pass", "commands", "code_revisions",
                "runs_without_provenance")
 
 #: Sections of README.md that :func:`readme` writes; any other ``## `` section after them is kept.
@@ -80,16 +80,32 @@ def scene_pixel_sizes(experiment: str, sizes: Sequence[int]) -> dict[int, float]
     return {int(s): scene_mm_per_px(scene, int(s)) for s in sizes} if scene else {}
 
 
+def run_pixel_sizes(experiment: str, results: Sequence[dict[str, Any]]) -> dict[int, float]:
+    """Millimetres per pixel of the images the runs' networks saw, per image size: the scene's at the
+    workspace centre for one-pass runs; for two-pass runs (whose pixel errors are in crop pixels) the crops'
+    at the object as their evaluation measured it (``mm_per_px``), the mean over the runs of that size."""
+    one_pass = sorted({r["image_size"][0] for r in results if not r.get("two_pass")})
+    sizes = scene_pixel_sizes(experiment, one_pass)
+    crops: dict[int, list[float]] = {}
+    for r in results:
+        if r.get("two_pass") and r["metrics"]["test"].get("mm_per_px"):
+            crops.setdefault(int(r["image_size"][0]), []).append(float(r["metrics"]["test"]["mm_per_px"]))
+    sizes.update({s: float(np.mean(v)) for s, v in crops.items()})
+    return sizes
+
+
 def summarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
     """Write ``summary.json``, the plots and ``README.md`` of one experiment folder from its runs' JSON."""
     exp_dir = Path(exp_dir)
     experiment = experiment or exp_dir.name
     results = load_results(exp_dir)
     sizes = sorted({r["image_size"][0] for r in results})
-    mm_per_px = scene_pixel_sizes(experiment, sizes)
+    mm_per_px = run_pixel_sizes(experiment, results)
     runs = {
         "runs": len(results), "scales": sorted({r.get("scale", "?") for r in results}), "image_sizes": sizes,
         "steps": sorted({r["config"]["steps"] for r in results}),
+        "two_pass": [json.loads(t) for t in sorted({json.dumps(r["two_pass"], sort_keys=True)
+                                                    for r in results if r.get("two_pass")})],
         # provenance as the runs recorded it (runs made before it was recorded count as unrecorded)
         "commands": sorted({r["command"] for r in results if r.get("command")}),
         "code_revisions": sorted({r["code_revision"] for r in results if r.get("code_revision")}),
@@ -116,7 +132,10 @@ def resummarize(exp_dir: Path, experiment: str | None = None) -> dict[str, Any]:
         raise UserError(f"{exp_dir / SUMMARY_FILE}: a summary of experiment {old['experiment']!r}, not "
                         f"{experiment!r}", hint="check NAME and --out")
     experiment = old["experiment"]
-    mm_per_px = scene_pixel_sizes(experiment, old["image_sizes"])
+    if old.get("two_pass"):  # the crops' pixel sizes were measured by the runs' evaluations: kept
+        mm_per_px = {int(k): float(v) for k, v in old["mm_per_px"].items()}
+    else:
+        mm_per_px = scene_pixel_sizes(experiment, old["image_sizes"])
     points = [add_mm(p, mm_per_px) for p in old["points"]]
     runs = {k: old.get(k, 0 if k in ("runs", "runs_without_provenance") else []) for k in _RUN_FIELDS}
     source = old.get("resummarized_from") or {k: old[k] for k in ("generated_at", "summary_revision")
@@ -129,12 +148,15 @@ def _write(exp_dir: Path, experiment: str, points: list[dict[str, Any]], mm_per_
     """The summary of ``points``, written with its figures and page (keeping hand-written page sections)."""
     summary: dict[str, Any] = {
         "experiment": experiment, "description": DESCRIPTIONS.get(experiment, ""),
-        **{k: runs[k] for k in ("runs", "scales", "image_sizes", "steps")},
+        **{k: runs[k] for k in ("runs", "scales", "image_sizes", "steps", "two_pass")},
         "paper": {"image_size": PAPER_SIZE, "steps": PAPER_STEPS, "mm_per_px": PAPER_MM_PER_PX},
         "mm_per_px": {str(s): v for s, v in sorted(mm_per_px.items())},
-        "mm_per_px_source": f"s3k.sim.generate.scene_mm_per_px({EXPERIMENT_SCENES.get(experiment)!r}, size): "
-                            "median over the cameras of 200 frames drawn as s3k simulate draws them of the "
-                            "size of one pixel at the point nearest to the cameras' optical axes",
+        "mm_per_px_source": (
+            "two passes: the crop's pixel at the object (the crop cameras' workspace centre) as s3k evaluate "
+            "measures it, mean over the runs" if runs["two_pass"] else
+            f"s3k.sim.generate.scene_mm_per_px({EXPERIMENT_SCENES.get(experiment)!r}, size): median over the "
+            "cameras of 200 frames drawn as s3k simulate draws them of the size of one pixel at the point "
+            "nearest to the cameras' optical axes"),
         "error_metric": "rms_mm_2d: rms_px x mm_per_px at the run's image size (the per-view 2D error at the "
                         "workspace centre, mm on the object)",
         "points": points, "findings": findings(experiment, points),
@@ -312,6 +334,13 @@ def readme(summary: dict[str, Any]) -> str:
              f"object (`rms_mm_2d`: `rms_px` x the size of one pixel at the workspace centre, {pixels}); the "
              f"paper's pixel figures at {PAPER_MM_PER_PX} mm per pixel (the paper's own figure for its "
              f"{PAPER_SIZE} px images). Mean +- std over seeds.", ""]
+    for t in summary.get("two_pass", []):
+        turn = t.get("coarse_rotation")
+        rotation = "" if turn is None else f", rotations up to {turn:g} deg"
+        lines += [f"Two passes (`s3k train --two-pass`): a coarse pass on the whole image at "
+                  f"{t['coarse_size']} px ({t['coarse_steps']} steps{rotation}), a refining pass on "
+                  f"{t['crop_size']} px crops "
+                  "around its estimate, cut from the rendered images; pixel errors are in crop pixels.", ""]
     source = summary.get("resummarized_from")
     rev = summary.get("summary_revision")
     if source:

@@ -59,6 +59,16 @@ def _check_same(saved: dict[str, Any], cfg: TrainConfig, where: Path, what: str)
                               hint="use another --out")
 
 
+def _check_same_passes(saved: dict[str, Any] | None, now: dict[str, Any] | None, where: Path) -> None:
+    if saved != now:
+        raise SettingsChanged(f"{where}: finished with other passes ({_passes(saved)} there, {_passes(now)} "
+                              "now)", hint="use another --out")
+
+
+def _passes(two_pass: dict[str, Any] | None) -> str:
+    return "one pass" if two_pass is None else "two passes " + json.dumps(two_pass, sort_keys=True)
+
+
 def checkpoint_step(run_dir: Path) -> int:
     """The step of ``run_dir``'s last checkpoint, 0 when there is none or it cannot be read (training then
     decides what to do with it). Read by the checkpoint's own reader: a crafted file runs no code."""
@@ -84,6 +94,7 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
     if result_path.is_file():
         result = json.loads(result_path.read_text())
         _check_same(result["config"], spec.cfg, result_path, "finished")
+        _check_same_passes(result.get("two_pass"), spec.two_pass, result_path)
         return result
     run_dir.mkdir(parents=True, exist_ok=True)
     with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
@@ -110,6 +121,7 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
     from s3k.data import Dataset
     from s3k.evaluate import evaluate_run
     from s3k.train import train
+    from s3k.two_pass import train_two_pass
 
     run_dir = exp_dir / "runs" / spec.name
     t0 = time.perf_counter()
@@ -121,12 +133,20 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
                      {k: v for k, v in frames.items() if len(v)},
                      {"labelled": spec.labelled, "unlabelled": spec.unlabelled, "seed": spec.seed})
     t_data = time.perf_counter() - t0
-    start_step = checkpoint_step(run_dir)
+    start_step = checkpoint_step(run_dir / "fine" if spec.two_pass else run_dir)
     log(f"{spec.name}: training {spec.cfg.steps} steps "
         f"({'S3K' if spec.cfg.unsup else 'labels only'}, {spec.labelled} labelled, {spec.unlabelled} "
-        f"unlabelled, seed {spec.seed})" + (f", resuming at step {start_step}" if start_step else ""))
+        f"unlabelled, seed {spec.seed}" + (", two passes" if spec.two_pass else "") + ")"
+        + (f", resuming at step {start_step}" if start_step else ""))
     t1 = time.perf_counter()
-    trained = train(view, run_dir, spec.cfg, resume=True)
+    if spec.two_pass is None:
+        trained = train(view, run_dir, spec.cfg, resume=True)
+        status, step, timing = trained.status, trained.step, trained.timing
+    else:
+        # each pass is resumed where it stopped; a pass that does not finish raises (the run fails)
+        passes = train_two_pass(view, run_dir, spec.cfg, resume=True, log=log, **spec.two_pass)
+        status, step = "done", spec.cfg.steps
+        timing = {k: p.timing for k, p in passes.items() if k in ("coarse", "fine") and p is not None}
     t_train = time.perf_counter() - t1
     t2 = time.perf_counter()
     metrics = {"test": evaluate_run(run_dir, view, "test", device=opts.device)}
@@ -142,15 +162,15 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
     drop_cache(view)
     return {
         "experiment": spec.experiment, "run": spec.name, "params": spec.params,
-        "status": trained.status, "steps": trained.step, "image_size": metrics["test"]["image_size"],
+        "status": status, "steps": step, "image_size": metrics["test"]["image_size"],
         "scale": opts.scale,
         "data": {"pool": spec.pool.name, "pool_spec": dataclasses.asdict(spec.pool),
                  "view": os.path.relpath(view, exp_dir),
                  "frames": {k: len(v) for k, v in frames.items()}},
-        "config": spec.cfg.to_dict(), "metrics": metrics,
+        "config": spec.cfg.to_dict(), "two_pass": spec.two_pass, "metrics": metrics,
         "wall_time_s": {"data": t_data, "train": t_train, "evaluate": t_eval,
                         "total": time.perf_counter() - t0},
-        "train_timing": trained.timing, "resumed_from_step": start_step,
+        "train_timing": timing, "resumed_from_step": start_step,
         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "host": socket.gethostname(),
         "command": opts.command, "code_revision": source_revision(),
@@ -169,10 +189,13 @@ def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale:
     n_base = sum(not r.cfg.unsup for r in runs)
     sizes = sorted({r.pool.size for r in runs})
     steps = sorted({r.cfg.steps for r in runs})
+    t = runs[0].two_pass
+    passes = "" if t is None else (f" rendered, two passes (coarse {t['coarse_size']} px for "
+                                   f"{t['coarse_steps']} steps, then {t['crop_size']} px crops)")
     return (f"{runs[0].experiment} ({DESCRIPTIONS[runs[0].experiment]}), scale {scale}: {len(runs)} runs "
             f"({n_base} labels-only, {len(runs) - n_base} S3K; {done} already finished), "
             f"{len(pools)} dataset(s) ({len(missing)} to render, "
-            f"{sum(p.images() for p in missing)} images), {'/'.join(map(str, sizes))} px, "
+            f"{sum(p.images() for p in missing)} images), {'/'.join(map(str, sizes))} px{passes}, "
             f"{'/'.join(map(str, steps))} steps; estimated {cpu / 3600:.2f} CPU-hours left "
             f"(one process, one thread per run; about half the wall time with two invocations in parallel)")
 
