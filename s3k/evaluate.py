@@ -239,8 +239,7 @@ def evaluate_store(model, meta, store, device="cpu", batch_size: int = 16, units
     kept_probs: list[np.ndarray] = []
     has3d = True
     order = keypoint_order(meta.keypoints, store.dataset.keypoints)
-    for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, device,
-                                     keep_heatmaps=keep > 0, max_residual_px=meta.max_residual_px):
+    for batch, pred in predict_store(model, meta, store, batch_size, device, keep_heatmaps=keep > 0):
         gt_uv, gt_mask = ground_truth_2d(batch, store.out_size)
         gt_uv, gt_mask = gt_uv[:, :, order], gt_mask[:, :, order]
         cols["pred_uv"].append(pred.uv.numpy())

@@ -18,26 +18,24 @@ import torch
 from s3k.data.tables import SPLITS
 from s3k.frames import FrameStore, images_to_float
 from s3k.geometry import Cameras
-from s3k.readout import ReadOut, read_out
+from s3k.readout import ReadOut
+from s3k.run import DetectorMeta
 
 __all__ = ["PredictSummary", "infer", "pick_device", "predict_dataset", "predict_store", "split_frames"]
 
 
 @torch.no_grad()
-def infer(model: torch.nn.Module, images: torch.Tensor, cams: Cameras, stride: int, sigma: float,
-          keep_heatmaps: bool = False, pixel_maps: np.ndarray | None = None,
-          max_residual_px: float | None = None) -> ReadOut:
+def infer(model: torch.nn.Module, meta: DetectorMeta, images: torch.Tensor, cams: Cameras,
+          keep_heatmaps: bool = False, pixel_maps: np.ndarray | None = None) -> ReadOut:
     """2D detections, confidences and triangulated 3D keypoints for a batch of frames.
 
     Args:
         model: network mapping (N, 3, H, W) to (N, K, h, w) logits (eval mode).
+        meta: the detector's description; its read-out (:meth:`s3k.run.DetectorMeta.read_out`) is used.
         images: (B, C, 3, H, W) float in [0, 1], on the model's device.
         cams: cameras (B, C) of those images, or of the original images with ``pixel_maps``.
-        stride: heatmap stride.
-        sigma: target width in image pixels (for the confidence weight).
         keep_heatmaps: also return the softmax heatmaps.
-        pixel_maps, max_residual_px: see :func:`s3k.readout.read_out` (a detector's own threshold is
-            ``DetectorMeta.max_residual_px``).
+        pixel_maps: see :func:`s3k.readout.read_out`.
 
     Returns:
         A :class:`s3k.readout.ReadOut` (tensors on the model's device).
@@ -47,20 +45,18 @@ def infer(model: torch.nn.Module, images: torch.Tensor, cams: Cameras, stride: i
     B, C = images.shape[:2]
     logits = model(images.reshape(B * C, *images.shape[2:]))
     logits = logits.reshape(B, C, *logits.shape[1:])
-    return read_out(logits, cams, stride, sigma, pixel_maps, keep_heatmaps=keep_heatmaps,
-                    max_residual_px=max_residual_px)
+    return meta.read_out(logits, cams, pixel_maps, keep_heatmaps=keep_heatmaps)
 
 
-def predict_store(model: torch.nn.Module, store: FrameStore, stride: int, sigma: float, batch_size: int = 16,
+def predict_store(model: torch.nn.Module, meta: DetectorMeta, store: FrameStore, batch_size: int = 16,
                   device: str | torch.device = "cpu", keep_heatmaps: bool = False,
-                  pixel_map: np.ndarray | None = None, max_residual_px: float | None = None):
+                  pixel_map: np.ndarray | None = None):
     """Run :func:`infer` over every frame of ``store``; yields ``(FrameBatch, ReadOut)`` on the CPU.
 
     (Unannotated so that callers may index ``ReadOut.probs`` they asked for with ``keep_heatmaps``.)
 
     Results are in the pixels the network saw, or with ``pixel_map`` (``(3, 3)``, the dataset's map from its
     own image pixels to the network's, ``Dataset.pixel_map``) in the dataset's own pixels.
-    ``max_residual_px``: see :func:`s3k.readout.read_out`.
     """
     for batch in store.batches(batch_size):
         images = images_to_float(batch.images, device)
@@ -70,8 +66,7 @@ def predict_store(model: torch.nn.Module, store: FrameStore, stride: int, sigma:
             maps = np.repeat(np.asarray(pixel_map, dtype=np.float64)[None], C, axis=0)
             Minv = torch.as_tensor(np.linalg.inv(pixel_map), dtype=cams.dtype)
             cams = Cameras(Minv @ cams.K, cams.dist, cams.R, cams.t)  # K = M^-1 K' (an affine map)
-        yield batch, infer(model, images, cams.to(device=device), stride, sigma, keep_heatmaps, maps,
-                           max_residual_px).cpu()
+        yield batch, infer(model, meta, images, cams.to(device=device), keep_heatmaps, maps).cpu()
 
 
 def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:
@@ -130,8 +125,7 @@ def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, spli
     store = FrameStore(ds, split_frames(ds, split), preload_mb=0)
     n = 0
     with write_csv(out, meta.keypoints) as writer:
-        for batch, pred in predict_store(model, store, meta.stride, meta.sigma, batch_size, dev,
-                                         pixel_map=ds.pixel_map, max_residual_px=meta.max_residual_px):
+        for batch, pred in predict_store(model, meta, store, batch_size, dev, pixel_map=ds.pixel_map):
             writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
             n += len(batch.frame_ids)
     return PredictSummary(out, n, list(meta.keypoints), warnings)

@@ -29,6 +29,7 @@ import torch
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json
 from s3k.model import UNet, UNetConfig
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
 
 CONFIG_FILE = "config.json"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -73,6 +74,13 @@ class DetectorMeta:
     def max_residual_px(self) -> float | None:
         """``outlier_px`` as :func:`s3k.readout.read_out` takes it (None: off)."""
         return self.outlier_px if self.outlier_px > 0 else None
+
+    def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
+                 keep_heatmaps: bool = False) -> ReadOut:
+        """This detector's :func:`s3k.readout.read_out` of its ``logits``: with the stride, target width and
+        outlier threshold it was trained with, so every command reads a detector out the same way."""
+        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, min_weight, keep_heatmaps,
+                        self.max_residual_px)
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)

@@ -31,7 +31,7 @@ import torch
 
 from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.readout import DEFAULT_MIN_WEIGHT, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT
 
 __all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
            "track_videos"]
@@ -333,8 +333,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                 x = x.permute(0, 1, 4, 2, 3).float().div_(255.0).reshape(B * C, 3, net_size[1], net_size[0])
                 logits = net(x)
                 logits = logits.reshape(B, C, *logits.shape[1:])
-                result = read_out(logits, cams, meta.stride, meta.sigma, pixel_maps, min_weight,
-                                  max_residual_px=meta.max_residual_px)
+                result = meta.read_out(logits, cams, pixel_maps, min_weight)
                 if two_pass is not None:  # the crops around the coarse estimate, at the videos' resolution
                     result = two_pass.refine(originals, result, cams, min_weight)
                 result = result.cpu()

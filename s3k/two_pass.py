@@ -315,8 +315,6 @@ class TwoPassDetector:
             min_weight: as for :func:`s3k.readout.read_out`.
         """
         from s3k.crops import crop_images, crop_maps, metric_crop_boxes
-        from s3k.readout import read_out
-
         B, C = len(originals), len(originals[0])
         centres = []
         for X in coarse.X.cpu().numpy():
@@ -338,5 +336,4 @@ class TwoPassDetector:
         logits = self.fine(x.reshape(B * C, 3, *size))
         logits = logits.reshape(B, C, *logits.shape[1:])
         maps = crop_maps(boxes, size)  # (B, C, 3, 3): original pixels -> crop pixels
-        return read_out(logits, cams.to(self.device), self.fine_meta.stride, self.fine_meta.sigma, maps,
-                        min_weight, max_residual_px=self.fine_meta.max_residual_px)
+        return self.fine_meta.read_out(logits, cams.to(self.device), maps, min_weight)

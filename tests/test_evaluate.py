@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -94,7 +95,7 @@ def test_evaluate_json_on_known_prediction(trained, capsys):
     model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
     test_ids = ds.frames("test")
-    (batch, pred), = list(predict_store(model, FrameStore(ds, test_ids), meta.stride, meta.sigma, 16))
+    (batch, pred), = list(predict_store(model, meta, FrameStore(ds, test_ids), 16))
     assert pred.valid.all()
     offsets = np.array([[0.001, 0, 0], [0, 0.002, 0], [0, 0, 0.004]])  # 1, 2, 4 mm
     X_gt = pred.X.double().numpy() + offsets
@@ -136,7 +137,7 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
     assert out.read_text().splitlines()[0].split(",") == csv_header(KEYPOINTS)
     model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
-    (batch, pred), = list(predict_store(model, FrameStore(ds, ds.frames("test")), meta.stride, meta.sigma))
+    (batch, pred), = list(predict_store(model, meta, FrameStore(ds, ds.frames("test"))))
     points = read_csv(out, KEYPOINTS)
     assert sorted(points) == sorted(int(f) for f in batch.frame_ids)
     for b, fid in enumerate(batch.frame_ids):
@@ -161,8 +162,8 @@ def test_detector_reads_out_with_its_training_outlier_threshold(tmp_path):
     assert meta.outlier_px == 0.01 and meta.max_residual_px == 0.01
     ds = open_dataset(ds_path, meta.image_size)
     store = FrameStore(ds, ds.frames("test"))
-    (_, every), = list(predict_store(model, store, meta.stride, meta.sigma))
-    (_, kept), = list(predict_store(model, store, meta.stride, meta.sigma, max_residual_px=0.01))
+    (_, every), = list(predict_store(model, replace(meta, outlier_px=0.0), store))
+    (_, kept), = list(predict_store(model, meta, store))
     assert int(kept.used.sum()) < int(every.used.sum())  # an untrained network's views disagree slightly
     out = tmp_path / "p.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out)]) == 0
@@ -192,8 +193,8 @@ def test_resized_run_predicts_in_dataset_pixels(tmp_path):
     assert meta.image_size == (24, 24) and meta.source_image_size == (32, 32)
     ds = open_dataset(ds_path, meta.image_size)
     store = FrameStore(ds, ds.frames("test"))
-    (_, net), = list(predict_store(model, store, meta.stride, meta.sigma))
-    (_, own), = list(predict_store(model, store, meta.stride, meta.sigma, pixel_map=ds.pixel_map))
+    (_, net), = list(predict_store(model, meta, store))
+    (_, own), = list(predict_store(model, meta, store, pixel_map=ds.pixel_map))
     s = 24 / 32  # u_net = s (u + 0.5) - 0.5
     np.testing.assert_allclose(own.uv.numpy(), (net.uv.numpy() + 0.5) / s - 0.5, atol=1e-9)
     # The same points and errors up to the float32 rounding of the stored cameras (0.1 um at 1 m).
@@ -232,7 +233,7 @@ def test_evaluate_matches_keypoints_by_name(trained, tmp_path, capsys):
     model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
     ids = ds.frames("test")
-    (batch, _), = list(predict_store(model, FrameStore(ds, ids, points=True), meta.stride, meta.sigma))
+    (batch, _), = list(predict_store(model, meta, FrameStore(ds, ids, points=True)))
     X = batch.points.double().numpy()
     K, dist, R, t = rig(32)
 

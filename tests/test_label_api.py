@@ -278,7 +278,7 @@ def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
     model, meta = load_detector(run)
     ds = open_dataset(truth.path, meta.image_size)
     ids = ds.frames("unlabelled")
-    (batch, ro), = list(predict_store(model, FrameStore(ds, ids, preload_mb=0), meta.stride, meta.sigma,
+    (batch, ro), = list(predict_store(model, meta, FrameStore(ds, ids, preload_mb=0),
                                       batch_size=len(ids), pixel_map=ds.pixel_map))
     sug = client.get(f"/api/frame/{ids[0]}").json()["suggestions"]
     for k, kp in enumerate(KEYPOINTS):

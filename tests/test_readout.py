@@ -28,6 +28,7 @@ from s3k.losses import self_supervised_loss
 from s3k.model import detect
 from s3k.predict import infer, predict_store
 from s3k.readout import read_out, select_views, triangulate
+from s3k.run import DetectorMeta
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
@@ -35,6 +36,8 @@ from benchmarks.inference import make_pipeline  # noqa: E402
 from benchmarks.inference_exported import points_of_outputs  # noqa: E402
 
 SIZE, STRIDE, SIGMA = 32, 2, 2.0
+#: A detector's description with this module's read-out settings (no outlier threshold).
+META = DetectorMeta(list(KEYPOINTS), [], (SIZE, SIZE), STRIDE, SIGMA)
 
 
 class FixedLogits(nn.Module):
@@ -85,12 +88,11 @@ def test_every_caller_reads_out_the_same_points(scene):
         np.testing.assert_allclose(np.asarray(got_X, dtype=np.float64), X, rtol=0, atol=atol)
 
     # s3k predict (library path) and s3k evaluate (through predict_store).
-    pred = infer(net, images, cams, STRIDE, SIGMA)
+    pred = infer(net, META, images, cams)
     same(pred.X, pred.valid)
-    (_, stored), = list(predict_store(net, scene.store, STRIDE, SIGMA, batch_size=B))
+    (_, stored), = list(predict_store(net, META, scene.store, batch_size=B))
     same(stored.X, stored.valid)
-    meta = SimpleNamespace(stride=STRIDE, sigma=SIGMA, keypoints=list(KEYPOINTS), max_residual_px=None)
-    _, arrays = evaluate_store(net, meta, scene.store, batch_size=B)
+    _, arrays = evaluate_store(net, META, scene.store, batch_size=B)
     same(arrays["X"], arrays["X_valid"])
     np.testing.assert_allclose(arrays["pred_uv"], ref.uv.numpy(), rtol=0, atol=1e-12)
 

@@ -71,9 +71,8 @@ class Suggestions:
             if todo:
                 store = FrameStore(self.dataset, todo, preload_mb=0)
                 pixel_map = self.dataset.pixel_map
-                for batch, ro in predict_store(self.model, store, self.meta.stride, self.meta.sigma,
-                                               self.batch_size, self.device, pixel_map=pixel_map,
-                                               max_residual_px=self.meta.max_residual_px):
+                for batch, ro in predict_store(self.model, self.meta, store, self.batch_size, self.device,
+                                               pixel_map=pixel_map):
                     for b, f in enumerate(batch.frame_ids.tolist()):
                         self._cache[int(f)] = {
                             "uv": ro.uv[b].numpy(), "weights": ro.weights[b].numpy(), "X": ro.X[b].numpy(),

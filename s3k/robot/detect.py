@@ -57,8 +57,7 @@ class RunDetector:
             images, K = resize_crop(images, K, None, (W, H))
         cams = Cameras.from_numpy(K[None], None, R[None], t[None], dtype=torch.float32).to(self.device)
         x = images_to_float(torch.from_numpy(np.ascontiguousarray(images))[None], self.device)
-        out = infer(self.model, x, cams, self.meta.stride, self.meta.sigma,
-                    max_residual_px=self.meta.max_residual_px)
+        out = infer(self.model, self.meta, x, cams)
         X = out.X[0].double().cpu().numpy()[self.index]
         valid = out.valid[0].cpu().numpy()[self.index]
         return np.where(valid[:, None], X, np.nan), valid

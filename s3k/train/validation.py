@@ -102,8 +102,7 @@ def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, devic
         for m in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm"):
             record[m] = metrics[m]
     except ValueError:  # no ground truth on this split: collapse check only
-        preds = list(predict_store(net, store, meta.stride, meta.sigma, 16, device, keep_heatmaps=True,
-                                   max_residual_px=meta.max_residual_px))
+        preds = list(predict_store(net, meta, store, 16, device, keep_heatmaps=True))
         X = torch.cat([p.X for _, p in preds])
         valid = torch.cat([p.valid for _, p in preds])
         arrays = {"images": preds[0][0].images[:1].numpy(), "probs": preds[0][1].probs[:1].numpy(),
