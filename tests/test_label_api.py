@@ -382,3 +382,65 @@ def test_a_save_without_edits_changes_nothing(truth):
     r = client.post("/api/frame/2/label", json={"version": 0, "edits": []})
     assert r.status_code == 200 and r.json()["version"] == 0
     assert not (truth.path / HISTORY_FILE).exists() and not (truth.path / "labels.csv").exists()
+
+
+def test_pose_distance_ignores_position_and_compares_shared_keypoints():
+    from s3k.label.suggest import pose_distances
+
+    ref = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.05, 0]])
+    turned = ref @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]]).T  # 90 degrees about z
+    X = np.stack([ref + [0.3, -0.2, 0.5], turned, np.where([[True], [True], [False]], ref, np.nan),
+                  np.where([[True], [False], [False]], ref, np.nan)])
+    d = pose_distances(X, ref)
+    assert d[0] == pytest.approx(0, abs=1e-12)  # moved, not turned
+    centred = ref - ref.mean(0)
+    want = np.sqrt(((centred @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]]).T - centred) ** 2).sum(-1).mean())
+    assert d[1] == pytest.approx(want)
+    assert d[2] == pytest.approx(0, abs=1e-12)  # centred on the two keypoints both have
+    assert np.isnan(d[3])  # one shared keypoint: no pose to compare
+
+
+def test_coverage_order_takes_unlabelled_poses_first_and_each_pose_once():
+    from s3k.label.suggest import coverage_order
+
+    up = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.05, 0]])
+    side = up[:, [0, 2, 1]]  # turned onto a side
+    other = up[:, [2, 1, 0]]  # another side
+    candidates = {1: up + 0.2, 2: side, 3: side + [0, 0.1, 0], 4: other, 5: np.full((3, 3), np.nan)}
+    order = coverage_order(candidates, [up])
+    frames = [f for f, _ in order]
+    # the two poses nobody labelled come first, the second copy of a side only after both (as covered as
+    # the labelled pose: ties go by frame), the frame with nothing placed last
+    assert set(frames[:2]) == {2, 4} and frames[2:] == [1, 3, 5]
+    d = dict(order)
+    assert d[3] == pytest.approx(0, abs=1e-12) and d[1] == pytest.approx(0, abs=1e-12) and np.isnan(d[5])
+    assert np.isinf(coverage_order(candidates, [])[0][1])  # nothing labelled: all equally far
+    # past the greedy part the rest follow by distance, farthest first
+    rest = coverage_order(candidates, [up], limit=1)[1:]
+    dists = [d for _, d in rest[:-1]]
+    assert rest[0][0] == frames[1] and dists == sorted(dists, reverse=True) and rest[-1][0] == 5
+
+
+def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
+    from s3k.label.server import LabelApp
+    from s3k.label.suggest import coverage_order
+
+    run = tiny_run(tmp_path / "run")
+    client = TestClient(create_app(truth.path, run=run))
+    assert client.get("/api/ranking?by=nope").status_code == 400
+    uv = truth.uv(0)
+    edits = [{"camera": cam, "keypoint": kp, "u": float(uv[c, k, 0]), "v": float(uv[c, k, 1])}
+             for c, cam in enumerate(CAMERAS) for k, kp in enumerate(KEYPOINTS)]
+    assert client.post("/api/frame/0/label", json={"version": 0, "edits": edits}).status_code == 200
+    got = client.get("/api/ranking?by=coverage&limit=3").json()
+    # what the run places, against the pose of frame 0's labels (in millimetres)
+    app = LabelApp(truth.path, run=run)
+    poses = app.labelled_poses(list(KEYPOINTS))
+    assert len(poses) == 1 and np.allclose(poses[0], truth.points[0], atol=1e-6)
+    ids = app.dataset.frames("unlabelled")
+    preds = app.suggestions.predict(ids)
+    want = coverage_order({f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()},
+                          poses, limit=3)
+    assert [r["frame"] for r in got] == [f for f, _ in want][:3]
+    for r, (_, d) in zip(got, want, strict=False):
+        assert r["pose_mm"] == (None if not np.isfinite(d) else pytest.approx(d * 1000))

@@ -235,6 +235,36 @@ def test_a_late_answer_for_an_earlier_frame_does_not_replace_the_frame_navigated
     assert not mask[0].any() and mask[1, 0, 0]  # the click went to frame 4
 
 
+def test_frames_to_label_by_pose_coverage(tmp_path, browser):
+    from synthetic_rig import KEYPOINTS
+    from tiny_detector import save_run
+
+    from s3k.label.server import LabelApp
+    from s3k.model import UNetConfig
+    from s3k.run import DetectorMeta
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(32, 32), stride=2,
+                        sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0, head_std=0.5)
+    app = LabelApp(truth.path, run=run)
+    want = app.suggestions.coverage(app.dataset.frames("unlabelled"), [], 1000.0)
+    with Server(truth.path, run) as url:
+        page = browser.new_page(viewport={"width": 1400, "height": 600})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url)
+        page.wait_for_selector("#ranking li")
+        page.select_option("#rank-by", "coverage")
+        page.wait_for_function("document.querySelector('#ranking li').textContent.endsWith(' -')")
+        items = page.locator("#ranking li")
+        assert [int(items.nth(i).get_attribute("data-frame")) for i in range(items.count())] == \
+            [r["frame"] for r in want]
+        page.keyboard.press("n")  # the next frame of the list the page shows
+        page.wait_for_function(f"document.body.dataset.frame === '{want[0]['frame']}'")
+        assert errors == []
+
+
 @pytest.mark.skipif(not SHOTS, reason="photographs the app for docs/labelling.md: S3K_SCREENSHOTS=docs/img")
 def test_screenshots_of_the_box_scene(tmp_path, browser):
     """The docs' pictures: the simulated box scene labelled in the app (and, with S3K_LABEL_RUN=RUN, a

@@ -12,7 +12,9 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   "remove"}], "source"}``; answers the new frame state, 409 with the newer state (``current``) when
   ``version`` is stale, 400 naming the field when an edit is invalid.
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
-- ``GET /api/ranking``: with a run, frames of a split ordered by the run's doubt, worst first.
+- ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
+  run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose
+  (:mod:`s3k.label.suggest`).
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
   :func:`s3k.label.propagate.propagate_labels`.
 
@@ -36,7 +38,7 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
 from s3k.errors import UserError
-from s3k.label.solve import frame_geometry
+from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 
 __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
@@ -85,6 +87,24 @@ class LabelApp:
         if self.suggestions is not None:
             state["suggestions"] = self.suggestions.suggestion(frame, self.dataset.cameras)
         return state
+
+    def labelled_poses(self, keypoints: list[str]) -> list[np.ndarray]:
+        """The 3D keypoints ``(K, 3)`` (in ``keypoints``' order, NaN where not triangulated) of every frame
+        whose current labels triangulate two or more of them."""
+        self.store.refresh()
+        s = self.store
+        order = [self.dataset.keypoints.index(k) for k in keypoints]
+        counts = (s.present & s.visible).sum(axis=(1, 2))
+        poses = []
+        for i, f in enumerate(s.frames.ids):
+            if counts[i] < 4:  # two keypoints in two views at least
+                continue
+            uv, mask = s.arrays(int(f))
+            cams = self.dataset.calibration([int(f)], np.float64)[0]
+            X = triangulate_labels(cams, uv, mask)["X"][order]
+            if np.isfinite(X).all(-1).sum() >= 2:
+                poses.append(X)
+        return poses
 
     def meta(self) -> dict[str, Any]:
         self.store.refresh()
@@ -183,13 +203,21 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         return state.store.history(frame_or_404(frame))
 
     @app.get("/api/ranking")
-    def ranking(split: str = "unlabelled", limit: int = 100) -> Any:
+    def ranking(split: str = "unlabelled", limit: int = 100, by: str = "doubt") -> Any:
         if state.suggestions is None:
             return _error(404, "no run: start s3k label with --run RUN to rank frames")
         if split not in ("labelled", "unlabelled", "test", "all"):
             return _error(400, f"unknown split {split!r}")
+        if by not in ("doubt", "coverage"):
+            return _error(400, f"by: unknown ranking {by!r} (doubt or coverage)")
         ids = state.dataset.frames(None if split == "all" else split)
-        return state.suggestions.ranking(ids)[: max(0, limit)]
+        limit = max(0, limit)
+        if by == "coverage":
+            from s3k.evaluate import mm_per_unit
+
+            poses = state.labelled_poses(state.suggestions.keypoints)
+            return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit)[:limit]
+        return state.suggestions.ranking(ids)[:limit]
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way

@@ -14,6 +14,14 @@ confidence weights ``w_ck``,
 (``sigma`` the run's target width in the dataset's pixels): the weighted residual of the triangulation, the
 view that disagrees most, and low confidence. A keypoint that cannot be triangulated counts as
 ``DOUBT_INVALID``. A frame's score is the mean over its keypoints.
+
+Doubt cannot see an error all views share (a point detected consistently in the wrong place, a symmetric
+object taken the wrong way round): labels of the poses the labelled frames do not show are what correct it.
+The coverage order (:func:`coverage_order`) ranks frames by how far the run's 3D keypoints are from every
+labelled frame's pose: the RMS distance between the two frames' keypoints once both are centred on the
+keypoints they share (:func:`pose_distances`), so it measures orientation and shape, not where the object
+stands. It is greedy: each frame taken counts as labelled for the ones after it, so the first frames are as
+far from the labelled poses and from each other as possible.
 """
 
 from __future__ import annotations
@@ -26,9 +34,56 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["DOUBT_INVALID", "Suggestions"]
+__all__ = ["DOUBT_INVALID", "Suggestions", "coverage_order", "pose_distances"]
 
 DOUBT_INVALID = 100.0
+
+
+def pose_distances(X: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``(N,)`` RMS distance between the keypoints of each ``X (N, K, 3)`` and ``ref (K, 3)`` after centring
+    both on the keypoints finite in both (NaN: fewer than two shared)."""
+    X = np.asarray(X, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    both = np.isfinite(X).all(-1) & np.isfinite(ref).all(-1)[None]  # (N, K)
+    n = both.sum(-1)
+    w = both[..., None].astype(np.float64)
+    A, B = np.nan_to_num(X) * w, np.nan_to_num(ref)[None] * w
+    a = A - A.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]
+    b = B - B.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]
+    d2 = (((a - b) * w) ** 2).sum((1, 2)) / np.maximum(n, 1)
+    return np.where(n >= 2, np.sqrt(d2), np.nan)
+
+
+def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
+                   limit: int | None = None) -> list[tuple[int, float]]:
+    """Frames of ``candidates`` (``{frame: X (K, 3)}``, NaN where not placed) in the greedy coverage order
+    (module docstring), ``[(frame, distance)]``: each frame's :func:`pose_distances` to the nearest of
+    ``covered`` (``(K, 3)`` poses: the labelled frames') and of the frames before it. The first ``limit``
+    are picked greedily, the rest follow by that distance; frames with fewer than two keypoints placed come
+    last, with NaN. The distance is ``inf`` while nothing is covered."""
+    ids = np.asarray(sorted(candidates), dtype=np.int64)
+    if not len(ids):
+        return []
+    X = np.stack([np.asarray(candidates[int(f)], dtype=np.float64) for f in ids])
+    placed = np.isfinite(X).all(-1).sum(-1) >= 2
+    near = np.full(len(ids), np.inf)
+    for ref in covered:
+        d = pose_distances(X, ref)
+        near = np.where(np.isfinite(d), np.minimum(near, d), near)
+    order: list[tuple[int, float]] = []
+    left = placed.copy()
+    for _ in range(len(ids) if limit is None else min(limit, len(ids))):
+        if not left.any():
+            break
+        i = int(np.flatnonzero(left)[np.argmax(near[left])])  # the first of the farthest (ids are sorted)
+        order.append((int(ids[i]), float(near[i])))
+        left[i] = False
+        d = pose_distances(X, X[i])
+        near = np.where(np.isfinite(d), np.minimum(near, d), near)
+    rest = np.flatnonzero(left)
+    order += [(int(ids[i]), float(near[i])) for i in rest[np.argsort(-near[rest], kind="stable")]]
+    order += [(int(f), float("nan")) for f in ids[~placed]]
+    return order
 
 
 class Suggestions:
@@ -120,8 +175,24 @@ class Suggestions:
         scores = self.doubt(frame_ids)
         rows: list[dict[str, Any]] = [{"frame": f, **s} for f, s in scores.items()]
         rows.sort(key=lambda r: (-r["score"], r["frame"]))
-        for r in rows:
-            for key, value in r.items():
-                if isinstance(value, float) and not np.isfinite(value):
-                    r[key] = None
-        return rows
+        return _json_ready(rows)
+
+    def coverage(self, frame_ids, labelled: list[np.ndarray], mm_per_unit: float,
+                 limit: int | None = None) -> list[dict[str, Any]]:
+        """``frame_ids`` in the coverage order (:func:`coverage_order`) against the ``labelled`` poses
+        (``(K, 3)`` in world units, keypoints in the run's order): ``[{"frame", "score", "pose_mm"}]``, the
+        distance in millimetres as both (None: infinite or not placed)."""
+        preds = self.predict(frame_ids)
+        candidates = {f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()}
+        rows = [{"frame": f, "score": d * mm_per_unit, "pose_mm": d * mm_per_unit}
+                for f, d in coverage_order(candidates, labelled, limit)]
+        return _json_ready(rows)
+
+
+def _json_ready(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``rows`` with None for every float that is not a number."""
+    for r in rows:
+        for key, value in r.items():
+            if isinstance(value, float) and not np.isfinite(value):
+                r[key] = None
+    return rows

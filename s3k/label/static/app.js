@@ -344,17 +344,25 @@ function acceptSuggestions(all) {
 }
 
 async function loadRanking() {
-  const r = await api("api/ranking?split=unlabelled&limit=200");
+  const by = document.getElementById("rank-by").value;
+  const r = await api(`api/ranking?split=unlabelled&limit=200&by=${by}`);
   if (!r.ok) return;
   app.ranking = r.body;
   const list = document.getElementById("ranking");
   list.innerHTML = "";
+  const fixed = (x, unit) => (x === null ? "-" : `${x.toFixed(unit === "mm" ? 1 : 2)}${unit ? " " + unit : ""}`);
   for (const row of r.body) {
     const li = document.createElement("li");
     li.dataset.frame = row.frame;
-    li.textContent = `frame ${row.frame}: ${row.score.toFixed(2)}`;
-    li.title = `residual ${row.residual_px === null ? "-" : row.residual_px.toFixed(2)} px, worst view ` +
-      `${row.worst_view_px === null ? "-" : row.worst_view_px.toFixed(2)} px, confidence ${row.confidence.toFixed(2)}`;
+    if (by === "coverage") {
+      // greedy: each frame above counts as labelled, so labelling down the list covers the poses in turn
+      li.textContent = `frame ${row.frame}: ${fixed(row.pose_mm, "mm")}`;
+      li.title = "distance of the run's 3D keypoints from the nearest labelled pose (and from the frames above)";
+    } else {
+      li.textContent = `frame ${row.frame}: ${fixed(row.score, "")}`;
+      li.title = `residual ${fixed(row.residual_px, "px")}, worst view ${fixed(row.worst_view_px, "px")}, ` +
+        `confidence ${row.confidence.toFixed(2)}`;
+    }
     li.addEventListener("click", () => gotoFrame(row.frame));
     list.appendChild(li);
   }
@@ -425,7 +433,11 @@ async function start() {
   });
   window.addEventListener("keydown", onKey);
   window.addEventListener("resize", drawAll);
-  if (r.body.run) { document.getElementById("suggest-tools").hidden = false; loadRanking(); }
+  if (r.body.run) {
+    document.getElementById("suggest-tools").hidden = false;
+    document.getElementById("rank-by").addEventListener("change", loadRanking);
+    loadRanking();
+  }
   const want = new URLSearchParams(location.search).get("frame");
   const i = want === null ? 0 : Math.max(0, app.frames.findIndex((x) => x.frame === +want));
   await loadFrame(i);
