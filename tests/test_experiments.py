@@ -552,3 +552,48 @@ def test_two_pass_sweep_records_its_passes_and_crop_pixels(tmp_path, capsys):
     # the same folder does not take one-pass runs
     assert cli_main(argv[:9]) == 1
     assert "finished with other passes" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------ labelled frames by pose
+def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tmp_path):
+    from s3k.experiments.views import coverage_pick
+    from s3k.label.suggest import pose_distances
+
+    pool = Dataset.open(make_dataset(tmp_path / "pool", labelled=12, unlabelled=5, test=2), cache="none")
+    ids = pool.frames("labelled")
+    X, ok = pool.points3d(ids)
+    poses = {int(f): np.where(m[:, None], x, np.nan) for f, x, m in zip(ids, X, ok, strict=True)}
+    frames = select_frames(pool, 4, 2, seed=3, choice="coverage")
+    picked = frames["labelled"]
+    assert len(picked) == 4 and set(picked) <= set(ids.tolist())
+    assert frames["unlabelled"].tolist() == select_frames(pool, 4, 2, seed=3)["unlabelled"].tolist()
+    # the picks of a smaller count are among those of a larger one (same seed): labelled sets nest
+    small = coverage_pick(pool, ids, 2, np.random.default_rng([0, 3, 1]))
+    assert set(small) <= set(picked)
+    # greedy farthest-first: every pick is at least as far from the earlier picks as any frame left over
+    # ends up from all picks, so no two picked poses are closer than the farthest frame left out
+    chosen = picked.tolist()
+    left = [min(pose_distances(poses[f][None], poses[g])[0] for g in chosen) for f in ids.tolist()
+            if f not in chosen]
+    apart = [pose_distances(poses[f][None], poses[g])[0] for f in chosen for g in chosen if f < g]
+    assert min(apart) >= max(left) - 1e-12
+    with pytest.raises(ValueError, match="label choice"):
+        select_frames(pool, 4, 2, seed=3, choice="nope")
+
+
+def test_plan_and_runs_keep_the_label_choice(tmp_path):
+    runs = ex.plan(toy_options("label-efficiency", tmp_path, label_choice="coverage"))
+    assert all(r.label_choice == "coverage" and r.params["labels"] == "coverage" for r in runs)
+    assert "labels" not in ex.plan(toy_options("label-efficiency", tmp_path))[0].params
+    with pytest.raises(UserError, match="--label-choice"):
+        ex.plan(toy_options("label-efficiency", tmp_path, label_choice="nope"))
+    # a finished run whose frames were chosen otherwise is refused, not mixed in
+    spec = ex.plan(toy_options("label-efficiency", tmp_path))[0]
+    run_dir = tmp_path / "label-efficiency" / "runs" / spec.name
+    run_dir.mkdir(parents=True)
+    (run_dir / "result.json").write_text(json.dumps({"config": spec.cfg.to_dict(), "two_pass": None,
+                                                     "data": {"label_choice": "random"}}))
+    coverage = ex.plan(toy_options("label-efficiency", tmp_path, label_choice="coverage"))[0]
+    with pytest.raises(UserError, match="chosen by random, coverage now"):
+        run_one(coverage, tmp_path / "label-efficiency", tmp_path / "data", toy_options("label-efficiency",
+                                                                                          tmp_path))

@@ -10,6 +10,7 @@ from s3k.errors import UserError
 from s3k.experiments import (
     DESCRIPTIONS,
     EXPERIMENTS,
+    LABEL_CHOICES,
     SCALES,
     SUMMARY_FILE,
     Options,
@@ -84,6 +85,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's augmentation rotation range in degrees (default: rotation_deg)")
     two.add_argument("--crop-size", type=int, default=None, metavar="PX",
                      help="the refining pass's crop size in pixels (default: the scale's, 128 at small/full)")
+    parser.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
+                        help="how runs choose their labelled frames from the pool: random (stratified; "
+                             "default) or coverage (the labelling app's 'poses not yet labelled' order over "
+                             "the pool's true poses, from a first frame drawn by the seed)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
@@ -117,7 +122,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
                    instances=args.instances, alphas=args.alphas, modes=args.modes,
                    train_overrides=overrides, two_pass=args.two_pass, render=args.render,
                    coarse_steps=args.coarse_steps, coarse_rotation=args.coarse_rotation,
-                   crop_size=args.crop_size, device=args.device, threads=args.threads, workers=args.workers,
+                   crop_size=args.crop_size, label_choice=args.label_choice, device=args.device,
+                   threads=args.threads, workers=args.workers,
                    progress=not args.no_progress, command=getattr(args, "command_line", None))
 
 

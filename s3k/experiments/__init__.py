@@ -28,6 +28,9 @@ Two passes (``Options.two_pass``, ``--two-pass``): every run is trained coarse-t
 --two-pass`` trains it (:mod:`s3k.two_pass`), from pools rendered larger than the coarse pass's input; its
 run folder holds ``coarse/``, ``crops/`` and ``fine/``, and its pixel errors are in crop pixels.
 
+Labelled frames: drawn at random, stratified (below), or with ``--label-choice coverage`` as a labeller
+following the labelling app's *poses not yet labelled* ranking would pick them (over the pool's true poses).
+
 Seeds: run seed ``s`` trains with ``TrainConfig.seed = s`` on its own random choice of labelled frames from
 the pool (nested: the first 3 of a seed's 10); the unlabelled and test frames do not depend on the seed, so
 the runs of one grid point differ in the labelled frames and the initialization.
@@ -41,6 +44,7 @@ from s3k.experiments.findings import aggregate, findings, verdict
 from s3k.experiments.grid import (
     DESCRIPTIONS,
     EXPERIMENTS,
+    LABEL_CHOICES,
     PAPER_CATEGORY_TEST_PX,
     PAPER_MM_PER_PX,
     SCALES,
@@ -54,6 +58,7 @@ from s3k.experiments.report import publish, resummarize, summarize
 from s3k.experiments.runner import describe_plan, run_experiment
 from s3k.experiments.views import stratified_pick
 
-__all__ = ["DESCRIPTIONS", "EXPERIMENTS", "PAPER_CATEGORY_TEST_PX", "PAPER_MM_PER_PX", "SCALES",
-           "SUMMARY_FILE", "Options", "PoolSpec", "RunSpec", "aggregate", "describe_plan", "findings", "plan",
-           "publish", "resummarize", "run_experiment", "stratified_pick", "summarize", "verdict"]
+__all__ = ["DESCRIPTIONS", "EXPERIMENTS", "LABEL_CHOICES", "PAPER_CATEGORY_TEST_PX", "PAPER_MM_PER_PX",
+           "SCALES", "SUMMARY_FILE", "Options", "PoolSpec", "RunSpec", "aggregate", "describe_plan",
+           "findings", "plan", "publish", "resummarize", "run_experiment", "stratified_pick", "summarize",
+           "verdict"]

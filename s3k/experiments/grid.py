@@ -31,6 +31,11 @@ PAPER_MM_PER_PX = 2.8
 EXPERIMENT_SCENES = {"label-efficiency": "box", "domain-shift": "distractors", "category": "category",
                      "alpha": "box"}
 
+#: How a run's labelled frames are chosen from its pool: "random" (stratified over segments or instances,
+#: :func:`s3k.experiments.views.stratified_pick`) or "coverage" (the labelling app's pose-coverage order,
+#: :func:`s3k.experiments.views.coverage_pick`).
+LABEL_CHOICES = ("random", "coverage")
+
 #: Files of the workspace layout (see the package documentation).
 RESULT_FILE = "result.json"
 SUMMARY_FILE = "summary.json"
@@ -178,6 +183,8 @@ class RunSpec:
         seed: run seed (training seed and choice of labelled frames).
         cfg: training configuration (of both passes when ``two_pass`` is set).
         eval_train: also evaluate on training-instance frames (category).
+        label_choice: how the labelled frames are chosen from the pool
+            (:data:`LABEL_CHOICES`).
         two_pass: None for one pass on the whole image; else the keyword arguments of
             :func:`s3k.two_pass.train_two_pass` besides the configuration (``coarse_size``, ``coarse_steps``,
             ``coarse_rotation``, ``crop_size``): a coarse pass on the whole image resized, a refining pass on
@@ -194,6 +201,7 @@ class RunSpec:
     cfg: TrainConfig
     eval_train: bool = False
     two_pass: dict[str, Any] | None = None
+    label_choice: str = "random"
 
     def estimated_cpu_s(self) -> float:
         c = self.cfg
@@ -226,6 +234,8 @@ class Options:
             ``size`` px for ``coarse_steps`` (None: ``steps``) with rotations up to ``coarse_rotation``
             degrees (None: the configuration's), the refining pass ``crop_size`` px crops (None: the
             scale's).
+        label_choice: how runs choose their labelled frames from the pool: "random" (stratified) or
+            "coverage" (the labelling app's pose-coverage order over the pool's true poses).
         command: the command line of the sweep, recorded in each run's result.
         device, threads, progress: how runs execute (they do not change a run's result).
         workers: rendering processes (None: one per CPU).
@@ -251,6 +261,7 @@ class Options:
     coarse_steps: int | None = None
     coarse_rotation: float | None = None
     crop_size: int | None = None
+    label_choice: str = "random"
     command: str | None = None
     device: str = "cpu"
     threads: int = 0
@@ -314,6 +325,9 @@ def plan(opts: Options) -> list[RunSpec]:
     size = opts.size or scale.size
     steps = opts.steps or scale.steps
     test = opts.test or scale.test
+    if opts.label_choice not in LABEL_CHOICES:
+        raise UserError(f"--label-choice: unknown {opts.label_choice!r}",
+                        hint=f"choose from {', '.join(LABEL_CHOICES)}")
     two_pass = None
     if opts.two_pass:
         two_pass = {"coarse_size": size, "coarse_steps": opts.coarse_steps or steps,
@@ -338,7 +352,10 @@ def plan(opts: Options) -> list[RunSpec]:
                 raise UserError("--set image_size does not apply to two-pass runs",
                                 hint="set the coarse pass's size with --size and the crops' with --crop-size")
             p = dict(params, labelled=L, unlabelled=U, seed=s, method="s3k" if U > 0 else "no_unsup")
-            runs.append(RunSpec(exp, f"{name}-s{s}", p, pool, L, U, s, cfg, eval_train, two_pass))
+            if opts.label_choice != "random":
+                p["labels"] = opts.label_choice
+            runs.append(RunSpec(exp, f"{name}-s{s}", p, pool, L, U, s, cfg, eval_train, two_pass,
+                                opts.label_choice))
 
     if exp == "label-efficiency":
         pool = PoolSpec(EXPERIMENT_SCENES[exp], size, pool_l, pool_u, test, opts.data_seed)

@@ -361,7 +361,7 @@ def readme(summary: dict[str, Any]) -> str:
                      "revision.")
     if lines[-1] != "":
         lines.append("")
-    keys = [k for k in ("mode", "instances", "alpha", "labelled", "unlabelled", "method")
+    keys = [k for k in ("mode", "instances", "alpha", "labelled", "labels", "unlabelled", "method")
             if any(k in p["params"] for p in summary["points"])]
     splits = ["test"] + (["train"] if any("train" in p for p in summary["points"]) else [])
     columns = (("rms_px", "rms px"), ("rms_mm_2d", "per-view mm"), ("median_mm", "median 3D mm"),

@@ -95,6 +95,10 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
         result = json.loads(result_path.read_text())
         _check_same(result["config"], spec.cfg, result_path, "finished")
         _check_same_passes(result.get("two_pass"), spec.two_pass, result_path)
+        chosen = result.get("data", {}).get("label_choice", "random")
+        if chosen != spec.label_choice:
+            raise SettingsChanged(f"{result_path}: finished with labelled frames chosen by {chosen}, "
+                                  f"{spec.label_choice} now", hint="use another --out")
         return result
     run_dir.mkdir(parents=True, exist_ok=True)
     with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
@@ -127,9 +131,10 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
     t0 = time.perf_counter()
     pool_dir, _ = ensure_pool(data_dir, spec.pool, opts.workers, opts.progress, log)
     pool = Dataset.open(pool_dir, cache="none")
-    frames = select_frames(pool, spec.labelled, spec.unlabelled, spec.seed, spec.pool.seed)
+    frames = select_frames(pool, spec.labelled, spec.unlabelled, spec.seed, spec.pool.seed, spec.label_choice)
     views = data_dir / "views" / spec.pool.name
-    view = make_view(pool, views / f"L{spec.labelled}-s{spec.seed}-U{spec.unlabelled}",
+    chosen = "" if spec.label_choice == "random" else f"-{spec.label_choice}"
+    view = make_view(pool, views / f"L{spec.labelled}{chosen}-s{spec.seed}-U{spec.unlabelled}",
                      {k: v for k, v in frames.items() if len(v)},
                      {"labelled": spec.labelled, "unlabelled": spec.unlabelled, "seed": spec.seed})
     t_data = time.perf_counter() - t0
@@ -165,7 +170,7 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
         "status": status, "steps": step, "image_size": metrics["test"]["image_size"],
         "scale": opts.scale,
         "data": {"pool": spec.pool.name, "pool_spec": dataclasses.asdict(spec.pool),
-                 "view": os.path.relpath(view, exp_dir),
+                 "view": os.path.relpath(view, exp_dir), "label_choice": spec.label_choice,
                  "frames": {k: len(v) for k, v in frames.items()}},
         "config": spec.cfg.to_dict(), "two_pass": spec.two_pass, "metrics": metrics,
         "wall_time_s": {"data": t_data, "train": t_train, "evaluate": t_eval,

@@ -19,7 +19,7 @@ import numpy as np
 
 from s3k.data import Dataset, DatasetWriter
 from s3k.errors import UserError
-from s3k.experiments.grid import PoolSpec
+from s3k.experiments.grid import LABEL_CHOICES, PoolSpec
 from s3k.fileio import file_lock
 
 #: frames.csv columns that group frames for a stratified pick, in order of preference.
@@ -87,27 +87,57 @@ def stratified_pick(ids: np.ndarray, groups: np.ndarray | None, n: int,
 
 
 def select_frames(pool: Dataset, labelled: int, unlabelled: int, seed: int,
-                  data_seed: int = 0) -> dict[str, np.ndarray]:
+                  data_seed: int = 0, choice: str = "random") -> dict[str, np.ndarray]:
     """The frames of one run: ``labelled`` chosen by run ``seed``, ``unlabelled`` fixed, every test frame.
 
     Both choices are stratified over distractor segments / object instances (the first of
     :data:`GROUP_COLUMNS` the pool has), so "full" mode keeps labels spread over the timeline and every
-    training instance keeps its share.
+    training instance keeps its share. With ``choice="coverage"`` the labelled frames are the pool's in the
+    labelling app's pose-coverage order instead (:func:`coverage_pick`).
 
     Returns:
         ``{"labelled": (L,), "unlabelled": (U,), "test": (T,)}`` frame ids (the pool's order for test).
     """
     group = next((c for c in GROUP_COLUMNS if c in pool.frame_columns), None)
     out = {}
+    if choice not in LABEL_CHOICES:
+        raise ValueError(f"label choice: unknown {choice!r} ({', '.join(LABEL_CHOICES)})")
     for split, n, rng in (("labelled", labelled, np.random.default_rng([data_seed, seed, 1])),
                           ("unlabelled", unlabelled, np.random.default_rng([data_seed, 2]))):
         ids = pool.frames(split)
         if n > len(ids):
             raise ValueError(f"{pool.path}: run needs {n} {split} frames, the dataset has {len(ids)}")
+        if split == "labelled" and choice == "coverage":
+            out[split] = coverage_pick(pool, ids, n, rng)
+            continue
         groups = None if group is None else pool.column(group, ids)
         out[split] = stratified_pick(ids, groups, n, rng)
     out["test"] = pool.frames("test")
     return out
+
+
+def coverage_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` of ``ids`` as a labeller following the labelling app's *poses not yet labelled* ranking picks
+    them (:func:`s3k.label.suggest.coverage_order`): a first frame drawn by ``rng``, then each frame the
+    farthest in pose from those already picked. The poses are the pool's true 3D keypoints, standing for a
+    run that places the object well; the picks of a larger ``n`` contain those of a smaller one. Sorted.
+
+    Raises:
+        ValueError: the pool has no 3D points for these frames.
+    """
+    from s3k.label.suggest import coverage_order
+
+    ids = np.asarray(ids, dtype=np.int64)
+    points = pool.points3d(ids)
+    if points is None:
+        raise ValueError(f"{pool.path}: no 3D points, which the coverage choice of labelled frames needs")
+    X = np.where(points[1][..., None], points[0], np.nan)
+    if n <= 0:
+        return np.zeros(0, np.int64)
+    first = int(rng.integers(len(ids)))
+    rest = coverage_order({int(f): x for f, x in zip(ids, X, strict=True) if f != ids[first]}, [X[first]],
+                          limit=n - 1)
+    return np.sort(np.asarray([ids[first]] + [f for f, _ in rest[: n - 1]], dtype=np.int64))
 
 
 def write_frames(dataset: Dataset, out: Path, splits: Mapping[int, str], chunk: int = 64,
