@@ -12,6 +12,12 @@ whole image at ``--coarse-size`` px instead). The trainings run two at a time, o
 CPU time (user + system, from the operating system, so unaffected by other load on the machine) is its
 ``train_cpu_minutes``. Both are evaluated on the seed's test frames with ``s3k evaluate``.
 
+``--label-pool N`` renders ``N`` labelled frames instead of 10 and trains on 10 of them, chosen by
+``--label-choice``: ``random`` (drawn by the seed) or ``coverage`` (as a labeller following the labelling
+app's *poses not yet labelled* ranking would choose them, judged on the true poses:
+:func:`s3k.experiments.views.coverage_pick`); both see the same rendered frames, so the two choices compare
+side by side.
+
 ``--scene distractors`` renders the distractors scene in start mode (labels from the first distractor set
 only; test frames with distractor sets never seen in training).
 
@@ -49,17 +55,48 @@ TARGETS = {"median_mm_at_most": 3.0, "rms_mm_at_most": 6.0, "rms_mm_ratio_at_mos
            "pck_10mm_at_least": 0.95, "train_cpu_minutes_per_model_at_most": 60.0}
 
 
+#: Labelled frames every model trains on.
+LABELLED = 10
+
+
+def data_names(args, seed: int) -> list[str]:
+    """The folder names of the seed's rendered dataset and, with a larger ``--label-pool``, of the view of it
+    that the models train on (the last one is what they train on)."""
+    if args.label_pool == LABELLED:
+        return [f"{args.scene}{args.render}-seed{seed}"]
+    rendered = f"{args.scene}{args.render}-L{args.label_pool}"
+    return [f"{rendered}-seed{seed}", f"{rendered}-{args.label_choice}-seed{seed}"]
+
+
 def render(args, seed: int, work: Path) -> Path:
-    """The seed's dataset, rendered once."""
-    out = work / f"{args.scene}{args.render}-seed{seed}"
+    """The seed's dataset, rendered once (with ``--label-pool`` labelled frames: a view of it with the 10
+    chosen by ``--label-choice``)."""
+    pool = args.label_pool
+    names = data_names(args, seed)
+    out = work / names[0]
     if not (out / "s3k.json").is_file():
         from s3k.sim.generate import SimulateConfig, simulate
 
         extra = {"mode": "start"} if args.scene == "distractors" else {}
-        simulate(SimulateConfig(args.scene, size=args.render, labelled=10, unlabelled=args.unlabelled,
+        simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
                                 test=args.test, seed=seed, **extra),
                  out, workers=args.parallel, progress=False, overwrite=True)
-    return out
+    if pool == LABELLED:
+        return out
+    return labelled_view(out, work / names[1], args.label_choice, seed)
+
+
+def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int) -> Path:
+    """A view of the rendered ``pool_dir`` (tables filtered, images linked) with 10 of its labelled frames,
+    chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
+    if (out / "s3k.json").is_file():
+        return out
+    from s3k.data import Dataset
+    from s3k.experiments.views import make_view, select_frames
+
+    pool = Dataset.open(pool_dir, cache="none")
+    frames = select_frames(pool, LABELLED, len(pool.frames("unlabelled")), seed, choice=choice)
+    return make_view(pool, out, frames, {"labelled": LABELLED, "label_choice": choice, "seed": seed})
 
 
 def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
@@ -68,8 +105,7 @@ def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
         run = source / f"labels_only-seed{s}"
         if not finished(run, args.passes):
             raise SystemExit(f"{run}: no finished labels-only run to reuse (--labels-only-from)")
-        for name in (f"{args.scene}{args.render}-seed{s}", run.name, run.name + "-cpu.json",
-                     run.name + "-test.json"):
+        for name in (*data_names(args, s), run.name, run.name + "-cpu.json", run.name + "-test.json"):
             if (source / name).exists() and not (work / name).exists():
                 (work / name).symlink_to((source / name).resolve())
 
@@ -188,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
     p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
+    p.add_argument("--label-pool", type=int, default=LABELLED, metavar="N",
+                   help=f"labelled frames rendered, of which {LABELLED} are trained on (default {LABELLED})")
+    p.add_argument("--label-choice", choices=("random", "coverage"), default="random",
+                   help="how the 10 are chosen from a larger --label-pool: random (default) or coverage")
     p.add_argument("--passes", type=int, choices=(1, 2), default=2, help="two passes (default) or one")
     p.add_argument("--coarse-size", type=int, default=96, help="coarse (or only) pass size (default 96)")
     p.add_argument("--crop-size", type=int, default=128, help="refining pass crop size (default 128)")
@@ -203,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="text kept in summary.json, e.g. the revision the runs were trained at when the "
                         "summary is written again from finished runs (left out of the recorded command)")
     args = p.parse_args(argv)
+    if args.label_pool < LABELLED:
+        p.error(f"--label-pool: at least {LABELLED}, got {args.label_pool}")
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     work = Path(args.work or ROOT / "runs" / f"accuracy-{args.scene}")
     results = Path(args.results or ROOT / "docs" / "results" / "accuracy"
@@ -220,8 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     run_jobs(jobs, args.parallel)
     metrics = {key: evaluate(run, data[key[0]]) for key, run in runs.items()}
     cpu = {key: _read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}
-    scale = (f"{args.scene} rendered at {args.render} px, 10 labelled + {args.unlabelled} unlabelled + "
-             f"{args.test} test frames; " + (
+    chosen = "" if args.label_pool == LABELLED else \
+        f" ({args.label_choice} choice of {args.label_pool} rendered)"
+    scale = (f"{args.scene} rendered at {args.render} px, {LABELLED} labelled{chosen} + {args.unlabelled} "
+             f"unlabelled + {args.test} test frames; " + (
                  f"two passes: coarse {args.coarse_size} px, {args.coarse_steps or args.steps} steps; crops "
                  f"{args.crop_size} px, {args.steps} steps" if args.passes == 2
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")

@@ -16,7 +16,7 @@ from benchmarks.accuracy import reuse_labels_only  # noqa: E402
 
 
 def test_labels_only_runs_are_linked_from_an_earlier_working_folder(tmp_path):
-    args = SimpleNamespace(scene="box", render=384, passes=2)
+    args = SimpleNamespace(scene="box", render=384, passes=2, label_pool=10, label_choice="random")
     old, new = tmp_path / "old", tmp_path / "new"
     for s in (0, 1):
         (old / f"box384-seed{s}").mkdir(parents=True)
@@ -82,3 +82,25 @@ def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monke
     assert accuracy.evaluate(run, tmp_path / "data")["median_mm"] == 2.0 and calls == [run]
     assert accuracy.evaluate(run, tmp_path / "data") == {"median_mm": 2.0, "readout": accuracy.READOUT}
     assert calls == [run]  # the new evaluation is the cache now
+
+
+def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
+    from synthetic_rig import make_dataset
+
+    from benchmarks.accuracy import data_names, labelled_view
+    from s3k.data import Dataset
+    from s3k.experiments.views import select_frames
+
+    args = SimpleNamespace(scene="box", render=384, label_pool=30, label_choice="coverage")
+    assert data_names(args, 2) == ["box384-L30-seed2", "box384-L30-coverage-seed2"]
+    assert data_names(SimpleNamespace(scene="box", render=384, label_pool=10), 2) == ["box384-seed2"]
+    pool_dir = make_dataset(tmp_path / "pool", size=16, labelled=14, unlabelled=5, test=3)
+    pool = Dataset.open(pool_dir, cache="none")
+    views = {}
+    for choice in ("random", "coverage"):
+        view = Dataset.open(labelled_view(pool_dir, tmp_path / choice, choice, seed=1), cache="none")
+        views[choice] = view.frames("labelled").tolist()
+        assert views[choice] == select_frames(pool, 10, 5, seed=1, choice=choice)["labelled"].tolist()
+        assert view.frames("unlabelled").tolist() == pool.frames("unlabelled").tolist()
+        assert view.frames("test").tolist() == pool.frames("test").tolist()
+    assert views["random"] != views["coverage"]
