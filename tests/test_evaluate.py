@@ -273,6 +273,11 @@ def test_demo_quick(tmp_path, capsys):
         assert summary[name]["rms_px"] is not None and summary[name]["median_mm"] is not None
     assert (tmp_path / "demo" / "report" / "comparison.png").is_file()
     assert (tmp_path / "demo" / "report" / "s3k" / "metrics.json").is_file()
+    # wide rotations for the coarse pass that finds the box, narrow ones for the refining pass
+    for model in ("s3k", "baseline"):
+        for part, degrees in (("coarse", 180.0), ("fine", 15.0)):
+            cfg = json.loads((tmp_path / "demo" / model / part / "config.json").read_text())["config"]
+            assert cfg["rotation_deg"] == degrees
 
 
 def test_pck_counts_misses_and_failed_triangulations():
