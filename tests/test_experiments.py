@@ -551,7 +551,7 @@ def test_two_pass_sweep_records_its_passes_and_crop_pixels(tmp_path, capsys):
     capsys.readouterr()
     # the same folder does not take one-pass runs
     assert cli_main(argv[:9]) == 1
-    assert "finished with other passes" in capsys.readouterr().err
+    assert "finished with two passes" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------ labelled frames by pose
@@ -594,6 +594,6 @@ def test_plan_and_runs_keep_the_label_choice(tmp_path):
     (run_dir / "result.json").write_text(json.dumps({"config": spec.cfg.to_dict(), "two_pass": None,
                                                      "data": {"label_choice": "random"}}))
     coverage = ex.plan(toy_options("label-efficiency", tmp_path, label_choice="coverage"))[0]
-    with pytest.raises(UserError, match="chosen by random, coverage now"):
+    with pytest.raises(UserError, match="chosen by random, one pass and labelled frames chosen by coverage"):
         run_one(coverage, tmp_path / "label-efficiency", tmp_path / "data", toy_options("label-efficiency",
                                                                                           tmp_path))

@@ -59,14 +59,18 @@ def _check_same(saved: dict[str, Any], cfg: TrainConfig, where: Path, what: str)
                               hint="use another --out")
 
 
-def _check_same_passes(saved: dict[str, Any] | None, now: dict[str, Any] | None, where: Path) -> None:
+def _check_same_run(result: dict[str, Any], spec: RunSpec, where: Path) -> None:
+    """Refuse a finished run made with other passes or another choice of labelled frames than ``spec``."""
+    saved = result.get("two_pass"), result.get("data", {}).get("label_choice", "random")
+    now = spec.two_pass, spec.label_choice
     if saved != now:
-        raise SettingsChanged(f"{where}: finished with other passes ({_passes(saved)} there, {_passes(now)} "
-                              "now)", hint="use another --out")
+        raise SettingsChanged(f"{where}: finished with {_describe(*saved)}, {_describe(*now)} now",
+                              hint="use another --out")
 
 
-def _passes(two_pass: dict[str, Any] | None) -> str:
-    return "one pass" if two_pass is None else "two passes " + json.dumps(two_pass, sort_keys=True)
+def _describe(two_pass: dict[str, Any] | None, label_choice: str) -> str:
+    passes = "one pass" if two_pass is None else "two passes " + json.dumps(two_pass, sort_keys=True)
+    return f"{passes} and labelled frames chosen by {label_choice}"
 
 
 def checkpoint_step(run_dir: Path) -> int:
@@ -94,11 +98,7 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
     if result_path.is_file():
         result = json.loads(result_path.read_text())
         _check_same(result["config"], spec.cfg, result_path, "finished")
-        _check_same_passes(result.get("two_pass"), spec.two_pass, result_path)
-        chosen = result.get("data", {}).get("label_choice", "random")
-        if chosen != spec.label_choice:
-            raise SettingsChanged(f"{result_path}: finished with labelled frames chosen by {chosen}, "
-                                  f"{spec.label_choice} now", hint="use another --out")
+        _check_same_run(result, spec, result_path)
         return result
     run_dir.mkdir(parents=True, exist_ok=True)
     with file_lock(run_dir / LOCK_FILE, blocking=False) as mine:
