@@ -13,10 +13,10 @@ CPU time (user + system, from the operating system, so unaffected by other load 
 ``train_cpu_minutes``. Both are evaluated on the seed's test frames with ``s3k evaluate``.
 
 ``--label-pool N`` renders ``N`` labelled frames instead of 10 and trains on 10 of them, chosen by
-``--label-choice``: ``random`` (drawn by the seed) or ``coverage`` (as a labeller following the labelling
-app's *poses not yet labelled* ranking would choose them, judged on the true poses:
-:func:`s3k.experiments.views.coverage_pick`); both see the same rendered frames, so the two choices compare
-side by side.
+``--label-choice``: ``random`` (drawn by the seed), ``coverage`` or ``representative`` (as a labeller
+following the labelling app's *poses not yet labelled, farthest first* or *poses in proportion* ranking
+would choose them, judged on the true poses: :func:`s3k.experiments.views.pose_pick`); all see the same
+rendered frames, so the choices compare side by side.
 
 ``--scene distractors`` renders the distractors scene in start mode (labels from the first distractor set
 only; test frames with distractor sets never seen in training).
@@ -47,6 +47,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info, without_notes  # noqa: E402
+from s3k.experiments.grid import LABEL_CHOICES  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
@@ -226,8 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
     p.add_argument("--label-pool", type=int, default=LABELLED, metavar="N",
                    help=f"labelled frames rendered, of which {LABELLED} are trained on (default {LABELLED})")
-    p.add_argument("--label-choice", choices=("random", "coverage"), default="random",
-                   help="how the 10 are chosen from a larger --label-pool: random (default) or coverage")
+    p.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
+                   help="how the 10 are chosen from a larger --label-pool: random (default), coverage or "
+                        "representative")
     p.add_argument("--passes", type=int, choices=(1, 2), default=2, help="two passes (default) or one")
     p.add_argument("--coarse-size", type=int, default=96, help="coarse (or only) pass size (default 96)")
     p.add_argument("--crop-size", type=int, default=128, help="refining pass crop size (default 128)")

@@ -97,7 +97,7 @@ def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
     pool_dir = make_dataset(tmp_path / "pool", size=16, labelled=14, unlabelled=5, test=3)
     pool = Dataset.open(pool_dir, cache="none")
     views = {}
-    for choice in ("random", "coverage"):
+    for choice in ("random", "coverage", "representative"):
         view = Dataset.open(labelled_view(pool_dir, tmp_path / choice, choice, seed=1), cache="none")
         views[choice] = view.frames("labelled").tolist()
         assert views[choice] == select_frames(pool, 10, 5, seed=1, choice=choice)["labelled"].tolist()

@@ -556,7 +556,7 @@ def test_two_pass_sweep_records_its_passes_and_crop_pixels(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------ labelled frames by pose
 def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tmp_path):
-    from s3k.experiments.views import coverage_pick
+    from s3k.experiments.views import pose_pick
     from s3k.label.suggest import pose_distances
 
     pool = Dataset.open(make_dataset(tmp_path / "pool", labelled=12, unlabelled=5, test=2), cache="none")
@@ -568,7 +568,7 @@ def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tm
     assert len(picked) == 4 and set(picked) <= set(ids.tolist())
     assert frames["unlabelled"].tolist() == select_frames(pool, 4, 2, seed=3)["unlabelled"].tolist()
     # the picks of a smaller count are among those of a larger one (same seed): labelled sets nest
-    small = coverage_pick(pool, ids, 2, np.random.default_rng([0, 3, 1]))
+    small = pose_pick(pool, ids, 2, np.random.default_rng([0, 3, 1]))
     assert set(small) <= set(picked)
     # greedy farthest-first: every pick is at least as far from the earlier picks as any frame left over
     # ends up from all picks, so no two picked poses are closer than the farthest frame left out
@@ -579,6 +579,20 @@ def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tm
     assert min(apart) >= max(left) - 1e-12
     with pytest.raises(ValueError, match="label choice"):
         select_frames(pool, 4, 2, seed=3, choice="nope")
+    with pytest.raises(ValueError, match="not a pose order"):
+        pose_pick(pool, ids, 2, np.random.default_rng(0), "random")
+
+
+def test_representative_choice_nests_and_starts_from_the_seeds_frame(tmp_path):
+    from s3k.experiments.views import pose_pick
+
+    pool = Dataset.open(make_dataset(tmp_path / "pool", labelled=12, unlabelled=5, test=2), cache="none")
+    ids = pool.frames("labelled")
+    picked = select_frames(pool, 4, 2, seed=3, choice="representative")["labelled"]
+    assert len(picked) == 4 and set(picked) <= set(ids.tolist())
+    small = pose_pick(pool, ids, 2, np.random.default_rng([0, 3, 1]), "representative")
+    first = ids[np.random.default_rng([0, 3, 1]).integers(len(ids))]
+    assert first in small and set(small) <= set(picked)
 
 
 def test_plan_and_runs_keep_the_label_choice(tmp_path):

@@ -421,9 +421,46 @@ def test_coverage_order_takes_unlabelled_poses_first_and_each_pose_once():
     assert rest[0][0] == frames[1] and dists == sorted(dists, reverse=True) and rest[-1][0] == 5
 
 
+def _clusters():
+    """Frames of three tight clusters of poses, of 6, 3 and 1 frames (the object turned by 0, 90 and 180
+    degrees about the vertical), and one frame with one keypoint."""
+    up = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.05, 0]])
+    quarter = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    side, other = up @ quarter.T, up @ quarter.T @ quarter.T
+    rng = np.random.default_rng(0)
+    poses = [up] * 6 + [side] * 3 + [other]
+    candidates = {f: p + rng.normal(0, 0.002, (3, 3)) for f, p in enumerate(poses)}
+    candidates[10] = np.array([[0.1, 0, 0], [np.nan] * 3, [np.nan] * 3])
+    return candidates, up, side
+
+
+def test_representative_order_takes_poses_in_proportion_where_coverage_takes_the_rarest():
+    from s3k.label.suggest import coverage_order, pose_distances, representative_order
+
+    candidates, up, side = _clusters()
+    order = representative_order(candidates, [])
+    frames = [f for f, _ in order]
+    cluster = {f: 0 if f < 6 else 1 if f < 9 else 2 for f in range(10)}
+    # the most frequent pose first, then the next most frequent, the single odd pose last of the three
+    assert [cluster[f] for f in frames[:3]] == [0, 1, 2]
+    assert frames[-1] == 10 and np.isnan(order[-1][1]) and np.isinf(order[0][1])
+    # each frame's distance is to the nearest frame before it
+    assert order[1][1] == pytest.approx(pose_distances(candidates[frames[1]][None], candidates[frames[0]])[0])
+    # the farthest-first order takes the single odd pose within its first two
+    far = [cluster.get(f) for f, _ in coverage_order(candidates, [])[:3]]
+    assert 2 in far[:2]
+    # with the frequent pose labelled, the next most frequent one leads
+    assert cluster[representative_order(candidates, [up])[0][0]] == 1
+    assert cluster[representative_order(candidates, [up, side])[0][0]] == 2
+    # a smaller sample of the poses to stand for gives the same leaders on poses this distinct; the rest
+    # follow the greedy part by what each would still add, no frame lost or repeated
+    small = representative_order(candidates, [], limit=2, sample=4)
+    assert [cluster[f] for f, _ in small[:2]] == [0, 1] and sorted(f for f, _ in small) == list(range(11))
+
+
 def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     from s3k.label.server import LabelApp
-    from s3k.label.suggest import coverage_order
+    from s3k.label.suggest import coverage_order, representative_order
 
     run = tiny_run(tmp_path / "run")
     client = TestClient(create_app(truth.path, run=run))
@@ -444,3 +481,7 @@ def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     assert [r["frame"] for r in got] == [f for f, _ in want][:3]
     for r, (_, d) in zip(got, want, strict=False):
         assert r["pose_mm"] == (None if not np.isfinite(d) else pytest.approx(d * 1000))
+    got = client.get("/api/ranking?by=representative&limit=3").json()
+    want = representative_order({f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()},
+                                poses, limit=3)
+    assert [r["frame"] for r in got] == [f for f, _ in want][:3]

@@ -235,7 +235,7 @@ def test_a_late_answer_for_an_earlier_frame_does_not_replace_the_frame_navigated
     assert not mask[0].any() and mask[1, 0, 0]  # the click went to frame 4
 
 
-def test_frames_to_label_by_pose_coverage(tmp_path, browser):
+def test_frames_to_label_by_pose_coverage_and_in_proportion(tmp_path, browser):
     from synthetic_rig import KEYPOINTS
     from tiny_detector import save_run
 
@@ -262,6 +262,13 @@ def test_frames_to_label_by_pose_coverage(tmp_path, browser):
             [r["frame"] for r in want]
         page.keyboard.press("n")  # the next frame of the list the page shows
         page.wait_for_function(f"document.body.dataset.frame === '{want[0]['frame']}'")
+        # the representative order, loaded when picked
+        rep = [r["frame"] for r in app.suggestions.coverage(app.dataset.frames("unlabelled"), [], 1000.0,
+                                                             order="representative")]
+        assert rep != [r["frame"] for r in want]
+        page.select_option("#rank-by", "representative")
+        page.wait_for_function("(want) => [...document.querySelectorAll('#ranking li')]"
+                               ".map((li) => +li.dataset.frame).join() === want", arg=",".join(map(str, rep)))
         assert errors == []
 
 

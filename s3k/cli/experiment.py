@@ -87,8 +87,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the refining pass's crop size in pixels (default: the scale's, 128 at small/full)")
     parser.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
                         help="how runs choose their labelled frames from the pool: random (stratified; "
-                             "default) or coverage (the labelling app's 'poses not yet labelled' order over "
-                             "the pool's true poses, from a first frame drawn by the seed)")
+                             "default), coverage or representative (the labelling app's 'poses not yet "
+                             "labelled, farthest first' or 'poses in proportion' order over the pool's true "
+                             "poses, from a first frame drawn by the seed)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")

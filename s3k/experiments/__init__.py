@@ -28,8 +28,9 @@ Two passes (``Options.two_pass``, ``--two-pass``): every run is trained coarse-t
 --two-pass`` trains it (:mod:`s3k.two_pass`), from pools rendered larger than the coarse pass's input; its
 run folder holds ``coarse/``, ``crops/`` and ``fine/``, and its pixel errors are in crop pixels.
 
-Labelled frames: drawn at random, stratified (below), or with ``--label-choice coverage`` as a labeller
-following the labelling app's *poses not yet labelled* ranking would pick them (over the pool's true poses).
+Labelled frames: drawn at random, stratified (below), or with ``--label-choice coverage`` or
+``representative`` as a labeller following one of the labelling app's pose rankings would pick them (over
+the pool's true poses).
 
 Seeds: run seed ``s`` trains with ``TrainConfig.seed = s`` on its own random choice of labelled frames from
 the pool (nested: the first 3 of a seed's 10); the unlabelled and test frames do not depend on the seed, so

@@ -32,9 +32,9 @@ EXPERIMENT_SCENES = {"label-efficiency": "box", "domain-shift": "distractors", "
                      "alpha": "box"}
 
 #: How a run's labelled frames are chosen from its pool: "random" (stratified over segments or instances,
-#: :func:`s3k.experiments.views.stratified_pick`) or "coverage" (the labelling app's pose-coverage order,
-#: :func:`s3k.experiments.views.coverage_pick`).
-LABEL_CHOICES = ("random", "coverage")
+#: :func:`s3k.experiments.views.stratified_pick`), "coverage" or "representative" (the labelling app's pose
+#: orders, :func:`s3k.experiments.views.pose_pick`).
+LABEL_CHOICES = ("random", "coverage", "representative")
 
 #: Files of the workspace layout (see the package documentation).
 RESULT_FILE = "result.json"
@@ -234,8 +234,8 @@ class Options:
             ``size`` px for ``coarse_steps`` (None: ``steps``) with rotations up to ``coarse_rotation``
             degrees (None: the configuration's), the refining pass ``crop_size`` px crops (None: the
             scale's).
-        label_choice: how runs choose their labelled frames from the pool: "random" (stratified) or
-            "coverage" (the labelling app's pose-coverage order over the pool's true poses).
+        label_choice: how runs choose their labelled frames from the pool: "random" (stratified),
+            "coverage" or "representative" (the labelling app's pose orders over the pool's true poses).
         command: the command line of the sweep, recorded in each run's result.
         device, threads, progress: how runs execute (they do not change a run's result).
         workers: rendering processes (None: one per CPU).

@@ -92,8 +92,8 @@ def select_frames(pool: Dataset, labelled: int, unlabelled: int, seed: int,
 
     Both choices are stratified over distractor segments / object instances (the first of
     :data:`GROUP_COLUMNS` the pool has), so "full" mode keeps labels spread over the timeline and every
-    training instance keeps its share. With ``choice="coverage"`` the labelled frames are the pool's in the
-    labelling app's pose-coverage order instead (:func:`coverage_pick`).
+    training instance keeps its share. With ``choice="coverage"`` or ``"representative"`` the labelled frames
+    are the pool's in that labelling app's pose order instead (:func:`pose_pick`).
 
     Returns:
         ``{"labelled": (L,), "unlabelled": (U,), "test": (T,)}`` frame ids (the pool's order for test).
@@ -107,8 +107,8 @@ def select_frames(pool: Dataset, labelled: int, unlabelled: int, seed: int,
         ids = pool.frames(split)
         if n > len(ids):
             raise ValueError(f"{pool.path}: run needs {n} {split} frames, the dataset has {len(ids)}")
-        if split == "labelled" and choice == "coverage":
-            out[split] = coverage_pick(pool, ids, n, rng)
+        if split == "labelled" and choice != "random":
+            out[split] = pose_pick(pool, ids, n, rng, choice)
             continue
         groups = None if group is None else pool.column(group, ids)
         out[split] = stratified_pick(ids, groups, n, rng)
@@ -116,26 +116,33 @@ def select_frames(pool: Dataset, labelled: int, unlabelled: int, seed: int,
     return out
 
 
-def coverage_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` of ``ids`` as a labeller following the labelling app's *poses not yet labelled* ranking picks
-    them (:func:`s3k.label.suggest.coverage_order`): a first frame drawn by ``rng``, then each frame the
-    farthest in pose from those already picked. The poses are the pool's true 3D keypoints, standing for a
-    run that places the object well; the picks of a larger ``n`` contain those of a smaller one. Sorted.
+def pose_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator,
+              choice: str = "coverage") -> np.ndarray:
+    """``n`` of ``ids`` as a labeller following one of the labelling app's pose rankings picks them: a first
+    frame drawn by ``rng``, then, with ``choice="coverage"`` (*poses not yet labelled, farthest first*,
+    :func:`s3k.label.suggest.coverage_order`), each frame the farthest in pose from those already picked, or
+    with ``"representative"`` (*poses in proportion*, :func:`s3k.label.suggest.representative_order`) the
+    frame that best stands for the poses not yet near a picked one. The poses are the pool's true 3D
+    keypoints, standing for a run that places the object well; the picks of a larger ``n`` contain those of
+    a smaller one. Sorted.
 
     Raises:
-        ValueError: the pool has no 3D points for these frames.
+        ValueError: the pool has no 3D points for these frames, or ``choice`` is not a pose order.
     """
-    from s3k.label.suggest import coverage_order
+    from s3k.label.suggest import coverage_order, representative_order
 
+    orders = {"coverage": coverage_order, "representative": representative_order}
+    if choice not in orders:
+        raise ValueError(f"label choice: {choice!r} is not a pose order ({', '.join(orders)})")
     ids = np.asarray(ids, dtype=np.int64)
     points = pool.points3d(ids)
     if points is None:
-        raise ValueError(f"{pool.path}: no 3D points, which the coverage choice of labelled frames needs")
+        raise ValueError(f"{pool.path}: no 3D points, which the {choice} choice of labelled frames needs")
     X = np.where(points[1][..., None], points[0], np.nan)
     if n <= 0:
         return np.zeros(0, np.int64)
     first = int(rng.integers(len(ids)))
-    rest = coverage_order({int(f): x for f, x in zip(ids, X, strict=True) if f != ids[first]}, [X[first]],
+    rest = orders[choice]({int(f): x for f, x in zip(ids, X, strict=True) if f != ids[first]}, [X[first]],
                           limit=n - 1)
     return np.sort(np.asarray([ids[first]] + [f for f, _ in rest[: n - 1]], dtype=np.int64))
 

@@ -13,8 +13,8 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   ``version`` is stale, 400 naming the field when an edit is invalid.
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
-  run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose
-  (:mod:`s3k.label.suggest`).
+  run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
+  ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
   :func:`s3k.label.propagate.propagate_labels`.
 
@@ -208,15 +208,16 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             return _error(404, "no run: start s3k label with --run RUN to rank frames")
         if split not in ("labelled", "unlabelled", "test", "all"):
             return _error(400, f"unknown split {split!r}")
-        if by not in ("doubt", "coverage"):
-            return _error(400, f"by: unknown ranking {by!r} (doubt or coverage)")
+        if by not in ("doubt", "coverage", "representative"):
+            return _error(400, f"by: unknown ranking {by!r} (doubt, coverage or representative)")
         ids = state.dataset.frames(None if split == "all" else split)
         limit = max(0, limit)
-        if by == "coverage":
+        if by in ("coverage", "representative"):
             from s3k.evaluate import mm_per_unit
 
             poses = state.labelled_poses(state.suggestions.keypoints)
-            return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit)[:limit]
+            return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
+                                              order=by)[:limit]
         return state.suggestions.ranking(ids)[:limit]
 
     @app.post("/api/propagate")

@@ -21,7 +21,9 @@ The coverage order (:func:`coverage_order`) ranks frames by how far the run's 3D
 labelled frame's pose: the RMS distance between the two frames' keypoints once both are centred on the
 keypoints they share (:func:`pose_distances`), so it measures orientation and shape, not where the object
 stands. It is greedy: each frame taken counts as labelled for the ones after it, so the first frames are as
-far from the labelled poses and from each other as possible.
+far from the labelled poses and from each other as possible. That favours the rarest poses, at the edges of
+what the object does; the representative order (:func:`representative_order`) weighs each pose by how many
+frames show it instead, so a few labels taken down it spread over the poses in proportion.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["DOUBT_INVALID", "Suggestions", "coverage_order", "pose_distances"]
+__all__ = ["DOUBT_INVALID", "Suggestions", "coverage_order", "pose_distances", "representative_order"]
 
 DOUBT_INVALID = 100.0
 
@@ -83,6 +85,57 @@ def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
     rest = np.flatnonzero(left)
     order += [(int(ids[i]), float(near[i])) for i in rest[np.argsort(-near[rest], kind="stable")]]
     order += [(int(f), float("nan")) for f in ids[~placed]]
+    return order
+
+
+#: At most this many frames stand for the poses to be covered in :func:`representative_order` (evenly spaced
+#: in frame order), so its cost grows linearly with the candidates.
+REPRESENTATIVE_SAMPLE = 500
+
+
+def representative_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
+                         limit: int | None = None, sample: int = REPRESENTATIVE_SAMPLE
+                         ) -> list[tuple[int, float]]:
+    """Frames of ``candidates`` (as for :func:`coverage_order`) in the greedy representative order: each next
+    frame is the one that most lowers the sum, over the candidates' poses, of the :func:`pose_distances` to
+    the nearest labelled (``covered``) or already taken pose. Unlike :func:`coverage_order`, which takes the
+    farthest pose first (the rarest, at the edges of what the object does), it weighs each pose by how many
+    frames show it: ten frames taken this way spread over the poses in proportion to how often each occurs,
+    and each stands for the frames around it. ``[(frame, distance)]`` with ``distance`` the frame's pose
+    distance to the nearest covered or earlier frame (``inf`` while nothing is covered); the first ``limit``
+    are taken greedily, the rest follow by what they would lower the sum; frames with fewer than two keypoints
+    placed come last, with NaN. At most ``sample`` frames, evenly spaced, stand for the poses."""
+    ids = np.asarray(sorted(candidates), dtype=np.int64)
+    if not len(ids):
+        return []
+    X = np.stack([np.asarray(candidates[int(f)], dtype=np.float64) for f in ids])
+    placed = np.flatnonzero(np.isfinite(X).all(-1).sum(-1) >= 2)
+    order: list[tuple[int, float]] = []
+    if len(placed):
+        demand = np.unique(np.linspace(0, len(placed) - 1, min(sample, len(placed))).round().astype(int))
+        D = np.stack([pose_distances(X[placed], X[placed[j]]) for j in demand], axis=1)  # (placed, demand)
+        finite = np.isfinite(D)
+        cap = float(D[finite].max()) if finite.any() else 1.0
+        D = np.where(finite, D, cap)  # a pose that cannot be compared counts as the farthest
+        need = np.full(len(demand), cap)  # each demand pose's distance to the nearest covered one
+        near = np.full(len(placed), np.inf)  # each candidate's distance to the nearest covered one
+        for ref in covered:
+            d = pose_distances(X[placed], ref)
+            near = np.where(np.isfinite(d), np.minimum(near, d), near)
+            need = np.minimum(need, np.where(np.isfinite(d[demand]), d[demand], cap))
+        left = np.ones(len(placed), dtype=bool)
+        for _ in range(len(placed) if limit is None else min(limit, len(placed))):
+            gain = np.maximum(need[None] - D, 0.0).sum(1)
+            i = int(np.flatnonzero(left)[np.argmax(gain[left])])  # the first of the best (ids are sorted)
+            order.append((int(ids[placed[i]]), float(near[i])))
+            left[i] = False
+            need = np.minimum(need, D[i])
+            d = pose_distances(X[placed], X[placed[i]])
+            near = np.where(np.isfinite(d), np.minimum(near, d), near)
+        rest = np.flatnonzero(left)
+        gain = np.maximum(need[None] - D[rest], 0.0).sum(1)
+        order += [(int(ids[placed[i]]), float(near[i])) for i in rest[np.argsort(-gain, kind="stable")]]
+    order += [(int(f), float("nan")) for f in np.delete(ids, placed)]
     return order
 
 
@@ -178,14 +231,16 @@ class Suggestions:
         return _json_ready(rows)
 
     def coverage(self, frame_ids, labelled: list[np.ndarray], mm_per_unit: float,
-                 limit: int | None = None) -> list[dict[str, Any]]:
-        """``frame_ids`` in the coverage order (:func:`coverage_order`) against the ``labelled`` poses
-        (``(K, 3)`` in world units, keypoints in the run's order): ``[{"frame", "score", "pose_mm"}]``, the
-        distance in millimetres as both (None: infinite or not placed)."""
+                 limit: int | None = None, order: str = "coverage") -> list[dict[str, Any]]:
+        """``frame_ids`` in a pose order against the ``labelled`` poses (``(K, 3)`` in world units, keypoints
+        in the run's order): ``order`` "coverage" (:func:`coverage_order`) or "representative"
+        (:func:`representative_order`). ``[{"frame", "score", "pose_mm"}]``, the distance in millimetres to
+        the nearest labelled or earlier pose as both (None: infinite or not placed)."""
+        orders = {"coverage": coverage_order, "representative": representative_order}
         preds = self.predict(frame_ids)
         candidates = {f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()}
         rows = [{"frame": f, "score": d * mm_per_unit, "pose_mm": d * mm_per_unit}
-                for f, d in coverage_order(candidates, labelled, limit)]
+                for f, d in orders[order](candidates, labelled, limit)]
         return _json_ready(rows)
 
 

@@ -354,7 +354,7 @@ async function loadRanking() {
   for (const row of r.body) {
     const li = document.createElement("li");
     li.dataset.frame = row.frame;
-    if (by === "coverage") {
+    if (by === "coverage" || by === "representative") {
       // greedy: each frame above counts as labelled, so labelling down the list covers the poses in turn
       li.textContent = `frame ${row.frame}: ${fixed(row.pose_mm, "mm")}`;
       li.title = "distance of the run's 3D keypoints from the nearest labelled pose (and from the frames above)";
