@@ -5,7 +5,9 @@ below half the true one: a collapse, whatever the confidence says), and the fram
 detected nearer another keypoint's true place than its own (swapped: a symmetric confusion). Within each
 pose, the error's constant part: each keypoint's mean error in the frame of the true keypoints (x from
 keypoint 0 to 1, y from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
-``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs.
+``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs. The
+poses on a side are split once more, ``by_edge``, by whether the edge from keypoint 0 to 1 is level or
+upright (on the box: standing on a long edge or on an end).
 
 Each RUN is read with its DATA (a two-pass run with its full-resolution dataset, or any run with the dataset
 it reads, e.g. a refining pass with its crops). Prints one JSON line and writes it to ``--out``.
@@ -42,6 +44,15 @@ def pose_classes(X: np.ndarray) -> np.ndarray:
     cos = n[:, 2] / np.linalg.norm(n, axis=-1)
     side = np.where(cos < -np.sqrt(0.5), "normal down", "on a side")
     return np.where(cos > np.sqrt(0.5), "normal up", side)
+
+
+def side_edges(X: np.ndarray) -> np.ndarray:
+    """``(B,)`` for poses on a side, which way the edge from keypoint 0 to 1 runs: "edge 0-1 level" (within
+    45 degrees of horizontal: on the box, standing on a long edge) or "edge 0-1 upright" (standing on an
+    end), from true points ``X (B, K >= 2, 3)``."""
+    x = X[:, 1] - X[:, 0]
+    level = np.abs(x[:, 2]) < np.sqrt(0.5) * np.linalg.norm(x, axis=-1)
+    return np.where(level, "edge 0-1 level", "edge 0-1 upright")
 
 
 def mean_pairwise(X: np.ndarray) -> np.ndarray:
@@ -113,6 +124,12 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
                                 **bias(pred[sel], truth[sel], mm)}
         out["by_pose"][name]["collapsed_frames"] = int((collapsed & sel).sum())
         out["by_pose"][name]["swapped_frames"] = int((swapped & sel).sum())
+    side, edges = classes == "on a side", side_edges(truth)
+    out["by_pose"]["on a side"]["by_edge"] = {
+        edge: {"frames": int((side & (edges == edge)).sum()),
+               **error_stats(err[side & (edges == edge)].ravel(), total),
+               "swapped_frames": int((swapped & side & (edges == edge)).sum())}
+        for edge in ("edge 0-1 level", "edge 0-1 upright")}
     out["collapsed"] = error_stats(err[collapsed].ravel(), total)
     out["not_collapsed"] = error_stats(err[~collapsed].ravel(), total)
     out["swapped"] = error_stats(err[swapped].ravel(), total)

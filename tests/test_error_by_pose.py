@@ -75,3 +75,18 @@ def test_swapped_frames_count_symmetric_confusions():
     assert out["swapped"]["n"] == 3 and out["swapped"]["median_mm"] == pytest.approx(100.0)
     assert out["neither"]["n"] == 3
     assert out["neither"]["median_mm"] == pytest.approx(1000 * np.sqrt(3) * 0.002)
+
+
+def test_poses_on_a_side_split_by_which_way_the_first_edge_runs():
+    """On a side, the edge from keypoint 0 to 1 level (a box on its long edge) or upright (on its end); a
+    swap there is counted in its own row."""
+    level = FLAT[:, [0, 2, 1]]  # in the x-z plane, edge 0-1 along x
+    upright = FLAT[:, [2, 1, 0]]  # in the z-y plane, edge 0-1 along z
+    truth = np.stack([level, level + 0.3, upright, FLAT])
+    assert pose_classes(truth).tolist() == ["on a side"] * 3 + ["normal up"]
+    pred = truth + 0.001
+    pred[1, [0, 1]] = truth[1, [1, 0]]  # the second level frame taken the wrong way round
+    edges = by_pose(pred, truth, mm=1000.0)["by_pose"]["on a side"]["by_edge"]
+    assert edges["edge 0-1 level"]["frames"] == 2 and edges["edge 0-1 level"]["swapped_frames"] == 1
+    assert edges["edge 0-1 upright"]["frames"] == 1 and edges["edge 0-1 upright"]["swapped_frames"] == 0
+    assert edges["edge 0-1 upright"]["median_mm"] == pytest.approx(1000 * np.sqrt(3) * 0.001)
