@@ -7,7 +7,8 @@ pose, the error's constant part: each keypoint's mean error in the frame of the 
 keypoint 0 to 1, y from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
 ``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs. The
 poses on a side are split once more, ``by_edge``, by whether the edge from keypoint 0 to 1 is level or
-upright (on the box: standing on a long edge or on an end).
+upright (on the box: standing on a long edge or on an end); ``labelled_poses`` counts the DATA's labelled
+frames the same way.
 
 Each RUN is read with its DATA (a two-pass run with its full-resolution dataset, or any run with the dataset
 it reads, e.g. a refining pass with its crops). Prints one JSON line and writes it to ``--out``.
@@ -162,6 +163,24 @@ def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarr
     return pred, np.where(mask[..., None], X, np.nan), mm_per_unit(ds.units)
 
 
+def pose_counts(X: np.ndarray) -> dict[str, int]:
+    """How many of the true poses ``X (B, K, 3)`` fall in each class, the poses on a side split by edge."""
+    classes, edges = pose_classes(X), side_edges(X)
+    out = {name: int((classes == name).sum()) for name in POSES[:2]}
+    out.update({f"on a side, {edge}": int(((classes == "on a side") & (edges == edge)).sum())
+                for edge in ("edge 0-1 level", "edge 0-1 upright")})
+    return out
+
+
+def labelled_poses(data: Path) -> dict[str, int] | None:
+    """:func:`pose_counts` of the labelled frames of the dataset ``data`` (None: no 3D points)."""
+    from s3k.data import Dataset
+
+    ds = Dataset.open(data, cache="none")
+    points = ds.points3d(ds.frames("labelled"))
+    return None if points is None else pose_counts(np.where(points[1][..., None], points[0], np.nan))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="run folders, each followed by its dataset")
@@ -177,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = {}
     for run, data in zip(args.pairs[::2], args.pairs[1::2]):
         pred, truth, mm = predictions(Path(run), Path(data), args.split)
-        runs[run] = {"data": data, **by_pose(pred, truth, mm)}
+        runs[run] = {"data": data, "labelled_poses": labelled_poses(Path(data)), **by_pose(pred, truth, mm)}
         a = runs[run]
         poses = "; ".join(f"{k} {v.get('median_mm', np.nan):.1f}/{v.get('rms_mm', np.nan):.1f} mm "
                           f"({v['frames']} frames)" for k, v in a["by_pose"].items())

@@ -90,3 +90,11 @@ def test_poses_on_a_side_split_by_which_way_the_first_edge_runs():
     assert edges["edge 0-1 level"]["frames"] == 2 and edges["edge 0-1 level"]["swapped_frames"] == 1
     assert edges["edge 0-1 upright"]["frames"] == 1 and edges["edge 0-1 upright"]["swapped_frames"] == 0
     assert edges["edge 0-1 upright"]["median_mm"] == pytest.approx(1000 * np.sqrt(3) * 0.001)
+
+
+def test_pose_counts_split_the_sides_by_edge():
+    from benchmarks.error_by_pose import pose_counts
+
+    truth = np.stack([FLAT, FLAT[::-1], FLAT[:, [0, 2, 1]], FLAT[:, [2, 1, 0]], FLAT[:, [2, 1, 0]]])
+    assert pose_counts(truth) == {"normal up": 1, "normal down": 1, "on a side, edge 0-1 level": 1,
+                                  "on a side, edge 0-1 upright": 2}
