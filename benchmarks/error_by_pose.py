@@ -36,6 +36,7 @@ from benchmarks.common import git_revision, without_notes, write_and_emit  # noq
 
 COLLAPSE_RATIO = 0.5
 POSES = ("normal up", "normal down", "on a side")  # the classes of pose_classes
+EDGES = ("edge 0-1 level", "edge 0-1 upright")  # the classes of side_edges
 
 
 def pose_classes(X: np.ndarray) -> np.ndarray:
@@ -53,7 +54,7 @@ def side_edges(X: np.ndarray) -> np.ndarray:
     end), from true points ``X (B, K >= 2, 3)``."""
     x = X[:, 1] - X[:, 0]
     level = np.abs(x[:, 2]) < np.sqrt(0.5) * np.linalg.norm(x, axis=-1)
-    return np.where(level, "edge 0-1 level", "edge 0-1 upright")
+    return np.where(level, *EDGES)
 
 
 def mean_pairwise(X: np.ndarray) -> np.ndarray:
@@ -130,7 +131,7 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
         edge: {"frames": int((side & (edges == edge)).sum()),
                **error_stats(err[side & (edges == edge)].ravel(), total),
                "swapped_frames": int((swapped & side & (edges == edge)).sum())}
-        for edge in ("edge 0-1 level", "edge 0-1 upright")}
+        for edge in EDGES}
     out["collapsed"] = error_stats(err[collapsed].ravel(), total)
     out["not_collapsed"] = error_stats(err[~collapsed].ravel(), total)
     out["swapped"] = error_stats(err[swapped].ravel(), total)
@@ -168,7 +169,7 @@ def pose_counts(X: np.ndarray) -> dict[str, int]:
     classes, edges = pose_classes(X), side_edges(X)
     out = {name: int((classes == name).sum()) for name in POSES[:2]}
     out.update({f"on a side, {edge}": int(((classes == "on a side") & (edges == edge)).sum())
-                for edge in ("edge 0-1 level", "edge 0-1 upright")})
+                for edge in EDGES})
     return out
 
 

@@ -129,11 +129,10 @@ def pose_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator,
     Raises:
         ValueError: the pool has no 3D points for these frames, or ``choice`` is not a pose order.
     """
-    from s3k.label.suggest import coverage_order, representative_order
+    from s3k.label.suggest import POSE_ORDERS
 
-    orders = {"coverage": coverage_order, "representative": representative_order}
-    if choice not in orders:
-        raise ValueError(f"label choice: {choice!r} is not a pose order ({', '.join(orders)})")
+    if choice not in POSE_ORDERS:
+        raise ValueError(f"label choice: {choice!r} is not a pose order ({', '.join(POSE_ORDERS)})")
     ids = np.asarray(ids, dtype=np.int64)
     points = pool.points3d(ids)
     if points is None:
@@ -142,8 +141,8 @@ def pose_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator,
     if n <= 0:
         return np.zeros(0, np.int64)
     first = int(rng.integers(len(ids)))
-    rest = orders[choice]({int(f): x for f, x in zip(ids, X, strict=True) if f != ids[first]}, [X[first]],
-                          limit=n - 1)
+    others = {int(f): x for f, x in zip(ids, X, strict=True) if f != ids[first]}
+    rest = POSE_ORDERS[choice](others, [X[first]], limit=n - 1)
     return np.sort(np.asarray([ids[first]] + [f for f, _ in rest[: n - 1]], dtype=np.int64))
 
 

@@ -36,7 +36,8 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["DOUBT_INVALID", "Suggestions", "coverage_order", "pose_distances", "representative_order"]
+__all__ = ["DOUBT_INVALID", "POSE_ORDERS", "Suggestions", "coverage_order", "pose_distances",
+           "representative_order"]
 
 DOUBT_INVALID = 100.0
 
@@ -139,6 +140,10 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
     return order
 
 
+#: The pose orders by name, as the app's ranking and the experiments' label choice name them.
+POSE_ORDERS = {"coverage": coverage_order, "representative": representative_order}
+
+
 class Suggestions:
     """Predictions of the run ``run_dir`` on the frames of the dataset ``data``, computed when first asked
     for and kept.
@@ -236,11 +241,10 @@ class Suggestions:
         in the run's order): ``order`` "coverage" (:func:`coverage_order`) or "representative"
         (:func:`representative_order`). ``[{"frame", "score", "pose_mm"}]``, the distance in millimetres to
         the nearest labelled or earlier pose as both (None: infinite or not placed)."""
-        orders = {"coverage": coverage_order, "representative": representative_order}
         preds = self.predict(frame_ids)
         candidates = {f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()}
         rows = [{"frame": f, "score": d * mm_per_unit, "pose_mm": d * mm_per_unit}
-                for f, d in orders[order](candidates, labelled, limit)]
+                for f, d in POSE_ORDERS[order](candidates, labelled, limit)]
         return _json_ready(rows)
 
 
