@@ -557,7 +557,7 @@ def test_two_pass_sweep_records_its_passes_and_crop_pixels(tmp_path, capsys):
 # ------------------------------------------------------------------------------------ labelled frames by pose
 def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tmp_path):
     from s3k.experiments.views import pose_pick
-    from s3k.label.suggest import pose_distances
+    from s3k.label.suggest import UP, pose_distances
 
     pool = Dataset.open(make_dataset(tmp_path / "pool", labelled=12, unlabelled=5, test=2), cache="none")
     ids = pool.frames("labelled")
@@ -573,9 +573,9 @@ def test_coverage_choice_picks_each_next_frame_farthest_from_the_picked_poses(tm
     # greedy farthest-first: every pick is at least as far from the earlier picks as any frame left over
     # ends up from all picks, so no two picked poses are closer than the farthest frame left out
     chosen = picked.tolist()
-    left = [min(pose_distances(poses[f][None], poses[g])[0] for g in chosen) for f in ids.tolist()
+    left = [min(pose_distances(poses[f][None], poses[g], UP)[0] for g in chosen) for f in ids.tolist()
             if f not in chosen]
-    apart = [pose_distances(poses[f][None], poses[g])[0] for f in chosen for g in chosen if f < g]
+    apart = [pose_distances(poses[f][None], poses[g], UP)[0] for f in chosen for g in chosen if f < g]
     assert min(apart) >= max(left) - 1e-12
     with pytest.raises(ValueError, match="label choice"):
         select_frames(pool, 4, 2, seed=3, choice="nope")

@@ -421,21 +421,52 @@ def test_coverage_order_takes_unlabelled_poses_first_and_each_pose_once():
     assert rest[0][0] == frames[1] and dists == sorted(dists, reverse=True) and rest[-1][0] == 5
 
 
+def _turn(axis: int, angle: float) -> np.ndarray:
+    """The rotation by ``angle`` about the world axis ``axis`` (0, 1, 2: x, y, z)."""
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [a for a in range(3) if a != axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
 def _clusters():
-    """Frames of three tight clusters of poses, of 6, 3 and 1 frames (the object turned by 0, 90 and 180
-    degrees about the vertical), and one frame with one keypoint."""
+    """Frames of three tight clusters of poses, of 6, 3 and 1 frames (the object flat, tipped 60 degrees one
+    way about y, a quarter turn the other way: the odd pose a little farther from the flat one than the
+    tipped one is), each frame at its own heading about the vertical, and one frame with one keypoint."""
     up = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.05, 0]])
-    quarter = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
-    side, other = up @ quarter.T, up @ quarter.T @ quarter.T
+    side, other = up @ _turn(1, np.pi / 3).T, up @ _turn(1, -np.pi / 2).T
     rng = np.random.default_rng(0)
     poses = [up] * 6 + [side] * 3 + [other]
-    candidates = {f: p + rng.normal(0, 0.002, (3, 3)) for f, p in enumerate(poses)}
+    candidates = {f: p @ _turn(2, rng.uniform(0, 2 * np.pi)).T + rng.normal(0, 0.002, (3, 3))
+                  for f, p in enumerate(poses)}
     candidates[10] = np.array([[0.1, 0, 0], [np.nan] * 3, [np.nan] * 3])
     return candidates, up, side
 
 
+def test_pose_distance_about_the_vertical_ignores_the_heading_only():
+    from s3k.label.suggest import pose_distances
+
+    rng = np.random.default_rng(1)
+    ref = rng.normal(0, 0.1, (5, 3))
+    headings = [0.3, 2.0, -2.9]
+    X = np.stack([ref @ _turn(2, a).T + rng.normal(0, 1, 3) for a in headings])
+    assert np.allclose(pose_distances(X, ref, up=(0, 0, 1)), 0, atol=1e-9)
+    assert np.allclose(pose_distances(X, ref, up=(0, 0, -2)), 0, atol=1e-9)  # either sense, any length
+    assert (pose_distances(X, ref) > 0.01).all()  # without up, every heading is a pose of its own
+    # a tilt is not forgiven: the distance is the least over every heading (here searched densely)
+    tilted = ref @ _turn(0, 0.5).T
+    a, b = tilted - tilted.mean(0), ref - ref.mean(0)
+    best = min(np.sqrt(((a @ _turn(2, t).T - b) ** 2).sum(-1).mean()) for t in np.linspace(0, 6.3, 20001))
+    assert pose_distances(tilted[None], ref, up=(0, 0, 1))[0] == pytest.approx(best, rel=1e-6)
+    # another vertical: the turn about it is forgiven, the turn about z no longer is
+    about_y = ref @ _turn(1, 1.1).T
+    assert pose_distances(about_y[None], ref, up=(0, 1, 0))[0] == pytest.approx(0, abs=1e-9)
+    assert pose_distances(about_y[None], ref, up=(0, 0, 1))[0] > 0.01
+
+
 def test_representative_order_takes_poses_in_proportion_where_coverage_takes_the_rarest():
-    from s3k.label.suggest import coverage_order, pose_distances, representative_order
+    from s3k.label.suggest import UP, coverage_order, pose_distances, representative_order
 
     candidates, up, side = _clusters()
     order = representative_order(candidates, [])
@@ -445,7 +476,8 @@ def test_representative_order_takes_poses_in_proportion_where_coverage_takes_the
     assert [cluster[f] for f in frames[:3]] == [0, 1, 2]
     assert frames[-1] == 10 and np.isnan(order[-1][1]) and np.isinf(order[0][1])
     # each frame's distance is to the nearest frame before it
-    assert order[1][1] == pytest.approx(pose_distances(candidates[frames[1]][None], candidates[frames[0]])[0])
+    assert order[1][1] == pytest.approx(pose_distances(candidates[frames[1]][None], candidates[frames[0]],
+                                                       up=UP)[0])
     # the farthest-first order takes the single odd pose within its first two
     far = [cluster.get(f) for f, _ in coverage_order(candidates, [])[:3]]
     assert 2 in far[:2]
@@ -454,7 +486,7 @@ def test_representative_order_takes_poses_in_proportion_where_coverage_takes_the
     assert cluster[representative_order(candidates, [up, side])[0][0]] == 2
     # a smaller sample of the poses to stand for gives the same leaders on poses this distinct; the rest
     # follow the greedy part by what each would still add, no frame lost or repeated
-    small = representative_order(candidates, [], limit=2, sample=4)
+    small = representative_order(candidates, [], limit=2, sample=7)
     assert [cluster[f] for f, _ in small[:2]] == [0, 1] and sorted(f for f, _ in small) == list(range(11))
 
 
@@ -485,3 +517,25 @@ def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     want = representative_order({f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()},
                                 poses, limit=3)
     assert [r["frame"] for r in got] == [f for f, _ in want][:3]
+    # an app told the table has no known normal compares poses at every heading
+    candidates = {f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()}
+    got = TestClient(create_app(truth.path, run=run, up=None)).get("/api/ranking?by=coverage&limit=3").json()
+    want = coverage_order(candidates, poses, limit=3, up=None)
+    assert want[:3] != coverage_order(candidates, poses, limit=3)[:3]  # so the check below tells them apart
+    assert [r["frame"] for r in got] == [f for f, _ in want][:3]
+    for r, (_, d) in zip(got, want, strict=False):
+        assert r["pose_mm"] == pytest.approx(d * 1000)
+    # against the labelled pose alone (no greedy part), forgiving the heading only ever brings a pose nearer
+    at_every_heading = dict(coverage_order(candidates, poses, limit=0, up=None))
+    blind = dict(coverage_order(candidates, poses, limit=0))
+    assert all(at_every_heading[f] >= blind[f] - 1e-12 for f in blind if np.isfinite(blind[f]))
+
+
+def test_label_up_option_takes_a_direction_or_none():
+    from s3k.cli.label import _up
+    from s3k.errors import UserError
+
+    assert _up("0,0,1") == (0.0, 0.0, 1.0) and _up(" 0, -1 ,0") == (0.0, -1.0, 0.0) and _up("None") is None
+    for bad in ("0,1", "a,b,c", "0,0,0", "0,0,nan"):
+        with pytest.raises(UserError, match="--up"):
+            _up(bad)

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from s3k.errors import UserError
@@ -17,7 +18,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Label keypoints in the browser: click a keypoint in two views, s3k triangulates it and shows it in "
         "every view. 's3k label propagate DATASET --frames A:B [--from F]' copies frame F's 3D labels to the "
         "still frames A..B instead.")
-    parser.usage = ("s3k label DATASET [--run RUN] [--port PORT] [--host HOST]\n"
+    parser.usage = ("s3k label DATASET [--run RUN] [--up X,Y,Z] [--port PORT] [--host HOST]\n"
                     "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT]")
     parser.add_argument("dataset", help="dataset folder (or 'propagate' followed by the dataset folder)")
     parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
@@ -29,6 +30,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "token in the printed URL")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
     parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
+    parser.add_argument("--up", default="0,0,1", metavar="X,Y,Z",
+                        help="the table's normal in the calibration's world frame: the pose rankings count a "
+                             "pose turned about it as the same pose (default: 0,0,1; 'none' counts every "
+                             "heading as a pose of its own)")
     group = parser.add_argument_group("propagate")
     group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
     group.add_argument("--from", dest="source", type=int, help="frame whose labels are copied (default: the "
@@ -48,6 +53,19 @@ def _frames(text: str | None) -> tuple[int, int]:
         raise UserError(f"--frames {text!r}: expected A:B with integer frame ids") from None
 
 
+def _up(text: str) -> tuple[float, float, float] | None:
+    """``--up``: three numbers, not all zero, or 'none'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"--up {text!r}: expected X,Y,Z (e.g. 0,0,1) or 'none'") from None
+    if not (all(map(math.isfinite, (x, y, z))) and math.hypot(x, y, z) > 0):
+        raise UserError(f"--up {text!r}: the direction must be finite and not zero")
+    return (x, y, z)
+
+
 def run(args: argparse.Namespace) -> int:
     propagate = args.dataset == "propagate" and not Path("propagate", "s3k.json").is_file()
     if propagate and args.target is None:
@@ -65,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.target is not None:
         raise UserError(f"unexpected argument {args.target!r}; did you mean 's3k label propagate DATASET'?")
+    up = _up(args.up)
     for name in ("frames", "source", "max_changed"):
         if getattr(args, name) is not None:
             raise UserError(f"--{name.replace('_', '-')} belongs to 's3k label propagate DATASET'")
@@ -73,5 +92,5 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise UserError(f"s3k label needs FastAPI and uvicorn ({exc})",
                         hint="pip install 'fastapi>=0.110' 'uvicorn>=0.29'") from None
-    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device)
+    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up)
     return 0

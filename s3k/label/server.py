@@ -65,10 +65,11 @@ class LabelApp:
     """The state behind the API: the dataset, its label store and the optional run's suggestions."""
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> None:
         from s3k.data import Dataset
 
         self.root = Path(data)
+        self.up = up  # the table's normal in world coordinates: the pose rankings ignore the turn about it
         self.dataset = Dataset.open(self.root)
         self.store = LabelStore.open(self.root, labeller=labeller)
         self.suggestions = None
@@ -124,8 +125,8 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
 
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
-               labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None
-               ) -> FastAPI:
+               labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
+               up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
     Args:
@@ -136,8 +137,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         device: where the run's detector runs.
         allowed_hosts: ``Host`` header values accepted (None: any), so that a web page elsewhere cannot
             reach a loopback server through a name that resolves to 127.0.0.1.
+        up: the table's normal in world coordinates; the pose rankings compare poses blind to the object's
+            turn about it (None: not blind to it).
     """
-    state = LabelApp(data, run, labeller, device)
+    state = LabelApp(data, run, labeller, device, up)
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
@@ -217,7 +220,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
             poses = state.labelled_poses(state.suggestions.keypoints)
             return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
-                                              order=by)[:limit]
+                                              order=by, up=state.up)[:limit]
         return state.suggestions.ranking(ids)[:limit]
 
     @app.post("/api/propagate")
@@ -238,7 +241,8 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
-          labeller: str | None = None, device: str = "cpu", announce=print) -> None:
+          labeller: str | None = None, device: str = "cpu", announce=print,
+          up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
     import socket
 
@@ -259,7 +263,7 @@ def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.
     loopback = host in LOOPBACK
     token = None if loopback else secrets.token_urlsafe(18)
     app = create_app(data, run, token, labeller, device,
-                     allowed_hosts=[*LOOPBACK, host] if loopback else None)
+                     allowed_hosts=[*LOOPBACK, host] if loopback else None, up=up)
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{port}/" + ("" if token is None else f"?token={token}")
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)

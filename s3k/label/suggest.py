@@ -19,9 +19,11 @@ Doubt cannot see an error all views share (a point detected consistently in the 
 object taken the wrong way round): labels of the poses the labelled frames do not show are what correct it.
 The coverage order (:func:`coverage_order`) ranks frames by how far the run's 3D keypoints are from every
 labelled frame's pose: the RMS distance between the two frames' keypoints once both are centred on the
-keypoints they share (:func:`pose_distances`), so it measures orientation and shape, not where the object
-stands. It is greedy: each frame taken counts as labelled for the ones after it, so the first frames are as
-far from the labelled poses and from each other as possible. That favours the rarest poses, at the edges of
+keypoints they share and turned about the vertical (the table's normal, world z in s3k's scenes) to fit best
+(:func:`pose_distances`), so it measures how the object rests, not where it stands or which way it faces: a
+box lying lid up is one pose whatever its heading, and each face it can rest on is a pose of its own. It is
+greedy: each frame taken counts as labelled for the ones after it, so the first frames are as far from the
+labelled poses and from each other as possible. That favours the rarest poses, at the edges of
 what the object does; the representative order (:func:`representative_order`) weighs each pose by how many
 frames show it instead, so a few labels taken down it spread over the poses in proportion.
 """
@@ -36,34 +38,60 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["DOUBT_INVALID", "POSE_ORDERS", "Suggestions", "coverage_order", "pose_distances",
+__all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "coverage_order", "pose_distances",
            "representative_order"]
 
 DOUBT_INVALID = 100.0
 
 
-def pose_distances(X: np.ndarray, ref: np.ndarray) -> np.ndarray:
+#: The world direction of the table's normal in s3k's own scenes (world z up), about which the pose orders
+#: ignore the object's turn by default.
+UP = (0.0, 0.0, 1.0)
+
+
+def pose_distances(X: np.ndarray, ref: np.ndarray, up=None) -> np.ndarray:
     """``(N,)`` RMS distance between the keypoints of each ``X (N, K, 3)`` and ``ref (K, 3)`` after centring
-    both on the keypoints finite in both (NaN: fewer than two shared)."""
+    both on the keypoints finite in both (NaN: fewer than two shared). With ``up`` (a world direction, e.g.
+    the table's normal), each ``X`` is first turned about ``up`` to fit ``ref`` best, so the distance ignores
+    the object's heading: a box lying lid up is the same pose whichever way it faces.
+
+    The best turn has a closed form: with the centred keypoints' components across ``up`` written as complex
+    numbers ``a_k``, ``b_k`` and along it ``a'_k``, ``b'_k``, the turn by ``theta`` leaves the squared
+    distance ``sum |a_k|^2 + |b_k|^2 + (a'_k - b'_k)^2 - 2 Re(e^{i theta} sum a_k conj(b_k))``, least where
+    the last term is ``2 |sum a_k conj(b_k)|``."""
     X = np.asarray(X, dtype=np.float64)
     ref = np.asarray(ref, dtype=np.float64)
     both = np.isfinite(X).all(-1) & np.isfinite(ref).all(-1)[None]  # (N, K)
     n = both.sum(-1)
     w = both[..., None].astype(np.float64)
     A, B = np.nan_to_num(X) * w, np.nan_to_num(ref)[None] * w
-    a = A - A.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]
-    b = B - B.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]
-    d2 = (((a - b) * w) ** 2).sum((1, 2)) / np.maximum(n, 1)
+    a = (A - A.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]) * w
+    b = (B - B.sum(1, keepdims=True) / np.maximum(n, 1)[:, None, None]) * w
+    if up is None:
+        d2 = ((a - b) ** 2).sum((1, 2))
+    else:
+        u = np.asarray(up, dtype=np.float64)
+        u = u / np.linalg.norm(u)
+        e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+        e1 /= np.linalg.norm(e1)
+        across = np.stack([e1, np.cross(u, e1)], axis=1)  # (3, 2): a basis of the plane across up
+        ca, cb = a @ across, b @ across  # (N, K, 2)
+        za, zb = a @ u, b @ u  # (N, K)
+        dot = (ca * cb).sum((1, 2))
+        cross = (ca[..., 0] * cb[..., 1] - ca[..., 1] * cb[..., 0]).sum(1)
+        d2 = (ca**2).sum((1, 2)) + (cb**2).sum((1, 2)) + ((za - zb) ** 2).sum(1) - 2 * np.hypot(dot, cross)
+    d2 = np.maximum(d2, 0.0) / np.maximum(n, 1)
     return np.where(n >= 2, np.sqrt(d2), np.nan)
 
 
 def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
-                   limit: int | None = None) -> list[tuple[int, float]]:
+                   limit: int | None = None, up=UP) -> list[tuple[int, float]]:
     """Frames of ``candidates`` (``{frame: X (K, 3)}``, NaN where not placed) in the greedy coverage order
     (module docstring), ``[(frame, distance)]``: each frame's :func:`pose_distances` to the nearest of
     ``covered`` (``(K, 3)`` poses: the labelled frames') and of the frames before it. The first ``limit``
     are picked greedily, the rest follow by that distance; frames with fewer than two keypoints placed come
-    last, with NaN. The distance is ``inf`` while nothing is covered."""
+    last, with NaN. The distance is ``inf`` while nothing is covered. Poses are compared blind to the turn
+    about ``up`` (None: not blind to it)."""
     ids = np.asarray(sorted(candidates), dtype=np.int64)
     if not len(ids):
         return []
@@ -71,7 +99,7 @@ def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
     placed = np.isfinite(X).all(-1).sum(-1) >= 2
     near = np.full(len(ids), np.inf)
     for ref in covered:
-        d = pose_distances(X, ref)
+        d = pose_distances(X, ref, up)
         near = np.where(np.isfinite(d), np.minimum(near, d), near)
     order: list[tuple[int, float]] = []
     left = placed.copy()
@@ -81,7 +109,7 @@ def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
         i = int(np.flatnonzero(left)[np.argmax(near[left])])  # the first of the farthest (ids are sorted)
         order.append((int(ids[i]), float(near[i])))
         left[i] = False
-        d = pose_distances(X, X[i])
+        d = pose_distances(X, X[i], up)
         near = np.where(np.isfinite(d), np.minimum(near, d), near)
     rest = np.flatnonzero(left)
     order += [(int(ids[i]), float(near[i])) for i in rest[np.argsort(-near[rest], kind="stable")]]
@@ -95,7 +123,7 @@ REPRESENTATIVE_SAMPLE = 500
 
 
 def representative_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
-                         limit: int | None = None, sample: int = REPRESENTATIVE_SAMPLE
+                         limit: int | None = None, up=UP, sample: int = REPRESENTATIVE_SAMPLE
                          ) -> list[tuple[int, float]]:
     """Frames of ``candidates`` (as for :func:`coverage_order`) in the greedy representative order: each next
     frame is the one that most lowers the sum, over the candidates' poses, of the :func:`pose_distances` to
@@ -105,7 +133,8 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
     and each stands for the frames around it. ``[(frame, distance)]`` with ``distance`` the frame's pose
     distance to the nearest covered or earlier frame (``inf`` while nothing is covered); the first ``limit``
     are taken greedily, the rest follow by what they would lower the sum; frames with fewer than two keypoints
-    placed come last, with NaN. At most ``sample`` frames, evenly spaced, stand for the poses."""
+    placed come last, with NaN. At most ``sample`` frames, evenly spaced, stand for the poses. Poses are
+    compared blind to the turn about ``up`` (None: not blind to it)."""
     ids = np.asarray(sorted(candidates), dtype=np.int64)
     if not len(ids):
         return []
@@ -114,14 +143,14 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
     order: list[tuple[int, float]] = []
     if len(placed):
         demand = np.unique(np.linspace(0, len(placed) - 1, min(sample, len(placed))).round().astype(int))
-        D = np.stack([pose_distances(X[placed], X[placed[j]]) for j in demand], axis=1)  # (placed, demand)
+        D = np.stack([pose_distances(X[placed], X[placed[j]], up) for j in demand], axis=1)  # placed x demand
         finite = np.isfinite(D)
         cap = float(D[finite].max()) if finite.any() else 1.0
         D = np.where(finite, D, cap)  # a pose that cannot be compared counts as the farthest
         need = np.full(len(demand), cap)  # each demand pose's distance to the nearest covered one
         near = np.full(len(placed), np.inf)  # each candidate's distance to the nearest covered one
         for ref in covered:
-            d = pose_distances(X[placed], ref)
+            d = pose_distances(X[placed], ref, up)
             near = np.where(np.isfinite(d), np.minimum(near, d), near)
             need = np.minimum(need, np.where(np.isfinite(d[demand]), d[demand], cap))
         left = np.ones(len(placed), dtype=bool)
@@ -131,7 +160,7 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
             order.append((int(ids[placed[i]]), float(near[i])))
             left[i] = False
             need = np.minimum(need, D[i])
-            d = pose_distances(X[placed], X[placed[i]])
+            d = pose_distances(X[placed], X[placed[i]], up)
             near = np.where(np.isfinite(d), np.minimum(near, d), near)
         rest = np.flatnonzero(left)
         gain = np.maximum(need[None] - D[rest], 0.0).sum(1)
@@ -236,15 +265,16 @@ class Suggestions:
         return _json_ready(rows)
 
     def coverage(self, frame_ids, labelled: list[np.ndarray], mm_per_unit: float,
-                 limit: int | None = None, order: str = "coverage") -> list[dict[str, Any]]:
+                 limit: int | None = None, order: str = "coverage", up=UP) -> list[dict[str, Any]]:
         """``frame_ids`` in a pose order against the ``labelled`` poses (``(K, 3)`` in world units, keypoints
         in the run's order): ``order`` "coverage" (:func:`coverage_order`) or "representative"
-        (:func:`representative_order`). ``[{"frame", "score", "pose_mm"}]``, the distance in millimetres to
-        the nearest labelled or earlier pose as both (None: infinite or not placed)."""
+        (:func:`representative_order`), blind to the turn about ``up`` (None: not blind to it).
+        ``[{"frame", "score", "pose_mm"}]``, the distance in millimetres to the nearest labelled or earlier
+        pose as both (None: infinite or not placed)."""
         preds = self.predict(frame_ids)
         candidates = {f: np.where(p["valid"][:, None], p["X"], np.nan) for f, p in preds.items()}
         rows = [{"frame": f, "score": d * mm_per_unit, "pose_mm": d * mm_per_unit}
-                for f, d in POSE_ORDERS[order](candidates, labelled, limit)]
+                for f, d in POSE_ORDERS[order](candidates, labelled, limit, up)]
         return _json_ready(rows)
 
 
