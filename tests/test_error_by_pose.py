@@ -1,4 +1,5 @@
-"""benchmarks/error_by_pose.py: the pose classes and the collapse count on a case with known answers."""
+"""benchmarks/error_by_pose.py: the pose classes and the collapse count on a case with known answers;
+benchmarks/label_poses.py: the labelled frames of each choice counted by pose."""
 
 from __future__ import annotations
 
@@ -98,3 +99,29 @@ def test_pose_counts_split_the_sides_by_edge():
     truth = np.stack([FLAT, FLAT[::-1], FLAT[:, [0, 2, 1]], FLAT[:, [2, 1, 0]], FLAT[:, [2, 1, 0]]])
     assert pose_counts(truth) == {"normal up": 1, "normal down": 1, "on a side, edge 0-1 level": 1,
                                   "on a side, edge 0-1 upright": 2}
+
+
+def test_label_poses_counts_each_choice_of_labels_by_pose(tmp_path, capsys):
+    import json
+
+    from synthetic_rig import make_dataset
+
+    from benchmarks.label_poses import main
+
+    pool = make_dataset(tmp_path / "pool", labelled=12, unlabelled=3, test=6)
+    out = tmp_path / "label-poses.json"
+    assert main([str(pool), "--labelled", "4", "--seed", "1", "--out", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    (report,) = got["pools"]
+    assert report["seed"] == 1
+    assert sum(report["pool_poses"].values()) == 12 and sum(report["test_poses"].values()) == 6
+    for choice in ("random", "coverage", "representative"):
+        labels = report["labels"][choice]
+        assert sum(labels.values()) == 4
+        # a pose is reported without a label exactly when the test frames show it and no label does
+        assert report["unlabelled_poses"][choice] == [p for p, n in report["test_poses"].items()
+                                                      if n and not labels[p]]
+        assert got["missing"][choice] == int(bool(report["unlabelled_poses"][choice]))
+    with pytest.raises(SystemExit, match="no s3k.json"):
+        main([str(tmp_path / "nowhere")])
