@@ -24,7 +24,7 @@ with warnings.catch_warnings():
 from s3k import cli
 from s3k.data import Dataset
 from s3k.label.server import create_app
-from s3k.label.store import HISTORY_FILE, LabelStore
+from s3k.label.store import HISTORY_FILE, Edit, LabelStore
 from s3k.model import UNetConfig
 from s3k.run import DetectorMeta
 
@@ -529,6 +529,14 @@ def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     at_every_heading = dict(coverage_order(candidates, poses, limit=0, up=None))
     blind = dict(coverage_order(candidates, poses, limit=0))
     assert all(at_every_heading[f] >= blind[f] - 1e-12 for f in blind if np.isfinite(blind[f]))
+    # labels changed on disk by another app are triangulated again, not taken from the last request
+    other = LabelApp(truth.path)  # keypoint 0 clicked where keypoint 1 is, in every view
+    other.store.save(0, [Edit(cam, KEYPOINTS[0], float(uv[c, 1, 0]), float(uv[c, 1, 1]))
+                         for c, cam in enumerate(CAMERAS)], version=1)
+    again = app.labelled_poses(list(KEYPOINTS))
+    assert np.allclose(again[0][0], truth.points[0][1], atol=1e-6)
+    assert np.allclose(again[0][1:], truth.points[0][1:], atol=1e-6)
+    assert np.allclose(app.labelled_poses(list(KEYPOINTS)[::-1])[0], again[0][::-1], atol=0)
 
 
 def test_label_up_option_takes_a_direction_or_none():

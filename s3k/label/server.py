@@ -72,6 +72,7 @@ class LabelApp:
         self.up = up  # the table's normal in world coordinates: the pose rankings ignore the turn about it
         self.dataset = Dataset.open(self.root)
         self.store = LabelStore.open(self.root, labeller=labeller)
+        self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.suggestions = None
         if run is not None:
             from s3k.label.suggest import Suggestions
@@ -101,8 +102,12 @@ class LabelApp:
             if counts[i] < 4:  # two keypoints in two views at least
                 continue
             uv, mask = s.arrays(int(f))
-            cams = self.dataset.calibration([int(f)], np.float64)[0]
-            X = triangulate_labels(cams, uv, mask)["X"][order]
+            key = uv.tobytes() + mask.tobytes()
+            known = self._label_points.get(int(f))
+            if known is None or known[0] != key:  # triangulated once per state of the frame's labels
+                cams = self.dataset.calibration([int(f)], np.float64)[0]
+                known = self._label_points[int(f)] = (key, triangulate_labels(cams, uv, mask)["X"])
+            X = known[1][order]
             if np.isfinite(X).all(-1).sum() >= 2:
                 poses.append(X)
         return poses
