@@ -30,7 +30,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "token in the printed URL")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
     parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
-    parser.add_argument("--up", default="0,0,1", metavar="X,Y,Z",
+    parser.add_argument("--up", default="0,0,1", metavar="X,Y,Z",  # s3k.label.suggest.UP
                         help="the table's normal in the calibration's world frame: the pose rankings count a "
                              "pose turned about it as the same pose (default: 0,0,1; 'none' counts every "
                              "heading as a pose of its own)")

@@ -40,6 +40,7 @@ from pydantic import BaseModel
 from s3k.errors import UserError
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
+from s3k.label.suggest import UP, Up
 
 __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
 
@@ -65,7 +66,7 @@ class LabelApp:
     """The state behind the API: the dataset, its label store and the optional run's suggestions."""
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
-                 device: str = "cpu", up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> None:
+                 device: str = "cpu", up: Up = UP) -> None:
         from s3k.data import Dataset
 
         self.root = Path(data)
@@ -131,7 +132,7 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
-               up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> FastAPI:
+               up: Up = UP) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
     Args:
@@ -247,7 +248,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce=print,
-          up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)) -> None:
+          up: Up = UP) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
     import socket
 

@@ -38,18 +38,21 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "coverage_order", "pose_distances",
+__all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "Up", "coverage_order", "pose_distances",
            "representative_order"]
 
 DOUBT_INVALID = 100.0
 
 
+#: A world direction (the table's normal), or None for none.
+Up = tuple[float, float, float] | None
+
 #: The world direction of the table's normal in s3k's own scenes (world z up), about which the pose orders
 #: ignore the object's turn by default.
-UP = (0.0, 0.0, 1.0)
+UP: Up = (0.0, 0.0, 1.0)
 
 
-def pose_distances(X: np.ndarray, ref: np.ndarray, up=None) -> np.ndarray:
+def pose_distances(X: np.ndarray, ref: np.ndarray, up: Up = None) -> np.ndarray:
     """``(N,)`` RMS distance between the keypoints of each ``X (N, K, 3)`` and ``ref (K, 3)`` after centring
     both on the keypoints finite in both (NaN: fewer than two shared). With ``up`` (a world direction, e.g.
     the table's normal), each ``X`` is first turned about ``up`` to fit ``ref`` best, so the distance ignores
@@ -85,7 +88,7 @@ def pose_distances(X: np.ndarray, ref: np.ndarray, up=None) -> np.ndarray:
 
 
 def coverage_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
-                   limit: int | None = None, up=UP) -> list[tuple[int, float]]:
+                   limit: int | None = None, up: Up = UP) -> list[tuple[int, float]]:
     """Frames of ``candidates`` (``{frame: X (K, 3)}``, NaN where not placed) in the greedy coverage order
     (module docstring), ``[(frame, distance)]``: each frame's :func:`pose_distances` to the nearest of
     ``covered`` (``(K, 3)`` poses: the labelled frames') and of the frames before it. The first ``limit``
@@ -123,7 +126,7 @@ REPRESENTATIVE_SAMPLE = 500
 
 
 def representative_order(candidates: dict[int, np.ndarray], covered: list[np.ndarray],
-                         limit: int | None = None, up=UP, sample: int = REPRESENTATIVE_SAMPLE
+                         limit: int | None = None, up: Up = UP, sample: int = REPRESENTATIVE_SAMPLE
                          ) -> list[tuple[int, float]]:
     """Frames of ``candidates`` (as for :func:`coverage_order`) in the greedy representative order: each next
     frame is the one that most lowers the sum, over the candidates' poses, of the :func:`pose_distances` to
@@ -265,7 +268,7 @@ class Suggestions:
         return _json_ready(rows)
 
     def coverage(self, frame_ids, labelled: list[np.ndarray], mm_per_unit: float,
-                 limit: int | None = None, order: str = "coverage", up=UP) -> list[dict[str, Any]]:
+                 limit: int | None = None, order: str = "coverage", up: Up = UP) -> list[dict[str, Any]]:
         """``frame_ids`` in a pose order against the ``labelled`` poses (``(K, 3)`` in world units, keypoints
         in the run's order): ``order`` "coverage" (:func:`coverage_order`) or "representative"
         (:func:`representative_order`), blind to the turn about ``up`` (None: not blind to it).
