@@ -490,6 +490,22 @@ def test_representative_order_takes_poses_in_proportion_where_coverage_takes_the
     assert [cluster[f] for f, _ in small[:2]] == [0, 1] and sorted(f for f, _ in small) == list(range(11))
 
 
+def test_representative_order_without_a_limit_stops_its_greedy_rounds_once_the_sample_is_covered(monkeypatch):
+    import s3k.label.suggest as suggest
+
+    candidates, _, _ = _clusters()
+    calls = []
+    real = suggest.pose_distances
+    monkeypatch.setattr(suggest, "pose_distances", lambda *a, **k: calls.append(1) or real(*a, **k))
+    order = suggest.representative_order(candidates, [], limit=None, sample=4)  # two flat, one of each other
+    cluster = {f: 0 if f < 6 else 1 if f < 9 else 2 for f in range(10)}
+    assert sorted(cluster[f] for f, _ in order[:3]) == [0, 1, 2]
+    assert sorted(f for f, _ in order) == list(range(11))
+    # one pass over the candidates per sampled pose, then at most one per sampled pose covered: not one per
+    # candidate frame, which made the whole order quadratic in the frames
+    assert len(calls) <= 2 * 4
+
+
 def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     from s3k.label.server import LabelApp
     from s3k.label.suggest import coverage_order, representative_order

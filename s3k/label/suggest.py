@@ -135,7 +135,8 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
     frames show it: ten frames taken this way spread over the poses in proportion to how often each occurs,
     and each stands for the frames around it. ``[(frame, distance)]`` with ``distance`` the frame's pose
     distance to the nearest covered or earlier frame (``inf`` while nothing is covered); the first ``limit``
-    are taken greedily, the rest follow by what they would lower the sum; frames with fewer than two keypoints
+    are taken greedily (all of them when ``limit`` is None, until no frame lowers the sum: at most ``sample``
+    rounds), the rest follow by what they would lower the sum; frames with fewer than two keypoints
     placed come last, with NaN. At most ``sample`` frames, evenly spaced, stand for the poses. Poses are
     compared blind to the turn about ``up`` (None: not blind to it)."""
     ids = np.asarray(sorted(candidates), dtype=np.int64)
@@ -159,6 +160,8 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
         left = np.ones(len(placed), dtype=bool)
         for _ in range(len(placed) if limit is None else min(limit, len(placed))):
             gain = np.maximum(need[None] - D, 0.0).sum(1)
+            if limit is None and not gain[left].any():
+                break  # every sampled pose is covered: the rest follow by gain (all zero), in frame order
             i = int(np.flatnonzero(left)[np.argmax(gain[left])])  # the first of the best (ids are sorted)
             order.append((int(ids[placed[i]]), float(near[i])))
             left[i] = False
