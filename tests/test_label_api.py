@@ -501,8 +501,8 @@ def test_representative_order_without_a_limit_stops_its_greedy_rounds_once_the_s
     cluster = {f: 0 if f < 6 else 1 if f < 9 else 2 for f in range(10)}
     assert sorted(cluster[f] for f, _ in order[:3]) == [0, 1, 2]
     assert sorted(f for f, _ in order) == list(range(11))
-    # one pass over the candidates per sampled pose, then at most one per sampled pose covered: not one per
-    # candidate frame, which made the whole order quadratic in the frames
+    # one pass over the candidates per sampled pose, then one per greedy round, which end once the sampled
+    # poses are covered: not one per candidate frame, which made the whole order quadratic in the frames
     assert len(calls) <= 2 * 4
 
 

@@ -30,10 +30,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "token in the printed URL")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
     parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
-    parser.add_argument("--up", default="0,0,1", metavar="X,Y,Z",  # s3k.label.suggest.UP
+    from s3k.label.suggest import UP
+
+    parser.add_argument("--up", default=",".join(f"{c:g}" for c in UP or ()) or "none", metavar="X,Y,Z",
                         help="the table's normal in the calibration's world frame: the pose rankings count a "
-                             "pose turned about it as the same pose (default: 0,0,1; 'none' counts every "
-                             "heading as a pose of its own)")
+                             "pose turned about it as the same pose (default: %(default)s; 'none' counts "
+                             "every heading as a pose of its own)")
     group = parser.add_argument_group("propagate")
     group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
     group.add_argument("--from", dest="source", type=int, help="frame whose labels are copied (default: the "

@@ -135,8 +135,8 @@ def representative_order(candidates: dict[int, np.ndarray], covered: list[np.nda
     frames show it: ten frames taken this way spread over the poses in proportion to how often each occurs,
     and each stands for the frames around it. ``[(frame, distance)]`` with ``distance`` the frame's pose
     distance to the nearest covered or earlier frame (``inf`` while nothing is covered); the first ``limit``
-    are taken greedily (all of them when ``limit`` is None, until no frame lowers the sum: at most ``sample``
-    rounds), the rest follow by what they would lower the sum; frames with fewer than two keypoints
+    are taken greedily (when ``limit`` is None, until every sampled pose is covered and no frame lowers the
+    sum), the rest follow by what they would lower the sum; frames with fewer than two keypoints
     placed come last, with NaN. At most ``sample`` frames, evenly spaced, stand for the poses. Poses are
     compared blind to the turn about ``up`` (None: not blind to it)."""
     ids = np.asarray(sorted(candidates), dtype=np.int64)
