@@ -50,7 +50,7 @@ from s3k.train.distributed import (
     wrap_model,
 )
 from s3k.train.sampling import draw_batch, prepare
-from s3k.train.validation import labelled_distances, labelled_layout, validate
+from s3k.train.validation import labelled_distances, layout_size, validate
 
 log = logging.getLogger("s3k.train")
 
@@ -217,11 +217,11 @@ def _open_data(data: Path, cfg: TrainConfig) -> _Data:
     return _Data(ds, source_size, labelled, unlabelled, val)
 
 
-def _reference_layout(data: Path, d: _Data, cfg: TrainConfig) -> torch.Tensor | None:
-    """The labelled keypoints' distances that ``--layout_tol`` holds pseudo-labels to (None when off)."""
+def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
+    """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout_tol``
+    holds pseudo-labels to them (None when off)."""
     if not (cfg.unsup and cfg.layout_tol > 0):
         return None
-    layout = labelled_distances(d.ds, d.labelled)
     if not bool(torch.isfinite(layout).any()):
         raise UserError(f"{data}: no labelled frame has two keypoints triangulated from its labels, so "
                         "--layout_tol has no layout to hold the pseudo-labels to",
@@ -479,7 +479,8 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     if info.main:
         run_folder.check_out(out, resume, overwrite)  # before the dataset is read: the cheap refusals first
     d = _open_data(data, cfg)
-    layout = _reference_layout(data, d, cfg)
+    distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
+    layout = _reference_layout(data, distances, cfg)
     meta = _meta(d, cfg)
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
@@ -495,7 +496,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
     unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
     val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
-    ref_layout = labelled_layout(d.ds, d.labelled)
+    ref_layout = layout_size(distances)
     size = meta.image_size
     log.info("dataset %s: %d labelled, %d unlabelled frames, %d cameras, keypoints %s; images %dx%d "
              "(stored %dx%d), heatmaps stride %d, sigma %.2f px; %s, %d parameters; %s on %s x%d; "
@@ -504,7 +505,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
              cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
              device, info.world, time.perf_counter() - t0, lab_store.preloaded)
-    log.info("labelled layout: mean pairwise keypoint distance %.4g %s", ref_layout, meta.units)
+    log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
 
     monitor = _Monitor(cfg, out, info, loop.step)
     aug = cfg.augmentation if cfg.augment else None

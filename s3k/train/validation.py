@@ -57,16 +57,19 @@ def _labelled_points(dataset: Any, frame_ids: np.ndarray, chunk: int = 256):
         yield X, valid & (labelled.sum(dim=1) >= 2)
 
 
+def layout_size(distances: torch.Tensor) -> float:
+    """Mean over the pairs of keypoints of their reference distance (:func:`labelled_distances`), NaN when
+    no pair has one: the size of the labelled layout that the collapse check compares against."""
+    K = distances.shape[0]
+    upper = distances[torch.triu(torch.ones(K, K, dtype=torch.bool), 1)]
+    upper = upper[torch.isfinite(upper)]
+    return float(upper.mean()) if len(upper) else float("nan")
+
+
 def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> float:
-    """Mean pairwise distance of the keypoints triangulated from the labels (the reference layout size)."""
-    total, count = 0.0, 0
-    for X, valid in _labelled_points(dataset, frame_ids, chunk):
-        d = mean_pairwise_distance(X, valid)
-        if math.isfinite(d):
-            n = int(valid.sum())
-            total += d * n
-            count += n
-    return total / count if count else float("nan")
+    """The size of the layout triangulated from the labels (:func:`layout_size` of
+    :func:`labelled_distances`)."""
+    return layout_size(labelled_distances(dataset, frame_ids, chunk))
 
 
 def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> torch.Tensor:
