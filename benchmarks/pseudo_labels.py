@@ -64,6 +64,7 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     from s3k.config import TrainConfig
     from s3k.evaluate import mm_per_unit
     from s3k.frames import FrameStore, images_to_float, open_dataset
+    from s3k.losses import PseudoLabelRule
     from s3k.losses import pseudo_labels as make_pseudo_labels
     from s3k.run import load_detector
     from s3k.train.validation import labelled_distances
@@ -84,9 +85,8 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
             B, C = images.shape[:2]
             logits = model(images.reshape(B * C, *images.shape[2:])).float()
             logits = logits.reshape(B, C, *logits.shape[1:])
-            X, valid, *_views = make_pseudo_labels(
-                logits, batch.cams, meta.stride, meta.sigma, max_residual_px=cfg.outlier_px or None,
-                window=cfg.pseudo_window, layout=layout, layout_tol=cfg.layout_tol)
+            X, valid, *_views = make_pseudo_labels(logits, batch.cams, meta.stride, meta.sigma,
+                                                   rule=PseudoLabelRule.from_config(cfg, layout))
             pseudo.append(X.double().numpy())
             kept.append(valid.numpy())
             truth.append(np.where(got[1][..., None], got[0], np.nan))

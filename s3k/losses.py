@@ -19,6 +19,8 @@ Shapes: ``B`` frames, ``C`` cameras, ``K`` keypoints, ``h w`` heatmap size, ``st
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -33,8 +35,8 @@ from s3k.heatmaps import (
     spatial_softmax,
 )
 
-__all__ = ["coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels", "self_supervised_loss",
-           "supervised_loss"]
+__all__ = ["PseudoLabelRule", "coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels",
+           "self_supervised_loss", "supervised_loss"]
 
 MIN_DEPTH = 1e-6
 """Camera-frame depth at or below which a projected point counts as behind the camera."""
@@ -208,17 +210,42 @@ def supervised_loss(
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, weights=weights)
 
 
+@dataclass(frozen=True)
+class PseudoLabelRule:
+    """How the network's detections of an unlabelled frame become its pseudo-label (:func:`pseudo_labels`).
+
+    Attributes:
+        max_residual_px: views whose detection misses the others' consensus by more than this many pixels do
+            not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get its target, so
+            they learn from the others. None: every view.
+        window: the detections are the heatmaps' means within this many cells of their peaks
+            (:func:`s3k.heatmaps.peak_window_mean`); 0: the whole heatmaps' means.
+        layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
+            and a relative tolerance; pseudo-label keypoints that break the layout by more
+            (:func:`s3k.readout.reject_layout`) give no term.
+    """
+
+    max_residual_px: float | None = None
+    window: int = 0
+    layout: Tensor | None = None
+    layout_tol: float = 0.0
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: Tensor | None = None) -> PseudoLabelRule:
+        """The rule of a training configuration (``--outlier_px``, ``--pseudo_window``, ``--layout_tol``)
+        with the labelled layout ``layout`` (:func:`s3k.train.labelled_distances`)."""
+        return cls(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
+                   layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol)
+
+
 def self_supervised_loss(
     logits: Tensor,
     cams: Cameras,
     stride: int,
     sigma: float,
     weights: Tensor | None = None,
-    max_residual_px: float | None = None,
+    rule: PseudoLabelRule = PseudoLabelRule(),
     target_logits: Tensor | None = None,
-    window: int = 0,
-    layout: Tensor | None = None,
-    layout_tol: float = 0.0,
     coord_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``L_unsup``: multi-view consistency with the network's own confidence-weighted triangulation.
@@ -236,16 +263,10 @@ def self_supervised_loss(
         sigma: target width in image pixels; also the scale of the confidence weight.
         weights: optional ``(B, C, K)`` triangulation weights replacing the confidence weights (e.g. all ones
             for an unweighted ablation).
-        max_residual_px: if given, views whose detection misses the others' consensus by more than this
-            many pixels do not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get
-            its target, so they learn from the others.
+        rule: which views and keypoints make the pseudo-label, and how a view is read
+            (:class:`PseudoLabelRule`; the default is the paper's: every view, the whole heatmap's mean).
         target_logits: optional ``(B, C, K, h, w)`` logits of the same images from which the pseudo-label is
             read out instead of ``logits`` (a teacher network's); the KL still trains ``logits``.
-        window: the detections that make the pseudo-label are the heatmaps' means within this many cells of
-            their peaks (:func:`s3k.heatmaps.peak_window_mean`); 0: the whole heatmaps' means.
-        layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
-            and a relative tolerance; pseudo-label keypoints that break the layout by more
-            (:func:`s3k.readout.reject_layout`) give no term.
         coord_weight: weight of :func:`coord_loss` added to the KL (0: the KL alone).
 
     Returns:
@@ -265,8 +286,7 @@ def self_supervised_loss(
         raise ValueError(f"{fn}: target_logits must have the shape of logits {tuple(logits.shape)}, "
                          f"got {_shape(target_logits)}")
     source = logits if target_logits is None else target_logits
-    X, valid, mean_uv, var, wts = pseudo_labels(source, cams, stride, sigma, weights, max_residual_px, window,
-                                                layout, layout_tol)
+    X, valid, mean_uv, var, wts = pseudo_labels(source, cams, stride, sigma, weights, rule)
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, mean_uv=mean_uv, var=var,
                               weights=wts)
 
@@ -278,10 +298,7 @@ def pseudo_labels(
     stride: int,
     sigma: float,
     weights: Tensor | None = None,
-    max_residual_px: float | None = None,
-    window: int = 0,
-    layout: Tensor | None = None,
-    layout_tol: float = 0.0,
+    rule: PseudoLabelRule = PseudoLabelRule(),
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The pseudo-labels of :func:`self_supervised_loss`, without its loss: the network's own detections of
     ``logits (B, C, K, h, w)`` triangulated by the read-out every command uses (float64, every finite view
@@ -292,14 +309,14 @@ def pseudo_labels(
         which of them give a term, the detections, their variances and the weights used (zero for a view left
         out).
     """
-    _probs, mean_uv, var = readout.moments(logits.detach(), stride, window)
+    _probs, mean_uv, var = readout.moments(logits.detach(), stride, rule.window)
     wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
     used = readout.select_views(mean_uv, wts)
-    if max_residual_px is not None:
-        used = readout.reject_outliers(cams, mean_uv, wts, used, max_residual_px)
+    if rule.max_residual_px is not None:
+        used = readout.reject_outliers(cams, mean_uv, wts, used, rule.max_residual_px)
     X, valid = readout.triangulate(cams, mean_uv, wts, used)
-    if layout is not None and layout_tol > 0:
-        valid = readout.reject_layout(X, valid, layout, layout_tol)
+    if rule.layout is not None and rule.layout_tol > 0:
+        valid = readout.reject_layout(X, valid, rule.layout, rule.layout_tol)
     wts = torch.where(used, wts, torch.zeros_like(wts))
     return (X.to(cams.dtype), valid, mean_uv.to(cams.dtype), var.to(cams.dtype), wts.to(cams.dtype))
 

@@ -8,7 +8,14 @@ from torch import nn
 
 from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_softmax
-from s3k.losses import kl_divergence, kl_loss, l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.losses import (
+    PseudoLabelRule,
+    kl_divergence,
+    kl_loss,
+    l2_non_bias,
+    self_supervised_loss,
+    supervised_loss,
+)
 from s3k.model import UNet
 
 H = W = 64
@@ -329,7 +336,7 @@ def test_self_supervised_pseudo_label_leaves_out_a_view_off_the_consensus():
     confused[:, 1, 0] += torch.tensor([9.0, -7.0], dtype=torch.float64)  # a sharp heatmap on the wrong spot
     logits = _logits_at(confused).float()
     _, plain = self_supervised_loss(logits, cams, STRIDE, SIGMA)
-    _, robust = self_supervised_loss(logits, cams, STRIDE, SIGMA, max_residual_px=2.0)
+    _, robust = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(max_residual_px=2.0))
     assert (plain["points"][:, 0] - X[:, 0]).norm(dim=-1).min() > 1e-3
     torch.testing.assert_close(robust["points"], X, atol=2e-4, rtol=0)
     assert (robust["weights"][:, 1, 0] == 0).all() and (robust["weights"][:, :, 1:] > 0).all()
@@ -364,7 +371,7 @@ def test_self_supervised_pseudo_label_window_ignores_spread_probability():
     target, _ = gaussian_targets(_project_all(cams, X), None, h, w, STRIDE, SIGMA)
     logits = (0.8 * target + 0.2 / (h * w)).log().float()
     _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA)
-    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, window=5)
+    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(window=5))
     assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
     torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)
 
@@ -382,11 +389,11 @@ def test_self_supervised_layout_check_masks_a_collapsed_pseudo_label():
     _, plain = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA)
     assert plain["points_valid"].all()
     loss, held = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA,
-                                      layout=ref, layout_tol=0.2)
+                                      rule=PseudoLabelRule(layout=ref, layout_tol=0.2))
     assert held["points_valid"][0].all() and not held["points_valid"][1].any()
     assert held["mask"][0].all() and not held["mask"][1].any()
     _, intact = self_supervised_loss(_logits_at(_project_all(cams, same)).float(), cams, STRIDE, SIGMA,
-                                     layout=ref, layout_tol=0.2)
+                                     rule=PseudoLabelRule(layout=ref, layout_tol=0.2))
     assert intact["points_valid"].all()
 
 

@@ -26,7 +26,7 @@ from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.errors import UserError
 from s3k.frames import FrameStore, model_image_size, open_dataset
-from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.model import UNet, UNetConfig
 from s3k.run import (
     CHECKPOINT_FILE,
@@ -149,10 +149,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
                 target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             max_residual_px=cfg.outlier_px or None,
-                                             target_logits=target_logits, window=cfg.pseudo_window,
-                                             layout=layout, layout_tol=cfg.layout_tol,
-                                             coord_weight=cfg.coord_weight)
+                                             rule=PseudoLabelRule.from_config(cfg, layout),
+                                             target_logits=target_logits, coord_weight=cfg.coord_weight)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
