@@ -192,9 +192,11 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         print(f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes", file=sys.stderr, flush=True)
 
 
-#: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (without
-#: this mark: every view entered the triangulation) is made again.
-READOUT = "outlying views left out (each detector's --outlier_px)"
+#: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (another
+#: mark, or none: every view entered the triangulation, each detection the whole heatmap's mean) is made
+#: again.
+READOUT = ("outlying views left out (each detector's --outlier_px); each detection its heatmap's mean within "
+           "6 target widths of its peak")
 
 
 def evaluate(run: Path, data: Path) -> dict:

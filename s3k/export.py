@@ -2,8 +2,8 @@
 
 The exported network takes ``images (N, 3, H, W)`` float32 in [0, 1] (RGB, ``(W, H)`` the detector's
 ``image_size``; ``N`` is dynamic) and returns ``logits (N, K, h, w)``. With ``--with-moments`` it also
-returns ``means (N, K, 2)`` (the heatmap softmax means in input-image pixels, pixel (0, 0) the centre of the
-top-left pixel) and ``confidence (N, K)`` (docs/method.md#confidence), computed in float64 inside the
+returns ``means (N, K, 2)`` (the heatmap softmax means within the read-out's window of each peak,
+docs/method.md#heatmaps, in input-image pixels, pixel (0, 0) the centre of the top-left pixel) and ``confidence (N, K)`` (docs/method.md#confidence), computed in float64 inside the
 graph and returned as float32.
 
 BatchNorm is folded into the convolutions before export (``UNet.fused``). After writing, the file is loaded
@@ -74,12 +74,13 @@ class DetectorWithMoments(nn.Module):
 
 
 def exported_moments(logits: Tensor, stride: int, sigma: float) -> tuple[Tensor, Tensor]:
-    """Softmax means and confidence weights of logits ``(*, h, w)``: :mod:`s3k.readout`'s, returned float32.
+    """Softmax means (within the read-out's window of the peak) and confidence weights of logits
+    ``(*, h, w)``: :mod:`s3k.readout`'s, returned float32.
 
     The read-out's float64 keeps the sums over ``h * w`` cells independent of the summation order of a
     runtime, so exported and PyTorch read-outs differ only through their logits.
     """
-    _probs, means, var = readout.moments(logits, stride)
+    _probs, means, var = readout.moments(logits, stride, readout.window_cells(sigma, stride))
     return means.to(torch.float32), confidence_weight(var, sigma).to(torch.float32)
 
 

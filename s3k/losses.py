@@ -219,14 +219,15 @@ class PseudoLabelRule:
             not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get its target, so
             they learn from the others. None: every view.
         window: the detections are the heatmaps' means within this many cells of their peaks
-            (:func:`s3k.heatmaps.peak_window_mean`); 0: the whole heatmaps' means.
+            (:func:`s3k.heatmaps.peak_window_mean`); None: the read-out's window
+            (:func:`s3k.readout.window_cells`); 0: the whole heatmaps' means, as in the paper.
         layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
             and a relative tolerance; pseudo-label keypoints that break the layout by more
             (:func:`s3k.readout.reject_layout`) give no term.
     """
 
     max_residual_px: float | None = None
-    window: int = 0
+    window: int | None = None
     layout: Tensor | None = None
     layout_tol: float = 0.0
 
@@ -309,7 +310,8 @@ def pseudo_labels(
         which of them give a term, the detections, their variances and the weights used (zero for a view left
         out).
     """
-    _probs, mean_uv, var = readout.moments(logits.detach(), stride, rule.window)
+    window = readout.window_cells(sigma, stride) if rule.window is None else rule.window
+    _probs, mean_uv, var = readout.moments(logits.detach(), stride, window)
     wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
     used = readout.select_views(mean_uv, wts)
     if rule.max_residual_px is not None:

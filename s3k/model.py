@@ -263,13 +263,16 @@ class UNet(nn.Module):
         return net
 
 
-def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def detect(model: nn.Module, images: Tensor, stride: int | None = None,
+           window: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """Run the shared network on every camera image of a batch of frames and read off the 2D detections.
 
     Args:
         model: maps ``(N, 3, H, W)`` to ``(N, K, h, w)`` logits (a :class:`UNet`).
         images: ``(B, C, 3, H, W)`` float in [0, 1].
         stride: heatmap stride; defaults to ``model.config.stride``.
+        window: the mean within this many cells of each heatmap's peak (the read-out's:
+            :func:`s3k.readout.window_cells`); 0: the whole heatmap's mean.
 
     Returns:
         ``(logits (B, C, K, h, w), mean_uv (B, C, K, 2), var (B, C, K))``: the moments of the spatial softmax,
@@ -284,7 +287,7 @@ def detect(model: nn.Module, images: Tensor, stride: int | None = None) -> tuple
     flat = images.reshape(B * C, *images.shape[2:])
     logits = model(flat)
     logits = logits.reshape(B, C, *logits.shape[1:])
-    _probs, mean_uv, var = readout.moments(logits, stride)
+    _probs, mean_uv, var = readout.moments(logits, stride, window)
     return logits, mean_uv, var
 
 

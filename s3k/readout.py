@@ -5,14 +5,22 @@ Every caller uses these functions: ``s3k predict``, ``s3k evaluate``, ``s3k trac
 benchmarks, so what is trained, scored and shipped is the same maths (docs/method.md, "Heatmaps",
 "Confidence", "Triangulation"). Per view ``c`` and keypoint ``k``:
 
-1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` (the 2D detection, in the
-   network-input pixels, pixel (0, 0) the centre of the top-left pixel) and its variance ``var_ck``.
+1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` within a window around
+   its most probable cell (the 2D detection, in the network-input pixels, pixel (0, 0) the centre of the
+   top-left pixel) and its variance ``var_ck`` over the whole heatmap.
 2. :func:`s3k.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread.
 3. :func:`select_views`: which views enter the triangulation.
 4. :func:`triangulate`: the confidence-weighted triangulation of the selected views (lens distortion
    included), valid where at least two views are used and the rays are not near-parallel.
 5. :func:`read_out` also maps the detections into the cameras' own pixels (``pixel_maps``), reprojects the
    3D point into every camera and measures the reprojection residuals.
+
+Window: the whole heatmap's mean is pulled towards the heatmap's centre by whatever probability is spread over
+the rest of it (a second bright spot, a diffuse tail), so every read-out takes the mean within
+:func:`window_cells` of the peak: ``WINDOW_SIGMAS`` target widths, which holds all of a well-formed peak
+(a narrower window cut into it would pull the mean towards the peak's cell). Training's pseudo-labels do
+the same (``--pseudo_window``). The variance, and so the confidence, stays the whole heatmap's: spread mass
+is what makes a view uncertain.
 
 Precision: float64 from the softmax on, whatever the logits' dtype. The mean is a sum over ``h * w`` cells
 and the triangulation solves normal equations whose conditioning degrades with near-parallel rays; float64
@@ -30,6 +38,7 @@ uncertain views outright instead of down-weighting them (the weight is 0.5 at a 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -42,6 +51,7 @@ from s3k.heatmaps import confidence_weight, heatmap_moments, peak_window_mean, s
 
 __all__ = [
     "DEFAULT_MIN_WEIGHT",
+    "WINDOW_SIGMAS",
     "DTYPE",
     "ReadOut",
     "moments",
@@ -50,6 +60,7 @@ __all__ = [
     "reject_outliers",
     "select_views",
     "triangulate",
+    "window_cells",
 ]
 
 DTYPE = torch.float64
@@ -57,6 +68,23 @@ DTYPE = torch.float64
 
 DEFAULT_MIN_WEIGHT = 0.0
 """Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
+
+WINDOW_SIGMAS = 6.0
+"""Half-side of the window around each heatmap's peak whose mean is the detection, in target widths (see the
+module docstring and :func:`window_cells`)."""
+
+
+def window_cells(sigma: float, stride: int) -> int:
+    """The read-out's window, cells each side of the peak, for a target width ``sigma`` in image pixels and a
+    heatmap ``stride``: ``WINDOW_SIGMAS`` target widths rounded up (6 cells for a target of one cell).
+
+    Example:
+        >>> window_cells(2.0, 2), window_cells(3.0, 2), window_cells(2.0, 1)
+        (6, 9, 12)
+    """
+    if not sigma > 0 or stride < 1:
+        raise ValueError(f"window_cells: sigma must be > 0 and stride >= 1, got {sigma} and {stride}")
+    return max(1, math.ceil(WINDOW_SIGMAS * sigma / stride - 1e-9))
 
 
 def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tensor, Tensor]:
@@ -253,7 +281,8 @@ class ReadOut:
 
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
-             keep_heatmaps: bool = False, max_residual_px: float | None = None) -> ReadOut:
+             keep_heatmaps: bool = False, max_residual_px: float | None = None,
+             window: int | None = None) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
     Args:
@@ -269,6 +298,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
             (:func:`reject_outliers`), in the network-input pixels (the pixels the threshold has at training,
             ``--outlier_px``, whatever the size of the original images).
+        window: each detection is its heatmap's mean within this many cells of the peak (:func:`moments`);
+            None: :func:`window_cells` of ``sigma`` and ``stride``; 0: the whole heatmap's mean (the paper's).
 
     Returns:
         A :class:`ReadOut`.
@@ -280,7 +311,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     if tuple(cams.shape) not in ((C,), (B, C)):
         raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
                          f"got {tuple(cams.shape)}")
-    probs, uv, var = moments(logits, stride)
+    probs, uv, var = moments(logits, stride, window_cells(sigma, stride) if window is None else window)
     weights = confidence_weight(var, sigma)
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:

@@ -14,6 +14,7 @@ from s3k import cli
 from s3k.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
 from s3k.heatmaps import confidence_weight
 from s3k.model import UNetConfig, detect
+from s3k.readout import window_cells
 from s3k.run import DetectorMeta, load_detector
 
 pytest.importorskip("onnx")
@@ -56,7 +57,8 @@ def test_export_matches_pytorch(run_dir, tmp_path, fmt, suffix, with_moments):
     got = run_exported(report.path, fmt, images)
     model, meta = load_detector(run_dir)
     with torch.no_grad():
-        logits, means, var = detect(model, torch.from_numpy(images)[None], meta.stride)
+        logits, means, var = detect(model, torch.from_numpy(images)[None], meta.stride,
+                                   window_cells(meta.sigma, meta.stride))
     h, w = SIZE[1] // 2, SIZE[0] // 2
     assert got[0].shape == (5, 3, h, w)
     np.testing.assert_allclose(got[0], logits[0].numpy(), atol=1e-4, rtol=0)

@@ -7,7 +7,13 @@ import torch
 from torch import nn
 
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_softmax
+from s3k.heatmaps import (
+    confidence_weight,
+    gaussian_targets,
+    heatmap_moments,
+    peak_window_mean,
+    spatial_softmax,
+)
 from s3k.losses import (
     PseudoLabelRule,
     kl_divergence,
@@ -17,6 +23,7 @@ from s3k.losses import (
     supervised_loss,
 )
 from s3k.model import UNet
+from s3k.readout import window_cells
 
 H = W = 64
 STRIDE = 2
@@ -234,7 +241,9 @@ def test_self_supervised_loss_zero_at_consistent_prediction_and_grows():
 def _manual_detached_loss(logits: torch.Tensor, cams: Cameras, detach: bool = True) -> torch.Tensor:
     """The self-supervised loss written out step by step; ``detach=False`` lets gradient reach the target."""
     source = logits.detach() if detach else logits
-    mean_uv, var = heatmap_moments(spatial_softmax(source), STRIDE)
+    probs = spatial_softmax(source)
+    _, var = heatmap_moments(probs, STRIDE)
+    mean_uv = peak_window_mean(probs, STRIDE, window_cells(SIGMA, STRIDE))  # the read-out's detection
     weights = confidence_weight(var, SIGMA)
     X, valid = triangulate_pixels(cams, mean_uv.double(), weights.double())
     uv, depth = project(cams, X[:, None])
@@ -370,7 +379,7 @@ def test_self_supervised_pseudo_label_window_ignores_spread_probability():
     cams, X = _rig(), _points()
     target, _ = gaussian_targets(_project_all(cams, X), None, h, w, STRIDE, SIGMA)
     logits = (0.8 * target + 0.2 / (h * w)).log().float()
-    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA)
+    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(window=0))
     _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(window=5))
     assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
     torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)

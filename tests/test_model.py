@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from s3k.heatmaps import heatmap_moments, spatial_softmax
+from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 from s3k.model import HeatmapHead, UNet, UNetConfig, conv_layers, count_conv_flops, detect
 
 
@@ -100,8 +100,14 @@ def test_same_weights_serve_every_camera():
     torch.testing.assert_close(swapped, logits[:, [2, 1, 0]], atol=1e-5, rtol=1e-4)
     assert logits.shape == (2, 3, 4, 16, 24)
     # The read-out's precision: float64 from the softmax on.
-    ref_mean, ref_var = heatmap_moments(spatial_softmax(logits.double()), 2)
+    probs = spatial_softmax(logits.double())
+    ref_mean, ref_var = heatmap_moments(probs, 2)
     torch.testing.assert_close(mean_uv, ref_mean)
+    # With a window: the mean within it of the peak, the variance still the whole heatmap's.
+    with torch.no_grad():
+        _, windowed, windowed_var = detect(net, images, window=3)
+    torch.testing.assert_close(windowed, peak_window_mean(probs, 2, 3))
+    torch.testing.assert_close(windowed_var, ref_var)
     torch.testing.assert_close(var, ref_var)
     with pytest.raises(ValueError, match=r"\(B, C, 3, H, W\)"):
         detect(net, images[0])

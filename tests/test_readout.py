@@ -23,11 +23,17 @@ from s3k.evaluate import evaluate_store
 from s3k.export import DetectorWithMoments
 from s3k.frames import FrameStore, images_to_float, open_dataset
 from s3k.geometry import Cameras, project
-from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, spatial_softmax
+from s3k.heatmaps import (
+    confidence_weight,
+    gaussian_targets,
+    heatmap_moments,
+    peak_window_mean,
+    spatial_softmax,
+)
 from s3k.losses import self_supervised_loss
 from s3k.model import detect
 from s3k.predict import infer, predict_store
-from s3k.readout import read_out, select_views, triangulate
+from s3k.readout import read_out, select_views, triangulate, window_cells
 from s3k.run import DetectorMeta
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
@@ -117,7 +123,7 @@ def test_every_caller_reads_out_the_same_points(scene):
 
     # model.detect's moments.
     with torch.no_grad():
-        _, mean_uv, var = detect(net, images, STRIDE)
+        _, mean_uv, var = detect(net, images, STRIDE, window_cells(SIGMA, STRIDE))
     w = confidence_weight(var, SIGMA)
     same(*triangulate(cams, mean_uv, w, select_views(mean_uv, w)))
 
@@ -139,12 +145,16 @@ def test_every_caller_reads_out_the_same_points(scene):
 
 
 def test_read_out_fields(scene):
-    """Moments in float64, weights, views used, residuals and their summaries, by definition."""
+    """Moments in float64 (the mean within the window of the peak, the variance the whole heatmap's),
+    weights, views used, residuals and their summaries, by definition."""
     r = read_out(scene.logits, scene.batch.cams, STRIDE, SIGMA, keep_heatmaps=True)
     probs = spatial_softmax(scene.logits.double())
-    mean, var = heatmap_moments(probs, STRIDE)
+    whole_mean, var = heatmap_moments(probs, STRIDE)
+    mean = peak_window_mean(probs, STRIDE, window_cells(SIGMA, STRIDE))
     torch.testing.assert_close(r.probs, probs)
     torch.testing.assert_close(r.uv, mean)
+    whole = read_out(scene.logits, scene.batch.cams, STRIDE, SIGMA, window=0)  # the paper's read-out
+    torch.testing.assert_close(whole.uv, whole_mean)
     torch.testing.assert_close(r.weights, confidence_weight(var, SIGMA))
     assert r.used.all() and (r.ncams == scene.C).all()  # every finite view (weights are always > 0)
     reproj, _ = project(scene.batch.cams.to(dtype=torch.float64), r.X[:, None])
@@ -152,6 +162,23 @@ def test_read_out_fields(scene):
     torch.testing.assert_close(r.residual, (reproj - mean).norm(dim=-1))
     torch.testing.assert_close(r.error, r.residual.mean(dim=1))
     torch.testing.assert_close(r.score, r.weights.mean(dim=1))
+
+
+def test_read_out_reads_the_peak_not_the_spread(scene):
+    """Heatmaps with a tenth of their mass spread evenly: the whole heatmap's mean is pulled towards the
+    heatmap's centre, the read-out's windowed mean stays where the peak is, and the confidence (from the
+    whole heatmap's spread) falls."""
+    cams = scene.batch.cams
+    sharp = read_out(scene.logits, cams, STRIDE, SIGMA)
+    h, w = scene.logits.shape[-2:]
+    probs = spatial_softmax(scene.logits.double())
+    spread = (0.9 * probs + 0.1 / (h * w)).log()
+    windowed = read_out(spread, cams, STRIDE, SIGMA)
+    whole = read_out(spread, cams, STRIDE, SIGMA, window=0)
+    pull = (whole.uv - sharp.uv).norm(dim=-1)
+    assert pull.median() > 0.2  # pixels
+    assert (windowed.uv - sharp.uv).norm(dim=-1).median() < 0.25 * pull.median()
+    assert (windowed.weights < sharp.weights).all()
 
 
 def test_min_weight_drops_views_and_invalid_points_are_nan(scene):

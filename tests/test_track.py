@@ -25,9 +25,16 @@ from s3k.data.rig import Rig
 from s3k.data.transforms import crop_resize_matrix
 from s3k.data.video import frame_count, frame_size, synchronized_frames, write_video
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import confidence_weight, gaussian_targets, heatmap_moments, heatmap_size, spatial_softmax
+from s3k.heatmaps import (
+    confidence_weight,
+    gaussian_targets,
+    heatmap_moments,
+    heatmap_size,
+    peak_window_mean,
+    spatial_softmax,
+)
 from s3k.model import UNetConfig
-from s3k.readout import read_out
+from s3k.readout import read_out, window_cells
 from s3k.run import DetectorMeta
 from s3k.track import fit_box, prepare_cameras
 from s3k.tracks_csv import csv_header, read_csv
@@ -248,8 +255,11 @@ def test_points_from_logits_matches_geometry(recording):
     sigma = 2.0
     for min_weight in (0.0, 0.3):
         out = points_from_logits(logits.float(), cams, maps, 2, sigma, min_weight)
-        # The means, mapped back to network pixels, are the heatmap moments of the logits.
-        uv_net, var = heatmap_moments(spatial_softmax(logits.double()), 2)
+        # The means, mapped back to network pixels, are the heatmap moments of the logits (the mean within
+        # the read-out's window of the peak, the variance the whole heatmap's).
+        probs = spatial_softmax(logits.double())
+        _, var = heatmap_moments(probs, 2)
+        uv_net = peak_window_mean(probs, 2, window_cells(sigma, 2))
         back = out.uv @ maps[:, :2, :2].transpose(0, 2, 1) + maps[:, None, :2, 2]
         np.testing.assert_allclose(back, uv_net.numpy(), atol=1e-4)
         np.testing.assert_allclose(out.weight, confidence_weight(var, sigma).numpy(), atol=1e-6)
