@@ -3,8 +3,9 @@
 The exported network takes ``images (N, 3, H, W)`` float32 in [0, 1] (RGB, ``(W, H)`` the detector's
 ``image_size``; ``N`` is dynamic) and returns ``logits (N, K, h, w)``. With ``--with-moments`` it also
 returns ``means (N, K, 2)`` (the heatmap softmax means within the read-out's window of each peak,
-docs/method.md#heatmaps, in input-image pixels, pixel (0, 0) the centre of the top-left pixel) and ``confidence (N, K)`` (docs/method.md#confidence), computed in float64 inside the
-graph and returned as float32.
+docs/method.md#heatmaps, in input-image pixels, pixel (0, 0) the centre of the top-left pixel) and
+``confidence (N, K)`` (docs/method.md#confidence), computed in float64 inside the graph and returned as
+float32.
 
 BatchNorm is folded into the convolutions before export (``UNet.fused``). After writing, the file is loaded
 back (onnxruntime for ONNX, ``torch.jit.load`` for TorchScript) and run on real images (frames of the run's
