@@ -113,7 +113,7 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
                    weight_decay_model: nn.Module, teacher: nn.Module | None = None,
-                   layout: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                   rule: PseudoLabelRule | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
     Args:
@@ -125,8 +125,9 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         weight_decay_model: the unwrapped network (for the L2 term).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
             (``--teacher_ema``); without one they come from ``model``'s own logits.
-        layout: ``(K, K)`` distances between the labelled keypoints (:func:`labelled_distances`) that
-            ``cfg.layout_tol`` holds the pseudo-labels to.
+        rule: how the unlabelled frames' detections become pseudo-labels (:class:`PseudoLabelRule`, built
+            once per run from ``cfg`` and the labelled layout); None: ``PseudoLabelRule.from_config(cfg)``,
+            without a layout.
 
     Returns:
         ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
@@ -149,7 +150,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
                 target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             rule=PseudoLabelRule.from_config(cfg, layout),
+                                             rule=PseudoLabelRule.from_config(cfg) if rule is None else rule,
                                              target_logits=target_logits, coord_weight=cfg.coord_weight)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
@@ -278,7 +279,8 @@ class _Loop:
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
-        self.layout = layout  # the rigid layout of --layout_tol (None when off)
+        # the pseudo-label rule, with the rigid layout that --layout_tol holds the pseudo-labels to
+        self.rule = PseudoLabelRule.from_config(cfg, layout)
         if cfg.unsup and cfg.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
@@ -345,7 +347,7 @@ class _Loop:
                           self.gen, False, noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
-        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher, self.layout)
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher, self.rule)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
