@@ -34,11 +34,12 @@ import torch
 
 from s3k.errors import UserError
 
-__all__ = ["TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres", "crop_rule_from_labels",
-           "evaluate_two_pass", "extent_middle", "is_two_pass", "predict_two_pass", "read_two_pass",
-           "train_two_pass"]
+__all__ = ["ESTIMATES_FILE", "TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres",
+           "crop_rule_from_labels", "evaluate_two_pass", "extent_middle", "is_two_pass", "predict_two_pass",
+           "read_two_pass", "train_two_pass"]
 
 TWO_PASS_FILE = "two_pass.json"
+ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
 
 
 @dataclass(frozen=True)
@@ -221,7 +222,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                              rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation)
     results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass")
     log(f"coarse pass: estimating every frame of {data}")
-    estimates = coarse_estimates(out / "coarse", data, out / "estimates.csv", "all", ds.keypoints)
+    estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, "all", ds.keypoints)
     crops = out / "crops"
     if not (crops / "s3k.json").is_file():
         log(f"cropping every frame: {rule.extent:g} {ds.units} -> {rule.size} px")

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +33,8 @@ from s3k.two_pass import (
     extent_middle,
     read_two_pass,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
 
 def _farthest_pair_radius(X: np.ndarray) -> float:
@@ -129,6 +133,20 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert cli.main(["export", str(run), "--format", "torchscript", "--out", str(tmp_path / "m.pt")]) == 1
     err = capsys.readouterr().err
     assert "two-pass" in err and str(run / "fine") in err and len(err.strip().splitlines()) == 1
+
+    # benchmarks/recrop.py: the same crops at another size, from the run's own coarse estimates
+    from benchmarks.recrop import main as recrop
+
+    assert recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")]) == 0
+    crops48 = Dataset.open(tmp_path / "crops48", cache="none")
+    assert crops48.image_size == (48, 48)
+    for split in ("labelled", "unlabelled", "test"):
+        np.testing.assert_array_equal(crops48.frames(split), crops.frames(split))
+    uv48, mask48 = crops48.labels(ids)
+    np.testing.assert_array_equal(mask48, mask)  # same crop boxes, 1.5 times the pixels
+    np.testing.assert_allclose(uv48[mask], (uv[mask] + 0.5) * 1.5 - 0.5, atol=1e-3)
+    with pytest.raises(SystemExit):
+        recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")])  # exists
 
 
 class _GreyOracle(torch.nn.Module):
