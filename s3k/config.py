@@ -101,9 +101,9 @@ class SelfSupervisionConfig:
                                "paper, which probability spread over the heatmap pulls towards its centre "
                                "and, trained on, draws the keypoints together)")
     coord_weight: float = _f(0.0, "weight of a second term on every heatmap with a target: the distance from "
-                                  "the heatmap's mean (the read-out's detection) to the target's centre, in "
-                                  "target widths; the KL measures the heatmap's shape, not where its mean "
-                                  "falls, and this term trains the detection itself (0: off)")
+                                  "the whole heatmap's mean to the target's centre, in target widths; the KL "
+                                  "measures the heatmap's shape, not where its mean falls, and this term "
+                                  "trains the mean itself (0: off)")
     teacher_ema: float = _f(0.0, "pseudo-labels from a teacher: a copy of the network whose weights follow "
                                  "the trained ones as an exponential moving average with this decay per "
                                  "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "
