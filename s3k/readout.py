@@ -51,9 +51,9 @@ from s3k.heatmaps import confidence_weight, heatmap_moments, peak_window_mean, s
 
 __all__ = [
     "DEFAULT_MIN_WEIGHT",
-    "WINDOW_SIGMAS",
     "DTYPE",
     "ReadOut",
+    "WINDOW_SIGMAS",
     "moments",
     "read_out",
     "reject_layout",
