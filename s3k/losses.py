@@ -310,7 +310,7 @@ def pseudo_labels(
         which of them give a term, the detections, their variances and the weights used (zero for a view left
         out).
     """
-    window = readout.window_cells(sigma, stride) if rule.window is None else rule.window
+    window = readout.window_cells(sigma, stride, rule.window)
     _probs, mean_uv, var = readout.moments(logits.detach(), stride, window)
     wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
     used = readout.select_views(mean_uv, wts)

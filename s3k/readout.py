@@ -74,14 +74,17 @@ WINDOW_SIGMAS = 6.0
 module docstring and :func:`window_cells`)."""
 
 
-def window_cells(sigma: float, stride: int) -> int:
+def window_cells(sigma: float, stride: int, window: int | None = None) -> int:
     """The read-out's window, cells each side of the peak, for a target width ``sigma`` in image pixels and a
-    heatmap ``stride``: ``WINDOW_SIGMAS`` target widths rounded up (6 cells for a target of one cell).
+    heatmap ``stride``: ``WINDOW_SIGMAS`` target widths rounded up (6 cells for a target of one cell), or
+    ``window`` when it is given (0: the whole heatmap).
 
     Example:
         >>> window_cells(2.0, 2), window_cells(3.0, 2), window_cells(2.0, 1)
         (6, 9, 12)
     """
+    if window is not None:
+        return window
     if not sigma > 0 or stride < 1:
         raise ValueError(f"window_cells: sigma must be > 0 and stride >= 1, got {sigma} and {stride}")
     return max(1, math.ceil(WINDOW_SIGMAS * sigma / stride - 1e-9))
@@ -311,7 +314,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     if tuple(cams.shape) not in ((C,), (B, C)):
         raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
                          f"got {tuple(cams.shape)}")
-    probs, uv, var = moments(logits, stride, window_cells(sigma, stride) if window is None else window)
+    probs, uv, var = moments(logits, stride, window_cells(sigma, stride, window))
     weights = confidence_weight(var, sigma)
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
