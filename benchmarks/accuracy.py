@@ -261,8 +261,10 @@ def main(argv: list[str] | None = None) -> int:
         reuse_labels_only(Path(args.labels_only_from), work, seeds, args)
     data = {s: render(args, s, work) for s in seeds}
     runs = {(s, m): work / f"{m}-seed{s}" for s in seeds for m in MODELS}
-    jobs = [(f"{m} seed {s}", train_command(args, data[s], run, s, m), run.with_name(run.name + "-cpu.json"))
-            for (s, m), run in runs.items() if not finished(run, args.passes)]
+    # model by model, S3K's (the longer trainings) first, so the labels-only ones fill in around them
+    jobs = [(f"{m} seed {s}", train_command(args, data[s], runs[s, m], s, m),
+             runs[s, m].with_name(runs[s, m].name + "-cpu.json"))
+            for m in MODELS for s in seeds if not finished(runs[s, m], args.passes)]
     run_jobs(jobs, args.parallel)
     metrics = {key: evaluate(run, data[key[0]]) for key, run in runs.items()}
     cpu = {key: _read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}

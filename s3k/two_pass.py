@@ -34,9 +34,9 @@ import torch
 
 from s3k.errors import UserError
 
-__all__ = ["ESTIMATES_FILE", "TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres",
+__all__ = ["ESTIMATES_FILE", "REFERENCE_CROP", "TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres",
            "crop_rule_from_labels", "evaluate_two_pass", "extent_middle", "is_two_pass", "predict_two_pass",
-           "read_two_pass", "train_two_pass"]
+           "read_two_pass", "refining_config", "train_two_pass"]
 
 TWO_PASS_FILE = "two_pass.json"
 ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
@@ -174,6 +174,25 @@ def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule
                               overwrite=True, splits=splits, description=description)
 
 
+REFERENCE_CROP = 128
+"""The crop size (px) at which the refining pass takes its pixel-valued options as given."""
+
+
+def refining_config(cfg, crop_size: int):
+    """The refining pass's configuration: ``cfg`` with its pixel-valued tolerances scaled by
+    ``crop_size / REFERENCE_CROP``.
+
+    The crop covers a fixed extent of the scene, so a crop pixel is ``extent / crop_size`` world units: the
+    same ``--outlier_px`` would leave out of the pseudo-labels views half as far off at twice the crop size,
+    and ``--shift_px`` and ``--pseudo_window`` would shrink in the scene alike. Scaled, they keep their size
+    in the scene and ``--crop-size`` changes the resolution alone. ``--sigma`` is not scaled: a finer
+    target is what a finer crop is for.
+    """
+    k = crop_size / REFERENCE_CROP
+    return cfg.replace(image_size=0, outlier_px=cfg.outlier_px * k, shift_px=cfg.shift_px * k,
+                       pseudo_window=max(1, round(cfg.pseudo_window * k)) if cfg.pseudo_window else 0)
+
+
 def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int = 96,
                    coarse_steps: int | None = None, coarse_rotation: float | None = None,
                    crop_size: int = 128, margin: float = 0.3, extent: float | None = None,
@@ -185,7 +204,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     Args:
         data: dataset folder at full resolution.
         out: two-pass run folder.
-        cfg: :class:`s3k.config.TrainConfig` of both passes (``image_size`` is set per pass).
+        cfg: :class:`s3k.config.TrainConfig` of both passes (``image_size`` is set per pass; the refining
+            pass scales the pixel-valued options with the crop size, :func:`refining_config`).
         coarse_size: the coarse pass's image size (longer side, px).
         coarse_steps: the coarse pass's steps (default: ``cfg.steps``).
         coarse_rotation: the coarse pass's augmentation rotation range, degrees (default:
@@ -228,7 +248,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         log(f"cropping every frame: {rule.extent:g} {ds.units} -> {rule.size} px")
         write_crops(data, crops, estimates, rule,
                     description=f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates")
-    results["fine"] = _train_pass(train, crops, out / "fine", cfg.replace(image_size=0), command, log,
+    results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command, log,
                                   "refining pass")
     _write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results

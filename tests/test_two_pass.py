@@ -32,6 +32,7 @@ from s3k.two_pass import (
     crop_rule_from_labels,
     extent_middle,
     read_two_pass,
+    refining_config,
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
@@ -84,6 +85,19 @@ def test_crop_rule_needs_triangulated_labels(tmp_path):
         crop_rule_from_labels(ds, size=64)
 
 
+def test_refining_config_keeps_the_pixel_tolerances_their_size_in_the_scene():
+    from s3k.config import TrainConfig
+
+    cfg = TrainConfig.from_flat(outlier_px=6.0, shift_px=10.0, pseudo_window=5, sigma=1.0, image_size=96)
+    same = refining_config(cfg, 128)
+    assert (same.outlier_px, same.shift_px, same.pseudo_window, same.image_size) == (6.0, 10.0, 5, 0)
+    finer = refining_config(cfg, 192)
+    assert (finer.outlier_px, finer.shift_px, finer.pseudo_window) == (9.0, 15.0, 8)
+    assert finer.sigma == 1.0 and finer.rotation_deg == cfg.rotation_deg
+    off = refining_config(cfg.replace(outlier_px=0.0, pseudo_window=0), 256)
+    assert (off.outlier_px, off.pseudo_window) == (0.0, 0)
+
+
 def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
     run = tmp_path / "run"
@@ -95,6 +109,11 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     rule, coarse, fine = read_two_pass(run)
     assert json.loads((coarse / "config.json").read_text())["config"]["rotation_deg"] == 180
     assert json.loads((fine / "config.json").read_text())["config"]["rotation_deg"] == 15
+    coarse_cfg = json.loads((coarse / "config.json").read_text())["config"]
+    fine_cfg = json.loads((fine / "config.json").read_text())["config"]
+    # 32 px crops: the refining pass's pixel tolerances are a quarter of the options given (at 128 px)
+    assert (coarse_cfg["outlier_px"], coarse_cfg["shift_px"], coarse_cfg["pseudo_window"]) == (6.0, 10.0, 5)
+    assert (fine_cfg["outlier_px"], fine_cfg["shift_px"], fine_cfg["pseudo_window"]) == (1.5, 2.5, 1)
     assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
     assert json.loads((coarse / "config.json").read_text())["config"]["image_size"] == 32

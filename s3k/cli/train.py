@@ -40,7 +40,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
     two.add_argument("--crop-size", type=int, default=128, metavar="PX",
-                     help="crop size in pixels, the refining pass's input (default 128)")
+                     help="crop size in pixels, the refining pass's input (default 128); the refining "
+                          "pass scales --outlier_px, --shift_px and --pseudo_window by SIZE/128 so they keep "
+                          "their size in the scene")
     two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
                           "frame's keypoints) x (1 + F) (default 0.3)")
