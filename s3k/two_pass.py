@@ -6,7 +6,8 @@ A two-pass run folder holds two ordinary runs of ``s3k train`` and the crop rule
     RUN/coarse/          the coarse detector: the whole image, resized to ``coarse_size`` px
     RUN/estimates.csv    the coarse pass's 3D keypoints for every frame of the training dataset
     RUN/crops/           a dataset of crops around those estimates (:func:`s3k.refine.write_crop_dataset`)
-    RUN/fine/            the refining detector, trained on the crops with the same losses
+    RUN/fine/            the refining detector, trained on the crops with the same losses (its pixel
+                         tolerances scaled to the crop size: :func:`refining_config`)
 
 The crop of a frame is centred on the middle of its coarse keypoints' extent (the midpoint of the two that
 are farthest apart), not on their mean: a mean lies towards where keypoints cluster and can leave an
