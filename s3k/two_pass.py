@@ -176,7 +176,7 @@ def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule
 
 
 REFERENCE_CROP = 128
-"""The crop size (px) at which the refining pass takes its pixel-valued options as given."""
+"""The default crop size (px), at which the refining pass takes its pixel-valued options as given."""
 
 
 def refining_config(cfg, crop_size: int):
@@ -196,7 +196,7 @@ def refining_config(cfg, crop_size: int):
 
 def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int = 96,
                    coarse_steps: int | None = None, coarse_rotation: float | None = None,
-                   crop_size: int = 128, margin: float = 0.3, extent: float | None = None,
+                   crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
                    log=print) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is

@@ -107,16 +107,16 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
             "--rotation_deg", "15", "--coarse-rotation", "180"]
     assert cli.main(args) == 0
     rule, coarse, fine = read_two_pass(run)
-    assert json.loads((coarse / "config.json").read_text())["config"]["rotation_deg"] == 180
-    assert json.loads((fine / "config.json").read_text())["config"]["rotation_deg"] == 15
     coarse_cfg = json.loads((coarse / "config.json").read_text())["config"]
     fine_cfg = json.loads((fine / "config.json").read_text())["config"]
+    assert coarse_cfg["rotation_deg"] == 180
+    assert fine_cfg["rotation_deg"] == 15
     # 32 px crops: the refining pass's pixel tolerances are a quarter of the options given (at 128 px)
     assert (coarse_cfg["outlier_px"], coarse_cfg["shift_px"], coarse_cfg["pseudo_window"]) == (6.0, 10.0, 5)
     assert (fine_cfg["outlier_px"], fine_cfg["shift_px"], fine_cfg["pseudo_window"]) == (1.5, 2.5, 1)
     assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
-    assert json.loads((coarse / "config.json").read_text())["config"]["image_size"] == 32
+    assert coarse_cfg["image_size"] == 32
     crops = Dataset.open(run / "crops", cache="none")
     source = Dataset.open(data, cache="none")
     assert crops.image_size == (32, 32) and list(crops.keypoints) == KEYPOINTS

@@ -9,6 +9,7 @@ from pathlib import Path
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, config_from_dict
 from s3k.run import CONFIG_FILE, read_run_config
+from s3k.two_pass import REFERENCE_CROP
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -39,10 +40,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
-    two.add_argument("--crop-size", type=int, default=128, metavar="PX",
-                     help="crop size in pixels, the refining pass's input (default 128); the refining "
-                          "pass scales --outlier_px, --shift_px and --pseudo_window by SIZE/128 so they keep "
-                          "their size in the scene")
+    two.add_argument("--crop-size", type=int, default=REFERENCE_CROP, metavar="PX",
+                     help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
+                          f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
+                          f"PX/{REFERENCE_CROP} so they keep their size in the scene")
     two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
                           "frame's keypoints) x (1 + F) (default 0.3)")
