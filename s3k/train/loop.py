@@ -112,8 +112,8 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
-                   weight_decay_model: nn.Module, teacher: nn.Module | None = None,
-                   rule: PseudoLabelRule | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                   weight_decay_model: nn.Module, rule: PseudoLabelRule,
+                   teacher: nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
     Args:
@@ -123,11 +123,10 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         cfg: configuration (stride, sigma, weight decay).
         alpha: weight of the self-supervised term at this step.
         weight_decay_model: the unwrapped network (for the L2 term).
+        rule: how the unlabelled frames' detections become pseudo-labels (:class:`PseudoLabelRule`, built
+            once per run from ``cfg`` and the labelled layout, so the layout check is never left out).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
             (``--teacher_ema``); without one they come from ``model``'s own logits.
-        rule: how the unlabelled frames' detections become pseudo-labels (:class:`PseudoLabelRule`, built
-            once per run from ``cfg`` and the labelled layout); None: ``PseudoLabelRule.from_config(cfg)``,
-            without a layout.
 
     Returns:
         ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
@@ -150,7 +149,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
                 target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             rule=PseudoLabelRule.from_config(cfg) if rule is None else rule,
+                                             rule=rule,
                                              target_logits=target_logits, coord_weight=cfg.coord_weight)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
@@ -347,7 +346,7 @@ class _Loop:
                           self.gen, False, noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
-        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.teacher, self.rule)
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.rule, self.teacher)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
