@@ -21,6 +21,11 @@ rendered frames, so the choices compare side by side.
 ``--scene distractors`` renders the distractors scene in start mode (labels from the first distractor set
 only; test frames with distractor sets never seen in training).
 
+To compare options that change one model or one pass, ``--labels-only-from WORK`` links an earlier working
+folder's renders and finished labels-only runs, and ``--coarse-from WORK`` starts each training from the
+coarse pass, estimates and crops of the same-named run there, adding that stage's CPU time
+(``RUN/cpu.json``) to the run's; the training refuses a coarse pass or crops its options would not make.
+
 Everything is kept in ``--work``; a stage whose output exists is skipped and a killed training resumes, so
 the same command continues an interrupted benchmark. Writes ``--results``/summary.json (command, revision,
 machine, scale, per-seed figures, means) and prints it as the last line.
@@ -38,6 +43,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import statistics
 import subprocess
 import sys
@@ -109,6 +115,44 @@ def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
         for name in (*data_names(args, s), run.name, run.name + "-cpu.json", run.name + "-test.json"):
             if (source / name).exists() and not (work / name).exists():
                 (work / name).symlink_to((source / name).resolve())
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def reuse_coarse(source: Path, runs: list[Path]) -> None:
+    """Start each of ``runs`` not yet begun from the coarse stage of the run of the same name in ``source``:
+    its coarse pass, estimates and crops (hard-linked where the file system allows), and that stage's CPU
+    minutes in the run's record. ``s3k train --two-pass --resume`` then trains the refining pass, after
+    checking that the coarse pass and the crops are what this benchmark's options would make."""
+    from s3k.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+
+    for run in runs:
+        if run.exists():
+            continue
+        src = source / run.name
+        needed = [src / "coarse" / "model.pt", src / "crops" / "s3k.json", src / ESTIMATES_FILE,
+                  src / CPU_FILE]
+        missing = [p for p in needed if not p.is_file()]
+        if missing or "coarse" not in read_cpu(src):
+            raise SystemExit(f"{missing[0] if missing else src / CPU_FILE}: no finished coarse stage with "
+                             "its CPU time to reuse (--coarse-from takes runs that record it in cpu.json)")
+        tmp = run.with_name(run.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        shutil.copytree(src / "coarse", tmp / "coarse")
+        shutil.copytree(src / "crops", tmp / "crops", copy_function=_link_or_copy)
+        shutil.copy2(src / ESTIMATES_FILE, tmp / ESTIMATES_FILE)
+        coarse_s = read_cpu(src)["coarse"]
+        (tmp / CPU_FILE).write_text(json.dumps({"coarse": coarse_s}) + "\n")
+        record = run.with_name(run.name + "-cpu.json")
+        record.write_text(json.dumps({"cpu_minutes": coarse_s / 60, "wall_minutes": 0.0,
+                                      "coarse_from": str(src)}) + "\n")
+        tmp.rename(run)
 
 
 def train_command(args, data: Path, run: Path, seed: int, model: str) -> list[str]:
@@ -243,6 +287,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="take the renders and the finished labels-only runs of an earlier working folder "
                         "instead of making them again (labels only reads none of the self-supervision "
                         "options, so a comparison of those trains S3K alone)")
+    p.add_argument("--coarse-from", metavar="WORK", default=None,
+                   help="start the trainings from the coarse passes, estimates and crops of an earlier "
+                        "working folder's runs (their CPU minutes counted), to compare refining-pass "
+                        "options; the trainings refuse a coarse pass or crops the options here would not "
+                        "make")
     p.add_argument("--notes", default=None,
                    help="text kept in summary.json, e.g. the revision the runs were trained at when the "
                         "summary is written again from finished runs (left out of the recorded command)")
@@ -261,6 +310,10 @@ def main(argv: list[str] | None = None) -> int:
         reuse_labels_only(Path(args.labels_only_from), work, seeds, args)
     data = {s: render(args, s, work) for s in seeds}
     runs = {(s, m): work / f"{m}-seed{s}" for s in seeds for m in MODELS}
+    if args.coarse_from:
+        if args.passes != 2:
+            p.error("--coarse-from: only with two passes")
+        reuse_coarse(Path(args.coarse_from), [r for r in runs.values() if not finished(r, args.passes)])
     # model by model, S3K's (the longer trainings) first, so the labels-only ones fill in around them
     jobs = [(f"{m} seed {s}", train_command(args, data[s], runs[s, m], s, m),
              runs[s, m].with_name(runs[s, m].name + "-cpu.json"))
@@ -284,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         "scale": scale,
         "seeds": seeds,
         **({"labels_only_from": args.labels_only_from} if args.labels_only_from else {}),
+        **({"coarse_from": args.coarse_from} if args.coarse_from else {}),
         "train_cpu_minutes_per_model": max(c["cpu_minutes"] for c in cpu.values()),
         "train_wall_minutes_per_model": max(c["wall_minutes"] for c in cpu.values()),
     }

@@ -8,6 +8,8 @@ A two-pass run folder holds two ordinary runs of ``s3k train`` and the crop rule
     RUN/crops/           a dataset of crops around those estimates (:func:`s3k.refine.write_crop_dataset`)
     RUN/fine/            the refining detector, trained on the crops with the same losses (its pixel
                          tolerances scaled to the crop size: :func:`refining_config`)
+    RUN/cpu.json         CPU seconds each stage took: ``coarse`` (its training, the estimates and the
+                         crops) and ``fine``, summed over the attempts of a resumed run
 
 The crop of a frame is centred on the middle of its coarse keypoints' extent (the midpoint of the two that
 are farthest apart), not on their mean: a mean lies towards where keypoints cluster and can leave an
@@ -25,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import json
 import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -35,12 +38,13 @@ import torch
 
 from s3k.errors import UserError
 
-__all__ = ["ESTIMATES_FILE", "REFERENCE_CROP", "TWO_PASS_FILE", "CropRule", "TwoPassDetector", "crop_centres",
-           "crop_rule_from_labels", "evaluate_two_pass", "extent_middle", "is_two_pass", "predict_two_pass",
-           "read_two_pass", "refining_config", "train_two_pass"]
+__all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "TWO_PASS_FILE", "CropRule", "TwoPassDetector",
+           "crop_centres", "crop_rule_from_labels", "evaluate_two_pass", "extent_middle", "is_two_pass",
+           "predict_two_pass", "read_cpu", "read_two_pass", "refining_config", "train_two_pass"]
 
 TWO_PASS_FILE = "two_pass.json"
 ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
+CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "fine"), summed over a resumed run's attempts
 
 
 @dataclass(frozen=True)
@@ -241,27 +245,101 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     results: dict[str, Any] = {"rule": rule}
     coarse_cfg = cfg.replace(image_size=coarse_size, steps=coarse_steps or cfg.steps,
                              rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation)
-    results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass")
-    log(f"coarse pass: estimating every frame of {data}")
-    estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, "all", ds.keypoints)
-    crops = out / "crops"
-    if not (crops / "s3k.json").is_file():
-        log(f"cropping every frame: {rule.extent:g} {ds.units} -> {rule.size} px")
-        write_crops(data, crops, estimates, rule,
-                    description=f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates")
-    results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command, log,
-                                  "refining pass")
+    with _StageClock(out, "coarse") as clock:
+        results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass",
+                                        clock)
+        log(f"coarse pass: estimating every frame of {data}")
+        estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, "all", ds.keypoints)
+        crops = out / "crops"
+        if (crops / "s3k.json").is_file():
+            _check_crops(crops, rule)
+        else:
+            log(f"cropping every frame: {rule.extent:g} {ds.units} -> {rule.size} px")
+            write_crops(data, crops, estimates, rule,
+                        description=f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates")
+    with _StageClock(out, "fine") as clock:
+        results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command,
+                                      log, "refining pass", clock)
     _write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results
 
 
-def _train_pass(train, data: Path, run: Path, cfg, command, log, what: str):
-    """Train one pass unless its model exists (then None); resume a pass whose folder exists."""
+def _check_crops(crops: Path, rule: CropRule) -> None:
+    """Refuse existing crops cut by another rule than this call's (another --crop-size, margin or extent)."""
+    source = json.loads((crops / "s3k.json").read_text()).get("source") or {}
+    extent, size = source.get("extent"), source.get("size")
+    if extent is None or size is None:
+        return  # crops written before the rule was recorded with them
+    if int(size) != rule.size or not np.isclose(float(extent), rule.extent, rtol=1e-6, atol=0.0):
+        raise UserError(f"{crops} were cut {float(extent):g} wide at {int(size)} px; this call cuts "
+                        f"{rule.extent:g} at {rule.size} px",
+                        hint="repeat the --crop-size, --crop-margin and --crop-extent the run was trained "
+                             "with, or pass --overwrite to train both passes again")
+
+
+def read_cpu(run_dir: str | Path) -> dict[str, float]:
+    """CPU seconds per stage of a two-pass run (``RUN/cpu.json``); empty for a run trained without it."""
+    path = Path(run_dir) / CPU_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return {str(k): float(v) for k, v in json.loads(path.read_text()).items()}
+    except (ValueError, AttributeError, TypeError) as e:
+        raise UserError(f"{path}: not a CPU record ({type(e).__name__}: {e})") from None
+
+
+class _StageClock:
+    """Adds the CPU time this process spends in a stage to ``RUN/cpu.json``: when the stage ends, and every
+    ``every`` training steps meanwhile (:meth:`tick`, a training callback), so a killed attempt's time up to
+    its last tick is kept. Only the main process of a distributed run writes."""
+
+    def __init__(self, run_dir: Path, stage: str, every: int = 50) -> None:
+        import os
+
+        self.path, self.stage, self.every = run_dir / CPU_FILE, stage, every
+        self.writes = os.environ.get("RANK", "0") == "0"
+
+    def __enter__(self) -> _StageClock:
+        self.before = read_cpu(self.path.parent).get(self.stage, 0.0)
+        self.started = time.process_time()
+        return self
+
+    def tick(self, step: int, terms=None) -> None:
+        if step % self.every == 0:
+            self._write()
+
+    def _write(self) -> None:
+        if not self.writes:
+            return
+        from s3k.fileio import atomic_write_json
+
+        spent = read_cpu(self.path.parent)
+        spent[self.stage] = self.before + time.process_time() - self.started
+        atomic_write_json(spent, self.path)
+
+    def __exit__(self, *exc) -> None:
+        self._write()
+
+
+def _train_pass(train, data: Path, run: Path, cfg, command, log, what: str, clock: _StageClock):
+    """Train one pass unless its model exists (then None, after checking it was trained as this call would
+    train it); resume a pass whose folder exists."""
     if (run / "model.pt").is_file():
+        from s3k.train import check_trained_as
+
+        try:
+            changed = check_trained_as(data, run, cfg)
+            if "steps" in changed:  # a finished pass is not continued: it would be kept at its steps
+                raise UserError(f"steps is {changed['steps'][1]} now but {changed['steps'][0]} there")
+        except UserError as e:
+            raise UserError(f"{what} {run} is complete but not what this call would train "
+                            f"({e.message.removeprefix('--resume: ')})",
+                            hint="repeat the options it was trained with, or pass --overwrite to train both "
+                                 "passes again") from None
         log(f"{what}: {run} is complete")
         return None
     log(f"{what}: training {run}")
-    result = train(data, run, cfg, resume=run.exists(), command=command)
+    result = train(data, run, cfg, resume=run.exists(), callback=clock.tick, command=command)
     if result.status != "done":
         raise UserError(f"{what} stopped ({result.status}); see {run / 'train.log'}",
                         hint="fix what the log says and continue with --resume")

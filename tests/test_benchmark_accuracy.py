@@ -1,8 +1,10 @@
 """benchmarks/accuracy.py --labels-only-from: the renders and labels-only runs of an earlier working folder
-are linked, not made again, and an unfinished run is refused."""
+are linked, not made again, and an unfinished run is refused; --coarse-from: a run starts from an earlier
+run's coarse stage, its CPU time counted, and refuses one its options would not make."""
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -12,7 +14,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
-from benchmarks.accuracy import reuse_labels_only  # noqa: E402
+from benchmarks.accuracy import reuse_coarse, reuse_labels_only  # noqa: E402
 
 
 def test_labels_only_runs_are_linked_from_an_earlier_working_folder(tmp_path):
@@ -104,3 +106,40 @@ def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
         assert view.frames("unlabelled").tolist() == pool.frames("unlabelled").tolist()
         assert view.frames("test").tolist() == pool.frames("test").tolist()
     assert views["random"] != views["coverage"]
+
+
+def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
+    from synthetic_rig import make_dataset
+
+    from s3k import cli
+    from s3k.two_pass import CPU_FILE, read_cpu
+
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
+    old, new = tmp_path / "old", tmp_path / "new"
+    args = ["--two-pass", "--steps", "2", "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8",
+            "--res_blocks", "1", "--val_every", "0", "--warmup_steps", "1", "--ramp_steps", "1",
+            "--no-progress", "--threads", "1"]
+    assert cli.main(["train", str(data), "--out", str(old / "s3k-seed0"), *args]) == 0
+    source_cpu = read_cpu(old / "s3k-seed0")
+    reuse_coarse(old, [new / "s3k-seed0"])
+    record = json.loads((new / "s3k-seed0-cpu.json").read_text())
+    assert record["cpu_minutes"] == pytest.approx(source_cpu["coarse"] / 60)
+    assert read_cpu(new / "s3k-seed0") == {"coarse": source_cpu["coarse"]}
+    coarse_model = new / "s3k-seed0" / "coarse" / "model.pt"
+    before = coarse_model.stat().st_mtime_ns
+    # the benchmark's training command resumes it: only the refining pass is trained
+    assert cli.main(["train", str(data), "--out", str(new / "s3k-seed0"), *args, "--resume"]) == 0
+    assert coarse_model.stat().st_mtime_ns == before and (new / "s3k-seed0" / "fine" / "model.pt").is_file()
+    spent = read_cpu(new / "s3k-seed0")
+    assert spent["coarse"] >= source_cpu["coarse"] and spent["fine"] > 0
+    # options that would make another coarse pass are refused; a run already begun is left alone
+    (old / "other").symlink_to(old / "s3k-seed0")
+    reuse_coarse(old, [new / "other"])
+    capsys.readouterr()
+    assert cli.main(["train", str(data), "--out", str(new / "other"), *args, "--coarse-steps", "3",
+                     "--resume"]) == 1
+    assert "steps is 3" in capsys.readouterr().err
+    # a source without its coarse stage's CPU record is refused
+    (old / "s3k-seed0" / CPU_FILE).unlink()
+    with pytest.raises(SystemExit, match=CPU_FILE):
+        reuse_coarse(old, [new / "s3k-seed2"])

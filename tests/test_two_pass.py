@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from s3k.crops import crop_maps, metric_crop_boxes
 from s3k.data import Dataset
 from s3k.data.anipose import write_anipose_calibration
 from s3k.data.video import write_video
+from s3k.errors import UserError
 from s3k.geometry import project
 from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.model import UNetConfig
@@ -26,11 +28,13 @@ from s3k.run import DetectorMeta
 from s3k.track import prepare_cameras
 from s3k.tracks_csv import read_csv
 from s3k.two_pass import (
+    CPU_FILE,
     TWO_PASS_FILE,
     CropRule,
     crop_centres,
     crop_rule_from_labels,
     extent_middle,
+    read_cpu,
     read_two_pass,
     refining_config,
 )
@@ -117,6 +121,8 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
     assert coarse_cfg["image_size"] == 32
+    spent = read_cpu(run)  # CPU seconds per stage
+    assert set(spent) == {"coarse", "fine"} and min(spent.values()) > 0
     crops = Dataset.open(run / "crops", cache="none")
     source = Dataset.open(data, cache="none")
     assert crops.image_size == (32, 32) and list(crops.keypoints) == KEYPOINTS
@@ -133,6 +139,15 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     before = (fine / "model.pt").stat().st_mtime_ns
     assert cli.main([*args, "--resume"]) == 0
     assert (fine / "model.pt").stat().st_mtime_ns == before
+    assert all(read_cpu(run)[k] >= v for k, v in spent.items())  # added to, not restarted
+    # a complete pass trained otherwise than the call asks is refused, not silently kept
+    capsys.readouterr()
+    assert cli.main([*args[:-1], "90", "--resume"]) == 1
+    err = capsys.readouterr().err
+    assert "coarse pass" in err and "rotation_deg is 90" in err and "180" in err and "--overwrite" in err
+    assert cli.main([*args, "--resume", "--crop-size", "48"]) == 1  # crops of another size
+    err = capsys.readouterr().err
+    assert str(run / "crops") in err and "at 32 px" in err and "at 48 px" in err
     capsys.readouterr()
     assert cli.main(args) == 1
     assert "--resume" in capsys.readouterr().err
@@ -166,6 +181,27 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     np.testing.assert_allclose(uv48[mask], (uv[mask] + 0.5) * 1.5 - 0.5, atol=1e-3)
     with pytest.raises(SystemExit):
         recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")])  # exists
+
+
+def test_stage_clock_keeps_a_killed_attempts_cpu_time(tmp_path):
+    from s3k.two_pass import _StageClock
+
+    (tmp_path / CPU_FILE).write_text(json.dumps({"coarse": 5.0}))  # an earlier attempt's time
+    with pytest.raises(KeyboardInterrupt), _StageClock(tmp_path, "fine", every=10) as clock:
+        clock.tick(10)  # a training step that writes
+        assert read_cpu(tmp_path)["fine"] >= 0 and read_cpu(tmp_path)["coarse"] == 5.0
+        raise KeyboardInterrupt  # a kill
+    assert set(read_cpu(tmp_path)) == {"coarse", "fine"}
+    first = read_cpu(tmp_path)["fine"]
+    with _StageClock(tmp_path, "fine") as clock:
+        t = time.process_time()
+        while time.process_time() - t < 0.05:  # some CPU work
+            pass
+    spent = read_cpu(tmp_path)
+    assert spent["fine"] >= first + 0.05 and spent["coarse"] == 5.0
+    (tmp_path / CPU_FILE).write_text("[1, 2]")
+    with pytest.raises(UserError, match=CPU_FILE):
+        read_cpu(tmp_path)
 
 
 class _GreyOracle(torch.nn.Module):

@@ -35,13 +35,12 @@ The rooms:
 
 from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
 from s3k.train.distributed import DistInfo, init_distributed, shard
-from s3k.train.loop import TrainResult, compute_losses, train
+from s3k.train.loop import TrainResult, check_trained_as, compute_losses, train
 from s3k.train.sampling import draw_batch, prepare
 from s3k.train.validation import labelled_distances, labelled_layout, mean_pairwise_distance, validate
 
 __all__ = [
-    "DistInfo", "TrainResult", "compute_losses", "draw_batch", "init_distributed", "labelled_distances",
-    "labelled_layout",
-    "load_checkpoint", "mean_pairwise_distance", "prepare", "read_checkpoint_step", "shard", "train",
-    "validate",
+    "DistInfo", "TrainResult", "check_trained_as", "compute_losses", "draw_batch", "init_distributed",
+    "labelled_distances", "labelled_layout", "load_checkpoint", "mean_pairwise_distance", "prepare",
+    "read_checkpoint_step", "shard", "train", "validate",
 ]

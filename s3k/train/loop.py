@@ -191,11 +191,28 @@ class _Data:
     val: np.ndarray
 
 
-def _open_data(data: Path, cfg: TrainConfig) -> _Data:
-    """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
+def _open_at_network_size(data: Path, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
+    """``data`` opened at the network's input size, and its own image size."""
     ds = open_dataset(data)
     source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
-    ds = ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride))
+    return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
+
+
+def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dict[str, list[Any]]:
+    """Check that the run in ``out`` was trained on ``data`` with ``cfg``, as ``--resume`` checks a run it
+    continues (every field but ``s3k.config.resumable_fields``, and the dataset's identity); returns the
+    resumable fields that differ, ``{field: [there, here]}``.
+
+    Raises:
+        UserError: naming the first field or dataset property that differs where it must not.
+    """
+    ds, _ = _open_at_network_size(Path(data), cfg)
+    return run_folder.check_resume(Path(out), cfg, run_folder.dataset_identity(ds), Path(data))
+
+
+def _open_data(data: Path, cfg: TrainConfig) -> _Data:
+    """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
+    ds, source_size = _open_at_network_size(data, cfg)
     labelled = np.asarray(ds.frames("labelled"))
     if len(labelled) == 0:
         raise UserError(f"{data}: the 'labelled' split is empty; training needs labelled frames")
