@@ -111,7 +111,8 @@ class SelfSupervisionConfig:
     layout_tol: float = _f(0.0, "rigid objects: leave out of the self-supervised term the pseudo-label "
                                 "keypoints whose distances to the others differ from the labelled frames' "
                                 "(median over them) by more than this fraction, e.g. 0.2, so that keypoints "
-                                "detected together on one spot teach nothing; 0: off (deformable objects)")
+                                "detected together on one spot teach nothing, and at read-out look for such "
+                                "a keypoint again where that layout puts it; 0: off (deformable objects)")
 
 
 @dataclass

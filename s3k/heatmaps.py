@@ -227,8 +227,9 @@ def heatmap_moments(probs: Tensor, stride: int) -> tuple[Tensor, Tensor]:
     return torch.stack((mu, mv), dim=-1), 0.5 * (var_u + var_v)
 
 
-def peak_window_mean(probs: Tensor, stride: int, radius: int) -> Tensor:
-    """Mean of each heatmap within ``radius`` cells of its most probable cell, in image pixels.
+def peak_window_mean(probs: Tensor, stride: int, radius: int, peak: Tensor | None = None) -> Tensor:
+    """Mean of each heatmap within ``radius`` cells of its most probable cell (or of the cell ``peak``), in
+    image pixels.
 
     The whole heatmap's mean (:func:`heatmap_moments`) is pulled towards the heatmap's centre by whatever
     probability is spread over the rest of it: 5% of the mass spread evenly moves the mean 5% of the way to
@@ -239,6 +240,8 @@ def peak_window_mean(probs: Tensor, stride: int, radius: int) -> Tensor:
         probs: ``(*, h, w)`` probabilities.
         stride: image pixels per heatmap cell.
         radius: half-side of the square window, cells (>= 1).
+        peak: ``(*)`` flat cell index (``row * w + col``) of each window's centre; None: the most probable
+            cell.
 
     Returns:
         ``mean_uv (*, 2)`` in image pixels.
@@ -255,7 +258,8 @@ def peak_window_mean(probs: Tensor, stride: int, radius: int) -> Tensor:
     if radius < 1:
         raise ValueError(f"peak_window_mean: radius must be >= 1 cell, got {radius}")
     h, w = probs.shape[-2:]
-    peak = probs.flatten(-2).argmax(dim=-1)  # (*)
+    if peak is None:
+        peak = probs.flatten(-2).argmax(dim=-1)  # (*)
     rows = torch.arange(h, device=probs.device)
     cols = torch.arange(w, device=probs.device)
     in_rows = (rows - torch.div(peak, w, rounding_mode="floor")[..., None]).abs() <= radius  # (*, h)

@@ -58,6 +58,8 @@ __all__ = [
     "read_out",
     "reject_layout",
     "reject_outliers",
+    "layout_locus",
+    "search_layout",
     "select_views",
     "triangulate",
     "window_cells",
@@ -220,6 +222,100 @@ def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Te
     return keep & ~(broken.any(dim=-1) & ~intact.any(dim=-1))
 
 
+LAYOUT_SAMPLES = 720
+"""Places on a broken keypoint's locus that :func:`search_layout` scores (every half degree of the circle)."""
+
+LOG_FLOOR = math.log(1e-6)
+"""The least log-probability a view gives a place in :func:`search_layout`: a view whose heatmap is sure of
+another place (or that does not see the place) cannot veto what the other views agree on."""
+
+
+def layout_locus(a: Tensor, b: Tensor, ra: float, rb: float, n: int = LAYOUT_SAMPLES) -> Tensor:
+    """``(n, 3)`` places at distance ``ra`` from ``a (3,)`` and ``rb`` from ``b (3,)``: the circle where the two
+    spheres meet, ``n`` evenly spaced places on it (the nearest circle, in the plane between them, when the
+    spheres do not meet).
+
+    Example:
+        >>> P = layout_locus(torch.zeros(3, dtype=torch.float64), torch.tensor([2.0, 0, 0], dtype=torch.float64),
+        ...                  math.sqrt(2), math.sqrt(2), 8)
+        >>> torch.allclose(P.norm(dim=-1), torch.full((8,), math.sqrt(2), dtype=torch.float64))
+        True
+    """
+    axis = b - a
+    d = float(torch.linalg.vector_norm(axis))
+    e = axis / max(d, 1e-12)
+    along = (d * d + ra * ra - rb * rb) / (2 * max(d, 1e-12))
+    radius = math.sqrt(max(ra * ra - along * along, 0.0))
+    helper = torch.zeros_like(e)
+    helper[int(torch.argmin(e.abs()))] = 1.0
+    u = torch.linalg.cross(e, helper)
+    u = u / torch.linalg.vector_norm(u)
+    v = torch.linalg.cross(e, u)
+    theta = torch.arange(n, dtype=a.dtype, device=a.device) * (2 * math.pi / n)
+    return a + along * e + radius * (torch.cos(theta)[:, None] * u + torch.sin(theta)[:, None] * v)
+
+
+def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Tensor, distances: Tensor,
+                  tol: float, window: int) -> list[tuple[int, int, Tensor, Tensor]]:
+    """For every keypoint the layout check left out (``~kept``) in a frame with two keypoints it kept, look
+    for it again where the rigid layout puts it.
+
+    Two kept keypoints ``i``, ``j`` (the pair farthest apart by the reference) place it on the circle at its
+    reference distances from them (:func:`layout_locus`); places that break its distance to another kept
+    keypoint by more than ``tol`` are left out. Each place is scored by the sum over the views of its
+    heatmap's log-probability at the place's projection (at least ``LOG_FLOOR``), and each view's detection is
+    then its heatmap's mean within ``window`` cells of the best place's cell (a view whose image does not hold
+    that cell is not used).
+
+    Args:
+        probs: ``(B, C, K, h, w)`` heatmaps.
+        cams: cameras ``(B, C)`` or ``(C,)`` of the network-input pixels.
+        stride: heatmap stride.
+        X: ``(B, K, 3)`` points; kept: ``(B, K)`` bool, the keypoints the layout check kept.
+        distances: ``(K, K)`` reference distances (NaN where unknown).
+        tol: the layout check's relative tolerance.
+        window: the read-out's window, cells (>= 1).
+
+    Returns:
+        ``[(b, k, uv (C, 2), used (C,)), ...]``: the new detections in network-input pixels, for the
+        keypoints found again.
+    """
+    B, C, K, h, w = probs.shape
+    ref = distances.to(device=X.device, dtype=DTYPE)
+    found = []
+    for b, k in (~kept).nonzero().tolist():
+        others = kept[b].clone()
+        others[k] = False
+        others &= torch.isfinite(ref[k])
+        idx = others.nonzero().flatten()
+        if len(idx) < 2:
+            continue
+        sub = ref[idx][:, idx].nan_to_num(-1.0)
+        p, q = divmod(int(sub.argmax()), len(idx))
+        i, j = int(idx[p]), int(idx[q])
+        places = layout_locus(X[b, i].to(DTYPE), X[b, j].to(DTYPE), float(ref[k, i]), float(ref[k, j]))
+        rest = idx[(idx != i) & (idx != j)]
+        if len(rest):
+            off = (torch.cdist(places, X[b, rest].to(DTYPE)) - ref[k, rest]).abs() / ref[k, rest]
+            places = places[(off <= tol).all(dim=1)]
+            if not len(places):
+                continue
+        frame_cams = cams if len(cams.shape) == 1 else cams[b]
+        uv, depth = project(frame_cams, places[None].expand(C, -1, -1))  # (C, n, 2)
+        col = torch.round((uv[..., 0] - (stride - 1) / 2) / stride).long()
+        row = torch.round((uv[..., 1] - (stride - 1) / 2) / stride).long()
+        inside = (depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        hm = probs[b, :, k]  # (C, h, w)
+        cell = hm[torch.arange(C)[:, None], row.clamp(0, h - 1), col.clamp(0, w - 1)]
+        logp = torch.where(inside, cell.clamp_min(1e-300).log().clamp_min(LOG_FLOOR),
+                           torch.full_like(cell, LOG_FLOOR))
+        best = int(logp.sum(dim=0).argmax())
+        used = inside[:, best]
+        centre = row[:, best].clamp(0, h - 1) * w + col[:, best].clamp(0, w - 1)
+        found.append((b, k, peak_window_mean(hm, stride, window, centre), used))
+    return found
+
+
 @dataclass
 class ReadOut:
     """The read-out of a batch of synchronized frames (float64 tensors, on the logits' device).
@@ -285,7 +381,7 @@ class ReadOut:
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
              keep_heatmaps: bool = False, max_residual_px: float | None = None,
-             window: int | None = None) -> ReadOut:
+             window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
     Args:
@@ -303,6 +399,9 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             ``--outlier_px``, whatever the size of the original images).
         window: each detection is its heatmap's mean within this many cells of the peak (:func:`moments`);
             None: :func:`window_cells` of ``sigma`` and ``stride``; 0: the whole heatmap's mean (the paper's).
+        layout, layout_tol: a rigid object's ``(K, K)`` reference distances and relative tolerance
+            (:func:`reject_layout`); a keypoint that breaks them is looked for again where the layout puts
+            it (:func:`search_layout`). None or 0: off.
 
     Returns:
         A :class:`ReadOut`.
@@ -314,7 +413,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     if tuple(cams.shape) not in ((C,), (B, C)):
         raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
                          f"got {tuple(cams.shape)}")
-    probs, uv, var = moments(logits, stride, window_cells(sigma, stride, window))
+    cells = window_cells(sigma, stride, window)
+    probs, uv, var = moments(logits, stride, cells)
     weights = confidence_weight(var, sigma)
     used = select_views(uv, weights, min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
@@ -327,10 +427,23 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                              f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
         uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
-        if max_residual_px is not None:  # an affine map of the pixels is K' = M K
-            net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)
+        net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine map of the pixels is K' = M K
     if max_residual_px is not None:
         used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
+    if layout is not None and layout_tol > 0 and cells > 0:
+        kept = reject_layout(X, valid, layout, layout_tol)
+        if not bool(kept.all()):
+            found = search_layout(probs, net_cams, stride, X, kept, layout, layout_tol, cells)
+            if found:
+                net_uv, used = net_uv.clone(), used.clone()
+                for b, k, found_uv, found_used in found:
+                    w_k = weights[b, :, k]
+                    net_uv[b, :, k] = found_uv
+                    used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
+                uv = net_uv
+                if pixel_maps is not None:
+                    uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
+                X, valid = triangulate(cams, uv, weights, used)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

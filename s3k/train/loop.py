@@ -244,13 +244,16 @@ def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> tor
     return layout
 
 
-def _meta(d: _Data, cfg: TrainConfig) -> DetectorMeta:
+def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
+    """What inference needs; a rigid object's labelled layout (``--layout_tol``) goes into the read-out."""
+    rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
         keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
         stride=cfg.stride, sigma=cfg.sigma_px(),
         model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
                          norm=cfg.norm).to_dict(),
         units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
+        layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
     )
 
 
@@ -497,7 +500,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     d = _open_data(data, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = _reference_layout(data, distances, cfg)
-    meta = _meta(d, cfg)
+    meta = _meta(d, cfg, distances)
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
         _setup_logging(out, False)
