@@ -58,7 +58,9 @@ __all__ = [
     "read_out",
     "reject_layout",
     "reject_outliers",
+    "fit_layout",
     "layout_locus",
+    "layout_shape",
     "search_layout",
     "select_views",
     "triangulate",
@@ -316,6 +318,65 @@ def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Te
     return found
 
 
+def layout_shape(distances: Tensor) -> Tensor | None:
+    """``(K, 3)`` points whose distances are ``distances (K, K)`` as nearly as three dimensions allow
+    (classical multidimensional scaling), centred on the origin; None when a distance is unknown (NaN off the
+    diagonal) or there are fewer than three keypoints.
+
+    Example:
+        >>> d = torch.tensor([[0.0, 3, 5], [3, 0, 4], [5, 4, 0]], dtype=torch.float64)
+        >>> Y = layout_shape(d)
+        >>> torch.allclose(torch.cdist(Y, Y), d)
+        True
+    """
+    K = distances.shape[0]
+    D = distances.to(DTYPE).clone()
+    D.fill_diagonal_(0.0)
+    if K < 3 or not bool(torch.isfinite(D).all()):
+        return None
+    J = torch.eye(K, dtype=DTYPE) - 1.0 / K
+    gram = -0.5 * J @ (D * D) @ J
+    values, vectors = torch.linalg.eigh(gram)  # ascending
+    Y = vectors[:, -3:] * values[-3:].clamp_min(0).sqrt()
+    return Y - Y.mean(dim=0)
+
+
+def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]:
+    """The rigid object's ``shape (K, 3)`` moved onto each frame's points ``X (B, K, 3)``: the rotation and
+    translation that bring its ``valid (B, K)`` keypoints nearest those points in the least-squares sense
+    (Kabsch), the shape or its mirror image, whichever fits better. Frames with fewer than three valid
+    keypoints are left as they are.
+
+    Returns:
+        ``(X', fitted (B,) bool)``: every keypoint of a fitted frame, valid or not, at the moved shape's place.
+    """
+    w = valid.to(DTYPE)  # (B, K)
+    n = w.sum(dim=1)
+    fitted = n >= 3
+    P = torch.nan_to_num(X.to(DTYPE))
+    out = P.clone()
+    if not bool(fitted.any()):
+        return out, fitted
+    n = n.clamp_min(1)[:, None]
+    centre = (w[..., None] * P).sum(dim=1) / n  # (B, 3)
+    best = torch.full((X.shape[0],), float("inf"), dtype=DTYPE, device=X.device)
+    mirror = torch.tensor([1.0, 1.0, -1.0], dtype=DTYPE, device=X.device)
+    for Y in (shape.to(device=X.device, dtype=DTYPE), shape.to(device=X.device, dtype=DTYPE) * mirror):
+        Yc = (w[..., None] * Y).sum(dim=1) / n  # (B, 3): the shape's centre over the valid keypoints
+        A = (Y[None] - Yc[:, None]) * w[..., None]
+        H = A.transpose(1, 2) @ (P - centre[:, None])  # (B, 3, 3)
+        U, _, Vt = torch.linalg.svd(H)
+        flip = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
+        S = torch.diag_embed(torch.stack([torch.ones_like(flip), torch.ones_like(flip), flip], dim=-1))
+        R = Vt.transpose(1, 2) @ S @ U.transpose(1, 2)
+        moved = (Y[None] - Yc[:, None]) @ R.transpose(1, 2) + centre[:, None]
+        cost = (w * ((moved - P) ** 2).sum(dim=-1)).sum(dim=1)
+        better = fitted & (cost < best)
+        out = torch.where(better[:, None, None], moved, out)
+        best = torch.where(better, cost, best)
+    return out, fitted
+
+
 @dataclass
 class ReadOut:
     """The read-out of a batch of synchronized frames (float64 tensors, on the logits' device).
@@ -445,5 +506,11 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                 if pixel_maps is not None:
                     uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
                 X, valid = triangulate(cams, uv, weights, used)
+        shape = layout_shape(layout)
+        if shape is not None:
+            kept = reject_layout(X, valid, layout, layout_tol)
+            fit, fitted = fit_layout(X, kept, shape)
+            X = torch.where(fitted[:, None, None], fit, X)
+            valid = valid | fitted[:, None]
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)
