@@ -233,13 +233,13 @@ another place (or that does not see the place) cannot veto what the other views 
 
 
 def layout_locus(a: Tensor, b: Tensor, ra: float, rb: float, n: int = LAYOUT_SAMPLES) -> Tensor:
-    """``(n, 3)`` places at distance ``ra`` from ``a (3,)`` and ``rb`` from ``b (3,)``: the circle where the two
-    spheres meet, ``n`` evenly spaced places on it (the nearest circle, in the plane between them, when the
-    spheres do not meet).
+    """``(n, 3)`` places at distance ``ra`` from ``a (3,)`` and ``rb`` from ``b (3,)``: the circle where the
+    two spheres meet, ``n`` evenly spaced places on it (the nearest circle, in the plane between them, when
+    the spheres do not meet).
 
     Example:
-        >>> P = layout_locus(torch.zeros(3, dtype=torch.float64), torch.tensor([2.0, 0, 0], dtype=torch.float64),
-        ...                  math.sqrt(2), math.sqrt(2), 8)
+        >>> a, b = torch.zeros(3, dtype=torch.float64), torch.tensor([2.0, 0, 0], dtype=torch.float64)
+        >>> P = layout_locus(a, b, math.sqrt(2), math.sqrt(2), 8)
         >>> torch.allclose(P.norm(dim=-1), torch.full((8,), math.sqrt(2), dtype=torch.float64))
         True
     """
@@ -279,8 +279,8 @@ def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Te
         window: the read-out's window, cells (>= 1).
 
     Returns:
-        ``[(b, k, uv (C, 2), used (C,)), ...]``: the new detections in network-input pixels, for the
-        keypoints found again.
+        ``[(b, k, uv (C, 2), used (C,), place (3,)), ...]``: for the keypoints found again, the new detections
+        in network-input pixels and the best place itself.
     """
     B, C, K, h, w = probs.shape
     ref = distances.to(device=X.device, dtype=DTYPE)
@@ -314,7 +314,7 @@ def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Te
         best = int(logp.sum(dim=0).argmax())
         used = inside[:, best]
         centre = row[:, best].clamp(0, h - 1) * w + col[:, best].clamp(0, w - 1)
-        found.append((b, k, peak_window_mean(hm, stride, window, centre), used))
+        found.append((b, k, peak_window_mean(hm, stride, window, centre), used, places[best]))
     return found
 
 
@@ -344,11 +344,14 @@ def layout_shape(distances: Tensor) -> Tensor | None:
 def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]:
     """The rigid object's ``shape (K, 3)`` moved onto each frame's points ``X (B, K, 3)``: the rotation and
     translation that bring its ``valid (B, K)`` keypoints nearest those points in the least-squares sense
-    (Kabsch), the shape or its mirror image, whichever fits better. Frames with fewer than three valid
-    keypoints are left as they are.
+    (Kabsch), the shape or its mirror image, whichever fits better (distances do not tell them apart).
+
+    Frames with fewer than three valid keypoints are left as they are. The other keypoints of a frame are
+    placed by the moved shape only when its valid ones span three dimensions: against a plane the shape and
+    its mirror image fit alike and put them on either side.
 
     Returns:
-        ``(X', fitted (B,) bool)``: every keypoint of a fitted frame, valid or not, at the moved shape's place.
+        ``(X', placed (B, K) bool)``: the moved shape's keypoints where ``placed``, ``X`` elsewhere.
     """
     w = valid.to(DTYPE)  # (B, K)
     n = w.sum(dim=1)
@@ -356,14 +359,18 @@ def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]
     P = torch.nan_to_num(X.to(DTYPE))
     out = P.clone()
     if not bool(fitted.any()):
-        return out, fitted
+        return out, valid & fitted[:, None]
     n = n.clamp_min(1)[:, None]
     centre = (w[..., None] * P).sum(dim=1) / n  # (B, 3)
     best = torch.full((X.shape[0],), float("inf"), dtype=DTYPE, device=X.device)
     mirror = torch.tensor([1.0, 1.0, -1.0], dtype=DTYPE, device=X.device)
-    for Y in (shape.to(device=X.device, dtype=DTYPE), shape.to(device=X.device, dtype=DTYPE) * mirror):
+    Y0 = shape.to(device=X.device, dtype=DTYPE)
+    spread = None
+    for Y in (Y0, Y0 * mirror):
         Yc = (w[..., None] * Y).sum(dim=1) / n  # (B, 3): the shape's centre over the valid keypoints
         A = (Y[None] - Yc[:, None]) * w[..., None]
+        if spread is None:  # singular values of the valid keypoints' shape: is it flat?
+            spread = torch.linalg.svdvals(A)
         H = A.transpose(1, 2) @ (P - centre[:, None])  # (B, 3, 3)
         U, _, Vt = torch.linalg.svd(H)
         flip = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
@@ -374,8 +381,9 @@ def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]
         better = fitted & (cost < best)
         out = torch.where(better[:, None, None], moved, out)
         best = torch.where(better, cost, best)
-    return out, fitted
-
+    solid = spread[:, 2] > 0.05 * spread[:, 0]
+    placed = fitted[:, None] & (valid | solid[:, None])
+    return torch.where(placed[..., None], out, P), placed
 
 @dataclass
 class ReadOut:
@@ -488,7 +496,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                              f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
         uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
-        net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine map of the pixels is K' = M K
+        net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine pixel map: K' = M K
     if max_residual_px is not None:
         used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
@@ -498,7 +506,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             found = search_layout(probs, net_cams, stride, X, kept, layout, layout_tol, cells)
             if found:
                 net_uv, used = net_uv.clone(), used.clone()
-                for b, k, found_uv, found_used in found:
+                for b, k, found_uv, found_used, _ in found:
                     w_k = weights[b, :, k]
                     net_uv[b, :, k] = found_uv
                     used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
@@ -506,11 +514,18 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                 if pixel_maps is not None:
                     uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
                 X, valid = triangulate(cams, uv, weights, used)
+                # a detection read next to a stronger wrong peak can still break the layout: then the
+                # best place on the locus is the keypoint
+                again = reject_layout(X, valid, layout, layout_tol)
+                X, valid = X.clone(), valid.clone()
+                for b, k, _, _, place in found:
+                    if not bool(again[b, k]):
+                        X[b, k], valid[b, k] = place, True
         shape = layout_shape(layout)
         if shape is not None:
             kept = reject_layout(X, valid, layout, layout_tol)
-            fit, fitted = fit_layout(X, kept, shape)
-            X = torch.where(fitted[:, None, None], fit, X)
-            valid = valid | fitted[:, None]
+            fit, placed = fit_layout(X, kept, shape)
+            X = torch.where(placed[..., None], fit, X)
+            valid = valid | placed
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

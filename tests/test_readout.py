@@ -8,6 +8,7 @@ reads out the same numbers.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -287,3 +288,112 @@ def test_outlier_threshold_is_in_network_pixels_whatever_the_pixel_maps(scene):
     tracked = read_out(logits, video, STRIDE, SIGMA, maps, max_residual_px=threshold)
     assert torch.equal(tracked.used, ref.used)
     torch.testing.assert_close(tracked.X, ref.X, rtol=0, atol=1e-9)
+
+
+def _rotation(axis, angle: float) -> torch.Tensor:
+    """The rotation by ``angle`` radians about ``axis`` (Rodrigues)."""
+    a = torch.as_tensor(axis, dtype=torch.float64)
+    a = a / a.norm()
+    A = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * A + (1 - math.cos(angle)) * A @ A
+
+
+def test_layout_shape_and_fit_hold_points_to_a_rigid_layout():
+    from s3k.readout import fit_layout, layout_shape
+
+    Y = torch.tensor([[0.0, 0, 0], [0.2, 0, 0], [0.2, 0.1, 0], [0, 0.05, 0.08]], dtype=torch.float64)
+    ref = torch.cdist(Y, Y).fill_diagonal_(float("nan"))
+    shape = layout_shape(ref)
+    torch.testing.assert_close(torch.cdist(shape, shape), torch.cdist(Y, Y), rtol=0, atol=1e-9)
+    unknown = ref.clone()
+    unknown[0, 3] = unknown[3, 0] = float("nan")
+    assert layout_shape(unknown) is None and layout_shape(ref[:2, :2]) is None
+    R, t = _rotation([1.0, 2.0, -0.5], 0.7), torch.tensor([0.3, -0.2, 0.9], dtype=torch.float64)
+    truth = Y @ R.T + t
+    mirrored = (Y * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)) @ R.T + t
+    gen = torch.Generator().manual_seed(1)
+    noisy = truth + 0.004 * torch.randn(truth.shape, generator=gen, dtype=torch.float64)
+    Y5 = torch.cat([Y, torch.tensor([[0.1, 0.1, -0.05]], dtype=torch.float64)])
+    ref5 = torch.cdist(Y5, Y5).fill_diagonal_(float("nan"))
+    truth5 = Y5 @ R.T + t
+    missing = truth5.clone()
+    missing[4] = float("nan")  # not triangulated: four keypoints in three dimensions place it
+    flat = truth5.clone()
+    flat[3:] = float("nan")  # three keypoints on a plane: the fifth could be on either side, not placed
+    both = torch.stack([missing, flat])
+    five, placed5 = fit_layout(both, torch.isfinite(both)[..., 0], layout_shape(ref5))
+    assert placed5.tolist() == [[True] * 5, [True, True, True, False, False]]
+    torch.testing.assert_close(five[0], truth5, rtol=0, atol=1e-9)
+    torch.testing.assert_close(five[1, :3], truth5[:3], rtol=0, atol=1e-9)
+    X = torch.stack([truth, mirrored, noisy, noisy])
+    valid = torch.ones(4, 4, dtype=torch.bool)
+    valid[3, 2:] = False  # two keypoints: too few to fit
+    fit, placed = fit_layout(X, valid, shape)
+    assert placed.tolist() == [[True] * 4] * 3 + [[False] * 4]
+    torch.testing.assert_close(fit[0], truth, rtol=0, atol=1e-9)
+    torch.testing.assert_close(fit[1], mirrored, rtol=0, atol=1e-9)  # the mirror image fits too
+    torch.testing.assert_close(fit[3], noisy, rtol=0, atol=0)
+    assert (fit[2] - truth).norm(dim=-1).mean() < 0.8 * (noisy - truth).norm(dim=-1).mean()
+    torch.testing.assert_close(torch.cdist(fit[2], fit[2]), torch.cdist(Y, Y), rtol=0, atol=1e-9)
+
+
+def test_layout_locus_is_where_the_distances_hold():
+    from s3k.readout import layout_locus
+
+    a = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    b = a + torch.tensor([0.05, 0.12, -0.04], dtype=torch.float64)
+    places = layout_locus(a, b, 0.2, 0.15, 90)
+    assert places.shape == (90, 3)
+    torch.testing.assert_close((places - a).norm(dim=-1), torch.full((90,), 0.2, dtype=torch.float64))
+    torch.testing.assert_close((places - b).norm(dim=-1), torch.full((90,), 0.15, dtype=torch.float64))
+    assert torch.cdist(places, places).max() > 0.2  # a circle, not one point
+
+
+def _mixed_logits(cams, X, size, sigma, parts):
+    """``(B, C, K, size, size)`` stride-1 logits: each keypoint's heatmap the mixture ``parts[k]`` of
+    Gaussians at the projections of keypoints (``[(keypoint, share), ...]``)."""
+    uv, _ = project(cams, X[:, None])  # (B, C, K, 2)
+    probs = torch.zeros(uv.shape[:3] + (size, size), dtype=torch.float64)
+    for k, mixture in enumerate(parts):
+        for j, share in mixture:
+            target, _ = gaussian_targets(uv[:, :, j], None, size, size, 1, sigma)
+            probs[:, :, k] += share * target / target.sum(dim=(-2, -1), keepdim=True)
+    return probs.clamp_min(1e-30).log().clamp_min(-40.0)
+
+
+def test_layout_read_out_finds_a_keypoint_taken_for_its_neighbour():
+    """Keypoint 0's heatmaps peak on keypoint 1 in every view, with a faint second peak on its own place:
+    the views agree, so neither the confidence nor the outlier check sees it; held to the labelled layout,
+    the read-out looks for it where the layout puts it and finds it, also through a pixel map."""
+    cams, X, _ = _rig_views()
+    size, sigma = 64, 1.0
+    ref = torch.cdist(X[0], X[0]).fill_diagonal_(float("nan"))
+    good = _mixed_logits(cams, X, size, sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]])
+    confused = _mixed_logits(cams, X, size, sigma, [[(1, 0.95), (0, 0.05)], [(1, 1.0)], [(2, 1.0)]])
+    plain = read_out(confused, cams, 1, sigma)
+    assert float((plain.X[:, 0] - X[:, 1]).norm(dim=-1).max()) < 2e-3  # on its neighbour
+    held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    assert held.valid.all()
+    assert float((held.X - X).norm(dim=-1).max()) < 1e-3
+    assert float((plain.X[:, 1:] - X[:, 1:]).norm(dim=-1).max()) < 1e-3
+    # right detections stay right, and nothing changes without a tolerance
+    torch.testing.assert_close(read_out(good, cams, 1, sigma, layout=ref, layout_tol=0.1).X, X,
+                               rtol=0, atol=1e-3)
+    torch.testing.assert_close(read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.0).X, plain.X)
+    # the same heatmaps read in video pixels three times as fine as the network's
+    M = crop_resize_matrix((-6.0, 3.0, 3 * size - 6.0, 3 * size + 3.0), (size, size))
+    maps = np.repeat(M[None], cams.shape[0], axis=0)
+    video = Cameras(torch.as_tensor(np.linalg.inv(M)) @ cams.K, cams.dist, cams.R, cams.t)
+    tracked = read_out(confused, video, 1, sigma, maps, layout=ref, layout_tol=0.1)
+    torch.testing.assert_close(tracked.X, held.X, rtol=0, atol=1e-9)
+
+
+def test_detector_meta_keeps_the_layout_through_json():
+    import json
+
+    ref = [[float("nan"), 0.2, 0.3], [0.2, float("nan"), 0.1], [0.3, 0.1, float("nan")]]
+    meta = DetectorMeta(list(KEYPOINTS), [], (SIZE, SIZE), STRIDE, SIGMA, layout=ref, layout_tol=0.1)
+    back = DetectorMeta.from_dict(json.loads(json.dumps(meta.to_dict(), allow_nan=False)))
+    np.testing.assert_array_equal(np.asarray(back.layout), np.asarray(ref))
+    assert back.layout_tol == 0.1 and back.layout_distances.shape == (3, 3)
+    assert DetectorMeta(list(KEYPOINTS), [], (SIZE, SIZE), STRIDE, SIGMA, layout=ref).layout_distances is None

@@ -388,6 +388,12 @@ def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
     held = train(tiny_dataset, tmp_path / "held", tiny_config(steps=2, warmup_steps=0, ramp_steps=0,
                                                              layout_tol=0.2))
     assert held.status == "done"
+    # the read-out of the trained detector holds its keypoints to the same layout (the saved meta)
+    _, meta = load_detector(tmp_path / "held")
+    assert meta.layout_tol == 0.2
+    np.testing.assert_allclose(np.asarray(meta.layout, dtype=float), d, equal_nan=True)
+    _, plain = load_detector(tmp_path / "run")
+    assert plain.layout is None and plain.layout_distances is None
 
 
 def test_collapse_warning(tiny_dataset, tmp_path):
