@@ -1,0 +1,130 @@
+"""What the rigid read-out does for a two-pass detector: the same trained passes read with and without it.
+
+A detector trained with ``--layout_tol`` holds its 3D keypoints to the labelled layout at read-out
+(docs/method.md, "A rigid object's layout"): a keypoint that breaks it is looked for again where the layout
+puts it, and the layout is fitted onto the keypoints. In a two-pass run this acts twice: on the coarse
+pass's estimates, which place the crops, and on the refining pass's keypoints. Each RUN is read on DATA's
+``--split`` four ways, the rigid read-out off or on in each pass, and the test metrics of each way printed
+(median and RMS 3D error, share within 5 and 10 mm; the coarse estimates' median and RMS too).
+
+A run trained before its detectors kept the layout (or without ``--layout_tol``) is read with the layout
+triangulated from DATA's labelled frames and ``--layout-tol``.
+
+Example::
+
+    python benchmarks/rigid_readout.py runs/accuracy-box/s3k-seed0 runs/accuracy-box/box384-seed0 \\
+        --out docs/results/accuracy/rigid-readout.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import git_revision, without_notes, write_and_emit  # noqa: E402
+
+WAYS = {"neither": (False, False), "coarse only": (True, False), "refining only": (False, True),
+        "both": (True, True)}
+
+
+def _detector(run: Path, rigid: bool, layout, tol: float):
+    """A pass's detector with its rigid read-out on (its own layout, else ``layout`` and ``tol``) or off."""
+    from s3k.run import load_detector
+
+    model, meta = load_detector(run, "cpu")
+    if not rigid:
+        meta.layout, meta.layout_tol = None, 0.0
+    elif meta.layout_distances is None:
+        meta.layout, meta.layout_tol = layout.tolist(), tol
+    return model, meta
+
+
+def coarse_points(coarse: Path, data: Path, split: str, rigid: bool, layout, tol: float):
+    """``({frame: (K, 3)}, errors (B, K) in mm)``: the coarse pass's estimates of ``split``."""
+    from s3k.evaluate import mm_per_unit
+    from s3k.frames import FrameStore, open_dataset
+    from s3k.predict import predict_store, split_frames
+
+    model, meta = _detector(coarse, rigid, layout, tol)
+    ds = open_dataset(data, meta.image_size)
+    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
+    estimates, errors = {}, []
+    for batch, pred in predict_store(model, meta, store, 16, "cpu", pixel_map=ds.pixel_map):
+        X = pred.X.numpy()
+        estimates.update({int(f): x for f, x in zip(batch.frame_ids, X)})
+        truth = np.where(batch.points_mask.numpy()[..., None], batch.points.numpy(), np.nan)
+        errors.append(np.linalg.norm(X - truth, axis=-1) * mm_per_unit(ds.units))
+    return estimates, np.concatenate(errors)
+
+
+def read(run: Path, data: Path, split: str, tol: float) -> dict:
+    """The four ways of reading ``run`` on ``data``'s ``split``."""
+    from s3k.data import Dataset
+    from s3k.evaluate import evaluate_store
+    from s3k.frames import FrameStore, open_dataset
+    from s3k.predict import split_frames
+    from s3k.train import labelled_distances
+    from s3k.two_pass import read_two_pass, write_crops
+
+    rule, coarse, fine = read_two_pass(run)
+    ds = Dataset.open(data, cache="none")
+    layout = labelled_distances(ds, ds.frames("labelled")).numpy()
+    out: dict = {"layout_from": {}}
+    for name, (rigid_coarse, rigid_fine) in WAYS.items():
+        estimates, err = coarse_points(coarse, data, split, rigid_coarse, layout, tol)
+        with tempfile.TemporaryDirectory() as tmp:
+            crops = write_crops(data, Path(tmp) / "crops", estimates, rule, splits=(split,))
+            model, meta = _detector(fine, rigid_fine, layout, tol)
+            cds = open_dataset(crops, meta.image_size)
+            store = FrameStore(cds, split_frames(cds, split), preload_mb=0, points=True)
+            metrics, _ = evaluate_store(model, meta, store, "cpu", units=cds.units)
+        out[name] = {"coarse_median_mm": float(np.nanmedian(err)),
+                     "coarse_rms_mm": float(np.sqrt(np.nanmean(err ** 2))),
+                     **{k: metrics[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}}
+        print(f"{run} {name}: coarse {out[name]['coarse_median_mm']:.2f} / {out[name]['coarse_rms_mm']:.1f} "
+              f"mm; median {metrics['median_mm']:.2f} mm, RMS {metrics['rms_mm']:.2f} mm, within 5 / 10 mm "
+              f"{100 * metrics['pck_5mm']:.1f}% / {100 * metrics['pck_10mm']:.1f}%", file=sys.stderr)
+    from s3k.run import load_detector
+
+    for name, path in (("coarse", coarse), ("fine", fine)):
+        own = load_detector(path, "cpu")[1]
+        out["layout_from"][name] = ("the detector" if own.layout_distances is not None
+                                    else f"{data}'s labelled frames")
+        out.setdefault("layout_tol", {})[name] = own.layout_tol if own.layout_distances is not None else tol
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="two-pass runs, each followed by its dataset")
+    p.add_argument("--split", default="test", help="split to read (default test)")
+    p.add_argument("--layout-tol", type=float, default=0.1,
+                   help="the tolerance for a detector that did not keep its layout (default 0.1)")
+    p.add_argument("--out", default=None, help="JSON file to write")
+    p.add_argument("--notes", default=None, help="text kept in the JSON, e.g. how the runs were trained")
+    args = p.parse_args(argv)
+    if len(args.pairs) % 2:
+        p.error("give each RUN followed by its DATA")
+    import torch
+
+    torch.set_num_threads(1)
+    runs = {run: {"data": data, **read(Path(run), Path(data), args.split, args.layout_tol)}
+            for run, data in zip(args.pairs[::2], args.pairs[1::2])}
+    result = {"command": shlex.join(["python", "benchmarks/rigid_readout.py",
+                                     *without_notes(sys.argv[1:] if argv is None else argv)]),
+              "git_revision": git_revision(), "split": args.split, "runs": runs,
+              **({"notes": args.notes} if args.notes else {})}
+    write_and_emit(result, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
