@@ -12,6 +12,7 @@ import json
 import math
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -357,6 +358,32 @@ def write_and_emit(result: dict[str, Any], out: str | Path | None) -> None:
         Path(out).write_text(json.dumps(_jsonable(result), indent=2, default=str) + "\n")
     emit(result)
 
+
+
+def add_run_data_arguments(p) -> None:
+    """The arguments of a benchmark that reads run folders on their datasets: ``RUN DATA`` pairs,
+    ``--split``, ``--out`` and ``--notes``."""
+    p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="run folders, each followed by its dataset")
+    p.add_argument("--split", default="test", help="split to read (default test)")
+    p.add_argument("--out", default=None, help="JSON file to write")
+    p.add_argument("--notes", default=None, help="text kept in the JSON, e.g. how the runs were trained")
+
+
+def run_data_pairs(p, args) -> list[tuple[str, str]]:
+    """``[(run, data), ...]`` of :func:`add_run_data_arguments`' pairs (an odd count is a usage error)."""
+    if len(args.pairs) % 2:
+        p.error("give each RUN followed by its DATA")
+    return list(zip(args.pairs[::2], args.pairs[1::2]))
+
+
+def write_runs(script: str, argv: list[str] | None, args, runs: dict[str, Any]) -> None:
+    """Write and print the result of a run-reading benchmark: its command (notes kept apart), revision,
+    split, ``runs`` and notes (:func:`write_and_emit` to ``args.out``)."""
+    given = sys.argv[1:] if argv is None else argv
+    result = {"command": shlex.join(["python", script, *without_notes(given)]),
+              "git_revision": git_revision(), "split": args.split, "runs": runs,
+              **({"notes": args.notes} if args.notes else {})}
+    write_and_emit(result, args.out)
 
 # ---------------------------------------------------------------------------------------------- crop studies
 #: The figures the crop benchmarks (oracle_crops.py, two_pass.py) report per model and split.

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -32,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, without_notes, write_and_emit  # noqa: E402
+from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
 
 COLLAPSE_RATIO = 0.5
 POSES = ("normal up", "normal down", "on a side")  # the classes of pose_classes
@@ -184,18 +183,14 @@ def labelled_poses(data: Path) -> dict[str, int] | None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="run folders, each followed by its dataset")
-    p.add_argument("--split", default="test", help="split to read (default test)")
-    p.add_argument("--out", default=None, help="JSON file to write")
-    p.add_argument("--notes", default=None, help="text kept in the JSON, e.g. how the runs were trained")
+    add_run_data_arguments(p)
     args = p.parse_args(argv)
-    if len(args.pairs) % 2:
-        p.error("give each RUN followed by its DATA")
+    pairs = run_data_pairs(p, args)
     import torch
 
     torch.set_num_threads(1)
     runs = {}
-    for run, data in zip(args.pairs[::2], args.pairs[1::2]):
+    for run, data in pairs:
         pred, truth, mm = predictions(Path(run), Path(data), args.split)
         runs[run] = {"data": data, "labelled_poses": labelled_poses(Path(data)), **by_pose(pred, truth, mm)}
         a = runs[run]
@@ -206,11 +201,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{100 * a['collapsed'].get('share_of_squared_error', 0):.0f}% of the squared error), swapped "
               f"{a['swapped_frames']} ({100 * a['swapped'].get('share_of_squared_error', 0):.0f}%); {poses}",
               file=sys.stderr)
-    result = {"command": shlex.join(["python", "benchmarks/error_by_pose.py",
-                                   *without_notes(sys.argv[1:] if argv is None else argv)]),
-              "git_revision": git_revision(), "split": args.split, "runs": runs,
-              **({"notes": args.notes} if args.notes else {})}
-    write_and_emit(result, args.out)
+    write_runs("benchmarks/error_by_pose.py", argv, args, runs)
     return 0
 
 

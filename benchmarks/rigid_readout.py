@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, without_notes, write_and_emit  # noqa: E402
+from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
 
 WAYS = {"neither": (False, False), "coarse only": (True, False), "refining only": (False, True),
         "both": (True, True)}
@@ -104,25 +103,17 @@ def read(run: Path, data: Path, split: str, tol: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("pairs", nargs="+", metavar="RUN DATA", help="two-pass runs, each followed by its dataset")
-    p.add_argument("--split", default="test", help="split to read (default test)")
+    add_run_data_arguments(p)
     p.add_argument("--layout-tol", type=float, default=0.1,
                    help="the tolerance for a detector that did not keep its layout (default 0.1)")
-    p.add_argument("--out", default=None, help="JSON file to write")
-    p.add_argument("--notes", default=None, help="text kept in the JSON, e.g. how the runs were trained")
     args = p.parse_args(argv)
-    if len(args.pairs) % 2:
-        p.error("give each RUN followed by its DATA")
+    pairs = run_data_pairs(p, args)
     import torch
 
     torch.set_num_threads(1)
     runs = {run: {"data": data, **read(Path(run), Path(data), args.split, args.layout_tol)}
-            for run, data in zip(args.pairs[::2], args.pairs[1::2])}
-    result = {"command": shlex.join(["python", "benchmarks/rigid_readout.py",
-                                     *without_notes(sys.argv[1:] if argv is None else argv)]),
-              "git_revision": git_revision(), "split": args.split, "runs": runs,
-              **({"notes": args.notes} if args.notes else {})}
-    write_and_emit(result, args.out)
+            for run, data in pairs}
+    write_runs("benchmarks/rigid_readout.py", argv, args, runs)
     return 0
 
 

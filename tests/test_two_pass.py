@@ -182,6 +182,17 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     with pytest.raises(SystemExit):
         recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")])  # exists
 
+    # benchmarks/rigid_readout.py: read without the rigid read-out, the run gives what `s3k evaluate` gave; a
+    # run trained without --layout_tol is read with the layout of its dataset's labelled frames
+    from benchmarks.rigid_readout import WAYS
+    from benchmarks.rigid_readout import main as rigid_readout
+
+    assert rigid_readout([str(run), str(data), "--out", str(tmp_path / "rigid.json")]) == 0
+    ways = json.loads((tmp_path / "rigid.json").read_text())["runs"][str(run)]
+    assert set(WAYS) <= set(ways) and "labelled frames" in ways["layout_from"]["fine"]
+    for key in ("median_mm", "rms_mm", "pck_10mm"):
+        assert ways["neither"][key] == pytest.approx(metrics[key], rel=1e-6)
+
 
 def test_stage_clock_keeps_a_killed_attempts_cpu_time(tmp_path):
     from s3k.two_pass import _StageClock
