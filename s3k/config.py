@@ -113,6 +113,9 @@ class SelfSupervisionConfig:
                                 "(median over them) by more than this fraction, e.g. 0.2, so that keypoints "
                                 "detected together on one spot teach nothing, and at read-out look for such "
                                 "a keypoint again where that layout puts it; 0: off (deformable objects)")
+    layout_fit: bool = _f(False, "with --layout_tol: move the labelled layout onto each pseudo-label's kept "
+                                 "keypoints (a rigid fit) and train towards its places, as the read-out "
+                                 "does, instead of towards the triangulated points")
 
 
 @dataclass

@@ -224,19 +224,23 @@ class PseudoLabelRule:
         layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
             and a relative tolerance; pseudo-label keypoints that break the layout by more
             (:func:`s3k.readout.reject_layout`) give no term.
+        layout_fit: with a layout, the kept keypoints are replaced by the layout moved onto them
+            (:func:`s3k.readout.fit_layout`), as the read-out does.
     """
 
     max_residual_px: float | None = None
     window: int | None = None
     layout: Tensor | None = None
     layout_tol: float = 0.0
+    layout_fit: bool = False
 
     @classmethod
     def from_config(cls, cfg: Any, layout: Tensor | None = None) -> PseudoLabelRule:
         """The rule of a training configuration (``--outlier_px``, ``--pseudo_window``, ``--layout_tol``)
         with the labelled layout ``layout`` (:func:`s3k.train.labelled_distances`)."""
         return cls(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
-                   layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol)
+                   layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol,
+                   layout_fit=cfg.layout_fit)
 
 
 def self_supervised_loss(
@@ -319,6 +323,10 @@ def pseudo_labels(
     X, valid = readout.triangulate(cams, mean_uv, wts, used)
     if rule.layout is not None and rule.layout_tol > 0:
         valid = readout.reject_layout(X, valid, rule.layout, rule.layout_tol)
+        shape = readout.layout_shape(rule.layout) if rule.layout_fit else None
+        if shape is not None:
+            fit, placed = readout.fit_layout(X, valid, shape)
+            X = torch.where((placed & valid)[..., None], fit, X)
     wts = torch.where(used, wts, torch.zeros_like(wts))
     return (X.to(cams.dtype), valid, mean_uv.to(cams.dtype), var.to(cams.dtype), wts.to(cams.dtype))
 

@@ -406,6 +406,27 @@ def test_self_supervised_layout_check_masks_a_collapsed_pseudo_label():
     assert intact["points_valid"].all()
 
 
+def test_self_supervised_layout_fit_gives_the_layout_its_shape():
+    """Detections off by a little (one keypoint of frame 0 a few millimetres off its place): the pseudo-label
+    triangulates them as they are; with ``layout_fit`` the kept keypoints take the places of the labelled
+    layout moved onto them, so their distances are the layout's, and nearer the truth in the squared sum."""
+    cams, X = _rig(), _points()
+    ref = torch.cdist(X[0], X[0]).fill_diagonal_(float("nan"))
+    X = torch.stack([X[0], X[0] + 0.01])  # one rigid layout in both frames
+    off = X.clone()
+    off[0, 1] += torch.tensor([0.006, -0.004, 0.003], dtype=off.dtype)
+    logits = _logits_at(_project_all(cams, off)).float()
+    rule = PseudoLabelRule(window=5, layout=ref, layout_tol=0.2)
+    _, plain = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=rule)
+    fit_rule = PseudoLabelRule(window=5, layout=ref, layout_tol=0.2, layout_fit=True)
+    _, fitted = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=fit_rule)
+    assert plain["points_valid"].all() and fitted["points_valid"].all()
+    torch.testing.assert_close(plain["points"], off, atol=1e-3, rtol=0)
+    d = torch.cdist(fitted["points"].double(), fitted["points"].double())
+    torch.testing.assert_close(d[0], ref.nan_to_num(0.0), atol=1e-4, rtol=0)
+    assert ((fitted["points"][0] - X[0]) ** 2).sum() < 0.8 * ((plain["points"][0] - X[0]) ** 2).sum()
+
+
 
 def test_coord_loss_is_the_mean_distance_in_target_widths_and_pulls_the_mean_in():
     """A heatmap whose mean sits on the target costs nothing; one whose mass leans 2 pixels off costs its
