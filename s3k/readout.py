@@ -258,7 +258,7 @@ def layout_locus(a: Tensor, b: Tensor, ra: float, rb: float, n: int = LAYOUT_SAM
 
 
 def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Tensor, distances: Tensor,
-                  tol: float, window: int) -> list[tuple[int, int, Tensor, Tensor]]:
+                  tol: float, window: int) -> list[tuple[int, int, Tensor, Tensor, Tensor]]:
     """For every keypoint the layout check left out (``~kept``) in a frame with two keypoints it kept, look
     for it again where the rigid layout puts it.
 
@@ -365,12 +365,11 @@ def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]
     best = torch.full((X.shape[0],), float("inf"), dtype=DTYPE, device=X.device)
     mirror = torch.tensor([1.0, 1.0, -1.0], dtype=DTYPE, device=X.device)
     Y0 = shape.to(device=X.device, dtype=DTYPE)
-    spread = None
+    # singular values of the valid keypoints' part of the shape (the mirror's are the same): is it flat?
+    spread = torch.linalg.svdvals((Y0[None] - ((w[..., None] * Y0).sum(dim=1) / n)[:, None]) * w[..., None])
     for Y in (Y0, Y0 * mirror):
         Yc = (w[..., None] * Y).sum(dim=1) / n  # (B, 3): the shape's centre over the valid keypoints
         A = (Y[None] - Yc[:, None]) * w[..., None]
-        if spread is None:  # singular values of the valid keypoints' shape: is it flat?
-            spread = torch.linalg.svdvals(A)
         H = A.transpose(1, 2) @ (P - centre[:, None])  # (B, 3, 3)
         U, _, Vt = torch.linalg.svd(H)
         flip = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
@@ -521,10 +520,10 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
                 for b, k, _, _, place in found:
                     if not bool(again[b, k]):
                         X[b, k], valid[b, k] = place, True
-        shape = layout_shape(layout)
-        if shape is not None:
+        rigid_shape = layout_shape(layout)
+        if rigid_shape is not None:
             kept = reject_layout(X, valid, layout, layout_tol)
-            fit, placed = fit_layout(X, kept, shape)
+            fit, placed = fit_layout(X, kept, rigid_shape)
             X = torch.where(placed[..., None], fit, X)
             valid = valid | placed
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
