@@ -77,20 +77,26 @@ def read(run: Path, data: Path, split: str, tol: float) -> dict:
     ds = Dataset.open(data, cache="none")
     layout = labelled_distances(ds, ds.frames("labelled")).numpy()
     out: dict = {"layout_from": {}}
-    for name, (rigid_coarse, rigid_fine) in WAYS.items():
+    for rigid_coarse in (False, True):  # one set of coarse estimates and crops for both refining reads
         estimates, err = coarse_points(coarse, data, split, rigid_coarse, layout, tol)
+        coarse_figures = {"coarse_median_mm": float(np.nanmedian(err)),
+                          "coarse_rms_mm": float(np.sqrt(np.nanmean(err ** 2)))}
         with tempfile.TemporaryDirectory() as tmp:
             crops = write_crops(data, Path(tmp) / "crops", estimates, rule, splits=(split,))
-            model, meta = _detector(fine, rigid_fine, layout, tol)
-            cds = open_dataset(crops, meta.image_size)
-            store = FrameStore(cds, split_frames(cds, split), preload_mb=0, points=True)
-            metrics, _ = evaluate_store(model, meta, store, "cpu", units=cds.units)
-        out[name] = {"coarse_median_mm": float(np.nanmedian(err)),
-                     "coarse_rms_mm": float(np.sqrt(np.nanmean(err ** 2))),
-                     **{k: metrics[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}}
-        print(f"{run} {name}: coarse {out[name]['coarse_median_mm']:.2f} / {out[name]['coarse_rms_mm']:.1f} "
-              f"mm; median {metrics['median_mm']:.2f} mm, RMS {metrics['rms_mm']:.2f} mm, within 5 / 10 mm "
-              f"{100 * metrics['pck_5mm']:.1f}% / {100 * metrics['pck_10mm']:.1f}%", file=sys.stderr)
+            for name, (way_coarse, rigid_fine) in WAYS.items():
+                if way_coarse != rigid_coarse:
+                    continue
+                model, meta = _detector(fine, rigid_fine, layout, tol)
+                cds = open_dataset(crops, meta.image_size)
+                store = FrameStore(cds, split_frames(cds, split), preload_mb=0, points=True)
+                metrics, _ = evaluate_store(model, meta, store, "cpu", units=cds.units)
+                out[name] = {**coarse_figures,
+                             **{k: metrics[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}}
+                print(f"{run} {name}: coarse {coarse_figures['coarse_median_mm']:.2f} / "
+                      f"{coarse_figures['coarse_rms_mm']:.1f} mm; median {metrics['median_mm']:.2f} mm, RMS "
+                      f"{metrics['rms_mm']:.2f} mm, within 5 / 10 mm {100 * metrics['pck_5mm']:.1f}% / "
+                      f"{100 * metrics['pck_10mm']:.1f}%", file=sys.stderr)
+    out.update({name: out.pop(name) for name in WAYS})  # in the order of WAYS
     from s3k.run import load_detector
 
     for name, path in (("coarse", coarse), ("fine", fine)):

@@ -446,6 +446,12 @@ class ReadOut:
                        None if self.probs is None else self.probs.cpu())
 
 
+def _to_camera_pixels(net_uv: Tensor, Minv: Tensor) -> Tensor:
+    """Detections ``(B, C, K, 2)`` in network-input pixels mapped by the affine ``Minv`` (``(C, 3, 3)`` or
+    ``(B, C, 3, 3)``) into the cameras' own pixels."""
+    return net_uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
+
+
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
              keep_heatmaps: bool = False, max_residual_px: float | None = None,
@@ -494,35 +500,33 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
                              f"got {tuple(maps.shape)}")
         Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
-        uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
+        uv = _to_camera_pixels(uv, Minv)
         net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine pixel map: K' = M K
     if max_residual_px is not None:
         used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
     if layout is not None and layout_tol > 0 and cells > 0:
         kept = reject_layout(X, valid, layout, layout_tol)
-        if not bool(kept.all()):
-            found = search_layout(probs, net_cams, stride, X, kept, layout, layout_tol, cells)
-            if found:
-                net_uv, used = net_uv.clone(), used.clone()
-                for b, k, found_uv, found_used, _ in found:
-                    w_k = weights[b, :, k]
-                    net_uv[b, :, k] = found_uv
-                    used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
-                uv = net_uv
-                if pixel_maps is not None:
-                    uv = uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
-                X, valid = triangulate(cams, uv, weights, used)
-                # a detection read next to a stronger wrong peak can still break the layout: then the
-                # best place on the locus is the keypoint
-                again = reject_layout(X, valid, layout, layout_tol)
-                X, valid = X.clone(), valid.clone()
-                for b, k, _, _, place in found:
-                    if not bool(again[b, k]):
-                        X[b, k], valid[b, k] = place, True
+        found = [] if bool(kept.all()) else search_layout(probs, net_cams, stride, X, kept, layout,
+                                                            layout_tol, cells)
+        if found:
+            net_uv, used = net_uv.clone(), used.clone()
+            for b, k, found_uv, found_used, _ in found:
+                w_k = weights[b, :, k]
+                net_uv[b, :, k] = found_uv
+                used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
+            uv = net_uv if pixel_maps is None else _to_camera_pixels(net_uv, Minv)
+            X, valid = triangulate(cams, uv, weights, used)
+            # a detection read next to a stronger wrong peak can still break the layout: then the best place
+            # on the locus is the keypoint
+            again = reject_layout(X, valid, layout, layout_tol)
+            X, valid = X.clone(), valid.clone()
+            for b, k, _, _, place in found:
+                if not bool(again[b, k]):
+                    X[b, k], valid[b, k] = place, True
+            kept = reject_layout(X, valid, layout, layout_tol)  # the points moved: check them again
         rigid_shape = layout_shape(layout)
         if rigid_shape is not None:
-            kept = reject_layout(X, valid, layout, layout_tol)
             fit, placed = fit_layout(X, kept, rigid_shape)
             X = torch.where(placed[..., None], fit, X)
             valid = valid | placed
