@@ -129,7 +129,7 @@ def reuse_coarse(source: Path, runs: list[Path]) -> None:
     its coarse pass, estimates and crops (hard-linked where the file system allows), and that stage's CPU
     minutes in the run's record. ``s3k train --two-pass --resume`` then trains the refining pass, after
     checking that the coarse pass and the crops are what this benchmark's options would make."""
-    from s3k.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+    from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
 
     for run in runs:
         if run.exists():
@@ -249,7 +249,7 @@ def evaluate(run: Path, data: Path) -> dict:
         metrics = json.loads(path.read_text())
         if metrics.get("readout") == READOUT:
             return metrics
-    from s3k.evaluate import evaluate_run
+    from s3k.inference.evaluate import evaluate_run
 
     metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
     path.write_text(json.dumps(metrics, default=float) + "\n")

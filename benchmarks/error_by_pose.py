@@ -141,10 +141,9 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
 def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarray, float]:
     """``(predicted, true, mm per world unit)`` points of ``data``'s ``split`` by ``run``."""
     from s3k.data import Dataset
-    from s3k.evaluate import mm_per_unit
-    from s3k.predict import predict_dataset
-    from s3k.tracks_csv import read_csv
-    from s3k.two_pass import is_two_pass, predict_two_pass
+    from s3k.data.tracks_csv import read_csv
+    from s3k.inference.metrics import mm_per_unit
+    from s3k.inference.predict import predict_dataset
 
     ds = Dataset.open(data, cache="none")
     ids = ds.frames(split)
@@ -153,10 +152,7 @@ def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarr
         raise SystemExit(f"{data}: no ground-truth 3D points (points3d.csv)")
     with tempfile.TemporaryDirectory() as tmp:
         csv = Path(tmp) / "points.csv"
-        if is_two_pass(run):
-            predict_two_pass(run, data, csv, split=split, device="cpu")
-        else:
-            predict_dataset(run, data, csv, split=split, device="cpu", overwrite=True)
+        predict_dataset(run, data, csv, split=split, device="cpu", overwrite=True)
         points = read_csv(csv, ds.keypoints)
     pred = np.stack([points.get(int(f), np.full((len(ds.keypoints), 3), np.nan)) for f in ids])
     X, mask = truth

@@ -45,7 +45,7 @@ from benchmarks.common import (  # noqa: E402
     random_frames,
 )
 from benchmarks.inference import look_at_rig, make_pipeline  # noqa: E402
-from s3k.export import export_module, output_names  # noqa: E402
+from s3k.inference.export import export_module, output_names  # noqa: E402
 from s3k.model import count_conv_flops  # noqa: E402
 from s3k.readout import read_out, select_views, triangulate  # noqa: E402
 
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     images = frames.permute(0, 3, 1, 2).float().div(255.0).contiguous()
     flops_per_frame = count_conv_flops(fused, images)
 
-    from s3k.export import DetectorWithMoments, run_exported
+    from s3k.inference.export import DetectorWithMoments, run_exported
 
     module = DetectorWithMoments(fused, config.stride, args.sigma) if args.with_moments else fused
     names = output_names(args.with_moments)

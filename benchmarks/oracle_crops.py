@@ -5,7 +5,8 @@ scene at ``--render`` px, and for one keypoint (or, with ``--keypoint -1``, the 
 whose "cameras" are crops: each view cut around the keypoint's *true* 3D position (the object's: the mean of
 its keypoints) plus a random 3D offset (``--jitter-mm`` per axis, standing in for
 the coarse pass's error), sized from a metric extent (``--extent-mm``) and resampled to ``--crop`` px with
-``K' = M K`` (:mod:`s3k.crops`). It trains the labels-only baseline and S3K on it (same steps, same seed) and
+``K' = M K`` (:mod:`s3k.geometry.warp`). It trains the labels-only baseline and S3K on it (same steps, same
+seed) and
 reports the keypoint's 3D error on the test frames and on the labelled frames (the fit).
 
 Because the crop centre comes from the ground truth, the figure is what the refining pass adds when the
@@ -42,7 +43,7 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
     """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point; with
     ``keypoint < 0`` of every keypoint, crops centred on the jittered mean of the true points."""
     from s3k.data import Dataset
-    from s3k.refine import write_crop_dataset
+    from s3k.train.crop_dataset import write_crop_dataset
 
     ds = Dataset.open(source, cache="none")
     rng = np.random.default_rng(seed)
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             for name in models}
     train_side_by_side({name: [str(view), "--out", str(runs[name]), "--steps", str(args.steps), "--seed",
                                 str(args.seed), *extra] for name, extra in models.items()})
-    from s3k.evaluate import evaluate_run
+    from s3k.inference.evaluate import evaluate_run
 
     result: dict = {"benchmark": "oracle_crops", "command": shlex.join(["python", *sys.argv]),
                     "git_revision": revision,

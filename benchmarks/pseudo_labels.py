@@ -62,16 +62,16 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     import torch
 
     from s3k.config import TrainConfig
-    from s3k.evaluate import mm_per_unit
-    from s3k.frames import FrameStore, images_to_float, open_dataset
+    from s3k.data.frames import FrameStore, images_to_float, open_dataset
+    from s3k.detector import load_network
+    from s3k.inference.metrics import mm_per_unit
     from s3k.losses import PseudoLabelRule
     from s3k.losses import pseudo_labels as make_pseudo_labels
-    from s3k.run import load_detector
     from s3k.train.validation import labelled_distances
 
     config = run / "config.json"
     cfg = TrainConfig.from_flat(where=str(config), **json.loads(config.read_text())["config"])
-    model, meta = load_detector(run, "cpu")
+    model, meta = load_network(run, "cpu")
     ds = open_dataset(data, meta.image_size)
     layout = labelled_distances(ds, np.asarray(ds.frames("labelled"))) if cfg.layout_tol > 0 else None
     store = FrameStore(ds, np.asarray(ds.frames(split)), preload_mb=0)

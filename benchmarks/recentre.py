@@ -34,8 +34,15 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from s3k.data import Dataset
-    from s3k.evaluate import evaluate_run
-    from s3k.two_pass import coarse_estimates, read_two_pass, write_crops
+    from s3k.data.tracks_csv import read_csv
+    from s3k.detector import read_two_pass
+    from s3k.inference.evaluate import evaluate_run
+    from s3k.inference.predict import predict_dataset
+    from s3k.train.two_pass import write_crops
+
+    def estimates_of(run: Path, data: Path, csv: Path) -> dict:
+        predict_dataset(run, data, csv, args.split, device="cpu", overwrite=True)
+        return read_csv(csv, keypoints)
 
     torch.set_num_threads(1)
     run, data = Path(args.run), Path(args.data)
@@ -44,14 +51,14 @@ def main(argv: list[str] | None = None) -> int:
     rounds = []
     with tempfile.TemporaryDirectory(prefix="s3k-recentre-") as tmp:
         tmp = Path(tmp)
-        estimates = coarse_estimates(coarse, data, tmp / "coarse.csv", args.split, keypoints)
+        estimates = estimates_of(coarse, data, tmp / "coarse.csv")
         for i in range(args.rounds):
             crops = write_crops(data, tmp / f"crops{i}", estimates, rule, splits=(args.split,))
             m = evaluate_run(fine, crops, split=args.split, device="cpu", overlays=0)
             rounds.append({"centred_on": "coarse pass" if i == 0 else f"refining pass, round {i}",
                            **{k: m[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}})
             print(rounds[-1], file=sys.stderr, flush=True)
-            estimates = coarse_estimates(fine, crops, tmp / f"fine{i}.csv", args.split, keypoints)
+            estimates = estimates_of(fine, crops, tmp / f"fine{i}.csv")
     emit({"command": "python benchmarks/recentre.py " + " ".join(sys.argv[1:] if argv is None else argv),
           "git_revision": git_revision(), "machine": machine_info(), "rounds": rounds})
     return 0

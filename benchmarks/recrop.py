@@ -36,14 +36,14 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--out {out} exists; give a new folder")
 
     from s3k.data import Dataset
-    from s3k.two_pass import ESTIMATES_FILE, CropRule, coarse_estimates, read_two_pass, write_crops
+    from s3k.detector import CropRule, read_two_pass
+    from s3k.train.two_pass import ESTIMATES_FILE, coarse_estimates, write_crops
 
     run, data = Path(args.run), Path(args.data)
     rule, coarse, _fine = read_two_pass(run)
     ds = Dataset.open(data, cache="none")
-    keypoints = ds.keypoints
     # the run's own coarse estimates of every frame (written by training), computed once if absent
-    estimates = coarse_estimates(coarse, data, run / ESTIMATES_FILE, "all", keypoints)
+    estimates = coarse_estimates(coarse, data, run / ESTIMATES_FILE)
     new_rule = CropRule(rule.extent, args.size, rule.margin)
     write_crops(data, out, estimates, new_rule)
     emit({"command": "python benchmarks/recrop.py " + " ".join(sys.argv[1:] if argv is None else argv),

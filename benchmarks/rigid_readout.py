@@ -21,10 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 from pathlib import Path
-
-import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -36,71 +33,45 @@ WAYS = {"neither": (False, False), "coarse only": (True, False), "refining only"
 
 def _detector(run: Path, rigid: bool, layout, tol: float):
     """A pass's detector with its rigid read-out on (its own layout, else ``layout`` and ``tol``) or off."""
-    from s3k.run import load_detector
+    from dataclasses import replace
 
-    model, meta = load_detector(run, "cpu")
+    from s3k.detector import OnePassDetector, load_network
+
+    model, meta = load_network(run, "cpu")
     if not rigid:
-        meta.layout, meta.layout_tol = None, 0.0
+        meta = replace(meta, layout=None, layout_tol=0.0)
     elif meta.layout_distances is None:
-        meta.layout, meta.layout_tol = layout.tolist(), tol
-    return model, meta
-
-
-def coarse_points(coarse: Path, data: Path, split: str, rigid: bool, layout, tol: float):
-    """``({frame: (K, 3)}, errors (B, K) in mm)``: the coarse pass's estimates of ``split``."""
-    from s3k.evaluate import mm_per_unit
-    from s3k.frames import FrameStore, open_dataset
-    from s3k.predict import predict_store, split_frames
-
-    model, meta = _detector(coarse, rigid, layout, tol)
-    ds = open_dataset(data, meta.image_size)
-    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
-    estimates, errors = {}, []
-    for batch, pred in predict_store(model, meta, store, 16, "cpu", pixel_map=ds.pixel_map):
-        X = pred.X.numpy()
-        estimates.update({int(f): x for f, x in zip(batch.frame_ids, X)})
-        truth = np.where(batch.points_mask.numpy()[..., None], batch.points.numpy(), np.nan)
-        errors.append(np.linalg.norm(X - truth, axis=-1) * mm_per_unit(ds.units))
-    return estimates, np.concatenate(errors)
+        meta = replace(meta, layout=layout.tolist(), layout_tol=tol)
+    return OnePassDetector(model.fused(), meta)
 
 
 def read(run: Path, data: Path, split: str, tol: float) -> dict:
     """The four ways of reading ``run`` on ``data``'s ``split``."""
     from s3k.data import Dataset
-    from s3k.evaluate import evaluate_store
-    from s3k.frames import FrameStore, open_dataset
-    from s3k.predict import split_frames
+    from s3k.data.frames import FrameStore
+    from s3k.detector import TwoPassDetector, load_network, read_two_pass
+    from s3k.inference.evaluate import evaluate_store
+    from s3k.inference.predict import split_frames
     from s3k.train import labelled_distances
-    from s3k.two_pass import read_two_pass, write_crops
 
     rule, coarse, fine = read_two_pass(run)
     ds = Dataset.open(data, cache="none")
     layout = labelled_distances(ds, ds.frames("labelled")).numpy()
+    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
     out: dict = {"layout_from": {}}
-    for rigid_coarse in (False, True):  # one set of coarse estimates and crops for both refining reads
-        estimates, err = coarse_points(coarse, data, split, rigid_coarse, layout, tol)
-        coarse_figures = {"coarse_median_mm": float(np.nanmedian(err)),
-                          "coarse_rms_mm": float(np.sqrt(np.nanmean(err ** 2)))}
-        with tempfile.TemporaryDirectory() as tmp:
-            crops = write_crops(data, Path(tmp) / "crops", estimates, rule, splits=(split,))
-            for name, (way_coarse, rigid_fine) in WAYS.items():
-                if way_coarse != rigid_coarse:
-                    continue
-                model, meta = _detector(fine, rigid_fine, layout, tol)
-                cds = open_dataset(crops, meta.image_size)
-                store = FrameStore(cds, split_frames(cds, split), preload_mb=0, points=True)
-                metrics, _ = evaluate_store(model, meta, store, "cpu", units=cds.units)
-                out[name] = {**coarse_figures,
-                             **{k: metrics[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}}
-                print(f"{run} {name}: coarse {coarse_figures['coarse_median_mm']:.2f} / "
-                      f"{coarse_figures['coarse_rms_mm']:.1f} mm; median {metrics['median_mm']:.2f} mm, RMS "
-                      f"{metrics['rms_mm']:.2f} mm, within 5 / 10 mm {100 * metrics['pck_5mm']:.1f}% / "
-                      f"{100 * metrics['pck_10mm']:.1f}%", file=sys.stderr)
-    out.update({name: out.pop(name) for name in WAYS})  # in the order of WAYS
-    from s3k.run import load_detector
-
+    for name, (rigid_coarse, rigid_fine) in WAYS.items():
+        first = _detector(coarse, rigid_coarse, layout, tol)
+        coarse_metrics, _ = evaluate_store(first, store, units=ds.units)
+        detector = TwoPassDetector(first, _detector(fine, rigid_fine, layout, tol), rule)
+        metrics, _ = evaluate_store(detector, store, units=ds.units)
+        out[name] = {"coarse_median_mm": coarse_metrics["median_mm"],
+                     "coarse_rms_mm": coarse_metrics["rms_mm"],
+                     **{k: metrics[k] for k in ("median_mm", "rms_mm", "pck_5mm", "pck_10mm")}}
+        print(f"{run} {name}: coarse {coarse_metrics['median_mm']:.2f} / {coarse_metrics['rms_mm']:.1f} mm; "
+              f"median {metrics['median_mm']:.2f} mm, RMS {metrics['rms_mm']:.2f} mm, within 5 / 10 mm "
+              f"{100 * metrics['pck_5mm']:.1f}% / {100 * metrics['pck_10mm']:.1f}%", file=sys.stderr)
     for name, path in (("coarse", coarse), ("fine", fine)):
-        own = load_detector(path, "cpu")[1]
+        own = load_network(path, "cpu")[1]
         out["layout_from"][name] = ("the detector" if own.layout_distances is not None
                                     else f"{data}'s labelled frames")
         out.setdefault("layout_tol", {})[name] = own.layout_tol if own.layout_distances is not None else tol

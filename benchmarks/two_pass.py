@@ -3,8 +3,9 @@
 The coarse detector trains on the whole image resized to ``--coarse-size`` px (S3K, as ``s3k demo``); its
 3D estimates of every frame (labelled, unlabelled and test: the same rule at training and at test) centre one
 crop of the whole object per view, ``--extent-mm`` wide at the estimate's depth, cut from the
-``--render`` px images and resampled to ``--crop`` px (:func:`s3k.refine.write_crop_dataset`). The refining
-detector trains on those crops with and without the self-supervised term, and is evaluated on the test
+``--render`` px images and resampled to ``--crop`` px (:func:`s3k.train.crop_dataset.write_crop_dataset`). The
+refining detector trains on those crops with and without the self-supervised term, and is evaluated on the
+test
 frames' crops: its triangulated points are the two-pass detector's 3D keypoints. Both refining models use the
 same crops (from the S3K coarse pass), so the comparison isolates the refining pass.
 
@@ -24,8 +25,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -63,22 +62,21 @@ def main(argv: list[str] | None = None) -> int:
                         "--split", "all", "--out", str(estimates)], check=True, stdout=subprocess.DEVNULL)
     view = work / f"crops-{coarse.name}-{args.extent_mm:g}mm-{args.crop}px"
     from s3k.data import Dataset
-    from s3k.refine import object_centres, write_crop_dataset
-    from s3k.tracks_csv import read_csv
+    from s3k.data.tracks_csv import read_csv
+    from s3k.train.crop_dataset import object_centres, write_crop_dataset
 
     keypoints = Dataset.open(render, cache="none").keypoints
     centres = object_centres(read_csv(estimates, keypoints))
     if not (view / "s3k.json").is_file():
-        # a frame the coarse pass could not triangulate is cropped around the mean estimate (the workspace)
-        middle = np.median(np.stack(list(centres.values())), axis=0)
+        # a frame the coarse pass could not triangulate is cropped around the workspace centre
         write_crop_dataset(render, view, centres, args.extent_mm / 1000, args.crop,
-                           fallback=lambda frame: middle, overwrite=True,
+                           fallback=True, overwrite=True,
                            description=f"crops of {args.extent_mm:g} mm around {coarse.name}'s estimates")
     fine = {name: work / f"{view.name}-{name}-{args.steps}-s{args.seed}" for name in ("labels_only", "s3k")}
     train_side_by_side({name: [str(view), "--out", str(run), "--steps", str(args.steps), "--seed",
                                 str(args.seed), *(["--no-unsup"] if name == "labels_only" else [])]
                         for name, run in fine.items()})
-    from s3k.evaluate import evaluate_run
+    from s3k.inference.evaluate import evaluate_run
 
     scale = (f"box rendered at {args.render} px; coarse S3K at {args.coarse_size} px, {args.coarse_steps} "
              f"steps; object crops {args.extent_mm:g} mm -> {args.crop} px; refining {args.steps} steps")

@@ -1,3 +1,22 @@
-"""s3k: semantic 3D keypoints from a calibrated multi-camera rig (after S3K, Vecerik et al. 2020)."""
+"""s3k: semantic 3D keypoints from a calibrated multi-camera rig (after S3K, Vecerik et al. 2020).
+
+The public objects, imported when first used: :class:`s3k.Detector` (a trained detector on frames of any
+size, on any device), :class:`s3k.Cameras`, :class:`s3k.Dataset`, :class:`s3k.TrainConfig` and
+:func:`s3k.train`.
+"""
+
+from typing import Any
 
 __version__ = "0.1.0"
+__all__ = ["Cameras", "Dataset", "Detector", "TrainConfig", "train"]
+
+_PUBLIC = {"Detector": "s3k.detector", "Cameras": "s3k.geometry", "Dataset": "s3k.data",
+           "TrainConfig": "s3k.config", "train": "s3k.train"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _PUBLIC:
+        import importlib
+
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 's3k' has no attribute {name!r}")

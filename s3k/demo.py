@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from s3k.config import TrainConfig, default_of
-from s3k.run import PROGRESS_FILE
+from s3k.detector import PROGRESS_FILE
 
 
 @dataclass
@@ -240,10 +240,10 @@ def _last_validation(folder: Path) -> str:
 def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print,
              parallel: bool = True) -> dict:
     """Run the whole demo into ``out``; returns ``{"baseline": metrics, "s3k": metrics, ...}``."""
-    from s3k.evaluate import evaluate_run
+    from s3k.inference.evaluate import evaluate_run
     from s3k.sim.generate import SimulateConfig, simulate
     from s3k.train import train
-    from s3k.two_pass import train_two_pass
+    from s3k.train.two_pass import train_two_pass
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

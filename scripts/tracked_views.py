@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from s3k.data import Dataset
+from s3k.data.tracks_csv import read_csv
 from s3k.geometry import project
-from s3k.tracks_csv import read_csv
 
 
 def main(argv: list[str] | None = None) -> None:

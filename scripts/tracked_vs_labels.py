@@ -20,8 +20,8 @@ import torch
 from s3k.data import Dataset
 from s3k.data.anipose import read_anipose_calibration
 from s3k.data.sleap import read_sleap_analysis
+from s3k.data.tracks_csv import read_csv
 from s3k.geometry import triangulate_pixels
-from s3k.tracks_csv import read_csv
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -72,11 +72,11 @@ def test_notes_stay_out_of_the_recorded_command():
 
 
 def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
-    import s3k.evaluate
+    import s3k.inference.evaluate
     from benchmarks import accuracy
 
     calls = []
-    monkeypatch.setattr(s3k.evaluate, "evaluate_run",
+    monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run",
                         lambda run, data, split, device: calls.append(run) or {"median_mm": 2.0})
     run = tmp_path / "s3k-seed0"
     cache = tmp_path / "s3k-seed0-test.json"
@@ -112,7 +112,7 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     from synthetic_rig import make_dataset
 
     from s3k import cli
-    from s3k.two_pass import CPU_FILE, read_cpu
+    from s3k.train.two_pass import CPU_FILE, read_cpu
 
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
     old, new = tmp_path / "old", tmp_path / "new"

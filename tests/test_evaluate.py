@@ -12,12 +12,13 @@ import pytest
 from synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
 
 from s3k.cli import main as cli_main
+from s3k.data import Dataset
+from s3k.data.frames import FrameStore, open_dataset
+from s3k.data.tracks_csv import csv_header, read_csv
+from s3k.detector import Detector, OnePassDetector, load_network
 from s3k.draw import draw_views
-from s3k.evaluate import compute_metrics, mm_per_unit
-from s3k.frames import FrameStore, open_dataset
-from s3k.predict import predict_store
-from s3k.run import load_detector
-from s3k.tracks_csv import csv_header, read_csv
+from s3k.inference.metrics import compute_metrics, mm_per_unit
+from s3k.inference.predict import detect_store
 from s3k.train import train
 
 
@@ -92,10 +93,9 @@ def test_evaluate_json_on_known_prediction(trained, capsys):
     from s3k.data import DatasetWriter
 
     root, ds_path, run = trained
-    model, meta = load_detector(run)
-    ds = open_dataset(ds_path, meta.image_size)
+    ds = Dataset.open(ds_path, cache="none")
     test_ids = ds.frames("test")
-    (batch, pred), = list(predict_store(model, meta, FrameStore(ds, test_ids), 16))
+    (batch, pred), = list(detect_store(Detector.load(run, "cpu"), FrameStore(ds, test_ids), 16))
     assert pred.valid.all()
     offsets = np.array([[0.001, 0, 0], [0, 0.002, 0], [0, 0, 0.004]])  # 1, 2, 4 mm
     X_gt = pred.X.double().numpy() + offsets
@@ -135,9 +135,8 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
     out = tmp_path / "pred.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--split", "test"]) == 0
     assert out.read_text().splitlines()[0].split(",") == csv_header(KEYPOINTS)
-    model, meta = load_detector(run)
-    ds = open_dataset(ds_path, meta.image_size)
-    (batch, pred), = list(predict_store(model, meta, FrameStore(ds, ds.frames("test"))))
+    ds = Dataset.open(ds_path, cache="none")
+    (batch, pred), = list(detect_store(Detector.load(run, "cpu"), FrameStore(ds, ds.frames("test"))))
     points = read_csv(out, KEYPOINTS)
     assert sorted(points) == sorted(int(f) for f in batch.frame_ids)
     for b, fid in enumerate(batch.frame_ids):
@@ -151,19 +150,19 @@ def test_detector_reads_out_with_its_training_outlier_threshold(tmp_path):
     """A detector keeps its training's --outlier_px and s3k predict drops the views that miss the others'
     consensus by more; a run trained before the meta kept it takes it from its config.json."""
     from s3k.config import TrainConfig
-    from s3k.run import MODEL_FILE, atomic_save, load_torch_file
+    from s3k.detector import MODEL_FILE, atomic_save, load_torch_file
 
     ds_path = make_dataset(tmp_path / "ds", size=32, labelled=2, unlabelled=2, test=3, seed=4)
     cfg = TrainConfig.from_flat(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16), res_blocks=1,
                                 val_every=0, progress=False, threads=1, outlier_px=0.01)
     run = tmp_path / "run"
     train(ds_path, run, cfg)
-    model, meta = load_detector(run)
+    model, meta = load_network(run)
     assert meta.outlier_px == 0.01 and meta.max_residual_px == 0.01
-    ds = open_dataset(ds_path, meta.image_size)
+    ds = Dataset.open(ds_path, cache="none")
     store = FrameStore(ds, ds.frames("test"))
-    (_, every), = list(predict_store(model, replace(meta, outlier_px=0.0), store))
-    (_, kept), = list(predict_store(model, meta, store))
+    (_, every), = list(detect_store(OnePassDetector(model, replace(meta, outlier_px=0.0)), store))
+    (_, kept), = list(detect_store(OnePassDetector(model, meta), store))
     assert int(kept.used.sum()) < int(every.used.sum())  # an untrained network's views disagree slightly
     out = tmp_path / "p.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out)]) == 0
@@ -176,9 +175,9 @@ def test_detector_reads_out_with_its_training_outlier_threshold(tmp_path):
     state = load_torch_file(run / MODEL_FILE, "model", ("meta", "model"))
     del state["meta"]["outlier_px"]
     atomic_save(state, run / MODEL_FILE)
-    assert load_detector(run)[1].outlier_px == 0.01
+    assert load_network(run)[1].outlier_px == 0.01
     (run / "config.json").unlink()
-    assert load_detector(run)[1].max_residual_px is None
+    assert load_network(run)[1].max_residual_px is None
 
 
 def test_resized_run_predicts_in_dataset_pixels(tmp_path):
@@ -189,17 +188,20 @@ def test_resized_run_predicts_in_dataset_pixels(tmp_path):
     cfg = TrainConfig.from_flat(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 16),
                                 res_blocks=1, image_size=24, val_every=0, progress=False, threads=1)
     train(ds_path, tmp_path / "run", cfg)
-    model, meta = load_detector(tmp_path / "run")
+    model, meta = load_network(tmp_path / "run")
     assert meta.image_size == (24, 24) and meta.source_image_size == (32, 32)
-    ds = open_dataset(ds_path, meta.image_size)
-    store = FrameStore(ds, ds.frames("test"))
-    (_, net), = list(predict_store(model, meta, store))
-    (_, own), = list(predict_store(model, meta, store, pixel_map=ds.pixel_map))
+    resized = open_dataset(ds_path, meta.image_size)  # resized as training resized it
+    (_, net), = list(detect_store(OnePassDetector(model, meta), FrameStore(resized, resized.frames("test"))))
+    ds = Dataset.open(ds_path, cache="none")
+    (_, own), = list(detect_store(Detector.load(tmp_path / "run", "cpu"), FrameStore(ds, ds.frames("test"))))
     s = 24 / 32  # u_net = s (u + 0.5) - 0.5
-    np.testing.assert_allclose(own.uv.numpy(), (net.uv.numpy() + 0.5) / s - 0.5, atol=1e-9)
-    # The same points and errors up to the float32 rounding of the stored cameras (0.1 um at 1 m).
-    np.testing.assert_allclose(own.X.numpy(), net.X.numpy(), rtol=0, atol=1e-7)
-    np.testing.assert_allclose(own.error.numpy(), net.error.numpy() / s, rtol=1e-3, atol=1e-5)
+    assert own.pixel_maps is not None
+    np.testing.assert_allclose(own.pixel_maps[0, 0].numpy(), [[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s - 0.5],
+                                                              [0, 0, 1]], atol=1e-12)
+    # the detector resamples the dataset's own images as the resized dataset did (area averaging, up to
+    # one grey level of rounding): the same detections, in the dataset's own pixels
+    np.testing.assert_allclose(own.uv.numpy(), (net.uv.numpy() + 0.5) / s - 0.5, atol=0.05)
+    np.testing.assert_allclose(own.X.numpy(), net.X.numpy(), rtol=0, atol=1e-4)
     out = tmp_path / "p.csv"
     assert cli_main(["predict", str(tmp_path / "run"), "--data", str(ds_path), "--out", str(out)]) == 0
     rows = list(csv.DictReader(open(out)))
@@ -230,10 +232,9 @@ def test_evaluate_matches_keypoints_by_name(trained, tmp_path, capsys):
     from s3k.data import DatasetWriter
 
     root, ds_path, run = trained
-    model, meta = load_detector(run)
-    ds = open_dataset(ds_path, meta.image_size)
+    ds = Dataset.open(ds_path, cache="none")
     ids = ds.frames("test")
-    (batch, _), = list(predict_store(model, meta, FrameStore(ds, ids, points=True)))
+    batch = FrameStore(ds, ids, points=True).get(np.arange(len(ids)))
     X = batch.points.double().numpy()
     K, dist, R, t = rig(32)
 
@@ -281,7 +282,7 @@ def test_demo_quick(tmp_path, capsys):
 
 
 def test_pck_counts_misses_and_failed_triangulations():
-    from s3k.evaluate import compute_metrics
+    from s3k.inference.metrics import compute_metrics
 
     B, C, K = 4, 2, 2
     uv = np.zeros((B, C, K, 2))
@@ -306,8 +307,8 @@ def test_pck_counts_misses_and_failed_triangulations():
 def test_mm_per_px_at_the_workspace_centre(distance, f):
     import torch
 
-    from s3k.evaluate import pixel_sizes_mm
     from s3k.geometry import Cameras
+    from s3k.inference.metrics import pixel_sizes_mm
 
     # four cameras on a circle, all looking at (0.1, -0.2, 0.3): the point their optical axes meet
     target = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)

@@ -11,11 +11,11 @@ import torch
 from tiny_detector import save_run
 
 from s3k import cli
-from s3k.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
+from s3k.detector import DetectorMeta, load_network
 from s3k.heatmaps import confidence_weight
+from s3k.inference.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
 from s3k.model import UNetConfig, detect
 from s3k.readout import window_cells
-from s3k.run import DetectorMeta, load_detector
 
 pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
@@ -55,7 +55,7 @@ def test_export_matches_pytorch(run_dir, tmp_path, fmt, suffix, with_moments):
     images = _inputs(5)
     assert len(images) != TRACE_BATCH
     got = run_exported(report.path, fmt, images)
-    model, meta = load_detector(run_dir)
+    model, meta = load_network(run_dir)
     with torch.no_grad():
         logits, means, var = detect(model, torch.from_numpy(images)[None], meta.stride,
                                    window_cells(meta.sigma, meta.stride))
@@ -71,7 +71,7 @@ def test_export_matches_pytorch(run_dir, tmp_path, fmt, suffix, with_moments):
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_exported_files_carry_the_metadata(run_dir, tmp_path):
-    _, meta = load_detector(run_dir)
+    _, meta = load_network(run_dir)
     onnx_path = export_detector(run_dir, "onnx", tmp_path / "d.onnx", with_moments=True).path
     import onnx
 
@@ -92,7 +92,7 @@ def test_export_verifies_on_the_runs_dataset(tmp_path):
 
     data = make_dataset(tmp_path / "data", size=32, labelled=1, unlabelled=1, test=1)
     run = make_run(tmp_path / "run", dataset=str(data), norm="group")
-    meta = load_detector(run)[1]
+    meta = load_network(run)[1]
     images, source = verification_images(meta, str(data))
     assert str(data) in source and images.shape == (6, 3, SIZE[1], SIZE[0])
     assert images.dtype == np.float32 and 0 <= images.min() and images.max() <= 1
@@ -110,7 +110,7 @@ def test_cli_prints_difference_and_fails_on_a_wrong_file(run_dir, tmp_path, caps
     import onnx
     from onnx import numpy_helper
 
-    import s3k.export as export
+    import s3k.inference.export as export
 
     original = export.export_module
 

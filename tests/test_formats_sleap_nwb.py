@@ -429,7 +429,7 @@ def test_round_trip_through_source_videos_maps_pixels_back(rec, tmp_path):
 
 def test_export_tracks_to_nwb(rec, tmp_path, capsys):
     from s3k.data.nwb import read_nwb_tracks
-    from s3k.tracks_csv import csv_header
+    from s3k.data.tracks_csv import csv_header
 
     X = np.arange(3 * len(KPS) * 3, dtype=np.float64).reshape(3, len(KPS), 3) / 7
     X[1, 2] = np.nan

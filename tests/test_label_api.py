@@ -23,10 +23,10 @@ with warnings.catch_warnings():
 
 from s3k import cli
 from s3k.data import Dataset
+from s3k.detector import DetectorMeta
 from s3k.label.server import create_app
 from s3k.label.store import HISTORY_FILE, Edit, LabelStore
 from s3k.model import UNetConfig
-from s3k.run import DetectorMeta
 
 
 def click(client, frame, version, camera, keypoint, uv, **extra):
@@ -266,20 +266,19 @@ def tiny_run(path, size=32):
 
 
 def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
-    from s3k.frames import FrameStore, open_dataset
-    from s3k.predict import predict_store
-    from s3k.run import load_detector
+    from s3k.data import Dataset
+    from s3k.detector import Detector
 
     run = tiny_run(tmp_path / "run")
     assert TestClient(create_app(truth.path)).get("/api/ranking").status_code == 404
     client = TestClient(create_app(truth.path, run=run))
     assert client.get("/api/meta").json()["run"] is True
-    # what predict_store reads, in the dataset's pixels
-    model, meta = load_detector(run)
-    ds = open_dataset(truth.path, meta.image_size)
+    # what the run's detector reads on the dataset's own frames, in the dataset's pixels
+    detector = Detector.load(run, "cpu")
+    meta = detector.meta
+    ds = Dataset.open(truth.path, cache="none")
     ids = ds.frames("unlabelled")
-    (batch, ro), = list(predict_store(model, meta, FrameStore(ds, ids, preload_mb=0),
-                                      batch_size=len(ids), pixel_map=ds.pixel_map))
+    ro = detector(ds.images(ids), ds.calibration(ids))
     sug = client.get(f"/api/frame/{ids[0]}").json()["suggestions"]
     for k, kp in enumerate(KEYPOINTS):
         for c, cam in enumerate(CAMERAS):

@@ -239,14 +239,15 @@ def test_frames_to_label_by_pose_coverage_and_in_proportion(tmp_path, browser):
     from synthetic_rig import KEYPOINTS
     from tiny_detector import save_run
 
+    from s3k.detector import DetectorMeta
     from s3k.label.server import LabelApp
     from s3k.model import UNetConfig
-    from s3k.run import DetectorMeta
 
     truth = make_label_dataset(tmp_path / "ds", size=64)
     meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(32, 32), stride=2,
                         sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict())
-    run = save_run(tmp_path / "run", meta, seed=0, head_std=0.5)
+    # an untrained detector whose two pose orders differ on these frames, so the page's switch shows
+    run = save_run(tmp_path / "run", meta, seed=1, head_std=0.5)
     app = LabelApp(truth.path, run=run)
     want = app.suggestions.coverage(app.dataset.frames("unlabelled"), [], 1000.0)
     with Server(truth.path, run) as url:

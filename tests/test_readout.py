@@ -9,8 +9,6 @@ reads out the same numbers.
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,10 +17,9 @@ import torch
 from synthetic_rig import KEYPOINTS, make_dataset
 from torch import nn
 
+from s3k.data.frames import FrameStore, images_to_float, open_dataset
 from s3k.data.transforms import crop_resize_matrix
-from s3k.evaluate import evaluate_store
-from s3k.export import DetectorWithMoments
-from s3k.frames import FrameStore, images_to_float, open_dataset
+from s3k.detector import DetectorMeta, OnePassDetector
 from s3k.geometry import Cameras, project
 from s3k.heatmaps import (
     confidence_weight,
@@ -31,16 +28,12 @@ from s3k.heatmaps import (
     peak_window_mean,
     spatial_softmax,
 )
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.export import DetectorWithMoments
+from s3k.inference.predict import detect_store
 from s3k.losses import self_supervised_loss
 from s3k.model import detect
-from s3k.predict import infer, predict_store
 from s3k.readout import read_out, select_views, triangulate, window_cells
-from s3k.run import DetectorMeta
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
-
-from benchmarks.inference import make_pipeline  # noqa: E402
-from benchmarks.inference_exported import points_of_outputs  # noqa: E402
 
 SIZE, STRIDE, SIGMA = 32, 2, 2.0
 #: A detector's description with this module's read-out settings (no outlier threshold).
@@ -94,12 +87,14 @@ def test_every_caller_reads_out_the_same_points(scene):
         np.testing.assert_array_equal(np.asarray(got_valid), valid)
         np.testing.assert_allclose(np.asarray(got_X, dtype=np.float64), X, rtol=0, atol=atol)
 
-    # s3k predict (library path) and s3k evaluate (through predict_store).
-    pred = infer(net, META, images, cams)
+    # s3k.Detector on frames of its input size (s3k predict, evaluate, track, stream, the labelling app and
+    # the robot loop go through it).
+    detector = OnePassDetector(net, META)
+    pred = detector(scene.batch.images, cams)
     same(pred.X, pred.valid)
-    (_, stored), = list(predict_store(net, META, scene.store, batch_size=B))
+    (_, stored), = list(detect_store(detector, scene.store, batch_size=B))
     same(stored.X, stored.valid)
-    _, arrays = evaluate_store(net, META, scene.store, batch_size=B)
+    _, arrays = evaluate_store(detector, scene.store, batch_size=B)
     same(arrays["X"], arrays["X_valid"])
     np.testing.assert_allclose(arrays["pred_uv"], ref.uv.numpy(), rtol=0, atol=1e-12)
 
@@ -132,17 +127,11 @@ def test_every_caller_reads_out_the_same_points(scene):
     _, info = self_supervised_loss(scene.logits, cams, STRIDE, SIGMA)
     same(info["points"], info["points_valid"], atol=1e-7)
 
-    # The inference benchmarks' per-frame functions (one frame of C images).
-    one = FixedLogits(scene.logits[0]).eval()
-    frame_u8 = scene.batch.images[0]  # (C, H, W, 3)
-    with torch.inference_mode():
-        X0, valid0 = make_pipeline(one, cams[:1], STRIDE, SIGMA, channels_last=True)(frame_u8)
-    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-12)
-    assert bool(valid0.all())
-    X0, valid0 = points_of_outputs([scene.logits[0].numpy()], cams[:1], STRIDE, SIGMA, with_moments=False)
-    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-12)
-    X0, _ = points_of_outputs([None, means[0], conf[0]], cams[:1], STRIDE, SIGMA, with_moments=True)
-    np.testing.assert_allclose(X0.numpy(), X[0], rtol=0, atol=1e-6)
+    # One frame of C images (the per-frame path of a controller or a live stream).
+    one = OnePassDetector(FixedLogits(scene.logits[0]).eval(), META)
+    first = one(scene.batch.images[0], cams[0])  # (C, H, W, 3), cameras (C,)
+    np.testing.assert_allclose(first.X[0].numpy(), X[0], rtol=0, atol=1e-12)
+    assert bool(first.valid.all())
 
 
 def test_read_out_fields(scene):

@@ -5,8 +5,8 @@ from synthetic_rig import make_dataset
 
 from s3k.data import Dataset
 from s3k.errors import UserError
-from s3k.geometry import project
-from s3k.refine import object_centres, write_crop_dataset
+from s3k.geometry import project, workspace_centre
+from s3k.train.crop_dataset import object_centres, write_crop_dataset
 
 
 def test_crop_dataset_keeps_frames_labels_and_geometry(tmp_path):
@@ -42,7 +42,14 @@ def test_frames_without_an_estimate_are_named_or_use_the_fallback(tmp_path):
     with pytest.raises(UserError, match=f"frame {first} "):
         write_crop_dataset(src, tmp_path / "crops", centres, extent=0.3, size=16)
     assert not (tmp_path / "crops").exists()
-    write_crop_dataset(src, tmp_path / "crops", centres, extent=0.3, size=16, fallback=lambda f: np.zeros(3))
+    write_crop_dataset(src, tmp_path / "crops", centres, extent=0.3, size=16, fallback=True)
+    # the frame without an estimate is cut around where its cameras look (the detector's rule)
+    crops = Dataset.open(tmp_path / "crops")
+    cams = crops.calibration([first], dtype=np.float64)
+    middle, valid = workspace_centre(full.calibration([first], dtype=np.float64))
+    assert bool(valid.all())
+    at, _ = project(cams, middle[:, None, None])
+    np.testing.assert_allclose(at.numpy()[..., 0, :], 7.5, atol=1e-6)
     with pytest.raises(UserError, match="--overwrite"):
         write_crop_dataset(src, tmp_path / "crops", centres, extent=0.3, size=16)
 

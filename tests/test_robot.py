@@ -173,11 +173,11 @@ class _Oracle(torch.nn.Module):
 def test_run_detector_reads_the_true_points_and_grasps(monkeypatch, tmp_path):
     """Through RunDetector (rendered views -> network -> s3k's read-out), an oracle network whose heatmaps
     peak at the true projections gives the true 3D points, and the grasp at them succeeds."""
-    import s3k.robot.detect
+    import s3k.detector.detector
+    from s3k.detector import DetectorMeta
     from s3k.model import UNetConfig
     from s3k.robot.detect import RunDetector
     from s3k.robot.grasp import detector_keypoints, run_trials
-    from s3k.run import DetectorMeta
 
     size, stride, sigma = 64, 2, 2.0
     # The network's keypoint order differs from the scene's: the detector must reorder by name.
@@ -186,7 +186,7 @@ def test_run_detector_reads_the_true_points_and_grasps(monkeypatch, tmp_path):
                         stride=stride, sigma=sigma,
                         model=UNetConfig(channels=(8, 8), stride=stride).to_dict())
     oracle = _Oracle(torch.zeros(0))
-    monkeypatch.setattr(s3k.robot.detect, "load_detector", lambda *a, **k: (oracle, meta))
+    monkeypatch.setattr(s3k.detector.detector, "load_network", lambda *a, **k: (oracle, meta))
     detector = RunDetector(tmp_path, PlushScene.keypoints)
     inner = detector_keypoints(detector)
     errors = []
@@ -267,8 +267,8 @@ def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
     from tiny_detector import save_run
 
     from s3k.cli import main
+    from s3k.detector import DetectorMeta
     from s3k.model import UNetConfig
-    from s3k.run import DetectorMeta
 
     dataset = tmp_path / "plush-data"
     dataset.mkdir()

@@ -22,8 +22,10 @@ from tiny_detector import save_run
 from s3k import cli
 from s3k.data.anipose import write_anipose_calibration
 from s3k.data.rig import Rig
+from s3k.data.tracks_csv import csv_header, read_csv
 from s3k.data.transforms import crop_resize_matrix
 from s3k.data.video import frame_count, frame_size, synchronized_frames, write_video
+from s3k.detector import DetectorMeta
 from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.heatmaps import (
     confidence_weight,
@@ -33,11 +35,9 @@ from s3k.heatmaps import (
     peak_window_mean,
     spatial_softmax,
 )
+from s3k.inference.track import fit_box, prepare_cameras
 from s3k.model import UNetConfig
 from s3k.readout import read_out, window_cells
-from s3k.run import DetectorMeta
-from s3k.track import fit_box, prepare_cameras
-from s3k.tracks_csv import csv_header, read_csv
 
 CAMERAS = ["left", "top", "right"]
 KEYPOINTS = ["nose", "ear", "tail"]
@@ -405,7 +405,7 @@ class OracleDetector(torch.nn.Module):
 
 
 def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_path, monkeypatch, capsys):
-    import s3k.run
+    import s3k.detector.detector
 
     rig = recording["rig"]
     W, H = VIDEO_SIZE
@@ -423,7 +423,7 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
                         sigma=2.0, model=UNetConfig(channels=(8, 8), stride=2).to_dict(), units="mm",
                         source_image_size=NET_SIZE)
     oracle = OracleDetector(uv_net, meta.stride, meta.sigma)
-    monkeypatch.setattr(s3k.run, "load_detector", lambda *args, **kwargs: (oracle, meta))
+    monkeypatch.setattr(s3k.detector.detector, "load_network", lambda *args, **kwargs: (oracle, meta))
 
     out = tmp_path / "points3d.csv"
     args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out),

@@ -17,10 +17,10 @@ import s3k.train.loop as loop_module
 from s3k.cli import main as cli_main
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, config_from_dict, leaf_fields
+from s3k.data.frames import FrameStore, open_dataset
+from s3k.detector import load_network
 from s3k.errors import UserError
-from s3k.frames import FrameStore, open_dataset
 from s3k.model import UNet, UNetConfig
-from s3k.run import load_detector
 from s3k.train import draw_batch, train
 
 
@@ -48,7 +48,7 @@ def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
     saved = json.loads((run / "config.json").read_text())
     assert saved["config"]["steps"] == 2 and saved["config"]["channels"] == [8, 16, 16]
-    model, meta = load_detector(run)
+    model, meta = load_network(run)
     assert meta.keypoints == KEYPOINTS and meta.image_size == (32, 32) and meta.stride == 2
     assert meta.sigma == pytest.approx(TrainConfig().sigma * 2)
     logits = model(torch.rand(4, 3, 32, 32))
@@ -268,12 +268,13 @@ def test_resume_after_sigkill_matches_uninterrupted(tiny_dataset, tmp_path):
 
 
 def _labelled_error(net, meta, dataset_path) -> float:
-    from s3k.evaluate import evaluate_store
+    from s3k.detector import OnePassDetector
+    from s3k.inference.evaluate import evaluate_store
 
     ds = open_dataset(dataset_path, meta.image_size)
     store = FrameStore(ds, ds.frames("labelled"), labels=True, points=True)
     net.eval()
-    metrics, _ = evaluate_store(net, meta, store, "cpu")
+    metrics, _ = evaluate_store(OnePassDetector(net, meta), store)
     return metrics["rms_px"]
 
 
@@ -389,10 +390,10 @@ def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
                                                              layout_tol=0.2))
     assert held.status == "done"
     # the read-out of the trained detector holds its keypoints to the same layout (the saved meta)
-    _, meta = load_detector(tmp_path / "held")
+    _, meta = load_network(tmp_path / "held")
     assert meta.layout_tol == 0.2
     np.testing.assert_allclose(np.asarray(meta.layout, dtype=float), d, equal_nan=True)
-    _, plain = load_detector(tmp_path / "run")
+    _, plain = load_network(tmp_path / "run")
     assert plain.layout is None and plain.layout_distances is None
 
 
@@ -458,7 +459,7 @@ def test_teacher_follows_the_network_and_resumes_exactly(tiny_dataset, tmp_path)
 
 
 def test_teacher_update_is_the_moving_average():
-    from s3k.run import DetectorMeta
+    from s3k.detector import DetectorMeta
     from s3k.train.distributed import DistInfo
     from s3k.train.loop import _Loop
 

@@ -14,8 +14,8 @@ import torch
 from synthetic_rig import make_dataset
 
 from s3k.cli import main as cli_main
+from s3k.detector import load_network
 from s3k.errors import UserError
-from s3k.run import load_detector
 from s3k.train import read_checkpoint_step
 
 TINY = ["--steps", "2", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",
@@ -185,7 +185,7 @@ def test_crafted_model_pt_is_refused_and_runs_nothing(capsys, dataset, finished_
     real = torch.load(run / "model.pt", weights_only=True)
     _craft(run / "model.pt", marker, real)
     with pytest.raises(UserError, match="not an s3k model"):
-        load_detector(run)
+        load_network(run)
     refused(capsys, ["evaluate", str(run), "--data", str(dataset)], str(run / "model.pt"), "not an s3k model",
             "retrain")
     assert not marker.exists()
@@ -207,7 +207,7 @@ def test_foreign_and_truncated_files_are_refused(capsys, dataset, finished_run, 
     run = _copy_run(finished_run, tmp_path / "run")
     torch.save({"weights": torch.zeros(2)}, run / "model.pt")  # loads, but is not an s3k model
     with pytest.raises(UserError, match="not an s3k model"):
-        load_detector(run)
+        load_network(run)
     data = (run / "checkpoint.pt").read_bytes()
     (run / "checkpoint.pt").write_bytes(data[: len(data) // 2])
     refused(capsys, ["train", str(dataset), "--out", str(run), "--resume"], str(run / "checkpoint.pt"))

@@ -1,4 +1,4 @@
-"""Tests of the coarse-to-fine detector (``s3k train --two-pass``, :mod:`s3k.two_pass`)."""
+"""Tests of the coarse-to-fine detector (``s3k train --two-pass``, :mod:`s3k.train.two_pass`)."""
 
 from __future__ import annotations
 
@@ -16,28 +16,18 @@ from test_track import KEYPOINTS as TRACK_KEYPOINTS
 from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
 
 from s3k import cli
-from s3k.crops import crop_maps, metric_crop_boxes
 from s3k.data import Dataset
 from s3k.data.anipose import write_anipose_calibration
+from s3k.data.tracks_csv import read_csv
 from s3k.data.video import write_video
+from s3k.detector import TWO_PASS_FILE, CropRule, DetectorMeta, crop_centres, extent_middle, read_two_pass
 from s3k.errors import UserError
-from s3k.geometry import project
+from s3k.geometry import Cameras, project
+from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
+from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
-from s3k.run import DetectorMeta
-from s3k.track import prepare_cameras
-from s3k.tracks_csv import read_csv
-from s3k.two_pass import (
-    CPU_FILE,
-    TWO_PASS_FILE,
-    CropRule,
-    crop_centres,
-    crop_rule_from_labels,
-    extent_middle,
-    read_cpu,
-    read_two_pass,
-    refining_config,
-)
+from s3k.train.two_pass import CPU_FILE, crop_rule_from_labels, read_cpu, refining_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
@@ -68,8 +58,22 @@ def test_extent_middle_ignores_missing_keypoints():
     np.testing.assert_allclose(extent_middle(X), [1.0, 0, 0])
     np.testing.assert_allclose(extent_middle(X[:2]), [0.0, 0, 0])  # one keypoint: itself
     assert extent_middle(np.full((3, 3), np.nan)) is None
-    centres = crop_centres({4: X, 5: np.full((3, 3), np.nan)})
-    assert list(centres) == [4]
+
+
+
+def test_crop_centres_fall_back_on_the_workspace_centre_where_no_keypoint_was_placed():
+    """One rule for every consumer: the middle of the placed keypoints' extent, or where the cameras look."""
+    R = [random_rotation(np.random.default_rng(i)) for i in range(3)]
+    looking_at = np.array([0.1, -0.2, 0.3])
+    t = [-(r @ looking_at) + np.array([0.0, 0.0, 1.5]) for r in R]  # the origin of each camera's axis
+    K = np.array([[100.0, 0, 49.5], [0, 100.0, 49.5], [0, 0, 1]])
+    cams = Cameras.from_numpy(np.stack([K] * 3), None, np.stack(R), np.stack(t), dtype=torch.float64)
+    X = torch.tensor([[[0.0, 0, 0], [2.0, 0, 0], [np.nan] * 3], [[np.nan] * 3] * 3], dtype=torch.float64)
+    valid = torch.isfinite(X).all(-1)
+    centres, placed = crop_centres(X, valid, cams)
+    assert placed.tolist() == [True, False]
+    np.testing.assert_allclose(centres[0].numpy(), [1.0, 0, 0])
+    np.testing.assert_allclose(centres[1].numpy(), looking_at, atol=1e-9)
 
 
 def test_crop_rule_from_labels_covers_every_keypoint_with_the_margin(tmp_path):
@@ -162,40 +166,28 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     out = tmp_path / "p.csv"
     assert cli.main(["predict", str(run), "--data", str(data), "--out", str(out)]) == 0
     assert sorted(read_csv(out, KEYPOINTS)) == list(source.frames("test"))
-    # a command that needs one network names the two
+    # export writes both passes and the crop rule; ONNX Runtime's detector gives PyTorch's 3D points
     capsys.readouterr()
-    assert cli.main(["export", str(run), "--format", "torchscript", "--out", str(tmp_path / "m.pt")]) == 1
-    err = capsys.readouterr().err
-    assert "two-pass" in err and str(run / "fine") in err and len(err.strip().splitlines()) == 1
+    assert cli.main(["export", str(run), "--format", "onnx", "--out", str(tmp_path / "m.onnx")]) == 0
+    printed = capsys.readouterr().out
+    assert "max 3D difference" in printed
+    for name in ("m.coarse.onnx", "m.fine.onnx", "m.json"):
+        assert (tmp_path / name).is_file()
+    from s3k.detector import Detector
+    from s3k.inference.export import load_exported
 
-    # benchmarks/recrop.py: the same crops at another size, from the run's own coarse estimates
-    from benchmarks.recrop import main as recrop
+    ids = source.frames("test")
+    images, cams = source.images(ids), source.calibration(ids, dtype=np.float64)
+    ref = Detector.load(run, "cpu")(images, cams)
+    got = load_exported(tmp_path / "m.json")(images, cams)
+    assert torch.equal(ref.valid, got.valid) and bool(ref.valid.any())
+    diff_mm = torch.linalg.vector_norm(ref.X - got.X, dim=-1)[ref.valid] * 1000  # the dataset is in metres
+    assert float(diff_mm.max()) < 0.1
 
-    assert recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")]) == 0
-    crops48 = Dataset.open(tmp_path / "crops48", cache="none")
-    assert crops48.image_size == (48, 48)
-    for split in ("labelled", "unlabelled", "test"):
-        np.testing.assert_array_equal(crops48.frames(split), crops.frames(split))
-    uv48, mask48 = crops48.labels(ids)
-    np.testing.assert_array_equal(mask48, mask)  # same crop boxes, 1.5 times the pixels
-    np.testing.assert_allclose(uv48[mask], (uv[mask] + 0.5) * 1.5 - 0.5, atol=1e-3)
-    with pytest.raises(SystemExit):
-        recrop([str(run), str(data), "--size", "48", "--out", str(tmp_path / "crops48")])  # exists
-
-    # benchmarks/rigid_readout.py: read without the rigid read-out, the run gives what `s3k evaluate` gave; a
-    # run trained without --layout_tol is read with the layout of its dataset's labelled frames
-    from benchmarks.rigid_readout import WAYS
-    from benchmarks.rigid_readout import main as rigid_readout
-
-    assert rigid_readout([str(run), str(data), "--out", str(tmp_path / "rigid.json")]) == 0
-    ways = json.loads((tmp_path / "rigid.json").read_text())["runs"][str(run)]
-    assert set(WAYS) <= set(ways) and "labelled frames" in ways["layout_from"]["fine"]
-    for key in ("median_mm", "rms_mm", "pck_10mm"):
-        assert ways["neither"][key] == pytest.approx(metrics[key], rel=1e-6)
 
 
 def test_stage_clock_keeps_a_killed_attempts_cpu_time(tmp_path):
-    from s3k.two_pass import _StageClock
+    from s3k.train.two_pass import _StageClock
 
     (tmp_path / CPU_FILE).write_text(json.dumps({"coarse": 5.0}))  # an earlier attempt's time
     with pytest.raises(KeyboardInterrupt), _StageClock(tmp_path, "fine", every=10) as clock:
@@ -238,7 +230,7 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
     """``s3k track`` with a two-pass run: the coarse pass is off by 8 mm, the refining pass sees crops cut
     around the coarse estimate from the full-resolution videos and gives the true points back: the crop
     boxes, their pixel maps and the read-out in video pixels compose exactly."""
-    import s3k.run
+    import s3k.detector.detector
 
     rig = make_rig()
     calib = tmp_path / "calibration.toml"
@@ -273,7 +265,8 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
                             units="mm", source_image_size=size)
 
     passes = {"coarse": (coarse, meta(NET_SIZE)), "fine": (fine, meta((rule.size, rule.size)))}
-    monkeypatch.setattr(s3k.run, "load_detector", lambda path, *a, **k: passes[str(path).split("/")[-1]])
+    monkeypatch.setattr(s3k.detector.detector, "load_network",
+                        lambda path, *a, **k: passes[str(path).split("/")[-1]])
     run = tmp_path / "run"
     run.mkdir()
     (run / TWO_PASS_FILE).write_text(json.dumps({"extent": rule.extent, "size": rule.size, "coarse": "coarse",

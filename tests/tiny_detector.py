@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-from s3k.run import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
 
 
 def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = None,

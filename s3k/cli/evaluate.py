@@ -1,4 +1,5 @@
-"""`s3k evaluate`: a trained detector's metrics on a dataset split, and a report (:mod:`s3k.evaluate`)."""
+"""`s3k evaluate`: a trained detector's metrics on a dataset split, and a report
+(:mod:`s3k.inference.evaluate`)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import argparse
 import json
 import sys
 
-from s3k.evaluate import evaluate_run, format_table
+from s3k.inference.evaluate import evaluate_run
+from s3k.inference.metrics import format_table
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -1,4 +1,5 @@
-"""`s3k export`: export a trained detector to ONNX or TorchScript and verify it (:mod:`s3k.export`)."""
+"""`s3k export`: export a trained detector to ONNX or TorchScript and verify it
+(:mod:`s3k.inference.export`)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import argparse
 import sys
 
 from s3k.errors import UserError
-from s3k.export import DEFAULT_TOLERANCE, FORMATS, export_detector
+from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -16,7 +17,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
-    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt)")
+    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt); a "
+                        "two-pass run writes OUT.coarse.EXT, OUT.fine.EXT and OUT.json (the crop rule)")
     parser.add_argument("--with-moments", action="store_true",
                         help="also output means (N, K, 2) in pixels and confidence (N, K)")
     parser.add_argument("--opset", type=int, default=17, help="ONNX opset version (default 17)")
@@ -36,8 +38,14 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:  # onnx / onnxruntime are optional
         raise UserError(f"--format {args.format} needs a package that is not installed ({exc})") from exc
     diffs = ", ".join(f"{k} {v:.3g}" for k, v in report.max_diff.items())
-    print(f"wrote {report.path} ({report.format}; outputs: {', '.join(report.outputs)})")
+    print(f"wrote {', '.join(str(f) for f in report.files)} ({report.format}; outputs: "
+          f"{', '.join(report.outputs)})")
     print(f"max |difference| from PyTorch on {report.inputs}: {diffs} (tolerance {report.tolerance:g})")
+    if report.max_diff_mm is None:
+        print("3D points not compared: no dataset frames (give --verify-data)")
+    else:
+        print(f"max 3D difference from PyTorch's detector on {report.frames_3d} frames: "
+              f"{report.max_diff_mm:.3g} mm (tolerance {report.tolerance_mm:g} mm)")
     if not report.ok:
         print(f"s3k export: error: {report.path} does not reproduce the PyTorch model within "
               f"{report.tolerance:g}", file=sys.stderr)

@@ -1,11 +1,11 @@
-"""`s3k predict`: 3D keypoints of a dataset's frames as CSV (:mod:`s3k.predict`)."""
+"""`s3k predict`: 3D keypoints of a dataset's frames as CSV (:mod:`s3k.inference.predict`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from s3k.predict import predict_dataset
+from s3k.inference.predict import predict_dataset
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

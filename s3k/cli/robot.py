@@ -74,9 +74,9 @@ def _dataset_object_seed(run: str) -> int | None:
     """The ``object_seed`` of the plush dataset run ``run`` was trained on, when its metadata says so."""
     from pathlib import Path
 
-    from s3k.run import read_run_config
+    from s3k.detector import training_dataset
 
-    dataset = read_run_config(run).get("dataset")
+    dataset = training_dataset(run)
     try:
         source = json.loads((Path(str(dataset)) / "s3k.json").read_text()).get("source") or {}
     except (OSError, ValueError, AttributeError):

@@ -1,4 +1,4 @@
-"""`s3k track`: 3D keypoints from synchronized videos of a calibrated rig (:mod:`s3k.track`)."""
+"""`s3k track`: 3D keypoints from synchronized videos of a calibrated rig (:mod:`s3k.inference.track`)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from s3k.errors import UserError
+from s3k.inference.track import FIT_MODES, empty_result_hint, track_videos
 from s3k.readout import DEFAULT_MIN_WEIGHT
-from s3k.track import FIT_MODES, empty_result_hint, track_videos
 
 
 def parse_videos(values: Sequence[str]) -> dict[str, Path]:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, config_from_dict
-from s3k.run import CONFIG_FILE, read_run_config
-from s3k.two_pass import REFERENCE_CROP
+from s3k.detector import CONFIG_FILE, read_run_config
+from s3k.train.two_pass import REFERENCE_CROP
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_two_pass(args: argparse.Namespace) -> int:
     from s3k.errors import UserError
-    from s3k.two_pass import train_two_pass
+    from s3k.train.two_pass import train_two_pass
 
     cfg = config_from_args(args, TrainConfig)
     if cfg.image_size:

@@ -217,7 +217,7 @@ def export_tracks(
     import csv
 
     from s3k.data.nwb import write_nwb_tracks
-    from s3k.tracks_csv import check_output, read_csv
+    from s3k.data.tracks_csv import check_output, read_csv
 
     if fmt != "nwb":
         raise UserError(f"--format {fmt!r}: 3D tracks export to nwb")

@@ -15,7 +15,7 @@ Layout of ``DIR`` (one DIR can hold every experiment of one scale; they share th
 
     DIR/data/<pool>/                 a rendered dataset per (scene, mode, instances, size, frame counts, seed)
     DIR/data/views/<pool>/<view>/    a run's frames of a pool: its tables, images linked, not copied
-    DIR/<experiment>/runs/<run>/     the training run folder (s3k.run) and result.json once finished
+    DIR/<experiment>/runs/<run>/     the training run folder (s3k.detector) and result.json once finished
     DIR/<experiment>/summary.json    per grid point: mean, std and values over seeds; findings; mm per px
     DIR/<experiment>/*.png, README.md
 
@@ -25,8 +25,8 @@ Several invocations on one DIR may run at the same time (e.g. one per core with 
 trained by a live process is skipped (a lock on ``run.lock``), a pool being rendered is waited for.
 
 Two passes (``Options.two_pass``, ``--two-pass``): every run is trained coarse-to-fine as ``s3k train
---two-pass`` trains it (:mod:`s3k.two_pass`), from pools rendered larger than the coarse pass's input; its
-run folder holds ``coarse/``, ``crops/`` and ``fine/``, and its pixel errors are in crop pixels.
+--two-pass`` trains it (:mod:`s3k.train.two_pass`), from pools rendered larger than the coarse pass's
+input; its run folder holds ``coarse/``, ``crops/`` and ``fine/``, and its pixel errors are in crop pixels.
 
 Labelled frames: drawn at random, stratified (below), or with ``--label-choice coverage`` or
 ``representative`` as a labeller following one of the labelling app's pose rankings would pick them (over

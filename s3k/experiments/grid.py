@@ -186,9 +186,9 @@ class RunSpec:
         label_choice: how the labelled frames are chosen from the pool
             (:data:`LABEL_CHOICES`).
         two_pass: None for one pass on the whole image; else the keyword arguments of
-            :func:`s3k.two_pass.train_two_pass` besides the configuration (``coarse_size``, ``coarse_steps``,
-            ``coarse_rotation``, ``crop_size``): a coarse pass on the whole image resized, a refining pass on
-            crops around its estimate.
+            :func:`s3k.train.two_pass.train_two_pass` besides the configuration (``coarse_size``,
+            ``coarse_steps``, ``coarse_rotation``, ``crop_size``): a coarse pass on the whole image resized, a
+            refining pass on crops around its estimate.
     """
 
     experiment: str

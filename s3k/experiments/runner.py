@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from s3k.config import TrainConfig
+from s3k.detector import CHECKPOINT_FILE
 from s3k.errors import UserError
 from s3k.experiments.findings import fmt
 from s3k.experiments.grid import (
@@ -33,7 +34,6 @@ from s3k.experiments.grid import (
 from s3k.experiments.report import source_revision, summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
 from s3k.fileio import atomic_write_json, file_lock
-from s3k.run import CHECKPOINT_FILE
 
 #: Config fields that do not change a run's result: a finished run is kept when only these differ.
 _NEUTRAL_FIELDS = ("progress", "device", "threads", "preload_mb", "val_every", "val_frames", "log_every",
@@ -123,9 +123,9 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
                         log: Callable[[str], None]) -> dict[str, Any]:
     """The data, training and evaluation of one claimed run; returns its result record."""
     from s3k.data import Dataset
-    from s3k.evaluate import evaluate_run
+    from s3k.inference.evaluate import evaluate_run
     from s3k.train import train
-    from s3k.two_pass import train_two_pass
+    from s3k.train.two_pass import train_two_pass
 
     run_dir = exp_dir / "runs" / spec.name
     t0 = time.perf_counter()

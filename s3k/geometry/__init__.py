@@ -20,7 +20,7 @@ from s3k.geometry.cameras import (
     undistort,
     undistort_pixels,
 )
-from s3k.geometry.triangulation import triangulate_pixels, triangulate_rays
+from s3k.geometry.triangulation import triangulate_pixels, triangulate_rays, workspace_centre
 
 __all__ = [
     "Cameras",
@@ -34,4 +34,5 @@ __all__ = [
     "triangulate_rays",
     "undistort",
     "undistort_pixels",
+    "workspace_centre",
 ]

@@ -321,3 +321,19 @@ def triangulate_pixels(
     o, d = pixel_rays(cams, uv, iters=iters)
     X, valid = triangulate_rays(o.transpose(-2, -3), d.transpose(-2, -3), weights.transpose(-1, -2), **kwargs)
     return X, valid
+
+
+def workspace_centre(cams: Cameras) -> tuple[Tensor, Tensor]:
+    """Where a rig's cameras look: the point nearest to their optical axes (the rays through each principal
+    point), triangulated with unit weights.
+
+    Args:
+        cams: cameras ``(*L, C)``.
+
+    Returns:
+        ``(centre (*L, 3), valid (*L))``: invalid where the axes do not meet (fewer than two cameras,
+        parallel axes).
+    """
+    principal = cams.K[..., :2, 2][..., None, :]  # (*L, C, 1, 2)
+    centre, valid = triangulate_pixels(cams, principal)  # (*L, 1, 3)
+    return centre[..., 0, :], valid[..., 0]

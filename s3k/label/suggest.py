@@ -1,7 +1,7 @@
 """A trained run's help in labelling: its predictions as suggestions, and frames ranked by its doubt.
 
-The detector of a run (:func:`s3k.run.load_detector`) reads each frame as ``s3k predict`` does
-(:func:`s3k.predict.predict_store`, the one read-out), with results in the dataset's own pixels. A frame's
+The run's :class:`s3k.detector.Detector` (one pass or two) reads each frame as ``s3k predict`` does, with
+results in the dataset's own pixels. A frame's
 suggestion for each view is the reprojection of the confidence-weighted 3D point (the view's own detection
 where no point could be triangulated).
 
@@ -11,7 +11,8 @@ confidence weights ``w_ck``,
 
     doubt_k = (sum_c w_ck r_ck / sum_c w_ck + max_c r_ck) / sigma + (1 - mean_c w_ck)
 
-(``sigma`` the run's target width in the dataset's pixels): the weighted residual of the triangulation, the
+(``sigma`` the run's target width in the dataset's pixels, through the frame's map onto the network's
+input): the weighted residual of the triangulation, the
 view that disagrees most, and low confidence. A keypoint that cannot be triangulated counts as
 ``DOUBT_INVALID``. A frame's score is the mean over its keypoints.
 
@@ -190,42 +191,40 @@ class Suggestions:
     def __init__(self, run_dir: str | Path, data: str | Path, device: str = "cpu",
                  batch_size: int = 16) -> None:
         from s3k.data import Dataset
-        from s3k.run import load_detector
+        from s3k.detector import Detector
 
-        self.model, self.meta = load_detector(run_dir, device)
-        self.device = device
+        self.detector = Detector.load(run_dir, device)
         self.batch_size = batch_size
-        full = Dataset.open(data, cache="memory")
-        missing = [k for k in self.meta.keypoints if k not in full.keypoints]
+        self.dataset = Dataset.open(data, cache="memory")
+        missing = [k for k in self.detector.keypoints if k not in self.dataset.keypoints]
         if missing:
             raise UserError(f"--run {run_dir}: keypoints {missing} of the run are not in the dataset's "
-                            f"{full.keypoints}", hint="pass a run trained on this dataset's keypoints")
-        self.keypoints = list(self.meta.keypoints)
-        self.dataset = full.resized(self.meta.image_size)
-        # sigma in the dataset's pixels: the network's pixels are the dataset's scaled by the pixel map
-        scale = float(np.sqrt(abs(np.linalg.det(self.dataset.pixel_map[:2, :2]))))
-        self.sigma_px = float(self.meta.sigma) / scale
-        self._cache: dict[int, dict[str, np.ndarray]] = {}
+                            f"{self.dataset.keypoints}",
+                            hint="pass a run trained on this dataset's keypoints")
+        self.keypoints = self.detector.keypoints
+        self._cache: dict[int, dict[str, Any]] = {}
         self._lock = threading.Lock()
 
-    def predict(self, frame_ids) -> dict[int, dict[str, np.ndarray]]:
+    def predict(self, frame_ids) -> dict[int, dict[str, Any]]:
         """Per frame: ``uv (C, K, 2)`` detections, ``weights (C, K)``, ``X (K, 3)``, ``valid (K,)``,
-        ``reproj (C, K, 2)``, ``residual (C, K)``, in the dataset's pixels, keypoints in the run's order."""
-        from s3k.frames import FrameStore
-        from s3k.predict import predict_store
+        ``reproj (C, K, 2)``, ``residual (C, K)`` in the dataset's pixels, keypoints in the run's order, and
+        ``sigma_px`` the run's target width in those pixels."""
+        from s3k.data.frames import FrameStore
+        from s3k.inference.predict import detect_store
 
         with self._lock:
             todo = [int(f) for f in frame_ids if int(f) not in self._cache]
             if todo:
                 store = FrameStore(self.dataset, todo, preload_mb=0)
-                pixel_map = self.dataset.pixel_map
-                for batch, ro in predict_store(self.model, self.meta, store, self.batch_size, self.device,
-                                               pixel_map=pixel_map):
+                for batch, ro in detect_store(self.detector, store, self.batch_size):
+                    assert ro.pixel_maps is not None
+                    scale = ro.pixel_maps[..., :2, :2].det().abs().sqrt().mean(dim=1)  # (B,)
                     for b, f in enumerate(batch.frame_ids.tolist()):
                         self._cache[int(f)] = {
                             "uv": ro.uv[b].numpy(), "weights": ro.weights[b].numpy(), "X": ro.X[b].numpy(),
                             "valid": ro.valid[b].numpy(), "reproj": ro.reproj[b].numpy(),
                             "residual": ro.residual[b].numpy(),
+                            "sigma_px": float(self.detector.meta.sigma) / float(scale[b]),
                         }
             return {int(f): self._cache[int(f)] for f in frame_ids}
 
@@ -255,7 +254,7 @@ class Suggestions:
             weighted = (w * r).sum(axis=0) / wsum
             worst = r.max(axis=0)
             conf = w.mean(axis=0)
-            per_kp = np.where(p["valid"], (weighted + worst) / self.sigma_px + (1 - conf), DOUBT_INVALID)
+            per_kp = np.where(p["valid"], (weighted + worst) / p["sigma_px"] + (1 - conf), DOUBT_INVALID)
             valid = p["valid"]
             out[f] = {"score": float(per_kp.mean()),
                       "residual_px": float(weighted[valid].mean()) if valid.any() else float("nan"),

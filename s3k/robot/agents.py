@@ -277,7 +277,7 @@ def save_checkpoint(model, folder: Path, state: dict) -> None:
     """
     import shutil
 
-    from s3k.run import atomic_save
+    from s3k.detector import atomic_save
 
     tmp, old = folder.with_name(folder.name + ".tmp"), folder.with_name(folder.name + ".old")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -309,7 +309,7 @@ def checkpoint_folder(folder: Path) -> Path | None:
 
 def load_checkpoint(model, folder: Path) -> dict:
     """Restores what :func:`save_checkpoint` wrote into ``model``; returns ``state.json``."""
-    from s3k.run import load_torch_file
+    from s3k.detector import load_torch_file
 
     state = json.loads((folder / "state.json").read_text())
     saved = load_torch_file(folder / "agent.pt", "agent checkpoint", ["policy", "actor_optimizer",

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from s3k.run import atomic_save, load_torch_file
+from s3k.detector import atomic_save, load_torch_file
 
 VIEWS = 4
 

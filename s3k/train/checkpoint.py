@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from s3k.run import atomic_save, load_torch_file
+from s3k.detector import atomic_save, load_torch_file
 
 CHECKPOINT_FORMAT = "s3k-checkpoint/1"
 _KEYS = ("step", "model", "optimizer", "scheduler", "rng")

@@ -24,11 +24,8 @@ from torch import nn
 from s3k.augment import NoiseBank
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
-from s3k.errors import UserError
-from s3k.frames import FrameStore, model_image_size, open_dataset
-from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
-from s3k.model import UNet, UNetConfig
-from s3k.run import (
+from s3k.data.frames import FrameStore, model_image_size, open_dataset
+from s3k.detector import (
     CHECKPOINT_FILE,
     LOG_FILE,
     MODEL_FILE,
@@ -37,6 +34,9 @@ from s3k.run import (
     DetectorMeta,
     save_model_file,
 )
+from s3k.errors import UserError
+from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.model import UNet, UNetConfig
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import (
@@ -462,7 +462,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = Fa
 
     Args:
         data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames.
-        out: run folder (created); see ``s3k.run``.
+        out: run folder (created); see ``s3k.detector``.
         cfg: configuration.
         resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none); the configuration and
             the dataset must match the run's except for ``s3k.config.resumable_fields``.
@@ -488,7 +488,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = Fa
 
 def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
            command: str | None, info: DistInfo) -> TrainResult:
-    from s3k.predict import pick_device
+    from s3k.detector import pick_device
 
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":

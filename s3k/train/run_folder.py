@@ -24,8 +24,7 @@ from typing import Any
 import numpy as np
 
 from s3k.config import TrainConfig, config_from_dict, resumable_fields
-from s3k.errors import UserError
-from s3k.run import (
+from s3k.detector import (
     CHECKPOINT_FILE,
     CONFIG_FILE,
     MODEL_FILE,
@@ -34,6 +33,7 @@ from s3k.run import (
     read_run_config,
     write_run_config,
 )
+from s3k.errors import UserError
 
 
 def is_run_folder(out: Path) -> bool:

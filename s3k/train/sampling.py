@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from s3k.augment import Augmentation, NoiseBank, augment_frames
-from s3k.frames import FrameBatch, FrameStore, images_to_float
+from s3k.data.frames import FrameBatch, FrameStore, images_to_float
 from s3k.geometry import Cameras
 
 

@@ -1,8 +1,8 @@
 """Periodic validation during training and the reference quantities it compares against.
 
-Every ``val_every`` steps the validation frames are predicted: the metrics (``s3k.evaluate``), an image of
-predicted vs true keypoints with heatmaps (TensorBoard), and a collapse check: a warning when the mean
-pairwise distance between the triangulated keypoints falls below ``collapse_fraction`` of the labelled
+Every ``val_every`` steps the validation frames are predicted: the metrics (``s3k.inference.evaluate``),
+an image of predicted vs true keypoints with heatmaps (TensorBoard), and a collapse check: a warning when the
+mean pairwise distance between the triangulated keypoints falls below ``collapse_fraction`` of the labelled
 layout's (:func:`labelled_layout`).
 """
 
@@ -17,9 +17,9 @@ import torch
 from torch import nn
 
 from s3k.config import TrainConfig
-from s3k.frames import FrameStore
+from s3k.data.frames import FrameStore
+from s3k.detector import DetectorMeta
 from s3k.geometry import triangulate_pixels
-from s3k.run import DetectorMeta
 
 log = logging.getLogger("s3k.train")
 
@@ -92,24 +92,29 @@ def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) ->
 def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
              ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
     """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
-    from s3k.evaluate import draw_views, evaluate_store
-    from s3k.predict import predict_store
+    from s3k.detector import OnePassDetector
+    from s3k.draw import draw_views
+    from s3k.inference.evaluate import evaluate_store
+    from s3k.inference.predict import detect_store
 
     record: dict[str, Any] = {"step": step}
     if store is None or len(store) == 0:
         return record
     net.eval()
+    detector = OnePassDetector(net, meta, device)  # the network as it is now, on the store's frames
     try:
-        metrics, arrays = evaluate_store(net, meta, store, device, 16, meta.units, keep=1)
+        metrics, arrays = evaluate_store(detector, store, 16, meta.units, keep=1)
         X, valid = torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["X_valid"])
         for m in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm"):
             record[m] = metrics[m]
     except ValueError:  # no ground truth on this split: collapse check only
-        preds = list(predict_store(net, meta, store, 16, device, keep_heatmaps=True))
+        preds = list(detect_store(detector, store, 16, keep_heatmaps=True))
         X = torch.cat([p.X for _, p in preds])
         valid = torch.cat([p.valid for _, p in preds])
-        arrays = {"images": preds[0][0].images[:1].numpy(), "probs": preds[0][1].probs[:1].numpy(),
-                  "pred_uv": preds[0][1].uv[:1].numpy(), "gt_uv": None, "gt_mask": None}
+        first = preds[0][1]
+        assert first.probs is not None
+        arrays = {"images": preds[0][0].images[:1].numpy(), "probs": first.probs[:1].numpy(),
+                  "pred_uv": first.uv[:1].numpy(), "gt_uv": None, "gt_mask": None}
     layout = mean_pairwise_distance(X, valid)
     ratio = layout / ref_layout if ref_layout and math.isfinite(ref_layout) else float("nan")
     record["layout_ratio"] = ratio

@@ -4,14 +4,14 @@ A coarse pass on whole images gives each frame a 3D estimate of the object; this
 the full-resolution dataset around the estimate's reprojection, the crop's side covering ``extent`` world
 units at the estimate's depth, resamples it to ``size`` pixels and writes the crops as a dataset of their
 own: same frames, splits, keypoints and ground truth, each camera's intrinsics ``K' = M K``
-(:mod:`s3k.crops`). A detector trained on it with the ordinary S3K losses, and evaluated on the crops of
-test frames made by the same rule, is the second pass of a coarse-to-fine detector; its triangulated points
-are in world coordinates, so its metrics are the two-pass detector's.
+(:mod:`s3k.geometry.warp`). A detector trained on it with the ordinary S3K losses, and evaluated on the
+crops of test frames made by the same rule, is the second pass of a coarse-to-fine detector; its triangulated
+points are in world coordinates, so its metrics are the two-pass detector's.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,7 @@ def object_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
     """The object's 3D estimate per frame: the mean of its finite keypoints (frames with none are left out).
 
     Args:
-        points: ``{frame: (K, 3)}`` keypoints, NaN where unknown (e.g. :func:`s3k.tracks_csv.read_csv`).
+        points: ``{frame: (K, 3)}`` keypoints, NaN where unknown (e.g. :func:`s3k.data.tracks_csv.read_csv`).
     """
     out = {}
     for frame, X in points.items():
@@ -38,7 +38,7 @@ def object_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
 
 def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int, np.ndarray], extent: float,
                        size: int, keypoints: Sequence[str] | None = None, *,
-                       fallback: Callable[[int], np.ndarray] | None = None, chunk: int = 32,
+                       fallback: bool = False, chunk: int = 32,
                        splits: Sequence[str] | None = None,
                        overwrite: bool = False, description: str | None = None) -> Path:
     """Write the crops of every frame of ``source`` around ``centres`` as a dataset at ``out``.
@@ -50,8 +50,9 @@ def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int
         extent: crop side at the estimate's depth, world units.
         size: crop width and height in pixels.
         keypoints: keypoints to keep (default all).
-        fallback: ``frame -> (3,)`` centre for frames without an estimate; without one such a frame is an
-            error naming it.
+        fallback: cut a frame without an estimate around its rig's workspace centre (where the cameras'
+            optical axes meet, :func:`s3k.geometry.workspace_centre`: the detector's rule); without it such a
+            frame is an error naming it.
         chunk: frames per batch.
         splits: the splits to crop (default all three); the others are left out of ``out``.
         overwrite: replace ``out`` if it exists.
@@ -88,8 +89,8 @@ def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int
                 for f in frames:
                     if int(f) in centres:
                         rows.append(np.asarray(centres[int(f)], dtype=np.float64))
-                    elif fallback is not None:
-                        rows.append(np.asarray(fallback(int(f)), dtype=np.float64))
+                    elif fallback:
+                        rows.append(np.full(3, np.nan))
                     else:
                         raise UserError(f"frame {int(f)} of {source} has no 3D estimate to crop around")
                 _write_chunk(writer, ds, split, frames, torch.as_tensor(np.stack(rows)), kps, extent, size)
@@ -104,11 +105,16 @@ def _write_chunk(writer, ds, split: str, frames: np.ndarray, centre, kps: list[i
     """Crop one batch of frames around ``centre (B, 3)`` and add them to ``writer``."""
     import torch
 
-    from s3k.crops import crop_images, crop_maps, metric_crop_boxes
+    from s3k.geometry import workspace_centre
+    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes
 
     images = ds.images(frames)  # (B, C, H, W, 3) uint8
     cams = ds.calibration(frames, np.float64)
     cal = cams.numpy()
+    missing = ~torch.isfinite(centre).all(-1)
+    if bool(missing.any()):
+        middle, _ = workspace_centre(cams)  # (B, 3)
+        centre = torch.where(missing[:, None], middle.to(centre.dtype), centre)
     boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent)
     B, C = boxes.shape[:2]
     flat = torch.as_tensor(images, dtype=torch.float32).reshape(B * C, *images.shape[2:]).permute(0, 3, 1, 2)

@@ -1,4 +1,4 @@
-"""The run folder written by ``s3k train``, and :func:`load_detector` to use a trained model.
+"""The run folder written by ``s3k train``, and :func:`load_network` to use a trained model.
 
 Layout of ``RUN/``::
 
@@ -16,21 +16,19 @@ never runs code from the file.
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
 import pickle
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from s3k.detector.crop_rule import is_two_pass
+from s3k.detector.meta import DetectorMeta
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json
 from s3k.model import UNet, UNetConfig
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
 
 CONFIG_FILE = "config.json"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -41,80 +39,6 @@ TENSORBOARD_DIR = "tensorboard"
 PROGRESS_FILE = "progress.json"
 RUN_FILES = (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE, LOG_FILE, TENSORBOARD_DIR, PROGRESS_FILE)
 MODEL_FORMAT = "s3k-model/1"
-
-
-@dataclass
-class DetectorMeta:
-    """What a trained detector needs at inference time.
-
-    Attributes:
-        keypoints: keypoint names, in heatmap order (K).
-        cameras: camera names of the training dataset (C).
-        image_size: network input size (W, H) in pixels; images are resized to it (``frames.FrameStore``).
-        stride: heatmap stride (image pixels per heatmap cell).
-        sigma: target Gaussian width in image pixels (also the confidence weight's sigma).
-        model: ``UNetConfig.to_dict()`` of the network.
-        units: world units of the training dataset's calibration (e.g. "m").
-        source_image_size: (W, H) of the training dataset's images.
-        outlier_px: at read-out, a view whose detection misses the others' consensus by more than this many
-            network-input pixels does not enter the triangulation (the threshold the training's
-            ``--outlier_px`` held its pseudo-labels to); 0: every view enters.
-        layout: a rigid object's ``(K, K)`` distances between the keypoints, triangulated from the labels
-            (NaN where unknown, None: not a rigid object), and ``layout_tol`` the relative tolerance
-            ``--layout_tol`` held them to: at read-out a keypoint that breaks them is looked for again where
-            the layout puts it (:func:`s3k.readout.search_layout`).
-    """
-
-    keypoints: list[str]
-    cameras: list[str]
-    image_size: tuple[int, int]
-    stride: int
-    sigma: float
-    model: dict[str, Any] = field(default_factory=dict)
-    units: str = "m"
-    source_image_size: tuple[int, int] | None = None
-    outlier_px: float = 0.0
-    layout: list[list[float]] | None = None
-    layout_tol: float = 0.0
-
-    @property
-    def max_residual_px(self) -> float | None:
-        """``outlier_px`` as :func:`s3k.readout.read_out` takes it (None: off)."""
-        return self.outlier_px if self.outlier_px > 0 else None
-
-    def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
-                 keep_heatmaps: bool = False) -> ReadOut:
-        """This detector's :func:`s3k.readout.read_out` of its ``logits``: with the stride, target width and
-        outlier threshold it was trained with, so every command reads a detector out the same way."""
-        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, min_weight, keep_heatmaps,
-                        self.max_residual_px, layout=self.layout_distances, layout_tol=self.layout_tol)
-
-    @property
-    def layout_distances(self) -> torch.Tensor | None:
-        """``layout`` as the ``(K, K)`` float64 tensor :func:`s3k.readout.read_out` takes (None: off)."""
-        if self.layout is None or not self.layout_tol > 0:
-            return None
-        return torch.tensor(self.layout, dtype=torch.float64)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["image_size"] = list(self.image_size)
-        if self.source_image_size is not None:
-            d["source_image_size"] = list(self.source_image_size)
-        if self.layout is not None:  # JSON has no NaN: an unknown distance is null
-            d["layout"] = [[v if math.isfinite(v) else None for v in row] for row in self.layout]
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> DetectorMeta:
-        d = dict(d)
-        d["image_size"] = tuple(d["image_size"])
-        if d.get("source_image_size") is not None:
-            d["source_image_size"] = tuple(d["source_image_size"])
-        if d.get("layout") is not None:
-            d["layout"] = [[math.nan if v is None else float(v) for v in row] for row in d["layout"]]
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
 
 
 def atomic_save(obj: Any, path: str | Path) -> None:
@@ -194,6 +118,15 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
     return doc
 
 
+def training_dataset(run_dir: str | Path) -> str | None:
+    """The dataset folder a run (one pass, or the coarse pass of a two-pass run) was trained on, as its
+    ``config.json`` records it (None when it does not)."""
+    run_dir = Path(run_dir)
+    doc = read_run_config(run_dir / "coarse" if is_two_pass(run_dir) else run_dir)
+    dataset = doc.get("dataset")
+    return str(dataset) if dataset else None
+
+
 def build_model(meta: DetectorMeta) -> UNet:
     """A fresh (untrained) network for ``meta``."""
     return UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
@@ -209,7 +142,7 @@ def _older_run_meta(run_dir: Path) -> dict[str, Any]:
     return {"outlier_px": float(value)} if isinstance(value, (int, float)) else {}
 
 
-def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
+def load_network(run_dir: str | Path, device: str | torch.device = "cpu",
                   checkpoint: str | None = None) -> tuple[UNet, DetectorMeta]:
     """Load a trained detector from a run folder, in eval mode.
 
@@ -225,7 +158,7 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
         stride, sigma in image pixels).
 
     Example:
-        >>> model, meta = load_detector("runs/box")  # doctest: +SKIP
+        >>> model, meta = load_network("runs/box")  # doctest: +SKIP
         >>> logits = model(images.reshape(-1, 3, meta.image_size[1], meta.image_size[0]))  # doctest: +SKIP
     """
     run_dir = Path(run_dir)
@@ -236,10 +169,9 @@ def load_detector(run_dir: str | Path, device: str | torch.device = "cpu",
             state = load_torch_file(path, "model", ("meta", "model"))
             break
     else:
-        if (run_dir / "two_pass.json").is_file():  # s3k.two_pass.TWO_PASS_FILE (that module imports this one)
-            raise UserError(f"{run_dir} is a two-pass run; this needs one detector: {run_dir / 'coarse'} or "
-                            f"{run_dir / 'fine'}", hint="give one of them (the crop rule that joins them is "
-                            "in two_pass.json)")
+        if is_two_pass(run_dir):
+            raise UserError(f"{run_dir} is a two-pass run; this needs one network: {run_dir / 'coarse'} or "
+                            f"{run_dir / 'fine'}", hint="give one of them, or use s3k.Detector.load for both")
         raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
     try:
         older = {} if "outlier_px" in state["meta"] else _older_run_meta(run_dir)

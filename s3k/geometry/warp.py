@@ -22,7 +22,7 @@ from torch import Tensor
 
 from s3k.geometry import Cameras, project
 
-__all__ = ["crop_images", "crop_maps", "metric_crop_boxes"]
+__all__ = ["crop_images", "crop_maps", "metric_crop_boxes", "resample_regions"]
 
 
 def metric_crop_boxes(
@@ -142,3 +142,51 @@ def crop_images(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tenso
         out[pick] = F.grid_sample(level_image[pick], grid, mode="bilinear", padding_mode="zeros",
                                   align_corners=False)
     return out
+
+
+def _area_weights(start: Tensor, scale: Tensor, n_out: int, n_in: int) -> Tensor:
+    """``(N, n_out, n_in)`` weights of area averaging along one axis: output pixel ``j`` of image ``n`` covers
+    ``[start + j scale, start + (j + 1) scale)`` in edge coordinates; each input pixel ``[i, i + 1)``
+    weighs by its overlap, the weights normalized to sum 1."""
+    j = torch.arange(n_out, dtype=start.dtype, device=start.device)
+    lo = start[:, None] + j[None] * scale[:, None]  # (N, n_out)
+    hi = lo + scale[:, None]
+    i = torch.arange(n_in, dtype=start.dtype, device=start.device)
+    overlap = (torch.minimum(hi[..., None], i + 1) - torch.maximum(lo[..., None], i)).clamp_min(0)
+    return overlap / overlap.sum(-1, keepdim=True).clamp_min(1e-12)
+
+
+def resample_regions(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tensor:
+    """Each image's region ``boxes (N, 4)`` resampled to ``out_size`` ``(w, h)``: the one warp of a view
+    onto a network's input.
+
+    A region inside its image that shrinks is averaged over each output pixel's footprint (area
+    resampling, as OpenCV's ``INTER_AREA`` and so the resized images of :meth:`s3k.data.Dataset.resized`
+    that networks train on); any other region goes through :func:`crop_images` (mip level, then bilinear;
+    zeros outside the image), as the refining pass's crops do.
+
+    Args:
+        images: ``(N, ch, H, W)`` floating images.
+        boxes: ``(N, 4)`` regions in pixel edge coordinates.
+        out_size: ``(w, h)``.
+
+    Returns:
+        ``(N, ch, h, w)``.
+    """
+    w, h = (int(s) for s in out_size)
+    H, W = images.shape[-2:]
+    b = boxes.to(images.dtype)
+    inside = bool(((b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] <= W) & (b[:, 3] <= H)).all())
+    sx, sy = (b[:, 2] - b[:, 0]) / w, (b[:, 3] - b[:, 1]) / h
+    if not inside or bool(((sx < 1) | (sy < 1)).any()):
+        return crop_images(images, boxes, out_size)
+    box = b[0].tolist()
+    k = (box[2] - box[0]) / w
+    if all(float(v).is_integer() for v in box) and k.is_integer() and (box[3] - box[1]) / h == k \
+            and bool((b == b[0]).all()):  # one integer region shrunk by an integer factor: a plain mean
+        x0, y0, x1, y1 = (int(v) for v in box)
+        region = images[..., y0:y1, x0:x1]
+        return region if k == 1 else F.avg_pool2d(region, int(k))
+    Ax = _area_weights(b[:, 0], sx, w, W)  # (N, w, W)
+    Ay = _area_weights(b[:, 1], sy, h, H)  # (N, h, H)
+    return torch.einsum("nyv,ncvu,nxu->ncyx", Ay, images, Ax)

@@ -11,7 +11,7 @@ Pipeline, per frame (the same read-out as training, ``s3k predict`` and ``s3k ev
    confidence-weighted triangulation of the views above ``min_weight`` in the calibration's own cameras (lens
    distortion included), so the 3D points are in the calibration's world frame and units.
 
-The CSV is :mod:`s3k.tracks_csv`'s (``error`` in pixels of the original video, ``fnum`` the video frame
+The CSV is :mod:`s3k.data.tracks_csv`'s (``error`` in pixels of the original video, ``fnum`` the video frame
 index). With ``overlay`` one MP4 per camera (``DIR/<camera>.mp4``) shows, on the original frames, the
 reprojected 3D keypoints (filled discs) and the per-view detections (crosses), one colour per keypoint
 (:func:`s3k.draw.draw_overlay`).
@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from s3k.errors import UserError
 from s3k.geometry import Cameras
@@ -212,24 +211,57 @@ class TrackSummary:
     path: Path
 
 
-def _frame_batches(inputs: list[CameraInput], net_size: tuple[int, int], batch: int, start: int,
-                   stop: int | None, keep_originals: bool):
-    """Yield ``(fnums, images uint8 (B, C, h, w, 3), originals or None)`` from the synchronized videos."""
+def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int | None):
+    """Yield ``(fnums, frames)`` from the synchronized videos: ``frames`` a list of ``B`` lists of ``C`` uint8
+    images at the videos' own sizes."""
     from s3k.data import video
-    from s3k.data.transforms import resize_crop
 
-    fnums, images, originals = [], [], []
-    for i, frames in video.synchronized_frames([c.path for c in inputs], start, stop):
-        resized = [resize_crop(img, None, cam.box, net_size)[0] for img, cam in zip(frames, inputs)]
+    fnums, frames = [], []
+    for i, views in video.synchronized_frames([c.path for c in inputs], start, stop):
         fnums.append(i)
-        images.append(np.stack(resized))
-        if keep_originals:
-            originals.append(frames)
+        frames.append(views)
         if len(fnums) == batch:
-            yield fnums, np.stack(images), originals if keep_originals else None
-            fnums, images, originals = [], [], []
+            yield fnums, frames
+            fnums, frames = [], []
     if fnums:
-        yield fnums, np.stack(images), originals if keep_originals else None
+        yield fnums, frames
+
+
+def _stack_views(frames: list[list[np.ndarray]]) -> list[np.ndarray]:
+    """``B`` frames of ``C`` images -> ``C`` arrays ``(B, H_c, W_c, 3)`` (:class:`s3k.detector.Detector`)."""
+    return [np.stack([f[c] for f in frames]) for c in range(len(frames[0]))]
+
+
+def _check_inputs(videos: dict[str, Path], batch: int, start: int, stop: int | None,
+                  min_weight: float) -> None:
+    if len(videos) < 2:
+        raise UserError(f"--videos: triangulation needs at least 2 cameras, got {len(videos)} "
+                        f"({', '.join(videos)})")
+    if batch < 1:
+        raise UserError(f"--batch must be >= 1, got {batch}")
+    if start < 0 or (stop is not None and stop <= start):
+        raise UserError(f"--start/--stop: need 0 <= start < stop, got start={start}, stop={stop}")
+    if not 0 <= min_weight < 1:
+        raise UserError(f"--min-weight must be in [0, 1), got {min_weight}")
+
+
+def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int:
+    """The frame index to stop before; warns about videos of different lengths or frame rates."""
+    from s3k.data import video
+
+    counts = {c.name: video.frame_count(c.path) for c in inputs}
+    n_video = min(counts.values())
+    if len(set(counts.values())) > 1:
+        lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
+        print(f"warning: the videos have different lengths ({lengths}); tracking the first {n_video} frames "
+              "of each", file=sys.stderr)
+    rates = {c.name: c.fps for c in inputs}
+    if max(rates.values()) - min(rates.values()) > 1e-3 * max(rates.values()):
+        print(f"warning: the videos have different frame rates ({rates}); frames are paired by index",
+              file=sys.stderr)
+    if start >= n_video:
+        raise UserError(f"--start {start}: the videos have {n_video} frames")
+    return n_video if stop is None else min(stop, n_video)
 
 
 def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str | Path, out: str | Path,
@@ -241,7 +273,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).
 
     Args:
-        run_dir: run folder of ``s3k train`` (``s3k.run.load_detector``).
+        run_dir: run folder of ``s3k train``, one pass or two (:class:`s3k.detector.Detector`).
         videos: ``{camera: video or image sequence}``; camera names as in the calibration, at least two.
         calibration: a calibration file of any format :func:`s3k.data.calibration_files.read_calibration`
             reads.
@@ -263,25 +295,12 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     Returns:
         A :class:`TrackSummary`.
     """
-    from tqdm import tqdm
-
     from s3k.data import video
     from s3k.data.calibration_files import read_calibration
-    from s3k.draw import draw_overlay, keypoint_colours
-    from s3k.predict import pick_device
-    from s3k.run import load_detector
-    from s3k.tracks_csv import check_output, csv_rows, write_csv
-    from s3k.two_pass import TwoPassDetector, is_two_pass
+    from s3k.data.tracks_csv import check_output
+    from s3k.detector import Detector
 
-    if len(videos) < 2:
-        raise UserError(f"--videos: triangulation needs at least 2 cameras, got {len(videos)} "
-                        f"({', '.join(videos)})")
-    if batch < 1:
-        raise UserError(f"--batch must be >= 1, got {batch}")
-    if start < 0 or (stop is not None and stop <= start):
-        raise UserError(f"--start/--stop: need 0 <= start < stop, got start={start}, stop={stop}")
-    if not 0 <= min_weight < 1:
-        raise UserError(f"--min-weight must be in [0, 1), got {min_weight}")
+    _check_inputs(videos, batch, start, stop, min_weight)
     out = check_output(out, overwrite)
     calib = read_calibration(calibration, units=units)
     calib = calib.with_sizes({cam: video.frame_size(p) for cam, p in videos.items()
@@ -291,74 +310,58 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
             calib = calib.with_video_regions(video_regions)  # type: ignore[arg-type]
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
-    dev = pick_device(device)
-    two_pass = TwoPassDetector(run_dir, dev) if is_two_pass(run_dir) else None
-    model, meta = (two_pass.coarse, two_pass.coarse_meta) if two_pass else load_detector(run_dir, dev)
-    net_size = (int(meta.image_size[0]), int(meta.image_size[1]))
-    inputs, cams = prepare_cameras(videos, calib, net_size, fit, crops)
-    pixel_maps = np.stack([c.M for c in inputs])
+    detector = Detector.load(run_dir, device)
+    inputs, cams = prepare_cameras(videos, calib, detector.input_size, fit, crops)
+    end = _frame_range(inputs, start, stop)
+    boxes = np.array([c.box for c in inputs], dtype=np.float64)
+    frames = _prefetch(_frame_batches(inputs, batch, start, end))
+    n, keypoints, valid, error, passing = _track(detector, frames, cams, boxes, min_weight, out, overlay,
+                                                 inputs, end - start, progress)
+    return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out)
 
-    counts = {c.name: video.frame_count(c.path) for c in inputs}
-    n_video = min(counts.values())
-    if len(set(counts.values())) > 1:
-        lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
-        print(f"warning: the videos have different lengths ({lengths}); tracking the first {n_video} frames "
-              "of each", file=sys.stderr)
-    rates = {c.name: c.fps for c in inputs}
-    if max(rates.values()) - min(rates.values()) > 1e-3 * max(rates.values()):
-        print(f"warning: the videos have different frame rates ({rates}); frames are paired by index",
-              file=sys.stderr)
-    end = n_video if stop is None else min(stop, n_video)
-    if start >= n_video:
-        raise UserError(f"--start {start}: the videos have {n_video} frames")
 
-    # BatchNorm folded into the convolutions, channels_last: the fast CPU form of the same network.
-    net = model.fused().to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # stub lacks it
+def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):
+    """Detect every batch of ``frames``, write the CSV (and overlays); ``(frames, keypoints, valid fraction,
+    median error, passing fraction)`` for the :class:`TrackSummary`."""
+    from tqdm import tqdm
+
+    from s3k.data import video
+    from s3k.data.tracks_csv import csv_rows, write_csv
+    from s3k.draw import draw_overlay, keypoint_colours
+
     writers = []
     if overlay is not None:
         Path(overlay).mkdir(parents=True, exist_ok=True)
         writers = [video.VideoWriter(Path(overlay) / f"{c.name}.mp4", c.fps) for c in inputs]
-    colours = keypoint_colours(len(meta.keypoints))
-    n = 0
-    valids, errors, passing = [], [], []
+    colours = keypoint_colours(len(detector.keypoints))
+    n, valids, errors, passing = 0, [], [], []
     try:
-        with write_csv(out, meta.keypoints) as writer, torch.inference_mode():
-            bar = tqdm(total=end - start, unit="frame", disable=not progress, desc="track")
-            originals_needed = overlay is not None or two_pass is not None
-            frames = _prefetch(_frame_batches(inputs, net_size, batch, start, end, originals_needed))
-            for fnums, images, originals in frames:
-                x = torch.from_numpy(images).to(dev)  # (B, C, h, w, 3) uint8
-                B, C = x.shape[:2]
-                # The permuted view of HWC data is already channels_last.
-                x = x.permute(0, 1, 4, 2, 3).float().div_(255.0).reshape(B * C, 3, net_size[1], net_size[0])
-                logits = net(x)
-                logits = logits.reshape(B, C, *logits.shape[1:])
-                result = meta.read_out(logits, cams, pixel_maps, min_weight)
-                if two_pass is not None:  # the crops around the coarse estimate, at the videos' resolution
-                    result = two_pass.refine(originals, result, cams, min_weight)
-                result = result.cpu()
+        with write_csv(out, detector.keypoints) as writer:
+            bar = tqdm(total=total, unit="frame", disable=not progress, desc="track")
+            for fnums, originals in frames:
+                result = detector(_stack_views(originals), cams, boxes, min_weight).cpu()
                 writer.writerows(csv_rows(fnums, result))
                 reproj, uv, used = result.reproj.numpy(), result.uv.numpy(), result.used.numpy()
                 for c, w in enumerate(writers):
-                    for b in range(B):
+                    for b in range(len(fnums)):
                         w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours))
                 valids.append(result.valid.numpy())
                 errors.append(result.error.numpy())
                 passing.append((result.ncams >= 2).numpy())
-                n += B
-                bar.update(B)
+                n += len(fnums)
+                bar.update(len(fnums))
             bar.close()
     finally:
         for w in writers:
             w.close()
-    K = len(meta.keypoints)
+    K = len(detector.keypoints)
     valid = np.concatenate(valids) if valids else np.zeros((0, K), bool)
     err = np.concatenate(errors) if errors else np.zeros((0, K))
     ok = np.concatenate(passing) if passing else np.zeros((0, K), bool)
     med = [float(np.median(err[valid[:, k], k])) if valid[:, k].any() else float("nan") for k in range(K)]
     frac = [float(valid[:, k].mean()) if len(valid) else 0.0 for k in range(K)]
     pas = [float(ok[:, k].mean()) if len(ok) else 0.0 for k in range(K)]
-    return TrackSummary(n, list(meta.keypoints), frac, med, pas, min_weight, calib.units, out)
+    return n, list(detector.keypoints), frac, med, pas
 
 
 def empty_result_hint(summary: TrackSummary) -> str | None:

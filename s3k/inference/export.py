@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import sys
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from s3k import readout
+from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
 
@@ -42,6 +43,9 @@ __all__ = [
     "export_module",
     "exported_moments",
     "reference_outputs",
+    "load_exported",
+    "open_exported",
+    "read_exported_meta",
     "run_exported",
     "verification_images",
 ]
@@ -49,6 +53,8 @@ __all__ = [
 FORMATS = ("onnx", "torchscript")
 META_KEY = "s3k_meta"
 DEFAULT_TOLERANCE = 1e-4
+DEFAULT_TOLERANCE_MM = 0.1
+EXPORTED_TWO_PASS = "s3k-exported-two-pass/1"
 TRACE_BATCH = 2
 
 
@@ -90,10 +96,13 @@ class ExportReport:
     """Result of :func:`export_detector`.
 
     Attributes:
-        path: the written file.
+        path: the written file (a two-pass run's ``.json``).
         format: ``"onnx"`` or ``"torchscript"``.
         outputs: output names, in order.
-        max_diff: largest absolute difference from PyTorch per output.
+        max_diff: largest absolute difference from PyTorch per output (``PASS/output`` for two passes).
+        max_diff_mm: largest 3D difference between the exported detector and PyTorch's, mm (None: no
+            dataset frames to compare on), over ``frames_3d`` frames; ``tolerance_mm`` its bound.
+        files: every file written.
         inputs: where the verification images came from.
         num_images: how many images were compared.
         tolerance: the largest difference allowed.
@@ -106,10 +115,15 @@ class ExportReport:
     inputs: str = ""
     num_images: int = 0
     tolerance: float = DEFAULT_TOLERANCE
+    tolerance_mm: float = DEFAULT_TOLERANCE_MM
+    max_diff_mm: float | None = None
+    frames_3d: int = 0
+    files: list[Path] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
-        return all(np.isfinite(v) and v <= self.tolerance for v in self.max_diff.values())
+        points_ok = self.max_diff_mm is None or self.max_diff_mm <= self.tolerance_mm
+        return points_ok and all(np.isfinite(v) and v <= self.tolerance for v in self.max_diff.values())
 
 
 def output_names(with_moments: bool) -> list[str]:
@@ -159,10 +173,9 @@ def export_module(module: nn.Module, fmt: str, out: str | Path, image_size: tupl
     return out
 
 
-def run_exported(path: str | Path, fmt: str, images: np.ndarray,
-                 threads: int | None = None) -> list[np.ndarray]:
-    """Load an exported file the way a consumer would and run it on ``images (N, 3, H, W)`` float32."""
-    images = np.ascontiguousarray(images, dtype=np.float32)
+def open_exported(path: str | Path, fmt: str, threads: int | None = None):
+    """Load an exported file the way a consumer would: a callable ``images (N, 3, H, W) float32 -> [outputs]``
+    (numpy) running in ONNX Runtime or TorchScript."""
     if fmt == "onnx":
         import onnxruntime as ort
 
@@ -170,16 +183,25 @@ def run_exported(path: str | Path, fmt: str, images: np.ndarray,
         if threads:
             opts.intra_op_num_threads = threads
         session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        return [np.asarray(o) for o in session.run(None, {"images": images})]
+        return lambda images: [np.asarray(o) for o in session.run(None, {"images": images})]
     if fmt == "torchscript":
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit is deprecated, still supported
             module = torch.jit.load(str(path), map_location="cpu")
-        with torch.no_grad():
-            result = module(torch.from_numpy(images))
-        outs = result if isinstance(result, (tuple, list)) else (result,)
-        return [o.numpy() for o in outs]
+
+        def run(images: np.ndarray) -> list[np.ndarray]:
+            with torch.no_grad():
+                result = module(torch.from_numpy(images))
+            return [o.numpy() for o in (result if isinstance(result, (tuple, list)) else (result,))]
+
+        return run
     raise ValueError(f"unknown format {fmt!r}")
+
+
+def run_exported(path: str | Path, fmt: str, images: np.ndarray,
+                 threads: int | None = None) -> list[np.ndarray]:
+    """Load an exported file (:func:`open_exported`) and run it on ``images (N, 3, H, W)`` float32."""
+    return open_exported(path, fmt, threads)(np.ascontiguousarray(images, dtype=np.float32))
 
 
 def reference_outputs(model: nn.Module, images: np.ndarray, stride: int, sigma: float,
@@ -207,7 +229,7 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
     W, H = int(meta.image_size[0]), int(meta.image_size[1])
     if dataset is not None and Path(dataset).is_dir():
         try:
-            from s3k.frames import open_dataset
+            from s3k.data.frames import open_dataset
 
             ds = open_dataset(dataset, (W, H), cache="none")
             n_frames = max(1, -(-count // len(ds.cameras)))
@@ -238,49 +260,150 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
     return out, f"{count} synthetic images (seed {seed})"
 
 
+def _pass_files(run_dir: Path, out: Path) -> dict[str, tuple[Path, Path]]:
+    """``{pass: (run folder, file to write)}``: one pass, or a two-pass run's ``OUT.coarse.EXT`` and
+    ``OUT.fine.EXT`` (the crop rule that joins them goes to ``OUT.json``)."""
+    if not is_two_pass(run_dir):
+        return {"": (run_dir, out)}
+    _, coarse, fine = read_two_pass(run_dir)
+    return {name: (folder, out.with_name(f"{out.stem}.{name}{out.suffix}"))
+            for name, folder in (("coarse", coarse), ("fine", fine))}
+
+
 def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments: bool = False,
                     fuse: bool = True, opset: int = 17, tolerance: float = DEFAULT_TOLERANCE,
-                    verify_data: str | Path | None = None, checkpoint: str | None = None) -> ExportReport:
-    """Export the detector of a run folder and verify the file against PyTorch.
+                    verify_data: str | Path | None = None, checkpoint: str | None = None,
+                    tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> ExportReport:
+    """Export the detector of a run folder (one pass, or both passes of a two-pass run) and verify the
+    files against PyTorch: each network's outputs, then the whole detector's 3D points on frames of the
+    dataset (:func:`load_exported` against :class:`s3k.detector.Detector`).
 
     Args:
         run_dir: run folder of ``s3k train``.
         fmt: ``"onnx"`` or ``"torchscript"``.
-        out: file to write.
+        out: file to write; a two-pass run writes ``OUT.coarse.EXT``, ``OUT.fine.EXT`` and ``OUT.json``.
         with_moments: also output the heatmap means and confidence weights.
         fuse: fold BatchNorm into the convolutions first.
         opset: ONNX opset version.
         tolerance: largest allowed absolute difference from PyTorch, per output element.
         verify_data: dataset folder with frames to verify on; default: the run's training dataset.
-        checkpoint: file inside ``run_dir`` to load instead of the final model.
+        checkpoint: file inside a one-pass ``run_dir`` to load instead of the final model.
+        tolerance_mm: largest allowed 3D difference from PyTorch's detector, millimetres.
 
     Returns:
         An :class:`ExportReport`; ``report.ok`` says whether the verification passed.
     """
-    from s3k.run import load_detector, read_run_config
+    from s3k.detector import load_network, training_dataset
 
     if fmt not in FORMATS:
         raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    model, meta = load_detector(run_dir, "cpu", checkpoint)
-    net = model.fused() if fuse else model
-    module: nn.Module = DetectorWithMoments(net, meta.stride, meta.sigma) if with_moments else net
-    names = output_names(with_moments)
-    meta_doc = {**meta.to_dict(), "outputs": names, "input": "images (N, 3, H, W) float32 RGB in [0, 1]"}
-    path = export_module(module, fmt, out, meta.image_size, names, json.dumps(meta_doc), opset)
-
+    run_dir, out = Path(run_dir), Path(out)
     if verify_data is None:
         try:
-            verify_data = read_run_config(run_dir).get("dataset")
+            verify_data = training_dataset(run_dir)
         except FileNotFoundError:
             verify_data = None
-    images, source = verification_images(meta, verify_data)
-    got = run_exported(path, fmt, images)
-    ref = reference_outputs(model, images, meta.stride, meta.sigma, with_moments)
-    report = ExportReport(path, fmt, names, inputs=source, num_images=len(images), tolerance=tolerance)
-    if len(got) != len(ref):
-        raise ValueError(f"{path}: {len(got)} outputs, expected {len(ref)} ({', '.join(names)})")
-    for name, g, r in zip(names, got, ref):
-        if g.shape != r.shape:
-            raise ValueError(f"{path}: output {name} has shape {g.shape}, PyTorch gives {r.shape}")
-        report.max_diff[name] = float(np.max(np.abs(g.astype(np.float64) - r))) if g.size else 0.0
+    names = output_names(with_moments)
+    report = ExportReport(out, fmt, names, tolerance=tolerance, tolerance_mm=tolerance_mm)
+    for name, (folder, path) in _pass_files(run_dir, out).items():
+        model, meta = load_network(folder, "cpu", checkpoint if not name else None)
+        net = model.fused() if fuse else model
+        module: nn.Module = DetectorWithMoments(net, meta.stride, meta.sigma) if with_moments else net
+        meta_doc = {**meta.to_dict(), "outputs": names, "input": "images (N, 3, H, W) float32 RGB in [0, 1]"}
+        export_module(module, fmt, path, meta.image_size, names, json.dumps(meta_doc), opset)
+        images, report.inputs = verification_images(meta, verify_data)
+        got = run_exported(path, fmt, images)
+        ref = reference_outputs(model, images, meta.stride, meta.sigma, with_moments)
+        report.num_images += len(images)
+        report.files.append(path)
+        for output, g, r in zip(names, got, ref):
+            if g.shape != r.shape:
+                raise ValueError(f"{path}: output {output} has shape {g.shape}, PyTorch gives {r.shape}")
+            key = f"{name}/{output}" if name else output
+            report.max_diff[key] = float(np.max(np.abs(g.astype(np.float64) - r))) if g.size else 0.0
+    if is_two_pass(run_dir):
+        rule, _, _ = read_two_pass(run_dir)
+        files = _pass_files(run_dir, out)
+        doc = {"format": EXPORTED_TWO_PASS, **asdict(rule), "runtime": fmt,
+               "coarse": files["coarse"][1].name, "fine": files["fine"][1].name}
+        report.path = out.with_suffix(".json")
+        report.path.write_text(json.dumps(doc, indent=1) + "\n")
+        report.files.append(report.path)
+    report.max_diff_mm, report.frames_3d = _verify_points(run_dir, report.path, fmt, verify_data)
     return report
+
+
+def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
+                   ) -> tuple[float | None, int]:
+    """The largest 3D difference (mm) between the exported detector and PyTorch's on up to 8 frames of
+    ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
+    from s3k.data import Dataset
+    from s3k.detector import Detector
+    from s3k.inference.metrics import mm_per_unit
+
+    if data is None or not Path(data).is_dir():
+        return None, 0
+    try:
+        ds = Dataset.open(data, cache="none")
+        ids = ds.frames(("test", "unlabelled", "labelled"))[:8]
+        images, cams = ds.images(ids), ds.calibration(ids, dtype=np.float64)
+    except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
+        print(f"warning: cannot read frames from {data} to compare 3D points ({exc})", file=sys.stderr)
+        return None, 0
+    ref = Detector.load(run_dir, "cpu")(images, cams)
+    got = load_exported(path, fmt)(images, cams)
+    both = ref.valid & got.valid
+    if bool((ref.valid != got.valid).any()):
+        return float("inf"), len(ids)
+    diff = torch.linalg.vector_norm(ref.X - got.X, dim=-1)[both]
+    scale = mm_per_unit(ds.units)
+    return (float(diff.max()) * scale if diff.numel() else 0.0), len(ids)
+
+
+class _ExportedNetwork:
+    """An exported network as a :class:`s3k.detector.Detector` pass: images ``(N, 3, H, W)`` -> logits."""
+
+    def __init__(self, path: Path, fmt: str) -> None:
+        self.run = open_exported(path, fmt)
+
+    def __call__(self, images: Tensor) -> Tensor:
+        x = np.ascontiguousarray(images.float().cpu().numpy())
+        return torch.from_numpy(self.run(x)[0]).to(images.device)
+
+
+def read_exported_meta(path: str | Path, fmt: str):
+    """The :class:`s3k.detector.DetectorMeta` an exported file carries."""
+    from s3k.detector import DetectorMeta
+
+    if fmt == "onnx":
+        import onnx
+
+        props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+        text = props.get(META_KEY)
+    else:
+        extra = {f"{META_KEY}.json": ""}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+        text = extra[f"{META_KEY}.json"] or None
+    if not text:
+        raise UserError(f"{path}: no {META_KEY} in the file; not exported by s3k export")
+    return DetectorMeta.from_dict(json.loads(text))
+
+
+def load_exported(path: str | Path, fmt: str | None = None):
+    """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime (or
+    TorchScript): a one-pass file, or the ``.json`` a two-pass export writes beside its two files."""
+    from s3k.detector import CropRule, OnePassDetector, TwoPassDetector
+
+    path = Path(path)
+    if path.suffix == ".json":
+        doc = json.loads(path.read_text())
+        if doc.get("format") != EXPORTED_TWO_PASS:
+            raise UserError(f"{path}: not a two-pass export of s3k (format {doc.get('format')!r})")
+        runtime = fmt or str(doc.get("runtime", "onnx"))
+        passes = [load_exported(path.with_name(str(doc[name])), runtime) for name in ("coarse", "fine")]
+        rule = CropRule(float(doc["extent"]), int(doc["size"]), float(doc.get("margin", 0.0)))
+        return TwoPassDetector(passes[0], passes[1], rule)  # type: ignore[arg-type]
+    runtime = fmt or ("onnx" if path.suffix == ".onnx" else "torchscript")
+    return OnePassDetector(_ExportedNetwork(path, runtime), read_exported_meta(path, runtime), "cpu")

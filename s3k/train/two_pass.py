@@ -5,7 +5,7 @@ A two-pass run folder holds two ordinary runs of ``s3k train`` and the crop rule
     RUN/two_pass.json    the crop rule (extent in world units, crop size in pixels) and the passes' folders
     RUN/coarse/          the coarse detector: the whole image, resized to ``coarse_size`` px
     RUN/estimates.csv    the coarse pass's 3D keypoints for every frame of the training dataset
-    RUN/crops/           a dataset of crops around those estimates (:func:`s3k.refine.write_crop_dataset`)
+    RUN/crops/           a dataset of crops around those estimates (:mod:`s3k.train.crop_dataset`)
     RUN/fine/            the refining detector, trained on the crops with the same losses (its pixel
                          tolerances scaled to the crop size: :func:`refining_config`)
     RUN/cpu.json         CPU seconds each stage took: ``coarse`` (its training, the estimates and the
@@ -24,68 +24,23 @@ the crops at training (labelled and unlabelled frames) and at inference (``s3k e
 
 from __future__ import annotations
 
-import contextlib
 import json
-import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from s3k.detector.crop_rule import CropRule, extent_middle, is_two_pass, write_two_pass
 from s3k.errors import UserError
 
-__all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "TWO_PASS_FILE", "CropRule", "TwoPassDetector",
-           "crop_centres", "crop_rule_from_labels", "evaluate_two_pass", "extent_middle", "is_two_pass",
-           "predict_two_pass", "read_cpu", "read_two_pass", "refining_config", "train_two_pass"]
+__all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "coarse_estimates", "crop_rule_from_labels",
+           "read_cpu", "refining_config", "train_two_pass", "write_crops"]
 
-TWO_PASS_FILE = "two_pass.json"
 ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
 CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "fine"), summed over a resumed run's attempts
-
-
-@dataclass(frozen=True)
-class CropRule:
-    """How a frame's crops are cut around its coarse 3D keypoints.
-
-    Attributes:
-        extent: side of every crop at the centre's depth, in the dataset's world units.
-        size: crop width and height in pixels (the refining network's input).
-        margin: the relative margin that went into ``extent`` (recorded for the reader).
-    """
-
-    extent: float
-    size: int
-    margin: float = 0.0
-
-
-def extent_middle(points: np.ndarray) -> np.ndarray | None:
-    """The middle of the keypoints' extent: the midpoint of the two finite rows of ``points (K, 3)`` farthest
-    apart (the point itself when only one is finite; None when none is).
-
-    Unlike a bounding box in world axes it does not depend on the object's orientation; for three corners of
-    a rectangle it is the rectangle's centre, equally far from all of them."""
-    X = np.asarray(points, dtype=np.float64)
-    X = X[np.isfinite(X).all(axis=-1)]
-    if not len(X):
-        return None
-    d = np.linalg.norm(X[:, None] - X[None], axis=-1)
-    i, j = np.unravel_index(np.argmax(d), d.shape)
-    return 0.5 * (X[i] + X[j])
-
-
-def crop_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
-    """``{frame: (3,)}`` crop centres from ``{frame: (K, 3)}`` keypoints (frames with none finite are left
-    out)."""
-    out = {}
-    for frame, X in points.items():
-        c = extent_middle(X)
-        if c is not None:
-            out[int(frame)] = c
-    return out
 
 
 def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
@@ -120,62 +75,43 @@ def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
     return CropRule(extent=2 * radius * (1 + margin), size=int(size), margin=float(margin))
 
 
-def is_two_pass(run_dir: str | Path) -> bool:
-    """Whether ``run_dir`` is a two-pass run folder."""
-    return (Path(run_dir) / TWO_PASS_FILE).is_file()
+def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | torch.device = "cpu",
+                     batch_size: int = 32) -> dict[int, np.ndarray]:
+    """The coarse pass's 3D keypoints of every frame of ``data`` (:class:`s3k.detector.Detector` on the
+    frames at the dataset's resolution, on ``device``), written once to ``out_csv`` and read back."""
+    from s3k.data import Dataset
+    from s3k.data.frames import FrameStore
+    from s3k.data.tracks_csv import csv_rows, read_csv, write_csv
+    from s3k.detector import Detector
+    from s3k.inference.predict import detect_store, split_frames
 
-
-def read_two_pass(run_dir: str | Path) -> tuple[CropRule, Path, Path]:
-    """``(rule, coarse run folder, fine run folder)`` of a two-pass run.
-
-    Raises:
-        UserError: the file is missing or a field is absent or of the wrong type.
-    """
-    path = Path(run_dir) / TWO_PASS_FILE
-    try:
-        info = json.loads(path.read_text())
-        rule = CropRule(float(info["extent"]), int(info["size"]), float(info.get("margin", 0.0)))
-        coarse, fine = Path(run_dir) / str(info["coarse"]), Path(run_dir) / str(info["fine"])
-    except FileNotFoundError:
-        raise UserError(f"{path}: not found (is {run_dir} a run of 's3k train --two-pass'?)") from None
-    except (ValueError, KeyError, TypeError) as e:
-        raise UserError(f"{path}: not a two-pass run description ({type(e).__name__}: {e})") from None
-    return rule, coarse, fine
-
-
-def _write_two_pass(run_dir: Path, rule: CropRule, coarse_size: int, keypoints) -> None:
-    from s3k.fileio import atomic_write_json
-
-    info = {**asdict(rule), "coarse": "coarse", "fine": "fine", "coarse_size": coarse_size,
-            "keypoints": list(keypoints)}
-    atomic_write_json(info, run_dir / TWO_PASS_FILE)
-
-
-def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, split: str,
-                     keypoints) -> dict[int, np.ndarray]:
-    """The coarse pass's 3D keypoints of ``split``, written once to ``out_csv`` and read back."""
-    from s3k.predict import predict_dataset
-    from s3k.tracks_csv import read_csv
-
+    detector = Detector.load(run_dir, device)
     if not out_csv.is_file():
+        ds = Dataset.open(data, cache="none")
+        store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)
         tmp = out_csv.with_name(out_csv.name + ".part")
-        predict_dataset(run_dir, data, tmp, split=split, device="cpu", overwrite=True)
+        with write_csv(tmp, detector.keypoints) as writer:
+            for batch, pred in detect_store(detector, store, batch_size):
+                writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
         tmp.replace(out_csv)
-    return read_csv(out_csv, keypoints)
+    return read_csv(out_csv, detector.keypoints)
 
 
 def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule: CropRule,
                 splits=None, description: str | None = None) -> Path:
-    """The crop dataset of ``data`` around ``estimates`` by ``rule``; a frame the coarse pass could not place
-    is cropped around the median of the other frames' centres (the workspace)."""
-    from s3k.refine import write_crop_dataset
+    """The crop dataset of ``data`` around ``estimates`` by ``rule``, each frame cut around the crop centre
+    of its estimates (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
+    from s3k.train.crop_dataset import write_crop_dataset
 
-    centres = crop_centres(estimates)
+    centres = {}
+    for frame, X in estimates.items():
+        middle = extent_middle(X)
+        if middle is not None:
+            centres[int(frame)] = middle
     if not centres:
         raise UserError(f"the coarse pass placed no keypoint in any frame of {data}",
                         hint="train the coarse pass longer (--coarse-steps) or check the labels")
-    middle = np.median(np.stack(list(centres.values())), axis=0)
-    return write_crop_dataset(data, out, centres, rule.extent, rule.size, fallback=lambda frame: middle,
+    return write_crop_dataset(data, out, centres, rule.extent, rule.size, fallback=True,
                               overwrite=True, splits=splits, description=description)
 
 
@@ -249,7 +185,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass",
                                         clock)
         log(f"coarse pass: estimating every frame of {data}")
-        estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, "all", ds.keypoints)
+        estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, cfg.device)
         crops = out / "crops"
         if (crops / "s3k.json").is_file():
             _check_crops(crops, rule)
@@ -260,7 +196,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     with _StageClock(out, "fine") as clock:
         results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command,
                                       log, "refining pass", clock)
-    _write_two_pass(out, rule, coarse_size, ds.keypoints)
+    write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results
 
 
@@ -344,96 +280,3 @@ def _train_pass(train, data: Path, run: Path, cfg, command, log, what: str, cloc
         raise UserError(f"{what} stopped ({result.status}); see {run / 'train.log'}",
                         hint="fix what the log says and continue with --resume")
     return result
-
-
-def evaluate_two_pass(run_dir: str | Path, data: str | Path, split: str = "test", device: str = "auto",
-                      batch_size: int = 16, report: str | Path | None = None, overlays: int = 6
-                      ) -> dict[str, Any]:
-    """Metrics of a two-pass run on ``data``'s ``split``: the coarse pass places every frame, the refining
-    pass detects in the crops around it (cut from ``data``'s own images) and its triangulated points are the
-    run's 3D keypoints. Pixel metrics are in crop pixels; 3D metrics in millimetres."""
-    from s3k.evaluate import evaluate_run
-
-    rule, _, fine = read_two_pass(run_dir)
-    with _split_crops(run_dir, data, split) as (crops, placed):
-        metrics = evaluate_run(fine, crops, split=split, device=device, batch_size=batch_size, report=report,
-                               overlays=overlays)
-    metrics["two_pass"] = {**asdict(rule), "coarse_frames_placed": placed}
-    return metrics
-
-
-def predict_two_pass(run_dir: str | Path, data: str | Path, out: Path, split: str = "test",
-                     batch_size: int = 16, device: str = "auto"):
-    """:func:`s3k.predict.predict_dataset` through both passes; the CSV's ``error`` is in crop pixels."""
-    from s3k.predict import predict_dataset
-
-    _, _, fine = read_two_pass(run_dir)
-    with _split_crops(run_dir, data, split) as (crops, _placed):
-        return predict_dataset(fine, crops, out, split, batch_size, device, overwrite=True)
-
-
-@contextlib.contextmanager
-def _split_crops(run_dir: str | Path, data: str | Path, split: str):
-    """``(crop dataset, frames the coarse pass placed)`` of ``data``'s ``split`` (``all``: every split) by the
-    run's rule, in a temporary folder removed on exit: what evaluating and predicting a two-pass run share."""
-    from s3k.data import Dataset
-
-    rule, coarse, _ = read_two_pass(run_dir)
-    keypoints = Dataset.open(data, cache="none").keypoints
-    with tempfile.TemporaryDirectory(prefix="s3k-two-pass-") as tmp:
-        estimates = coarse_estimates(coarse, Path(data), Path(tmp) / "coarse.csv", split, keypoints)
-        crops = write_crops(Path(data), Path(tmp) / "crops", estimates, rule,
-                            splits=None if split == "all" else (split,))
-        yield crops, len(crop_centres(estimates))
-
-
-class TwoPassDetector:
-    """Both passes of a two-pass run, for frames at their native resolution (``s3k track``).
-
-    :meth:`refine` takes the coarse pass's read-out of a batch of frames and the original images, cuts each
-    view around the middle of the coarse keypoints by the run's crop rule (the rule its refining pass was
-    trained with), and returns the refining pass's read-out in the original images' pixels and world frame.
-    """
-
-    def __init__(self, run_dir: str | Path, device: str | torch.device = "cpu"):
-        from s3k.run import load_detector
-
-        self.rule, coarse, fine = read_two_pass(run_dir)
-        self.coarse, self.coarse_meta = load_detector(coarse, device)
-        self.fine, self.fine_meta = load_detector(fine, device)
-        self.device = torch.device(device)
-        self._last_centre: np.ndarray | None = None
-
-    @torch.inference_mode()
-    def refine(self, originals, coarse, cams, min_weight: float = 0.0):
-        """The refining pass's :class:`s3k.readout.ReadOut` of a batch of frames.
-
-        Args:
-            originals: ``B`` frames, each ``C`` images ``(H_c, W_c, 3)`` uint8 (cameras may differ in size).
-            coarse: the coarse pass's read-out of those frames (its ``X (B, K, 3)``, NaN where invalid).
-            cams: the cameras ``(C,)`` of the original images.
-            min_weight: as for :func:`s3k.readout.read_out`.
-        """
-        from s3k.crops import crop_images, crop_maps, metric_crop_boxes
-        B, C = len(originals), len(originals[0])
-        centres = []
-        for X in coarse.X.cpu().numpy():
-            middle = extent_middle(X)
-            if middle is None:  # the coarse pass lost the object: look where it was last seen
-                middle = self._last_centre if self._last_centre is not None else np.zeros(3)
-            self._last_centre = middle
-            centres.append(middle)
-        cams = cams.to(dtype=torch.float64)
-        centre = torch.as_tensor(np.stack(centres))[:, None, :]  # (B, 1, 3)
-        boxes, _ = metric_crop_boxes(cams, centre, self.rule.extent)  # (B, C, 4)
-        size = (self.rule.size, self.rule.size)
-        crops = torch.empty(B, C, 3, *size)
-        for c in range(C):
-            images = torch.from_numpy(np.stack([frame[c] for frame in originals])).permute(0, 3, 1, 2)
-            crops[:, c] = crop_images(images.float(), boxes[:, c].float(), size)
-        # the refining pass was trained on crops stored as 8-bit images: quantize them the same way
-        x = crops.round_().clamp_(0, 255).div_(255.0).to(self.device)
-        logits = self.fine(x.reshape(B * C, 3, *size))
-        logits = logits.reshape(B, C, *logits.shape[1:])
-        maps = crop_maps(boxes, size)  # (B, C, 3, 3): original pixels -> crop pixels
-        return self.fine_meta.read_out(logits, cams.to(self.device), maps, min_weight)

@@ -1,0 +1,312 @@
+"""``s3k.Detector``: a trained detector, one pass or two, as one object that takes synchronized frames of any
+size with their cameras and gives the read-out (2D detections, confidences, 3D points, validity).
+
+Every part of s3k that uses a trained model goes through it: evaluate, predict, track, stream, export's
+verification, the labelling app's suggestions, the robot loop and validation during training.
+
+- :class:`OnePassDetector`: each view's region (default: the whole image) is resampled to the network's
+  input size on the detector's device (:func:`s3k.geometry.warp.crop_images`, the map ``K' = M K``), the
+  shared network gives heatmaps, and :func:`s3k.readout.read_out` (with the settings the detector was
+  trained with, :class:`s3k.detector.DetectorMeta`) gives detections in the frames' own pixels and 3D
+  points in the cameras' world frame.
+- :class:`TwoPassDetector`: the coarse detector places the object; every view is cut around the crop
+  centre of its coarse keypoints by the run's :class:`s3k.detector.CropRule` (the one centre rule,
+  :func:`s3k.detector.crop_rule.crop_centres`), on the device, and the refining detector reads the crops.
+
+The network inputs are rounded to 8-bit levels before they are scaled to [0, 1]: both passes were trained
+on images stored as 8-bit files, and the same rounding keeps what they see at inference what they saw in
+training.
+
+Example:
+    >>> det = Detector.load("runs/box")  # doctest: +SKIP
+    >>> out = det(frames, cams)  # frames uint8 (B, C, H, W, 3), cams Cameras (C,)  # doctest: +SKIP
+    >>> out.X, out.valid  # (B, K, 3) world units, (B, K)  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
+from s3k.detector.meta import DetectorMeta
+from s3k.detector.run_folder import load_network
+from s3k.errors import UserError
+from s3k.geometry import Cameras
+from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resample_regions
+from s3k.model import UNet
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut
+
+__all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "pick_device"]
+
+PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
+"""The network's precision (autocast); the read-out is float64 whatever the precision."""
+
+Network = Callable[[Tensor], Tensor]
+"""Images ``(N, 3, H, W)`` float32 in [0, 1] -> logits ``(N, K, h, w)``."""
+
+
+def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch.device:
+    """``"auto"`` -> the GPU when available, else the CPU; a CUDA device without a GPU is refused."""
+    if str(name) == "auto":
+        return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device {name!r}: not a device", hint="use auto, cpu or cuda") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name}: this machine has no CUDA GPU", hint="use --device cpu or auto")
+    return device
+
+
+@dataclass
+class Detection(ReadOut):
+    """A :class:`s3k.readout.ReadOut` in the frames' own pixels, plus how the detector saw them.
+
+    Attributes:
+        pixel_maps: ``(B, C, 3, 3)`` maps from each frame's pixels to the (last) network's input pixels.
+        inputs: ``(B, C, 3, h, w)`` the (last) network's inputs in [0, 1], kept with ``keep_heatmaps``.
+        coarse: a two-pass detector's coarse read-out (None for one pass).
+        placed: ``(B,)`` bool, a two-pass detector's coarse pass placed a keypoint (else the crops were cut
+            around the workspace centre); None for one pass.
+        input_size: ``(w, h)`` of the (last) network's input.
+    """
+
+    pixel_maps: Tensor | None = None
+    inputs: Tensor | None = None
+    coarse: ReadOut | None = None
+    placed: Tensor | None = None
+    input_size: tuple[int, int] = (0, 0)
+
+    def network_cameras(self) -> Cameras:
+        """The cameras ``(B, C)`` of the (last) network's input pixels: ``K' = M K``."""
+        if self.pixel_maps is None:
+            return self.cams
+        cams = self.cams
+        return Cameras(self.pixel_maps.to(cams.dtype) @ cams.K, cams.dist, cams.R, cams.t)
+
+    def to(self, device: torch.device | str) -> Detection:
+        """The same detection with every tensor on ``device``."""
+        moved: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            moved[f.name] = v.to(device) if isinstance(v, (Tensor, Cameras)) else v
+        if isinstance(self.coarse, ReadOut):
+            moved["coarse"] = self.coarse.cpu() if torch.device(device).type == "cpu" else self.coarse
+        return Detection(**moved)
+
+    def cpu(self) -> Detection:  # type: ignore[override]
+        return self.to("cpu")
+
+
+def _views(images: Any) -> tuple[list[Tensor], bool]:
+    """``(per camera uint8 (B, H_c, W_c, 3), single frame)`` from ``(B, C, H, W, 3)``, one frame ``(C, H, W,
+    3)``, or a sequence of ``C`` arrays ``(B, H_c, W_c, 3)`` (cameras of different sizes)."""
+    if isinstance(images, (list, tuple)):
+        views = [torch.as_tensor(np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v) for v in images]
+        single = False
+    else:
+        x = torch.as_tensor(np.ascontiguousarray(images) if isinstance(images, np.ndarray) else images)
+        single = x.ndim == 4
+        if single:
+            x = x[None]
+        if x.ndim != 5 or x.shape[-1] != 3:
+            raise ValueError(f"images: expected (B, C, H, W, 3) or (C, H, W, 3), got {tuple(x.shape)}")
+        views = list(x.unbind(1))
+    for v in views:
+        if v.ndim != 4 or v.shape[-1] != 3:
+            raise ValueError(f"images: each camera's frames must be (B, H, W, 3), got {tuple(v.shape)}")
+    if len({len(v) for v in views}) != 1:
+        raise ValueError("images: every camera needs the same number of frames")
+    return views, single
+
+
+def _whole_images(views: list[Tensor]) -> Tensor:
+    """``(C, 4)`` boxes of the whole image of every camera (pixel edge coordinates)."""
+    return torch.tensor([[0.0, 0.0, v.shape[2], v.shape[1]] for v in views], dtype=torch.float64)
+
+
+class _Pass:
+    """One network with its meta: images of the network's input size -> logits, on ``device``."""
+
+    def __init__(self, net: Network, meta: DetectorMeta, device: torch.device, precision: str = "float32"):
+        if precision not in PRECISIONS:
+            raise UserError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
+        self.net, self.meta, self.device, self.precision = net, meta, device, precision
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.meta.image_size[0]), int(self.meta.image_size[1])
+
+    def cut(self, views: list[Tensor], boxes: Tensor, crops: bool = False) -> Tensor:
+        """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels: ``boxes (B, C, 4)`` of every view
+        resampled to the input size on the device, as the training images were (``crops``: the refining
+        pass's crops, :func:`s3k.geometry.warp.crop_images`; else the region's area-resampled view,
+        :func:`s3k.geometry.warp.resample_regions`)."""
+        w, h = self.size
+        out = []
+        for c, v in enumerate(views):
+            x = v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float()
+            box = boxes[:, c]
+            whole = box.new_tensor([0.0, 0.0, v.shape[2], v.shape[1]])
+            if (v.shape[2], v.shape[1]) != (w, h) or not bool((box == whole).all()):
+                warp = crop_images if crops else resample_regions
+                x = warp(x, box.to(self.device, torch.float32), (w, h)).round_().clamp_(0, 255)
+            out.append(x)
+        return torch.stack(out, 1).div_(255.0)
+
+    def logits(self, x: Tensor) -> Tensor:
+        """``(B, C, 3, h, w)`` -> ``(B, C, K, h', w')`` float32."""
+        B, C = x.shape[:2]
+        dtype = PRECISIONS[self.precision]
+        ctx = (torch.autocast(self.device.type, dtype=dtype) if dtype is not None
+               else contextlib.nullcontext())
+        with ctx:
+            logits = self.net(x.reshape(B * C, *x.shape[2:]).contiguous(memory_format=torch.channels_last))
+        return logits.float().reshape(B, C, *logits.shape[1:])
+
+
+class Detector:
+    """A trained detector (module docstring). Use :meth:`load`; call it on frames.
+
+    Attributes:
+        keypoints: keypoint names, in the order of the outputs.
+        units: world units of the calibration it was trained with.
+        meta: the (refining) network's :class:`s3k.detector.DetectorMeta`.
+        device: where it computes.
+    """
+
+    meta: DetectorMeta
+    device: torch.device
+
+    @staticmethod
+    def load(run: str | Path, device: str | torch.device = "auto", precision: str = "float32",
+             checkpoint: str | None = None) -> Detector:
+        """The detector of a run folder of ``s3k train`` (one pass or ``--two-pass``), in eval mode, its
+        BatchNorm folded into the convolutions (the same function, fewer operations).
+
+        Args:
+            run: the run folder.
+            device: ``"auto"`` (the GPU when there is one), ``"cpu"``, ``"cuda"``, ...
+            precision: the networks' precision: ``float32``, ``bfloat16`` or ``float16`` (autocast).
+            checkpoint: a file in a one-pass run folder to load instead of its final model.
+        """
+        dev = pick_device(device)
+        if is_two_pass(run):
+            rule, coarse, fine = read_two_pass(run)
+            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision),
+                                   OnePassDetector.from_run(fine, dev, precision), rule)
+        return OnePassDetector.from_run(run, dev, precision, checkpoint)
+
+    @property
+    def keypoints(self) -> list[str]:
+        return list(self.meta.keypoints)
+
+    @property
+    def units(self) -> str:
+        return self.meta.units
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """``(W, H)`` the first network's input: frames of this size need no resampling by a one-pass
+        detector."""
+        raise NotImplementedError
+
+    def __call__(self, images: Any, cams: Cameras, boxes: Tensor | np.ndarray | None = None,
+                 min_weight: float = DEFAULT_MIN_WEIGHT, keep_heatmaps: bool = False) -> Detection:
+        """The read-out of synchronized frames.
+
+        Args:
+            images: uint8 frames ``(B, C, H, W, 3)`` (RGB), one frame ``(C, H, W, 3)``, or a sequence of
+                ``C`` arrays ``(B, H_c, W_c, 3)`` when the cameras' sizes differ; numpy or torch.
+            cams: the cameras ``(C,)`` or ``(B, C)`` in the frames' own pixels.
+            boxes: ``(C, 4)`` or ``(B, C, 4)`` region of each view (pixel edge coordinates) that the
+                (first) network sees, resampled to its input; default the whole image.
+            min_weight: views with a confidence weight at or below this are not triangulated.
+            keep_heatmaps: also keep the (last) network's heatmaps and inputs.
+
+        Returns:
+            A :class:`Detection` (float64) in the frames' pixels and the cameras' world frame, on the device
+            the frames are on (a single frame keeps a batch of one).
+        """
+        views, _ = _views(images)
+        home = views[0].device
+        B = len(views[0])
+        cams = cams.to(device=self.device, dtype=torch.float64)
+        if boxes is None:
+            box = _whole_images(views)[None].expand(B, -1, -1)
+        else:
+            box = torch.as_tensor(np.asarray(boxes) if isinstance(boxes, np.ndarray) else boxes,
+                                  dtype=torch.float64)
+            box = box[None].expand(B, -1, -1) if box.ndim == 2 else box
+        with torch.inference_mode():
+            out = self._detect(views, cams, box.to(self.device), min_weight, keep_heatmaps)
+        return out if out.X.device == home else out.to(home)
+
+    def _detect(self, views: list[Tensor], cams: Cameras, boxes: Tensor, min_weight: float,
+                keep: bool) -> Detection:
+        raise NotImplementedError
+
+
+class OnePassDetector(Detector):
+    """One network on each view's region (:class:`Detector`)."""
+
+    def __init__(self, net: Network, meta: DetectorMeta, device: str | torch.device = "cpu",
+                 precision: str = "float32") -> None:
+        self.device = torch.device(device)
+        self.meta = meta
+        self.pass_ = _Pass(net, meta, self.device, precision)
+
+    @classmethod
+    def from_run(cls, run: str | Path, device: torch.device, precision: str = "float32",
+                 checkpoint: str | None = None) -> OnePassDetector:
+        model, meta = load_network(run, device, checkpoint)
+        if isinstance(model, UNet):  # the fast form of the same network
+            model = model.fused().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        return cls(model, meta, device, precision)
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        return self.pass_.size
+
+    def _detect(self, views, cams, boxes, min_weight, keep, crops=False):
+        x = self.pass_.cut(views, boxes, crops)
+        maps = crop_maps(boxes, self.pass_.size)
+        ro = self.meta.read_out(self.pass_.logits(x), cams, maps, min_weight, keep)
+        return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
+                         inputs=x if keep else None, input_size=self.pass_.size)
+
+
+class TwoPassDetector(Detector):
+    """A coarse detector that places the object and a refining detector on crops around it, cut by
+    ``rule`` (:class:`Detector`; module docstring)."""
+
+    def __init__(self, coarse: OnePassDetector, fine: OnePassDetector, rule: CropRule) -> None:
+        if list(coarse.keypoints) != list(fine.keypoints):
+            raise UserError(f"the coarse pass's keypoints {coarse.keypoints} differ from the refining pass's "
+                            f"{fine.keypoints}", hint="train both passes on the same dataset")
+        if tuple(fine.input_size) != (rule.size, rule.size):
+            raise UserError(f"the refining pass takes {fine.input_size} px but the crop rule cuts "
+                            f"{rule.size} px", hint="retrain the refining pass on the rule's crops")
+        self.coarse, self.fine, self.rule = coarse, fine, rule
+        self.meta, self.device = fine.meta, fine.device
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        return self.coarse.input_size
+
+    def _detect(self, views, cams, boxes, min_weight, keep):
+        coarse = self.coarse._detect(views, cams, boxes, DEFAULT_MIN_WEIGHT, False)
+        centres, placed = crop_centres(coarse.X, coarse.valid, cams)
+        crop_boxes, _ = metric_crop_boxes(cams, centres[:, None, :], self.rule.extent)  # (B, C, 4)
+        out = self.fine._detect(views, cams, crop_boxes, min_weight, keep, crops=True)
+        out.coarse, out.placed = coarse, placed
+        return out
+

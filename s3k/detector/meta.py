@@ -1,0 +1,89 @@
+"""What a trained detector needs at inference time, saved with its weights (``RUN/model.pt``) and in
+``RUN/config.json``."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
+
+__all__ = ["DetectorMeta"]
+
+
+@dataclass
+class DetectorMeta:
+    """What a trained detector needs at inference time.
+
+    Attributes:
+        keypoints: keypoint names, in heatmap order (K).
+        cameras: camera names of the training dataset (C).
+        image_size: network input size (W, H) in pixels; images are resized to it (``frames.FrameStore``).
+        stride: heatmap stride (image pixels per heatmap cell).
+        sigma: target Gaussian width in image pixels (also the confidence weight's sigma).
+        model: ``UNetConfig.to_dict()`` of the network.
+        units: world units of the training dataset's calibration (e.g. "m").
+        source_image_size: (W, H) of the training dataset's images.
+        outlier_px: at read-out, a view whose detection misses the others' consensus by more than this many
+            network-input pixels does not enter the triangulation (the threshold the training's
+            ``--outlier_px`` held its pseudo-labels to); 0: every view enters.
+        layout: a rigid object's ``(K, K)`` distances between the keypoints, triangulated from the labels
+            (NaN where unknown, None: not a rigid object), and ``layout_tol`` the relative tolerance
+            ``--layout_tol`` held them to: at read-out a keypoint that breaks them is looked for again where
+            the layout puts it (:func:`s3k.readout.search_layout`).
+    """
+
+    keypoints: list[str]
+    cameras: list[str]
+    image_size: tuple[int, int]
+    stride: int
+    sigma: float
+    model: dict[str, Any] = field(default_factory=dict)
+    units: str = "m"
+    source_image_size: tuple[int, int] | None = None
+    outlier_px: float = 0.0
+    layout: list[list[float]] | None = None
+    layout_tol: float = 0.0
+
+    @property
+    def max_residual_px(self) -> float | None:
+        """``outlier_px`` as :func:`s3k.readout.read_out` takes it (None: off)."""
+        return self.outlier_px if self.outlier_px > 0 else None
+
+    def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
+                 keep_heatmaps: bool = False) -> ReadOut:
+        """This detector's :func:`s3k.readout.read_out` of its ``logits``: with the stride, target width and
+        outlier threshold it was trained with, so every command reads a detector out the same way."""
+        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, min_weight, keep_heatmaps,
+                        self.max_residual_px, layout=self.layout_distances, layout_tol=self.layout_tol)
+
+    @property
+    def layout_distances(self) -> torch.Tensor | None:
+        """``layout`` as the ``(K, K)`` float64 tensor :func:`s3k.readout.read_out` takes (None: off)."""
+        if self.layout is None or not self.layout_tol > 0:
+            return None
+        return torch.tensor(self.layout, dtype=torch.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["image_size"] = list(self.image_size)
+        if self.source_image_size is not None:
+            d["source_image_size"] = list(self.source_image_size)
+        if self.layout is not None:  # JSON has no NaN: an unknown distance is null
+            d["layout"] = [[v if math.isfinite(v) else None for v in row] for row in self.layout]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> DetectorMeta:
+        d = dict(d)
+        d["image_size"] = tuple(d["image_size"])
+        if d.get("source_image_size") is not None:
+            d["source_image_size"] = tuple(d["source_image_size"])
+        if d.get("layout") is not None:
+            d["layout"] = [[math.nan if v is None else float(v) for v in row] for row in d["layout"]]
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
