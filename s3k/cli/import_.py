@@ -60,8 +60,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="CSV frame index from the image file name's digits (default) or the row number")
     parser.add_argument("--out", required=True, help="dataset folder to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
-    parser.add_argument("--labelled", default="10",
-                        help="number of labelled frames, or 'all' (default 10)")
+    parser.add_argument("--labelled", default=None,
+                        help="number of labelled frames, or 'all' (default 10, or every frame left after the "
+                             "test frames when fewer)")
     parser.add_argument("--test", type=int, default=0, help="number of test frames (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random split (default 0)")
     parser.add_argument("--stride", type=int, default=1,
@@ -105,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         deepfly3d=args.deepfly3d, min_score=args.min_score,
         frame_ids_from=args.frame_ids_from,
         overwrite=args.overwrite,
-        labelled=args.labelled if args.labelled == "all" else _count(args.labelled, "--labelled"),
+        labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
         test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views,
         size=parse_size(args.size), scale=args.scale,
         crops=parse_crops(args.crop, list(videos)) if args.crop else None,

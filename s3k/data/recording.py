@@ -26,7 +26,7 @@ from s3k.data.calibration_files import read_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
 from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
-from s3k.data.sleap import read_sleap_file
+from s3k.data.sleap import default_track, read_sleap_file
 from s3k.errors import UserError
 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
@@ -164,10 +164,10 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
 def _label_tables(
     cameras: list[str], sizes: dict[str, tuple[int, int]], *, sleap, sleap_project, nwb, dlc, lightning_pose,
     openpose, mmpose, deepfly3d, sleap_track, camera_map, accept_predictions, frame_ids_from: str,
-    min_score: float,
+    min_score: float, rig: Rig | None = None,
 ) -> tuple[str, dict[str, str], dict[str, LabelTable]]:
     """``(kind, {camera: file}, {camera: LabelTable})`` of the one label option given (``"none"``, {}, {} for
-    none)."""
+    none); ``rig``: the cameras at the videos' sizes (a DeepFly3D result's layout is checked against them)."""
     from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
 
     options = ("--sleap", "--sleap", *LABEL_OPTIONS[1:])
@@ -180,18 +180,26 @@ def _label_tables(
         return "none", {}, {}
     option = given[0][0]
     if option == "--deepfly3d":
-        from s3k.data.deepfly3d import read_deepfly3d_pose
+        from s3k.data.deepfly3d import JOINTS, read_deepfly3d_pose
 
-        tables = read_deepfly3d_pose(deepfly3d, sizes)
+        tables = read_deepfly3d_pose(deepfly3d, sizes, rig)
         if not tables:
             raise UserError(f"--deepfly3d {deepfly3d}: no camera camera_0, camera_1, ... among --videos "
                             f"({', '.join(cameras)})")
+        hidden = sorted({len(t.unseen) for t in tables.values()})
+        if hidden[-1]:
+            shown = hidden[0] if len(hidden) == 1 else f"{hidden[0]} to {hidden[-1]}"
+            print(f"note: DeepFly3D's visibility rule leaves {shown} of the {len(JOINTS)} joints unlabelled "
+                  "in each camera: those of the fly's far side "
+                  "(docs/importing.md#what-happens-to-each-format)")
         return "deepfly3d", {cam: str(deepfly3d) for cam in tables}, tables
     if sleap_project or nwb:
         from s3k.data.nwb import read_nwb
         from s3k.data.slp import read_slp
 
         if sleap_project:
+            if sleap_track is None:
+                sleap_track = default_track([sleap_project], accept_predictions)
             tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
                               predictions=accept_predictions)
         else:
@@ -201,6 +209,8 @@ def _label_tables(
     reader: Callable[[str, str | Path], LabelTable]
     if option == "--sleap":
         files, kind = dict(sleap), "sleap"
+        if sleap_track is None:
+            sleap_track = default_track(list(files.values()), accept_predictions)
         reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
     elif option == "--openpose":
         files, kind = dict(openpose), "openpose"
@@ -221,6 +231,53 @@ def _label_tables(
                         f"({', '.join(cameras)})")
     tables = {cam: reader(cam, path) for cam, path in files.items()}
     return kind, {cam: str(p) for cam, p in files.items()}, tables
+
+
+def _drop_outside(uv: np.ndarray, size: tuple[int, int], cameras: list[str], names: list[str]) -> str:
+    """Set the labels ``uv (F, C, K, 2)`` outside images of ``size`` to NaN; the sentence saying how many were
+    dropped, with an example (empty when none was), printed as a note, or as a warning when most were."""
+    W, H = size
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
+    known = np.isfinite(uv).all(-1)
+    outside = known & ~inside
+    if not outside.any():
+        return ""
+    f, c, k = np.argwhere(outside)[0]
+    u, v = uv[f, c, k]
+    text = (f"{int(outside.sum())} of {int(known.sum())} labels fall outside the (cropped) {W}x{H} images "
+            f"and are dropped (e.g. camera {cameras[c]} frame {f} {names[k]} at x {u:.0f}, y {v:.0f})")
+    uv[~inside] = np.nan
+    if outside.sum() <= known.sum() / 2:
+        print(f"note: {text}")
+        return ""
+    _warn(text)
+    return text
+
+
+DEFAULT_LABELLED = 10
+
+
+def _labelled_count(candidates: np.ndarray, labelled: int | str | None, test: int, min_views: int,
+                    dropped: str) -> int | str:
+    """The number of labelled frames: ``labelled`` as given, or (None) :data:`DEFAULT_LABELLED`, or every
+    frame left after the test frames when fewer are, said in a note. Refuses a recording where no frame can
+    be labelled, with the reason when most labels fell outside the images."""
+    if not len(candidates) or (dropped and len(candidates) < test + (
+            DEFAULT_LABELLED if labelled is None else 0 if labelled == "all" else int(labelled))):
+        kept = f"{len(candidates)} frames keep a keypoint labelled in >= {min_views} cameras"
+        raise UserError(
+            f"{dropped}: {kept}" if dropped else f"no frame has a keypoint labelled in >= {min_views} "
+            "cameras",
+            hint="the labels are not in the videos' pixels: check the label format's layout, --video-region "
+                 "and --crop (docs/importing.md)" if dropped else
+                 "label a keypoint in two cameras of a frame, and check that each label file is the camera's")
+    if labelled is not None:
+        return labelled
+    left = max(len(candidates) - max(test, 0), 0)
+    if left < DEFAULT_LABELLED:
+        print(f"note: {len(candidates)} frames have a keypoint labelled in >= {min_views} cameras: "
+              f"{left} labelled, {test} test (--labelled N and --test N choose)")
+    return min(DEFAULT_LABELLED, left)
 
 
 def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
@@ -256,7 +313,7 @@ def import_recording(
     accept_predictions: bool = False,
     frame_ids_from: str = "path",
     overwrite: bool = False,
-    labelled: int | str = 10,
+    labelled: int | str | None = None,
     test: int = 0,
     seed: int = 0,
     stride: int = 1,
@@ -284,7 +341,8 @@ def import_recording(
         mmpose: ``{camera: MMPose / RTMPose predictions .json}``.
         deepfly3d: a DeepFly3D ``df3d_result*.pkl`` (cameras ``camera_0`` ...).
         min_score: detections (OpenPose, MMPose) below this score are unlabelled.
-        sleap_track: SLEAP track name or index (when a file has several); in a project without tracks,
+        sleap_track: SLEAP track name or index (default: the most labelled track, when the files have
+            several); in a project without tracks,
             the instance index in each frame.
         sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
         nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.nwb`).
@@ -293,7 +351,8 @@ def import_recording(
             frame has no labels by a person.
         frame_ids_from: CSV frame index from the image file name's digits (``"path"``) or the row (``"row"``).
         overwrite: replace an existing dataset folder.
-        labelled: number of labelled frames, or ``"all"``.
+        labelled: number of labelled frames, or ``"all"``; None: 10, or all there are after the test frames
+            when fewer (the import says so).
         test: number of test frames (their labels are kept for evaluation).
         seed: seed of the random split.
         stride: keep every ``stride``-th video frame as unlabelled.
@@ -322,7 +381,7 @@ def import_recording(
         cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc,
         lightning_pose=lightning_pose, openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d,
         sleap_track=sleap_track, camera_map=camera_map, accept_predictions=accept_predictions,
-        frame_ids_from=frame_ids_from, min_score=min_score)
+        frame_ids_from=frame_ids_from, min_score=min_score, rig=rig)
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
@@ -332,7 +391,6 @@ def import_recording(
                             f"imported unlabelled), or give labels with one of {', '.join(LABEL_OPTIONS)}")
         if test:
             raise UserError(f"--test {test}: test frames need labels, and none are given")
-        labelled = 0
     elif keypoints:
         missing = [k for k in keypoints if k not in names]
         if missing:
@@ -373,18 +431,16 @@ def import_recording(
         dense = table.dense(n_frames, present)
         uv[:, c, cols] = transform_points(dense, maps[c])
     if tables:
-        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files):
+        unseen = {cam: table.unseen for cam, table in tables.items()}
+        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files, unseen):
             print(line)
     W, H = out_size
-    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
-    outside = np.isfinite(uv).all(-1) & ~inside
-    if outside.any():
-        print(f"note: {int(outside.sum())} labels fall outside the (cropped) images and are dropped")
-    uv[~inside] = np.nan
+    dropped = _drop_outside(uv, out_size, cameras, names)
     mask = np.isfinite(uv).all(-1)
     views = mask.sum(axis=1)  # (F, K)
     candidates = np.flatnonzero((views >= min_views).any(axis=1))
-    splits = split_frames(candidates, np.arange(n_frames), labelled, test, seed, stride)
+    n_labelled = _labelled_count(candidates, labelled, test, min_views, dropped) if tables else 0
+    splits = split_frames(candidates, np.arange(n_frames), n_labelled, test, seed, stride)
 
     source = {
         "importer": kind,
