@@ -9,7 +9,8 @@ from __future__ import annotations
 import pickle
 
 import numpy as np
-from test_import_formats import _assert_labels, _df3d_calib, _rig, _run, _validated
+import pytest
+from test_import_formats import _assert_labels, _assert_same_cameras, _df3d_calib, _rig, _run, _validated
 from test_importers import CAMS, H_IMG, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
 from s3k.data.deepfly3d import points2d_layout
@@ -74,8 +75,8 @@ def test_labels_dropped_en_masse_say_why(recording, tmp_path, capsys):  # noqa: 
     path = _df3d_result(recording, tmp_path, recording["uv"].transpose(1, 0, 2, 3) * 1000 + 5000)
     assert _df3d_import(recording, tmp_path, path) == 1
     err = capsys.readouterr().err
-    assert (f"labels fall outside the (cropped) {W_IMG}x{H_IMG} images and are dropped (e.g. camera "
-            "camera_0 frame 0 joint_0 at x ") in err
+    assert "labels fall outside the (cropped) images and are dropped (e.g. camera camera_0 frame 0 joint_0 " \
+           "at x " in err and f"in {W_IMG}x{H_IMG})" in err
     assert "0 frames keep a keypoint labelled in >= 2 cameras" in err and "--labelled" not in err
     assert "not in the videos' pixels" in err
 
@@ -137,3 +138,56 @@ def test_small_sleap_project_imports_with_the_defaults(recording, tmp_path, caps
     ds = _validated(tmp_path / "ds")
     np.testing.assert_array_equal(ds.frames("labelled"), [0, 1, 2, 3])
     _assert_labels(ds, recording)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Videos padded or cropped by their encoder
+
+
+@pytest.mark.parametrize("change", ["narrower", "taller"])
+def test_padded_videos_import_with_the_option_the_error_names(recording, tmp_path, capsys, change):  # noqa: F811
+    """Two cameras' videos 4 columns narrower than calibrated (the encoder cut its padding), or one video 4
+    rows taller (padding added at the bottom): the first error names the exact option, and that option alone
+    imports them; the images differ in size by those pixels, so the smaller are padded to the largest."""
+    import re
+
+    from s3k.data.video import write_video
+
+    videos = {cam: recording["root"] / f"{cam}.mkv" for cam in CAMS}
+    changed = ["north", "east"] if change == "narrower" else ["south"]
+    for cam in changed:
+        videos[cam] = tmp_path / f"{cam}.mkv"
+        frames = recording["frames"][cam]
+        if change == "narrower":
+            frames = [f[:, :-4] for f in frames]
+        else:
+            frames = [np.concatenate([f, np.zeros((4, W_IMG, 3), np.uint8)]) for f in frames]
+        write_video(videos[cam], frames, codec="ffv1")
+    calib = recording["root"] / "calibration.toml"
+    sleap = ["--sleap", *[f"{cam}={recording['root'] / cam}.analysis.h5" for cam in CAMS]]
+    assert _run(recording, calib, tmp_path / "x", *sleap, videos=videos) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    option = re.search(r"pass (--video-region [^(]*) \(other placements", err)
+    assert option, err
+    assert _run(recording, calib, tmp_path / "ds", *sleap, *option.group(1).split(), "--labelled", "all",
+                videos=videos) == 0
+    out = capsys.readouterr().out
+    W, H = (W_IMG, H_IMG) if change == "narrower" else (W_IMG, H_IMG + 4)
+    padded = ", ".join(cam for cam in CAMS if (cam in changed) == (change == "narrower"))
+    assert f"note: the images of {padded} are padded with black at the right and bottom to {W}x{H}" in out
+    ds = _validated(tmp_path / "ds")
+    assert ds.image_size == (W, H) and len(ds.frames("labelled")) == N_FRAMES
+    _assert_same_cameras(ds, _rig(recording))  # cut or added at the right and bottom: K is unchanged
+    _assert_labels(ds, recording)
+    images = ds.images([3])[0]
+    for c, cam in enumerate(CAMS):
+        original = recording["frames"][cam][3]
+        if change == "narrower" and cam in changed:
+            np.testing.assert_array_equal(images[c][:, :-4], original[:, :-4])
+            assert not images[c][:, -4:].any()
+        elif change == "taller" and cam not in changed:
+            np.testing.assert_array_equal(images[c][:-4], original)
+            assert not images[c][-4:].any()
+        else:
+            np.testing.assert_array_equal(images[c][:H_IMG], original)

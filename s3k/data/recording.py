@@ -24,75 +24,22 @@ import numpy as np
 
 from s3k.data.calibration_files import read_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
+from s3k.data.import_choices import (
+    PADDING_PX,
+    Box,
+    drop_outside,
+    image_areas,
+    labelled_count,
+    output_size,
+    pad_to_one_size,
+    split_frames,
+)
 from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
 from s3k.data.sleap import default_track, read_sleap_file
 from s3k.errors import UserError
 
-Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
 LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
-
-
-def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None,
-                scale: float | None) -> tuple[int, int]:
-    """The dataset's image size ``(W, H)`` for crops ``boxes``: ``size`` as ``(W, H)`` or as the longer side
-    (aspect kept; crops must share it), or the crop size times ``scale``, or the crop size itself."""
-    widths = {b[2] - b[0] for b in boxes}
-    heights = {b[3] - b[1] for b in boxes}
-    if scale is not None:
-        if scale <= 0:
-            raise UserError(f"--scale must be positive, got {scale}")
-        if len(widths) > 1 or len(heights) > 1:
-            raise UserError("--scale needs crops of one size; give --size W,H for crops of different sizes")
-        return max(1, round(widths.pop() * scale)), max(1, round(heights.pop() * scale))
-    if isinstance(size, int):
-        if size <= 0:
-            raise UserError(f"--size {size}: must be positive")
-        # One number: the longer side, aspect ratio kept (crops must share it).
-        if len({round((b[2] - b[0]) / (b[3] - b[1]), 6) for b in boxes}) > 1:
-            raise UserError("--size PX needs crops of one aspect ratio; give --size W,H")
-        w, h = boxes[0][2] - boxes[0][0], boxes[0][3] - boxes[0][1]
-        s = size / max(w, h)
-        return max(1, round(w * s)), max(1, round(h * s))
-    if size is not None:
-        if len(size) != 2 or min(size) <= 0:
-            raise UserError(f"--size {size}: expected two positive integers W,H")
-        return int(size[0]), int(size[1])
-    if len(widths) > 1 or len(heights) > 1:
-        raise UserError("crops of different sizes need --size W,H (or --size PX) to share one image size")
-    w, h = widths.pop(), heights.pop()
-    if w != int(w) or h != int(h):
-        raise UserError("a crop with a fractional size needs --size")
-    return int(w), int(h)
-
-
-def split_frames(
-    candidates: np.ndarray, all_frames: np.ndarray, n_labelled: int | str, n_test: int, seed: int, stride: int
-) -> dict[int, str]:
-    """Random labelled / test frames among ``candidates``; the rest (every ``stride``-th) unlabelled.
-    ``n_labelled`` is a count or ``"all"``."""
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(candidates)
-    if n_test < 0:
-        raise UserError(f"--test must be >= 0, got {n_test}")
-    if n_test > len(order):
-        raise UserError(f"--test {n_test}: only {len(order)} frames have a keypoint labelled in >= 2 views")
-    test = order[:n_test]
-    rest = order[n_test:]
-    if str(n_labelled) == "all":
-        labelled = rest
-    else:
-        n = int(n_labelled)
-        if n < 0 or n > len(rest):
-            raise UserError(
-                f"--labelled {n}: {len(rest)} frames with a keypoint labelled in >= 2 views remain after "
-                f"{n_test} test frames"
-            )
-        labelled = rest[:n]
-    splits = {int(f): "unlabelled" for f in all_frames if f % stride == 0}
-    splits.update({int(f): "test" for f in test})
-    splits.update({int(f): "labelled" for f in labelled})
-    return dict(sorted(splits.items()))
 
 
 def _warn(message: str) -> None:
@@ -149,15 +96,22 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
             rig = rig.with_video_regions({cam: tuple(box) for cam, box in regions.items()})  # type: ignore[misc]
         except ValueError as exc:
             raise UserError(f"--video-region {exc}") from None
-    for c, cam in enumerate(cameras):
-        W, H = sizes[cam]
-        if (W, H) != tuple(int(v) for v in rig.size[c]):
-            raise UserError(
-                f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
-                f"{rig.size[c][0]}x{rig.size[c][1]}",
-                hint="if the video is the calibrated image cropped or padded by a few pixels, declare it "
-                f"with --video-region {cam}=X0,Y0,X1,Y1",
-            )
+    off = [cam for c, cam in enumerate(cameras) if sizes[cam] != tuple(int(v) for v in rig.size[c])]
+    if off:
+        c = cameras.index(off[0])
+        W, H = sizes[off[0]]
+        calibrated = {cam: tuple(int(v) for v in rig.size[cameras.index(cam)]) for cam in off}
+        padding = all(abs(sizes[cam][i] - calibrated[cam][i]) <= PADDING_PX for cam in off for i in (0, 1))
+        regions_hint = " ".join(f"{cam}=0,0,{sizes[cam][0]},{sizes[cam][1]}" for cam in off)
+        raise UserError(
+            f"{videos[off[0]]}: video is {W}x{H} but {calibration} gives camera {off[0]!r} size "
+            f"{rig.size[c][0]}x{rig.size[c][1]}" + (f" ({len(off)} cameras differ)" if len(off) > 1 else ""),
+            hint=f"if the videos are the calibrated images with rows or columns cut or added at the bottom "
+                 f"and right (an encoder's padding), pass --video-region {regions_hint} (other placements: "
+                 "docs/importing.md)" if padding else
+                 f"if the video is the calibrated image cropped or padded, declare the region it shows with "
+                 f"--video-region {off[0]}=X0,Y0,X1,Y1 (docs/importing.md)",
+        )
     return rig, sizes
 
 
@@ -231,53 +185,6 @@ def _label_tables(
                         f"({', '.join(cameras)})")
     tables = {cam: reader(cam, path) for cam, path in files.items()}
     return kind, {cam: str(p) for cam, p in files.items()}, tables
-
-
-def _drop_outside(uv: np.ndarray, size: tuple[int, int], cameras: list[str], names: list[str]) -> str:
-    """Set the labels ``uv (F, C, K, 2)`` outside images of ``size`` to NaN; the sentence saying how many were
-    dropped, with an example (empty when none was), printed as a note, or as a warning when most were."""
-    W, H = size
-    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
-    known = np.isfinite(uv).all(-1)
-    outside = known & ~inside
-    if not outside.any():
-        return ""
-    f, c, k = np.argwhere(outside)[0]
-    u, v = uv[f, c, k]
-    text = (f"{int(outside.sum())} of {int(known.sum())} labels fall outside the (cropped) {W}x{H} images "
-            f"and are dropped (e.g. camera {cameras[c]} frame {f} {names[k]} at x {u:.0f}, y {v:.0f})")
-    uv[~inside] = np.nan
-    if outside.sum() <= known.sum() / 2:
-        print(f"note: {text}")
-        return ""
-    _warn(text)
-    return text
-
-
-DEFAULT_LABELLED = 10
-
-
-def _labelled_count(candidates: np.ndarray, labelled: int | str | None, test: int, min_views: int,
-                    dropped: str) -> int | str:
-    """The number of labelled frames: ``labelled`` as given, or (None) :data:`DEFAULT_LABELLED`, or every
-    frame left after the test frames when fewer are, said in a note. Refuses a recording where no frame can
-    be labelled, with the reason when most labels fell outside the images."""
-    if not len(candidates) or (dropped and len(candidates) < test + (
-            DEFAULT_LABELLED if labelled is None else 0 if labelled == "all" else int(labelled))):
-        kept = f"{len(candidates)} frames keep a keypoint labelled in >= {min_views} cameras"
-        raise UserError(
-            f"{dropped}: {kept}" if dropped else f"no frame has a keypoint labelled in >= {min_views} "
-            "cameras",
-            hint="the labels are not in the videos' pixels: check the label format's layout, --video-region "
-                 "and --crop (docs/importing.md)" if dropped else
-                 "label a keypoint in two cameras of a frame, and check that each label file is the camera's")
-    if labelled is not None:
-        return labelled
-    left = max(len(candidates) - max(test, 0), 0)
-    if left < DEFAULT_LABELLED:
-        print(f"note: {len(candidates)} frames have a keypoint labelled in >= {min_views} cameras: "
-              f"{left} labelled, {test} test (--labelled N and --test N choose)")
-    return min(DEFAULT_LABELLED, left)
 
 
 def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
@@ -406,6 +313,8 @@ def import_recording(
 
     # Crop and resize: one pixel map per camera, applied to K and to the labels.
     boxes: list[Box] = [(0.0, 0.0, float(W), float(H)) for W, H in rig.size]
+    if not crops and size is None:
+        boxes = pad_to_one_size(boxes, cameras)
     for cam, box in (crops or {}).items():
         if cam not in cameras or len(box) != 4:
             raise UserError(f"--crop {cam}={box}: need one of the cameras ({', '.join(cameras)}) and "
@@ -435,11 +344,11 @@ def import_recording(
         for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files, unseen):
             print(line)
     W, H = out_size
-    dropped = _drop_outside(uv, out_size, cameras, names)
+    dropped = drop_outside(uv, image_areas(boxes, rig.size, out_size), cameras, names)
     mask = np.isfinite(uv).all(-1)
     views = mask.sum(axis=1)  # (F, K)
     candidates = np.flatnonzero((views >= min_views).any(axis=1))
-    n_labelled = _labelled_count(candidates, labelled, test, min_views, dropped) if tables else 0
+    n_labelled = labelled_count(candidates, labelled, test, min_views, dropped) if tables else 0
     splits = split_frames(candidates, np.arange(n_frames), n_labelled, test, seed, stride)
 
     source = {
