@@ -159,6 +159,18 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["two_pass"]["size"] == 32 and metrics["two_pass"]["coarse_frames_placed"] == 3
     assert metrics["n_frames"] == 3 and metrics["image_size"] == [32, 32]
+    # its pixel metrics are in crop pixels; given in the dataset's pixels too, at the workspace centre
+    from s3k.evaluate import pixel_sizes_mm
+
+    rig = source.calibration(source.frames()[:1], np.float64)[0]
+    image_px = float(np.nanmedian(pixel_sizes_mm(rig, 1.0)))  # world units per image pixel
+    k = rule.extent / rule.size / image_px
+    assert metrics["two_pass"]["image_px_per_crop_px"] == pytest.approx(k, rel=1e-9)
+    assert metrics["rms_px_image"] == pytest.approx(metrics["rms_px"] * k, rel=1e-9)
+    assert cli.main(["evaluate", str(run), "--data", str(data)]) == 0
+    assert (f"rms_px and rms_px_reproj are in pixels of the refining pass's 32 px crops ({rule.extent:g} m "
+            f"wide); a crop pixel is about {k:.2f} px of the dataset's 64x64 images") in \
+        capsys.readouterr().out
     out = tmp_path / "p.csv"
     assert cli.main(["predict", str(run), "--data", str(data), "--out", str(out)]) == 0
     assert sorted(read_csv(out, KEYPOINTS)) == list(source.frames("test"))
