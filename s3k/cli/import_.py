@@ -47,9 +47,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-score", type=float, default=0.5,
                         help="OpenPose / MMPose points scored below this are unlabelled (default 0.5)")
     parser.add_argument("--sleap-track", default=None,
-                        help="SLEAP track name or index when several animals are labelled (in a project "
-                             "without tracks: the instance index in each frame); 'all' writes one dataset "
-                             "per track, OUT/<track>")
+                        help="SLEAP track name or index when several animals are labelled (default: the "
+                             "track labelled in the most frames; in a project without tracks: the instance "
+                             "index in each frame); 'all' writes one dataset per track, OUT/<track>")
     parser.add_argument("--camera-map", nargs="+", default=None, metavar="CAM=NAME",
                         help="the video (file name, stem or index) or camera name that holds each camera's "
                              "labels in a SLEAP project or NWB file, where names differ")
@@ -78,7 +78,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
                         help="the region of the calibrated image a camera's video shows, in pixel edge "
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
-                        "calibrated at 1920x1088 (the intrinsics follow)")
+                        "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
+                        "size are padded to the largest)")
     parser.add_argument("--units", default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
