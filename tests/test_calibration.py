@@ -282,3 +282,24 @@ def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
     K_fixed, K_true = fixed.cameras.numpy()["K"], truth.cameras.numpy()["K"]
     np.testing.assert_allclose(K_fixed[1], K_true[1], rtol=0.005, atol=1e-9)
     np.testing.assert_allclose(K_fixed[[0, 2]], K_true[[0, 2]])
+
+
+def test_cli_without_labels_says_labels_are_needed(tmp_path, capsys):
+    """A dataset of unlabelled frames only: the check fails with the reason, for every --splits."""
+    from s3k.cli import main
+    from s3k.data import DatasetWriter
+
+    K, d, R, t = make_rig()
+    with DatasetWriter(tmp_path / "ds", ["k0", "k1"], NAMES, (64, 48), "mm", calibration=(K, d, R, t)) as w:
+        for b in range(3):
+            w.add_frame(b, "unlabelled", np.zeros((4, 48, 64, 3), np.uint8))
+    for extra in ([], ["--splits", "unlabelled"], ["--splits", "labelled,unlabelled,test"]):
+        assert main(["check-calibration", str(tmp_path / "ds"), *extra]) == 1, extra
+        err = capsys.readouterr().err
+        assert "the dataset has no labelled or test frame with one: the check triangulates 2D labels" in err
+        assert "import the recording with its labels" in err and "--splits" not in err
+    # Labels there, but not in the splits chosen: the error names the splits that have them.
+    labelled = _write_dataset(tmp_path / "labelled", make_rig(), make_rig())
+    assert main(["check-calibration", str(labelled), "--splits", "unlabelled"]) == 1
+    assert "no frames in unlabelled; the check triangulates 2D labels; use the labelled and test frames: " \
+           "--splits labelled,test" in capsys.readouterr().err

@@ -152,10 +152,12 @@ def test_slp_per_camera_files_and_camera_map(rec, tmp_path):
 
 def test_slp_tracks(rec, tmp_path, capsys):
     slp = _project(tmp_path / "two.slp", rec, tracks=("mouse_a", "mouse_b"))
-    assert _import(rec, tmp_path / "x", "--sleap", str(slp)) == 1
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1
-    assert "two.slp: instances of 2 tracks (mouse_a, mouse_b)" in err and "--sleap-track" in err
+    # Without --sleap-track the most labelled track is imported (the first on a tie), and the import says so.
+    assert _import(rec, tmp_path / "x", "--sleap", str(slp)) == 0
+    assert ("note: 2 tracks are labelled (frames: mouse_a 24, mouse_b 24); importing mouse_a, the most "
+            "labelled (--sleap-track NAME picks another") in capsys.readouterr().out
+    _, uv = _all_labels(tmp_path / "x")
+    np.testing.assert_array_equal(uv[:6], rec["uv"][:6])
     assert _import(rec, tmp_path / "b", "--sleap", str(slp), extra=["--sleap-track", "mouse_b"]) == 0
     _, uv = _all_labels(tmp_path / "b")
     np.testing.assert_array_equal(uv[:6], rec["uv"][:6] + 10)  # the second animal
@@ -169,12 +171,17 @@ def test_slp_tracks(rec, tmp_path, capsys):
 
     h5 = tmp_path / "two.analysis.h5"
     with h5py.File(h5, "w") as f:
-        f["tracks"] = np.zeros((2, 2, 3, 4))  # (tracks, xy, nodes, frames), as SLEAP writes it
+        tracks = np.full((2, 2, 3, 4), 5.0)  # (tracks, xy, nodes, frames), as SLEAP writes it
+        tracks[0, :, :, 1:] = np.nan  # mouse_a labelled in one frame, mouse_b in four
+        f["tracks"] = tracks
         f["node_names"] = np.array([k.encode() for k in KPS])
         f["track_names"] = np.array([b"mouse_a", b"mouse_b"])
-    assert _import(rec, tmp_path / "h", "--sleap", f"cam0={h5}") == 1
-    err = capsys.readouterr().err
-    assert "2 tracks (mouse_a, mouse_b); choose one with --sleap-track NAME or INDEX" in err
+    assert _import(rec, tmp_path / "h", "--sleap", f"cam0={h5}") == 0
+    assert "(frames: mouse_a 1, mouse_b 4); importing mouse_b" in capsys.readouterr().out
+    with pytest.raises(UserError, match="2 tracks \\(mouse_a, mouse_b\\); choose one with --sleap-track"):
+        from s3k.data.sleap import read_sleap_analysis
+
+        read_sleap_analysis(h5)  # the reader itself does not choose
     # Without tracks, two instances in a frame: choose by index.
     untracked = _project(tmp_path / "untracked.slp", rec, instances=2)
     assert _import(rec, tmp_path / "y", "--sleap", str(untracked)) == 1

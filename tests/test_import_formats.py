@@ -331,7 +331,8 @@ def test_video_region_declares_a_cropped_video(recording, tmp_path, capsys):  # 
     calib = recording["root"] / "calibration.toml"
     assert _run(recording, calib, tmp_path / "x", "--keypoints", "head", videos=videos) == 1
     err = capsys.readouterr().err
-    assert f"video is {W_IMG}x{H_IMG - 4}" in err and "--video-region north=X0,Y0,X1,Y1" in err
+    assert f"video is {W_IMG}x{H_IMG - 4}" in err and "(3 cameras differ)" in err
+    assert f"--video-region north=0,0,{W_IMG},{H_IMG - 4} east=0,0,{W_IMG},{H_IMG - 4} south=" in err
     regions = [f"{cam}=0,2,{W_IMG},{H_IMG - 2}" for cam in CAMS]
     assert _run(recording, calib, tmp_path / "ds", "--keypoints", "head", "--video-region", *regions,
                 videos=videos) == 0

@@ -163,6 +163,20 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["two_pass"]["size"] == 32 and metrics["two_pass"]["coarse_frames_placed"] == 3
     assert metrics["n_frames"] == 3 and metrics["image_size"] == [32, 32]
+    # its pixel metrics are in crop pixels; rms_px_image is the same error in the dataset's own pixels
+    from s3k.detector import Detector
+
+    test_ids = source.frames("test")
+    cams = source.calibration(test_ids, np.float64)
+    got = Detector.load(run, "cpu")(source.images(test_ids), cams)
+    X_true, known = source.points3d(test_ids)
+    uv_true, _ = project(cams, torch.as_tensor(X_true, dtype=torch.float64)[:, None])
+    err = torch.linalg.vector_norm(got.uv - uv_true, dim=-1)
+    inside = ((uv_true >= -0.5) & (uv_true <= 63.5)).all(-1) & torch.as_tensor(known)[:, None]
+    assert metrics["rms_px_image"] == pytest.approx(float(err[inside].pow(2).mean().sqrt()), rel=1e-6)
+    assert cli.main(["evaluate", str(run), "--data", str(data)]) == 0
+    assert ("rms_px and rms_px_reproj are in pixels of the refining pass's 32 px crops"
+            in capsys.readouterr().out)
     out = tmp_path / "p.csv"
     assert cli.main(["predict", str(run), "--data", str(data), "--out", str(out)]) == 0
     assert sorted(read_csv(out, KEYPOINTS)) == list(source.frames("test"))

@@ -69,6 +69,22 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
     return 2 if check.inconsistent else 0
 
 
+def _no_labels(ds, path: str, splits: list[str], n_frames: int) -> tuple[str, str]:
+    """The error (and hint) for splits without a keypoint labelled in two cameras of a frame: the check
+    triangulates 2D labels, so it needs labelled or test frames."""
+    chosen = ", ".join(splits) or "(none)"
+    what = (f"{path}: the {n_frames} frames of {chosen} have no keypoint labelled in two cameras" if n_frames
+            else f"{path}: no frames in {chosen}")
+    others = [s for s in ("labelled", "test") if s not in splits and len(ds.frames(s))
+              and (ds.labels(ds.frames(s))[1].sum(axis=1) >= 2).any()]
+    if others:
+        return (f"{what}; the check triangulates 2D labels", f"use the {' and '.join(others)} frames: "
+                f"--splits {','.join(others)}")
+    return (f"{what}, and the dataset has no labelled or test frame with one: the check triangulates 2D "
+            "labels of a keypoint seen by two cameras",
+            "import the recording with its labels (docs/importing.md), or label frames with s3k label")
+
+
 def run(args: argparse.Namespace) -> int:
     from s3k.calibration import check_calibration
     from s3k.data import Dataset
@@ -79,10 +95,9 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise UserError(f"--splits: unknown split {unknown[0]!r}; choose from labelled, unlabelled, test")
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in splits]) if splits else np.zeros(0, int)
-    if ids.size == 0:
-        raise UserError(f"{args.dataset}: no frames in splits {', '.join(splits) or '(none)'}",
-                        hint="choose others with --splits")
     uv, mask = ds.labels(ids)
+    if not (mask.sum(axis=1) >= 2).any():
+        raise UserError(*_no_labels(ds, args.dataset, splits, len(ids)))
     cams = ds.calibration(ids, dtype=np.float64)
     print(f"{args.dataset}: {len(ds.cameras)} cameras, {len(ids)} frames ({', '.join(splits)}), "
           f"{int(mask.sum())} labels, image {ds.image_size[0]}x{ds.image_size[1]} px")

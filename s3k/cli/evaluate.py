@@ -26,13 +26,26 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
 
 
+def _two_pass_pixels(metrics: dict) -> str:
+    """The line that says a two-pass run's pixel metrics are in crop pixels, with ``rms_px`` in the
+    dataset's own image pixels beside them."""
+    rule = metrics["two_pass"]
+    line = (f"rms_px and rms_px_reproj are in pixels of the refining pass's {rule['size']} px crops "
+            f"({rule['extent']:g} world units wide)")
+    image = metrics.get("rms_px_image")
+    return line if image is None else f"{line}; in the dataset's own images rms_px is {image:.2f} px"
+
+
 def run(args: argparse.Namespace) -> int:
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
+    units = _two_pass_pixels(metrics) if "two_pass" in metrics else None
     if args.json:
         print(json.dumps(metrics))
     else:
         print(format_table(metrics))
+        if units:
+            print(units)
         if args.report:
             print(f"report written to {args.report}", file=sys.stderr)
     return 0

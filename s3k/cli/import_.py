@@ -47,9 +47,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-score", type=float, default=0.5,
                         help="OpenPose / MMPose points scored below this are unlabelled (default 0.5)")
     parser.add_argument("--sleap-track", default=None,
-                        help="SLEAP track name or index when several animals are labelled (in a project "
-                             "without tracks: the instance index in each frame); 'all' writes one dataset "
-                             "per track, OUT/<track>")
+                        help="SLEAP track name or index when several animals are labelled (default: the "
+                             "track labelled in the most frames; in a project without tracks: the instance "
+                             "index in each frame); 'all' writes one dataset per track, OUT/<track>")
     parser.add_argument("--camera-map", nargs="+", default=None, metavar="CAM=NAME",
                         help="the video (file name, stem or index) or camera name that holds each camera's "
                              "labels in a SLEAP project or NWB file, where names differ")
@@ -60,8 +60,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="CSV frame index from the image file name's digits (default) or the row number")
     parser.add_argument("--out", required=True, help="dataset folder to write")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
-    parser.add_argument("--labelled", default="10",
-                        help="number of labelled frames, or 'all' (default 10)")
+    parser.add_argument("--labelled", default=None,
+                        help="number of labelled frames, or 'all' (default 10, or every frame left after the "
+                             "test frames when fewer)")
     parser.add_argument("--test", type=int, default=0, help="number of test frames (default 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random split (default 0)")
     parser.add_argument("--stride", type=int, default=1,
@@ -77,7 +78,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
                         help="the region of the calibrated image a camera's video shows, in pixel edge "
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
-                        "calibrated at 1920x1088 (the intrinsics follow)")
+                        "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
+                        "size are padded to the largest)")
     parser.add_argument("--units", default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         deepfly3d=args.deepfly3d, min_score=args.min_score,
         frame_ids_from=args.frame_ids_from,
         overwrite=args.overwrite,
-        labelled=args.labelled if args.labelled == "all" else _count(args.labelled, "--labelled"),
+        labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
         test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views,
         size=parse_size(args.size), scale=args.scale,
         crops=parse_crops(args.crop, list(videos)) if args.crop else None,

@@ -32,7 +32,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "detector on the crops; the options below the configuration apply to both passes, --image-size to "
         "neither")
     two.add_argument("--two-pass", action="store_true", help="train the coarse-to-fine detector")
-    two.add_argument("--coarse-size", type=int, default=96, metavar="PX",
+    two.add_argument("--coarse-size", type=int, default=None, metavar="PX",
                      help="the coarse pass's image size, longer side (default 96)")
     two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
@@ -40,11 +40,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
-    two.add_argument("--crop-size", type=int, default=REFERENCE_CROP, metavar="PX",
+    two.add_argument("--crop-size", type=int, default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
                           f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
                           f"PX/{REFERENCE_CROP} so they keep their size in the scene")
-    two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
+    two.add_argument("--crop-margin", type=float, default=None, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
                           "frame's keypoints) x (1 + F) (default 0.3)")
     two.add_argument("--crop-extent", type=float, default=None, metavar="W",
@@ -70,13 +70,19 @@ def run(args: argparse.Namespace) -> int:
 def _run_two_pass(args: argparse.Namespace) -> int:
     from s3k.errors import UserError
     from s3k.train.two_pass import train_two_pass
+    from s3k.train.two_pass_start import DEFAULTS, OPTIONS_FILE, read_options
 
-    cfg = config_from_args(args, TrainConfig)
+    saved = read_options(args.out) if args.resume else None
+    where = f"{Path(args.out) / OPTIONS_FILE}"
+    base = None if saved is None else config_from_dict(TrainConfig, saved[0], where=where)
+    cfg = config_from_args(args, TrainConfig, base=base)  # --resume: the run's own, changed by options given
     if cfg.image_size:
         raise UserError("--image-size does not apply to --two-pass",
                         hint="set the coarse pass's size with --coarse-size and the crops' with --crop-size")
-    train_two_pass(args.dataset, args.out, cfg, coarse_size=args.coarse_size, coarse_steps=args.coarse_steps,
-                   coarse_rotation=args.coarse_rotation, crop_size=args.crop_size, margin=args.crop_margin,
-                   extent=args.crop_extent,
-                   resume=args.resume, overwrite=args.overwrite, command=getattr(args, "command_line", None))
+    given = {"coarse_size": args.coarse_size, "coarse_steps": args.coarse_steps,
+             "coarse_rotation": args.coarse_rotation, "crop_size": args.crop_size, "margin": args.crop_margin,
+             "extent": args.crop_extent}
+    options = {k: v if v is not None else (saved[1] if saved else DEFAULTS)[k] for k, v in given.items()}
+    train_two_pass(args.dataset, args.out, cfg, **options, resume=args.resume, overwrite=args.overwrite,
+                   command=getattr(args, "command_line", None))
     return 0

@@ -3,10 +3,16 @@
 
 Layout (DeepFly3D's documentation): a dict whose integer keys ``0 .. 6`` are the cameras, each
 ``{"R": (3, 3) world->camera, "tvec": (3,), "intr": (3, 3), "distort": (5,)}`` in the OpenCV model; a pose
-result also holds ``points2d (C, T, J, 2)``, each point ``(row, column)`` as a fraction of the image height
-and width, and ``camera_ordering``. Camera ``i`` is named ``camera_i`` (DeepFly3D's ``camera_i.mp4``). The
-pickles are read with :func:`s3k.data.safe_pickle.load_pickle` (arrays and containers only). Image sizes
-are not in the files: they come from the videos.
+result also holds ``points2d (C, T, J, 2)``, ``camera_ordering`` and, once calibrated, ``points3d`` (and
+``points3d_wo_procrustes``, the triangulation before DeepFly3D aligns it to its template). Camera ``i`` is
+named ``camera_i`` (DeepFly3D's ``camera_i.mp4``). The pickles are read with
+:func:`s3k.data.safe_pickle.load_pickle` (arrays and containers only). Image sizes are not in the files: they
+come from the videos.
+
+``points2d`` comes in two layouts: DeepFly3D's 2D network writes ``(row, column)`` as fractions of the image
+height and width, while result files it ships (and files written by other tools) hold ``(x, y)`` pixels.
+:func:`points2d_layout` tells them apart: by the reprojection of the 3D points through the cameras where the
+file has both, else by the values (fractions lie within 0..1; pixels reach the image size).
 
 DeepFly3D predicts all 38 joints in every camera, but each camera sees one side of the fly: its rule
 (``camera_see_joint``) keeps the joints of the near side, for the middle camera 3 only the outer leg joints
@@ -108,10 +114,92 @@ def read_deepfly3d_calibration(path: str | Path, units: str | None = None) -> Ri
     return Rig(names, cams, np.zeros((len(names), 2), np.int64), units or "unknown", {"format": "deepfly3d"})
 
 
-def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]]) -> dict[str, LabelTable]:
+LAYOUTS = {
+    "fractions": "(row, column) fractions of the image height and width",
+    "xy": "(x, y) pixels",
+    "rc": "(row, column) pixels",
+}
+
+
+def _in_pixels(points: np.ndarray, layout: str, W: float, H: float) -> np.ndarray:
+    """``points (..., 2)`` of a layout as (x, y) pixels."""
+    if layout == "fractions":
+        return np.stack([points[..., 1] * W, points[..., 0] * H], axis=-1)
+    if layout == "rc":
+        return points[..., ::-1].copy()
+    return points.astype(np.float64, copy=True)
+
+
+def _known(points: np.ndarray) -> np.ndarray:
+    """Points with an estimate: finite and not DeepFly3D's (0, 0) for none."""
+    return np.isfinite(points).all(-1) & ~(points == 0).all(-1)
+
+
+def _reprojection_layout(points: np.ndarray, sizes: dict[str, tuple[int, int]], rig: Rig,
+                         points3d: np.ndarray) -> tuple[str, float] | None:
+    """The layout whose pixels lie nearest the reprojection of ``points3d (T, J, 3)`` through ``rig``, with
+    its median distance (px); None when no layout is clearly the nearest."""
+    from s3k.geometry import project
+
+    errors: dict[str, list[np.ndarray]] = {layout: [] for layout in LAYOUTS}
+    for c in range(points.shape[0]):
+        cam = f"camera_{c}"
+        if cam not in sizes or cam not in rig.names or points3d.shape[:2] != points.shape[1:3]:
+            continue
+        X = np.nan_to_num(points3d.reshape(-1, 3))
+        projected, depth = project(rig.cameras[rig.index(cam)], torch.as_tensor(X, dtype=rig.cameras.dtype))
+        uv = projected.numpy().reshape(points3d.shape[:2] + (2,))
+        ok = _known(points[c]) & np.isfinite(points3d).all(-1) & (depth.numpy() > 0).reshape(uv.shape[:2])
+        if not ok.any():
+            continue
+        W, H = sizes[cam]
+        for layout in LAYOUTS:
+            errors[layout].append(np.linalg.norm(_in_pixels(points[c], layout, W, H)[ok] - uv[ok], axis=-1))
+    medians = {k: float(np.median(np.concatenate(v))) for k, v in errors.items() if v}
+    if not medians:
+        return None
+    best, *others = sorted(medians, key=medians.__getitem__)
+    diagonal = float(np.hypot(*np.max([sizes[c] for c in sizes], axis=0)))
+    if medians[best] > 0.1 * diagonal or (others and medians[best] > 0.5 * medians[others[0]]):
+        return None  # no layout stands out: the 3D points do not belong to these cameras
+    return best, medians[best]
+
+
+def points2d_layout(points: np.ndarray, sizes: dict[str, tuple[int, int]], rig: Rig | None = None,
+                    points3d: np.ndarray | None = None) -> tuple[str, str]:
+    """``(layout, why)`` of ``points (C, T, J, 2)``: a key of :data:`LAYOUTS` and the evidence, in words.
+
+    With cameras (``rig``, in the videos' pixels) and the file's 3D points, the layout whose pixels lie
+    nearest their reprojection wins. Otherwise the values decide: all within 0..1 are fractions; larger ones
+    are pixels, (x, y) unless more of them fit the images as (row, column)."""
+    if rig is not None and points3d is not None:
+        found = _reprojection_layout(points, sizes, rig, points3d)
+        if found is not None:
+            return found[0], f"they lie {found[1]:.1f} px (median) from the reprojection of the 3D points"
+    known = _known(points)
+    values = points[known]
+    if not values.size or float(np.abs(values).max()) <= 1.5:
+        return "fractions", "every value lies within 0..1"
+    fit = {"xy": 0, "rc": 0}
+    for c in range(points.shape[0]):
+        if f"camera_{c}" not in sizes:
+            continue
+        W, H = sizes[f"camera_{c}"]
+        p = points[c][known[c]]
+        fit["xy"] += int(((p[:, 0] <= W) & (p[:, 1] <= H)).sum())
+        fit["rc"] += int(((p[:, 0] <= H) & (p[:, 1] <= W)).sum())
+    layout = "rc" if fit["rc"] > fit["xy"] else "xy"
+    return layout, (f"values reach {values[:, 0].max():.0f} and {values[:, 1].max():.0f}, beyond fractions, "
+                    f"and fit the images as {LAYOUTS[layout]}")
+
+
+def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]],
+                        rig: Rig | None = None) -> dict[str, LabelTable]:
     """2D joints of a ``df3d_result*.pkl`` per camera ``camera_<i>`` (index ``i`` of ``points2d``), in the
     pixels of an image of ``sizes[camera] = (W, H)``; joints the camera cannot see (:func:`camera_sees_joint`,
-    for the 38-joint fly) and non-finite points are unlabelled. Cameras without a size are skipped."""
+    for the 38-joint fly) and non-finite points are unlabelled. Cameras without a size are skipped. The
+    layout of ``points2d`` is :func:`points2d_layout`'s (``rig``: the cameras, for the reprojection of the
+    file's 3D points); the import prints which it took and why."""
     path = Path(path)
     data = load_pickle(path)
     if not isinstance(data, dict) or "points2d" not in data:
@@ -124,18 +212,34 @@ def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]]) -> 
         raise UserError(f"{path}: 'points2d' has shape {points.shape}, expected (cameras, frames, joints, 2)")
     C, T, J, _ = points.shape
     names = JOINTS if J == len(JOINTS) else [f"joint_{j}" for j in range(J)]
+    layout, why = points2d_layout(points, sizes, rig, _points3d(data, T, J))
+    print(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
     tables = {}
     for c in range(C):
         cam = f"camera_{c}"
         if cam not in sizes:
             continue
         W, H = sizes[cam]
-        uv = np.stack([points[c, :, :, 1] * W, points[c, :, :, 0] * H], axis=-1)  # (row, col) fractions
+        uv = _in_pixels(points[c], layout, W, H)
+        unseen: list[str] = []
         if J == len(JOINTS):
             seen = np.array([camera_sees_joint(c if c < 7 else 3, j) for j in range(J)])
             uv[:, ~seen] = np.nan
+            unseen = [names[j] for j in np.flatnonzero(~seen)]
         uv[~np.isfinite(uv).all(-1)] = np.nan
-        # DeepFly3D writes zeros for joints it has no estimate of.
-        uv[(points[c] == 0).all(-1)] = np.nan
-        tables[cam] = LabelTable(list(names), np.arange(T, dtype=np.int64), uv, f"{path} camera {c}")
+        uv[~_known(points[c])] = np.nan  # DeepFly3D writes zeros for joints it has no estimate of
+        tables[cam] = LabelTable(list(names), np.arange(T, dtype=np.int64), uv, f"{path} camera {c}", unseen)
     return tables
+
+
+def _points3d(data: dict, frames: int, joints: int) -> np.ndarray | None:
+    """The result's triangulated joints ``(T, J, 3)`` in the cameras' world frame, if it has them: DeepFly3D's
+    ``points3d`` is aligned to its template, ``points3d_wo_procrustes`` is not."""
+    for key in ("points3d_wo_procrustes", "points3d"):
+        try:
+            X = np.asarray(data.get(key), dtype=np.float64)
+        except (TypeError, ValueError):
+            continue
+        if X.shape == (frames, joints, 3):
+            return X
+    return None

@@ -7,7 +7,7 @@ Pixel (0, 0) is the centre of the top-left pixel in DeepLabCut, Lightning Pose a
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +24,15 @@ class LabelTable:
         frame_ids: ``(F,)`` int64 video frame indices, increasing.
         uv: ``(F, K, 2)`` float64 pixels; NaN where unlabelled.
         source: the file it came from (for messages).
+        unseen: keypoints the format's documented rule says this camera cannot see (left unlabelled without
+            a warning of their own: :func:`coverage_warnings`).
     """
 
     keypoints: list[str]
     frame_ids: np.ndarray
     uv: np.ndarray
     source: str = ""
+    unseen: list[str] = field(default_factory=list)
 
     def dense(self, num_frames: int, keypoints: list[str] | None = None) -> np.ndarray:
         """``(num_frames, K', 2)`` indexed by frame id (NaN where absent), keypoints in the given order."""
@@ -57,7 +60,8 @@ def frame_id_from_path(image_path: str) -> int | None:
 
 
 def coverage_warnings(mask: np.ndarray, cameras: list[str], keypoints: list[str],
-                      sources: dict[str, str] | None = None) -> list[str]:
+                      sources: dict[str, str] | None = None,
+                      unseen: dict[str, list[str]] | None = None) -> list[str]:
     """One line per camera without any label, per keypoint without a label in any camera, and per camera
     missing some keypoints that other cameras have (what an importer prints before writing a dataset).
 
@@ -65,8 +69,11 @@ def coverage_warnings(mask: np.ndarray, cameras: list[str], keypoints: list[str]
         mask: ``(F, C, K)`` bool, labelled.
         cameras, keypoints: the ``C`` and ``K`` names.
         sources: ``{camera: label file}`` to name in the lines.
+        unseen: ``{camera: keypoints}`` that the label format says the camera cannot see: not reported as
+            missing there (the importer says the rule once).
     """
     sources = sources or {}
+    unseen = unseen or {}
     lines = []
     per_camera = np.asarray(mask, dtype=bool).any(axis=0).reshape(len(cameras), len(keypoints))
     for c, cam in enumerate(cameras):
@@ -74,7 +81,8 @@ def coverage_warnings(mask: np.ndarray, cameras: list[str], keypoints: list[str]
         if not per_camera[c].any():
             lines.append(f"warning: camera {cam} has no labels{where}")
             continue
-        missing = [k for i, k in enumerate(keypoints) if not per_camera[c, i] and per_camera[:, i].any()]
+        missing = [k for i, k in enumerate(keypoints) if not per_camera[c, i] and per_camera[:, i].any()
+                   and k not in unseen.get(cam, ())]
         if missing:
             lines.append(f"warning: camera {cam}: keypoints {', '.join(missing)} have no labels{where}")
     for i, k in enumerate(keypoints):

@@ -24,75 +24,22 @@ import numpy as np
 
 from s3k.data.calibration_files import read_calibration
 from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
+from s3k.data.import_choices import (
+    PADDING_PX,
+    Box,
+    drop_outside,
+    image_areas,
+    labelled_count,
+    output_size,
+    pad_to_one_size,
+    split_frames,
+)
 from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
-from s3k.data.sleap import read_sleap_file
+from s3k.data.sleap import default_track, read_sleap_file
 from s3k.errors import UserError
 
-Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
 LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
-
-
-def output_size(boxes: Sequence[Box], size: int | tuple[int, int] | None,
-                scale: float | None) -> tuple[int, int]:
-    """The dataset's image size ``(W, H)`` for crops ``boxes``: ``size`` as ``(W, H)`` or as the longer side
-    (aspect kept; crops must share it), or the crop size times ``scale``, or the crop size itself."""
-    widths = {b[2] - b[0] for b in boxes}
-    heights = {b[3] - b[1] for b in boxes}
-    if scale is not None:
-        if scale <= 0:
-            raise UserError(f"--scale must be positive, got {scale}")
-        if len(widths) > 1 or len(heights) > 1:
-            raise UserError("--scale needs crops of one size; give --size W,H for crops of different sizes")
-        return max(1, round(widths.pop() * scale)), max(1, round(heights.pop() * scale))
-    if isinstance(size, int):
-        if size <= 0:
-            raise UserError(f"--size {size}: must be positive")
-        # One number: the longer side, aspect ratio kept (crops must share it).
-        if len({round((b[2] - b[0]) / (b[3] - b[1]), 6) for b in boxes}) > 1:
-            raise UserError("--size PX needs crops of one aspect ratio; give --size W,H")
-        w, h = boxes[0][2] - boxes[0][0], boxes[0][3] - boxes[0][1]
-        s = size / max(w, h)
-        return max(1, round(w * s)), max(1, round(h * s))
-    if size is not None:
-        if len(size) != 2 or min(size) <= 0:
-            raise UserError(f"--size {size}: expected two positive integers W,H")
-        return int(size[0]), int(size[1])
-    if len(widths) > 1 or len(heights) > 1:
-        raise UserError("crops of different sizes need --size W,H (or --size PX) to share one image size")
-    w, h = widths.pop(), heights.pop()
-    if w != int(w) or h != int(h):
-        raise UserError("a crop with a fractional size needs --size")
-    return int(w), int(h)
-
-
-def split_frames(
-    candidates: np.ndarray, all_frames: np.ndarray, n_labelled: int | str, n_test: int, seed: int, stride: int
-) -> dict[int, str]:
-    """Random labelled / test frames among ``candidates``; the rest (every ``stride``-th) unlabelled.
-    ``n_labelled`` is a count or ``"all"``."""
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(candidates)
-    if n_test < 0:
-        raise UserError(f"--test must be >= 0, got {n_test}")
-    if n_test > len(order):
-        raise UserError(f"--test {n_test}: only {len(order)} frames have a keypoint labelled in >= 2 views")
-    test = order[:n_test]
-    rest = order[n_test:]
-    if str(n_labelled) == "all":
-        labelled = rest
-    else:
-        n = int(n_labelled)
-        if n < 0 or n > len(rest):
-            raise UserError(
-                f"--labelled {n}: {len(rest)} frames with a keypoint labelled in >= 2 views remain after "
-                f"{n_test} test frames"
-            )
-        labelled = rest[:n]
-    splits = {int(f): "unlabelled" for f in all_frames if f % stride == 0}
-    splits.update({int(f): "test" for f in test})
-    splits.update({int(f): "labelled" for f in labelled})
-    return dict(sorted(splits.items()))
 
 
 def _warn(message: str) -> None:
@@ -149,25 +96,32 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
             rig = rig.with_video_regions({cam: tuple(box) for cam, box in regions.items()})  # type: ignore[misc]
         except ValueError as exc:
             raise UserError(f"--video-region {exc}") from None
-    for c, cam in enumerate(cameras):
-        W, H = sizes[cam]
-        if (W, H) != tuple(int(v) for v in rig.size[c]):
-            raise UserError(
-                f"{videos[cam]}: video is {W}x{H} but {calibration} gives camera {cam!r} size "
-                f"{rig.size[c][0]}x{rig.size[c][1]}",
-                hint="if the video is the calibrated image cropped or padded by a few pixels, declare it "
-                f"with --video-region {cam}=X0,Y0,X1,Y1",
-            )
+    off = [cam for c, cam in enumerate(cameras) if sizes[cam] != tuple(int(v) for v in rig.size[c])]
+    if off:
+        c = cameras.index(off[0])
+        W, H = sizes[off[0]]
+        calibrated = {cam: tuple(int(v) for v in rig.size[cameras.index(cam)]) for cam in off}
+        padding = all(abs(sizes[cam][i] - calibrated[cam][i]) <= PADDING_PX for cam in off for i in (0, 1))
+        regions_hint = " ".join(f"{cam}=0,0,{sizes[cam][0]},{sizes[cam][1]}" for cam in off)
+        raise UserError(
+            f"{videos[off[0]]}: video is {W}x{H} but {calibration} gives camera {off[0]!r} size "
+            f"{rig.size[c][0]}x{rig.size[c][1]}" + (f" ({len(off)} cameras differ)" if len(off) > 1 else ""),
+            hint=f"if the videos are the calibrated images with rows or columns cut or added at the bottom "
+                 f"and right (an encoder's padding), pass --video-region {regions_hint} (other placements: "
+                 "docs/importing.md)" if padding else
+                 f"if the video is the calibrated image cropped or padded, declare the region it shows with "
+                 f"--video-region {off[0]}=X0,Y0,X1,Y1 (docs/importing.md)",
+        )
     return rig, sizes
 
 
 def _label_tables(
     cameras: list[str], sizes: dict[str, tuple[int, int]], *, sleap, sleap_project, nwb, dlc, lightning_pose,
     openpose, mmpose, deepfly3d, sleap_track, camera_map, accept_predictions, frame_ids_from: str,
-    min_score: float,
+    min_score: float, rig: Rig | None = None,
 ) -> tuple[str, dict[str, str], dict[str, LabelTable]]:
     """``(kind, {camera: file}, {camera: LabelTable})`` of the one label option given (``"none"``, {}, {} for
-    none)."""
+    none); ``rig``: the cameras at the videos' sizes (a DeepFly3D result's layout is checked against them)."""
     from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
 
     options = ("--sleap", "--sleap", *LABEL_OPTIONS[1:])
@@ -180,18 +134,26 @@ def _label_tables(
         return "none", {}, {}
     option = given[0][0]
     if option == "--deepfly3d":
-        from s3k.data.deepfly3d import read_deepfly3d_pose
+        from s3k.data.deepfly3d import JOINTS, read_deepfly3d_pose
 
-        tables = read_deepfly3d_pose(deepfly3d, sizes)
+        tables = read_deepfly3d_pose(deepfly3d, sizes, rig)
         if not tables:
             raise UserError(f"--deepfly3d {deepfly3d}: no camera camera_0, camera_1, ... among --videos "
                             f"({', '.join(cameras)})")
+        hidden = sorted({len(t.unseen) for t in tables.values()})
+        if hidden[-1]:
+            shown = hidden[0] if len(hidden) == 1 else f"{hidden[0]} to {hidden[-1]}"
+            print(f"note: DeepFly3D's visibility rule leaves {shown} of the {len(JOINTS)} joints unlabelled "
+                  "in each camera: those of the fly's far side "
+                  "(docs/importing.md#what-happens-to-each-format)")
         return "deepfly3d", {cam: str(deepfly3d) for cam in tables}, tables
     if sleap_project or nwb:
         from s3k.data.nwb import read_nwb
         from s3k.data.slp import read_slp
 
         if sleap_project:
+            if sleap_track is None:
+                sleap_track = default_track([sleap_project], accept_predictions)
             tables = read_slp(sleap_project, cameras, camera_map=camera_map, track=sleap_track,
                               predictions=accept_predictions)
         else:
@@ -201,6 +163,8 @@ def _label_tables(
     reader: Callable[[str, str | Path], LabelTable]
     if option == "--sleap":
         files, kind = dict(sleap), "sleap"
+        if sleap_track is None:
+            sleap_track = default_track(list(files.values()), accept_predictions)
         reader = lambda cam, p: read_sleap_file(p, cam, sleap_track, camera_map, accept_predictions)  # noqa: E731
     elif option == "--openpose":
         files, kind = dict(openpose), "openpose"
@@ -256,7 +220,7 @@ def import_recording(
     accept_predictions: bool = False,
     frame_ids_from: str = "path",
     overwrite: bool = False,
-    labelled: int | str = 10,
+    labelled: int | str | None = None,
     test: int = 0,
     seed: int = 0,
     stride: int = 1,
@@ -284,7 +248,8 @@ def import_recording(
         mmpose: ``{camera: MMPose / RTMPose predictions .json}``.
         deepfly3d: a DeepFly3D ``df3d_result*.pkl`` (cameras ``camera_0`` ...).
         min_score: detections (OpenPose, MMPose) below this score are unlabelled.
-        sleap_track: SLEAP track name or index (when a file has several); in a project without tracks,
+        sleap_track: SLEAP track name or index (default: the most labelled track, when the files have
+            several); in a project without tracks,
             the instance index in each frame.
         sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
         nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.nwb`).
@@ -293,7 +258,8 @@ def import_recording(
             frame has no labels by a person.
         frame_ids_from: CSV frame index from the image file name's digits (``"path"``) or the row (``"row"``).
         overwrite: replace an existing dataset folder.
-        labelled: number of labelled frames, or ``"all"``.
+        labelled: number of labelled frames, or ``"all"``; None: 10, or all there are after the test frames
+            when fewer (the import says so).
         test: number of test frames (their labels are kept for evaluation).
         seed: seed of the random split.
         stride: keep every ``stride``-th video frame as unlabelled.
@@ -322,7 +288,7 @@ def import_recording(
         cameras, sizes, sleap=sleap, sleap_project=sleap_project, nwb=nwb, dlc=dlc,
         lightning_pose=lightning_pose, openpose=openpose, mmpose=mmpose, deepfly3d=deepfly3d,
         sleap_track=sleap_track, camera_map=camera_map, accept_predictions=accept_predictions,
-        frame_ids_from=frame_ids_from, min_score=min_score)
+        frame_ids_from=frame_ids_from, min_score=min_score, rig=rig)
     names: list[str] = []
     for table in tables.values():
         names += [k for k in table.keypoints if k not in names]
@@ -332,7 +298,6 @@ def import_recording(
                             f"imported unlabelled), or give labels with one of {', '.join(LABEL_OPTIONS)}")
         if test:
             raise UserError(f"--test {test}: test frames need labels, and none are given")
-        labelled = 0
     elif keypoints:
         missing = [k for k in keypoints if k not in names]
         if missing:
@@ -348,6 +313,8 @@ def import_recording(
 
     # Crop and resize: one pixel map per camera, applied to K and to the labels.
     boxes: list[Box] = [(0.0, 0.0, float(W), float(H)) for W, H in rig.size]
+    if not crops and size is None:
+        boxes = pad_to_one_size(boxes, cameras)
     for cam, box in (crops or {}).items():
         if cam not in cameras or len(box) != 4:
             raise UserError(f"--crop {cam}={box}: need one of the cameras ({', '.join(cameras)}) and "
@@ -373,18 +340,16 @@ def import_recording(
         dense = table.dense(n_frames, present)
         uv[:, c, cols] = transform_points(dense, maps[c])
     if tables:
-        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files):
+        unseen = {cam: table.unseen for cam, table in tables.items()}
+        for line in coverage_warnings(np.isfinite(uv).all(-1), cameras, names, files, unseen):
             print(line)
     W, H = out_size
-    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= W - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
-    outside = np.isfinite(uv).all(-1) & ~inside
-    if outside.any():
-        print(f"note: {int(outside.sum())} labels fall outside the (cropped) images and are dropped")
-    uv[~inside] = np.nan
+    dropped = drop_outside(uv, image_areas(boxes, rig.size, out_size), cameras, names)
     mask = np.isfinite(uv).all(-1)
     views = mask.sum(axis=1)  # (F, K)
     candidates = np.flatnonzero((views >= min_views).any(axis=1))
-    splits = split_frames(candidates, np.arange(n_frames), labelled, test, seed, stride)
+    n_labelled = labelled_count(candidates, labelled, test, min_views, dropped) if tables else 0
+    splits = split_frames(candidates, np.arange(n_frames), n_labelled, test, seed, stride)
 
     source = {
         "importer": kind,

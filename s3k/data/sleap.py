@@ -18,21 +18,9 @@ def _decode(values) -> list[str]:
     return [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(values).reshape(-1)]
 
 
-def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> LabelTable:
-    """Read a SLEAP analysis HDF5 file (``sleap-convert --format analysis``).
-
-    SLEAP writes MATLAB-ordered arrays: ``tracks (n_tracks, 2, n_nodes, n_frames)``, ``track_occupancy
-    (n_frames, n_tracks)``, ``node_names (n_nodes,)``, ``track_names (n_tracks,)``. Files written without the
-    transposition (``tracks (n_frames, n_nodes, 2, n_tracks)``) are recognized too. Missing points are NaN;
-    frames where the track is not occupied are NaN.
-
-    Args:
-        path: the ``.h5`` file.
-        track: track name or index; may be omitted when the file holds one track.
-
-    Returns:
-        The labels of every video frame (``frame_ids = 0..n_frames-1``).
-    """
+def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str], np.ndarray]:
+    """``(node names, tracks (frames, nodes, 2, tracks), track names, occupancy (frames, tracks))`` of an
+    analysis file; a point of an unoccupied frame, or with a NaN coordinate, is NaN."""
     import h5py
 
     path = Path(path)
@@ -70,6 +58,37 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
         names = [f"track_{i}" for i in range(n_tracks)]
     if len(names) != n_tracks:
         raise UserError(f"{path}: 'track_names' has {len(names)} names, 'tracks' has {n_tracks} tracks")
+    if occupancy is None:
+        occupancy = np.ones((n_frames, n_tracks), dtype=np.uint8)
+    if occupancy.shape == (n_tracks, n_frames) and occupancy.shape != (n_frames, n_tracks):
+        occupancy = occupancy.T
+    if occupancy.shape != (n_frames, n_tracks):
+        raise UserError(
+            f"{path}: 'track_occupancy' has shape {occupancy.shape}, expected ({n_frames}, {n_tracks})"
+        )
+    tracks = np.where((occupancy == 0)[:, None, None, :], np.nan, tracks)
+    tracks = np.where(np.isnan(tracks).any(axis=2, keepdims=True), np.nan, tracks)
+    return nodes, tracks, names, occupancy
+
+
+def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> LabelTable:
+    """Read a SLEAP analysis HDF5 file (``sleap-convert --format analysis``).
+
+    SLEAP writes MATLAB-ordered arrays: ``tracks (n_tracks, 2, n_nodes, n_frames)``, ``track_occupancy
+    (n_frames, n_tracks)``, ``node_names (n_nodes,)``, ``track_names (n_tracks,)``. Files written without the
+    transposition (``tracks (n_frames, n_nodes, 2, n_tracks)``) are recognized too. Missing points are NaN;
+    frames where the track is not occupied are NaN.
+
+    Args:
+        path: the ``.h5`` file.
+        track: track name or index; may be omitted when the file holds one track.
+
+    Returns:
+        The labels of every video frame (``frame_ids = 0..n_frames-1``).
+    """
+    nodes, tracks, names, _ = _analysis_arrays(path)
+    path = Path(path)
+    n_frames, _, _, n_tracks = tracks.shape
     if track is None:
         if n_tracks != 1:
             raise UserError(f"{path}: {n_tracks} tracks ({', '.join(names)})", hint=TRACK_HINT)
@@ -83,21 +102,41 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
             raise UserError(f"{path}: no track {track!r} (tracks: {', '.join(names)})",
                             hint="give a track name or index with --sleap-track")
         ti = names.index(track)
-    uv = tracks[:, :, :, ti].copy()
-    if occupancy is not None:
-        if occupancy.shape == (n_tracks, n_frames) and occupancy.shape != (n_frames, n_tracks):
-            occupancy = occupancy.T
-        if occupancy.shape != (n_frames, n_tracks):
-            raise UserError(
-                f"{path}: 'track_occupancy' has shape {occupancy.shape}, expected ({n_frames}, {n_tracks})"
-            )
-        uv[occupancy[:, ti] == 0] = np.nan
-    uv[np.isnan(uv).any(axis=2)] = np.nan
+    uv = np.ascontiguousarray(tracks[:, :, :, ti])
     if not np.isfinite(uv).any():
         what = f"track {names[ti]!r} has no labelled point" if n_frames else "the file holds 0 frames"
         raise UserError(f"{path}: no labelled frames ({what})")
     return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path))
 
+
+
+def track_frame_counts(path: str | Path, predictions: bool = False) -> dict[str, int]:
+    """``{track: frames with a labelled point}`` of a SLEAP analysis file or project (``.slp``: the instances
+    labelled by a person, and predicted ones with ``predictions``)."""
+    if Path(path).suffix.lower() == ".slp":
+        from s3k.data.slp import slp_track_frames
+
+        return slp_track_frames(path, predictions)
+    _, tracks, names, _ = _analysis_arrays(path)
+    counts = np.isfinite(tracks).any(axis=(1, 2)).sum(axis=0)
+    return {name: int(n) for name, n in zip(names, counts)}
+
+
+def default_track(paths: list[str | Path], predictions: bool = False) -> str | None:
+    """The track to import when none is named and the SLEAP files hold several: the one labelled in the most
+    frames (of all files; the first on a tie), said in a note. None when they hold at most one track."""
+    counts: dict[str, int] = {}
+    for path in paths:
+        for name, n in track_frame_counts(path, predictions).items():
+            counts[name] = counts.get(name, 0) + n
+    counts = {name: n for name, n in counts.items() if n}
+    if len(counts) < 2:
+        return None
+    chosen = max(counts, key=counts.__getitem__)
+    listed = ", ".join(f"{name} {n}" for name, n in counts.items())
+    print(f"note: {len(counts)} tracks are labelled (frames: {listed}); importing {chosen}, the most "
+          "labelled (--sleap-track NAME picks another, --sleap-track all writes one dataset per track)")
+    return chosen
 
 
 def sleap_analysis_tracks(path: str | Path) -> list[str]:

@@ -95,6 +95,18 @@ def slp_tracks(path: str | Path) -> list[str]:
     return [t.name for t in labels.tracks if id(t) in used]
 
 
+def slp_track_frames(path: str | Path, predictions: bool = False) -> dict[str, int]:
+    """``{track: labelled frames}`` of a project's instances labelled by a person (and predicted ones with
+    ``predictions``), in the project's track order; a frame of several videos counts once per video."""
+    labels = load_slp(path)
+    counts = {t.name: 0 for t in labels.tracks}
+    for lf in labels.labeled_frames:
+        pool = list(lf.user_instances) + (list(lf.predicted_instances) if predictions else [])
+        for name in {i.track.name for i in pool if i.track is not None and i.track.name in counts}:
+            counts[name] += 1
+    return counts
+
+
 def _track_choice(labels: Any, path: Path, track: str | int | None) -> tuple[Any | None, int | None]:
     """(the chosen Track or None, the instance index or None)."""
     tracks = list(labels.tracks)

@@ -163,21 +163,45 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     """
     import shutil
 
-    from s3k.data import Dataset
-    from s3k.train import train
+    from s3k.train.two_pass_start import OPTIONS_FILE, is_stub, write_options
 
     data, out = Path(data), Path(out)
-    if out.exists() and not resume:
+    if out.exists() and not resume and not is_stub(out):  # a start that trained nothing is not kept
         if not overwrite:
             raise UserError(f"{out} exists", hint="pass --resume to continue it or --overwrite to replace it")
-        if not is_two_pass(out) and not (out / "coarse").is_dir():
+        if not is_two_pass(out) and not (out / "coarse").is_dir() and not (out / OPTIONS_FILE).is_file():
             raise UserError(f"{out} is not a two-pass run; refusing to delete it",
                             hint="choose another --out")
+    if out.exists() and not resume:
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
+    options = dict(coarse_size=coarse_size, coarse_steps=coarse_steps, coarse_rotation=coarse_rotation,
+                   crop_size=crop_size, margin=margin, extent=extent)
+    if not (out / OPTIONS_FILE).is_file():
+        write_options(out, cfg, options)
+    try:
+        results = _train_two_pass(data, out, cfg, coarse_size, coarse_steps, coarse_rotation, crop_size,
+                                  margin, extent, command, log)
+    except BaseException:
+        if is_stub(out):  # nothing trained: leave no folder that a retry would have to get past
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    write_options(out, cfg, options)  # what --resume takes: the options of the last call that completed
+    return results
+
+
+def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: int | None,
+                    coarse_rotation: float | None, crop_size: int, margin: float, extent: float | None,
+                    command: str | None, log) -> dict[str, Any]:
+    from s3k.data import Dataset
+    from s3k.train import train
+    from s3k.train.two_pass_start import crop_extent_warning
+
     ds = Dataset.open(data, cache="none")
     rule = (CropRule(float(extent), int(crop_size), 0.0) if extent is not None
             else crop_rule_from_labels(ds, crop_size, margin))
+    if extent is None and (too_large := crop_extent_warning(ds, rule.extent, rule.size, coarse_size)):
+        log(f"warning: {too_large}")
     results: dict[str, Any] = {"rule": rule}
     coarse_cfg = cfg.replace(image_size=coarse_size, steps=coarse_steps or cfg.steps,
                              rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation)
