@@ -95,8 +95,8 @@ def crop_extent_warning(dataset, extent: float, crop_size: int, coarse_size: int
     scale than the coarse pass. None otherwise, or when no labelled keypoint can be triangulated."""
     import torch
 
-    from s3k.geometry.warp import metric_crop_boxes
     from s3k.geometry import triangulate_pixels
+    from s3k.geometry.warp import metric_crop_boxes
 
     ids = dataset.frames("labelled")
     if not len(ids):
