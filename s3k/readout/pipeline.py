@@ -1,0 +1,177 @@
+"""The read-out pipeline: logits of synchronized frames -> :class:`ReadOut` (detections in the cameras'
+pixels, confidences, views used, 3D points), composed of :mod:`s3k.readout.views` and
+:mod:`s3k.readout.rigid`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from s3k.geometry import Cameras, project
+from s3k.heatmaps import confidence_weight
+from s3k.readout.rigid import fit_layout, layout_shape, reject_layout, search_layout
+from s3k.readout.views import (
+    DEFAULT_MIN_WEIGHT,
+    DTYPE,
+    moments,
+    reject_outliers,
+    select_views,
+    triangulate,
+    window_cells,
+)
+
+__all__ = ["ReadOut", "read_out"]
+
+
+@dataclass
+class ReadOut:
+    """The read-out of a batch of synchronized frames (float64 tensors, on the logits' device).
+
+    Attributes:
+        uv: ``(B, C, K, 2)`` per-view 2D detections (softmax means) in the cameras' pixels.
+        var: ``(B, C, K)`` heatmap variances, squared network-input pixels.
+        weights: ``(B, C, K)`` confidence weights.
+        used: ``(B, C, K)`` bool, the view entered the triangulation (:func:`select_views`).
+        X: ``(B, K, 3)`` triangulated points in world units, NaN where invalid.
+        valid: ``(B, K)`` bool, the triangulation is defined.
+        cams: the cameras ``(B, C)`` or ``(C,)`` of ``uv``, float64.
+        probs: ``(B, C, K, h, w)`` heatmaps (softmax), or None.
+
+    The reprojections and residuals are computed when first asked for: a caller that wants only the points
+    (the per-frame inference benchmark) does not pay for them.
+    """
+
+    uv: Tensor
+    var: Tensor
+    weights: Tensor
+    used: Tensor
+    X: Tensor
+    valid: Tensor
+    cams: Cameras
+    probs: Tensor | None = None
+
+    @cached_property
+    def reproj(self) -> Tensor:
+        """``(B, C, K, 2)`` reprojection of ``X`` into every camera, NaN where invalid."""
+        reproj, _depth = project(self.cams, self.X[:, None])
+        return torch.where(self.valid[:, None, :, None], reproj, torch.full_like(reproj, float("nan")))
+
+    @cached_property
+    def residual(self) -> Tensor:
+        """``(B, C, K)`` distance between ``reproj`` and ``uv``, pixels, NaN where invalid."""
+        return torch.linalg.vector_norm(self.reproj - self.uv, dim=-1)
+
+    @property
+    def ncams(self) -> Tensor:
+        """``(B, K)`` number of views used."""
+        return self.used.sum(dim=1)
+
+    @property
+    def score(self) -> Tensor:
+        """``(B, K)`` mean confidence weight over all views."""
+        return self.weights.mean(dim=1)
+
+    @property
+    def error(self) -> Tensor:
+        """``(B, K)`` mean reprojection residual over the views used, pixels, NaN where invalid."""
+        res = torch.where(self.used, self.residual, torch.zeros_like(self.residual))
+        error = res.sum(dim=1) / self.ncams.clamp_min(1)
+        return torch.where(self.valid, error, torch.full_like(error, float("nan")))
+
+    def cpu(self) -> ReadOut:
+        """The same read-out with every tensor on the CPU."""
+        return ReadOut(self.uv.cpu(), self.var.cpu(), self.weights.cpu(), self.used.cpu(), self.X.cpu(),
+                       self.valid.cpu(), self.cams.to(device="cpu"),
+                       None if self.probs is None else self.probs.cpu())
+
+
+def _to_camera_pixels(net_uv: Tensor, Minv: Tensor) -> Tensor:
+    """Detections ``(B, C, K, 2)`` in network-input pixels mapped by the affine ``Minv`` (``(C, 3, 3)`` or
+    ``(B, C, 3, 3)``) into the cameras' own pixels."""
+    return net_uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
+
+
+def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
+             pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
+             keep_heatmaps: bool = False, max_residual_px: float | None = None,
+             window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0) -> ReadOut:
+    """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
+
+    Args:
+        logits: ``(B, C, K, h, w)`` network outputs.
+        cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames), in the pixels the results are given in.
+        stride: heatmap stride (network-input pixels per cell).
+        sigma: target width in network-input pixels (the confidence weight's scale).
+        pixel_maps: ``(C, 3, 3)`` or per frame ``(B, C, 3, 3)`` affine maps from the cameras' pixels to the
+            network-input pixels (for cameras of the original images that were cropped and resized for the
+            network), or None when ``cams`` are the network input's cameras.
+        min_weight: views with a confidence weight at or below this are not used.
+        keep_heatmaps: also return the softmax heatmaps.
+        max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
+            (:func:`reject_outliers`), in the network-input pixels (the pixels the threshold has at training,
+            ``--outlier_px``, whatever the size of the original images).
+        window: each detection is its heatmap's mean within this many cells of the peak (:func:`moments`);
+            None: :func:`window_cells` of ``sigma`` and ``stride``; 0: the whole heatmap's mean (the paper's).
+        layout, layout_tol: a rigid object's ``(K, K)`` reference distances and relative tolerance
+            (:func:`reject_layout`); a keypoint that breaks them is looked for again where the layout puts
+            it (:func:`search_layout`). None or 0: off.
+
+    Returns:
+        A :class:`ReadOut`.
+    """
+    if not isinstance(logits, Tensor) or logits.ndim != 5:
+        shape = tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__
+        raise ValueError(f"read_out: logits must be (B, C, K, h, w), got {shape}")
+    B, C = logits.shape[:2]
+    if tuple(cams.shape) not in ((C,), (B, C)):
+        raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
+                         f"got {tuple(cams.shape)}")
+    cells = window_cells(sigma, stride, window)
+    probs, uv, var = moments(logits, stride, cells)
+    weights = confidence_weight(var, sigma)
+    used = select_views(uv, weights, min_weight)
+    if cams.dtype != DTYPE or cams.K.device != logits.device:
+        cams = cams.to(device=logits.device, dtype=DTYPE)
+    net_cams, net_uv = cams, uv  # the cameras of the network-input pixels and the detections in them
+    if pixel_maps is not None:
+        maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
+        if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
+            raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
+                             f"got {tuple(maps.shape)}")
+        Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
+        uv = _to_camera_pixels(uv, Minv)
+        net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine pixel map: K' = M K
+    if max_residual_px is not None:
+        used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
+    X, valid = triangulate(cams, uv, weights, used)
+    if layout is not None and layout_tol > 0 and cells > 0:
+        kept = reject_layout(X, valid, layout, layout_tol)
+        found = [] if bool(kept.all()) else search_layout(probs, net_cams, stride, X, kept, layout,
+                                                            layout_tol, cells)
+        if found:
+            net_uv, used = net_uv.clone(), used.clone()
+            for b, k, found_uv, found_used, _ in found:
+                w_k = weights[b, :, k]
+                net_uv[b, :, k] = found_uv
+                used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
+            uv = net_uv if pixel_maps is None else _to_camera_pixels(net_uv, Minv)
+            X, valid = triangulate(cams, uv, weights, used)
+            # a detection read next to a stronger wrong peak can still break the layout: then the best place
+            # on the locus is the keypoint
+            again = reject_layout(X, valid, layout, layout_tol)
+            X, valid = X.clone(), valid.clone()
+            for b, k, _, _, place in found:
+                if not bool(again[b, k]):
+                    X[b, k], valid[b, k] = place, True
+            kept = reject_layout(X, valid, layout, layout_tol)  # the points moved: check them again
+        rigid_shape = layout_shape(layout)
+        if rigid_shape is not None:
+            fit, placed = fit_layout(X, kept, rigid_shape)
+            X = torch.where(placed[..., None], fit, X)
+            valid = valid | placed
+    X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
+    return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)

@@ -1,0 +1,217 @@
+"""A rigid object's layout at read-out: keypoints that break the labelled distances, the search for them
+where the layout puts them, and the layout fitted onto the kept keypoints (docs/method.md, "A rigid
+object's layout")."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from s3k.geometry import Cameras, project
+from s3k.heatmaps import peak_window_mean
+from s3k.readout.views import DTYPE
+
+__all__ = ["LAYOUT_SAMPLES", "fit_layout", "layout_locus", "layout_shape", "reject_layout", "search_layout"]
+
+
+def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Tensor:
+    """Drop the 3D keypoints that break a rigid object's layout; ``valid (B, K)`` with them removed.
+
+    A network that has not learnt a pose can detect several keypoints on one spot, sharply and consistently
+    in every view: the views agree, so neither the confidence nor :func:`reject_outliers` sees it, and a
+    pseudo-label made of such points teaches the collapse. A pair of keypoints breaks the layout when its
+    distance differs from the reference ``distances`` by more than ``tol`` of it. In every frame the keypoint
+    in the most broken pairs (then the largest relative deviation) is dropped, one at a time, until no
+    broken pair is left; a keypoint that was in a broken pair and is left with no intact one is dropped too
+    (its place cannot be vouched for). Pairs whose reference is NaN are not checked, so a keypoint with
+    nothing to check against is kept.
+
+    Args:
+        X: ``(B, K, 3)`` points (NaN where invalid).
+        valid: ``(B, K)`` bool.
+        distances: ``(K, K)`` reference distances (``s3k.train.labelled_distances``), NaN where unknown.
+        tol: largest relative deviation a pair may have (e.g. 0.2).
+    """
+    B, K = valid.shape
+    ref = distances.to(device=X.device, dtype=DTYPE)
+    P = torch.nan_to_num(X.to(DTYPE))
+    rel = (torch.cdist(P, P) - ref).abs() / ref  # NaN where the reference is unknown
+    off_diagonal = ~torch.eye(K, dtype=torch.bool, device=X.device)
+    checked = valid[:, :, None] & valid[:, None, :] & off_diagonal & torch.isfinite(rel)
+    broken = checked & (rel > tol)
+    keep = valid.clone()
+    rel = torch.nan_to_num(rel)
+    for _ in range(K):
+        live = broken & keep[:, :, None] & keep[:, None, :]
+        count = live.sum(dim=-1)  # (B, K)
+        if not bool(count.any()):
+            break
+        excess = (rel * live).sum(dim=-1)
+        worst = (count + excess / (1.0 + excess)).argmax(dim=-1)  # count first, the deviation breaks ties
+        drop = count.amax(dim=-1) > 0
+        keep[drop, worst[drop]] = False
+    intact = checked & ~broken & keep[:, :, None] & keep[:, None, :]
+    return keep & ~(broken.any(dim=-1) & ~intact.any(dim=-1))
+
+
+LAYOUT_SAMPLES = 720
+"""Places on a broken keypoint's locus that :func:`search_layout` scores (every half degree of the circle)."""
+
+LOG_FLOOR = math.log(1e-6)
+"""The least log-probability a view gives a place in :func:`search_layout`: a view whose heatmap is sure of
+another place (or that does not see the place) cannot veto what the other views agree on."""
+
+
+def layout_locus(a: Tensor, b: Tensor, ra: float, rb: float, n: int = LAYOUT_SAMPLES) -> Tensor:
+    """``(n, 3)`` places at distance ``ra`` from ``a (3,)`` and ``rb`` from ``b (3,)``: the circle where the
+    two spheres meet, ``n`` evenly spaced places on it (the nearest circle, in the plane between them, when
+    the spheres do not meet).
+
+    Example:
+        >>> a, b = torch.zeros(3, dtype=torch.float64), torch.tensor([2.0, 0, 0], dtype=torch.float64)
+        >>> P = layout_locus(a, b, math.sqrt(2), math.sqrt(2), 8)
+        >>> torch.allclose(P.norm(dim=-1), torch.full((8,), math.sqrt(2), dtype=torch.float64))
+        True
+    """
+    axis = b - a
+    d = float(torch.linalg.vector_norm(axis))
+    e = axis / max(d, 1e-12)
+    along = (d * d + ra * ra - rb * rb) / (2 * max(d, 1e-12))
+    radius = math.sqrt(max(ra * ra - along * along, 0.0))
+    helper = torch.zeros_like(e)
+    helper[int(torch.argmin(e.abs()))] = 1.0
+    u = torch.linalg.cross(e, helper)
+    u = u / torch.linalg.vector_norm(u)
+    v = torch.linalg.cross(e, u)
+    theta = torch.arange(n, dtype=a.dtype, device=a.device) * (2 * math.pi / n)
+    return a + along * e + radius * (torch.cos(theta)[:, None] * u + torch.sin(theta)[:, None] * v)
+
+
+def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Tensor, distances: Tensor,
+                  tol: float, window: int) -> list[tuple[int, int, Tensor, Tensor, Tensor]]:
+    """For every keypoint the layout check left out (``~kept``) in a frame with two keypoints it kept, look
+    for it again where the rigid layout puts it.
+
+    Two kept keypoints ``i``, ``j`` (the pair farthest apart by the reference) place it on the circle at its
+    reference distances from them (:func:`layout_locus`); places that break its distance to another kept
+    keypoint by more than ``tol`` are left out. Each place is scored by the sum over the views of its
+    heatmap's log-probability at the place's projection (at least ``LOG_FLOOR``), and each view's detection is
+    then its heatmap's mean within ``window`` cells of the best place's cell (a view whose image does not hold
+    that cell is not used).
+
+    Args:
+        probs: ``(B, C, K, h, w)`` heatmaps.
+        cams: cameras ``(B, C)`` or ``(C,)`` of the network-input pixels.
+        stride: heatmap stride.
+        X: ``(B, K, 3)`` points; kept: ``(B, K)`` bool, the keypoints the layout check kept.
+        distances: ``(K, K)`` reference distances (NaN where unknown).
+        tol: the layout check's relative tolerance.
+        window: the read-out's window, cells (>= 1).
+
+    Returns:
+        ``[(b, k, uv (C, 2), used (C,), place (3,)), ...]``: for the keypoints found again, the new detections
+        in network-input pixels and the best place itself.
+    """
+    B, C, K, h, w = probs.shape
+    ref = distances.to(device=X.device, dtype=DTYPE)
+    found = []
+    for b, k in (~kept).nonzero().tolist():
+        others = kept[b].clone()
+        others[k] = False
+        others &= torch.isfinite(ref[k])
+        idx = others.nonzero().flatten()
+        if len(idx) < 2:
+            continue
+        sub = ref[idx][:, idx].nan_to_num(-1.0)
+        p, q = divmod(int(sub.argmax()), len(idx))
+        i, j = int(idx[p]), int(idx[q])
+        places = layout_locus(X[b, i].to(DTYPE), X[b, j].to(DTYPE), float(ref[k, i]), float(ref[k, j]))
+        rest = idx[(idx != i) & (idx != j)]
+        if len(rest):
+            off = (torch.cdist(places, X[b, rest].to(DTYPE)) - ref[k, rest]).abs() / ref[k, rest]
+            places = places[(off <= tol).all(dim=1)]
+            if not len(places):
+                continue
+        frame_cams = cams if len(cams.shape) == 1 else cams[b]
+        uv, depth = project(frame_cams, places[None].expand(C, -1, -1))  # (C, n, 2)
+        col = torch.round((uv[..., 0] - (stride - 1) / 2) / stride).long()
+        row = torch.round((uv[..., 1] - (stride - 1) / 2) / stride).long()
+        inside = (depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        hm = probs[b, :, k]  # (C, h, w)
+        cell = hm[torch.arange(C)[:, None], row.clamp(0, h - 1), col.clamp(0, w - 1)]
+        logp = torch.where(inside, cell.clamp_min(1e-300).log().clamp_min(LOG_FLOOR),
+                           torch.full_like(cell, LOG_FLOOR))
+        best = int(logp.sum(dim=0).argmax())
+        used = inside[:, best]
+        centre = row[:, best].clamp(0, h - 1) * w + col[:, best].clamp(0, w - 1)
+        found.append((b, k, peak_window_mean(hm, stride, window, centre), used, places[best]))
+    return found
+
+
+def layout_shape(distances: Tensor) -> Tensor | None:
+    """``(K, 3)`` points whose distances are ``distances (K, K)`` as nearly as three dimensions allow
+    (classical multidimensional scaling), centred on the origin; None when a distance is unknown (NaN off the
+    diagonal) or there are fewer than three keypoints.
+
+    Example:
+        >>> d = torch.tensor([[0.0, 3, 5], [3, 0, 4], [5, 4, 0]], dtype=torch.float64)
+        >>> Y = layout_shape(d)
+        >>> torch.allclose(torch.cdist(Y, Y), d)
+        True
+    """
+    K = distances.shape[0]
+    D = distances.to(DTYPE).clone()
+    D.fill_diagonal_(0.0)
+    if K < 3 or not bool(torch.isfinite(D).all()):
+        return None
+    J = torch.eye(K, dtype=DTYPE) - 1.0 / K
+    gram = -0.5 * J @ (D * D) @ J
+    values, vectors = torch.linalg.eigh(gram)  # ascending
+    Y = vectors[:, -3:] * values[-3:].clamp_min(0).sqrt()
+    return Y - Y.mean(dim=0)
+
+
+def fit_layout(X: Tensor, valid: Tensor, shape: Tensor) -> tuple[Tensor, Tensor]:
+    """The rigid object's ``shape (K, 3)`` moved onto each frame's points ``X (B, K, 3)``: the rotation and
+    translation that bring its ``valid (B, K)`` keypoints nearest those points in the least-squares sense
+    (Kabsch), the shape or its mirror image, whichever fits better (distances do not tell them apart).
+
+    Frames with fewer than three valid keypoints are left as they are. The other keypoints of a frame are
+    placed by the moved shape only when its valid ones span three dimensions: against a plane the shape and
+    its mirror image fit alike and put them on either side.
+
+    Returns:
+        ``(X', placed (B, K) bool)``: the moved shape's keypoints where ``placed``, ``X`` elsewhere.
+    """
+    w = valid.to(DTYPE)  # (B, K)
+    n = w.sum(dim=1)
+    fitted = n >= 3
+    P = torch.nan_to_num(X.to(DTYPE))
+    out = P.clone()
+    if not bool(fitted.any()):
+        return out, valid & fitted[:, None]
+    n = n.clamp_min(1)[:, None]
+    centre = (w[..., None] * P).sum(dim=1) / n  # (B, 3)
+    best = torch.full((X.shape[0],), float("inf"), dtype=DTYPE, device=X.device)
+    mirror = torch.tensor([1.0, 1.0, -1.0], dtype=DTYPE, device=X.device)
+    Y0 = shape.to(device=X.device, dtype=DTYPE)
+    # singular values of the valid keypoints' part of the shape (the mirror's are the same): is it flat?
+    spread = torch.linalg.svdvals((Y0[None] - ((w[..., None] * Y0).sum(dim=1) / n)[:, None]) * w[..., None])
+    for Y in (Y0, Y0 * mirror):
+        Yc = (w[..., None] * Y).sum(dim=1) / n  # (B, 3): the shape's centre over the valid keypoints
+        A = (Y[None] - Yc[:, None]) * w[..., None]
+        H = A.transpose(1, 2) @ (P - centre[:, None])  # (B, 3, 3)
+        U, _, Vt = torch.linalg.svd(H)
+        flip = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
+        S = torch.diag_embed(torch.stack([torch.ones_like(flip), torch.ones_like(flip), flip], dim=-1))
+        R = Vt.transpose(1, 2) @ S @ U.transpose(1, 2)
+        moved = (Y[None] - Yc[:, None]) @ R.transpose(1, 2) + centre[:, None]
+        cost = (w * ((moved - P) ** 2).sum(dim=-1)).sum(dim=1)
+        better = fitted & (cost < best)
+        out = torch.where(better[:, None, None], moved, out)
+        best = torch.where(better, cost, best)
+    solid = spread[:, 2] > 0.05 * spread[:, 0]
+    placed = fitted[:, None] & (valid | solid[:, None])
+    return torch.where(placed[..., None], out, P), placed

@@ -1,0 +1,131 @@
+"""Per-view steps of the read-out: heatmap moments, the window around the peak, view selection, outlier
+views and the confidence-weighted triangulation (the package docstring tells the whole read-out)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
+
+__all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "moments", "reject_outliers", "select_views",
+           "triangulate", "window_cells"]
+
+DTYPE = torch.float64
+"""Precision of the read-out (see the module docstring)."""
+
+DEFAULT_MIN_WEIGHT = 0.0
+"""Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
+
+WINDOW_SIGMAS = 6.0
+"""Half-side of the window around each heatmap's peak whose mean is the detection, in target widths (see the
+module docstring and :func:`window_cells`)."""
+
+
+def window_cells(sigma: float, stride: int, window: int | None = None) -> int:
+    """The read-out's window, cells each side of the peak, for a target width ``sigma`` in image pixels and a
+    heatmap ``stride``: ``WINDOW_SIGMAS`` target widths rounded up (6 cells for a target of one cell), or
+    ``window`` when it is given (0: the whole heatmap).
+
+    Example:
+        >>> window_cells(2.0, 2), window_cells(3.0, 2), window_cells(2.0, 1)
+        (6, 9, 12)
+    """
+    if window is not None:
+        return window
+    if not sigma > 0 or stride < 1:
+        raise ValueError(f"window_cells: sigma must be > 0 and stride >= 1, got {sigma} and {stride}")
+    return max(1, math.ceil(WINDOW_SIGMAS * sigma / stride - 1e-9))
+
+
+def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+    """Spatial softmax of logits ``(*, h, w)`` and its moments, in float64.
+
+    Args:
+        logits: ``(*, h, w)``.
+        stride: heatmap stride.
+        window: 0 for the whole heatmap's mean; else the mean within this many cells of the peak
+            (:func:`s3k.heatmaps.peak_window_mean`). The variance is always the whole heatmap's.
+
+    Returns:
+        ``(probs (*, h, w), mean_uv (*, 2), var (*))``: the heatmaps, their means in network-input pixels and
+        their variances in squared pixels (:func:`s3k.heatmaps.heatmap_moments`).
+    """
+    probs = spatial_softmax(logits.to(DTYPE))
+    mean_uv, var = heatmap_moments(probs, stride)
+    if window:
+        mean_uv = peak_window_mean(probs, stride, window)
+    return probs, mean_uv, var
+
+
+def select_views(uv: Tensor, weights: Tensor, min_weight: float = DEFAULT_MIN_WEIGHT) -> Tensor:
+    """The views that enter the triangulation: finite ``uv (*, 2)`` and ``weights (*)`` above ``min_weight``.
+
+    Returns:
+        ``(*)`` bool.
+    """
+    return torch.isfinite(uv).all(dim=-1) & torch.isfinite(weights) & (weights > min_weight)
+
+
+def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
+    """Confidence-weighted triangulation of the used views, in float64.
+
+    Args:
+        cams: cameras ``(B, C)`` or ``(C,)`` (shared by the frames) in the pixels of ``uv``.
+        uv: ``(B, C, K, 2)`` detections.
+        weights: ``(B, C, K)`` confidence weights.
+        used: ``(B, C, K)`` bool (:func:`select_views`); the other views get weight zero.
+
+    Returns:
+        ``(X (B, K, 3), valid (B, K))``: float64 points, zeros where invalid (fewer than two used views,
+        near-parallel rays).
+    """
+    if cams.dtype != DTYPE or cams.K.device != uv.device:
+        cams = cams.to(device=uv.device, dtype=DTYPE)
+    uv, w = uv.to(DTYPE), weights.to(DTYPE)
+    if not bool(used.all()):  # the common case, every view used, skips the masking
+        # Unused views get a harmless pixel and zero weight: NaN must not reach the solver.
+        zero = torch.zeros((), dtype=DTYPE, device=uv.device)
+        uv, w = torch.where(used[..., None], uv, zero), torch.where(used, w, zero)
+    X, valid = triangulate_pixels(cams, uv, w)
+    return X, valid & (used.sum(dim=1) >= 2)
+
+
+def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, max_residual_px: float,
+                    min_views: int = 2) -> Tensor:
+    """Drop, one at a time, the used view that misses the others' consensus by more than ``max_residual_px``.
+
+    A view whose detection lies on the wrong object (an occluded keypoint, a symmetric corner) pulls the
+    weighted least-squares point towards its own ray however small its weight; its confidence does not show
+    it (a confused heatmap can be sharp), but its reprojection residual does. Each round triangulates the
+    used views, and in every (frame, keypoint) whose largest residual exceeds the threshold drops that view,
+    as long as more than ``min_views`` remain; at most ``C - min_views`` rounds.
+
+    Args:
+        cams, uv, weights, used: as for :func:`triangulate`.
+        max_residual_px: largest reprojection residual a view may keep, in the pixels of ``uv``.
+        min_views: never drop below this many views.
+
+    Returns:
+        ``used (B, C, K)`` with the outlying views removed.
+    """
+    C = uv.shape[1]
+    used = used.clone()
+    # the read-out's precision once, not per round
+    cams = cams.to(device=uv.device, dtype=DTYPE)
+    uv, weights = uv.to(DTYPE), weights.to(DTYPE)
+    for _ in range(max(0, C - min_views)):
+        X, valid = triangulate(cams, uv, weights, used)
+        reproj, _ = project(cams, X[:, None])
+        residual = torch.linalg.vector_norm(reproj - uv, dim=-1)  # (B, C, K)
+        residual = torch.where(used & valid[:, None], residual, torch.full_like(residual, -1.0))
+        worst, c_worst = residual.max(dim=1)  # (B, K)
+        drop = (worst > max_residual_px) & (used.sum(dim=1) > min_views)
+        if not bool(drop.any()):
+            break
+        hit = torch.nn.functional.one_hot(c_worst, C).permute(0, 2, 1).bool() & drop[:, None]
+        used = used & ~hit
+    return used
