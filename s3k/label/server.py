@@ -9,14 +9,17 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   residuals, epipolar curves) and, with a run, the run's suggestions.
 - ``GET /api/frame/{frame}/image/{camera}``: the stored image, PNG.
 - ``POST /api/frame/{frame}/label``: ``{"version", "edits": [{"camera", "keypoint", "u", "v", "visible",
-  "remove"}], "source"}``; answers the new frame state, 409 with the newer state (``current``) when
-  ``version`` is stale, 400 naming the field when an edit is invalid.
+  "remove"}], "source", "unlock"}``; answers the new frame state, 409 with the newer state (``current``) when
+  ``version`` is stale, 400 naming the field when an edit is invalid, 403 for a test frame (its labels are
+  held out for evaluation) unless ``unlock`` is true.
+- ``POST /api/frame/{frame}/undo``: ``{"version", "unlock"}``; reverts the frame's latest edit not yet undone
+  (the history keeps both), 400 when there is none.
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
   run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
   ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
-- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
-  :func:`s3k.label.propagate.propagate_labels`.
+- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
+  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
 
 Files are served only from the package's ``static`` folder; images only by frame id and camera name, so no
 request names a path. Bound to another interface than the loopback, every request must carry the token the
@@ -53,6 +56,12 @@ class SaveIn(BaseModel):
     version: int
     edits: list[Edit]  # the store's own dataclass, validated field by field
     source: str = "click"
+    unlock: bool = False  # edit a test frame
+
+
+class UndoIn(BaseModel):
+    version: int
+    unlock: bool = False
 
 
 class PropagateIn(BaseModel):
@@ -60,6 +69,9 @@ class PropagateIn(BaseModel):
     last: int
     source: int | None = None
     max_changed: float | None = None
+    overwrite: bool = False
+    allow_test: bool = False
+    dry_run: bool = False
 
 
 class LabelApp:
@@ -195,12 +207,36 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             raise HTTPException(500, "could not encode the image")
         return Response(png.tobytes(), media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
+    def locked(frame: int, unlock: bool) -> JSONResponse | None:
+        state.store.refresh()
+        if state.store.split(frame) == "test" and not unlock:
+            return _error(403, f"frame {frame} is a test frame: its labels are held out for evaluation and "
+                               "read-only until unlocked (the page's unlock button)")
+        return None
+
     @app.post("/api/frame/{frame}/label")
     def save(frame: int, body: SaveIn) -> Any:
         frame_or_404(frame)
+        refused = locked(frame, body.unlock)
+        if refused is not None:
+            return refused
         edits = list(body.edits)
         try:
             state.store.save(frame, edits, body.version, source=body.source[:40])
+        except StaleVersion as exc:
+            return _error(409, str(exc), current=state.frame_state(frame))
+        except UserError as exc:
+            return _error(400, str(exc))
+        return state.frame_state(frame)
+
+    @app.post("/api/frame/{frame}/undo")
+    def undo(frame: int, body: UndoIn) -> Any:
+        frame_or_404(frame)
+        refused = locked(frame, body.unlock)
+        if refused is not None:
+            return refused
+        try:
+            state.store.undo(frame, body.version)
         except StaleVersion as exc:
             return _error(409, str(exc), current=state.frame_state(frame))
         except UserError as exc:
@@ -236,11 +272,22 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
-                                      store=state.store)
+                                      store=state.store, overwrite=body.overwrite, allow_test=body.allow_test,
+                                      dry_run=body.dry_run)
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": result.source, "frames": result.frames, "keypoints": result.keypoints,
-                "labels": result.labels}
+                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run}
+
+    @app.post("/api/propagate/undo")
+    def propagate_undo() -> Any:
+        from s3k.label.propagate import undo_propagation
+
+        try:
+            source, frames = undo_propagation(state.root, store=state.store)
+        except UserError as exc:
+            return _error(400, str(exc))
+        return {"source": source, "frames": frames}
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
