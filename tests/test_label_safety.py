@@ -36,7 +36,8 @@ def label_views(store, truth, frame, views=(0, 1), shift=(0.0, 0.0)):
 
 def splits(path):
     with open(path / "frames.csv") as f:
-        return {int(r["frame"]): r["split"] for r in csv.DictReader(line for line in f if not line.startswith("#"))}
+        rows = csv.DictReader(line for line in f if not line.startswith("#"))
+        return {int(r["frame"]): r["split"] for r in rows}
 
 
 def test_propagate_refuses_to_replace_labels_and_test_frames_and_dry_runs(truth, capsys):
@@ -52,7 +53,8 @@ def test_propagate_refuses_to_replace_labels_and_test_frames_and_dry_runs(truth,
     assert "--overwrite" in err and "--dry-run" in err and len(err.strip().splitlines()) == 1
 
     # the dry run lists the changes per frame and writes nothing
-    assert cli.main(["label", "propagate", str(truth.path), "--frames", "0:3", "--overwrite", "--dry-run"]) == 0
+    argv = ["label", "propagate", str(truth.path), "--frames", "0:3", "--overwrite", "--dry-run"]
+    assert cli.main(argv) == 0
     out = capsys.readouterr().out
     assert "frame 1: 12 new label(s)\n" in out and "frame 2: 11 new label(s), 1 replaced" in out
     assert "would copy frame 0's 3 keypoint(s) (a, b, c) to 3 frame(s): 36 labels, 1 of them replacing" in out

@@ -10,11 +10,11 @@ channel, 0-255). A share of changed pixels, not a mean difference, so that a sma
 still image is caught, and a video codec's noise of a few grey levels is not. The first frame that breaks
 either is named and nothing is written.
 
-Labels people made are never replaced silently: a copy that would change an existing label is refused unless
-``overwrite`` (``--overwrite``), and test frames, whose labels are held out for evaluation, are neither read
-nor written unless ``allow_test`` (``--allow-test``). ``dry_run`` (``--dry-run``) computes the same changes and
-writes nothing. Every propagation is one batch of the label history, undone with :func:`undo_propagation`
-(``s3k label propagate DATASET --undo``).
+Labels people made are never replaced silently: a copy that would change an existing label is refused
+unless ``overwrite`` (``--overwrite``), and test frames, whose labels are held out for evaluation, are neither
+read nor written unless ``allow_test`` (``--allow-test``). ``dry_run`` (``--dry-run``) computes the same
+changes and writes nothing. Every propagation is one batch of the label history, undone with
+:func:`undo_propagation` (``s3k label propagate DATASET --undo``).
 """
 
 from __future__ import annotations
@@ -118,8 +118,8 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         raise UserError(f"--frames {first}:{last}: no frame of {ds.path} has an id in that range")
     tests = [f for f in ids if store.split(f) == "test"]
     if tests and not allow_test:
-        raise UserError(f"--frames {first}:{last}: frame(s) {_listed(tests)} are test frames, whose labels are "
-                        "held out for evaluation; nothing was written",
+        raise UserError(f"--frames {first}:{last}: frame(s) {_listed(tests)} are test frames, whose labels "
+                        "are held out for evaluation; nothing was written",
                         hint="choose --frames without them, or pass --allow-test to write them")
 
     def solved(frame: int) -> dict[str, np.ndarray]:
@@ -198,9 +198,9 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         f, cam, kp = replaced[0]
         frames = sorted({r[0] for r in replaced})
         raise UserError(f"propagating frame {source} would replace {len(replaced)} existing label(s) in "
-                        f"frame(s) {_listed(frames)} (first: frame {f}, camera {cam}, keypoint {kp}); nothing "
-                        "was written", hint="pass --overwrite to replace them, or --dry-run to list the "
-                        "changes")
+                        f"frame(s) {_listed(frames)} (first: frame {f}, camera {cam}, keypoint {kp}); "
+                        "nothing was written", hint="pass --overwrite to replace them, or --dry-run to list "
+                        "the changes")
     if edits and not dry_run:
         store.save_many(edits, None, source=f"propagate from {source}")
     return PropagateResult(int(source), sorted(edits), keypoints, sum(len(e) for e in edits.values()),

@@ -311,7 +311,7 @@ class LabelStore:
                     moved = undone.get("split")
                     if isinstance(moved, dict) and moved.get("before") in SPLITS and \
                             splits[i] == moved.get("after") and not (present[i] & visible[i]).any():
-                        splits[i] = moved["before"]  # the frame leaves the split its undone labels moved it to
+                        splits[i] = moved["before"]  # back to the split it had before the undone labels
                         entry["split"] = {"before": moved["after"], "after": moved["before"]}
                 elif self.promote and splits[i] == "unlabelled" and (present[i] & visible[i]).any():
                     splits[i] = "labelled"
@@ -370,8 +370,9 @@ class LabelStore:
             entry = self.last_edit(frame)
             if entry is None:
                 raise UserError(f"frame {frame}: no edit to undo in {self.root / HISTORY_FILE}")
-            return self.save_many({frame: self._reverting(entry)}, {frame: self.version(frame)},
-                                  source=f"undo {entry.get('source', 'edit')}"[:60], undoes={frame: entry})[frame]
+            source = f"undo {entry.get('source', 'edit')}"[:60]
+            return self.save_many({frame: self._reverting(entry)}, {frame: self.version(frame)}, source,
+                                  undoes={frame: entry})[frame]
 
     def undo_batch(self, batch: str, source: str = "undo") -> list[int]:
         """Revert every frame's entry of one :meth:`save_many` call (e.g. a propagation); returns the frames.
@@ -395,7 +396,8 @@ class LabelStore:
                                     hint="undo the later edits of that frame first (Ctrl+Z in s3k label)")
             frames = [int(e["frame"]) for e in entries]
             self.save_many({int(e["frame"]): self._reverting(e) for e in entries},
-                           {f: self.version(f) for f in frames}, source, undoes={int(e["frame"]): e for e in entries})
+                           {f: self.version(f) for f in frames}, source,
+                           undoes={int(e["frame"]): e for e in entries})
             return sorted(int(e["frame"]) for e in entries)
 
     def _write_table(self, uv: np.ndarray, present: np.ndarray, visible: np.ndarray) -> None:
