@@ -492,3 +492,31 @@ def test_track_says_why_every_point_is_nan(recording, tmp_path, capsys):
     assert "every keypoint is 0% valid" in err and "train longer" in err and "lower --min-weight" in err
     assert _track(recording, tmp_path / "full.csv", "--min-weight", "0", "--overwrite") == 0
     assert "0% valid" not in capsys.readouterr().err
+
+
+def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
+    """Without --crop, each video is cropped to the box the run's training images showed (its record, here
+    made by hand), exactly as with that --crop; --fit or another --crop overrides, the latter with a
+    warning."""
+    boxes = {"left": [8.0, 0.0, 56.0, 48.0], "top": [16.0, 8.0, 48.0, 40.0], "right": [0.0, 0.0, 64.0, 48.0]}
+    meta = DetectorMeta(
+        keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=2, sigma=2.0,
+        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(), units="mm",
+        geometry={"cameras": {c: {"box": b, "frame_size": list(VIDEO_SIZE)} for c, b in boxes.items()},
+                  "image_size": list(NET_SIZE)})
+    run = save_run(tmp_path / "run", meta, seed=0)
+    rec = dict(recording, run=run)
+    crop = [f"{c}={','.join(f'{v:g}' for v in b)}" for c, b in boxes.items()]
+    assert _track(rec, tmp_path / "recorded.csv", "--min-weight", "0") == 0
+    assert "crop boxes the run was trained on (--crop or --fit overrides): left=8,0,56,48 top=16,8,48,40 " \
+           "right=0,0,64,48" in capsys.readouterr().out
+    assert _track(rec, tmp_path / "given.csv", "--min-weight", "0", "--crop", *crop) == 0
+    assert capsys.readouterr().err == ""
+    assert _track(rec, tmp_path / "fit.csv", "--min-weight", "0", "--fit", "pad") == 0
+    recorded, given, fit = (_read_csv(tmp_path / f"{n}.csv")[1] for n in ("recorded", "given", "fit"))
+    np.testing.assert_array_equal(recorded, given)
+    assert not np.allclose(recorded, fit, equal_nan=True)
+    capsys.readouterr()
+    assert _track(rec, tmp_path / "other.csv", "--min-weight", "0", "--crop", "top=0,0,64,48") == 0
+    assert "warning: --crop top=0,0,64,48 differs from the box the run was trained on, top=16,8,48,40" in \
+        capsys.readouterr().err

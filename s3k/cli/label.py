@@ -26,6 +26,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
     parser.add_argument("--run", help="a trained run: its predictions are offered as suggestions and the "
                         "unlabelled frames ranked by its multi-view disagreement")
+    parser.add_argument("--ignore-geometry", action="store_true",
+                        help="use --run on a dataset whose images show another part of the cameras' frames "
+                             "than the run was trained on (refused by default)")
     parser.add_argument("--port", type=int, default=8765, help="port to serve on (default: 8765)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to serve on (default: 127.0.0.1); any other requires the random "
@@ -114,5 +117,6 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise UserError(f"s3k label needs FastAPI and uvicorn ({exc})",
                         hint="pip install 'fastapi>=0.110' 'uvicorn>=0.29'") from None
-    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up)
+    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up,
+          ignore_geometry=args.ignore_geometry)
     return 0

@@ -53,11 +53,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="confidence weight a view needs to be used (default 0: every view, weighted by "
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
-    parser.add_argument("--fit", choices=FIT_MODES, default="pad",
+    parser.add_argument("--fit", choices=FIT_MODES, default=None,
                         help="when the video's aspect ratio differs from the detector's input: pad "
-                        "(default), crop or stretch")
+                        "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
+                        "on")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
-                        help="crop box in pixel edge coordinates, as given to 's3k import --crop'")
+                        help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
+                        "the boxes the run was trained on, from its dataset's import)")
     parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -65,12 +67,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import parse_crops
+    from s3k.data import video
+    from s3k.geometry_record import track_crops
 
     videos = parse_videos(args.videos)
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
+    sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
+    crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
+    for line in notes:
+        print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
     summary = track_videos(
         args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
-        start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit, crops=crops,
+        start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit or "pad", crops=crops,
         device=args.device, units=args.units, progress=not args.no_progress, overwrite=args.overwrite,
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,

@@ -78,7 +78,7 @@ class LabelApp:
     """The state behind the API: the dataset, its label store and the optional run's suggestions."""
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
-                 device: str = "cpu", up: Up = UP) -> None:
+                 device: str = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
         from s3k.data import Dataset
 
         self.root = Path(data)
@@ -88,7 +88,11 @@ class LabelApp:
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.suggestions = None
         if run is not None:
+            from s3k.geometry_record import check_dataset
             from s3k.label.suggest import Suggestions
+
+            if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
+                check_dataset(run, self.root)
 
             self.suggestions = Suggestions(run, self.root, device)
 
@@ -144,7 +148,7 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
-               up: Up = UP) -> FastAPI:
+               up: Up = UP, ignore_geometry: bool = False) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
     Args:
@@ -157,8 +161,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             reach a loopback server through a name that resolves to 127.0.0.1.
         up: the table's normal in world coordinates; the pose rankings compare poses blind to the object's
             turn about it (None: not blind to it).
+        ignore_geometry: accept a run trained on another part of the cameras' frames than the dataset's
+            images show (:func:`s3k.geometry_record.check_dataset`).
     """
-    state = LabelApp(data, run, labeller, device, up)
+    state = LabelApp(data, run, labeller, device, up, ignore_geometry)
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
@@ -295,7 +301,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce=print,
-          up: Up = UP) -> None:
+          up: Up = UP, ignore_geometry: bool = False) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
     import socket
 
@@ -315,8 +321,9 @@ def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.
     torch.set_num_threads(1)
     loopback = host in LOOPBACK
     token = None if loopback else secrets.token_urlsafe(18)
-    app = create_app(data, run, token, labeller, device,
-                     allowed_hosts=[*LOOPBACK, host] if loopback else None, up=up)
+    hosts = [*LOOPBACK, host] if loopback else None
+    app = create_app(data, run, token, labeller, device, allowed_hosts=hosts, up=up,
+                     ignore_geometry=ignore_geometry)
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{port}/" + ("" if token is None else f"?token={token}")
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)

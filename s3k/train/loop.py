@@ -26,6 +26,7 @@ from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.errors import UserError
 from s3k.frames import FrameStore, model_image_size, open_dataset
+from s3k.geometry_record import training_geometry
 from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.model import UNet, UNetConfig
 from s3k.run import (
@@ -254,6 +255,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
                          norm=cfg.norm).to_dict(),
         units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
         layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
+        geometry=training_geometry(d.ds),
     )
 
 
