@@ -135,6 +135,10 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
     out = tmp_path / "pred.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--split", "test"]) == 0
     assert out.read_text().splitlines()[0].split(",") == csv_header(KEYPOINTS)
+    from s3k.data import Dataset
+    from s3k.tracks_csv import read_source
+
+    assert read_source(out)["units"] == Dataset.open(ds_path).units  # the points' unit, beside the CSV
     model, meta = load_detector(run)
     ds = open_dataset(ds_path, meta.image_size)
     (batch, pred), = list(predict_store(model, meta, FrameStore(ds, ds.frames("test"))))

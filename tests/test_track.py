@@ -287,6 +287,9 @@ def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
     out = tmp_path / "points3d.csv"
     assert _track(recording, out, "--min-weight", "0", "--batch", "4", "--overlay", str(tmp_path / "ov")) == 0
     header, values = _read_csv(out)
+    from s3k.tracks_csv import read_source
+
+    assert read_source(out)["units"] == "mm"  # beside the CSV, for s3k export-tracks
     assert header == csv_header(KEYPOINTS)
     assert header[:6] == ["nose_x", "nose_y", "nose_z", "nose_error", "nose_ncams", "nose_score"]
     assert header[-1] == "fnum" and len(header) == 6 * len(KEYPOINTS) + 1

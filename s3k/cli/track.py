@@ -83,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,
     )
+    from s3k.tracks_csv import write_source
+
+    write_source(summary.path, summary.units, run=args.run, calibration=args.calibration)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
     for kp, f, e in zip(summary.keypoints, summary.valid_fraction, summary.median_error_px):
         print(f"  {kp}: {100 * f:.0f}% valid, median error {e:.2f} px")
