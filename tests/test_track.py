@@ -523,3 +523,23 @@ def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
     assert _track(rec, tmp_path / "other.csv", "--min-weight", "0", "--crop", "top=0,0,64,48") == 0
     assert "warning: --crop top=0,0,64,48 differs from the box the run was trained on, top=16,8,48,40" in \
         capsys.readouterr().err
+
+
+def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_path, capsys):
+    from s3k.cli.track import keypoint_line
+    from s3k.track import TrackSummary
+
+    assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
+    out = capsys.readouterr().out
+    for kp in KEYPOINTS:
+        assert (f"  {kp}: 0% valid; no point: 100% of frames have fewer than 2 views with a confidence "
+                "weight above --min-weight 0.99 (lower --min-weight") in out
+    assert "nan px" not in out
+    # frames with enough views but no point have a reason of their own; a fully valid keypoint needs none
+    summary = TrackSummary(10, ["a", "b"], [0.6, 1.0], [1.5, 2.0], [0.8, 1.0], 0.5, "mm", tmp_path / "x.csv")
+    assert keypoint_line(summary, 0) == (
+        "60% valid, median error 1.50 px; no point: 20% of frames have fewer than 2 views with a confidence "
+        "weight above --min-weight 0.5 (lower --min-weight (0 uses every view, weighted)); in 20% of frames "
+        "its views triangulate to no valid point (rays near parallel or the point behind a camera: check "
+        "--calibration, --video-region and --crop)")
+    assert keypoint_line(summary, 1) == "100% valid, median error 2.00 px"

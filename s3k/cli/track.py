@@ -65,6 +65,30 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def keypoint_line(summary, k: int) -> str:
+    """A keypoint's line of the summary: how often it was triangulated, its median error, and for the frames
+    without a point, why and which option changes it."""
+    valid, passing = summary.valid_fraction[k], summary.passing_fraction[k]
+    text = f"{100 * valid:.0f}% valid"
+    if valid > 0:
+        text += f", median error {summary.median_error_px[k]:.2f} px"
+    if valid >= 1 or not summary.frames:
+        return text
+    reasons = []
+    few = 1.0 - passing  # frames where fewer than two views pass --min-weight
+    if few > 0:
+        change = ("lower --min-weight (0 uses every view, weighted)" if summary.min_weight > 0 else
+                  "the detector is not confident there: train on more labelled frames like these")
+        reasons.append(f"{100 * few:.0f}% of frames have fewer than 2 views with a confidence weight above "
+                       f"--min-weight {summary.min_weight:g} ({change})")
+    rest = passing - valid  # enough views, but no point
+    if rest > 1e-9:
+        reasons.append(f"in {100 * rest:.0f}% of frames its views triangulate to no valid point (rays near "
+                       "parallel or the point behind a camera: check --calibration, --video-region and "
+                       "--crop)")
+    return text + "; no point: " + "; ".join(reasons)
+
+
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import parse_crops
     from s3k.data import video
@@ -87,8 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
     write_source(summary.path, summary.units, run=args.run, calibration=args.calibration)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
-    for kp, f, e in zip(summary.keypoints, summary.valid_fraction, summary.median_error_px):
-        print(f"  {kp}: {100 * f:.0f}% valid, median error {e:.2f} px")
+    for k, kp in enumerate(summary.keypoints):
+        print(f"  {kp}: {keypoint_line(summary, k)}")
     hint = empty_result_hint(summary)
     if hint:
         print(f"warning: {hint}", file=sys.stderr)
