@@ -135,6 +135,9 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
     out = tmp_path / "pred.csv"
     assert cli_main(["predict", str(run), "--data", str(ds_path), "--out", str(out), "--split", "test"]) == 0
     assert out.read_text().splitlines()[0].split(",") == csv_header(KEYPOINTS)
+    from s3k.data.tracks_csv import read_source
+
+    assert read_source(out)["units"] == Dataset.open(ds_path).units  # the points' unit, beside the CSV
     ds = Dataset.open(ds_path, cache="none")
     (batch, pred), = list(detect_store(Detector.load(run, "cpu"), FrameStore(ds, ds.frames("test"))))
     points = read_csv(out, KEYPOINTS)

@@ -467,6 +467,27 @@ def test_export_tracks_to_nwb(rec, tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
+def test_export_tracks_never_guesses_the_unit(tmp_path, capsys):
+    """Without --calibration the unit comes from what s3k track / predict wrote beside the CSV, or --units;
+    with neither the export is refused (millimetres were written as metres)."""
+    from s3k.data.nwb import read_nwb_tracks
+    from s3k.data.tracks_csv import csv_header, write_source
+
+    path = tmp_path / "points3d.csv"
+    path.write_text(",".join(csv_header(["nose"])) + "\n1.5,2.5,3.5,0.4,2,0.9,0\n")
+    out = tmp_path / "tracks.nwb"
+    argv = ["export-tracks", str(path), "--format", "nwb", "--out", str(out), "--fps", "30"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "the unit of its points is not known" in err and "--units" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+    write_source(path, "mm", run="run-s3k", calibration="calibration.toml")  # as s3k track does
+    assert main(argv) == 0 and "units mm" in capsys.readouterr().out
+    assert read_nwb_tracks(out)[4] == "mm"
+    assert main([*argv, "--overwrite", "--units", "cm"]) == 0  # said explicitly: used, with a warning
+    assert "points are in mm" in capsys.readouterr().err and read_nwb_tracks(out)[4] == "cm"
+
+
 @needs_real
 def test_real_sleap_project_matches_its_analysis_file():
     """SLEAP's own files of the real recording: the project's predictions are the analysis file's points."""

@@ -105,7 +105,8 @@ def test_deepfly3d_visibility_rule_is_one_line_not_pages(recording, tmp_path, ca
     assert [line for line in lines if "visibility rule" in line] == [
         "note: DeepFly3D's visibility rule leaves 19 to 24 of the 38 joints unlabelled in each camera: "
         "those of the fly's far side (docs/importing.md#what-happens-to-each-format)"]
-    assert not [line for line in lines if line.startswith("warning:")], lines
+    # no warning per camera for the joints the rule leaves out (other warnings, e.g. no test frames, may come)
+    assert not [line for line in lines if line.startswith("warning:") and "have no labels" in line], lines
     ds = _validated(tmp_path / "ds")
     uv, mask = ds.labels(ds.frames("labelled"))
     for c in range(7):

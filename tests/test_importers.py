@@ -464,6 +464,59 @@ def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):
         np.testing.assert_array_equal(mask[:, 0], inside & np.isfinite(ref[:, 0]).all(-1))
 
 
+def test_import_says_how_many_labels_it_kept_and_why(recording, tmp_path, capsys):
+    """The default split keeps 10 labelled frames and no test frame: the import says how many labels that is
+    of the recording's, and which options keep more."""
+    from s3k.data import Dataset
+
+    out = tmp_path / "ds"
+    assert _import(recording, out) == 0
+    captured = capsys.readouterr()
+    ds = Dataset.open(out)
+    kept = int(ds.labels(ds.frames("labelled"))[1].sum())
+    total = int(np.isfinite(recording["uv"]).all(-1).sum())
+    assert kept < total
+    assert (f"kept {kept} of the recording's {total} 2D labels: those of 10 labelled frame(s) (--labelled "
+            f"10) and 0 test frame(s) (--test 0), chosen among the {N_FRAMES} frames with a keypoint "
+            "labelled in >= 2 cameras") in captured.out
+    assert f"the other {total - kept} labels, in 2 frame(s), are not written" in captured.out
+    assert "--labelled all" in captured.out
+    assert "warning: no test frames" in captured.err and "--test N" in captured.err
+    assert "calibration" not in captured.err  # a consistent rig: no calibration warning
+
+
+def test_import_and_validate_warn_of_an_inconsistent_camera(recording, tmp_path, capsys):
+    """A camera turned by 3 degrees in the calibration disagrees with the labels: import and validate run
+    check-calibration's test and name the command that repairs it."""
+    from s3k.cli import main
+
+    root = recording["root"]
+    rig = anipose.read_anipose_calibration(root / "calibration.toml")
+    arrays = rig.cameras.numpy()
+    a = np.radians(3.0)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    arrays["R"][2], arrays["t"][2] = turn @ arrays["R"][2], turn @ arrays["t"][2]
+    cams = Cameras.from_numpy(arrays["K"], arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
+    bad = tmp_path / "turned.toml"
+    anipose.write_anipose_calibration(bad, Rig(rig.names, cams, rig.size, rig.units, rig.metadata))
+    out = tmp_path / "ds"
+    argv = ["import", "--calibration", str(bad), "--videos", *[f"{cam}={root / cam}.mkv" for cam in CAMS],
+            "--sleap", *[f"{cam}={root / cam}.analysis.h5" for cam in CAMS], "--labelled", "6", "--test", "4",
+            "--out", str(out)]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "warning: calibration: camera(s) south disagree with the others' labels" in err
+    assert f"s3k check-calibration {out} --recalibrate flagged" in err
+    assert main(["validate", str(out), "--no-images"]) == 0  # usable, with a warning
+    report = capsys.readouterr().out
+    assert "WARNING calibration: camera(s) south disagree" in report
+    assert f"s3k check-calibration {out} --recalibrate flagged" in report
+    assert main(["validate", str(out), "--no-images", "--strict"]) == 1
+    capsys.readouterr()
+    assert main(["check-calibration", str(out)]) == 2
+    assert f"repair: s3k check-calibration {out} --recalibrate flagged" in capsys.readouterr().out
+
+
 def test_import_errors(recording, tmp_path, capsys):
     root = recording["root"]
     # A camera missing from the calibration.

@@ -193,6 +193,83 @@ def test_label_by_clicking_in_two_views(tmp_path, browser):
     assert sources == ["click", "click", "click", "not visible", "not visible", "drag"]
 
 
+def test_a_click_labels_the_selected_keypoint_beside_another_marker_undo_and_locked_test_frames(tmp_path,
+                                                                                                   browser):
+    """Markers of two keypoints 3 screen pixels apart: a click on one with the other selected places the
+    selected one; Ctrl+Z puts it back; Shift+click selects; a test frame takes no click until unlocked."""
+    from s3k.label.store import Edit
+
+    truth = make_label_dataset(tmp_path / "ds", size=96)
+    LabelStore.open(truth.path).save(4, [Edit("cam0", "a", 40.0, 40.0), Edit("cam0", "b", 41.0, 40.0)], None)
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 720})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "?frame=4")
+        page.wait_for_selector("body[data-ready='1']")
+        at_a, at_b = page_xy(page, "cam0", (40.0, 40.0)), page_xy(page, "cam0", (41.0, 40.0))
+        assert 2.0 < np.hypot(at_a[0] - at_b[0], at_a[1] - at_b[1]) < 4.0  # 3 screen pixels apart
+        assert page.inner_text("#keypoints li.current .name") == "a"
+        page.mouse.click(*at_b)  # on b's marker, with a selected
+        wait_version(page, 2)
+        assert page.inner_text("#keypoints li.current .name") == "a"
+        got = {lab["keypoint"]: (lab["u"], lab["v"]) for lab in page.evaluate("s3kLabel.app.frame.labels")}
+        np.testing.assert_allclose(got["a"], (41.0, 40.0), atol=0.2)  # a placed where clicked
+        assert got["b"] == (41.0, 40.0)  # b untouched
+        page.keyboard.press("Control+z")
+        wait_version(page, 3)
+        got = {lab["keypoint"]: (lab["u"], lab["v"]) for lab in page.evaluate("s3kLabel.app.frame.labels")}
+        assert got == {"a": (40.0, 40.0), "b": (41.0, 40.0)}  # the state before the click
+        page.keyboard.down("Shift")  # switching keypoints is explicit: Shift+click on a marker
+        page.mouse.click(*at_b)
+        page.keyboard.up("Shift")
+        assert page.inner_text("#keypoints li.current .name") == "b"
+        assert page.evaluate("document.body.dataset.version") == "3"  # nothing saved
+
+        # frame 6 is a test frame: read-only until unlocked
+        page.evaluate("s3kLabel.gotoFrame(6)")
+        page.wait_for_function("document.body.dataset.frame === '6'")
+        assert page.is_visible("#unlock") and page.evaluate("document.body.dataset.locked") == "1"
+        page.mouse.click(*page_xy(page, "cam0", (20.0, 30.0)))
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        assert "read-only" in page.inner_text("#status")
+        assert page.evaluate("s3kLabel.app.frame.labels") == []
+        page.click("#unlock")
+        page.mouse.click(*page_xy(page, "cam0", (20.0, 30.0)))
+        wait_version(page, 1)
+        assert errors == []
+    ds = Dataset.open(truth.path)
+    uv, mask = ds.labels([4, 6])
+    np.testing.assert_array_equal(uv[0, 0, :2][mask[0, 0, :2]], [[40.0, 40.0], [41.0, 40.0]])
+    assert mask[1].sum() == 1 and mask[1, 0, 1]  # frame 6: b, the keypoint selected by Shift+click
+    np.testing.assert_allclose(uv[1, 0, 1], (20.0, 30.0), atol=0.4)
+
+
+def test_accept_all_takes_only_the_views_where_the_run_is_confident(tmp_path, browser):
+    """A run's suggestion in a view where its confidence weight is low (a hidden part) is not accepted."""
+    import json
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+
+    def with_suggestions(route):
+        state = route.fetch().json()
+        state["suggestions"] = {"a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.9, "residual": 0.5},
+                                      "cam1": {"u": 20.0, "v": 22.0, "weight": 0.2, "residual": 0.0}},
+                                "b": {"cam2": {"u": 30.0, "v": 32.0, "weight": 0.6, "residual": 0.3}}}
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(state))
+
+    with Server(truth.path) as url:
+        page = browser.new_page()
+        page.route("**/api/frame/4", with_suggestions)
+        page.goto(url + "?frame=4")
+        page.wait_for_selector("body[data-ready='1']")
+        page.keyboard.press("Shift+A")
+        wait_version(page, 1)
+    uv, mask = Dataset.open(truth.path).labels([4])
+    assert mask[0].sum() == 2 and mask[0, 0, 0] and mask[0, 2, 1]  # cam1 (weight 0.2) left unlabelled
+    np.testing.assert_allclose(uv[0, 0, 0], (10.0, 12.0))
+
+
 def test_a_stale_tab_shows_the_newer_labels(tmp_path, browser):
     truth = make_label_dataset(tmp_path / "ds", size=64)
     with Server(truth.path) as url:

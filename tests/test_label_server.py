@@ -73,7 +73,7 @@ def test_sigkill_loses_no_acknowledged_click(tmp_path):
                 u, v = (float(x) for x in rng.uniform(0, 63, 2).round(3))
                 try:
                     r = client.post(f"api/frame/{f}/label", json={"version": versions[f], "edits": [
-                        {"camera": c, "keypoint": k, "u": u, "v": v}]})
+                        {"camera": c, "keypoint": k, "u": u, "v": v}], "unlock": True})  # 6 is a test frame
                 except httpx.TransportError:
                     return  # the server is gone: this click was never acknowledged
                 assert r.status_code == 200, r.text

@@ -287,6 +287,9 @@ def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
     out = tmp_path / "points3d.csv"
     assert _track(recording, out, "--min-weight", "0", "--batch", "4", "--overlay", str(tmp_path / "ov")) == 0
     header, values = _read_csv(out)
+    from s3k.data.tracks_csv import read_source
+
+    assert read_source(out)["units"] == "mm"  # beside the CSV, for s3k export-tracks
     assert header == csv_header(KEYPOINTS)
     assert header[:6] == ["nose_x", "nose_y", "nose_z", "nose_error", "nose_ncams", "nose_score"]
     assert header[-1] == "fnum" and len(header) == 6 * len(KEYPOINTS) + 1
@@ -492,3 +495,51 @@ def test_track_says_why_every_point_is_nan(recording, tmp_path, capsys):
     assert "every keypoint is 0% valid" in err and "train longer" in err and "lower --min-weight" in err
     assert _track(recording, tmp_path / "full.csv", "--min-weight", "0", "--overwrite") == 0
     assert "0% valid" not in capsys.readouterr().err
+
+
+def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
+    """Without --crop, each video is cropped to the box the run's training images showed (its record, here
+    made by hand), exactly as with that --crop; --fit or another --crop overrides, the latter with a
+    warning."""
+    boxes = {"left": [8.0, 0.0, 56.0, 48.0], "top": [16.0, 8.0, 48.0, 40.0], "right": [0.0, 0.0, 64.0, 48.0]}
+    meta = DetectorMeta(
+        keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=2, sigma=2.0,
+        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(), units="mm",
+        geometry={"cameras": {c: {"box": b, "frame_size": list(VIDEO_SIZE)} for c, b in boxes.items()},
+                  "image_size": list(NET_SIZE)})
+    run = save_run(tmp_path / "run", meta, seed=0)
+    rec = dict(recording, run=run)
+    crop = [f"{c}={','.join(f'{v:g}' for v in b)}" for c, b in boxes.items()]
+    assert _track(rec, tmp_path / "recorded.csv", "--min-weight", "0") == 0
+    assert "crop boxes the run was trained on (--crop or --fit overrides): left=8,0,56,48 top=16,8,48,40 " \
+           "right=0,0,64,48" in capsys.readouterr().out
+    assert _track(rec, tmp_path / "given.csv", "--min-weight", "0", "--crop", *crop) == 0
+    assert capsys.readouterr().err == ""
+    assert _track(rec, tmp_path / "fit.csv", "--min-weight", "0", "--fit", "pad") == 0
+    recorded, given, fit = (_read_csv(tmp_path / f"{n}.csv")[1] for n in ("recorded", "given", "fit"))
+    np.testing.assert_array_equal(recorded, given)
+    assert not np.allclose(recorded, fit, equal_nan=True)
+    capsys.readouterr()
+    assert _track(rec, tmp_path / "other.csv", "--min-weight", "0", "--crop", "top=0,0,64,48") == 0
+    assert "warning: --crop top=0,0,64,48 differs from the box the run was trained on, top=16,8,48,40" in \
+        capsys.readouterr().err
+
+
+def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_path, capsys):
+    from s3k.cli.track import keypoint_line
+    from s3k.inference.track import TrackSummary
+
+    assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
+    out = capsys.readouterr().out
+    for kp in KEYPOINTS:
+        assert (f"  {kp}: 0% valid; no point: 100% of frames have fewer than 2 views with a confidence "
+                "weight above --min-weight 0.99 (lower --min-weight") in out
+    assert "nan px" not in out
+    # frames with enough views but no point have a reason of their own; a fully valid keypoint needs none
+    summary = TrackSummary(10, ["a", "b"], [0.6, 1.0], [1.5, 2.0], [0.8, 1.0], 0.5, "mm", tmp_path / "x.csv")
+    assert keypoint_line(summary, 0) == (
+        "60% valid, median error 1.50 px; no point: 20% of frames have fewer than 2 views with a confidence "
+        "weight above --min-weight 0.5 (lower --min-weight (0 uses every view, weighted)); in 20% of frames "
+        "its views triangulate to no valid point (rays near parallel or the point behind a camera: check "
+        "--calibration, --video-region and --crop)")
+    assert keypoint_line(summary, 1) == "100% valid, median error 2.00 px"

@@ -107,4 +107,9 @@ def run(args: argparse.Namespace) -> int:
     print(check.format())
     if args.recalibrate:
         return _recalibrate(args, ds, ids, uv, mask, check.inconsistent)
+    if check.inconsistent or check.notes:
+        which = "flagged" if check.inconsistent else "CAM"
+        print(f"repair: s3k check-calibration {args.dataset} --recalibrate {which} (recalibrates "
+              f"{'the named cameras' if check.inconsistent else 'a camera'} from the recording's ChArUco "
+              "frames), or import the recording without them")
     return 2 if check.inconsistent else 0

@@ -24,6 +24,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlays", type=int, default=6, help="frames drawn in the report (default: 6)")
     parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    parser.add_argument("--ignore-geometry", action="store_true",
+                        help="evaluate a dataset whose images show another part of the cameras' frames than "
+                             "the run was trained on (refused by default)")
 
 
 def _two_pass_pixels(metrics: dict) -> str:
@@ -37,6 +40,10 @@ def _two_pass_pixels(metrics: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.ignore_geometry:
+        from s3k.detector.geometry_record import check_dataset
+
+        check_dataset(args.run, args.data)
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
     units = _two_pass_pixels(metrics) if "two_pass" in metrics else None

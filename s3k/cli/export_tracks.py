@@ -20,7 +20,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="anipose calibration.toml of the rig (stored as calibrated cameras; gives the "
                              "unit)")
     parser.add_argument("--units", default=None,
-                        help="world length unit (default: the calibration's, else m)")
+                        help="world length unit (default: the calibration's, else the one 's3k track' or "
+                             "'s3k predict' wrote beside the CSV in CSV.s3k.json; refused when none says)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing file")
 
 

@@ -19,11 +19,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "every view. 's3k label propagate DATASET --frames A:B [--from F]' copies frame F's 3D labels to the "
         "still frames A..B instead.")
     parser.usage = ("s3k label DATASET [--run RUN] [--up X,Y,Z] [--port PORT] [--host HOST]\n"
-                    "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT]")
+                    "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT] "
+                    "[--dry-run] [--overwrite] [--allow-test]\n"
+                    "       s3k label propagate DATASET --undo")
     parser.add_argument("dataset", help="dataset folder (or 'propagate' followed by the dataset folder)")
     parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
     parser.add_argument("--run", help="a trained run: its predictions are offered as suggestions and the "
                         "unlabelled frames ranked by its multi-view disagreement")
+    parser.add_argument("--ignore-geometry", action="store_true",
+                        help="use --run on a dataset whose images show another part of the cameras' frames "
+                             "than the run was trained on (refused by default)")
     parser.add_argument("--port", type=int, default=8765, help="port to serve on (default: 8765)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to serve on (default: 127.0.0.1); any other requires the random "
@@ -43,6 +48,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--max-changed", type=float, default=None,
                        help="largest percentage of a camera's pixels that may differ from the source frame "
                             "by more than 24 grey levels in a still frame (default: 0.2)")
+    group.add_argument("--dry-run", action="store_true", help="print what would change, write nothing")
+    group.add_argument("--overwrite", action="store_true",
+                       help="replace existing labels that differ from the copy (default: refuse)")
+    group.add_argument("--allow-test", action="store_true",
+                       help="read from and write to test frames (default: refuse; their labels are held "
+                            "out for evaluation)")
+    group.add_argument("--undo", action="store_true",
+                       help="undo the latest propagation (from the label history)")
 
 
 def _frames(text: str | None) -> tuple[int, int]:
@@ -74,14 +87,21 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("s3k label propagate needs the dataset folder",
                         hint="s3k label propagate DATASET --frames A:B")
     if propagate:
-        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
+        from s3k.label.propagate import DEFAULT_MAX_CHANGED, describe, propagate_labels, undo_propagation
 
+        if args.undo:
+            source, frames = undo_propagation(args.target, labeller=args.labeller)
+            print(f"undid the propagation from frame {source}: frame(s) {', '.join(map(str, frames))} have "
+                  "their labels from before it")
+            return 0
         first, last = _frames(args.frames)
         result = propagate_labels(args.target, first, last, args.source,
                                   DEFAULT_MAX_CHANGED if args.max_changed is None else args.max_changed,
-                                  labeller=args.labeller)
-        print(f"copied frame {result.source}'s {len(result.keypoints)} keypoint(s) "
-              f"({', '.join(result.keypoints)}) to {len(result.frames)} frame(s): {result.labels} labels")
+                                  labeller=args.labeller, overwrite=args.overwrite,
+                                  allow_test=args.allow_test, dry_run=args.dry_run)
+        print("\n".join(describe(result)))
+        if not result.dry_run and result.labels:
+            print(f"undo with: s3k label propagate {args.target} --undo")
         return 0
     if args.target is not None:
         raise UserError(f"unexpected argument {args.target!r}; did you mean 's3k label propagate DATASET'?")
@@ -89,10 +109,14 @@ def run(args: argparse.Namespace) -> int:
     for name in ("frames", "source", "max_changed"):
         if getattr(args, name) is not None:
             raise UserError(f"--{name.replace('_', '-')} belongs to 's3k label propagate DATASET'")
+    for name in ("dry_run", "overwrite", "allow_test", "undo"):
+        if getattr(args, name):
+            raise UserError(f"--{name.replace('_', '-')} belongs to 's3k label propagate DATASET'")
     try:
         from s3k.label.server import serve
     except ImportError as exc:
         raise UserError(f"s3k label needs FastAPI and uvicorn ({exc})",
                         hint="pip install 'fastapi>=0.110' 'uvicorn>=0.29'") from None
-    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up)
+    serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up,
+          ignore_geometry=args.ignore_geometry)
     return 0

@@ -24,6 +24,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
                               args.overwrite)
+    from s3k.data import Dataset
+    from s3k.data.tracks_csv import write_source
+
+    write_source(summary.path, Dataset.open(args.data, cache="none").units, run=args.run, dataset=args.data)
     for text in summary.warnings:
         print(f"warning: {text}", file=sys.stderr)
     print(f"wrote {summary.frames} frames x {len(summary.keypoints)} keypoints to {summary.path}")

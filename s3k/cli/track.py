@@ -53,31 +53,66 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="confidence weight a view needs to be used (default 0: every view, weighted by "
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
-    parser.add_argument("--fit", choices=FIT_MODES, default="pad",
+    parser.add_argument("--fit", choices=FIT_MODES, default=None,
                         help="when the video's aspect ratio differs from the detector's input: pad "
-                        "(default), crop or stretch")
+                        "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
+                        "on")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
-                        help="crop box in pixel edge coordinates, as given to 's3k import --crop'")
+                        help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
+                        "the boxes the run was trained on, from its dataset's import)")
     parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def keypoint_line(summary, k: int) -> str:
+    """A keypoint's line of the summary: how often it was triangulated, its median error, and for the frames
+    without a point, why and which option changes it."""
+    valid, passing = summary.valid_fraction[k], summary.passing_fraction[k]
+    text = f"{100 * valid:.0f}% valid"
+    if valid > 0:
+        text += f", median error {summary.median_error_px[k]:.2f} px"
+    if valid >= 1 or not summary.frames:
+        return text
+    reasons = []
+    few = 1.0 - passing  # frames where fewer than two views pass --min-weight
+    if few > 0:
+        change = ("lower --min-weight (0 uses every view, weighted)" if summary.min_weight > 0 else
+                  "the detector is not confident there: train on more labelled frames like these")
+        reasons.append(f"{100 * few:.0f}% of frames have fewer than 2 views with a confidence weight above "
+                       f"--min-weight {summary.min_weight:g} ({change})")
+    rest = passing - valid  # enough views, but no point
+    if rest > 1e-9:
+        reasons.append(f"in {100 * rest:.0f}% of frames its views triangulate to no valid point (rays near "
+                       "parallel or the point behind a camera: check --calibration, --video-region and "
+                       "--crop)")
+    return text + "; no point: " + "; ".join(reasons)
+
+
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import parse_crops
+    from s3k.data import video
+    from s3k.detector.geometry_record import track_crops
 
     videos = parse_videos(args.videos)
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
+    sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
+    crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
+    for line in notes:
+        print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
     summary = track_videos(
         args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
-        start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit, crops=crops,
+        start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit or "pad", crops=crops,
         device=args.device, units=args.units, progress=not args.no_progress, overwrite=args.overwrite,
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,
     )
+    from s3k.data.tracks_csv import write_source
+
+    write_source(summary.path, summary.units, run=args.run, calibration=args.calibration)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
-    for kp, f, e in zip(summary.keypoints, summary.valid_fraction, summary.median_error_px):
-        print(f"  {kp}: {100 * f:.0f}% valid, median error {e:.2f} px")
+    for k, kp in enumerate(summary.keypoints):
+        print(f"  {kp}: {keypoint_line(summary, k)}")
     hint = empty_result_hint(summary)
     if hint:
         print(f"warning: {hint}", file=sys.stderr)

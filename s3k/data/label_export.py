@@ -17,6 +17,7 @@ videos in SLEAP.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -211,13 +212,17 @@ def export_tracks(
         out: the ``.nwb`` file.
         fps: frame rate of the videos (timestamps are ``fnum / fps``).
         calibration: the anipose ``calibration.toml`` of the rig, stored with the tracks and giving the unit.
-        units: world unit (default: the calibration's, else ``"m"``).
+        units: world unit (default: the calibration's, else the one ``s3k track`` / ``s3k predict`` wrote
+            beside the CSV, :func:`s3k.data.tracks_csv.read_source`).
         overwrite: replace an existing file.
+
+    Raises:
+        UserError: the unit is not known (none given, no calibration, nothing beside the CSV): never guessed.
     """
     import csv
 
     from s3k.data.nwb import write_nwb_tracks
-    from s3k.data.tracks_csv import check_output, read_csv
+    from s3k.data.tracks_csv import check_output, read_csv, read_source, source_path
 
     if fmt != "nwb":
         raise UserError(f"--format {fmt!r}: 3D tracks export to nwb")
@@ -243,8 +248,17 @@ def export_tracks(
         arrays = r.cameras.numpy()
         rig = {cam: (arrays["K"][c], arrays["dist"][c], arrays["R"][c], arrays["t"][c], tuple(r.size[c]))
                for c, cam in enumerate(r.names)}
-        units = units or r.units
-    units = units or "m"
+        units = units or (r.units if r.units != "unknown" else None)
+    source = read_source(csv_path)
+    if units is None and source is not None and source["units"] != "unknown":
+        units = source["units"]
+    if units is None:
+        raise UserError(f"{csv_path}: the unit of its points is not known (no --calibration, and no "
+                        f"{source_path(csv_path).name} with it as 's3k track' and 's3k predict' write)",
+                        hint="pass --units (e.g. mm), or --calibration with the rig's calibration")
+    if source is not None and source["units"] not in (units, "unknown"):
+        print(f"warning: {csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
+              f"written as {units}", file=sys.stderr)
     path = write_nwb_tracks(out, keypoints, fnums, X, score, fps=fps, units=units, rig=rig,
                             description=f"3D keypoints from {csv_path.name} (s3k)")
     return path, units

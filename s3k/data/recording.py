@@ -387,6 +387,16 @@ def import_recording(
     print(f"wrote {out}: {len(splits)} frames (labelled {n['labelled']}, test {n['test']}, unlabelled "
           f"{n['unlabelled']}), {C} cameras {', '.join(cameras)}, {Kp} keypoints, {W}x{H} px, "
           f"{n_labels} 2D labels, units {rig.units}")
+    import torch
+
+    from s3k.data.import_report import calibration_warnings, kept_labels_summary
+    from s3k.geometry import Cameras
+
+    for line in kept_labels_summary(mask.sum(axis=(1, 2)), candidates, splits, n_labelled, test, min_views):
+        print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
+    cams = Cameras.from_numpy(K_out, arrays["dist"], arrays["R"], arrays["t"], dtype=torch.float64)
+    for line in calibration_warnings(cams, uv[candidates], mask[candidates], cameras, out_size, out):
+        _warn(line)
     if rig.units == "unknown":
         _warn(f"{calibration} does not give its world unit; pass --units (e.g. mm) so that 3D errors have "
               "one")

@@ -8,22 +8,29 @@ Columns, one row per frame::
 the cameras' images, over the cameras used; ``ncams`` the number of cameras used; ``score`` the mean
 confidence weight over all cameras; ``fnum`` the frame number (video frame index, or dataset frame id).
 Where the triangulation is degenerate ``x, y, z`` and ``error`` are ``nan`` (:mod:`s3k.readout`).
+
+The CSV has no room for its unit (anipose's readers take every column as data), so ``s3k track`` and ``s3k
+predict`` write it beside the CSV, in ``<file>.s3k.json`` (:func:`write_source`): the world unit of the
+points, the run and the calibration or dataset they came from. ``s3k export-tracks`` reads the unit from it
+(:func:`read_source`) rather than guessing one.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import json
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from s3k.errors import UserError
-from s3k.fileio import atomic_path
+from s3k.fileio import atomic_path, atomic_write_json
 from s3k.readout import ReadOut
 
-__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "write_csv"]
+__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "source_path", "write_csv",
+           "write_source"]
 
 
 def csv_header(keypoints: Sequence[str]) -> list[str]:
@@ -109,3 +116,26 @@ def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray
             except ValueError as e:
                 raise UserError(f"{path}, line {reader.line_num}: {e}") from None
     return out
+
+
+def source_path(csv_path: str | Path) -> Path:
+    """Where the source of a 3D CSV is written: ``<file>.s3k.json`` beside it."""
+    csv_path = Path(csv_path)
+    return csv_path.with_name(csv_path.name + ".s3k.json")
+
+
+def write_source(csv_path: str | Path, units: str, **source: object) -> Path:
+    """Write the unit of the CSV's points and where they came from (``run``, ``calibration``, ``dataset``...)
+    beside it; returns the file."""
+    path = source_path(csv_path)
+    atomic_write_json({"units": str(units), **{k: str(v) for k, v in source.items() if v is not None}}, path)
+    return path
+
+
+def read_source(csv_path: str | Path) -> dict[str, str] | None:
+    """What :func:`write_source` wrote beside a CSV, or None (no file, or not one of these)."""
+    try:
+        doc = json.loads(source_path(csv_path).read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) and isinstance(doc.get("units"), str) else None

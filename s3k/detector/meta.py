@@ -35,6 +35,10 @@ class DetectorMeta:
             (NaN where unknown, None: not a rigid object), and ``layout_tol`` the relative tolerance
             ``--layout_tol`` held them to: at read-out a keypoint that breaks them is looked for again where
             the layout puts it (:func:`s3k.readout.search_layout`).
+        geometry: the part of each camera's full frame the training images showed, the training images' size
+            and the training dataset's path and identity
+            (:func:`s3k.detector.geometry_record.training_geometry`), so that inputs are cropped the same way
+            or refused; None for a run trained before it was recorded.
     """
 
     keypoints: list[str]
@@ -48,6 +52,7 @@ class DetectorMeta:
     outlier_px: float = 0.0
     layout: list[list[float]] | None = None
     layout_tol: float = 0.0
+    geometry: dict[str, Any] | None = None
 
     @property
     def max_residual_px(self) -> float | None:

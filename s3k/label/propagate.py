@@ -9,11 +9,17 @@ percent of its pixels differ from the source frame's by more than ``CHANGE_LEVEL
 channel, 0-255). A share of changed pixels, not a mean difference, so that a small object moving in a large
 still image is caught, and a video codec's noise of a few grey levels is not. The first frame that breaks
 either is named and nothing is written.
+
+Labels people made are never replaced silently: a copy that would change an existing label is refused
+unless ``overwrite`` (``--overwrite``), and test frames, whose labels are held out for evaluation, are neither
+read nor written unless ``allow_test`` (``--allow-test``). ``dry_run`` (``--dry-run``) computes the same
+changes and writes nothing. Every propagation is one batch of the label history, undone with
+:func:`undo_propagation` (``s3k label propagate DATASET --undo``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +28,8 @@ from s3k.errors import UserError
 from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
 
-__all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "propagate_labels"]
+__all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "describe",
+           "propagate_labels", "undo_propagation"]
 
 CHANGE_LEVEL = 24
 """A pixel has changed when a channel differs by more than this many grey levels (0-255)."""
@@ -33,12 +40,36 @@ DEFAULT_MAX_CHANGED = 0.2
 
 @dataclass
 class PropagateResult:
-    """What :func:`propagate_labels` wrote."""
+    """What :func:`propagate_labels` wrote (or, with ``dry_run``, would write).
+
+    Attributes:
+        source: the frame copied from.
+        frames: the frames that change.
+        keypoints: the keypoints copied.
+        labels: labels written (new and replaced).
+        replaced: of those, labels that replace an existing one.
+        dry_run: nothing was written.
+        per_frame: ``{frame: (new, replaced)}``.
+    """
 
     source: int
     frames: list[int]
     keypoints: list[str]
     labels: int
+    replaced: int = 0
+    dry_run: bool = False
+    per_frame: dict[int, tuple[int, int]] = field(default_factory=dict)
+
+
+def describe(result: PropagateResult) -> list[str]:
+    """What a propagation changes, one line per frame, then the total (for the command's output)."""
+    verb = "would copy" if result.dry_run else "copied"
+    lines = [f"  frame {f}: {new} new label(s)" + (f", {old} replaced" if old else "")
+             for f, (new, old) in sorted(result.per_frame.items())]
+    lines.append(f"{verb} frame {result.source}'s {len(result.keypoints)} keypoint(s) "
+                 f"({', '.join(result.keypoints)}) to {len(result.frames)} frame(s): {result.labels} labels"
+                 + (f", {result.replaced} of them replacing existing labels" if result.replaced else ""))
+    return lines
 
 
 def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -50,7 +81,8 @@ def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def propagate_labels(data: str | Path, first: int, last: int, source: int | None = None,
                      max_changed: float = DEFAULT_MAX_CHANGED, store: LabelStore | None = None,
-                     labeller: str | None = None) -> PropagateResult:
+                     labeller: str | None = None, *, overwrite: bool = False, allow_test: bool = False,
+                     dry_run: bool = False) -> PropagateResult:
     """Copy the 3D labels of frame ``source`` to every frame with an id in ``first..last`` (inclusive).
 
     Args:
@@ -61,14 +93,18 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         max_changed: largest percentage of changed pixels a still frame may have in any camera.
         store: the dataset's open :class:`LabelStore` (the labelling app passes its own); opened if None.
         labeller: name for the history when the store is opened here.
+        overwrite: replace existing labels that differ from the copy (else refused).
+        allow_test: read from and write to test frames (else refused).
+        dry_run: compute the changes, write nothing.
 
     Returns:
         A :class:`PropagateResult`.
 
     Raises:
-        UserError: an empty stretch, a source frame without a keypoint labelled in two views, or a frame of
+        UserError: an empty stretch, a source frame without a keypoint labelled in two views, a frame of
             the stretch whose calibration or images differ from the source frame's (named, with the option
-            that changes the threshold).
+            that changes the threshold), a test frame without ``allow_test``, or an existing label that
+            would change without ``overwrite``.
     """
     from s3k.data import Dataset
 
@@ -80,6 +116,11 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
     ids = [int(f) for f in ds.frame_ids if first <= f <= last]
     if not ids:
         raise UserError(f"--frames {first}:{last}: no frame of {ds.path} has an id in that range")
+    tests = [f for f in ids if store.split(f) == "test"]
+    if tests and not allow_test:
+        raise UserError(f"--frames {first}:{last}: frame(s) {_listed(tests)} are test frames, whose labels "
+                        "are held out for evaluation; nothing was written",
+                        hint="choose --frames without them, or pass --allow-test to write them")
 
     def solved(frame: int) -> dict[str, np.ndarray]:
         uv, mask = store.arrays(frame)
@@ -94,6 +135,9 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         source = best[2]
     elif source not in store.frames.row_of:
         raise UserError(f"--from {source}: frame {source} is not listed in {ds.path / 'frames.csv'}")
+    elif store.split(source) == "test" and not allow_test:
+        raise UserError(f"--from {source}: frame {source} is a test frame, whose labels are held out for "
+                        "evaluation", hint="copy from another frame, or pass --allow-test")
     tri = solved(source)
     if not tri["valid"].any():
         raise UserError(f"--from {source}: frame {source} has no keypoint labelled in 2 or more views",
@@ -122,23 +166,80 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
     uv_src, _ = store.arrays(source)
     i_src = store.row(source)
     edits: dict[int, list[Edit]] = {}
+    per_frame: dict[int, tuple[int, int]] = {}
+    replaced: list[tuple[int, str, str]] = []
     keypoints = [kp for k, kp in enumerate(ds.keypoints) if tri["valid"][k]]
     for f in ids:
         if f == source:
             continue
-        items = []
+        i = store.row(f)
+        items, n_old = [], 0
         for k, kp in enumerate(ds.keypoints):
             if not tri["valid"][k]:
                 continue
             for c, cam in enumerate(ds.cameras):
                 if store.present[i_src, c, k] and not store.visible[i_src, c, k]:
-                    items.append(Edit(cam, kp, visible=False))
-                    continue
-                u, v = tri["reproj"][c, k]
-                if np.isfinite(u) and -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5:
-                    items.append(Edit(cam, kp, float(u), float(v)))
+                    edit = Edit(cam, kp, visible=False)
+                else:
+                    u, v = tri["reproj"][c, k]
+                    if not (np.isfinite(u) and -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5):
+                        continue
+                    edit = Edit(cam, kp, float(u), float(v))
+                if store.present[i, c, k]:
+                    if _same(edit, store.uv[i, c, k], bool(store.visible[i, c, k])):
+                        continue  # already there: no change
+                    replaced.append((f, cam, kp))
+                    n_old += 1
+                items.append(edit)
         if items:
             edits[f] = items
-    if edits:
+            per_frame[f] = (len(items) - n_old, n_old)
+    if replaced and not overwrite:
+        f, cam, kp = replaced[0]
+        frames = sorted({r[0] for r in replaced})
+        raise UserError(f"propagating frame {source} would replace {len(replaced)} existing label(s) in "
+                        f"frame(s) {_listed(frames)} (first: frame {f}, camera {cam}, keypoint {kp}); "
+                        "nothing was written", hint="pass --overwrite to replace them, or --dry-run to list "
+                        "the changes")
+    if edits and not dry_run:
         store.save_many(edits, None, source=f"propagate from {source}")
-    return PropagateResult(int(source), sorted(edits), keypoints, sum(len(e) for e in edits.values()))
+    return PropagateResult(int(source), sorted(edits), keypoints, sum(len(e) for e in edits.values()),
+                           len(replaced), dry_run, per_frame)
+
+
+def _same(edit: Edit, uv: np.ndarray, visible: bool) -> bool:
+    """The stored label ``(uv, visible)`` is what ``edit`` writes (to a thousandth of a pixel)."""
+    if edit.visible != visible:
+        return False
+    if not edit.visible:
+        return True
+    return bool(np.all(np.abs(np.asarray([edit.u, edit.v]) - uv) < 1e-3))
+
+
+def _listed(frames: list[int], most: int = 8) -> str:
+    shown = ", ".join(map(str, frames[:most]))
+    return shown + (f" and {len(frames) - most} more" if len(frames) > most else "")
+
+
+def undo_propagation(data: str | Path, store: LabelStore | None = None,
+                     labeller: str | None = None) -> tuple[int, list[int]]:
+    """Undo the latest propagation of the dataset ``data`` that is not undone yet, from its label history;
+    returns ``(source frame, frames restored)``.
+
+    Raises:
+        UserError: no propagation to undo, or a frame it wrote was edited since (named).
+    """
+    store = store or LabelStore.open(data, labeller=labeller)
+    store.refresh()
+    undone: set[tuple[int, int]] = set()
+    for entry in reversed(store.history()):
+        key = (entry.get("frame"), entry.get("version"))
+        if "undoes" in entry:
+            undone.add((entry.get("frame"), entry["undoes"]))
+        elif str(entry.get("source", "")).startswith("propagate from") and key not in undone:
+            if "batch" not in entry:
+                raise UserError(f"the latest propagation in {Path(data) / 'labels-history.jsonl'} was "
+                                "written by an older s3k and cannot be undone as one")
+            source = int(str(entry["source"]).rsplit(" ", 1)[-1])
+            return source, store.undo_batch(entry["batch"], source=f"undo {entry['source']}")
+    raise UserError(f"{data}: no propagation to undo in its label history")

@@ -9,14 +9,17 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   residuals, epipolar curves) and, with a run, the run's suggestions.
 - ``GET /api/frame/{frame}/image/{camera}``: the stored image, PNG.
 - ``POST /api/frame/{frame}/label``: ``{"version", "edits": [{"camera", "keypoint", "u", "v", "visible",
-  "remove"}], "source"}``; answers the new frame state, 409 with the newer state (``current``) when
-  ``version`` is stale, 400 naming the field when an edit is invalid.
+  "remove"}], "source", "unlock"}``; answers the new frame state, 409 with the newer state (``current``) when
+  ``version`` is stale, 400 naming the field when an edit is invalid, 403 for a test frame (its labels are
+  held out for evaluation) unless ``unlock`` is true.
+- ``POST /api/frame/{frame}/undo``: ``{"version", "unlock"}``; reverts the frame's latest edit not yet undone
+  (the history keeps both), 400 when there is none.
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
   run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
   ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
-- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed"}``,
-  :func:`s3k.label.propagate.propagate_labels`.
+- ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
+  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
 
 Files are served only from the package's ``static`` folder; images only by frame id and camera name, so no
 request names a path. Bound to another interface than the loopback, every request must carry the token the
@@ -53,6 +56,12 @@ class SaveIn(BaseModel):
     version: int
     edits: list[Edit]  # the store's own dataclass, validated field by field
     source: str = "click"
+    unlock: bool = False  # edit a test frame
+
+
+class UndoIn(BaseModel):
+    version: int
+    unlock: bool = False
 
 
 class PropagateIn(BaseModel):
@@ -60,13 +69,16 @@ class PropagateIn(BaseModel):
     last: int
     source: int | None = None
     max_changed: float | None = None
+    overwrite: bool = False
+    allow_test: bool = False
+    dry_run: bool = False
 
 
 class LabelApp:
     """The state behind the API: the dataset, its label store and the optional run's suggestions."""
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
-                 device: str = "cpu", up: Up = UP) -> None:
+                 device: str = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
         from s3k.data import Dataset
 
         self.root = Path(data)
@@ -76,7 +88,11 @@ class LabelApp:
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.suggestions = None
         if run is not None:
+            from s3k.detector.geometry_record import check_dataset
             from s3k.label.suggest import Suggestions
+
+            if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
+                check_dataset(run, self.root)
 
             self.suggestions = Suggestions(run, self.root, device)
 
@@ -132,7 +148,7 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
-               up: Up = UP) -> FastAPI:
+               up: Up = UP, ignore_geometry: bool = False) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
     Args:
@@ -145,8 +161,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             reach a loopback server through a name that resolves to 127.0.0.1.
         up: the table's normal in world coordinates; the pose rankings compare poses blind to the object's
             turn about it (None: not blind to it).
+        ignore_geometry: accept a run trained on another part of the cameras' frames than the dataset's
+            images show (:func:`s3k.detector.geometry_record.check_dataset`).
     """
-    state = LabelApp(data, run, labeller, device, up)
+    state = LabelApp(data, run, labeller, device, up, ignore_geometry)
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
@@ -195,12 +213,36 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             raise HTTPException(500, "could not encode the image")
         return Response(png.tobytes(), media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
+    def locked(frame: int, unlock: bool) -> JSONResponse | None:
+        state.store.refresh()
+        if state.store.split(frame) == "test" and not unlock:
+            return _error(403, f"frame {frame} is a test frame: its labels are held out for evaluation and "
+                               "read-only until unlocked (the page's unlock button)")
+        return None
+
     @app.post("/api/frame/{frame}/label")
     def save(frame: int, body: SaveIn) -> Any:
         frame_or_404(frame)
+        refused = locked(frame, body.unlock)
+        if refused is not None:
+            return refused
         edits = list(body.edits)
         try:
             state.store.save(frame, edits, body.version, source=body.source[:40])
+        except StaleVersion as exc:
+            return _error(409, str(exc), current=state.frame_state(frame))
+        except UserError as exc:
+            return _error(400, str(exc))
+        return state.frame_state(frame)
+
+    @app.post("/api/frame/{frame}/undo")
+    def undo(frame: int, body: UndoIn) -> Any:
+        frame_or_404(frame)
+        refused = locked(frame, body.unlock)
+        if refused is not None:
+            return refused
+        try:
+            state.store.undo(frame, body.version)
         except StaleVersion as exc:
             return _error(409, str(exc), current=state.frame_state(frame))
         except UserError as exc:
@@ -236,11 +278,22 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
-                                      store=state.store)
+                                      store=state.store, overwrite=body.overwrite, allow_test=body.allow_test,
+                                      dry_run=body.dry_run)
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": result.source, "frames": result.frames, "keypoints": result.keypoints,
-                "labels": result.labels}
+                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run}
+
+    @app.post("/api/propagate/undo")
+    def propagate_undo() -> Any:
+        from s3k.label.propagate import undo_propagation
+
+        try:
+            source, frames = undo_propagation(state.root, store=state.store)
+        except UserError as exc:
+            return _error(400, str(exc))
+        return {"source": source, "frames": frames}
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
@@ -248,7 +301,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce=print,
-          up: Up = UP) -> None:
+          up: Up = UP, ignore_geometry: bool = False) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
     import socket
 
@@ -268,8 +321,9 @@ def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.
     torch.set_num_threads(1)
     loopback = host in LOOPBACK
     token = None if loopback else secrets.token_urlsafe(18)
-    app = create_app(data, run, token, labeller, device,
-                     allowed_hosts=[*LOOPBACK, host] if loopback else None, up=up)
+    hosts = [*LOOPBACK, host] if loopback else None
+    app = create_app(data, run, token, labeller, device, allowed_hosts=hosts, up=up,
+                     ignore_geometry=ignore_geometry)
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{port}/" + ("" if token is None else f"?token={token}")
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)

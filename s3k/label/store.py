@@ -13,9 +13,11 @@ applies edits to it. Each save
    flushes it to disk, and only then returns, so an acknowledged edit is on disk.
 
 The history log is append-only JSON lines, one per save: time, labeller, frame, the version the save made,
-where it came from (``click``, ``drag``, ``accept``, ``propagate``...) and each changed label before and
-after.
-The frames' versions are read back from it when a store opens.
+where it came from (``click``, ``drag``, ``accept``, ``propagate``...), the ``batch`` id shared by the
+entries of one save (a propagation writes many frames at once) and each changed label before and after.
+The frames' versions are read back from it when a store opens. An undo (:meth:`LabelStore.undo`, the app's
+Ctrl+Z; :meth:`LabelStore.undo_batch`, ``s3k label propagate --undo``) is an entry of its own that puts the
+``before`` labels back and names the version it reverts (``undoes``), so nothing is ever erased from the log.
 """
 
 from __future__ import annotations
@@ -258,9 +260,14 @@ class LabelStore:
         return self.save_many({frame: edits}, {frame: version}, source)[frame]
 
     def save_many(self, edits: dict[int, list[Edit]], versions: dict[int, int | None] | None = None,
-                  source: str = "click") -> dict[int, dict[str, Any]]:
-        """:meth:`save` for several frames in one write of the table (``versions`` per frame)."""
+                  source: str = "click", undoes: dict[int, dict[str, Any]] | None = None
+                  ) -> dict[int, dict[str, Any]]:
+        """:meth:`save` for several frames in one write of the table (``versions`` per frame). The entries of
+        one call share a ``batch`` id in the history; ``undoes`` (``{frame: history entry}``, for
+        :meth:`undo`) marks each frame's entry as the undoing of that one."""
         versions = versions or {}
+        undoes = undoes or {}
+        batch = f"{time.time_ns():x}-{os.getpid()}"
         edits = {f: es for f, es in edits.items() if es}  # nothing to change: no new version either
         if not edits:
             return {}
@@ -296,8 +303,17 @@ class LabelStore:
                     changes.append({"camera": e.camera, "keypoint": e.keypoint, "before": before,
                                     "after": after})
                 entry: dict[str, Any] = {"time": now, "labeller": self.labeller, "frame": int(f),
-                                         "version": self.version(f) + 1, "source": source, "changes": changes}
-                if self.promote and splits[i] == "unlabelled" and (present[i] & visible[i]).any():
+                                         "version": self.version(f) + 1, "source": source, "batch": batch,
+                                         "changes": changes}
+                undone = undoes.get(f)
+                if undone is not None:
+                    entry["undoes"] = int(undone["version"])
+                    moved = undone.get("split")
+                    if isinstance(moved, dict) and moved.get("before") in SPLITS and \
+                            splits[i] == moved.get("after") and not (present[i] & visible[i]).any():
+                        splits[i] = moved["before"]  # back to the split it had before the undone labels
+                        entry["split"] = {"before": moved["after"], "after": moved["before"]}
+                elif self.promote and splits[i] == "unlabelled" and (present[i] & visible[i]).any():
                     splits[i] = "labelled"
                     entry["split"] = {"before": "unlabelled", "after": "labelled"}
                 log.append(entry)
@@ -311,6 +327,78 @@ class LabelStore:
                 self.versions[entry["frame"]] = entry["version"]
             self._stamp = self._file_stamp()
             return {f: self.frame_labels(int(f)) for f in edits}
+
+    # -- undoing -----------------------------------------------------------------------------------------
+
+    def last_edit(self, frame: int) -> dict[str, Any] | None:
+        """The frame's latest history entry that is not an undo and has not been undone (None: nothing left
+        to undo). Undos are themselves entries (``undoes``: the version they revert), so the history stays
+        append-only and repeated undos step back one edit at a time."""
+        undone: set[int] = set()
+        for entry in reversed(self.history(int(frame))):
+            if "undoes" in entry:
+                undone.add(int(entry["undoes"]))
+            elif int(entry.get("version", -1)) not in undone:
+                return entry
+        return None
+
+    @staticmethod
+    def _reverting(entry: dict[str, Any]) -> list[Edit]:
+        """The edits that put back the labels a history entry changed."""
+        out = []
+        for change in entry.get("changes", []):
+            before = change.get("before")
+            if before is None:
+                out.append(Edit(change["camera"], change["keypoint"], remove=True))
+            else:
+                out.append(Edit(change["camera"], change["keypoint"], before.get("u"), before.get("v"),
+                                bool(before.get("visible", True))))
+        return out
+
+    def undo(self, frame: int, version: int | None = None) -> dict[str, Any]:
+        """Revert the frame's latest edit (:meth:`last_edit`), as a new version; returns
+        :meth:`frame_labels`. ``version``: the frame version the undo was asked against (as for :meth:`save`).
+
+        Raises:
+            StaleVersion: ``version`` is older than the stored one.
+            UserError: the frame has no edit left to undo.
+        """
+        with self._mutex:  # save_many takes the file lock and refuses the undo if another process saved
+            self.refresh()
+            if version is not None and int(version) != self.version(frame):
+                raise StaleVersion(int(frame), int(version), self.version(frame))
+            entry = self.last_edit(frame)
+            if entry is None:
+                raise UserError(f"frame {frame}: no edit to undo in {self.root / HISTORY_FILE}")
+            source = f"undo {entry.get('source', 'edit')}"[:60]
+            return self.save_many({frame: self._reverting(entry)}, {frame: self.version(frame)}, source,
+                                  undoes={frame: entry})[frame]
+
+    def undo_batch(self, batch: str, source: str = "undo") -> list[int]:
+        """Revert every frame's entry of one :meth:`save_many` call (e.g. a propagation); returns the frames.
+
+        Raises:
+            UserError: no entry has that batch id, or a frame was edited since (named: undo that first).
+        """
+        with self._mutex:
+            self.refresh()
+            log = self.history()
+            undone = {(e.get("frame"), e["undoes"]) for e in log if "undoes" in e}
+            entries = [e for e in log if e.get("batch") == batch and "undoes" not in e
+                       and (e.get("frame"), e.get("version")) not in undone]
+            if not entries:
+                raise UserError(f"no edit {batch!r} in {self.root / HISTORY_FILE}")
+            for entry in entries:
+                last = self.last_edit(int(entry["frame"]))
+                if last != entry:
+                    raise UserError(f"frame {entry['frame']} was edited after {entry.get('source')!r} "
+                                    f"(now version {self.version(int(entry['frame']))}); nothing was undone",
+                                    hint="undo the later edits of that frame first (Ctrl+Z in s3k label)")
+            frames = [int(e["frame"]) for e in entries]
+            self.save_many({int(e["frame"]): self._reverting(e) for e in entries},
+                           {f: self.version(f) for f in frames}, source,
+                           undoes={int(e["frame"]): e for e in entries})
+            return sorted(int(e["frame"]) for e in entries)
 
     def _write_table(self, uv: np.ndarray, present: np.ndarray, visible: np.ndarray) -> None:
         lines = [",".join(LABELS_COLUMNS)]

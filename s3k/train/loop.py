@@ -34,6 +34,7 @@ from s3k.detector import (
     DetectorMeta,
     save_model_file,
 )
+from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
 from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.model import UNet, UNetConfig
@@ -207,7 +208,7 @@ def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dic
         UserError: naming the first field or dataset property that differs where it must not.
     """
     ds, _ = _open_at_network_size(Path(data), cfg)
-    return run_folder.check_resume(Path(out), cfg, run_folder.dataset_identity(ds), Path(data))
+    return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), Path(data))
 
 
 def _open_data(data: Path, cfg: TrainConfig) -> _Data:
@@ -254,6 +255,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
                          norm=cfg.norm).to_dict(),
         units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
         layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
+        geometry=training_geometry(d.ds),
     )
 
 
@@ -265,7 +267,7 @@ def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: Detector
     state = ckpt.load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
     if not info.main:
         return state
-    identity = run_folder.dataset_identity(d.ds)
+    identity = dataset_identity(d.ds)
     changed = run_folder.check_resume(out, cfg, identity, data) if state is not None else {}
     if overwrite:
         run_folder.clear_run(out)

@@ -4,7 +4,8 @@ Before a single file is written, :func:`check_out` refuses an ``--out`` that is 
 already holds a run (unless ``--resume`` or ``--overwrite``), and :func:`check_resume` compares the call with
 the run being resumed: every field of the configuration outside the few a resume may change
 (``s3k.config.resumable_fields``: more steps, threads, progress, validation cadence, ...) must match, and so
-must the dataset's identity (:func:`dataset_identity`: keypoints, cameras and a fingerprint of its tables).
+must the dataset's identity (:func:`s3k.detector.geometry_record.dataset_identity`: keypoints, cameras and
+a fingerprint of its tables).
 A refusal names the field with its value there and now, and leaves ``config.json`` untouched. Allowed
 changes are recorded in ``config.json``'s ``"history"``: one entry per start of the run with the time, the
 command line and the fields that changed.
@@ -12,16 +13,12 @@ command line and the fields that changed.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from s3k.config import TrainConfig, config_from_dict, resumable_fields
 from s3k.detector import (
@@ -80,22 +77,6 @@ def clear_run(out: Path) -> None:
             shutil.rmtree(path)
         elif path.exists():
             path.unlink()
-
-
-def dataset_identity(ds: Any) -> dict[str, Any]:
-    """What must stay the same for a run to be resumed on a dataset: keypoint and camera names and a
-    fingerprint (SHA-256 of the metadata, the frame ids and their splits, the labels and the calibration)."""
-    ids = ds.frames()
-    h = hashlib.sha256()
-    h.update(json.dumps(ds.metadata, sort_keys=True, default=str).encode())
-    h.update(np.asarray(ids, dtype=np.int64).tobytes())
-    h.update("\n".join(map(str, ds.split_of(ids))).encode())
-    uv, mask = ds.labels(ids)
-    h.update(np.ascontiguousarray(uv, dtype=np.float32).tobytes())
-    h.update(np.ascontiguousarray(mask, dtype=bool).tobytes())
-    for name, part in sorted(ds.calibration(ids, dtype=np.float64).numpy().items()):
-        h.update(name.encode() + np.ascontiguousarray(part).tobytes())
-    return {"keypoints": list(ds.keypoints), "cameras": list(ds.cameras), "fingerprint": h.hexdigest()[:32]}
 
 
 def _shown(value: Any) -> str:

@@ -20,7 +20,7 @@ import numpy as np
 from s3k.errors import UserError
 
 OPTIONS_FILE = "two_pass_options.json"
-# the defaults of s3k.two_pass.train_two_pass (crop_size: s3k.two_pass.REFERENCE_CROP)
+# the defaults of s3k.train.two_pass.train_two_pass (crop_size: s3k.train.two_pass.REFERENCE_CROP)
 DEFAULTS: dict[str, Any] = {"coarse_size": 96, "coarse_steps": None, "coarse_rotation": None,
                             "crop_size": 128, "margin": 0.3, "extent": None}
 STUB_FILES = frozenset({OPTIONS_FILE, "cpu.json"})  # what a start that trained nothing writes

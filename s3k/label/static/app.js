@@ -3,12 +3,16 @@
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
+// a suggestion is accepted only in views where the run is confident: a confidence weight of 0.5 is a heatmap
+// spread of 2 sigma (docs/method.md); a part hidden in a view gets a wide heatmap and a low weight there
+const CONFIDENT = 0.5;
 const TOKEN = new URLSearchParams(location.search).get("token");
 const app = {
   meta: null, frames: [], frameIndex: 0, frame: null, kp: 0, brightness: 1,
   views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
   loading: 0,  // frame loads not yet answered
   versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
+  unlocked: new Set(),  // test frames the user unlocked for editing
 };
 
 function colour(k, n) { return `hsl(${Math.round((360 * k) / Math.max(n, 1) + 10) % 360}, 85%, 58%)`; }
@@ -104,15 +108,51 @@ function resetZoom() {
   for (const view of Object.values(app.views)) setBox(view, [-0.5, -0.5, W, H]);
 }
 
+function markersOf(cam, kp) {  // image positions of a keypoint's label, reprojection and suggestion in a view
+  const out = [];
+  const lab = labelOf(cam, kp);
+  if (lab && lab.visible && lab.u !== null) out.push([lab.u, lab.v]);
+  const geo = (app.frame.geometry || {})[kp];
+  if (geo && geo.views[cam] && geo.views[cam].reproj) out.push(geo.views[cam].reproj);
+  const sug = (app.frame.suggestions || {})[kp];
+  if (sug && sug[cam] && !lab) out.push([sug[cam].u, sug[cam].v]);
+  return out;
+}
+
+function nearestOtherKeypoint(view, clientX, clientY) {
+  // Shift+click: the keypoint, other than the current one, whose marker is nearest (within 15 screen pixels)
+  if (!app.frame) return null;
+  const [u, v] = toImage(view, clientX, clientY);
+  const reach = 15 * unitsPerPixel(view);
+  let best = null;
+  let bestD = reach;
+  app.meta.keypoints.forEach((kp, k) => {
+    if (k === app.kp) return;
+    for (const [x, y] of markersOf(view.cam, kp)) {
+      const d = Math.hypot(x - u, y - v);
+      if (d <= bestD) { best = kp; bestD = d; }
+    }
+  });
+  return best;
+}
+
 function attachPointer(view) {
   let drag = null;
   view.svg.addEventListener("pointerdown", (ev) => {
     if (ev.button !== 0 && ev.button !== 1) return;
     const target = ev.target.closest("[data-keypoint]");
-    const mode = ev.button === 0 && target && target.dataset.draggable === "1" ? "point" : "pan";
-    if (mode === "point") selectKeypoint(app.meta.keypoints.indexOf(target.dataset.keypoint), false);
+    const current = app.meta.keypoints[app.kp];
+    // Switching keypoints is explicit: Shift+click on another keypoint's marker selects it. A plain click
+    // always places the current keypoint where it lands, however close another keypoint's marker is; only the
+    // current keypoint's own marker can be dragged.
+    if (ev.button === 0 && ev.shiftKey) {
+      const kp = nearestOtherKeypoint(view, ev.clientX, ev.clientY) || (target && target.dataset.keypoint);
+      if (kp) { selectKeypoint(app.meta.keypoints.indexOf(kp)); return; }
+    }
+    const own = target && target.dataset.keypoint === current && target.dataset.draggable === "1";
+    const mode = ev.button === 0 && own ? "point" : "pan";
     drag = { mode, x: ev.clientX, y: ev.clientY, moved: false, button: ev.button, box: view.box.slice(),
-             kp: target ? target.dataset.keypoint : null, kind: target ? target.dataset.kind : null };
+             kp: current, kind: target ? target.dataset.kind : null };
     view.svg.setPointerCapture(ev.pointerId);
   });
   view.svg.addEventListener("pointermove", (ev) => {
@@ -256,6 +296,7 @@ function showFrame(state) {
   document.body.dataset.frame = f;
   document.body.dataset.version = state.version;
   drawAll();
+  showLock();
   for (const li of document.querySelectorAll("#ranking li")) li.classList.toggle("current", +li.dataset.frame === f);
 }
 
@@ -280,8 +321,18 @@ async function loadFrame(index) {
   if (!app.pending) setStatus(`frame ${f}`, "");
 }
 
+function isLocked() {
+  return !!app.frame && app.frame.split === "test" && !app.unlocked.has(app.frame.frame);
+}
+
+function refuseLocked() {
+  setStatus(`frame ${app.frame.frame} is a test frame: read-only (its labels are held out for evaluation); ` +
+            "press unlock to edit it", "error");
+}
+
 function saveEdits(edits, source) {
   if (!app.frame) return Promise.resolve();
+  if (isLocked()) { refuseLocked(); return Promise.resolve(); }
   // optimistic display; the server's answer replaces it
   for (const e of edits) {
     app.frame.labels = app.frame.labels.filter((l) => !(l.camera === e.camera && l.keypoint === e.keypoint));
@@ -291,10 +342,11 @@ function saveEdits(edits, source) {
   app.pending += 1;
   setStatus("saving", "pending");
   const frame = app.frame.frame;
+  const unlock = app.unlocked.has(frame);
   app.queue = app.queue.then(async () => {
     const version = app.versions[frame];
     const r = await api(`api/frame/${frame}/label`, { method: "POST",
-      body: JSON.stringify({ version, edits, source }) });
+      body: JSON.stringify({ version, edits, source, unlock }) });
     app.pending -= 1;
     if (r.status === 409) {
       app.versions[frame] = r.body.current.version;
@@ -317,6 +369,48 @@ function saveEdits(edits, source) {
   return app.queue;
 }
 
+function undo() {  // Ctrl+Z: the frame's latest edit not yet undone, from the label history
+  if (!app.frame) return Promise.resolve();
+  if (isLocked()) { refuseLocked(); return Promise.resolve(); }
+  const frame = app.frame.frame;
+  const unlock = app.unlocked.has(frame);
+  app.pending += 1;
+  setStatus("undoing", "pending");
+  app.queue = app.queue.then(async () => {
+    const r = await api(`api/frame/${frame}/undo`, { method: "POST",
+      body: JSON.stringify({ version: app.versions[frame], unlock }) });
+    app.pending -= 1;
+    const body = r.body || {};
+    if (r.status === 409) {
+      app.versions[frame] = body.current.version;
+      if (app.frame.frame === frame) showFrame(body.current);
+      setStatus(`not undone: ${body.detail}; showing the newer labels`, "error");
+      return;
+    }
+    if (!r.ok) { setStatus(`not undone: ${typeof body.detail === "string" ? body.detail : r.status}`, "error"); return; }
+    app.versions[frame] = body.version;
+    if (app.frame.frame === frame) showFrame(body);
+    if (!app.pending) setStatus(`undone (frame ${frame}, version ${body.version})`, "saved");
+  });
+  return app.queue;
+}
+
+function unlockFrame() {
+  if (!app.frame) return;
+  app.unlocked.add(app.frame.frame);
+  showLock();
+  setStatus(`frame ${app.frame.frame} unlocked: edits to this test frame are saved`, "");
+}
+
+function showLock() {
+  const button = document.getElementById("unlock");
+  const test = !!app.frame && app.frame.split === "test";
+  button.hidden = !test;
+  button.disabled = !isLocked();
+  button.textContent = isLocked() ? "unlock test frame" : "test frame unlocked";
+  document.body.dataset.locked = isLocked() ? "1" : "0";
+}
+
 function markOccluded(cam) {
   const kp = app.meta.keypoints[app.kp];
   return saveEdits([{ camera: cam, keypoint: kp, visible: false }], "not visible");
@@ -336,6 +430,7 @@ function acceptSuggestions(all) {
     for (const [cam, s] of Object.entries(sug[kp] || {})) {
       const [W, H] = app.meta.image_size;
       if (labelOf(cam, kp) || s.u < -0.5 || s.v < -0.5 || s.u > W - 0.5 || s.v > H - 0.5) continue;
+      if (!(s.weight >= CONFIDENT)) continue;  // not confident in this view: the part may be hidden there
       edits.push({ camera: cam, keypoint: kp, u: s.u, v: s.v, visible: true });
     }
   }
@@ -388,7 +483,9 @@ function nextRanked() {
 function onKey(ev) {
   if (ev.target.tagName === "INPUT") return;
   const k = ev.key;
-  if (k === "ArrowRight" || k === ".") loadFrame(app.frameIndex + 1);
+  if ((ev.ctrlKey || ev.metaKey) && (k === "z" || k === "Z")) undo();
+  else if (ev.ctrlKey || ev.metaKey || ev.altKey) return;  // the browser's own shortcuts
+  else if (k === "ArrowRight" || k === ".") loadFrame(app.frameIndex + 1);
   else if (k === "ArrowLeft" || k === ",") loadFrame(app.frameIndex - 1);
   else if (k === "ArrowDown" || (k === "Tab" && !ev.shiftKey)) selectKeypoint(app.kp + 1);
   else if (k === "ArrowUp" || (k === "Tab" && ev.shiftKey)) selectKeypoint(app.kp - 1);
@@ -414,6 +511,7 @@ async function start() {
   document.getElementById("next-frame").addEventListener("click", () => loadFrame(app.frameIndex + 1));
   document.getElementById("frame-input").addEventListener("change", (ev) => gotoFrame(ev.target.value));
   document.getElementById("reset-zoom").addEventListener("click", resetZoom);
+  document.getElementById("unlock").addEventListener("click", unlockFrame);
   document.getElementById("brightness").addEventListener("input", (ev) => {
     app.brightness = +ev.target.value;
     for (const view of Object.values(app.views)) view.image.style.filter = `brightness(${app.brightness})`;
@@ -444,5 +542,5 @@ async function start() {
   document.body.dataset.ready = "1";
 }
 
-window.s3kLabel = { app, toClient, saveEdits, loadFrame, gotoFrame };
+window.s3kLabel = { app, toClient, saveEdits, loadFrame, gotoFrame, undo };
 start();
