@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything s3k needs on a fresh Debian/Ubuntu machine into ./.venv:
 # system libraries (OSMesa for MuJoCo's CPU rendering, Chromium for the labelling app's browser test),
-# PyTorch, then s3k with its dev, formats, robot and label extras.
+# PyTorch, then s3k with its dev, formats, robot, label and stream extras.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,4 +24,4 @@ python -m pip install -q --upgrade pip </dev/null
 # PyTorch first, so that nothing below pulls a multi-GB CUDA build; a GPU machine may preinstall its own.
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0" </dev/null \
     || python -m pip install -q "torch>=2.2,<3" </dev/null
-python -m pip install -q -e ".[dev,formats,robot,label]" </dev/null
+python -m pip install -q -e ".[dev,formats,robot,label,stream]" </dev/null

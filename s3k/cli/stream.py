@@ -1,0 +1,95 @@
+"""`s3k stream`: live 3D keypoints from synchronized cameras, videos or image folders
+(:mod:`s3k.inference.stream`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from s3k.errors import UserError
+from s3k.readout import DEFAULT_MIN_WEIGHT
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Stream 3D keypoints from synchronized sources of a calibrated rig with a trained detector: one JSON "
+        "line per frame on stdout (frame, time, points, valid, latency_ms), the frames per second on stderr "
+        "at the end. Example: s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 "
+        "side=2 top=3 --rerun"
+    )
+    parser.add_argument("run", help="run folder written by 's3k train' (one pass or --two-pass)")
+    parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
+                        help="one source per camera: a camera index (0) or device (/dev/video2), a video file, "
+                        "an image folder or pattern; camera names as in the calibration")
+    parser.add_argument("--calibration", required=True,
+                        help="a calibration file of any format 's3k import' reads")
+    parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
+    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
+                        help="crop box of each source (default: the boxes the run was trained on)")
+    parser.add_argument("--fit", choices=("pad", "crop", "stretch"), default=None,
+                        help="how a frame of another aspect ratio maps onto the detector's input (default pad)")
+    parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
+                        help="confidence weight a view needs to be used (default 0: every view, weighted)")
+    parser.add_argument("--max-frames", type=int, default=None,
+                        help="stop after this many frames (default: until a source ends, or Ctrl-C)")
+    parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
+                        help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
+                        ".rrd file given here (needs rerun-sdk)")
+    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+
+
+def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
+    """The calibration's cameras of the sources and each source's box onto the detector's input."""
+    import numpy as np
+
+    from s3k.cli.options import parse_crops
+    from s3k.data.calibration_files import read_calibration
+    from s3k.detector.geometry_record import track_crops
+    from s3k.inference.track import fit_box
+
+    names = list(sources)
+    calib = read_calibration(args.calibration, units=args.units)
+    unknown = [c for c in names if c not in calib.names]
+    if unknown:
+        raise UserError(f"--sources: camera {', '.join(map(repr, unknown))} is not in the calibration "
+                        f"(its cameras are {', '.join(calib.names)})")
+    sizes = {c: s.size for c, s in sources.items()}
+    calib = calib.with_sizes(sizes).select(names)
+    crops = parse_crops(args.crop, names) if args.crop else None
+    crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
+    for line in notes:
+        print(line, file=sys.stderr)
+    for c, name in enumerate(names):
+        calibrated = (int(calib.size[c][0]), int(calib.size[c][1]))
+        if tuple(sizes[name]) != calibrated:
+            raise UserError(f"--sources {name}: frames of {sizes[name][0]}x{sizes[name][1]} px but the "
+                            f"calibration gives {calibrated[0]}x{calibrated[1]}",
+                            hint="stream the camera at its calibrated resolution")
+    boxes = np.array([crops.get(n, fit_box(sizes[n], input_size, args.fit or "pad")) for n in names],
+                     dtype=np.float64)
+    return calib.cameras, boxes
+
+
+def run(args: argparse.Namespace) -> int:
+    from s3k.cli.options import camera_pairs
+    from s3k.detector import Detector
+    from s3k.inference.stream import open_source, rerun_logger, stream
+
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
+    if not 0 <= args.min_weight < 1:
+        raise UserError(f"--min-weight must be in [0, 1), got {args.min_weight}")
+    specs = camera_pairs(args.sources, "--sources")
+    if len(specs) < 2:
+        raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
+    detector = Detector.load(args.run, args.device)
+    sources = {name: open_source(spec) for name, spec in specs.items()}
+    cams, boxes = _cameras(args, sources, detector.input_size)
+    log = rerun_logger(detector.keypoints, list(sources), args.rerun) if args.rerun else None
+    summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
+    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else "")
+    if summary.behind > 1:
+        pace += f", up to {summary.behind} frames behind"
+    print(f"s3k stream: {summary.frames} frames in {summary.seconds:.2f} s, {summary.fps:.1f} frames/s{pace}"
+          + (" (stopped by Ctrl-C)" if summary.interrupted else ""), file=sys.stderr)
+    return 0

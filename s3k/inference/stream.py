@@ -1,0 +1,211 @@
+"""``s3k stream``: live 3D keypoints from synchronized sources, one JSON line per frame.
+
+Sources are cameras opened with OpenCV (an index such as ``0`` or a device such as ``/dev/video2``), video
+files or image sequences (as for ``s3k track``); frame ``i`` of every source is one instant. Each frame of
+``C`` views goes through the run's :class:`s3k.detector.Detector` (one pass or two) as soon as it is read,
+and one line is written::
+
+    {"frame": 12, "time": 0.48, "points": {"nose": [x, y, z], "tail": null}, "valid": {...},
+     "latency_ms": 9.7}
+
+``time`` is seconds since the stream started, when the frame was read; ``points`` are in the calibration's
+world frame and units (null where not triangulated); ``latency_ms`` is the time from reading the frame to
+its points. Live cameras run at their own rate: when the detector is slower, the stream says on stderr how
+many frames behind it is (it reads the newest frame, so it never lags further). Files are read as fast as
+the detector goes. With ``rerun`` the views, the detections and the 3D points are logged to a Rerun viewer
+(``rerun-sdk``, ``pip install s3k[stream]``). Ctrl-C stops the stream between two frames.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from s3k.errors import UserError
+from s3k.readout import DEFAULT_MIN_WEIGHT
+
+__all__ = ["Source", "StreamSummary", "open_source", "stream"]
+
+
+class Source:
+    """One camera's frames: ``read()`` gives the next ``uint8 (H, W, 3)`` RGB frame, or None at the end.
+
+    Attributes:
+        spec: what the user gave.
+        size: ``(W, H)``.
+        fps: frames per second (0 when unknown).
+        live: a camera (frames arrive at its rate) rather than a file.
+    """
+
+    spec: str
+    size: tuple[int, int]
+    fps: float
+    live: bool
+
+    def read(self) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class FileSource(Source):
+    """A video file or an image sequence (:mod:`s3k.data.video`)."""
+
+    def __init__(self, spec: str) -> None:
+        from s3k.data import video
+
+        self.spec, self.live = spec, False
+        self.size, self.fps = video.frame_size(spec), video.frame_rate(spec)
+        self._frames: Iterator[tuple[int, np.ndarray]] = video.iter_frames(spec)
+
+    def read(self) -> np.ndarray | None:
+        return next(self._frames, (0, None))[1]
+
+
+class CameraSource(Source):
+    """A camera opened with OpenCV (``cv2.VideoCapture``)."""
+
+    def __init__(self, spec: str) -> None:
+        import cv2
+
+        self.spec, self.live = spec, True
+        self._cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
+        if not self._cap.isOpened():
+            raise UserError(f"--sources {spec}: no camera could be opened there",
+                            hint="check the index or device (ls /dev/video*) and that no other program holds it")
+        ok, first = self._cap.read()
+        if not ok:
+            raise UserError(f"--sources {spec}: the camera opened but gave no frame")
+        self._first: np.ndarray | None = first[..., ::-1].copy()
+        self.size = (int(first.shape[1]), int(first.shape[0]))
+        self.fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
+
+    def read(self) -> np.ndarray | None:
+        if self._first is not None:
+            frame, self._first = self._first, None
+            return frame
+        ok, frame = self._cap.read()
+        return frame[..., ::-1].copy() if ok else None
+
+    def close(self) -> None:
+        self._cap.release()
+
+
+def open_source(spec: str) -> Source:
+    """A camera (an index, or a ``/dev/video*`` device) or a video file / image sequence."""
+    from s3k.data import video
+
+    if spec.isdigit() or spec.startswith("/dev/video"):
+        return CameraSource(spec)
+    if not video.exists(spec):
+        raise UserError(f"--sources {spec}: no such camera, video file, image folder or image pattern")
+    return FileSource(spec)
+
+
+@dataclass
+class StreamSummary:
+    """What :func:`stream` did: ``frames`` in ``seconds`` (``fps``), the sources' own rate (0: unknown) and
+    the most frames the stream was behind live sources."""
+
+    frames: int
+    seconds: float
+    fps: float
+    source_fps: float
+    behind: int
+    interrupted: bool
+
+
+def _frame_line(i: int, t: float, keypoints: list[str], X: np.ndarray, valid: np.ndarray,
+                latency: float) -> str:
+    points = {k: [round(float(v), 7) for v in X[j]] if valid[j] else None for j, k in enumerate(keypoints)}
+    return json.dumps({"frame": i, "time": round(t, 6), "points": points,
+                       "valid": {k: bool(valid[j]) for j, k in enumerate(keypoints)},
+                       "latency_ms": round(1000 * latency, 3)})
+
+
+def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None = None,
+           out: IO[str] = sys.stdout, min_weight: float = DEFAULT_MIN_WEIGHT, max_frames: int | None = None,
+           log: Callable[[int, list[np.ndarray], Any], None] | None = None,
+           say: Callable[[str], None] = lambda text: print(text, file=sys.stderr)) -> StreamSummary:
+    """Detect every frame of the synchronized ``sources`` and write one JSON line per frame to ``out``
+    (module docstring).
+
+    Args:
+        detector: a :class:`s3k.detector.Detector`.
+        sources: ``{camera: Source}`` in the order of ``cams``.
+        cams: the calibration's cameras ``(C,)`` in the sources' pixels.
+        boxes: ``(C, 4)`` region of each view the (first) network sees (default the whole frame).
+        out: where the lines go.
+        min_weight: as for :func:`s3k.readout.read_out`.
+        max_frames: stop after this many frames (default: at the end of the shortest source).
+        log: called with ``(frame, views, detection)`` after each frame (the Rerun logger).
+        say: where the notes on keeping up go.
+    """
+    keypoints = detector.keypoints
+    live = any(s.live for s in sources.values())
+    rates = [s.fps for s in sources.values() if s.fps > 0]
+    rate = min(rates) if rates else 0.0
+    start = time.perf_counter()
+    i, behind, said, interrupted = 0, 0, start, False
+    try:
+        while max_frames is None or i < max_frames:
+            views = [s.read() for s in sources.values()]
+            if any(v is None for v in views):
+                break
+            read = time.perf_counter()
+            det = detector([v[None] for v in views], cams, boxes, min_weight)  # type: ignore[index]
+            done = time.perf_counter()
+            out.write(_frame_line(i, read - start, keypoints, det.X[0].numpy(), det.valid[0].numpy(),
+                                  done - read) + "\n")
+            out.flush()
+            if log is not None:
+                log(i, views, det)  # type: ignore[arg-type]
+            i += 1
+            if live and rate > 0:
+                lag = int((done - start) * rate) - i
+                behind = max(behind, lag)
+                if lag > 1 and done - said > 2.0:
+                    say(f"s3k stream: {lag} frames behind the cameras ({i / (done - start):.1f} of {rate:g} "
+                        "frames/s); the newest frame is read each time")
+                    said = done
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        for s in sources.values():
+            s.close()
+    seconds = time.perf_counter() - start
+    return StreamSummary(i, seconds, i / seconds if seconds > 0 else 0.0, rate, behind, interrupted)
+
+
+def rerun_logger(keypoints: list[str], cameras: list[str], target: str) -> Callable:
+    """A ``log`` for :func:`stream` that sends the views, the detections and the 3D points to Rerun:
+    ``target`` "spawn" (a viewer), or a ``.rrd`` file to write."""
+    try:
+        import rerun as rr
+    except ImportError:
+        raise UserError("--rerun needs the Rerun SDK, which is not installed",
+                        hint="pip install 's3k[stream]' (or rerun-sdk)") from None
+    rr.init("s3k stream", spawn=target == "spawn")
+    if target != "spawn":
+        rr.save(str(Path(target)))
+
+    def log(i: int, views: list[np.ndarray], det) -> None:
+        rr.set_time("frame", sequence=i)
+        uv, used = det.uv[0].numpy(), det.used[0].numpy()
+        for c, cam in enumerate(cameras):
+            rr.log(f"views/{cam}/image", rr.Image(views[c]))
+            rr.log(f"views/{cam}/detections", rr.Points2D(uv[c][used[c]], labels=[
+                k for k, u in zip(keypoints, used[c]) if u]))
+        valid = det.valid[0].numpy()
+        rr.log("world/keypoints", rr.Points3D(det.X[0].numpy()[valid],
+                                              labels=[k for k, v in zip(keypoints, valid) if v]))
+
+    return log
