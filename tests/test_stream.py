@@ -8,7 +8,16 @@ import json
 import numpy as np
 import pytest
 import torch
-from test_track import CAMERAS, FRAMES, KEYPOINTS, NET_SIZE, VIDEO_SIZE, OracleDetector, make_rig, moving_points
+from test_track import (
+    CAMERAS,
+    FRAMES,
+    KEYPOINTS,
+    NET_SIZE,
+    VIDEO_SIZE,
+    OracleDetector,
+    make_rig,
+    moving_points,
+)
 
 from s3k import cli
 from s3k.data.anipose import write_anipose_calibration

@@ -19,15 +19,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("run", help="run folder written by 's3k train' (one pass or --two-pass)")
     parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
-                        help="one source per camera: a camera index (0) or device (/dev/video2), a video file, "
-                        "an image folder or pattern; camera names as in the calibration")
+                        help="one source per camera: a camera index (0) or device (/dev/video2), a video "
+                        "file, an image folder or pattern; camera names as in the calibration")
     parser.add_argument("--calibration", required=True,
                         help="a calibration file of any format 's3k import' reads")
     parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box of each source (default: the boxes the run was trained on)")
     parser.add_argument("--fit", choices=("pad", "crop", "stretch"), default=None,
-                        help="how a frame of another aspect ratio maps onto the detector's input (default pad)")
+                        help="how a frame of another aspect ratio maps onto the detector's input "
+                        "(default pad)")
     parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
                         help="confidence weight a view needs to be used (default 0: every view, weighted)")
     parser.add_argument("--max-frames", type=int, default=None,

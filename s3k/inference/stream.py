@@ -80,7 +80,8 @@ class CameraSource(Source):
         self._cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
         if not self._cap.isOpened():
             raise UserError(f"--sources {spec}: no camera could be opened there",
-                            hint="check the index or device (ls /dev/video*) and that no other program holds it")
+                            hint="check the index or device (ls /dev/video*) and that no other program "
+                                 "holds it")
         ok, first = self._cap.read()
         if not ok:
             raise UserError(f"--sources {spec}: the camera opened but gave no frame")
