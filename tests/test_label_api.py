@@ -239,6 +239,18 @@ def test_propagate_over_a_still_stretch(truth):
     assert r.status_code == 200 and r.json()["frames"] == [1, 2, 3, 4, 5]
 
 
+@pytest.mark.parametrize("limit", ["NaN", "-5", "Infinity", "101"])
+def test_propagate_refuses_a_threshold_out_of_range(truth, limit):
+    """nan compares false with every percentage: it would pass every frame as still."""
+    client = TestClient(create_app(truth.path))
+    label_frame(client, truth, 0)
+    before = (truth.path / "labels.csv").read_text()
+    r = client.post("/api/propagate", content=f'{{"first": 0, "last": 5, "max_changed": {limit}}}',
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "--max-changed" in r.json()["detail"]
+    assert (truth.path / "labels.csv").read_text() == before
+
+
 def test_propagate_refuses_a_moving_camera_and_from_the_command_line(tmp_path, capsys):
     truth = make_label_dataset(tmp_path / "ds", per_frame=True)
     client = TestClient(create_app(truth.path))

@@ -7,7 +7,7 @@ import argparse
 
 import numpy as np
 
-from s3k.cli.options import camera_pairs
+from s3k.cli.options import camera_pairs, number
 from s3k.errors import UserError
 
 
@@ -22,10 +22,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--splits", default="labelled,test",
         help="comma-separated splits whose labels are used (default: labelled,test)",
     )
-    parser.add_argument("--factor", type=float, default=3.0,
+    parser.add_argument("--factor", type=number(gt=0), default=3.0,
                         help="flag a camera whose leave-one-out residual exceeds FACTOR x the others' "
                         "(default 3)")
-    parser.add_argument("--min-px", type=float, default=None,
+    parser.add_argument("--min-px", type=number(ge=0), default=None,
                         help="never flag a camera whose residual is below this many pixels "
                         "(default: 0.5%% of the image diagonal)")
     fix = parser.add_argument_group("recalibration from ChArUco frames")

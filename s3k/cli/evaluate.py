@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 
+from s3k.cli.options import number
 from s3k.evaluate import evaluate_run, format_table
 
 
@@ -19,8 +20,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
                         help="write metrics.json, plots and view overlays to DIR")
-    parser.add_argument("--overlays", type=int, default=6, help="frames drawn in the report (default: 6)")
-    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
+    parser.add_argument("--overlays", type=number(int, ge=0), default=6,
+                        help="frames drawn in the report (default: 6)")
+    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
+                        help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.export import DEFAULT_TOLERANCE, FORMATS, export_detector
 
@@ -19,9 +20,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt)")
     parser.add_argument("--with-moments", action="store_true",
                         help="also output means (N, K, 2) in pixels and confidence (N, K)")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset version (default 17)")
+    parser.add_argument("--opset", type=number(int, ge=11, le=20), default=17,
+                        help="ONNX opset version (default 17)")
     parser.add_argument("--no-fuse", action="store_true", help="keep BatchNorm layers (default: folded)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+    parser.add_argument("--tolerance", type=number(gt=0), default=DEFAULT_TOLERANCE,
                         help="largest allowed difference from PyTorch (default 1e-4)")
     parser.add_argument("--verify-data", default=None,
                         help="dataset folder whose frames are used to verify (default: the run's dataset)")

@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from s3k.cli.options import name, number
 from s3k.errors import UserError
 from s3k.readout import DEFAULT_MIN_WEIGHT
 from s3k.track import FIT_MODES, empty_result_hint, track_videos
@@ -45,11 +46,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
                         help="write DIR/<camera>.mp4 with the reprojected keypoints drawn")
-    parser.add_argument("--batch", type=int, default=8, help="frames per forward pass (default 8)")
-    parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
-    parser.add_argument("--stop", type=int, default=None,
+    parser.add_argument("--batch", type=number(int, ge=1), default=8,
+                        help="frames per forward pass (default 8)")
+    parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")
+    parser.add_argument("--stop", type=number(int, ge=0), default=None,
                         help="frame index to stop before (default: the end of the shortest video)")
-    parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
+    parser.add_argument("--min-weight", type=number(ge=0, le=1), default=DEFAULT_MIN_WEIGHT,
                         help="confidence weight a view needs to be used (default 0: every view, weighted by "
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
@@ -58,7 +60,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "(default), crop or stretch")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box in pixel edge coordinates, as given to 's3k import --crop'")
-    parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
+    parser.add_argument("--units", type=name, default=None,
+                        help="world unit of the calibration when it does not say")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 

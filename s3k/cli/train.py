@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from s3k.cli.config_options import add_config_arguments, config_from_args
+from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
 from s3k.run import CONFIG_FILE, read_run_config
 from s3k.two_pass import REFERENCE_CROP
@@ -32,22 +33,22 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "detector on the crops; the options below the configuration apply to both passes, --image-size to "
         "neither")
     two.add_argument("--two-pass", action="store_true", help="train the coarse-to-fine detector")
-    two.add_argument("--coarse-size", type=int, default=96, metavar="PX",
+    two.add_argument("--coarse-size", type=number(int, ge=16), default=96, metavar="PX",
                      help="the coarse pass's image size, longer side (default 96)")
-    two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
+    two.add_argument("--coarse-steps", type=number(int, ge=1), default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
-    two.add_argument("--coarse-rotation", type=float, default=None, metavar="DEG",
+    two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
-    two.add_argument("--crop-size", type=int, default=REFERENCE_CROP, metavar="PX",
+    two.add_argument("--crop-size", type=number(int, ge=16), default=REFERENCE_CROP, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
                           f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
                           f"PX/{REFERENCE_CROP} so they keep their size in the scene")
-    two.add_argument("--crop-margin", type=float, default=0.3, metavar="F",
+    two.add_argument("--crop-margin", type=number(ge=0), default=0.3, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
                           "frame's keypoints) x (1 + F) (default 0.3)")
-    two.add_argument("--crop-extent", type=float, default=None, metavar="W",
+    two.add_argument("--crop-extent", type=number(gt=0), default=None, metavar="W",
                      help="crop side in world units at the estimate's depth (default: from the labels)")
     add_config_arguments(parser, TrainConfig)
 
