@@ -12,13 +12,14 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from typing import Any
 
 from s3k.errors import UserError
 from s3k.ranges import Range
 
 
 def number(kind: type = float, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
-           lt: float | None = None) -> Callable[[str], float]:
+           lt: float | None = None) -> Callable[[str], Any]:
     """An ``argparse`` ``type=``: text -> ``kind`` (int or float), finite and within the bounds.
 
     Example:
