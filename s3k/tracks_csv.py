@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k import outputs
 from s3k.errors import UserError
 from s3k.fileio import atomic_path
 from s3k.readout import ReadOut
@@ -53,21 +54,13 @@ def csv_rows(fnums: Sequence[int], result: ReadOut) -> list[list[str]]:
 
 
 def check_output(path: str | Path, overwrite: bool, dataset: str | Path | None = None) -> Path:
-    """Refuse an output file that would replace a file of ``dataset``, or an existing file without overwrite.
+    """Refuse an output file inside a dataset (``dataset`` or any other), a run's own file, a folder, or an
+    existing file without overwrite (:func:`s3k.outputs.check_output`).
 
     Raises:
         UserError: naming the file (and ``--overwrite`` where it helps).
     """
-    path = Path(path)
-    if dataset is not None and path.exists():
-        root = Path(dataset).resolve()
-        if path.resolve().is_relative_to(root):
-            raise UserError(f"--out {path} is a file of the dataset {dataset}; write the output elsewhere")
-    if path.is_dir():
-        raise UserError(f"--out {path} is a folder; give a file name")
-    if path.exists() and not overwrite:
-        raise UserError(f"--out {path} exists", hint="pass --overwrite to replace it")
-    return path
+    return outputs.check_output(path, overwrite, inputs={"--data": dataset})
 
 
 @contextlib.contextmanager

@@ -28,6 +28,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        from s3k.outputs import check_output_folder
+
+        check_output_folder(args.report, inputs={"RUN": args.run, "--data": args.data}, option="--report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
     if args.json:

@@ -17,7 +17,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
-    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt)")
+    parser.add_argument("--out", required=True,
+                        help="file to write (e.g. detector.onnx, detector.pt); never a file of the run or "
+                             "of a dataset")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--with-moments", action="store_true",
                         help="also output means (N, K, 2) in pixels and confidence (N, K)")
     parser.add_argument("--opset", type=number(int, ge=11, le=20), default=17,
@@ -31,6 +34,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from s3k.outputs import check_output
+
+    checkpoint = Path(args.run) / args.checkpoint if args.checkpoint else None
+    check_output(args.out, args.overwrite, inputs={"--checkpoint": checkpoint})
     try:
         report = export_detector(args.run, args.format, args.out, with_moments=args.with_moments,
                                  fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,

@@ -24,6 +24,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_output
+
+    check_output(args.out, args.overwrite, inputs={"--data": args.data})
     summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
                               args.overwrite)
     for text in summary.warnings:

@@ -68,8 +68,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import parse_crops
+    from s3k.outputs import check_output, check_output_folder
 
     videos = parse_videos(args.videos)
+    check_output(args.out, args.overwrite,
+                 inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
+    if args.overlay:
+        check_output_folder(args.overlay, inputs={"--calibration": args.calibration}, option="--overlay")
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     summary = track_videos(
         args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,

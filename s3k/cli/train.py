@@ -54,8 +54,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_output_folder
     from s3k.train import train
 
+    check_output_folder(args.out, inputs={"DATASET": args.dataset, "--config": args.config})
     if args.two_pass:
         return _run_two_pass(args)
     base = None

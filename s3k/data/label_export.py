@@ -143,13 +143,13 @@ def export_labels(
         overwrite: replace existing output files.
     """
     from s3k.data import Dataset
+    from s3k.outputs import check_output_folder
 
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}")
     out = Path(out)
     ds = Dataset.open(dataset, cache="none")
-    if out.resolve().is_relative_to(Path(ds.path).resolve()):
-        raise UserError(f"--out {out} is inside the dataset {dataset}; write the export elsewhere")
+    check_output_folder(out, inputs={"DATASET": dataset})  # never inside a dataset or over a run's files
     ids, tables = dataset_tables(ds, splits)
     if fmt in SUFFIX:
         if out.is_dir():
@@ -217,11 +217,12 @@ def export_tracks(
     import csv
 
     from s3k.data.nwb import write_nwb_tracks
-    from s3k.tracks_csv import check_output, read_csv
+    from s3k.outputs import check_output
+    from s3k.tracks_csv import read_csv
 
     if fmt != "nwb":
         raise UserError(f"--format {fmt!r}: 3D tracks export to nwb")
-    check_output(out, overwrite)
+    check_output(out, overwrite, inputs={"CSV": csv_path, "--calibration": calibration})
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise FileNotFoundError(2, "3D CSV not found", str(csv_path))

@@ -496,7 +496,8 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     if info.main:
-        run_folder.check_out(out, resume, overwrite)  # before the dataset is read: the cheap refusals first
+        # before the dataset is read: the cheap refusals first
+        run_folder.check_out(out, resume, overwrite, data)
     d = _open_data(data, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = _reference_layout(data, distances, cfg)
