@@ -36,7 +36,7 @@ def test_no_numeric_option_is_parsed_without_a_range():
 
 
 def test_every_numeric_option_refuses_nan_and_inf():
-    for prog, parser in _parsers():
+    for _, parser in _parsers():
         for action in _options(parser):
             if not hasattr(action.type, "range"):
                 continue
