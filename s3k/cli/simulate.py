@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from s3k.cli.options import number
+from s3k.sim.generate import MAX_SIZE
 from s3k.sim.scene import NUM_TRAIN_INSTANCES
 from s3k.sim.scenes import SCENES
 
@@ -13,7 +14,7 @@ from s3k.sim.scenes import SCENES
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
-    parser.add_argument("--size", type=number(int, ge=16), default=96,
+    parser.add_argument("--size", type=number(int, ge=16, le=MAX_SIZE), default=96,
                         help="image width and height in pixels (default 96)")
     parser.add_argument("--labelled", type=number(int, ge=0), default=None,
                         help="labelled frames (default 10; plush: 7, one per training arrangement)")
