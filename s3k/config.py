@@ -84,7 +84,7 @@ class ScheduleConfig:
     steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1)
     batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)", ge=1)
     batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term", ge=0)
-    lr: float = _f(1e-3, "Adam learning rate at the start", gt=0)
+    lr: float = _f(1e-3, "Adam learning rate at the start", gt=0, le=1)
     lr_final: float = _f(0.05, "learning rate at the last step as a fraction of lr (cosine decay)", ge=0)
     weight_decay: float = _f(1e-5, "lambda: weight of the squared L2 norm of non-bias parameters", ge=0)
     grad_clip: float = _f(10.0, "clip the global gradient norm to this value (0: no clipping)", ge=0)

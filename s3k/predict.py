@@ -70,10 +70,18 @@ def predict_store(model: torch.nn.Module, meta: DetectorMeta, store: FrameStore,
 
 
 def pick_device(name: str = "auto", local_rank: int = 0) -> torch.device:
-    """'auto' -> the GPU when available, else the CPU."""
+    """'auto' -> the GPU when available, else the CPU; a device this machine lacks is a one-line error."""
     if name == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    return torch.device(name)
+    from s3k.errors import UserError
+
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device {name!r}: not a device", hint="pass auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():  # 0 without CUDA
+        raise UserError(f"--device {name}: this machine has no such CUDA GPU", hint="pass --device cpu")
+    return device
 
 
 def split_frames(dataset, split: str) -> np.ndarray:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from s3k.cli.config_options import add_config_arguments, config_from_args
@@ -67,7 +68,12 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, TrainConfig, base=base)
     result = train(args.dataset, args.out, cfg, resume=args.resume, overwrite=args.overwrite,
                    command=getattr(args, "command_line", None))
-    return 0 if result.status == "done" else 1
+    if result.status != "done":
+        print(f"s3k train: error: training stopped at step {result.step} with non-finite values "
+              f"({result.status}); {Path(args.out) / 'model.pt'} was not written; lower --lr, or see "
+              f"{Path(args.out) / 'train.log'}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _run_two_pass(args: argparse.Namespace) -> int:
