@@ -1,0 +1,90 @@
+"""Sizes and counts are checked before anything is allocated: image sizes from file headers, frame counts
+against memory, request bodies, pickles, HDF5 files that would read other files."""
+
+from __future__ import annotations
+
+import resource
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from synthetic_rig import make_dataset
+
+from s3k import cli
+from s3k.data.sources import header_size
+
+
+def big_png(path: Path, W: int = 30000, H: int = 30000) -> Path:
+    """A valid 1-bit greyscale PNG of W x H pixels (a few MB on disk; decoded as RGB, 3 W H bytes)."""
+    comp = zlib.compressobj(9)
+    row = b"\x00" * (1 + (W + 7) // 8)  # filter byte, then the row's bits
+    idat = b"".join(comp.compress(row) for _ in range(H)) + comp.flush()
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    ihdr = struct.pack(">IIBBBBB", W, H, 1, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+    return path
+
+
+@pytest.fixture(scope="module")
+def huge_image_dataset(tmp_path_factory):
+    data = make_dataset(tmp_path_factory.mktemp("huge") / "ds", size=32, labelled=2, unlabelled=1, test=0)
+    big_png(sorted((data / "images" / "cam1").glob("*.png"))[0])
+    return data
+
+
+def test_header_sizes_of_png_and_jpeg(tmp_path):
+    image = np.zeros((48, 64, 3), np.uint8)
+    for suffix in (".png", ".jpg"):
+        cv2.imwrite(str(tmp_path / f"a{suffix}"), image)
+        assert header_size(tmp_path / f"a{suffix}") == (64, 48)
+    (tmp_path / "b.txt").write_text("not an image")
+    assert header_size(tmp_path / "b.txt") is None
+
+
+def test_validate_reads_a_huge_image_size_from_its_header(huge_image_dataset, capsys, monkeypatch):
+    import s3k.data.dataset as dataset_module
+
+    decoded: list[str] = []
+    real = dataset_module.decode_image
+
+    def recording(path, name=None):
+        decoded.append(str(name))
+        return real(path, name)
+
+    monkeypatch.setattr(dataset_module, "decode_image", recording)
+    assert cli.main(["validate", str(huge_image_dataset), "--workers", "1"]) == 1
+    out = capsys.readouterr().out
+    assert "image is 30000x30000, s3k.json image_size is 32x32" in out
+    assert decoded and not any(n.startswith("images/cam1/000000") for n in decoded)  # the others are decoded
+
+
+def test_validate_of_a_huge_image_stays_small_in_memory(huge_image_dataset):
+    """Decoded, the 30000 px image takes 2.7 GB; read from its header, validate stays far below 1 GB."""
+    proc = subprocess.run([sys.executable, "-m", "s3k.cli", "validate", str(huge_image_dataset), "--workers",
+                           "1"], capture_output=True, text=True)
+    assert proc.returncode == 1 and "30000x30000" in proc.stdout
+    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    assert peak_kib < 1024 * 1024
+
+
+def test_a_huge_image_is_refused_before_it_is_decoded(tmp_path):
+    from s3k.data.sources import ImageReadError, decode_image
+
+    with pytest.raises(ImageReadError, match="30000x30000"):
+        decode_image(big_png(tmp_path / "big.png"))
+
+
+def test_simulate_refuses_frame_counts_that_do_not_fit_in_memory(tmp_path, capsys):
+    out = tmp_path / "ds"
+    assert cli.main(["simulate", "box", "--out", str(out), "--test", "1000000000", "--workers", "1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "GiB" in err and "--test" in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
