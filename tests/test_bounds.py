@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 from synthetic_rig import make_dataset
+from test_importers import recording  # noqa: F401 - the fixture
 
 from s3k import cli
 from s3k.data.sources import header_size
@@ -55,11 +56,11 @@ def test_validate_reads_a_huge_image_size_from_its_header(huge_image_dataset, ca
     decoded: list[str] = []
     real = dataset_module.decode_image
 
-    def recording(path, name=None):
+    def decode(path, name=None):
         decoded.append(str(name))
         return real(path, name)
 
-    monkeypatch.setattr(dataset_module, "decode_image", recording)
+    monkeypatch.setattr(dataset_module, "decode_image", decode)
     assert cli.main(["validate", str(huge_image_dataset), "--workers", "1"]) == 1
     out = capsys.readouterr().out
     assert "image is 30000x30000, s3k.json image_size is 32x32" in out
@@ -88,3 +89,62 @@ def test_simulate_refuses_frame_counts_that_do_not_fit_in_memory(tmp_path, capsy
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "GiB" in err and "--test" in err
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------------------------------
+# HDF5 label files read only what they hold
+
+
+def _sleap_file(path: Path, tracks: np.ndarray, names=None, external: Path | None = None,
+                link: Path | None = None) -> Path:
+    import h5py
+
+    with h5py.File(path, "w") as h5:
+        h5["tracks"] = tracks
+        if external is not None:  # node_names' bytes kept in another file
+            size = external.stat().st_size
+            h5.create_dataset("node_names", shape=(size,), dtype="S1", external=[(str(external), 0, size)])
+        else:
+            h5["node_names"] = np.array(names)
+        if link is not None:
+            h5["elsewhere"] = h5py.ExternalLink(str(link), "/data")
+    return path
+
+
+def test_import_refuses_a_sleap_file_with_external_storage(recording, tmp_path, capsys):  # noqa: F811
+    import h5py
+    from test_importers import CAMS
+
+    secret = tmp_path / "secret.txt"
+    secret.write_text("private text")
+    root = recording["root"]
+    files = []
+    for cam in CAMS:
+        with h5py.File(root / f"{cam}.analysis.h5") as h5:
+            tracks = h5["tracks"][()]
+        path = tmp_path / f"{cam}.h5"
+        _sleap_file(path, tracks, names=[b"head", b"body", b"tail"],
+                    external=secret if cam == "east" else None)
+        files.append(f"{cam}={path}")
+    out = tmp_path / "ds"
+    argv = ["import", "--calibration", str(root / "calibration.toml"), "--videos",
+            *[f"{cam}={root / cam}.mkv" for cam in CAMS], "--sleap", *files, "--out", str(out)]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "external storage" in err and "east.h5" in err
+    assert "private text" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("names, link, match", [
+    ([b"head", b"head"], False, "more than once"),
+    ([b"head", b"b\xe9te"], False, "not UTF-8"),
+    ([b"head", b"tail"], True, "links to"),
+])
+def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, link, match):
+    from s3k.data.sleap import read_sleap_analysis
+    from s3k.errors import UserError
+
+    path = _sleap_file(tmp_path / "a.h5", np.zeros((1, 2, 2, 3)), names=names,
+                       link=tmp_path / "other.h5" if link else None)
+    with pytest.raises(UserError, match=match):
+        read_sleap_analysis(path)
