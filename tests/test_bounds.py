@@ -148,3 +148,39 @@ def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, 
                        link=tmp_path / "other.h5" if link else None)
     with pytest.raises(UserError, match=match):
         read_sleap_analysis(path)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Pickles allocate no more than they hold
+
+
+@pytest.mark.parametrize("call", ["_reconstruct", "ndarray"])
+def test_a_tiny_pickle_cannot_ask_for_gigabytes(tmp_path, call):
+    import pickle
+
+    from s3k.data.safe_pickle import load_pickle
+    from s3k.errors import UserError
+
+    shape = pickle.dumps((2**36,), protocol=2)[2:-1]  # (68719476736,): 64 GiB of int8
+    if call == "_reconstruct":
+        data = b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n" + shape + b"U\x01b\x87R."
+    else:
+        data = b"\x80\x02cnumpy\nndarray\n" + shape + b"\x85R."
+    assert len(data) <= 70
+    path = tmp_path / "df3d_result.pkl"
+    path.write_bytes(data)
+    with pytest.raises(UserError, match="asks for an array of .* bytes"):
+        load_pickle(path)
+
+
+def test_pickled_arrays_still_load(tmp_path):
+    import pickle
+
+    from s3k.data.safe_pickle import load_pickle
+
+    obj = {"points2d": np.arange(24.0).reshape(2, 3, 4), "names": np.array(["a", "b"], dtype=object),
+           "empty": np.zeros((0, 3)), "fortran": np.asfortranarray(np.ones((2, 3)))}
+    for protocol in (3, 4, 5):
+        (tmp_path / "a.pkl").write_bytes(pickle.dumps(obj, protocol=protocol))
+        back = load_pickle(tmp_path / "a.pkl")
+        assert all(np.array_equal(back[k], v) for k, v in obj.items())
