@@ -21,7 +21,7 @@ import numpy as np
 
 from s3k import outputs
 from s3k.errors import UserError
-from s3k.fileio import atomic_path
+from s3k.fileio import atomic_path, open_text
 from s3k.readout import ReadOut
 
 __all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "write_csv"]
@@ -89,7 +89,7 @@ def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray
             the message names the file, the column and the line.
     """
     out: dict[int, np.ndarray] = {}
-    with open(path, newline="") as f:
+    with open_text(path) as f:
         reader = csv.DictReader(f)
         wanted = [f"{k}_{a}" for k in keypoints for a in "xyz"] + ["fnum"]
         missing = [c for c in wanted if c not in (reader.fieldnames or [])]
@@ -101,4 +101,7 @@ def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray
                 out[int(row["fnum"])] = xyz
             except ValueError as e:
                 raise UserError(f"{path}, line {reader.line_num}: {e}") from None
+            except TypeError:  # a short row: DictReader fills the missing cells with None
+                raise UserError(f"{path}, line {reader.line_num}: the row has fewer cells than the header "
+                                "(a truncated file?)") from None
     return out

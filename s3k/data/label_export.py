@@ -25,6 +25,7 @@ import numpy as np
 
 from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
+from s3k.fileio import open_text
 
 FORMATS = ("dlc", "lightning-pose", "sleap", "nwb")
 SUFFIX = {"sleap": ".slp", "nwb": ".nwb"}
@@ -226,7 +227,7 @@ def export_tracks(
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise FileNotFoundError(2, "3D CSV not found", str(csv_path))
-    with csv_path.open(newline="") as f:
+    with open_text(csv_path) as f:
         header = next(csv.reader(f), [])
     keypoints = [c[:-2] for c in header if c.endswith("_x")]
     if not keypoints or "fnum" not in header:
@@ -258,11 +259,16 @@ def _column(path: Path, header: list[str], names: list[str], fnums: np.ndarray) 
     cols = [header.index(n) if n in header else None for n in names]
     fcol = header.index("fnum")
     rows: dict[int, list[float]] = {}
-    with path.open(newline="") as f:
+    with open_text(path) as f:
         reader = csv.reader(f)
         next(reader)
         for row in reader:
-            if row:
+            if not row:
+                continue
+            try:
                 rows[int(float(row[fcol]))] = [
                     float(row[c]) if c is not None and row[c] not in ("", "nan") else np.nan for c in cols]
+            except (IndexError, ValueError, OverflowError):
+                raise UserError(f"{path}, line {reader.line_num}: a short row or a value that is not a "
+                                "number (a truncated file?)") from None
     return np.array([rows[int(f)] for f in fnums], dtype=np.float64).reshape(len(fnums), len(names))
