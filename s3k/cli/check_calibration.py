@@ -40,7 +40,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      "calibration_images/*.jpg); files of one board position share their last number")
     fix.add_argument("--write-calibration", default=None, metavar="TOML",
                      help="write the calibration with the recalibrated cameras (anipose format, full "
-                     "resolution)")
+                     "resolution); never over the calibration read or a dataset's file")
+    fix.add_argument("--overwrite", action="store_true", help="replace --write-calibration if it exists")
 
 
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
@@ -73,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
     from s3k.calibration import check_calibration
     from s3k.data import Dataset
 
+    if args.write_calibration:
+        from s3k.outputs import check_output
+
+        check_output(args.write_calibration, args.overwrite, inputs={"--calibration": args.calibration},
+                     option="--write-calibration")
     ds = Dataset.open(args.dataset)
     splits = [s.strip() for s in args.splits.split(",") if s.strip()]
     unknown = [s for s in splits if s not in ("labelled", "unlabelled", "test")]

@@ -63,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
     )
+    if args.preview:
+        from s3k.outputs import check_output
+
+        check_output(args.preview, args.overwrite, option="--preview")
     summary = simulate(cfg, args.out, workers=args.workers, progress=not args.no_progress,
                        overwrite=args.overwrite, preview=args.preview)
     print(f"wrote {summary['path']}: {summary['frames']} frames ({cfg.labelled} labelled, {cfg.unlabelled} "
