@@ -496,8 +496,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     if info.main:
-        # before the dataset is read: the cheap refusals first
-        run_folder.check_out(out, resume, overwrite, data)
+        run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
     d = _open_data(data, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = _reference_layout(data, distances, cfg)
