@@ -30,15 +30,21 @@ from pathlib import Path
 from typing import Any
 
 from s3k.errors import UserError
+from s3k.ranges import Range
 
 
-def _f(default: Any, help: str, resumable: bool = False) -> Any:
-    """A dataclass field with a default and its documentation.
+def _f(default: Any, help: str, resumable: bool = False, **bounds: float) -> Any:
+    """A dataclass field with a default, its documentation and, for a number, its range.
 
     ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
-    not what it learns from); every other field must match the run being resumed.
+    not what it learns from); every other field must match the run being resumed. ``bounds`` (``ge``, ``gt``,
+    ``le``, ``lt``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it is parsed
+    and by :meth:`TrainConfig.validate`; a float field must also be finite.
     """
-    return field(default=default, metadata={"help": help, "resumable": resumable})
+    metadata: dict[str, Any] = {"help": help, "resumable": resumable}
+    if isinstance(default, (int, float)) and not isinstance(default, bool):
+        metadata["range"] = Range(**bounds)
+    return field(default=default, metadata=metadata)
 
 
 @dataclass
@@ -46,13 +52,14 @@ class ModelConfig:
     """The network and its heatmap targets."""
 
     image_size: int = _f(0, "resize images so the longer side has this many pixels (0: keep the dataset's "
-                            "size)")
+                            "size)", ge=0)
     channels: tuple[int, ...] = _f((16, 32, 32, 32), "U-Net channels per level, level 0 at heatmap "
                                                      "resolution; len - 1 downsamplings by 2")
-    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution")
+    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0)
     norm: str = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
-    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels")
-    sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)")
+    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels", ge=1)
+    sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)",
+                      gt=0)
 
 
 @dataclass
@@ -60,26 +67,27 @@ class AugmentationConfig:
     """Random per-image augmentation; the geometry stays exact (``K <- M K``, ``s3k.augment``)."""
 
     augment: bool = _f(True, "augment every image with a random similarity and photometric changes")
-    rotation_deg: float = _f(180.0, "maximum in-plane rotation of the augmentation, degrees")
-    scale: float = _f(0.2, "maximum relative scale change of the augmentation (0.2: x0.8 to x1.2)")
-    shift_px: float = _f(10.0, "maximum shift of the augmentation along u and v, image pixels")
-    brightness: float = _f(0.2, "maximum additive brightness change (images in [0, 1])")
-    contrast: float = _f(0.2, "maximum relative contrast change")
-    colour: float = _f(0.1, "maximum relative per-channel gain change")
-    noise: float = _f(0.02, "maximum standard deviation of additive Gaussian pixel noise")
+    rotation_deg: float = _f(180.0, "maximum in-plane rotation of the augmentation, degrees", ge=0)
+    scale: float = _f(0.2, "maximum relative scale change of the augmentation (0.2: x0.8 to x1.2)",
+                      ge=0, lt=1)
+    shift_px: float = _f(10.0, "maximum shift of the augmentation along u and v, image pixels", ge=0)
+    brightness: float = _f(0.2, "maximum additive brightness change (images in [0, 1])", ge=0)
+    contrast: float = _f(0.2, "maximum relative contrast change", ge=0)
+    colour: float = _f(0.1, "maximum relative per-channel gain change", ge=0)
+    noise: float = _f(0.02, "maximum standard deviation of additive Gaussian pixel noise", ge=0)
 
 
 @dataclass
 class ScheduleConfig:
     """Optimization: steps, batches, learning rate."""
 
-    steps: int = _f(3000, "number of optimizer steps", resumable=True)
-    batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)")
-    batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term")
-    lr: float = _f(1e-3, "Adam learning rate at the start")
-    lr_final: float = _f(0.05, "learning rate at the last step as a fraction of lr (cosine decay)")
-    weight_decay: float = _f(1e-5, "lambda: weight of the squared L2 norm of non-bias parameters")
-    grad_clip: float = _f(10.0, "clip the global gradient norm to this value (0: no clipping)")
+    steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1)
+    batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)", ge=1)
+    batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term", ge=0)
+    lr: float = _f(1e-3, "Adam learning rate at the start", gt=0, le=1)
+    lr_final: float = _f(0.05, "learning rate at the last step as a fraction of lr (cosine decay)", ge=0)
+    weight_decay: float = _f(1e-5, "lambda: weight of the squared L2 norm of non-bias parameters", ge=0)
+    grad_clip: float = _f(10.0, "clip the global gradient norm to this value (0: no clipping)", ge=0)
 
 
 @dataclass
@@ -88,31 +96,33 @@ class SelfSupervisionConfig:
 
     unsup: bool = _f(True, "use the self-supervised multi-view term; --no-unsup trains the labels-only "
                            "baseline (same network, no unlabelled batch)")
-    alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)")
+    alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)", ge=0)
     warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
-                                "avoids locking in a collapse from a random network")
-    ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up")
+                                "avoids locking in a collapse from a random network", ge=0)
+    ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up",
+                         ge=0)
     outlier_px: float = _f(6.0, "leave out of each pseudo-label the views whose detection misses the other "
                                 "views' consensus by more than this many image pixels, one at a time (the "
                                 "default is twice the target width; 0: every view, weighted by its "
-                                "confidence, as in the paper)")
+                                "confidence, as in the paper)", ge=0)
     pseudo_window: int = _f(5, "read each view's detection for the pseudo-label as its heatmap's mean within "
                                "this many heatmap cells of the peak (0: the whole heatmap's mean, as in the "
                                "paper, which probability spread over the heatmap pulls towards its centre "
-                               "and, trained on, draws the keypoints together)")
+                               "and, trained on, draws the keypoints together)", ge=0)
     coord_weight: float = _f(0.0, "weight of a second term on every heatmap with a target: the distance from "
                                   "the whole heatmap's mean to the target's centre, in target widths; the KL "
                                   "measures the heatmap's shape, not where its mean falls, and this term "
-                                  "trains the mean itself (0: off)")
+                                  "trains the mean itself (0: off)", ge=0)
     teacher_ema: float = _f(0.0, "pseudo-labels from a teacher: a copy of the network whose weights follow "
                                  "the trained ones as an exponential moving average with this decay per "
                                  "step (e.g. 0.99); 0: from the trained network's own forward pass, as in "
-                                 "the paper")
+                                 "the paper", ge=0, lt=1)
     layout_tol: float = _f(0.0, "rigid objects: leave out of the self-supervised term the pseudo-label "
                                 "keypoints whose distances to the others differ from the labelled frames' "
                                 "(median over them) by more than this fraction, e.g. 0.2, so that keypoints "
                                 "detected together on one spot teach nothing, and at read-out look for such "
-                                "a keypoint again where that layout puts it; 0: off (deformable objects)")
+                                "a keypoint again where that layout puts it; 0: off (deformable objects)",
+                            ge=0)
     layout_fit: bool = _f(False, "with --layout_tol: move the labelled layout onto each pseudo-label's kept "
                                  "keypoints (a rigid fit) and train towards its places, as the read-out "
                                  "does, instead of towards the triangulated points")
@@ -123,18 +133,18 @@ class MonitoringConfig:
     """Validation, logs and checkpoints."""
 
     val_every: int = _f(250, "validate (metrics, collapse check, images) every this many steps (0: never)",
-                        resumable=True)
-    val_frames: int = _f(16, "frames used for validation", resumable=True)
+                        resumable=True, ge=0)
+    val_frames: int = _f(16, "frames used for validation", resumable=True, ge=1)
     val_split: str = _f("test", "split used for validation; falls back to 'unlabelled' when absent or empty",
                         resumable=True)
     collapse_fraction: float = _f(0.3, "warn of a collapse when the mean pairwise distance of the "
                                        "triangulated keypoints falls below this fraction of the labelled "
-                                       "layout's", resumable=True)
-    log_every: int = _f(25, "write loss terms to TensorBoard every this many steps", resumable=True)
+                                       "layout's", resumable=True, ge=0)
+    log_every: int = _f(25, "write loss terms to TensorBoard every this many steps", resumable=True, ge=1)
     checkpoint_every: int = _f(500, "write RUN/checkpoint.pt every this many steps (and at the end)",
-                               resumable=True)
+                               resumable=True, ge=1)
     max_nonfinite: int = _f(20, "stop cleanly after this many consecutive steps with a non-finite loss",
-                            resumable=True)
+                            resumable=True, ge=1)
     progress: bool = _f(True, "show a progress bar", resumable=True)
 
 
@@ -142,12 +152,13 @@ class MonitoringConfig:
 class ExecutionConfig:
     """Randomness and where and how the computation runs."""
 
-    seed: int = _f(0, "random seed (batches, augmentation, initialization)")
+    seed: int = _f(0, "random seed (batches, augmentation, initialization)", ge=0)
     device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
-                         "since threads waiting for a busy core stall every convolution", resumable=True)
+                         "since threads waiting for a busy core stall every convolution",
+                      resumable=True, ge=0)
     preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB",
-                         resumable=True)
+                         resumable=True, ge=0)
 
 
 def _section(cls: type, help: str) -> Any:
@@ -217,29 +228,16 @@ class TrainConfig:
         return float(self.model.sigma) * int(self.model.stride)
 
     def validate(self) -> None:
-        """Raise ``UserError`` naming the field when a value is out of range."""
-        positive = ["steps", "batch_labelled", "stride", "lr", "sigma", "val_frames", "max_nonfinite",
-                    "checkpoint_every", "log_every"]
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise UserError(f"config field {name!r} must be > 0, got {getattr(self, name)!r}")
-        non_negative = [
-            "batch_unlabelled", "alpha", "warmup_steps", "ramp_steps", "image_size", "weight_decay",
-            "grad_clip", "res_blocks", "rotation_deg", "scale", "shift_px", "brightness", "contrast",
-            "colour", "noise", "val_every", "threads", "preload_mb", "lr_final", "collapse_fraction",
-            "pseudo_window", "layout_tol", "coord_weight",
-        ]
-        for name in non_negative:
-            if getattr(self, name) < 0:
-                raise UserError(f"config field {name!r} must be >= 0, got {getattr(self, name)!r}")
+        """Raise ``UserError`` naming the field when a value is out of its range (the ranges declared with
+        the fields; floats must be finite) or the fields contradict each other."""
+        for _, f, _ in leaf_fields(type(self)):
+            bounds = f.metadata.get("range")
+            if bounds is not None:
+                bounds.check(getattr(self, f.name), f"config field {f.name!r}")
         if self.unsup and self.batch_unlabelled <= 0:
             raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
         if not self.channels or any(c <= 0 for c in self.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
-        if self.scale >= 1:
-            raise UserError(f"config field 'scale' must be < 1, got {self.scale!r}")
-        if not 0 <= self.teacher_ema < 1:
-            raise UserError(f"config field 'teacher_ema' must be in [0, 1), got {self.teacher_ema!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready flat dictionary of all fields (tuples as lists)."""

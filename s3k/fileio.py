@@ -10,6 +10,7 @@ never leaves a stale lock behind).
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 from collections.abc import Iterator
@@ -63,6 +64,29 @@ def _json_default(x: Any) -> Any:
 def atomic_write_json(obj: Any, path: str | Path, indent: int | None = 2) -> None:
     """Write ``obj`` as JSON (numpy values and paths allowed) to ``path`` atomically, newline-terminated."""
     atomic_write_text(json.dumps(obj, indent=indent, default=_json_default) + "\n", path)
+
+
+def read_text(path: str | Path) -> str:
+    """The UTF-8 text of the file ``path`` (a leading byte-order mark dropped).
+
+    Raises:
+        UserError: the file is not UTF-8 text, naming the file, the line and the byte (a CSV saved as
+            Latin-1 or Windows-1252 is the usual case).
+    """
+    from s3k.errors import UserError
+
+    data = Path(path).read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise UserError(f"{path}, line {line}: not UTF-8 text (byte {data[exc.start]:#04x})",
+                        hint="save the file as UTF-8") from None
+
+
+def open_text(path: str | Path) -> io.StringIO:
+    """:func:`read_text` as a file for the ``csv`` module (line endings kept, as ``newline=""``)."""
+    return io.StringIO(read_text(path), newline="")
 
 
 @contextlib.contextmanager

@@ -108,7 +108,7 @@ def test_cli_rejects_bad_train_field_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("s3k experiment: error: --set: unknown field 'nope'") and err.count("\n") == 1
     assert cli_main(["experiment", "alpha", "--out", str(tmp_path), "--set", "lr=-1"]) == 1
-    assert "'lr' must be > 0" in capsys.readouterr().err
+    assert "'lr' must be in (0, 1]" in capsys.readouterr().err
     assert not (tmp_path / "data").exists()
 
 

@@ -125,7 +125,7 @@ def test_cli_prints_difference_and_fails_on_a_wrong_file(run_dir, tmp_path, caps
         return path
 
     monkeypatch.setattr(export, "export_module", export_then_corrupt)
-    assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(out)]) == 1
+    assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(out), "--overwrite"]) == 1
     captured = capsys.readouterr()
     assert "does not reproduce" in captured.err and "max |difference|" in captured.out
 

@@ -240,6 +240,18 @@ def test_propagate_over_a_still_stretch(truth):
     assert r.status_code == 200 and r.json()["frames"] == [4, 5]
 
 
+@pytest.mark.parametrize("limit", ["NaN", "-5", "Infinity", "101"])
+def test_propagate_refuses_a_threshold_out_of_range(truth, limit):
+    """nan compares false with every percentage: it would pass every frame as still."""
+    client = TestClient(create_app(truth.path))
+    label_frame(client, truth, 0)
+    before = (truth.path / "labels.csv").read_text()
+    r = client.post("/api/propagate", content=f'{{"first": 0, "last": 5, "max_changed": {limit}}}',
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "--max-changed" in r.json()["detail"]
+    assert (truth.path / "labels.csv").read_text() == before
+
+
 def test_propagate_refuses_a_moving_camera_and_from_the_command_line(tmp_path, capsys):
     truth = make_label_dataset(tmp_path / "ds", per_frame=True)
     client = TestClient(create_app(truth.path))
@@ -563,3 +575,24 @@ def test_label_up_option_takes_a_direction_or_none():
     for bad in ("0,1", "a,b,c", "0,0,0", "0,0,nan"):
         with pytest.raises(UserError, match="--up"):
             _up(bad)
+
+
+def test_request_bodies_are_capped(truth):
+    from s3k.label.server import MAX_BODY_BYTES
+
+    client = TestClient(create_app(truth.path))
+    before = (truth.path / "labels.csv").read_bytes() if (truth.path / "labels.csv").exists() else None
+    big = b'{"version": 0, "edits": [], "source": "' + b"x" * MAX_BODY_BYTES + b'"}'
+    r = client.post("/api/frame/0/label", content=big, headers={"content-type": "application/json"})
+    assert r.status_code == 413 and str(MAX_BODY_BYTES) in r.json()["detail"]
+
+    def chunks():
+        yield b'{"first": 0, '
+        yield b'"last": 3}'
+
+    r = client.post("/api/propagate", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 411  # no length announced: not read
+    after = (truth.path / "labels.csv").read_bytes() if (truth.path / "labels.csv").exists() else None
+    assert after == before
+    ok = client.post("/api/frame/0/label", json={"version": 0, "edits": []})
+    assert ok.status_code == 200  # an ordinary request still goes through

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from s3k.errors import UserError
 from s3k.sim import textures
 from s3k.sim.camera import look_at_xmat, mujoco_to_opencv, project_points
 from s3k.sim.generate import (
@@ -345,10 +346,15 @@ def test_simulate_writes_a_valid_dataset(tmp_path, args):
 def test_simulate_cli_bad_option_is_one_line(tmp_path, capsys):
     from s3k.cli import main
 
-    assert main(["simulate", "box", "--out", str(tmp_path / "d"), "--size", "8", "--no-progress"]) == 1
+    with pytest.raises(SystemExit) as refused:  # as the command line is parsed
+        main(["simulate", "box", "--out", str(tmp_path / "d"), "--size", "8", "--no-progress"])
+    assert refused.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["s3k simulate: error: size (--size): images must be at least 16 px, got 8"]
+    assert err == ["s3k simulate: error: argument --size: must be in [16, 8192], got '8'; see 's3k simulate "
+                   "--help'"]
     assert not (tmp_path / "d").exists()
+    with pytest.raises(UserError, match="at least 16|from 16"):  # and by the library
+        SimulateConfig("box", size=8)
 
 
 def test_sampling_seed_changes_frames_not_the_object(monkeypatch):

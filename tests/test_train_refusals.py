@@ -234,3 +234,63 @@ def test_corrupt_image_is_one_line_naming_the_file(capsys, dataset, finished_run
     refused(capsys, ["train", str(data), "--out", str(tmp_path / "run"), *TINY], name, "cannot decode")
     refused(capsys, ["evaluate", str(finished_run), "--data", str(data), "--split", "labelled"], name,
             "cannot decode")
+
+
+def test_a_train_refused_for_a_corrupt_image_leaves_no_run_behind(capsys, dataset, tmp_path):
+    import shutil
+
+    data = tmp_path / "ds"
+    shutil.copytree(dataset, data, ignore=shutil.ignore_patterns(".cache*"))
+    png = sorted((data / "images" / "cam0").glob("*.png"))[0]
+    good = png.read_bytes()
+    png.write_bytes(good[:60])
+    run = tmp_path / "run"
+    refused(capsys, ["train", str(data), "--out", str(run), *TINY], png.name, "cannot decode")
+    assert not (run / "config.json").exists()
+    png.write_bytes(good)  # fixed: the same command now trains, no --overwrite needed
+    shutil.rmtree(data / ".cache", ignore_errors=True)
+    assert cli_main(["train", str(data), "--out", str(run), *TINY]) == 0
+
+
+def test_a_training_that_ends_with_non_finite_weights_exits_non_zero(capsys, dataset, tmp_path, monkeypatch):
+    """Weights that overflow in the last step (here made to) leave no model.pt: the command says so and
+    fails instead of exiting 0."""
+    step = torch.optim.Adam.step
+
+    def overflowing(self, *args, **kwargs):
+        out = step(self, *args, **kwargs)
+        with torch.no_grad():
+            self.param_groups[0]["params"][0].fill_(float("inf"))
+        return out
+
+    monkeypatch.setattr(torch.optim.Adam, "step", overflowing)
+    run = tmp_path / "run"
+    capsys.readouterr()
+    assert cli_main(["train", str(dataset), "--out", str(run), *TINY]) == 1
+    err = capsys.readouterr().err
+    assert "s3k train: error: training stopped" in err and "non-finite" in err and "--lr" in err
+    assert not (run / "model.pt").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a CUDA GPU")
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_a_device_the_machine_lacks_is_one_line(capsys, dataset, finished_run, tmp_path, command):
+    run = tmp_path / "run"
+    if command == "train":
+        argv = ["train", str(dataset), "--out", str(run), *TINY, "--device", "cuda"]
+    else:
+        argv = ["evaluate", str(finished_run), "--data", str(dataset), "--device", "cuda"]
+    refused(capsys, argv, "--device cuda", "no such CUDA GPU")
+    assert not run.exists()
+
+
+def test_two_pass_options_are_refused_before_the_coarse_pass(dataset, tmp_path):
+    from s3k.config import TrainConfig
+    from s3k.train.two_pass import train_two_pass
+
+    cfg = TrainConfig.from_flat(steps=2, channels=(8, 16), res_blocks=1)
+    for options, option in (({"crop_size": 0}, "--crop-size"), ({"extent": float("nan")}, "--crop-extent"),
+                            ({"margin": -1.0}, "--crop-margin")):
+        with pytest.raises(UserError, match=option):
+            train_two_pass(dataset, tmp_path / "run", cfg, **options)
+        assert not (tmp_path / "run").exists()

@@ -57,6 +57,14 @@ def _top_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Parser(argparse.ArgumentParser):
+    """A command's parser: a refused option is one line, ``s3k CMD: error: argument --opt: ...``, naming the
+    value and where to read about the options (status 2, as ``argparse``'s own)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+
+
 def describe_error(exc: BaseException) -> str | None:
     """The one-line message for an error a user can fix, or None for a bug (which keeps its traceback).
 
@@ -100,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         top.error(f"unknown command {name!r}; choose from {', '.join(COMMANDS)}")
     module_name, text = COMMANDS[name]
     module = importlib.import_module(f"s3k.cli.{module_name}")
-    parser = argparse.ArgumentParser(prog=f"s3k {name}", description=text)
+    parser = _Parser(prog=f"s3k {name}", description=text)
     module.configure_parser(parser)
     args = parser.parse_args(rest)
     args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it

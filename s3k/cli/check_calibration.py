@@ -7,7 +7,7 @@ import argparse
 
 import numpy as np
 
-from s3k.cli.options import camera_pairs
+from s3k.cli.options import camera_pairs, number
 from s3k.errors import UserError
 
 
@@ -22,10 +22,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--splits", default="labelled,test",
         help="comma-separated splits whose labels are used (default: labelled,test)",
     )
-    parser.add_argument("--factor", type=float, default=3.0,
+    parser.add_argument("--factor", type=number(gt=0), default=3.0,
                         help="flag a camera whose leave-one-out residual exceeds FACTOR x the others' "
                         "(default 3)")
-    parser.add_argument("--min-px", type=float, default=None,
+    parser.add_argument("--min-px", type=number(ge=0), default=None,
                         help="never flag a camera whose residual is below this many pixels "
                         "(default: 0.5%% of the image diagonal)")
     fix = parser.add_argument_group("recalibration from ChArUco frames")
@@ -40,7 +40,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      "calibration_images/*.jpg); files of one board position share their last number")
     fix.add_argument("--write-calibration", default=None, metavar="TOML",
                      help="write the calibration with the recalibrated cameras (anipose format, full "
-                     "resolution)")
+                     "resolution); never over the calibration read or a dataset's file")
+    fix.add_argument("--overwrite", action="store_true", help="replace --write-calibration if it exists")
 
 
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
@@ -89,6 +90,11 @@ def run(args: argparse.Namespace) -> int:
     from s3k.calibration import check_calibration
     from s3k.data import Dataset
 
+    if args.write_calibration:
+        from s3k.outputs import check_output
+
+        check_output(args.write_calibration, args.overwrite, inputs={"--calibration": args.calibration},
+                     option="--write-calibration")
     ds = Dataset.open(args.dataset)
     splits = [s.strip() for s in args.splits.split(",") if s.strip()]
     unknown = [s for s in splits if s not in ("labelled", "unlabelled", "test")]

@@ -10,7 +10,16 @@ import argparse
 import typing
 from typing import Any
 
-from s3k.config import TrainConfig, _base_type, _default, config_from_dict, leaf_fields, read_config_file
+from s3k.config import (
+    TrainConfig,
+    _base_type,
+    _default,
+    coerce,
+    config_from_dict,
+    leaf_fields,
+    read_config_file,
+)
+from s3k.errors import UserError
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig) -> None:
@@ -37,7 +46,28 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
             is_tuple = typing.get_origin(base) is tuple
             metavar = "N,N,..." if is_tuple else getattr(base, "__name__", "V").upper()
             groups[section].add_argument(*flags, dest=f.name, default=argparse.SUPPRESS, metavar=metavar,
-                                         help=text)
+                                         type=_parser(f, tp), help=text)
+
+
+def _parser(f, tp: Any):
+    """The ``type=`` of a field's option: the text converted to the field's type and, for a number, held
+    to the field's range, so that a value out of range is refused as the command line is parsed."""
+    bounds = f.metadata.get("range")
+
+    def parse(text: str) -> Any:
+        try:
+            value = coerce(tp, text, "value")
+        except UserError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
+        problem = bounds.problem(value) if bounds is not None else None
+        if problem is not None:
+            raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
+        return value
+
+    parse.__name__ = getattr(_base_type(tp)[0], "__name__", "value")
+    if bounds is not None:
+        parse.range = bounds  # type: ignore[attr-defined]
+    return parse
 
 
 def config_from_args(args: argparse.Namespace, cls: type = TrainConfig, base: Any = None) -> Any:

@@ -6,6 +6,7 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
+from s3k.cli.options import number
 from s3k.demo import QUICK, DemoConfig, comparison_table, run_demo, schedule_for
 
 
@@ -14,21 +15,22 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="s3k-demo", help="output folder (default: s3k-demo)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny version (under a minute) to check the set-up")
-    parser.add_argument("--unlabelled", type=int, default=None,
+    parser.add_argument("--unlabelled", type=number(int, ge=0), default=None,
                         help=f"unlabelled frames (default {d.unlabelled})")
-    parser.add_argument("--test", type=int, default=None, help=f"test frames (default {d.test})")
-    parser.add_argument("--steps", type=int, default=None,
+    parser.add_argument("--test", type=number(int, ge=1), default=None,
+                        help=f"test frames (default {d.test})")
+    parser.add_argument("--steps", type=number(int, ge=1), default=None,
                         help=f"training steps of the refining pass, or of the one pass (default {d.steps})")
-    parser.add_argument("--coarse-steps", type=int, default=None,
+    parser.add_argument("--coarse-steps", type=number(int, ge=1), default=None,
                         help=f"training steps of the coarse pass (default {d.coarse_steps})")
     parser.add_argument("--one-pass", action="store_true",
                         help=f"one network on the whole image at {d.coarse_size} px instead of the "
                              "coarse-to-fine detector")
-    parser.add_argument("--warmup-steps", type=int, default=None,
+    parser.add_argument("--warmup-steps", type=number(int, ge=0), default=None,
                         help=f"S3K labels-only warm-up steps (default {d.warmup_steps})")
-    parser.add_argument("--alpha", type=float, default=None,
+    parser.add_argument("--alpha", type=number(ge=0), default=None,
                         help=f"S3K alpha after the ramp (default {d.alpha})")
-    parser.add_argument("--seed", type=int, default=d.seed,
+    parser.add_argument("--seed", type=number(int, ge=0), default=d.seed,
                         help=f"dataset and training seed (default {d.seed})")
     parser.add_argument("--sequential", action="store_true",
                         help="train the two models one after the other instead of side by side")

@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 
+from s3k.cli.options import number
 from s3k.inference.evaluate import evaluate_run
 from s3k.inference.metrics import format_table
 
@@ -21,8 +22,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
                         help="write metrics.json, plots and view overlays to DIR")
-    parser.add_argument("--overlays", type=int, default=6, help="frames drawn in the report (default: 6)")
-    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
+    parser.add_argument("--overlays", type=number(int, ge=0), default=6,
+                        help="frames drawn in the report (default: 6)")
+    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
+                        help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--ignore-geometry", action="store_true",
                         help="evaluate a dataset whose images show another part of the cameras' frames than "
@@ -44,6 +47,10 @@ def run(args: argparse.Namespace) -> int:
         from s3k.detector.geometry_record import check_dataset
 
         check_dataset(args.run, args.data)
+    if args.report:
+        from s3k.outputs import check_output_folder
+
+        check_output_folder(args.report, inputs={"RUN": args.run, "--data": args.data}, option="--report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
     units = _two_pass_pixels(metrics) if "two_pass" in metrics else None

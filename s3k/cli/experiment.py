@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.experiments import (
     DESCRIPTIONS,
@@ -25,17 +26,15 @@ from s3k.experiments import (
 
 
 def _int_list(text: str) -> list[int]:
-    try:
-        return [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    """Comma-separated counts, each >= 0."""
+    parse = number(int, ge=0)
+    return [parse(v) for v in text.split(",") if v.strip()]
 
 
 def _float_list(text: str) -> list[float]:
-    try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    """Comma-separated finite numbers, each >= 0."""
+    parse = number(ge=0)
+    return [parse(v) for v in text.split(",") if v.strip()]
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -53,15 +52,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", choices=list(SCALES), default="small",
                         help="toy (seconds; tests), small (about 1 h per experiment on 2 CPU cores), full "
                              "(whole grid, default training scale; hours). Default: small")
-    parser.add_argument("--seeds", type=int, default=None, help="seeds at the points carrying a claim "
-                        "(default: the scale's)")
-    parser.add_argument("--seeds-other", type=int, default=1, help="seeds at the other points (default 1)")
-    parser.add_argument("--steps", type=int, default=None,
+    parser.add_argument("--seeds", type=number(int, ge=1), default=None,
+                        help="seeds at the points carrying a claim (default: the scale's)")
+    parser.add_argument("--seeds-other", type=number(int, ge=0), default=1,
+                        help="seeds at the other points (default 1)")
+    parser.add_argument("--steps", type=number(int, ge=1), default=None,
                         help="training steps per run (default: the scale's)")
-    parser.add_argument("--size", type=int, default=None, metavar="PX",
+    parser.add_argument("--size", type=number(int, ge=16), default=None, metavar="PX",
                         help="image size in pixels (default: the scale's)")
-    parser.add_argument("--test", type=int, default=None, help="test frames (default: the scale's)")
-    parser.add_argument("--data-seed", type=int, default=0, help="seed of the rendered datasets (default 0)")
+    parser.add_argument("--test", type=number(int, ge=1), default=None,
+                        help="test frames (default: the scale's)")
+    parser.add_argument("--data-seed", type=number(int, ge=0), default=0,
+                        help="seed of the rendered datasets (default 0)")
     parser.add_argument("--labelled", type=_int_list, default=None, metavar="N,N,...",
                         help="labelled counts of the grid")
     parser.add_argument("--unlabelled", type=_int_list, default=None, metavar="N,N,...",
@@ -77,13 +79,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--two-pass trains every run as a coarse pass on the whole image at --size px and a refining pass on "
         "crops around its estimate, cut from pools rendered at --render px; --set applies to both passes")
     two.add_argument("--two-pass", action="store_true", help="train every run coarse-to-fine")
-    two.add_argument("--render", type=int, default=None, metavar="PX",
+    two.add_argument("--render", type=number(int, ge=16), default=None, metavar="PX",
                      help="the pools' image size (default: 4 x --size, 384 at the full scale)")
-    two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
+    two.add_argument("--coarse-steps", type=number(int, ge=1), default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
-    two.add_argument("--coarse-rotation", type=float, default=None, metavar="DEG",
+    two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
                      help="the coarse pass's augmentation rotation range in degrees (default: rotation_deg)")
-    two.add_argument("--crop-size", type=int, default=None, metavar="PX",
+    two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help="the refining pass's crop size in pixels (default: the scale's, 128 at small/full)")
     parser.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
                         help="how runs choose their labelled frames from the pool: random (stratified; "
@@ -93,9 +95,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
-    parser.add_argument("--threads", type=int, default=0,
+    parser.add_argument("--threads", type=number(int, ge=0), default=0,
                         help="torch threads per run (0: torch's default; 1 when running two sweeps at once)")
-    parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: CPUs)")
+    parser.add_argument("--workers", type=number(int, ge=1), default=None,
+                        help="rendering processes (default: CPUs)")
     parser.add_argument("--dry-run", action="store_true", help="print the runs and the estimate, run nothing")
     parser.add_argument("--summarize-only", action="store_true",
                         help="only (re)write summary.json, plots and README.md from the finished runs "

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector
 
@@ -17,13 +18,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
-    parser.add_argument("--out", required=True, help="file to write (e.g. detector.onnx, detector.pt); a "
-                        "two-pass run writes OUT.coarse.EXT, OUT.fine.EXT and OUT.json (the crop rule)")
+    parser.add_argument("--out", required=True,
+                        help="file to write (e.g. detector.onnx, detector.pt; never a file of the run or of "
+                             "a dataset); a two-pass run writes OUT.coarse.EXT, OUT.fine.EXT and OUT.json "
+                             "(the crop rule)")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--with-moments", action="store_true",
                         help="also output means (N, K, 2) in pixels and confidence (N, K)")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset version (default 17)")
+    parser.add_argument("--opset", type=number(int, ge=11, le=20), default=17,
+                        help="ONNX opset version (default 17)")
     parser.add_argument("--no-fuse", action="store_true", help="keep BatchNorm layers (default: folded)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+    parser.add_argument("--tolerance", type=number(gt=0), default=DEFAULT_TOLERANCE,
                         help="largest allowed difference from PyTorch (default 1e-4)")
     parser.add_argument("--verify-data", default=None,
                         help="dataset folder whose frames are used to verify (default: the run's dataset)")
@@ -31,6 +36,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from s3k.inference.export import written_files
+    from s3k.outputs import check_output
+
+    checkpoint = Path(args.run) / args.checkpoint if args.checkpoint else None
+    for path in written_files(args.run, args.out):  # a two-pass run writes a file per pass and the rule
+        check_output(path, args.overwrite, inputs={"--checkpoint": checkpoint})
     try:
         report = export_detector(args.run, args.format, args.out, with_moments=args.with_moments,
                                  fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from s3k.cli.options import name, number
+
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
@@ -14,12 +16,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("csv", help="3D keypoints CSV")
     parser.add_argument("--format", required=True, choices=["nwb"], help="output format")
     parser.add_argument("--out", required=True, help="FILE.nwb to write")
-    parser.add_argument("--fps", type=float, required=True,
+    parser.add_argument("--fps", type=number(gt=0), required=True,
                         help="frame rate of the videos; timestamps are fnum / fps seconds")
     parser.add_argument("--calibration", default=None,
                         help="anipose calibration.toml of the rig (stored as calibrated cameras; gives the "
                              "unit)")
-    parser.add_argument("--units", default=None,
+    parser.add_argument("--units", type=name, default=None,
                         help="world length unit (default: the calibration's, else the one 's3k track' or "
                              "'s3k predict' wrote beside the CSV in CSV.s3k.json; refused when none says)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing file")

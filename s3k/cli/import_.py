@@ -6,7 +6,7 @@ import argparse
 import re
 from typing import Any
 
-from s3k.cli.options import camera_pairs, parse_crops, parse_size
+from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
 from s3k.errors import UserError
 
 
@@ -44,7 +44,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="MMPose / RTMPose predictions JSON per camera (detections, see --min-score)")
     labels.add_argument("--deepfly3d", metavar="FILE.pkl",
                         help="DeepFly3D df3d_result*.pkl (its points2d, cameras camera_0, camera_1, ...)")
-    parser.add_argument("--min-score", type=float, default=0.5,
+    parser.add_argument("--min-score", type=number(ge=0), default=0.5,
                         help="OpenPose / MMPose points scored below this are unlabelled (default 0.5)")
     parser.add_argument("--sleap-track", default=None,
                         help="SLEAP track name or index when several animals are labelled (default: the "
@@ -63,16 +63,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--labelled", default=None,
                         help="number of labelled frames, or 'all' (default 10, or every frame left after the "
                              "test frames when fewer)")
-    parser.add_argument("--test", type=int, default=0, help="number of test frames (default 0)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random split (default 0)")
-    parser.add_argument("--stride", type=int, default=1,
+    parser.add_argument("--test", type=number(int, ge=0), default=0, help="number of test frames (default 0)")
+    parser.add_argument("--seed", type=number(int, ge=0), default=0,
+                        help="seed of the random split (default 0)")
+    parser.add_argument("--stride", type=number(int, ge=1), default=1,
                         help="keep every STRIDE-th video frame as unlabelled (default 1: all)")
-    parser.add_argument("--min-views", type=int, default=2,
+    parser.add_argument("--min-views", type=number(int, ge=1), default=2,
                         help="a frame can be labelled/test when a keypoint is labelled in this many cameras")
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--size", default=None,
                       help="output image size: W,H or PX (the longer side, aspect kept)")
-    size.add_argument("--scale", type=float, default=None, help="output image scale factor, e.g. 0.25")
+    size.add_argument("--scale", type=number(gt=0, le=16), default=None,
+                      help="output image scale factor, e.g. 0.25")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box in pixel edge coordinates, for every camera or one camera")
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
@@ -80,7 +82,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
                         "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
                         "size are padded to the largest)")
-    parser.add_argument("--units", default=None,
+    parser.add_argument("--units", type=name, default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
     parser.add_argument("--keypoints", default=None,
@@ -136,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _count(text: str, option: str) -> int:
     try:
-        return int(text)
+        value = int(text)
     except ValueError:
-        raise UserError(f"{option} {text!r}: expected a number of frames or 'all'") from None
+        value = -1
+    if value < 0:
+        raise UserError(f"{option} {text!r}: expected a number of frames (>= 0) or 'all'")
+    return value

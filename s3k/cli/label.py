@@ -10,6 +10,7 @@ import argparse
 import math
 from pathlib import Path
 
+from s3k.cli.options import number
 from s3k.errors import UserError
 
 
@@ -29,7 +30,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ignore-geometry", action="store_true",
                         help="use --run on a dataset whose images show another part of the cameras' frames "
                              "than the run was trained on (refused by default)")
-    parser.add_argument("--port", type=int, default=8765, help="port to serve on (default: 8765)")
+    parser.add_argument("--port", type=number(int, ge=1, le=65535), default=8765,
+                        help="port to serve on (default: 8765)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to serve on (default: 127.0.0.1); any other requires the random "
                              "token in the printed URL")
@@ -43,9 +45,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "every heading as a pose of its own)")
     group = parser.add_argument_group("propagate")
     group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
-    group.add_argument("--from", dest="source", type=int, help="frame whose labels are copied (default: the "
+    group.add_argument("--from", dest="source", type=number(int),
+                       help="frame whose labels are copied (default: the "
                        "frame of the stretch with the most keypoints labelled in two or more views)")
-    group.add_argument("--max-changed", type=float, default=None,
+    group.add_argument("--max-changed", type=number(ge=0, le=100), default=None,
                        help="largest percentage of a camera's pixels that may differ from the source frame "
                             "by more than 24 grey levels in a still frame (default: 0.2)")
     group.add_argument("--dry-run", action="store_true", help="print what would change, write nothing")

@@ -1,11 +1,54 @@
-"""Parsers of option values shared by several commands: ``CAMERA=FILE`` pairs, crop boxes, image sizes.
+"""Parsers of option values shared by several commands: numbers in a range, non-empty names,
+``CAMERA=FILE`` pairs, crop boxes, image sizes.
 
-Each raises :class:`s3k.errors.UserError` naming the option and the value.
+:func:`number` and :func:`name` are ``type=`` functions of ``argparse``: a value out of range is refused when
+the command line is parsed, before any work, as ``s3k CMD: error: argument --opt: must be > 0, got '0'``.
+Every numeric option of every command is declared with one (``tests/test_options.py`` checks it). The others
+raise :class:`s3k.errors.UserError` naming the option and the value.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
+from collections.abc import Callable
+from typing import Any
+
 from s3k.errors import UserError
+from s3k.ranges import Range
+
+
+def number(kind: type = float, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
+           lt: float | None = None) -> Callable[[str], Any]:
+    """An ``argparse`` ``type=``: text -> ``kind`` (int or float), finite and within the bounds.
+
+    Example:
+        >>> number(int, ge=1)("3")
+        3
+    """
+    bounds = Range(ge=ge, gt=gt, le=le, lt=lt)
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        problem = bounds.problem(value)
+        if problem is not None:
+            raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__
+    parse.range = bounds  # type: ignore[attr-defined]
+    return parse
+
+
+def name(text: str) -> str:
+    """An ``argparse`` ``type=`` for a name (a unit, a camera): not empty, no surrounding blanks."""
+    if not text.strip() or text != text.strip():
+        raise argparse.ArgumentTypeError(f"expected a name without surrounding blanks, got {text!r}")
+    return text
 
 
 def camera_pairs(values: list[str] | None, option: str) -> dict[str, str]:
@@ -37,8 +80,10 @@ def parse_crops(values: list[str] | None, cameras: list[str], option: str = "--c
             box = tuple(float(x) for x in box_text.split(","))
         except ValueError:
             box = ()
-        if len(box) != 4 or not box[2] > box[0] or not box[3] > box[1]:
-            raise UserError(f"{option} {value!r}: expected [CAMERA=]x0,y0,x1,y1 with x1 > x0 and y1 > y0")
+        if (len(box) != 4 or not all(map(math.isfinite, box)) or not box[2] > box[0]
+                or not box[3] > box[1]):
+            raise UserError(f"{option} {value!r}: expected [CAMERA=]x0,y0,x1,y1, finite numbers with x1 > x0 "
+                            "and y1 > y0")
         for t in targets:
             crops[t] = box
     return crops

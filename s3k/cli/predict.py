@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli.options import number
 from s3k.inference.predict import predict_dataset
 
 
@@ -17,11 +18,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--split", default="test", choices=["labelled", "unlabelled", "test", "all"],
                         help="split to predict: labelled, unlabelled, test, or 'all' (default: test)")
-    parser.add_argument("--batch-size", type=int, default=16, help="frames per forward pass (default: 16)")
+    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
+                        help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_output
+
+    check_output(args.out, args.overwrite, inputs={"--data": args.data})
     summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
                               args.overwrite)
     from s3k.data import Dataset

@@ -16,6 +16,8 @@ import dataclasses
 import json
 import sys
 
+from s3k.cli.options import number
+
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
@@ -23,14 +25,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     g.add_argument("run", nargs="?", default=None,
                    help="trained s3k run (plush keypoints) that detects the paw")
     g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
-    g.add_argument("--trials", type=int, default=30,
+    g.add_argument("--trials", type=number(int, ge=1), default=30,
                    help="grasp trials, over arrangements 7, 8, 9 (default 30)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
-    g.add_argument("--seed", type=int, default=0, help="draws each trial's lighting and gripper start (0)")
-    g.add_argument("--object-seed", type=int, default=None,
+    g.add_argument("--seed", type=number(int, ge=0), default=0,
+                   help="draws each trial's lighting and gripper start (0)")
+    g.add_argument("--object-seed", type=number(int, ge=0), default=None,
                    help="the plush scene's look and arrangements (default: that of the run's dataset when "
                         "its s3k.json can be read, else 0)")
-    g.add_argument("--size", type=int, default=None,
+    g.add_argument("--size", type=number(int, ge=16), default=None,
                    help="rendered image size (default: the run's network input; 96 with --ground-truth)")
     g.add_argument("--paw", default="front_left_paw", choices=["front_left_paw", "front_right_paw"],
                    help="which front paw to grasp (default front_left_paw)")
@@ -44,19 +47,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     for f in dataclasses.fields(AgentConfig):
         flag = "--" + f.name.replace("_", "-")
         default = f.default
-        kind = {int: int, float: float}.get(type(default), str)
+        kind = {int: number(int, ge=0), float: number(ge=0)}.get(type(default), str)
         t.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
                        help=f"{f.metadata['help']} (default {default})")
 
     d = sub.add_parser("simulate-insertion",
                        help="a keypoint dataset of the insertion environment (to train its detector)")
     d.add_argument("--out", required=True, help="dataset folder to create")
-    d.add_argument("--size", type=int, default=64, help="image width and height (default 64)")
-    d.add_argument("--labelled", type=int, default=10, help="labelled frames (default 10)")
-    d.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
-    d.add_argument("--test", type=int, default=200,
+    d.add_argument("--size", type=number(int, ge=16), default=64, help="image width and height (default 64)")
+    d.add_argument("--labelled", type=number(int, ge=0), default=10, help="labelled frames (default 10)")
+    d.add_argument("--unlabelled", type=number(int, ge=0), default=2000,
+                   help="unlabelled frames (default 2000)")
+    d.add_argument("--test", type=number(int, ge=0), default=200,
                    help="test frames, from episodes of their own (default 200)")
-    d.add_argument("--seed", type=int, default=0, help="draws the episodes (default 0)")
+    d.add_argument("--seed", type=number(int, ge=0), default=0, help="draws the episodes (default 0)")
     d.add_argument("--overwrite", action="store_true", help="replace --out if it exists and is not empty")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli.options import number
+from s3k.sim.generate import MAX_SIZE
 from s3k.sim.scene import NUM_TRAIN_INSTANCES
 from s3k.sim.scenes import SCENES
 
@@ -12,28 +14,30 @@ from s3k.sim.scenes import SCENES
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
-    parser.add_argument("--size", type=int, default=96, help="image width and height in pixels (default 96)")
-    parser.add_argument("--labelled", type=int, default=None,
+    parser.add_argument("--size", type=number(int, ge=16, le=MAX_SIZE), default=96,
+                        help="image width and height in pixels (default 96)")
+    parser.add_argument("--labelled", type=number(int, ge=0), default=None,
                         help="labelled frames (default 10; plush: 7, one per training arrangement)")
-    parser.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
-    parser.add_argument("--test", type=int, default=200, help="test frames (default 200)")
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--unlabelled", type=number(int, ge=0), default=2000,
+                        help="unlabelled frames (default 2000)")
+    parser.add_argument("--test", type=number(int, ge=0), default=200, help="test frames (default 200)")
+    parser.add_argument("--seed", type=number(int, ge=0), default=0,
                         help="sampling seed: object poses, cameras and lighting (default 0)")
-    parser.add_argument("--object-seed", type=int, default=0,
+    parser.add_argument("--object-seed", type=number(int, ge=0), default=0,
                         help="the scene's look: box texture, category shapes, distractor sets (default 0: "
                              "the same object whatever --seed)")
     parser.add_argument("--mode", choices=["start", "full"], default=None,
                         help="distractors: labelled frames from the first distractor segment only (start) or "
                              "spread over the whole timeline (full, the default)")
-    parser.add_argument("--segments", type=int, default=6,
+    parser.add_argument("--segments", type=number(int, ge=1), default=6,
                         help="distractors: training segments (distractor sets) on the timeline (default 6)")
-    parser.add_argument("--test-segments", type=int, default=2,
+    parser.add_argument("--test-segments", type=number(int, ge=1), default=2,
                         help="distractors: test segments, with distractor sets unseen in training "
                              "(default 2)")
-    parser.add_argument("--train-instances", type=int, default=None,
+    parser.add_argument("--train-instances", type=number(int, ge=1, le=NUM_TRAIN_INSTANCES), default=None,
                         help=f"category: train on the first N of the {NUM_TRAIN_INSTANCES} training "
                              f"instances (default {NUM_TRAIN_INSTANCES}); test frames use the 4 held out")
-    parser.add_argument("--workers", type=int, default=None,
+    parser.add_argument("--workers", type=number(int, ge=1), default=None,
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
     parser.add_argument("--preview", default=None, metavar="PNG",
@@ -59,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
     )
+    if args.preview:
+        from s3k.outputs import check_output
+
+        check_output(args.preview, args.overwrite, option="--preview")
     summary = simulate(cfg, args.out, workers=args.workers, progress=not args.no_progress,
                        overwrite=args.overwrite, preview=args.preview)
     print(f"wrote {summary['path']}: {summary['frames']} frames ({cfg.labelled} labelled, {cfg.unlabelled} "

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
@@ -29,9 +30,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit", choices=("pad", "crop", "stretch"), default=None,
                         help="how a frame of another aspect ratio maps onto the detector's input "
                         "(default pad)")
-    parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
+    parser.add_argument("--min-weight", type=number(ge=0, lt=1), default=DEFAULT_MIN_WEIGHT,
                         help="confidence weight a view needs to be used (default 0: every view, weighted)")
-    parser.add_argument("--max-frames", type=int, default=None,
+    parser.add_argument("--max-frames", type=number(int, ge=1), default=None,
                         help="stop after this many frames (default: until a source ends, or Ctrl-C)")
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
@@ -76,10 +77,6 @@ def run(args: argparse.Namespace) -> int:
     from s3k.detector import Detector
     from s3k.inference.stream import open_source, rerun_logger, stream
 
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
-    if not 0 <= args.min_weight < 1:
-        raise UserError(f"--min-weight must be in [0, 1), got {args.min_weight}")
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")

@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from s3k.cli.options import name, number
 from s3k.errors import UserError
 from s3k.inference.track import FIT_MODES, empty_result_hint, track_videos
 from s3k.readout import DEFAULT_MIN_WEIGHT
@@ -45,11 +46,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
                         help="write DIR/<camera>.mp4 with the reprojected keypoints drawn")
-    parser.add_argument("--batch", type=int, default=8, help="frames per forward pass (default 8)")
-    parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
-    parser.add_argument("--stop", type=int, default=None,
+    parser.add_argument("--batch", type=number(int, ge=1), default=8,
+                        help="frames per forward pass (default 8)")
+    parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")
+    parser.add_argument("--stop", type=number(int, ge=0), default=None,
                         help="frame index to stop before (default: the end of the shortest video)")
-    parser.add_argument("--min-weight", type=float, default=DEFAULT_MIN_WEIGHT,
+    parser.add_argument("--min-weight", type=number(ge=0, le=1), default=DEFAULT_MIN_WEIGHT,
                         help="confidence weight a view needs to be used (default 0: every view, weighted by "
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
@@ -60,7 +62,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
                         "the boxes the run was trained on, from its dataset's import)")
-    parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
+    parser.add_argument("--units", type=name, default=None,
+                        help="world unit of the calibration when it does not say")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -93,8 +96,13 @@ def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import parse_crops
     from s3k.data import video
     from s3k.detector.geometry_record import track_crops
+    from s3k.outputs import check_output, check_output_folder
 
     videos = parse_videos(args.videos)
+    check_output(args.out, args.overwrite,
+                 inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
+    if args.overlay:
+        check_output_folder(args.overlay, inputs={"--calibration": args.calibration}, option="--overlay")
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)

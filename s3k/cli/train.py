@@ -4,9 +4,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from s3k.cli.config_options import add_config_arguments, config_from_args
+from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
 from s3k.detector import CONFIG_FILE, read_run_config
 from s3k.train.two_pass import REFERENCE_CROP
@@ -32,29 +34,31 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "detector on the crops; the options below the configuration apply to both passes, --image-size to "
         "neither")
     two.add_argument("--two-pass", action="store_true", help="train the coarse-to-fine detector")
-    two.add_argument("--coarse-size", type=int, default=None, metavar="PX",
+    two.add_argument("--coarse-size", type=number(int, ge=16), default=None, metavar="PX",
                      help="the coarse pass's image size, longer side (default 96)")
-    two.add_argument("--coarse-steps", type=int, default=None, metavar="N",
+    two.add_argument("--coarse-steps", type=number(int, ge=1), default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
-    two.add_argument("--coarse-rotation", type=float, default=None, metavar="DEG",
+    two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
-    two.add_argument("--crop-size", type=int, default=None, metavar="PX",
+    two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
                           f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
                           f"PX/{REFERENCE_CROP} so they keep their size in the scene")
-    two.add_argument("--crop-margin", type=float, default=None, metavar="F",
+    two.add_argument("--crop-margin", type=number(ge=0), default=None, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
                           "frame's keypoints) x (1 + F) (default 0.3)")
-    two.add_argument("--crop-extent", type=float, default=None, metavar="W",
+    two.add_argument("--crop-extent", type=number(gt=0), default=None, metavar="W",
                      help="crop side in world units at the estimate's depth (default: from the labels)")
     add_config_arguments(parser, TrainConfig)
 
 
 def run(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_output_folder
     from s3k.train import train
 
+    check_output_folder(args.out, inputs={"DATASET": args.dataset, "--config": args.config})
     if args.two_pass:
         return _run_two_pass(args)
     base = None
@@ -64,7 +68,12 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, TrainConfig, base=base)
     result = train(args.dataset, args.out, cfg, resume=args.resume, overwrite=args.overwrite,
                    command=getattr(args, "command_line", None))
-    return 0 if result.status == "done" else 1
+    if result.status != "done":
+        print(f"s3k train: error: training stopped at step {result.step} with non-finite values "
+              f"({result.status}); {Path(args.out) / 'model.pt'} was not written; lower --lr, or see "
+              f"{Path(args.out) / 'train.log'}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _run_two_pass(args: argparse.Namespace) -> int:

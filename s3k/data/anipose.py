@@ -157,7 +157,7 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
     # Rodrigues vectors (C, 3) have the shape of t: from_numpy converts them to matrices.
     cams = Cameras.from_numpy(np.stack(Ks), np.stack(dists), np.stack(rvecs), np.stack(ts),
                               dtype=torch.float64)
-    return Rig(names, cams, np.stack(sizes), units, dict(metadata))
+    return Rig(names, cams, np.stack(sizes), units, dict(metadata)).checked(path)
 
 
 def _toml_value(value: Any) -> str:

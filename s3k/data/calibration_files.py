@@ -47,17 +47,11 @@ def read_calibration(path: str | Path, units: str | None = None) -> Rig:
     """
     kind = calibration_format(path)
     if kind == "deepfly3d":
-        from s3k.data.deepfly3d import read_deepfly3d_calibration
-
-        return read_deepfly3d_calibration(path, units)
-    if kind == "qualisys":
-        from s3k.data.qualisys import read_qualisys_calibration
-
-        return read_qualisys_calibration(path, units)
-    if kind == "opencv":
-        from s3k.data.opencv_calib import read_opencv_calibration
-
-        return read_opencv_calibration(path, units)
-    from s3k.data.anipose import read_anipose_calibration
-
-    return read_anipose_calibration(path, units)
+        from s3k.data.deepfly3d import read_deepfly3d_calibration as read
+    elif kind == "qualisys":
+        from s3k.data.qualisys import read_qualisys_calibration as read
+    elif kind == "opencv":
+        from s3k.data.opencv_calib import read_opencv_calibration as read
+    else:
+        from s3k.data.anipose import read_anipose_calibration as read
+    return read(path, units).checked(path)  # rotations that are rotations, finite values

@@ -32,7 +32,7 @@ import torch
 from s3k.data.cache import ImageCache, cache_folders, fingerprint
 from s3k.data.cameras import cameras_of, read_per_frame_calibration, read_static_calibration
 from s3k.data.problems import DatasetError, DatasetWarning, Problem, Problems
-from s3k.data.sources import IMAGE_SOURCES, ImageReadError, PngImages, decode_image
+from s3k.data.sources import IMAGE_SOURCES, ImageReadError, PngImages, decode_image, header_size
 from s3k.data.tables import (
     FRAMES_FILE,
     LABELS_FILE,
@@ -393,18 +393,12 @@ class Dataset:
         parts = [list(self.crop_box), list(self.image_size), self.cameras, self.frame_ids.tolist()]
         return fingerprint(parts, self._c.fingerprint_items)
 
-    def _size_problem(self, frame: int, c: int, image: np.ndarray) -> Problem | None:
+    def _size_problem(self, frame: int, c: int, size: tuple[int, int]) -> Problem | None:
         W, H = self.source_image_size
-        if image.shape == (H, W, 3):
+        if tuple(size) == (W, H):
             return None
-        return Problem(
-            "error",
-            self._c.source.describe(frame, c),
-            "size",
-            f"image is {image.shape[1]}x{image.shape[0]}, s3k.json image_size is {W}x{H}",
-            frame=int(frame),
-            camera=self.cameras[c],
-        )
+        return Problem("error", self._c.source.describe(frame, c), "size", f"image is {size[0]}x{size[1]}, "
+                       f"s3k.json image_size is {W}x{H}", frame=int(frame), camera=self.cameras[c])
 
     def _decode_into(
         self, rows: np.ndarray, out: np.ndarray, out_rows: np.ndarray | None = None, resample: bool = True
@@ -415,7 +409,7 @@ class Dataset:
         ids = self.frame_ids[rows]
         try:
             for i, c, image in self._c.source.read_rows(ids, self._workers):
-                problem = self._size_problem(ids[i], c, image)
+                problem = self._size_problem(ids[i], c, (image.shape[1], image.shape[0]))
                 if problem is not None:
                     raise DatasetError(self.path, [problem])
                 if resample and self._resample:
@@ -490,11 +484,14 @@ class Dataset:
                 rel = source.relpath(f, self.cameras[c])
                 if not (self.path / rel).is_file():
                     return None  # reported as missing already
+                size = header_size(self.path / rel)  # a wrong size is reported without decoding
+                if size is not None and size != (W, H):
+                    return self._size_problem(f, c, size)
                 try:
                     image = decode_image(self.path / rel, rel)
                 except ImageReadError as exc:
                     return Problem("error", rel, "image", exc.reason, frame=f, camera=self.cameras[c])
-                return self._size_problem(f, c, image)
+                return self._size_problem(f, c, (image.shape[1], image.shape[0]))
 
             with ThreadPoolExecutor(max_workers=self._workers) as pool:
                 for problem in pool.map(check, jobs):

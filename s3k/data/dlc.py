@@ -10,6 +10,7 @@ import numpy as np
 
 from s3k.data.labels2d import LabelTable, frame_id_from_path
 from s3k.errors import UserError
+from s3k.fileio import open_text
 
 
 def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
@@ -33,7 +34,7 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
         raise FileNotFoundError(f"{path}: label CSV not found")
     if frame_ids_from not in ("path", "row"):
         raise ValueError(f"frame_ids_from must be 'path' or 'row', got {frame_ids_from!r}")
-    with path.open(newline="") as f:
+    with open_text(path) as f:
         rows = list(csv.reader(f))
     header: dict[str, list[str]] = {}
     r = 0

@@ -26,6 +26,7 @@ import numpy as np
 
 from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
+from s3k.fileio import open_text
 
 FORMATS = ("dlc", "lightning-pose", "sleap", "nwb")
 SUFFIX = {"sleap": ".slp", "nwb": ".nwb"}
@@ -144,13 +145,13 @@ def export_labels(
         overwrite: replace existing output files.
     """
     from s3k.data import Dataset
+    from s3k.outputs import check_output_folder
 
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}")
     out = Path(out)
     ds = Dataset.open(dataset, cache="none")
-    if out.resolve().is_relative_to(Path(ds.path).resolve()):
-        raise UserError(f"--out {out} is inside the dataset {dataset}; write the export elsewhere")
+    check_output_folder(out, inputs={"DATASET": dataset})  # never inside a dataset or over a run's files
     ids, tables = dataset_tables(ds, splits)
     if fmt in SUFFIX:
         if out.is_dir():
@@ -222,15 +223,16 @@ def export_tracks(
     import csv
 
     from s3k.data.nwb import write_nwb_tracks
-    from s3k.data.tracks_csv import check_output, read_csv, read_source, source_path
+    from s3k.data.tracks_csv import read_csv, read_source, source_path
+    from s3k.outputs import check_output
 
     if fmt != "nwb":
         raise UserError(f"--format {fmt!r}: 3D tracks export to nwb")
-    check_output(out, overwrite)
+    check_output(out, overwrite, inputs={"CSV": csv_path, "--calibration": calibration})
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise FileNotFoundError(2, "3D CSV not found", str(csv_path))
-    with csv_path.open(newline="") as f:
+    with open_text(csv_path) as f:
         header = next(csv.reader(f), [])
     keypoints = [c[:-2] for c in header if c.endswith("_x")]
     if not keypoints or "fnum" not in header:
@@ -271,11 +273,16 @@ def _column(path: Path, header: list[str], names: list[str], fnums: np.ndarray) 
     cols = [header.index(n) if n in header else None for n in names]
     fcol = header.index("fnum")
     rows: dict[int, list[float]] = {}
-    with path.open(newline="") as f:
+    with open_text(path) as f:
         reader = csv.reader(f)
         next(reader)
         for row in reader:
-            if row:
+            if not row:
+                continue
+            try:
                 rows[int(float(row[fcol]))] = [
                     float(row[c]) if c is not None and row[c] not in ("", "nan") else np.nan for c in cols]
+            except (IndexError, ValueError, OverflowError):
+                raise UserError(f"{path}, line {reader.line_num}: a short row or a value that is not a "
+                                "number (a truncated file?)") from None
     return np.array([rows[int(f)] for f in fnums], dtype=np.float64).reshape(len(fnums), len(names))

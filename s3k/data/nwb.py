@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.hdf5 import open_hdf5
 from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
 
@@ -95,6 +96,7 @@ def read_nwb(
         if cam not in cameras:
             raise UserError(f"--camera-map {cam}={camera_map[cam]}: no camera {cam!r} "
                             f"(cameras: {', '.join(cameras)})")
+    open_hdf5(path, "HDF5 (NWB)").close()  # nothing read from other files
     try:
         io = pynwb.NWBHDF5IO(str(path), "r", load_namespaces=True)
         nwb = io.read()

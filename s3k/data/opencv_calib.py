@@ -56,9 +56,12 @@ def _matrix(path: Path, key: str, node) -> np.ndarray:
 def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
     import cv2
 
+    head = path.read_bytes()[:65536]
+    if b"<!DOCTYPE" in head or b"<!ENTITY" in head:  # OpenCV's own files never declare them
+        raise UserError(f"{path}: an XML file with a DOCTYPE or entities is not an OpenCV calibration file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
+    except (cv2.error, SystemError) as exc:
         reason = str(exc).strip().splitlines()[-1]
         raise UserError(f"{path}: not an OpenCV YAML/XML file ({reason})") from None
     try:
@@ -95,6 +98,8 @@ def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         else:
             raise UserError(f"{path}: {rkey} has {r_flat.size} values, expected a 3x3 matrix or a Rodrigues "
                             "vector")
+        if not np.isfinite(R).all():  # a Rodrigues vector too long for its angle's sine and cosine
+            raise UserError(f"{path}: {rkey} {r_flat.tolist()} does not give a rotation")
         t = _matrix(path, tkey, tnode).reshape(-1)
         if t.size != 3:
             raise UserError(f"{path}: {tkey} has {t.size} values, expected 3")

@@ -13,9 +13,6 @@ end, so a failed import leaves nothing behind.
 
 from __future__ import annotations
 
-import contextlib
-import os
-import shutil
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -38,37 +35,13 @@ from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
 from s3k.data.sleap import default_track, read_sleap_file
 from s3k.errors import UserError
+from s3k.outputs import check_replaceable, replace_folder
 
 LABEL_OPTIONS = ("--sleap", "--nwb", "--dlc", "--lightning-pose", "--openpose", "--mmpose", "--deepfly3d")
 
 
 def _warn(message: str) -> None:
     print(f"warning: {message}", file=sys.stderr)
-
-
-def _check_out(out: Path, overwrite: bool) -> None:
-    """Refuse ``out`` before any work: a file, or a non-empty folder without ``overwrite``."""
-    if out.is_file():
-        raise UserError(f"--out {out}: is a file, not a dataset folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise UserError(f"--out {out}: folder exists and is not empty", hint="pass --overwrite to replace it")
-
-
-@contextlib.contextmanager
-def _all_or_nothing(out: Path):
-    """Yield a temporary folder beside ``out``; on success it replaces ``out``, on any error it is removed."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.importing-{os.getpid()}"
-    old = out.parent / f".{out.name}.replaced-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        yield tmp
-        if out.exists():
-            os.replace(out, old)
-        os.replace(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], units: str | None,
@@ -277,7 +250,8 @@ def import_recording(
     from s3k.data.writer import DatasetWriter
 
     out = Path(out)
-    _check_out(out, overwrite)
+    inputs = {"--calibration": calibration, "--videos": list(videos.values())}
+    check_replaceable(out, overwrite, inputs)
     if stride < 1:
         raise UserError(f"--stride must be >= 1, got {stride}")
     cameras = list(videos)
@@ -364,7 +338,7 @@ def import_recording(
         source["video_regions"] = {cam: [float(v) for v in box] for cam, box in video_regions.items()}
     what = f"{kind} labels" if tables else "no labels"
     wanted = sorted(splits)
-    with _all_or_nothing(out) as tmp:
+    with replace_folder(out, overwrite) as tmp:
         writer = DatasetWriter(
             tmp, names, cameras, out_size, rig.units,
             calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source,

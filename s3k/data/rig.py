@@ -40,6 +40,21 @@ class Rig:
         self.cameras = self.cameras.to(dtype=torch.float64)
         self.size = np.asarray(self.size, dtype=np.int64).reshape(len(self.names), 2)
 
+    def checked(self, source: str | object) -> Rig:
+        """This rig, after refusing (:class:`s3k.errors.UserError` naming ``source``, the camera and the
+        field) a value that is not finite, a singular ``K`` or an ``R`` that is not a rotation (a Rodrigues
+        vector of 1e300, a scaled matrix)."""
+        from s3k.data.cameras import camera_defects
+        from s3k.errors import UserError
+
+        a = self.cameras.numpy()
+        for name, defects in zip(self.names, camera_defects(a["K"], a["dist"], a["R"], a["t"])):
+            if defects:
+                what, message = defects[0]
+                field = {"R": "rotation", "t": "translation", "K": "matrix", "dist": "distortions"}[what]
+                raise UserError(f"{source}: camera {name}: {field} ({what}) {message}")
+        return self
+
     def index(self, name: str) -> int:
         """Position of camera ``name`` (``KeyError`` naming it and the cameras known)."""
         if name not in self.names:

@@ -8,35 +8,39 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.data.hdf5 import open_hdf5
 from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
 
 TRACK_HINT = "choose one with --sleap-track NAME or INDEX (or --sleap-track all for one dataset per track)"
 
 
-def _decode(values) -> list[str]:
-    return [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(values).reshape(-1)]
+def _names(values, path: Path | str, field: str) -> list[str]:
+    """The UTF-8 names of the dataset ``field``, each given once."""
+    try:
+        names = [v.decode() if isinstance(v, bytes) else str(v) for v in np.asarray(values).reshape(-1)]
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: {field!r} holds a name that is not UTF-8 text "
+                        f"({exc.object[:40]!r})") from None
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise UserError(f"{path}: {field!r} names {twice[0]!r} more than once; names must be unique")
+    return names
 
 
 def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str], np.ndarray]:
     """``(node names, tracks (frames, nodes, 2, tracks), track names, occupancy (frames, tracks))`` of an
     analysis file; a point of an unoccupied frame, or with a NaN coordinate, is NaN."""
-    import h5py
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: SLEAP analysis file not found")
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError as exc:
-        raise UserError(f"{path}: not an HDF5 file ({exc})") from exc
-    with h5:
+    with open_hdf5(path) as h5:
         for key in ("tracks", "node_names"):
             if key not in h5:
                 raise UserError(f"{path}: no {key!r} dataset (is this a SLEAP analysis file?)")
-        nodes = _decode(h5["node_names"][()])
+        nodes = _names(h5["node_names"][()], path, "node_names")
         tracks = np.asarray(h5["tracks"][()], dtype=np.float64)
-        names = _decode(h5["track_names"][()]) if "track_names" in h5 else None
+        names = _names(h5["track_names"][()], path, "track_names") if "track_names" in h5 else None
         occupancy = np.asarray(h5["track_occupancy"][()]) if "track_occupancy" in h5 else None
     n_nodes = len(nodes)
     if tracks.ndim != 4:
@@ -141,16 +145,11 @@ def default_track(paths: list[str | Path], predictions: bool = False) -> str | N
 
 def sleap_analysis_tracks(path: str | Path) -> list[str]:
     """Track names of a SLEAP analysis file (``track_<i>`` where it names none)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as h5:
-            if "track_names" in h5:
-                return _decode(h5["track_names"][()])
-            if "tracks" in h5:
-                return [f"track_{i}" for i in range(int(h5["tracks"].shape[0]))]
-    except OSError as exc:
-        raise UserError(f"{path}: not an HDF5 file ({exc})") from exc
+    with open_hdf5(path) as h5:
+        if "track_names" in h5:
+            return _names(h5["track_names"][()], path, "track_names")
+        if "tracks" in h5:
+            return [f"track_{i}" for i in range(int(h5["tracks"].shape[0]))]
     raise UserError(f"{path}: no 'tracks' dataset (is this a SLEAP analysis file?)")
 
 

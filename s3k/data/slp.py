@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.hdf5 import open_hdf5
 from s3k.data.labels2d import LabelTable
 from s3k.data.sleap import TRACK_HINT
 from s3k.errors import UserError
@@ -40,6 +41,7 @@ def load_slp(path: str | Path) -> Any:
     if not path.is_file():
         raise FileNotFoundError(2, "SLEAP project not found", str(path))
     sio = _sleap_io()
+    open_hdf5(path, "HDF5 (SLEAP project)").close()  # nothing read from other files
     try:
         return sio.load_slp(str(path), open_videos=False)
     except Exception as exc:  # noqa: BLE001 - sleap-io raises many kinds for a file it cannot read

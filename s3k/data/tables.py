@@ -14,7 +14,7 @@ import json
 import re
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -203,13 +203,15 @@ def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta
             )
             ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="a", frame=2)
             ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="b", frame=1)
+            where = PurePosixPath(pattern.format(camera="a", frame=1).replace("\\", "/"))
+            ok = ok and not where.is_absolute() and ".." not in where.parts and ":" not in where.parts[0]
         except (KeyError, IndexError, ValueError, AttributeError):
             ok = False
         if not ok:
             P.error(
                 METADATA_FILE,
                 "images.pattern",
-                "must be a relative path that uses both {camera} and {frame} "
+                "must be a relative path inside the dataset folder that uses both {camera} and {frame} "
                 f"(e.g. {DEFAULT_IMAGE_PATTERN!r}), got {pattern!r}",
             )
     skeleton: list[tuple[str, str]] = []
@@ -234,10 +236,12 @@ def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta
 
 
 def parse_int(text: str) -> int | None:
+    """The integer ``text`` holds when it fits in 64 bits (frame ids are stored as int64), else None."""
     try:
-        return int(text)
+        value = int(text)
     except ValueError:
         return None
+    return value if -(2**63) <= value < 2**63 else None
 
 
 def parse_float(text: str) -> float | None:
@@ -269,7 +273,8 @@ def read_frames(root: Path, P: Problems) -> Frames | None:
     for line, row in rows:
         frame = parse_int(row["frame"])
         if frame is None or frame < 0:
-            P.error(FRAMES_FILE, "frame", f"must be a non-negative integer, got {row['frame']!r}", line=line)
+            P.error(FRAMES_FILE, "frame", f"must be a non-negative integer below 2^63, got {row['frame']!r}",
+                    line=line)
             continue
         if frame in seen:
             P.error(FRAMES_FILE, "frame", f"frame {frame} repeated (first on line {seen[frame]})", line=line)

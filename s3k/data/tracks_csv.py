@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k import outputs
 from s3k.errors import UserError
-from s3k.fileio import atomic_path, atomic_write_json
+from s3k.fileio import atomic_path, atomic_write_json, open_text
 from s3k.readout import ReadOut
 
 __all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "source_path", "write_csv",
@@ -60,21 +61,13 @@ def csv_rows(fnums: Sequence[int], result: ReadOut) -> list[list[str]]:
 
 
 def check_output(path: str | Path, overwrite: bool, dataset: str | Path | None = None) -> Path:
-    """Refuse an output file that would replace a file of ``dataset``, or an existing file without overwrite.
+    """Refuse an output file inside a dataset (``dataset`` or any other), a run's own file, a folder, or an
+    existing file without overwrite (:func:`s3k.outputs.check_output`).
 
     Raises:
         UserError: naming the file (and ``--overwrite`` where it helps).
     """
-    path = Path(path)
-    if dataset is not None and path.exists():
-        root = Path(dataset).resolve()
-        if path.resolve().is_relative_to(root):
-            raise UserError(f"--out {path} is a file of the dataset {dataset}; write the output elsewhere")
-    if path.is_dir():
-        raise UserError(f"--out {path} is a folder; give a file name")
-    if path.exists() and not overwrite:
-        raise UserError(f"--out {path} exists", hint="pass --overwrite to replace it")
-    return path
+    return outputs.check_output(path, overwrite, inputs={"--data": dataset})
 
 
 @contextlib.contextmanager
@@ -103,7 +96,7 @@ def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray
             the message names the file, the column and the line.
     """
     out: dict[int, np.ndarray] = {}
-    with open(path, newline="") as f:
+    with open_text(path) as f:
         reader = csv.DictReader(f)
         wanted = [f"{k}_{a}" for k in keypoints for a in "xyz"] + ["fnum"]
         missing = [c for c in wanted if c not in (reader.fieldnames or [])]
@@ -115,6 +108,9 @@ def read_csv(path: str | Path, keypoints: Sequence[str]) -> dict[int, np.ndarray
                 out[int(row["fnum"])] = xyz
             except ValueError as e:
                 raise UserError(f"{path}, line {reader.line_num}: {e}") from None
+            except TypeError:  # a short row: DictReader fills the missing cells with None
+                raise UserError(f"{path}, line {reader.line_num}: the row has fewer cells than the header "
+                                "(a truncated file?)") from None
     return out
 
 

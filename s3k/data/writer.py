@@ -1,7 +1,8 @@
 """Writing a dataset folder (``docs/dataset-format.md``) frame by frame: :class:`DatasetWriter`.
 
 Images are written as each frame is added; the tables and, last, ``s3k.json`` are written by
-:meth:`DatasetWriter.close`, so a folder without ``s3k.json`` is an unfinished one.
+:meth:`DatasetWriter.close`, so a folder without ``s3k.json`` is an unfinished one (it holds the marker
+``.s3k-unfinished`` until then, so that it is known as s3k's to replace).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ from s3k.data.tables import (
     STATIC_CALIBRATION_FILE,
     check_names,
 )
+from s3k.errors import UserError
+from s3k.outputs import UNFINISHED_MARKER, made_by_s3k
 
 Calibration = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # K (C, 3, 3), dist (C, 5), R, t (C, 3)
 
@@ -119,8 +122,12 @@ class DatasetWriter:
         if self.path.exists() and any(self.path.iterdir()):
             if not overwrite:
                 raise FileExistsError(f"{self.path}: folder exists and is not empty (pass overwrite=True)")
+            if not made_by_s3k(self.path):  # never someone's other files
+                raise UserError(f"{self.path} is not a dataset (no s3k.json): --overwrite replaces only a "
+                                "folder s3k made", hint="give another folder, or empty it first")
             shutil.rmtree(self.path)
         self.path.mkdir(parents=True, exist_ok=True)
+        (self.path / UNFINISHED_MARKER).write_text("a dataset being written; s3k.json comes last\n")
         self.videos = None
         if videos is not None:
             missing = sorted(set(self.cameras) - set(videos))
@@ -335,5 +342,6 @@ class DatasetWriter:
         if self.source is not None:
             meta["source"] = self.source
         (self.path / METADATA_FILE).write_text(_json_text(meta))
+        (self.path / UNFINISHED_MARKER).unlink(missing_ok=True)
         self._closed = True
         return self.path

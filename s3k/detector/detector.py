@@ -60,9 +60,9 @@ def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch
     try:
         device = torch.device(name)
     except RuntimeError:
-        raise UserError(f"--device {name!r}: not a device", hint="use auto, cpu or cuda") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {name}: this machine has no CUDA GPU", hint="use --device cpu or auto")
+        raise UserError(f"--device {name!r}: not a device", hint="pass auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():  # 0 without CUDA
+        raise UserError(f"--device {name}: this machine has no such CUDA GPU", hint="pass --device cpu")
     return device
 
 

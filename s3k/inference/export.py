@@ -41,6 +41,7 @@ __all__ = [
     "ExportReport",
     "export_detector",
     "export_module",
+    "written_files",
     "exported_moments",
     "reference_outputs",
     "load_exported",
@@ -268,6 +269,12 @@ def _pass_files(run_dir: Path, out: Path) -> dict[str, tuple[Path, Path]]:
     _, coarse, fine = read_two_pass(run_dir)
     return {name: (folder, out.with_name(f"{out.stem}.{name}{out.suffix}"))
             for name, folder in (("coarse", coarse), ("fine", fine))}
+
+
+def written_files(run_dir: str | Path, out: str | Path) -> list[Path]:
+    """The files :func:`export_detector` writes for ``run_dir`` at ``out``."""
+    files = [path for _, path in _pass_files(Path(run_dir), Path(out)).values()]
+    return files + ([Path(out).with_suffix(".json")] if is_two_pass(run_dir) else [])
 
 
 def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments: bool = False,

@@ -27,6 +27,7 @@ import numpy as np
 from s3k.errors import UserError
 from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
+from s3k.ranges import Range
 
 __all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "describe",
            "propagate_labels", "undo_propagation"]
@@ -36,6 +37,8 @@ CHANGE_LEVEL = 24
 
 DEFAULT_MAX_CHANGED = 0.2
 """Largest share of changed pixels, in percent of a camera's image, of a still frame."""
+MAX_CHANGED_RANGE = Range(ge=0, le=100)
+"""The values ``max_changed`` (``--max-changed``) takes."""
 
 
 @dataclass
@@ -108,6 +111,8 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
     """
     from s3k.data import Dataset
 
+    # nan compares false with every percentage: it would let every frame pass as still
+    MAX_CHANGED_RANGE.check(max_changed, "--max-changed", hint="give a percentage from 0 to 100")
     ds = Dataset.open(data, cache="none")
     store = store or LabelStore.open(data, labeller=labeller)
     store.refresh()

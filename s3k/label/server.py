@@ -21,7 +21,8 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
   "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
 
-Files are served only from the package's ``static`` folder; images only by frame id and camera name, so no
+Request bodies larger than :data:`MAX_BODY_BYTES` are refused unread (413). Files are served only from the
+package's ``static`` folder; images only by frame id and camera name, so no
 request names a path. Bound to another interface than the loopback, every request must carry the token the
 server printed (``?token=`` in the first URL, then a cookie).
 """
@@ -50,6 +51,8 @@ __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
 STATIC = Path(__file__).parent / "static"
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 TOKEN_COOKIE = "s3k_token"
+MAX_BODY_BYTES = 1 << 20
+"""The largest request body taken (a frame's edits are a few kB); larger ones are refused unread."""
 
 
 class SaveIn(BaseModel):
@@ -170,6 +173,12 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.middleware("http")
     async def guard(request: Request, call_next):
+        if request.method not in ("GET", "HEAD", "OPTIONS"):  # bodies are read whole: their size is capped
+            length = request.headers.get("content-length", "")
+            if not length.isdigit():
+                return _error(411, "a request body needs a Content-Length")
+            if int(length) > MAX_BODY_BYTES:
+                return _error(413, f"request body of {length} bytes; at most {MAX_BODY_BYTES} are accepted")
         if allowed_hosts is not None:
             host = request.headers.get("host", "").rsplit(":", 1)[0].strip("[]")
             if host not in allowed_hosts:

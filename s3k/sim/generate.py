@@ -27,6 +27,8 @@ from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, FrameSpec, Scene, 
 from s3k.sim.scenes import SCENES, make_scene
 
 MODES = ("start", "full")
+MAX_SIZE = 8192
+"""The largest image side the renderer takes (MuJoCo's offscreen buffer)."""
 
 
 @dataclasses.dataclass
@@ -76,8 +78,8 @@ class SimulateConfig:
         if self.seed < 0 or self.object_seed < 0:
             raise UserError(f"seed, object_seed (--seed, --object-seed): must be >= 0, got {self.seed}, "
                             f"{self.object_seed}")
-        if self.size < 16:
-            raise UserError(f"size (--size): images must be at least 16 px, got {self.size}")
+        if not 16 <= self.size <= MAX_SIZE:
+            raise UserError(f"size (--size): images must be from 16 to {MAX_SIZE} px, got {self.size}")
         if self.mode not in MODES:
             raise UserError(f"mode (--mode): must be one of {MODES}, got {self.mode!r}")
         if self.segments < 1 or self.test_segments < 1:
@@ -258,20 +260,38 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
     Returns:
         A summary: ``{"path", "frames", "images", "seconds", "images_per_s"}``.
     """
+
+    from s3k.outputs import check_replaceable, replace_folder
+
+    workers = default_workers() if workers is None else max(1, int(workers))
+    out = check_replaceable(out, overwrite)
+    check_memory(cfg, workers)
+    specs = frame_plan(cfg)
+    t0 = time.perf_counter()
+    with replace_folder(out, overwrite) as tmp:  # out appears complete, or stays as it was
+        shown = _render_into(tmp, cfg, specs, workers, progress, png_compression, preview is not None)
+    seconds = time.perf_counter() - t0
+    if preview is not None:
+        sheet = contact_sheet(shown, SCENES[cfg.scene].keypoints)
+        cv2.imwrite(str(preview), sheet[..., ::-1])
+    n_images = len(specs) * 4
+    return {"path": str(out), "frames": len(specs), "images": n_images, "seconds": seconds,
+            "images_per_s": n_images / seconds}
+
+
+def _render_into(path: Path, cfg: SimulateConfig, specs: list[FrameSpec], workers: int, progress: bool,
+                 png_compression: int, preview: bool) -> list[SimFrame]:
+    """Render ``specs`` into the dataset folder ``path``; returns the frames of the preview."""
     from tqdm import tqdm
 
     from s3k.data import DatasetWriter
 
-    workers = default_workers() if workers is None else max(1, int(workers))
-    specs = frame_plan(cfg)
     scene_cls = SCENES[cfg.scene]
     cameras = [f"cam{i}" for i in range(4)]
-    t0 = time.perf_counter()
     writer = DatasetWriter(
-        out, scene_cls.keypoints, cameras, (cfg.size, cfg.size), units="m", per_frame_calibration=True,
+        path, scene_cls.keypoints, cameras, (cfg.size, cfg.size), units="m", per_frame_calibration=True,
         description=(scene_cls.__doc__ or "").strip().split("\n")[0],
-        source={"generator": "s3k simulate", **cfg.describe()},
-        png_compression=png_compression, overwrite=overwrite,
+        source={"generator": "s3k simulate", **cfg.describe()}, png_compression=png_compression,
     )
     shown: list[SimFrame] = []
     preview_ids = sorted({0, len(specs) // 2, len(specs) - 1})
@@ -286,17 +306,47 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
             zeros = np.zeros((len(cameras), 5))
             writer.add_frame(frame.frame_id, frame.split, frame.images, (frame.K, zeros, frame.R, frame.t),
                              labels=labels, points3d=frame.points3d, visible=frame.visible, extra=extra)
-            if preview is not None and frame.frame_id in preview_ids:
+            if preview and frame.frame_id in preview_ids:
                 shown.append(frame)
             bar.update(1)
-    path = writer.close()
-    seconds = time.perf_counter() - t0
-    if preview is not None:
-        sheet = contact_sheet(shown, scene_cls.keypoints)
-        cv2.imwrite(str(preview), sheet[..., ::-1])
-    n_images = len(specs) * len(cameras)
-    return {"path": str(path), "frames": len(specs), "images": n_images, "seconds": seconds,
-            "images_per_s": n_images / seconds}
+    writer.close()
+    return shown
+
+
+FRAME_BOOKKEEPING_BYTES = 4096
+"""Memory a frame takes besides its images while a dataset is written (its plan, calibration, labels)."""
+
+
+def memory_needed(cfg: SimulateConfig, workers: int) -> int:
+    """Bytes :func:`simulate` holds at most: the frames' bookkeeping, and per worker the renderer's buffers
+    (colour, depth, segmentation of one view) and a few chunks of 4-view frames in flight."""
+    n = cfg.labelled + cfg.unlabelled + cfg.test
+    view = cfg.size * cfg.size
+    return n * FRAME_BOOKKEEPING_BYTES + workers * (view * 16 + 3 * 4 * 4 * view * 3)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux's MemAvailable), None when unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(cfg: SimulateConfig, workers: int) -> None:
+    """Refuse, before anything is allocated, a dataset whose rendering would not fit in memory."""
+    need, have = memory_needed(cfg, workers), available_memory()
+    if have is not None and need > have:
+        n = cfg.labelled + cfg.unlabelled + cfg.test
+        raise UserError(f"{n} frames of {cfg.size}x{cfg.size} px with {workers} rendering processes need "
+                        f"about {need / 2**30:.1f} GiB of memory; {have / 2**30:.1f} GiB are available",
+                        hint="lower --size, --labelled/--unlabelled/--test or --workers")
 
 
 # ---------------------------------------------------------------------------------------------- preview

@@ -498,11 +498,17 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     if info.main:
-        run_folder.check_out(out, resume, overwrite)  # before the dataset is read: the cheap refusals first
+        run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
     d = _open_data(data, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = _reference_layout(data, distances, cfg)
     meta = _meta(d, cfg, distances)
+    # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
+    t0 = time.perf_counter()
+    lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
+    unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
+    val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
+    t_load = time.perf_counter() - t0
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
         _setup_logging(out, False)
@@ -512,11 +518,6 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
         del state
     elif resume:
         log.info("no checkpoint in %s: starting a new run", out)
-
-    t0 = time.perf_counter()
-    lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
-    unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
-    val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
     ref_layout = layout_size(distances)
     size = meta.image_size
     log.info("dataset %s: %d labelled, %d unlabelled frames, %d cameras, keypoints %s; images %dx%d "
@@ -525,7 +526,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
              len(meta.cameras), meta.keypoints, size[0], size[1], d.source_size[0], d.source_size[1],
              cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
-             device, info.world, time.perf_counter() - t0, lab_store.preloaded)
+             device, info.world, t_load, lab_store.preloaded)
     log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
 
     monitor = _Monitor(cfg, out, info, loop.step)
@@ -551,5 +552,8 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
         if callback is not None:
             callback(step, terms)
     broadcast_buffers(loop.net, info)
+    if status == "done" and not _all_finite(loop.net):  # e.g. a learning rate too large for float32
+        log.error("training ended at step %d with non-finite weights; no model was written", loop.step)
+        status = "nonfinite"
     timing = monitor.close(status, loop.step)
     return TrainResult(loop.net, meta, loop.step, status, history, timing)

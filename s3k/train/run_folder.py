@@ -31,6 +31,7 @@ from s3k.detector import (
     write_run_config,
 )
 from s3k.errors import UserError
+from s3k.outputs import check_output_folder
 
 
 def is_run_folder(out: Path) -> bool:
@@ -38,10 +39,13 @@ def is_run_folder(out: Path) -> bool:
     return any((out / name).exists() for name in (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE))
 
 
-def check_out(out: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse an ``--out`` that cannot take this run (a file, read-only, holding a run without --resume)."""
+def check_out(out: Path, resume: bool, overwrite: bool, data: Path | None = None) -> None:
+    """Refuse an ``--out`` that cannot take this run (a file, read-only, holding a run without --resume, the
+    dataset ``data`` or inside a dataset)."""
     if resume and overwrite:
         raise UserError("--resume and --overwrite exclude each other", hint="pass one of them")
+    # a two-pass run trains its passes inside itself: only datasets and the input are refused here
+    check_output_folder(out, inputs={"DATASET": data}, runs=False)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file, not a run folder", hint="choose another --out")
     existing = out

@@ -163,9 +163,17 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     """
     import shutil
 
+    from s3k.ranges import Range
     from s3k.train.two_pass_start import OPTIONS_FILE, is_stub, write_options
 
     data, out = Path(data), Path(out)
+    # every option of both passes is checked before the coarse pass trains
+    for value, bounds, option in ((coarse_size, Range(ge=16), "--coarse-size"), (crop_size, Range(ge=16),
+                                  "--crop-size"), (margin, Range(ge=0), "--crop-margin"),
+                                  (extent, Range(gt=0), "--crop-extent")):
+        if value is not None:
+            bounds.check(value, option)
+    refining_config(cfg, crop_size).validate()
     if out.exists() and not resume and not is_stub(out):  # a start that trained nothing is not kept
         if not overwrite:
             raise UserError(f"{out} exists", hint="pass --resume to continue it or --overwrite to replace it")
