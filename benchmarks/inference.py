@@ -1,20 +1,26 @@
-"""Inference speed: 4-view 3D keypoints from camera images, end to end, one frame at a time.
+"""Inference speed: 4-view 3D keypoints from camera images through ``s3k.Detector``, one frame at a time and
+in batches, side by side.
 
-Targets: docs/method.md#performance-targets.
+Targets: docs/method.md#performance-targets (two-pass from native-resolution frames >= 60 frames/s on 2 CPU
+cores; on a GPU one-pass <= 1 ms, two-pass <= 2 ms per frame, batched one-pass >= 100k frames/s at 96 px).
 
-Per frame: C uint8 camera images (H, W, 3) -> float [0, 1] channels_last -> U-Net heatmaps (shared weights,
-the C views in one batch) -> softmax means and variances -> confidence weights -> weighted triangulation.
-Timed under ``torch.inference_mode`` after warm-up; the figure is the median over repeated frames.
+Pipelines, each timed per frame (or per batch of ``--batch`` frames) after warm-up, interleaved in rounds with
+a matmul peak so a shared machine's drift hits all of them alike:
 
-``flop_fraction`` is the FLOP/s achieved by the network's convolutions (counted by
-``s3k.model.count_conv_flops``) over the machine's float32 matmul FLOP/s measured in the same run, with the
-same threads.
+- ``one_pass``: frames of ``--size`` px (the network's input) -> ``OnePassDetector`` (U-Net, BatchNorm
+  folded, channels_last; the read-out in float64);
+- ``one_pass_native``: frames of ``--native`` px resampled on the device to ``--coarse`` px, then the same;
+- ``two_pass``: frames of ``--native`` px -> coarse pass at ``--coarse`` px -> crops of ``--crop`` px around
+  its estimate, cut on the device -> refining pass (``TwoPassDetector``);
+- ``reference``: the earlier hand-written per-frame pipeline at ``--size`` px (network + ``read_out``), the
+  baseline the one-pass detector must not be slower than.
+
+The networks are untrained (timing does not depend on the weights); the rig is four cameras on a ring looking
+at the origin, the crop 0.3 world units wide. The last line is one JSON object naming the device.
 
 Example::
 
-    python benchmarks/inference.py --size 128
-
-The last line printed is one JSON object (``frames_per_s``, ``flop_fraction``, machine info, ...).
+    python benchmarks/inference.py --size 128 --native 384 --coarse 96 --crop 192 --batch 1
 """
 
 from __future__ import annotations
@@ -35,7 +41,6 @@ from benchmarks.common import (  # noqa: E402
     interleaved_rounds,
     network_fields,
     network_summary,
-    random_frames,
 )
 from s3k.config import TrainConfig  # noqa: E402
 from s3k.geometry import Cameras  # noqa: E402
@@ -75,59 +80,91 @@ def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: flo
     return run
 
 
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    from benchmarks.common import machine_info
+
+    return str(machine_info().get("cpu", "cpu"))
+
+
+def detectors(args, device: torch.device) -> dict:
+    """``{name: (detector, frames (B, C, S, S, 3) uint8, cameras)}`` of the pipelines (module docstring)."""
+
+    from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
+    def net(size: int):
+        config, model, _ = build_network(args)
+        meta = DetectorMeta([str(k) for k in range(args.keypoints)], [], (size, size), config.stride,
+                            args.sigma, config.to_dict(), outlier_px=args.outlier_px)
+        model = model.fused().to(device=device, memory_format=torch.channels_last)
+        return OnePassDetector(model, meta, device, args.precision)
+
+    gen = torch.Generator().manual_seed(0)
+
+    def frames(size: int):
+        shape = (args.batch, args.cameras, size, size, 3)
+        return torch.randint(0, 256, shape, dtype=torch.uint8, generator=gen).to(device)
+
+    coarse, fine = net(args.coarse), net(args.crop)
+    two = TwoPassDetector(coarse, fine, CropRule(extent=0.3, size=args.crop))
+    rig = look_at_rig(args.cameras, args.size)[0].to(device=device)
+    native = look_at_rig(args.cameras, args.native)[0].to(device=device)
+    return {"one_pass": (net(args.size), frames(args.size), rig),
+            "one_pass_native": (coarse, frames(args.native), native),
+            "two_pass": (two, frames(args.native), native)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_network_options(p, threads_help="torch threads (default: torch's default)")
-    p.add_argument("--no-fuse", action="store_true", help="keep BatchNorm separate (not folded into convs)")
-    p.add_argument("--contiguous", action="store_true", help="NCHW instead of channels_last")
+    p.add_argument("--native", type=int, default=384, help="native frame size of the two-pass pipelines")
+    p.add_argument("--coarse", type=int, default=96, help="coarse pass input size (default 96)")
+    p.add_argument("--crop", type=int, default=192, help="refining pass crop size (default 192)")
+    p.add_argument("--batch", type=int, default=1, help="frames per call (default 1)")
+    p.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    p.add_argument("--precision", default="float32", choices=("float32", "bfloat16", "float16"))
     p.add_argument("--outlier-px", type=float, default=TrainConfig().outlier_px,
                    help="the read-out's outlier threshold, network pixels (default: a detector trained with "
                         "the defaults; 0: every view)")
+    p.add_argument("--no-reference", action="store_true", help="leave out the earlier per-frame pipeline")
     args = p.parse_args(argv)
 
+    from s3k.detector import pick_device
+
+    device = pick_device(args.device)
     config, model, num_params = build_network(args)
-    if not args.no_fuse:
-        model = model.fused()
-    channels_last = not args.contiguous
-    if channels_last:
-        model = model.to(memory_format=torch.channels_last)
-
-    C, S = args.cameras, args.size
-    cams = look_at_rig(C, S)
-    frames = random_frames(args)
-    flops_per_frame = count_conv_flops(model, torch.rand(C, 3, S, S))
-    run = make_pipeline(model, cams, config.stride, args.sigma, channels_last, args.outlier_px or None)
-
-    peaks, rounds = interleaved_rounds({"pytorch": run}, frames, args, matmul_seconds=1.0)
-    round_fps = [1 / statistics.median(t) for t in rounds["pytorch"]]
-    times = [x for t in rounds["pytorch"] for x in t]
-    med = statistics.median(times)
-    q = statistics.quantiles(times, n=10)
-    achieved = flops_per_frame / med
-    matmul = statistics.median(peaks)
-    print(network_summary(args, config, num_params, flops_per_frame))
-    print(
-        f"per frame: median {med * 1e3:.2f} ms (p10 {q[0] * 1e3:.2f}, p90 {q[-1] * 1e3:.2f}) -> "
-        f"{1 / med:.1f} frames/s; conv {achieved / 1e9:.1f} GFLOP/s of matmul {matmul / 1e9:.1f} GFLOP/s "
-        f"({100 * achieved / matmul:.1f}%)"
-    )
-    result = {
-        "benchmark": "inference",
-        "frames_per_s": 1 / med,
-        "flop_fraction": achieved / matmul,
-        "ms_per_frame_median": med * 1e3,
-        "ms_per_frame_p10": q[0] * 1e3,
-        "ms_per_frame_p90": q[-1] * 1e3,
-        "achieved_flops": achieved,
-        **network_fields(args, config, num_params, flops_per_frame, matmul),
-        "fused": not args.no_fuse,
-        "channels_last": channels_last,
-        "outlier_px": args.outlier_px,
-        "repeats": args.repeats,
-        "rounds": args.rounds,
-        "frames_per_s_rounds": round_fps,
-        "matmul_flops_rounds": peaks,
-    }
+    pipes = detectors(args, device)
+    runs = {name: (lambda _f, d=d, x=x, c=c: d(x, c)) for name, (d, x, c) in pipes.items()}
+    if not args.no_reference and args.batch == 1:
+        reference = model.fused().to(device=device, memory_format=torch.channels_last)
+        cams = look_at_rig(args.cameras, args.size).to(device=device)
+        x = pipes["one_pass"][1][0]
+        runs["reference"] = (lambda _f: make_pipeline(reference, cams, config.stride, args.sigma, True,
+                                                      args.outlier_px or None)(x))
+    if device.type == "cuda":
+        inner = dict(runs)
+        runs = {name: (lambda f, r=r: (r(f), torch.cuda.synchronize())) for name, r in inner.items()}
+    flops = count_conv_flops(model, torch.rand(args.cameras, 3, args.size, args.size))
+    peaks, rounds = interleaved_rounds(runs, torch.zeros(1), args, matmul_seconds=1.0)
+    print(network_summary(args, config, num_params, flops))
+    result: dict = {"benchmark": "inference", "device": _device_name(device), "device_type": device.type,
+                    "batch": args.batch, "native": args.native, "coarse": args.coarse, "crop": args.crop,
+                    "precision": args.precision, "pipelines": {}}
+    for name, per_round in rounds.items():
+        times = [t for r in per_round for t in r]
+        med = statistics.median(times)
+        fps = args.batch / med
+        result["pipelines"][name] = {"frames_per_s": fps, "ms_per_call_median": med * 1e3,
+                                     "frames_per_s_rounds": [args.batch / statistics.median(r)
+                                                             for r in per_round]}
+        print(f"{name}: {med * 1e3:.2f} ms per call of {args.batch} frame(s) -> {fps:.1f} frames/s")
+    if "reference" in rounds:
+        ratios = [statistics.median(a) / statistics.median(b)
+                  for a, b in zip(rounds["one_pass"], rounds["reference"])]
+        result["one_pass_over_reference_time"] = statistics.median(ratios)
+        print(f"one_pass / reference time, median of rounds: {statistics.median(ratios):.3f}")
+    result.update({**network_fields(args, config, num_params, flops, statistics.median(peaks)),
+                   "repeats": args.repeats, "rounds": args.rounds, "matmul_flops_rounds": peaks})
     emit(result)
     return 0
 
