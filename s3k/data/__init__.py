@@ -26,9 +26,10 @@ Modules, one job each:
 """
 
 from s3k.data.dataset import Dataset, check_dataset
+from s3k.data.images import ImageReadError
 from s3k.data.problems import DatasetError, DatasetWarning, Problem
 from s3k.data.rig import Rig
-from s3k.data.sources import ImageReadError, register_image_source
+from s3k.data.sources import register_image_source
 from s3k.data.tables import SPLITS
 from s3k.data.usable import usable_label_count, usable_labels
 from s3k.data.writer import DatasetWriter

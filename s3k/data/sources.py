@@ -13,46 +13,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
-from s3k.data.problems import Problem, Problems
+from s3k.data.images import ImageReadError, decode_image
+from s3k.data.problems import Problems
 from s3k.data.tables import DEFAULT_IMAGE_PATTERN, METADATA_FILE
-from s3k.errors import UserError
-
-# OpenCV's decoders print their own WARN/ERROR lines (and libpng's) for a corrupt file; s3k reports each
-# unreadable image once, naming the file, so the decoder's lines would only repeat it without the name.
-cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-
-
-class ImageReadError(UserError):
-    """An image (or video frame) that cannot be read or decoded; names the file and, when known, the frame
-    and camera."""
-
-    def __init__(self, file: str, reason: str, frame: int | None = None, camera: str | None = None) -> None:
-        self.file, self.reason, self.frame, self.camera = file, reason, frame, camera
-        super().__init__(str(self.problem()))
-
-    def problem(self) -> Problem:
-        return Problem("error", self.file, "image", self.reason, frame=self.frame, camera=self.camera)
-
-
-def decode_image(path: str | Path, name: str | None = None) -> np.ndarray:
-    """Decode an image file to ``uint8 (H, W, 3)`` RGB.
-
-    Raises:
-        ImageReadError: naming the file (as ``name``, e.g. its path in the dataset, when given).
-    """
-    name = str(path) if name is None else name
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError as exc:
-        raise ImageReadError(name, f"cannot read ({exc.strerror or exc})") from exc
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if image is None:
-        raise ImageReadError(name, "cannot decode as an image (truncated or not an image file)")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
+from s3k.data.video import iter_frames
 
 
 class PngImages:
@@ -161,8 +127,6 @@ class VideoImages:
 
 def _iter_video(path: Path, rel: str, camera: str, indices: list[int]) -> Iterator[tuple[int, np.ndarray]]:
     """Decode frames ``indices`` of a video (RGB uint8) in one front-to-back pass (``s3k.data.video``)."""
-    from s3k.data.video import iter_frames
-
     try:
         yield from iter_frames(path, indices)
     except (ValueError, IndexError, OSError) as exc:  # unreadable, or a frame index beyond the video's end
