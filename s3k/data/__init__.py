@@ -9,7 +9,8 @@ Modules, one job each:
 - :mod:`~s3k.data.cameras`: readers and checks of ``calibration.json`` / ``calibration.csv``.
 - :mod:`~s3k.data.sources`: image sources (PNG files, videos; ``register_image_source`` for more).
 - :mod:`~s3k.data.cache`: the decoded-image cache.
-- :mod:`~s3k.data.dataset`: ``Dataset`` (open, validate, serve frames) and ``check_dataset``.
+- :mod:`~s3k.data.dataset`: ``Dataset`` (open, validate, serve frames).
+- :mod:`~s3k.data.checks`: ``check_dataset`` (every check, problems collected instead of raised).
 - :mod:`~s3k.data.usable`: which labels give the supervised loss a target (``usable_labels``).
 - :mod:`~s3k.data.writer`: ``DatasetWriter``.
 - :mod:`~s3k.data.validate`: the report of ``s3k validate``.
@@ -25,7 +26,8 @@ Modules, one job each:
   :mod:`~s3k.data.imageseq` (image sequences read in place of videos).
 """
 
-from s3k.data.dataset import Dataset, check_dataset
+from s3k.data.checks import check_dataset
+from s3k.data.dataset import Dataset
 from s3k.data.images import ImageReadError
 from s3k.data.problems import DatasetError, DatasetWarning, Problem
 from s3k.data.rig import Rig
