@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from s3k.data.labels2d import LabelTable
+from s3k.data.slp import TRACK_HINT
 from s3k.errors import UserError
-
-TRACK_HINT = "choose one with --sleap-track NAME or INDEX (or --sleap-track all for one dataset per track)"
 
 
 def _decode(values) -> list[str]:
