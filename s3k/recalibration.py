@@ -80,7 +80,7 @@ def detect_charuco(image_paths, board: CharucoBoardSpec, min_corners: int = 6) -
     """
     import cv2
 
-    from s3k.data.labels2d import frame_id_from_path
+    from s3k.data.formats.labels2d import frame_id_from_path
 
     detector = cv2.aruco.CharucoDetector(board.cv2_board())
     found = {}
@@ -214,7 +214,7 @@ def recalibrate_dataset(
     """
     import glob
 
-    from s3k.data.anipose import read_anipose_calibration
+    from s3k.data.formats.anipose import read_anipose_calibration
     from s3k.data.transforms import crop_resize_matrix
     from s3k.errors import UserError
 

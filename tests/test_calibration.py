@@ -233,8 +233,8 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
 @needs_real
 def test_real_recording_names_side():
     """The sleap-anipose session's calibration gives camera "side" the parameters of "top"."""
-    from s3k.data.anipose import read_anipose_calibration
-    from s3k.data.sleap import read_sleap_analysis
+    from s3k.data.formats.anipose import read_anipose_calibration
+    from s3k.data.formats.sleap import read_sleap_analysis
 
     rig = read_anipose_calibration(REAL / "calibration.toml")
     uv = np.stack(
@@ -248,7 +248,7 @@ def test_real_recording_names_side():
 def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
     from s3k.cli import main
     from s3k.data import DatasetWriter
-    from s3k.data.anipose import read_anipose_calibration, write_anipose_calibration
+    from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
 
     truth, spec, files = charuco_rig
     broken = _copy_camera(truth, 1, 2)

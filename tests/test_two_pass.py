@@ -17,7 +17,7 @@ from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_po
 
 from s3k import cli
 from s3k.data import Dataset
-from s3k.data.anipose import write_anipose_calibration
+from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.data.video import write_video
 from s3k.detector import TWO_PASS_FILE, CropRule, DetectorMeta, crop_centres, extent_middle, read_two_pass

@@ -46,7 +46,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
     from s3k.calibration import check_calibration
-    from s3k.data.anipose import write_anipose_calibration
+    from s3k.data.formats.anipose import write_anipose_calibration
     from s3k.recalibration import recalibrate_dataset
 
     targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.data.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable
 from s3k.errors import UserError
 
 
