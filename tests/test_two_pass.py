@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,8 +26,6 @@ from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
 from s3k.train.two_pass import CPU_FILE, crop_rule_from_labels, read_cpu, refining_config
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
 
 def _farthest_pair_radius(X: np.ndarray) -> float:
