@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.experiments.accuracy import without_notes
+
 
 def _cpu_model() -> str:
     """The CPU's marketing name (from /proc/cpuinfo on Linux, else what `platform` knows)."""
@@ -333,20 +335,6 @@ def emit(result: dict[str, Any]) -> None:
     out.setdefault("machine", machine_info())
     sys.stdout.flush()
     print(json.dumps(_jsonable(out), default=str, separators=(",", ":")), flush=True)
-
-
-def without_notes(argv: list[str]) -> list[str]:
-    """``argv`` without ``--notes TEXT`` / ``--notes=TEXT``: a benchmark's recorded command, its notes kept
-    apart."""
-    out, skip = [], False
-    for a in argv:
-        if skip:
-            skip = False
-        elif a == "--notes":
-            skip = True
-        elif not a.startswith("--notes="):
-            out.append(a)
-    return out
 
 
 def write_and_emit(result: dict[str, Any], out: str | Path | None) -> None:

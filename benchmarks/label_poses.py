@@ -22,46 +22,13 @@ import argparse
 import os
 import shlex
 import sys
-from pathlib import Path
-
-import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, without_notes, write_and_emit  # noqa: E402
-from benchmarks.error_by_pose import pose_counts  # noqa: E402
+from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.experiments.grid import LABEL_CHOICES  # noqa: E402
-
-
-def true_poses(pool, split: str) -> np.ndarray:
-    """``(B, K, 3)`` true 3D keypoints of a split's frames, NaN where not known."""
-    points = pool.points3d(pool.frames(split))
-    if points is None:
-        raise SystemExit(f"{pool.path}: no 3D points; label_poses needs a rendered pool")
-    return np.where(points[1][..., None], points[0], np.nan)
-
-
-def pool_report(path: Path, choices: list[str], labelled: int, seed: int | None) -> dict:
-    from s3k.data import Dataset
-    from s3k.experiments.views import select_frames
-
-    pool = Dataset.open(path, cache="none")
-    if seed is None:
-        seed = (pool.source or {}).get("seed")
-        if seed is None:
-            raise SystemExit(f"{path}: s3k.json records no sampling seed; pass --seed")
-    ids = pool.frames("labelled")
-    if len(ids) < labelled:
-        raise SystemExit(f"{path}: {len(ids)} labelled frames, fewer than --labelled {labelled}")
-    poses = true_poses(pool, "labelled")
-    test = pose_counts(true_poses(pool, "test"))
-    labels = {}
-    for choice in choices:
-        picked = select_frames(pool, labelled, len(pool.frames("unlabelled")), int(seed), choice=choice)
-        labels[choice] = pose_counts(poses[np.searchsorted(ids, picked["labelled"])])
-    unlabelled = {c: [p for p, n in test.items() if n and not got[p]] for c, got in labels.items()}
-    return {"pool": str(path), "seed": int(seed), "pool_poses": pose_counts(poses), "test_poses": test,
-            "labels": labels, "unlabelled_poses": unlabelled}
+from s3k.experiments.poses import label_poses  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,18 +42,13 @@ def main(argv: list[str] | None = None) -> int:
                         "benchmarks/accuracy.py uses)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     args = p.parse_args(argv)
-    for path in args.pools:
-        if not (Path(path) / "s3k.json").is_file():
-            raise SystemExit(f"{path}: not a dataset folder (no s3k.json)")
-    pools = [pool_report(Path(path), args.choices, args.labelled, args.seed) for path in args.pools]
+    report = label_poses(args.pools, args.choices, args.labelled, args.seed)
     result = {
         "command": shlex.join(["python", "benchmarks/label_poses.py",
                                *without_notes(sys.argv[1:] if argv is None else argv)]),
         "git_revision": git_revision(),
         "machine": machine_info(),
-        "labelled": args.labelled,
-        "pools": pools,
-        "missing": {c: sum(bool(r["unlabelled_poses"][c]) for r in pools) for c in args.choices},
+        **report,
     }
     write_and_emit(result, args.out)
     return 0

@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, write_and_emit  # noqa: E402
-from benchmarks.error_by_pose import POSES, bias, error_stats, pose_classes  # noqa: E402
+from s3k.experiments.poses import POSES, bias, error_stats, pose_classes  # noqa: E402
 
 
 def table(pseudo: np.ndarray, kept: np.ndarray, truth: np.ndarray, mm: float) -> dict:

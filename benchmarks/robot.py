@@ -40,8 +40,8 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.accuracy import evaluate, run_jobs  # noqa: E402
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from s3k.experiments.accuracy import evaluate, run_jobs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 S3K = [sys.executable, "-m", "s3k.cli"]

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from s3k.data import Dataset
-from s3k.data.anipose import read_anipose_calibration
-from s3k.data.sleap import read_sleap_analysis
+from s3k.data.formats.anipose import read_anipose_calibration
+from s3k.data.formats.sleap import read_sleap_analysis
 from s3k.data.tracks_csv import read_csv
 from s3k.geometry import triangulate_pixels
 

@@ -1,20 +1,18 @@
-"""benchmarks/accuracy.py --labels-only-from: the renders and labels-only runs of an earlier working folder
-are linked, not made again, and an unfinished run is refused; --coarse-from: a run starts from an earlier
-run's coarse stage, its CPU time counted, and refuses one its options would not make."""
+"""The accuracy benchmark's stages (s3k.experiments.accuracy, behind benchmarks/accuracy.py)
+--labels-only-from: the renders and labels-only runs of an earlier working folder are linked, not made
+again, and an unfinished run is refused; --coarse-from: a run starts from an earlier run's coarse stage,
+its CPU time counted, and refuses one its options would not make."""
 
 from __future__ import annotations
 
 import json
 import os
 import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
-
-from benchmarks.accuracy import reuse_coarse, reuse_labels_only  # noqa: E402
+from s3k.experiments.accuracy import reuse_coarse, reuse_labels_only
 
 
 def test_labels_only_runs_are_linked_from_an_earlier_working_folder(tmp_path):
@@ -42,7 +40,7 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
     total when the run resumes; a finished job leaves no unfinished entry."""
     import json
 
-    from benchmarks.accuracy import _cpu_minutes_so_far, _read_record, run_jobs
+    from s3k.experiments.accuracy import _cpu_minutes_so_far, _read_record, run_jobs
 
     record = tmp_path / "s3k-seed0-cpu.json"
     record.write_text(json.dumps({"cpu_minutes": 2.0, "wall_minutes": 3.0, "unfinished_cpu_minutes": 1.5,
@@ -64,7 +62,7 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
 
 
 def test_notes_stay_out_of_the_recorded_command():
-    from benchmarks.common import without_notes
+    from s3k.experiments.accuracy import without_notes
 
     argv = ["--seeds", "3", "--notes", "trained at abc1234", "--work", "runs/w", "--notes=again"]
     assert without_notes(argv) == ["--seeds", "3", "--work", "runs/w"]
@@ -73,7 +71,7 @@ def test_notes_stay_out_of_the_recorded_command():
 
 def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
     import s3k.inference.evaluate
-    from benchmarks import accuracy
+    from s3k.experiments import accuracy
 
     calls = []
     monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run",
@@ -89,8 +87,8 @@ def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monke
 def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
     from synthetic_rig import make_dataset
 
-    from benchmarks.accuracy import data_names, labelled_view
     from s3k.data import Dataset
+    from s3k.experiments.accuracy import data_names, labelled_view
     from s3k.experiments.views import select_frames
 
     args = SimpleNamespace(scene="box", render=384, label_pool=30, label_choice="coverage")

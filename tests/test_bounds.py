@@ -17,7 +17,7 @@ from synthetic_rig import make_dataset
 from test_importers import recording  # noqa: F401 - the fixture
 
 from s3k import cli
-from s3k.data.sources import header_size
+from s3k.data.images import header_size
 
 
 def big_png(path: Path, W: int = 30000, H: int = 30000) -> Path:
@@ -51,7 +51,7 @@ def test_header_sizes_of_png_and_jpeg(tmp_path):
 
 
 def test_validate_reads_a_huge_image_size_from_its_header(huge_image_dataset, capsys, monkeypatch):
-    import s3k.data.dataset as dataset_module
+    import s3k.data.checks as dataset_module  # the module that checks every image
 
     decoded: list[str] = []
     real = dataset_module.decode_image
@@ -141,7 +141,7 @@ def test_import_refuses_a_sleap_file_with_external_storage(recording, tmp_path, 
     ([b"head", b"tail"], True, "links to"),
 ])
 def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, link, match):
-    from s3k.data.sleap import read_sleap_analysis
+    from s3k.data.formats.sleap import read_sleap_analysis
     from s3k.errors import UserError
 
     path = _sleap_file(tmp_path / "a.h5", np.zeros((1, 2, 2, 3)), names=names,
@@ -158,7 +158,7 @@ def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, 
 def test_a_tiny_pickle_cannot_ask_for_gigabytes(tmp_path, call):
     import pickle
 
-    from s3k.data.safe_pickle import load_pickle
+    from s3k.data.formats.safe_pickle import load_pickle
     from s3k.errors import UserError
 
     shape = pickle.dumps((2**36,), protocol=2)[2:-1]  # (68719476736,): 64 GiB of int8
@@ -176,7 +176,7 @@ def test_a_tiny_pickle_cannot_ask_for_gigabytes(tmp_path, call):
 def test_pickled_arrays_still_load(tmp_path):
     import pickle
 
-    from s3k.data.safe_pickle import load_pickle
+    from s3k.data.formats.safe_pickle import load_pickle
 
     obj = {"points2d": np.arange(24.0).reshape(2, 3, 4), "names": np.array(["a", "b"], dtype=object),
            "empty": np.zeros((0, 3)), "fortran": np.asfortranarray(np.ones((2, 3)))}

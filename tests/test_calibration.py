@@ -165,8 +165,8 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def charuco_rig(tmp_path_factory):
     """A ChArUco board rendered in 8 poses for 3 cameras: ``(truth rig, spec, {camera: files})``."""
-    from s3k.calibration import CharucoBoardSpec
     from s3k.data.rig import Rig
+    from s3k.recalibration import CharucoBoardSpec
 
     tmp_path = tmp_path_factory.mktemp("charuco")
     W, H = 640, 480
@@ -209,7 +209,7 @@ def _copy_camera(rig, dst, src):
 
 def test_recalibrate_from_synthetic_charuco(charuco_rig):
     """A camera given another's parameters is recovered from rendered ChArUco views."""
-    from s3k.calibration import detect_charuco, recalibrate_charuco
+    from s3k.recalibration import detect_charuco, recalibrate_charuco
 
     truth, spec, files = charuco_rig
     names = truth.names
@@ -233,8 +233,8 @@ def test_recalibrate_from_synthetic_charuco(charuco_rig):
 @needs_real
 def test_real_recording_names_side():
     """The sleap-anipose session's calibration gives camera "side" the parameters of "top"."""
-    from s3k.data.anipose import read_anipose_calibration
-    from s3k.data.sleap import read_sleap_analysis
+    from s3k.data.formats.anipose import read_anipose_calibration
+    from s3k.data.formats.sleap import read_sleap_analysis
 
     rig = read_anipose_calibration(REAL / "calibration.toml")
     uv = np.stack(
@@ -248,7 +248,7 @@ def test_real_recording_names_side():
 def test_cli_recalibrate(charuco_rig, tmp_path, capsys):
     from s3k.cli import main
     from s3k.data import DatasetWriter
-    from s3k.data.anipose import read_anipose_calibration, write_anipose_calibration
+    from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
 
     truth, spec, files = charuco_rig
     broken = _copy_camera(truth, 1, 2)

@@ -1,17 +1,12 @@
-"""benchmarks/error_by_pose.py: the pose classes and the collapse count on a case with known answers;
-benchmarks/label_poses.py: the labelled frames of each choice counted by pose."""
+"""s3k.experiments.poses (behind benchmarks/error_by_pose.py and benchmarks/label_poses.py): the pose classes
+and the collapse count on a case with known answers; the labelled frames of each choice counted by pose."""
 
 from __future__ import annotations
-
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
-
-from benchmarks.error_by_pose import by_pose, pose_classes  # noqa: E402
+from s3k.experiments.poses import by_pose, pose_classes
 
 FLAT = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.1, 0.05, 0]])  # counter-clockwise seen from above: normal up
 
@@ -43,7 +38,7 @@ def test_pose_classes_and_collapse():
 def test_bias_separates_a_lean_from_scatter():
     """Keypoints pushed 2 mm along the keypoints' own normal in every frame, whatever the frame's rotation,
     plus +-1 mm of scatter along x: a bias of (0, 0, 2) mm and 1 mm left without it."""
-    from benchmarks.error_by_pose import bias, keypoint_frames
+    from s3k.experiments.poses import bias, keypoint_frames
 
     rng = np.random.default_rng(0)
     truth, pred = [], []
@@ -62,7 +57,7 @@ def test_bias_separates_a_lean_from_scatter():
 def test_swapped_frames_count_symmetric_confusions():
     """A frame whose first two keypoints trade places is swapped; a frame off by a little, a collapsed frame
     (counted as collapsed) and a frame without a detection are not."""
-    from benchmarks.error_by_pose import swapped_frames
+    from s3k.experiments.poses import swapped_frames
 
     truth = np.stack([FLAT] * 4)
     pred = truth + 0.002
@@ -94,25 +89,24 @@ def test_poses_on_a_side_split_by_which_way_the_first_edge_runs():
 
 
 def test_pose_counts_split_the_sides_by_edge():
-    from benchmarks.error_by_pose import pose_counts
+    from s3k.experiments.poses import pose_counts
 
     truth = np.stack([FLAT, FLAT[::-1], FLAT[:, [0, 2, 1]], FLAT[:, [2, 1, 0]], FLAT[:, [2, 1, 0]]])
     assert pose_counts(truth) == {"normal up": 1, "normal down": 1, "on a side, edge 0-1 level": 1,
                                   "on a side, edge 0-1 upright": 2}
 
 
-def test_label_poses_counts_each_choice_of_labels_by_pose(tmp_path, capsys):
+def test_label_poses_counts_each_choice_of_labels_by_pose(tmp_path):
     import json
 
     from synthetic_rig import make_dataset
 
-    from benchmarks.label_poses import main
+    from s3k.experiments.grid import LABEL_CHOICES
+    from s3k.experiments.poses import label_poses
 
     pool = make_dataset(tmp_path / "pool", labelled=12, unlabelled=3, test=6)
-    out = tmp_path / "label-poses.json"
-    assert main([str(pool), "--labelled", "4", "--seed", "1", "--out", str(out)]) == 0
-    got = json.loads(out.read_text())
-    assert got == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    got = json.loads(json.dumps(label_poses([str(pool)], list(LABEL_CHOICES), labelled=4, seed=1)))
+    assert got["labelled"] == 4
     (report,) = got["pools"]
     assert report["seed"] == 1
     assert sum(report["pool_poses"].values()) == 12 and sum(report["test_poses"].values()) == 6
@@ -124,4 +118,4 @@ def test_label_poses_counts_each_choice_of_labels_by_pose(tmp_path, capsys):
                                                       if n and not labels[p]]
         assert got["missing"][choice] == int(bool(report["unlabelled_poses"][choice]))
     with pytest.raises(SystemExit, match="no s3k.json"):
-        main([str(tmp_path / "nowhere")])
+        label_poses([str(tmp_path / "nowhere")], list(LABEL_CHOICES), labelled=4, seed=None)

@@ -12,8 +12,8 @@ from synthetic_rig import LAYOUT, project, random_rotation, rig
 
 from s3k.cli import main
 from s3k.data import Dataset, DatasetWriter, check_dataset
-from s3k.data.anipose import write_anipose_calibration
-from s3k.data.dlc import read_dlc_csv
+from s3k.data.formats.anipose import write_anipose_calibration
+from s3k.data.formats.dlc import read_dlc_csv
 from s3k.data.rig import Rig
 from s3k.errors import UserError
 from s3k.geometry import Cameras
@@ -141,7 +141,7 @@ def test_slp_per_camera_files_and_camera_map(rec, tmp_path):
     names = [f"/data/top_{c}.mp4" for c in range(4)]
     slp = _project(tmp_path / "renamed.slp", rec, names=names)
     with pytest.raises(UserError, match=r"no video matches a camera .*top_0, top_1.*--camera-map"):
-        from s3k.data.slp import read_slp
+        from s3k.data.formats.slp import read_slp
 
         read_slp(slp, CAMS)
     mapping = ["cam0=top_0", "cam1=top_1.mp4", "cam2=2", "cam3=/data/top_3.mp4"]
@@ -179,7 +179,7 @@ def test_slp_tracks(rec, tmp_path, capsys):
     assert _import(rec, tmp_path / "h", "--sleap", f"cam0={h5}") == 0
     assert "(frames: mouse_a 1, mouse_b 4); importing mouse_b" in capsys.readouterr().out
     with pytest.raises(UserError, match="2 tracks \\(mouse_a, mouse_b\\); choose one with --sleap-track"):
-        from s3k.data.sleap import read_sleap_analysis
+        from s3k.data.formats.sleap import read_sleap_analysis
 
         read_sleap_analysis(h5)  # the reader itself does not choose
     # Without tracks, two instances in a frame: choose by index.
@@ -276,7 +276,7 @@ def test_nwb_training_frames(rec, tmp_path):
     # Device names that differ from the dataset's cameras: --camera-map.
     other = _nwb_training(tmp_path / "other.nwb", rec, device_names=["A", "B", "C", "D"])
     with pytest.raises(UserError, match="no labelled frames for cameras .*A, B, C, D.*--camera-map"):
-        from s3k.data.nwb import read_nwb
+        from s3k.data.formats.nwb import read_nwb
 
         read_nwb(other, CAMS)
     mapping = [f"{cam}={name}" for cam, name in zip(CAMS, "ABCD")]
@@ -435,7 +435,7 @@ def test_round_trip_through_source_videos_maps_pixels_back(rec, tmp_path):
 
 
 def test_export_tracks_to_nwb(rec, tmp_path, capsys):
-    from s3k.data.nwb import read_nwb_tracks
+    from s3k.data.formats.nwb import read_nwb_tracks
     from s3k.data.tracks_csv import csv_header
 
     X = np.arange(3 * len(KPS) * 3, dtype=np.float64).reshape(3, len(KPS), 3) / 7
@@ -470,7 +470,7 @@ def test_export_tracks_to_nwb(rec, tmp_path, capsys):
 def test_export_tracks_never_guesses_the_unit(tmp_path, capsys):
     """Without --calibration the unit comes from what s3k track / predict wrote beside the CSV, or --units;
     with neither the export is refused (millimetres were written as metres)."""
-    from s3k.data.nwb import read_nwb_tracks
+    from s3k.data.formats.nwb import read_nwb_tracks
     from s3k.data.tracks_csv import csv_header, write_source
 
     path = tmp_path / "points3d.csv"
@@ -491,8 +491,8 @@ def test_export_tracks_never_guesses_the_unit(tmp_path, capsys):
 @needs_real
 def test_real_sleap_project_matches_its_analysis_file():
     """SLEAP's own files of the real recording: the project's predictions are the analysis file's points."""
-    from s3k.data.sleap import read_sleap_analysis
-    from s3k.data.slp import read_slp
+    from s3k.data.formats.sleap import read_sleap_analysis
+    from s3k.data.formats.slp import read_slp
 
     slp = REAL / "back" / "minimal_back_proofread.slp"
     with pytest.raises(UserError, match="only 120 predicted; pass --accept-predictions"):

@@ -16,10 +16,11 @@ import pytest
 from test_importers import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
 from s3k.cli import main
-from s3k.data import anipose, check_dataset
-from s3k.data.calibration_files import calibration_format, read_calibration
-from s3k.data.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d_pose
-from s3k.data.safe_pickle import load_pickle
+from s3k.data import check_dataset
+from s3k.data.formats import anipose
+from s3k.data.formats.calibration_files import calibration_format, read_calibration
+from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d_pose
+from s3k.data.formats.safe_pickle import load_pickle
 from s3k.errors import UserError
 
 

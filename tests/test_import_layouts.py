@@ -13,7 +13,7 @@ import pytest
 from test_import_formats import _assert_labels, _assert_same_cameras, _df3d_calib, _rig, _run, _validated
 from test_importers import CAMS, H_IMG, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
-from s3k.data.deepfly3d import points2d_layout
+from s3k.data.formats.deepfly3d import points2d_layout
 
 # ------------------------------------------------------------------------------------------------------------
 # DeepFly3D results: (row, column) fractions or (x, y) pixels
@@ -86,7 +86,7 @@ def test_deepfly3d_visibility_rule_is_one_line_not_pages(recording, tmp_path, ca
     once instead of warning per camera about the joints of the far side."""
     import cv2
 
-    from s3k.data.deepfly3d import JOINTS, camera_sees_joint
+    from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint
 
     calib = _df3d_calib(_rig(recording))
     seven = {c: calib[c % 3] for c in range(7)}

@@ -9,8 +9,8 @@ import torch
 from real_recording import REAL, needs_real
 
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
-from s3k.data import anipose, dlc, labels2d, sleap
 from s3k.data import recording as rec
+from s3k.data.formats import anipose, dlc, labels2d, sleap
 from s3k.data.rig import Rig
 from s3k.errors import UserError
 from s3k.geometry import Cameras

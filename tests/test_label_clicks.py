@@ -1,10 +1,8 @@
-"""The click count of docs/labelling.md (``benchmarks/label_clicks.py``) on a small generated dataset: the
-simulated labeller's ways of working do what they say through the app's API."""
+"""The click count of docs/labelling.md (:mod:`s3k.experiments.label_clicks`, behind
+``benchmarks/label_clicks.py``) on a small generated dataset: the simulated labeller's ways of working do
+what they say through the app's API."""
 
 from __future__ import annotations
-
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,9 +10,8 @@ from label_data import make_label_dataset
 from synthetic_rig import CAMERAS, KEYPOINTS
 
 pytest.importorskip("fastapi")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.label_clicks import run_way  # noqa: E402
+from s3k.experiments.label_clicks import run_way  # noqa: E402
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from test_track import (
 )
 
 from s3k import cli
-from s3k.data.anipose import write_anipose_calibration
+from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.video import write_video
 from s3k.detector import DetectorMeta, OnePassDetector
 from s3k.geometry import project

@@ -20,7 +20,7 @@ import torch
 from tiny_detector import save_run
 
 from s3k import cli
-from s3k.data.anipose import write_anipose_calibration
+from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.rig import Rig
 from s3k.data.tracks_csv import csv_header, read_csv
 from s3k.data.transforms import crop_resize_matrix

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +15,7 @@ from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_po
 
 from s3k import cli
 from s3k.data import Dataset
-from s3k.data.anipose import write_anipose_calibration
+from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.data.video import write_video
 from s3k.detector import TWO_PASS_FILE, CropRule, DetectorMeta, crop_centres, extent_middle, read_two_pass
@@ -28,8 +26,6 @@ from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
 from s3k.train.two_pass import CPU_FILE, crop_rule_from_labels, read_cpu, refining_config
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are scripts beside s3k
 
 
 def _farthest_pair_radius(X: np.ndarray) -> float:

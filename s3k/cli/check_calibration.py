@@ -1,5 +1,6 @@
 """``s3k check-calibration DATASET``: per-camera reprojection residuals from the labels, the cameras
-inconsistent with the others, and their recalibration from ChArUco frames (:mod:`s3k.calibration`)."""
+inconsistent with the others (:mod:`s3k.calibration`), and their recalibration from ChArUco frames
+(:mod:`s3k.recalibration`)."""
 
 from __future__ import annotations
 
@@ -45,8 +46,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
-    from s3k.calibration import check_calibration, recalibrate_dataset
-    from s3k.data.anipose import write_anipose_calibration
+    from s3k.calibration import check_calibration
+    from s3k.data.formats.anipose import write_anipose_calibration
+    from s3k.recalibration import recalibrate_dataset
 
     targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
     if not targets:

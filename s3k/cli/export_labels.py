@@ -1,11 +1,11 @@
 """`s3k export-labels`: a dataset's 2D labels for DeepLabCut, Lightning Pose, SLEAP or NWB
-(:func:`s3k.data.label_export.export_labels`)."""
+(:func:`s3k.data.formats.label_export.export_labels`)."""
 
 from __future__ import annotations
 
 import argparse
 
-from s3k.data.label_export import FORMATS
+from s3k.data.formats.label_export import FORMATS
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -27,7 +27,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.label_export import export_labels
+    from s3k.data.formats.label_export import export_labels
 
     written = export_labels(args.dataset, args.format, args.out, splits=args.split, scorer=args.scorer,
                             images=not args.no_images, overwrite=args.overwrite)

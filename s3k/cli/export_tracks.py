@@ -1,5 +1,5 @@
 """`s3k export-tracks`: the 3D CSV of `s3k track` / `s3k predict` as NWB
-(:func:`s3k.data.label_export.export_tracks`)."""
+(:func:`s3k.data.formats.label_export.export_tracks`)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.label_export import export_tracks
+    from s3k.data.formats.label_export import export_tracks
 
     path, units = export_tracks(args.csv, args.format, args.out, fps=args.fps, calibration=args.calibration,
                                 units=args.units, overwrite=args.overwrite)

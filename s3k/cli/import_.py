@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from pathlib import Path
 
-    from s3k.data.sleap import sleap_tracks
+    from s3k.data.formats.sleap import sleap_tracks
 
     files = [project] if project else list((common["sleap"] or {}).values())
     if not files:

@@ -45,7 +45,7 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
     import numpy as np
 
     from s3k.cli.options import parse_crops
-    from s3k.data.calibration_files import read_calibration
+    from s3k.data.formats.calibration_files import read_calibration
     from s3k.detector.geometry_record import track_crops
     from s3k.inference.track import fit_box
 

@@ -12,7 +12,8 @@ A dataset folder holds::
 
 :meth:`Dataset.open` parses and validates everything except the image pixels, and raises a
 :class:`~s3k.data.problems.DatasetError` naming the first problem (its ``problems`` list them all).
-:func:`check_dataset` runs the same checks plus decoding every image, collecting problems instead of raising.
+:func:`s3k.data.checks.check_dataset` runs the same checks plus decoding every image, collecting problems
+instead of raising.
 Images are decoded once into a uint8 cache (:mod:`s3k.data.cache`) so that random batches are memory copies.
 """
 
@@ -21,7 +22,6 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,11 +31,11 @@ import torch
 
 from s3k.data.cache import ImageCache, cache_folders, fingerprint
 from s3k.data.cameras import cameras_of, read_per_frame_calibration, read_static_calibration
+from s3k.data.images import ImageReadError
 from s3k.data.problems import DatasetError, DatasetWarning, Problem, Problems
-from s3k.data.sources import IMAGE_SOURCES, ImageReadError, PngImages, decode_image, header_size
+from s3k.data.sources import IMAGE_SOURCES
 from s3k.data.tables import (
     FRAMES_FILE,
-    LABELS_FILE,
     SPLITS,
     Frames,
     Labels,
@@ -85,98 +85,6 @@ def _parse(root: Path, P: Problems) -> _Contents | None:
         lead = (len(meta.cameras),) if meta.calibration == "static" else (len(frames.ids), len(meta.cameras))
         calib = cameras_of(*(np.full((*lead, *s), np.nan) for s in ((3, 3), (5,), (3, 3), (3,))))
     return _Contents(root, meta, frames, calib, ok, labels, points, source, items)
-
-
-def check_dataset(
-    path: str | Path, check_images: bool = True, workers: int | None = None
-) -> tuple[list[Problem], Dataset | None]:
-    """Run every check on a dataset folder, collecting problems instead of stopping at the first.
-
-    Besides the checks of :meth:`Dataset.open` (and, with ``check_images``, every image's pixels), a labelled
-    frame without a usable label is a warning, and a dataset whose labelled frames give no usable label at
-    all is an error (training would have no supervised target; see :func:`s3k.data.usable.usable_labels`).
-
-    Args:
-        path: dataset folder.
-        check_images: also decode every image and check its size against ``image_size``.
-        workers: decoding threads (default: number of CPUs).
-
-    Returns:
-        ``(problems, dataset)``: all problems found (errors and warnings) and the dataset when its tables
-        could be parsed (None otherwise; a dataset with image errors is still returned for its summary).
-    """
-    root = Path(path)
-    P = Problems()
-    contents = _parse(root, P)
-    if contents is None:
-        return P.items, None
-    dataset = Dataset(contents, cache="none", workers=workers)
-    if contents.calibration_ok:  # else its errors are reported and nothing can be triangulated
-        _report_usable_labels(dataset, P)
-    _report_label_coverage(dataset, P)
-    if check_images and not P.errors:
-        dataset._check_all_images(P)
-    elif check_images:
-        # Tables have errors; still report unreadable images among the files that exist.
-        dataset._check_all_images(P, only_existing=True)
-    return P.items, dataset
-
-
-def _report_usable_labels(dataset: Dataset, P: Problems) -> None:
-    """Warn about each labelled frame without a usable label; an error when no labelled frame has one."""
-    ids = dataset.frames("labelled")
-    usable = usable_labels(dataset).any(axis=1)
-    _, mask = dataset.labels(ids)
-    seen_twice = (mask.sum(axis=1) >= 2).any(axis=-1)
-    frames = dataset._c.frames
-    for frame, twice in zip(ids[~usable].tolist(), seen_twice[~usable].tolist()):
-        why = (
-            "its keypoints labelled in 2 or more cameras triangulate to no point (near-parallel rays) or to "
-            "one that projects outside every image"
-            if twice
-            else "no keypoint is labelled in 2 or more cameras"
-        )
-        P.warning(
-            FRAMES_FILE, "split", f"labelled frame without a usable label: {why}; the supervised loss has no "
-            "target in it", line=int(frames.lines[frames.row_of[frame]]), frame=frame,
-        )
-    if not len(ids):
-        # A recording imported without labels: valid, but training needs labels added first.
-        P.warning(
-            FRAMES_FILE, "split", "no labelled frames: the dataset can be inspected and labelled, but "
-            "training needs labelled frames (add them to frames.csv and labels.csv, or import with labels)",
-        )
-    elif not usable.any():
-        P.error(
-            LABELS_FILE, None,
-            f"no labelled frame has a usable label ({len(ids)} labelled frames): training needs a keypoint "
-            "labelled in 2 or more cameras whose triangulation lies in front of a camera and inside its "
-            "image",
-        )
-
-
-def _report_label_coverage(dataset: Dataset, P: Problems) -> None:
-    """Warn about a camera or a keypoint without any label in the labelled split, and about keypoints some
-    cameras have labels of and others none (keypoint sets that differ between cameras)."""
-    ids = dataset.frames("labelled")
-    if not len(ids):
-        return
-    _, mask = dataset.labels(ids)
-    counts = mask.sum(axis=0)  # (C, K)
-    bare_cams = [c for c in range(len(dataset.cameras)) if not counts[c].any()]
-    for c in bare_cams:
-        P.warning(LABELS_FILE, "camera", "camera has no label in the labelled frames",
-                  camera=dataset.cameras[c])
-    for k, name in enumerate(dataset.keypoints):
-        if not counts[:, k].any():
-            P.warning(LABELS_FILE, "keypoint", "keypoint has no label in the labelled frames", keypoint=name)
-    for c, cam in enumerate(dataset.cameras):
-        if c in bare_cams:
-            continue
-        absent = [name for k, name in enumerate(dataset.keypoints) if counts[:, k].any() and not counts[c, k]]
-        if absent:
-            P.warning(LABELS_FILE, "keypoint", "keypoint sets differ between cameras: this camera has no "
-                      f"label of {', '.join(absent)}, which other cameras have", camera=cam)
 
 
 def _torch_dtype(dtype: Any) -> torch.dtype:
@@ -469,43 +377,6 @@ class Dataset:
             self.preload()  # decoding a video up to a frame costs as much as decoding them all
         elif len(missing):
             self._cache.fill(missing, self._decode_into)
-
-    def _check_all_images(self, P: Problems, only_existing: bool = False, chunk: int = 64) -> None:
-        """Decode every image and report unreadable ones and wrong sizes (for ``check_dataset``)."""
-        source = self._c.source
-        W, H = self.source_image_size
-        if isinstance(source, PngImages):
-            jobs = [(int(f), c) for f in self.frame_ids for c in range(len(self.cameras))]
-            if only_existing:
-                jobs = [(f, c) for f, c in jobs if (self.path / source.relpath(f, self.cameras[c])).is_file()]
-
-            def check(job):
-                f, c = job
-                rel = source.relpath(f, self.cameras[c])
-                if not (self.path / rel).is_file():
-                    return None  # reported as missing already
-                size = header_size(self.path / rel)  # a wrong size is reported without decoding
-                if size is not None and size != (W, H):
-                    return self._size_problem(f, c, size)
-                try:
-                    image = decode_image(self.path / rel, rel)
-                except ImageReadError as exc:
-                    return Problem("error", rel, "image", exc.reason, frame=f, camera=self.cameras[c])
-                return self._size_problem(f, c, (image.shape[1], image.shape[0]))
-
-            with ThreadPoolExecutor(max_workers=self._workers) as pool:
-                for problem in pool.map(check, jobs):
-                    if problem is not None:
-                        P.items.append(problem)
-            return
-        # Other sources: decode chunk by chunk, report the first failure of each chunk.
-        for start in range(0, len(self), chunk):
-            rows = np.arange(start, min(start + chunk, len(self)))
-            buffer = np.empty((len(rows), len(self.cameras), H, W, 3), dtype=np.uint8)
-            try:
-                self._decode_into(rows, buffer, resample=False)
-            except DatasetError as exc:
-                P.items.extend(exc.problems)
 
     # -- reports -----------------------------------------------------------------------------------------
 

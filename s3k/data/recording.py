@@ -1,14 +1,15 @@
 """A calibrated multi-camera recording -> an s3k dataset (the work of ``s3k import``).
 
 The recording is a calibration (anipose ``calibration.toml``, Qualisys ``.qca.txt``, OpenCV / JARVIS YAML or
-XML, DeepFly3D pickle: :mod:`s3k.data.calibration_files`), one video or image sequence per camera
-(:mod:`s3k.data.video`) and, optionally, 2D labels per camera: SLEAP analysis files (:mod:`s3k.data.sleap`),
-DeepLabCut / Lightning Pose CSVs (:mod:`s3k.data.dlc`), OpenPose or MMPose JSON (:mod:`s3k.data.pose_json`)
-or a DeepFly3D pose result (:mod:`s3k.data.deepfly3d`). Frames whose labels have a keypoint in ``min_views``
-cameras are split at random into labelled and test frames; every ``stride``-th other frame is unlabelled
-(without labels every kept frame is). Images may be cropped and resized on the way; intrinsics and labels
-follow exactly (``K' = M K``). The dataset is written to a temporary folder beside ``out`` and renamed at the
-end, so a failed import leaves nothing behind.
+XML, DeepFly3D pickle: :mod:`s3k.data.formats.calibration_files`), one video or image sequence per camera
+(:mod:`s3k.data.video`) and, optionally, 2D labels per camera: SLEAP analysis files
+(:mod:`s3k.data.formats.sleap`), DeepLabCut / Lightning Pose CSVs (:mod:`s3k.data.formats.dlc`), OpenPose or
+MMPose JSON (:mod:`s3k.data.formats.pose_json`) or a DeepFly3D pose result
+(:mod:`s3k.data.formats.deepfly3d`). Frames whose labels have a keypoint in ``min_views`` cameras are split at
+random into labelled and test frames; every ``stride``-th other frame is unlabelled (without labels every kept
+frame is). Images may be cropped and resized on the way; intrinsics and labels follow exactly (``K' = M K``).
+The dataset is written to a temporary folder beside ``out`` and renamed at the end, so a failed import leaves
+nothing behind.
 """
 
 from __future__ import annotations
@@ -19,8 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.data.calibration_files import read_calibration
-from s3k.data.dlc import find_lightning_pose_csvs, read_dlc_csv
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.data.formats.dlc import find_lightning_pose_csvs, read_dlc_csv
+from s3k.data.formats.labels2d import LabelTable, coverage_warnings
+from s3k.data.formats.sleap import default_track, read_sleap_file
 from s3k.data.import_choices import (
     PADDING_PX,
     Box,
@@ -31,9 +34,7 @@ from s3k.data.import_choices import (
     pad_to_one_size,
     split_frames,
 )
-from s3k.data.labels2d import LabelTable, coverage_warnings
 from s3k.data.rig import Rig
-from s3k.data.sleap import default_track, read_sleap_file
 from s3k.errors import UserError
 from s3k.outputs import check_replaceable, replace_folder
 
@@ -95,7 +96,7 @@ def _label_tables(
 ) -> tuple[str, dict[str, str], dict[str, LabelTable]]:
     """``(kind, {camera: file}, {camera: LabelTable})`` of the one label option given (``"none"``, {}, {} for
     none); ``rig``: the cameras at the videos' sizes (a DeepFly3D result's layout is checked against them)."""
-    from s3k.data.pose_json import read_mmpose_json, read_openpose_folder
+    from s3k.data.formats.pose_json import read_mmpose_json, read_openpose_folder
 
     options = ("--sleap", "--sleap", *LABEL_OPTIONS[1:])
     values = (sleap, sleap_project, nwb, dlc, lightning_pose, openpose, mmpose, deepfly3d)
@@ -107,7 +108,7 @@ def _label_tables(
         return "none", {}, {}
     option = given[0][0]
     if option == "--deepfly3d":
-        from s3k.data.deepfly3d import JOINTS, read_deepfly3d_pose
+        from s3k.data.formats.deepfly3d import JOINTS, read_deepfly3d_pose
 
         tables = read_deepfly3d_pose(deepfly3d, sizes, rig)
         if not tables:
@@ -121,8 +122,8 @@ def _label_tables(
                   "(docs/importing.md#what-happens-to-each-format)")
         return "deepfly3d", {cam: str(deepfly3d) for cam in tables}, tables
     if sleap_project or nwb:
-        from s3k.data.nwb import read_nwb
-        from s3k.data.slp import read_slp
+        from s3k.data.formats.nwb import read_nwb
+        from s3k.data.formats.slp import read_slp
 
         if sleap_project:
             if sleap_track is None:
@@ -208,7 +209,7 @@ def import_recording(
     """Convert a recording to a dataset folder; returns the folder.
 
     Args:
-        calibration: a calibration file (or folder) of any format :func:`s3k.data.calibration_files.
+        calibration: a calibration file (or folder) of any format :func:`s3k.data.formats.calibration_files.
             read_calibration` reads.
         videos: ``{camera: video or image sequence}``; the order sets the dataset's camera order.
         out: dataset folder to write (all or nothing: written beside it and renamed at the end).
@@ -224,8 +225,8 @@ def import_recording(
         sleap_track: SLEAP track name or index (default: the most labelled track, when the files have
             several); in a project without tracks,
             the instance index in each frame.
-        sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.slp`).
-        nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.nwb`).
+        sleap_project: one SLEAP ``.slp`` project with a video per camera (:mod:`s3k.data.formats.slp`).
+        nwb: one NWB file with ndx-pose labels per camera (:mod:`s3k.data.formats.nwb`).
         camera_map: ``{camera: video or camera name in the project / NWB file}`` where names differ.
         accept_predictions: use SLEAP predicted instances / NWB pose estimation series as labels where a
             frame has no labels by a person.

@@ -1,7 +1,7 @@
 """A calibration file's content: :class:`Rig` (camera names, image sizes, world units, the file's metadata and
 the cameras as one :class:`s3k.geometry.Cameras`).
 
-Readers of calibration formats (:mod:`s3k.data.anipose`) return a ``Rig``; tracking, importing and
+Readers of calibration formats (:mod:`s3k.data.formats.anipose`) return a ``Rig``; tracking, importing and
 recalibration take one. The cameras are the one camera type of s3k, in float64 (``rig.cameras.numpy()``
 gives NumPy arrays for OpenCV).
 """

@@ -10,21 +10,32 @@ without any usable label trains on a loss that is exactly zero.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from s3k.geometry import project, triangulate_pixels
+from s3k.geometry import Cameras, project, triangulate_pixels
 
-if TYPE_CHECKING:
-    from s3k.data.dataset import Dataset
+
+class DatasetLike(Protocol):
+    """What the check reads of an :class:`s3k.data.Dataset` (named here so that the dataset, whose summary
+    counts usable labels, and this module do not import each other)."""
+
+    keypoints: list[str]
+    image_size: tuple[int, int]
+
+    def frames(self, split: Any = None) -> np.ndarray: ...
+
+    def labels(self, frame_ids: Any, dtype: Any = ...) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def calibration(self, frame_ids: Any, dtype: Any = ...) -> Cameras: ...
 
 # Camera-frame depth at or below which a point counts as behind the camera (as in the supervised loss).
 MIN_DEPTH = 1e-6
 
 
-def usable_labels(dataset: Dataset, split: str = "labelled", chunk: int = 1024) -> np.ndarray:
+def usable_labels(dataset: DatasetLike, split: str = "labelled", chunk: int = 1024) -> np.ndarray:
     """``(N, K)`` bool: keypoint ``k`` of frame ``n`` of ``split`` (in ``dataset.frames(split)`` order) gives
     a supervised target (see the module docstring).
 
@@ -51,7 +62,7 @@ def usable_labels(dataset: Dataset, split: str = "labelled", chunk: int = 1024) 
     return out
 
 
-def usable_label_count(dataset: Dataset, split: str = "labelled") -> int:
+def usable_label_count(dataset: DatasetLike, split: str = "labelled") -> int:
     """Number of usable labelled keypoints (frame, keypoint pairs) in ``split``; 0 means nothing to train
     on."""
     return int(usable_labels(dataset, split).sum())

@@ -11,7 +11,8 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-from s3k.data.dataset import Dataset, check_dataset
+from s3k.data.checks import check_dataset
+from s3k.data.dataset import Dataset
 from s3k.data.problems import Problem
 from s3k.data.tables import SPLITS
 

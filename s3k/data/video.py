@@ -26,7 +26,7 @@ SEQUENCE_FPS = 30.0  # an image sequence records no frame rate; this one is used
 
 
 def _read_image(path: Path) -> np.ndarray:
-    from s3k.data.sources import decode_image
+    from s3k.data.images import decode_image
 
     return decode_image(path)
 

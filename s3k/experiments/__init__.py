@@ -39,6 +39,9 @@ the runs of one grid point differ in the labelled frames and the initialization.
 The modules: :mod:`~s3k.experiments.grid` (scales, grids, the plan), :mod:`~s3k.experiments.views` (pools,
 frame choice, views), :mod:`~s3k.experiments.runner` (running and resuming), :mod:`~s3k.experiments.findings`
 (statistics, the paper's claims), :mod:`~s3k.experiments.report` (summary.json, plots, README.md).
+The benchmarks' stages live beside them, the scripts under ``benchmarks/`` parsing arguments over them:
+:mod:`~s3k.experiments.accuracy` (S3K against labels only over seeds), :mod:`~s3k.experiments.poses` (error
+by pose, labelled frames by pose) and :mod:`~s3k.experiments.label_clicks` (clicks per labelled frame).
 """
 
 from s3k.experiments.findings import aggregate, findings, verdict

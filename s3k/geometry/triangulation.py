@@ -13,7 +13,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from s3k.geometry.cameras import Cameras, _broadcast, _check_last, pixel_rays
+from s3k.geometry.cameras import Cameras
+from s3k.geometry.projection import pixel_rays
+from s3k.geometry.shapes import _broadcast, _check_last
 
 
 def triangulate_rays(

@@ -49,6 +49,17 @@ def _median(x: np.ndarray) -> float | None:
     return float(np.median(x)) if x.size else None
 
 
+def _errors_3d(X: np.ndarray, X_valid: np.ndarray, X_gt, X_gt_mask, unit_mm: float):
+    """``(err3d (B, K) mm, where it counts (B, K), the keypoints a PCK counts over (B, K))``; without ground
+    truth no term counts and every keypoint is in the denominator."""
+    B, K = X_valid.shape
+    if X_gt is None:
+        return np.zeros((B, K)), np.zeros((B, K), bool), np.ones((B, K), bool)
+    known = np.ones((B, K), bool) if X_gt_mask is None else np.asarray(X_gt_mask, dtype=bool)
+    err3d = np.linalg.norm(X - np.asarray(X_gt, dtype=np.float64), axis=-1) * unit_mm
+    return err3d, known & X_valid & np.isfinite(err3d), known
+
+
 def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X_gt_mask=None,
                     unit_mm: float = 1000.0, keypoints=None, cameras=None) -> dict[str, Any]:
     """The evaluation metrics of a set of predictions (pure function of arrays).
@@ -89,16 +100,7 @@ def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X
     errre = np.linalg.norm(reproj_uv - gt_uv, axis=-1)
     mask2d = gt_mask & np.isfinite(err2d)
     maskre = gt_mask & X_valid[:, None, :] & np.isfinite(errre)
-    if X_gt is not None:
-        X_gt = np.asarray(X_gt, dtype=np.float64)
-        known = np.ones((B, K), bool) if X_gt_mask is None else np.asarray(X_gt_mask, dtype=bool)
-        err3d = np.linalg.norm(X - X_gt, axis=-1) * unit_mm  # (B, K)
-        mask3d = known & X_valid & np.isfinite(err3d)
-        denom3d = known
-    else:
-        err3d = np.zeros((B, K))
-        mask3d = np.zeros((B, K), bool)
-        denom3d = X_valid | ~X_valid
+    err3d, mask3d, denom3d = _errors_3d(X, X_valid, X_gt, X_gt_mask, unit_mm)
 
     def block(sel: np.ndarray) -> dict[str, Any]:
         """The metrics over the keypoints ``sel (K,)``."""

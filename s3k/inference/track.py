@@ -99,7 +99,7 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
 
     Args:
         videos: ``{camera: video path}``; the order is the camera order of the outputs.
-        calibration: a :class:`s3k.data.rig.Rig` (``s3k.data.anipose.read_anipose_calibration``).
+        calibration: a :class:`s3k.data.rig.Rig` (``s3k.data.formats.anipose.read_anipose_calibration``).
         net_size: ``(w, h)`` network input size.
         fit: see :func:`fit_box` (for cameras without an explicit crop box).
         crops: optional ``{camera: (x0, y0, x1, y1)}`` boxes, as given to ``s3k import --crop``.
@@ -275,8 +275,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     Args:
         run_dir: run folder of ``s3k train``, one pass or two (:class:`s3k.detector.Detector`).
         videos: ``{camera: video or image sequence}``; camera names as in the calibration, at least two.
-        calibration: a calibration file of any format :func:`s3k.data.calibration_files.read_calibration`
-            reads.
+        calibration: a calibration file of any format
+            :func:`s3k.data.formats.calibration_files.read_calibration` reads.
         out: CSV file to write.
         overlay: folder for one MP4 per camera with the keypoints drawn, or None.
         batch: frames per forward pass (each has C images).
@@ -296,7 +296,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
         A :class:`TrackSummary`.
     """
     from s3k.data import video
-    from s3k.data.calibration_files import read_calibration
+    from s3k.data.formats.calibration_files import read_calibration
     from s3k.data.tracks_csv import check_output
     from s3k.detector import Detector
 

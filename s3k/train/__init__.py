@@ -24,7 +24,10 @@ Robustness:
 
 The rooms:
 
-- :mod:`s3k.train.loop`: :func:`train`, the set-up and the loop (one step, logging, checkpoints, stops).
+- :mod:`s3k.train.loop`: :func:`train` and the loop (steps, logging, checkpoints, stops).
+- :mod:`s3k.train.step`: the loss of one step (:func:`compute_losses`) and the learning-rate schedule.
+- :mod:`s3k.train.run_setup`: the set-up of a run (the dataset and its frames, the refusals, the run's meta,
+  folder and log; :func:`check_trained_as`).
 - :mod:`s3k.train.checkpoint`: the checkpoint format, its one writer and one reader.
 - :mod:`s3k.train.run_folder`: the checks before anything is written, ``--resume`` compatibility, history.
 - :mod:`s3k.train.sampling`: random batches, augmented, on the device.
@@ -35,8 +38,10 @@ The rooms:
 
 from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
 from s3k.train.distributed import DistInfo, init_distributed, shard
-from s3k.train.loop import TrainResult, check_trained_as, compute_losses, train
+from s3k.train.loop import TrainResult, train
+from s3k.train.run_setup import check_trained_as
 from s3k.train.sampling import draw_batch, prepare
+from s3k.train.step import compute_losses
 from s3k.train.validation import labelled_distances, labelled_layout, mean_pairwise_distance, validate
 
 __all__ = [

@@ -1,4 +1,5 @@
-"""The training loop: set-up, one step, logging, checkpoints, the stop conditions.
+"""The training loop: steps, logging, checkpoints, the stop conditions (the set-up of a run:
+:mod:`s3k.train.run_setup`; the loss of one step: :mod:`s3k.train.step`).
 
 :func:`train` opens the dataset once, makes every check that can refuse the run before anything is written
 (``run_folder``; no labelled frame with a usable target; S3K without unlabelled frames), builds or restores
@@ -7,36 +8,30 @@ the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.steps`
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import logging
-import math
 import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
 from s3k.augment import NoiseBank
 from s3k.config import TrainConfig
-from s3k.data import usable_label_count
-from s3k.data.frames import FrameStore, model_image_size, open_dataset
+from s3k.data.frames import FrameStore
 from s3k.detector import (
     CHECKPOINT_FILE,
-    LOG_FILE,
     MODEL_FILE,
     PROGRESS_FILE,
     TENSORBOARD_DIR,
     DetectorMeta,
     save_model_file,
 )
-from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
-from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.losses import PseudoLabelRule
 from s3k.model import UNet, UNetConfig
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
@@ -50,7 +45,9 @@ from s3k.train.distributed import (
     shard,
     wrap_model,
 )
+from s3k.train.run_setup import _meta, _open_data, _reference_layout, _setup_logging, _start_run
 from s3k.train.sampling import draw_batch, prepare
+from s3k.train.step import _all_finite, _lr_lambda, compute_losses
 from s3k.train.validation import labelled_distances, layout_size, validate
 
 log = logging.getLogger("s3k.train")
@@ -75,209 +72,6 @@ class TrainResult:
     status: str
     history: list[dict[str, Any]] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Logging
-
-
-class _TqdmHandler(logging.Handler):
-    def emit(self, record: logging.LogRecord) -> None:
-        from tqdm import tqdm
-
-        with contextlib.suppress(Exception):
-            tqdm.write(self.format(record))
-
-
-def _setup_logging(run_dir: Path, main: bool) -> None:
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    for h in list(log.handlers):
-        if getattr(h, "_s3k", False):
-            log.removeHandler(h)
-            h.close()
-    handlers: list[logging.Handler] = [logging.NullHandler()]
-    if main:
-        fh = logging.FileHandler(run_dir / LOG_FILE)
-        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
-        th = _TqdmHandler()
-        th.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
-        handlers = [fh, th]
-    for h in handlers:
-        h._s3k = True  # type: ignore[attr-defined]
-        log.addHandler(h)
-
-
-# ------------------------------------------------------------------------------------------------------------
-# The loss of one step
-
-
-def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
-                   weight_decay_model: nn.Module, rule: PseudoLabelRule,
-                   teacher: nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """The training loss of one step (one forward pass over labelled and unlabelled images).
-
-    Args:
-        model: the (possibly DDP-wrapped) network.
-        lab: (images (Bl, C, 3, H, W), cams (Bl, C), labels_uv (Bl, C, K, 2), labels_mask (Bl, C, K)).
-        unl: (images (Bu, C, 3, H, W), cams (Bu, C)) or None when the self-supervised term is off.
-        cfg: configuration (stride, sigma, weight decay).
-        alpha: weight of the self-supervised term at this step.
-        weight_decay_model: the unwrapped network (for the L2 term).
-        rule: how the unlabelled frames' detections become pseudo-labels (:class:`PseudoLabelRule`, built
-            once per run from ``cfg`` and the labelled layout, so the layout check is never left out).
-        teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
-            (``--teacher_ema``); without one they come from ``model``'s own logits.
-
-    Returns:
-        ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
-    """
-    images_l, cams_l, uv_l, mask_l = lab
-    Bl, C = images_l.shape[:2]
-    images = images_l if unl is None else torch.cat([images_l, unl[0]])
-    flat = images.reshape(-1, *images.shape[2:]).contiguous(memory_format=torch.channels_last)
-    logits = model(flat)
-    logits = logits.float().reshape(images.shape[0], C, *logits.shape[1:])
-    sigma = cfg.sigma_px()
-    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma,
-                                   coord_weight=cfg.coord_weight)
-    loss = l_sup
-    terms = {"sup": float(l_sup.detach())}
-    if unl is not None:
-        target_logits = None
-        if teacher is not None:
-            with torch.no_grad():
-                flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
-                target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
-        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             rule=rule,
-                                             target_logits=target_logits, coord_weight=cfg.coord_weight)
-        loss = loss + alpha * l_uns
-        terms["unsup"] = float(l_uns.detach())
-        terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
-        terms["unsup_weight"] = float(info_u["weights"].mean())
-    if cfg.weight_decay > 0:
-        l2 = l2_non_bias(weight_decay_model)
-        loss = loss + cfg.weight_decay * l2
-        terms["l2"] = float(l2.detach())
-    terms["loss"] = float(loss.detach())
-    return loss, terms
-
-
-def _lr_lambda(cfg: TrainConfig):
-    def f(step: int) -> float:
-        frac = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
-        return cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
-
-    return f
-
-
-def _all_finite(module: nn.Module) -> bool:
-    return all(bool(torch.isfinite(t).all()) for t in list(module.parameters()) + list(module.buffers())
-               if t.is_floating_point())
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Set-up
-
-
-@dataclass
-class _Data:
-    """The dataset opened once at the network's input size, and the frames each role uses."""
-
-    ds: Any
-    source_size: tuple[int, int]
-    labelled: np.ndarray
-    unlabelled: np.ndarray
-    val: np.ndarray
-
-
-def _open_at_network_size(data: Path, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
-    """``data`` opened at the network's input size, and its own image size."""
-    ds = open_dataset(data)
-    source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
-    return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
-
-
-def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dict[str, list[Any]]:
-    """Check that the run in ``out`` was trained on ``data`` with ``cfg``, as ``--resume`` checks a run it
-    continues (every field but ``s3k.config.resumable_fields``, and the dataset's identity); returns the
-    resumable fields that differ, ``{field: [there, here]}``.
-
-    Raises:
-        UserError: naming the first field or dataset property that differs where it must not.
-    """
-    ds, _ = _open_at_network_size(Path(data), cfg)
-    return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), Path(data))
-
-
-def _open_data(data: Path, cfg: TrainConfig) -> _Data:
-    """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
-    ds, source_size = _open_at_network_size(data, cfg)
-    labelled = np.asarray(ds.frames("labelled"))
-    if len(labelled) == 0:
-        raise UserError(f"{data}: the 'labelled' split is empty; training needs labelled frames")
-    if usable_label_count(ds, "labelled") == 0:
-        raise UserError(f"{data}: none of the {len(labelled)} labelled frames gives a training target (a "
-                        "keypoint labelled in >= 2 cameras, triangulated, projecting inside an image)",
-                        hint="check the labels and the calibration with 's3k validate'")
-    unlabelled = np.asarray(ds.frames("unlabelled"))
-    if cfg.unsup and len(unlabelled) == 0:
-        raise UserError(f"{data}: the 'unlabelled' split is empty, S3K needs unlabelled frames",
-                        hint="add unlabelled frames or pass --no-unsup for the labels-only baseline")
-    val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
-        else np.zeros(0, np.int64)
-    if len(val) == 0:
-        val = unlabelled if len(unlabelled) else labelled
-    val = val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
-    return _Data(ds, source_size, labelled, unlabelled, val)
-
-
-def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
-    """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout_tol``
-    holds pseudo-labels to them (None when off)."""
-    if not (cfg.unsup and cfg.layout_tol > 0):
-        return None
-    if not bool(torch.isfinite(layout).any()):
-        raise UserError(f"{data}: no labelled frame has two keypoints triangulated from its labels, so "
-                        "--layout_tol has no layout to hold the pseudo-labels to",
-                        hint="label two keypoints in two cameras of a frame, or leave --layout_tol at 0")
-    return layout
-
-
-def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
-    """What inference needs; a rigid object's labelled layout (``--layout_tol``) goes into the read-out."""
-    rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
-    return DetectorMeta(
-        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
-        stride=cfg.stride, sigma=cfg.sigma_px(),
-        model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
-                         norm=cfg.norm).to_dict(),
-        units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
-        layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
-        geometry=training_geometry(d.ds),
-    )
-
-
-def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
-               overwrite: bool, command: str | None, info: DistInfo) -> dict[str, Any] | None:
-    """Check the run folder (and the run being resumed) then write its configuration; returns the
-    checkpoint to resume from, or None. Nothing is written unless every check passes."""
-    ckpt_path = out / CHECKPOINT_FILE
-    state = ckpt.load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
-    if not info.main:
-        return state
-    identity = dataset_identity(d.ds)
-    changed = run_folder.check_resume(out, cfg, identity, data) if state is not None else {}
-    if overwrite:
-        run_folder.clear_run(out)
-    out.mkdir(parents=True, exist_ok=True)
-    _setup_logging(out, info.main)
-    run_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
-    if changed:
-        log.info("resumed with changed settings: %s",
-                 ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in changed.items()))
-    return state
 
 
 # ------------------------------------------------------------------------------------------------------------

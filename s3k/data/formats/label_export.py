@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.data.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable
 from s3k.errors import UserError
 from s3k.fileio import open_text
 
@@ -161,15 +161,15 @@ def export_labels(
         refs = video_references(ds, tables)
         rig = _rig(ds)
         if fmt == "sleap":
-            from s3k.data.slp import write_slp
+            from s3k.data.formats.slp import write_slp
 
             return [write_slp(out, tables, refs, skeleton=ds.skeleton, rig=rig)]
-        from s3k.data.nwb import write_nwb_labels
+        from s3k.data.formats.nwb import write_nwb_labels
 
         return [write_nwb_labels(out, tables, refs, skeleton=ds.skeleton, rig=rig,
                                  description=f"2D keypoint labels of the s3k dataset {Path(ds.path).name}")]
 
-    from s3k.data.dlc import write_dlc_csv
+    from s3k.data.formats.dlc import write_dlc_csv
 
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder for --format {fmt}")
@@ -222,7 +222,7 @@ def export_tracks(
     """
     import csv
 
-    from s3k.data.nwb import write_nwb_tracks
+    from s3k.data.formats.nwb import write_nwb_tracks
     from s3k.data.tracks_csv import read_csv, read_source, source_path
     from s3k.outputs import check_output
 
@@ -244,7 +244,7 @@ def export_tracks(
     score = _column(csv_path, header, [f"{k}_score" for k in keypoints], fnums)
     rig = None
     if calibration is not None:
-        from s3k.data.anipose import read_anipose_calibration
+        from s3k.data.formats.anipose import read_anipose_calibration
 
         r = read_anipose_calibration(calibration, units=units)
         arrays = r.cameras.numpy()

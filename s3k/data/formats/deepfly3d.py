@@ -1,13 +1,13 @@
 """DeepFly3D's pickles: the calibration (``calib.pkl``, and the same per-camera entries inside a
 ``df3d_result*.pkl``) and the 2D pose of a ``df3d_result*.pkl``.
 
-Layout (DeepFly3D's documentation): a dict whose integer keys ``0 .. 6`` are the cameras, each
-``{"R": (3, 3) world->camera, "tvec": (3,), "intr": (3, 3), "distort": (5,)}`` in the OpenCV model; a pose
-result also holds ``points2d (C, T, J, 2)``, ``camera_ordering`` and, once calibrated, ``points3d`` (and
+Layout (DeepFly3D's documentation): a dict whose integer keys ``0 .. 6`` are the cameras, each ``{"R": (3, 3)
+world->camera, "tvec": (3,), "intr": (3, 3), "distort": (5,)}`` in the OpenCV model; a pose result also holds
+``points2d (C, T, J, 2)``, ``camera_ordering`` and, once calibrated, ``points3d`` (and
 ``points3d_wo_procrustes``, the triangulation before DeepFly3D aligns it to its template). Camera ``i`` is
 named ``camera_i`` (DeepFly3D's ``camera_i.mp4``). The pickles are read with
-:func:`s3k.data.safe_pickle.load_pickle` (arrays and containers only). Image sizes are not in the files: they
-come from the videos.
+:func:`s3k.data.formats.safe_pickle.load_pickle` (arrays and containers only). Image sizes are not in the
+files: they come from the videos.
 
 ``points2d`` comes in two layouts: DeepFly3D's 2D network writes ``(row, column)`` as fractions of the image
 height and width, while result files it ships (and files written by other tools) hold ``(x, y)`` pixels.
@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s3k.data.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.safe_pickle import load_pickle
 from s3k.data.rig import Rig
-from s3k.data.safe_pickle import load_pickle
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 

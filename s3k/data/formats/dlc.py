@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.data.labels2d import LabelTable, frame_id_from_path
+from s3k.data.formats.labels2d import LabelTable, frame_id_from_path
 from s3k.errors import UserError
 from s3k.fileio import open_text
 

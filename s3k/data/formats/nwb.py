@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.formats.labels2d import LabelTable
 from s3k.data.hdf5 import open_hdf5
-from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
 
 

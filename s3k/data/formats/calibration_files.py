@@ -1,10 +1,10 @@
 """A calibration file of any format s3k reads -> :class:`s3k.data.rig.Rig`: :func:`read_calibration`.
 
 The format is chosen by the content (and the name where the content is ambiguous): a pickle is DeepFly3D's
-(:mod:`s3k.data.deepfly3d`); XML with ``<cameras><camera>`` (a ``.qca.txt``) is Qualisys'
-(:mod:`s3k.data.qualisys`); a folder, a YAML file or XML of ``<opencv_storage>`` is OpenCV's ``FileStorage``
-(JARVIS and others, :mod:`s3k.data.opencv_calib`); anything else is read as anipose's ``calibration.toml``
-(:mod:`s3k.data.anipose`), which says so when it is not one.
+(:mod:`s3k.data.formats.deepfly3d`); XML with ``<cameras><camera>`` (a ``.qca.txt``) is Qualisys'
+(:mod:`s3k.data.formats.qualisys`); a folder, a YAML file or XML of ``<opencv_storage>`` is OpenCV's
+``FileStorage`` (JARVIS and others, :mod:`s3k.data.formats.opencv_calib`); anything else is read as anipose's
+``calibration.toml`` (:mod:`s3k.data.formats.anipose`), which says so when it is not one.
 """
 
 from __future__ import annotations
@@ -47,11 +47,11 @@ def read_calibration(path: str | Path, units: str | None = None) -> Rig:
     """
     kind = calibration_format(path)
     if kind == "deepfly3d":
-        from s3k.data.deepfly3d import read_deepfly3d_calibration as read
+        from s3k.data.formats.deepfly3d import read_deepfly3d_calibration as read
     elif kind == "qualisys":
-        from s3k.data.qualisys import read_qualisys_calibration as read
+        from s3k.data.formats.qualisys import read_qualisys_calibration as read
     elif kind == "opencv":
-        from s3k.data.opencv_calib import read_opencv_calibration as read
+        from s3k.data.formats.opencv_calib import read_opencv_calibration as read
     else:
-        from s3k.data.anipose import read_anipose_calibration as read
+        from s3k.data.formats.anipose import read_anipose_calibration as read
     return read(path, units).checked(path)  # rotations that are rotations, finite values

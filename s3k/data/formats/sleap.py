@@ -1,5 +1,5 @@
 """SLEAP analysis HDF5 files (``sleap-convert --format analysis``): :func:`read_sleap_analysis`,
-:func:`sleap_analysis_tracks`. SLEAP projects (``.slp``) are read by :mod:`s3k.data.slp`."""
+:func:`sleap_analysis_tracks`. SLEAP projects (``.slp``) are read by :mod:`s3k.data.formats.slp`."""
 
 from __future__ import annotations
 
@@ -8,11 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.slp import TRACK_HINT
 from s3k.data.hdf5 import open_hdf5
-from s3k.data.labels2d import LabelTable
 from s3k.errors import UserError
-
-TRACK_HINT = "choose one with --sleap-track NAME or INDEX (or --sleap-track all for one dataset per track)"
 
 
 def _names(values, path: Path | str, field: str) -> list[str]:
@@ -118,7 +117,7 @@ def track_frame_counts(path: str | Path, predictions: bool = False) -> dict[str,
     """``{track: frames with a labelled point}`` of a SLEAP analysis file or project (``.slp``: the instances
     labelled by a person, and predicted ones with ``predictions``)."""
     if Path(path).suffix.lower() == ".slp":
-        from s3k.data.slp import slp_track_frames
+        from s3k.data.formats.slp import slp_track_frames
 
         return slp_track_frames(path, predictions)
     _, tracks, names, _ = _analysis_arrays(path)
@@ -156,9 +155,9 @@ def sleap_analysis_tracks(path: str | Path) -> list[str]:
 def read_sleap_file(path: str | Path, camera: str, track: str | int | None = None,
                     camera_map: Mapping[str, str] | None = None, predictions: bool = False) -> LabelTable:
     """One camera's labels from a SLEAP analysis file (``.h5``) or project (``.slp``, its video of
-    ``camera``; :func:`s3k.data.slp.read_slp`)."""
+    ``camera``; :func:`s3k.data.formats.slp.read_slp`)."""
     if Path(path).suffix.lower() == ".slp":
-        from s3k.data.slp import read_slp
+        from s3k.data.formats.slp import read_slp
 
         mine = {camera: camera_map[camera]} if camera_map and camera in camera_map else None
         tables = read_slp(path, [camera], camera_map=mine, track=track, predictions=predictions)
@@ -168,7 +167,7 @@ def read_sleap_file(path: str | Path, camera: str, track: str | int | None = Non
 
 def sleap_tracks(paths: list[str | Path]) -> list[str]:
     """The track names of SLEAP files (analysis ``.h5`` or project ``.slp``), in first-seen order."""
-    from s3k.data.slp import slp_tracks
+    from s3k.data.formats.slp import slp_tracks
 
     names: list[str] = []
     for path in paths:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.data.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable
 from s3k.errors import UserError
 
 COCO17 = ["nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",

@@ -21,10 +21,13 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.formats.labels2d import LabelTable
 from s3k.data.hdf5 import open_hdf5
-from s3k.data.labels2d import LabelTable
-from s3k.data.sleap import TRACK_HINT
 from s3k.errors import UserError
+
+# The hint of both SLEAP readers (projects here, analysis files in s3k.data.formats.sleap) when several tracks
+# hold labels.
+TRACK_HINT = "choose one with --sleap-track NAME or INDEX (or --sleap-track all for one dataset per track)"
 
 
 def _sleap_io() -> Any:

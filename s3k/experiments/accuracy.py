@@ -1,0 +1,235 @@
+"""The accuracy benchmark's stages (``benchmarks/accuracy.py``: S3K against the labels-only baseline over
+seeds): the rendered datasets and their labelled views, the training commands run a few at a time with their
+CPU time recorded, runs reused from an earlier working folder, and the cached test evaluations.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
+MODELS = {"s3k": [], "labels_only": ["--no-unsup"]}
+TARGETS = {"median_mm_at_most": 3.0, "rms_mm_at_most": 6.0, "rms_mm_ratio_at_most": 0.6,
+           "pck_10mm_at_least": 0.95, "train_cpu_minutes_per_model_at_most": 60.0}
+
+
+#: Labelled frames every model trains on.
+LABELLED = 10
+
+
+def data_names(args, seed: int) -> list[str]:
+    """The folder names of the seed's rendered dataset and, with a larger ``--label-pool``, of the view of it
+    that the models train on (the last one is what they train on)."""
+    if args.label_pool == LABELLED:
+        return [f"{args.scene}{args.render}-seed{seed}"]
+    rendered = f"{args.scene}{args.render}-L{args.label_pool}"
+    return [f"{rendered}-seed{seed}", f"{rendered}-{args.label_choice}-seed{seed}"]
+
+
+def render(args, seed: int, work: Path) -> Path:
+    """The seed's dataset, rendered once (with ``--label-pool`` labelled frames: a view of it with the 10
+    chosen by ``--label-choice``)."""
+    pool = args.label_pool
+    names = data_names(args, seed)
+    out = work / names[0]
+    if not (out / "s3k.json").is_file():
+        from s3k.sim.generate import SimulateConfig, simulate
+
+        extra: dict[str, Any] = {"mode": "start"} if args.scene == "distractors" else {}
+        simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
+                                test=args.test, seed=seed, **extra),
+                 out, workers=args.parallel, progress=False, overwrite=True)
+    if pool == LABELLED:
+        return out
+    return labelled_view(out, work / names[1], args.label_choice, seed)
+
+
+def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int) -> Path:
+    """A view of the rendered ``pool_dir`` (tables filtered, images linked) with 10 of its labelled frames,
+    chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
+    if (out / "s3k.json").is_file():
+        return out
+    from s3k.data import Dataset
+    from s3k.experiments.views import make_view, select_frames
+
+    pool = Dataset.open(pool_dir, cache="none")
+    frames = select_frames(pool, LABELLED, len(pool.frames("unlabelled")), seed, choice=choice)
+    return make_view(pool, out, frames, {"labelled": LABELLED, "label_choice": choice, "seed": seed})
+
+
+def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
+    """Link ``source``'s renders and labels-only runs (with their CPU and test records) into ``work``."""
+    for s in seeds:
+        run = source / f"labels_only-seed{s}"
+        if not finished(run, args.passes):
+            raise SystemExit(f"{run}: no finished labels-only run to reuse (--labels-only-from)")
+        for name in (*data_names(args, s), run.name, run.name + "-cpu.json", run.name + "-test.json"):
+            if (source / name).exists() and not (work / name).exists():
+                (work / name).symlink_to((source / name).resolve())
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def reuse_coarse(source: Path, runs: list[Path]) -> None:
+    """Start each of ``runs`` not yet begun from the coarse stage of the run of the same name in ``source``:
+    its coarse pass, estimates and crops (hard-linked where the file system allows), and that stage's CPU
+    minutes in the run's record. ``s3k train --two-pass --resume`` then trains the refining pass, after
+    checking that the coarse pass and the crops are what this benchmark's options would make."""
+    from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+
+    for run in runs:
+        if run.exists():
+            continue
+        src = source / run.name
+        needed = [src / "coarse" / "model.pt", src / "crops" / "s3k.json", src / ESTIMATES_FILE,
+                  src / CPU_FILE]
+        missing = [p for p in needed if not p.is_file()]
+        if missing or "coarse" not in read_cpu(src):
+            raise SystemExit(f"{missing[0] if missing else src / CPU_FILE}: no finished coarse stage with "
+                             "its CPU time to reuse (--coarse-from takes runs that record it in cpu.json)")
+        tmp = run.with_name(run.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        shutil.copytree(src / "coarse", tmp / "coarse")
+        shutil.copytree(src / "crops", tmp / "crops", copy_function=_link_or_copy)
+        shutil.copy2(src / ESTIMATES_FILE, tmp / ESTIMATES_FILE)
+        coarse_s = read_cpu(src)["coarse"]
+        (tmp / CPU_FILE).write_text(json.dumps({"coarse": coarse_s}) + "\n")
+        record = run.with_name(run.name + "-cpu.json")
+        record.write_text(json.dumps({"cpu_minutes": coarse_s / 60, "wall_minutes": 0.0,
+                                      "coarse_from": str(src)}) + "\n")
+        tmp.rename(run)
+
+
+def train_command(args, data: Path, run: Path, seed: int, model: str) -> list[str]:
+    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--seed", str(seed),
+           "--steps", str(args.steps), "--threads", "1", "--no-progress", *MODELS[model]]
+    if args.passes == 2:
+        cmd += ["--two-pass", "--coarse-size", str(args.coarse_size), "--crop-size", str(args.crop_size)]
+        if args.coarse_steps:
+            cmd += ["--coarse-steps", str(args.coarse_steps)]
+    else:
+        cmd += ["--image-size", str(args.coarse_size)]
+    cmd += args.train_options.split()
+    if run.exists():
+        cmd.append("--resume")
+    return cmd
+
+
+def finished(run: Path, passes: int) -> bool:
+    return (run / ("two_pass.json" if passes == 2 else "model.pt")).is_file()
+
+
+def _cpu_minutes_so_far(pid: int) -> float | None:
+    """CPU minutes a running process (and the children it has waited for) has used so far; None without
+    Linux's /proc."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    ticks = sum(int(fields[i]) for i in (11, 12, 13, 14))  # user, system, and the waited-for children's
+    return ticks / os.sysconf("SC_CLK_TCK") / 60
+
+
+def _read_record(record: Path) -> dict:
+    """A training's CPU record, with the minutes of an interrupted attempt (``unfinished_*``) folded in: they
+    were spent, whether the run was then resumed or had already finished when its benchmark process died."""
+    spent = json.loads(record.read_text()) if record.is_file() else {"cpu_minutes": 0.0, "wall_minutes": 0.0}
+    spent["cpu_minutes"] += spent.pop("unfinished_cpu_minutes", 0.0)
+    spent["wall_minutes"] += spent.pop("unfinished_wall_minutes", 0.0)
+    return spent
+
+
+def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: float = 10.0) -> None:
+    """Run the training commands ``parallel`` at a time; each one's CPU minutes are added to its record.
+
+    A running job's minutes so far are written to its record every ``poll_s`` seconds as
+    ``unfinished_cpu_minutes``, so a run interrupted with this process (a closed session) still counts the
+    time it spent when the same command resumes it."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    pending = list(jobs)
+    running: dict[int, tuple[str, Path, float]] = {}
+    while pending or running:
+        while pending and len(running) < parallel:
+            name, cmd, record = pending.pop(0)
+            spent = _read_record(record)
+            record.write_text(json.dumps(spent) + "\n")
+            print(f"training {name}", file=sys.stderr, flush=True)
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
+            running[proc.pid] = (name, record, time.time())
+        pid, status, usage = os.wait4(-1, os.WNOHANG)
+        if pid == 0:
+            for job, (_, record, started) in running.items():
+                minutes = _cpu_minutes_so_far(job)
+                if minutes is not None:
+                    spent = json.loads(record.read_text())
+                    spent["unfinished_cpu_minutes"] = minutes
+                    spent["unfinished_wall_minutes"] = (time.time() - started) / 60
+                    record.write_text(json.dumps(spent) + "\n")
+            time.sleep(poll_s)
+            continue
+        if pid not in running:
+            continue
+        name, record, started = running.pop(pid)
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            raise SystemExit(f"training {name} failed (exit {code}); run the same command again to resume it")
+        spent = json.loads(record.read_text())
+        spent.pop("unfinished_cpu_minutes", None)
+        spent.pop("unfinished_wall_minutes", None)
+        spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
+        spent["wall_minutes"] += (time.time() - started) / 60
+        record.write_text(json.dumps(spent) + "\n")
+        print(f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes", file=sys.stderr, flush=True)
+
+
+#: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (another
+#: mark, or none: every view entered the triangulation, each detection the whole heatmap's mean) is made
+#: again.
+READOUT = ("outlying views left out (each detector's --outlier_px); each detection its heatmap's mean within "
+           "6 target widths of its peak")
+
+
+def evaluate(run: Path, data: Path) -> dict:
+    path = run.with_name(run.name + "-test.json")
+    if path.is_file():
+        metrics = json.loads(path.read_text())
+        if metrics.get("readout") == READOUT:
+            return metrics
+    from s3k.inference.evaluate import evaluate_run
+
+    metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
+    path.write_text(json.dumps(metrics, default=float) + "\n")
+    return metrics
+
+
+def _stats(values: list[float]) -> dict:
+    return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
+            "per_seed": values}
+
+
+def without_notes(argv: list[str]) -> list[str]:
+    """``argv`` without ``--notes TEXT`` / ``--notes=TEXT``: a benchmark's recorded command, its notes kept
+    apart."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--notes":
+            skip = True
+        elif not a.startswith("--notes="):
+            out.append(a)
+    return out
