@@ -67,6 +67,7 @@ from s3k.experiments.accuracy import (  # noqa: E402
     without_notes,
 )
 from s3k.experiments.grid import LABEL_CHOICES  # noqa: E402
+from s3k.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=4000, help="steps of each pass (default 4000)")
     p.add_argument("--coarse-steps", type=int, default=None, help="coarse pass steps (default --steps)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")
+    p.add_argument("--preset", choices=list(PRESETS), default=None,
+                   help="train both models with `s3k train --preset NAME`; its two-pass sizes and steps "
+                        "become the defaults of the options above (box-headline: the headline's "
+                        "configuration)")
     p.add_argument("--parallel", type=int, default=2, help="trainings at once, one thread each (default 2)")
     p.add_argument("--labels-only-from", metavar="WORK", default=None,
                    help="take the renders and the finished labels-only runs of an earlier working folder "
@@ -106,6 +111,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="text kept in summary.json, e.g. the revision the runs were trained at when the "
                         "summary is written again from finished runs (left out of the recorded command)")
     args = p.parse_args(argv)
+    if args.preset:  # the preset's sizes and steps, unless given here
+        chosen = PRESETS[args.preset]
+        two = chosen.two_pass or {}
+        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.config.get("steps", 4000),
+                       **{k: two[k] for k in ("coarse_size", "coarse_steps", "crop_size") if k in two})
+        args = p.parse_args(argv)
+        args.train_options = f"--preset {args.preset} {args.train_options}".strip()
     if args.label_pool < LABELLED:
         p.error(f"--label-pool: at least {LABELLED}, got {args.label_pool}")
     os.environ.setdefault("MUJOCO_GL", "osmesa")

@@ -27,6 +27,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "preloading and the validation, logging and checkpoint cadence)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
+    from s3k.presets import PRESETS
+
+    parser.add_argument("--preset", choices=list(PRESETS), default=None,
+                        help="a named configuration (options given here or in --config win over it): "
+                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items()))
     two = parser.add_argument_group(
         "two passes (coarse-to-fine; docs/accuracy.md)",
         "--two-pass trains a coarse detector on the whole image, crops every view around its 3D estimate "
@@ -59,9 +64,10 @@ def run(args: argparse.Namespace) -> int:
     from s3k.train import train
 
     check_output_folder(args.out, inputs={"DATASET": args.dataset, "--config": args.config})
+    chosen = _preset(args)
     if args.two_pass:
-        return _run_two_pass(args)
-    base = None
+        return _run_two_pass(args, chosen)
+    base = chosen
     if args.resume and (Path(args.out) / CONFIG_FILE).is_file():
         saved = read_run_config(args.out)["config"]
         base = config_from_dict(TrainConfig, saved, where=f"{Path(args.out) / CONFIG_FILE}")
@@ -76,14 +82,31 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_two_pass(args: argparse.Namespace) -> int:
+def _preset(args: argparse.Namespace) -> TrainConfig | None:
+    """The configuration of ``--preset`` (None without one); a two-pass preset turns on ``--two-pass`` and
+    gives the two-pass options that the command line leaves out."""
+    if args.preset is None:
+        return None
+    from s3k.presets import preset
+
+    chosen = preset(args.preset)
+    if chosen.two_pass is not None:
+        args.two_pass = True
+        names = {"margin": "crop_margin", "extent": "crop_extent"}
+        for key, value in chosen.two_pass.items():
+            if getattr(args, names.get(key, key)) is None:
+                setattr(args, names.get(key, key), value)
+    return config_from_dict(TrainConfig, chosen.config, where=f"--preset {args.preset}")
+
+
+def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -> int:
     from s3k.errors import UserError
     from s3k.train.two_pass import train_two_pass
     from s3k.train.two_pass_start import DEFAULTS, OPTIONS_FILE, read_options
 
     saved = read_options(args.out) if args.resume else None
     where = f"{Path(args.out) / OPTIONS_FILE}"
-    base = None if saved is None else config_from_dict(TrainConfig, saved[0], where=where)
+    base = chosen if saved is None else config_from_dict(TrainConfig, saved[0], where=where)
     cfg = config_from_args(args, TrainConfig, base=base)  # --resume: the run's own, changed by options given
     if cfg.image_size:
         raise UserError("--image-size does not apply to --two-pass",

@@ -1,0 +1,45 @@
+"""Named configurations (``s3k train --preset``): the preset's fields and two-pass options, with what the
+command line gives winning."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from synthetic_rig import make_dataset
+
+from s3k import cli
+from s3k.config import TrainConfig
+from s3k.presets import PRESETS
+
+
+def test_every_preset_names_only_configuration_fields():
+    from s3k.config import config_from_dict
+
+    for name, chosen in PRESETS.items():
+        cfg = config_from_dict(TrainConfig, chosen.config, where=name)  # unknown names would be refused
+        for key, value in chosen.config.items():
+            assert getattr(cfg, key) == value
+
+
+def test_box_headline_preset_trains_two_passes_with_its_options_and_the_command_line_wins(tmp_path, capsys):
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=4, test=2)
+    run = tmp_path / "run"
+    args = ["train", str(data), "--out", str(run), "--preset", "box-headline", "--steps", "2",
+            "--coarse-steps", "2", "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8",
+            "--res_blocks", "1", "--val_every", "0", "--warmup_steps", "1", "--ramp_steps", "1",
+            "--no-progress", "--threads", "1", "--sigma", "1.5"]
+    assert cli.main(args) == 0
+    assert (run / "two_pass.json").is_file()  # the preset is a two-pass one
+    coarse = json.loads((run / "coarse" / "config.json").read_text())["config"]
+    fine = json.loads((run / "fine" / "config.json").read_text())["config"]
+    preset = PRESETS["box-headline"].config
+    assert coarse["rotation_deg"] == PRESETS["box-headline"].two_pass["coarse_rotation"]
+    assert fine["rotation_deg"] == preset["rotation_deg"] and fine["layout_tol"] == preset["layout_tol"]
+    assert fine["steps"] == 2 and coarse["steps"] == 2  # the command line's, not the preset's 6000 / 4000
+    assert fine["sigma"] == 1.5  # given on the command line
+    proc = subprocess.run([sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(tmp_path / "x"),
+                           "--preset", "nope"], capture_output=True, text=True)
+    assert proc.returncode == 2 and "box-headline" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
