@@ -1,6 +1,6 @@
 """s3k demo's helpers."""
 def test_progress_bar_shows_the_last_validation(tmp_path):
-    from s3k.demo import _short_validation
+    from s3k.experiments.demo import _short_validation
 
     run = tmp_path / "run"
     assert _short_validation(run) == ""  # no log yet

@@ -132,3 +132,39 @@ def test_no_function_of_the_detector_readout_training_and_inference_rooms_is_ove
                     if lines > MAX_FUNCTION_LINES:
                         long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({lines} lines)")
     assert long == []
+
+
+LAYERS = [  # highest first: a room imports from its own layer and the layers below, never above
+    ["cli"],
+    ["label", "sim", "robot", "experiments"],
+    ["inference", "train"],
+    ["detector"],
+    ["readout", "model", "losses", "augment", "config", "presets"],
+    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
+     "recalibration"],
+]
+
+
+def test_imports_go_downwards_only():
+    """cli -> apps and experiments -> inference and training -> detector -> read-out, model, losses ->
+    data, geometry, heatmaps: no module imports a room of a higher layer (docs/architecture.md)."""
+    rank = {room: i for i, rooms in enumerate(LAYERS) for room in rooms}
+    upwards, unplaced = [], set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        room = path.relative_to(PACKAGE).parts[0].removesuffix(".py")
+        if room == "__init__":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module] if isinstance(node, ast.ImportFrom) and node.module and not node.level
+                     else [])
+            for name in names:
+                if not name.startswith("s3k."):
+                    continue
+                target = name.split(".")[1]
+                if target not in rank or room not in rank:
+                    unplaced.add(target if target not in rank else room)
+                elif rank[target] < rank[room]:
+                    upwards.append(f"{path.relative_to(ROOT)} imports {name}")
+    assert not unplaced, f"rooms missing from LAYERS: {sorted(unplaced)}"
+    assert upwards == []

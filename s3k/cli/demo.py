@@ -1,4 +1,4 @@
-"""`s3k demo`: command-line front end of :func:`s3k.demo.run_demo`."""
+"""`s3k demo`: command-line front end of :func:`s3k.experiments.demo.run_demo`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from s3k.cli.options import number
-from s3k.demo import QUICK, DemoConfig, comparison_table, run_demo, schedule_for
+from s3k.experiments.demo import QUICK, DemoConfig, comparison_table, run_demo, schedule_for
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

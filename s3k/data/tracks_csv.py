@@ -22,13 +22,13 @@ import csv
 import json
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from s3k import outputs
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json, open_text
-from s3k.readout import ReadOut
 
 __all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "source_path", "write_csv",
            "write_source"]
@@ -46,8 +46,9 @@ def _fmt(v: float) -> str:
     return "nan" if not np.isfinite(v) else f"{v:.8g}"
 
 
-def csv_rows(fnums: Sequence[int], result: ReadOut) -> list[list[str]]:
-    """One CSV row per frame of ``result`` (columns of :func:`csv_header`)."""
+def csv_rows(fnums: Sequence[int], result: Any) -> list[list[str]]:
+    """One CSV row per frame of ``result``, a :class:`s3k.readout.ReadOut` (its ``X``, ``error``, ``ncams``
+    and ``score``; columns of :func:`csv_header`)."""
     X, error = result.X.cpu().numpy(), result.error.cpu().numpy()
     ncams, score = result.ncams.cpu().numpy(), result.score.cpu().numpy()
     rows = []
