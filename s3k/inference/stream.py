@@ -124,6 +124,15 @@ class StreamSummary:
     interrupted: bool
 
 
+def _frames(sources: list[Source]) -> Iterator[list[np.ndarray]]:
+    """The sources' frames in lockstep, until one ends."""
+    while True:
+        views = [s.read() for s in sources]
+        if any(v is None for v in views):
+            return
+        yield views  # type: ignore[misc]
+
+
 def _frame_line(i: int, t: float, keypoints: list[str], X: np.ndarray, valid: np.ndarray,
                 latency: float) -> str:
     points = {k: [round(float(v), 7) for v in X[j]] if valid[j] else None for j, k in enumerate(keypoints)}
@@ -156,10 +165,15 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     rate = min(rates) if rates else 0.0
     start = time.perf_counter()
     i, behind, said, interrupted = 0, 0, start, False
+    frames = _frames(list(sources.values()))
+    if not live:  # files: the next frame is decoded while this one is detected (a camera's is read fresh)
+        from s3k.inference.track import _prefetch
+
+        frames = _prefetch(frames, depth=2)
     try:
         while max_frames is None or i < max_frames:
-            views = [s.read() for s in sources.values()]
-            if any(v is None for v in views):
+            views = next(frames, None)
+            if views is None:
                 break
             read = time.perf_counter()
             det = detector([v[None] for v in views], cams, boxes, min_weight)  # type: ignore[index]

@@ -1,0 +1,109 @@
+"""``s3k.Detector`` on every device and precision there is: the same points from frames of any size, crops cut
+on the device exactly as the whole frame would be cut, and a two-pass detector's crop rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
+from s3k.detector.detector import _around
+from s3k.geometry import Cameras, project
+from s3k.geometry.warp import crop_images, resample_regions
+from s3k.model import UNet, UNetConfig
+
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA GPU on this machine")])]
+
+
+def _rig(size: int) -> Cameras:
+    """Four cameras 1 m from the origin on a ring, looking at it."""
+    R, t = [], []
+    for a in np.linspace(0, 2 * np.pi, 5)[:-1]:
+        pos = np.array([np.cos(a), np.sin(a), 0.5]) / np.linalg.norm([1, 0.5])
+        z = -pos
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        Rc = np.stack([x, np.cross(z, x), z])
+        R.append(Rc)
+        t.append(-Rc @ pos)
+    f = size * 1.2
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    return Cameras.from_numpy(np.stack([K] * 4), None, np.stack(R), np.stack(t), dtype=torch.float64)
+
+
+def _net(size: int, keypoints: int = 3) -> tuple[UNet, DetectorMeta]:
+    torch.manual_seed(0)
+    config = UNetConfig(channels=(8, 8), res_blocks=1)
+    meta = DetectorMeta([f"k{i}" for i in range(keypoints)], [], (size, size), config.stride, 2.0,
+                        config.to_dict(), units="m")
+    return UNet(keypoints, config).eval(), meta
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_a_detector_reads_frames_on_any_device_and_gives_results_there(device, precision):
+    net, meta = _net(32)
+    detector = OnePassDetector(net.to(device), meta, device, precision)
+    gen = torch.Generator().manual_seed(1)
+    frames = torch.randint(0, 256, (2, 4, 64, 64, 3), dtype=torch.uint8, generator=gen).to(device)
+    out = detector(frames, _rig(64))
+    assert out.X.device.type == torch.device(device).type and out.X.dtype == torch.float64
+    assert out.X.shape == (2, 3, 3) and out.uv.shape == (2, 4, 3, 2)
+    ref = OnePassDetector(net.cpu(), meta)(frames.cpu(), _rig(64))  # float32 on the CPU
+    tol = 1e-4 if precision == "float32" else 2.0  # bf16 moves an untrained network's peaks by pixels
+    assert float((out.uv.cpu() - ref.uv).abs().max()) < tol
+
+
+def test_frames_at_the_network_size_need_no_resampling_and_resized_frames_map_back():
+    net, meta = _net(32)
+    detector = OnePassDetector(net, meta)
+    gen = torch.Generator().manual_seed(2)
+    frames = torch.randint(0, 256, (1, 4, 32, 32, 3), dtype=torch.uint8, generator=gen)
+    small = detector(frames, _rig(32))
+    assert torch.equal(small.pixel_maps[0, 0], torch.eye(3, dtype=torch.float64))
+    big = detector(frames.repeat_interleave(2, 2).repeat_interleave(2, 3), _rig(64))  # each pixel 2x2
+    # the same network inputs (area averaging of the doubled pixels), detections in the big frames' pixels
+    np.testing.assert_allclose(big.uv.numpy(), (small.uv.numpy() + 0.5) * 2 - 0.5, atol=1e-6)
+
+
+def test_frames_are_cut_around_the_boxes_without_changing_the_resampling():
+    gen = torch.Generator().manual_seed(3)
+    image = torch.randint(0, 256, (2, 300, 400, 3), dtype=torch.uint8, generator=gen)
+    cases = [([[101.3, 57.9, 163.1, 119.7], [180.0, 90.5, 250.2, 160.7]], (48, 48)),  # crops
+             ([[40.0, 20.0, 296.0, 276.0], [8.0, 4.0, 264.0, 260.0]], (32, 32)),  # shrunk 8 times
+             ([[-30.0, -20.0, 90.0, 100.0], [350.0, 250.0, 450.0, 350.0]], (40, 40))]  # past the frame
+    for box_list, size in cases:
+        boxes = torch.tensor(box_list)
+        cut, moved = _around(image, boxes.double(), size)
+        whole = image.permute(0, 3, 1, 2).float()
+        part = cut.permute(0, 3, 1, 2).float()
+        for warp in (crop_images, resample_regions):
+            # the same pixels sampled at the same places: equal up to float32 rounding of the coordinates
+            torch.testing.assert_close(warp(part, moved.float(), size), warp(whole, boxes, size), atol=0.01,
+                                       rtol=0)
+
+
+def test_two_pass_detector_cuts_its_crops_around_the_coarse_points():
+    """A refining network that reports where the crop's centre pixel is: the crop boxes follow the rule."""
+    coarse_net, coarse_meta = _net(32)
+    fine_net, fine_meta = _net(48)
+    rule = CropRule(extent=0.3, size=48)
+    detector = TwoPassDetector(OnePassDetector(coarse_net, coarse_meta), OnePassDetector(fine_net, fine_meta),
+                               rule)
+    gen = torch.Generator().manual_seed(4)
+    frames = torch.randint(0, 256, (2, 4, 96, 96, 3), dtype=torch.uint8, generator=gen)
+    cams = _rig(96)
+    out = detector(frames, cams, keep_heatmaps=True)
+    assert out.coarse is not None and out.placed is not None and out.input_size == (48, 48)
+    # the crop maps: the crop centre is the reprojection of each frame's crop centre
+    from s3k.detector import crop_centres
+
+    centres, _ = crop_centres(out.coarse.X, out.coarse.valid, cams)
+    uv, _ = project(cams, centres[:, None, None, :].expand(-1, 4, 1, 3))
+    at = torch.einsum("bcij,bcj->bci", out.pixel_maps[..., :2, :2], uv[:, :, 0]) + out.pixel_maps[..., :2, 2]
+    np.testing.assert_allclose(at.numpy(), 23.5, atol=1e-6)  # the middle of a 48 px crop
+    # a 3D extent of 0.3 m at about 1 m: the crop's side in the frame is f * extent / z pixels
+    side = 48 / out.pixel_maps[..., 0, 0]
+    assert bool(((side > 0.2 * 96 * 1.2) & (side < 0.5 * 96 * 1.2)).all())
