@@ -40,8 +40,14 @@ class RunDetector:
 
     @property
     def image_size(self) -> tuple[int, int]:
-        """The (first) network's input ``(W, H)``: a one-pass detector needs no resampling at this size; a
-        two-pass one reads its crops from the rendered views, so render at the size it was trained on."""
+        """The size ``(W, H)`` to render at: a one-pass detector's input (no resampling needed); for a
+        two-pass one, the size of the images it was trained on, since its refining pass cuts its crops from
+        the rendered views."""
+        from s3k.detector import TwoPassDetector
+
+        if isinstance(self.detector, TwoPassDetector) and self.detector.coarse.meta.source_image_size:
+            W, H = self.detector.coarse.meta.source_image_size
+            return int(W), int(H)
         return self.detector.input_size
 
     def __call__(self, images: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray
