@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from s3k import readout
-from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.geometry import Cameras, project, triangulate_labels
 from s3k.heatmaps import (
     confidence_weight,
     gaussian_targets,
@@ -200,13 +200,8 @@ def supervised_loss(
             f"got {_shape(label_mask)}"
         )
     with torch.no_grad():
-        uv = labels_uv.detach().to(cams.dtype)
-        labelled = label_mask.to(torch.bool) & torch.isfinite(uv).all(dim=-1)
-        # Unlabelled entries get a harmless pixel and zero weight: they must not reach the solver as NaN.
-        uv = torch.where(labelled[..., None], uv, torch.zeros_like(uv))
-        weights = labelled.to(cams.dtype)
-        X, valid = triangulate_pixels(cams, uv, weights)
-        valid = valid & (labelled.sum(dim=1) >= 2)
+        X, valid = triangulate_labels(cams, labels_uv.detach(), label_mask)
+        weights = (label_mask.to(torch.bool) & torch.isfinite(labels_uv).all(dim=-1)).to(cams.dtype)
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, weights=weights)
 
 

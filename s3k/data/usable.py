@@ -2,7 +2,7 @@
 trainer's refusal to start without a target.
 
 A labelled keypoint of a frame is *usable* when it is labelled (visible, inside the image) in at least two
-cameras, its unit-weight triangulation is valid (``geometry.triangulate_pixels``: enough weight, rays not
+cameras, its unit-weight triangulation is valid (``geometry.triangulate_labels``: enough weight, rays not
 near-parallel), and the triangulated point lies in front of at least one camera and projects inside that
 camera's image. That is what the supervised loss needs to render at least one Gaussian target; a dataset
 without any usable label trains on a loss that is exactly zero.
@@ -15,7 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.geometry import Cameras, project, triangulate_labels
 
 
 class DatasetLike(Protocol):
@@ -51,10 +51,7 @@ def usable_labels(dataset: DatasetLike, split: str = "labelled", chunk: int = 10
         part = ids[start : start + chunk]
         uv_np, mask_np = dataset.labels(part)
         cams = dataset.calibration(part, dtype=np.float64)  # (B, C)
-        mask = torch.from_numpy(mask_np)  # (B, C, K)
-        uv = torch.from_numpy(uv_np).to(torch.float64)  # (B, C, K, 2)
-        X, valid = triangulate_pixels(cams, uv, mask.to(torch.float64))  # (B, K, 3), (B, K)
-        valid &= mask.sum(dim=1) >= 2
+        X, valid = triangulate_labels(cams, torch.from_numpy(uv_np), torch.from_numpy(mask_np))  # (B, K)
         proj, depth = project(cams, X[:, None])  # (B, C, K, 2), (B, C, K)
         u, v = proj[..., 0], proj[..., 1]
         seen = (depth > MIN_DEPTH) & (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)

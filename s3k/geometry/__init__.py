@@ -15,7 +15,12 @@ from s3k.geometry.cameras import Cameras, camera_centres
 from s3k.geometry.distortion import distort, undistort
 from s3k.geometry.projection import pixel_rays, project, undistort_pixels
 from s3k.geometry.rotations import matrix_to_rodrigues, rodrigues_to_matrix
-from s3k.geometry.triangulation import triangulate_pixels, triangulate_rays, workspace_centre
+from s3k.geometry.triangulation import (
+    triangulate_labels,
+    triangulate_pixels,
+    triangulate_rays,
+    workspace_centre,
+)
 
 __all__ = [
     "Cameras",
@@ -25,6 +30,7 @@ __all__ = [
     "pixel_rays",
     "project",
     "rodrigues_to_matrix",
+    "triangulate_labels",
     "triangulate_pixels",
     "triangulate_rays",
     "undistort",

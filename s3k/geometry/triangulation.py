@@ -339,3 +339,24 @@ def workspace_centre(cams: Cameras) -> tuple[Tensor, Tensor]:
     principal = cams.K[..., :2, 2][..., None, :]  # (*L, C, 1, 2)
     centre, valid = triangulate_pixels(cams, principal)  # (*L, 1, 3)
     return centre[..., 0, :], valid[..., 0]
+
+
+def triangulate_labels(cams: Cameras, uv: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The one triangulation of 2D labels: every labelled view with unit weight, a keypoint valid where at
+    least two views label it and the rays are not degenerate (the supervised loss's target, the crop rule,
+    the labelled layout, which labels are usable, the labelling app).
+
+    Args:
+        cams: cameras ``(*L, C)``.
+        uv: ``(*L, C, K, 2)`` labels in the cameras' pixels (anything where not labelled, NaN included).
+        mask: ``(*L, C, K)`` bool, the labelled views.
+
+    Returns:
+        ``(X (*L, K, 3), valid (*L, K))`` in the cameras' dtype; X is 0 where invalid.
+    """
+    uv = torch.as_tensor(uv).to(device=cams.K.device, dtype=cams.dtype)
+    labelled = torch.as_tensor(mask).to(device=cams.K.device, dtype=torch.bool) & torch.isfinite(uv).all(-1)
+    # an unlabelled view gets a harmless pixel and no weight: it must not reach the solver as NaN
+    uv = torch.where(labelled[..., None], uv, torch.zeros_like(uv))
+    X, valid = triangulate_pixels(cams, uv, labelled.to(cams.dtype))
+    return X, valid & (labelled.sum(dim=-2) >= 2)

@@ -1,8 +1,8 @@
 """The geometry the labelling app shows, computed with s3k's own cameras and triangulation.
 
 For one frame, from its 2D labels: each keypoint labelled (visible) in two or more views is triangulated with
-unit weights, as the supervised loss does (:func:`s3k.readout.triangulate`), and reprojected into every camera
-(:func:`s3k.geometry.project`, lens distortion included), with the residual of each labelled view; a
+unit weights, as the supervised loss does (:func:`s3k.geometry.triangulate_labels`), and reprojected into
+every camera (:func:`s3k.geometry.project`, lens distortion included), with the residual of each labelled view; a
 keypoint labelled in one view gets its epipolar curve in every other view: the projection of the view ray of
 the click (:func:`s3k.geometry.pixel_rays`), a straight line without distortion and a curve with it.
 """
@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from s3k.geometry import Cameras, pixel_rays, project
-from s3k.readout import DTYPE, triangulate
+from s3k.geometry import triangulate_labels as geometry_triangulate_labels
+from s3k.readout import DTYPE
 
 __all__ = ["epipolar_curves", "frame_geometry", "triangulate_labels"]
 
@@ -23,7 +24,8 @@ EPIPOLAR_SAMPLES = 160
 
 
 def triangulate_labels(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
-    """Unit-weight triangulation of one frame's labels and their reprojection.
+    """Unit-weight triangulation of one frame's labels (:func:`s3k.geometry.triangulate_labels`) and their
+    reprojection.
 
     Args:
         cams: ``(C,)`` cameras of the frame, in the labels' pixels.
@@ -37,7 +39,7 @@ def triangulate_labels(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> dict[
     cams = cams.to(dtype=DTYPE)
     uv_t = torch.as_tensor(np.nan_to_num(np.asarray(uv, dtype=np.float64)))[None]
     used = torch.as_tensor(np.asarray(mask, dtype=bool))[None]
-    X_t, valid_t = triangulate(cams, uv_t, torch.ones(used.shape, dtype=DTYPE), used)
+    X_t, valid_t = geometry_triangulate_labels(cams, uv_t, used)
     reproj_t, depth_t = project(cams, X_t[:, None].expand(1, len(cams.K), -1, -1))
     X, valid, reproj, depth = X_t[0].numpy(), valid_t[0].numpy(), reproj_t[0].numpy(), depth_t[0].numpy()
     ok = valid[None, :] & (depth > 1e-6)

@@ -53,16 +53,15 @@ def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
     Raises:
         UserError: no labelled frame has two triangulated keypoints.
     """
-    from s3k.geometry import triangulate_pixels
+    from s3k.geometry import triangulate_labels
 
     ids = dataset.frames("labelled")
     radius = 0.0
     if len(ids):
         uv, mask = dataset.labels(ids)
-        cams = dataset.calibration(ids, dtype=np.float64)
-        m = torch.from_numpy(mask)
-        X, valid = triangulate_pixels(cams, torch.from_numpy(uv).to(torch.float64), m.to(torch.float64))
-        ok = (valid & (m.sum(dim=1) >= 2)).numpy()
+        X, valid = triangulate_labels(dataset.calibration(ids, dtype=np.float64), torch.from_numpy(uv),
+                                      torch.from_numpy(mask))
+        ok = valid.numpy()
         for points in np.where(ok[..., None], X.numpy(), np.nan):
             if np.isfinite(points).all(axis=-1).sum() < 2:
                 continue

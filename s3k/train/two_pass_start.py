@@ -95,7 +95,7 @@ def crop_extent_warning(dataset, extent: float, crop_size: int, coarse_size: int
     scale than the coarse pass. None otherwise, or when no labelled keypoint can be triangulated."""
     import torch
 
-    from s3k.geometry import triangulate_pixels
+    from s3k.geometry import triangulate_labels
     from s3k.geometry.warp import metric_crop_boxes
 
     ids = dataset.frames("labelled")
@@ -103,9 +103,8 @@ def crop_extent_warning(dataset, extent: float, crop_size: int, coarse_size: int
         return None
     uv, mask = dataset.labels(ids)
     cams = dataset.calibration(ids, dtype=np.float64)
-    m = torch.from_numpy(mask)
-    X, valid = triangulate_pixels(cams, torch.from_numpy(uv).to(torch.float64), m.to(torch.float64))
-    points = X.numpy()[(valid & (m.sum(dim=1) >= 2)).numpy()]
+    X, valid = triangulate_labels(cams, torch.from_numpy(uv), torch.from_numpy(mask))
+    points = X.numpy()[valid.numpy()]
     if not len(points):
         return None
     centre = torch.as_tensor(np.median(points, axis=0))

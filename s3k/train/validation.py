@@ -19,7 +19,7 @@ from torch import nn
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.detector import DetectorMeta
-from s3k.geometry import triangulate_pixels
+from s3k.geometry import triangulate_labels
 
 log = logging.getLogger("s3k.train")
 
@@ -49,12 +49,10 @@ def _labelled_points(dataset: Any, frame_ids: np.ndarray, chunk: int = 256):
     for i in range(0, len(frame_ids), chunk):
         ids = frame_ids[i:i + chunk]
         uv, mask = dataset.labels(ids)
-        labelled = torch.from_numpy(np.asarray(mask, dtype=bool))  # (B, C, K)
         # float32 as the network's batches hold them (frames.FrameStore), solved in float64
         cams = dataset.calibration(ids).to(dtype=torch.float64)
         uv_t = torch.from_numpy(np.asarray(uv, dtype=np.float32)).double()
-        X, valid = triangulate_pixels(cams, uv_t, labelled.double())
-        yield X, valid & (labelled.sum(dim=1) >= 2)
+        yield triangulate_labels(cams, uv_t, torch.from_numpy(np.asarray(mask, dtype=bool)))
 
 
 def layout_size(distances: torch.Tensor) -> float:
