@@ -3,8 +3,9 @@
 For one frame, from its 2D labels: each keypoint labelled (visible) in two or more views is triangulated with
 unit weights, as the supervised loss does (:func:`s3k.geometry.triangulate_labels`), and reprojected into
 every camera (:func:`s3k.geometry.project`, lens distortion included), with the residual of each labelled
-view; a keypoint labelled in one view gets its epipolar curve in every other view: the projection of the view ray of
-the click (:func:`s3k.geometry.pixel_rays`), a straight line without distortion and a curve with it.
+view; a keypoint labelled in one view gets its epipolar curve in every other view: the projection of the
+view ray of the click (:func:`s3k.geometry.pixel_rays`), a straight line without distortion and a curve with
+it.
 """
 
 from __future__ import annotations
