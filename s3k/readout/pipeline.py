@@ -89,6 +89,18 @@ class ReadOut:
                        None if self.probs is None else self.probs.cpu())
 
 
+def _affine_inverse(M: Tensor) -> Tensor:
+    """The inverse of affine pixel maps ``(*, 3, 3)`` (last row 0, 0, 1), in closed form: a batched LAPACK
+    call for a few 3x3 matrices costs more than the rest of a frame's read-out."""
+    a, b, c, d = M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
+    det = a * d - b * c
+    A = torch.stack([torch.stack([d, -b], -1), torch.stack([-c, a], -1)], -2) / det[..., None, None]
+    t = -(A @ M[..., :2, 2:3])
+    bottom = torch.zeros_like(M[..., 2:3, :])
+    bottom[..., 0, 2] = 1.0
+    return torch.cat([torch.cat([A, t], -1), bottom], -2)
+
+
 def _to_camera_pixels(net_uv: Tensor, Minv: Tensor) -> Tensor:
     """Detections ``(B, C, K, 2)`` in network-input pixels mapped by the affine ``Minv`` (``(C, 3, 3)`` or
     ``(B, C, 3, 3)``) into the cameras' own pixels."""
@@ -142,7 +154,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
             raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
                              f"got {tuple(maps.shape)}")
-        Minv = torch.linalg.inv(maps)  # network-input pixels -> the cameras' pixels (affine)
+        Minv = _affine_inverse(maps)  # network-input pixels -> the cameras' pixels
         uv = _to_camera_pixels(uv, Minv)
         net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine pixel map: K' = M K
     if max_residual_px is not None:
