@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from s3k.data.transforms import resize_crop
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
@@ -166,8 +167,9 @@ class _Pass:
     def cut(self, views: list[Tensor], boxes: Tensor, crops: bool = False) -> Tensor:
         """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels: ``boxes (B, C, 4)`` of every view
         resampled to the input size on the device, as the training images were (``crops``: the refining
-        pass's crops, :func:`s3k.geometry.warp.crop_images`; else the region's area-resampled view,
-        :func:`s3k.geometry.warp.resample_regions`)."""
+        pass's crops, :func:`s3k.geometry.warp.crop_images`; else the region's view resized as the dataset
+        resizes its images, :func:`s3k.data.transforms.resize_crop` on the CPU and its area-averaging
+        equivalent :func:`s3k.geometry.warp.resample_regions` on another device)."""
         w, h = self.size
         out = []
         for c, v in enumerate(views):
@@ -175,6 +177,13 @@ class _Pass:
             whole = box.new_tensor([0.0, 0.0, v.shape[2], v.shape[1]])
             if (v.shape[2], v.shape[1]) == (w, h) and bool((box == whole).all()):
                 out.append(v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float())
+                continue
+            if not crops and self.device.type == "cpu" and v.device.type == "cpu":
+                # on the CPU, OpenCV's resize of the uint8 frame: what the resized dataset's images were
+                frames = v.numpy()
+                rows = [resize_crop(frames[b], None, tuple(box[b].tolist()), (w, h))[0]
+                        for b in range(len(v))]
+                out.append(torch.from_numpy(np.stack(rows)).permute(0, 3, 1, 2).float())
                 continue
             v, box = _around(v, box, (w, h))
             x = v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float()
