@@ -65,8 +65,8 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     from s3k.data.frames import FrameStore, images_to_float, open_dataset
     from s3k.detector import load_network
     from s3k.inference.metrics import mm_per_unit
-    from s3k.losses import PseudoLabelRule
     from s3k.losses import pseudo_labels as make_pseudo_labels
+    from s3k.readout import ReadoutConfig
     from s3k.train.validation import labelled_distances
 
     config = run / "config.json"
@@ -86,7 +86,7 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
             logits = model(images.reshape(B * C, *images.shape[2:])).float()
             logits = logits.reshape(B, C, *logits.shape[1:])
             X, valid, *_views = make_pseudo_labels(logits, batch.cams, meta.stride, meta.sigma,
-                                                   rule=PseudoLabelRule.from_config(cfg, layout))
+                                                   rule=ReadoutConfig.of_training(cfg, layout))
             pseudo.append(X.double().numpy())
             kept.append(valid.numpy())
             truth.append(np.where(got[1][..., None], got[0], np.nan))

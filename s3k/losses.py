@@ -19,8 +19,6 @@ Shapes: ``B`` frames, ``C`` cameras, ``K`` keypoints, ``h w`` heatmap size, ``st
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -28,12 +26,12 @@ from torch import Tensor, nn
 from s3k import readout
 from s3k.geometry import Cameras, project, triangulate_labels
 from s3k.heatmaps import (
-    confidence_weight,
     gaussian_targets,
     heatmap_moments,
     spatial_log_softmax,
     spatial_softmax,
 )
+from s3k.readout import ReadoutConfig
 
 __all__ = ["PseudoLabelRule", "coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels",
            "self_supervised_loss", "supervised_loss"]
@@ -205,37 +203,10 @@ def supervised_loss(
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, weights=weights)
 
 
-@dataclass(frozen=True)
-class PseudoLabelRule:
-    """How the network's detections of an unlabelled frame become its pseudo-label (:func:`pseudo_labels`).
-
-    Attributes:
-        max_residual_px: views whose detection misses the others' consensus by more than this many pixels do
-            not enter the pseudo-label (:func:`s3k.readout.reject_outliers`); they still get its target, so
-            they learn from the others. None: every view.
-        window: the detections are the heatmaps' means within this many cells of their peaks
-            (:func:`s3k.heatmaps.peak_window_mean`); None: the read-out's window
-            (:func:`s3k.readout.window_cells`); 0: the whole heatmaps' means, as in the paper.
-        layout, layout_tol: optional ``(K, K)`` reference distances between the keypoints of a rigid object
-            and a relative tolerance; pseudo-label keypoints that break the layout by more
-            (:func:`s3k.readout.reject_layout`) give no term.
-        layout_fit: with a layout, the kept keypoints are replaced by the layout moved onto them
-            (:func:`s3k.readout.fit_layout`), as the read-out does.
-    """
-
-    max_residual_px: float | None = None
-    window: int | None = None
-    layout: Tensor | None = None
-    layout_tol: float = 0.0
-    layout_fit: bool = False
-
-    @classmethod
-    def from_config(cls, cfg: Any, layout: Tensor | None = None) -> PseudoLabelRule:
-        """The rule of a training configuration (``--outlier_px``, ``--pseudo_window``, ``--layout_tol``)
-        with the labelled layout ``layout`` (:func:`s3k.train.labelled_distances`)."""
-        return cls(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
-                   layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol,
-                   layout_fit=cfg.layout_fit)
+PseudoLabelRule = ReadoutConfig.for_pseudo_labels
+"""How the network's detections of an unlabelled frame become its pseudo-label: the read-out's
+:class:`s3k.readout.ReadoutConfig` for pseudo-labels (``PseudoLabelRule(max_residual_px, window, layout,
+layout_tol, layout_fit)``; a training's is :meth:`s3k.readout.ReadoutConfig.of_training`)."""
 
 
 def self_supervised_loss(
@@ -244,7 +215,7 @@ def self_supervised_loss(
     stride: int,
     sigma: float,
     weights: Tensor | None = None,
-    rule: PseudoLabelRule = PseudoLabelRule(),
+    rule: ReadoutConfig | None = None,
     target_logits: Tensor | None = None,
     coord_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
@@ -263,8 +234,9 @@ def self_supervised_loss(
         sigma: target width in image pixels; also the scale of the confidence weight.
         weights: optional ``(B, C, K)`` triangulation weights replacing the confidence weights (e.g. all ones
             for an unweighted ablation).
-        rule: which views and keypoints make the pseudo-label, and how a view is read
-            (:class:`PseudoLabelRule`; the default is the paper's: every view, the whole heatmap's mean).
+        rule: which views and keypoints make the pseudo-label, and how a view is read (a
+            :class:`s3k.readout.ReadoutConfig` for pseudo-labels; default: every view, the read-out's window,
+            no layout).
         target_logits: optional ``(B, C, K, h, w)`` logits of the same images from which the pseudo-label is
             read out instead of ``logits`` (a teacher network's); the KL still trains ``logits``.
         coord_weight: weight of :func:`coord_loss` added to the KL (0: the KL alone).
@@ -298,7 +270,7 @@ def pseudo_labels(
     stride: int,
     sigma: float,
     weights: Tensor | None = None,
-    rule: PseudoLabelRule = PseudoLabelRule(),
+    rule: ReadoutConfig | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The pseudo-labels of :func:`self_supervised_loss`, without its loss: the network's own detections of
     ``logits (B, C, K, h, w)`` triangulated by the read-out every command uses (float64, every finite view
@@ -309,21 +281,11 @@ def pseudo_labels(
         which of them give a term, the detections, their variances and the weights used (zero for a view left
         out).
     """
-    window = readout.window_cells(sigma, stride, rule.window)
-    _probs, mean_uv, var = readout.moments(logits.detach(), stride, window)
-    wts = confidence_weight(var, sigma) if weights is None else weights.detach().to(readout.DTYPE)
-    used = readout.select_views(mean_uv, wts)
-    if rule.max_residual_px is not None:
-        used = readout.reject_outliers(cams, mean_uv, wts, used, rule.max_residual_px)
-    X, valid = readout.triangulate(cams, mean_uv, wts, used)
-    if rule.layout is not None and rule.layout_tol > 0:
-        valid = readout.reject_layout(X, valid, rule.layout, rule.layout_tol)
-        shape = readout.layout_shape(rule.layout) if rule.layout_fit else None
-        if shape is not None:
-            fit, placed = readout.fit_layout(X, valid, shape)
-            X = torch.where((placed & valid)[..., None], fit, X)
-    wts = torch.where(used, wts, torch.zeros_like(wts))
-    return (X.to(cams.dtype), valid, mean_uv.to(cams.dtype), var.to(cams.dtype), wts.to(cams.dtype))
+    ro = readout.read_out(logits.detach(), cams, stride, sigma, config=rule or PseudoLabelRule(),
+                          weights=None if weights is None else weights.detach())
+    X = torch.where(ro.valid[..., None], ro.X, torch.zeros_like(ro.X))  # a point that gives no term: 0
+    wts = torch.where(ro.used, ro.weights, torch.zeros_like(ro.weights))
+    return (X.to(cams.dtype), ro.valid, ro.uv.to(cams.dtype), ro.var.to(cams.dtype), wts.to(cams.dtype))
 
 
 def l2_non_bias(model: nn.Module) -> Tensor:

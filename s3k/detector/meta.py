@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, ReadoutConfig, read_out
 
 __all__ = ["DetectorMeta"]
 
@@ -59,12 +59,18 @@ class DetectorMeta:
         """``outlier_px`` as :func:`s3k.readout.read_out` takes it (None: off)."""
         return self.outlier_px if self.outlier_px > 0 else None
 
+    def readout_config(self, min_weight: float = DEFAULT_MIN_WEIGHT) -> ReadoutConfig:
+        """The read-out settings this detector was trained with (:class:`s3k.readout.ReadoutConfig`: its
+        outlier threshold and rigid layout; the window of its target width)."""
+        return ReadoutConfig(min_weight=min_weight, max_residual_px=self.max_residual_px,
+                             layout=self.layout_distances, layout_tol=self.layout_tol)
+
     def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
                  keep_heatmaps: bool = False) -> ReadOut:
-        """This detector's :func:`s3k.readout.read_out` of its ``logits``: with the stride, target width and
-        outlier threshold it was trained with, so every command reads a detector out the same way."""
-        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, min_weight, keep_heatmaps,
-                        self.max_residual_px, layout=self.layout_distances, layout_tol=self.layout_tol)
+        """This detector's :func:`s3k.readout.read_out` of its ``logits``, with :meth:`readout_config`, so
+        every command reads a detector out the same way."""
+        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, keep_heatmaps=keep_heatmaps,
+                        config=self.readout_config(min_weight))
 
     @property
     def layout_distances(self) -> torch.Tensor | None:

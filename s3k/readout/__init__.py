@@ -36,6 +36,7 @@ uncertain views outright instead of down-weighting them (the weight is 0.5 at a 
 :func:`reject_layout` drops 3D keypoints whose distances to the others break a rigid object's layout.
 """
 
+from s3k.readout.config import LAYOUT_FITS, ReadoutConfig
 from s3k.readout.pipeline import ReadOut, read_out
 from s3k.readout.rigid import (
     LAYOUT_SAMPLES,
@@ -57,7 +58,8 @@ from s3k.readout.views import (
 )
 
 __all__ = [
-    "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "ReadOut", "fit_layout", "layout_locus",
-    "layout_shape", "moments", "read_out", "reject_layout", "reject_outliers", "search_layout",
-    "select_views", "triangulate", "window_cells",
+    "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_FITS", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "ReadOut",
+    "ReadoutConfig", "fit_layout", "layout_locus", "layout_shape", "moments", "read_out", "reject_layout",
+    "reject_outliers",
+    "search_layout", "select_views", "triangulate", "window_cells",
 ]

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from s3k.geometry import Cameras, project
 from s3k.heatmaps import confidence_weight
+from s3k.readout.config import ReadoutConfig
 from s3k.readout.rigid import fit_layout, layout_shape, reject_layout, search_layout
 from s3k.readout.views import (
     DEFAULT_MIN_WEIGHT,
@@ -110,7 +111,8 @@ def _to_camera_pixels(net_uv: Tensor, Minv: Tensor) -> Tensor:
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
              keep_heatmaps: bool = False, max_residual_px: float | None = None,
-             window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0) -> ReadOut:
+             window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0, *,
+             config: ReadoutConfig | None = None, weights: Tensor | None = None) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
     Args:
@@ -121,20 +123,17 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         pixel_maps: ``(C, 3, 3)`` or per frame ``(B, C, 3, 3)`` affine maps from the cameras' pixels to the
             network-input pixels (for cameras of the original images that were cropped and resized for the
             network), or None when ``cams`` are the network input's cameras.
-        min_weight: views with a confidence weight at or below this are not used.
         keep_heatmaps: also return the softmax heatmaps.
-        max_residual_px: if given, views whose reprojection residual exceeds it are dropped one at a time
-            (:func:`reject_outliers`), in the network-input pixels (the pixels the threshold has at training,
-            ``--outlier_px``, whatever the size of the original images).
-        window: each detection is its heatmap's mean within this many cells of the peak (:func:`moments`);
-            None: :func:`window_cells` of ``sigma`` and ``stride``; 0: the whole heatmap's mean (the paper's).
-        layout, layout_tol: a rigid object's ``(K, K)`` reference distances and relative tolerance
-            (:func:`reject_layout`); a keypoint that breaks them is looked for again where the layout puts
-            it (:func:`search_layout`). None or 0: off.
+        min_weight, max_residual_px, window, layout, layout_tol: the settings of an inference read-out
+            (:class:`ReadoutConfig`'s fields), when no ``config`` is given.
+        config: every setting in one :class:`ReadoutConfig` (a detector's, or the pseudo-labels').
+        weights: ``(B, C, K)`` triangulation weights instead of the confidence weights.
 
     Returns:
         A :class:`ReadOut`.
     """
+    if config is None:
+        config = ReadoutConfig(window, min_weight, max_residual_px, layout, layout_tol)
     if not isinstance(logits, Tensor) or logits.ndim != 5:
         shape = tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__
         raise ValueError(f"read_out: logits must be (B, C, K, h, w), got {shape}")
@@ -142,48 +141,76 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     if tuple(cams.shape) not in ((C,), (B, C)):
         raise ValueError(f"read_out: cams must be ({C},) or ({B}, {C}) for logits {tuple(logits.shape)}, "
                          f"got {tuple(cams.shape)}")
-    cells = window_cells(sigma, stride, window)
+    cells = window_cells(sigma, stride, config.window)
     probs, uv, var = moments(logits, stride, cells)
-    weights = confidence_weight(var, sigma)
-    used = select_views(uv, weights, min_weight)
+    weights = confidence_weight(var, sigma) if weights is None else weights.to(DTYPE)
+    used = select_views(uv, weights, config.min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
         cams = cams.to(device=logits.device, dtype=DTYPE)
-    net_cams, net_uv = cams, uv  # the cameras of the network-input pixels and the detections in them
+    views = _Views(cams, cams, uv, None)  # the cameras of the network-input pixels and the detections in them
     if pixel_maps is not None:
         maps = torch.as_tensor(np.asarray(pixel_maps, dtype=np.float64), device=logits.device)
         if maps.shape not in ((C, 3, 3), (B, C, 3, 3)):
             raise ValueError(f"read_out: pixel_maps must be ({C}, 3, 3) or ({B}, {C}, 3, 3), "
                              f"got {tuple(maps.shape)}")
-        Minv = _affine_inverse(maps)  # network-input pixels -> the cameras' pixels
-        uv = _to_camera_pixels(uv, Minv)
-        net_cams = Cameras(maps @ cams.K, cams.dist, cams.R, cams.t)  # an affine pixel map: K' = M K
-    if max_residual_px is not None:
-        used = reject_outliers(net_cams, net_uv, weights, used, max_residual_px)
+        # an affine pixel map: K' = M K
+        views = _Views(cams, Cameras(maps @ cams.K, cams.dist, cams.R, cams.t), uv, _affine_inverse(maps))
+    uv = views.in_cameras(views.net_uv)
+    if config.max_residual_px is not None:
+        used = reject_outliers(views.net_cams, views.net_uv, weights, used, config.max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
-    if layout is not None and layout_tol > 0 and cells > 0:
-        kept = reject_layout(X, valid, layout, layout_tol)
-        found = [] if bool(kept.all()) else search_layout(probs, net_cams, stride, X, kept, layout,
-                                                            layout_tol, cells)
-        if found:
-            net_uv, used = net_uv.clone(), used.clone()
-            for b, k, found_uv, found_used, _ in found:
-                w_k = weights[b, :, k]
-                net_uv[b, :, k] = found_uv
-                used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > min_weight)
-            uv = net_uv if pixel_maps is None else _to_camera_pixels(net_uv, Minv)
-            X, valid = triangulate(cams, uv, weights, used)
-            # a detection read next to a stronger wrong peak can still break the layout: then the best place
-            # on the locus is the keypoint
-            again = reject_layout(X, valid, layout, layout_tol)
-            X, valid = X.clone(), valid.clone()
-            for b, k, _, _, place in found:
-                if not bool(again[b, k]):
-                    X[b, k], valid[b, k] = place, True
-            kept = reject_layout(X, valid, layout, layout_tol)  # the points moved: check them again
-        rigid_shape = layout_shape(layout)
-        if rigid_shape is not None:
-            fit, placed = fit_layout(X, kept, rigid_shape)
-            X = torch.where(placed[..., None], fit, X)
-            valid = valid | placed
+    if config.rigid:
+        X, valid, uv, used = _rigid(config, views, probs, weights, used, X, valid, stride, cells)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)
+
+
+@dataclass
+class _Views:
+    """The cameras of the results' pixels and of the network's input, the detections in the latter and the
+    map back (None: the same pixels)."""
+
+    cams: Cameras
+    net_cams: Cameras
+    net_uv: Tensor
+    Minv: Tensor | None
+
+    def in_cameras(self, net_uv: Tensor) -> Tensor:
+        return net_uv if self.Minv is None else _to_camera_pixels(net_uv, self.Minv)
+
+
+def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor, used: Tensor, X: Tensor,
+           valid: Tensor, stride: int, cells: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The rigid read-out (:class:`ReadoutConfig`'s layout fields): ``(X, valid, uv, used)``."""
+    layout, tol = config.layout, config.layout_tol
+    assert layout is not None
+    uv = views.in_cameras(views.net_uv)
+    kept = reject_layout(X, valid, layout, tol)
+    found = [] if not config.layout_search or cells == 0 or bool(kept.all()) else search_layout(
+        probs, views.net_cams, stride, X, kept, layout, tol, cells)
+    if found:
+        net_uv, used = views.net_uv.clone(), used.clone()
+        for b, k, found_uv, found_used, _ in found:
+            w_k = weights[b, :, k]
+            net_uv[b, :, k] = found_uv
+            used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > config.min_weight)
+        uv = views.in_cameras(net_uv)
+        X, valid = triangulate(views.cams, uv, weights, used)
+        # a detection read next to a stronger wrong peak can still break the layout: then the best place on
+        # the locus is the keypoint
+        again = reject_layout(X, valid, layout, tol)
+        X, valid = X.clone(), valid.clone()
+        for b, k, _, _, place in found:
+            if not bool(again[b, k]):
+                X[b, k], valid[b, k] = place, True
+        kept = reject_layout(X, valid, layout, tol)  # the points moved: check them again
+    if config.layout_drop:
+        valid = valid & kept
+    shape = layout_shape(layout) if config.layout_fit != "off" else None
+    if shape is not None:
+        fit, placed = fit_layout(X, kept, shape)
+        if config.layout_fit == "all":
+            X, valid = torch.where(placed[..., None], fit, X), valid | placed
+        else:
+            X = torch.where((placed & valid)[..., None], fit, X)
+    return X, valid, uv, used

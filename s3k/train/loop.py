@@ -31,8 +31,8 @@ from s3k.detector import (
     save_model_file,
 )
 from s3k.errors import UserError
-from s3k.losses import PseudoLabelRule
 from s3k.model import UNet, UNetConfig
+from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import (
@@ -95,7 +95,7 @@ class _Loop:
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout_tol holds the pseudo-labels to
-        self.rule = PseudoLabelRule.from_config(cfg, layout)
+        self.rule = ReadoutConfig.of_training(cfg, layout)
         if cfg.unsup and cfg.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)

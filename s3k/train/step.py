@@ -8,11 +8,12 @@ import torch
 from torch import nn
 
 from s3k.config import TrainConfig
-from s3k.losses import PseudoLabelRule, l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
+from s3k.readout import ReadoutConfig
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
-                   weight_decay_model: nn.Module, rule: PseudoLabelRule,
+                   weight_decay_model: nn.Module, rule: ReadoutConfig,
                    teacher: nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
@@ -23,8 +24,9 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         cfg: configuration (stride, sigma, weight decay).
         alpha: weight of the self-supervised term at this step.
         weight_decay_model: the unwrapped network (for the L2 term).
-        rule: how the unlabelled frames' detections become pseudo-labels (:class:`PseudoLabelRule`, built
-            once per run from ``cfg`` and the labelled layout, so the layout check is never left out).
+        rule: how the unlabelled frames' detections become pseudo-labels (a
+            :class:`s3k.readout.ReadoutConfig`, built once per run from ``cfg`` and the labelled layout, so
+            the layout check is never left out).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
             (``--teacher_ema``); without one they come from ``model``'s own logits.
 

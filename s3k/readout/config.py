@@ -1,0 +1,79 @@
+"""Every setting of the read-out in one carrier, :class:`ReadoutConfig`: a detector's (from its meta, the
+settings it was trained with) and the pseudo-labels' (:meth:`ReadoutConfig.for_pseudo_labels`) go through the
+same :func:`s3k.readout.read_out`.
+
+The two differ where a test showed a reason, each an explicit field: at inference a keypoint that breaks a
+rigid object's layout is looked for again where the layout puts it and the fitted layout places every
+keypoint (``layout_search``, ``layout_fit="all"``); a pseudo-label keypoint that breaks the layout gives no
+term instead (``layout_drop``) and the layout moves only the kept keypoints (``layout_fit="kept"`` with
+``--layout_fit``, else ``"off"``), so that training never learns from a place no view showed
+(docs/training.md). The pseudo-labels' window is the training's ``--pseudo_window``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor
+
+from s3k.readout.views import DEFAULT_MIN_WEIGHT
+
+__all__ = ["LAYOUT_FITS", "ReadoutConfig"]
+
+LAYOUT_FITS = ("all", "kept", "off")
+
+
+@dataclass(frozen=True, eq=False)
+class ReadoutConfig:
+    """How heatmap logits become detections and 3D points (:func:`s3k.readout.read_out`).
+
+    Attributes:
+        window: each detection is its heatmap's mean within this many cells of the peak; None:
+            :func:`s3k.readout.window_cells` of the target width; 0: the whole heatmap's mean (the paper's).
+        min_weight: views with a confidence weight at or below this are not used (0: every view, weighted).
+        max_residual_px: views whose reprojection residual exceeds this many network-input pixels are left
+            out one at a time (:func:`s3k.readout.reject_outliers`); None: every view.
+        layout, layout_tol: a rigid object's ``(K, K)`` reference distances and the relative tolerance
+            keypoints are held to (:func:`s3k.readout.reject_layout`); None or 0: no rigid read-out.
+        layout_search: look again for a keypoint that breaks the layout where the layout puts it
+            (:func:`s3k.readout.search_layout`; needs a window).
+        layout_drop: a keypoint that breaks the layout is not valid.
+        layout_fit: ``"all"``: the layout fitted onto the kept keypoints (:func:`s3k.readout.fit_layout`)
+            places every keypoint; ``"kept"``: it moves only the kept ones; ``"off"``: no fit.
+    """
+
+    window: int | None = None
+    min_weight: float = DEFAULT_MIN_WEIGHT
+    max_residual_px: float | None = None
+    layout: Tensor | None = None
+    layout_tol: float = 0.0
+    layout_search: bool = True
+    layout_drop: bool = False
+    layout_fit: str = "all"
+
+    def __post_init__(self) -> None:
+        if self.layout_fit not in LAYOUT_FITS:
+            raise ValueError(f"layout_fit: one of {', '.join(LAYOUT_FITS)}, got {self.layout_fit!r}")
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the rigid read-out is on."""
+        return self.layout is not None and self.layout_tol > 0
+
+    @classmethod
+    def for_pseudo_labels(cls, max_residual_px: float | None = None, window: int | None = None,
+                          layout: Tensor | None = None, layout_tol: float = 0.0,
+                          layout_fit: bool = False) -> ReadoutConfig:
+        """The pseudo-labels' read-out (module docstring): every view, no search, layout-breaking
+        keypoints dropped, the layout fitted onto the kept ones with ``layout_fit``."""
+        return cls(window=window, max_residual_px=max_residual_px, layout=layout, layout_tol=layout_tol,
+                   layout_search=False, layout_drop=True, layout_fit="kept" if layout_fit else "off")
+
+    @classmethod
+    def of_training(cls, cfg: Any, layout: Tensor | None = None) -> ReadoutConfig:
+        """The pseudo-labels' read-out of a training configuration (``--outlier_px``, ``--pseudo_window``,
+        ``--layout_tol``, ``--layout_fit``) with the labelled layout ``layout``."""
+        return cls.for_pseudo_labels(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
+                                     layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol,
+                                     layout_fit=cfg.layout_fit)
