@@ -99,7 +99,7 @@ def heatmap_size(H: int, W: int, stride: int) -> tuple[int, int]:
     if H < 1 or W < 1 or H % stride or W % stride:
         raise ValueError(
             f"heatmaps: image size H={H}, W={W} must be positive multiples of the heatmap stride {stride}; "
-            "resize or crop the images (s3k.data.transforms.resize_crop)"
+            "resize or crop the images (s3k.geometry.warp.resize_crop)"
         )
     return H // stride, W // stride
 

@@ -215,8 +215,8 @@ def recalibrate_dataset(
     import glob
 
     from s3k.data.formats.anipose import read_anipose_calibration
-    from s3k.data.transforms import crop_resize_matrix
     from s3k.errors import UserError
+    from s3k.geometry.warp import crop_resize_matrix
 
     source = ds.source if isinstance(ds.source, dict) else {}
     toml_path = calibration or source.get("calibration")

@@ -12,7 +12,7 @@ import pytest
 
 from s3k.data import Dataset, DatasetError, DatasetWarning, DatasetWriter, check_dataset
 from s3k.data.tables import CALIBRATION_COLUMNS
-from s3k.data.transforms import crop_resize_matrix, resize_crop
+from s3k.geometry.warp import crop_resize_matrix, resize_crop
 
 KEYPOINTS = ["corner_a", "corner_b", "corner_c"]
 CAMERAS = ["cam0", "cam1", "cam2"]

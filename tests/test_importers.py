@@ -382,7 +382,7 @@ def _reprojected(ds, frame_ids, X):
 
 def test_import_sleap(recording, tmp_path, capsys):
     from s3k.data import Dataset
-    from s3k.data.transforms import resize_crop
+    from s3k.geometry.warp import resize_crop
 
     out = tmp_path / "ds"
     assert _import(recording, out, "--labelled", "3", "--test", "4", "--seed", "1", "--scale", "0.5") == 0

@@ -18,9 +18,9 @@ from synthetic_rig import KEYPOINTS, make_dataset
 from torch import nn
 
 from s3k.data.frames import FrameStore, images_to_float, open_dataset
-from s3k.data.transforms import crop_resize_matrix
 from s3k.detector import DetectorMeta, OnePassDetector
 from s3k.geometry import Cameras, project
+from s3k.geometry.warp import crop_resize_matrix
 from s3k.heatmaps import (
     confidence_weight,
     gaussian_targets,

@@ -23,10 +23,10 @@ from s3k import cli
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.rig import Rig
 from s3k.data.tracks_csv import csv_header, read_csv
-from s3k.data.transforms import crop_resize_matrix
 from s3k.data.video import frame_count, frame_size, synchronized_frames, write_video
 from s3k.detector import DetectorMeta
 from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.geometry.warp import crop_resize_matrix
 from s3k.heatmaps import (
     confidence_weight,
     gaussian_targets,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
+from s3k.geometry.warp import crop_resize_matrix, resize_crop, transform_points
 
 W, H = 80, 60
 K = np.array([[70.0, 0.0, 39.5], [0.0, 72.0, 29.5], [0.0, 0.0, 1.0]])

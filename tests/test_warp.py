@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from s3k.data.transforms import crop_resize_matrix
 from s3k.geometry import Cameras, project
-from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes
+from s3k.geometry.warp import crop_images, crop_maps, crop_resize_matrix, metric_crop_boxes
 
 
 def _rig(distances, f=247.0, size=96, dtype=torch.float64):

@@ -19,7 +19,7 @@ Modules, one job each:
 - :mod:`~s3k.data.formats`: other tools' files, one module per format (calibrations, 2D labels, 3D tracks;
   ``label_export`` writes labels back out); :mod:`~s3k.data.recording` (``import_recording``: a recording to a
   dataset) and :mod:`~s3k.data.import_choices` (its choices of image size and splits).
-- :mod:`~s3k.data.transforms` (crop/resize maps), :mod:`~s3k.data.video` (video I/O) and
+- :mod:`~s3k.geometry.warp` (crop/resize maps), :mod:`~s3k.data.video` (video I/O) and
   :mod:`~s3k.data.imageseq` (image sequences read in place of videos).
 """
 

@@ -45,9 +45,9 @@ from s3k.data.tables import (
     read_metadata,
     read_points3d,
 )
-from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
 from s3k.data.usable import usable_labels
 from s3k.geometry import Cameras
+from s3k.geometry.warp import crop_resize_matrix, resize_crop, transform_points
 
 
 @dataclass

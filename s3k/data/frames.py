@@ -2,7 +2,7 @@
 
 Training, evaluation and prediction read frames through :class:`FrameStore` so that all three see the images
 at the same size and with the same intrinsics (``Dataset.open(image_size=...)``, which resizes with
-``s3k.data.transforms.resize_crop``, ``K' = M K``). When a
+``s3k.geometry.warp.resize_crop``, ``K' = M K``). When a
 split fits in ``preload_mb`` it is decoded up front into the dataset's uint8 image cache and the store serves
 batches straight from that cache (no copy of its own), which keeps data loading a small fraction of a
 training step; otherwise each batch is read from the dataset on demand.

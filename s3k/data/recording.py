@@ -247,8 +247,8 @@ def import_recording(
             (:meth:`s3k.data.rig.Rig.with_video_regions`), for videos a few pixels smaller or larger.
     """
     from s3k.data import video
-    from s3k.data.transforms import crop_resize_matrix, resize_crop, transform_points
     from s3k.data.writer import DatasetWriter
+    from s3k.geometry.warp import crop_resize_matrix, resize_crop, transform_points
 
     out = Path(out)
     inputs = {"--calibration": calibration, "--videos": list(videos.values())}

@@ -87,14 +87,14 @@ class Rig:
     def with_video_regions(self, regions: dict[str, tuple[float, float, float, float]]) -> Rig:
         """A copy whose camera ``name`` has the image that region ``(x0, y0, x1, y1)`` (pixel edge coordinates
         of the calibrated image) of its calibrated image becomes: size ``(x1 - x0, y1 - y0)`` and intrinsics
-        ``K' = M K`` (:func:`s3k.data.transforms.resize_crop`). A video of 1080 rows calibrated at 1088, the
+        ``K' = M K`` (:func:`s3k.geometry.warp.resize_crop`). A video of 1080 rows calibrated at 1088, the
         encoder's 8 rows of padding cut at the bottom, is region ``(0, 0, W, 1080)``; a region reaching
         outside the calibrated image declares padding added to the video.
 
         Raises:
             KeyError: an unknown camera. ValueError: a region of fractional or non-positive size.
         """
-        from s3k.data.transforms import resize_crop
+        from s3k.geometry.warp import resize_crop
 
         arrays = self.cameras.numpy()
         size = self.size.copy()

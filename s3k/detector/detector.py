@@ -36,13 +36,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from s3k.data.transforms import resize_crop
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
 from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resample_regions
+from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resample_regions, resize_crop
 from s3k.model import UNet
 from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut
 
@@ -168,7 +167,7 @@ class _Pass:
         """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels: ``boxes (B, C, 4)`` of every view
         resampled to the input size on the device, as the training images were (``crops``: the refining
         pass's crops, :func:`s3k.geometry.warp.crop_images`; else the region's view resized as the dataset
-        resizes its images, :func:`s3k.data.transforms.resize_crop` on the CPU and its area-averaging
+        resizes its images, :func:`s3k.geometry.warp.resize_crop` on the CPU and its area-averaging
         equivalent :func:`s3k.geometry.warp.resample_regions` on another device)."""
         w, h = self.size
         out = []

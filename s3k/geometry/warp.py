@@ -1,13 +1,27 @@
-"""Scale-normalized crops: each view cut around the reprojection of a 3D estimate, sized from a metric extent.
+"""The one module that crops and resizes images and maps the cameras with them (``K' = M K``): a crop box
+onto an output size (:func:`crop_resize_matrix`, :func:`resize_crop`: the dataset's resize, OpenCV or torch),
+batched crop maps and crops cut around the reprojection of a 3D point at a metric size
+(:func:`metric_crop_boxes`, :func:`crop_maps`, :func:`crop_images`: the refining pass's crops), and a
+region resampled onto a network's input on any device (:func:`resample_regions`).
 
-A coarse pass on whole images gives a 3D estimate of the object; every camera then gets a crop centred on the
-estimate's reprojection whose side covers ``extent`` metres at the estimate's depth. Cut from the
-full-resolution image and resampled to the network's input size, the object has the same size in every crop,
-whatever the camera's distance or focal length, and the crop keeps exact geometry through ``K' = M K``
-(docs/method.md#conventions), so the refining pass trains and runs with the same losses and read-out.
+The one function that resizes or crops images and updates the intrinsics with them.
 
-Boxes use the pixel *edge* coordinates of :mod:`s3k.data.transforms` (the whole image is ``(0, 0, W, H)``);
-pixel coordinates use the pixel-centre convention.
+Convention (docs/method.md#conventions): pixel ``(0, 0)`` is the centre of the top-left pixel, so pixel
+column ``i`` covers ``[i - 0.5, i + 0.5]`` in pixel coordinates. A crop box ``(x0, y0, x1, y1)`` is given in
+pixel *edge* coordinates, where column ``i`` covers ``[i, i + 1)``: the whole image is ``(0, 0, W, H)`` and
+an integer box keeps columns ``x0 .. x1 - 1`` and rows ``y0 .. y1 - 1``. Mapping the box onto an output of
+``(w, h)`` pixels scales by ``s_x = w / (x1 - x0)``, ``s_y = h / (y1 - y0)`` and sends a pixel coordinate
+``u`` to
+
+    u' = s_x (u + 0.5 - x0) - 0.5,
+
+so for a plain resize (``x0 = 0``) a scale ``s`` maps ``u -> s (u + 0.5) - 0.5``. Written as a 3x3 matrix
+``M`` acting on homogeneous pixels, the new intrinsics are exactly ``K' = M @ K``; lens distortion acts on
+normalized coordinates before ``K`` and is unchanged.
+
+Scale-normalized crops: every camera gets a crop centred on a 3D estimate's reprojection whose side covers
+``extent`` world units at the estimate's depth; resampled to the network's input size, the object has the same
+size in every crop whatever the camera's distance or focal length.
 
 Shapes: ``L`` the leading dims of a camera set (``(B, C)`` per frame), ``N`` images.
 """
@@ -15,14 +29,194 @@ Shapes: ``L`` the leading dims of a camera set (``(B, C)`` per frame), ``N`` ima
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from s3k.geometry import Cameras, project
+from s3k.geometry.cameras import Cameras
+from s3k.geometry.projection import project
 
-__all__ = ["crop_images", "crop_maps", "metric_crop_boxes", "resample_regions"]
+__all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "resample_regions",
+           "resize_crop", "transform_points"]
+
+Box = Sequence[float]
+
+
+def _check_box(crop_box: Box | None, in_size: tuple[int, int]) -> tuple[float, float, float, float]:
+    W, H = in_size
+    if crop_box is None:
+        return 0.0, 0.0, float(W), float(H)
+    if len(crop_box) != 4:
+        raise ValueError(f"crop_box must be (x0, y0, x1, y1), got {crop_box!r}")
+    x0, y0, x1, y1 = (float(c) for c in crop_box)
+    if not all(np.isfinite([x0, y0, x1, y1])):
+        raise ValueError(f"crop_box must be finite, got {crop_box!r}")
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"crop_box must have x1 > x0 and y1 > y0, got {crop_box!r}")
+    return x0, y0, x1, y1
+
+
+def _check_out_size(
+    out_size: Sequence[int] | None, box: tuple[float, float, float, float]
+) -> tuple[int, int]:
+    if out_size is None:
+        w, h = box[2] - box[0], box[3] - box[1]
+        if w != int(w) or h != int(h):
+            raise ValueError(f"out_size is needed when the crop box {box} has a fractional size")
+        return int(w), int(h)
+    if len(out_size) != 2 or int(out_size[0]) != out_size[0] or int(out_size[1]) != out_size[1]:
+        raise ValueError(f"out_size must be (W, H) integers, got {out_size!r}")
+    w, h = int(out_size[0]), int(out_size[1])
+    if w <= 0 or h <= 0:
+        raise ValueError(f"out_size must be positive, got {out_size!r}")
+    return w, h
+
+
+def crop_resize_matrix(crop_box: Box, out_size: Sequence[int]) -> np.ndarray:
+    """The 3x3 pixel map ``M`` of a crop box onto an output image (float64).
+
+    Args:
+        crop_box: ``(x0, y0, x1, y1)`` in pixel edge coordinates (whole image: ``(0, 0, W, H)``).
+        out_size: output ``(w, h)``.
+
+    Returns:
+        ``M (3, 3)`` with ``[u', v', 1] = M @ [u, v, 1]`` in the pixel-centre convention.
+
+    Example:
+        >>> (crop_resize_matrix((0, 0, 4, 4), (2, 2)) @ [0.5, 0.5, 1.0]).tolist()  # centre of a 2x2 block
+        [0.0, 0.0, 1.0]
+    """
+    x0, y0, x1, y1 = _check_box(crop_box, (1, 1))
+    w, h = _check_out_size(out_size, (x0, y0, x1, y1))
+    sx, sy = w / (x1 - x0), h / (y1 - y0)
+    return np.array(
+        [[sx, 0.0, sx * (0.5 - x0) - 0.5], [0.0, sy, sy * (0.5 - y0) - 0.5], [0.0, 0.0, 1.0]],
+        dtype=np.float64,
+    )
+
+
+def _is_plain_crop(box: tuple[float, float, float, float], in_size: tuple[int, int]) -> bool:
+    """An integer box inside the image: the crop is a slice and the resize can use area averaging."""
+    W, H = in_size
+    x0, y0, x1, y1 = box
+    integral = all(float(c).is_integer() for c in box)
+    return integral and x0 >= 0 and y0 >= 0 and x1 <= W and y1 <= H
+
+
+def _warp_numpy(img: np.ndarray, box, in_size, out_size, M: np.ndarray) -> np.ndarray:
+    w, h = out_size
+    if _is_plain_crop(box, in_size):
+        x0, y0, x1, y1 = (int(c) for c in box)
+        sub = img[y0:y1, x0:x1]
+        if (x1 - x0, y1 - y0) == (w, h):
+            return np.ascontiguousarray(sub)
+        # Both OpenCV modes follow the pixel-centre convention: INTER_LINEAR samples at s^-1 (u' + 0.5) - 0.5,
+        # INTER_AREA averages the footprint [u' / s, (u' + 1) / s) in edge coordinates.
+        shrinking = w <= (x1 - x0) and h <= (y1 - y0)
+        interp = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
+        return cv2.resize(np.ascontiguousarray(sub), (w, h), interpolation=interp)
+    # warpAffine uses integer pixel centres too, so the same M applies; outside the image is black.
+    return cv2.warpAffine(
+        img, M[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
+
+
+def _warp_torch(images, box, in_size, out_size, M: np.ndarray):
+    lead = images.shape[:-3]
+    H, W = images.shape[-3], images.shape[-2]
+    w, h = out_size
+    x = images.reshape(-1, H, W, images.shape[-1]).permute(0, 3, 1, 2)
+    work = x if x.is_floating_point() else x.float()
+    if _is_plain_crop(box, in_size):
+        x0, y0, x1, y1 = (int(c) for c in box)
+        work = work[:, :, y0:y1, x0:x1]
+        if (x1 - x0, y1 - y0) != (w, h):
+            shrinking = w < (x1 - x0) or h < (y1 - y0)
+            # align_corners=False is the pixel-centre convention; antialias averages when shrinking.
+            work = F.interpolate(work, size=(h, w), mode="bilinear", align_corners=False, antialias=shrinking)
+    else:
+        Minv = np.linalg.inv(M)
+        uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        src = np.einsum("ij,jhw->ihw", Minv, np.stack([uu, vv, np.ones_like(uu)]))
+        # grid_sample with align_corners=False: normalized x = (2 u + 1) / W - 1 for pixel-centre u.
+        gx = (2 * src[0] + 1) / W - 1
+        gy = (2 * src[1] + 1) / H - 1
+        grid = torch.as_tensor(np.stack([gx, gy], -1), dtype=work.dtype, device=work.device)
+        grid = grid.expand(work.shape[0], h, w, 2)
+        work = F.grid_sample(work, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    if not images.is_floating_point():
+        info = torch.iinfo(images.dtype)
+        work = work.round().clamp(info.min, info.max).to(images.dtype)
+    return work.permute(0, 2, 3, 1).reshape(*lead, h, w, images.shape[-1]).contiguous()
+
+
+def resize_crop(images, K=None, crop_box: Box | None = None, out_size: Sequence[int] | None = None):
+    """Crop ``images`` to ``crop_box`` and resize to ``out_size``, updating the intrinsics exactly.
+
+    Works on numpy arrays (OpenCV; area averaging when shrinking with an integer box) and on torch tensors
+    (``F.interpolate`` / ``F.grid_sample``); the output has the input's type and dtype. A box reaching outside
+    the image pads with zeros.
+
+    Args:
+        images: ``(..., H, W, 3)`` images (uint8 or float), numpy or torch; may be None to update ``K`` only.
+        K: ``(..., 3, 3)`` intrinsics, numpy or torch (any leading dims), or None.
+        crop_box: ``(x0, y0, x1, y1)`` in pixel edge coordinates; None keeps the whole image. With
+            ``images=None`` a box is required.
+        out_size: output ``(w, h)``; None keeps the box size (which must then be integral).
+
+    Returns:
+        ``(images (..., h, w, 3), K' (..., 3, 3))`` with ``K' = M @ K`` for
+        ``M = crop_resize_matrix(box, out)`` (``K'`` is None when ``K`` is None).
+
+    Example:
+        >>> img = np.zeros((48, 64, 3), np.uint8)
+        >>> K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+        >>> small, K2 = resize_crop(img, K, None, (32, 24))
+        >>> small.shape, float(K2[0, 0]), float(K2[0, 2])
+        ((24, 32, 3), 25.0, 15.5)
+    """
+    if images is None:
+        if crop_box is None:
+            raise ValueError("resize_crop without images needs an explicit crop_box")
+        in_size = (1, 1)
+    else:
+        if images.ndim < 3:
+            raise ValueError(f"images must have shape (..., H, W, 3), got {tuple(images.shape)}")
+        in_size = (int(images.shape[-2]), int(images.shape[-3]))
+    box = _check_box(crop_box, in_size)
+    out = _check_out_size(out_size, box)
+    M = crop_resize_matrix(box, out)
+
+    new_K: Any = None
+    if K is not None:
+        if tuple(K.shape[-2:]) != (3, 3):
+            raise ValueError(f"K must have shape (..., 3, 3), got {tuple(K.shape)}")
+        if isinstance(K, torch.Tensor):
+            new_K = torch.as_tensor(M, dtype=K.dtype, device=K.device) @ K
+        else:
+            new_K = (M @ np.asarray(K, dtype=np.float64)).astype(np.result_type(K.dtype, np.float32))
+
+    if images is None:
+        return None, new_K
+    if isinstance(images, torch.Tensor):
+        return _warp_torch(images, box, in_size, out, M), new_K
+    images = np.asarray(images)
+    lead = images.shape[:-3]
+    flat = images.reshape(-1, *images.shape[-3:])
+    result = np.empty((flat.shape[0], out[1], out[0], images.shape[-1]), dtype=images.dtype)
+    for i in range(flat.shape[0]):
+        result[i] = _warp_numpy(flat[i], box, in_size, out, M).reshape(result.shape[1:])
+    return result.reshape(*lead, out[1], out[0], images.shape[-1]), new_K
+
+
+def transform_points(uv, M: np.ndarray):
+    """Apply a pixel map ``M (3, 3)`` (e.g. from :func:`crop_resize_matrix`) to pixels ``uv (..., 2)``."""
+    uv = np.asarray(uv, dtype=np.float64)
+    return uv @ M[:2, :2].T + M[:2, 2]
 
 
 def metric_crop_boxes(
@@ -70,7 +264,7 @@ def metric_crop_boxes(
 def crop_maps(boxes: Tensor, out_size: Sequence[int]) -> Tensor:
     """The pixel maps ``M`` of crop boxes onto an output of ``(w, h)`` pixels, batched.
 
-    Same map as :func:`s3k.data.transforms.crop_resize_matrix`: ``u' = s_x (u + 0.5 - x0) - 0.5`` with
+    Same map as :func:`s3k.geometry.warp.crop_resize_matrix`: ``u' = s_x (u + 0.5 - x0) - 0.5`` with
     ``s_x = w / (x1 - x0)``; the crop's intrinsics are ``K' = M @ K``.
 
     Args:

@@ -4,7 +4,7 @@ Pipeline, per frame (the same read-out as training, ``s3k predict`` and ``s3k ev
 
 1. The C videos are decoded in lockstep (:func:`s3k.data.video.synchronized_frames`): frame ``i`` of every
    video is one instant (anipose's assumption for a synchronized rig).
-2. Each image is mapped onto the detector's input size with :func:`s3k.data.transforms.resize_crop` (the crop
+2. Each image is mapped onto the detector's input size with :func:`s3k.geometry.warp.resize_crop` (the crop
    box follows ``crops`` or ``fit``), whose pixel map ``M`` also gives the network's intrinsics ``K' = M K``.
 3. The shared network gives one heatmap per camera and keypoint; :func:`s3k.readout.read_out` turns them into
    detections in the original video pixels (through ``M^-1``), confidence weights, and the
@@ -115,7 +115,7 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
         FileNotFoundError: a missing video file.
     """
     from s3k.data import video
-    from s3k.data.transforms import crop_resize_matrix
+    from s3k.geometry.warp import crop_resize_matrix
 
     known = list(calibration.names)
     unknown = [c for c in videos if c not in known]

@@ -67,7 +67,7 @@ def _image_path(ds: Any, cam: str, frame: int) -> Path:
 def source_maps(ds: Any) -> dict[str, np.ndarray] | None:
     """``{camera: M}``, the pixel map of ``s3k import``'s crop and resize from the source video to the
     dataset's images, for a dataset imported from videos; else None."""
-    from s3k.data.transforms import crop_resize_matrix
+    from s3k.geometry.warp import crop_resize_matrix
 
     source = ds.source if isinstance(ds.source, dict) else {}
     videos, boxes = source.get("videos"), source.get("crop_boxes")
@@ -79,7 +79,7 @@ def source_maps(ds: Any) -> dict[str, np.ndarray] | None:
 def video_references(ds: Any, tables: dict[str, LabelTable]) -> dict[str, Any]:
     """``{camera: video file, or a list of image files}`` that the labels' frame numbers index. For a
     dataset imported from videos the labels are mapped into the videos' pixels (``tables`` changes)."""
-    from s3k.data.transforms import transform_points
+    from s3k.geometry.warp import transform_points
 
     images = ds.metadata.get("images", {})
     if images.get("type") == "video":
