@@ -164,31 +164,34 @@ class _Pass:
         return int(self.meta.image_size[0]), int(self.meta.image_size[1])
 
     def cut(self, views: list[Tensor], boxes: Tensor, crops: bool = False) -> Tensor:
-        """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels: ``boxes (B, C, 4)`` of every view
-        resampled to the input size on the device, as the training images were (``crops``: the refining
-        pass's crops, :func:`s3k.geometry.warp.crop_images`; else the region's view resized as the dataset
-        resizes its images, :func:`s3k.geometry.warp.resize_crop` on the CPU and its area-averaging
-        equivalent :func:`s3k.geometry.warp.resample_regions` on another device)."""
+        """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels (a channels-last view: one copy from
+        the frames): ``boxes (B, C, 4)`` of every view resampled to the input size on the device, as the
+        training images were (``crops``: the refining pass's crops, :func:`s3k.geometry.warp.crop_images`;
+        else the region's view resized as the dataset resizes its images,
+        :func:`s3k.geometry.warp.resize_crop` on the CPU and its area-averaging equivalent
+        :func:`s3k.geometry.warp.resample_regions` on another device)."""
         w, h = self.size
-        out = []
+        out = []  # per camera (B, h, w, 3): stacked, the views of one frame lie together for the network
         for c, v in enumerate(views):
             box = boxes[:, c]
             whole = box.new_tensor([0.0, 0.0, v.shape[2], v.shape[1]])
             if (v.shape[2], v.shape[1]) == (w, h) and bool((box == whole).all()):
-                out.append(v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float())
+                out.append(v.to(self.device, non_blocking=True))
                 continue
             if not crops and self.device.type == "cpu" and v.device.type == "cpu":
                 # on the CPU, OpenCV's resize of the uint8 frame: what the resized dataset's images were
                 frames = v.numpy()
                 rows = [resize_crop(frames[b], None, tuple(box[b].tolist()), (w, h))[0]
                         for b in range(len(v))]
-                out.append(torch.from_numpy(np.stack(rows)).permute(0, 3, 1, 2).float())
+                out.append(torch.from_numpy(np.stack(rows)))
                 continue
             v, box = _around(v, box, (w, h))
             x = v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float()
             warp = crop_images if crops else resample_regions
-            out.append(warp(x, box.to(self.device, torch.float32), (w, h)).round_().clamp_(0, 255))
-        return torch.stack(out, 1).div_(255.0)
+            out.append(warp(x, box.to(self.device, torch.float32), (w, h)).round_().clamp_(0, 255)
+                       .permute(0, 2, 3, 1))
+        x = torch.stack([o.float() if o.dtype != torch.float32 else o for o in out], 1).div_(255.0)
+        return x.permute(0, 1, 4, 2, 3)  # (B, C, 3, h, w), channels last in memory
 
     def logits(self, x: Tensor) -> Tensor:
         """``(B, C, 3, h, w)`` -> ``(B, C, K, h', w')`` float32."""
@@ -196,8 +199,9 @@ class _Pass:
         dtype = PRECISIONS[self.precision]
         ctx = (torch.autocast(self.device.type, dtype=dtype) if dtype is not None
                else contextlib.nullcontext())
+        flat = x.flatten(0, 1)  # a view of the channels-last frames
         with ctx:
-            logits = self.net(x.reshape(B * C, *x.shape[2:]).contiguous(memory_format=torch.channels_last))
+            logits = self.net(flat.contiguous(memory_format=torch.channels_last))
         return logits.float().reshape(B, C, *logits.shape[1:])
 
 
@@ -307,7 +311,11 @@ class OnePassDetector(Detector):
     def _detect(self, views, cams, boxes, min_weight, keep, crops=False):
         x = self.pass_.cut(views, boxes, crops)
         maps = crop_maps(boxes, self.pass_.size)
-        ro = self.meta.read_out(self.pass_.logits(x), cams, maps, min_weight, keep)
+        w, h = self.pass_.size
+        as_they_are = all(v.shape[1:3] == (h, w) for v in views) and bool(
+            (boxes == boxes.new_tensor([0.0, 0.0, w, h])).all())
+        # frames of the network's size, whole: the pixel maps are the identity, and the read-out skips them
+        ro = self.meta.read_out(self.pass_.logits(x), cams, None if as_they_are else maps, min_weight, keep)
         return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
                          inputs=x if keep else None, input_size=self.pass_.size)
 
