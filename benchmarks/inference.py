@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import statistics
 import sys
 
@@ -38,6 +39,7 @@ from benchmarks.common import (  # noqa: E402
     add_network_options,
     build_network,
     emit,
+    git_revision,
     interleaved_rounds,
     network_fields,
     network_summary,
@@ -147,7 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     flops = count_conv_flops(model, torch.rand(args.cameras, 3, args.size, args.size))
     peaks, rounds = interleaved_rounds(runs, torch.zeros(1), args, matmul_seconds=1.0)
     print(network_summary(args, config, num_params, flops))
-    result: dict = {"benchmark": "inference", "device": _device_name(device), "device_type": device.type,
+    result: dict = {"command": shlex.join(["python", "benchmarks/inference.py",
+                                            *(sys.argv[1:] if argv is None else argv)]),
+                    "git_revision": git_revision(),
+                    "benchmark": "inference", "device": _device_name(device), "device_type": device.type,
                     "batch": args.batch, "native": args.native, "coarse": args.coarse, "crop": args.crop,
                     "precision": args.precision, "pipelines": {}}
     for name, per_round in rounds.items():
