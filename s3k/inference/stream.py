@@ -167,9 +167,9 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     i, behind, said, interrupted = 0, 0, start, False
     frames = _frames(list(sources.values()))
     if not live:  # files: the next frame is decoded while this one is detected (a camera's is read fresh)
-        from s3k.inference.track import _prefetch
+        from s3k.data.video import prefetch
 
-        frames = _prefetch(frames, depth=2)
+        frames = prefetch(frames, depth=2)
     try:
         while max_frames is None or i < max_frames:
             views = next(frames, None)

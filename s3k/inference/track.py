@@ -19,10 +19,7 @@ reprojected 3D keypoints (filled discs) and the per-view detections (crosses), o
 
 from __future__ import annotations
 
-import queue
 import sys
-import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -148,42 +145,6 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
 
 # ------------------------------------------------------------------------------------------------------------
 # Video in, video and CSV out
-
-
-def _prefetch(iterator: Iterator, depth: int = 2) -> Iterator:
-    """Run ``iterator`` in a background thread, ``depth`` items ahead (decoding overlaps inference)."""
-    q: queue.Queue = queue.Queue(maxsize=depth)
-    done = object()
-    stop = threading.Event()
-
-    def worker() -> None:
-        try:
-            for item in iterator:
-                while not stop.is_set():
-                    try:
-                        q.put((item, None), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            q.put((done, None))
-        except BaseException as exc:  # re-raised in the consumer
-            q.put((done, exc))
-
-    thread = threading.Thread(target=worker, daemon=True)
-    thread.start()
-    try:
-        while True:
-            item, exc = q.get()
-            if item is done:
-                if exc is not None:
-                    raise exc
-                return
-            yield item
-    finally:
-        stop.set()
-        thread.join(timeout=5)
 
 
 @dataclass
@@ -314,7 +275,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     inputs, cams = prepare_cameras(videos, calib, detector.input_size, fit, crops)
     end = _frame_range(inputs, start, stop)
     boxes = np.array([c.box for c in inputs], dtype=np.float64)
-    frames = _prefetch(_frame_batches(inputs, batch, start, end))
+    frames = video.prefetch(_frame_batches(inputs, batch, start, end))
     n, keypoints, valid, error, passing = _track(detector, frames, cams, boxes, min_weight, out, overlay,
                                                  inputs, end - start, progress)
     return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out)

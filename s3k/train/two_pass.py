@@ -81,18 +81,19 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     from s3k.data import Dataset
     from s3k.data.frames import FrameStore
     from s3k.data.tracks_csv import csv_rows, read_csv, write_csv
-    from s3k.detector import Detector
+    from s3k.detector import Detector, read_run_config
     from s3k.inference.predict import detect_store, split_frames
 
+    if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
+        return read_csv(out_csv, read_run_config(run_dir)["meta"]["keypoints"])
     detector = Detector.load(run_dir, device)
-    if not out_csv.is_file():
-        ds = Dataset.open(data, cache="none")
-        store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)
-        tmp = out_csv.with_name(out_csv.name + ".part")
-        with write_csv(tmp, detector.keypoints) as writer:
-            for batch, pred in detect_store(detector, store, batch_size):
-                writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
-        tmp.replace(out_csv)
+    ds = Dataset.open(data, cache="none")
+    store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)
+    tmp = out_csv.with_name(out_csv.name + ".part")
+    with write_csv(tmp, detector.keypoints) as writer:
+        for batch, pred in detect_store(detector, store, batch_size):
+            writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
+    tmp.replace(out_csv)
     return read_csv(out_csv, detector.keypoints)
 
 
