@@ -26,6 +26,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -43,7 +44,7 @@ from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resample_regions, resize_crop
 from s3k.model import UNet
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
 
 __all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "pick_device"]
 
@@ -163,21 +164,24 @@ class _Pass:
     def size(self) -> tuple[int, int]:
         return int(self.meta.image_size[0]), int(self.meta.image_size[1])
 
-    def cut(self, views: list[Tensor], boxes: Tensor, crops: bool = False) -> Tensor:
-        """Network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels (a channels-last view: one copy from
-        the frames): ``boxes (B, C, 4)`` of every view resampled to the input size on the device, as the
-        training images were (``crops``: the refining pass's crops, :func:`s3k.geometry.warp.crop_images`;
-        else the region's view resized as the dataset resizes its images,
-        :func:`s3k.geometry.warp.resize_crop` on the CPU and its area-averaging equivalent
-        :func:`s3k.geometry.warp.resample_regions` on another device)."""
+    def cut(self, views: list[Tensor], boxes: Tensor, crops: bool = False) -> tuple[Tensor, bool]:
+        """``(inputs, as_they_are)``: network inputs ``(B, C, 3, h, w)`` in [0, 1], 8-bit levels (a
+        channels-last view: one copy from the frames), and whether every view was taken whole as it was.
+
+        ``boxes (B, C, 4)`` of every view are resampled to the input size on the device, as the training
+        images were: ``crops``, the refining pass's crops (:func:`s3k.geometry.warp.crop_images`); else the
+        region's view resized as the dataset resizes its images (:func:`s3k.geometry.warp.resize_crop` on
+        the CPU, its area-averaging equivalent :func:`s3k.geometry.warp.resample_regions` elsewhere)."""
         w, h = self.size
         out = []  # per camera (B, h, w, 3): stacked, the views of one frame lie together for the network
+        as_they_are = True
         for c, v in enumerate(views):
             box = boxes[:, c]
             whole = box.new_tensor([0.0, 0.0, v.shape[2], v.shape[1]])
             if (v.shape[2], v.shape[1]) == (w, h) and bool((box == whole).all()):
                 out.append(v.to(self.device, non_blocking=True))
                 continue
+            as_they_are = False
             if not crops and self.device.type == "cpu" and v.device.type == "cpu":
                 # on the CPU, OpenCV's resize of the uint8 frame: what the resized dataset's images were
                 frames = v.numpy()
@@ -191,7 +195,7 @@ class _Pass:
             out.append(warp(x, box.to(self.device, torch.float32), (w, h)).round_().clamp_(0, 255)
                        .permute(0, 2, 3, 1))
         x = torch.stack([o.float() if o.dtype != torch.float32 else o for o in out], 1).div_(255.0)
-        return x.permute(0, 1, 4, 2, 3)  # (B, C, 3, h, w), channels last in memory
+        return x.permute(0, 1, 4, 2, 3), as_they_are  # (B, C, 3, h, w), channels last in memory
 
     def logits(self, x: Tensor) -> Tensor:
         """``(B, C, 3, h, w)`` -> ``(B, C, K, h', w')`` float32."""
@@ -295,6 +299,7 @@ class OnePassDetector(Detector):
         self.device = torch.device(device)
         self.meta = meta
         self.pass_ = _Pass(net, meta, self.device, precision)
+        self.readout = meta.readout_config()  # built once: its layout tensor is not rebuilt for every frame
 
     @classmethod
     def from_run(cls, run: str | Path, device: torch.device, precision: str = "float32",
@@ -309,13 +314,13 @@ class OnePassDetector(Detector):
         return self.pass_.size
 
     def _detect(self, views, cams, boxes, min_weight, keep, crops=False):
-        x = self.pass_.cut(views, boxes, crops)
+        x, as_they_are = self.pass_.cut(views, boxes, crops)
         maps = crop_maps(boxes, self.pass_.size)
-        w, h = self.pass_.size
-        as_they_are = all(v.shape[1:3] == (h, w) for v in views) and bool(
-            (boxes == boxes.new_tensor([0.0, 0.0, w, h])).all())
+        config = (self.readout if min_weight == self.readout.min_weight
+                  else dataclasses.replace(self.readout, min_weight=min_weight))
         # frames of the network's size, whole: the pixel maps are the identity, and the read-out skips them
-        ro = self.meta.read_out(self.pass_.logits(x), cams, None if as_they_are else maps, min_weight, keep)
+        ro = read_out(self.pass_.logits(x), cams, self.meta.stride, self.meta.sigma,
+                      None if as_they_are else maps, keep_heatmaps=keep, config=config)
         return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
                          inputs=x if keep else None, input_size=self.pass_.size)
 
