@@ -102,3 +102,32 @@ def parse_size(text: str | None) -> int | tuple[int, int] | None:
     if len(nums) == 1 and nums[0] > 0:
         return nums[0]
     raise UserError(f"--size {text!r}: expected PX (longer side) or W,H")
+
+
+def add_rig_options(parser: argparse.ArgumentParser) -> None:
+    """The options of a command that reads the synchronized frames of a calibrated rig through a run's
+    detector (``s3k track``, ``s3k stream``): the calibration and its unit, the part of the calibrated image
+    each camera shows, each camera's box onto the detector's input, the views' confidence and the device."""
+    from s3k.inference.track import FIT_MODES
+    from s3k.readout import DEFAULT_MIN_WEIGHT
+
+    parser.add_argument("--calibration", required=True,
+                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
+                        "DeepFly3D .pkl (as for 's3k import')")
+    parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
+                        help="the region of the calibrated image a camera's frames show (as for "
+                        "'s3k import')")
+    parser.add_argument("--units", type=name, default=None,
+                        help="world unit of the calibration when it does not say")
+    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
+                        help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
+                        "the boxes the run was trained on, from its dataset's import)")
+    parser.add_argument("--fit", choices=FIT_MODES, default=None,
+                        help="when a frame's aspect ratio differs from the detector's input: pad "
+                        "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
+                        "on")
+    parser.add_argument("--min-weight", type=number(ge=0, lt=1), default=DEFAULT_MIN_WEIGHT,
+                        help="confidence weight a view needs to be used (default 0: every view, weighted by "
+                        "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
+                        "spread exceeds 2 sigma)")
+    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")

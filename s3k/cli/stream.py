@@ -6,9 +6,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from s3k.cli.options import number
+from s3k.cli.options import add_rig_options, number
 from s3k.errors import UserError
-from s3k.readout import DEFAULT_MIN_WEIGHT
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -22,22 +21,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
                         help="one source per camera: a camera index (0) or device (/dev/video2), a video "
                         "file, an image folder or pattern; camera names as in the calibration")
-    parser.add_argument("--calibration", required=True,
-                        help="a calibration file of any format 's3k import' reads")
-    parser.add_argument("--units", default=None, help="world unit of the calibration when it does not say")
-    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
-                        help="crop box of each source (default: the boxes the run was trained on)")
-    parser.add_argument("--fit", choices=("pad", "crop", "stretch"), default=None,
-                        help="how a frame of another aspect ratio maps onto the detector's input "
-                        "(default pad)")
-    parser.add_argument("--min-weight", type=number(ge=0, lt=1), default=DEFAULT_MIN_WEIGHT,
-                        help="confidence weight a view needs to be used (default 0: every view, weighted)")
     parser.add_argument("--max-frames", type=number(int, ge=1), default=None,
                         help="stop after this many frames (default: until a source ends, or Ctrl-C)")
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
                         ".rrd file given here (needs rerun-sdk)")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    add_rig_options(parser)
 
 
 def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
@@ -56,7 +45,14 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
         raise UserError(f"--sources: camera {', '.join(map(repr, unknown))} is not in the calibration "
                         f"(its cameras are {', '.join(calib.names)})")
     sizes = {c: s.size for c, s in sources.items()}
-    calib = calib.with_sizes(sizes).select(names)
+    calib = calib.with_sizes(sizes)
+    if args.video_region:
+        regions = parse_crops(args.video_region, names, "--video-region", every=False)
+        try:
+            calib = calib.with_video_regions(regions)  # type: ignore[arg-type]
+        except (KeyError, ValueError) as exc:
+            raise UserError(f"--video-region: {exc.args[0]}") from None
+    calib = calib.select(names)
     crops = parse_crops(args.crop, names) if args.crop else None
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
     for line in notes:

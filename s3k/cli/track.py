@@ -7,10 +7,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from s3k.cli.options import name, number
+from s3k.cli.options import add_rig_options, number
 from s3k.errors import UserError
-from s3k.inference.track import FIT_MODES, empty_result_hint, track_videos
-from s3k.readout import DEFAULT_MIN_WEIGHT
+from s3k.inference.track import empty_result_hint, track_videos
 
 
 def parse_videos(values: Sequence[str]) -> dict[str, Path]:
@@ -36,12 +35,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
                         "pattern 'dir/img_%%05d.jpg'), camera names as in the calibration")
-    parser.add_argument("--calibration", required=True,
-                        help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
-                        "DeepFly3D .pkl (as for 's3k import')")
-    parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
-                        help="the region of the calibrated image a camera's video shows (as for "
-                        "'s3k import')")
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
@@ -51,21 +44,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")
     parser.add_argument("--stop", type=number(int, ge=0), default=None,
                         help="frame index to stop before (default: the end of the shortest video)")
-    parser.add_argument("--min-weight", type=number(ge=0, le=1), default=DEFAULT_MIN_WEIGHT,
-                        help="confidence weight a view needs to be used (default 0: every view, weighted by "
-                        "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
-                        "spread exceeds 2 sigma)")
-    parser.add_argument("--fit", choices=FIT_MODES, default=None,
-                        help="when the video's aspect ratio differs from the detector's input: pad "
-                        "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
-                        "on")
-    parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
-                        help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
-                        "the boxes the run was trained on, from its dataset's import)")
-    parser.add_argument("--units", type=name, default=None,
-                        help="world unit of the calibration when it does not say")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_rig_options(parser)
 
 
 def keypoint_line(summary, k: int) -> str:
