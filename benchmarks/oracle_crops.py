@@ -43,7 +43,7 @@ def write_crop_view(source: Path, out: Path, keypoint: int, extent_m: float, siz
     """The crop dataset of one keypoint (its only keypoint), crops centred on the jittered true point; with
     ``keypoint < 0`` of every keypoint, crops centred on the jittered mean of the true points."""
     from s3k.data import Dataset
-    from s3k.train.crop_dataset import write_crop_dataset
+    from s3k.data.crops import write_crop_dataset
 
     ds = Dataset.open(source, cache="none")
     rng = np.random.default_rng(seed)

@@ -3,7 +3,7 @@
 The coarse detector trains on the whole image resized to ``--coarse-size`` px (S3K, as ``s3k demo``); its
 3D estimates of every frame (labelled, unlabelled and test: the same rule at training and at test) centre one
 crop of the whole object per view, ``--extent-mm`` wide at the estimate's depth, cut from the
-``--render`` px images and resampled to ``--crop`` px (:func:`s3k.train.crop_dataset.write_crop_dataset`). The
+``--render`` px images and resampled to ``--crop`` px (:func:`s3k.data.crops.write_crop_dataset`). The
 refining detector trains on those crops with and without the self-supervised term, and is evaluated on the
 test
 frames' crops: its triangulated points are the two-pass detector's 3D keypoints. Both refining models use the
@@ -62,8 +62,8 @@ def main(argv: list[str] | None = None) -> int:
                         "--split", "all", "--out", str(estimates)], check=True, stdout=subprocess.DEVNULL)
     view = work / f"crops-{coarse.name}-{args.extent_mm:g}mm-{args.crop}px"
     from s3k.data import Dataset
+    from s3k.data.crops import object_centres, write_crop_dataset
     from s3k.data.tracks_csv import read_csv
-    from s3k.train.crop_dataset import object_centres, write_crop_dataset
 
     keypoints = Dataset.open(render, cache="none").keypoints
     centres = object_centres(read_csv(estimates, keypoints))

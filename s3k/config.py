@@ -157,6 +157,10 @@ class ExecutionConfig:
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
                          "since threads waiting for a busy core stall every convolution",
                       resumable=True, ge=0)
+    precision: str = _f("auto", "the network's arithmetic in training: 'auto' (bfloat16 autocast where "
+                                "the hardware computes it natively: a CUDA GPU with bfloat16, a CPU with "
+                                "AVX512-BF16 or AMX; float32 elsewhere), 'float32' or 'bfloat16'; the "
+                                "heatmap head, the losses and the read-out stay float32", resumable=True)
     preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB",
                          resumable=True, ge=0)
 
@@ -236,6 +240,9 @@ class TrainConfig:
                 bounds.check(getattr(self, f.name), f"config field {f.name!r}")
         if self.unsup and self.batch_unlabelled <= 0:
             raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
+        if self.precision not in ("auto", "float32", "bfloat16"):
+            raise UserError(f"config field 'precision' is {self.precision!r}",
+                            hint="pass --precision auto, float32 or bfloat16")
         if not self.channels or any(c <= 0 for c in self.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
 

@@ -144,13 +144,18 @@ class HeatmapHead(nn.Conv2d):
     oneDNN handles 1x1 convolutions with few output channels poorly on CPU (about 2 GFLOP/s for 16 -> 3
     channels at 64 x 64). On channels_last features the same map is ``W (K, C) @ x (C, h w)``, a strided
     GEMM several times faster, whose result is contiguous ``(N, K, h, w)``: the layout the spatial softmax
-    wants. Parameters and results are those of ``nn.Conv2d(C, K, 1)``.
+    wants. Parameters and results are those of ``nn.Conv2d(C, K, 1)``. Under autocast it computes in
+    float32.
     """
 
     def __init__(self, cin: int, cout: int) -> None:
         super().__init__(cin, cout, 1)
 
     def forward(self, x: Tensor) -> Tensor:
+        if torch.is_autocast_enabled(x.device.type):
+            # the logits in float32 under autocast: their sub-pixel peaks are the detector's precision
+            with torch.autocast(x.device.type, enabled=False):
+                return self.forward(x.float())
         if x.ndim == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
             n, c, h, w = x.shape
             y = torch.matmul(self.weight[:, :, 0, 0], x.reshape(n, c, h * w))

@@ -4,9 +4,9 @@ import torch
 from synthetic_rig import make_dataset
 
 from s3k.data import Dataset
+from s3k.data.crops import object_centres, write_crop_dataset
 from s3k.errors import UserError
 from s3k.geometry import project, workspace_centre
-from s3k.train.crop_dataset import object_centres, write_crop_dataset
 
 
 def test_crop_dataset_keeps_frames_labels_and_geometry(tmp_path):

@@ -25,7 +25,14 @@ from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
-from s3k.train.two_pass import CPU_FILE, crop_rule_from_labels, read_cpu, refining_config
+from s3k.train.two_pass import (
+    CPU_FILE,
+    ESTIMATES_FILE,
+    crop_rule_from_labels,
+    read_cpu,
+    refining_config,
+    training_crops,
+)
 
 
 def _farthest_pair_radius(X: np.ndarray) -> float:
@@ -122,8 +129,10 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
     assert coarse_cfg["image_size"] == 32
     spent = read_cpu(run)  # CPU seconds per stage
-    assert set(spent) == {"coarse", "fine"} and min(spent.values()) > 0
-    crops = Dataset.open(run / "crops", cache="none")
+    assert set(spent) == {"coarse", "crops", "fine"} and min(spent.values()) > 0
+    # the crops were cut in memory; the estimates give the same crops again
+    assert not (run / "crops").exists()
+    crops = training_crops(data, read_csv(run / ESTIMATES_FILE, KEYPOINTS), rule)
     source = Dataset.open(data, cache="none")
     assert crops.image_size == (32, 32) and list(crops.keypoints) == KEYPOINTS
     for split in ("labelled", "unlabelled", "test"):
@@ -147,7 +156,7 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert "coarse pass" in err and "rotation_deg is 90" in err and "180" in err and "--overwrite" in err
     assert cli.main([*args, "--resume", "--crop-size", "48"]) == 1  # crops of another size
     err = capsys.readouterr().err
-    assert str(run / "crops") in err and "at 32 px" in err and "at 48 px" in err
+    assert str(run) in err and "at 32 px" in err and "at 48 px" in err
     capsys.readouterr()
     assert cli.main(args) == 1
     assert "--resume" in capsys.readouterr().err

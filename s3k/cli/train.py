@@ -56,6 +56,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "frame's keypoints) x (1 + F) (default 0.3)")
     two.add_argument("--crop-extent", type=number(gt=0), default=None, metavar="W",
                      help="crop side in world units at the estimate's depth (default: from the labels)")
+    two.add_argument("--keep-crops", action="store_true",
+                     help="also write the refining pass's crops as a dataset folder, RUN/crops (they are cut "
+                          "and used in memory otherwise)")
     add_config_arguments(parser, TrainConfig)
 
 
@@ -116,5 +119,5 @@ def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -
              "extent": args.crop_extent}
     options = {k: v if v is not None else (saved[1] if saved else DEFAULTS)[k] for k, v in given.items()}
     train_two_pass(args.dataset, args.out, cfg, **options, resume=args.resume, overwrite=args.overwrite,
-                   command=getattr(args, "command_line", None))
+                   command=getattr(args, "command_line", None), keep_crops=args.keep_crops)
     return 0

@@ -10,6 +10,7 @@ training step; otherwise each batch is read from the dataset on demand.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,10 +68,11 @@ def images_to_float(images: Tensor, device: torch.device | str | None = None) ->
 
 
 def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "disk"):
-    """Open a dataset, resized to ``out_size`` (W, H) when given (intrinsics and labels follow exactly)."""
+    """Open a dataset, resized to ``out_size`` (W, H) when given (intrinsics and labels follow exactly);
+    ``path`` may also be a dataset already open (e.g. :class:`s3k.data.crops.CropDataset`)."""
     from s3k.data import Dataset
 
-    ds = Dataset.open(path, cache=cache)
+    ds = Dataset.open(path, cache=cache) if isinstance(path, (str, os.PathLike)) else path
     return ds if out_size is None else ds.resized(out_size)
 
 

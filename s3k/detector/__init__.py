@@ -22,7 +22,10 @@ from s3k.detector.detector import (
     Detector,
     OnePassDetector,
     TwoPassDetector,
+    autocast,
+    native_bfloat16,
     pick_device,
+    training_precision,
 )
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import (
@@ -45,9 +48,10 @@ from s3k.detector.run_folder import (
 )
 
 __all__ = [
-    "CHECKPOINT_FILE", "CONFIG_FILE", "LOG_FILE", "MODEL_FILE", "MODEL_FORMAT", "PRECISIONS", "PROGRESS_FILE",
-    "RUN_FILES", "TENSORBOARD_DIR", "TWO_PASS_FILE", "CropRule", "Detection", "Detector", "DetectorMeta",
-    "OnePassDetector", "TwoPassDetector", "atomic_save", "build_model", "crop_centres", "extent_middle",
-    "is_two_pass", "load_network", "load_torch_file", "pick_device", "read_run_config", "read_two_pass",
-    "save_model_file", "training_dataset", "write_run_config", "write_two_pass",
+    "CHECKPOINT_FILE", "CONFIG_FILE", "LOG_FILE", "MODEL_FILE", "MODEL_FORMAT", "PRECISIONS",
+    "PROGRESS_FILE", "RUN_FILES", "TENSORBOARD_DIR", "TWO_PASS_FILE", "CropRule", "Detection", "Detector",
+    "DetectorMeta", "OnePassDetector", "TwoPassDetector", "atomic_save", "autocast", "build_model",
+    "crop_centres", "extent_middle", "is_two_pass", "load_network", "load_torch_file", "native_bfloat16",
+    "pick_device", "read_run_config", "read_two_pass", "save_model_file", "training_dataset",
+    "training_precision", "write_run_config", "write_two_pass",
 ]

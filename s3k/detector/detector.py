@@ -46,7 +46,8 @@ from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resampl
 from s3k.model import UNet
 from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
 
-__all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "pick_device"]
+__all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "autocast",
+           "native_bfloat16", "pick_device", "training_precision"]
 
 PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 """The network's precision (autocast); the read-out is float64 whatever the precision."""
@@ -66,6 +67,39 @@ def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch
     if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():  # 0 without CUDA
         raise UserError(f"--device {name}: this machine has no such CUDA GPU", hint="pass --device cpu")
     return device
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU whose flags
+    include AVX512-BF16 or AMX-BF16 (elsewhere bfloat16 is emulated, and slower than float32)."""
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    if device.type != "cpu":
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    except OSError:
+        pass
+    return False
+
+
+def training_precision(name: str, device: torch.device) -> str:
+    """``--precision`` resolved on ``device``: ``"auto"`` is ``"bfloat16"`` where :func:`native_bfloat16`,
+    else ``"float32"``."""
+    if name == "auto":
+        return "bfloat16" if native_bfloat16(device) else "float32"
+    return name
+
+
+def autocast(device: torch.device, precision: str):
+    """The autocast context of ``precision`` (a key of :data:`PRECISIONS`) on ``device``; a no-op for
+    float32."""
+    dtype = PRECISIONS[precision]
+    return torch.autocast(device.type, dtype=dtype) if dtype is not None else contextlib.nullcontext()
 
 
 @dataclass
@@ -200,11 +234,8 @@ class _Pass:
     def logits(self, x: Tensor) -> Tensor:
         """``(B, C, 3, h, w)`` -> ``(B, C, K, h', w')`` float32."""
         B, C = x.shape[:2]
-        dtype = PRECISIONS[self.precision]
-        ctx = (torch.autocast(self.device.type, dtype=dtype) if dtype is not None
-               else contextlib.nullcontext())
         flat = x.flatten(0, 1)  # a view of the channels-last frames
-        with ctx:
+        with autocast(self.device, self.precision):
             logits = self.net(flat.contiguous(memory_format=torch.channels_last))
         return logits.float().reshape(B, C, *logits.shape[1:])
 

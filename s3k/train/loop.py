@@ -29,6 +29,7 @@ from s3k.detector import (
     TENSORBOARD_DIR,
     DetectorMeta,
     save_model_file,
+    training_precision,
 )
 from s3k.errors import UserError
 from s3k.model import UNet, UNetConfig
@@ -45,7 +46,7 @@ from s3k.train.distributed import (
     shard,
     wrap_model,
 )
-from s3k.train.run_setup import _meta, _open_data, _reference_layout, _setup_logging, _start_run
+from s3k.train.run_setup import _meta, _open_data, _reference_layout, _setup_logging, _start_run, data_path
 from s3k.train.sampling import draw_batch, prepare
 from s3k.train.step import _all_finite, _lr_lambda, compute_losses
 from s3k.train.validation import labelled_distances, layout_size, validate
@@ -96,6 +97,7 @@ class _Loop:
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout_tol holds the pseudo-labels to
         self.rule = ReadoutConfig.of_training(cfg, layout)
+        self.precision = training_precision(cfg.precision, device)
         if cfg.unsup and cfg.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
@@ -162,7 +164,8 @@ class _Loop:
                           self.gen, False, noise_bank)[:2]
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
-        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.rule, self.teacher)
+        loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.rule, self.teacher,
+                                     self.precision)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
@@ -252,12 +255,14 @@ class _Monitor:
         return timing
 
 
-def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
+def train(data: str | Path | Any, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
           overwrite: bool = False, command: str | None = None) -> TrainResult:
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
 
     Args:
-        data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames.
+        data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames; or a dataset held
+            in memory (:class:`s3k.data.crops.CropDataset`: the refining pass's crops), whose run records
+            its source folder.
         out: run folder (created); see ``s3k.detector``.
         cfg: configuration.
         resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none); the configuration and
@@ -277,15 +282,16 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, resume: bool = Fa
     cfg.validate()
     info = init_distributed(cfg.device)
     try:
-        return _train(Path(data), Path(out), cfg, resume, overwrite, callback, command, info)
+        return _train(data, Path(out), cfg, resume, overwrite, callback, command, info)
     finally:
         finish_distributed(info)
 
 
-def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
+def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
            command: str | None, info: DistInfo) -> TrainResult:
     from s3k.detector import pick_device
 
+    data = data_path(source)
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":
         torch.cuda.set_device(device)
@@ -293,7 +299,7 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
         torch.set_num_threads(cfg.threads)
     if info.main:
         run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
-    d = _open_data(data, cfg)
+    d = _open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = _reference_layout(data, distances, cfg)
     meta = _meta(d, cfg, distances)
@@ -315,12 +321,12 @@ def _train(data: Path, out: Path, cfg: TrainConfig, resume: bool, overwrite: boo
     ref_layout = layout_size(distances)
     size = meta.image_size
     log.info("dataset %s: %d labelled, %d unlabelled frames, %d cameras, keypoints %s; images %dx%d "
-             "(stored %dx%d), heatmaps stride %d, sigma %.2f px; %s, %d parameters; %s on %s x%d; "
+             "(stored %dx%d), heatmaps stride %d, sigma %.2f px; %s, %d parameters; %s on %s x%d (%s); "
              "frames loaded in %.1f s (preloaded: %s)", data, len(d.labelled), len(d.unlabelled),
              len(meta.cameras), meta.keypoints, size[0], size[1], d.source_size[0], d.source_size[1],
              cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
-             device, info.world, t_load, lab_store.preloaded)
+             device, info.world, loop.precision, t_load, lab_store.preloaded)
     log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
 
     monitor = _Monitor(cfg, out, info, loop.step)

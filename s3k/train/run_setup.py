@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,7 +73,12 @@ class _Data:
     val: np.ndarray
 
 
-def _open_at_network_size(data: Path, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
+def data_path(data: Any) -> Path:
+    """The folder of ``data``: a dataset folder, or the source folder of a dataset held in memory."""
+    return Path(data) if isinstance(data, (str, os.PathLike)) else Path(data.path)
+
+
+def _open_at_network_size(data: Any, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
     """``data`` opened at the network's input size, and its own image size."""
     ds = open_dataset(data)
     source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
@@ -87,11 +93,11 @@ def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dic
     Raises:
         UserError: naming the first field or dataset property that differs where it must not.
     """
-    ds, _ = _open_at_network_size(Path(data), cfg)
-    return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), Path(data))
+    ds, _ = _open_at_network_size(data, cfg)
+    return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
 
 
-def _open_data(data: Path, cfg: TrainConfig) -> _Data:
+def _open_data(data: Any, cfg: TrainConfig) -> _Data:
     """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
     ds, source_size = _open_at_network_size(data, cfg)
     labelled = np.asarray(ds.frames("labelled"))

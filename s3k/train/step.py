@@ -8,13 +8,15 @@ import torch
 from torch import nn
 
 from s3k.config import TrainConfig
+from s3k.detector import autocast
 from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.readout import ReadoutConfig
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
                    weight_decay_model: nn.Module, rule: ReadoutConfig,
-                   teacher: nn.Module | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                   teacher: nn.Module | None = None, precision: str = "float32"
+                   ) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
     Args:
@@ -29,6 +31,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
             the layout check is never left out).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
             (``--teacher_ema``); without one they come from ``model``'s own logits.
+        precision: the networks' arithmetic (``"float32"`` or ``"bfloat16"`` autocast); the logits, losses
+            and pseudo-labels are float32 either way.
 
     Returns:
         ``(loss, terms)``: the scalar loss and a dict of float terms for logging.
@@ -37,7 +41,9 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     Bl, C = images_l.shape[:2]
     images = images_l if unl is None else torch.cat([images_l, unl[0]])
     flat = images.reshape(-1, *images.shape[2:]).contiguous(memory_format=torch.channels_last)
-    logits = model(flat)
+    device = flat.device
+    with autocast(device, precision):
+        logits = model(flat)
     logits = logits.float().reshape(images.shape[0], C, *logits.shape[1:])
     sigma = cfg.sigma_px()
     l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma,
@@ -49,7 +55,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         if teacher is not None:
             with torch.no_grad():
                 flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
-                target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
+                with autocast(device, precision):
+                    target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
         l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
                                              rule=rule,
                                              target_logits=target_logits, coord_weight=cfg.coord_weight)

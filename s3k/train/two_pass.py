@@ -5,11 +5,15 @@ A two-pass run folder holds two ordinary runs of ``s3k train`` and the crop rule
     RUN/two_pass.json    the crop rule (extent in world units, crop size in pixels) and the passes' folders
     RUN/coarse/          the coarse detector: the whole image, resized to ``coarse_size`` px
     RUN/estimates.csv    the coarse pass's 3D keypoints for every frame of the training dataset
-    RUN/crops/           a dataset of crops around those estimates (:mod:`s3k.train.crop_dataset`)
-    RUN/fine/            the refining detector, trained on the crops with the same losses (its pixel
-                         tolerances scaled to the crop size: :func:`refining_config`)
-    RUN/cpu.json         CPU seconds each stage took: ``coarse`` (its training, the estimates and the
-                         crops) and ``fine``, summed over the attempts of a resumed run
+    RUN/fine/            the refining detector, trained on crops around those estimates with the same
+                         losses (its pixel tolerances scaled to the crop size: :func:`refining_config`)
+    RUN/cpu.json         CPU seconds each stage took: ``coarse`` (its training), ``crops`` (the estimates
+                         and the crops) and ``fine``, summed over the attempts of a resumed run
+    RUN/crops/           the crops as a dataset folder, only with ``keep_crops`` (``--keep-crops``)
+
+The crops are cut in memory (:func:`s3k.data.crops.cut_crops`) and the refining pass trains on them there:
+nothing is written between the passes but the estimates, from which a resumed run cuts the same crops
+again. A run whose ``RUN/crops/`` was written trains its refining pass on that folder.
 
 The crop of a frame is centred on the middle of its coarse keypoints' extent (the midpoint of the two that
 are farthest apart), not on their mean: a mean lies towards where keypoints cluster and can leave an
@@ -37,10 +41,10 @@ from s3k.detector.crop_rule import CropRule, extent_middle, is_two_pass, write_t
 from s3k.errors import UserError
 
 __all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "coarse_estimates", "crop_rule_from_labels",
-           "read_cpu", "refining_config", "train_two_pass", "write_crops"]
+           "read_cpu", "refining_config", "train_two_pass", "training_crops", "write_crops"]
 
 ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
-CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "fine"), summed over a resumed run's attempts
+CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "crops", "fine"), summed over a run's attempts
 
 
 def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
@@ -97,11 +101,12 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     return read_csv(out_csv, detector.keypoints)
 
 
-def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule: CropRule,
-                splits=None, description: str | None = None) -> Path:
-    """The crop dataset of ``data`` around ``estimates`` by ``rule``, each frame cut around the crop centre
-    of its estimates (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
-    from s3k.train.crop_dataset import write_crop_dataset
+def training_crops(data, estimates: Mapping[int, np.ndarray], rule: CropRule, splits=None,
+                   description: str | None = None):
+    """The crops of ``data`` around ``estimates`` by ``rule``, in memory (a
+    :class:`s3k.data.crops.CropDataset`), each frame cut around the crop centre of its estimates
+    (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
+    from s3k.data.crops import cut_crops
 
     centres = {}
     for frame, X in estimates.items():
@@ -111,8 +116,14 @@ def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule
     if not centres:
         raise UserError(f"the coarse pass placed no keypoint in any frame of {data}",
                         hint="train the coarse pass longer (--coarse-steps) or check the labels")
-    return write_crop_dataset(data, out, centres, rule.extent, rule.size, fallback=True,
-                              overwrite=True, splits=splits, description=description)
+    return cut_crops(data, centres, rule.extent, rule.size, fallback=True, splits=splits,
+                     description=description)
+
+
+def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule: CropRule,
+                splits=None, description: str | None = None) -> Path:
+    """:func:`training_crops` written as a dataset folder ``out`` (replaced if it exists)."""
+    return training_crops(data, estimates, rule, splits, description).write(out, overwrite=True)
 
 
 REFERENCE_CROP = 128
@@ -138,7 +149,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                    coarse_steps: int | None = None, coarse_rotation: float | None = None,
                    crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
-                   log=print) -> dict[str, Any]:
+                   keep_crops: bool = False, log=print) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
     complete, so ``resume`` continues a killed run at the stage where it stopped.
 
@@ -156,6 +167,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         margin: relative margin of the crop's extent (:func:`crop_rule_from_labels`).
         extent: the crop's side in world units (default: from the labels).
         resume, overwrite, command: as for :func:`s3k.train.train`.
+        keep_crops: also write the crops as a dataset folder, ``RUN/crops``.
 
     Returns:
         ``{"coarse": ..., "fine": ..., "rule": CropRule}``, a pass's :class:`s3k.train.TrainResult` or None
@@ -189,7 +201,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         write_options(out, cfg, options)
     try:
         results = _train_two_pass(data, out, cfg, coarse_size, coarse_steps, coarse_rotation, crop_size,
-                                  margin, extent, command, log)
+                                  margin, extent, command, log, keep_crops)
     except BaseException:
         if is_stub(out):  # nothing trained: leave no folder that a retry would have to get past
             shutil.rmtree(out, ignore_errors=True)
@@ -200,7 +212,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
 
 def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: int | None,
                     coarse_rotation: float | None, crop_size: int, margin: float, extent: float | None,
-                    command: str | None, log) -> dict[str, Any]:
+                    command: str | None, log, keep_crops: bool = False) -> dict[str, Any]:
     from s3k.data import Dataset
     from s3k.train import train
     from s3k.train.two_pass_start import crop_extent_warning
@@ -216,20 +228,47 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
     with _StageClock(out, "coarse") as clock:
         results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass",
                                         clock)
-        log(f"coarse pass: estimating every frame of {data}")
-        estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, cfg.device)
-        crops = out / "crops"
-        if (crops / "s3k.json").is_file():
-            _check_crops(crops, rule)
+    written = out / "crops"
+    with _StageClock(out, "crops"):
+        if (written / "s3k.json").is_file():  # written by an earlier call: the refining pass trains on them
+            _check_crops(written, rule)
+            crops: Any = written
         else:
-            log(f"cropping every frame: {rule.extent:g} {ds.units} -> {rule.size} px")
-            write_crops(data, crops, estimates, rule,
-                        description=f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates")
+            _check_rule(out, rule)
+            log(f"coarse pass: estimating every frame of {data}")
+            estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, cfg.device)
+            log(f"cropping every frame in memory: {rule.extent:g} {ds.units} -> {rule.size} px")
+            crops = training_crops(ds, estimates, rule, description=f"crops of {rule.extent:g} {ds.units} "
+                                   "around the coarse pass's estimates")
+            if keep_crops:
+                crops.write(written, overwrite=True)
+                log(f"crops written to {written}")
     with _StageClock(out, "fine") as clock:
         results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command,
                                       log, "refining pass", clock)
     write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results
+
+
+def _check_rule(out: Path, rule: CropRule) -> None:
+    """Refuse a crop rule other than the one a complete run recorded, or a crop size other than the one its
+    refining pass was started at (another extent there changes the crops' calibration, which ``--resume``
+    refuses)."""
+    from s3k.detector import read_run_config, read_two_pass
+
+    if is_two_pass(out):
+        done, _, _ = read_two_pass(out)
+        extent, size = done.extent, done.size
+    elif (out / "fine" / "config.json").is_file():
+        extent, size = rule.extent, int(read_run_config(out / "fine")["meta"]["image_size"][0])
+    else:
+        return
+    if int(size) != rule.size or not np.isclose(float(extent), rule.extent, rtol=1e-6, atol=0.0):
+        raise UserError(f"{out}: the refining pass was trained on crops {float(extent):g} wide at "
+                        f"{int(size)} "
+                        f"px; this call cuts {rule.extent:g} at {rule.size} px",
+                        hint="repeat the --crop-size, --crop-margin and --crop-extent the run was trained "
+                             "with, or pass --overwrite to train both passes again")
 
 
 def _check_crops(crops: Path, rule: CropRule) -> None:
@@ -289,7 +328,7 @@ class _StageClock:
         self._write()
 
 
-def _train_pass(train, data: Path, run: Path, cfg, command, log, what: str, clock: _StageClock):
+def _train_pass(train, data, run: Path, cfg, command, log, what: str, clock: _StageClock):
     """Train one pass unless its model exists (then None, after checking it was trained as this call would
     train it); resume a pass whose folder exists."""
     if (run / "model.pt").is_file():

@@ -1,0 +1,280 @@
+"""The refining pass's data: scale-normalized crops around per-frame 3D estimates, held in memory.
+
+A coarse pass on whole images gives each frame a 3D estimate of the object; :func:`cut_crops` cuts every view
+of the full-resolution dataset around the estimate's reprojection, the crop's side covering ``extent`` world
+units at the estimate's depth, resampled to ``size`` pixels, and keeps the crops in memory as a
+:class:`CropDataset`: the source's frames, splits, keypoints and ground truth, each camera's intrinsics
+``K' = M K`` (:mod:`s3k.geometry.warp`). It answers what training asks of a :class:`s3k.data.Dataset`
+(frames, labels, calibration, images), so the refining pass trains on it directly; :meth:`CropDataset.write`
+saves it as a dataset folder of its own when one is wanted (:func:`write_crop_dataset`). The crops are cut
+with the rule the two-pass detector applies at inference (:func:`s3k.geometry.warp.crop_images`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from s3k.errors import UserError
+from s3k.geometry import Cameras
+
+__all__ = ["CropDataset", "cut_crops", "object_centres", "write_crop_dataset"]
+
+
+def object_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """The object's 3D estimate per frame: the mean of its finite keypoints (frames with none are left out).
+
+    Args:
+        points: ``{frame: (K, 3)}`` keypoints, NaN where unknown (e.g. :func:`s3k.data.tracks_csv.read_csv`).
+    """
+    out = {}
+    for frame, X in points.items():
+        X = np.asarray(X, dtype=np.float64)
+        ok = np.isfinite(X).all(axis=-1)
+        if ok.any():
+            out[int(frame)] = X[ok].mean(axis=0)
+    return out
+
+
+class CropDataset:
+    """Crops of a dataset's frames, in memory (module docstring); build with :func:`cut_crops`.
+
+    It has the parts of :class:`s3k.data.Dataset`'s interface that training, validation and evaluation use:
+    ``frames``, ``split_of``, ``labels``, ``calibration`` (per frame), ``points3d``, ``images``,
+    ``cached_images``, ``resized`` (to its own size only), ``fingerprint``; ``path`` is the source dataset's.
+
+    Attributes:
+        images_array: ``uint8 (N, C, S, S, 3)`` crops, rows in ``frame_ids`` order.
+        maps: ``(N, C, 3, 3)`` float64 maps from source pixels to crop pixels (``K' = M K``).
+        extent, size: the crop rule (world units, pixels).
+    """
+
+    static_calibration = False
+
+    def __init__(self, source: Any, frame_ids: np.ndarray, splits: np.ndarray, images: np.ndarray,
+                 cams: Cameras, maps: np.ndarray, uv: np.ndarray, mask: np.ndarray,
+                 points: tuple[np.ndarray, np.ndarray] | None, keypoints: list[str], extent: float, size: int,
+                 description: str | None = None) -> None:
+        self.path = Path(source.path)
+        self.keypoints, self.cameras, self.units = list(keypoints), list(source.cameras), source.units
+        self.skeleton = [p for p in getattr(source, "skeleton", []) if set(p) <= set(keypoints)]
+        self.extent, self.size = float(extent), int(size)
+        self.image_size = self.source_image_size = (self.size, self.size)
+        self.crop_box = (0, 0, self.size, self.size)
+        self.description = description
+        self.source = {"crops_of": str(source.path), "extent": self.extent, "size": self.size}
+        self.metadata = {**(source.metadata or {}), "keypoints": self.keypoints, "image_size": [size, size],
+                         "calibration": "per_frame", "source": self.source}
+        self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
+        self._splits = np.asarray(splits)
+        self.images_array, self.maps = images, maps
+        self._cams = cams  # float64 (N, C) crop intrinsics
+        self._uv, self._mask, self._points = uv, mask, points
+        self._sorted = np.argsort(self.frame_ids, kind="stable")
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __repr__(self) -> str:
+        return (f"CropDataset(crops of {str(self.path)!r}, {len(self)} frames, {self.extent:g} {self.units} "
+                f"at {self.size} px)")
+
+    def _rows(self, frame_ids) -> np.ndarray:
+        ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+        pos = np.clip(np.searchsorted(self.frame_ids, ids, sorter=self._sorted), 0, len(self.frame_ids) - 1)
+        rows = self._sorted[pos]
+        bad = self.frame_ids[rows] != ids
+        if bad.any():
+            raise KeyError(f"frame ids {ids[bad][:10].tolist()} are not among the crops of {self.path}")
+        return rows
+
+    def frames(self, split: str | Sequence[str] | None = None) -> np.ndarray:
+        """Frame ids of a split, of several splits one after the other, or all when None."""
+        if split is None:
+            return self.frame_ids.copy()
+        names = [split] if isinstance(split, str) else list(split)
+        return np.concatenate([self.frame_ids[:0], *(self.frame_ids[self._splits == n] for n in names)])
+
+    def split_of(self, frame_ids) -> np.ndarray:
+        return self._splits[self._rows(frame_ids)]
+
+    def calibration(self, frame_ids, dtype: Any = np.float32) -> Cameras:
+        rows = torch.from_numpy(self._rows(frame_ids))
+        to = torch.float64 if dtype in (np.float64, torch.float64) else torch.float32
+        return Cameras(*(x[rows].to(to).contiguous() for x in (self._cams.K, self._cams.dist, self._cams.R,
+                                                                 self._cams.t)))
+
+    def labels(self, frame_ids, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray]:
+        rows = self._rows(frame_ids)
+        return self._uv[rows].astype(dtype), self._mask[rows].copy()
+
+    def points3d(self, frame_ids) -> tuple[np.ndarray, np.ndarray] | None:
+        if self._points is None:
+            return None
+        rows = self._rows(frame_ids)
+        return self._points[0][rows].copy(), self._points[1][rows].copy()
+
+    @property
+    def has_points3d(self) -> bool:
+        return self._points is not None
+
+    def images(self, frame_ids) -> np.ndarray:
+        return self.images_array[self._rows(frame_ids)]
+
+    def cached_images(self, frame_ids) -> tuple[np.ndarray, np.ndarray]:
+        return self.images_array, self._rows(frame_ids)
+
+    def resized(self, image_size: Sequence[int]) -> CropDataset:
+        if tuple(int(v) for v in image_size) != self.image_size:
+            raise UserError(f"crops of {self.path} are {self.size} px; they are not resized to "
+                            f"{image_size[0]}x{image_size[1]}",
+                            hint="leave --image-size at 0 for the refining pass")
+        return self
+
+    def fingerprint(self) -> str:
+        h = hashlib.sha256()
+        for part in (self.frame_ids, self.maps, self.images_array[:, :, ::16, ::16]):
+            h.update(np.ascontiguousarray(part).tobytes())
+        return h.hexdigest()[:16]
+
+    def write(self, out: str | Path, overwrite: bool = False) -> Path:
+        """Save the crops as a dataset folder ``out`` (written beside as ``out.tmp``, then renamed)."""
+        import os
+        import shutil
+
+        from s3k.data.writer import DatasetWriter
+
+        out = Path(out)
+        if out.exists() and not overwrite:
+            raise UserError(f"{out} exists", hint="pass --overwrite to replace it")
+        tmp = out.with_name(out.name + ".tmp")
+        cal = self._cams.numpy()
+        with DatasetWriter(tmp, self.keypoints, self.cameras, self.image_size, self.units,
+                           per_frame_calibration=True, overwrite=True, description=self.description,
+                           source=self.source) as writer:
+            for split in ("labelled", "unlabelled", "test"):
+                for row in self._rows(self.frames(split)):
+                    labels = None
+                    if split != "unlabelled":
+                        labels = np.where(self._mask[row][..., None], self._uv[row], np.nan)
+                    points = None if self._points is None else np.where(
+                        self._points[1][row][:, None], self._points[0][row], np.nan)
+                    crop_cams = (cal["K"][row], cal["dist"][row], cal["R"][row], cal["t"][row])
+                    writer.add_frame(int(self.frame_ids[row]), split, self.images_array[row], crop_cams,
+                                     labels, points3d=points)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+        return out
+
+
+def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, size: int,
+              keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
+              splits: Sequence[str] | None = None, description: str | None = None) -> CropDataset:
+    """The crops of every frame of ``source`` (a :class:`s3k.data.Dataset` or its folder) around ``centres``.
+
+    Args:
+        source: dataset at full resolution.
+        centres: ``{frame: (3,)}`` 3D estimate per frame, in the dataset's world units.
+        extent: crop side at the estimate's depth, world units.
+        size: crop width and height in pixels.
+        keypoints: keypoints to keep (default all).
+        fallback: cut a frame without an estimate around its rig's workspace centre (where the cameras'
+            optical axes meet, :func:`s3k.geometry.workspace_centre`: the detector's rule); without it such a
+            frame is an error naming it.
+        chunk: frames decoded at once.
+        splits: the splits to crop (default all three).
+        description: kept with the crops (and in a written folder's metadata).
+
+    Raises:
+        UserError: an unknown keypoint, or a frame without an estimate when ``fallback`` is off.
+    """
+    from s3k.data.dataset import Dataset
+
+    ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
+    names = list(ds.keypoints if keypoints is None else keypoints)
+    missing = [k for k in names if k not in ds.keypoints]
+    if missing:
+        raise UserError(f"{ds.path}: no keypoint {missing[0]!r} (it has {', '.join(ds.keypoints)})")
+    kps = [ds.keypoints.index(k) for k in names]
+    ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
+    C = len(ds.cameras)
+    images = np.empty((len(ids), C, size, size, 3), np.uint8)
+    maps = np.empty((len(ids), C, 3, 3))
+    parts: list[tuple] = []
+    for start in range(0, len(ids), chunk):
+        frames = ids[start:start + chunk]
+        rows = []
+        for f in frames:
+            if int(f) in centres:
+                rows.append(np.asarray(centres[int(f)], dtype=np.float64))
+            elif fallback:
+                rows.append(np.full(3, np.nan))
+            else:
+                raise UserError(f"frame {int(f)} of {ds.path} has no 3D estimate to crop around")
+        crops, M, part = _cut_chunk(ds, frames, torch.as_tensor(np.stack(rows)), kps, extent, size)
+        images[start:start + len(frames)], maps[start:start + len(frames)] = crops, M
+        parts.append(part)
+    K, dist, R, t, uv, mask = (np.concatenate([p[i] for p in parts]) for i in range(6))
+    points = None
+    if ds.has_points3d:
+        points = (np.concatenate([p[6] for p in parts]), np.concatenate([p[7] for p in parts]))
+    cams = Cameras(*(torch.from_numpy(np.ascontiguousarray(x)) for x in (K, dist, R, t)))
+    return CropDataset(ds, ids, ds.split_of(ids), images, cams, maps, uv, mask, points, names, extent, size,
+                       description)
+
+
+def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int):
+    """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
+    labels mask[, points, points mask]))``; a label outside its crop is left out."""
+    from s3k.geometry import workspace_centre
+    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes
+
+    images = ds.images(frames)  # (B, C, H, W, 3) uint8
+    cams = ds.calibration(frames, np.float64)
+    cal = cams.numpy()
+    missing = ~torch.isfinite(centre).all(-1)
+    if bool(missing.any()):
+        middle, _ = workspace_centre(cams)  # (B, 3)
+        centre = torch.where(missing[:, None], middle.to(centre.dtype), centre)
+    boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent)
+    B, C = boxes.shape[:2]
+    flat = torch.as_tensor(images, dtype=torch.float32).reshape(B * C, *images.shape[2:]).permute(0, 3, 1, 2)
+    crops = crop_images(flat, boxes.reshape(B * C, 4).float(), (size, size))
+    crops_u8 = crops.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()
+    crops_u8 = crops_u8.reshape(B, C, size, size, 3)
+    M = crop_maps(boxes, (size, size)).numpy()  # (B, C, 3, 3)
+    uv, mask = ds.labels(frames, np.float64)
+    uv_crop = (np.einsum("bcij,bckj->bcki", M[..., :2, :2], uv) + M[:, :, None, :2, 2])[:, :, kps]
+    inside = ((uv_crop >= -0.5) & (uv_crop <= size - 0.5)).all(-1)
+    mask = mask[:, :, kps] & inside
+    uv_crop = np.where(mask[..., None], uv_crop, 0.0)
+    part: tuple = (M @ cal["K"], cal["dist"], cal["R"], cal["t"], uv_crop, mask)
+    gt = ds.points3d(frames)
+    if gt is not None:
+        part += (gt[0][:, kps], gt[1][:, kps])
+    return crops_u8, M, part
+
+
+def write_crop_dataset(source: str | Path, out: str | Path, centres: Mapping[int, np.ndarray], extent: float,
+                       size: int, keypoints: Sequence[str] | None = None, *,
+                       fallback: bool = False, chunk: int = 32,
+                       splits: Sequence[str] | None = None,
+                       overwrite: bool = False, description: str | None = None) -> Path:
+    """Write the crops of every frame of ``source`` around ``centres`` as a dataset folder ``out``
+    (:func:`cut_crops`, then :meth:`CropDataset.write`; the arguments are theirs).
+
+    Returns:
+        ``out``.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise UserError(f"{out} exists", hint="pass --overwrite to replace it")
+    crops = cut_crops(source, centres, extent, size, keypoints, fallback=fallback, chunk=chunk, splits=splits,
+                      description=description)
+    return crops.write(out, overwrite=True)
