@@ -63,6 +63,7 @@ from s3k.experiments.accuracy import (  # noqa: E402
     reuse_coarse,
     reuse_labels_only,
     run_jobs,
+    stage_summary,
     train_command,
     without_notes,
 )
@@ -181,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         "s3k_pck_10mm_at_least_0.95": s3k["pck_10mm"]["mean"] >= 0.95,
         "train_cpu_minutes_at_most_60": summary["train_cpu_minutes_per_model"] <= 60.0,
     }
+    summary["stages"] = stage_summary(work, seeds, runs)
     summary["targets"] = TARGETS
     if args.notes:
         summary["notes"] = args.notes

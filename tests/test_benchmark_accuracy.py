@@ -129,7 +129,7 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     assert cli.main(["train", str(data), "--out", str(new / "s3k-seed0"), *args, "--resume"]) == 0
     assert coarse_model.stat().st_mtime_ns == before and (new / "s3k-seed0" / "fine" / "model.pt").is_file()
     spent = read_cpu(new / "s3k-seed0")
-    assert spent["coarse"] >= source_cpu["coarse"] and spent["fine"] > 0
+    assert spent["coarse"] >= source_cpu["coarse"] and spent["crops"] > 0 and spent["fine"] > 0
     # options that would make another coarse pass are refused; a run already begun is left alone
     (old / "other").symlink_to(old / "s3k-seed0")
     reuse_coarse(old, [new / "other"])

@@ -69,9 +69,9 @@ def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, 
     seen = []
     real = loop_module.compute_losses
 
-    def spy(model, lab, unl, cfg, alpha, wd_model, rule, teacher=None):
+    def spy(model, lab, unl, cfg, alpha, wd_model, rule, teacher=None, precision="float32"):
         seen.append((unl is None, alpha))
-        return real(model, lab, unl, cfg, alpha, wd_model, rule, teacher)
+        return real(model, lab, unl, cfg, alpha, wd_model, rule, teacher, precision)
 
     monkeypatch.setattr(loop_module, "compute_losses", spy)
     result = train(tiny_dataset, tmp_path / "base", tiny_config(unsup=False, steps=3, val_every=0))

@@ -5,6 +5,7 @@ CPU time recorded, runs reused from an earlier working folder, and the cached te
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -34,9 +35,38 @@ def data_names(args, seed: int) -> list[str]:
     return [f"{rendered}-seed{seed}", f"{rendered}-{args.label_choice}-seed{seed}"]
 
 
+STAGE_TIMES = "stage_times.json"
+"""Wall and CPU seconds of each stage that ran in a working folder (``{stage: {"wall_s", "cpu_s"}}``)."""
+
+
+@contextlib.contextmanager
+def timed(work: Path, stage: str):
+    """Record the wall time and the CPU time (this process and its finished children) of the block as
+    ``stage`` in ``work/stage_times.json``; a block that raises records nothing."""
+    import resource
+
+    def cpu() -> float:
+        return sum(u.ru_utime + u.ru_stime for u in (resource.getrusage(resource.RUSAGE_SELF),
+                                                    resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+    wall, used = time.perf_counter(), cpu()
+    yield
+    times = stage_times(work)
+    times[stage] = {"wall_s": time.perf_counter() - wall, "cpu_s": cpu() - used}
+    (work / STAGE_TIMES).write_text(json.dumps(times, indent=1) + "\n")
+
+
+def stage_times(work: Path) -> dict[str, dict[str, float]]:
+    """What :func:`timed` recorded in ``work`` (empty when nothing was)."""
+    try:
+        return dict(json.loads((work / STAGE_TIMES).read_text()))
+    except (OSError, ValueError):
+        return {}
+
+
 def render(args, seed: int, work: Path) -> Path:
     """The seed's dataset, rendered once (with ``--label-pool`` labelled frames: a view of it with the 10
-    chosen by ``--label-choice``)."""
+    chosen by ``--label-choice``); each stage's time is recorded (:func:`timed`)."""
     pool = args.label_pool
     names = data_names(args, seed)
     out = work / names[0]
@@ -44,12 +74,16 @@ def render(args, seed: int, work: Path) -> Path:
         from s3k.sim.generate import SimulateConfig, simulate
 
         extra: dict[str, Any] = {"mode": "start"} if args.scene == "distractors" else {}
-        simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
-                                test=args.test, seed=seed, **extra),
-                 out, workers=args.parallel, progress=False, overwrite=True)
+        with timed(work, f"render-seed{seed}"):
+            simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
+                                    test=args.test, seed=seed, **extra),
+                     out, workers=args.parallel, progress=False, overwrite=True)
     if pool == LABELLED:
         return out
-    return labelled_view(out, work / names[1], args.label_choice, seed)
+    if (work / names[1] / "s3k.json").is_file():
+        return work / names[1]
+    with timed(work, f"label_choice-seed{seed}"):
+        return labelled_view(out, work / names[1], args.label_choice, seed)
 
 
 def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int) -> Path:
@@ -85,17 +119,17 @@ def _link_or_copy(src: str, dst: str) -> None:
 
 def reuse_coarse(source: Path, runs: list[Path]) -> None:
     """Start each of ``runs`` not yet begun from the coarse stage of the run of the same name in ``source``:
-    its coarse pass, estimates and crops (hard-linked where the file system allows), and that stage's CPU
-    minutes in the run's record. ``s3k train --two-pass --resume`` then trains the refining pass, after
-    checking that the coarse pass and the crops are what this benchmark's options would make."""
+    its coarse pass and estimates (and crops, where that run wrote them: hard-linked where the file system
+    allows), and that stage's CPU minutes in the run's record. ``s3k train --two-pass --resume`` then cuts the
+    crops and trains the refining pass, after checking that the coarse pass is what this benchmark's options
+    would make."""
     from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
 
     for run in runs:
         if run.exists():
             continue
         src = source / run.name
-        needed = [src / "coarse" / "model.pt", src / "crops" / "s3k.json", src / ESTIMATES_FILE,
-                  src / CPU_FILE]
+        needed = [src / "coarse" / "model.pt", src / ESTIMATES_FILE, src / CPU_FILE]
         missing = [p for p in needed if not p.is_file()]
         if missing or "coarse" not in read_cpu(src):
             raise SystemExit(f"{missing[0] if missing else src / CPU_FILE}: no finished coarse stage with "
@@ -104,7 +138,8 @@ def reuse_coarse(source: Path, runs: list[Path]) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         shutil.copytree(src / "coarse", tmp / "coarse")
-        shutil.copytree(src / "crops", tmp / "crops", copy_function=_link_or_copy)
+        if (src / "crops" / "s3k.json").is_file():
+            shutil.copytree(src / "crops", tmp / "crops", copy_function=_link_or_copy)
         shutil.copy2(src / ESTIMATES_FILE, tmp / ESTIMATES_FILE)
         coarse_s = read_cpu(src)["coarse"]
         (tmp / CPU_FILE).write_text(json.dumps({"coarse": coarse_s}) + "\n")
@@ -211,7 +246,8 @@ def evaluate(run: Path, data: Path) -> dict:
             return metrics
     from s3k.inference.evaluate import evaluate_run
 
-    metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
+    with timed(run.parent, f"evaluate-{run.name}"):
+        metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
     path.write_text(json.dumps(metrics, default=float) + "\n")
     return metrics
 
@@ -232,4 +268,39 @@ def without_notes(argv: list[str]) -> list[str]:
             skip = True
         elif not a.startswith("--notes="):
             out.append(a)
+    return out
+
+
+def stage_summary(work: Path, seeds: list[int], runs: dict[tuple[int, str], Path]) -> dict[str, Any]:
+    """Minutes per stage, means over ``seeds`` of what ran in ``work``: rendering and the label choice
+    (wall and CPU, per seed: :func:`timed`), each model's training stages (CPU, from its run's
+    ``cpu.json``: ``coarse``, ``crops``, ``fine``) and its evaluation (wall and CPU). A stage that did not
+    run in ``work`` (linked from elsewhere) is left out."""
+    from s3k.train.two_pass import read_cpu
+
+    times = stage_times(work)
+
+    def mean_of(keys: list[str]) -> dict[str, float] | None:
+        found = [times[k] for k in keys if k in times]
+        if not found:
+            return None
+        return {"wall_min": statistics.fmean(t["wall_s"] for t in found) / 60,
+                "cpu_min": statistics.fmean(t["cpu_s"] for t in found) / 60, "n": len(found)}
+
+    out: dict[str, Any] = {}
+    for stage in ("render", "label_choice"):
+        got = mean_of([f"{stage}-seed{s}" for s in seeds])
+        if got is not None:
+            out[stage] = got
+    for model in MODELS:
+        per_seed = [read_cpu(runs[s, model]) for s in seeds if (s, model) in runs]
+        stages = sorted({k for spent in per_seed for k in spent})
+        train = {k: {"cpu_min": statistics.fmean(spent.get(k, 0.0) for spent in per_seed) / 60}
+                 for k in stages}
+        if train:
+            train["total"] = {"cpu_min": sum(v["cpu_min"] for v in train.values())}
+            out[f"train_{model}"] = train
+        got = mean_of([f"evaluate-{runs[s, model].name}" for s in seeds if (s, model) in runs])
+        if got is not None:
+            out[f"evaluate_{model}"] = got
     return out

@@ -77,6 +77,11 @@ def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     if fine is not None:
         config.update(steps=fine["steps"], rotation_deg=fine["rotation_deg"])
         options.update(coarse_steps=coarse["steps"], coarse_rotation=coarse["rotation_deg"])
+        try:  # the crops' size is the refining pass's input
+            options.update(crop_size=int(json.loads((run_dir / "fine" / "config.json").read_text())
+                                         ["meta"]["image_size"][0]))
+        except (OSError, ValueError, KeyError, TypeError, IndexError):
+            pass
     for source in (run_dir / "two_pass.json", run_dir / "crops" / "s3k.json"):
         try:
             doc = json.loads(source.read_text())
