@@ -19,6 +19,7 @@ from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.data.video import write_video
 from s3k.detector import TWO_PASS_FILE, CropRule, DetectorMeta, crop_centres, extent_middle, read_two_pass
+from s3k.detector.geometry_record import dataset_identity
 from s3k.errors import UserError
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_maps, metric_crop_boxes
@@ -29,6 +30,7 @@ from s3k.train.two_pass import (
     CPU_FILE,
     ESTIMATES_FILE,
     crop_rule_from_labels,
+    estimates_and_crops,
     read_cpu,
     refining_config,
     training_crops,
@@ -134,6 +136,9 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert not (run / "crops").exists()
     crops = training_crops(data, read_csv(run / ESTIMATES_FILE, KEYPOINTS), rule)
     source = Dataset.open(data, cache="none")
+    fresh = estimates_and_crops(coarse, source, tmp_path / "again.csv", rule)  # decoded once for both
+    assert dataset_identity(fresh) == dataset_identity(crops)  # what --resume compares
+    np.testing.assert_array_equal(fresh.images_array, crops.images_array)
     assert crops.image_size == (32, 32) and list(crops.keypoints) == KEYPOINTS
     for split in ("labelled", "unlabelled", "test"):
         np.testing.assert_array_equal(crops.frames(split), source.frames(split))

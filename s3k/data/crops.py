@@ -23,7 +23,7 @@ import torch
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 
-__all__ = ["CropDataset", "cut_crops", "object_centres", "write_crop_dataset"]
+__all__ = ["CropCutter", "CropDataset", "cut_crops", "object_centres", "write_crop_dataset"]
 
 
 def object_centres(points: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -173,6 +173,67 @@ class CropDataset:
         return out
 
 
+class CropCutter:
+    """Cuts the crops of a dataset's frames batch by batch and gathers them into a :class:`CropDataset`
+    (:func:`cut_crops` reads the frames itself; a caller that already holds them, such as the coarse pass's
+    estimates, hands them over and spares a second decoding).
+
+    Args:
+        source: dataset at full resolution (:class:`s3k.data.Dataset`).
+        extent, size, keypoints, fallback: as for :func:`cut_crops`.
+    """
+
+    def __init__(self, source: Any, extent: float, size: int, keypoints: Sequence[str] | None = None,
+                 fallback: bool = False) -> None:
+        self.ds, self.extent, self.size, self.fallback = source, float(extent), int(size), fallback
+        self.names = list(source.keypoints if keypoints is None else keypoints)
+        missing = [k for k in self.names if k not in source.keypoints]
+        if missing:
+            raise UserError(f"{source.path}: no keypoint {missing[0]!r} (it has "
+                            f"{', '.join(source.keypoints)})")
+        self.kps = [source.keypoints.index(k) for k in self.names]
+        self.ids: list[np.ndarray] = []
+        self.crops: list[np.ndarray] = []
+        self.maps: list[np.ndarray] = []
+        self.parts: list[tuple] = []
+
+    def add(self, frames: np.ndarray, centres: Mapping[int, np.ndarray], images: np.ndarray | None = None
+            ) -> None:
+        """Cut ``frames`` around their ``centres`` (``{frame: (3,)}``); ``images``: their ``uint8
+        (B, C, H, W, 3)`` frames when at hand (read from the dataset otherwise).
+
+        Raises:
+            UserError: a frame without a centre when ``fallback`` is off.
+        """
+        rows = []
+        for f in frames:
+            if int(f) in centres:
+                rows.append(np.asarray(centres[int(f)], dtype=np.float64))
+            elif self.fallback:
+                rows.append(np.full(3, np.nan))
+            else:
+                raise UserError(f"frame {int(f)} of {self.ds.path} has no 3D estimate to crop around")
+        crops, M, part = _cut_chunk(self.ds, np.asarray(frames), torch.as_tensor(np.stack(rows)), self.kps,
+                                    self.extent, self.size, images)
+        self.ids.append(np.asarray(frames, dtype=np.int64))
+        self.crops.append(crops)
+        self.maps.append(M)
+        self.parts.append(part)
+
+    def result(self, description: str | None = None) -> CropDataset:
+        """The crops cut so far, as a :class:`CropDataset`."""
+        ids = np.concatenate(self.ids)
+        images = np.ascontiguousarray(np.concatenate(self.crops))
+        self.crops.clear()  # the one copy of the crops is the dataset's
+        K, dist, R, t, uv, mask = (np.concatenate([p[i] for p in self.parts]) for i in range(6))
+        points = None
+        if self.ds.has_points3d:
+            points = (np.concatenate([p[6] for p in self.parts]), np.concatenate([p[7] for p in self.parts]))
+        cams = Cameras(*(torch.from_numpy(np.ascontiguousarray(x)) for x in (K, dist, R, t)))
+        return CropDataset(self.ds, ids, self.ds.split_of(ids), images, cams, np.concatenate(self.maps), uv,
+                           mask, points, self.names, self.extent, self.size, description)
+
+
 def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, size: int,
               keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
               splits: Sequence[str] | None = None, description: str | None = None) -> CropDataset:
@@ -197,45 +258,22 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     from s3k.data.dataset import Dataset
 
     ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
-    names = list(ds.keypoints if keypoints is None else keypoints)
-    missing = [k for k in names if k not in ds.keypoints]
-    if missing:
-        raise UserError(f"{ds.path}: no keypoint {missing[0]!r} (it has {', '.join(ds.keypoints)})")
-    kps = [ds.keypoints.index(k) for k in names]
+    cutter = CropCutter(ds, extent, size, keypoints, fallback)
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
-    C = len(ds.cameras)
-    images = np.empty((len(ids), C, size, size, 3), np.uint8)
-    maps = np.empty((len(ids), C, 3, 3))
-    parts: list[tuple] = []
     for start in range(0, len(ids), chunk):
-        frames = ids[start:start + chunk]
-        rows = []
-        for f in frames:
-            if int(f) in centres:
-                rows.append(np.asarray(centres[int(f)], dtype=np.float64))
-            elif fallback:
-                rows.append(np.full(3, np.nan))
-            else:
-                raise UserError(f"frame {int(f)} of {ds.path} has no 3D estimate to crop around")
-        crops, M, part = _cut_chunk(ds, frames, torch.as_tensor(np.stack(rows)), kps, extent, size)
-        images[start:start + len(frames)], maps[start:start + len(frames)] = crops, M
-        parts.append(part)
-    K, dist, R, t, uv, mask = (np.concatenate([p[i] for p in parts]) for i in range(6))
-    points = None
-    if ds.has_points3d:
-        points = (np.concatenate([p[6] for p in parts]), np.concatenate([p[7] for p in parts]))
-    cams = Cameras(*(torch.from_numpy(np.ascontiguousarray(x)) for x in (K, dist, R, t)))
-    return CropDataset(ds, ids, ds.split_of(ids), images, cams, maps, uv, mask, points, names, extent, size,
-                       description)
+        cutter.add(ids[start:start + chunk], centres)
+    return cutter.result(description)
 
 
-def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int):
+def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int,
+               images: np.ndarray | None = None):
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
     from s3k.geometry import workspace_centre
     from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes
 
-    images = ds.images(frames)  # (B, C, H, W, 3) uint8
+    if images is None:
+        images = ds.images(frames)  # (B, C, H, W, 3) uint8
     cams = ds.calibration(frames, np.float64)
     cal = cams.numpy()
     missing = ~torch.isfinite(centre).all(-1)
@@ -244,10 +282,10 @@ def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], ext
         centre = torch.where(missing[:, None], middle.to(centre.dtype), centre)
     boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent)
     B, C = boxes.shape[:2]
-    flat = torch.as_tensor(images, dtype=torch.float32).reshape(B * C, *images.shape[2:]).permute(0, 3, 1, 2)
+    flat = torch.as_tensor(images).float().reshape(B * C, *images.shape[2:]).permute(0, 3, 1, 2)
     crops = crop_images(flat, boxes.reshape(B * C, 4).float(), (size, size))
     crops_u8 = crops.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()
-    crops_u8 = crops_u8.reshape(B, C, size, size, 3)
+    crops_u8 = np.ascontiguousarray(crops_u8.reshape(B, C, size, size, 3))
     M = crop_maps(boxes, (size, size)).numpy()  # (B, C, 3, 3)
     uv, mask = ds.labels(frames, np.float64)
     uv_crop = (np.einsum("bcij,bckj->bcki", M[..., :2, :2], uv) + M[:, :, None, :2, 2])[:, :, kps]

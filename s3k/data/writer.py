@@ -73,6 +73,8 @@ class DatasetWriter:
             ``video_frame`` (``extra``, default the frame id) of each video.
         png_compression: 0-9, OpenCV's PNG compression level.
         overwrite: replace an existing non-empty folder.
+        tables_only: write the tables and no image: frames carry none, and the caller puts the images folder
+            in place (e.g. a link to another dataset's images under the same names).
 
     Example:
         >>> with DatasetWriter("ds", ["a"], ["cam0", "cam1"], (64, 48)) as w:  # doctest: +SKIP
@@ -95,6 +97,7 @@ class DatasetWriter:
         videos: dict[str, str | Path] | None = None,
         png_compression: int = 3,
         overwrite: bool = False,
+        tables_only: bool = False,
     ):
         self.path = Path(path)
         self.keypoints, self.cameras = list(keypoints), list(cameras)
@@ -115,6 +118,7 @@ class DatasetWriter:
         self.skeleton = [list(e) for e in skeleton or []]
         self.description, self.source = description, source
         self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
+        self.tables_only = tables_only
         self.static = None if calibration is None else self._check_calibration(calibration, "calibration")
         if self.static is not None and per_frame_calibration:
             raise ValueError("per_frame_calibration=True contradicts a static calibration argument")
@@ -216,7 +220,10 @@ class DatasetWriter:
             if self.static is not None and not all(np.array_equal(a, b) for a, b in zip(cal, self.static)):
                 raise ValueError("calibration differs from the writer's static calibration")
 
-        if self.videos is None:
+        if self.tables_only:
+            if images is not None:
+                raise ValueError("this writer writes tables only; pass images=None")
+        elif self.videos is None:
             if images is None:
                 raise ValueError("images are required (C, H, W, 3) uint8")
             if isinstance(images, dict):
@@ -263,7 +270,7 @@ class DatasetWriter:
                 if np.isfinite(X[k]).all():
                     point_rows.append(f"{frame_id},{self.keypoints[k]},{','.join(_fmt(x) for x in X[k])}")
 
-        if self.videos is None:
+        if self.videos is None and not self.tables_only:
             for c, im in enumerate(imgs):
                 rel = DEFAULT_IMAGE_PATTERN.format(camera=self.cameras[c], frame=frame_id)
                 ok, data = cv2.imencode(".png", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), self.png_params)

@@ -147,29 +147,31 @@ def pose_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator,
 
 
 def write_frames(dataset: Dataset, out: Path, splits: Mapping[int, str], chunk: int = 64,
-                 **writer_args: Any) -> Path:
+                 images: bool = True, **writer_args: Any) -> Path:
     """Write the frames ``splits`` (frame id -> split in ``out``) of ``dataset`` as a new dataset ``out``.
 
     Every table a dataset holds goes across through the public reader and writer: calibration, labels
     (those the reader keeps: labelled, visible and inside the image), 3D points and the extra frames.csv
     columns, in ``dataset``'s frame order. Images are decoded and written again (PNG is lossless, so the
-    pixels are the same). ``writer_args`` go to :class:`DatasetWriter` (e.g. ``source``, ``overwrite``).
+    pixels are the same); with ``images=False`` none are (the caller links them). ``writer_args`` go to
+    :class:`DatasetWriter` (e.g. ``source``, ``overwrite``).
     """
     ids = np.asarray([f for f in dataset.frames().tolist() if f in splits], dtype=np.int64)
     columns = list(dataset.frame_columns)
     writer = DatasetWriter(out, dataset.keypoints, dataset.cameras, dataset.image_size, dataset.units,
                            per_frame_calibration=not dataset.static_calibration,
-                           skeleton=dataset.skeleton or None, description=dataset.description, **writer_args)
+                           skeleton=dataset.skeleton or None, description=dataset.description,
+                           tables_only=not images, **writer_args)
     for start in range(0, len(ids), chunk):
         part = ids[start:start + chunk]
-        images = dataset.images(part)  # (B, C, H, W, 3)
+        pictures = dataset.images(part) if images else None  # (B, C, H, W, 3)
         cams = dataset.calibration(part, dtype=np.float64)  # (B, C), exact
         uv, mask = dataset.labels(part)  # (B, C, K, 2), (B, C, K)
         points = dataset.points3d(part)  # (B, K, 3), (B, K) or None
         X = None if points is None else np.where(points[1][..., None], points[0], np.nan)
         extra = {c: dataset.column(c, part) for c in columns}
         for b, frame in enumerate(part.tolist()):
-            writer.add_frame(frame, splits[frame], images[b], cams[b],
+            writer.add_frame(frame, splits[frame], None if pictures is None else pictures[b], cams[b],
                              labels=(uv[b], mask[b]), points3d=None if X is None else X[b],
                              extra={c: v[b] for c, v in extra.items()})
     return writer.close()
@@ -202,7 +204,7 @@ def make_view(pool: Dataset, view_dir: Path, frames: Mapping[str, np.ndarray],
     view_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = view_dir.with_name(f"{view_dir.name}.{os.getpid()}.tmp")
     source = {"view_of": os.path.relpath(pool.path, view_dir), "pool_source": pool.source, **(note or {})}
-    write_frames(pool, tmp, splits, source=source, png_compression=1, overwrite=True)
+    write_frames(pool, tmp, splits, images=False, source=source, overwrite=True)
     link_images(tmp, pool)
     Dataset.open(tmp, cache="none")  # every image resolves through the link
     try:

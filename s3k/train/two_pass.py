@@ -41,7 +41,8 @@ from s3k.detector.crop_rule import CropRule, extent_middle, is_two_pass, write_t
 from s3k.errors import UserError
 
 __all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "coarse_estimates", "crop_rule_from_labels",
-           "read_cpu", "refining_config", "train_two_pass", "training_crops", "write_crops"]
+           "estimates_and_crops", "read_cpu", "refining_config", "train_two_pass", "training_crops",
+           "write_crops"]
 
 ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
 CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "crops", "fine"), summed over a run's attempts
@@ -99,6 +100,48 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
             writer.writerows(csv_rows(batch.frame_ids.tolist(), pred))
     tmp.replace(out_csv)
     return read_csv(out_csv, detector.keypoints)
+
+
+def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device: str | torch.device = "cpu",
+                        batch_size: int = 32):
+    """The coarse pass's estimates of every frame of ``ds`` (written to ``out_csv``) and the crops around
+    them (:func:`training_crops`), each frame decoded once for both. The crops are cut around the estimates
+    as the file holds them, so that a resumed run, which cuts them again from the file, gets the same crops.
+    """
+    from s3k.data.crops import CropCutter
+    from s3k.data.frames import FrameStore
+    from s3k.data.tracks_csv import csv_rows, write_csv
+    from s3k.detector import Detector
+    from s3k.inference.predict import detect_store, split_frames
+
+    description = f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates"
+    if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
+        estimates = coarse_estimates(run_dir, ds.path, out_csv)
+        return training_crops(ds, estimates, rule, description=description)
+    detector = Detector.load(run_dir, device)
+    store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)
+    cutter = CropCutter(ds, rule.extent, rule.size, fallback=True)
+    tmp = out_csv.with_name(out_csv.name + ".part")
+    K = len(detector.keypoints)
+    placed = 0
+    with write_csv(tmp, detector.keypoints) as writer:
+        for batch, pred in detect_store(detector, store, batch_size):
+            rows = csv_rows(batch.frame_ids.tolist(), pred)
+            writer.writerows(rows)
+            centres = {}
+            for row in rows:  # the values as written
+                X = np.array([[float(v) if v else np.nan for v in row[6 * k:6 * k + 3]] for k in range(K)])
+                middle = extent_middle(X)
+                if middle is not None:
+                    centres[int(row[-1])] = middle
+            placed += len(centres)
+            cutter.add(batch.frame_ids, centres, batch.images)
+    if not placed:
+        tmp.unlink(missing_ok=True)
+        raise UserError(f"the coarse pass placed no keypoint in any frame of {ds.path}",
+                        hint="train the coarse pass longer (--coarse-steps) or check the labels")
+    tmp.replace(out_csv)
+    return cutter.result(description)
 
 
 def training_crops(data, estimates: Mapping[int, np.ndarray], rule: CropRule, splits=None,
@@ -235,11 +278,9 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
             crops: Any = written
         else:
             _check_rule(out, rule)
-            log(f"coarse pass: estimating every frame of {data}")
-            estimates = coarse_estimates(out / "coarse", data, out / ESTIMATES_FILE, cfg.device)
-            log(f"cropping every frame in memory: {rule.extent:g} {ds.units} -> {rule.size} px")
-            crops = training_crops(ds, estimates, rule, description=f"crops of {rule.extent:g} {ds.units} "
-                                   "around the coarse pass's estimates")
+            log(f"coarse pass: estimating every frame of {data} and cropping it in memory "
+                f"({rule.extent:g} {ds.units} -> {rule.size} px)")
+            crops = estimates_and_crops(out / "coarse", ds, out / ESTIMATES_FILE, rule, cfg.device)
             if keep_crops:
                 crops.write(written, overwrite=True)
                 log(f"crops written to {written}")
