@@ -266,7 +266,7 @@ def test_evaluate_matches_keypoints_by_name(trained, tmp_path, capsys):
     assert err.startswith("s3k evaluate: error:") and "missing c" in err and "extra tail" in err
 
 
-@pytest.mark.slow  # renders a small box scene and trains two tiny models: about 40 s
+@pytest.mark.slow  # renders a small box scene and trains two tiny models: about a minute
 def test_demo_quick(tmp_path, capsys):
     pytest.importorskip("mujoco")
     assert cli_main(["demo", "--out", str(tmp_path / "demo"), "--quick", "--no-progress"]) == 0
@@ -275,8 +275,13 @@ def test_demo_quick(tmp_path, capsys):
     summary = json.loads((tmp_path / "demo" / "report" / "comparison.json").read_text())
     for name in ("labels only", "S3K"):
         assert summary[name]["rms_px"] is not None and summary[name]["median_mm"] is not None
-    assert (tmp_path / "demo" / "report" / "comparison.png").is_file()
+    picture = tmp_path / "demo" / "report" / "demo.png"
+    assert picture.is_file() and picture.stat().st_size > 10_000
     assert (tmp_path / "demo" / "report" / "s3k" / "metrics.json").is_file()
+    # the recommended configuration, and ten of the pool's labelled frames
+    data = json.loads((tmp_path / "demo" / "data" / "s3k.json").read_text())
+    assert data["source"]["labelled"] == 10 and data["source"]["label_choice"] == "representative"
+    assert "--preset box-headline" in summary["scale"]
     # wide rotations for the coarse pass that finds the box, narrow ones for the refining pass
     for model in ("s3k", "baseline"):
         for part, degrees in (("coarse", 180.0), ("fine", 15.0)):

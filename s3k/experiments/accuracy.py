@@ -86,17 +86,17 @@ def render(args, seed: int, work: Path) -> Path:
         return labelled_view(out, work / names[1], args.label_choice, seed)
 
 
-def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int) -> Path:
-    """A view of the rendered ``pool_dir`` (tables filtered, images linked) with 10 of its labelled frames,
-    chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
+def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int, labelled: int = LABELLED) -> Path:
+    """A view of the rendered ``pool_dir`` (tables filtered, images linked) with ``labelled`` of its labelled
+    frames, chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
     if (out / "s3k.json").is_file():
         return out
     from s3k.data import Dataset
     from s3k.experiments.views import make_view, select_frames
 
     pool = Dataset.open(pool_dir, cache="none")
-    frames = select_frames(pool, LABELLED, len(pool.frames("unlabelled")), seed, choice=choice)
-    return make_view(pool, out, frames, {"labelled": LABELLED, "label_choice": choice, "seed": seed})
+    frames = select_frames(pool, labelled, len(pool.frames("unlabelled")), seed, choice=choice)
+    return make_view(pool, out, frames, {"labelled": labelled, "label_choice": choice, "seed": seed})
 
 
 def reuse_labels_only(source: Path, work: Path, seeds: list[int], args) -> None:
