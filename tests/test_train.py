@@ -478,3 +478,44 @@ def test_teacher_update_is_the_moving_average():
     loop.update_teacher()
     for t, b in zip(loop.teacher.parameters(), before):
         torch.testing.assert_close(t, b + 0.25)
+
+
+def test_bfloat16_training_keeps_float32_heatmaps_and_learns(tiny_dataset, tmp_path):
+    """--precision bfloat16: the network runs under autocast, its heatmap head and losses stay float32, the
+    run finishes with finite weights and writes which arithmetic it used."""
+    from s3k.model import UNet, UNetConfig
+
+    net = UNet(3, UNetConfig(channels=(8, 16), res_blocks=1))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        logits = net(torch.rand(2, 3, 32, 32))
+    assert logits.dtype == torch.float32
+    result = train(tiny_dataset, tmp_path / "bf16", tiny_config(precision="bfloat16", steps=3, val_every=0))
+    assert result.status == "done"
+    assert all(torch.isfinite(p).all() for p in result.model.parameters())
+    assert "(bfloat16)" in (tmp_path / "bf16" / "train.log").read_text()
+    with pytest.raises(UserError, match="precision"):
+        tiny_config(precision="half").validate()
+
+
+def test_frames_held_on_another_device_are_drawn_there_once(tiny_dataset):
+    """FrameStore.to: the stores of one dataset cache share one copy on the device, and batches come from
+    it (the 'meta' device stands in for a GPU: shapes and placement without data)."""
+    from s3k.data.frames import FrameStore, open_dataset
+
+    ds = open_dataset(tiny_dataset)
+    labelled = FrameStore(ds, ds.frames("labelled"), labels=True).to("meta")
+    unlabelled = FrameStore(ds, ds.frames("unlabelled")).to("meta")
+    assert labelled.image_array is unlabelled.image_array  # one copy of the cache
+    batch = labelled.get(np.array([0, 2]))
+    assert batch.images.device.type == "meta" and batch.images.shape[:2] == (2, len(ds.cameras))
+    assert batch.labels_uv.device.type == "meta" and batch.cams.K.device.type == "meta"
+    assert FrameStore(ds, ds.frames("test"), preload_mb=0).to("meta").image_array is None  # read per batch
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
+def test_training_on_the_gpu_holds_frames_there_in_bfloat16(tiny_dataset, tmp_path):
+    result = train(tiny_dataset, tmp_path / "gpu", tiny_config(device="cuda", steps=3, val_every=2))
+    assert result.status == "done"
+    log = (tmp_path / "gpu" / "train.log").read_text()
+    assert "cuda" in log and ("(bfloat16)" in log) == torch.cuda.is_bf16_supported()

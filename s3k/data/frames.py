@@ -76,6 +76,10 @@ def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "di
     return ds if out_size is None else ds.resized(out_size)
 
 
+_ON_DEVICE: dict[tuple, Tensor] = {}
+"""Dataset caches copied to a device by :meth:`FrameStore.to`, shared by the stores that serve them."""
+
+
 class FrameStore:
     """Frames ``frame_ids`` of ``dataset``, served as tensors.
 
@@ -158,17 +162,35 @@ class FrameStore:
         positions = np.asarray(positions, dtype=np.int64)
         if self._cache is None:
             return self._read(self.frame_ids[positions])
-        idx = torch.from_numpy(positions)
         c = self._cache
+        idx = torch.from_numpy(positions).to(c.cams.K.device)
         return FrameBatch(
             frame_ids=c.frame_ids[positions],
-            images=c.images[torch.from_numpy(self._image_rows[positions])],
+            images=c.images[torch.from_numpy(self._image_rows[positions]).to(c.images.device)],
             cams=c.cams[idx],
             labels_uv=None if c.labels_uv is None else c.labels_uv[idx],
             labels_mask=None if c.labels_mask is None else c.labels_mask[idx],
             points=None if c.points is None else c.points[idx],
             points_mask=None if c.points_mask is None else c.points_mask[idx],
         )
+
+    def to(self, device: torch.device | str) -> FrameStore:
+        """Hold a preloaded store's frames on ``device`` (uint8 images, cameras, labels), so that a batch is
+        drawn there without a copy from host memory; stores whose images are one dataset cache share one
+        copy of it on the device. A store read batch by batch stays on the host. Returns ``self``."""
+        device = torch.device(device)
+        c = self._cache
+        if c is None or c.images.device == device:
+            return self
+        key = (c.images.data_ptr(), tuple(c.images.shape), str(device))
+        images = _ON_DEVICE.get(key)
+        if images is None:
+            images = _ON_DEVICE[key] = c.images.to(device)
+        self._cache = FrameBatch(
+            frame_ids=c.frame_ids, images=images, cams=c.cams.to(device=device),
+            **{name: None if getattr(c, name) is None else getattr(c, name).to(device)
+               for name in ("labels_uv", "labels_mask", "points", "points_mask")})
+        return self
 
     def batches(self, batch_size: int):
         """Iterate over all frames in order, ``batch_size`` at a time."""

@@ -308,6 +308,10 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
     lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
     unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
     val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
+    if device.type != "cpu":  # the frames held once on the training device, batches drawn there
+        for store in (lab_store, unl_store):
+            if store is not None:
+                store.to(device)
     t_load = time.perf_counter() - t0
     state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
