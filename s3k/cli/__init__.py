@@ -5,6 +5,9 @@ parses and checks the options and calls library functions with typed arguments. 
 here: library modules never see an ``argparse.Namespace``. Modules are imported only when their command runs,
 so ``s3k --help`` stays fast and a missing optional dependency affects one command.
 
+Options are spelled with dashes (``--rotation-deg``, booleans ``--flag/--no-flag``); a training field's own
+name (``--rotation_deg``) is a hidden alias (:func:`s3k.cli.config_options.add_config_arguments`).
+
 Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
 missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
 status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
@@ -60,6 +63,13 @@ def _top_parser() -> argparse.ArgumentParser:
 class _Parser(argparse.ArgumentParser):
     """A command's parser: a refused option is one line, ``s3k CMD: error: argument --opt: ...``, naming the
     value and where to read about the options (status 2, as ``argparse``'s own)."""
+
+    def _get_option_tuples(self, option_string: str):  # type: ignore[override]
+        # An abbreviation that matches an option and its hidden alias (--rot: --rotation-deg and
+        # --rotation_deg) means the option, not an ambiguity between two spellings of it.
+        found = super()._get_option_tuples(option_string)
+        shown = [t for t in found if getattr(t[0], "alias_of", None) is None]
+        return shown or found
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")

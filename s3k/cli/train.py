@@ -17,7 +17,7 @@ from s3k.train.two_pass import REFERENCE_CROP
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Train a keypoint detector (S3K: labelled + unlabelled frames; --no-unsup: labels-only baseline). "
-        "Run under 'torchrun --nproc_per_node N' for data-parallel training."
+        "Run under 'torchrun --nproc-per-node N' for data-parallel training."
     )
     parser.add_argument("dataset", help="dataset folder (see docs/dataset-format.md)")
     parser.add_argument("--out", required=True, metavar="RUN", help="run folder to create (or to --resume)")
@@ -45,11 +45,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's steps (default: --steps)")
     two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
                      help="the coarse pass's augmentation rotation range in degrees (default: "
-                          "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
+                          "--rotation-deg), e.g. 180 with --rotation-deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
-                          f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
+                          f"refining pass scales --outlier-px, --shift-px and --pseudo-window by "
                           f"PX/{REFERENCE_CROP} so they keep their size in the scene")
     two.add_argument("--crop-margin", type=number(ge=0), default=None, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "
