@@ -7,6 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
@@ -19,6 +20,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Train a keypoint detector (S3K: labelled + unlabelled frames; --no-unsup: labels-only baseline). "
         "Run under 'torchrun --nproc-per-node N' for data-parallel training."
     )
+    parser.epilog = examples("s3k train data/box --out runs/box",
+                             "s3k train data/box --out runs/box-2p --two-pass --rotation-deg 15 "
+                             "--coarse-rotation 180 --layout-tol 0.2")
     parser.add_argument("dataset", help="dataset folder (see docs/dataset-format.md)")
     parser.add_argument("--out", required=True, metavar="RUN", help="run folder to create (or to --resume)")
     parser.add_argument("--resume", action="store_true",
@@ -31,7 +35,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
-                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items()))
+                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items())
+                             + " (default: none)")
     two = parser.add_argument_group(
         "two passes (coarse-to-fine; docs/accuracy.md)",
         "--two-pass trains a coarse detector on the whole image, crops every view around its 3D estimate "
