@@ -1,6 +1,6 @@
 """What the self-supervised term teaches, by the object's pose: a trained detector's pseudo-labels on the
-unlabelled frames, made as training makes them (the run's ``--outlier_px``, ``--pseudo_window`` and
-``--layout_tol`` against its labelled frames' layout), against the true 3D points.
+unlabelled frames, made as training makes them (the run's ``--outlier-px``, ``--pseudo-window`` and
+``--layout-tol`` against its labelled frames' layout), against the true 3D points.
 
 For each pose class of :mod:`benchmarks.error_by_pose` (the plane of the first three keypoints facing up,
 down or to a side) it prints and writes the share of keypoints whose pseudo-label is kept (``kept``) and the

@@ -1,13 +1,13 @@
 """What the rigid read-out does for a two-pass detector: the same trained passes read with and without it.
 
-A detector trained with ``--layout_tol`` holds its 3D keypoints to the labelled layout at read-out
+A detector trained with ``--layout-tol`` holds its 3D keypoints to the labelled layout at read-out
 (docs/method.md, "A rigid object's layout"): a keypoint that breaks it is looked for again where the layout
 puts it, and the layout is fitted onto the keypoints. In a two-pass run this acts twice: on the coarse
 pass's estimates, which place the crops, and on the refining pass's keypoints. Each RUN is read on DATA's
 ``--split`` four ways, the rigid read-out off or on in each pass, and the test metrics of each way printed
 (median and RMS 3D error, share within 5 and 10 mm; the coarse estimates' median and RMS too).
 
-A run trained before its detectors kept the layout (or without ``--layout_tol``) is read with the layout
+A run trained before its detectors kept the layout (or without ``--layout-tol``) is read with the layout
 triangulated from DATA's labelled frames and ``--layout-tol``.
 
 Example::

@@ -4,12 +4,13 @@
 ``self_supervision``, ``monitoring``, ``execution``), each a dataclass whose fields carry their documentation
 in ``metadata["help"]``; ``s3k train --help`` shows that text next to the field's default. Field names are
 unique across sections, so a configuration is also a flat table of field names: the command line
-(``--steps``, ``--alpha``), config files and ``RUN/config.json`` use that flat form, and ``cfg.steps`` reads
-``cfg.schedule.steps``. Values are resolved in this order, later winning:
+(``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that flat form, and
+``cfg.steps`` reads ``cfg.schedule.steps``. Values are resolved in this order, later winning:
 
 1. the dataclass defaults,
 2. a config file (``--config FILE``, TOML or JSON, a flat table of field names),
-3. command-line overrides ``--field value`` (``--field-name`` also works; booleans are ``--flag/--no-flag``).
+3. command-line overrides ``--field-name value``, the field's name with dashes (``--rotation-deg 15``; the
+   field's own name, ``--rotation_deg``, also works; booleans are ``--flag/--no-flag``).
 
 Example:
     >>> cfg = TrainConfig.from_flat(steps=100, unsup=False)
@@ -123,7 +124,7 @@ class SelfSupervisionConfig:
                                 "detected together on one spot teach nothing, and at read-out look for such "
                                 "a keypoint again where that layout puts it; 0: off (deformable objects)",
                             ge=0)
-    layout_fit: bool = _f(False, "with --layout_tol: move the labelled layout onto each pseudo-label's kept "
+    layout_fit: bool = _f(False, "with --layout-tol: move the labelled layout onto each pseudo-label's kept "
                                  "keypoints (a rigid fit) and train towards its places, as the read-out "
                                  "does, instead of towards the triangulated points")
 

@@ -146,11 +146,11 @@ def test_predict_writes_the_track_csv(trained, tmp_path):
         np.testing.assert_allclose(points[int(fid)], pred.X[b].numpy(), rtol=1e-6, atol=1e-9)
     rows = list(csv.DictReader(open(out)))
     assert float(rows[0]["b_score"]) == pytest.approx(float(pred.weights[0, :, 1].mean()), abs=1e-6)
-    assert int(rows[0]["b_ncams"]) == len(CAMERAS)  # an untrained network's views agree within --outlier_px
+    assert int(rows[0]["b_ncams"]) == len(CAMERAS)  # an untrained network's views agree within --outlier-px
 
 
 def test_detector_reads_out_with_its_training_outlier_threshold(tmp_path):
-    """A detector keeps its training's --outlier_px and s3k predict drops the views that miss the others'
+    """A detector keeps its training's --outlier-px and s3k predict drops the views that miss the others'
     consensus by more; a run trained before the meta kept it takes it from its config.json."""
     from s3k.config import TrainConfig
     from s3k.detector import MODEL_FILE, atomic_save, load_torch_file

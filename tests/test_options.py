@@ -49,7 +49,8 @@ def test_every_numeric_option_refuses_nan_and_inf():
     (["label", "propagate", "D", "--frames", "0:3", "--max-changed", "nan"], "--max-changed"),
     (["label", "propagate", "D", "--frames", "0:3", "--max-changed", "-5"], "--max-changed"),
     (["check-calibration", "D", "--factor", "nan"], "--factor"),
-    (["train", "D", "--out", "R", "--rotation_deg", "nan"], "--rotation_deg"),
+    (["train", "D", "--out", "R", "--rotation-deg", "nan"], "--rotation-deg"),
+    (["train", "D", "--out", "R", "--rotation_deg", "nan"], "--rotation_deg"),  # the field's name, an alias
     (["train", "D", "--out", "R", "--lr", "inf"], "--lr"),
     (["train", "D", "--out", "R", "--lr", "nan"], "--lr"),
     (["train", "D", "--out", "R", "--two-pass", "--crop-size", "0"], "--crop-size"),

@@ -255,7 +255,7 @@ def test_outlier_rejection_keeps_at_least_min_views():
 
 
 def test_outlier_threshold_is_in_network_pixels_whatever_the_pixel_maps(scene):
-    """A detector's ``--outlier_px`` holds in the pixels it saw: read out through a pixel map (track, the
+    """A detector's ``--outlier-px`` holds in the pixels it saw: read out through a pixel map (track, the
     refining pass's crops) it drops the same views, and gives the same points, as in the network's cameras."""
     cams = scene.batch.cams
     logits = scene.logits.clone()

@@ -177,7 +177,7 @@ def _parser():
 def test_help_shows_every_field_with_doc_and_default():
     text = _parser().format_help()
     for _, f, _ in leaf_fields(TrainConfig):
-        assert f"--{f.name}" in text, f.name
+        assert f"--{f.name.replace('_', '-')}" in text, f.name
     assert "(default: 750)" in text and "labels-only steps before the self-supervised term" in text
     assert "--no-unsup" in text
 
@@ -370,7 +370,7 @@ def test_mean_pairwise_distance():
 
 def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
     """The labelled frames' triangulated keypoints give the synthetic triangle's side lengths; a dataset
-    whose labels triangulate nothing is refused by --layout_tol, naming it."""
+    whose labels triangulate nothing is refused by --layout-tol, naming it."""
     from synthetic_rig import LAYOUT
 
     from s3k.train import labelled_distances
@@ -385,7 +385,7 @@ def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
     labels = (one / "labels.csv").read_text().splitlines()
     (one / "labels.csv").write_text("\n".join([labels[0]] + [r for r in labels[1:] if ",a," in r]) + "\n")
     assert np.isnan(labelled_distances(open_dataset(one), np.arange(2)).numpy()).all()
-    with pytest.raises(UserError, match="layout_tol"):
+    with pytest.raises(UserError, match="--layout-tol"):
         train(one, tmp_path / "run", tiny_config(steps=1, layout_tol=0.2))
     assert not (tmp_path / "run").exists()
     train(one, tmp_path / "run", tiny_config(steps=1))  # without it the same labels train
@@ -434,7 +434,7 @@ def test_collapse_warning(tiny_dataset, tmp_path):
 
 
 def test_teacher_follows_the_network_and_resumes_exactly(tiny_dataset, tmp_path):
-    """--teacher_ema: the teacher is saved in the checkpoint, lags the network as an exponential moving
+    """--teacher-ema: the teacher is saved in the checkpoint, lags the network as an exponential moving
     average, and a killed run resumes to the same network and teacher as an uninterrupted one."""
     cfg = tiny_config(steps=4, checkpoint_every=2, teacher_ema=0.5)
     full = train(tiny_dataset, tmp_path / "full", cfg)

@@ -5,6 +5,10 @@ parses and checks the options and calls library functions with typed arguments. 
 here: library modules never see an ``argparse.Namespace``. Modules are imported only when their command runs,
 so ``s3k --help`` stays fast and a missing optional dependency affects one command.
 
+Options are spelled with dashes (``--rotation-deg``, booleans ``--flag/--no-flag``); a training field's own
+name (``--rotation_deg``) is a hidden alias (:func:`s3k.cli.config_options.add_config_arguments`). Every
+command's ``--help`` states the options' defaults and ends with examples (:func:`examples`).
+
 Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
 missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
 status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
@@ -17,6 +21,7 @@ import importlib
 import os
 import shlex
 import sys
+from typing import Any
 
 # name -> (module in s3k.cli, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -42,14 +47,36 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """``--help`` text: a line of prose is wrapped to the terminal's width; a line that starts with a blank
+    (an example command, a row of a table) is kept as written, and so are blank lines between paragraphs."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        lines = []
+        for line in text.splitlines():
+            if not line.strip():
+                lines.append("")
+            elif line[0].isspace():
+                lines.append(indent + line)
+            else:
+                lines.append(super()._fill_text(line, width, indent))
+        return "\n".join(lines)
+
+
+def examples(*commands: str) -> str:
+    """A parser's ``epilog``: the example command lines, one a line, under ``examples:``."""
+    return "examples:\n" + "\n".join(f"  {c}" for c in commands)
+
+
 def _top_parser() -> argparse.ArgumentParser:
     lines = "\n".join(f"  {name:<18} {text}" for name, (_, text) in COMMANDS.items())
     parser = argparse.ArgumentParser(
         prog="s3k",
         description="Semantic 3D keypoints from a calibrated multi-camera rig.",
         epilog=f"commands:\n{lines}\n\nRun 's3k COMMAND --help' for a command's options; "
-               "'s3k --debug COMMAND ...' (or S3K_DEBUG=1) shows a traceback on error.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+               "'s3k --debug COMMAND ...' (or S3K_DEBUG=1) shows a traceback on error.\n\n"
+               + examples("s3k demo --quick --out s3k-demo-quick", "s3k train data/box --out runs/box"),
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
@@ -59,10 +86,31 @@ def _top_parser() -> argparse.ArgumentParser:
 
 class _Parser(argparse.ArgumentParser):
     """A command's parser: a refused option is one line, ``s3k CMD: error: argument --opt: ...``, naming the
-    value and where to read about the options (status 2, as ``argparse``'s own)."""
+    value and where to read about the options (status 2, as ``argparse``'s own); help is laid out by
+    :class:`HelpFormatter` (also in a subcommand's parser, which ``add_subparsers`` makes of this class)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def _get_option_tuples(self, option_string: str):  # type: ignore[override]
+        # An abbreviation that matches an option and its hidden alias (--rot: --rotation-deg and
+        # --rotation_deg) means the option, not an ambiguity between two spellings of it.
+        found = super()._get_option_tuples(option_string)
+        shown = [t for t in found if getattr(t[0], "alias_of", None) is None]
+        return shown or found
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+
+
+def command_parser(name: str, module: Any = None) -> _Parser:
+    """The parser of the command ``name`` (its module imported unless given)."""
+    module_name, text = COMMANDS[name]
+    module = module or importlib.import_module(f"s3k.cli.{module_name}")
+    parser = _Parser(prog=f"s3k {name}", description=text)
+    module.configure_parser(parser)
+    return parser
 
 
 def describe_error(exc: BaseException) -> str | None:
@@ -106,11 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         debug, rest = True, [a for a in rest if a != "--debug"]
     if name not in COMMANDS:
         top.error(f"unknown command {name!r}; choose from {', '.join(COMMANDS)}")
-    module_name, text = COMMANDS[name]
-    module = importlib.import_module(f"s3k.cli.{module_name}")
-    parser = _Parser(prog=f"s3k {name}", description=text)
-    module.configure_parser(parser)
-    args = parser.parse_args(rest)
+    module = importlib.import_module(f"s3k.cli.{COMMANDS[name][0]}")
+    args = command_parser(name, module).parse_args(rest)
     args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it
     try:
         return int(module.run(args) or 0)

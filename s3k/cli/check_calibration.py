@@ -8,6 +8,7 @@ import argparse
 
 import numpy as np
 
+from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.errors import UserError
 
@@ -18,6 +19,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "camera-out check, and the cameras inconsistent with the others (exit code 2 when any). Optionally "
         "recalibrate a camera from ChArUco frames and show the residual after the fix."
     )
+    parser.epilog = examples("s3k check-calibration data/session",
+                             "s3k check-calibration data/session --recalibrate flagged "
+                             "--write-calibration calibration_fixed.toml")
     parser.add_argument("dataset", help="dataset folder (s3k import or s3k simulate)")
     parser.add_argument(
         "--splits", default="labelled,test",
@@ -31,7 +35,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "(default: 0.5%% of the image diagonal)")
     fix = parser.add_argument_group("recalibration from ChArUco frames")
     fix.add_argument("--recalibrate", nargs="+", default=None, metavar="CAM",
-                     help="cameras to recalibrate ('flagged': those the check names)")
+                     help="cameras to recalibrate ('flagged': those the check names; default: none)")
     fix.add_argument("--calibration", default=None,
                      help="the recording's anipose calibration.toml (default: the one the dataset was "
                      "imported from)")
@@ -41,7 +45,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      "calibration_images/*.jpg); files of one board position share their last number")
     fix.add_argument("--write-calibration", default=None, metavar="TOML",
                      help="write the calibration with the recalibrated cameras (anipose format, full "
-                     "resolution); never over the calibration read or a dataset's file")
+                     "resolution); never over the calibration read or a dataset's file (default: not "
+                     "written)")
     fix.add_argument("--overwrite", action="store_true", help="replace --write-calibration if it exists")
 
 

@@ -1,4 +1,5 @@
-"""Command-line options derived from a configuration dataclass (``s3k.config``): one ``--field`` per field.
+"""Command-line options derived from a configuration dataclass (``s3k.config``): one ``--field-name`` per
+field.
 
 Options default to ``argparse.SUPPRESS``, so that only values given on the command line override the config
 file (or, for ``train --resume``, the run's saved configuration).
@@ -23,11 +24,15 @@ from s3k.errors import UserError
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig) -> None:
-    """Add ``--config FILE`` and one ``--field value`` option per field of ``cls`` to ``parser``, one
-    argument group per section; each option's help shows the field's documentation and its default."""
+    """Add ``--config FILE`` and one ``--field-name value`` option per field of ``cls`` to ``parser``, one
+    argument group per section; each option's help shows the field's documentation and its default.
+
+    An option is spelled with dashes (``--rotation-deg``; a boolean ``--layout-fit/--no-layout-fit``). The
+    field's own name (``--rotation_deg``, ``--no-layout_fit``) is accepted too, as a second option with the
+    same ``dest`` that ``--help`` does not show (its action's ``alias_of`` names the shown spelling)."""
     group = parser.add_argument_group("configuration (defaults < --config file < command line)")
     group.add_argument("--config", metavar="FILE", default=None,
-                       help="TOML or JSON file with a flat table of the fields below")
+                       help="TOML or JSON file with a flat table of the fields below (default: none)")
     groups: dict[str | None, Any] = {None: group}
     for section, f, tp in leaf_fields(cls):
         if section is not None and section not in groups:
@@ -36,17 +41,18 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
         default = _default(f)
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
         text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
-        flags = [f"--{f.name}"]
-        if "_" in f.name:
-            flags.append(f"--{f.name.replace('_', '-')}")
+        flag = f"--{f.name.replace('_', '-')}"
         if base is bool:
-            groups[section].add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction,
-                                         default=argparse.SUPPRESS, help=text)
+            kwargs: dict[str, Any] = dict(action=argparse.BooleanOptionalAction)
         else:
             is_tuple = typing.get_origin(base) is tuple
-            metavar = "N,N,..." if is_tuple else getattr(base, "__name__", "V").upper()
-            groups[section].add_argument(*flags, dest=f.name, default=argparse.SUPPRESS, metavar=metavar,
-                                         type=_parser(f, tp), help=text)
+            kwargs = dict(metavar="N,N,..." if is_tuple else getattr(base, "__name__", "V").upper(),
+                          type=_parser(f, tp))
+        groups[section].add_argument(flag, dest=f.name, default=argparse.SUPPRESS, help=text, **kwargs)
+        if "_" in f.name:  # the field's own spelling is accepted too, not shown
+            alias = groups[section].add_argument(f"--{f.name}", dest=f.name, default=argparse.SUPPRESS,
+                                                 help=argparse.SUPPRESS, **kwargs)
+            alias.alias_of = flag  # type: ignore[attr-defined]
 
 
 def _parser(f, tp: Any):

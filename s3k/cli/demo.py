@@ -6,6 +6,7 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.experiments.demo import QUICK, DemoConfig, comparison_table, run_demo
 
@@ -16,8 +17,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Render the box scene, train S3K and the labels-only baseline on the same 10 labels with the "
         f"recommended configuration (s3k train --preset {d.preset}), evaluate both on the test frames and "
         "write a report with a picture (OUT/report/demo.png).")
-    parser.epilog = "examples:\n  s3k demo\n  s3k demo --quick --out /tmp/s3k-quick"
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = examples("s3k demo", "s3k demo --quick --out /tmp/s3k-quick")
     parser.add_argument("--out", default="s3k-demo", help="output folder (default: s3k-demo)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny version (about a minute) to check the set-up; its figures mean nothing")

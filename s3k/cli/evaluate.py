@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.inference.evaluate import evaluate_run
 from s3k.inference.metrics import format_table
@@ -15,13 +16,15 @@ from s3k.inference.metrics import format_table
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Score a trained detector on a dataset split: rms_px, rms_px_reproj, median_mm, "
                           "rms_mm; keypoints are matched to the dataset's by name.")
+    parser.epilog = examples("s3k evaluate runs/box --data data/box",
+                             "s3k evaluate runs/box --data data/box --split labelled --json")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--data", required=True, help="dataset folder")
     parser.add_argument("--split", default="test", choices=["labelled", "unlabelled", "test"],
                         help="split to evaluate (default: test)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
-                        help="write metrics.json, plots and view overlays to DIR")
+                        help="write metrics.json, plots and view overlays to DIR (default: no report)")
     parser.add_argument("--overlays", type=number(int, ge=0), default=6,
                         help="frames drawn in the report (default: 6)")
     parser.add_argument("--batch-size", type=number(int, ge=1), default=16,

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.experiments import (
@@ -42,9 +43,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     scales = "\n".join(f"  {name:<6} {s.size} px, {s.steps} steps, {s.test} test frames, up to "
                        f"{s.pool_unlabelled} unlabelled, {s.seeds} seed(s) at claim points"
                        for name, s in SCALES.items())
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = (f"experiments:\n{lines}\n\nscales:\n{scales}\n\nA finished run (runs/NAME/result.json) "
-                     "is never redone: rerun the same command to continue a killed sweep.")
+                     "is never redone: rerun the same command to continue a killed sweep.\n\n"
+                     + examples("s3k experiment label-efficiency --out runs/experiments --dry-run",
+                                "s3k experiment alpha --out runs/experiments --scale toy --no-progress"))
     parser.add_argument("name", choices=EXPERIMENTS, metavar="NAME",
                         help="experiment: " + ", ".join(EXPERIMENTS))
     parser.add_argument("--out", required=True, metavar="DIR",
@@ -65,15 +67,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-seed", type=number(int, ge=0), default=0,
                         help="seed of the rendered datasets (default 0)")
     parser.add_argument("--labelled", type=_int_list, default=None, metavar="N,N,...",
-                        help="labelled counts of the grid")
+                        help="labelled counts of the grid (default: the experiment's at --scale)")
     parser.add_argument("--unlabelled", type=_int_list, default=None, metavar="N,N,...",
-                        help="unlabelled counts of the grid (0: labels-only baseline)")
+                        help="unlabelled counts of the grid (0: labels-only baseline; default: the "
+                             "experiment's at --scale)")
     parser.add_argument("--instances", type=_int_list, default=None, metavar="N,N,...",
-                        help="category: training instance counts")
+                        help="category: training instance counts (default: the experiment's at --scale)")
     parser.add_argument("--alphas", type=_float_list, default=None, metavar="A,A,...",
-                        help="alpha: values of alpha")
+                        help="alpha: values of alpha (default: the experiment's at --scale)")
     parser.add_argument("--modes", type=lambda s: [m for m in s.split(",") if m], default=None,
-                        metavar="start,full", help="domain-shift: labelling modes")
+                        metavar="start,full", help="domain-shift: labelling modes (default: start,full)")
     two = parser.add_argument_group(
         "two passes (coarse-to-fine, as s3k train --two-pass)",
         "--two-pass trains every run as a coarse pass on the whole image at --size px and a refining pass on "
@@ -84,7 +87,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     two.add_argument("--coarse-steps", type=number(int, ge=1), default=None, metavar="N",
                      help="the coarse pass's steps (default: --steps)")
     two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
-                     help="the coarse pass's augmentation rotation range in degrees (default: rotation_deg)")
+                     help="the coarse pass's augmentation rotation range in degrees (default: the runs' "
+                          "rotation_deg field, which --set rotation_deg=DEG changes)")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help="the refining pass's crop size in pixels (default: the scale's, 128 at small/full)")
     parser.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
@@ -93,7 +97,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "labelled, farthest first' or 'poses in proportion' order over the pool's true "
                              "poses, from a first frame drawn by the seed)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                        help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002")
+                        help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002 "
+                             "(default: none)")
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
     parser.add_argument("--threads", type=number(int, ge=0), default=0,
                         help="torch threads per run (0: torch's default; 1 when running two sweeps at once)")
@@ -104,7 +109,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="only (re)write summary.json, plots and README.md from the finished runs "
                              "(without NAME/runs/: from the grid points of NAME/summary.json)")
     parser.add_argument("--publish", default=None, metavar="DIR",
-                        help="then copy summary.json, README.md and plots to DIR (e.g. docs/results/NAME)")
+                        help="then copy summary.json, README.md and plots to DIR, e.g. docs/results/NAME "
+                             "(default: not copied)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
 from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector
@@ -16,6 +17,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Export a trained detector: images (N, 3, H, W) in [0, 1] -> heatmap logits (and, with "
         "--with-moments, means and confidences), then verify the file against PyTorch."
     )
+    parser.epilog = examples("s3k export runs/box --format onnx --out detector.onnx",
+                             "s3k export runs/box --format torchscript --out detector.pt --with-moments")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--format", required=True, choices=FORMATS, help="onnx or torchscript")
     parser.add_argument("--out", required=True,
@@ -32,7 +35,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="largest allowed difference from PyTorch (default 1e-4)")
     parser.add_argument("--verify-data", default=None,
                         help="dataset folder whose frames are used to verify (default: the run's dataset)")
-    parser.add_argument("--checkpoint", default=None, help="file in the run folder to export instead")
+    parser.add_argument("--checkpoint", default=None,
+                        help="file in the run folder to export instead of the final model (default: "
+                             "model.pt, else the last checkpoint.pt)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from s3k.cli import examples
 from s3k.data.formats.label_export import FORMATS
 
 
@@ -14,13 +15,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "<scorer>.csv with the images), lightning-pose (CollectedData_<camera>.csv per view, images under "
         "labeled-data/), sleap (one .slp project, a video per camera) or nwb (ndx-pose training frames)."
     )
+    parser.epilog = examples("s3k export-labels data/box --format dlc --out dlc-labels",
+                             "s3k export-labels data/box --format sleap --split labelled --out labels.slp")
     parser.add_argument("dataset", help="dataset folder")
     parser.add_argument("--format", required=True, choices=FORMATS, help="the other tool's format")
     parser.add_argument("--out", required=True,
                         help="folder for dlc / lightning-pose; FILE.slp for sleap; FILE.nwb for nwb")
     parser.add_argument("--split", nargs="+", default=None, choices=["labelled", "test", "unlabelled"],
                         help="splits whose labels to write (default: all)")
-    parser.add_argument("--scorer", default="s3k", help="annotator name in DLC / Lightning Pose CSVs")
+    parser.add_argument("--scorer", default="s3k",
+                        help="annotator name in DLC / Lightning Pose CSVs (default: %(default)s)")
     parser.add_argument("--no-images", action="store_true",
                         help="dlc / lightning-pose: write the CSVs only, not the labelled images")
     parser.add_argument("--overwrite", action="store_true", help="replace existing output files")

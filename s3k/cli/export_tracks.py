@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from s3k.cli import examples
 from s3k.cli.options import name, number
 
 
@@ -13,6 +14,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Write 3D keypoints (the anipose-style CSV of 's3k track' or 's3k predict') as an NWB file: an "
         "ndx-pose MultiCameraPoseEstimation with one series (x, y, z, confidence) per keypoint."
     )
+    parser.epilog = examples("s3k export-tracks points3d.csv --format nwb --out tracks.nwb --fps 30",
+                             "s3k export-tracks points3d.csv --format nwb --out tracks.nwb --fps 100 "
+                             "--calibration calibration.toml")
     parser.add_argument("csv", help="3D keypoints CSV")
     parser.add_argument("--format", required=True, choices=["nwb"], help="output format")
     parser.add_argument("--out", required=True, help="FILE.nwb to write")
@@ -20,7 +24,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="frame rate of the videos; timestamps are fnum / fps seconds")
     parser.add_argument("--calibration", default=None,
                         help="anipose calibration.toml of the rig (stored as calibrated cameras; gives the "
-                             "unit)")
+                             "unit; default: none)")
     parser.add_argument("--units", type=name, default=None,
                         help="world length unit (default: the calibration's, else the one 's3k track' or "
                              "'s3k predict' wrote beside the CSV in CSV.s3k.json; refused when none says)")

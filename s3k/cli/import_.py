@@ -6,6 +6,7 @@ import argparse
 import re
 from typing import Any
 
+from s3k.cli import examples
 from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
 from s3k.errors import UserError
 
@@ -20,6 +21,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "unlabelled (their labels, if any, are not written). Without labels every frame is unlabelled. "
         "See docs/importing.md."
     )
+    parser.epilog = examples(
+        "s3k import --calibration session/calibration.toml --videos back=session/back.mp4 "
+        "mid=session/mid.mp4 side=session/side.mp4 --sleap session/labels.slp --test 20 --out data/session",
+        "s3k import --calibration calibration.toml --videos cam0=cam0.mp4 cam1=cam1.mp4 "
+        "--keypoints nose,tail --stride 10 --out data/unlabelled")
     parser.add_argument("--calibration", required=True,
                         help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml (a file "
                         "or a folder of one file per camera) or DeepFly3D .pkl; chosen by content")
@@ -52,7 +58,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "index in each frame); 'all' writes one dataset per track, OUT/<track>")
     parser.add_argument("--camera-map", nargs="+", default=None, metavar="CAM=NAME",
                         help="the video (file name, stem or index) or camera name that holds each camera's "
-                             "labels in a SLEAP project or NWB file, where names differ")
+                             "labels in a SLEAP project or NWB file, where names differ (default: the same "
+                             "names)")
     parser.add_argument("--accept-predictions", action="store_true",
                         help="use SLEAP predicted instances / NWB pose estimation series as labels where no "
                              "person labelled the frame")
@@ -69,19 +76,22 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stride", type=number(int, ge=1), default=1,
                         help="keep every STRIDE-th video frame as unlabelled (default 1: all)")
     parser.add_argument("--min-views", type=number(int, ge=1), default=2,
-                        help="a frame can be labelled/test when a keypoint is labelled in this many cameras")
+                        help="a frame can be labelled/test when a keypoint is labelled in this many cameras "
+                             "(default 2)")
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--size", default=None,
-                      help="output image size: W,H or PX (the longer side, aspect kept)")
+                      help="output image size: W,H or PX (the longer side, aspect kept; default: the "
+                           "videos' size)")
     size.add_argument("--scale", type=number(gt=0, le=16), default=None,
-                      help="output image scale factor, e.g. 0.25")
+                      help="output image scale factor, e.g. 0.25 (default 1)")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
-                        help="crop box in pixel edge coordinates, for every camera or one camera")
+                        help="crop box in pixel edge coordinates, for every camera or one camera (default: "
+                        "the whole image)")
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
                         help="the region of the calibrated image a camera's video shows, in pixel edge "
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
                         "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
-                        "size are padded to the largest)")
+                        "size are padded to the largest; default: the whole calibrated image)")
     parser.add_argument("--units", type=name, default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")

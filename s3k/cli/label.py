@@ -10,6 +10,7 @@ import argparse
 import math
 from pathlib import Path
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
 
@@ -23,10 +24,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                     "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT] "
                     "[--dry-run] [--overwrite] [--allow-test]\n"
                     "       s3k label propagate DATASET --undo")
+    parser.epilog = examples("s3k label data/session",
+                             "s3k label data/session --run runs/session",
+                             "s3k label propagate data/plush --frames 0:19 --from 0")
     parser.add_argument("dataset", help="dataset folder (or 'propagate' followed by the dataset folder)")
     parser.add_argument("target", nargs="?", help=argparse.SUPPRESS)
     parser.add_argument("--run", help="a trained run: its predictions are offered as suggestions and the "
-                        "unlabelled frames ranked by its multi-view disagreement")
+                        "unlabelled frames ranked by its multi-view disagreement (default: none)")
     parser.add_argument("--ignore-geometry", action="store_true",
                         help="use --run on a dataset whose images show another part of the cameras' frames "
                              "than the run was trained on (refused by default)")
@@ -44,7 +48,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "pose turned about it as the same pose (default: %(default)s; 'none' counts "
                              "every heading as a pose of its own)")
     group = parser.add_argument_group("propagate")
-    group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive)")
+    group.add_argument("--frames", help="A:B, the frame ids of the still stretch (inclusive; required)")
     group.add_argument("--from", dest="source", type=number(int),
                        help="frame whose labels are copied (default: the "
                        "frame of the stretch with the most keypoints labelled in two or more views)")

@@ -116,9 +116,10 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
                         "DeepFly3D .pkl (as for 's3k import')")
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",
                         help="the region of the calibrated image a camera's frames show (as for "
-                        "'s3k import')")
+                        "'s3k import'; default: the whole calibrated image)")
     parser.add_argument("--units", type=name, default=None,
-                        help="world unit of the calibration when it does not say")
+                        help="world unit of the calibration when it does not say (default: the "
+                             "calibration's)")
     parser.add_argument("--crop", nargs="+", default=None, metavar="[CAM=]X0,Y0,X1,Y1",
                         help="crop box in pixel edge coordinates, as given to 's3k import --crop' (default: "
                         "the boxes the run was trained on, from its dataset's import)")

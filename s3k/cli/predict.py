@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.inference.predict import predict_dataset
 
@@ -12,6 +13,8 @@ from s3k.inference.predict import predict_dataset
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Predict 3D keypoints of a dataset's frames; writes the 3D CSV of 's3k track' "
                           "(anipose's layout, fnum = dataset frame id).")
+    parser.epilog = examples("s3k predict runs/box --data data/box --out points3d.csv",
+                             "s3k predict runs/box --data data/box --split all --out all-frames.csv")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--data", required=True, help="dataset folder")
     parser.add_argument("--out", required=True, help="output CSV file (never a file of the dataset)")

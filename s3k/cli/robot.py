@@ -16,12 +16,19 @@ import dataclasses
 import json
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import number
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = examples("s3k robot grasp runs/plush-s3k --trials 30 --out grasp-s3k.json",
+                             "s3k robot train-agent --out runs/rl/kp-0 --run runs/insertion-s3k "
+                             "--steps 10000")
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
-    g = sub.add_parser("grasp", help="grasp trials on the plush scene's held-out arrangements")
+    g = sub.add_parser("grasp", help="grasp trials on the plush scene's held-out arrangements",
+                       epilog=examples("s3k robot grasp runs/plush-s3k --trials 30 --out grasp-s3k.json",
+                                       "s3k robot grasp --ground-truth --trials 30 "
+                                       "--out grasp-ground-truth.json"))
     g.add_argument("run", nargs="?", default=None,
                    help="trained s3k run (plush keypoints) that detects the paw")
     g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
@@ -29,7 +36,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                    help="grasp trials, over arrangements 7, 8, 9 (default 30)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
     g.add_argument("--seed", type=number(int, ge=0), default=0,
-                   help="draws each trial's lighting and gripper start (0)")
+                   help="draws each trial's lighting and gripper start (default 0)")
     g.add_argument("--object-seed", type=number(int, ge=0), default=None,
                    help="the plush scene's look and arrangements (default: that of the run's dataset when "
                         "its s3k.json can be read, else 0)")
@@ -39,7 +46,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                    help="which front paw to grasp (default front_left_paw)")
     g.add_argument("--device", default="cpu", help="torch device of the detector (default cpu)")
 
-    t = sub.add_parser("train-agent", help="train a TD3 agent on cable insertion (resumable)")
+    t = sub.add_parser("train-agent", help="train a TD3 agent on cable insertion (resumable)",
+                       epilog=examples("s3k robot train-agent --out runs/rl/kp-0 --agent keypoints "
+                                       "--run runs/insertion-s3k --steps 10000 --seed 0",
+                                       "s3k robot train-agent --out runs/rl/kp-0 --resume"))
     t.add_argument("--out", required=True, help="agent run folder to create (or to --resume)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     from s3k.robot.agents import AgentConfig
@@ -52,7 +62,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                        help=f"{f.metadata['help']} (default {default})")
 
     d = sub.add_parser("simulate-insertion",
-                       help="a keypoint dataset of the insertion environment (to train its detector)")
+                       help="a keypoint dataset of the insertion environment (to train its detector)",
+                       epilog=examples("s3k robot simulate-insertion --out data/insertion",
+                                       "s3k robot simulate-insertion --out data/insertion --size 64 "
+                                       "--labelled 10 --unlabelled 2000 --test 200"))
     d.add_argument("--out", required=True, help="dataset folder to create")
     d.add_argument("--size", type=number(int, ge=16), default=64, help="image width and height (default 64)")
     d.add_argument("--labelled", type=number(int, ge=0), default=10, help="labelled frames (default 10)")
@@ -64,7 +77,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     d.add_argument("--overwrite", action="store_true", help="replace --out if it exists and is not empty")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    s = sub.add_parser("summarize", help="write docs/results/robot/summary.json from measured runs")
+    s = sub.add_parser("summarize", help="write docs/results/robot/summary.json from measured runs",
+                       epilog=examples("s3k robot summarize --out summary.json --grasp-s3k grasp-s3k.json "
+                                       "--rl-keypoints runs/rl/kp-0 runs/rl/kp-1"))
     s.add_argument("--out", required=True, help="summary JSON to write")
     s.add_argument("--grasp-s3k", default=None, help="s3k robot grasp result with the S3K run")
     s.add_argument("--grasp-labels-only", default=None, help="... with the labels-only run")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.sim.generate import MAX_SIZE
 from s3k.sim.scene import NUM_TRAIN_INSTANCES
@@ -12,6 +13,9 @@ from s3k.sim.scenes import SCENES
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = examples("s3k simulate box --out data/box",
+                             "s3k simulate distractors --out data/distractors --size 128 --labelled 30 "
+                             "--preview distractors.png")
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
     parser.add_argument("--size", type=number(int, ge=16, le=MAX_SIZE), default=96,
@@ -42,7 +46,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
     parser.add_argument("--preview", default=None, metavar="PNG",
                         help="also write a contact sheet of 3 frames (first, middle, last; 4 views each) "
-                             "to this PNG file")
+                             "to this PNG file (default: none)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.cli import examples
 from s3k.cli.options import add_rig_options, number
 from s3k.errors import UserError
 
@@ -14,9 +15,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Stream 3D keypoints from synchronized sources of a calibrated rig with a trained detector: one JSON "
         "line per frame on stdout (frame, time, points, valid, latency_ms), the frames per second on stderr "
-        "at the end. Example: s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 "
-        "side=2 top=3 --rerun"
+        "at the end."
     )
+    parser.epilog = examples(
+        "s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 side=2 top=3 --rerun",
+        "s3k stream runs/box --calibration calibration.toml --sources back=back.mp4 mid=mid.mp4 "
+        "side=side.mp4 top=top.mp4 --max-frames 100 > points.jsonl")
     parser.add_argument("run", help="run folder written by 's3k train' (one pass or --two-pass)")
     parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
                         help="one source per camera: a camera index (0) or device (/dev/video2), a video "
@@ -25,7 +29,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many frames (default: until a source ends, or Ctrl-C)")
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
-                        ".rrd file given here (needs rerun-sdk)")
+                        ".rrd file given here (needs rerun-sdk; default: off)")
     add_rig_options(parser)
 
 

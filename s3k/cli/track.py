@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from s3k.cli import examples
 from s3k.cli.options import add_rig_options, number
 from s3k.errors import UserError
 from s3k.inference.track import empty_result_hint, track_videos
@@ -31,6 +32,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "anipose's 3D CSV (<kp>_x, _y, _z, _error, _ncams, _score per keypoint, then fnum) in the "
         "calibration's units."
     )
+    parser.epilog = examples(
+        "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
+        "--calibration calibration.toml --out points3d.csv",
+        "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
+        "--calibration calibration.toml --min-weight 0.5 --overlay overlays --out points3d.csv")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
@@ -38,7 +44,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
-                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn")
+                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn (default: none)")
     parser.add_argument("--batch", type=number(int, ge=1), default=8,
                         help="frames per forward pass (default 8)")
     parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")

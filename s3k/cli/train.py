@@ -7,6 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
@@ -17,8 +18,11 @@ from s3k.train.two_pass import REFERENCE_CROP
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Train a keypoint detector (S3K: labelled + unlabelled frames; --no-unsup: labels-only baseline). "
-        "Run under 'torchrun --nproc_per_node N' for data-parallel training."
+        "Run under 'torchrun --nproc-per-node N' for data-parallel training."
     )
+    parser.epilog = examples("s3k train data/box --out runs/box",
+                             "s3k train data/box --out runs/box-2p --two-pass --rotation-deg 15 "
+                             "--coarse-rotation 180 --layout-tol 0.2")
     parser.add_argument("dataset", help="dataset folder (see docs/dataset-format.md)")
     parser.add_argument("--out", required=True, metavar="RUN", help="run folder to create (or to --resume)")
     parser.add_argument("--resume", action="store_true",
@@ -31,7 +35,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
-                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items()))
+                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items())
+                             + " (default: none)")
     two = parser.add_argument_group(
         "two passes (coarse-to-fine; docs/accuracy.md)",
         "--two-pass trains a coarse detector on the whole image, crops every view around its 3D estimate "
@@ -45,11 +50,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's steps (default: --steps)")
     two.add_argument("--coarse-rotation", type=number(ge=0), default=None, metavar="DEG",
                      help="the coarse pass's augmentation rotation range in degrees (default: "
-                          "--rotation_deg), e.g. 180 with --rotation_deg 15: a coarse pass that finds the "
+                          "--rotation-deg), e.g. 180 with --rotation-deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
-                          f"refining pass scales --outlier_px, --shift_px and --pseudo_window by "
+                          f"refining pass scales --outlier-px, --shift-px and --pseudo-window by "
                           f"PX/{REFERENCE_CROP} so they keep their size in the scene")
     two.add_argument("--crop-margin", type=number(ge=0), default=None, metavar="F",
                      help="crop side = 2 x (largest distance of a labelled keypoint from the middle of its "

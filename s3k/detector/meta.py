@@ -30,10 +30,10 @@ class DetectorMeta:
         source_image_size: (W, H) of the training dataset's images.
         outlier_px: at read-out, a view whose detection misses the others' consensus by more than this many
             network-input pixels does not enter the triangulation (the threshold the training's
-            ``--outlier_px`` held its pseudo-labels to); 0: every view enters.
+            ``--outlier-px`` held its pseudo-labels to); 0: every view enters.
         layout: a rigid object's ``(K, K)`` distances between the keypoints, triangulated from the labels
             (NaN where unknown, None: not a rigid object), and ``layout_tol`` the relative tolerance
-            ``--layout_tol`` held them to: at read-out a keypoint that breaks them is looked for again where
+            ``--layout-tol`` held them to: at read-out a keypoint that breaks them is looked for again where
             the layout puts it (:func:`s3k.readout.search_layout`).
         geometry: the part of each camera's full frame the training images showed, the training images' size
             and the training dataset's path and identity

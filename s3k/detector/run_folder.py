@@ -134,7 +134,7 @@ def build_model(meta: DetectorMeta) -> UNet:
 
 def _older_run_meta(run_dir: Path) -> dict[str, Any]:
     """What a detector trained before its meta kept the read-out's outlier threshold takes from its run's
-    ``config.json``: the ``--outlier_px`` it was trained with (nothing when that is missing)."""
+    ``config.json``: the ``--outlier-px`` it was trained with (nothing when that is missing)."""
     try:
         value = json.loads((run_dir / "config.json").read_text())["config"]["outlier_px"]
     except (OSError, ValueError, KeyError, TypeError):

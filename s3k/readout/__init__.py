@@ -19,7 +19,7 @@ Window: the whole heatmap's mean is pulled towards the heatmap's centre by whate
 the rest of it (a second bright spot, a diffuse tail), so every read-out takes the mean within
 :func:`window_cells` of the peak: ``WINDOW_SIGMAS`` target widths, which holds all of a well-formed peak
 (a narrower window cut into it would pull the mean towards the peak's cell). Training's pseudo-labels do
-the same (``--pseudo_window``). The variance, and so the confidence, stays the whole heatmap's: spread mass
+the same (``--pseudo-window``). The variance, and so the confidence, stays the whole heatmap's: spread mass
 is what makes a view uncertain.
 
 Precision: float64 from the softmax on, whatever the logits' dtype. The mean is a sum over ``h * w`` cells

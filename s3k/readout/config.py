@@ -6,8 +6,8 @@ The two differ where a test showed a reason, each an explicit field: at inferenc
 rigid object's layout is looked for again where the layout puts it and the fitted layout places every
 keypoint (``layout_search``, ``layout_fit="all"``); a pseudo-label keypoint that breaks the layout gives no
 term instead (``layout_drop``) and the layout moves only the kept keypoints (``layout_fit="kept"`` with
-``--layout_fit``, else ``"off"``), so that training never learns from a place no view showed
-(docs/training.md). The pseudo-labels' window is the training's ``--pseudo_window``.
+``--layout-fit``, else ``"off"``), so that training never learns from a place no view showed
+(docs/training.md). The pseudo-labels' window is the training's ``--pseudo-window``.
 """
 
 from __future__ import annotations
@@ -72,8 +72,8 @@ class ReadoutConfig:
 
     @classmethod
     def of_training(cls, cfg: Any, layout: Tensor | None = None) -> ReadoutConfig:
-        """The pseudo-labels' read-out of a training configuration (``--outlier_px``, ``--pseudo_window``,
-        ``--layout_tol``, ``--layout_fit``) with the labelled layout ``layout``."""
+        """The pseudo-labels' read-out of a training configuration (``--outlier-px``, ``--pseudo-window``,
+        ``--layout-tol``, ``--layout-fit``) with the labelled layout ``layout``."""
         return cls.for_pseudo_labels(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
                                      layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol,
                                      layout_fit=cfg.layout_fit)

@@ -32,7 +32,7 @@ The rooms:
 - :mod:`s3k.train.run_folder`: the checks before anything is written, ``--resume`` compatibility, history.
 - :mod:`s3k.train.sampling`: random batches, augmented, on the device.
 - :mod:`s3k.train.validation`: periodic validation and the labelled layout it compares with.
-- :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc_per_node N`` each rank draws from its
+- :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc-per-node N`` each rank draws from its
   own shard of the frames; only rank 0 writes logs and checkpoints).
 """
 

@@ -14,7 +14,7 @@ loading never runs code from the file::
     nonfinite_run  consecutive non-finite steps before this one
     meta           ``DetectorMeta.to_dict()``
     config         ``TrainConfig.to_dict()`` (flat)
-    teacher        the teacher network's state dict (``--teacher_ema``; absent without one)
+    teacher        the teacher network's state dict (``--teacher-ema``; absent without one)
 """
 
 from __future__ import annotations

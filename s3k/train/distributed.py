@@ -1,6 +1,6 @@
 """Data-parallel training helpers: joining torchrun's process group, sharding frames, agreeing across ranks.
 
-Under ``torchrun --nproc_per_node N`` every rank runs the same loop on its own shard of the frames, wrapped in
+Under ``torchrun --nproc-per-node N`` every rank runs the same loop on its own shard of the frames, wrapped in
 DistributedDataParallel (gloo on CPU, NCCL on GPU); only rank 0 writes logs and checkpoints. Without torchrun
 (``WORLD_SIZE`` unset or 1) every helper is a no-op.
 """

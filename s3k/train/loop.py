@@ -95,7 +95,7 @@ class _Loop:
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
-        # the pseudo-label rule, with the rigid layout that --layout_tol holds the pseudo-labels to
+        # the pseudo-label rule, with the rigid layout that --layout-tol holds the pseudo-labels to
         self.rule = ReadoutConfig.of_training(cfg, layout)
         self.precision = training_precision(cfg.precision, device)
         if cfg.unsup and cfg.teacher_ema > 0:

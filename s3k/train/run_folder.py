@@ -88,10 +88,12 @@ def _shown(value: Any) -> str:
 
 
 def _option(name: str, value: Any) -> str:
-    """The command-line option that sets field ``name`` to ``value``."""
+    """The command-line option that sets field ``name`` to ``value`` (``--layout-tol 0.2``,
+    ``--no-layout-fit``)."""
+    flag = name.replace("_", "-")
     if isinstance(value, bool):
-        return f"--{name}" if value else f"--no-{name}"
-    return f"--{name} {_shown(value)}"
+        return f"--{flag}" if value else f"--no-{flag}"
+    return f"--{flag} {_shown(value)}"
 
 
 def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Path) -> dict[str, list[Any]]:

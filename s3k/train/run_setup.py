@@ -120,19 +120,19 @@ def _open_data(data: Any, cfg: TrainConfig) -> _Data:
 
 
 def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
-    """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout_tol``
+    """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout-tol``
     holds pseudo-labels to them (None when off)."""
     if not (cfg.unsup and cfg.layout_tol > 0):
         return None
     if not bool(torch.isfinite(layout).any()):
         raise UserError(f"{data}: no labelled frame has two keypoints triangulated from its labels, so "
-                        "--layout_tol has no layout to hold the pseudo-labels to",
-                        hint="label two keypoints in two cameras of a frame, or leave --layout_tol at 0")
+                        "--layout-tol has no layout to hold the pseudo-labels to",
+                        hint="label two keypoints in two cameras of a frame, or leave --layout-tol at 0")
     return layout
 
 
 def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
-    """What inference needs; a rigid object's labelled layout (``--layout_tol``) goes into the read-out."""
+    """What inference needs; a rigid object's labelled layout (``--layout-tol``) goes into the read-out."""
     rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
         keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),

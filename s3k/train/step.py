@@ -30,7 +30,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
             :class:`s3k.readout.ReadoutConfig`, built once per run from ``cfg`` and the labelled layout, so
             the layout check is never left out).
         teacher: optional network whose read-out of the unlabelled images gives the pseudo-labels
-            (``--teacher_ema``); without one they come from ``model``'s own logits.
+            (``--teacher-ema``); without one they come from ``model``'s own logits.
         precision: the networks' arithmetic (``"float32"`` or ``"bfloat16"`` autocast); the logits, losses
             and pseudo-labels are float32 either way.
 

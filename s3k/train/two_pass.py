@@ -178,8 +178,8 @@ def refining_config(cfg, crop_size: int):
     ``crop_size / REFERENCE_CROP``.
 
     The crop covers a fixed extent of the scene, so a crop pixel is ``extent / crop_size`` world units: the
-    same ``--outlier_px`` would leave out of the pseudo-labels views half as far off at twice the crop size,
-    and ``--shift_px`` and ``--pseudo_window`` would shrink in the scene alike. Scaled, they keep their size
+    same ``--outlier-px`` would leave out of the pseudo-labels views half as far off at twice the crop size,
+    and ``--shift-px`` and ``--pseudo-window`` would shrink in the scene alike. Scaled, they keep their size
     in the scene and ``--crop-size`` changes the resolution alone. ``--sigma`` is not scaled: a finer
     target is what a finer crop is for.
     """

@@ -73,7 +73,7 @@ def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> fl
 def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> torch.Tensor:
     """``(K, K)`` float64: for every pair of keypoints the median over the labelled frames of their distance,
     triangulated from the labels (NaN for a pair no frame has both of, and on the diagonal); the rigid layout
-    that ``--layout_tol`` holds pseudo-labels to."""
+    that ``--layout-tol`` holds pseudo-labels to."""
     K = len(dataset.keypoints)
     rows = []
     for X, valid in _labelled_points(dataset, frame_ids, chunk):
