@@ -2,14 +2,17 @@
 # Installs everything s3k needs on a fresh Debian/Ubuntu machine into ./.venv:
 # system libraries (OSMesa for MuJoCo's CPU rendering, Chromium for the labelling app's browser test),
 # PyTorch, then s3k with its dev, formats, robot, label and stream extras.
+# `setup.sh --demo` installs what `s3k demo` needs only: OSMesa, PyTorch and s3k itself (scripts/demo.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+demo=0
+[ "${1:-}" = "--demo" ] && demo=1
 
 need_apt=()
 [ -e /usr/lib/x86_64-linux-gnu/libOSMesa.so.8 ] || [ -e /usr/lib/aarch64-linux-gnu/libOSMesa.so.8 ] \
     || ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || need_apt+=(libosmesa6)
 # The browser the labelling app's tests drive (Playwright with this executable; never a downloaded build).
-[ -x /usr/bin/chromium ] || need_apt+=(chromium fonts-liberation)
+[ $demo = 1 ] || [ -x /usr/bin/chromium ] || need_apt+=(chromium fonts-liberation)
 if [ ${#need_apt[@]} -gt 0 ]; then
     SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
     export DEBIAN_FRONTEND=noninteractive
@@ -24,4 +27,8 @@ python -m pip install -q --upgrade pip </dev/null
 # PyTorch first, so that nothing below pulls a multi-GB CUDA build; a GPU machine may preinstall its own.
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0" </dev/null \
     || python -m pip install -q "torch>=2.2,<3" </dev/null
-python -m pip install -q -e ".[dev,formats,robot,label,stream]" </dev/null
+if [ $demo = 1 ]; then
+    python -m pip install -q -e . </dev/null
+else
+    python -m pip install -q -e ".[dev,formats,robot,label,stream]" </dev/null
+fi
