@@ -1,9 +1,9 @@
 """How precise a refining pass on scale-normalized crops can be, given a coarse 3D estimate.
 
-A diagnostic for the error budget of the coarse-to-fine detector (docs/accuracy-log.md, 2026-12-01). It renders the box
-scene at ``--render`` px, and for one keypoint (or, with ``--keypoint -1``, the whole object) writes a dataset
-whose "cameras" are crops: each view cut around the keypoint's *true* 3D position (the object's: the mean of
-its keypoints) plus a random 3D offset (``--jitter-mm`` per axis, standing in for
+A diagnostic for the error budget of the coarse-to-fine detector (docs/accuracy-log.md, 2026-12-01). It
+renders the box scene at ``--render`` px, and for one keypoint (or, with ``--keypoint -1``, the whole object)
+writes a dataset whose "cameras" are crops: each view cut around the keypoint's *true* 3D position (the
+object's: the mean of its keypoints) plus a random 3D offset (``--jitter-mm`` per axis, standing in for
 the coarse pass's error), sized from a metric extent (``--extent-mm``) and resampled to ``--crop`` px with
 ``K' = M K`` (:mod:`s3k.geometry.warp`). It trains the labels-only baseline and S3K on it (same steps, same
 seed) and

@@ -9,7 +9,8 @@ true keypoints: ``bias_mm``) and of the ones the checks drop. A pose whose pseud
 gets little from the unlabelled frames; one whose kept pseudo-labels lean teaches the lean.
 
 The network reads the frames unaugmented and in eval mode (the trained detector, not a training step's).
-RUN is one pass (a plain run, or a two-pass run's ``fine`` folder read with its ``crops``); DATA has ground
+RUN is one pass (a plain run, or a two-pass run's ``fine`` folder read with its ``crops``, which ``s3k train
+--keep-crops`` writes); DATA has ground
 truth (points3d.csv).
 
 Example::
