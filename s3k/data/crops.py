@@ -106,6 +106,7 @@ class CropDataset:
     def calibration(self, frame_ids, dtype: Any = np.float32) -> Cameras:
         rows = torch.from_numpy(self._rows(frame_ids))
         to = torch.float64 if dtype in (np.float64, torch.float64) else torch.float32
+        assert self._cams.dist is not None  # the crops' cameras always carry their distortion
         return Cameras(*(x[rows].to(to).contiguous() for x in (self._cams.K, self._cams.dist, self._cams.R,
                                                                  self._cams.t)))
 
@@ -197,8 +198,8 @@ class CropCutter:
         self.maps: list[np.ndarray] = []
         self.parts: list[tuple] = []
 
-    def add(self, frames: np.ndarray, centres: Mapping[int, np.ndarray], images: np.ndarray | None = None
-            ) -> None:
+    def add(self, frames: np.ndarray, centres: Mapping[int, np.ndarray],
+            images: np.ndarray | torch.Tensor | None = None) -> None:
         """Cut ``frames`` around their ``centres`` (``{frame: (3,)}``); ``images``: their ``uint8
         (B, C, H, W, 3)`` frames when at hand (read from the dataset otherwise).
 
@@ -266,7 +267,7 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
 
 
 def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int,
-               images: np.ndarray | None = None):
+               images: np.ndarray | torch.Tensor | None = None):
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
     from s3k.geometry import workspace_centre

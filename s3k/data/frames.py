@@ -72,7 +72,7 @@ def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "di
     ``path`` may also be a dataset already open (e.g. :class:`s3k.data.crops.CropDataset`)."""
     from s3k.data import Dataset
 
-    ds = Dataset.open(path, cache=cache) if isinstance(path, (str, os.PathLike)) else path
+    ds = Dataset.open(os.fspath(path), cache=cache) if isinstance(path, (str, os.PathLike)) else path
     return ds if out_size is None else ds.resized(out_size)
 
 

@@ -69,9 +69,9 @@ def demo_figure(out: str | Path, data: Any, frame_ids: Sequence[int], detections
     B, C = images.shape[:2]
     X, mask = data.points3d(frame_ids)
     cams = data.calibration(frame_ids, np.float64)
-    true_uv, _ = project(cams, torch.as_tensor(X, dtype=torch.float64)[:, None])
-    true_uv = np.where(mask[:, None, :, None], true_uv.numpy(), np.nan)
-    colours = [tuple(v / 255 for v in c) for c in keypoint_colours(len(data.keypoints))]
+    projected, _ = project(cams, torch.as_tensor(X, dtype=torch.float64)[:, None])
+    true_uv = np.where(mask[:, None, :, None], projected.numpy(), np.nan)
+    colours = [(r / 255, g / 255, b / 255) for r, g, b in keypoint_colours(len(data.keypoints))]
     fig = plt.figure(figsize=(2.6 * C, 2.6 * B + 3.6))
     grid = fig.add_gridspec(B + 1, C, height_ratios=[1] * B + [1.35])
     for b in range(B):
@@ -84,17 +84,19 @@ def demo_figure(out: str | Path, data: Any, frame_ids: Sequence[int], detections
             ax.set_xticks([])
             ax.set_yticks([])
             for k, colour in enumerate(colours):
-                ax.scatter(*true_uv[b, c, k], s=120, facecolors="none", edgecolors=colour, linewidths=1.5)
+                u, v = true_uv[b, c, k]
+                ax.scatter([u], [v], s=120, facecolors="none", edgecolors=[colour], linewidths=1.5)
                 for name, uv in detections.items():
                     marker, size = MARKERS.get(name, ("o", 30))
-                    ax.scatter(*uv[b, c, k], s=size, marker=marker, color=colour, linewidths=1.5)
+                    ax.scatter([uv[b, c, k, 0]], [uv[b, c, k, 1]], s=size, marker=marker, color=colour,
+                               linewidths=1.5)
             if b == 0:
                 ax.set_title(data.cameras[c], fontsize=9)
             if c == 0:
                 ax.set_ylabel(f"test frame {int(frame_ids[b])}", fontsize=9)
     half = max(C // 2, 1)
     ax = fig.add_subplot(grid[B, :half])
-    bins = np.logspace(-1, 3, 41)
+    bins = np.logspace(-1, 3, 41).tolist()
     for name, err in errors_mm.items():
         err = np.clip(np.asarray(err, dtype=float), bins[0], bins[-1])
         ax.hist(err, bins=bins, histtype="step", linewidth=1.8, label=f"{name} ({len(err)} keypoints)")
