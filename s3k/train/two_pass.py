@@ -128,18 +128,14 @@ def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device
         for batch, pred in detect_store(detector, store, batch_size):
             rows = csv_rows(batch.frame_ids.tolist(), pred)
             writer.writerows(rows)
-            centres = {}
-            for row in rows:  # the values as written
-                X = np.array([[float(v) if v else np.nan for v in row[6 * k:6 * k + 3]] for k in range(K)])
-                middle = extent_middle(X)
-                if middle is not None:
-                    centres[int(row[-1])] = middle
+            written = {int(row[-1]): np.array([[float(v) for v in row[6 * k:6 * k + 3]] for k in range(K)])
+                       for row in rows}  # the values as written
+            centres = _centres(written)
             placed += len(centres)
             cutter.add(batch.frame_ids, centres, batch.images)
     if not placed:
         tmp.unlink(missing_ok=True)
-        raise UserError(f"the coarse pass placed no keypoint in any frame of {ds.path}",
-                        hint="train the coarse pass longer (--coarse-steps) or check the labels")
+        _centres({}, ds.path)
     tmp.replace(out_csv)
     return cutter.result(description)
 
@@ -151,16 +147,22 @@ def training_crops(data, estimates: Mapping[int, np.ndarray], rule: CropRule, sp
     (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
     from s3k.data.crops import cut_crops
 
+    return cut_crops(data, _centres(estimates, data), rule.extent, rule.size, fallback=True, splits=splits,
+                     description=description)
+
+
+def _centres(estimates: Mapping[int, np.ndarray], refuse_empty: Any = None) -> dict[int, np.ndarray]:
+    """The crop centre of each frame's estimates (frames without a placed keypoint left out); with
+    ``refuse_empty`` (the dataset, for the message) none at all is an error."""
     centres = {}
     for frame, X in estimates.items():
         middle = extent_middle(X)
         if middle is not None:
             centres[int(frame)] = middle
-    if not centres:
-        raise UserError(f"the coarse pass placed no keypoint in any frame of {data}",
+    if not centres and refuse_empty is not None:
+        raise UserError(f"the coarse pass placed no keypoint in any frame of {refuse_empty}",
                         hint="train the coarse pass longer (--coarse-steps) or check the labels")
-    return cut_crops(data, centres, rule.extent, rule.size, fallback=True, splits=splits,
-                     description=description)
+    return centres
 
 
 def write_crops(data: Path, out: Path, estimates: Mapping[int, np.ndarray], rule: CropRule,
