@@ -266,16 +266,17 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     data = _data(out, demo, progress, log, timings)
-    jobs = [(name, out / folder, train_command(demo, data, out / folder, own))
-            for name, (folder, own) in MODELS.items() if not _finished(out / folder)]
-    if parallel and len(jobs) > 1 and (os.cpu_count() or 1) >= 2:
+    todo = [(name, out / folder, own) for name, (folder, own) in MODELS.items()
+            if not _finished(out / folder)]
+    if parallel and len(todo) > 1 and (os.cpu_count() or 1) >= 2:  # one thread each, side by side
+        jobs = [(name, folder, train_command(demo, data, folder, own)) for name, folder, own in todo]
         timings.update(_train_side_by_side(jobs, log, progress=progress, totals=demo.steps()))
     else:
-        for name, folder, cmd in jobs:
+        for name, folder, own in todo:  # one after the other, torch's default threads
             log(f"[demo] training {name} into {folder}")
             t = time.perf_counter()
-            threads = [c if c != "1" or cmd[i - 1] != "--threads" else "0" for i, c in enumerate(cmd)]
-            subprocess.run(threads, check=True, stdout=None if progress else subprocess.DEVNULL)
+            subprocess.run(train_command(demo, data, folder, own, threads=0), check=True,
+                           stdout=None if progress else subprocess.DEVNULL)
             timings[f"train_{folder.name}_s"] = time.perf_counter() - t
     import torch
 
