@@ -68,8 +68,10 @@ class CropDataset:
         self.crop_box = (0, 0, self.size, self.size)
         self.description = description
         self.source = {"crops_of": str(source.path), "extent": self.extent, "size": self.size}
+        # what a run records of its dataset: the crop rule, not where the source folder lies (moving it
+        # does not change the crops)
         self.metadata = {**(source.metadata or {}), "keypoints": self.keypoints, "image_size": [size, size],
-                         "calibration": "per_frame", "source": self.source}
+                         "calibration": "per_frame", "source": {"extent": self.extent, "size": self.size}}
         self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
         self._splits = np.asarray(splits)
         self.images_array, self.maps = images, maps
