@@ -158,10 +158,12 @@ class ExecutionConfig:
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
                          "since threads waiting for a busy core stall every convolution",
                       resumable=True, ge=0)
-    precision: str = _f("auto", "the network's arithmetic in training: 'auto' (bfloat16 autocast where "
-                                "the hardware computes it natively: a CUDA GPU with bfloat16, a CPU with "
-                                "AVX512-BF16 or AMX; float32 elsewhere), 'float32' or 'bfloat16'; the "
-                                "heatmap head, the losses and the read-out stay float32", resumable=True)
+    precision: str = _f("float32", "the network's arithmetic in training: 'float32', 'bfloat16', or "
+                                   "'auto' (bfloat16 autocast where the hardware computes it natively: a "
+                                   "CUDA GPU with bfloat16, a CPU with AVX512-BF16 or AMX; else float32); "
+                                   "the heatmap head, the losses and the read-out stay float32. bfloat16 "
+                                   "trains the refining pass 1.65x faster on such a CPU for about 0.5 mm "
+                                   "more median error on the box", resumable=True)
     preload_mb: int = _f(2048, "load all images into memory when they take at most this many MiB",
                          resumable=True, ge=0)
 

@@ -6,8 +6,10 @@ on the command line or in ``--config`` win over the preset's).
 pass at 96 px for 4000 steps with rotations up to 180 degrees, a refining pass on 192 px crops for 4000
 steps with rotations up to 15 degrees and a narrow target, the box held to its labelled layout (10%), views
 that miss the others' consensus by 6 px (at 128 px crops) left out of the pseudo-labels, validation every
-500 steps. With ``--precision auto`` (the default) the networks train in bfloat16 where the hardware computes
-it natively. Until 2026-12-04 its refining pass ran 6000 steps in float32 (docs/results/accuracy/README.md).
+500 steps, and ``--precision auto``: the networks train in bfloat16 where the hardware computes it natively
+(``--precision float32`` on top of the preset: about 0.5 mm less median error, 1.65x the refining pass's CPU
+time; docs/results/accuracy/fast/bf16-vs-fp32-4000.json). Until 2026-12-04 its refining pass ran 6000 steps
+in float32 (docs/results/accuracy/README.md).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ PRESETS: dict[str, Preset] = {
     "box-headline": Preset(
         "the box headline: two passes (96 px, 192 px crops), rigid layout, narrow target",
         config={"steps": 4000, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1, "rotation_deg": 15.0,
-                "sigma": 1.0, "val_every": 500},
+                "sigma": 1.0, "val_every": 500, "precision": "auto"},
         two_pass={"coarse_size": 96, "coarse_steps": 4000, "coarse_rotation": 180.0, "crop_size": 192},
     ),
 }

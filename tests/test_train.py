@@ -515,7 +515,8 @@ def test_frames_held_on_another_device_are_drawn_there_once(tiny_dataset):
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 def test_training_on_the_gpu_holds_frames_there_in_bfloat16(tiny_dataset, tmp_path):
-    result = train(tiny_dataset, tmp_path / "gpu", tiny_config(device="cuda", steps=3, val_every=2))
+    result = train(tiny_dataset, tmp_path / "gpu", tiny_config(device="cuda", steps=3, val_every=2,
+                                                                 precision="auto"))
     assert result.status == "done"
     log = (tmp_path / "gpu" / "train.log").read_text()
     assert "cuda" in log and ("(bfloat16)" in log) == torch.cuda.is_bf16_supported()
