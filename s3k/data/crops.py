@@ -12,7 +12,6 @@ with the rule the two-pass detector applies at inference (:func:`s3k.geometry.wa
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -46,7 +45,7 @@ class CropDataset:
 
     It has the parts of :class:`s3k.data.Dataset`'s interface that training, validation and evaluation use:
     ``frames``, ``split_of``, ``labels``, ``calibration`` (per frame), ``points3d``, ``images``,
-    ``cached_images``, ``resized`` (to its own size only), ``fingerprint``; ``path`` is the source dataset's.
+    ``cached_images``, ``resized`` (to its own size only); ``path`` is the source dataset's.
 
     Attributes:
         images_array: ``uint8 (N, C, S, S, 3)`` crops, rows in ``frame_ids`` order.
@@ -138,12 +137,6 @@ class CropDataset:
                             f"{image_size[0]}x{image_size[1]}",
                             hint="leave --image-size at 0 for the refining pass")
         return self
-
-    def fingerprint(self) -> str:
-        h = hashlib.sha256()
-        for part in (self.frame_ids, self.maps, self.images_array[:, :, ::16, ::16]):
-            h.update(np.ascontiguousarray(part).tobytes())
-        return h.hexdigest()[:16]
 
     def write(self, out: str | Path, overwrite: bool = False) -> Path:
         """Save the crops as a dataset folder ``out`` (written beside as ``out.tmp``, then renamed)."""
