@@ -1,8 +1,8 @@
-"""Time to accuracy: the box headline (``--preset box-headline``) end to end on N seeds, each stage timed.
+"""Time to accuracy: a box preset (``--preset``, default box-headline) on N seeds end to end, stage by stage.
 
 For every seed: render the box scene (100 labelled + 2000 unlabelled + 200 test frames at 384 px), choose 10
 of the 100 labelled frames as the labelling app's *poses in proportion* ranking would, train S3K and labels
-only with ``s3k train --preset box-headline`` (``--parallel`` trainings at once, one thread each on a CPU,
+only with ``s3k train --preset PRESET`` (``--parallel`` trainings at once, one thread each on a CPU,
 sharing the GPU on a GPU machine), evaluate both on the test frames. This is ``benchmarks/accuracy.py`` with
 the headline's options (its stages, records and resumption); this script adds the per-stage table.
 
@@ -15,6 +15,7 @@ Example::
 
     python benchmarks/time_to_accuracy.py --seeds 3        # this 2-core CPU: about 1.5 hours
     python benchmarks/time_to_accuracy.py --seeds 3 --device cuda --parallel 6  # a GPU: all models at once
+    python benchmarks/time_to_accuracy.py --seeds 3 --preset box-fast  # -> results/accuracy/fast/box-fast
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 ROOT = Path(__file__).resolve().parents[1]
+
+from s3k.presets import PRESETS  # noqa: E402
 
 
 def device_name(device: str) -> str:
@@ -60,12 +63,18 @@ def stage_table(summary: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    p.add_argument("--preset", default="box-headline", choices=[n for n in PRESETS if n.startswith("box-")],
+                   help="the configuration both models train with (default box-headline)")
     p.add_argument("--device", default="cpu", help="where the models train: cpu (default), cuda, auto")
     p.add_argument("--parallel", type=int, default=2,
                    help="trainings at once (default 2: one per core of a 2-core CPU)")
     p.add_argument("--work", default=None, help="working folder (default runs/time-to-accuracy)")
     p.add_argument("--results", default=None,
-                   help="folder of summary.json (default docs/results/accuracy/fast)")
+                   help="folder of summary.json (default docs/results/accuracy/fast; fast/PRESET for "
+                        "another preset)")
+    p.add_argument("--coarse-from", metavar="WORK", default=None,
+                   help="start from the coarse passes and estimates of an earlier working folder's runs with "
+                        "the same coarse options (their CPU minutes counted; benchmarks/accuracy.py)")
     p.add_argument("--notes", default=None,
                    help="text kept in summary.json, e.g. the revision the runs were trained at when the "
                         "summary is written again from finished runs")
@@ -76,12 +85,15 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks import accuracy
 
     work = args.work or str(ROOT / "runs" / "time-to-accuracy")
-    results = Path(args.results or ROOT / "docs" / "results" / "accuracy" / "fast")
-    forwarded = ["--seeds", str(args.seeds), "--preset", "box-headline", "--label-pool", "100",
+    fast = ROOT / "docs" / "results" / "accuracy" / "fast"
+    results = Path(args.results or (fast if args.preset == "box-headline" else fast / args.preset))
+    forwarded = ["--seeds", str(args.seeds), "--preset", args.preset, "--label-pool", "100",
                  "--label-choice", "representative", "--parallel", str(args.parallel), "--work", work,
                  "--results", str(results)]
     if args.device != "cpu":
         forwarded += ["--train-options", f"--device {args.device}"]
+    if args.coarse_from:
+        forwarded += ["--coarse-from", args.coarse_from]
     if args.notes:
         forwarded += ["--notes", args.notes]
     accuracy.main(forwarded)
