@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
-from s3k.detector.detector import _around
 from s3k.geometry import Cameras, project
-from s3k.geometry.warp import crop_images, resample_regions
+from s3k.geometry.warp import crop_images, region_around, resample_regions
 from s3k.model import UNet, UNetConfig
 
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
@@ -76,7 +75,7 @@ def test_frames_are_cut_around_the_boxes_without_changing_the_resampling():
              ([[-30.0, -20.0, 90.0, 100.0], [350.0, 250.0, 450.0, 350.0]], (40, 40))]  # past the frame
     for box_list, size in cases:
         boxes = torch.tensor(box_list)
-        cut, moved = _around(image, boxes.double(), size)
+        cut, moved = region_around(image, boxes.double(), size)
         whole = image.permute(0, 3, 1, 2).float()
         part = cut.permute(0, 3, 1, 2).float()
         for warp in (crop_images, resample_regions):

@@ -281,7 +281,8 @@ def test_demo_quick(tmp_path, capsys):
     # the recommended configuration, and ten of the pool's labelled frames
     data = json.loads((tmp_path / "demo" / "data" / "s3k.json").read_text())
     assert data["source"]["labelled"] == 10 and data["source"]["label_choice"] == "representative"
-    assert "--preset box-headline" in summary["scale"]
+    assert "--preset box-fast" in summary["scale"]
+    assert json.loads((tmp_path / "demo" / "s3k" / "two_pass.json").read_text())["margin"] == 0.1
     # wide rotations for the coarse pass that finds the box, narrow ones for the refining pass
     for model in ("s3k", "baseline"):
         for part, degrees in (("coarse", 180.0), ("fine", 15.0)):

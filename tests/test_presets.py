@@ -43,3 +43,18 @@ def test_box_headline_preset_trains_two_passes_with_its_options_and_the_command_
                            "--preset", "nope"], capture_output=True, text=True)
     assert proc.returncode == 2 and "box-headline" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_gives_one(tmp_path):
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=4, test=2)
+    tiny = ["--steps", "2", "--coarse-steps", "2", "--coarse-size", "32", "--crop-size", "32", "--channels",
+            "8,8", "--res-blocks", "1", "--val-every", "0", "--warmup-steps", "1", "--ramp-steps", "1",
+            "--no-progress", "--threads", "1"]
+    margins = {}
+    for name, extra in (("preset", []), ("given", ["--crop-margin", "0.25"])):
+        run = tmp_path / name
+        assert cli.main(["train", str(data), "--out", str(run), "--preset", "box-fast", *tiny, *extra]) == 0
+        margins[name] = json.loads((run / "two_pass.json").read_text())["margin"]
+    assert margins == {"preset": PRESETS["box-fast"].two_pass["margin"], "given": 0.25}
+    # the same network and schedule as the headline: only the crops differ
+    assert PRESETS["box-fast"].config == PRESETS["box-headline"].config

@@ -266,7 +266,7 @@ def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], ext
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
     from s3k.geometry import workspace_centre
-    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes
+    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
 
     if images is None:
         images = ds.images(frames)  # (B, C, H, W, 3) uint8
@@ -278,10 +278,13 @@ def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], ext
         centre = torch.where(missing[:, None], middle.to(centre.dtype), centre)
     boxes, _ = metric_crop_boxes(cams, centre[:, None, :], extent)
     B, C = boxes.shape[:2]
-    flat = torch.as_tensor(images).float().reshape(B * C, *images.shape[2:]).permute(0, 3, 1, 2)
-    crops = crop_images(flat, boxes.reshape(B * C, 4).float(), (size, size))
-    crops_u8 = crops.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8).numpy()
-    crops_u8 = np.ascontiguousarray(crops_u8.reshape(B, C, size, size, 3))
+    frames_u8 = torch.as_tensor(images)
+    crops_u8 = np.empty((B, C, size, size, 3), dtype=np.uint8)
+    for b in range(B):
+        for c in range(C):  # only the region around the box is made float (as the detector does)
+            view, box = region_around(frames_u8[b, c][None], boxes[b, c][None].float(), (size, size))
+            crop = crop_images(view.permute(0, 3, 1, 2).float(), box, (size, size))
+            crops_u8[b, c] = crop[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
     M = crop_maps(boxes, (size, size)).numpy()  # (B, C, 3, 3)
     uv, mask = ds.labels(frames, np.float64)
     uv_crop = (np.einsum("bcij,bckj->bcki", M[..., :2, :2], uv) + M[:, :, None, :2, 2])[:, :, kps]

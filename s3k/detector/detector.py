@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -42,7 +41,14 @@ from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
 from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, resample_regions, resize_crop
+from s3k.geometry.warp import (
+    crop_images,
+    crop_maps,
+    metric_crop_boxes,
+    region_around,
+    resample_regions,
+    resize_crop,
+)
 from s3k.model import UNet
 from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
 
@@ -169,23 +175,6 @@ def _whole_images(views: list[Tensor]) -> Tensor:
     return torch.tensor([[0.0, 0.0, v.shape[2], v.shape[1]] for v in views], dtype=torch.float64)
 
 
-def _around(v: Tensor, box: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """``(frames (B, H', W', 3), boxes (B, 4))``: the frames cut to the region around their boxes and the
-    boxes in its pixels (the whole frames when the boxes reach past them). The region starts at a multiple of
-    the coarsest mip level's block (:func:`s3k.geometry.warp.crop_images`) and keeps a block of margin, so the
-    resampling sees exactly the pixels it would in the whole frame; only that region is made float."""
-    H, W = v.shape[1], v.shape[2]
-    shrink = float(torch.maximum((box[:, 2] - box[:, 0]) / size[0], (box[:, 3] - box[:, 1]) / size[1]).max())
-    align = 2 ** (max(0, math.floor(math.log2(max(shrink, 1.0)))) + 1)
-    lo = torch.floor((box[:, :2].min(dim=0).values - align) / align) * align
-    hi = torch.ceil((box[:, 2:].max(dim=0).values + align) / align) * align
-    x0, y0 = max(0, int(lo[0])), max(0, int(lo[1]))
-    x1, y1 = min(W, int(hi[0])), min(H, int(hi[1]))
-    if x1 <= x0 or y1 <= y0 or (x0, y0, x1, y1) == (0, 0, W, H):
-        return v, box
-    return v[:, y0:y1, x0:x1], box - box.new_tensor([x0, y0, x0, y0])
-
-
 class _Pass:
     """One network with its meta: images of the network's input size -> logits, on ``device``."""
 
@@ -223,7 +212,7 @@ class _Pass:
                         for b in range(len(v))]
                 out.append(torch.from_numpy(np.stack(rows)))
                 continue
-            v, box = _around(v, box, (w, h))
+            v, box = region_around(v, box, (w, h))
             x = v.to(self.device, non_blocking=True).permute(0, 3, 1, 2).float()
             warp = crop_images if crops else resample_regions
             out.append(warp(x, box.to(self.device, torch.float32), (w, h)).round_().clamp_(0, 255)

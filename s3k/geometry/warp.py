@@ -28,6 +28,7 @@ Shapes: ``L`` the leading dims of a camera set (``(B, C)`` per frame), ``N`` ima
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -40,8 +41,8 @@ from torch import Tensor
 from s3k.geometry.cameras import Cameras
 from s3k.geometry.projection import project
 
-__all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "resample_regions",
-           "resize_crop", "transform_points"]
+__all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "region_around",
+           "resample_regions", "resize_crop", "transform_points"]
 
 Box = Sequence[float]
 
@@ -286,6 +287,26 @@ def crop_maps(boxes: Tensor, out_size: Sequence[int]) -> Tensor:
         torch.stack([zero, zero, one], -1),
     ]
     return torch.stack(rows, -2)
+
+
+def region_around(v: Tensor, box: Tensor, size: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """``(frames (B, H', W', 3), boxes (B, 4))``: the frames cut to the region around their boxes and the
+    boxes in its pixels (the whole frames when the boxes reach past them). The region starts at a multiple of
+    the coarsest mip level's block (:func:`crop_images`) and keeps a block of margin, so the
+    resampling sees exactly the pixels it would in the whole frame; only that region is made float.
+
+    ``v (B, H, W, 3)``: frames; ``box (B, 4)``: their boxes in pixel edge coordinates; ``size``: the output
+    ``(w, h)`` the boxes are resampled to."""
+    H, W = v.shape[1], v.shape[2]
+    shrink = float(torch.maximum((box[:, 2] - box[:, 0]) / size[0], (box[:, 3] - box[:, 1]) / size[1]).max())
+    align = 2 ** (max(0, math.floor(math.log2(max(shrink, 1.0)))) + 1)
+    lo = torch.floor((box[:, :2].min(dim=0).values - align) / align) * align
+    hi = torch.ceil((box[:, 2:].max(dim=0).values + align) / align) * align
+    x0, y0 = max(0, int(lo[0])), max(0, int(lo[1]))
+    x1, y1 = min(W, int(hi[0])), min(H, int(hi[1]))
+    if x1 <= x0 or y1 <= y0 or (x0, y0, x1, y1) == (0, 0, W, H):
+        return v, box
+    return v[:, y0:y1, x0:x1], box - box.new_tensor([x0, y0, x0, y0])
 
 
 def crop_images(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tensor:
