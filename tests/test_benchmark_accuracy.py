@@ -61,6 +61,21 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
         run_jobs([("s3k seed 1", fail, tmp_path / "r.json")], parallel=1, poll_s=0.05)
 
 
+def test_every_job_is_recorded_when_two_end_before_the_next_starts(tmp_path):
+    """Jobs that end together are each seen to end and recorded; the Popen of a job started earlier must not
+    reap one behind the scheduler's back (it then waited for a job that had long finished)."""
+    import json
+
+    from s3k.experiments.accuracy import run_jobs
+
+    quick = [sys.executable, "-c", "pass"]
+    jobs = [(f"job {i}", quick, tmp_path / f"r{i}.json") for i in range(4)]
+    run_jobs(jobs, parallel=2, poll_s=0.3)
+    for _, _, record in jobs:
+        spent = json.loads(record.read_text())
+        assert set(spent) == {"cpu_minutes", "wall_minutes"} and spent["cpu_minutes"] > 0
+
+
 def test_notes_stay_out_of_the_recorded_command():
     from s3k.experiments.accuracy import without_notes
 

@@ -196,7 +196,9 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
     time it spent when the same command resumes it."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     pending = list(jobs)
-    running: dict[int, tuple[str, Path, float]] = {}
+    # each job's Popen is kept: a dropped one is reaped by the next Popen's clean-up, and os.wait4 below
+    # would then never see it end
+    running: dict[int, tuple[str, Path, float, subprocess.Popen]] = {}
     while pending or running:
         while pending and len(running) < parallel:
             name, cmd, record = pending.pop(0)
@@ -204,10 +206,10 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
             record.write_text(json.dumps(spent) + "\n")
             print(f"training {name}", file=sys.stderr, flush=True)
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
-            running[proc.pid] = (name, record, time.time())
+            running[proc.pid] = (name, record, time.time(), proc)
         pid, status, usage = os.wait4(-1, os.WNOHANG)
         if pid == 0:
-            for job, (_, record, started) in running.items():
+            for job, (_, record, started, _proc) in running.items():
                 minutes = _cpu_minutes_so_far(job)
                 if minutes is not None:
                     spent = json.loads(record.read_text())
@@ -218,7 +220,8 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
             continue
         if pid not in running:
             continue
-        name, record, started = running.pop(pid)
+        name, record, started, proc = running.pop(pid)
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by the Popen
         code = os.waitstatus_to_exitcode(status)
         if code != 0:
             raise SystemExit(f"training {name} failed (exit {code}); run the same command again to resume it")
