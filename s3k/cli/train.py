@@ -35,7 +35,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
-                             + "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items())
+                             + "; ".join(f"{name}: {p.description}".replace("%", "%%")  # argparse formats it
+                                         for name, p in PRESETS.items())
                              + " (default: none)")
     two = parser.add_argument_group(
         "two passes (coarse-to-fine; docs/accuracy.md)",
