@@ -12,9 +12,10 @@ time; docs/results/accuracy/fast/bf16-vs-fp32-4000.json). Until 2026-12-04 its r
 in float32 (docs/results/accuracy/README.md).
 
 ``box-fast`` is the same with the refining pass on 128 px crops cut with a 10% margin (about 250 mm wide:
-1.9 mm per crop pixel against the headline's 1.5): the refining pass costs half as much, the whole S3K model
-about 12 CPU-minutes on a 2-core CPU against the headline's 19, for a few tenths of a millimetre of median
-error (docs/results/accuracy/fast/box-fast). ``s3k demo`` trains it.
+1.9 mm per crop pixel against the headline's 1.5): the refining pass costs less than half as much, the S3K
+model 11.1 CPU-minutes on a 2-core CPU against the headline's 18.6, for 0.4 mm more median error and twice
+the RMS over three seeds (3.61 / 9.27 mm against 3.24 / 5.11; docs/results/accuracy/fast/box-fast).
+``s3k demo`` trains it, to fit its time.
 """
 
 from __future__ import annotations
