@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", choices=("box", "distractors", "plush"), default="box")
     p.add_argument("--work", default=None, help="working folder (default runs/accuracy-SCENE)")
     p.add_argument("--results", default=None,
-                   help="folder of summary.json (default docs/results/accuracy, or .../distractors)")
+                   help="folder of summary.json (default docs/results/accuracy; .../SCENE for another scene)")
     p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
     p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
