@@ -13,7 +13,7 @@ in float32 (docs/results/accuracy/README.md).
 
 ``box-fast`` is the same with the refining pass on 128 px crops cut with a 10% margin (about 250 mm wide:
 1.9 mm per crop pixel against the headline's 1.5): the refining pass costs less than half as much, the S3K
-model 11.1 CPU-minutes on a 2-core CPU against the headline's 18.6, for 0.4 mm more median error and twice
+model 11.2 CPU-minutes on a 2-core CPU against the headline's 18.6, for 0.4 mm more median error and twice
 the RMS over three seeds (3.61 / 9.27 mm against 3.24 / 5.11; docs/results/accuracy/fast/box-fast).
 ``s3k demo`` trains it, to fit its time.
 """
