@@ -337,6 +337,21 @@ def test_read_csv_names_file_and_missing_column(tmp_path):
         read_csv(path, ["nose"])
 
 
+def test_rows_points_are_what_read_csv_reads_back_from_the_same_rows(tmp_path):
+    from s3k.data.tracks_csv import csv_rows, rows_points, write_csv
+
+    X = torch.tensor([[[0.1234567891, -2.0, 3.5], [float("nan")] * 3]], dtype=torch.float64)
+    result = SimpleNamespace(X=X, error=torch.tensor([[0.5, float("nan")]]), ncams=torch.tensor([[3, 0]]),
+                             score=torch.tensor([[0.9, 0.0]]))
+    rows = csv_rows([11], result)
+    with write_csv(tmp_path / "p.csv", ["a", "b"]) as writer:
+        writer.writerows(rows)
+    from_rows, from_file = rows_points(rows, 2), read_csv(tmp_path / "p.csv", ["a", "b"])
+    assert list(from_rows) == list(from_file) == [11]
+    np.testing.assert_array_equal(from_rows[11], from_file[11])  # NaN where not triangulated, in both
+    assert from_rows[11][0, 0] != X[0, 0, 0]  # the value as written, not the float it came from
+
+
 def test_track_range_batch_and_camera_order_do_not_change_results(recording, tmp_path):
     full, part = tmp_path / "full.csv", tmp_path / "part.csv"
     assert _track(recording, full, "--min-weight", "0", "--batch", "8") == 0

@@ -30,8 +30,8 @@ from s3k import outputs
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json, open_text
 
-__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "source_path", "write_csv",
-           "write_source"]
+__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "rows_points", "source_path",
+           "write_csv", "write_source"]
 
 
 def csv_header(keypoints: Sequence[str]) -> list[str]:
@@ -59,6 +59,14 @@ def csv_rows(fnums: Sequence[int], result: Any) -> list[list[str]]:
             row += [_fmt(error[b, k]), str(int(ncams[b, k])), f"{score[b, k]:.6f}"]
         rows.append(row + [str(int(fnum))])
     return rows
+
+
+def rows_points(rows: Sequence[Sequence[str]], num_keypoints: int) -> dict[int, np.ndarray]:
+    """The 3D points of :func:`csv_rows`' rows as the file holds them, ``{fnum: (K, 3)}`` (NaN where not
+    triangulated): what :func:`read_csv` reads back from those rows, without the file."""
+    per = len(csv_header(["k"])) - 1  # the columns of one keypoint
+    return {int(row[-1]): np.array([[float(v) for v in row[per * k:per * k + 3]]
+                                    for k in range(num_keypoints)]) for row in rows}
 
 
 def check_output(path: str | Path, overwrite: bool, dataset: str | Path | None = None) -> Path:

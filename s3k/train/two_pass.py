@@ -110,7 +110,7 @@ def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device
     """
     from s3k.data.crops import CropCutter
     from s3k.data.frames import FrameStore
-    from s3k.data.tracks_csv import csv_rows, write_csv
+    from s3k.data.tracks_csv import csv_rows, rows_points, write_csv
     from s3k.detector import Detector
     from s3k.inference.predict import detect_store, split_frames
 
@@ -128,9 +128,7 @@ def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device
         for batch, pred in detect_store(detector, store, batch_size):
             rows = csv_rows(batch.frame_ids.tolist(), pred)
             writer.writerows(rows)
-            written = {int(row[-1]): np.array([[float(v) for v in row[6 * k:6 * k + 3]] for k in range(K)])
-                       for row in rows}  # the values as written
-            centres = _centres(written)
+            centres = _centres(rows_points(rows, K))  # around the values as written
             placed += len(centres)
             cutter.add(batch.frame_ids, centres, batch.images)
     if not placed:
