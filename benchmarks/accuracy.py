@@ -21,7 +21,11 @@ rendered frames, so the choices compare side by side.
 ``--scene distractors`` renders the distractors scene in start mode (labels from the first distractor set
 only; test frames with distractor sets never seen in training). ``--scene plush`` renders the deformable
 plush toy among distractor toys (docs/scenes.md); its layout is not rigid, so its runs leave
-``--layout-tol`` off.
+``--layout-tol`` off. ``--scene category`` renders mugs: labelled and unlabelled frames of the 12 training
+instances, test frames of the 4 held out (one layout per instance, so no ``--layout-tol`` either).
+``--scene insertion`` renders the cable-insertion environment's fixed rig
+(:func:`s3k.robot.insertion_data.write_insertion_dataset`: frames from noisy scripted episodes, the seed
+drawing the episodes, test frames from episodes of their own): plug tip, plug base and socket.
 
 To compare options that change one model or one pass, ``--labels-only-from WORK`` links an earlier working
 folder's renders and finished labels-only runs, and ``--coarse-from WORK`` starts each training from the
@@ -78,7 +82,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
-    p.add_argument("--scene", choices=("box", "distractors", "plush"), default="box")
+    p.add_argument("--scene", choices=("box", "distractors", "plush", "category", "insertion"), default="box")
     p.add_argument("--work", default=None, help="working folder (default runs/accuracy-SCENE)")
     p.add_argument("--results", default=None,
                    help="folder of summary.json (default docs/results/accuracy; .../SCENE for another scene)")

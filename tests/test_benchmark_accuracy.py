@@ -156,3 +156,25 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     (old / "s3k-seed0" / CPU_FILE).unlink()
     with pytest.raises(SystemExit, match=CPU_FILE):
         reuse_coarse(old, [new / "s3k-seed2"])
+
+
+def test_the_insertion_scene_renders_its_own_rig_with_the_seed_drawing_the_episodes(tmp_path):
+    """``--scene insertion`` renders the cable-insertion environment's dataset (plug tip, plug base, socket)
+    once per seed; another seed draws other episodes from the same rig."""
+    from s3k.data import Dataset
+    from s3k.experiments.accuracy import render
+
+    args = SimpleNamespace(scene="insertion", render=32, label_pool=10, label_choice="random", unlabelled=4,
+                           test=2, parallel=1)
+    out = render(args, 0, tmp_path)
+    assert out == tmp_path / "insertion32-seed0"
+    ds = Dataset.open(out, cache="none")
+    assert ds.keypoints == ["plug_tip", "plug_base", "socket"]
+    assert [len(ds.frames(s)) for s in ("labelled", "unlabelled", "test")] == [10, 4, 2]
+    assert render(args, 0, tmp_path) == out  # rendered once: the stage is skipped
+    other = Dataset.open(render(args, 1, tmp_path), cache="none")
+    assert json.loads((out / "s3k.json").read_text())["source"]["seed"] == 0
+    assert json.loads((tmp_path / "insertion32-seed1" / "s3k.json").read_text())["source"]["seed"] == 1
+    X0, X1 = ds.points3d(ds.frames("test")), other.points3d(other.frames("test"))
+    assert X0 is not None and X1 is not None and X0[1].all() and X1[1].all()
+    assert abs(X0[0] - X1[0]).max() > 0.001  # metres: other episodes

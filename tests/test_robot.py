@@ -126,10 +126,14 @@ def test_plush_label_propagated_over_an_arrangement_lands_on_the_true_pixel(tmp_
 def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
     from s3k.robot.grasp import SUCCESS_LIFT, ground_truth_keypoints, run_trials
 
-    result = run_trials(ground_truth_keypoints, trials=3, size=32)
-    assert result["successes"] == 3 and result["trials"] == 3
+    result = run_trials(ground_truth_keypoints, trials=6, size=32)
+    assert result["successes"] == 6 and result["trials"] == 6
     assert all(t["lift"] >= SUCCESS_LIFT and t["held_mm"] < 40 for t in result["per_trial"])
-    assert [t["arrangement"] for t in result["per_trial"]] == [7, 8, 9]
+    # the datasets' three test arrangements, then three that no dataset has
+    assert [t["arrangement"] for t in result["per_trial"]] == [7, 8, 9, 10, 11, 12]
+    assert result["per_arrangement"] == {str(a): 1.0 for a in range(7, 13)}
+    two = run_trials(ground_truth_keypoints, trials=3, size=32, arrangements=2)
+    assert [t["arrangement"] for t in two["per_trial"]] == [7, 8, 7] and two["arrangements"] == [7, 8]
 
     def off_by_6cm(scene, spec):
         X = scene.keypoints_world().copy()
@@ -283,3 +287,39 @@ def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
     assert doc["trials"] == 1 and doc["detector"] == str(run)
     assert doc["object_seed"] == 3 and doc["size"] == 32
     assert len(doc["per_trial"]) == 1 and np.isfinite(doc["per_trial"][0]["aim_error_mm"])
+
+
+def test_grasp_benchmark_aggregates_the_seeds_and_keeps_the_agents_figures(tmp_path):
+    """benchmarks/grasp.py reads each seed's grasp files (not run again when present), averages the success
+    rates over the detector seeds, and replaces only ``grasp_success`` in the robot summary."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks import grasp as bench
+
+    work, results = tmp_path / "work", tmp_path / "results"
+    work.mkdir()
+    rates = {"s3k": [1.0, 0.5], "labels_only": [0.5, 0.5], "ground_truth": [1.0, 1.0]}
+    for src, per_seed in rates.items():
+        for seed, rate in enumerate(per_seed):
+            trials = [{"arrangement": 7 + i % 2, "success": i < 2 * rate, "aim_error_mm": 1.0 + i}
+                      for i in range(2)]
+            doc = {"successes": int(2 * rate), "trials": 2, "success_rate": rate, "arrangements": [7, 8],
+                   "per_arrangement": {str(a): float(np.mean([t["success"] for t in trials
+                                                              if t["arrangement"] == a])) for a in (7, 8)},
+                   "per_trial": trials}
+            (work / f"grasp-{src}-seed{seed}-2x2.json").write_text(json.dumps(doc))
+    results.mkdir()
+    (results / "summary.json").write_text(json.dumps({"grasp_success": {"s3k": 0.1},
+                                                      "rl_final_success": {"keypoints": {"mean": 0.5}}}))
+    assert bench.main(["--plush-work", str(work), "--seeds", "2", "--trials", "2", "--arrangements", "2",
+                       "--results", str(results)]) == 0
+    summary = json.loads((results / "summary.json").read_text())
+    assert summary["rl_final_success"] == {"keypoints": {"mean": 0.5}}
+    g = summary["grasp_success"]
+    assert (g["s3k"], g["labels_only"], g["ground_truth"]) == (0.75, 0.5, 1.0)
+    assert g["trials_in_all"] == 4 and g["arrangements"] == 2 and g["per_seed"]["s3k"] == [1.0, 0.5]
+    record = json.loads((results / "grasp.json").read_text())
+    assert record["s3k"]["per_arrangement"] == {"7": 1.0, "8": 0.5}

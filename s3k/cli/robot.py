@@ -32,8 +32,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     g.add_argument("run", nargs="?", default=None,
                    help="trained s3k run (plush keypoints) that detects the paw")
     g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
-    g.add_argument("--trials", type=number(int, ge=1), default=30,
-                   help="grasp trials, over arrangements 7, 8, 9 (default 30)")
+    g.add_argument("--trials", type=number(int, ge=1), default=60,
+                   help="grasp trials, over the held-out arrangements in turn (default 60)")
+    g.add_argument("--arrangements", type=number(int, ge=1), default=6,
+                   help="held-out arrangements 7, 8, ...: 7-9 are the datasets' test arrangements, 10 and "
+                        "above in no dataset (default 6)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
     g.add_argument("--seed", type=number(int, ge=0), default=0,
                    help="draws each trial's lighting and gripper start (default 0)")
@@ -141,7 +144,7 @@ def _grasp(args: argparse.Namespace) -> int:
               f"{r.aim_error_mm:.1f} mm)", file=sys.stderr)
 
     result = run_trials(source, args.trials, size=size, seed=args.seed, object_seed=args.object_seed,
-                        paw=args.paw, progress=progress)
+                        paw=args.paw, arrangements=args.arrangements, progress=progress)
     result["detector"] = label
     atomic_write_json(result, args.out)
     print(f"wrote {args.out}: {result['successes']}/{result['trials']} grasps lifted the paw 10 cm, "

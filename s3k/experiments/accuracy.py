@@ -70,7 +70,13 @@ def render(args, seed: int, work: Path) -> Path:
     pool = args.label_pool
     names = data_names(args, seed)
     out = work / names[0]
-    if not (out / "s3k.json").is_file():
+    if not (out / "s3k.json").is_file() and args.scene == "insertion":
+        from s3k.robot.insertion_data import write_insertion_dataset
+
+        with timed(work, f"render-seed{seed}"):  # the environment's own rig, episodes drawn by the seed
+            write_insertion_dataset(out, labelled=pool, unlabelled=args.unlabelled, test=args.test,
+                                    size=args.render, seed=seed, overwrite=True, progress=False)
+    elif not (out / "s3k.json").is_file():
         from s3k.sim.generate import SimulateConfig, simulate
 
         extra: dict[str, Any] = {"mode": "start"} if args.scene == "distractors" else {}

@@ -109,24 +109,32 @@ def ground_truth_keypoints(scene: PlushScene, spec: FrameSpec) -> np.ndarray:
     return scene.keypoints_world()
 
 
+#: Held-out arrangements of the grasp trials by default: 7, 8, 9 (the datasets' test arrangements) and 10,
+#: 11, 12 (in no dataset).
+ARRANGEMENTS = 6
+
+
 def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: int = 0, object_seed: int = 0,
-               paw: str = "front_left_paw",
+               paw: str = "front_left_paw", arrangements: int = ARRANGEMENTS,
                progress: Callable[[int, GraspResult], None] | None = None) -> dict:
-    """Grasp trials on the held-out arrangements (7, 8, 9 in turn).
+    """Grasp trials on ``arrangements`` held-out arrangements, from 7 on, in turn (7, 8, ..., 7, ...).
 
     Each trial sets its arrangement, draws lighting and the gripper's start pose from ``(seed, trial)``
     (as a dataset frame would), lets the toys settle, asks ``source(scene, spec)`` for the keypoints (K, 3)
     in the scene's order (NaN where not found: a failed trial), and grasps the paw.
 
     Returns:
-        ``{"successes", "trials", "success_rate", "per_trial": [...], "paw", "seed", "object_seed", "size"}``.
+        ``{"successes", "trials", "success_rate", "arrangements": [...], "per_arrangement": {a: rate},
+        "per_trial": [...], "paw", "seed", "object_seed", "size"}``.
     """
     if trials < 1:
         raise ValueError(f"run_trials: trials must be >= 1, got {trials}")
+    if arrangements < 1:
+        raise ValueError(f"run_trials: arrangements must be >= 1, got {arrangements}")
     results = []
     with PlushScene(size=size, seed=object_seed) as scene:
         k_paw, k_body = scene.keypoints.index(paw), scene.keypoints.index("body")
-        test = list(range(TRAIN_ARRANGEMENTS, TRAIN_ARRANGEMENTS + 3))
+        test = list(range(TRAIN_ARRANGEMENTS, TRAIN_ARRANGEMENTS + arrangements))
         for i in range(trials):
             spec = FrameSpec(i, "test", segment=test[i % len(test)])
             scene.sample(spec, np.random.default_rng([seed, 0x96A5, i]))
@@ -141,8 +149,12 @@ def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: i
             if progress is not None:
                 progress(i, r)
     successes = sum(r["success"] for r in results)
+    used = sorted({r["arrangement"] for r in results})
+    per_arrangement = {str(a): float(np.mean([r["success"] for r in results if r["arrangement"] == a]))
+                       for a in used}
     return {"successes": successes, "trials": trials, "success_rate": successes / trials, "paw": paw,
-            "seed": seed, "object_seed": object_seed, "size": size, "per_trial": results}
+            "seed": seed, "object_seed": object_seed, "size": size, "arrangements": used,
+            "per_arrangement": per_arrangement, "per_trial": results}
 
 
 def detector_keypoints(detector) -> KeypointSource:

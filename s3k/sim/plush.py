@@ -10,8 +10,9 @@ The scene is made of **arrangements**: arrangement ``a`` fixes where the three t
 the object seed and ``a``), one camera rig, the table and a base lighting; within an arrangement the toys and
 cameras stay still while the gripper moves and the lighting changes a little from frame to frame.
 Arrangements ``0 .. 6`` are for training (one labelled frame each, the rest unlabelled but still: the
-labelled frame's 3D label holds for all of them), ``7 .. 9`` are held out for testing (and for the grasp
-trials of ``s3k robot grasp``). The frames carry the arrangement in the dataset's ``segment`` column.
+labelled frame's 3D label holds for all of them), ``7 .. 9`` are the datasets' test arrangements. The grasp
+trials of ``s3k robot grasp`` use held-out arrangements from ``7`` on (``7 .. 12`` by default: ``10`` and
+above appear in no dataset). The frames carry the arrangement in the dataset's ``segment`` column.
 
 Unlike the other scenes the toys and the gripper are dynamic (free joints, collisions with an invisible
 floor at the table top), so :mod:`s3k.robot.grasp` can grasp in the very model the dataset was rendered from.
@@ -28,8 +29,8 @@ import numpy as np
 from s3k.sim.gripper import Gripper, gripper_xml, yaw_rotation
 from s3k.sim.scene import CameraSampler, FrameSpec, Scene, _fmt
 
-NUM_ARRANGEMENTS = 10
-TRAIN_ARRANGEMENTS = 7  # arrangements 0..6 train, 7..9 test
+NUM_ARRANGEMENTS = 10  # the arrangements of a rendered dataset
+TRAIN_ARRANGEMENTS = 7  # arrangements 0..6 train, 7..9 test; 10 and above only for grasp trials
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,9 +221,10 @@ class PlushScene(Scene):
 
     # ------------------------------------------------------------------ arrangements
     def arrangement_of(self, index: int) -> Arrangement:
-        """Arrangement ``index`` (0-9): a function of the object seed and the index only."""
-        if not 0 <= index < NUM_ARRANGEMENTS:
-            raise ValueError(f"plush arrangement must be in [0, {NUM_ARRANGEMENTS}), got {index}")
+        """Arrangement ``index`` (>= 0; the datasets use 0-9): a function of the object seed and the index
+        only, so adding arrangements changes none of the others."""
+        if index < 0:
+            raise ValueError(f"plush arrangement must be >= 0, got {index}")
         rng = np.random.default_rng([self.seed, 0xA77, index])
         r, a = 0.04 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
         toy = (r * math.cos(a), r * math.sin(a), float(rng.uniform(0, 2 * np.pi)))
@@ -279,9 +281,9 @@ class PlushScene(Scene):
     def sample(self, spec: FrameSpec, rng: np.random.Generator) -> dict:
         """Arrangement ``spec.segment`` (toys, cameras, table and a base lighting, all still), then this
         frame's lighting (a small change of the base) and gripper."""
-        if not 0 <= spec.segment < NUM_ARRANGEMENTS:
-            raise ValueError(f"plush scene: every frame needs an arrangement (FrameSpec.segment in "
-                             f"[0, {NUM_ARRANGEMENTS})), got {spec.segment}")
+        if spec.segment < 0:
+            raise ValueError(f"plush scene: every frame needs an arrangement (FrameSpec.segment >= 0), got "
+                             f"{spec.segment}")
         extra = self.arrangement_environment(spec.segment, rng)
         arr = self.set_arrangement(spec.segment)
         extra.update(self.place_gripper_randomly(rng))
@@ -327,5 +329,5 @@ class PlushScene(Scene):
 
 
 def arrangement_split(index: int) -> str:
-    """"train" for arrangements 0-6, "test" for 7-9."""
+    """"train" for arrangements 0-6, "test" for 7 and above."""
     return "train" if index < TRAIN_ARRANGEMENTS else "test"
