@@ -312,12 +312,22 @@ def test_grasp_benchmark_aggregates_the_seeds_and_keeps_the_agents_figures(tmp_p
                    "per_trial": trials}
             (work / f"grasp-{src}-seed{seed}-2x2.json").write_text(json.dumps(doc))
     results.mkdir()
-    (results / "summary.json").write_text(json.dumps({"grasp_success": {"s3k": 0.1},
-                                                      "rl_final_success": {"keypoints": {"mean": 0.5}}}))
+    (results / "summary.json").write_text(json.dumps({
+        "grasp_success": {"s3k": 0.1}, "rl_final_success": {"keypoints": {"mean": 0.5}},
+        "scale": "plush 96 px ...; 30 grasps each; insertion views 64 px, 3 seeds",
+        "detectors_test": {"s3k": {"median_mm": 9.0}, "insertion": {"median_mm": 5.0}}}))
+    for seed, median in enumerate((4.0, 5.0)):  # the accuracy benchmark's evaluation of the S3K detectors
+        (work / f"s3k-seed{seed}-test.json").write_text(json.dumps({"median_mm": median, "rms_mm": 6.0,
+                                                                    "pck_10mm": 0.9}))
     assert bench.main(["--plush-work", str(work), "--seeds", "2", "--trials", "2", "--arrangements", "2",
                        "--results", str(results)]) == 0
     summary = json.loads((results / "summary.json").read_text())
     assert summary["rl_final_success"] == {"keypoints": {"mean": 0.5}}
+    assert summary["scale"].startswith("grasp: plush grasp") and summary["scale"].endswith(
+        "agents: insertion views 64 px, 3 seeds")
+    tests = summary["detectors_test"]
+    assert tests["s3k"]["median_mm"]["per_seed"] == [4.0, 5.0] and tests["insertion"] == {"median_mm": 5.0}
+    assert "labels_only" not in tests  # no evaluation of its detectors here: no figures that are not theirs
     g = summary["grasp_success"]
     assert (g["s3k"], g["labels_only"], g["ground_truth"]) == (0.75, 0.5, 1.0)
     assert g["trials_in_all"] == 4 and g["arrangements"] == 2 and g["per_seed"]["s3k"] == [1.0, 0.5]
