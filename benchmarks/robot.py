@@ -18,6 +18,10 @@ continues an interrupted benchmark:
    (``--run``), and the beta-VAE agent; two at a time, one thread each.
 7. ``s3k robot summarize``, then the success-rate curves' plot.
 
+``--plush-work WORK`` replaces stages 1-4: the grasp runs with the two-pass detectors of
+``benchmarks/accuracy.py --scene plush --work WORK`` over their seeds and 6 held-out arrangements, through
+``benchmarks/grasp.py``, once the summary is written.
+
 ``--agent-ablation`` instead trains the keypoint agent on ground-truth keypoints, one seed, in four
 variants (plain TD3 with demonstrations in its buffer only; the Q-term off: behaviour cloning; the Q-term at
 full weight; the defaults) and writes their success-rate curves to ``agent-ablation.json``.
@@ -159,7 +163,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--propagate", type=int, default=20,
                    help="frames of each training arrangement that get its labelled frame's labels (20)")
     p.add_argument("--detector-steps", type=int, default=4000, help="training steps of every detector (4000)")
-    p.add_argument("--trials", type=int, default=30, help="grasp trials per detector (30)")
+    p.add_argument("--trials", type=int, default=None,
+                   help="grasp trials per detector (30; per detector and seed with --plush-work: 60)")
+    p.add_argument("--plush-work", default=None, metavar="WORK",
+                   help="grasp with the two-pass detectors of benchmarks/accuracy.py --scene plush "
+                        "--work WORK over their seeds and 6 held-out arrangements (benchmarks/grasp.py, "
+                        "--trials 60 unless given) instead of training one-pass plush detectors here")
     p.add_argument("--insertion-size", type=int, default=64)
     p.add_argument("--seeds", type=int, default=3, help="agent seeds per agent (3)")
     p.add_argument("--agent-steps", type=int, default=10000, help="environment steps per agent (10000)")
@@ -171,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="run the agent variants on ground-truth keypoints instead (seed 0)")
     p.add_argument("--ablation-steps", type=int, default=4000)
     args = p.parse_args(argv)
+    if args.trials is None:
+        args.trials = 60 if args.plush_work else 30
     work = Path(args.work).resolve()
     work.mkdir(parents=True, exist_ok=True)
     results = Path(args.results)
@@ -180,9 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.agent_ablation:
         return agent_ablation(args, work, results, argv)
 
-    # --- the grasp
-    plush = plush_data(args, work)
-    runs = {"s3k": work / "plush-s3k", "labels_only": work / "plush-labels-only"}
+    # --- the grasp (with --plush-work: benchmarks/grasp.py with those two-pass detectors, after the summary)
+    plush = work / "plush" if args.plush_work else plush_data(args, work)
+    runs = {} if args.plush_work else {"s3k": work / "plush-s3k", "labels_only": work / "plush-labels-only"}
     jobs = []
     for name, run in runs.items():
         if not (run / "model.pt").is_file():
@@ -195,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         note_revision(work)
     run_jobs(jobs, args.parallel)
     grasps = {}
-    for name in ("s3k", "labels_only", "ground_truth"):
+    for name in () if args.plush_work else ("s3k", "labels_only", "ground_truth"):
         out = work / f"grasp-{name}.json"
         if not out.is_file():
             note_revision(work)
@@ -236,8 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     # --- the summary
     machine = machine_info()
     sh(S3K + ["robot", "summarize", "--out", str(results / "summary.json"),
-              "--grasp-s3k", str(grasps["s3k"]), "--grasp-labels-only", str(grasps["labels_only"]),
-              "--grasp-ground-truth", str(grasps["ground_truth"]),
+              *[a for name, path in grasps.items()
+                for a in (f"--grasp-{name.replace('_', '-')}", str(path))],
               "--rl-keypoints", *map(str, agents["keypoints"]),
               "--rl-beta-vae", *map(str, agents["beta_vae"]),
               "--machine", f"{machine['cpu']}, {machine['cpu_count']} cores"])
@@ -269,6 +280,11 @@ def main(argv: list[str] | None = None) -> int:
         "wall_minutes_this_invocation": round((time.time() - started) / 60, 1),
     })
     (results / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if args.plush_work:
+        from benchmarks import grasp
+
+        grasp.main(["--plush-work", args.plush_work, "--trials", str(args.trials), "--results", str(results)])
+        summary = json.loads((results / "summary.json").read_text())
     plot(summary, results / "rl-success.png")
     emit(summary)
     return 0
