@@ -21,8 +21,10 @@ rendered frames, so the choices compare side by side.
 ``--scene distractors`` renders the distractors scene in start mode (labels from the first distractor set
 only; test frames with distractor sets never seen in training). ``--scene plush`` renders the deformable
 plush toy among distractor toys (docs/scenes.md); its layout is not rigid, so its runs leave
-``--layout-tol`` off. ``--scene category`` renders mugs: labelled and unlabelled frames of the 12 training
-instances, test frames of the 4 held out (one layout per instance, so no ``--layout-tol`` either).
+``--layout-tol`` off; ``--unlabelled-arrangements N`` spreads its unlabelled frames over N further
+arrangements too (``s3k simulate plush --unlabelled-arrangements``). ``--scene category`` renders mugs:
+labelled and unlabelled frames of the 12 training instances, test frames of the 4 held out (one layout per
+instance, so no ``--layout-tol`` either).
 ``--scene insertion`` renders the cable-insertion environment's fixed rig
 (:func:`s3k.robot.insertion_data.write_insertion_dataset`: frames from noisy scripted episodes, the seed
 drawing the episodes, test frames from episodes of their own): plug tip, plug base and socket.
@@ -89,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
     p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
     p.add_argument("--test", type=int, default=200, help="test frames (default 200)")
+    p.add_argument("--unlabelled-arrangements", type=int, default=0, metavar="N",
+                   help="plush: unlabelled frames over N further arrangements too (new toy placements and "
+                        "camera rigs; default 0: the 7 training arrangements only)")
     p.add_argument("--label-pool", type=int, default=LABELLED, metavar="N",
                    help=f"labelled frames rendered, of which {LABELLED} are trained on (default {LABELLED})")
     p.add_argument("--label-choice", choices=LABEL_CHOICES, default="random",
@@ -125,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
                        **{k: two[k] for k in ("coarse_size", "coarse_steps", "crop_size") if k in two})
         args = p.parse_args(argv)
         args.train_options = f"--preset {args.preset} {args.train_options}".strip()
+    if args.unlabelled_arrangements and args.scene != "plush":
+        p.error("--unlabelled-arrangements: the plush scene only")
     if args.label_pool < LABELLED:
         p.error(f"--label-pool: at least {LABELLED}, got {args.label_pool}")
     os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -152,8 +159,10 @@ def main(argv: list[str] | None = None) -> int:
     cpu = {key: _read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}
     chosen = "" if args.label_pool == LABELLED else \
         f" ({args.label_choice} choice of {args.label_pool} rendered)"
+    spread = (f" (over the 7 training and {args.unlabelled_arrangements} further arrangements)"
+              if args.unlabelled_arrangements else "")
     scale = (f"{args.scene} rendered at {args.render} px, {LABELLED} labelled{chosen} + {args.unlabelled} "
-             f"unlabelled + {args.test} test frames; " + (
+             f"unlabelled{spread} + {args.test} test frames; " + (
                  f"two passes: coarse {args.coarse_size} px, {args.coarse_steps or args.steps} steps; crops "
                  f"{args.crop_size} px, {args.steps} steps" if args.passes == 2
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")

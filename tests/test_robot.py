@@ -59,6 +59,14 @@ def test_plush_frame_plan_one_labelled_frame_per_training_arrangement():
     assert [s.frame_id for s in specs] == list(range(len(specs)))
     with PlushScene(size=16, seed=0) as scene, pytest.raises(ValueError, match="arrangement"):
         scene.sample(FrameSpec(0, "labelled"), frame_rng(0, 0))
+    # unlabelled frames over 4 further arrangements too: numbered from 13, after every held-out one
+    more = frame_plan(SimulateConfig("plush", labelled=7, unlabelled=22, test=6, unlabelled_arrangements=4))
+    assert [s.segment for s in more if s.split == "labelled"] == labelled
+    assert {s.segment for s in more if s.split == "unlabelled"} == {*range(TRAIN_ARRANGEMENTS), 13, 14, 15, 16}
+    assert {s.segment for s in more if s.split == "test"} == set(range(TRAIN_ARRANGEMENTS, NUM_ARRANGEMENTS))
+    assert [s.frame_id for s in more] == list(range(len(more)))
+    with pytest.raises(UserError, match="--unlabelled-arrangements"):
+        SimulateConfig("plush", unlabelled_arrangements=-1)
 
 
 def test_simulate_plush_writes_a_dataset_with_arrangements(tmp_path):

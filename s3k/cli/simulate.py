@@ -41,6 +41,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-instances", type=number(int, ge=1, le=NUM_TRAIN_INSTANCES), default=None,
                         help=f"category: train on the first N of the {NUM_TRAIN_INSTANCES} training "
                              f"instances (default {NUM_TRAIN_INSTANCES}); test frames use the 4 held out")
+    parser.add_argument("--unlabelled-arrangements", type=number(int, ge=0), default=0,
+                        help="plush: spread the unlabelled frames over this many further arrangements too "
+                             "(new toy placements and camera rigs, in no test set; default 0)")
     parser.add_argument("--workers", type=number(int, ge=1), default=None,
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
@@ -59,6 +62,10 @@ def run(args: argparse.Namespace) -> int:
     if args.train_instances is not None and args.scene != "category":
         print(f"s3k simulate: --train-instances applies to the category scene only; ignored for {args.scene}",
               file=sys.stderr)
+    if args.unlabelled_arrangements and args.scene != "plush":
+        print(f"s3k simulate: --unlabelled-arrangements applies to the plush scene only; ignored for "
+              f"{args.scene}", file=sys.stderr)
+        args.unlabelled_arrangements = 0
     cfg = SimulateConfig(
         scene=args.scene, size=args.size,
         labelled=args.labelled if args.labelled is not None else (7 if args.scene == "plush" else 10),
@@ -66,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         test=args.test, seed=args.seed, object_seed=args.object_seed, mode=args.mode or "full",
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
+        unlabelled_arrangements=args.unlabelled_arrangements,
     )
     if args.preview:
         from s3k.outputs import check_output

@@ -29,9 +29,12 @@ LABELLED = 10
 def data_names(args, seed: int) -> list[str]:
     """The folder names of the seed's rendered dataset and, with a larger ``--label-pool``, of the view of it
     that the models train on (the last one is what they train on)."""
+    scene = f"{args.scene}{args.render}"
+    if getattr(args, "unlabelled_arrangements", 0):
+        scene += f"-a{args.unlabelled_arrangements}"
     if args.label_pool == LABELLED:
-        return [f"{args.scene}{args.render}-seed{seed}"]
-    rendered = f"{args.scene}{args.render}-L{args.label_pool}"
+        return [f"{scene}-seed{seed}"]
+    rendered = f"{scene}-L{args.label_pool}"
     return [f"{rendered}-seed{seed}", f"{rendered}-{args.label_choice}-seed{seed}"]
 
 
@@ -80,6 +83,8 @@ def render(args, seed: int, work: Path) -> Path:
         from s3k.sim.generate import SimulateConfig, simulate
 
         extra: dict[str, Any] = {"mode": "start"} if args.scene == "distractors" else {}
+        if getattr(args, "unlabelled_arrangements", 0):
+            extra["unlabelled_arrangements"] = args.unlabelled_arrangements
         with timed(work, f"render-seed{seed}"):
             simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
                                     test=args.test, seed=seed, **extra),

@@ -52,6 +52,9 @@ class SimulateConfig:
             training.
         train_instances: category only: how many of the 12 training instances the labelled and unlabelled
             frames use (the first N); test frames use the 4 held-out instances.
+        unlabelled_arrangements: plush only: the unlabelled frames are spread over this many further
+            arrangements as well as the 7 training ones (each a new placement of the toys and a new camera
+            rig; from arrangement 13 on, so in no test set and no grasp trial). 0: the training ones only.
     """
 
     scene: str
@@ -65,6 +68,7 @@ class SimulateConfig:
     segments: int = 6
     test_segments: int = 2
     train_instances: int = NUM_TRAIN_INSTANCES
+    unlabelled_arrangements: int = 0
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -85,6 +89,9 @@ class SimulateConfig:
         if self.segments < 1 or self.test_segments < 1:
             raise UserError(f"segments, test_segments (--segments, --test-segments): must be >= 1, "
                             f"got {self.segments}, {self.test_segments}")
+        if self.unlabelled_arrangements < 0:
+            raise UserError(f"unlabelled_arrangements (--unlabelled-arrangements): must be >= 0, got "
+                            f"{self.unlabelled_arrangements}")
         if not 1 <= self.train_instances <= NUM_TRAIN_INSTANCES:
             raise UserError(f"train_instances (--train-instances): must be in [1, {NUM_TRAIN_INSTANCES}], "
                              f"got {self.train_instances}")
@@ -98,6 +105,8 @@ class SimulateConfig:
         if self.scene == "category":
             d.update(train_instances=self.train_instances,
                      test_instances=list(range(NUM_TRAIN_INSTANCES, NUM_INSTANCES)))
+        if self.scene == "plush" and self.unlabelled_arrangements:
+            d.update(unlabelled_arrangements=self.unlabelled_arrangements)
         return d
 
 
@@ -128,7 +137,7 @@ def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
             specs.append(FrameSpec(len(specs), "test", segment=S + s))
         return specs
     if cfg.scene == "plush":
-        return _plush_plan(L, U, T)
+        return _plush_plan(L, U, T, cfg.unlabelled_arrangements)
     for split, n in (("labelled", L), ("unlabelled", U), ("test", T)):
         for i in range(n):
             instance = -1
@@ -139,13 +148,15 @@ def frame_plan(cfg: SimulateConfig) -> list[FrameSpec]:
     return specs
 
 
-def _plush_plan(L: int, U: int, T: int) -> list[FrameSpec]:
+def _plush_plan(L: int, U: int, T: int, extra: int = 0) -> list[FrameSpec]:
     """``plush``: arrangement by arrangement (the ``segment``), each training arrangement's labelled frames
-    first, then its unlabelled ones; then the test arrangements' frames."""
-    from s3k.sim.plush import NUM_ARRANGEMENTS, TRAIN_ARRANGEMENTS
+    first, then its unlabelled ones; then the ``extra`` unlabelled arrangements' frames (numbered from
+    :data:`s3k.sim.plush.FIRST_UNLABELLED_ARRANGEMENT`); then the test arrangements' frames."""
+    from s3k.sim.plush import FIRST_UNLABELLED_ARRANGEMENT, NUM_ARRANGEMENTS, TRAIN_ARRANGEMENTS
 
     A = TRAIN_ARRANGEMENTS
-    order = sorted([(a, 0) for a in _spread(L, A)] + [(a, 1) for a in _spread(U, A)])
+    unlabelled = [a if a < A else FIRST_UNLABELLED_ARRANGEMENT + a - A for a in _spread(U, A + extra)]
+    order = sorted([(a, 0) for a in _spread(L, A)] + [(a, 1) for a in unlabelled])
     specs = [FrameSpec(i, "labelled" if kind == 0 else "unlabelled", segment=a)
              for i, (a, kind) in enumerate(order)]
     for a in _spread(T, NUM_ARRANGEMENTS - A):

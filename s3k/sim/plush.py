@@ -11,8 +11,10 @@ the object seed and ``a``), one camera rig, the table and a base lighting; withi
 cameras stay still while the gripper moves and the lighting changes a little from frame to frame.
 Arrangements ``0 .. 6`` are for training (one labelled frame each, the rest unlabelled but still: the
 labelled frame's 3D label holds for all of them), ``7 .. 9`` are the datasets' test arrangements. The grasp
-trials of ``s3k robot grasp`` use held-out arrangements from ``7`` on (``7 .. 12`` by default: ``10`` and
-above appear in no dataset). The frames carry the arrangement in the dataset's ``segment`` column.
+trials of ``s3k robot grasp`` use held-out arrangements from ``7`` on (``7 .. 12`` by default: ``10 .. 12``
+appear in no dataset). A dataset may have unlabelled frames of further arrangements, from ``13`` on
+(``s3k simulate plush --unlabelled-arrangements N``). The frames carry the arrangement in the dataset's
+``segment`` column.
 
 Unlike the other scenes the toys and the gripper are dynamic (free joints, collisions with an invisible
 floor at the table top), so :mod:`s3k.robot.grasp` can grasp in the very model the dataset was rendered from.
@@ -30,7 +32,8 @@ from s3k.sim.gripper import Gripper, gripper_xml, yaw_rotation
 from s3k.sim.scene import CameraSampler, FrameSpec, Scene, _fmt
 
 NUM_ARRANGEMENTS = 10  # the arrangements of a rendered dataset
-TRAIN_ARRANGEMENTS = 7  # arrangements 0..6 train, 7..9 test; 10 and above only for grasp trials
+TRAIN_ARRANGEMENTS = 7  # arrangements 0..6 train, 7..9 test; 10..12 only for grasp trials
+FIRST_UNLABELLED_ARRANGEMENT = 13  # further arrangements of unlabelled frames only (unlabelled_arrangements)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -329,5 +332,5 @@ class PlushScene(Scene):
 
 
 def arrangement_split(index: int) -> str:
-    """"train" for arrangements 0-6, "test" for 7 and above."""
-    return "train" if index < TRAIN_ARRANGEMENTS else "test"
+    """"train" for arrangements 0-6 and the unlabelled ones from 13 on, "test" for 7-12."""
+    return "train" if index < TRAIN_ARRANGEMENTS or index >= FIRST_UNLABELLED_ARRANGEMENT else "test"
