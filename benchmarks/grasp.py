@@ -28,21 +28,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
 from s3k.experiments.accuracy import finished  # noqa: E402
+from s3k.robot.results import GRASP_SOURCES as SOURCES  # noqa: E402
+from s3k.robot.results import grasps_over_seeds, with_grasp  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = ("s3k", "labels_only", "ground_truth")
-
-
-def _stats(values: list[float]) -> dict:
-    a = np.asarray(values, dtype=float)
-    return {"mean": float(a.mean()), "sd": float(a.std()), "min": float(a.min()), "max": float(a.max()),
-            "per_seed": [float(v) for v in a]}
 
 
 def grasp_file(work: Path, source: str, seed: int, args) -> Path:
@@ -91,15 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         "trials_per_seed": args.trials,
         "arrangements": docs[SOURCES[0], 0]["arrangements"],
     }
-    for src in SOURCES:
-        record[src] = {
-            "success_rate": _stats([docs[src, s]["success_rate"] for s in seeds]),
-            "per_arrangement": {a: float(np.mean([docs[src, s]["per_arrangement"][a] for s in seeds]))
-                                for a in docs[src, 0]["per_arrangement"]},
-            "aim_error_mm_median": float(np.nanmedian([t["aim_error_mm"] for s in seeds
-                                                       for t in docs[src, s]["per_trial"]])),
-            "trials": sum(docs[src, s]["trials"] for s in seeds),
-        }
+    record.update(grasps_over_seeds(docs, seeds))
     spent = os.times()
     record["cpu_minutes_this_call"] = (spent.children_user + spent.children_system
                                        - cpu0.children_user - cpu0.children_system) / 60
@@ -108,28 +93,11 @@ def main(argv: list[str] | None = None) -> int:
     (results / "grasp.json").write_text(json.dumps(record, indent=2) + "\n")
     summary_path = results / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    summary["grasp_success"] = {
-        **{src: record[src]["success_rate"]["mean"] for src in SOURCES},
-        "trials": args.trials, "trials_in_all": record["s3k"]["trials"],
-        "arrangements": len(record["arrangements"]), "detector_seeds": len(seeds),
-        "per_seed": {src: record[src]["success_rate"]["per_seed"] for src in SOURCES},
-        "detectors": "two-pass, from benchmarks/accuracy.py --scene plush",
-        "record": "grasp.json",
-        "git_revision": revision,
-    }
-    # the robot benchmark's scale and detector figures describe its own grasp detectors: now those used here
-    old = str(summary.get("scale", ""))
-    agents = old[old.index("insertion views"):] if "insertion views" in old else old
-    summary["scale"] = f"grasp: {record['scale']}" + (f"; agents: {agents}" if agents else "")
-    tests = summary.setdefault("detectors_test", {})
-    for src in ("s3k", "labels_only"):
-        figures = [json.loads(path.read_text()) for path in (work / f"{src}-seed{s}-test.json" for s in seeds)
-                   if path.is_file()]
-        if len(figures) == len(seeds):  # the accuracy benchmark's evaluation of these detectors
-            tests[src] = {k: _stats([f[k] for f in figures]) for k in ("median_mm", "rms_mm", "pck_10mm")}
-        else:
-            tests.pop(src, None)
-    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    tests = {}
+    for src in ("s3k", "labels_only"):  # the accuracy benchmark's evaluations of these detectors
+        paths = [work / f"{src}-seed{s}-test.json" for s in seeds]
+        tests[src] = [json.loads(p.read_text()) for p in paths] if all(p.is_file() for p in paths) else None
+    summary_path.write_text(json.dumps(with_grasp(summary, record, args.trials, tests), indent=2) + "\n")
     for src in SOURCES:
         print(f"{src:13s} success {record[src]['success_rate']['mean']:.3f} "
               f"(per seed {record[src]['success_rate']['per_seed']}), aim error median "

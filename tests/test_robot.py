@@ -62,7 +62,8 @@ def test_plush_frame_plan_one_labelled_frame_per_training_arrangement():
     # unlabelled frames over 4 further arrangements too: numbered from 13, after every held-out one
     more = frame_plan(SimulateConfig("plush", labelled=7, unlabelled=22, test=6, unlabelled_arrangements=4))
     assert [s.segment for s in more if s.split == "labelled"] == labelled
-    assert {s.segment for s in more if s.split == "unlabelled"} == {*range(TRAIN_ARRANGEMENTS), 13, 14, 15, 16}
+    unlabelled = {s.segment for s in more if s.split == "unlabelled"}
+    assert unlabelled == {*range(TRAIN_ARRANGEMENTS), 13, 14, 15, 16}
     assert {s.segment for s in more if s.split == "test"} == set(range(TRAIN_ARRANGEMENTS, NUM_ARRANGEMENTS))
     assert [s.frame_id for s in more] == list(range(len(more)))
     with pytest.raises(UserError, match="--unlabelled-arrangements"):
@@ -297,47 +298,40 @@ def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
     assert len(doc["per_trial"]) == 1 and np.isfinite(doc["per_trial"][0]["aim_error_mm"])
 
 
-def test_grasp_benchmark_aggregates_the_seeds_and_keeps_the_agents_figures(tmp_path):
-    """benchmarks/grasp.py reads each seed's grasp files (not run again when present), averages the success
-    rates over the detector seeds, and replaces only ``grasp_success`` in the robot summary."""
-    import json
-    import sys
-    from pathlib import Path
+def test_grasps_over_seeds_and_the_summary_keep_the_agents_figures():
+    """The grasp results of several detector seeds are combined per source (success rate over the seeds,
+    per arrangement, aim error), and the robot summary takes them in place of its grasp alone: its agents'
+    figures are kept, its scale and plush detector figures become those of the detectors grasped with."""
+    from s3k.robot.results import grasps_over_seeds, with_grasp
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from benchmarks import grasp as bench
-
-    work, results = tmp_path / "work", tmp_path / "results"
-    work.mkdir()
     rates = {"s3k": [1.0, 0.5], "labels_only": [0.5, 0.5], "ground_truth": [1.0, 1.0]}
+    docs = {}
     for src, per_seed in rates.items():
         for seed, rate in enumerate(per_seed):
-            trials = [{"arrangement": 7 + i % 2, "success": i < 2 * rate, "aim_error_mm": 1.0 + i}
+            trials = [{"arrangement": 7 + i, "success": i < 2 * rate, "aim_error_mm": 1.0 + i + seed}
                       for i in range(2)]
-            doc = {"successes": int(2 * rate), "trials": 2, "success_rate": rate, "arrangements": [7, 8],
-                   "per_arrangement": {str(a): float(np.mean([t["success"] for t in trials
-                                                              if t["arrangement"] == a])) for a in (7, 8)},
-                   "per_trial": trials}
-            (work / f"grasp-{src}-seed{seed}-2x2.json").write_text(json.dumps(doc))
-    results.mkdir()
-    (results / "summary.json").write_text(json.dumps({
-        "grasp_success": {"s3k": 0.1}, "rl_final_success": {"keypoints": {"mean": 0.5}},
-        "scale": "plush 96 px ...; 30 grasps each; insertion views 64 px, 3 seeds",
-        "detectors_test": {"s3k": {"median_mm": 9.0}, "insertion": {"median_mm": 5.0}}}))
-    for seed, median in enumerate((4.0, 5.0)):  # the accuracy benchmark's evaluation of the S3K detectors
-        (work / f"s3k-seed{seed}-test.json").write_text(json.dumps({"median_mm": median, "rms_mm": 6.0,
-                                                                    "pck_10mm": 0.9}))
-    assert bench.main(["--plush-work", str(work), "--seeds", "2", "--trials", "2", "--arrangements", "2",
-                       "--results", str(results)]) == 0
-    summary = json.loads((results / "summary.json").read_text())
-    assert summary["rl_final_success"] == {"keypoints": {"mean": 0.5}}
-    assert summary["scale"].startswith("grasp: plush grasp") and summary["scale"].endswith(
-        "agents: insertion views 64 px, 3 seeds")
-    tests = summary["detectors_test"]
-    assert tests["s3k"]["median_mm"]["per_seed"] == [4.0, 5.0] and tests["insertion"] == {"median_mm": 5.0}
-    assert "labels_only" not in tests  # no evaluation of its detectors here: no figures that are not theirs
-    g = summary["grasp_success"]
+            per_arrangement = {str(t["arrangement"]): float(t["success"]) for t in trials}
+            docs[src, seed] = {"trials": 2, "success_rate": rate, "per_arrangement": per_arrangement,
+                               "per_trial": trials}
+    record = grasps_over_seeds(docs, [0, 1])
+    assert record["s3k"]["success_rate"]["mean"] == 0.75 and record["s3k"]["per_arrangement"] == {"7": 1.0,
+                                                                                                  "8": 0.5}
+    assert record["s3k"]["trials"] == 4 and record["s3k"]["aim_error_mm_median"] == 2.0
+    record.update(scale="plush grasp ...", seeds=[0, 1], arrangements=[7, 8], git_revision="abc")
+    summary = {"grasp_success": {"s3k": 0.1}, "rl_final_success": {"keypoints": {"mean": 0.5}},
+               "scale": "plush 96 px ...; 30 grasps each; insertion views 64 px, 3 seeds",
+               "detectors_test": {"s3k": {"median_mm": 9.0}, "labels_only": {"median_mm": 8.0},
+                                  "insertion": {"median_mm": 5.0}}}
+    tests = {"s3k": [{"median_mm": m, "rms_mm": 6.0, "pck_10mm": 0.9} for m in (4.0, 5.0)],
+             "labels_only": None}
+    out = with_grasp(summary, record, 2, tests)
+    assert out["rl_final_success"] == {"keypoints": {"mean": 0.5}}
+    g = out["grasp_success"]
     assert (g["s3k"], g["labels_only"], g["ground_truth"]) == (0.75, 0.5, 1.0)
-    assert g["trials_in_all"] == 4 and g["arrangements"] == 2 and g["per_seed"]["s3k"] == [1.0, 0.5]
-    record = json.loads((results / "grasp.json").read_text())
-    assert record["s3k"]["per_arrangement"] == {"7": 1.0, "8": 0.5}
+    assert g["trials"] == 2 and g["trials_in_all"] == 4 and g["arrangements"] == 2
+    assert g["per_seed"]["s3k"] == [1.0, 0.5] and g["git_revision"] == "abc"
+    assert out["scale"] == "grasp: plush grasp ...; agents: insertion views 64 px, 3 seeds"
+    assert out["detectors_test"]["s3k"]["median_mm"]["per_seed"] == [4.0, 5.0]
+    assert "labels_only" not in out["detectors_test"]  # its detectors' figures unknown here: none given
+    assert out["detectors_test"]["insertion"] == {"median_mm": 5.0}
+    assert summary["grasp_success"] == {"s3k": 0.1}  # the summary given is not changed

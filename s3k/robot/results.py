@@ -110,3 +110,62 @@ def write_summary(out: str | Path, *, grasp_s3k=None, grasp_labels_only=None, gr
     }
     atomic_write_json(summary, out)
     return summary
+
+
+GRASP_SOURCES = ("s3k", "labels_only", "ground_truth")
+
+
+def _spread(values: Sequence[float]) -> dict:
+    return {"mean": statistics.fmean(values), "sd": statistics.pstdev(values), "min": min(values),
+            "max": max(values), "per_seed": [float(v) for v in values]}
+
+
+def grasps_over_seeds(results: dict[tuple[str, int], dict], seeds: Sequence[int]) -> dict:
+    """The grasp results of ``s3k robot grasp`` per source (``GRASP_SOURCES``) and detector seed, combined:
+    per source the success rate over the seeds, the rate per arrangement (mean over seeds), the median aim
+    error over every trial and the trials in all."""
+    out: dict = {}
+    for src in GRASP_SOURCES:
+        docs = [results[src, s] for s in seeds]
+        arrangements = docs[0]["per_arrangement"]
+        aims = [t["aim_error_mm"] for d in docs for t in d["per_trial"]]
+        finite = [a for a in aims if a == a]  # NaN: no keypoints, no aim
+        out[src] = {
+            "success_rate": _spread([d["success_rate"] for d in docs]),
+            "per_arrangement": {a: statistics.fmean(d["per_arrangement"][a] for d in docs)
+                                for a in arrangements},
+            "aim_error_mm_median": statistics.median(finite) if finite else None,
+            "trials": sum(int(d["trials"]) for d in docs),
+        }
+    return out
+
+
+def with_grasp(summary: dict, record: dict, trials: int, tests: dict[str, list[dict] | None]) -> dict:
+    """``summary`` (the robot summary, agents' figures kept) with ``grasp_success`` from ``record``
+    (:func:`grasps_over_seeds` plus ``scale``, ``seeds``, ``arrangements``, ``git_revision``), its ``scale``
+    saying what the grasp ran with, and the plush detectors' test figures replaced by ``tests`` (per model,
+    the evaluations of its seeds' detectors; None: not known, so none are given)."""
+    summary = dict(summary)
+    summary["grasp_success"] = {
+        **{src: record[src]["success_rate"]["mean"] for src in GRASP_SOURCES},
+        "trials": trials, "trials_in_all": record["s3k"]["trials"],
+        "arrangements": len(record["arrangements"]), "detector_seeds": len(record["seeds"]),
+        "per_seed": {src: record[src]["success_rate"]["per_seed"] for src in GRASP_SOURCES},
+        "detectors": "two-pass, from benchmarks/accuracy.py --scene plush",
+        "record": "grasp.json",
+        "git_revision": record["git_revision"],
+    }
+    # the robot benchmark's scale and detector figures describe its own grasp detectors: now these ones
+    old = str(summary.get("scale", ""))
+    agents = old[old.index("insertion views"):] if "insertion views" in old else old
+    summary["scale"] = f"grasp: {record['scale']}" + (f"; agents: {agents}" if agents else "")
+    figures = dict(summary.get("detectors_test") or {})
+    for src in ("s3k", "labels_only"):
+        evaluations = tests.get(src)
+        if evaluations:
+            figures[src] = {k: _spread([e[k] for e in evaluations])
+                            for k in ("median_mm", "rms_mm", "pck_10mm")}
+        else:
+            figures.pop(src, None)
+    summary["detectors_test"] = figures
+    return summary
