@@ -8,7 +8,9 @@
 #
 # RECORDING_DIR defaults to ../shared/data/real/sleap-anipose-minimal_session/minimal_session. Work files go to
 # $OUT (default runs/real; finished training runs there are reused), results to $PUBLISH (default
-# docs/results/real). $STEPS sets the training steps (default 3000), $THREADS torch threads (default 0: all).
+# docs/results/real). $STEPS sets the training steps (default 3000), $THREADS torch threads (default 0: all),
+# $SCALE the import scale of the 512 px arena crops (default 0.25: 128 px images), $TRAIN_OPTIONS more
+# `s3k train` options for both models (e.g. "--two-pass --coarse-size 128" with SCALE=0.5).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 D=$(realpath "${1:-../shared/data/real/sleap-anipose-minimal_session/minimal_session}")
@@ -16,6 +18,8 @@ OUT=${OUT:-runs/real}
 PUB=${PUBLISH:-docs/results/real}
 STEPS=${STEPS:-3000}
 THREADS=${THREADS:-0}
+SCALE=${SCALE:-0.25}
+read -r -a TRAIN_OPTS <<< "${TRAIN_OPTIONS:-}"
 [ -f "$D/calibration.toml" ] || { echo "error: $D/calibration.toml not found (pass the recording folder)" >&2; exit 1; }
 
 bash scripts/setup.sh
@@ -45,7 +49,7 @@ cat "$PUB/check-calibration.txt"
 echo "== 2. import with the repaired calibration, cropped around the arena"
 rm -rf "$OUT/crop"
 s3k import --calibration "$OUT/calibration_fixed.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" "${split[@]}" \
-  --scale 0.25 --crop "${crops[@]}" --out "$OUT/crop"
+  --scale "$SCALE" --crop "${crops[@]}" --out "$OUT/crop"
 s3k validate "$OUT/crop"
 s3k check-calibration "$OUT/crop" > "$PUB/check-calibration-fixed.txt"
 
@@ -53,7 +57,8 @@ echo "== 3. train S3K and the labels-only baseline (10 labelled frames, 70 unlab
 train() {  # train RUN [options]: a new run, or resume (a finished run returns at once)
   local run=$1; shift
   if [ -f "$run/config.json" ]; then s3k train "$OUT/crop" --out "$run" --resume --no-progress
-  else s3k train "$OUT/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" --no-progress "$@"; fi
+  else s3k train "$OUT/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" --no-progress \
+    ${TRAIN_OPTS[@]+"${TRAIN_OPTS[@]}"} "$@"; fi
 }
 train "$OUT/run-s3k"
 train "$OUT/run-baseline" --no-unsup
@@ -86,7 +91,9 @@ from s3k.experiments import source_revision
 pub, steps = Path(sys.argv[1]), int(sys.argv[2])
 # "-dirty": the s3k code that produced the figures differs from the revision
 rev = source_revision() or "unknown"
-out = {"command": "bash scripts/real-example.sh", "revision": rev, "steps": steps}
+import os
+out = {"command": "bash scripts/real-example.sh", "revision": rev, "steps": steps,
+       "scale": float(os.environ.get("SCALE", "0.25")), "train_options": os.environ.get("TRAIN_OPTIONS", "")}
 for m in ("s3k", "baseline"):
     r = json.loads((pub / f"metrics-{m}.json").read_text())
     out[m] = {k: r.get(k) for k in ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "n_frames", "n_2d")}
