@@ -56,7 +56,8 @@ s3k check-calibration "$OUT/crop" > "$PUB/check-calibration-fixed.txt"
 echo "== 3. train S3K and the labels-only baseline (10 labelled frames, 70 unlabelled)"
 train() {  # train RUN [options]: a new run, or resume (a finished run returns at once)
   local run=$1; shift
-  if [ -f "$run/config.json" ]; then s3k train "$OUT/crop" --out "$run" --resume --no-progress
+  if [ -f "$run/config.json" ] || [ -f "$run/two_pass_options.json" ]; then
+    s3k train "$OUT/crop" --out "$run" --resume --no-progress
   else s3k train "$OUT/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" --no-progress \
     ${TRAIN_OPTS[@]+"${TRAIN_OPTS[@]}"} "$@"; fi
 }
