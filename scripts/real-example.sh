@@ -88,7 +88,7 @@ s3k export "$OUT/run-s3k" --format onnx --out "$OUT/detector.onnx" | tee "$PUB/e
 python - "$PUB" "$STEPS" <<'EOF'
 import json, sys
 from pathlib import Path
-from s3k.experiments import source_revision
+from s3k.experiments.report import source_revision
 pub, steps = Path(sys.argv[1]), int(sys.argv[2])
 # "-dirty": the s3k code that produced the figures differs from the revision
 rev = source_revision() or "unknown"
