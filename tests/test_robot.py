@@ -143,6 +143,8 @@ def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
     assert result["per_arrangement"] == {str(a): 1.0 for a in range(7, 13)}
     two = run_trials(ground_truth_keypoints, trials=3, size=32, arrangements=2)
     assert [t["arrangement"] for t in two["per_trial"]] == [7, 8, 7] and two["arrangements"] == [7, 8]
+    with pytest.raises(ValueError, match="arrangements"):  # 13 on may be a dataset's unlabelled arrangements
+        run_trials(ground_truth_keypoints, trials=1, size=32, arrangements=7)
 
     def off_by_6cm(scene, spec):
         X = scene.keypoints_world().copy()

@@ -34,9 +34,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--ground-truth", action="store_true", help="grasp at the true keypoints instead (no RUN)")
     g.add_argument("--trials", type=number(int, ge=1), default=60,
                    help="grasp trials, over the held-out arrangements in turn (default 60)")
-    g.add_argument("--arrangements", type=number(int, ge=1), default=6,
-                   help="held-out arrangements 7, 8, ...: 7-9 are the datasets' test arrangements, 10 and "
-                        "above in no dataset (default 6)")
+    g.add_argument("--arrangements", type=number(int, ge=1, le=6), default=6,
+                   help="held-out arrangements 7, 8, ..., up to 12: 7-9 are the datasets' test arrangements, "
+                        "10-12 in no dataset (default 6)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
     g.add_argument("--seed", type=number(int, ge=0), default=0,
                    help="draws each trial's lighting and gripper start (default 0)")

@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from s3k.sim.gripper import yaw_rotation
-from s3k.sim.plush import TRAIN_ARRANGEMENTS, PlushScene
+from s3k.sim.plush import FIRST_UNLABELLED_ARRANGEMENT, TRAIN_ARRANGEMENTS, PlushScene
 from s3k.sim.scene import FrameSpec
 
 #: The paw lifted this high (metres), and held this close to the tool centre point, is a success.
@@ -110,8 +110,8 @@ def ground_truth_keypoints(scene: PlushScene, spec: FrameSpec) -> np.ndarray:
 
 
 #: Held-out arrangements of the grasp trials by default: 7, 8, 9 (the datasets' test arrangements) and 10,
-#: 11, 12 (in no dataset).
-ARRANGEMENTS = 6
+#: 11, 12 (in no dataset); the most there are, since a dataset's further unlabelled arrangements start at 13.
+ARRANGEMENTS = FIRST_UNLABELLED_ARRANGEMENT - TRAIN_ARRANGEMENTS
 
 
 def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: int = 0, object_seed: int = 0,
@@ -129,8 +129,9 @@ def run_trials(source: KeypointSource, trials: int = 30, size: int = 96, seed: i
     """
     if trials < 1:
         raise ValueError(f"run_trials: trials must be >= 1, got {trials}")
-    if arrangements < 1:
-        raise ValueError(f"run_trials: arrangements must be >= 1, got {arrangements}")
+    if not 1 <= arrangements <= ARRANGEMENTS:
+        raise ValueError(f"run_trials: arrangements must be in [1, {ARRANGEMENTS}] (later ones may be a "
+                         f"dataset's unlabelled arrangements), got {arrangements}")
     results = []
     with PlushScene(size=size, seed=object_seed) as scene:
         k_paw, k_body = scene.keypoints.index(paw), scene.keypoints.index("body")
