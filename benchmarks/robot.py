@@ -88,9 +88,12 @@ def plush_data(args, work: Path) -> Path:
 def agent_command(args, out: Path, agent: str, seed: int, detector: Path | None) -> list[str]:
     cmd = S3K + ["robot", "train-agent", "--out", str(out), "--agent", agent, "--seed", str(seed),
                  "--steps", str(args.agent_steps), "--checkpoint-every", str(args.eval_every),
-                 "--eval-episodes", str(args.eval_episodes), "--threads", "1"]
+                 "--eval-episodes", str(args.eval_episodes), "--threads", "1", *args.agent_options.split()]
     if detector is not None:
-        cmd += ["--run", str(detector)]
+        from s3k.robot.detect import RunDetector
+
+        size = RunDetector(detector, ["plug_tip"]).image_size[0]  # the views it was trained on
+        cmd += ["--run", str(detector), "--image-size", str(size)]
     if (out / "config.json").is_file():
         cmd.append("--resume")
     return cmd
@@ -170,6 +173,11 @@ def main(argv: list[str] | None = None) -> int:
                         "--work WORK over their seeds and 6 held-out arrangements (benchmarks/grasp.py, "
                         "--trials 60 unless given) instead of training one-pass plush detectors here")
     p.add_argument("--insertion-size", type=int, default=64)
+    p.add_argument("--insertion-work", default=None, metavar="WORK",
+                   help="the keypoint agents read the two-pass S3K detectors of benchmarks/accuracy.py "
+                        "--scene insertion --work WORK (agent seed k: detector seed k, on views of the size "
+                        "it was trained on) instead of a one-pass detector trained here")
+    p.add_argument("--agent-options", default="", help="more s3k robot train-agent options for every agent")
     p.add_argument("--seeds", type=int, default=3, help="agent seeds per agent (3)")
     p.add_argument("--agent-steps", type=int, default=10000, help="environment steps per agent (10000)")
     p.add_argument("--eval-every", type=int, default=2000,
@@ -215,13 +223,15 @@ def main(argv: list[str] | None = None) -> int:
             sh(S3K + ["robot", "grasp", *what, "--trials", str(args.trials), "--out", str(out)])
         grasps[name] = out
 
-    # --- the insertion agents
+    # --- the insertion agents (with --insertion-work: seed k's keypoint agent reads that work's S3K seed k)
     insertion = work / "insertion"
-    if not (insertion / "s3k.json").is_file():
+    if args.insertion_work:
+        detectors_of = [Path(args.insertion_work).resolve() / f"s3k-seed{k}" for k in range(args.seeds)]
+    elif not (insertion / "s3k.json").is_file():
         sh(S3K + ["robot", "simulate-insertion", "--out", str(insertion), "--size", str(args.insertion_size),
                   "--no-progress", "--overwrite"])
     detector = work / "insertion-s3k"
-    if not (detector / "model.pt").is_file():
+    if not args.insertion_work and not (detector / "model.pt").is_file():
         cmd = S3K + ["train", str(insertion), "--out", str(detector), "--steps", str(args.detector_steps),
                      "--threads", "1", "--no-progress"]
         run_jobs([("insertion detector", cmd + (["--resume"] if detector.exists() else []),
@@ -238,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             out.parent.mkdir(parents=True, exist_ok=True)
             jobs.append((f"{agent} agent, seed {seed}",
-                         agent_command(args, out, agent, seed, detector if agent == "keypoints" else None),
+                         agent_command(args, out, agent, seed, None if agent != "keypoints" else
+                                       detectors_of[seed] if args.insertion_work else detector),
                          work / "rl" / f"{agent}-{seed}.cpu.json"))
     if jobs:
         note_revision(work)
@@ -254,9 +265,12 @@ def main(argv: list[str] | None = None) -> int:
               "--machine", f"{machine['cpu']}, {machine['cpu_count']} cores"])
     summary = json.loads((results / "summary.json").read_text())
     detectors = {}
-    for name, run in {**runs, "insertion": detector}.items():
+    for name, run in {**runs, **({} if args.insertion_work else {"insertion": detector})}.items():
         m = evaluate(run, insertion if name == "insertion" else plush)  # RUN-test.json, written once
         detectors[name] = {k: m.get(k) for k in ("median_mm", "rms_mm", "pck_10mm", "rms_px")}
+    if args.insertion_work:  # benchmarks/accuracy.py's evaluations of the detectors, seed by seed
+        tests = [json.loads(Path(f"{run}-test.json").read_text()) for run in detectors_of]
+        detectors["insertion"] = {k: [t.get(k) for t in tests] for k in ("median_mm", "rms_mm", "pck_10mm")}
     cpu = {}
     for record in sorted(work.glob("**/*.cpu.json")):
         cpu[str(record.relative_to(work)).removesuffix(".cpu.json")] = round(
@@ -273,8 +287,11 @@ def main(argv: list[str] | None = None) -> int:
                   f"the other {args.plush_unlabelled - 7 * (args.propagate - 1)} training frames unlabelled, "
                   f"{args.plush_test} test frames over the 3 held-out arrangements; detectors "
                   f"{args.detector_steps} steps; {args.trials} grasps each; insertion views "
-                  f"{args.insertion_size} px, {args.seeds} seeds x 2 agents x {args.agent_steps} environment "
-                  f"steps, evaluation every {args.eval_every} steps over {args.eval_episodes} episodes"),
+                  + (f"of the two-pass detectors of {args.insertion_work} (the beta-VAE's 64 px)"
+                     if args.insertion_work else f"{args.insertion_size} px")
+                  + f", {args.seeds} seeds x 2 agents x {args.agent_steps} environment steps, evaluation "
+                  f"every {args.eval_every} steps over {args.eval_episodes} episodes"
+                  + (f", agent options {args.agent_options!r}" if args.agent_options else "")),
         "detectors_test": detectors,
         "cpu_minutes": cpu,
         "wall_minutes_this_invocation": round((time.time() - started) / 60, 1),

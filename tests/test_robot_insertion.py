@@ -80,6 +80,21 @@ def test_detector_callable_gives_the_keypoint_observations():
     assert np.all(np.isfinite(kp[1]))  # the missed keypoint keeps its last value
 
 
+def test_expert_label_is_the_demonstrator_on_the_true_state_the_step_started_from():
+    def detector(images, K, R, t):  # sees every keypoint 3 cm off
+        return env.true_keypoints() + np.array([0.03, 0.0, 0.0]), np.ones(3, bool)
+
+    env = InsertionEnv(detector=detector, image_size=16, expert_labels=True)
+    obs, _ = env.reset(seed=3)
+    for _ in range(3):
+        state = env.state_observation()
+        np.testing.assert_allclose(state[15:].reshape(3, 3), env.true_keypoints(), atol=1e-6)
+        np.testing.assert_allclose(obs[15:].reshape(3, 3), env.true_keypoints() + [0.03, 0, 0], atol=1e-6)
+        obs, _, _, _, info = env.step(np.full(6, 0.3, np.float32))
+        np.testing.assert_allclose(info["expert_action"], scripted_action(state), atol=1e-6)
+    assert "expert_action" not in InsertionEnv().step(np.zeros(6, np.float32))[4]
+
+
 def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     import torch
 
@@ -132,6 +147,13 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     assert state["env_steps"] == 45
     with np.load(out / "checkpoint" / "replay.npz", allow_pickle=False) as z:
         assert len(z["actions"]) == demo + 45
+        # Every transition, the agent's own and the resumed run's too, carries the expert's action for its
+        # state; on ground-truth keypoints the observation is that state, so the label is the demonstrator's
+        # action on it (for a demonstration, what was done).
+        labels = np.stack([scripted_action(o) for o in z["observations"][:, 0]])
+        np.testing.assert_allclose(z["expert_actions"], labels, atol=1e-6)
+        np.testing.assert_allclose(z["expert_actions"][:demo], z["actions"][:demo, 0], atol=1e-6)
+        assert not np.allclose(z["expert_actions"][demo:], z["actions"][demo:, 0], atol=1e-3)
     progress = json.loads((out / "progress.json").read_text())
     # One evaluation per checkpoint, none repeated across the resumptions; the final one is the last.
     assert [e["env_steps"] for e in progress["evaluations"]] == [0, 15, 30, 45]

@@ -50,8 +50,9 @@ class AgentConfig:
     eval_every: int = _field(0, "environment steps between evaluations of the deterministic policy, on a "
                                 "separate environment, for the success-rate curve (0: at every checkpoint); "
                                 "the last one is at --steps")
-    learning_starts: int = _field(100, "the agent's own environment steps before gradient updates begin "
-                                       "(the demonstrations are in the buffer already)")
+    learning_starts: int = _field(0, "the agent's own environment steps, acting at random, before gradient "
+                                     "updates begin (0: the pretrained policy acts from the first step; "
+                                     "random actions fill the relabelled set with states no policy visits)")
     batch_size: int = _field(128, "TD3's minibatch size")
     buffer_size: int = _field(200_000, "replay buffer capacity (transitions)")
     learning_rate: float = _field(1e-3, "TD3's learning rate (actor and critics)")
@@ -63,6 +64,10 @@ class AgentConfig:
     bc_batch: int = _field(64, "demonstration transitions per update for the behaviour-cloning term")
     bc_pretrain: int = _field(2000, "gradient updates on the demonstrations alone before the agent first "
                                     "acts: the actor by behaviour cloning only, the critics by TD learning")
+    expert_relabel: int = _field(1, "1: every state the agent visits is labelled with the scripted expert's "
+                                    "action on the true state, and the behaviour-cloning term imitates these "
+                                    "labels as well as the demonstrations (DAgger, Ross et al. 2011); 0: the "
+                                    "demonstrations only")
     q_filter: int = _field(0, "1: the behaviour-cloning term counts only where the critic rates the "
                               "demonstrated action above the policy's; 0: everywhere")
     run: str | None = _field(None, "an s3k run whose detector gives the keypoint observations from four "
@@ -103,7 +108,9 @@ def td3_with_demonstrations():
     Q-term normalized as in TD3+BC, Fujimoto and Gu 2021).
 
     The actor's loss is ``q_weight * -Q(s, pi(s)) / max(mean|Q|, 1)`` on a replay minibatch plus ``bc_weight``
-    times the squared action error ``|pi(s_d) - a_d|^2`` on a minibatch of demonstration transitions; with
+    times the squared action error ``|pi(s_d) - a_d|^2`` on a minibatch of demonstration transitions, or, with
+    :attr:`expert_actions` set (``expert_relabel``), of all the buffer's transitions, each with the scripted
+    expert's action on the true state it was in (DAgger's aggregate, Ross et al. 2011); with
     ``q_filter`` the latter counts only where ``Q(s_d, a_d) > Q(s_d, pi(s_d))``. The critics learn as in TD3
     from the whole buffer, demonstrations included. :meth:`pretrain` first fits the actor to the
     demonstrations alone (the Q-term off) while the critics learn their values. Built on first use so that
@@ -126,6 +133,26 @@ def td3_with_demonstrations():
         bc_batch: int = 64
         q_filter: bool = False
         q_weight: float = 1.0
+        # The expert's action for each replay-buffer transition (the demonstrated one for a demonstration),
+        # when the states the agent visits are relabelled; None when only the demonstrations are imitated.
+        expert_actions: np.ndarray | None = None
+
+        def _store_transition(self, replay_buffer, buffer_action, new_obs, reward, dones, infos) -> None:
+            if self.expert_actions is not None:
+                self.expert_actions[replay_buffer.pos] = infos[0]["expert_action"]
+            super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+
+        def _imitation_batch(self) -> tuple[th.Tensor, th.Tensor] | None:
+            """States and the actions to imitate there: from the relabelled buffer, or the demonstrations."""
+            rb = self.replay_buffer
+            if self.expert_actions is not None and rb is not None and rb.pos > 0:
+                rows = th.randint(rb.pos, (self.bc_batch,)).numpy()  # the buffer never wraps round
+                return (th.as_tensor(rb.observations[rows, 0], dtype=th.float32),
+                        th.as_tensor(self.expert_actions[rows], dtype=th.float32))
+            if self.demo_obs is None or self.demo_actions is None or len(self.demo_obs) == 0:
+                return None
+            idx = th.randint(len(self.demo_obs), (self.bc_batch,))
+            return self.demo_obs[idx], self.demo_actions[idx]
 
         def pretrain(self, updates: int, batch_size: int) -> None:
             """``updates`` updates from the buffer as it is (the demonstrations), the actor's Q-term off."""
@@ -147,8 +174,6 @@ def td3_with_demonstrations():
             self.policy.set_training_mode(True)
             if getattr(self, "_logger", None) is not None:  # no logger before learn(): the pretraining
                 self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-            demo_obs, demo_actions = self.demo_obs, self.demo_actions
-            use_bc = self.bc_weight > 0 and demo_obs is not None and len(demo_obs) > 0
             assert self.replay_buffer is not None
             for _ in range(gradient_steps):
                 self._n_updates += 1
@@ -169,11 +194,11 @@ def td3_with_demonstrations():
                     continue
                 q_pi = self.critic.q1_forward(batch.observations, self.actor(batch.observations))
                 actor_loss = -self.q_weight * q_pi.mean() / q_pi.abs().mean().detach().clamp_min(1.0)
-                if use_bc and demo_obs is not None and demo_actions is not None:
-                    idx = th.randint(len(demo_obs), (self.bc_batch,))
-                    s_d, a_d = demo_obs[idx], demo_actions[idx]
+                imitate = self._imitation_batch() if self.bc_weight > 0 else None
+                if imitate is not None:
+                    s_d, a_d = imitate
                     pi_d = self.actor(s_d)
-                    better = th.ones(len(idx), 1)
+                    better = th.ones(len(s_d), 1)
                     if self.q_filter:
                         with th.no_grad():
                             q_demo = self.critic.q1_forward(s_d, a_d)
@@ -198,7 +223,12 @@ def make_env(cfg: AgentConfig, vae=None, detector=None) -> gym.Env:
         from s3k.robot.detect import RunDetector
 
         detector = RunDetector(cfg.run, KEYPOINTS)
-    env: gym.Env = InsertionEnv(detector=detector, image_size=cfg.image_size, camera_seed=0)
+        if detector.image_size != (cfg.image_size, cfg.image_size):
+            raise UserError(f"image_size (--image-size): run {cfg.run} reads {detector.image_size[0]} x "
+                            f"{detector.image_size[1]} px views, the agent renders {cfg.image_size} px",
+                            hint=f"give --image-size {detector.image_size[0]}")
+    env: gym.Env = InsertionEnv(detector=detector, image_size=cfg.image_size, camera_seed=0,
+                                expert_labels=bool(cfg.expert_relabel))
     if cfg.agent == "beta_vae":
         from s3k.robot.beta_vae import LatentObservation
 
@@ -240,6 +270,8 @@ def add_demonstrations(model, env: gym.Env, episodes: int, seed: int) -> int:
             action = scripted_action(_state_obs(env, obs))
             next_obs, reward, term, trunc, info = env.step(action)
             done = term or trunc
+            if getattr(model, "expert_actions", None) is not None:
+                model.expert_actions[model.replay_buffer.pos] = action
             model.replay_buffer.add(obs[None], next_obs[None], action[None], np.array([reward]),
                                     np.array([done]), [{**info, "TimeLimit.truncated": trunc and not term}])
             obs = next_obs
@@ -288,6 +320,8 @@ def save_checkpoint(model, folder: Path, state: dict) -> None:
     n = rb.buffer_size if rb.full else rb.pos
     buf = io.BytesIO()
     arrays = {f: getattr(rb, f)[:n] for f in BUFFER_FIELDS}
+    if getattr(model, "expert_actions", None) is not None:
+        arrays["expert_actions"] = model.expert_actions[:n]
     np.savez(buf, **arrays, pos=np.array(rb.pos), full=np.array(rb.full))
     atomic_write_bytes(buf.getvalue(), tmp / "replay.npz")
     atomic_write_json(state, tmp / "state.json")
@@ -325,6 +359,8 @@ def load_checkpoint(model, folder: Path) -> dict:
                             f"{rb.buffer_size}", hint="give the run's --buffer-size")
         for f in BUFFER_FIELDS:
             getattr(rb, f)[:n] = z[f]
+        if getattr(model, "expert_actions", None) is not None:
+            model.expert_actions[:n] = z["expert_actions"]
         rb.pos, rb.full = int(z["pos"]), bool(z["full"])
     model.num_timesteps = int(state["env_steps"])
     model._n_updates = int(state["updates"])
@@ -352,7 +388,8 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         if not config_file.is_file():
             raise UserError(f"{out}: no agent run to resume (no config.json)",
                             hint="drop --resume to start one")
-        old = AgentConfig(**json.loads(config_file.read_text()))
+        # A run begun before expert relabelling existed imitated its demonstrations only.
+        old = AgentConfig(**{"expert_relabel": 0, **json.loads(config_file.read_text())})
         if old.identity() != cfg.identity():
             diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
             raise UserError(f"{out}: --resume with other settings than the run's ({', '.join(diff)})",
@@ -384,6 +421,8 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
     model = agent_class("MlpPolicy", env, learning_rate=cfg.learning_rate, buffer_size=cfg.buffer_size,
                 learning_starts=cfg.learning_starts, batch_size=cfg.batch_size, action_noise=noise,
                 seed=cfg.seed, device="cpu", verbose=0)
+    if cfg.expert_relabel:
+        model.expert_actions = np.zeros((cfg.buffer_size, 6), np.float32)
     progress_file = out / "progress.json"
     progress: dict = {"evaluations": []}
     if resume and progress_file.is_file():

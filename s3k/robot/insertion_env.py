@@ -139,14 +139,18 @@ class InsertionEnv(gym.Env):
             ``plug_tip, plug_base, socket``; None uses the ground truth (and renders nothing).
         image_size: rendered views' width and height (for the detector and :meth:`render_views`).
         camera_seed: draws the fixed rig of 4 cameras.
+        expert_labels: each step's ``info["expert_action"]`` is then what :func:`scripted_action` does on
+            the true state the step started from (:meth:`state_observation`), whatever was observed: the
+            label an imitating agent learns from on the states it visits itself.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
 
     def __init__(self, detector: Detector | None = None, image_size: int = 64, camera_seed: int = 0,
-                 render_mode: str | None = None):
+                 render_mode: str | None = None, expert_labels: bool = False):
         super().__init__()
         self.detector = detector
+        self.expert_labels = bool(expert_labels)
         self.image_size = int(image_size)
         self.render_mode = render_mode
         self.model = mujoco.MjModel.from_xml_string(_model_xml(self.image_size))
@@ -202,12 +206,17 @@ class InsertionEnv(gym.Env):
         self._keypoints[ok] = X[ok]
         return self._keypoints.copy()
 
-    def _obs(self) -> np.ndarray:
+    def _obs(self, keypoints: np.ndarray | None = None) -> np.ndarray:
         R = self.gripper.rotation(self.data)
-        kp = self._observe_keypoints()
-        self._keypoints = kp
-        parts = [self.gripper.tcp(self.data), R[:, 0], R[:, 1], self.gripper.velocity(self.data), kp.ravel()]
+        if keypoints is None:
+            keypoints = self._keypoints = self._observe_keypoints()
+        parts = [self.gripper.tcp(self.data), R[:, 0], R[:, 1], self.gripper.velocity(self.data),
+                 keypoints.ravel()]
         return np.clip(np.concatenate(parts), -OBS_BOUND, OBS_BOUND).astype(np.float32)
+
+    def state_observation(self) -> np.ndarray:
+        """The observation with the ground-truth keypoints, whatever the detector sees (for an expert)."""
+        return self._obs(self.true_keypoints())
 
     def distance(self, keypoints: np.ndarray | None = None) -> float:
         """``|plug_tip - socket| + |plug_base - socket|`` of ``keypoints`` (default: the observed ones)."""
@@ -238,6 +247,7 @@ class InsertionEnv(gym.Env):
 
     def step(self, action):
         a = np.clip(np.asarray(action, dtype=np.float64).reshape(6), -1.0, 1.0)
+        expert = scripted_action(self.state_observation()) if self.expert_labels else None
         v, w = a[:3] * MAX_SPEED, a[3:] * MAX_ANGULAR
         dt = self.model.opt.timestep
         dR = np.empty(9)
@@ -266,6 +276,8 @@ class InsertionEnv(gym.Env):
         info = {"distance": distance, "true_distance": true_distance, "is_success": success,
                 "strayed": strayed,
                 "true_success": true_distance < SUCCESS_DISTANCE}
+        if expert is not None:
+            info["expert_action"] = expert
         return obs, float(reward), terminated, truncated, info
 
     def render(self):
