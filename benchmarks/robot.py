@@ -22,9 +22,14 @@ continues an interrupted benchmark:
 ``benchmarks/accuracy.py --scene plush --work WORK`` over their seeds and 6 held-out arrangements, through
 ``benchmarks/grasp.py``, once the summary is written.
 
-``--agent-ablation`` instead trains the keypoint agent on ground-truth keypoints, one seed, in four
-variants (plain TD3 with demonstrations in its buffer only; the Q-term off: behaviour cloning; the Q-term at
-full weight; the defaults) and writes their success-rate curves to ``agent-ablation.json``.
+``--insertion-work WORK`` replaces stage 5: seed k's keypoint agent reads the two-pass S3K detector of seed k
+of ``benchmarks/accuracy.py --scene insertion --work WORK``, on views of the size it was trained on.
+
+``--agent-ablation`` instead trains the keypoint agent on ground-truth keypoints, one seed, in five
+variants (plain TD3 with demonstrations in its buffer only; imitating the demonstrations only, without the
+expert's labels of the visited states; the Q-term off: behaviour cloning of the demonstrations and the
+relabelled states; the Q-term at full weight; the defaults) and writes their success-rate curves to
+``agent-ablation.json``.
 
 Example::
 
@@ -50,7 +55,9 @@ from s3k.experiments.accuracy import evaluate, run_jobs  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 S3K = [sys.executable, "-m", "s3k.cli"]
 ABLATION = {  # agent variants on ground-truth keypoints: name -> train-agent options
-    "td3_demos_in_buffer_only": ["--bc-weight", "0", "--bc-pretrain", "0", "--q-weight", "1"],
+    "td3_demos_in_buffer_only": ["--bc-weight", "0", "--bc-pretrain", "0", "--q-weight", "1",
+                                 "--expert-relabel", "0", "--learning-starts", "100"],
+    "demonstrations_only_imitated": ["--expert-relabel", "0", "--learning-starts", "100"],
     "behaviour_cloning_only": ["--q-weight", "0"],
     "q_term_full_weight": ["--q-weight", "1"],
     "default": [],
@@ -275,6 +282,12 @@ def main(argv: list[str] | None = None) -> int:
     for record in sorted(work.glob("**/*.cpu.json")):
         cpu[str(record.relative_to(work)).removesuffix(".cpu.json")] = round(
             json.loads(record.read_text())["cpu_minutes"], 1)
+    agents_scale = ("insertion views " + (f"of the two-pass detectors of {args.insertion_work} (the "
+                                          f"beta-VAE's 64 px)" if args.insertion_work else
+                                          f"{args.insertion_size} px")
+                    + f", {args.seeds} seeds x 2 agents x {args.agent_steps} environment steps, evaluation "
+                    f"every {args.eval_every} steps over {args.eval_episodes} episodes"
+                    + (f", agent options {args.agent_options!r}" if args.agent_options else ""))
     summary.update({
         "command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "git_revision": revision,
@@ -286,12 +299,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"({7 * args.propagate} labelled), "
                   f"the other {args.plush_unlabelled - 7 * (args.propagate - 1)} training frames unlabelled, "
                   f"{args.plush_test} test frames over the 3 held-out arrangements; detectors "
-                  f"{args.detector_steps} steps; {args.trials} grasps each; insertion views "
-                  + (f"of the two-pass detectors of {args.insertion_work} (the beta-VAE's 64 px)"
-                     if args.insertion_work else f"{args.insertion_size} px")
-                  + f", {args.seeds} seeds x 2 agents x {args.agent_steps} environment steps, evaluation "
-                  f"every {args.eval_every} steps over {args.eval_episodes} episodes"
-                  + (f", agent options {args.agent_options!r}" if args.agent_options else "")),
+                  f"{args.detector_steps} steps; {args.trials} grasps each; {agents_scale}"),
+        "agents_scale": agents_scale,
         "detectors_test": detectors,
         "cpu_minutes": cpu,
         "wall_minutes_this_invocation": round((time.time() - started) / 60, 1),

@@ -337,3 +337,7 @@ def test_grasps_over_seeds_and_the_summary_keep_the_agents_figures():
     assert "labels_only" not in out["detectors_test"]  # its detectors' figures unknown here: none given
     assert out["detectors_test"]["insertion"] == {"median_mm": 5.0}
     assert summary["grasp_success"] == {"s3k": 0.1}  # the summary given is not changed
+    # The agents' part of the scale is taken from its own field where the summary has one.
+    summary.update(scale="plush ...; 30 grasps each; agents at 384 px", agents_scale="agents at 384 px")
+    assert with_grasp(summary, record, 2, tests)["scale"] == \
+        "grasp: plush grasp ...; agents: agents at 384 px"

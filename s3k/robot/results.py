@@ -156,8 +156,10 @@ def with_grasp(summary: dict, record: dict, trials: int, tests: dict[str, list[d
         "git_revision": record["git_revision"],
     }
     # the robot benchmark's scale and detector figures describe its own grasp detectors: now these ones
+    # (its agents' part is in ``agents_scale``; a summary from before that field has it at the scale's end)
     old = str(summary.get("scale", ""))
-    agents = old[old.index("insertion views"):] if "insertion views" in old else old
+    agents = summary.get("agents_scale") or (old[old.index("insertion views"):] if "insertion views" in old
+                                             else old)
     summary["scale"] = f"grasp: {record['scale']}" + (f"; agents: {agents}" if agents else "")
     figures = dict(summary.get("detectors_test") or {})
     for src in ("s3k", "labels_only"):
