@@ -124,7 +124,7 @@ def plot(summary: dict, path: Path) -> None:
     ax.set_ylabel("plug in: success rate")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="center right", fontsize=8)
     ax.set_title("Cable insertion, deterministic policy; band: min-max over seeds", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
