@@ -130,7 +130,7 @@ def plot(summary: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def agent_ablation(args, work: Path, results: Path, argv) -> int:
+def agent_ablation(args, work: Path, results: Path, argv, revision: str) -> int:
     jobs, runs = [], {}
     for name, options in ABLATION.items():
         out = work / "rl-ablation" / name
@@ -153,7 +153,7 @@ def agent_ablation(args, work: Path, results: Path, argv) -> int:
                         "env_steps": [e["env_steps"] for e in evals],
                         "success_rate": [e["true_success_rate"] for e in evals]}
     result = {"command": "python benchmarks/robot.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "git_revision": git_revision(), "machine": machine_info(),
+              "git_revision": revision, "machine": machine_info(),
               "scale": f"keypoint agent on ground-truth keypoints, seed 0, {args.ablation_steps} environment "
                        f"steps, evaluation every 1000 steps over {args.eval_episodes} episodes",
               "curves": curves}
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.time()
     revision = git_revision()  # before anything here writes into the repository's docs
     if args.agent_ablation:
-        return agent_ablation(args, work, results, argv)
+        return agent_ablation(args, work, results, argv, revision)
 
     # --- the grasp (with --plush-work: benchmarks/grasp.py with those two-pass detectors, after the summary)
     plush = work / "plush" if args.plush_work else plush_data(args, work)
