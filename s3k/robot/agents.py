@@ -117,9 +117,10 @@ def td3_with_demonstrations():
     importing s3k does not import Stable-Baselines3.
 
     What each part does on the insertion task (``benchmarks/robot.py --agent-ablation``, docs/robot.md):
-    TD3 with the demonstrations only in its buffer does not succeed once in 4000 steps; behaviour cloning
-    alone inserts at once; the Q-term, its critic fitted to few transitions, steers the actor away within a
-    thousand steps even at weight 0.1, from which the policy climbs back slowly.
+    TD3 with the demonstrations only in its buffer does not succeed once in 4000 steps; cloning the
+    demonstrations inserts at once, but imitating them alone the acting policy drifts to states they never
+    show and fails there; with the visited states relabelled it stays near the expert whatever the Q-term's
+    weight.
     """
     import torch as th
     import torch.nn.functional as F
