@@ -80,6 +80,25 @@ def test_detector_callable_gives_the_keypoint_observations():
     assert np.all(np.isfinite(kp[1]))  # the missed keypoint keeps its last value
 
 
+def test_a_run_from_before_expert_relabelling_resumes_as_it_was(tmp_path):
+    """A run whose config.json has no ``expert_relabel`` imitated its demonstrations only: ``--resume``
+    with no options continues it so, and its replay buffer (no expert labels in it) loads."""
+    from s3k.cli import main
+
+    out = tmp_path / "old"
+    options = ["--steps", "8", "--demos", "1", "--checkpoint-every", "4", "--eval-episodes", "1",
+               "--batch-size", "8", "--buffer-size", "200", "--bc-pretrain", "2", "--learning-starts", "100"]
+    assert main(["robot", "train-agent", "--out", str(out), *options, "--expert-relabel", "0"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    del config["expert_relabel"]
+    (out / "config.json").write_text(json.dumps(config))
+    with np.load(out / "checkpoint" / "replay.npz") as z:
+        assert "expert_actions" not in z.files
+    assert main(["robot", "train-agent", "--out", str(out), "--resume", "--steps", "12"]) == 0
+    assert json.loads((out / "config.json").read_text())["expert_relabel"] == 0
+    assert json.loads((out / "checkpoint" / "state.json").read_text())["env_steps"] == 12
+
+
 def test_expert_label_is_the_demonstrator_on_the_true_state_the_step_started_from():
     def detector(images, K, R, t):  # sees every keypoint 3 cm off
         return env.true_keypoints() + np.array([0.03, 0.0, 0.0]), np.ones(3, bool)

@@ -162,14 +162,14 @@ def _train_agent(args: argparse.Namespace) -> int:
         import stable_baselines3  # noqa: F401
     except ImportError as exc:
         raise UserError(f"s3k robot train-agent needs {exc.name}", hint="pip install 's3k[robot]'") from exc
-    from s3k.robot.agents import AgentConfig, train_agent
+    from s3k.robot.agents import AgentConfig, saved_config, train_agent
 
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(AgentConfig)
              if getattr(args, f.name) is not None}
     base = {}
     config_file = Path(args.out) / "config.json"
     if args.resume and config_file.is_file():
-        base = json.loads(config_file.read_text())
+        base = saved_config(config_file)
     cfg = AgentConfig(**{**base, **given})
     result = train_agent(args.out, cfg, resume=args.resume)
     print(json.dumps(result))

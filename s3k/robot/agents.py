@@ -103,6 +103,12 @@ class AgentConfig:
         return d
 
 
+def saved_config(config_file: Path) -> dict:
+    """A run's ``config.json`` as :class:`AgentConfig` fields; a run begun before expert relabelling existed
+    imitated its demonstrations only, so its missing ``expert_relabel`` is 0."""
+    return {"expert_relabel": 0, **json.loads(Path(config_file).read_text())}
+
+
 def td3_with_demonstrations():
     """TD3 whose actor also imitates the demonstrations (DDPG from demonstrations, Nair et al. 2018; the
     Q-term normalized as in TD3+BC, Fujimoto and Gu 2021).
@@ -389,8 +395,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         if not config_file.is_file():
             raise UserError(f"{out}: no agent run to resume (no config.json)",
                             hint="drop --resume to start one")
-        # A run begun before expert relabelling existed imitated its demonstrations only.
-        old = AgentConfig(**{"expert_relabel": 0, **json.loads(config_file.read_text())})
+        old = AgentConfig(**saved_config(config_file))
         if old.identity() != cfg.identity():
             diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
             raise UserError(f"{out}: --resume with other settings than the run's ({', '.join(diff)})",
