@@ -93,7 +93,9 @@ pub, steps = Path(sys.argv[1]), int(sys.argv[2])
 # "-dirty": the s3k code that produced the figures differs from the revision
 rev = source_revision() or "unknown"
 import os
-out = {"command": "bash scripts/real-example.sh", "revision": rev, "steps": steps,
+settings = [f"{k}={os.environ[k]!r}" if " " in os.environ[k] else f"{k}={os.environ[k]}"
+            for k in ("SCALE", "STEPS", "TRAIN_OPTIONS") if os.environ.get(k)]
+out = {"command": " ".join(settings + ["bash scripts/real-example.sh"]), "revision": rev, "steps": steps,
        "scale": float(os.environ.get("SCALE", "0.25")), "train_options": os.environ.get("TRAIN_OPTIONS", "")}
 for m in ("s3k", "baseline"):
     r = json.loads((pub / f"metrics-{m}.json").read_text())
