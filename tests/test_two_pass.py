@@ -302,3 +302,27 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
     assert coarse.calls == 2 and fine.calls == 2
     got = np.stack([read_csv(out, TRACK_KEYPOINTS)[f] for f in range(F)])
     np.testing.assert_allclose(got, X.numpy(), rtol=0, atol=1e-3)  # the truth, not the coarse points
+
+
+def test_coarse_stride_sets_the_coarse_pass_alone_and_resume_keeps_it(tmp_path, capsys):
+    """``--coarse-stride 2 --stride 4``: the coarse pass at stride 2 places the crops, the refining pass reads
+    them at stride 4; a resume with no options keeps both, and evaluation reads each pass at its own."""
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=4, test=2)
+    run = tmp_path / "run"
+    args = ["train", str(data), "--out", str(run), "--two-pass", "--steps", "2", "--coarse-size", "32",
+            "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1", "--val_every", "0",
+            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1", "--stride", "4",
+            "--coarse-stride", "2"]
+    assert cli.main(args) == 0
+    _, coarse, fine = read_two_pass(run)
+    strides = [json.loads((p / "config.json").read_text())["config"]["stride"] for p in (coarse, fine)]
+    assert strides == [2, 4]
+    # the resume takes every option from the run: the coarse pass would be refused at stride 4
+    assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--resume", "--no-progress"]) == 0
+    assert [json.loads((p / "config.json").read_text())["config"]["stride"] for p in (coarse, fine)] == [2, 4]
+    capsys.readouterr()
+    assert cli.main(["evaluate", str(run), "--data", str(data), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_frames"] == 2
+    assert cli.main([*args[:-1], "3", "--out", str(tmp_path / "other")]) == 1  # not a stride there is
+    assert not (tmp_path / "other").exists()
+    assert "--coarse-stride" in capsys.readouterr().err

@@ -53,6 +53,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation-deg), e.g. 180 with --rotation-deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
+    two.add_argument("--coarse-stride", type=int, default=None, metavar="{1,2,4}",
+                     help="the coarse pass's heatmap stride (default: --stride), e.g. 2 with --stride 4: a "
+                          "coarse pass that places the crops well under a cheaper refining pass")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
                           f"refining pass scales --outlier-px, --shift-px and --pseudo-window by "
@@ -121,8 +124,8 @@ def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -
         raise UserError("--image-size does not apply to --two-pass",
                         hint="set the coarse pass's size with --coarse-size and the crops' with --crop-size")
     given = {"coarse_size": args.coarse_size, "coarse_steps": args.coarse_steps,
-             "coarse_rotation": args.coarse_rotation, "crop_size": args.crop_size, "margin": args.crop_margin,
-             "extent": args.crop_extent}
+             "coarse_rotation": args.coarse_rotation, "coarse_stride": args.coarse_stride,
+             "crop_size": args.crop_size, "margin": args.crop_margin, "extent": args.crop_extent}
     options = {k: v if v is not None else (saved[1] if saved else DEFAULTS)[k] for k, v in given.items()}
     train_two_pass(args.dataset, args.out, cfg, **options, resume=args.resume, overwrite=args.overwrite,
                    command=getattr(args, "command_line", None), keep_crops=args.keep_crops)
