@@ -53,7 +53,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="the coarse pass's augmentation rotation range in degrees (default: "
                           "--rotation-deg), e.g. 180 with --rotation-deg 15: a coarse pass that finds the "
                           "object in any pose and a precise refining pass")
-    two.add_argument("--coarse-stride", type=int, default=None, metavar="{1,2,4}",
+    two.add_argument("--coarse-stride", type=number(int, ge=1, le=4), default=None, metavar="{1,2,4}",
                      help="the coarse pass's heatmap stride (default: --stride), e.g. 2 with --stride 4: a "
                           "coarse pass that places the crops well under a cheaper refining pass")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
