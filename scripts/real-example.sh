@@ -86,13 +86,12 @@ echo "== 6. export the S3K detector to ONNX, checked against PyTorch on the reco
 s3k export "$OUT/run-s3k" --format onnx --out "$OUT/detector.onnx" | tee "$PUB/export-onnx.txt"
 
 python - "$PUB" "$STEPS" <<'EOF'
-import json, sys
+import json, os, sys
 from pathlib import Path
 from s3k.experiments.report import source_revision
 pub, steps = Path(sys.argv[1]), int(sys.argv[2])
 # "-dirty": the s3k code that produced the figures differs from the revision
 rev = source_revision() or "unknown"
-import os
 settings = [f"{k}={os.environ[k]!r}" if " " in os.environ[k] else f"{k}={os.environ[k]}"
             for k in ("SCALE", "STEPS", "TRAIN_OPTIONS") if os.environ.get(k)]
 out = {"command": " ".join(settings + ["bash scripts/real-example.sh"]), "revision": rev, "steps": steps,

@@ -223,9 +223,10 @@ def td3_with_demonstrations():
     return TD3Demonstrations
 
 
-def make_env(cfg: AgentConfig, vae=None, detector=None) -> gym.Env:
+def make_env(cfg: AgentConfig, vae=None, detector=None, training: bool = True) -> gym.Env:
     """The environment an agent of ``cfg`` sees (the beta-VAE agent's wraps the views' latent); ``detector``
-    (stateless) may be shared between environments, else ``cfg.run``'s is loaded."""
+    (stateless) may be shared between environments, else ``cfg.run``'s is loaded. Only a ``training`` one
+    labels its steps with the expert's action (``cfg.expert_relabel``); an evaluation needs no labels."""
     if detector is None and cfg.run is not None:
         from s3k.robot.detect import RunDetector
 
@@ -235,7 +236,7 @@ def make_env(cfg: AgentConfig, vae=None, detector=None) -> gym.Env:
                             f"{detector.image_size[1]} px views, the agent renders {cfg.image_size} px",
                             hint=f"give --image-size {detector.image_size[0]}")
     env: gym.Env = InsertionEnv(detector=detector, image_size=cfg.image_size, camera_seed=0,
-                                expert_labels=bool(cfg.expert_relabel))
+                                expert_labels=training and bool(cfg.expert_relabel))
     if cfg.agent == "beta_vae":
         from s3k.robot.beta_vae import LatentObservation
 
@@ -453,7 +454,7 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
                              cfg.bc_batch, bool(cfg.q_filter), cfg.q_weight)
     cpu_before = float(state.get("cpu_seconds", 0.0))  # this process's CPU time adds to the earlier runs'
     # Evaluations on an environment of their own, so that the training episode in progress is not disturbed.
-    eval_env = make_env(cfg, vae, detector)
+    eval_env = make_env(cfg, vae, detector, training=False)
 
     def evaluate_at(steps: int) -> dict:
         """The deterministic policy's evaluation, appended to the curve."""
