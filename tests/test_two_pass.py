@@ -306,20 +306,29 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
 
 def test_coarse_stride_sets_the_coarse_pass_alone_and_resume_keeps_it(tmp_path, capsys):
     """``--coarse-stride 2 --stride 4``: the coarse pass at stride 2 places the crops, the refining pass reads
-    them at stride 4; a resume with no options keeps both, and evaluation reads each pass at its own."""
+    them at stride 4; a resume with no options keeps both, and evaluation reads each pass at its own.
+    ``--coarse-lr`` likewise sets the coarse pass's learning rate apart from ``--lr``."""
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=4, test=2)
     run = tmp_path / "run"
     args = ["train", str(data), "--out", str(run), "--two-pass", "--steps", "2", "--coarse-size", "32",
             "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1", "--val_every", "0",
-            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1", "--stride", "4",
-            "--coarse-stride", "2"]
+            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1", "--lr", "0.002",
+            "--coarse-lr", "0.0005", "--stride", "4", "--coarse-stride", "2"]
     assert cli.main(args) == 0
     _, coarse, fine = read_two_pass(run)
-    strides = [json.loads((p / "config.json").read_text())["config"]["stride"] for p in (coarse, fine)]
-    assert strides == [2, 4]
-    # the resume takes every option from the run: the coarse pass would be refused at stride 4
+
+    def settings():
+        configs = [json.loads((p / "config.json").read_text())["config"] for p in (coarse, fine)]
+        return [(c["stride"], c["lr"]) for c in configs]
+
+    assert settings() == [(2, 0.0005), (4, 0.002)]
+    # the resume takes every option from the run: the coarse pass would be refused at stride 4 or lr 0.002
     assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--resume", "--no-progress"]) == 0
-    assert [json.loads((p / "config.json").read_text())["config"]["stride"] for p in (coarse, fine)] == [2, 4]
+    assert settings() == [(2, 0.0005), (4, 0.002)]
+    # the options of a run from before they were recorded are read from its passes
+    (run / "two_pass_options.json").unlink()
+    assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--resume", "--no-progress"]) == 0
+    assert settings() == [(2, 0.0005), (4, 0.002)]
     capsys.readouterr()
     assert cli.main(["evaluate", str(run), "--data", str(data), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["n_frames"] == 2

@@ -56,6 +56,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     two.add_argument("--coarse-stride", type=number(int, ge=1, le=4), default=None, metavar="{1,2,4}",
                      help="the coarse pass's heatmap stride (default: --stride), e.g. 2 with --stride 4: a "
                           "coarse pass that places the crops well under a cheaper refining pass")
+    two.add_argument("--coarse-lr", type=number(gt=0, le=1), default=None, metavar="FLOAT",
+                     help="the coarse pass's learning rate (default: --lr), e.g. to train a refining pass at "
+                          "another --lr on a finished coarse pass")
     two.add_argument("--crop-size", type=number(int, ge=16), default=None, metavar="PX",
                      help=f"crop size in pixels, the refining pass's input (default {REFERENCE_CROP}); the "
                           f"refining pass scales --outlier-px, --shift-px and --pseudo-window by "
@@ -125,6 +128,7 @@ def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -
                         hint="set the coarse pass's size with --coarse-size and the crops' with --crop-size")
     given = {"coarse_size": args.coarse_size, "coarse_steps": args.coarse_steps,
              "coarse_rotation": args.coarse_rotation, "coarse_stride": args.coarse_stride,
+             "coarse_lr": args.coarse_lr,
              "crop_size": args.crop_size, "margin": args.crop_margin, "extent": args.crop_extent}
     options = {k: v if v is not None else (saved[1] if saved else DEFAULTS)[k] for k, v in given.items()}
     train_two_pass(args.dataset, args.out, cfg, **options, resume=args.resume, overwrite=args.overwrite,

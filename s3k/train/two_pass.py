@@ -190,8 +190,8 @@ def refining_config(cfg, crop_size: int):
 
 def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int = 96,
                    coarse_steps: int | None = None, coarse_rotation: float | None = None,
-                   coarse_stride: int | None = None, crop_size: int = REFERENCE_CROP, margin: float = 0.3,
-                   extent: float | None = None,
+                   coarse_stride: int | None = None, coarse_lr: float | None = None,
+                   crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
                    keep_crops: bool = False, log=print) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
@@ -209,6 +209,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
             refining pass keeps a narrow one for precision.
         coarse_stride: the coarse pass's heatmap stride (default: ``cfg.stride``), e.g. 2 under a refining
             pass at 4: the coarse pass places the crops, and a coarser one places some astray.
+        coarse_lr: the coarse pass's learning rate (default: ``cfg.lr``), so that the refining pass's can
+            change under a coarse pass that is kept.
         crop_size: crop size in pixels (the refining pass's input).
         margin: relative margin of the crop's extent (:func:`crop_rule_from_labels`).
         extent: the crop's side in world units (default: from the labels).
@@ -235,6 +237,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     if coarse_stride is not None and coarse_stride not in (1, 2, 4):
         raise UserError(f"--coarse-stride: the coarse pass's heatmap stride must be 1, 2 or 4, "
                         f"got {coarse_stride}")
+    if coarse_lr is not None:
+        Range(gt=0, le=1).check(coarse_lr, "--coarse-lr")
     if out.exists() and not resume and not is_stub(out):  # a start that trained nothing is not kept
         if not overwrite:
             raise UserError(f"{out} exists", hint="pass --resume to continue it or --overwrite to replace it")
@@ -245,12 +249,13 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     options = dict(coarse_size=coarse_size, coarse_steps=coarse_steps, coarse_rotation=coarse_rotation,
-                   coarse_stride=coarse_stride, crop_size=crop_size, margin=margin, extent=extent)
+                   coarse_stride=coarse_stride, coarse_lr=coarse_lr, crop_size=crop_size, margin=margin,
+                   extent=extent)
     if not (out / OPTIONS_FILE).is_file():
         write_options(out, cfg, options)
     try:
         results = _train_two_pass(data, out, cfg, coarse_size, coarse_steps, coarse_rotation, crop_size,
-                                  margin, extent, command, log, keep_crops, coarse_stride)
+                                  margin, extent, command, log, keep_crops, coarse_stride, coarse_lr)
     except BaseException:
         if is_stub(out):  # nothing trained: leave no folder that a retry would have to get past
             shutil.rmtree(out, ignore_errors=True)
@@ -262,7 +267,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
 def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: int | None,
                     coarse_rotation: float | None, crop_size: int, margin: float, extent: float | None,
                     command: str | None, log, keep_crops: bool = False,
-                    coarse_stride: int | None = None) -> dict[str, Any]:
+                    coarse_stride: int | None = None, coarse_lr: float | None = None) -> dict[str, Any]:
     from s3k.data import Dataset
     from s3k.train import train
     from s3k.train.two_pass_start import crop_extent_warning
@@ -275,7 +280,8 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
     results: dict[str, Any] = {"rule": rule}
     coarse_cfg = cfg.replace(image_size=coarse_size, steps=coarse_steps or cfg.steps,
                              rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation,
-                             stride=cfg.stride if coarse_stride is None else coarse_stride)
+                             stride=cfg.stride if coarse_stride is None else coarse_stride,
+                             lr=cfg.lr if coarse_lr is None else coarse_lr)
     with _StageClock(out, "coarse") as clock:
         results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass",
                                         clock)

@@ -4,9 +4,9 @@ extent too large for the images.
 
 ``RUN/two_pass_options.json`` holds the configuration of both passes (before the refining pass scales its
 pixel tolerances) and the two-pass options (``coarse_size``, ``coarse_steps``, ``coarse_rotation``,
-``coarse_stride``, ``crop_size``, ``margin``, ``extent``). It is written when the run starts and again when a
-resumed run completes. A run folder from before it was kept is read from its passes' own ``config.json``
-files and its crops (:func:`read_options`).
+``coarse_stride``, ``coarse_lr``, ``crop_size``, ``margin``, ``extent``). It is written when the run starts
+and again when a resumed run completes. A run folder from before it was kept is read from its passes' own
+``config.json`` files and its crops (:func:`read_options`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from s3k.errors import UserError
 OPTIONS_FILE = "two_pass_options.json"
 # the defaults of s3k.train.two_pass.train_two_pass (crop_size: s3k.train.two_pass.REFERENCE_CROP)
 DEFAULTS: dict[str, Any] = {"coarse_size": 96, "coarse_steps": None, "coarse_rotation": None,
-                            "coarse_stride": None, "crop_size": 128, "margin": 0.3, "extent": None}
+                            "coarse_stride": None, "coarse_lr": None,
+                            "crop_size": 128, "margin": 0.3, "extent": None}
 STUB_FILES = frozenset({OPTIONS_FILE, "cpu.json"})  # what a start that trained nothing writes
 
 
@@ -77,8 +78,8 @@ def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     if fine is not None:
         config.update(steps=fine["steps"], rotation_deg=fine["rotation_deg"])
         options.update(coarse_steps=coarse["steps"], coarse_rotation=coarse["rotation_deg"],
-                       coarse_stride=coarse["stride"])
-        config.update(stride=fine["stride"])
+                       coarse_stride=coarse["stride"], coarse_lr=coarse["lr"])
+        config.update(stride=fine["stride"], lr=fine["lr"])
         try:  # the crops' size is the refining pass's input
             options.update(crop_size=int(json.loads((run_dir / "fine" / "config.json").read_text())
                                          ["meta"]["image_size"][0]))
