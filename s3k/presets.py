@@ -47,9 +47,10 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "box-headline": Preset(
         "the box headline: two passes (96 px, 192 px crops), rigid layout, narrow target",
-        config={"steps": 4000, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1, "rotation_deg": 15.0,
-                "sigma": 1.0, "val_every": 500, "precision": "auto"},
-        two_pass={"coarse_size": 96, "coarse_steps": 4000, "coarse_rotation": 180.0, "crop_size": 192},
+        config={"steps": 2500, "lr": 0.005, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1,
+                "rotation_deg": 15.0, "sigma": 1.0, "val_every": 500, "precision": "auto"},
+        two_pass={"coarse_size": 96, "coarse_steps": 4000, "coarse_lr": 0.001, "coarse_rotation": 180.0,
+                  "crop_size": 192},
     ),
     "box-fast": Preset(
         "the box headline at half the refining cost: 128 px crops with a 10% margin",
