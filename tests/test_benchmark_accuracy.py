@@ -125,13 +125,15 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     from synthetic_rig import make_dataset
 
     from s3k import cli
+    from s3k.presets import PRESETS
     from s3k.train.two_pass import CPU_FILE, read_cpu
 
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
     old, new = tmp_path / "old", tmp_path / "new"
-    args = ["--two-pass", "--steps", "2", "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8",
-            "--res_blocks", "1", "--val_every", "0", "--warmup_steps", "1", "--ramp_steps", "1",
-            "--no-progress", "--threads", "1"]
+    # as the benchmark trains: a preset whose refining pass has its own rotation and learning rate
+    args = ["--preset", "box-headline", "--steps", "2", "--coarse-steps", "2", "--coarse-size", "32",
+            "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1", "--val_every", "0",
+            "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1"]
     assert cli.main(["train", str(data), "--out", str(old / "s3k-seed0"), *args]) == 0
     source_cpu = read_cpu(old / "s3k-seed0")
     reuse_coarse(old, [new / "s3k-seed0"])
@@ -143,6 +145,12 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     # the benchmark's training command resumes it: only the refining pass is trained
     assert cli.main(["train", str(data), "--out", str(new / "s3k-seed0"), *args, "--resume"]) == 0
     assert coarse_model.stat().st_mtime_ns == before and (new / "s3k-seed0" / "fine" / "model.pt").is_file()
+    fine = [json.loads((run / "s3k-seed0" / "fine" / "config.json").read_text())["config"]
+            for run in (old, new)]
+    preset = PRESETS["box-headline"].config
+    assert preset["rotation_deg"] != PRESETS["box-headline"].two_pass["coarse_rotation"]
+    # the preset's refining pass, not the coarse pass's rotation and learning rate
+    assert [(c["rotation_deg"], c["lr"]) for c in fine] == [(preset["rotation_deg"], preset["lr"])] * 2
     spent = read_cpu(new / "s3k-seed0")
     assert spent["coarse"] >= source_cpu["coarse"] and spent["crops"] > 0 and spent["fine"] > 0
     # options that would make another coarse pass are refused; a run already begun is left alone

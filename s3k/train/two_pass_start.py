@@ -47,7 +47,7 @@ def write_options(run_dir: str | Path, cfg, options: dict[str, Any]) -> None:
 
 def read_options(run_dir: str | Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     """``(configuration fields, two-pass options)`` the run in ``run_dir`` was started with; None when the
-    folder holds no two-pass run that trained or recorded anything."""
+    folder records no options and its refining pass has not started (:func:`_from_passes`)."""
     path = Path(run_dir) / OPTIONS_FILE
     if path.is_file():
         try:
@@ -66,25 +66,25 @@ def _config(path: Path) -> dict[str, Any] | None:
 
 
 def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
-    """The options of a run started before they were recorded: the coarse pass's configuration (its image
-    size, steps and rotation are the pass's own), the refining pass's steps and rotation where it started,
-    and the crops' size and extent where they were cut."""
+    """The options of a run started before they were recorded: the coarse pass's configuration with the
+    refining pass's own steps, rotation, stride and learning rate, and the crops' size and extent where they
+    were cut. None until the refining pass has started: a coarse pass alone does not say what the refining
+    pass's options are (its rotation, stride, learning rate and steps may be the coarse pass's own), so they
+    are the call's, and the coarse pass is checked against them."""
     coarse = _config(run_dir / "coarse" / "config.json")
-    if coarse is None:
+    fine = _config(run_dir / "fine" / "config.json")
+    if coarse is None or fine is None:
         return None
     options = dict(DEFAULTS, coarse_size=coarse.get("image_size", DEFAULTS["coarse_size"]))
-    config = dict(coarse, image_size=0)
-    fine = _config(run_dir / "fine" / "config.json")
-    if fine is not None:
-        config.update(steps=fine["steps"], rotation_deg=fine["rotation_deg"])
-        options.update(coarse_steps=coarse["steps"], coarse_rotation=coarse["rotation_deg"],
-                       coarse_stride=coarse["stride"], coarse_lr=coarse["lr"])
-        config.update(stride=fine["stride"], lr=fine["lr"])
-        try:  # the crops' size is the refining pass's input
-            options.update(crop_size=int(json.loads((run_dir / "fine" / "config.json").read_text())
-                                         ["meta"]["image_size"][0]))
-        except (OSError, ValueError, KeyError, TypeError, IndexError):
-            pass
+    config = dict(coarse, image_size=0, steps=fine["steps"], rotation_deg=fine["rotation_deg"],
+                  stride=fine["stride"], lr=fine["lr"])
+    options.update(coarse_steps=coarse["steps"], coarse_rotation=coarse["rotation_deg"],
+                   coarse_stride=coarse["stride"], coarse_lr=coarse["lr"])
+    try:  # the crops' size is the refining pass's input
+        options.update(crop_size=int(json.loads((run_dir / "fine" / "config.json").read_text())
+                                     ["meta"]["image_size"][0]))
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        pass
     for source in (run_dir / "two_pass.json", run_dir / "crops" / "s3k.json"):
         try:
             doc = json.loads(source.read_text())
