@@ -3,19 +3,16 @@ fields and, for a coarse-to-fine detector, its two-pass options (``s3k train --p
 on the command line or in ``--config`` win over the preset's).
 
 ``box-headline`` is the configuration of the box scene's headline figures (docs/results/accuracy): a coarse
-pass at 96 px for 4000 steps with rotations up to 180 degrees, a refining pass on 192 px crops for 4000
-steps with rotations up to 15 degrees and a narrow target, the box held to its labelled layout (10%), views
-that miss the others' consensus by 6 px (at 128 px crops) left out of the pseudo-labels, validation every
-500 steps, and ``--precision auto``: the networks train in bfloat16 where the hardware computes it natively
-(``--precision float32`` on top of the preset: about 0.5 mm less median error, 1.65x the refining pass's CPU
-time; docs/results/accuracy/fast/bf16-vs-fp32-4000.json). Until 2026-12-04 its refining pass ran 6000 steps
-in float32 (docs/results/accuracy/README.md).
+pass at 96 px for 4000 steps at a learning rate of 1e-3 with rotations up to 180 degrees, a refining pass on
+192 px crops for 2500 steps at 5e-3 with rotations up to 15 degrees and a narrow target, the box held to its
+labelled layout (10%), views that miss the others' consensus by 6 px (at 128 px crops) left out of the
+pseudo-labels, validation every 500 steps, and ``--precision auto``: the networks train in bfloat16 where the
+hardware computes it natively. Until 2026-12-05 its refining pass ran 4000 steps at 1e-3, and until
+2026-12-04 6000 steps in float32 (docs/results/accuracy/README.md).
 
 ``box-fast`` is the same with the refining pass on 128 px crops cut with a 10% margin (about 250 mm wide:
-1.9 mm per crop pixel against the headline's 1.5): the refining pass costs less than half as much, the S3K
-model 11.2 CPU-minutes on a 2-core CPU against the headline's 18.6, for 0.4 mm more median error and twice
-the RMS over three seeds (3.61 / 9.27 mm against 3.24 / 5.11; docs/results/accuracy/fast/box-fast).
-``s3k demo`` trains it, to fit its time.
+1.9 mm per crop pixel against the headline's 1.5), whose steps cost about half as much
+(docs/results/accuracy/fast/box-fast). ``s3k demo`` trains it, to fit its time.
 """
 
 from __future__ import annotations
@@ -44,20 +41,21 @@ class Preset:
     two_pass: dict[str, Any] | None = None
 
 
+# the box's network, target, read-out and schedule: both presets train them, on crops of their own size
+_BOX = {"steps": 2500, "lr": 0.005, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1,
+        "rotation_deg": 15.0, "sigma": 1.0, "val_every": 500, "precision": "auto"}
+_BOX_COARSE = {"coarse_size": 96, "coarse_steps": 4000, "coarse_lr": 0.001, "coarse_rotation": 180.0}
+
 PRESETS: dict[str, Preset] = {
     "box-headline": Preset(
         "the box headline: two passes (96 px, 192 px crops), rigid layout, narrow target",
-        config={"steps": 2500, "lr": 0.005, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1,
-                "rotation_deg": 15.0, "sigma": 1.0, "val_every": 500, "precision": "auto"},
-        two_pass={"coarse_size": 96, "coarse_steps": 4000, "coarse_lr": 0.001, "coarse_rotation": 180.0,
-                  "crop_size": 192},
+        config=dict(_BOX),
+        two_pass={**_BOX_COARSE, "crop_size": 192},
     ),
     "box-fast": Preset(
-        "the box headline at half the refining cost: 128 px crops with a 10% margin",
-        config={"steps": 4000, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1, "rotation_deg": 15.0,
-                "sigma": 1.0, "val_every": 500, "precision": "auto"},
-        two_pass={"coarse_size": 96, "coarse_steps": 4000, "coarse_rotation": 180.0, "crop_size": 128,
-                  "margin": 0.1},
+        "the box headline on 128 px crops with a 10% margin: a cheaper refining pass",
+        config=dict(_BOX),
+        two_pass={**_BOX_COARSE, "crop_size": 128, "margin": 0.1},
     ),
 }
 

@@ -57,7 +57,8 @@ def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_
         assert cli.main(["train", str(data), "--out", str(run), "--preset", "box-fast", *tiny, *extra]) == 0
         margins[name] = json.loads((run / "two_pass.json").read_text())["margin"]
     assert margins == {"preset": PRESETS["box-fast"].two_pass["margin"], "given": 0.25}
-    # the same network, target and read-out as the headline: the crops and the schedule differ
-    schedule = {"steps", "lr"}
-    assert {k: v for k, v in PRESETS["box-fast"].config.items() if k not in schedule} == \
-        {k: v for k, v in PRESETS["box-headline"].config.items() if k not in schedule}
+    # the same network, schedule and coarse pass as the headline: only the crops differ
+    assert PRESETS["box-fast"].config == PRESETS["box-headline"].config
+    crops = {"crop_size", "margin"}
+    assert {k: v for k, v in PRESETS["box-fast"].two_pass.items() if k not in crops} == \
+        {k: v for k, v in PRESETS["box-headline"].two_pass.items() if k not in crops}
