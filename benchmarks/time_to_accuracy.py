@@ -13,7 +13,8 @@ JSON (also written to ``--results``/summary.json, with ``stages``, ``device`` an
 
 Example::
 
-    python benchmarks/time_to_accuracy.py --seeds 3        # this 2-core CPU: about 1.5 hours
+    python benchmarks/time_to_accuracy.py --seeds 3        # 2-core CPU: 20 min to train and evaluate,
+                                                           # about 6 more to render, 10 for coarse passes
     python benchmarks/time_to_accuracy.py --seeds 3 --device cuda --parallel 6  # a GPU: all models at once
     python benchmarks/time_to_accuracy.py --seeds 3 --preset box-fast  # -> results/accuracy/fast/box-fast
 """

@@ -29,7 +29,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help=f"test frames (default {d.test})")
     parser.add_argument("--preset", choices=[n for n in PRESETS if PRESETS[n].two_pass], default=d.preset,
                         help=f"the configuration both models train with (default {d.preset}; box-headline: "
-                             "the headline's, about 1.5x the training time)")
+                             "the headline's, about 1.5x the CPU time per model)")
     parser.add_argument("--seed", type=number(int, ge=0), default=d.seed,
                         help=f"dataset and training seed (default {d.seed})")
     parser.add_argument("--sequential", action="store_true",

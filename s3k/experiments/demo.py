@@ -7,7 +7,8 @@ Steps (each skipped when its output already exists, so an interrupted demo conti
    labelling app's *poses in proportion* ranking would pick them, all unlabelled and test frames
    (:func:`s3k.experiments.accuracy.labelled_view`).
 2. ``DIR/s3k`` and ``DIR/baseline``: ``s3k train --preset box-fast`` (the README's headline configuration
-   at half the refining pass's cost, :mod:`s3k.presets`; ``--preset box-headline`` for the headline's own)
+   on smaller crops, two thirds of its CPU time, :mod:`s3k.presets`; ``--preset box-headline`` for the
+   headline's own)
    with and without the self-supervised term (``--no-unsup``): same
    labels, same seed, same steps. On a machine with at least two cores they train at the same time as two
    processes of one thread each (``--sequential``: one after the other).
