@@ -58,10 +58,12 @@ def read_options(run_dir: str | Path) -> tuple[dict[str, Any], dict[str, Any]] |
     return _from_passes(Path(run_dir))
 
 
-def _config(path: Path) -> dict[str, Any] | None:
+def _run_config(path: Path) -> dict[str, Any] | None:
+    """A pass's ``config.json`` (its ``config`` and ``meta``), or None where it is missing or unreadable."""
     try:
-        return dict(json.loads(path.read_text())["config"])
-    except (OSError, ValueError, KeyError, TypeError):
+        doc = json.loads(path.read_text())
+        return doc if isinstance(doc, dict) and isinstance(doc.get("config"), dict) else None
+    except (OSError, ValueError):
         return None
 
 
@@ -71,19 +73,19 @@ def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     were cut. None until the refining pass has started: a coarse pass alone does not say what the refining
     pass's options are (its rotation, stride, learning rate and steps may be the coarse pass's own), so they
     are the call's, and the coarse pass is checked against them."""
-    coarse = _config(run_dir / "coarse" / "config.json")
-    fine = _config(run_dir / "fine" / "config.json")
-    if coarse is None or fine is None:
+    coarse_doc = _run_config(run_dir / "coarse" / "config.json")
+    fine_doc = _run_config(run_dir / "fine" / "config.json")
+    if coarse_doc is None or fine_doc is None:
         return None
+    coarse, fine = dict(coarse_doc["config"]), dict(fine_doc["config"])
     options = dict(DEFAULTS, coarse_size=coarse.get("image_size", DEFAULTS["coarse_size"]))
     config = dict(coarse, image_size=0, steps=fine["steps"], rotation_deg=fine["rotation_deg"],
                   stride=fine["stride"], lr=fine["lr"])
     options.update(coarse_steps=coarse["steps"], coarse_rotation=coarse["rotation_deg"],
                    coarse_stride=coarse["stride"], coarse_lr=coarse["lr"])
     try:  # the crops' size is the refining pass's input
-        options.update(crop_size=int(json.loads((run_dir / "fine" / "config.json").read_text())
-                                     ["meta"]["image_size"][0]))
-    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        options.update(crop_size=int(fine_doc["meta"]["image_size"][0]))
+    except (ValueError, KeyError, TypeError, IndexError):
         pass
     for source in (run_dir / "two_pass.json", run_dir / "crops" / "s3k.json"):
         try:
