@@ -4,8 +4,10 @@ A detector trained with ``--layout-tol`` holds its 3D keypoints to the labelled 
 (docs/method.md, "A rigid object's layout"): a keypoint that breaks it is looked for again where the layout
 puts it, and the layout is fitted onto the keypoints. In a two-pass run this acts twice: on the coarse
 pass's estimates, which place the crops, and on the refining pass's keypoints. Each RUN is read on DATA's
-``--split`` four ways, the rigid read-out off or on in each pass, and the test metrics of each way printed
-(median and RMS 3D error, share within 5 and 10 mm; the coarse estimates' median and RMS too).
+``--split`` four ways, the rigid read-out off or on in each pass, then on in both with a part of it off (the
+check's ties settled by the heatmaps, the coarse heatmaps in the refining search; both off is the read-out
+before they were added), and the test metrics of each way printed (median and RMS 3D error, share within 5
+and 10 mm; the coarse estimates' median and RMS too).
 
 A run trained before its detectors kept the layout (or without ``--layout-tol``) is read with the layout
 triangulated from DATA's labelled frames and ``--layout-tol``.
@@ -27,12 +29,17 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
 
-WAYS = {"neither": (False, False), "coarse only": (True, False), "refining only": (False, True),
-        "both": (True, True)}
+#: way -> (rigid read-out in the coarse pass, in the refining pass, ties settled, coarse heatmaps in search)
+WAYS = {"neither": (False, False, True, True), "coarse only": (True, False, True, True),
+        "refining only": (False, True, True, True), "both": (True, True, True, True),
+        "both, ties by order": (True, True, False, True),
+        "both, no coarse heatmaps": (True, True, True, False),
+        "both, neither of these": (True, True, False, False)}
 
 
-def _detector(run: Path, rigid: bool, layout, tol: float):
-    """A pass's detector with its rigid read-out on (its own layout, else ``layout`` and ``tol``) or off."""
+def _detector(run: Path, rigid: bool, layout, tol: float, ties: bool = True, prior: bool = True):
+    """A pass's detector with its rigid read-out on (its own layout, else ``layout`` and ``tol``) or off;
+    ``ties`` and ``prior``: :class:`s3k.readout.ReadoutConfig`'s ``layout_ties`` and ``layout_prior``."""
     from dataclasses import replace
 
     from s3k.detector import OnePassDetector, load_network
@@ -42,11 +49,13 @@ def _detector(run: Path, rigid: bool, layout, tol: float):
         meta = replace(meta, layout=None, layout_tol=0.0)
     elif meta.layout_distances is None:
         meta = replace(meta, layout=layout.tolist(), layout_tol=tol)
-    return OnePassDetector(model.fused(), meta)
+    detector = OnePassDetector(model.fused(), meta)
+    detector.readout = replace(detector.readout, layout_ties=ties, layout_prior=prior)
+    return detector
 
 
 def read(run: Path, data: Path, split: str, tol: float) -> dict:
-    """The four ways of reading ``run`` on ``data``'s ``split``."""
+    """The ways (``WAYS``) of reading ``run`` on ``data``'s ``split``."""
     from s3k.data import Dataset
     from s3k.data.frames import FrameStore
     from s3k.detector import TwoPassDetector, load_network, read_two_pass
@@ -59,10 +68,10 @@ def read(run: Path, data: Path, split: str, tol: float) -> dict:
     layout = labelled_distances(ds, ds.frames("labelled")).numpy()
     store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
     out: dict = {"layout_from": {}}
-    for name, (rigid_coarse, rigid_fine) in WAYS.items():
-        first = _detector(coarse, rigid_coarse, layout, tol)
+    for name, (rigid_coarse, rigid_fine, ties, prior) in WAYS.items():
+        first = _detector(coarse, rigid_coarse, layout, tol, ties, prior)
         coarse_metrics, _ = evaluate_store(first, store, units=ds.units)
-        detector = TwoPassDetector(first, _detector(fine, rigid_fine, layout, tol), rule)
+        detector = TwoPassDetector(first, _detector(fine, rigid_fine, layout, tol, ties, prior), rule)
         metrics, _ = evaluate_store(detector, store, units=ds.units)
         out[name] = {"coarse_median_mm": coarse_metrics["median_mm"],
                      "coarse_rms_mm": coarse_metrics["rms_mm"],

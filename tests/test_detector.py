@@ -3,6 +3,8 @@ on the device exactly as the whole frame would be cut, and a two-pass detector's
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -106,3 +108,42 @@ def test_two_pass_detector_cuts_its_crops_around_the_coarse_points():
     # a 3D extent of 0.3 m at about 1 m: the crop's side in the frame is f * extent / z pixels
     side = 48 / out.pixel_maps[..., 0, 0]
     assert bool(((side > 0.2 * 96 * 1.2) & (side < 0.5 * 96 * 1.2)).all())
+
+
+def test_a_rigid_two_pass_detector_lends_its_coarse_heatmaps_to_the_layout_search(monkeypatch):
+    """The refining pass's rigid read-out scores the places it searches with the coarse pass's heatmaps too
+    (s3k.readout.LayoutPrior): the coarse heatmaps, with the coarse network's cameras; without a layout there
+    is nothing to search and none are kept."""
+    import s3k.detector.detector as detector_module
+    from s3k.readout import LayoutPrior
+
+    priors = []
+
+    def spy(*args, **kwargs):
+        priors.append(kwargs.get("prior"))
+        return read_out(*args, **kwargs)
+
+    read_out = detector_module.read_out
+    monkeypatch.setattr(detector_module, "read_out", spy)
+    coarse_net, coarse_meta = _net(32)
+    fine_net, fine_meta = _net(48)
+    layout = [[float("nan"), 0.1, 0.2], [0.1, float("nan"), 0.15], [0.2, 0.15, float("nan")]]
+    rigid_meta = dataclasses.replace(fine_meta, layout=layout, layout_tol=0.1)
+    frames = torch.randint(0, 256, (2, 4, 96, 96, 3), dtype=torch.uint8,
+                           generator=torch.Generator().manual_seed(4))
+    cams = _rig(96)
+    for meta in (rigid_meta, fine_meta):
+        detector = TwoPassDetector(OnePassDetector(coarse_net, coarse_meta), OnePassDetector(fine_net, meta),
+                                   CropRule(extent=0.3, size=48))
+        out = detector(frames, cams, keep_heatmaps=True)
+        assert priors[0] is None  # the coarse pass's own read-out
+        prior = priors[1]
+        if meta is fine_meta:
+            assert prior is None
+        else:
+            assert isinstance(prior, LayoutPrior) and prior.stride == coarse_meta.stride
+            assert out.coarse is not None and out.coarse.probs is not None
+            torch.testing.assert_close(prior.probs, out.coarse.probs)
+            torch.testing.assert_close(prior.cams.K, out.coarse.network_cameras().K.expand_as(prior.cams.K))
+            assert detector(frames, cams).coarse.probs is None  # kept only when asked for
+        priors.clear()

@@ -386,3 +386,77 @@ def test_detector_meta_keeps_the_layout_through_json():
     np.testing.assert_array_equal(np.asarray(back.layout), np.asarray(ref))
     assert back.layout_tol == 0.1 and back.layout_distances.shape == (3, 3)
     assert DetectorMeta(list(KEYPOINTS), [], (SIZE, SIZE), STRIDE, SIGMA, layout=ref).layout_distances is None
+
+
+def test_a_layout_tie_is_settled_by_the_heatmaps():
+    """Keypoint 2 is seen in its place by camera 0 only; the other views peak on a point at its distance from
+    keypoint 1 but not from keypoint 0. The layout check finds one broken pair, 0-2, and nothing in the
+    distances tells which of the two is off: the read-out weighs both ways by the heatmaps and looks for
+    keypoint 2 again, where camera 0 sees it, instead of moving keypoint 0."""
+    from s3k.readout import reject_layout, settle_ties
+
+    cams, X, _ = _rig_views(B=3)
+    size, sigma = 64, 1.0
+    ref = torch.cdist(X[0], X[0]).fill_diagonal_(float("nan"))
+    # the wrong point: keypoint 2 turned about keypoint 1, in the plane of the three, by 0.6 rad
+    wrong = torch.empty_like(X)
+    for b in range(len(X)):
+        axis = torch.linalg.cross(X[b, 0] - X[b, 1], X[b, 2] - X[b, 1])
+        wrong[b] = X[b]
+        wrong[b, 2] = X[b, 1] + (X[b, 2] - X[b, 1]) @ _rotation(axis, 0.6).T
+    seen = _mixed_logits(cams, X, size, sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]])
+    misled = _mixed_logits(cams, wrong, size, sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 0.9)]])
+    faint = _mixed_logits(cams, X, size, sigma, [[(2, 1.0)]] * 3)  # keypoint 2's own place, faintly
+    logits = seen.clone()
+    logits[:, 1:, 2] = torch.logaddexp(misled[:, 1:, 2], faint[:, 1:, 2] + math.log(0.1))
+    plain = read_out(logits, cams, 1, sigma)
+    # the tie itself: only the pair 0-2 breaks, and the check drops keypoint 0, the one in the right place
+    rel = (torch.cdist(plain.X, plain.X) - ref).abs() / ref
+    broken = (rel > 0.1) & torch.isfinite(rel)
+    assert broken[:, 0, 2].all() and not broken[:, 0, 1].any() and not broken[:, 1, 2].any()
+    kept = reject_layout(plain.X, plain.valid, ref, 0.1)
+    assert kept.tolist() == [[False, True, True]] * 3
+    assert float((plain.X[:, 0] - X[:, 0]).norm(dim=-1).max()) < 1e-3
+    probs = torch.softmax(logits.flatten(-2), -1).view_as(logits)
+    settled = settle_ties(probs, cams, 1, plain.X, plain.valid, kept, ref, 0.1, window_cells(sigma, 1, None))
+    assert settled.tolist() == [[True, True, False]] * 3
+    held = read_out(logits, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    assert held.valid.all()
+    # keypoint 0 stays where every view saw it, and keypoint 2 comes nearer its place (its detections in
+    # cameras 1-3 are still read next to the stronger wrong peak)
+    assert float((held.X[:, :2] - X[:, :2]).norm(dim=-1).max()) < 1e-3
+    assert bool(((held.X[:, 2] - X[:, 2]).norm(dim=-1) < 0.8 * (plain.X[:, 2] - X[:, 2]).norm(dim=-1)).all())
+
+
+def test_a_layout_prior_tells_a_keypoint_from_its_mirror_image():
+    """Keypoint 0's heatmaps peak on keypoint 1, with faint equal peaks on its own place and on its mirror
+    image across the line through keypoints 1 and 2, where every distance holds too: the views cannot tell
+    the two apart. Another network's heatmaps of the same frames (a two-pass detector's coarse pass) can,
+    whichever place they favour."""
+    from s3k.readout import LayoutPrior
+
+    cams, X, _ = _rig_views(B=3)
+    size, sigma = 64, 1.0
+    ref = torch.cdist(X[0], X[0]).fill_diagonal_(float("nan"))
+    line = (X[:, 2] - X[:, 1]) / (X[:, 2] - X[:, 1]).norm(dim=-1, keepdim=True)
+    foot = X[:, 1] + ((X[:, 0] - X[:, 1]) * line).sum(dim=-1, keepdim=True) * line
+    mirror = X.clone()
+    mirror[:, 0] = 2 * foot - X[:, 0]
+    torch.testing.assert_close(torch.cdist(mirror, mirror), torch.cdist(X, X))
+    both = torch.stack([X, mirror], dim=2).flatten(1, 2)  # (B, 6, 3): keypoint 0 at 0, its mirror at 1
+    parts = [[(2, 0.9), (0, 0.05), (1, 0.05)], [(2, 1.0)], [(4, 1.0)]]
+    confused = _mixed_logits(cams, both, size, sigma, parts)[:, :, :3]
+    plain = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    for favoured, other in ((X, mirror), (mirror, X)):
+        coarse = _mixed_logits(cams, favoured, size, 3 * sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]]).exp()
+        prior = LayoutPrior(coarse, cams, 1)
+        held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1, prior=prior)
+        near, far = ((held.X[:, 0] - P[:, 0]).norm(dim=-1) for P in (favoured, other))
+        assert bool((near < 0.2 * far).all()), (near, far)
+    # the side the heatmaps alone chose is one of the two
+    near = torch.minimum(*((plain.X[:, 0] - P[:, 0]).norm(dim=-1) for P in (X, mirror)))
+    assert float(near.max()) < 0.03
+    # and with the prior favouring its own place, the read-out is as exact as with clear heatmaps
+    coarse = _mixed_logits(cams, X, size, 3 * sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]]).exp()
+    held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1, prior=LayoutPrior(coarse, cams, 1))
+    assert float((held.X - X).norm(dim=-1).max()) < 1e-3

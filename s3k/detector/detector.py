@@ -50,7 +50,7 @@ from s3k.geometry.warp import (
     resize_crop,
 )
 from s3k.model import UNet
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT, LayoutPrior, ReadOut, read_out
 
 __all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "autocast",
            "native_bfloat16", "pick_device", "training_precision"]
@@ -333,14 +333,14 @@ class OnePassDetector(Detector):
     def input_size(self) -> tuple[int, int]:
         return self.pass_.size
 
-    def _detect(self, views, cams, boxes, min_weight, keep, crops=False):
+    def _detect(self, views, cams, boxes, min_weight, keep, crops=False, prior=None):
         x, as_they_are = self.pass_.cut(views, boxes, crops)
         maps = crop_maps(boxes, self.pass_.size)
         config = (self.readout if min_weight == self.readout.min_weight
                   else dataclasses.replace(self.readout, min_weight=min_weight))
         # frames of the network's size, whole: the pixel maps are the identity, and the read-out skips them
         ro = read_out(self.pass_.logits(x), cams, self.meta.stride, self.meta.sigma,
-                      None if as_they_are else maps, keep_heatmaps=keep, config=config)
+                      None if as_they_are else maps, keep_heatmaps=keep, config=config, prior=prior)
         return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
                          inputs=x if keep else None, input_size=self.pass_.size)
 
@@ -364,10 +364,20 @@ class TwoPassDetector(Detector):
         return self.coarse.input_size
 
     def _detect(self, views, cams, boxes, min_weight, keep):
-        coarse = self.coarse._detect(views, cams, boxes, DEFAULT_MIN_WEIGHT, False)
+        # the coarse heatmaps are kept for the rigid read-out's search: they tell a keypoint the refining
+        # views are all unsure of from its mirror image (s3k.readout.LayoutPrior)
+        fine = self.fine.readout
+        rigid = fine.rigid and fine.layout_search and fine.layout_prior
+        coarse = self.coarse._detect(views, cams, boxes, DEFAULT_MIN_WEIGHT, rigid)
         centres, placed = crop_centres(coarse.X, coarse.valid, cams)
         crop_boxes, _ = metric_crop_boxes(cams, centres[:, None, :], self.rule.extent)  # (B, C, 4)
-        out = self.fine._detect(views, cams, crop_boxes, min_weight, keep, crops=True)
+        prior = None
+        if rigid:
+            prior = LayoutPrior(coarse.probs, coarse.network_cameras(), self.coarse.meta.stride)
+        out = self.fine._detect(views, cams, crop_boxes, min_weight, keep, crops=True, prior=prior)
+        coarse.inputs = None
+        if not keep:
+            coarse.probs = None
         out.coarse, out.placed = coarse, placed
         return out
 

@@ -249,7 +249,8 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
 #: mark, or none: every view entered the triangulation, each detection the whole heatmap's mean) is made
 #: again.
 READOUT = ("outlying views left out (each detector's --outlier_px); each detection its heatmap's mean within "
-           "6 target widths of its peak")
+           "6 target widths of its peak; a rigid layout's ties settled by the heatmaps, the coarse pass's "
+           "heatmaps in its search")
 
 
 def evaluate(run: Path, data: Path) -> dict:

@@ -40,11 +40,13 @@ from s3k.readout.config import LAYOUT_FITS, ReadoutConfig
 from s3k.readout.pipeline import ReadOut, read_out
 from s3k.readout.rigid import (
     LAYOUT_SAMPLES,
+    LayoutPrior,
     fit_layout,
     layout_locus,
     layout_shape,
     reject_layout,
     search_layout,
+    settle_ties,
 )
 from s3k.readout.views import (
     DEFAULT_MIN_WEIGHT,
@@ -58,8 +60,8 @@ from s3k.readout.views import (
 )
 
 __all__ = [
-    "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_FITS", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "ReadOut",
+    "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_FITS", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "LayoutPrior", "ReadOut",
     "ReadoutConfig", "fit_layout", "layout_locus", "layout_shape", "moments", "read_out", "reject_layout",
     "reject_outliers",
-    "search_layout", "select_views", "triangulate", "window_cells",
+    "search_layout", "select_views", "settle_ties", "triangulate", "window_cells",
 ]

@@ -38,6 +38,10 @@ class ReadoutConfig:
             keypoints are held to (:func:`s3k.readout.reject_layout`); None or 0: no rigid read-out.
         layout_search: look again for a keypoint that breaks the layout where the layout puts it
             (:func:`s3k.readout.search_layout`; needs a window).
+        layout_ties: with the search, settle the check's ties by the heatmaps
+            (:func:`s3k.readout.settle_ties`); False: the check's own choice, the first keypoint of the pair.
+        layout_prior: with the search, a two-pass detector's refining read-out scores the places with the
+            coarse pass's heatmaps too (:class:`s3k.readout.LayoutPrior`).
         layout_drop: a keypoint that breaks the layout is not valid.
         layout_fit: ``"all"``: the layout fitted onto the kept keypoints (:func:`s3k.readout.fit_layout`)
             places every keypoint; ``"kept"``: it moves only the kept ones; ``"off"``: no fit.
@@ -49,6 +53,8 @@ class ReadoutConfig:
     layout: Tensor | None = None
     layout_tol: float = 0.0
     layout_search: bool = True
+    layout_ties: bool = True
+    layout_prior: bool = True
     layout_drop: bool = False
     layout_fit: str = "all"
 

@@ -14,7 +14,14 @@ from torch import Tensor
 from s3k.geometry import Cameras, project
 from s3k.heatmaps import confidence_weight
 from s3k.readout.config import ReadoutConfig
-from s3k.readout.rigid import fit_layout, layout_shape, reject_layout, search_layout
+from s3k.readout.rigid import (
+    LayoutPrior,
+    fit_layout,
+    layout_shape,
+    reject_layout,
+    search_layout,
+    settle_ties,
+)
 from s3k.readout.views import (
     DEFAULT_MIN_WEIGHT,
     DTYPE,
@@ -112,7 +119,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
              pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
              keep_heatmaps: bool = False, max_residual_px: float | None = None,
              window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0, *,
-             config: ReadoutConfig | None = None, weights: Tensor | None = None) -> ReadOut:
+             config: ReadoutConfig | None = None, weights: Tensor | None = None,
+             prior: LayoutPrior | None = None) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
     Args:
@@ -128,6 +136,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             (:class:`ReadoutConfig`'s fields), when no ``config`` is given.
         config: every setting in one :class:`ReadoutConfig` (a detector's, or the pseudo-labels').
         weights: ``(B, C, K)`` triangulation weights instead of the confidence weights.
+        prior: another network's heatmaps of the same frames, whose evidence joins the views' in the rigid
+            read-out's search (:class:`s3k.readout.LayoutPrior`).
 
     Returns:
         A :class:`ReadOut`.
@@ -160,7 +170,7 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         used = reject_outliers(views.net_cams, views.net_uv, weights, used, config.max_residual_px)
     X, valid = triangulate(cams, uv, weights, used)
     if config.rigid:
-        X, valid, uv, used = _rigid(config, views, probs, weights, used, X, valid, stride, cells)
+        X, valid, uv, used = _rigid(config, views, probs, weights, used, X, valid, stride, cells, prior)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
     return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)
 
@@ -180,17 +190,21 @@ class _Views:
 
 
 def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor, used: Tensor, X: Tensor,
-           valid: Tensor, stride: int, cells: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+           valid: Tensor, stride: int, cells: int,
+           prior: LayoutPrior | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The rigid read-out (:class:`ReadoutConfig`'s layout fields): ``(X, valid, uv, used)``."""
     layout, tol = config.layout, config.layout_tol
     assert layout is not None
     uv = views.in_cameras(views.net_uv)
     kept = reject_layout(X, valid, layout, tol)
-    found = [] if not config.layout_search or cells == 0 or bool(kept.all()) else search_layout(
-        probs, views.net_cams, stride, X, kept, layout, tol, cells)
+    found = []
+    if config.layout_search and cells > 0 and not bool(kept.all()):
+        if config.layout_ties:
+            kept = settle_ties(probs, views.net_cams, stride, X, valid, kept, layout, tol, cells, prior)
+        found = search_layout(probs, views.net_cams, stride, X, kept, layout, tol, cells, prior)
     if found:
         net_uv, used = views.net_uv.clone(), used.clone()
-        for b, k, found_uv, found_used, _ in found:
+        for b, k, found_uv, found_used, _, _ in found:
             w_k = weights[b, :, k]
             net_uv[b, :, k] = found_uv
             used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > config.min_weight)
@@ -200,7 +214,7 @@ def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor,
         # the locus is the keypoint
         again = reject_layout(X, valid, layout, tol)
         X, valid = X.clone(), valid.clone()
-        for b, k, _, _, place in found:
+        for b, k, _, _, place, _ in found:
             if not bool(again[b, k]):
                 X[b, k], valid[b, k] = place, True
         kept = reject_layout(X, valid, layout, tol)  # the points moved: check them again

@@ -5,6 +5,7 @@ object's layout")."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -13,7 +14,21 @@ from s3k.geometry import Cameras, project
 from s3k.heatmaps import peak_window_mean
 from s3k.readout.views import DTYPE
 
-__all__ = ["LAYOUT_SAMPLES", "fit_layout", "layout_locus", "layout_shape", "reject_layout", "search_layout"]
+__all__ = ["LAYOUT_SAMPLES", "LayoutPrior", "fit_layout", "layout_locus", "layout_shape", "reject_layout",
+           "search_layout", "settle_ties"]
+
+
+def _pairs(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``(rel, checked, broken)``, each ``(B, K, K)``: every pair's relative deviation from its reference
+    distance (NaN where the reference is unknown), whether the pair is checked and whether it breaks
+    ``tol``."""
+    K = valid.shape[1]
+    ref = distances.to(device=X.device, dtype=DTYPE)
+    P = torch.nan_to_num(X.to(DTYPE))
+    rel = (torch.cdist(P, P) - ref).abs() / ref
+    off_diagonal = ~torch.eye(K, dtype=torch.bool, device=X.device)
+    checked = valid[:, :, None] & valid[:, None, :] & off_diagonal & torch.isfinite(rel)
+    return rel, checked, checked & (rel > tol)
 
 
 def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Tensor:
@@ -34,13 +49,8 @@ def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Te
         distances: ``(K, K)`` reference distances (``s3k.train.labelled_distances``), NaN where unknown.
         tol: largest relative deviation a pair may have (e.g. 0.2).
     """
-    B, K = valid.shape
-    ref = distances.to(device=X.device, dtype=DTYPE)
-    P = torch.nan_to_num(X.to(DTYPE))
-    rel = (torch.cdist(P, P) - ref).abs() / ref  # NaN where the reference is unknown
-    off_diagonal = ~torch.eye(K, dtype=torch.bool, device=X.device)
-    checked = valid[:, :, None] & valid[:, None, :] & off_diagonal & torch.isfinite(rel)
-    broken = checked & (rel > tol)
+    K = valid.shape[1]
+    rel, checked, broken = _pairs(X, valid, distances, tol)
     keep = valid.clone()
     rel = torch.nan_to_num(rel)
     for _ in range(K):
@@ -89,17 +99,53 @@ def layout_locus(a: Tensor, b: Tensor, ra: float, rb: float, n: int = LAYOUT_SAM
     return a + along * e + radius * (torch.cos(theta)[:, None] * u + torch.sin(theta)[:, None] * v)
 
 
+@dataclass(frozen=True)
+class LayoutPrior:
+    """Heatmaps of the same frames from another network, whose evidence joins the views' when
+    :func:`search_layout` scores places: a two-pass detector's coarse pass, which saw the whole object. Where
+    the refining views are flat (a pose they were not trained on), every place on a keypoint's locus scores
+    alike and the best one is as likely the keypoint's mirror image across the other two; the coarse
+    heatmaps still tell the side.
+
+    Attributes:
+        probs: ``(B, C, K, h, w)`` heatmaps (softmax).
+        cams: cameras ``(B, C)`` or ``(C,)`` of that network's input pixels.
+        stride: its heatmap stride.
+    """
+
+    probs: Tensor
+    cams: Cameras
+    stride: int
+
+
+def _log_prob_at(hm: Tensor, cams: Cameras, stride: int, places: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Each view's log-probability (at least ``LOG_FLOOR``) of ``places (n, 3)`` under heatmaps
+    ``hm (C, h, w)`` seen by ``cams (C,)``: ``(logp (C, n), inside (C, n), cell (C, n))``, ``cell`` the
+    row-major index of the place's cell and ``inside`` whether the view's image holds it (in front of the
+    camera)."""
+    C, h, w = hm.shape
+    uv, depth = project(cams, places[None].expand(C, -1, -1))  # (C, n, 2)
+    col = torch.round((uv[..., 0] - (stride - 1) / 2) / stride).long()
+    row = torch.round((uv[..., 1] - (stride - 1) / 2) / stride).long()
+    inside = (depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    cell = hm[torch.arange(C)[:, None], row.clamp(0, h - 1), col.clamp(0, w - 1)]
+    logp = torch.where(inside, cell.clamp_min(1e-300).log().clamp_min(LOG_FLOOR),
+                       torch.full_like(cell, LOG_FLOOR))
+    return logp, inside, row.clamp(0, h - 1) * w + col.clamp(0, w - 1)
+
+
 def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Tensor, distances: Tensor,
-                  tol: float, window: int) -> list[tuple[int, int, Tensor, Tensor, Tensor]]:
+                  tol: float, window: int, prior: LayoutPrior | None = None,
+                  frames: list[int] | None = None) -> list[tuple[int, int, Tensor, Tensor, Tensor, float]]:
     """For every keypoint the layout check left out (``~kept``) in a frame with two keypoints it kept, look
     for it again where the rigid layout puts it.
 
     Two kept keypoints ``i``, ``j`` (the pair farthest apart by the reference) place it on the circle at its
     reference distances from them (:func:`layout_locus`); places that break its distance to another kept
     keypoint by more than ``tol`` are left out. Each place is scored by the sum over the views of its
-    heatmap's log-probability at the place's projection (at least ``LOG_FLOOR``), and each view's detection is
-    then its heatmap's mean within ``window`` cells of the best place's cell (a view whose image does not hold
-    that cell is not used).
+    heatmap's log-probability at the place's projection (at least ``LOG_FLOOR``), plus the same sum over the
+    ``prior``'s views when one is given, and each view's detection is then its heatmap's mean within
+    ``window`` cells of the best place's cell (a view whose image does not hold that cell is not used).
 
     Args:
         probs: ``(B, C, K, h, w)`` heatmaps.
@@ -109,15 +155,18 @@ def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Te
         distances: ``(K, K)`` reference distances (NaN where unknown).
         tol: the layout check's relative tolerance.
         window: the read-out's window, cells (>= 1).
+        prior: another network's heatmaps of the same frames (:class:`LayoutPrior`), or None.
+        frames: look only in these frames (None: all).
 
     Returns:
-        ``[(b, k, uv (C, 2), used (C,), place (3,)), ...]``: for the keypoints found again, the new detections
-        in network-input pixels and the best place itself.
+        ``[(b, k, uv (C, 2), used (C,), place (3,), score), ...]``: for the keypoints found again, the new
+        detections in network-input pixels, the best place itself and its score.
     """
-    B, C, K, h, w = probs.shape
     ref = distances.to(device=X.device, dtype=DTYPE)
     found = []
     for b, k in (~kept).nonzero().tolist():
+        if frames is not None and b not in frames:
+            continue
         others = kept[b].clone()
         others[k] = False
         others &= torch.isfinite(ref[k])
@@ -134,20 +183,55 @@ def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Te
             places = places[(off <= tol).all(dim=1)]
             if not len(places):
                 continue
-        frame_cams = cams if len(cams.shape) == 1 else cams[b]
-        uv, depth = project(frame_cams, places[None].expand(C, -1, -1))  # (C, n, 2)
-        col = torch.round((uv[..., 0] - (stride - 1) / 2) / stride).long()
-        row = torch.round((uv[..., 1] - (stride - 1) / 2) / stride).long()
-        inside = (depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        hm = probs[b, :, k]  # (C, h, w)
-        cell = hm[torch.arange(C)[:, None], row.clamp(0, h - 1), col.clamp(0, w - 1)]
-        logp = torch.where(inside, cell.clamp_min(1e-300).log().clamp_min(LOG_FLOOR),
-                           torch.full_like(cell, LOG_FLOOR))
-        best = int(logp.sum(dim=0).argmax())
-        used = inside[:, best]
-        centre = row[:, best].clamp(0, h - 1) * w + col[:, best].clamp(0, w - 1)
-        found.append((b, k, peak_window_mean(hm, stride, window, centre), used, places[best]))
+        score, inside, cell = _evidence(probs, cams, stride, prior, b, k, places)
+        best = int(score.argmax())
+        uv = peak_window_mean(probs[b, :, k], stride, window, cell[:, best])
+        found.append((b, k, uv, inside[:, best], places[best], float(score[best])))
     return found
+
+
+def _evidence(probs: Tensor, cams: Cameras, stride: int, prior: LayoutPrior | None, b: int, k: int,
+              places: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """How well frame ``b``'s heatmaps of keypoint ``k`` (and the ``prior``'s) support ``places (n, 3)``:
+    ``(score (n,), inside (C, n), cell (C, n))``, the score the sum of :func:`_log_prob_at` over the views and
+    ``inside``, ``cell`` those of ``probs``' views."""
+    frame_cams = cams if len(cams.shape) == 1 else cams[b]
+    logp, inside, cell = _log_prob_at(probs[b, :, k], frame_cams, stride, places)
+    score = logp.sum(dim=0)
+    if prior is not None:
+        prior_cams = prior.cams if len(prior.cams.shape) == 1 else prior.cams[b]
+        score = score + _log_prob_at(prior.probs[b, :, k], prior_cams, prior.stride, places)[0].sum(dim=0)
+    return score, inside, cell
+
+
+def settle_ties(probs: Tensor, cams: Cameras, stride: int, X: Tensor, valid: Tensor, kept: Tensor,
+                distances: Tensor, tol: float, window: int, prior: LayoutPrior | None = None) -> Tensor:
+    """``kept`` (:func:`reject_layout`'s) with its ties settled by the heatmaps' evidence.
+
+    When a frame's one broken pair is two keypoints with no other pair against them, the distances cannot
+    tell which of the two is off, and the check drops the first. Both ways are tried here: the keypoint left
+    out is looked for where the layout puts it (:func:`search_layout`), the other stays where it was
+    triangulated, and the way whose two keypoints the heatmaps support better (the search's score plus the
+    other's sum over the views of :func:`_log_prob_at` at its point) is kept. Arguments as
+    :func:`search_layout`'s, with ``valid (B, K)`` the triangulation's.
+    """
+    kept = kept.clone()
+    _, _, broken = _pairs(X, valid, distances, tol)
+    for b in (broken.sum(dim=(1, 2)) == 2).nonzero().flatten().tolist():  # one pair, counted both ways
+        i, j = broken[b].nonzero()[0].tolist()
+        if bool(kept[b, i]) == bool(kept[b, j]):
+            continue
+        scores = []
+        for out, stay in ((i, j), (j, i)):
+            trial = kept.clone()
+            trial[b, out], trial[b, stay] = False, True
+            found = [f for f in search_layout(probs, cams, stride, X, trial, distances, tol, window, prior,
+                                              frames=[b]) if f[1] == out]
+            here = _evidence(probs, cams, stride, prior, b, stay, X[b, stay].to(DTYPE)[None])[0]
+            scores.append(found[0][5] + float(here[0]) if found else -math.inf)
+        out, stay = (i, j) if scores[0] >= scores[1] else (j, i)
+        kept[b, out], kept[b, stay] = False, True
+    return kept
 
 
 def layout_shape(distances: Tensor) -> Tensor | None:
