@@ -117,7 +117,8 @@ def test_expert_label_is_the_demonstrator_on_the_true_state_the_step_started_fro
 def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     import torch
 
-    from s3k.robot.agents import AgentConfig, load_checkpoint, train_agent
+    from s3k.robot.agent_checkpoint import load_checkpoint
+    from s3k.robot.agents import AgentConfig, train_agent
 
     out = tmp_path / "agent"
     cfg = AgentConfig(steps=30, demos=1, checkpoint_every=15, eval_episodes=1, learning_starts=5,
@@ -180,7 +181,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
 
 
 def test_checkpoint_survives_a_kill_between_its_renames(tmp_path):
-    from s3k.robot.agents import checkpoint_folder
+    from s3k.robot.agent_checkpoint import checkpoint_folder
 
     ckpt = tmp_path / "checkpoint"
     assert checkpoint_folder(ckpt) is None
