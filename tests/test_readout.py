@@ -418,8 +418,11 @@ def test_a_layout_tie_is_settled_by_the_heatmaps():
     assert kept.tolist() == [[False, True, True]] * 3
     assert float((plain.X[:, 0] - X[:, 0]).norm(dim=-1).max()) < 1e-3
     probs = torch.softmax(logits.flatten(-2), -1).view_as(logits)
-    settled = settle_ties(probs, cams, 1, plain.X, plain.valid, kept, ref, 0.1, window_cells(sigma, 1, None))
+    settled, found = settle_ties(probs, cams, 1, plain.X, plain.valid, kept, ref, 0.1,
+                                 window_cells(sigma, 1, None))
     assert settled.tolist() == [[True, True, False]] * 3
+    # the frames settled come with the search for keypoint 2, which need not run again
+    assert sorted(found) == [0, 1, 2] and all([f[:2] for f in found[b]] == [(b, 2)] for b in found)
     held = read_out(logits, cams, 1, sigma, layout=ref, layout_tol=0.1)
     assert held.valid.all()
     # keypoint 0 stays where every view saw it, and keypoint 2 comes nearer its place (its detections in

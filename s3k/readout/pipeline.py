@@ -15,6 +15,7 @@ from s3k.geometry import Cameras, project
 from s3k.heatmaps import confidence_weight
 from s3k.readout.config import ReadoutConfig
 from s3k.readout.rigid import (
+    Found,
     LayoutPrior,
     fit_layout,
     layout_shape,
@@ -199,9 +200,13 @@ def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor,
     kept = reject_layout(X, valid, layout, tol)
     found = []
     if config.layout_search and cells > 0 and not bool(kept.all()):
+        settled: dict[int, list[Found]] = {}
         if config.layout_ties:
-            kept = settle_ties(probs, views.net_cams, stride, X, valid, kept, layout, tol, cells, prior)
-        found = search_layout(probs, views.net_cams, stride, X, kept, layout, tol, cells, prior)
+            kept, settled = settle_ties(probs, views.net_cams, stride, X, valid, kept, layout, tol, cells,
+                                        prior)
+        rest = set(range(len(X))) - settled.keys() if settled else None  # settled frames were searched
+        found = search_layout(probs, views.net_cams, stride, X, kept, layout, tol, cells, prior, rest)
+        found += [f for frame in settled.values() for f in frame]
     if found:
         net_uv, used = views.net_uv.clone(), used.clone()
         for b, k, found_uv, found_used, _, _ in found:

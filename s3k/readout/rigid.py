@@ -5,6 +5,7 @@ object's layout")."""
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import torch
@@ -65,6 +66,10 @@ def reject_layout(X: Tensor, valid: Tensor, distances: Tensor, tol: float) -> Te
     intact = checked & ~broken & keep[:, :, None] & keep[:, None, :]
     return keep & ~(broken.any(dim=-1) & ~intact.any(dim=-1))
 
+
+Found = tuple[int, int, Tensor, Tensor, Tensor, float]
+"""A keypoint :func:`search_layout` found again: ``(frame, keypoint, uv (C, 2), used (C,), place (3,),
+score)``."""
 
 LAYOUT_SAMPLES = 720
 """Places on a broken keypoint's locus that :func:`search_layout` scores (every half degree of the circle)."""
@@ -136,7 +141,7 @@ def _log_prob_at(hm: Tensor, cams: Cameras, stride: int, places: Tensor) -> tupl
 
 def search_layout(probs: Tensor, cams: Cameras, stride: int, X: Tensor, kept: Tensor, distances: Tensor,
                   tol: float, window: int, prior: LayoutPrior | None = None,
-                  frames: list[int] | None = None) -> list[tuple[int, int, Tensor, Tensor, Tensor, float]]:
+                  frames: Collection[int] | None = None) -> list[Found]:
     """For every keypoint the layout check left out (``~kept``) in a frame with two keypoints it kept, look
     for it again where the rigid layout puts it.
 
@@ -205,8 +210,10 @@ def _evidence(probs: Tensor, cams: Cameras, stride: int, prior: LayoutPrior | No
 
 
 def settle_ties(probs: Tensor, cams: Cameras, stride: int, X: Tensor, valid: Tensor, kept: Tensor,
-                distances: Tensor, tol: float, window: int, prior: LayoutPrior | None = None) -> Tensor:
-    """``kept`` (:func:`reject_layout`'s) with its ties settled by the heatmaps' evidence.
+                distances: Tensor, tol: float, window: int,
+                prior: LayoutPrior | None = None) -> tuple[Tensor, dict[int, list[Found]]]:
+    """``kept`` (:func:`reject_layout`'s) with its ties settled by the heatmaps' evidence, and the search's
+    results in the frames settled.
 
     When a frame's one broken pair is two keypoints with no other pair against them, the distances cannot
     tell which of the two is off, and the check drops the first. Both ways are tried here: the keypoint left
@@ -214,24 +221,28 @@ def settle_ties(probs: Tensor, cams: Cameras, stride: int, X: Tensor, valid: Ten
     triangulated, and the way whose two keypoints the heatmaps support better (the search's score plus the
     other's sum over the views of :func:`_log_prob_at` at its point) is kept. Arguments as
     :func:`search_layout`'s, with ``valid (B, K)`` the triangulation's.
+
+    Returns:
+        ``(kept, {frame: found})``: ``found`` is :func:`search_layout`'s list for that frame under the
+        ``kept`` returned, so that the frame need not be searched again.
     """
     kept = kept.clone()
+    settled: dict[int, list[Found]] = {}
     _, _, broken = _pairs(X, valid, distances, tol)
     for b in (broken.sum(dim=(1, 2)) == 2).nonzero().flatten().tolist():  # one pair, counted both ways
         i, j = broken[b].nonzero()[0].tolist()
         if bool(kept[b, i]) == bool(kept[b, j]):
             continue
-        scores = []
+        ways = []
         for out, stay in ((i, j), (j, i)):
             trial = kept.clone()
             trial[b, out], trial[b, stay] = False, True
-            found = [f for f in search_layout(probs, cams, stride, X, trial, distances, tol, window, prior,
-                                              frames=[b]) if f[1] == out]
+            found = search_layout(probs, cams, stride, X, trial, distances, tol, window, prior, frames={b})
+            searched = [f[5] for f in found if f[1] == out]
             here = _evidence(probs, cams, stride, prior, b, stay, X[b, stay].to(DTYPE)[None])[0]
-            scores.append(found[0][5] + float(here[0]) if found else -math.inf)
-        out, stay = (i, j) if scores[0] >= scores[1] else (j, i)
-        kept[b, out], kept[b, stay] = False, True
-    return kept
+            ways.append((searched[0] + float(here[0]) if searched else -math.inf, trial, found))
+        _, kept, settled[b] = ways[0] if ways[0][0] >= ways[1][0] else ways[1]
+    return kept, settled
 
 
 def layout_shape(distances: Tensor) -> Tensor | None:
