@@ -225,6 +225,34 @@ def test_memory_and_uncached_images_agree(tiny, cache: str):
     assert not (root / ".cache").exists()
 
 
+def test_held_frames_serve_every_view_without_decoding_again(tiny, monkeypatch):
+    """``hold_frames``: a resized view keeps the stored images it decodes; the full-size view and another
+    size then read them from memory, the same pixels as decoded from the files."""
+    import s3k.data.sources as sources
+
+    root, w = tiny
+    decoded: list[str] = []
+    real = sources.decode_image
+    monkeypatch.setattr(sources, "decode_image",
+                        lambda path, name=None: decoded.append(name) or real(path, name))
+    full = Dataset.open(root, cache="none")
+    full.hold_frames()
+    ids = full.frames()
+    small = full.with_cache("memory").resized((W // 2, H // 2))
+    expected, _ = resize_crop(np.stack(w["images"]), None, None, (W // 2, H // 2))
+    np.testing.assert_array_equal(small.images(ids), expected)
+    assert len(decoded) == len(ids) * len(CAMERAS)
+    np.testing.assert_array_equal(full.images(ids), np.stack(w["images"]))
+    other = full.resized((W // 4, H // 4))
+    np.testing.assert_array_equal(other.images(ids[:2]), resize_crop(np.stack(w["images"][:2]), None, None,
+                                                                      (W // 4, H // 4))[0])
+    assert len(decoded) == len(ids) * len(CAMERAS)  # nothing decoded again
+    full.release_frames()
+    full.images(ids[:1])
+    assert len(decoded) == (len(ids) + 1) * len(CAMERAS)
+    assert full.stored_mib == pytest.approx(len(ids) * len(CAMERAS) * W * H * 3 / 2**20)
+
+
 def test_open_resized_updates_images_K_and_labels(tiny):
     root, w = tiny
     size = (W // 2, H // 2)

@@ -14,6 +14,7 @@ from test_track import KEYPOINTS as TRACK_KEYPOINTS
 from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
 
 from s3k import cli
+from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.tracks_csv import read_csv
@@ -26,6 +27,7 @@ from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
+from s3k.train.run_setup import _validation_frames
 from s3k.train.two_pass import (
     CPU_FILE,
     ESTIMATES_FILE,
@@ -335,3 +337,60 @@ def test_coarse_stride_sets_the_coarse_pass_alone_and_resume_keeps_it(tmp_path, 
     assert cli.main([*args[:-1], "3", "--out", str(tmp_path / "other")]) == 1  # not a stride there is
     assert not (tmp_path / "other").exists()
     assert "--coarse-stride" in capsys.readouterr().err
+
+
+def test_a_two_pass_training_decodes_each_image_once(tmp_path, monkeypatch):
+    """The frames the coarse pass decodes for its small images are kept for the crops, so each image file is
+    decoded once; with ``--preload-mb 0`` nothing is kept and the crops decode every file again (the coarse
+    pass, not preloading, decodes only the frames its few steps draw). The estimates are the same."""
+    import s3k.data.sources as sources
+
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
+    decoded: list[str] = []
+    real = sources.decode_image
+
+    def counting(path, name=None):
+        decoded.append(str(path))
+        return real(path, name)
+
+    monkeypatch.setattr(sources, "decode_image", counting)
+    files = len(Dataset.open(data, cache="none")) * 4
+    estimates = {}
+    for preload in ("2048", "0"):
+        decoded.clear()
+        monkeypatch.setenv("S3K_CACHE_DIR", str(tmp_path / f"cache-{preload}"))
+        run = tmp_path / f"run-{preload}"
+        assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--steps", "3",
+                         "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1",
+                         "--val_every", "0", "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress",
+                         "--threads", "1", "--preload-mb", preload]) == 0
+        assert len(set(decoded)) == files
+        assert (len(decoded) == files) if preload == "2048" else (len(decoded) > files)
+        estimates[preload] = (run / ESTIMATES_FILE).read_text()
+    assert estimates["2048"] == estimates["0"]
+
+
+def test_the_crops_are_cut_for_the_frames_the_refining_pass_reads(tmp_path):
+    """Labels only: the labelled frames and the validation frames are estimated and cropped, not the
+    unlabelled ones nor the rest of the test split; the refining pass validates on the same frames as it
+    would on every frame's crops, and a resumed run cuts the same frames again from the estimates."""
+    data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=5)
+    run = tmp_path / "run"
+    assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--steps", "2", "--no-unsup",
+                     "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1",
+                     "--val_every", "0", "--val_frames", "2", "--no-progress", "--threads", "1"]) == 0
+    ds = Dataset.open(data, cache="none")
+    test = ds.frames("test")
+    estimates = read_csv(run / ESTIMATES_FILE, KEYPOINTS)
+    assert sorted(estimates) == sorted([*ds.frames("labelled"), test[0], test[-1]])
+    rule, _, fine = read_two_pass(run)
+    cfg = json.loads((fine / "config.json").read_text())["config"]
+    assert cfg["unsup"] is False and cfg["val_frames"] == 2
+    refining = TrainConfig.from_flat(**cfg)
+    some = training_crops(ds, estimates, rule, frames=list(estimates))
+    every = training_crops(ds, {**{f: np.full((3, 3), np.nan) for f in ds.frames()}, **estimates}, rule)
+    assert sorted(some.frame_ids) == sorted(estimates)
+    picked = [_validation_frames(c, refining, c.frames("labelled"), c.frames("unlabelled"))
+              for c in (some, every)]
+    np.testing.assert_array_equal(*picked)
+    np.testing.assert_array_equal(picked[0], [test[0], test[-1]])

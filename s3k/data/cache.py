@@ -46,6 +46,20 @@ def cache_folders(dataset: Path) -> list[Path]:
     return [dataset / CACHE_DIR, user]
 
 
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux's MemAvailable), None when unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 class ImageCache:
     """Decoded images of ``shape = (N, C, H, W, 3)``; ``filled (N,)`` marks the frames decoded.
 

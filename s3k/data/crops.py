@@ -232,7 +232,8 @@ class CropCutter:
 
 def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, size: int,
               keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
-              splits: Sequence[str] | None = None, description: str | None = None) -> CropDataset:
+              splits: Sequence[str] | None = None, frames: Sequence[int] | None = None,
+              description: str | None = None) -> CropDataset:
     """The crops of every frame of ``source`` (a :class:`s3k.data.Dataset` or its folder) around ``centres``.
 
     Args:
@@ -246,6 +247,7 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
             frame is an error naming it.
         chunk: frames decoded at once.
         splits: the splits to crop (default all three).
+        frames: crop only these frames of those splits (default all).
         description: kept with the crops (and in a written folder's metadata).
 
     Raises:
@@ -256,6 +258,8 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
     cutter = CropCutter(ds, extent, size, keypoints, fallback)
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
+    if frames is not None:
+        ids = ids[np.isin(ids, np.asarray(list(frames), dtype=np.int64))]
     for start in range(0, len(ids), chunk):
         cutter.add(ids[start:start + chunk], centres)
     return cutter.result(description)

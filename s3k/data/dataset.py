@@ -61,6 +61,7 @@ class _Contents:
     points3d: np.ndarray | None
     source: Any
     fingerprint_items: list[str] = field(default_factory=list)
+    held: ImageCache | None = None  # frames at their stored size kept in memory (Dataset.hold_frames)
 
 
 def _parse(root: Path, P: Problems) -> _Contents | None:
@@ -200,6 +201,13 @@ class Dataset:
         return Dataset(self._c, image_size=image_size, crop_box=None if full else self.crop_box,
                        cache=self._cache.mode, workers=self._workers)
 
+    def with_cache(self, cache: str) -> Dataset:
+        """The same view of the dataset with another image cache (``cache`` as for :meth:`open`), sharing
+        its tables and held frames (:meth:`hold_frames`), without reading the folder again."""
+        full = self.crop_box == (0, 0, *self.source_image_size)
+        return Dataset(self._c, image_size=self.image_size, crop_box=None if full else self.crop_box,
+                       cache=cache, workers=self._workers)
+
     def __len__(self) -> int:
         return len(self.frame_ids)
 
@@ -313,18 +321,60 @@ class Dataset:
     ) -> None:
         """Decode frames ``rows`` (all cameras) into ``out[out_rows]`` (default ``out[:len(rows)]``) of shape
         ``(*, C, H, W, 3)``, checking sizes; a file that cannot be read or has the wrong size raises a
-        :class:`DatasetError` naming it."""
-        ids = self.frame_ids[rows]
+        :class:`DatasetError` naming it. Frames held in memory (:meth:`hold_frames`) are taken from there;
+        while frames are held, those this view decodes to resample are kept there too."""
+        held = self._c.held
+        where = np.arange(len(rows)) if out_rows is None else np.asarray(out_rows)
+        resampling = resample and self._resample
+        todo = np.arange(len(rows))
+        if held is not None:
+            have = held.filled[rows] == 1
+            for i in np.flatnonzero(have):
+                for c in range(len(self.cameras)):
+                    image = held.array[rows[i], c]
+                    out[where[i], c] = resize_crop(image, None, self.crop_box, self.image_size)[0] \
+                        if resampling else image
+            todo = np.flatnonzero(~have)
+        if not len(todo):
+            return
+        keep = held if resampling else None  # the stored image would otherwise be thrown away
+        ids = self.frame_ids[rows[todo]]
         try:
-            for i, c, image in self._c.source.read_rows(ids, self._workers):
-                problem = self._size_problem(ids[i], c, (image.shape[1], image.shape[0]))
+            for j, c, image in self._c.source.read_rows(ids, self._workers):
+                problem = self._size_problem(ids[j], c, (image.shape[1], image.shape[0]))
                 if problem is not None:
                     raise DatasetError(self.path, [problem])
-                if resample and self._resample:
+                if keep is not None:
+                    keep.array[rows[todo[j]], c] = image
+                if resampling:
                     image, _ = resize_crop(image, None, self.crop_box, self.image_size)
-                out[i if out_rows is None else out_rows[i], c] = image
+                out[where[todo[j]], c] = image
         except ImageReadError as exc:
             raise DatasetError(self.path, [exc.problem()]) from None
+        if keep is not None:
+            keep.filled[rows[todo]] = 1  # every camera of these frames is in
+
+    def hold_frames(self) -> None:
+        """From now on, keep in memory, at their stored size, the frames that any view of this dataset
+        (:meth:`resized`, :meth:`with_cache`) decodes to resample, and serve them from there instead of
+        decoding the files again: a two-pass training decodes each frame once for its coarse pass's images
+        and its crops. Memory is taken as frames come in, up to :attr:`stored_mib`; :meth:`release_frames`
+        frees it."""
+        if self._c.held is None:
+            W, H = self.source_image_size
+            held = ImageCache("memory", (len(self), len(self.cameras), H, W, 3), "held", [])
+            held.open()
+            self._c.held = held
+
+    def release_frames(self) -> None:
+        """Stop keeping frames in memory (:meth:`hold_frames`) and free them."""
+        self._c.held = None
+
+    @property
+    def stored_mib(self) -> float:
+        """MiB of every frame's images at their stored size, decoded (uint8 RGB)."""
+        W, H = self.source_image_size
+        return len(self) * len(self.cameras) * W * H * 3 / 2**20
 
     def preload(self, split: str | None = None, chunk: int = 256) -> None:
         """Decode every image of ``split`` (all when None) into the cache now, in parallel."""

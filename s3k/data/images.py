@@ -68,6 +68,10 @@ def header_size(path: str | Path) -> tuple[int, int] | None:
     return None
 
 
+_READ_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
+"""OpenCV 4.10's flag that decodes straight to RGB, the same pixels as decoding to BGR and swapping."""
+
+
 def decode_image(path: str | Path, name: str | None = None) -> np.ndarray:
     """Decode an image file to ``uint8 (H, W, 3)`` RGB; one larger than :data:`MAX_PIXELS` (by its header)
     is refused before it is decoded.
@@ -83,7 +87,8 @@ def decode_image(path: str | Path, name: str | None = None) -> np.ndarray:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
         raise ImageReadError(name, f"cannot read ({exc.strerror or exc})") from exc
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    flag = cv2.IMREAD_COLOR if _READ_RGB is None else _READ_RGB
+    image = cv2.imdecode(data, flag) if data.size else None
     if image is None:
         raise ImageReadError(name, "cannot decode as an image (truncated or not an image file)")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if _READ_RGB is None else image

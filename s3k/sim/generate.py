@@ -22,6 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from s3k.data.cache import available_memory
 from s3k.errors import UserError
 from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, FrameSpec, Scene, SimFrame
 from s3k.sim.scenes import SCENES, make_scene
@@ -334,20 +335,6 @@ def memory_needed(cfg: SimulateConfig, workers: int) -> int:
     n = cfg.labelled + cfg.unlabelled + cfg.test
     view = cfg.size * cfg.size
     return n * FRAME_BOOKKEEPING_BYTES + workers * (view * 16 + 3 * 4 * 4 * view * 3)
-
-
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux's MemAvailable), None when unknown."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 def check_memory(cfg: SimulateConfig, workers: int) -> None:

@@ -111,12 +111,26 @@ def _open_data(data: Any, cfg: TrainConfig) -> _Data:
     if cfg.unsup and len(unlabelled) == 0:
         raise UserError(f"{data}: the 'unlabelled' split is empty, S3K needs unlabelled frames",
                         hint="add unlabelled frames or pass --no-unsup for the labels-only baseline")
+    return _Data(ds, source_size, labelled, unlabelled, _validation_frames(ds, cfg, labelled, unlabelled))
+
+
+def _validation_frames(ds: Any, cfg: TrainConfig, labelled: np.ndarray, unlabelled: np.ndarray) -> np.ndarray:
+    """``--val-frames`` frames spread evenly over ``--val-split`` (over the unlabelled frames, else the
+    labelled ones, when that split is empty)."""
     val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
         else np.zeros(0, np.int64)
     if len(val) == 0:
         val = unlabelled if len(unlabelled) else labelled
-    val = val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
-    return _Data(ds, source_size, labelled, unlabelled, val)
+    return val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
+
+
+def frames_used(ds: Any, cfg: TrainConfig) -> np.ndarray:
+    """The frames a training of ``cfg`` on ``ds`` reads, in ``ds``'s order: the labelled ones, the unlabelled
+    ones when the self-supervised term is on, and the validation frames."""
+    labelled, unlabelled = np.asarray(ds.frames("labelled")), np.asarray(ds.frames("unlabelled"))
+    used = [labelled, _validation_frames(ds, cfg, labelled, unlabelled)] + ([unlabelled] if cfg.unsup else [])
+    everything = ds.frames()
+    return everything[np.isin(everything, np.concatenate(used))]
 
 
 def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:

@@ -4,7 +4,8 @@ A two-pass run folder holds two ordinary runs of ``s3k train`` and the crop rule
 
     RUN/two_pass.json    the crop rule (extent in world units, crop size in pixels) and the passes' folders
     RUN/coarse/          the coarse detector: the whole image, resized to ``coarse_size`` px
-    RUN/estimates.csv    the coarse pass's 3D keypoints for every frame of the training dataset
+    RUN/estimates.csv    the coarse pass's 3D keypoints for the frames the refining pass reads (labelled,
+                         unlabelled for S3K, validation; every frame with ``keep_crops``)
     RUN/fine/            the refining detector, trained on crops around those estimates with the same
                          losses (its pixel tolerances scaled to the crop size: :func:`refining_config`)
     RUN/cpu.json         CPU seconds each stage took: ``coarse`` (its training), ``crops`` (the estimates
@@ -44,7 +45,7 @@ __all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "coarse_estimates", "
            "estimates_and_crops", "read_cpu", "refining_config", "train_two_pass", "training_crops",
            "write_crops"]
 
-ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of every training frame
+ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of the frames the refining pass reads
 CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "crops", "fine"), summed over a run's attempts
 
 
@@ -103,11 +104,11 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
 
 
 def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device: str | torch.device = "cpu",
-                        batch_size: int = 32):
-    """The coarse pass's estimates of every frame of ``ds`` (written to ``out_csv``) and the crops around
-    them (:func:`training_crops`), each frame decoded once for both. The crops are cut around the estimates
-    as the file holds them, so that a resumed run, which cuts them again from the file, gets the same crops.
-    """
+                        batch_size: int = 32, frames: np.ndarray | None = None):
+    """The coarse pass's estimates of every frame of ``ds``, or of ``frames`` (written to ``out_csv``), and
+    the crops around them (:func:`training_crops`), each frame decoded once for both. The crops are cut
+    around the estimates as the file holds them, so that a resumed run, which cuts them again from the file,
+    gets the same crops of the same frames."""
     from s3k.data.crops import CropCutter
     from s3k.data.frames import FrameStore
     from s3k.data.tracks_csv import csv_rows, rows_points, write_csv
@@ -117,9 +118,10 @@ def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device
     description = f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates"
     if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
         estimates = coarse_estimates(run_dir, ds.path, out_csv)
-        return training_crops(ds, estimates, rule, description=description)
+        return training_crops(ds, estimates, rule, description=description, frames=list(estimates))
     detector = Detector.load(run_dir, device)
-    store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)
+    ids = split_frames(ds, "all")
+    store = FrameStore(ds, ids if frames is None else ids[np.isin(ids, frames)], preload_mb=0)
     cutter = CropCutter(ds, rule.extent, rule.size, fallback=True)
     tmp = out_csv.with_name(out_csv.name + ".part")
     K = len(detector.keypoints)
@@ -139,14 +141,14 @@ def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device
 
 
 def training_crops(data, estimates: Mapping[int, np.ndarray], rule: CropRule, splits=None,
-                   description: str | None = None):
-    """The crops of ``data`` around ``estimates`` by ``rule``, in memory (a
+                   description: str | None = None, frames=None):
+    """The crops of ``data`` (of its ``frames`` when given) around ``estimates`` by ``rule``, in memory (a
     :class:`s3k.data.crops.CropDataset`), each frame cut around the crop centre of its estimates
     (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
     from s3k.data.crops import cut_crops
 
     return cut_crops(data, _centres(estimates, data), rule.extent, rule.size, fallback=True, splits=splits,
-                     description=description)
+                     frames=frames, description=description)
 
 
 def _centres(estimates: Mapping[int, np.ndarray], refuse_empty: Any = None) -> dict[int, np.ndarray]:
@@ -270,6 +272,7 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
                     coarse_stride: int | None = None, coarse_lr: float | None = None) -> dict[str, Any]:
     from s3k.data import Dataset
     from s3k.train import train
+    from s3k.train.run_setup import frames_used
     from s3k.train.two_pass_start import crop_extent_warning
 
     ds = Dataset.open(data, cache="none")
@@ -282,9 +285,12 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
                              rotation_deg=cfg.rotation_deg if coarse_rotation is None else coarse_rotation,
                              stride=cfg.stride if coarse_stride is None else coarse_stride,
                              lr=cfg.lr if coarse_lr is None else coarse_lr)
+    coarse_data: Any = data
+    if _hold_frames(ds, cfg, log):  # the coarse pass reads the same disk cache as from the folder
+        coarse_data = ds.with_cache("disk")
     with _StageClock(out, "coarse") as clock:
-        results["coarse"] = _train_pass(train, data, out / "coarse", coarse_cfg, command, log, "coarse pass",
-                                        clock)
+        results["coarse"] = _train_pass(train, coarse_data, out / "coarse", coarse_cfg, command, log,
+                                        "coarse pass", clock)
     written = out / "crops"
     with _StageClock(out, "crops"):
         if (written / "s3k.json").is_file():  # written by an earlier call: the refining pass trains on them
@@ -292,17 +298,38 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
             crops: Any = written
         else:
             _check_rule(out, rule)
-            log(f"coarse pass: estimating every frame of {data} and cropping it in memory "
-                f"({rule.extent:g} {ds.units} -> {rule.size} px)")
-            crops = estimates_and_crops(out / "coarse", ds, out / ESTIMATES_FILE, rule, cfg.device)
+            # the frames the refining pass reads, or every frame for a crop dataset written to keep
+            used = ds.frames() if keep_crops else frames_used(ds, refining_config(cfg, rule.size))
+            log(f"coarse pass: estimating the {len(used)} frames of {data} the refining pass reads and "
+                f"cropping them in memory ({rule.extent:g} {ds.units} -> {rule.size} px)")
+            crops = estimates_and_crops(out / "coarse", ds, out / ESTIMATES_FILE, rule, cfg.device,
+                                        frames=used)
             if keep_crops:
                 crops.write(written, overwrite=True)
                 log(f"crops written to {written}")
+    ds.release_frames()
     with _StageClock(out, "fine") as clock:
         results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command,
                                       log, "refining pass", clock)
     write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results
+
+
+def _hold_frames(ds, cfg, log) -> bool:
+    """Keep the frames the coarse pass decodes in memory for the crops (:meth:`s3k.data.Dataset.hold_frames`)
+    when they take at most half the memory available now and ``--preload-mb`` is not 0; otherwise the crops
+    decode them again."""
+    from s3k.data.cache import available_memory
+
+    have = available_memory()
+    if cfg.preload_mb == 0 or have is None or ds.stored_mib > have / 2**20 / 2:
+        log(f"the crops will decode the frames again: the {ds.stored_mib:.0f} MiB of full-resolution frames "
+            f"are not kept in memory ({'--preload-mb 0' if cfg.preload_mb == 0 else 'too little memory'})")
+        return False
+    ds.hold_frames()
+    log(f"keeping the coarse pass's frames at full resolution in memory for the crops (up to "
+        f"{ds.stored_mib:.0f} MiB)")
+    return True
 
 
 def _check_rule(out: Path, rule: CropRule) -> None:
