@@ -80,3 +80,17 @@ def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled
                 w.add_frame(fid, split, images, None, labels, points3d=X)
                 fid += 1
     return path
+
+
+def count_decodes(monkeypatch, module) -> list[str]:
+    """The images ``module`` decodes from now on: its ``decode_image`` is patched to note each image's name
+    (the dataset-relative name when it is given one, else the path) in the list returned."""
+    decoded: list[str] = []
+    real = module.decode_image
+
+    def decode(path, name=None):
+        decoded.append(str(path if name is None else name))
+        return real(path, name)
+
+    monkeypatch.setattr(module, "decode_image", decode)
+    return decoded

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from synthetic_rig import make_dataset
+from synthetic_rig import count_decodes, make_dataset
 from test_importers import recording  # noqa: F401 - the fixture
 
 from s3k import cli
@@ -53,14 +53,7 @@ def test_header_sizes_of_png_and_jpeg(tmp_path):
 def test_validate_reads_a_huge_image_size_from_its_header(huge_image_dataset, capsys, monkeypatch):
     import s3k.data.checks as dataset_module  # the module that checks every image
 
-    decoded: list[str] = []
-    real = dataset_module.decode_image
-
-    def decode(path, name=None):
-        decoded.append(str(name))
-        return real(path, name)
-
-    monkeypatch.setattr(dataset_module, "decode_image", decode)
+    decoded = count_decodes(monkeypatch, dataset_module)
     assert cli.main(["validate", str(huge_image_dataset), "--workers", "1"]) == 1
     out = capsys.readouterr().out
     assert "image is 30000x30000, s3k.json image_size is 32x32" in out

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from synthetic_rig import count_decodes
 
 from s3k.data import Dataset, DatasetError, DatasetWarning, DatasetWriter, check_dataset
 from s3k.data.tables import CALIBRATION_COLUMNS
@@ -231,10 +232,7 @@ def test_held_frames_serve_every_view_without_decoding_again(tiny, monkeypatch):
     import s3k.data.sources as sources
 
     root, w = tiny
-    decoded: list[str] = []
-    real = sources.decode_image
-    monkeypatch.setattr(sources, "decode_image",
-                        lambda path, name=None: decoded.append(name) or real(path, name))
+    decoded = count_decodes(monkeypatch, sources)
     full = Dataset.open(root, cache="none")
     full.hold_frames()
     ids = full.frames()

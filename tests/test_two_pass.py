@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, LAYOUT, make_dataset, random_rotation
+from synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
 from test_track import CAMERAS as TRACK_CAMERAS
 from test_track import KEYPOINTS as TRACK_KEYPOINTS
 from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
@@ -346,14 +346,7 @@ def test_a_two_pass_training_decodes_each_image_once(tmp_path, monkeypatch):
     import s3k.data.sources as sources
 
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
-    decoded: list[str] = []
-    real = sources.decode_image
-
-    def counting(path, name=None):
-        decoded.append(str(path))
-        return real(path, name)
-
-    monkeypatch.setattr(sources, "decode_image", counting)
+    decoded = count_decodes(monkeypatch, sources)
     files = len(Dataset.open(data, cache="none")) * 4
     estimates = {}
     for preload in ("2048", "0"):
