@@ -13,8 +13,8 @@ JSON (also written to ``--results``/summary.json, with ``stages``, ``device`` an
 
 Example::
 
-    python benchmarks/time_to_accuracy.py --seeds 3        # 2-core CPU: 38 min end to end (render 5,
-                                                           # train and evaluate 33)
+    python benchmarks/time_to_accuracy.py --seeds 3        # 2-core CPU: 35 min end to end (render 5,
+                                                           # train and evaluate 30)
     python benchmarks/time_to_accuracy.py --seeds 3 --device cuda --parallel 6  # a GPU: all models at once
     python benchmarks/time_to_accuracy.py --seeds 3 --preset box-fast  # -> results/accuracy/fast/box-fast
 """

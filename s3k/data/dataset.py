@@ -197,15 +197,16 @@ class Dataset:
         reading and checking the folder again; ``self`` when the size already matches."""
         if tuple(image_size) == self.image_size:
             return self
-        full = self.crop_box == (0, 0, *self.source_image_size)
-        return Dataset(self._c, image_size=image_size, crop_box=None if full else self.crop_box,
-                       cache=self._cache.mode, workers=self._workers)
+        return self._view(image_size, self._cache.mode)
 
     def with_cache(self, cache: str) -> Dataset:
         """The same view of the dataset with another image cache (``cache`` as for :meth:`open`), sharing
         its tables and held frames (:meth:`hold_frames`), without reading the folder again."""
+        return self._view(self.image_size, cache)
+
+    def _view(self, image_size: Sequence[int], cache: str) -> Dataset:
         full = self.crop_box == (0, 0, *self.source_image_size)
-        return Dataset(self._c, image_size=self.image_size, crop_box=None if full else self.crop_box,
+        return Dataset(self._c, image_size=image_size, crop_box=None if full else self.crop_box,
                        cache=cache, workers=self._workers)
 
     def __len__(self) -> int:

@@ -286,7 +286,9 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
                              stride=cfg.stride if coarse_stride is None else coarse_stride,
                              lr=cfg.lr if coarse_lr is None else coarse_lr)
     coarse_data: Any = data
-    if _hold_frames(ds, cfg, log):  # the coarse pass reads the same disk cache as from the folder
+    # a coarse pass still to train decodes the frames; the coarse pass reads the same disk cache as from the
+    # folder
+    if not (out / "coarse" / "model.pt").is_file() and _hold_frames(ds, cfg, log):
         coarse_data = ds.with_cache("disk")
     with _StageClock(out, "coarse") as clock:
         results["coarse"] = _train_pass(train, coarse_data, out / "coarse", coarse_cfg, command, log,
