@@ -30,6 +30,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
                         ".rrd file given here (needs rerun-sdk; default: off)")
+    parser.add_argument("--fps", type=number(gt=0), default=None,
+                        help="frame rate of sources that record none (image folders and patterns; default: "
+                        "unknown)")
     add_rig_options(parser)
 
 
@@ -82,10 +85,15 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
+    if args.fps:
+        for source in sources.values():
+            source.fps = source.fps or float(args.fps)
     cams, boxes = _cameras(args, sources, detector.input_size)
     log = rerun_logger(detector.keypoints, list(sources), args.rerun) if args.rerun else None
     summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
-    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else "")
+    unknown = [name for name, s in sources.items() if not s.fps]
+    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else
+            f"; the frame rate of {', '.join(unknown)} is unknown (--fps gives it)")
     if summary.behind > 1:
         pace += f", up to {summary.behind} frames behind"
     print(f"s3k stream: {summary.frames} frames in {summary.seconds:.2f} s, {summary.fps:.1f} frames/s{pace}"

@@ -60,10 +60,12 @@ class FileSource(Source):
     """A video file or an image sequence (:mod:`s3k.data.video`)."""
 
     def __init__(self, spec: str) -> None:
-        from s3k.data import video
+        from s3k.data import imageseq, video
 
         self.spec, self.live = spec, False
-        self.size, self.fps = video.frame_size(spec), video.frame_rate(spec)
+        self.size = video.frame_size(spec)
+        # an image sequence records no frame rate: unknown (0) unless ``s3k stream --fps`` gives it
+        self.fps = 0.0 if imageseq.is_sequence(spec) else video.frame_rate(spec)
         self._frames: Iterator[tuple[int, np.ndarray]] = video.iter_frames(spec)
 
     def read(self) -> np.ndarray | None:
@@ -180,10 +182,10 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
             done = time.perf_counter()
             out.write(_frame_line(i, read - start, keypoints, det.X[0].numpy(), det.valid[0].numpy(),
                                   done - read) + "\n")
+            i += 1  # counted as soon as its line is written: Ctrl-C in the flush or the logger keeps it
             out.flush()
             if log is not None:
-                log(i, views, det)  # type: ignore[arg-type]
-            i += 1
+                log(i - 1, views, det)  # type: ignore[arg-type]
             if live and rate > 0:
                 lag = int((done - start) * rate) - i
                 behind = max(behind, lag)
