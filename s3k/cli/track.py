@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from s3k.data.tracks_csv import write_source
 
-    write_source(summary.path, summary.units, run=args.run, calibration=args.calibration)
+    write_source(summary.path, summary.units, run=args.run, calibration=args.calibration, fps=summary.fps)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
     for k, kp in enumerate(summary.keypoints):
         print(f"  {kp}: {keypoint_line(summary, k)}")

@@ -160,6 +160,7 @@ class TrackSummary:
         min_weight: the threshold used.
         units: world unit of the calibration.
         path: the CSV written.
+        fps: the videos' frame rate (None where they differ or an image sequence records none).
     """
 
     frames: int
@@ -170,6 +171,7 @@ class TrackSummary:
     min_weight: float
     units: str
     path: Path
+    fps: float | None = None
 
 
 def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int | None):
@@ -278,7 +280,18 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     frames = video.prefetch(_frame_batches(inputs, batch, start, end))
     n, keypoints, valid, error, passing = _track(detector, frames, cams, boxes, min_weight, out, overlay,
                                                  inputs, end - start, progress)
-    return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out)
+    return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out,
+                        _common_rate(inputs))
+
+
+def _common_rate(inputs: list[CameraInput]) -> float | None:
+    """The frame rate every video declares (None where they differ or an image sequence records none)."""
+    from s3k.data import imageseq
+
+    if any(imageseq.is_sequence(c.path) for c in inputs):
+        return None
+    rates = [float(c.fps) for c in inputs]
+    return rates[0] if rates and max(rates) - min(rates) <= 1e-3 * max(rates) else None
 
 
 def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):

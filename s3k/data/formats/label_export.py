@@ -17,6 +17,7 @@ videos in SLEAP.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -200,7 +201,7 @@ def export_tracks(
     fmt: str,
     out: str | Path,
     *,
-    fps: float,
+    fps: float | None = None,
     calibration: str | Path | None = None,
     units: str | None = None,
     overwrite: bool = False,
@@ -211,14 +212,16 @@ def export_tracks(
         csv_path: the anipose-style 3D CSV.
         fmt: ``"nwb"``.
         out: the ``.nwb`` file.
-        fps: frame rate of the videos (timestamps are ``fnum / fps``).
+        fps: frame rate of the videos (timestamps are ``fnum / fps``); default the one ``s3k track`` wrote
+            beside the CSV (:func:`s3k.data.tracks_csv.read_source`).
         calibration: the anipose ``calibration.toml`` of the rig, stored with the tracks and giving the unit.
         units: world unit (default: the calibration's, else the one ``s3k track`` / ``s3k predict`` wrote
             beside the CSV, :func:`s3k.data.tracks_csv.read_source`).
         overwrite: replace an existing file.
 
     Raises:
-        UserError: the unit is not known (none given, no calibration, nothing beside the CSV): never guessed.
+        UserError: the unit or the frame rate is not known (none given, no calibration, nothing beside the
+            CSV): never guessed.
     """
     import csv
 
@@ -261,9 +264,25 @@ def export_tracks(
     if source is not None and source["units"] not in (units, "unknown"):
         print(f"warning: {csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
               f"written as {units}", file=sys.stderr)
+    if fps is None:
+        fps = _source_rate(source)
+    if fps is None:
+        raise UserError(f"{csv_path}: the frame rate of its frames is not known (no "
+                        f"{source_path(csv_path).name} with it, as 's3k track' writes from videos)",
+                        hint="pass --fps (e.g. --fps 30)")
     path = write_nwb_tracks(out, keypoints, fnums, X, score, fps=fps, units=units, rig=rig,
                             description=f"3D keypoints from {csv_path.name} (s3k)")
     return path, units
+
+
+def _source_rate(source: dict[str, str] | None) -> float | None:
+    """The frame rate recorded beside a 3D CSV (``fps`` of its ``.s3k.json``), None when absent or not a
+    positive finite number."""
+    try:
+        fps = float((source or {}).get("fps", "nan"))
+    except ValueError:
+        return None
+    return fps if math.isfinite(fps) and fps > 0 else None
 
 
 def _column(path: Path, header: list[str], names: list[str], fnums: np.ndarray) -> np.ndarray:
