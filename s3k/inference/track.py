@@ -190,8 +190,11 @@ def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int 
         yield fnums, frames
 
 
-def _stack_views(frames: list[list[np.ndarray]]) -> list[np.ndarray]:
-    """``B`` frames of ``C`` images -> ``C`` arrays ``(B, H_c, W_c, 3)`` (:class:`s3k.detector.Detector`)."""
+def _stack_views(frames: list[list[np.ndarray]]) -> np.ndarray | list[np.ndarray]:
+    """``B`` frames of ``C`` images -> one array ``(B, C, H, W, 3)`` when the cameras' sizes agree, else ``C``
+    arrays ``(B, H_c, W_c, 3)`` (:class:`s3k.detector.Detector`)."""
+    if len({f.shape for frame in frames for f in frame}) == 1:
+        return np.stack([np.stack(frame) for frame in frames])
     return [np.stack([f[c] for f in frames]) for c in range(len(frames[0]))]
 
 
