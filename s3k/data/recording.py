@@ -175,6 +175,18 @@ def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
     return counts
 
 
+def _recorded(path: str | Path, out: str | Path) -> str:
+    """How ``s3k.json`` records a source file: absolute when given absolute, else relative to the dataset
+    folder ``out`` (read back with :func:`s3k.fileio.resolve_from`), so that a dataset moved together with
+    its recording keeps finding it."""
+    import os
+
+    path = Path(path)
+    if path.is_absolute():
+        return str(path)
+    return Path(os.path.relpath(path.resolve(), Path(out).resolve())).as_posix()
+
+
 def import_recording(
     calibration: str | Path,
     videos: Mapping[str, str | Path],
@@ -328,9 +340,9 @@ def import_recording(
 
     source = {
         "importer": kind,
-        "calibration": str(Path(calibration).resolve()),
-        "videos": {cam: str(Path(p).resolve()) for cam, p in videos.items()},
-        "labels": {cam: str(Path(p).resolve()) for cam, p in files.items()},
+        "calibration": _recorded(calibration, out),
+        "videos": {cam: _recorded(p, out) for cam, p in videos.items()},
+        "labels": {cam: _recorded(p, out) for cam, p in files.items()},
         "crop_boxes": {cam: list(b) for cam, b in zip(cameras, boxes)},
         "source_image_size": {cam: [int(v) for v in rig.size[c]] for c, cam in enumerate(cameras)},
         "split_seed": seed,

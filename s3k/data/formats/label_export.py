@@ -89,7 +89,9 @@ def video_references(ds: Any, tables: dict[str, LabelTable]) -> dict[str, Any]:
     if maps is not None:
         for cam in ds.cameras:
             tables[cam].uv = transform_points(tables[cam].uv, np.linalg.inv(maps[cam]))
-        return {cam: str(ds.source["videos"][cam]) for cam in ds.cameras}
+        from s3k.fileio import resolve_from
+
+        return {cam: str(resolve_from(ds.path, ds.source["videos"][cam])) for cam in ds.cameras}
     if np.array_equal(np.sort(ds.frame_ids), np.arange(len(ds.frame_ids))):
         return {cam: [str(_image_path(ds, cam, f)) for f in range(len(ds.frame_ids))] for cam in ds.cameras}
     return {cam: f"{cam}.mp4" for cam in ds.cameras}
