@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"max 3D difference from PyTorch's detector on {report.frames_3d} frames: "
               f"{report.max_diff_mm:.3g} mm (tolerance {report.tolerance_mm:g} mm)")
     if not report.ok:
-        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model within "
-              f"{report.tolerance:g}", file=sys.stderr)
+        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model: "
+              f"{'; '.join(report.failures())}", file=sys.stderr)
         return 1
     return 0

@@ -123,8 +123,19 @@ class ExportReport:
 
     @property
     def ok(self) -> bool:
-        points_ok = self.max_diff_mm is None or self.max_diff_mm <= self.tolerance_mm
-        return points_ok and all(np.isfinite(v) and v <= self.tolerance for v in self.max_diff.values())
+        return not self.failures()
+
+    def failures(self) -> list[str]:
+        """The checks that failed, each in words with its figure and bound (empty when all passed)."""
+        out = [f"output {key} differs from PyTorch's by {value:.3g} (--tolerance {self.tolerance:g})"
+               for key, value in self.max_diff.items()
+               if not (np.isfinite(value) and value <= self.tolerance)]
+        if self.max_diff_mm is not None and not self.max_diff_mm <= self.tolerance_mm:
+            what = (f"by {self.max_diff_mm:.3g} mm" if np.isfinite(self.max_diff_mm)
+                    else "in which keypoints are triangulated")
+            out.append(f"the exported detector's 3D points differ from PyTorch's detector's {what} on "
+                       f"{self.frames_3d} frames (3D tolerance {self.tolerance_mm:g} mm)")
+        return out
 
 
 def output_names(with_moments: bool) -> list[str]:
@@ -336,12 +347,13 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
         report.path = out.with_suffix(".json")
         report.path.write_text(json.dumps(doc, indent=1) + "\n")
         report.files.append(report.path)
-    report.max_diff_mm, report.frames_3d = _verify_points(run_dir, report.path, fmt, verify_data)
+    report.max_diff_mm, report.frames_3d = _verify_points(run_dir, report.path, fmt, verify_data,
+                                                          None if is_two_pass(run_dir) else checkpoint)
     return report
 
 
-def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
-                   ) -> tuple[float | None, int]:
+def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None,
+                   checkpoint: str | None = None) -> tuple[float | None, int]:
     """The largest 3D difference (mm) between the exported detector and PyTorch's on up to 8 frames of
     ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
     from s3k.data import Dataset
@@ -357,7 +369,7 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"warning: cannot read frames from {data} to compare 3D points ({exc})", file=sys.stderr)
         return None, 0
-    ref = Detector.load(run_dir, "cpu")(images, cams)
+    ref = Detector.load(run_dir, "cpu", checkpoint=checkpoint)(images, cams)  # the network exported
     got = load_exported(path, fmt)(images, cams)
     both = ref.valid & got.valid
     if bool((ref.valid != got.valid).any()):
@@ -384,8 +396,13 @@ def read_exported_meta(path: str | Path, fmt: str):
 
     if fmt == "onnx":
         import onnx
+        from google.protobuf.message import DecodeError
 
-        props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+        try:
+            model = onnx.load(str(path), load_external_data=False)
+        except DecodeError:
+            raise UserError(f"{path}: not an ONNX file (it does not decode as one)") from None
+        props = {p.key: p.value for p in model.metadata_props}
         text = props.get(META_KEY)
     else:
         extra = {f"{META_KEY}.json": ""}
@@ -395,22 +412,91 @@ def read_exported_meta(path: str | Path, fmt: str):
         text = extra[f"{META_KEY}.json"] or None
     if not text:
         raise UserError(f"{path}: no {META_KEY} in the file; not exported by s3k export")
-    return DetectorMeta.from_dict(json.loads(text))
+    try:
+        meta = DetectorMeta.from_dict(json.loads(text))
+        if len(meta.image_size) != 2 or not meta.keypoints or int(meta.stride) < 1:
+            raise ValueError("image_size, keypoints or stride")
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(f"{path}: its {META_KEY} is not an s3k detector's metadata ({exc})") from None
+    return meta
+
+
+def _two_pass_doc(path: Path) -> dict:
+    """The ``.json`` of a two-pass export, checked: its format, the crop rule's finite positive extent and
+    size, and the two pass files, plain names of files in its own folder.
+
+    Raises:
+        UserError: one line naming the file and the field.
+    """
+    import math
+
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise UserError(f"{path}: not a two-pass export of s3k (not JSON: {str(exc).splitlines()[0]})"
+                        ) from None
+    if not isinstance(doc, dict) or doc.get("format") != EXPORTED_TWO_PASS:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise UserError(f"{path}: not a two-pass export of s3k (format {found!r}, expected "
+                        f"{EXPORTED_TWO_PASS!r})")
+    missing = [k for k in ("coarse", "fine", "extent", "size") if k not in doc]
+    if missing:
+        raise UserError(f"{path}: field(s) {', '.join(missing)} missing (written by s3k export?)")
+    for key, positive in (("extent", True), ("size", True), ("margin", False)):
+        value = doc.get(key, 0.0)
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok or (positive and value <= 0) or (key == "size" and value != int(value)):
+            raise UserError(f"{path}: field {key!r} is {value!r}; expected a finite "
+                            + ("positive whole number" if key == "size" else "positive number" if positive
+                               else "number"))
+    folder = path.resolve().parent
+    for key in ("coarse", "fine"):
+        name = doc[key]
+        target = (folder / str(name)).resolve() if isinstance(name, str) and name else None
+        if target is None or Path(name).is_absolute() or target.parent != folder:
+            raise UserError(f"{path}: field {key!r} is {name!r}; expected the name of a file beside it in "
+                            f"{folder} (no folder, no '..')")
+        if not target.is_file():
+            raise UserError(f"{path}: field {key!r} names {name}, which is not in {folder}")
+    return doc
+
+
+def _runtime(path: Path, asked: str | None, recorded: str | None) -> str:
+    """The runtime to load ``path`` with: ONNX unless the caller asks for TorchScript (``fmt``), since a
+    TorchScript file is a program, not only weights."""
+    if asked is not None:
+        if asked not in FORMATS:
+            raise UserError(f"{path}: format {asked!r}; expected one of {', '.join(FORMATS)}")
+        return asked
+    kind = recorded or ("onnx" if path.suffix == ".onnx" else "torchscript")
+    if kind != "onnx":
+        raise UserError(f"{path} is a TorchScript export, which runs code from the file; load_exported runs "
+                        "only ONNX unless asked", hint="pass fmt='torchscript' if you trust the file, or "
+                        "export with --format onnx")
+    return kind
 
 
 def load_exported(path: str | Path, fmt: str | None = None):
-    """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime (or
-    TorchScript): a one-pass file, or the ``.json`` a two-pass export writes beside its two files."""
+    """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime: a
+    one-pass file, or the ``.json`` a two-pass export writes beside its two files (checked: its fields, its
+    crop rule's finite extent, its files inside its own folder). TorchScript files run only with
+    ``fmt="torchscript"``: they hold code.
+
+    Raises:
+        UserError: one line naming the file and the field, or a TorchScript file not asked for.
+    """
     from s3k.detector import CropRule, OnePassDetector, TwoPassDetector
 
     path = Path(path)
     if path.suffix == ".json":
-        doc = json.loads(path.read_text())
-        if doc.get("format") != EXPORTED_TWO_PASS:
-            raise UserError(f"{path}: not a two-pass export of s3k (format {doc.get('format')!r})")
-        runtime = fmt or str(doc.get("runtime", "onnx"))
-        passes = [load_exported(path.with_name(str(doc[name])), runtime) for name in ("coarse", "fine")]
+        doc = _two_pass_doc(path)
+        runtime = _runtime(path, fmt, str(doc.get("runtime", "onnx")))
+        folder = path.resolve().parent
+        passes = [load_exported(folder / str(doc[name]), runtime) for name in ("coarse", "fine")]
         rule = CropRule(float(doc["extent"]), int(doc["size"]), float(doc.get("margin", 0.0)))
         return TwoPassDetector(passes[0], passes[1], rule)  # type: ignore[arg-type]
-    runtime = fmt or ("onnx" if path.suffix == ".onnx" else "torchscript")
-    return OnePassDetector(_ExportedNetwork(path, runtime), read_exported_meta(path, runtime), "cpu")
+    runtime = _runtime(path, fmt, None)
+    if not path.is_file():
+        raise FileNotFoundError(2, "exported detector not found", str(path))
+    meta = read_exported_meta(path, runtime)  # first: it refuses a file that is not an export in one line
+    return OnePassDetector(_ExportedNetwork(path, runtime), meta, "cpu")
