@@ -205,6 +205,19 @@ def _residual_rows(names, res, loo) -> list[CameraResidual]:
     return rows
 
 
+def identical_cameras(cams: Cameras, names: list[str]) -> list[str]:
+    """``"A and B have identical calibration parameters"`` for every pair of cameras ``(C,)`` or ``(B, C)``
+    whose parameters are equal (a copy error; the first finding of :func:`check_calibration`, which needs
+    no labels)."""
+    cams = _as_cameras(cams)
+    C = len(names)
+    lead = len(cams.shape)
+    fields = [v.reshape(-1, C, *v.shape[lead:]) for v in cams.numpy().values()]
+    return [f"{names[a]} and {names[b]} have identical calibration parameters"
+            for a in range(C) for b in range(a + 1, C)
+            if all(np.array_equal(v[:, a], v[:, b]) for v in fields)]
+
+
 def check_calibration(
     cams: Cameras,
     uv,
@@ -237,13 +250,7 @@ def check_calibration(
     if np.asarray(uv).ndim == 4 and np.asarray(uv).shape[1] != C:
         raise ValueError(f"names has {C} cameras, uv has {np.asarray(uv).shape[1]}")
     res = reprojection_residuals(cams, uv, mask)
-    lead = len(cams.shape)
-    fields = [v.reshape(-1, C, *v.shape[lead:]) for v in cams.numpy().values()]
-    notes = []
-    for a in range(C):
-        for b in range(a + 1, C):
-            if all(np.array_equal(v[:, a], v[:, b]) for v in fields):
-                notes.append(f"{names[a]} and {names[b]} have identical calibration parameters")
+    notes = identical_cameras(cams, names)
     loo = leave_one_out_residuals(cams, uv, mask)
     if min_px is None:
         if image_size is None:

@@ -132,3 +132,12 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    add_other_rig_option(parser)
+
+
+def add_other_rig_option(parser: argparse.ArgumentParser) -> None:
+    """``--other-rig``: use a run on cameras (or a dataset's keypoints) it was not trained on
+    (:func:`s3k.inference.rig_check.check_rig`)."""
+    parser.add_argument("--other-rig", action="store_true",
+                        help="use the run on cameras, keypoints or images other than those it was trained on "
+                        "(refused by default: its results there are wrong)")

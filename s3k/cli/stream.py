@@ -60,6 +60,9 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
     calib = calib.select(names)
+    from s3k.inference.track import _say_calibration
+
+    _say_calibration(args.run, calib, names, args.calibration)
     crops = parse_crops(args.crop, names) if args.crop else None
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
     for line in notes:
@@ -83,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
+    if not args.other_rig:
+        from s3k.inference.rig_check import check_rig
+
+        check_rig(args.run, list(specs), what="--sources")
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
     if args.fps:

@@ -87,6 +87,10 @@ def run(args: argparse.Namespace) -> int:
     videos = parse_videos(args.videos)
     check_output(args.out, args.overwrite,
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
+    if not args.other_rig:
+        from s3k.inference.rig_check import check_rig
+
+        check_rig(args.run, list(videos), what="--videos")
     if args.overlay:
         check_output_folder(args.overlay, inputs={"--calibration": args.calibration}, option="--overlay")
     crops = parse_crops(args.crop, list(videos)) if args.crop else None

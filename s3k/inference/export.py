@@ -33,6 +33,7 @@ from s3k import readout
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
+from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
 
 __all__ = [
     "FORMATS",
@@ -51,11 +52,9 @@ __all__ = [
     "verification_images",
 ]
 
-FORMATS = ("onnx", "torchscript")
 META_KEY = "s3k_meta"
 DEFAULT_TOLERANCE = 1e-4
 DEFAULT_TOLERANCE_MM = 0.1
-EXPORTED_TWO_PASS = "s3k-exported-two-pass/1"
 TRACE_BATCH = 2
 
 
@@ -421,61 +420,6 @@ def read_exported_meta(path: str | Path, fmt: str):
     return meta
 
 
-def _two_pass_doc(path: Path) -> dict:
-    """The ``.json`` of a two-pass export, checked: its format, the crop rule's finite positive extent and
-    size, and the two pass files, plain names of files in its own folder.
-
-    Raises:
-        UserError: one line naming the file and the field.
-    """
-    import math
-
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise UserError(f"{path}: not a two-pass export of s3k (not JSON: {str(exc).splitlines()[0]})"
-                        ) from None
-    if not isinstance(doc, dict) or doc.get("format") != EXPORTED_TWO_PASS:
-        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise UserError(f"{path}: not a two-pass export of s3k (format {found!r}, expected "
-                        f"{EXPORTED_TWO_PASS!r})")
-    missing = [k for k in ("coarse", "fine", "extent", "size") if k not in doc]
-    if missing:
-        raise UserError(f"{path}: field(s) {', '.join(missing)} missing (written by s3k export?)")
-    for key, positive in (("extent", True), ("size", True), ("margin", False)):
-        value = doc.get(key, 0.0)
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-        if not ok or (positive and value <= 0) or (key == "size" and value != int(value)):
-            raise UserError(f"{path}: field {key!r} is {value!r}; expected a finite "
-                            + ("positive whole number" if key == "size" else "positive number" if positive
-                               else "number"))
-    folder = path.resolve().parent
-    for key in ("coarse", "fine"):
-        name = doc[key]
-        target = (folder / str(name)).resolve() if isinstance(name, str) and name else None
-        if target is None or Path(name).is_absolute() or target.parent != folder:
-            raise UserError(f"{path}: field {key!r} is {name!r}; expected the name of a file beside it in "
-                            f"{folder} (no folder, no '..')")
-        if not target.is_file():
-            raise UserError(f"{path}: field {key!r} names {name}, which is not in {folder}")
-    return doc
-
-
-def _runtime(path: Path, asked: str | None, recorded: str | None) -> str:
-    """The runtime to load ``path`` with: ONNX unless the caller asks for TorchScript (``fmt``), since a
-    TorchScript file is a program, not only weights."""
-    if asked is not None:
-        if asked not in FORMATS:
-            raise UserError(f"{path}: format {asked!r}; expected one of {', '.join(FORMATS)}")
-        return asked
-    kind = recorded or ("onnx" if path.suffix == ".onnx" else "torchscript")
-    if kind != "onnx":
-        raise UserError(f"{path} is a TorchScript export, which runs code from the file; load_exported runs "
-                        "only ONNX unless asked", hint="pass fmt='torchscript' if you trust the file, or "
-                        "export with --format onnx")
-    return kind
-
-
 def load_exported(path: str | Path, fmt: str | None = None):
     """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime: a
     one-pass file, or the ``.json`` a two-pass export writes beside its two files (checked: its fields, its
@@ -489,13 +433,13 @@ def load_exported(path: str | Path, fmt: str | None = None):
 
     path = Path(path)
     if path.suffix == ".json":
-        doc = _two_pass_doc(path)
-        runtime = _runtime(path, fmt, str(doc.get("runtime", "onnx")))
+        doc = two_pass_doc(path)
+        runtime = runtime_of(path, fmt, str(doc.get("runtime", "onnx")))
         folder = path.resolve().parent
         passes = [load_exported(folder / str(doc[name]), runtime) for name in ("coarse", "fine")]
         rule = CropRule(float(doc["extent"]), int(doc["size"]), float(doc.get("margin", 0.0)))
         return TwoPassDetector(passes[0], passes[1], rule)  # type: ignore[arg-type]
-    runtime = _runtime(path, fmt, None)
+    runtime = runtime_of(path, fmt, None)
     if not path.is_file():
         raise FileNotFoundError(2, "exported detector not found", str(path))
     meta = read_exported_meta(path, runtime)  # first: it refuses a file that is not an export in one line

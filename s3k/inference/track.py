@@ -276,6 +276,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
             calib = calib.with_video_regions(video_regions)  # type: ignore[arg-type]
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
+    _say_calibration(run_dir, calib, [c for c in videos if c in calib.names], calibration)
     detector = Detector.load(run_dir, device)
     inputs, cams = prepare_cameras(videos, calib, detector.input_size, fit, crops)
     end = _frame_range(inputs, start, stop)
@@ -285,6 +286,17 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                                                  inputs, end - start, progress)
     return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out,
                         _common_rate(inputs))
+
+
+def _say_calibration(run_dir, calib, names: list[str], source) -> None:
+    """Print on stderr what :func:`s3k.inference.rig_check.calibration_notes` finds in the calibration of
+    the cameras ``names``: copies, and how it differs from the run's."""
+    from s3k.inference.rig_check import calibration_notes
+
+    rig = calib.select(names)
+    sizes = {n: (int(w), int(h)) for n, (w, h) in zip(rig.names, rig.size)}
+    for line in calibration_notes(run_dir, rig.cameras, rig.names, rig.units, sizes, source):
+        print(line, file=sys.stderr)
 
 
 def _common_rate(inputs: list[CameraInput]) -> float | None:
