@@ -37,11 +37,14 @@ SHOTS = os.environ.get("S3K_SCREENSHOTS")
 class Server:
     """The app on a free loopback port, in a thread of this process."""
 
-    def __init__(self, data: Path, run: Path | None = None) -> None:
+    def __init__(self, data: Path, run: Path | None = None, record: list | None = None) -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
-        config = uvicorn.Config(create_app(data, run), host="127.0.0.1", port=self.port, log_level="warning")
+        self.app = app = create_app(data, run)
+        if record is not None:  # every answer's (method, path, status), as the server sent it
+            app = recording(app, record)
+        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
@@ -56,6 +59,18 @@ class Server:
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=10)
+
+
+def recording(app, log: list):
+    async def recorded(scope, receive, send):
+        async def sent(message):
+            if message["type"] == "http.response.start":
+                log.append((scope["method"], scope["path"], message["status"]))
+            await send(message)
+
+        await app(scope, receive, sent if scope["type"] == "http" else send)
+
+    return recorded
 
 
 @pytest.fixture
@@ -388,3 +403,82 @@ def test_screenshots_of_the_box_scene(tmp_path, browser):
             page.wait_for_selector("body[data-ready='1']")
             page.wait_for_selector("#ranking li")
             shot(page, "label-suggestions.png")
+
+
+ATTACK = """<!doctype html><html><body><script>
+// another site's page: forms (every encoding a form has) and no-cors fetches to each state-changing route
+const target = TARGET, paths = PATHS;
+const body = {version: 0, edits: [{camera: "cam0", keypoint: "a", u: 5, v: 5}], first: 0, last: 3,
+              overwrite: true, add: ["a", "c"], unlock: true};
+const text = JSON.stringify(body);
+let n = 0;
+for (const path of paths) {
+  for (const enctype of ["application/x-www-form-urlencoded", "multipart/form-data", "text/plain"]) {
+    const name = `f${n++}`;
+    const frame = document.createElement("iframe");
+    frame.name = name;
+    document.body.appendChild(frame);
+    const form = document.createElement("form");
+    Object.assign(form, {action: target + path, method: "POST", enctype, target: name});
+    const input = document.createElement("input");  // text/plain sends name=value: a JSON body
+    Object.assign(input, {type: "hidden", name: text.slice(0, -1) + ', "x": "', value: '"}'});
+    form.appendChild(input);
+    document.body.appendChild(form);
+    form.submit();
+  }
+  fetch(target + path, {method: "POST", mode: "no-cors", body: text,
+                        headers: {"Content-Type": "application/json"}}).catch(() => {});
+  fetch(target + path, {method: "POST", mode: "no-cors"}).catch(() => {});
+}
+</script></body></html>"""
+
+
+def test_a_page_of_another_origin_cannot_change_the_labels(tmp_path, browser):
+    """The page of another site (another port of 127.0.0.1) submits forms and no-cors fetches to every
+    state-changing route of the app: the server refuses each, and nothing in the dataset changes."""
+    import http.server
+    import json
+
+    from s3k.label.propagate import propagate_labels
+    from s3k.label.store import Edit
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    uv = truth.uv(0)
+    LabelStore.open(truth.path).save(0, [Edit(CAMERAS[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                         for k, kp in enumerate(["a", "b", "c"]) for c in (0, 1)], None)
+    propagate_labels(truth.path, 0, 2)  # something for /api/propagate/undo to undo
+    before = {p.name: p.read_bytes() for p in sorted(truth.path.rglob("*")) if p.is_file()}
+    log: list = []
+    server = Server(truth.path, record=log)
+    changing = {"POST", "PUT", "PATCH", "DELETE"}  # every such route of the app, a later one too
+    paths = sorted({route.path.replace("{frame}", "4") for route in server.app.routes
+                    if getattr(route, "methods", None) and route.methods & changing})
+    assert "/api/propagate/undo" in paths and "/api/frame/4/label" in paths
+    with server as url:
+        page = ATTACK.replace("TARGET", json.dumps(url.rstrip("/"))).replace("PATHS", json.dumps(paths))
+
+        class Attacker(http.server.BaseHTTPRequestHandler):
+            def do_GET(self):  # noqa: N802 - http.server's name
+                self.send_response(200)
+                self.send_header("Content-Type", "text/html")
+                self.end_headers()
+                self.wfile.write(page.encode())
+
+            def log_message(self, *args):
+                pass
+
+        evil = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Attacker)
+        threading.Thread(target=evil.serve_forever, daemon=True).start()
+        try:
+            tab = browser.new_page()
+            tab.goto(f"http://127.0.0.1:{evil.server_address[1]}/")
+            deadline = time.monotonic() + 60
+            while len([e for e in log if e[0] == "POST"]) < 5 * len(paths):  # 3 forms, 2 fetches a route
+                assert time.monotonic() < deadline, log
+                tab.wait_for_timeout(50)
+        finally:
+            evil.shutdown()
+    posts = [e for e in log if e[0] == "POST"]
+    assert sorted({p for _, p, _ in posts}) == paths
+    assert all(status in (403, 415) for _, _, status in posts), posts
+    assert {p.name: p.read_bytes() for p in sorted(truth.path.rglob("*")) if p.is_file()} == before

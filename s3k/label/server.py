@@ -21,7 +21,11 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
   "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
 
-Request bodies larger than :data:`MAX_BODY_BYTES` are refused unread (413). Files are served only from the
+Every request that changes the dataset (any method but GET, HEAD and OPTIONS) must come from the app's own
+page or from a script, never from another web page: an ``Origin`` (or, without one, a ``Sec-Fetch-Site``)
+other than the server's own is refused (403), and so is a body that is not ``application/json`` (415), which a
+form or a ``no-cors`` fetch of another page cannot send. Request bodies larger than :data:`MAX_BODY_BYTES`
+are refused unread (413). Files are served only from the
 package's ``static`` folder; images only by frame id and camera name, so no
 request names a path. Bound to another interface than the loopback, every request must carry the token the
 server printed (``?token=`` in the first URL, then a cookie).
@@ -149,6 +153,34 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": message, **extra}, status_code=status)
 
 
+def _cross_site(request: Request) -> JSONResponse | None:
+    """Why a state-changing request is refused as possibly sent by another web page (None: it is not).
+
+    A page elsewhere can make the browser send a form or a ``no-cors`` fetch to this server (the Host check
+    passes: the browser names 127.0.0.1). Such a request names its page's origin in ``Origin`` (or, from
+    some browsers, only ``Sec-Fetch-Site``), and it cannot carry ``Content-Type: application/json`` without
+    the server's consent (a CORS preflight, which this server never grants). So a request is taken only when
+    its origin is this server's own (same scheme, host and port) or unnamed (a script, not a browser page),
+    and its body is JSON.
+    """
+    own = f"{request.url.scheme}://{request.headers.get('host', '')}".lower()
+    origin = request.headers.get("origin")
+    if origin is not None:
+        if origin.strip().lower() != own:
+            return _error(403, f"cross-site request refused: origin {origin!r} is not this app's ({own}); "
+                               "edit the labels from the page s3k label serves")
+    else:
+        site = request.headers.get("sec-fetch-site")
+        if site is not None and site.strip().lower() not in ("same-origin", "none"):
+            return _error(403, f"cross-site request refused: Sec-Fetch-Site is {site!r}; edit the labels "
+                               "from the page s3k label serves")
+    kind = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if kind != "application/json":
+        return _error(415, f"Content-Type {kind or 'missing'!r} refused: every request that changes the "
+                           "dataset must send application/json")
+    return None
+
+
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
                up: Up = UP, ignore_geometry: bool = False) -> FastAPI:
@@ -183,6 +215,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             host = request.headers.get("host", "").rsplit(":", 1)[0].strip("[]")
             if host not in allowed_hosts:
                 return _error(400, f"host {host!r} refused; open the URL s3k label printed")
+        if request.method not in ("GET", "HEAD", "OPTIONS"):
+            refused = _cross_site(request)
+            if refused is not None:
+                return refused
         given = None
         if token is not None:
             given = request.query_params.get("token") or request.cookies.get(TOKEN_COOKIE) \
