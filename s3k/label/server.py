@@ -13,13 +13,17 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   ``version`` is stale, 400 naming the field when an edit is invalid, 403 for a test frame (its labels are
   held out for evaluation) unless ``unlock`` is true.
 - ``POST /api/frame/{frame}/undo``: ``{"version", "unlock"}``; reverts the frame's latest edit not yet undone
-  (the history keeps both), 400 when there is none.
+  (the history keeps both), 400 when there is none. ``POST /api/frame/{frame}/redo``: the same body; reverts
+  the latest undo not yet redone, 400 when there is none (or the frame was edited since).
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
   run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
   ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
-  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
+  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels` (refusals in the page's words), with
+  ``per_frame`` (``{frame: [new, replaced]}``); ``POST /api/propagate/undo`` undoes the latest.
+- ``POST /api/skeleton``: ``{"add": [a, b]}`` or ``{"remove": [a, b]}``; the dataset's skeleton (edges between
+  keypoints, drawn in every view) after the change, written to ``s3k.json`` (:mod:`s3k.label.skeleton`).
 
 Every request that changes the dataset (any method but GET, HEAD and OPTIONS) must come from the app's own
 page or from a script, never from another web page: an ``Origin`` (or, without one, a ``Sec-Fetch-Site``)
@@ -69,6 +73,11 @@ class SaveIn(BaseModel):
 class UndoIn(BaseModel):
     version: int
     unlock: bool = False
+
+
+class SkeletonIn(BaseModel):
+    add: list[str] | None = None  # [keypoint, keypoint]
+    remove: list[str] | None = None
 
 
 class PropagateIn(BaseModel):
@@ -282,12 +291,19 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/frame/{frame}/undo")
     def undo(frame: int, body: UndoIn) -> Any:
+        return step(frame, body, state.store.undo)
+
+    @app.post("/api/frame/{frame}/redo")
+    def redo(frame: int, body: UndoIn) -> Any:
+        return step(frame, body, state.store.redo)
+
+    def step(frame: int, body: UndoIn, how: Any) -> Any:
         frame_or_404(frame)
         refused = locked(frame, body.unlock)
         if refused is not None:
             return refused
         try:
-            state.store.undo(frame, body.version)
+            how(frame, body.version)
         except StaleVersion as exc:
             return _error(409, str(exc), current=state.frame_state(frame))
         except UserError as exc:
@@ -318,17 +334,18 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
-        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
+        from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels
 
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
                                       store=state.store, overwrite=body.overwrite, allow_test=body.allow_test,
-                                      dry_run=body.dry_run)
+                                      dry_run=body.dry_run, words=APP_WORDS)
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": result.source, "frames": result.frames, "keypoints": result.keypoints,
-                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run}
+                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run,
+                "per_frame": {str(f): list(n) for f, n in sorted(result.per_frame.items())}}
 
     @app.post("/api/propagate/undo")
     def propagate_undo() -> Any:
@@ -339,6 +356,17 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": source, "frames": frames}
+
+    @app.post("/api/skeleton")
+    def skeleton(body: SkeletonIn) -> Any:
+        from s3k.label.skeleton import edit_skeleton
+
+        try:
+            edges = edit_skeleton(state.root, state.dataset.keypoints, add=body.add, remove=body.remove)
+        except UserError as exc:
+            return _error(400, str(exc))
+        state.dataset.skeleton = edges
+        return {"skeleton": [list(e) for e in edges]}
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
