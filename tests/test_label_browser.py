@@ -393,6 +393,21 @@ def test_screenshots_of_the_box_scene(tmp_path, browser):
         wait_version(page, 2)
         page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
         shot(page, "label-reprojection.png")
+    # the whole window at 1500x900: every keypoint labelled in two views, the skeleton joining them
+    from s3k.label.skeleton import edit_skeleton
+    from s3k.label.store import Edit
+
+    K = len(ds.keypoints)
+    for k in range(K):
+        edit_skeleton(data, ds.keypoints, add=[ds.keypoints[k], ds.keypoints[(k + 1) % K]])
+    LabelStore.open(data).save(0, [Edit(ds.cameras[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                   for k, kp in enumerate(ds.keypoints) for c in (0, 3)], None)
+    with Server(data) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        assert page.locator(".view[data-camera=cam1] line.bone").count() == K
+        shot(page, "label-window.png")
     run = os.environ.get("S3K_LABEL_RUN")
     if run:
         with Server(data, Path(run)) as url:
@@ -547,7 +562,6 @@ def test_at_1500x900_the_views_fill_the_window_with_the_skeleton_drawn_and_edite
         page.click("#skeleton li[data-edge='a-b'] button")
         page.wait_for_selector("#skeleton li[data-edge='a-b']", state="detached")
         assert page.locator(".view[data-camera=cam1] line.bone").count() == 1
-        shot(page, "label-1500x900.png")
         assert errors == []
     assert Dataset.open(truth.path).skeleton == [("b", "c")]
 
