@@ -361,10 +361,16 @@ function showFrame(state) {
 
 function markRanking() {  // the current frame's entry of the ranking: highlighted and scrolled into sight
   const f = app.frame ? app.frame.frame : null;
-  for (const li of document.querySelectorAll("#ranking li")) {
+  const list = document.getElementById("ranking");
+  for (const li of list.querySelectorAll("li")) {
     const on = +li.dataset.frame === f;
     li.classList.toggle("current", on);
-    if (on) li.scrollIntoView({ block: "nearest" });
+    if (!on) continue;
+    // the list's own scroll only: the sidebar and the page stay where the user left them
+    const outer = list.getBoundingClientRect();
+    const inner = li.getBoundingClientRect();
+    if (inner.top < outer.top) list.scrollTop -= outer.top - inner.top;
+    else if (inner.bottom > outer.bottom) list.scrollTop += inner.bottom - outer.bottom;
   }
 }
 
