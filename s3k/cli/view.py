@@ -13,10 +13,10 @@ from s3k.errors import UserError
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Show in Rerun, over time: the cameras (frusta with their images), the 3D keypoints with the "
-        "skeleton and each keypoint's confidence, and their 2D reprojections in every view. TARGET is the 3D "
-        "CSV of 's3k track' (with --videos for the images), a dataset folder (its labels and 3D points), or a run "
-        "folder (its detections on --data's --split, beside the ground truth). A viewer is spawned, or "
-        "--save writes a .rrd file to open later with 'rerun FILE.rrd'."
+        "skeleton and each keypoint's confidence, and their 2D reprojections in every view. TARGET is the "
+        "3D CSV of 's3k track' (with --videos for the images), a dataset folder (its labels and 3D points), "
+        "or a run folder (its detections on --data's --split, beside the ground truth). A viewer is spawned, "
+        "or --save writes a .rrd file to open later with 'rerun FILE.rrd'."
     )
     parser.epilog = examples(
         "s3k view points3d.csv --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
