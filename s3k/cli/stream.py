@@ -102,6 +102,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if close is not None:
             close()
+    if args.rerun and args.rerun != "spawn":
+        from s3k.inference.rerun_log import recording_summary
+
+        saved = recording_summary(args.rerun)
+        print(f"s3k stream: wrote {args.rerun}: {len(saved['frames'])} frames, {saved['bytes'] / 1e6:.2f} MB "
+              f"({saved['bytes_per_frame'] / 1e6:.3f} MB a frame)", file=sys.stderr)
     pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else "")
     if summary.behind > 1:
         pace += f", up to {summary.behind} frames behind"
