@@ -169,8 +169,8 @@ def test_view_dataset_logs_labels_and_ground_truth(dataset, tmp_path):
 
 def test_view_run_logs_detections_beside_the_truth(dataset, tmp_path):
     meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"],
-                        image_size=(32, 32), stride=2, sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict(),
-                        skeleton=[("a", "c")])
+                        image_size=(32, 32), stride=2, sigma=2.0, skeleton=[("a", "c")],
+                        model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
     run = save_run(tmp_path / "run", meta, seed=0, dataset=str(dataset), head_std=0.5)
     rrd = tmp_path / "run.rrd"
     assert cli.main(["view", str(run), "--data", str(dataset), "--save", str(rrd), "--no-images"]) == 0
@@ -211,8 +211,9 @@ def test_view_opens_the_real_recordings_tracks_with_cameras_images_and_skeleton(
     pytest.importorskip("sleap_io")
     rrd = tmp_path / "real.rrd"
     argv = ["view", str(REPO / "docs/results/real/tracked-s3k.csv"),
-            "--calibration", str(REAL / "calibration.toml"), "--videos", *REAL_VIDEOS, "--skeleton", str(REAL / "back" / "minimal_back_proofread.slp"),
-            "--max-frames", "4", "--image-scale", "1", "--save", str(rrd)]
+            "--calibration", str(REAL / "calibration.toml"), "--videos", *REAL_VIDEOS,
+            "--skeleton", str(REAL / "back" / "minimal_back_proofread.slp"), "--max-frames", "4",
+            "--image-scale", "1", "--save", str(rrd)]
     assert cli.main(argv) == 0
     summary = recording_summary(rrd)
     for cam in ("back", "mid", "side", "top"):
@@ -230,7 +231,8 @@ def test_stream_rerun_of_the_real_recording_is_under_a_megabyte_a_frame(tmp_path
     for scale in ("0.5", "1"):
         rrd = tmp_path / f"stream-{scale}.rrd"
         assert cli.main(["stream", str(run), "--calibration", str(REAL / "calibration.toml"),
-                         "--max-frames", "3", "--rerun", str(rrd), "--image-scale", scale, "--sources", *REAL_VIDEOS]) == 0
+                         "--max-frames", "3", "--rerun", str(rrd), "--image-scale", scale,
+                         "--sources", *REAL_VIDEOS]) == 0
         summary = recording_summary(rrd)
         assert summary["frames"] == [0, 1, 2]
         assert {"/world/cameras/side/image", "/world/cameras/side/detections", "/world/skeleton"} <= set(
