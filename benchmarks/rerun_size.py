@@ -4,11 +4,12 @@
     python benchmarks/rerun_size.py --out docs/results/benchmarks/rerun-size.json
 
 Measured: ``s3k stream RUN --rerun FILE.rrd`` over the first ``--frames`` frames of the four videos at
-``--image-scale`` 0.5 (the default) and 1 (full size), JPEG quality 75, with an untrained tiny detector of the
-recording's 15 keypoints and skeleton (the recording's size does not depend on the detector's accuracy);
-``s3k view`` of the committed tracks ``docs/results/real/tracked-s3k.csv`` with the videos at both scales; and,
-as the baseline, the same views logged as the stream logged them before (raw ``rr.Image`` per view and the 3D
-points). The last line is one JSON object with the figures, the commands, the git revision and the machine.
+``--image-scale`` 0.5 (the default) and 1 (full size), JPEG quality 75, with an untrained tiny detector of
+the recording's 15 keypoints and skeleton (the recording's size does not depend on the detector's accuracy);
+``s3k view`` of the committed tracks ``docs/results/real/tracked-s3k.csv`` with the videos at both scales;
+and, as the baseline, the same views logged as the stream logged them before (raw ``rr.Image`` per view and
+the 3D points). The last line is one JSON object with the figures, the commands, the git revision and the
+machine.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ def _tiny_run(path: Path, real: Path) -> Path:
 
     skeleton = sio.load_slp(str(real / "back" / "minimal_back_proofread.slp"), open_videos=False).skeletons[0]
     meta = DetectorMeta(keypoints=list(skeleton.node_names), cameras=list(CAMERAS), image_size=(64, 52),
-                        stride=2, sigma=2.0, units="mm", model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict(),
-                        skeleton=list(skeleton.edge_names))
+                        stride=2, sigma=2.0, units="mm", skeleton=list(skeleton.edge_names),
+                        model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
     torch.manual_seed(0)
     path.mkdir(parents=True)
     write_run_config(path, {}, meta)
@@ -57,7 +58,7 @@ def _baseline(path: Path, videos: list[str], frames: int) -> None:
 
     from s3k.data.video import synchronized_frames
 
-    rec = rr.RecordingStream("s3k stream (before)")
+    rec = rr.RecordingStream("s3k_stream_before")
     rec.save(str(path))
     for i, views in synchronized_frames(videos, 0, frames):
         rec.set_time("frame", sequence=i)
@@ -68,8 +69,18 @@ def _baseline(path: Path, videos: list[str], frames: int) -> None:
     rec.disconnect()
 
 
+def _relative(arg: str, tmp: str) -> str:
+    """A command's argument with the repository's root and the work folder left out of its paths."""
+    arg = arg.replace(tmp, "TMP")
+    if "/" in arg and Path(arg.split("=", 1)[-1]).is_absolute():
+        head, sep, path = arg.rpartition("=")
+        return head + sep + os.path.relpath(path, ROOT)
+    return arg
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--real", default=str(REAL), help="the recording's folder (default: %(default)s)")
     parser.add_argument("--frames", type=int, default=20, help="frames to log (default %(default)s)")
     parser.add_argument("--out", default=None, help="JSON file to write")
@@ -107,7 +118,8 @@ def main() -> None:
         figures["stream_before_raw_images"] = {"frames": args.frames, "bytes": size,
                                                "mb_per_frame": round(size / args.frames / 1e6, 4)}
     result = {"benchmark": "rerun_size", "view_size": [1280, 1024], "views": len(CAMERAS), "jpeg_quality": 75,
-              "figures": figures, "commands": {k: "s3k " + " ".join(v) for k, v in commands.items()},
+              "figures": figures, "commands": {k: "s3k " + " ".join(_relative(a, tmp) for a in v)
+                                               for k, v in commands.items()},
               "command": "python benchmarks/rerun_size.py " + " ".join(sys.argv[1:]),
               "git_revision": git_revision(), "machine": machine_info()}
     finish(result, started, args.out)
