@@ -149,11 +149,12 @@ def dlc_project_config(csv_path: str | Path) -> Path | None:
 
 
 def anipose_project_config(calibration: str | Path) -> Path | None:
-    """anipose's ``config.toml`` beside a ``calibration.toml`` or in one of the two folders above it (a
-    project keeps it at the top, sessions' calibrations below), when it has a ``[labeling] scheme``."""
+    """anipose's ``config.toml`` beside a ``calibration.toml`` or in one of the three folders above it (a
+    project keeps it at the top, a session's calibration in ``SESSION/calibration/``; the same folders as the
+    board's unit is looked for in), when it has a ``[labeling] scheme``."""
     start = Path(calibration).resolve()
     folder = start if start.is_dir() else start.parent
-    for candidate in (folder, folder.parent, folder.parent.parent):
+    for candidate in [folder, *folder.parents][:4]:
         config = candidate / "config.toml"
         if config.is_file() and config != start:
             try:
