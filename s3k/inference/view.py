@@ -18,6 +18,7 @@ The skeleton is the dataset's, the run's, or ``--skeleton FILE``'s (any file
 from __future__ import annotations
 
 import csv
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,6 +139,10 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
     source = read_source(csv_path) or {}
     calibration = calibration or source.get("calibration")
     if not calibration:
+        if source.get("dataset"):
+            raise UserError(f"{csv_path}: points of the dataset {source['dataset']} ('s3k predict'), not of "
+                            "videos", hint=f"show them with s3k view {source.get('run', 'RUN')} --data "
+                            f"{source['dataset']}, or give the rig's calibration with --calibration")
         raise UserError(f"{csv_path}: no calibration named beside it (no {csv_path.name}.s3k.json)",
                         hint="give the rig's calibration with --calibration")
     keypoints, fnums, X, score = read_tracks(csv_path)
@@ -147,9 +152,15 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
     if unknown:
         raise UserError(f"--videos: camera {unknown[0]!r} is not in {calibration} (its cameras are "
                         f"{', '.join(rig.names)})")
-    rig = rig.with_sizes({c: video.frame_size(p) for c, p in videos.items()})
+    sizes = {c: video.frame_size(p) for c, p in videos.items()}
+    rig = rig.with_sizes(sizes)
     names = list(videos) or list(rig.names)
     rig = rig.select(names)
+    for c, name in enumerate(names):
+        if name in sizes and tuple(sizes[name]) != tuple(int(v) for v in rig.size[c]):
+            print(f"warning: --videos {name}: frames of {sizes[name][0]}x{sizes[name][1]} px but {calibration} "
+                  f"gives {rig.size[c][0]}x{rig.size[c][1]}; the reprojections assume the calibrated image",
+                  file=sys.stderr)
     skeleton = run_skeleton(source["run"]) if source.get("run") else []
     rows = {int(f): i for i, f in enumerate(fnums)}
     frames = opts.pick(sorted(rows))
