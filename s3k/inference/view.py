@@ -158,8 +158,9 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
     rig = rig.select(names)
     for c, name in enumerate(names):
         if name in sizes and tuple(sizes[name]) != tuple(int(v) for v in rig.size[c]):
-            print(f"warning: --videos {name}: frames of {sizes[name][0]}x{sizes[name][1]} px but {calibration} "
-                  f"gives {rig.size[c][0]}x{rig.size[c][1]}; the reprojections assume the calibrated image",
+            W, H = sizes[name]
+            print(f"warning: --videos {name}: frames of {W}x{H} px but {calibration} gives "
+                  f"{rig.size[c][0]}x{rig.size[c][1]}; the reprojections assume the calibrated image",
                   file=sys.stderr)
     skeleton = run_skeleton(source["run"]) if source.get("run") else []
     rows = {int(f): i for i, f in enumerate(fnums)}
