@@ -509,16 +509,22 @@ def test_real_sleap_project_matches_its_analysis_file():
 EDGES = [("a", "b"), ("b", "c")]
 
 
-@pytest.mark.parametrize("fmt", ["dlc", "sleap"])
-def test_skeleton_round_trips_through_sleap_and_dlc(rec, tmp_path, fmt):
-    """s3k -> DLC project / SLEAP project (read by PyYAML / sleap-io as those tools read them) -> s3k."""
+@pytest.mark.parametrize("fmt", ["dlc", "sleap", "nwb"])
+def test_skeleton_round_trips_through_sleap_dlc_and_nwb(rec, tmp_path, fmt):
+    """s3k -> DLC project / SLEAP project / NWB (read by PyYAML / sleap-io / pynwb as those tools read them)
+    -> s3k."""
     import yaml
 
     ds_path, _ = _dataset(rec, tmp_path / "ds")
     assert Dataset.open(ds_path, cache="none").skeleton == EDGES
-    out = tmp_path / ("x.slp" if fmt == "sleap" else "export")
+    out = tmp_path / {"sleap": "x.slp", "nwb": "x.nwb"}.get(fmt, "export")
     assert main(["export-labels", str(ds_path), "--format", fmt, "--out", str(out), "--no-images"]) == 0
-    if fmt == "sleap":
+    if fmt == "nwb":
+        with pynwb.NWBHDF5IO(str(out), "r") as io:
+            skeleton = io.read().processing["behavior"]["Skeletons"].skeletons["s3k"]
+            np.testing.assert_array_equal(skeleton.edges[:], [[0, 1], [1, 2]])
+        labels = ["--nwb", str(out)]
+    elif fmt == "sleap":
         assert sio.load_slp(str(out), open_videos=False).skeletons[0].edge_names == EDGES
         labels = ["--sleap", str(out)]
     else:
