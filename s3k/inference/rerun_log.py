@@ -17,8 +17,9 @@ Entities (the timeline is ``frame``: video frame index, or dataset frame id):
   for the ground truth (a dataset's 3D points or triangulated labels);
 - ``confidence/<keypoint>``: each keypoint's confidence as a scalar series.
 
-Rerun puts pixel (0, 0)'s centre at (0.5, 0.5), s3k (and OpenCV) at (0, 0): the logged 2D points and
-principal points are shifted by half a pixel so that they sit on the logged images exactly.
+Rerun puts pixel (0, 0)'s centre at (0.5, 0.5) (rerun-io/rerun#3896), s3k (and OpenCV) at (0, 0): the logged
+2D points and principal points are shifted by half a pixel so that they sit on the logged images exactly. The
+world's up axis (``world``'s ``ViewCoordinates``) is the one nearest the cameras' mean up direction.
 """
 
 from __future__ import annotations
@@ -59,6 +60,15 @@ def _display_map(size: Sequence[int], scale: float) -> tuple[np.ndarray, tuple[i
     return M, out
 
 
+def _world_up(rr: Any, R: np.ndarray) -> Any:
+    """The world's ``ViewCoordinates`` whose up is the world axis nearest the cameras' mean up direction
+    (a camera's up is its -y axis, ``-R[1]`` in world coordinates), so that the 3D view opens upright."""
+    up = -np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)[:, 1].mean(axis=0)
+    axis = int(np.argmax(np.abs(up)))
+    name = f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if up[axis] > 0 else 'DOWN'}"
+    return getattr(rr.ViewCoordinates, name)
+
+
 def _apply(M: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.asarray(uv, dtype=np.float64) @ M[:2, :2].T + M[:2, 2]
 
@@ -95,7 +105,7 @@ class RerunLog:
         self.image_scale, self.jpeg_quality = float(image_scale), int(jpeg_quality)
         self.radius = {"mm": 2.0, "cm": 0.2, "m": 0.002}.get(units, 0.002)
         self._maps: dict[str, np.ndarray] = {}
-        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV's world axes as the default view
+        self._up_logged = False
 
     def close(self) -> None:
         """Flush and close the recording (the ``.rrd`` file is complete after it)."""
@@ -116,6 +126,9 @@ class RerunLog:
         frame."""
         rr = self.rr
         arrays = cams.numpy() if hasattr(cams, "numpy") else cams
+        if not self._up_logged:
+            self.rec.log("world", _world_up(rr, arrays["R"]), static=True)
+            self._up_logged = True
         for c, cam in enumerate(self.cameras):
             M, out = _display_map(sizes[c], self.image_scale)
             self._maps[cam] = M
