@@ -54,3 +54,37 @@ def test_a_run_records_its_datasets_skeleton(tmp_path):
     assert older.recorded_skeleton() == [("a", "b"), ("c", "b")]
     unknown = DetectorMeta.from_dict({**recorded.to_dict(), "skeleton": [], "geometry": None})
     assert unknown.recorded_skeleton() == []
+
+
+def test_track_overlay_draws_the_runs_skeleton(tmp_path, monkeypatch):
+    from test_track import CAMERAS, KEYPOINTS, NET_SIZE, VIDEO_SIZE, make_rig
+    from tiny_detector import save_run
+
+    import s3k.draw
+    from s3k import cli
+    from s3k.data.formats.anipose import write_anipose_calibration
+    from s3k.data.video import write_video
+    from s3k.model import UNetConfig
+
+    calib = tmp_path / "calibration.toml"
+    write_anipose_calibration(calib, make_rig())
+    W, H = VIDEO_SIZE
+    for name in CAMERAS:
+        write_video(tmp_path / f"{name}.mkv", [np.full((H, W, 3), 90, np.uint8)] * 2, fps=25, codec="ffv1")
+    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=2,
+                        sigma=2.0, units="mm", skeleton=[("tail", "nose")],
+                        model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0)
+    edges, real = [], s3k.draw.draw_overlay
+
+    def draw(*args, **kwargs):
+        edges.append(args[5])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(s3k.draw, "draw_overlay", draw)
+    assert cli.main(["track", str(run), "--videos", *[f"{c}={tmp_path / c}.mkv" for c in CAMERAS],
+                     "--calibration", str(calib), "--out", str(tmp_path / "p.csv"), "--overlay",
+                     str(tmp_path / "ov"), "--no-progress"]) == 0
+    assert len(edges) == 2 * len(CAMERAS)
+    for e in edges:
+        np.testing.assert_array_equal(e, [[KEYPOINTS.index("tail"), KEYPOINTS.index("nose")]])
