@@ -138,6 +138,18 @@ def test_view_refuses_what_it_cannot_show(tracks, tmp_path, capsys):
     (tmp_path / "there.rrd").write_text("mine")
     assert cli.main(["view", str(tracks["csv"]), "--save", str(tmp_path / "there.rrd")]) == 1
     assert (tmp_path / "there.rrd").read_text() == "mine"
+    short = {c: tmp_path / f"short-{c}.mkv" for c in CAMERAS}
+    for path in short.values():
+        write_video(path, [np.zeros((VIDEO_SIZE[1], VIDEO_SIZE[0], 3), np.uint8)] * 3, fps=25, codec="ffv1")
+    assert cli.main(["view", str(tracks["csv"]), "--videos", *[f"{c}={p}" for c, p in short.items()],
+                     "--save", str(tmp_path / "there.rrd"), "--overwrite"]) == 1
+    assert f"frame {FRAMES - 1} is beyond the 3 frames of --videos" in capsys.readouterr().err
+    # a recording that fails on the way leaves the file it was to replace as it was
+    from s3k.inference.rerun_log import RerunLog
+
+    with pytest.raises(RuntimeError), RerunLog("s3k view", tmp_path / "there.rrd", KEYPOINTS, CAMERAS):
+        raise RuntimeError("failed on the way")
+    assert (tmp_path / "there.rrd").read_text() == "mine" and not list(tmp_path.glob("*.partial"))
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -99,9 +99,12 @@ def run(args: argparse.Namespace) -> int:
                                   args.rerun, args.image_scale, args.jpeg_quality)
     try:
         summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
-    finally:
+    except BaseException:
         if close is not None:
-            close()
+            close(False)
+        raise
+    if close is not None:
+        close(True)
     if args.rerun and args.rerun != "spawn":
         from s3k.inference.rerun_log import recording_summary
 

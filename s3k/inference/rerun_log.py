@@ -95,10 +95,19 @@ class RerunLog:
             raise UserError(f"--jpeg-quality {jpeg_quality}: give a quality from 1 to 100")
         rr = self.rr = rerun_module("--rerun" if app == "s3k stream" else "s3k view")
         self.rec = rr.RecordingStream(app)
+        self._file: Path | None = None
         if str(target) == "spawn":
-            self.rec.spawn()
+            try:
+                self.rec.spawn()
+            except Exception as exc:  # noqa: BLE001 - the viewer could not be started, whatever the cause
+                raise UserError(f"the Rerun viewer could not be started ({exc})",
+                                hint="write a file with --save FILE.rrd (s3k view) or --rerun FILE.rrd "
+                                     "(s3k stream) and open it with: rerun FILE.rrd") from None
         else:
-            self.rec.save(str(Path(target)))
+            # written beside the target and renamed over it once complete: a failed run leaves the old file
+            self._file = Path(target)
+            self._file.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(str(self._partial))
         self.keypoints, self.cameras = list(keypoints), list(cameras)
         self.edges = edge_indices(skeleton, self.keypoints)
         self.colours = np.array(keypoint_colours(len(self.keypoints)), dtype=np.uint8)
@@ -107,16 +116,27 @@ class RerunLog:
         self._maps: dict[str, np.ndarray] = {}
         self._up_logged = False
 
-    def close(self) -> None:
-        """Flush and close the recording (the ``.rrd`` file is complete after it)."""
+    @property
+    def _partial(self) -> Path:
+        assert self._file is not None
+        return self._file.with_name(self._file.name + ".partial")
+
+    def close(self, keep: bool = True) -> None:
+        """Flush and close the recording; a ``.rrd`` file is complete after it, in its place (``keep``), or
+        removed with the target left as it was (``keep=False``, after a failure)."""
         self.rec.flush()
         self.rec.disconnect()
+        if self._file is not None and self._partial.exists():
+            if keep:
+                self._partial.replace(self._file)
+            else:
+                self._partial.unlink()
 
     def __enter__(self) -> RerunLog:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(keep=exc_type is None)
 
     # -- cameras and images ---------------------------------------------------------------------------------
 

@@ -201,11 +201,11 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
 
 
 def rerun_logger(detector, cameras: list[str], cams, sizes: list[tuple[int, int]], target: str,
-                 image_scale: float = 0.5, jpeg_quality: int = 75) -> tuple[Callable, Callable[[], None]]:
+                 image_scale: float = 0.5, jpeg_quality: int = 75) -> tuple[Callable, Callable[[bool], None]]:
     """A ``log`` for :func:`stream` that sends the rig's cameras, the views (downscaled by ``image_scale``,
     JPEG), the detections, the 3D points with their skeleton and confidence, and their reprojections to Rerun
     (:class:`s3k.inference.rerun_log.RerunLog`): ``target`` "spawn" (a viewer), or a ``.rrd`` file to write.
-    Returns ``(log, close)``."""
+    Returns ``(log, close)``; ``close(keep)`` completes the file (or, ``keep=False``, removes it)."""
     from s3k.inference.rerun_log import RerunLog
 
     rec = RerunLog("s3k stream", target, detector.keypoints, cameras, detector.meta.recorded_skeleton(),

@@ -167,6 +167,11 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
     frames = opts.pick(sorted(rows))
     if not frames:
         raise UserError(f"{csv_path}: no frames to show between --start {opts.start} and --stop {opts.stop}")
+    for name, path in videos.items() if opts.images else ():
+        count = video.frame_count(path)
+        if frames[-1] >= count:
+            raise UserError(f"{csv_path}: frame {frames[-1]} is beyond the {count} frames of --videos "
+                            f"{name}={path}", hint=f"give the videos the tracks came from, or --stop {count}")
     with opts.recorder(keypoints, names, skeleton, rig.units) as rec:
         rec.cameras_at(rig.cameras, [tuple(int(v) for v in s) for s in rig.size])
         streams = [video.iter_frames(videos[c], frames) for c in names] if videos and opts.images else None
