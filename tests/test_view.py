@@ -234,6 +234,19 @@ def test_view_opens_the_real_recordings_tracks_with_cameras_images_and_skeleton(
     strips = _column(rrd, "/world/skeleton", "LineStrips3D:strips")
     assert [len(s) for s in strips.values()] == [14] * 4  # every edge of the mouse's skeleton
     assert summary["bytes_per_frame"] < 1e6  # four 1280x1024 views
+    # the reprojections sit on the mouse: within a few pixels of the proofread labels in the cameras whose
+    # shipped calibration is right (side's copies top's: about 92 px off, the recording's README says)
+    from s3k.data.formats.sleap import read_sleap_analysis
+
+    for cam, most in (("mid", 10.0), ("top", 10.0), ("side", None)):
+        labels = read_sleap_analysis(REAL / cam / f"minimal_{cam}_proofread.analysis.h5")
+        positions = _column(rrd, f"/world/cameras/{cam}/reprojections", "Points2D:positions")
+        names = _column(rrd, f"/world/cameras/{cam}/reprojections", "Points2D:labels")
+        # full size: Rerun's pixels are s3k's moved by half a pixel
+        off = [np.linalg.norm(np.array(uv) - 0.5 - labels.uv[f, labels.keypoints.index(k)])
+               for f in range(4) for k, uv in zip(names[f], positions[f])]
+        median = float(np.nanmedian(off))
+        assert (median < most) if most else (median > 50), (cam, median)
 
 
 @needs_real
