@@ -157,6 +157,9 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
     names = list(videos) or list(rig.names)
     rig = rig.select(names)
     for c, name in enumerate(names):
+        if min(int(v) for v in rig.size[c]) <= 0:
+            raise UserError(f"{calibration}: camera {name} has no image size (the file does not give one)",
+                            hint=f"give its video with --videos {name}=FILE")
         if name in sizes and tuple(sizes[name]) != tuple(int(v) for v in rig.size[c]):
             W, H = sizes[name]
             print(f"warning: --videos {name}: frames of {W}x{H} px but {calibration} gives "
