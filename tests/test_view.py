@@ -123,6 +123,15 @@ def test_view_tracks_logs_cameras_images_points_skeleton_confidence_reprojection
     np.testing.assert_allclose(_column(rrd, "/confidence/tail", "Scalars:scalars")[4], [0.34], rtol=1e-6)
 
 
+def test_view_tracks_without_videos_shows_cameras_and_points(tracks, tmp_path):
+    rrd = tmp_path / "bare.rrd"
+    assert cli.main(["view", str(tracks["csv"]), "--start", "2", "--step", "2", "--save", str(rrd)]) == 0
+    summary = recording_summary(rrd)
+    assert summary["frames"] == [2, 4] and "/world/cameras/left/image" not in summary["entities"]
+    assert {"/world/cameras/left", "/world/cameras/left/reprojections", "/world/keypoints"} <= set(
+        summary["entities"])
+
+
 def test_view_refuses_what_it_cannot_show(tracks, tmp_path, capsys):
     assert cli.main(["view", str(tracks["csv"]), "--split", "test", "--save", str(tmp_path / "x.rrd")]) == 1
     assert "--split is for a dataset or a run" in capsys.readouterr().err
