@@ -171,10 +171,13 @@ def write_dlc_config(path: str | Path, keypoints: Sequence[str], skeleton: Seque
     """Write a DeepLabCut project's ``config.yaml`` with the keys its label readers use: ``Task``,
     ``scorer``, ``project_path``, ``video_sets``, ``bodyparts``, ``skeleton`` (pairs) and the drawing
     defaults."""
-    import yaml
-
     from s3k.fileio import atomic_path
 
+    try:
+        import yaml
+    except ImportError as exc:  # pragma: no cover - installed with s3k's "formats" extra
+        raise UserError(f"{path}: writing DeepLabCut's config.yaml needs PyYAML ({exc})",
+                        hint="pip install 's3k[formats]'") from exc
     path = Path(path)
     doc = {
         "Task": task, "scorer": scorer, "date": "", "multianimalproject": False,
