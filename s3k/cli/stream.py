@@ -28,8 +28,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=number(int, ge=1), default=None,
                         help="stop after this many frames (default: until a source ends, or Ctrl-C)")
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
-                        help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
-                        ".rrd file given here (needs rerun-sdk; default: off)")
+                        help="log the cameras, views, detections, 3D points with their skeleton and "
+                        "confidence to a Rerun viewer (spawned), or to a .rrd file given here (needs "
+                        "rerun-sdk; default: off)")
+    parser.add_argument("--image-scale", type=number(float, gt=0, le=1), default=0.5,
+                        help="--rerun: size of the logged views relative to the sources' (default "
+                        "%(default)s)")
+    parser.add_argument("--jpeg-quality", type=number(int, ge=1, le=100), default=75,
+                        help="--rerun: JPEG quality of the logged views (default %(default)s)")
     parser.add_argument("--fps", type=number(gt=0), default=None,
                         help="frame rate of sources that record none (image folders and patterns; default: "
                         "unknown)")
@@ -82,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import camera_pairs
     from s3k.detector import Detector
     from s3k.inference.stream import open_source, rerun_logger, stream
+    from s3k.outputs import check_output
 
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
@@ -90,14 +97,33 @@ def run(args: argparse.Namespace) -> int:
         from s3k.inference.rig_check import check_rig
 
         check_rig(args.run, list(specs), what="--sources")
+    if args.rerun and args.rerun != "spawn":
+        check_output(args.rerun, True, inputs={"--calibration": args.calibration, "RUN": args.run},
+                     option="--rerun")
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
     if args.fps:
         for source in sources.values():
             source.fps = source.fps or float(args.fps)
     cams, boxes = _cameras(args, sources, detector.input_size)
-    log = rerun_logger(detector.keypoints, list(sources), args.rerun) if args.rerun else None
-    summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
+    log, close = None, None
+    if args.rerun:
+        log, close = rerun_logger(detector, list(sources), cams, [s.size for s in sources.values()],
+                                  args.rerun, args.image_scale, args.jpeg_quality)
+    try:
+        summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
+    except BaseException:
+        if close is not None:
+            close(False)
+        raise
+    if close is not None:
+        close(True)
+    if args.rerun and args.rerun != "spawn":
+        from s3k.inference.rerun_log import recording_summary
+
+        saved = recording_summary(args.rerun)
+        print(f"s3k stream: wrote {args.rerun}: {len(saved['frames'])} frames, {saved['bytes'] / 1e6:.2f} MB "
+              f"({saved['bytes_per_frame'] / 1e6:.3f} MB a frame)", file=sys.stderr)
     unknown = [name for name, s in sources.items() if not s.fps]
     pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else
             f"; the frame rate of {', '.join(unknown)} is unknown (--fps gives it)")

@@ -316,13 +316,14 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
 
     from s3k.data import video
     from s3k.data.tracks_csv import csv_rows, write_csv
-    from s3k.draw import draw_overlay, keypoint_colours
+    from s3k.draw import draw_overlay, edge_indices, keypoint_colours
 
     writers = []
     if overlay is not None:
         Path(overlay).mkdir(parents=True, exist_ok=True)
         writers = [video.VideoWriter(Path(overlay) / f"{c.name}.mp4", c.fps) for c in inputs]
     colours = keypoint_colours(len(detector.keypoints))
+    edges = edge_indices(detector.meta.recorded_skeleton(), detector.keypoints)
     n, valids, errors, passing = 0, [], [], []
     try:
         with write_csv(out, detector.keypoints) as writer:
@@ -333,7 +334,8 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
                 reproj, uv, used = result.reproj.numpy(), result.uv.numpy(), result.used.numpy()
                 for c, w in enumerate(writers):
                     for b in range(len(fnums)):
-                        w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours))
+                        w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours,
+                                             edges))
                 valids.append(result.valid.numpy())
                 errors.append(result.error.numpy())
                 passing.append((result.ncams >= 2).numpy())

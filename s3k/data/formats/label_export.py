@@ -2,7 +2,8 @@
 (``s3k export-tracks``).
 
 Formats: ``dlc`` (one DeepLabCut CSV per camera, ``labeled-data/<camera>/CollectedData_<scorer>.csv``, with
-the labelled images beside it), ``lightning-pose`` (Lightning Pose's multi-view layout:
+the labelled images beside it, and the project's ``config.yaml`` with the bodyparts and the skeleton),
+``lightning-pose`` (Lightning Pose's multi-view layout:
 ``CollectedData_<camera>.csv`` per view, the same frames on the same rows of every view, images under
 ``labeled-data/<camera>/``), ``sleap`` (one ``.slp`` project, a video per camera, a recording session with
 the calibration) and ``nwb`` (ndx-pose training frames, cameras as calibrated devices).
@@ -176,6 +177,9 @@ def export_labels(
 
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder for --format {fmt}")
+    config = out / "config.yaml"
+    if fmt == "dlc" and config.exists() and not overwrite:
+        raise UserError(f"{config} exists", hint="pass --overwrite to replace it")
     written = []
     for cam, table in tables.items():
         # DLC: the frames labelled in this camera; Lightning Pose: the same frames on the same rows of every
@@ -195,6 +199,12 @@ def export_labels(
         written.append(write_dlc_csv(path, table, names, scorer=scorer))
         if images:
             _write_images(ds, ids[keep], c=ds.cameras.index(cam), paths=[out / n for n in names])
+    if fmt == "dlc" and written:
+        from s3k.data.formats.skeleton import write_dlc_config
+
+        # the project's config.yaml: its bodyparts and skeleton, which DeepLabCut and s3k import read
+        written.append(write_dlc_config(config, ds.keypoints, ds.skeleton, scorer,
+                                        [str(p.parent.name) for p in written], Path(ds.path).name))
     return written
 
 
