@@ -65,7 +65,7 @@ def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | No
                         f"{', '.join(trained)} the run {run_dir} was trained on: another rig, where its "
                         "results would be wrong", hint=hint)
     model = [str(k) for k in meta.get("keypoints") or []]
-    if keypoints is not None and model and list(keypoints) != model:
+    if keypoints is not None and model and set(keypoints) != set(model):  # matched by name, in any order
         raise UserError(f"{what}: the dataset's keypoints {', '.join(keypoints)} are not the run's "
                         f"{', '.join(model)} ({run_dir}): another object, whose points would be named after "
                         "the run's keypoints", hint=hint)
