@@ -168,6 +168,13 @@ def test_frames_the_detector_would_misread_are_refused_in_one_line():
         detector(frames.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3), cams)
     with pytest.raises(UserError, match="describe 64x64 px frames"):
         detector(frames[:, :, ::2, ::2], cams)
+    # a calibration whose principal point lies off the centre, as calibrated ones do: still told apart
+    off = Cameras(cams.K.clone(), cams.dist, cams.R, cams.t)
+    off.K[:, 0, 2] += 3.0
+    off.K[:, 1, 2] -= 2.0
+    detector(frames, off)
+    with pytest.raises(UserError, match=r"camera 0's frames are 128x128 px"):
+        detector(frames.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3), off)
     # four cameras' arrays of four frames each, or four frames of four cameras: refused, naming the fix
     with pytest.raises(UserError, match=r"reads both as 4 cameras' frames and as 4 frames of 4 cameras"):
         detector(list(frames.unbind(1)), cams)

@@ -194,9 +194,11 @@ describes are refused (:func:`_check_sizes`)."""
 
 
 def _check_sizes(views: list[Tensor], cams: Cameras) -> None:
-    """Refuse frames whose size disagrees with their cameras' intrinsics: a principal point that sits at the
-    same fraction of the frame in both axes (within 2%), as the centre of an image :data:`SIZE_RATIO` times
-    larger or smaller does (frames resized, or cameras of the full frames given with resized ones).
+    """Refuse frames whose size disagrees with their cameras' intrinsics: a principal point that sits at
+    about the same fraction of the frame in both axes (the two ratios within 25%: calibrated principal points
+    lie a few percent off the centre), as the centre of an image :data:`SIZE_RATIO` times larger or smaller
+    does (frames resized, or cameras of the full frames given with resized ones). A crop of a frame whose
+    principal point falls there too is refused as well: :attr:`Detector.check_frames` turns the check off.
 
     Raises:
         UserError: naming the camera, the frame size and the size its intrinsics describe.
@@ -209,7 +211,7 @@ def _check_sizes(views: list[Tensor], cams: Cameras) -> None:
             continue
         su, sv = W / (2 * cx + 1), H / (2 * cy + 1)
         s = (su + sv) / 2
-        if abs(su - sv) <= 0.02 * s and (s >= SIZE_RATIO or s <= 1 / SIZE_RATIO):
+        if abs(su - sv) <= 0.25 * s and (min(su, sv) >= SIZE_RATIO or max(su, sv) <= 1 / SIZE_RATIO):
             raise UserError(
                 f"images: camera {c}'s frames are {W}x{H} px but its intrinsics (principal point "
                 f"{cx:.1f}, {cy:.1f}) describe {2 * cx + 1:.0f}x{2 * cy + 1:.0f} px frames ({s:.2g}x)",
