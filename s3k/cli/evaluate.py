@@ -50,10 +50,11 @@ def run(args: argparse.Namespace) -> int:
         from s3k.detector.geometry_record import check_dataset
 
         check_dataset(args.run, args.data)
-    if args.report:
-        from s3k.outputs import check_output_folder
+    if args.report:  # a new or empty folder, or an earlier report: never over files s3k did not write
+        from s3k.outputs import check_folder, claim_folder
 
-        check_output_folder(args.report, inputs={"RUN": args.run, "--data": args.data}, option="--report")
+        check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report")
+        claim_folder(args.report, "report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
     units = _two_pass_pixels(metrics) if "two_pass" in metrics else None

@@ -19,6 +19,7 @@ from s3k.experiments import (
     describe_plan,
     plan,
     publish,
+    published,
     resummarize,
     run_experiment,
     summarize,
@@ -143,6 +144,11 @@ def run(args: argparse.Namespace) -> int:
 
     exp_dir = Path(args.out) / args.name
     failed: list[str] = []
+    if args.publish:  # before any work: never into a dataset, nor over files s3k did not publish
+        from s3k.outputs import check_folder
+
+        check_folder(args.publish, "published experiment", inputs={"--out": exp_dir}, option="--publish",
+                     owns=lambda folder: published(folder, args.name))
     if args.summarize_only:
         if (exp_dir / "runs").is_dir():
             summary = summarize(exp_dir, args.name)
