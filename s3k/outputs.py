@@ -27,7 +27,7 @@ import os
 import re
 import shutil
 import sys
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Collection, Iterator, Mapping
 from pathlib import Path
 
 from s3k.errors import UserError
@@ -162,17 +162,23 @@ def claim_folder(folder: str | Path, kind: str) -> Path:
     return folder
 
 
-def _first_entry(folder: Path, skip: frozenset[str] = frozenset()) -> Path | None:
-    return next((p for p in sorted(folder.iterdir(), key=lambda p: p.name)
-                 if p.name not in skip and p.name != OUTPUT_MARKER), None)
+def _first_entry(folder: Path, skip: Collection[str] = frozenset(), writes: Collection[str] = frozenset()
+                 ) -> Path | None:
+    """The entry of ``folder`` to name: the first the command would write over (``writes``), else the first
+    one, leaving out ``skip`` (and s3k's marker)."""
+    entries = [p for p in sorted(folder.iterdir(), key=lambda p: p.name)
+               if p.name not in skip and p.name != OUTPUT_MARKER]
+    return next((p for p in entries if p.name in writes), entries[0] if entries else None)
 
 
 def check_folder(path: str | Path, kind: str, inputs: Mapping[str, object] | None = None,
-                 option: str = "--out", owns: Callable[[Path], bool] | None = None) -> Path:
+                 option: str = "--out", owns: Callable[[Path], bool] | None = None,
+                 writes: Collection[str] = (), ours: Collection[str] = ()) -> Path:
     """The rule for a folder a command writes its files into: refuse it when it is a file, a dataset or inside
     one, a run's own file, an input of this call, or a folder that holds files and was not made by s3k for a
     ``kind`` of output (marked by :func:`claim_folder`, or recognised by ``owns``); the message names one of
-    the files that are not s3k's. A new or empty folder is fine."""
+    the files that are not s3k's (one the command would replace, ``writes``, if any; never one of the names
+    s3k's own output of this kind takes, ``ours``, while another is there). A new or empty folder is fine."""
     path = Path(path)
     check_output_folder(path, inputs, option)
     if path.exists() and not path.is_dir():
@@ -182,6 +188,7 @@ def check_folder(path: str | Path, kind: str, inputs: Mapping[str, object] | Non
     first = _first_entry(path)
     if first is None or marked_kind(path) == kind or (owns is not None and owns(path)):
         return path
+    first = _first_entry(path, ours, writes) or first
     raise UserError(f"{option} {path} holds files s3k did not write ({first.name}); s3k writes a {kind} only "
                     f"into a new or empty folder, or one it made for a {kind}",
                     hint=f"give {option} a new folder")
@@ -209,7 +216,7 @@ def check_run_folder(out: str | Path, resume: bool, overwrite: bool, whole: bool
     when ``whole`` (``--overwrite`` deletes the folder, as a two-pass run does), a run beside files that are
     not the run's own."""
     out = Path(out)
-    first = _first_entry(out) if out.is_dir() else None
+    first = _first_entry(out, writes=RUN_NAMES) if out.is_dir() else None
     if first is None:
         return
     if not owns_run(out):

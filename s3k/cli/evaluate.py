@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
     if args.report:  # a new or empty folder, or an earlier report: never over files s3k did not write
         from s3k.outputs import check_folder, claim_folder
 
-        check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report")
+        check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report",
+                     writes={"metrics.json"})
         claim_folder(args.report, "report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)

@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
         from s3k.outputs import check_folder
 
         check_folder(args.publish, "published experiment", inputs={"--out": exp_dir}, option="--publish",
-                     owns=lambda folder: published(folder, args.name))
+                     owns=lambda folder: published(folder, args.name), writes={"README.md", SUMMARY_FILE})
     if args.summarize_only:
         if (exp_dir / "runs").is_dir():
             summary = summarize(exp_dir, args.name)

@@ -88,8 +88,9 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.out, args.overwrite,
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
     if args.overlay:
-        check_folder(args.overlay, "folder of overlay videos", inputs={"--calibration": args.calibration,
-                     "--videos": list(videos.values())}, option="--overlay")
+        check_folder(args.overlay, "folder of overlay videos", option="--overlay",
+                     inputs={"--calibration": args.calibration, "--videos": list(videos.values())},
+                     writes={f"{c}.mp4" for c in videos})
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)

@@ -279,7 +279,8 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
     """Run the whole demo into ``out``; returns ``{"labels only": metrics, "S3K": metrics, ...}``."""
     from s3k.outputs import check_folder, claim_folder
 
-    out = check_folder(out, "demo", owns=is_demo_folder)  # new, empty, or a demo: never someone's files
+    # a new or empty folder, or an earlier demo: never someone's files
+    out = check_folder(out, "demo", owns=is_demo_folder, ours=DEMO_NAMES)
     claim_folder(out, "demo")
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
