@@ -32,10 +32,10 @@ from pathlib import Path
 
 from s3k.errors import UserError
 
-__all__ = ["DATASET_MARKER", "DATASET_NAMES", "OUTPUT_MARKER", "RUN_NAMES", "UNFINISHED_MARKER",
-           "check_companion", "check_folder", "check_output", "check_output_folder", "check_replaceable",
-           "check_run_folder", "claim_folder", "foreign_dataset_file", "is_dataset", "is_run", "made_by_s3k",
-           "owns_run", "recover_folder", "replace_folder", "staging_folder"]
+__all__ = ["DATASET_MARKER", "DATASET_NAMES", "OUTPUT_MARKER", "RUN_NAMES", "RUN_NEIGHBOURS",
+           "UNFINISHED_MARKER", "check_companion", "check_folder", "check_output", "check_output_folder",
+           "check_replaceable", "check_run_folder", "claim_folder", "foreign_dataset_file", "is_dataset",
+           "is_run", "made_by_s3k", "owns_run", "recover_folder", "replace_folder", "staging_folder"]
 
 DATASET_MARKER = "s3k.json"
 """The file that makes a folder a dataset (``s3k.data.tables.METADATA_FILE``)."""
@@ -48,6 +48,10 @@ RUN_NAMES = frozenset({
 })
 """Names a run folder's own files and folders take (``tests/test_outputs.py`` checks them against the
 modules that write them)."""
+
+RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", "cpu.json", "two_pass_options.json"})
+"""Files s3k keeps in a run folder before the run is started: an experiment's lock and result
+(``s3k.experiments``), a two-pass run's options and CPU record."""
 
 
 def is_dataset(folder: Path) -> bool:
@@ -216,7 +220,7 @@ def check_run_folder(out: str | Path, resume: bool, overwrite: bool, whole: bool
     when ``whole`` (``--overwrite`` deletes the folder, as a two-pass run does), a run beside files that are
     not the run's own."""
     out = Path(out)
-    first = _first_entry(out, writes=RUN_NAMES) if out.is_dir() else None
+    first = _first_entry(out, RUN_NEIGHBOURS, writes=RUN_NAMES) if out.is_dir() else None
     if first is None:
         return
     if not owns_run(out):
@@ -225,7 +229,7 @@ def check_run_folder(out: str | Path, resume: bool, overwrite: bool, whole: bool
     if not resume and not overwrite:
         raise UserError(f"{option} {out} already holds a run", hint="pass --resume to continue it or "
                         f"--overwrite to replace it, or choose another {option}")
-    other = _first_entry(out, RUN_NAMES | {"two_pass_options.json"})
+    other = _first_entry(out, RUN_NAMES | RUN_NEIGHBOURS)
     if overwrite and whole and other is not None:
         raise UserError(f"{option} {out} holds {other.name} beside the run, which s3k did not write there; "
                         "--overwrite would delete it",

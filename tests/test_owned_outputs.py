@@ -302,3 +302,12 @@ def test_the_dataset_names_are_those_the_datasets_hold():
     assert {tables.METADATA_FILE, tables.FRAMES_FILE, tables.STATIC_CALIBRATION_FILE,
             tables.PER_FRAME_CALIBRATION_FILE, tables.LABELS_FILE, tables.POINTS3D_FILE, tables.CACHE_DIR,
             store.HISTORY_FILE, store.LOCK_FILE, UNFINISHED_MARKER} == DATASET_NAMES
+
+
+def test_the_run_neighbours_are_those_s3k_keeps_in_a_run_folder():
+    from s3k.experiments import grid, runner
+    from s3k.outputs import RUN_NEIGHBOURS
+    from s3k.train import two_pass, two_pass_start
+
+    names = {runner.LOCK_FILE, grid.RESULT_FILE, two_pass.CPU_FILE, two_pass_start.OPTIONS_FILE}
+    assert names == RUN_NEIGHBOURS

@@ -121,7 +121,6 @@ def _grasp(args: argparse.Namespace) -> int:
 
     if args.trials < 1:
         raise UserError(f"--trials: must be >= 1, got {args.trials}")
-    check_output(args.out, args.overwrite, inputs={"RUN": args.run})  # before the trials: never a lost hour
     source: KeypointSource
     if args.ground_truth:
         source, size, label = ground_truth_keypoints, args.size or 96, "ground_truth"
@@ -141,6 +140,7 @@ def _grasp(args: argparse.Namespace) -> int:
             args.object_seed = _dataset_object_seed(args.run)
     if args.object_seed is None:
         args.object_seed = 0
+    check_output(args.out, args.overwrite, inputs={"RUN": args.run})  # before the trials: never a lost hour
 
     def progress(i: int, r) -> None:
         print(f"trial {i + 1}/{args.trials}: {'success' if r.success else 'failure'} (paw lifted "
