@@ -311,3 +311,22 @@ def test_the_run_neighbours_are_those_s3k_keeps_in_a_run_folder():
 
     names = {runner.LOCK_FILE, grid.RESULT_FILE, two_pass.CPU_FILE, two_pass_start.OPTIONS_FILE}
     assert names == RUN_NEIGHBOURS
+
+
+def test_the_dataset_writer_never_deletes_a_file_put_in_the_dataset(tmp_path):
+    """``s3k robot simulate-insertion --overwrite`` and every other writer of a dataset in place."""
+    from s3k.data import DatasetWriter
+
+    data = _simulated(tmp_path / "ds")
+    (data / "my-notes.txt").write_text("mine\n")
+    with pytest.raises(ValueError, match="my-notes.txt"):
+        DatasetWriter(data, ["a"], ["cam0", "cam1"], (16, 16), overwrite=True)
+    assert (data / "my-notes.txt").read_text() == "mine\n" and (data / "s3k.json").is_file()
+
+
+def test_stream_never_replaces_a_recording_without_overwrite(tmp_path, capsys):
+    rrd = tmp_path / "stream.rrd"
+    rrd.write_bytes(b"an earlier recording")
+    _refused(["stream", str(tmp_path / "run"), "--calibration", str(tmp_path / "calibration.toml"), "--rerun",
+              str(rrd), "--sources", "a=0", "b=1"], capsys, str(rrd), "--overwrite")
+    assert rrd.read_bytes() == b"an earlier recording"

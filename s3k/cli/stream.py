@@ -30,6 +30,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
                         ".rrd file given here (needs rerun-sdk; default: off)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the --rerun file if it exists")
     add_rig_options(parser)
 
 
@@ -80,6 +81,11 @@ def run(args: argparse.Namespace) -> int:
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
+    if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
+        from s3k.outputs import check_output
+
+        check_output(args.rerun, args.overwrite, option="--rerun",
+                     inputs={"--calibration": args.calibration, "--sources": list(specs.values())})
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
     cams, boxes = _cameras(args, sources, detector.input_size)
