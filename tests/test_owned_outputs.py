@@ -330,3 +330,17 @@ def test_stream_never_replaces_a_recording_without_overwrite(tmp_path, capsys):
     _refused(["stream", str(tmp_path / "run"), "--calibration", str(tmp_path / "calibration.toml"), "--rerun",
               str(rrd), "--sources", "a=0", "b=1"], capsys, str(rrd), "--overwrite")
     assert rrd.read_bytes() == b"an earlier recording"
+
+
+def test_experiment_workspace_and_agent_runs_are_never_inside_a_dataset(dataset, user, tmp_path, capsys):
+    before = sorted(p.name for p in dataset.iterdir())
+    _refused(["experiment", "alpha", "--out", str(dataset), "--scale", "toy", "--no-progress"], capsys,
+             "inside the dataset")
+    _refused(["robot", "train-agent", "--out", str(dataset / "agent")], capsys, "inside the dataset")
+    assert sorted(p.name for p in dataset.iterdir()) == before
+    # an experiment's folder of someone's files is not swept into
+    (user / "alpha").mkdir()
+    (user / "alpha" / "README.md").write_text("my alpha notes\n")
+    _refused(["experiment", "alpha", "--out", str(user), "--scale", "toy", "--no-progress"], capsys,
+             "README.md", "s3k did not write")
+    assert (user / "alpha" / "README.md").read_text() == "my alpha notes\n"

@@ -142,10 +142,13 @@ def run(args: argparse.Namespace) -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
+    from s3k.outputs import check_folder
+
     exp_dir = Path(args.out) / args.name
     failed: list[str] = []
+    check_folder(exp_dir, "experiment folder", owns=lambda folder: (folder / "runs").is_dir()
+                 or published(folder, args.name), writes={"runs", "README.md", SUMMARY_FILE})
     if args.publish:  # before any work: never into a dataset, nor over files s3k did not publish
-        from s3k.outputs import check_folder
 
         check_folder(args.publish, "published experiment", inputs={"--out": exp_dir}, option="--publish",
                      owns=lambda folder: published(folder, args.name), writes={"README.md", SUMMARY_FILE})

@@ -166,8 +166,10 @@ def _train_agent(args: argparse.Namespace) -> int:
         import stable_baselines3  # noqa: F401
     except ImportError as exc:
         raise UserError(f"s3k robot train-agent needs {exc.name}", hint="pip install 's3k[robot]'") from exc
+    from s3k.outputs import check_output_folder
     from s3k.robot.agents import AgentConfig, saved_config, train_agent
 
+    check_output_folder(args.out)  # never inside a dataset, nor a run's own files
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(AgentConfig)
              if getattr(args, f.name) is not None}
     base = {}
