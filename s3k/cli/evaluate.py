@@ -24,7 +24,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="split to evaluate (default: test)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
-                        help="write metrics.json, plots and view overlays to DIR (default: no report)")
+                        help="write metrics.json, plots and view overlays to DIR, a new or empty folder or "
+                             "an earlier report (default: no report)")
     parser.add_argument("--overlays", type=number(int, ge=0), default=6,
                         help="frames drawn in the report (default: 6)")
     parser.add_argument("--batch-size", type=number(int, ge=1), default=16,

@@ -110,8 +110,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="only (re)write summary.json, plots and README.md from the finished runs "
                              "(without NAME/runs/: from the grid points of NAME/summary.json)")
     parser.add_argument("--publish", default=None, metavar="DIR",
-                        help="then copy summary.json, README.md and plots to DIR, e.g. docs/results/NAME "
-                             "(default: not copied)")
+                        help="then copy summary.json, README.md and plots to DIR, e.g. docs/results/NAME: a "
+                             "new or empty folder or one published for NAME before (default: not copied)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

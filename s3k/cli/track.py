@@ -44,7 +44,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
-                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn (default: none)")
+                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn; DIR is new, empty "
+                             "or an earlier overlay folder (default: none)")
     parser.add_argument("--batch", type=number(int, ge=1), default=8,
                         help="frames per forward pass (default 8)")
     parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")
