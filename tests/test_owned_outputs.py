@@ -344,3 +344,19 @@ def test_experiment_workspace_and_agent_runs_are_never_inside_a_dataset(dataset,
     _refused(["experiment", "alpha", "--out", str(user), "--scale", "toy", "--no-progress"], capsys,
              "README.md", "s3k did not write")
     assert (user / "alpha" / "README.md").read_text() == "my alpha notes\n"
+
+
+def test_an_earlier_report_is_written_again_and_a_folder_of_metrics_not(tmp_path, user):
+    from s3k.cli.evaluate import _earlier_report
+    from s3k.outputs import check_folder
+
+    report = tmp_path / "rep"
+    report.mkdir()
+    (report / "metrics.json").write_text(json.dumps({"rms_px": 1.0, "n_frames": 3}))
+    (report / "errors_hist.png").write_bytes(b"png")
+    assert check_folder(report, "report", owns=_earlier_report) == report
+    (report / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="metrics.json"):
+        check_folder(report, "report", owns=_earlier_report, writes={"metrics.json"})
+    with pytest.raises(ValueError, match="metrics.json"):
+        check_folder(user, "report", owns=_earlier_report, writes={"metrics.json"})

@@ -46,6 +46,17 @@ def _two_pass_pixels(metrics: dict) -> str:
     return line if image is None else f"{line}; in the dataset's own images rms_px is {image:.2f} px"
 
 
+def _earlier_report(folder) -> bool:
+    """True when ``folder`` holds only what ``--report`` wrote before its folders were marked: the metrics of
+    an evaluation and PNGs."""
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return (isinstance(metrics, dict) and "rms_px" in metrics and "n_frames" in metrics
+            and all(p.name == "metrics.json" or p.suffix == ".png" for p in folder.iterdir()))
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.ignore_geometry:
         from s3k.detector.geometry_record import check_dataset
@@ -55,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         from s3k.outputs import check_folder, claim_folder
 
         check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report",
-                     writes={"metrics.json"})
+                     writes={"metrics.json"}, owns=_earlier_report)
         claim_folder(args.report, "report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
