@@ -360,3 +360,12 @@ def test_an_earlier_report_is_written_again_and_a_folder_of_metrics_not(tmp_path
         check_folder(report, "report", owns=_earlier_report, writes={"metrics.json"})
     with pytest.raises(ValueError, match="metrics.json"):
         check_folder(user, "report", owns=_earlier_report, writes={"metrics.json"})
+
+
+def test_simulate_insertion_never_writes_inside_a_dataset(dataset, capsys):
+    pytest.importorskip("gymnasium")
+    before = sorted(p.name for p in dataset.iterdir())
+    _refused(["robot", "simulate-insertion", "--out", str(dataset / "insertion"), "--size", "16",
+              "--labelled", "1", "--unlabelled", "0", "--test", "0", "--no-progress"], capsys,
+             "inside the dataset")
+    assert sorted(p.name for p in dataset.iterdir()) == before

@@ -183,8 +183,10 @@ def _train_agent(args: argparse.Namespace) -> int:
 
 
 def _simulate_insertion(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_replaceable
     from s3k.robot.insertion_data import write_insertion_dataset
 
+    check_replaceable(args.out, args.overwrite)  # as simulate: never inside a dataset, nor someone's files
     summary = write_insertion_dataset(args.out, args.labelled, args.unlabelled, args.test, size=args.size,
                                       seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote {summary['path']}: {summary['frames']} frames ({args.labelled} labelled, {args.unlabelled} "
