@@ -36,6 +36,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "%(default)s)")
     parser.add_argument("--jpeg-quality", type=number(int, ge=1, le=100), default=75,
                         help="--rerun: JPEG quality of the logged views (default %(default)s)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the --rerun file if it exists")
     add_rig_options(parser)
 
 
@@ -87,9 +88,10 @@ def run(args: argparse.Namespace) -> int:
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
-    if args.rerun and args.rerun != "spawn":
-        check_output(args.rerun, True, inputs={"--calibration": args.calibration, "RUN": args.run},
-                     option="--rerun")
+    if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
+        check_output(args.rerun, args.overwrite, option="--rerun",
+                     inputs={"--calibration": args.calibration, "RUN": args.run,
+                             "--sources": list(specs.values())})
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
     cams, boxes = _cameras(args, sources, detector.input_size)
