@@ -39,6 +39,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=number(gt=0), default=None,
                         help="frame rate of sources that record none (image folders and patterns; default: "
                         "unknown)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the --rerun file if it exists")
     add_rig_options(parser)
 
 
@@ -97,9 +98,10 @@ def run(args: argparse.Namespace) -> int:
         from s3k.inference.rig_check import check_rig
 
         check_rig(args.run, list(specs), what="--sources")
-    if args.rerun and args.rerun != "spawn":
-        check_output(args.rerun, True, inputs={"--calibration": args.calibration, "RUN": args.run},
-                     option="--rerun")
+    if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
+        check_output(args.rerun, args.overwrite, option="--rerun",
+                     inputs={"--calibration": args.calibration, "RUN": args.run,
+                             "--sources": list(specs.values())})
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
     if args.fps:
