@@ -30,17 +30,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from s3k.budget import check_config_fits
 from s3k.errors import UserError
 from s3k.ranges import Range
 
+MAX_STEPS = 100_000_000
+"""The most steps a training takes: the paper trained 150k; 1e8 steps are days at a millisecond a step."""
+MAX_RES_BLOCKS = 100
+"""The most residual blocks at the U-Net's lowest resolution (the paper: a few)."""
 
-def _f(default: Any, help: str, resumable: bool = False, **bounds: float) -> Any:
+
+def _f(default: Any, help: str, resumable: bool = False, **bounds: Any) -> Any:
     """A dataclass field with a default, its documentation and, for a number, its range.
 
     ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
     not what it learns from); every other field must match the run being resumed. ``bounds`` (``ge``, ``gt``,
-    ``le``, ``lt``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it is parsed
-    and by :meth:`TrainConfig.validate`; a float field must also be finite.
+    ``le``, ``lt``, ``one_of``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it
+    is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
     """
     metadata: dict[str, Any] = {"help": help, "resumable": resumable}
     if isinstance(default, (int, float)) and not isinstance(default, bool):
@@ -56,9 +62,11 @@ class ModelConfig:
                             "size)", ge=0)
     channels: tuple[int, ...] = _f((16, 32, 32, 32), "U-Net channels per level, level 0 at heatmap "
                                                      "resolution; len - 1 downsamplings by 2")
-    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0)
+    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0,
+                         le=MAX_RES_BLOCKS)
     norm: str = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
-    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels", ge=1)
+    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels",
+                     one_of=(1, 2, 4))
     sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)",
                       gt=0)
 
@@ -82,7 +90,7 @@ class AugmentationConfig:
 class ScheduleConfig:
     """Optimization: steps, batches, learning rate."""
 
-    steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1)
+    steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1, le=MAX_STEPS)
     batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)", ge=1)
     batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term", ge=0)
     lr: float = _f(1e-3, "Adam learning rate at the start", gt=0, le=1)
@@ -248,6 +256,7 @@ class TrainConfig:
                             hint="pass --precision auto, float32 or bfloat16")
         if not self.channels or any(c <= 0 for c in self.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
+        check_config_fits(self)  # a network that cannot fit in memory, whatever the dataset
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready flat dictionary of all fields (tuples as lists)."""

@@ -139,7 +139,7 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "losses", "augment", "config", "presets"],
+    ["readout", "model", "losses", "augment", "config", "presets", "budget"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
      "recalibration"],
 ]

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.budget import check_fits
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.data.frames import model_image_size, open_dataset
@@ -82,6 +83,9 @@ def _open_at_network_size(data: Any, cfg: TrainConfig) -> tuple[Any, tuple[int, 
     """``data`` opened at the network's input size, and its own image size."""
     ds = open_dataset(data)
     source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
+    check_fits(cfg, cameras=len(ds.cameras), keypoints=len(ds.keypoints), source_size=source_size,
+               frames=[len(ds.frames(split)) for split in ("labelled", "unlabelled", "test")],
+               where=str(data_path(data)))  # before any frame is decoded or file written
     return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
 
 
