@@ -37,10 +37,11 @@ BYTES_PER_PARAMETER = 16
 """float32 weight, gradient and Adam's first and second moments."""
 RUNTIME = 256 * 2**20
 """What a training process takes beyond its tensors once it runs: the libraries it loads on first use
-(TensorBoard's writer, the convolution kernels' scratch space), measured at about 165 MB for a 64 px step."""
+(TensorBoard's writer, the convolution kernels' scratch space): what a step of a tiny network on 64 px images
+adds to a process's peak resident memory, rounded up."""
 SLACK = 1.25
 """The step's transient tensors (gradients of the activations while the backward pass runs, the
-augmentation's resampling of the batch) on top of what autograd holds: measured below 1.25x the estimate."""
+augmentation's resampling of the batch) on top of what autograd holds."""
 
 
 class SizedConfig(Protocol):

@@ -90,8 +90,7 @@ def test_estimate_bounds_the_peak_memory_of_a_training_process(dataset, tmp_path
     """The peak resident memory a fresh process adds while it trains one step of 4 + 4 frames of 4 cameras at
     192 px (its peak reset as training starts, so the imports' own peak is not counted): the estimate is at
     least that, so a refusal refuses only what would not have fitted, and at most twice it, so what fits is
-    not refused for want of much more memory (the estimate was 1.31-1.38x the measurement on the 2-core
-    development machine)."""
+    not refused for want of much more memory."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-c", PEAK, str(dataset), str(tmp_path / "run")], env=env,
                           capture_output=True, text=True, check=True)
