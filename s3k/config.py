@@ -107,7 +107,9 @@ class SelfSupervisionConfig:
                            "baseline (same network, no unlabelled batch)")
     alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)", ge=0)
     warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
-                                "avoids locking in a collapse from a random network", ge=0)
+                                "avoids locking in a collapse from a random network; when the warm-up and "
+                                "ramp outlast --steps both shrink in proportion to end at the last step",
+                           ge=0)
     ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up",
                          ge=0)
     outlier_px: float = _f(6.0, "leave out of each pseudo-label the views whose detection misses the other "
@@ -222,8 +224,26 @@ class TrainConfig:
         """A copy with the flat fields ``values`` changed."""
         return self.from_flat(base=self, **values)
 
+    def unsup_schedule(self) -> tuple[int, int]:
+        """The warm-up and ramp steps this run uses: ``--warmup-steps`` and ``--ramp-steps``, unless together
+        they outlast ``--steps``; then both shrink in proportion to end at the last step, so that the
+        self-supervised term switches on in every S3K run (with the defaults, 750 + 750, a 200-step run warms
+        up for 100 steps and ramps over the last 100).
+
+        Example:
+            >>> TrainConfig.from_flat(steps=200).unsup_schedule(), TrainConfig().unsup_schedule()
+            ((100, 100), (750, 750))
+        """
+        s = self.self_supervision
+        warmup, ramp, steps = int(s.warmup_steps), int(s.ramp_steps), int(self.schedule.steps)
+        if warmup + ramp <= steps:
+            return warmup, ramp
+        scaled = steps * warmup // (warmup + ramp)
+        return scaled, steps - scaled
+
     def alpha_at(self, step: int) -> float:
-        """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha.
+        """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha
+        (the warm-up and ramp of :meth:`unsup_schedule`).
 
         Args:
             step: 0-based optimizer step.
@@ -232,11 +252,12 @@ class TrainConfig:
             The alpha used at that step (always 0 for the labels-only baseline).
         """
         s = self.self_supervision
-        if not s.unsup or step < s.warmup_steps:
+        warmup, ramp = self.unsup_schedule()
+        if not s.unsup or step < warmup:
             return 0.0
-        if s.ramp_steps <= 0:
+        if ramp <= 0:
             return float(s.alpha)
-        return float(s.alpha) * min(1.0, (step - s.warmup_steps + 1) / s.ramp_steps)
+        return float(s.alpha) * min(1.0, (step - warmup + 1) / ramp)
 
     def sigma_px(self) -> float:
         """Target Gaussian width in image pixels."""

@@ -427,7 +427,8 @@ def test_collapse_warning(tiny_dataset, tmp_path):
         assert out["layout_ratio"] < 0.05
         assert any("possible collapse" in r for r in records)
         records.clear()
-        validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100), 5)
+        validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100, steps=200),
+                 5)
         assert not any("possible collapse" in r for r in records)  # still in the labels-only warm-up
     finally:
         logger.removeHandler(handler)

@@ -255,6 +255,19 @@ class _Monitor:
         return timing
 
 
+def _log_unsup_schedule(cfg: TrainConfig) -> None:
+    """Say at which step the self-supervised term switches on and when it reaches its weight."""
+    if not cfg.unsup:
+        return
+    warmup, ramp = cfg.unsup_schedule()
+    scaled = ("" if (warmup, ramp) == (cfg.warmup_steps, cfg.ramp_steps) else
+              f" (--warmup-steps {cfg.warmup_steps} and --ramp-steps {cfg.ramp_steps} shrunk in proportion to "
+              f"fit the {cfg.steps} steps)")
+    # steps counted from 1, as the progress and TensorBoard count them
+    log.info("self-supervised term: switches on at step %d, alpha reaches %g at step %d%s", warmup + 1,
+             cfg.alpha, warmup + max(ramp, 1), scaled)
+
+
 def train(data: str | Path | Any, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
           overwrite: bool = False, command: str | None = None) -> TrainResult:
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
@@ -332,6 +345,7 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
              device, info.world, loop.precision, t_load, lab_store.preloaded)
     log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
+    _log_unsup_schedule(cfg)
 
     monitor = _Monitor(cfg, out, info, loop.step)
     aug = cfg.augmentation if cfg.augment else None
