@@ -85,7 +85,8 @@ PEAK = textwrap.dedent("""
 """)
 
 
-@pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK), reason="needs Linux's /proc/self/clear_refs")
+@pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK),
+                    reason="needs Linux's /proc/self/clear_refs")
 def test_estimate_bounds_the_peak_memory_of_a_training_process(dataset, tmp_path):
     """The peak resident memory a fresh process adds while it trains one step of 4 + 4 frames of 4 cameras at
     192 px (its peak reset as training starts, so the imports' own peak is not counted): the estimate is at

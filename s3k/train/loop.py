@@ -261,8 +261,8 @@ def _log_unsup_schedule(cfg: TrainConfig) -> None:
         return
     warmup, ramp = cfg.unsup_schedule()
     scaled = ("" if (warmup, ramp) == (cfg.warmup_steps, cfg.ramp_steps) else
-              f" (--warmup-steps {cfg.warmup_steps} and --ramp-steps {cfg.ramp_steps} shrunk in proportion to "
-              f"fit the {cfg.steps} steps)")
+              f" (--warmup-steps {cfg.warmup_steps} and --ramp-steps {cfg.ramp_steps} shrunk in proportion "
+              f"to fit the {cfg.steps} steps)")
     # steps counted from 1, as the progress and TensorBoard count them
     log.info("self-supervised term: switches on at step %d, alpha reaches %g at step %d%s", warmup + 1,
              cfg.alpha, warmup + max(ramp, 1), scaled)
