@@ -12,12 +12,18 @@ command's ``--help`` states the options' defaults and ends with examples (:func:
 Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
 missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
 status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
+
+The library never prints: its modules log to ``logging.getLogger(__name__)``. While a command runs, the
+``s3k`` logger's messages are shown as the command's own (:class:`_Messages`): notes and results on standard
+output, warnings on standard error as ``warning: ...``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import os
 import shlex
 import sys
@@ -134,6 +140,37 @@ def describe_error(exc: BaseException) -> str | None:
     return None
 
 
+class _Messages(logging.Handler):
+    """The library's log records as a command's output: INFO and below on stdout as written, WARNING and
+    above on stderr prefixed ``warning: ``. The streams are looked up at each record, so a redirected
+    ``sys.stdout`` (a test's capture) receives them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+        except Exception:  # noqa: BLE001 - a malformed record is logging's own error to report
+            self.handleError(record)
+            return
+        if record.levelno >= logging.WARNING:
+            print(f"warning: {text}", file=sys.stderr)
+        else:
+            print(text, file=sys.stdout)
+
+
+@contextlib.contextmanager
+def showing_library_messages():
+    """Show the ``s3k`` logger's INFO and WARNING records as the command's output while the block runs."""
+    logger = logging.getLogger("s3k")
+    handler, level = _Messages(logging.INFO), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = os.environ.get("S3K_DEBUG", "") not in ("", "0")
@@ -158,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     args = command_parser(name, module).parse_args(rest)
     args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it
     try:
-        return int(module.run(args) or 0)
+        with showing_library_messages():
+            return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print(f"s3k {name}: interrupted", file=sys.stderr)
         return 130
