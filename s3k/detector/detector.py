@@ -340,7 +340,7 @@ class OnePassDetector(Detector):
                   else dataclasses.replace(self.readout, min_weight=min_weight))
         # frames of the network's size, whole: the pixel maps are the identity, and the read-out skips them
         ro = read_out(self.pass_.logits(x), cams, self.meta.stride, self.meta.sigma,
-                      None if as_they_are else maps, keep_heatmaps=keep, config=config, prior=prior)
+                      None if as_they_are else maps, config, keep_heatmaps=keep, prior=prior)
         return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
                          inputs=x if keep else None, input_size=self.pass_.size)
 

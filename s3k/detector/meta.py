@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, ReadoutConfig, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadoutConfig
 
 __all__ = ["DetectorMeta"]
 
@@ -64,13 +64,6 @@ class DetectorMeta:
         outlier threshold and rigid layout; the window of its target width)."""
         return ReadoutConfig(min_weight=min_weight, max_residual_px=self.max_residual_px,
                              layout=self.layout_distances, layout_tol=self.layout_tol)
-
-    def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
-                 keep_heatmaps: bool = False) -> ReadOut:
-        """This detector's :func:`s3k.readout.read_out` of its ``logits``, with :meth:`readout_config`, so
-        every command reads a detector out the same way."""
-        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, keep_heatmaps=keep_heatmaps,
-                        config=self.readout_config(min_weight))
 
     @property
     def layout_distances(self) -> torch.Tensor | None:
