@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from s3k.choices import Norm
 from s3k.data.cache import available_memory
 from s3k.data.frames import model_image_size
 from s3k.errors import UserError
@@ -51,7 +52,7 @@ class SizedConfig(Protocol):
     channels: tuple[int, ...]
     res_blocks: int
     stride: int
-    norm: str
+    norm: Norm
     batch_labelled: int
     batch_unlabelled: int
     unsup: bool
@@ -86,7 +87,7 @@ def _gib(n: float) -> str:
 
 
 def unet_parameters(channels: Sequence[int], res_blocks: int, stride: int, keypoints: int,
-                    norm: str = "batch", encoder_convs: int = 0, in_channels: int = 3) -> int:
+                    norm: Norm = "batch", encoder_convs: int = 0, in_channels: int = 3) -> int:
     """The parameter count of ``s3k.model.UNet(keypoints, UNetConfig(...))``, without building it."""
     ch = [int(c) for c in channels]
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from s3k.budget import check_config_fits
+from s3k.choices import Device, Norm, Precision
 from s3k.errors import UserError
 from s3k.ranges import Range
 
@@ -64,7 +65,7 @@ class ModelConfig:
                                                      "resolution; len - 1 downsamplings by 2")
     res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0,
                          le=MAX_RES_BLOCKS)
-    norm: str = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
+    norm: Norm = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
     stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels",
                      one_of=(1, 2, 4))
     sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)",
@@ -164,11 +165,11 @@ class ExecutionConfig:
     """Randomness and where and how the computation runs."""
 
     seed: int = _f(0, "random seed (batches, augmentation, initialization)", ge=0)
-    device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
+    device: Device = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
                          "since threads waiting for a busy core stall every convolution",
                       resumable=True, ge=0)
-    precision: str = _f("float32", "the network's arithmetic in training: 'float32', 'bfloat16', or "
+    precision: Precision = _f("float32", "the network's arithmetic in training: 'float32', 'bfloat16', or "
                                    "'auto' (bfloat16 autocast where the hardware computes it natively: a "
                                    "CUDA GPU with bfloat16, a CPU with AVX512-BF16 or AMX; else float32); "
                                    "the heatmap head, the losses and the read-out stay float32. bfloat16 "
@@ -340,11 +341,12 @@ def default_of(name: str, cls: type = TrainConfig) -> Any:
 
 
 def _base_type(tp: Any) -> tuple[Any, bool]:
-    """(type without Optional, is_optional)."""
+    """(type without Optional, is_optional); a union with ``str`` (a ``Literal`` of named values that also
+    takes other names) is ``str``."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return args[0], len(args) < len(typing.get_args(tp))
+        return (str if str in args else args[0]), len(args) < len(typing.get_args(tp))
     return tp, False
 
 
@@ -386,6 +388,10 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
         if base is str:
             if not isinstance(value, str):
                 raise ValueError("expected a string")
+            return value
+        if typing.get_origin(base) is typing.Literal:
+            if value not in typing.get_args(base):
+                raise ValueError(f"expected one of {', '.join(map(str, typing.get_args(base)))}")
             return value
     except (TypeError, ValueError) as exc:
         raise UserError(f"{where}: invalid value {value!r} ({exc})") from None

@@ -140,8 +140,8 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["inference", "train"],
     ["detector"],
     ["readout", "model", "losses", "augment", "config", "presets", "budget"],
-    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
-     "recalibration"],
+    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "draw",
+     "calibration", "recalibration"],
 ]
 
 

@@ -46,8 +46,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
             kwargs: dict[str, Any] = dict(action=argparse.BooleanOptionalAction)
         else:
             is_tuple = typing.get_origin(base) is tuple
-            kwargs = dict(metavar="N,N,..." if is_tuple else getattr(base, "__name__", "V").upper(),
-                          type=_parser(f, tp))
+            named = typing.get_origin(base) is typing.Literal
+            metavar = ("N,N,..." if is_tuple else "{" + ",".join(typing.get_args(base)) + "}" if named
+                       else getattr(base, "__name__", "V").upper())
+            kwargs = dict(metavar=metavar, type=_parser(f, tp))
         groups[section].add_argument(flag, dest=f.name, default=argparse.SUPPRESS, help=text, **kwargs)
         if "_" in f.name:  # the field's own spelling is accepted too, not shown
             alias = groups[section].add_argument(f"--{f.name}", dest=f.name, default=argparse.SUPPRESS,

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.choices import Device
 from s3k.data.frames import FrameStore
 from s3k.detector import Detection, Detector, TwoPassDetector
 from s3k.errors import UserError
@@ -108,7 +109,7 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
     return metrics, arrays
 
 
-def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch_size: int = 16,
+def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", batch_size: int = 16,
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
     """Load a run's detector (one pass or two), evaluate it on ``data``'s ``split`` and optionally write a
     report (:mod:`s3k.inference.report`); returns the metrics."""

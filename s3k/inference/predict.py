@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.choices import Device
 from s3k.data.frames import FrameBatch, FrameStore
 from s3k.data.tables import SPLITS
 from s3k.detector import Detection, Detector
@@ -45,7 +46,7 @@ class PredictSummary:
 
 
 def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, split: str = "test",
-                    batch_size: int = 16, device: str = "auto", overwrite: bool = False) -> PredictSummary:
+                    batch_size: int = 16, device: Device = "auto", overwrite: bool = False) -> PredictSummary:
     """Predict the frames of a dataset split and write the 3D CSV (:mod:`s3k.data.tracks_csv`).
 
     Args:

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.choices import Device
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.readout import DEFAULT_MIN_WEIGHT
@@ -228,7 +229,7 @@ def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int
 def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str | Path, out: str | Path,
                  overlay: str | Path | None = None, batch: int = 8, start: int = 0, stop: int | None = None,
                  min_weight: float = DEFAULT_MIN_WEIGHT, fit: str = "pad",
-                 crops: dict[str, tuple[float, ...]] | None = None, device: str = "auto",
+                 crops: dict[str, tuple[float, ...]] | None = None, device: Device = "auto",
                  units: str | None = None, progress: bool = True, overwrite: bool = False,
                  video_regions: dict[str, tuple[float, ...]] | None = None) -> TrackSummary:
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import nn
 
+from s3k.choices import Arithmetic
 from s3k.config import TrainConfig
 from s3k.detector import autocast
 from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
@@ -15,7 +16,7 @@ from s3k.readout import ReadoutConfig
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
                    weight_decay_model: nn.Module, rule: ReadoutConfig,
-                   teacher: nn.Module | None = None, precision: str = "float32"
+                   teacher: nn.Module | None = None, precision: Arithmetic = "float32"
                    ) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
