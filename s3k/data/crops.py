@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 
@@ -55,7 +56,7 @@ class CropDataset:
 
     static_calibration = False
 
-    def __init__(self, source: Any, frame_ids: np.ndarray, splits: np.ndarray, images: np.ndarray,
+    def __init__(self, source: DatasetLike, frame_ids: np.ndarray, splits: np.ndarray, images: np.ndarray,
                  cams: Cameras, maps: np.ndarray, uv: np.ndarray, mask: np.ndarray,
                  points: tuple[np.ndarray, np.ndarray] | None, keypoints: list[str], extent: float, size: int,
                  description: str | None = None) -> None:
@@ -179,7 +180,7 @@ class CropCutter:
         extent, size, keypoints, fallback: as for :func:`cut_crops`.
     """
 
-    def __init__(self, source: Any, extent: float, size: int, keypoints: Sequence[str] | None = None,
+    def __init__(self, source: DatasetLike, extent: float, size: int, keypoints: Sequence[str] | None = None,
                  fallback: bool = False) -> None:
         self.ds, self.extent, self.size, self.fallback = source, float(extent), int(size), fallback
         self.names = list(source.keypoints if keypoints is None else keypoints)
@@ -265,8 +266,8 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     return cutter.result(description)
 
 
-def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int,
-               images: np.ndarray | torch.Tensor | None = None):
+def _cut_chunk(ds: DatasetLike, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float,
+               size: int, images: np.ndarray | torch.Tensor | None = None):
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
     from s3k.geometry import workspace_centre

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from s3k.data.protocol import DatasetLike
 from s3k.geometry import Cameras
 
 
@@ -97,8 +98,8 @@ class FrameStore:
         chunk: frames per read while preloading without a dataset cache.
     """
 
-    def __init__(self, dataset, frame_ids, preload_mb: int = 2048, labels: bool = False, points: bool = False,
-                 chunk: int = 64) -> None:
+    def __init__(self, dataset: DatasetLike, frame_ids, preload_mb: int = 2048, labels: bool = False,
+                 points: bool = False, chunk: int = 64) -> None:
         self.dataset = dataset
         self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
         self.out_size = (int(dataset.image_size[0]), int(dataset.image_size[1]))

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 
 __all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "mismatches", "run_geometry", "track_crops",
@@ -41,7 +42,7 @@ def _box_text(box) -> str:
     return ",".join(f"{v:g}" for v in box)
 
 
-def dataset_geometry(ds: Any) -> dict[str, Any]:
+def dataset_geometry(ds: DatasetLike) -> dict[str, Any]:
     """``{"cameras": {camera: {"box": [x0, y0, x1, y1], "frame_size": [W, H]}}, "image_size": [W, H]}`` of an
     opened :class:`s3k.data.Dataset`: the part of each camera's full frame its stored images show (pixel edge
     coordinates of the frame; the import's crop box, composed with any crop the dataset was opened with)."""
@@ -62,7 +63,7 @@ def dataset_geometry(ds: Any) -> dict[str, Any]:
     return {"cameras": cameras, "image_size": [int(Ws), int(Hs)]}
 
 
-def training_geometry(ds: Any) -> dict[str, Any]:
+def training_geometry(ds: DatasetLike) -> dict[str, Any]:
     """What a run records of its training dataset ``ds``: :func:`dataset_geometry` and ``"dataset"``, its
     path and identity (keypoints, cameras and fingerprint, as ``--resume`` checks them)."""
 
@@ -177,7 +178,7 @@ def track_crops(run_dir: str | Path, frame_sizes: dict[str, tuple[int, int]], cr
     return crops, notes
 
 
-def dataset_identity(ds: Any) -> dict[str, Any]:
+def dataset_identity(ds: DatasetLike) -> dict[str, Any]:
     """What must stay the same for a run to be resumed on a dataset: keypoint and camera names and a
     fingerprint (SHA-256 of the metadata, the frame ids and their splits, the labels and the calibration)."""
     ids = ds.frames()

@@ -22,6 +22,7 @@ from torch import nn
 from s3k.augment import NoiseBank
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
+from s3k.data.protocol import DatasetLike
 from s3k.detector import (
     CHECKPOINT_FILE,
     MODEL_FILE,
@@ -268,7 +269,8 @@ def _log_unsup_schedule(cfg: TrainConfig) -> None:
              cfg.alpha, warmup + max(ramp, 1), scaled)
 
 
-def train(data: str | Path | Any, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
+def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, resume: bool = False,
+          callback=None, *,
           overwrite: bool = False, command: str | None = None) -> TrainResult:
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
 

@@ -17,6 +17,7 @@ from s3k.budget import check_fits
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.data.frames import model_image_size, open_dataset
+from s3k.data.protocol import DatasetLike
 from s3k.detector import CHECKPOINT_FILE, LOG_FILE, DetectorMeta
 from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
@@ -67,19 +68,20 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 class _Data:
     """The dataset opened once at the network's input size, and the frames each role uses."""
 
-    ds: Any
+    ds: DatasetLike
     source_size: tuple[int, int]
     labelled: np.ndarray
     unlabelled: np.ndarray
     val: np.ndarray
 
 
-def data_path(data: Any) -> Path:
+def data_path(data: str | os.PathLike | DatasetLike) -> Path:
     """The folder of ``data``: a dataset folder, or the source folder of a dataset held in memory."""
     return Path(data) if isinstance(data, (str, os.PathLike)) else Path(data.path)
 
 
-def _open_at_network_size(data: Any, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
+def _open_at_network_size(data: str | os.PathLike | DatasetLike,
+                          cfg: TrainConfig) -> tuple[DatasetLike, tuple[int, int]]:
     """``data`` opened at the network's input size, and its own image size."""
     ds = open_dataset(data)
     source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
@@ -101,7 +103,7 @@ def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dic
     return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
 
 
-def _open_data(data: Any, cfg: TrainConfig) -> _Data:
+def _open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
     """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
     ds, source_size = _open_at_network_size(data, cfg)
     labelled = np.asarray(ds.frames("labelled"))
@@ -118,7 +120,8 @@ def _open_data(data: Any, cfg: TrainConfig) -> _Data:
     return _Data(ds, source_size, labelled, unlabelled, _validation_frames(ds, cfg, labelled, unlabelled))
 
 
-def _validation_frames(ds: Any, cfg: TrainConfig, labelled: np.ndarray, unlabelled: np.ndarray) -> np.ndarray:
+def _validation_frames(ds: DatasetLike, cfg: TrainConfig, labelled: np.ndarray,
+                       unlabelled: np.ndarray) -> np.ndarray:
     """``--val-frames`` frames spread evenly over ``--val-split`` (over the unlabelled frames, else the
     labelled ones, when that split is empty)."""
     val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
@@ -128,7 +131,7 @@ def _validation_frames(ds: Any, cfg: TrainConfig, labelled: np.ndarray, unlabell
     return val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
 
 
-def frames_used(ds: Any, cfg: TrainConfig) -> np.ndarray:
+def frames_used(ds: DatasetLike, cfg: TrainConfig) -> np.ndarray:
     """The frames a training of ``cfg`` on ``ds`` reads, in ``ds``'s order: the labelled ones, the unlabelled
     ones when the self-supervised term is on, and the validation frames."""
     labelled, unlabelled = np.asarray(ds.frames("labelled")), np.asarray(ds.frames("unlabelled"))
@@ -153,7 +156,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     """What inference needs; a rigid object's labelled layout (``--layout-tol``) goes into the read-out."""
     rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
-        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
+        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=d.ds.image_size,
         stride=cfg.stride, sigma=cfg.sigma_px(),
         model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
                          norm=cfg.norm).to_dict(),

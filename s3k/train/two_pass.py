@@ -38,6 +38,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.data import Dataset
+from s3k.data.protocol import DatasetLike
 from s3k.detector.crop_rule import CropRule, extent_middle, is_two_pass, write_two_pass
 from s3k.errors import UserError
 
@@ -103,7 +105,8 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     return read_csv(out_csv, detector.keypoints)
 
 
-def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device: str | torch.device = "cpu",
+def estimates_and_crops(run_dir: Path, ds: DatasetLike, out_csv: Path, rule: CropRule,
+                        device: str | torch.device = "cpu",
                         batch_size: int = 32, frames: np.ndarray | None = None):
     """The coarse pass's estimates of every frame of ``ds``, or of ``frames`` (written to ``out_csv``), and
     the crops around them (:func:`training_crops`), each frame decoded once for both. The crops are cut
@@ -317,7 +320,7 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
     return results
 
 
-def _hold_frames(ds, cfg, log) -> bool:
+def _hold_frames(ds: Dataset, cfg, log) -> bool:
     """Keep the frames the coarse pass decodes in memory for the crops (:meth:`s3k.data.Dataset.hold_frames`)
     when they take at most half the memory available now and ``--preload-mb`` is not 0; otherwise the crops
     decode them again."""

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data.dataset import Dataset
 from s3k.data.formats.labels2d import LabelTable
 from s3k.errors import UserError
 from s3k.fileio import open_text
@@ -32,7 +33,8 @@ FORMATS = ("dlc", "lightning-pose", "sleap", "nwb")
 SUFFIX = {"sleap": ".slp", "nwb": ".nwb"}
 
 
-def dataset_tables(ds: Any, splits: Sequence[str] | None = None) -> tuple[np.ndarray, dict[str, LabelTable]]:
+def dataset_tables(ds: Dataset, splits: Sequence[str] | None = None
+                   ) -> tuple[np.ndarray, dict[str, LabelTable]]:
     """The dataset's labels as one :class:`LabelTable` per camera over the frames with a label.
 
     Returns:
@@ -57,14 +59,14 @@ def dataset_tables(ds: Any, splits: Sequence[str] | None = None) -> tuple[np.nda
     }
 
 
-def _image_path(ds: Any, cam: str, frame: int) -> Path:
+def _image_path(ds: Dataset, cam: str, frame: int) -> Path:
     from s3k.data.tables import DEFAULT_IMAGE_PATTERN
 
     pattern = ds.metadata.get("images", {}).get("pattern", DEFAULT_IMAGE_PATTERN)
     return (Path(ds.path) / pattern.format(camera=cam, frame=int(frame))).resolve()
 
 
-def source_maps(ds: Any) -> dict[str, np.ndarray] | None:
+def source_maps(ds: Dataset) -> dict[str, np.ndarray] | None:
     """``{camera: M}``, the pixel map of ``s3k import``'s crop and resize from the source video to the
     dataset's images, for a dataset imported from videos; else None."""
     from s3k.geometry.warp import crop_resize_matrix
