@@ -13,7 +13,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from synthetic_rig import make_dataset
 
 import s3k.budget as budget
 from s3k.budget import activation_elements, footprint, unet_parameters
@@ -29,8 +28,8 @@ QUICK = ["--no-progress", "--threads", "1", "--val-every", "0"]
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return make_dataset(tmp_path_factory.mktemp("data") / "ds", size=32, labelled=3, unlabelled=3, test=2)
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 @pytest.mark.parametrize("channels, res_blocks, stride, norm, keypoints", [

@@ -4,7 +4,7 @@ protocol (``s3k.data.protocol.DatasetLike``) that training, validation and evalu
 from __future__ import annotations
 
 import numpy as np
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k.data import Dataset
 from s3k.data.crops import cut_crops

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 import s3k
 import s3k.experiments as ex

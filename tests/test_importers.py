@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from real_recording import REAL, needs_real
+from helpers.real_recording import REAL, needs_real
 
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
 from s3k.data import recording as rec

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, make_dataset
+from helpers.synthetic_rig import KEYPOINTS, make_dataset
 from torch import nn
 
 from s3k.data.frames import FrameStore, images_to_float, open_dataset
@@ -191,7 +191,7 @@ def test_min_weight_drops_views_and_invalid_points_are_nan(scene):
 
 def _rig_views(B=5):
     """A 4-camera rig, B frames of the synthetic layout and their exact projections."""
-    from synthetic_rig import LAYOUT, rig
+    from helpers.synthetic_rig import LAYOUT, rig
 
     K, dist, R, t = rig(64)
     cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from tiny_detector import save_run
+from helpers.tiny_detector import save_run
 
 from s3k import cli
 from s3k.data.formats.anipose import write_anipose_calibration

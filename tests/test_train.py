@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, make_dataset
+from helpers.synthetic_rig import KEYPOINTS, make_dataset
 
 import s3k.train.loop as loop_module
 from s3k.cli import main as cli_main
@@ -371,7 +371,7 @@ def test_mean_pairwise_distance():
 def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
     """The labelled frames' triangulated keypoints give the synthetic triangle's side lengths; a dataset
     whose labels triangulate nothing is refused by --layout-tol, naming it."""
-    from synthetic_rig import LAYOUT
+    from helpers.synthetic_rig import LAYOUT
 
     from s3k.train import labelled_distances
 

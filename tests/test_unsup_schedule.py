@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from synthetic_rig import make_dataset
 
 from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
@@ -16,8 +15,8 @@ SHORT = ["--steps", "8", "--batch-labelled", "2", "--batch-unlabelled", "2", "--
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return make_dataset(tmp_path_factory.mktemp("data") / "ds", size=32, labelled=3, unlabelled=3, test=2)
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 def test_warmup_and_ramp_shrink_to_the_steps():
