@@ -171,6 +171,16 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
+    _add_guard(app, allowed_hosts, token)
+    _add_frame_routes(app, state)
+    _add_tool_routes(app, state)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    return app
+
+
+def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None) -> None:
+    """Every request's checks: a capped body, an allowed ``Host``, the token."""
+
     @app.middleware("http")
     async def guard(request: Request, call_next):
         if request.method not in ("GET", "HEAD", "OPTIONS"):  # bodies are read whole: their size is capped
@@ -193,6 +203,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         if token is not None and request.query_params.get("token"):
             response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
         return response
+
+
+def _add_frame_routes(app: FastAPI, state: LabelApp) -> None:
+    """The page, the dataset's meta, a frame's state, images, labels, undo and history."""
 
     def frame_or_404(frame: int) -> int:
         if frame not in state.store.frames.row_of:
@@ -262,6 +276,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     def history(frame: int) -> list[dict[str, Any]]:
         return state.store.history(frame_or_404(frame))
 
+
+def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
+    """The run's rankings of frames, and propagation of a frame's labels over still frames (with its undo)."""
+
     @app.get("/api/ranking")
     def ranking(split: str = "unlabelled", limit: int = 100, by: str = "doubt") -> Any:
         if state.suggestions is None:
@@ -303,9 +321,6 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": source, "frames": frames}
-
-    app.mount("/static", StaticFiles(directory=STATIC), name="static")
-    return app
 
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,

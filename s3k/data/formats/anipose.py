@@ -76,6 +76,23 @@ def _load_toml(path: Path, what: str) -> dict:
         raise UserError(f"{path}: not {what} (not valid TOML: {exc})") from None
 
 
+def _calibration_units(path: Path, metadata: dict) -> str:
+    """The world unit of an anipose calibration: ``[metadata] units``, else that of the board's square length
+    (``[metadata]``, a ``board.toml`` beside it, or the anipose project's ``config.toml``)."""
+    if isinstance(metadata.get("units"), str):
+        return metadata["units"]
+    square = metadata.get("square_length")
+    board = path.parent / "board.toml"
+    if square is None and board.is_file():
+        square = _load_toml(board, "a board.toml").get("square_length")
+    if square is None:
+        square = _project_square_length(path)
+    try:
+        return _units_from_board(float(square) if square is not None else None)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
+
+
 def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
     """Read an anipose ``calibration.toml``.
 
@@ -141,19 +158,7 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         rvecs.append(_numbers(path, section, table, "rotation", (3,)))
         ts.append(_numbers(path, section, table, "translation", (3,)))
         sizes.append(size.astype(np.int64))
-    if units is None and isinstance(metadata.get("units"), str):
-        units = metadata["units"]
-    if units is None:
-        square = metadata.get("square_length")
-        board = path.parent / "board.toml"
-        if square is None and board.is_file():
-            square = _load_toml(board, "a board.toml").get("square_length")
-        if square is None:
-            square = _project_square_length(path)
-        try:
-            units = _units_from_board(float(square) if square is not None else None)
-        except (TypeError, ValueError):
-            raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
+    units = _calibration_units(path, metadata) if units is None else units
     # Rodrigues vectors (C, 3) have the shape of t: from_numpy converts them to matrices.
     cams = Cameras.from_numpy(np.stack(Ks), np.stack(dists), np.stack(rvecs), np.stack(ts),
                               dtype=torch.float64)

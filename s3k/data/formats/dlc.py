@@ -13,6 +13,56 @@ from s3k.errors import UserError
 from s3k.fileio import open_text
 
 
+def _bodypart_columns(path: Path, coords_row: list[str], parts_row: list[str], n_index: int
+                      ) -> tuple[list[str], dict[str, int], dict[str, int]]:
+    """The bodyparts in column order and the columns of their x and y."""
+    keypoints: list[str] = []
+    x_col: dict[str, int] = {}
+    y_col: dict[str, int] = {}
+    for col in range(n_index, len(coords_row)):
+        coord = coords_row[col].strip().lower()
+        part = parts_row[col].strip() if col < len(parts_row) else ""
+        if not part:
+            raise UserError(f"{path}: header row 'bodyparts' is empty at column {col + 1}")
+        if coord not in ("x", "y", "likelihood"):
+            raise UserError(
+                f"{path}: header row 'coords' column {col + 1} is {coords_row[col]!r}; "
+                "expected x, y or likelihood"
+            )
+        if part not in keypoints:
+            keypoints.append(part)
+        target = x_col if coord == "x" else y_col if coord == "y" else None
+        if target is not None:
+            if part in target:
+                raise UserError(f"{path}: bodypart {part!r} has two {coord!r} columns")
+            target[part] = col
+    for part in keypoints:
+        if part not in x_col or part not in y_col:
+            raise UserError(f"{path}: bodypart {part!r} needs both an x and a y column")
+    if not keypoints:
+        raise UserError(f"{path}: no bodypart columns")
+    return keypoints, x_col, y_col
+
+
+def _row_points(path: Path, row: list[str], line: int, index_text: str, keypoints: list[str],
+                x_col: dict[str, int], y_col: dict[str, int]) -> np.ndarray:
+    """``(K, 2)`` the row's points, NaN where a cell is empty."""
+    uv = np.full((len(keypoints), 2), np.nan)
+    for k, part in enumerate(keypoints):
+        for a, col in enumerate((x_col[part], y_col[part])):
+            cell = row[col].strip()
+            if cell == "" or cell.lower() == "nan":
+                continue
+            try:
+                uv[k, a] = float(cell)
+            except ValueError:
+                raise UserError(
+                    f"{path}: line {line} ({index_text or 'no image path'}), bodypart {part!r} "
+                    f"{'xy'[a]}: {cell!r} is not a number"
+                ) from None
+    return uv
+
+
 def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
     """Read a DeepLabCut / Lightning Pose label CSV.
 
@@ -60,32 +110,7 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
                 f"{path}: multi-animal CSV with individuals {sorted(individuals)}; s3k imports one animal "
                 "per recording (split the CSV per individual)"
             )
-    keypoints: list[str] = []
-    x_col: dict[str, int] = {}
-    y_col: dict[str, int] = {}
-    for col in range(n_index, len(coords_row)):
-        coord = coords_row[col].strip().lower()
-        part = parts_row[col].strip() if col < len(parts_row) else ""
-        if not part:
-            raise UserError(f"{path}: header row 'bodyparts' is empty at column {col + 1}")
-        if coord not in ("x", "y", "likelihood"):
-            raise UserError(
-                f"{path}: header row 'coords' column {col + 1} is {coords_row[col]!r}; "
-                "expected x, y or likelihood"
-            )
-        if part not in keypoints:
-            keypoints.append(part)
-        target = x_col if coord == "x" else y_col if coord == "y" else None
-        if target is not None:
-            if part in target:
-                raise UserError(f"{path}: bodypart {part!r} has two {coord!r} columns")
-            target[part] = col
-    for part in keypoints:
-        if part not in x_col or part not in y_col:
-            raise UserError(f"{path}: bodypart {part!r} needs both an x and a y column")
-    if not keypoints:
-        raise UserError(f"{path}: no bodypart columns")
-
+    keypoints, x_col, y_col = _bodypart_columns(path, coords_row, parts_row, n_index)
     ids: list[int] = []
     uvs: list[np.ndarray] = []
     n_cols = len(coords_row)
@@ -102,19 +127,7 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
             frame = frame_id_from_path(index_text) if not index_text.isdigit() else int(index_text)
         if frame is None:
             frame = row_no
-        uv = np.full((len(keypoints), 2), np.nan)
-        for k, part in enumerate(keypoints):
-            for a, col in enumerate((x_col[part], y_col[part])):
-                cell = row[col].strip()
-                if cell == "" or cell.lower() == "nan":
-                    continue
-                try:
-                    uv[k, a] = float(cell)
-                except ValueError:
-                    raise UserError(
-                        f"{path}: line {line} ({index_text or 'no image path'}), bodypart {part!r} "
-                        f"{'xy'[a]}: {cell!r} is not a number"
-                    ) from None
+        uv = _row_points(path, row, line, index_text, keypoints, x_col, y_col)
         # A keypoint is labelled only when both coordinates are.
         uv[np.isnan(uv).any(axis=1)] = np.nan
         ids.append(frame)

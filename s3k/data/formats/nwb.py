@@ -69,6 +69,22 @@ def _camera_of(obj: Any, cameras: Sequence[str], camera_map: Mapping[str, str]) 
     return None
 
 
+def _add_predictions(path: Path, estimations: list[Any], cameras: Sequence[str], camera_map: dict[str, str],
+                     tables: dict[str, LabelTable]) -> None:
+    """The ``PoseEstimation`` series of the cameras without training frames, as their tables."""
+    for pe in estimations:
+        found = _camera_of(pe, cameras, camera_map)
+        if found is None or found in tables:
+            continue
+        series = dict(pe.pose_estimation_series)
+        names = [str(n) for n in pe.skeleton.nodes[:]] if pe.skeleton is not None else list(series)
+        names = [n for n in names if n in series]
+        data = [np.asarray(series[n].data[:], dtype=np.float64)[:, :2] for n in names]
+        uv = np.stack(data, axis=1)  # (T, K, 2)
+        uv[np.isnan(uv).any(axis=2)] = np.nan
+        tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv, f"{path} ({pe.name})")
+
+
 def read_nwb(
     path: str | Path,
     cameras: Sequence[str],
@@ -136,18 +152,7 @@ def read_nwb(
 
         estimations = [o for o in objects if isinstance(o, ndx_pose.PoseEstimation)]
         if predictions:
-            for pe in estimations:
-                found = _camera_of(pe, cameras, camera_map)
-                if found is None or found in tables:
-                    continue
-                series = dict(pe.pose_estimation_series)
-                names = [str(n) for n in pe.skeleton.nodes[:]] if pe.skeleton is not None else list(series)
-                names = [n for n in names if n in series]
-                data = [np.asarray(series[n].data[:], dtype=np.float64)[:, :2] for n in names]
-                uv = np.stack(data, axis=1)  # (T, K, 2)
-                uv[np.isnan(uv).any(axis=2)] = np.nan
-                tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv,
-                                           f"{path} ({pe.name})")
+            _add_predictions(path, estimations, cameras, camera_map, tables)
     if not any(np.isfinite(t.uv).any() for t in tables.values()):
         if estimations and not predictions:
             raise UserError(f"{path}: no training frames (labels), only {len(estimations)} PoseEstimation "

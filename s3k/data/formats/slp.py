@@ -133,6 +133,31 @@ def _track_choice(labels: Any, path: Path, track: str | int | None) -> tuple[Any
                     hint="give a track name or index with --sleap-track")
 
 
+def _candidates(lf: Any, chosen_track: Any, predictions: bool) -> list[Any]:
+    """A labelled frame's instances of ``chosen_track`` (any without one): those labelled by a person, else,
+    with ``predictions``, the predicted ones, most confident first."""
+    users = list(lf.user_instances)
+    if chosen_track is not None:
+        users = [i for i in users if i.track is chosen_track]
+    if users or not predictions:
+        return users
+    preds = list(lf.predicted_instances)
+    if chosen_track is not None:
+        preds = [i for i in preds if i.track is chosen_track]
+    return sorted(preds, key=lambda i: -float(i.score))
+
+
+def _refuse_several_tracks(labels: Any, path: Path, predictions: bool) -> None:
+    """Refuse a project whose instances belong to several tracks when none was chosen."""
+    used: list[str] = []
+    for lf in labels.labeled_frames:
+        for inst in _candidates(lf, None, predictions):
+            if inst.track is not None and inst.track.name not in used:
+                used.append(inst.track.name)
+    if len(used) > 1:
+        raise UserError(f"{path}: instances of {len(used)} tracks ({', '.join(used)})", hint=TRACK_HINT)
+
+
 def read_slp(
     path: str | Path,
     cameras: Sequence[str],
@@ -171,25 +196,8 @@ def read_slp(
         raise UserError(f"{path}: no labelled frames (the project has {len(labels.labeled_frames)} frames "
                         f"and {n_user} instances)")
 
-    def candidates(lf: Any) -> list[Any]:
-        users = list(lf.user_instances)
-        if chosen_track is not None:
-            users = [i for i in users if i.track is chosen_track]
-        if users or not predictions:
-            return users
-        preds = list(lf.predicted_instances)
-        if chosen_track is not None:
-            preds = [i for i in preds if i.track is chosen_track]
-        return sorted(preds, key=lambda i: -float(i.score))
-
     if chosen_track is None and instance_index is None:
-        used = []
-        for lf in labels.labeled_frames:
-            for inst in candidates(lf):
-                if inst.track is not None and inst.track.name not in used:
-                    used.append(inst.track.name)
-        if len(used) > 1:
-            raise UserError(f"{path}: instances of {len(used)} tracks ({', '.join(used)})", hint=TRACK_HINT)
+        _refuse_several_tracks(labels, path, predictions)
 
     skeletons = list(labels.skeletons)
     if len(skeletons) != 1:
@@ -199,7 +207,7 @@ def read_slp(
     for lf in labels.labeled_frames:
         if id(lf.video) not in by_video:
             continue
-        pool = candidates(lf)
+        pool = _candidates(lf, chosen_track, predictions)
         if instance_index is not None:
             pool = pool[instance_index:instance_index + 1]
         elif chosen_track is None and len(pool) > 1:
