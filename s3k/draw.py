@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 __all__ = ["draw_overlay", "draw_views", "keypoint_colours"]
@@ -17,8 +18,6 @@ __all__ = ["draw_overlay", "draw_views", "keypoint_colours"]
 
 def keypoint_colours(n: int) -> list[tuple[int, int, int]]:
     """``n`` distinct saturated RGB colours (hues evenly spaced)."""
-    import cv2
-
     hsv = np.array([[[int(180 * k / max(n, 1)), 230, 255] for k in range(n)]], dtype=np.uint8)
     rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
     return [(int(c[0]), int(c[1]), int(c[2])) for c in rgb]
@@ -35,8 +34,6 @@ def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np
         used: ``(K,)`` whether the view entered the triangulation.
         colours: one RGB colour per keypoint.
     """
-    import cv2
-
     out = np.ascontiguousarray(image).copy()
     H, W = out.shape[:2]
     r = max(2, round(min(H, W) / 80))
@@ -71,8 +68,6 @@ def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray
     Returns:
         (scale * H, C * scale * W, 3) uint8 RGB image.
     """
-    import cv2
-
     C, H, W, _ = images.shape
     colours = keypoint_colours(pred_uv.shape[1])
     tiles = []

@@ -85,11 +85,10 @@ def test_notes_stay_out_of_the_recorded_command():
 
 
 def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
-    import s3k.inference.evaluate
     from s3k.experiments import accuracy
 
     calls = []
-    monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run",
+    monkeypatch.setattr(accuracy, "evaluate_run",
                         lambda run, data, split, device: calls.append(run) or {"median_mm": 2.0})
     run = tmp_path / "s3k-seed0"
     cache = tmp_path / "s3k-seed0-test.json"

@@ -168,3 +168,76 @@ def test_imports_go_downwards_only():
                     upwards.append(f"{path.relative_to(ROOT)} imports {name}")
     assert not unplaced, f"rooms missing from LAYERS: {sorted(unplaced)}"
     assert upwards == []
+
+
+HEAVY_OPTIONAL = {  # imported where used, so that a command that does not need one never pays for it
+    "onnx", "onnxruntime",  # the export extra
+    "sleap_io", "pynwb", "ndx_pose",  # the formats extra
+    "gymnasium", "stable_baselines3",  # the robot extra
+    "fastapi", "uvicorn",  # the label extra
+    "rerun",  # the stream extra
+    "mujoco",  # the simulator: an OpenGL context on import
+    "matplotlib", "tensorboard", "torch.utils.tensorboard",  # seconds to import, for figures and logs only
+}
+
+
+def _import_targets(node: ast.Import | ast.ImportFrom, name: str, path: Path) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    base = node.module or ""
+    if node.level:
+        up = package.split(".")[: len(package.split(".")) - node.level + 1]
+        base = ".".join([*up, base] if base else up)
+    return [base, *(f"{base}.{a.name}" for a in node.names)]
+
+
+def _heavy_modules(modules: dict[str, Path]) -> set[str]:
+    """The s3k modules that import a heavy optional dependency, or such a module, at their top level."""
+    top: dict[str, list[str]] = {}
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        nodes = [n for stmt in tree.body if not isinstance(stmt, (ast.FunctionDef, ast.AsyncFunctionDef,
+                                                                   ast.ClassDef)) for n in ast.walk(stmt)]
+        top[name] = [t for n in nodes if isinstance(n, (ast.Import, ast.ImportFrom))
+                     for t in _import_targets(n, name, path)]
+    heavy = {name for name, targets in top.items() if any(_is_heavy(t) for t in targets)}
+    while True:
+        more = {name for name, targets in top.items()
+                if name not in heavy and any(t in heavy for t in targets)}
+        if not more:
+            return heavy
+        heavy |= more
+
+
+def _is_heavy(target: str) -> bool:
+    return any(target == h or target.startswith(h + ".") for h in HEAVY_OPTIONAL)
+
+
+def test_imports_inside_functions_are_only_of_heavy_optional_dependencies():
+    """Every other import is at the top of its module, where a reader sees what the module needs. Inside a
+    function are only imports of HEAVY_OPTIONAL and of the s3k modules that import one, and fallbacks inside
+    ``try`` (``tomllib`` before Python 3.11)."""
+    modules = _modules()
+    heavy = _heavy_modules(modules)
+    inside = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        guarded = {id(n) for t in ast.walk(tree) if isinstance(t, ast.Try) for n in ast.walk(t)}
+        for func in ast.walk(tree):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(func):
+                if not isinstance(node, (ast.Import, ast.ImportFrom)) or id(node) in guarded:
+                    continue
+                targets = _import_targets(node, name, path)
+                if not any(_is_heavy(t) or t in heavy for t in targets):
+                    inside.append(f"{path.relative_to(ROOT)}:{node.lineno} {targets[0]}")
+    assert sorted(set(inside)) == []
+
+
+def test_the_function_import_rule_sees_an_import_it_must_refuse():
+    tree = ast.parse("def f():\n    import json\n    from s3k import errors\n")
+    found = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+    assert [_import_targets(n, "s3k.x", PACKAGE / "x.py")[0] for n in found] == ["json", "s3k"]
+    assert not _is_heavy("json") and _is_heavy("torch.utils.tensorboard") and not _is_heavy("torch")

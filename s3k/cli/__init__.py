@@ -29,6 +29,9 @@ import shlex
 import sys
 from typing import Any
 
+from s3k import __version__
+from s3k.errors import UserError
+
 # name -> (module in s3k.cli, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "render a simulated multi-view dataset (box, distractors, category, plush)"),
@@ -126,8 +129,6 @@ def describe_error(exc: BaseException) -> str | None:
     the operating system's refusals (missing file, permission, full disk), which are reported with the path
     they name.
     """
-    from s3k.errors import UserError
-
     if isinstance(exc, UserError):
         return str(exc)
     if isinstance(exc, OSError):
@@ -180,8 +181,6 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0].startswith("-"):
         args = top.parse_args(argv)
         if args.version:
-            from s3k import __version__
-
             print(__version__)
         else:
             top.print_help()

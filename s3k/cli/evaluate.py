@@ -9,8 +9,10 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run
 from s3k.inference.metrics import format_table
+from s3k.outputs import check_output_folder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -47,12 +49,8 @@ def _two_pass_pixels(metrics: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     if not args.ignore_geometry:
-        from s3k.detector.geometry_record import check_dataset
-
         check_dataset(args.run, args.data)
     if args.report:
-        from s3k.outputs import check_output_folder
-
         check_output_folder(args.report, inputs={"RUN": args.run, "--data": args.data}, option="--report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)

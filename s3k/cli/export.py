@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
-from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector
+from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector, written_files
+from s3k.outputs import check_output
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -41,10 +43,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from s3k.inference.export import written_files
-    from s3k.outputs import check_output
 
     checkpoint = Path(args.run) / args.checkpoint if args.checkpoint else None
     for path in written_files(args.run, args.out):  # a two-pass run writes a file per pass and the rule

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 from typing import Any
 
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
+from s3k.data import import_labels as fmt
+from s3k.data.formats.sleap import sleap_tracks
+from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 from s3k.errors import UserError
 
 
@@ -102,8 +106,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _labels(args: argparse.Namespace, track: str | None) -> Any:
     """The label format the options name (:mod:`s3k.data.import_labels`), or None."""
-    from s3k.data import import_labels as fmt
-
     camera_map = camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None
     sleap = dict(track=track, camera_map=camera_map, accept_predictions=args.accept_predictions)
     project = _sleap_project(args)
@@ -135,9 +137,6 @@ def _sleap_project(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 
     videos = dict(camera_pairs(args.videos, "--videos"))
     common: dict[str, Any] = dict(
@@ -155,7 +154,6 @@ def run(args: argparse.Namespace) -> int:
     if args.sleap_track != "all":
         import_recording(args.calibration, videos, args.out, _labels(args, args.sleap_track), **common)
         return 0
-    from s3k.data.formats.sleap import sleap_tracks
 
     project = _sleap_project(args)
     files: list[str | Path] = ([project] if project else

@@ -15,9 +15,15 @@ import argparse
 import dataclasses
 import json
 import sys
+from pathlib import Path
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.detector import training_dataset
+from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
+from s3k.robot.detect import RunDetector
+from s3k.robot.results import write_summary
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -94,9 +100,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _dataset_object_seed(run: str) -> int | None:
     """The ``object_seed`` of the plush dataset run ``run`` was trained on, when its metadata says so."""
-    from pathlib import Path
-
-    from s3k.detector import training_dataset
 
     dataset = training_dataset(run)
     try:
@@ -111,8 +114,6 @@ def _dataset_object_seed(run: str) -> int | None:
 
 
 def _grasp(args: argparse.Namespace) -> int:
-    from s3k.errors import UserError
-    from s3k.fileio import atomic_write_json
     from s3k.robot.grasp import KeypointSource, detector_keypoints, ground_truth_keypoints, run_trials
     from s3k.sim.plush import PlushScene
 
@@ -124,7 +125,6 @@ def _grasp(args: argparse.Namespace) -> int:
     else:
         if args.run is None:
             raise UserError("RUN: give a trained run, or --ground-truth for the upper bound")
-        from s3k.robot.detect import RunDetector
 
         detector = RunDetector(args.run, PlushScene.keypoints, device=args.device)
         W, H = detector.image_size
@@ -153,9 +153,6 @@ def _grasp(args: argparse.Namespace) -> int:
 
 
 def _train_agent(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from s3k.errors import UserError
 
     try:
         import gymnasium  # noqa: F401
@@ -187,8 +184,6 @@ def _simulate_insertion(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    from s3k.robot.results import write_summary
-
     summary = write_summary(args.out, grasp_s3k=args.grasp_s3k, grasp_labels_only=args.grasp_labels_only,
                             grasp_ground_truth=args.grasp_ground_truth, rl_keypoints=args.rl_keypoints,
                             rl_beta_vae=args.rl_beta_vae, machine=args.machine)

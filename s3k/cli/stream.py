@@ -6,9 +6,16 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number
+from s3k.cli.options import add_rig_options, camera_pairs, number, parse_crops
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.detector import Detector
+from s3k.detector.geometry_record import track_crops
 from s3k.errors import UserError
+from s3k.inference.stream import open_source, rerun_logger, stream
+from s3k.inference.track import fit_box
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -35,12 +42,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
     """The calibration's cameras of the sources and each source's box onto the detector's input."""
-    import numpy as np
-
-    from s3k.cli.options import parse_crops
-    from s3k.data.formats.calibration_files import read_calibration
-    from s3k.detector.geometry_record import track_crops
-    from s3k.inference.track import fit_box
 
     names = list(sources)
     calib = read_calibration(args.calibration, units=args.units)
@@ -73,10 +74,6 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.cli.options import camera_pairs
-    from s3k.detector import Detector
-    from s3k.inference.stream import open_source, rerun_logger, stream
-
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")

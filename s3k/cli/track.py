@@ -8,9 +8,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number
+from s3k.cli.options import add_rig_options, number, parse_crops
+from s3k.data import video
+from s3k.data.tracks_csv import write_source
+from s3k.detector.geometry_record import track_crops
 from s3k.errors import UserError
 from s3k.inference.track import empty_result_hint, track_videos
+from s3k.outputs import check_output, check_output_folder
 
 
 def parse_videos(values: Sequence[str]) -> dict[str, Path]:
@@ -79,11 +83,6 @@ def keypoint_line(summary, k: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.cli.options import parse_crops
-    from s3k.data import video
-    from s3k.detector.geometry_record import track_crops
-    from s3k.outputs import check_output, check_output_folder
-
     videos = parse_videos(args.videos)
     check_output(args.out, args.overwrite,
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
@@ -101,7 +100,6 @@ def run(args: argparse.Namespace) -> int:
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,
     )
-    from s3k.data.tracks_csv import write_source
 
     write_source(summary.path, summary.units, run=args.run, calibration=args.calibration)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")

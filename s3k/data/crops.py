@@ -12,6 +12,8 @@ with the rule the two-pass detector applies at inference (:func:`s3k.geometry.wa
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -19,9 +21,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.data.dataset import Dataset
 from s3k.data.protocol import DatasetLike
+from s3k.data.writer import DatasetWriter
 from s3k.errors import UserError
-from s3k.geometry import Cameras
+from s3k.geometry import Cameras, workspace_centre
+from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
 
 __all__ = ["CropCutter", "CropDataset", "cut_crops", "object_centres", "write_crop_dataset"]
 
@@ -141,10 +146,6 @@ class CropDataset:
 
     def write(self, out: str | Path, overwrite: bool = False) -> Path:
         """Save the crops as a dataset folder ``out`` (written beside as ``out.tmp``, then renamed)."""
-        import os
-        import shutil
-
-        from s3k.data.writer import DatasetWriter
 
         out = Path(out)
         if out.exists() and not overwrite:
@@ -254,8 +255,6 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     Raises:
         UserError: an unknown keypoint, or a frame without an estimate when ``fallback`` is off.
     """
-    from s3k.data.dataset import Dataset
-
     ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
     cutter = CropCutter(ds, extent, size, keypoints, fallback)
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
@@ -270,9 +269,6 @@ def _cut_chunk(ds: DatasetLike, frames: np.ndarray, centre: torch.Tensor, kps: l
                size: int, images: np.ndarray | torch.Tensor | None = None):
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
-    from s3k.geometry import workspace_centre
-    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
-
     if images is None:
         images = ds.images(frames)  # (B, C, H, W, 3) uint8
     cams = ds.calibration(frames, np.float64)

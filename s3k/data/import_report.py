@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.calibration import check_calibration
+
 __all__ = ["calibration_warnings", "kept_labels_summary"]
 
 
@@ -24,8 +26,6 @@ def calibration_warnings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequen
     """The findings of :func:`s3k.calibration.check_calibration` on labels ``uv (B, C, K, 2)``, ``mask
     (B, C, K)`` seen by ``cams`` (``Cameras`` ``(C,)`` or ``(B, C)``), as warnings that name the repair
     (``s3k check-calibration DATASET --recalibrate``); empty when the cameras agree or cannot be judged."""
-    from s3k.calibration import check_calibration
-
     uv, mask = np.asarray(uv, dtype=np.float64), np.asarray(mask, dtype=bool)
     if uv.ndim != 4 or not mask.any():
         return []

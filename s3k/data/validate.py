@@ -11,8 +11,11 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from s3k.data.checks import check_dataset
 from s3k.data.dataset import Dataset
+from s3k.data.import_report import calibration_warnings
 from s3k.data.problems import Problem
 from s3k.data.tables import SPLITS
 
@@ -64,9 +67,6 @@ def _print_summary(ds: Dataset) -> None:
 def _calibration_check(ds: Dataset, path: str | Path) -> list[str]:
     """``s3k check-calibration``'s consistency test on the labels of the labelled and test frames, as
     warnings naming the repair (:func:`s3k.data.import_report.calibration_warnings`)."""
-    import numpy as np
-
-    from s3k.data.import_report import calibration_warnings
 
     ids = np.concatenate([np.asarray(ds.frames(s), dtype=np.int64) for s in ("labelled", "test")])
     if not len(ids):

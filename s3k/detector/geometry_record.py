@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data import Dataset
 from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 
@@ -111,8 +112,6 @@ def check_dataset(run_dir: str | Path, data: str | Path, option: str = "--ignore
         UserError: naming the first camera, both boxes, the import options that give a matching dataset and
             ``option``.
     """
-    from s3k.data import Dataset
-
     recorded = run_geometry(run_dir)
     if recorded is None:
         return

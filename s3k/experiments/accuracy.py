@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -15,6 +16,11 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from s3k.data import Dataset
+from s3k.experiments.views import make_view, select_frames
+from s3k.inference.evaluate import evaluate_run
+from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
 
 FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
 MODELS = {"s3k": [], "labels_only": ["--no-unsup"]}
@@ -46,8 +52,6 @@ STAGE_TIMES = "stage_times.json"
 def timed(work: Path, stage: str):
     """Record the wall time and the CPU time (this process and its finished children) of the block as
     ``stage`` in ``work/stage_times.json``; a block that raises records nothing."""
-    import resource
-
     def cpu() -> float:
         return sum(u.ru_utime + u.ru_stime for u in (resource.getrusage(resource.RUSAGE_SELF),
                                                     resource.getrusage(resource.RUSAGE_CHILDREN)))
@@ -102,8 +106,6 @@ def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int, labelled: i
     frames, chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
     if (out / "s3k.json").is_file():
         return out
-    from s3k.data import Dataset
-    from s3k.experiments.views import make_view, select_frames
 
     pool = Dataset.open(pool_dir, cache="none")
     frames = select_frames(pool, labelled, len(pool.frames("unlabelled")), seed, choice=choice)
@@ -134,8 +136,6 @@ def reuse_coarse(source: Path, runs: list[Path]) -> None:
     allows), and that stage's CPU minutes in the run's record. ``s3k train --two-pass --resume`` then cuts the
     crops and trains the refining pass, after checking that the coarse pass is what this benchmark's options
     would make."""
-    from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
-
     for run in runs:
         if run.exists():
             continue
@@ -259,7 +259,6 @@ def evaluate(run: Path, data: Path) -> dict:
         metrics = json.loads(path.read_text())
         if metrics.get("readout") == READOUT:
             return metrics
-    from s3k.inference.evaluate import evaluate_run
 
     with timed(run.parent, f"evaluate-{run.name}"):
         metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
@@ -291,8 +290,6 @@ def stage_summary(work: Path, seeds: list[int], runs: dict[tuple[int, str], Path
     (wall and CPU, per seed: :func:`timed`), each model's training stages (CPU, from its run's
     ``cpu.json``: ``coarse``, ``crops``, ``fine``) and its evaluation (wall and CPU). A stage that did not
     run in ``work`` (linked from elsewhere) is left out."""
-    from s3k.train.two_pass import read_cpu
-
     times = stage_times(work)
 
     def mean_of(keys: list[str]) -> dict[str, float] | None:

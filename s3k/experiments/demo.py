@@ -31,7 +31,19 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from s3k.detector import PROGRESS_FILE
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from s3k.data import Dataset
+from s3k.data.frames import FrameStore
+from s3k.detector import PROGRESS_FILE, Detector
+from s3k.experiments.accuracy import labelled_view
+from s3k.experiments.demo_figure import demo_figure, frame_detections
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.metrics import mm_per_unit
+from s3k.inference.report import write_report
+from s3k.presets import preset
 
 
 @dataclass
@@ -50,8 +62,6 @@ class DemoConfig:
 
     def steps(self) -> tuple[int, int]:
         """``(coarse pass steps, refining pass steps)`` of the preset with ``options`` over it."""
-        from s3k.presets import preset
-
         chosen = preset(self.preset)
         fine = int(chosen.config.get("steps", 0))
         coarse = int((chosen.two_pass or {}).get("coarse_steps") or fine)
@@ -155,8 +165,6 @@ class _ProgressBars:
     """One tqdm bar per training, fed from each run's ``progress.json`` and ``train.log``."""
 
     def __init__(self, jobs: list[tuple[str, Path, int]], coarse_steps: int = 0) -> None:
-        from tqdm import tqdm
-
         self.coarse_steps = coarse_steps
         width = max(len(name) for name, _, _ in jobs)
         self.jobs = [(folder, tqdm(total=steps, desc=f"{name:<{width}}", position=i, dynamic_ncols=True,
@@ -213,7 +221,6 @@ def _last_validation(folder: Path) -> str:
 
 def _data(out: Path, demo: DemoConfig, progress: bool, log, timings: dict[str, float]) -> Path:
     """Render the pool and make the labelled view (each once); returns the dataset trained on."""
-    from s3k.experiments.accuracy import labelled_view
     from s3k.sim.generate import SimulateConfig, simulate
 
     pool, data = out / "pool", out / "data"
@@ -237,14 +244,6 @@ def _data(out: Path, demo: DemoConfig, progress: bool, log, timings: dict[str, f
 
 def _evaluate(out: Path, data: Path, log) -> tuple[dict[str, dict], dict[str, object]]:
     """Both models on the test frames: their metrics (and reports), and their 3D errors in mm."""
-    import numpy as np
-
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
-    from s3k.detector import Detector
-    from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.metrics import mm_per_unit
-    from s3k.inference.report import write_report
 
     ds = Dataset.open(data, cache="none")
     store = FrameStore(ds, ds.frames("test"), preload_mb=0, labels=True, points=True)
@@ -280,7 +279,6 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
             subprocess.run(train_command(demo, data, folder, own, threads=0), check=True,
                            stdout=None if progress else subprocess.DEVNULL)
             timings[f"train_{folder.name}_s"] = time.perf_counter() - t
-    import torch
 
     torch.set_num_threads(1)  # the evaluation is short; one thread is robust on a shared machine
     t = time.perf_counter()
@@ -316,10 +314,6 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
 
 
 def _picture(path: Path, data: Path, results: dict[str, dict], errors, scale: str) -> None:
-    import numpy as np
-
-    from s3k.data import Dataset
-    from s3k.experiments.demo_figure import demo_figure, frame_detections
 
     ds = Dataset.open(data, cache="none")
     test = ds.frames("test")

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from s3k.choices import Device
+from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detection, Detector, TwoPassDetector
 from s3k.errors import UserError
@@ -27,6 +28,7 @@ from s3k.inference.metrics import (
     pixel_sizes_mm,
 )
 from s3k.inference.predict import detect_store
+from s3k.inference.report import write_report
 
 __all__ = ["evaluate_run", "evaluate_store"]
 
@@ -113,8 +115,6 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
     """Load a run's detector (one pass or two), evaluate it on ``data``'s ``split`` and optionally write a
     report (:mod:`s3k.inference.report`); returns the metrics."""
-    from s3k.data import Dataset
-
     detector = Detector.load(run_dir, device)
     ds = Dataset.open(data, cache="none")
     keypoint_order(detector.keypoints, ds.keypoints)  # refuse a mismatch before detecting anything
@@ -126,7 +126,5 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     if report:
-        from s3k.inference.report import write_report
-
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})")
     return metrics

@@ -25,14 +25,26 @@ import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from s3k import readout
+from s3k.data import Dataset
+from s3k.detector import (
+    CropRule,
+    Detector,
+    DetectorMeta,
+    OnePassDetector,
+    TwoPassDetector,
+    load_network,
+    training_dataset,
+)
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
+from s3k.inference.metrics import mm_per_unit
 
 __all__ = [
     "FORMATS",
@@ -242,7 +254,6 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
         except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
             print(f"warning: cannot read verification frames from {dataset} ({exc}); using synthetic images",
                   file=sys.stderr)
-    import cv2
 
     rng = np.random.default_rng(seed)
     out = np.empty((count, 3, H, W), np.float32)
@@ -300,8 +311,6 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
     Returns:
         An :class:`ExportReport`; ``report.ok`` says whether the verification passed.
     """
-    from s3k.detector import load_network, training_dataset
-
     if fmt not in FORMATS:
         raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     run_dir, out = Path(run_dir), Path(out)
@@ -344,10 +353,6 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
                    ) -> tuple[float | None, int]:
     """The largest 3D difference (mm) between the exported detector and PyTorch's on up to 8 frames of
     ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
-    from s3k.data import Dataset
-    from s3k.detector import Detector
-    from s3k.inference.metrics import mm_per_unit
-
     if data is None or not Path(data).is_dir():
         return None, 0
     try:
@@ -380,8 +385,6 @@ class _ExportedNetwork:
 
 def read_exported_meta(path: str | Path, fmt: str):
     """The :class:`s3k.detector.DetectorMeta` an exported file carries."""
-    from s3k.detector import DetectorMeta
-
     if fmt == "onnx":
         import onnx
 
@@ -401,8 +404,6 @@ def read_exported_meta(path: str | Path, fmt: str):
 def load_exported(path: str | Path, fmt: str | None = None):
     """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime (or
     TorchScript): a one-pass file, or the ``.json`` a two-pass export writes beside its two files."""
-    from s3k.detector import CropRule, OnePassDetector, TwoPassDetector
-
     path = Path(path)
     if path.suffix == ".json":
         doc = json.loads(path.read_text())

@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from s3k.choices import Device
+from s3k.data import Dataset
 from s3k.data.frames import FrameBatch, FrameStore
 from s3k.data.tables import SPLITS
+from s3k.data.tracks_csv import check_output, csv_rows, write_csv
 from s3k.detector import Detection, Detector
 
 __all__ = ["PredictSummary", "detect_store", "predict_dataset", "split_frames"]
@@ -61,9 +63,6 @@ def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, spli
     Raises:
         UserError: ``out`` is a file of the dataset, or exists without ``overwrite``.
     """
-    from s3k.data import Dataset
-    from s3k.data.tracks_csv import check_output, csv_rows, write_csv
-
     out = check_output(out, overwrite, dataset=data)
     detector = Detector.load(run_dir, device)
     ds = Dataset.open(data, cache="none")

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from s3k.draw import draw_views
@@ -21,7 +22,6 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     import matplotlib
 
     matplotlib.use("Agg")
-    import cv2
     import matplotlib.pyplot as plt
 
     out = Path(out_dir)

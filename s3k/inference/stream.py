@@ -26,8 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+import cv2
 import numpy as np
 
+from s3k.data import video
+from s3k.data.video import prefetch
 from s3k.errors import UserError
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
@@ -60,8 +63,6 @@ class FileSource(Source):
     """A video file or an image sequence (:mod:`s3k.data.video`)."""
 
     def __init__(self, spec: str) -> None:
-        from s3k.data import video
-
         self.spec, self.live = spec, False
         self.size, self.fps = video.frame_size(spec), video.frame_rate(spec)
         self._frames: Iterator[tuple[int, np.ndarray]] = video.iter_frames(spec)
@@ -74,8 +75,6 @@ class CameraSource(Source):
     """A camera opened with OpenCV (``cv2.VideoCapture``)."""
 
     def __init__(self, spec: str) -> None:
-        import cv2
-
         self.spec, self.live = spec, True
         self._cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
         if not self._cap.isOpened():
@@ -102,8 +101,6 @@ class CameraSource(Source):
 
 def open_source(spec: str) -> Source:
     """A camera (an index, or a ``/dev/video*`` device) or a video file / image sequence."""
-    from s3k.data import video
-
     if spec.isdigit() or spec.startswith("/dev/video"):
         return CameraSource(spec)
     if not video.exists(spec):
@@ -167,8 +164,6 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     i, behind, said, interrupted = 0, 0, start, False
     frames = _frames(list(sources.values()))
     if not live:  # files: the next frame is decoded while this one is detected (a camera's is read fresh)
-        from s3k.data.video import prefetch
-
         frames = prefetch(frames, depth=2)
     try:
         while max_frames is None or i < max_frames:

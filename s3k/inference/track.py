@@ -24,10 +24,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from s3k.choices import Device
+from s3k.data import video
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.data.tracks_csv import check_output, csv_rows, write_csv
+from s3k.detector import Detector
+from s3k.draw import draw_overlay, keypoint_colours
 from s3k.errors import UserError
 from s3k.geometry import Cameras
+from s3k.geometry.warp import crop_resize_matrix
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 __all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
@@ -112,9 +119,6 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
         ValueError: an unreadable video.
         FileNotFoundError: a missing video file.
     """
-    from s3k.data import video
-    from s3k.geometry.warp import crop_resize_matrix
-
     known = list(calibration.names)
     unknown = [c for c in videos if c not in known]
     if unknown:
@@ -176,8 +180,6 @@ class TrackSummary:
 def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int | None):
     """Yield ``(fnums, frames)`` from the synchronized videos: ``frames`` a list of ``B`` lists of ``C`` uint8
     images at the videos' own sizes."""
-    from s3k.data import video
-
     fnums, frames = [], []
     for i, views in video.synchronized_frames([c.path for c in inputs], start, stop):
         fnums.append(i)
@@ -209,8 +211,6 @@ def _check_inputs(videos: dict[str, Path], batch: int, start: int, stop: int | N
 
 def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int:
     """The frame index to stop before; warns about videos of different lengths or frame rates."""
-    from s3k.data import video
-
     counts = {c.name: video.frame_count(c.path) for c in inputs}
     n_video = min(counts.values())
     if len(set(counts.values())) > 1:
@@ -257,11 +257,6 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     Returns:
         A :class:`TrackSummary`.
     """
-    from s3k.data import video
-    from s3k.data.formats.calibration_files import read_calibration
-    from s3k.data.tracks_csv import check_output
-    from s3k.detector import Detector
-
     _check_inputs(videos, batch, start, stop, min_weight)
     out = check_output(out, overwrite)
     calib = read_calibration(calibration, units=units)
@@ -285,11 +280,6 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
 def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):
     """Detect every batch of ``frames``, write the CSV (and overlays); ``(frames, keypoints, valid fraction,
     median error, passing fraction)`` for the :class:`TrackSummary`."""
-    from tqdm import tqdm
-
-    from s3k.data import video
-    from s3k.data.tracks_csv import csv_rows, write_csv
-    from s3k.draw import draw_overlay, keypoint_colours
 
     writers = []
     if overlay is not None:

@@ -31,20 +31,26 @@ from __future__ import annotations
 
 import hmac
 import secrets
+import socket
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import torch
 from fastapi import Body, FastAPI, HTTPException, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
+from s3k.data import Dataset
+from s3k.detector.geometry_record import check_dataset
 from s3k.errors import UserError
+from s3k.inference.metrics import mm_per_unit
+from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
-from s3k.label.suggest import UP, Up
+from s3k.label.suggest import UP, Suggestions, Up
 
 __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
 
@@ -82,8 +88,6 @@ class LabelApp:
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
                  device: str = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
-        from s3k.data import Dataset
-
         self.root = Path(data)
         self.up = up  # the table's normal in world coordinates: the pose rankings ignore the turn about it
         self.dataset = Dataset.open(self.root)
@@ -91,9 +95,6 @@ class LabelApp:
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.suggestions = None
         if run is not None:
-            from s3k.detector.geometry_record import check_dataset
-            from s3k.label.suggest import Suggestions
-
             if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
                 check_dataset(run, self.root)
 
@@ -291,8 +292,6 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
         ids = state.dataset.frames(None if split == "all" else split)
         limit = max(0, limit)
         if by in ("coverage", "representative"):
-            from s3k.inference.metrics import mm_per_unit
-
             poses = state.labelled_poses(state.suggestions.keypoints)
             return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
                                               order=by, up=state.up)[:limit]
@@ -300,8 +299,6 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
-        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
-
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
@@ -314,8 +311,6 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
     @app.post("/api/propagate/undo")
     def propagate_undo() -> Any:
-        from s3k.label.propagate import undo_propagation
-
         try:
             source, frames = undo_propagation(state.root, store=state.store)
         except UserError as exc:
@@ -327,9 +322,6 @@ def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.
           labeller: str | None = None, device: str = "cpu", announce=print,
           up: Up = UP, ignore_geometry: bool = False) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
-    import socket
-
-    import torch
     import uvicorn
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET

@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from s3k.augment import NoiseBank
 from s3k.config import TrainConfig
@@ -29,10 +30,12 @@ from s3k.detector import (
     PROGRESS_FILE,
     TENSORBOARD_DIR,
     DetectorMeta,
+    pick_device,
     save_model_file,
     training_precision,
 )
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
 from s3k.model import UNet, UNetConfig
 from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
@@ -212,8 +215,6 @@ class _Monitor:
 
             self.writer = SummaryWriter(str(out / TENSORBOARD_DIR))
             if cfg.progress:
-                from tqdm import tqdm
-
                 self.bar = tqdm(total=cfg.steps, initial=step, desc="S3K" if cfg.unsup else "labels only",
                                 dynamic_ncols=True, smoothing=0.05)
         self.t_data = self.t_total = 0.0
@@ -232,8 +233,6 @@ class _Monitor:
             self.writer.add_scalar("time/step_s", self.t_total / self.n_timed, step)
             self.writer.add_scalar("time/data_fraction", self.t_data / max(self.t_total, 1e-12), step)
         if self.progress_file is not None and (step % self.cfg.log_every == 0 or step == self.cfg.steps):
-            from s3k.fileio import atomic_write_json
-
             atomic_write_json({"step": step, "steps": self.cfg.steps,
                                "seconds": time.perf_counter() - self.started}, self.progress_file)
         if self.bar is not None:
@@ -304,8 +303,6 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
 
 def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
            command: str | None, info: DistInfo) -> TrainResult:
-    from s3k.detector import pick_device
-
     data = data_path(source)
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":

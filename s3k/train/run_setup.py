@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from s3k.budget import check_fits
 from s3k.config import TrainConfig
@@ -35,8 +36,6 @@ log = logging.getLogger("s3k.train")
 
 class _TqdmHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
-        from tqdm import tqdm
-
         with contextlib.suppress(Exception):
             tqdm.write(self.format(record))
 

@@ -19,8 +19,11 @@ from torch import nn
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.data.protocol import DatasetLike
-from s3k.detector import DetectorMeta
+from s3k.detector import DetectorMeta, OnePassDetector
+from s3k.draw import draw_views
 from s3k.geometry import triangulate_labels
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.predict import detect_store
 
 log = logging.getLogger("s3k.train")
 
@@ -91,11 +94,6 @@ def labelled_distances(dataset: DatasetLike, frame_ids: np.ndarray, chunk: int =
 def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
              ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
     """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
-    from s3k.detector import OnePassDetector
-    from s3k.draw import draw_views
-    from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.predict import detect_store
-
     record: dict[str, Any] = {"step": step}
     if store is None or len(store) == 0:
         return record

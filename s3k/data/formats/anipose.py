@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -181,8 +182,6 @@ def _toml_value(value: Any) -> str:
 
 def write_anipose_calibration(path: str | Path, rig: Rig) -> None:
     """Write ``rig`` as an anipose ``calibration.toml`` (read back by :func:`read_anipose_calibration`)."""
-    import cv2
-
     cams = rig.cameras.numpy()
     lines = []
     for c, name in enumerate(rig.names):

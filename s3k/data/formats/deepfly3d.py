@@ -31,7 +31,7 @@ from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.safe_pickle import load_pickle
 from s3k.data.rig import Rig
 from s3k.errors import UserError
-from s3k.geometry import Cameras
+from s3k.geometry import Cameras, project
 
 _SEGMENTS = ["body_coxa", "coxa_femur", "femur_tibia", "tibia_tarsus", "tarsus_tip"]
 # Limbs 0-4 are one side (three legs, antenna, stripes), 5-9 the other.
@@ -139,8 +139,6 @@ def _reprojection_layout(points: np.ndarray, sizes: dict[str, tuple[int, int]], 
                          points3d: np.ndarray) -> tuple[str, float] | None:
     """The layout whose pixels lie nearest the reprojection of ``points3d (T, J, 3)`` through ``rig``, with
     its median distance (px); None when no layout is clearly the nearest."""
-    from s3k.geometry import project
-
     errors: dict[str, list[np.ndarray]] = {layout: [] for layout in LAYOUTS}
     for c in range(points.shape[0]):
         cam = f"camera_{c}"

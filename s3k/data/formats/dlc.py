@@ -10,7 +10,7 @@ import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable, frame_id_from_path
 from s3k.errors import UserError
-from s3k.fileio import open_text
+from s3k.fileio import atomic_path, open_text
 
 
 def _bodypart_columns(path: Path, coords_row: list[str], parts_row: list[str], n_index: int
@@ -169,8 +169,6 @@ def write_dlc_csv(path: str | Path, table: LabelTable, image_paths: list[str], s
         image_paths: the image path of each row, relative to the project folder (``labeled-data/...``).
         scorer: the scorer (annotator) name of the header.
     """
-    from s3k.fileio import atomic_path
-
     if len(image_paths) != len(table.frame_ids):
         raise ValueError(f"{len(image_paths)} image paths for {len(table.frame_ids)} frames")
     header = [

@@ -24,6 +24,7 @@ import numpy as np
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+from s3k.fileio import atomic_path
 
 
 def _modules() -> tuple[Any, Any]:
@@ -199,8 +200,6 @@ def _cameras(nwb: Any, names: Sequence[str], rig: Mapping[str, Any] | None) -> d
 
 
 def _write(nwb: Any, path: str | Path) -> Path:
-    from s3k.fileio import atomic_path
-
     pynwb, _ = _modules()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

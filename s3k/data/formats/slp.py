@@ -19,11 +19,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+from s3k.fileio import atomic_path
 
 # The hint of both SLEAP readers (projects here, analysis files in s3k.data.formats.sleap) when several tracks
 # hold labels.
@@ -254,9 +256,6 @@ def write_slp(
         rig: ``{camera: (K (3, 3), dist (5,), R (3, 3), t (3,), (W, H))}`` to store as a recording session
             (SLEAP's multi-view calibration); the session also ties each video to its camera by name.
     """
-    import cv2
-
-    from s3k.fileio import atomic_path
 
     sio = _sleap_io()
     keypoints = next(iter(tables.values())).keypoints
