@@ -23,14 +23,17 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import shutil
-import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from s3k.errors import UserError
+from s3k.messages import NOTE
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DATASET_MARKER", "RUN_NAMES", "UNFINISHED_MARKER", "check_output", "check_output_folder",
            "check_replaceable", "is_dataset", "is_run", "made_by_s3k", "recover_folder", "replace_folder"]
@@ -189,7 +192,7 @@ def check_replaceable(out: str | Path, overwrite: bool, inputs: Mapping[str, obj
     ``out`` are cleaned up first (:func:`recover_folder`)."""
     out = Path(out)
     for line in recover_folder(out):
-        print(f"note: {line}", file=sys.stderr)
+        log.log(NOTE, f"note: {line}")
     target = out.resolve()
     for folder in target.parents:
         if is_dataset(folder):

@@ -140,7 +140,7 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["inference", "train"],
     ["detector"],
     ["readout", "model", "losses", "augment", "config", "presets", "budget"],
-    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "draw",
+    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
      "calibration", "recalibration"],
 ]
 
@@ -241,3 +241,24 @@ def test_the_function_import_rule_sees_an_import_it_must_refuse():
     found = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
     assert [_import_targets(n, "s3k.x", PACKAGE / "x.py")[0] for n in found] == ["json", "s3k"]
     assert not _is_heavy("json") and _is_heavy("torch.utils.tensorboard") and not _is_heavy("torch")
+
+
+LOGGERS_CONFIGURED = {"s3k/cli/__init__.py", "s3k/train/run_setup.py"}  # they set up where records go
+
+
+def test_the_library_logs_and_never_prints():
+    """Outside s3k/cli/ no module calls or passes ``print`` (the library logs to
+    ``logging.getLogger(__name__)``; the command line shows the records, s3k.messages), and a logger is
+    named by its module everywhere but where logging is configured."""
+    printing, named = [], []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Name) and node.id == "print" and not rel.startswith("s3k/cli/"):
+                printing.append(f"{rel}:{node.lineno}")
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr == "getLogger" and rel not in LOGGERS_CONFIGURED
+                    and not (len(node.args) == 1 and isinstance(node.args[0], ast.Name)
+                             and node.args[0].id == "__name__")):
+                named.append(f"{rel}:{node.lineno}")
+    assert printing == [] and named == []

@@ -142,9 +142,9 @@ def describe_error(exc: BaseException) -> str | None:
 
 
 class _Messages(logging.Handler):
-    """The library's log records as a command's output: INFO and below on stdout as written, WARNING and
-    above on stderr prefixed ``warning: ``. The streams are looked up at each record, so a redirected
-    ``sys.stdout`` (a test's capture) receives them."""
+    """The library's log records as a command's output (:mod:`s3k.messages`): INFO and below on stdout as
+    written, NOTE on stderr as written, WARNING and above on stderr prefixed ``warning: ``. The streams are
+    looked up at each record, so a redirected ``sys.stdout`` (a test's capture) receives them."""
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -154,6 +154,8 @@ class _Messages(logging.Handler):
             return
         if record.levelno >= logging.WARNING:
             print(f"warning: {text}", file=sys.stderr)
+        elif record.levelno > logging.INFO:
+            print(text, file=sys.stderr)
         else:
             print(text, file=sys.stdout)
 

@@ -26,8 +26,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    ok = validate_dataset(
+    ok, lines = validate_dataset(
         args.dataset, check_images=not args.no_images, workers=args.workers,
         max_per_field=args.max_per_field, strict=args.strict,
     )
+    print("\n".join(lines))
     return 0 if ok else 1

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import resource
 import shutil
@@ -20,7 +21,10 @@ from typing import Any
 from s3k.data import Dataset
 from s3k.experiments.views import make_view, select_frames
 from s3k.inference.evaluate import evaluate_run
+from s3k.messages import NOTE
 from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+
+log = logging.getLogger(__name__)
 
 FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
 MODELS = {"s3k": [], "labels_only": ["--no-unsup"]}
@@ -215,7 +219,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
             name, cmd, record = pending.pop(0)
             spent = _read_record(record)
             record.write_text(json.dumps(spent) + "\n")
-            print(f"training {name}", file=sys.stderr, flush=True)
+            log.log(NOTE, f"training {name}")
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
             running[proc.pid] = (name, record, time.time(), proc)
         pid, status, usage = os.wait4(-1, os.WNOHANG)
@@ -242,7 +246,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
         spent["wall_minutes"] += (time.time() - started) / 60
         record.write_text(json.dumps(spent) + "\n")
-        print(f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes", file=sys.stderr, flush=True)
+        log.log(NOTE, f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes")
 
 
 #: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (another

@@ -43,6 +43,7 @@ from s3k.experiments.demo_figure import demo_figure, frame_detections
 from s3k.inference.evaluate import evaluate_store
 from s3k.inference.metrics import mm_per_unit
 from s3k.inference.report import write_report
+from s3k.messages import say
 from s3k.presets import preset
 
 
@@ -259,7 +260,7 @@ def _evaluate(out: Path, data: Path, log) -> tuple[dict[str, dict], dict[str, ob
     return results, errors
 
 
-def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print,
+def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=say,
              parallel: bool = True) -> dict:
     """Run the whole demo into ``out``; returns ``{"labels only": metrics, "S3K": metrics, ...}``."""
     out = Path(out)

@@ -36,6 +36,7 @@ from s3k.experiments.report import source_revision, summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
 from s3k.fileio import atomic_write_json, file_lock
 from s3k.inference.evaluate import evaluate_run
+from s3k.messages import say
 from s3k.train import read_checkpoint_step, train
 from s3k.train.two_pass import train_two_pass
 
@@ -89,7 +90,7 @@ def checkpoint_step(run_dir: Path) -> int:
 
 
 def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
-            log: Callable[[str], None] = print) -> dict[str, Any] | None:
+            log: Callable[[str], None] = say) -> dict[str, Any] | None:
     """Train and evaluate one run unless finished; returns its result (None: another process has it).
 
     Raises:
@@ -202,7 +203,7 @@ def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale:
             f"(one process, one thread per run; about half the wall time with two invocations in parallel)")
 
 
-def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_experiment(opts: Options, log: Callable[[str], None] = say) -> dict[str, Any]:
     """Run every missing run of a sweep, then summarize. Returns ``{"trained", "skipped", "failed",
     "summary"}`` (run names trained now, already finished or held by another process, failed).
 

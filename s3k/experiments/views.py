@@ -22,6 +22,7 @@ from s3k.errors import UserError
 from s3k.experiments.grid import LABEL_CHOICES, PoolSpec
 from s3k.fileio import file_lock
 from s3k.label.suggest import POSE_ORDERS
+from s3k.messages import say
 
 #: frames.csv columns that group frames for a stratified pick, in order of preference.
 GROUP_COLUMNS = ("segment", "instance")
@@ -31,7 +32,7 @@ _IMAGES = "images"
 
 
 def ensure_pool(data_dir: Path, pool: PoolSpec, workers: int | None = None, progress: bool = True,
-                log: Callable[[str], None] = print) -> tuple[Path, bool]:
+                log: Callable[[str], None] = say) -> tuple[Path, bool]:
     """Render ``pool`` into ``data_dir/pool.name`` unless it is there; returns (path, rendered now).
 
     A process that finds the pool being rendered by another waits for it (a lock on ``.NAME.lock`` beside

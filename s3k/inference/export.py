@@ -20,7 +20,7 @@ JSON), so a consumer needs no other file.
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -45,6 +45,8 @@ from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
 from s3k.inference.metrics import mm_per_unit
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FORMATS",
@@ -252,8 +254,7 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
                 imgs = imgs.reshape(-1, H, W, 3)[:count].transpose(0, 3, 1, 2).astype(np.float32) / 255.0
                 return np.ascontiguousarray(imgs), f"{len(imgs)} images of dataset {dataset}"
         except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
-            print(f"warning: cannot read verification frames from {dataset} ({exc}); using synthetic images",
-                  file=sys.stderr)
+            log.warning(f"cannot read verification frames from {dataset} ({exc}); using synthetic images")
 
     rng = np.random.default_rng(seed)
     out = np.empty((count, 3, H, W), np.float32)
@@ -360,7 +361,7 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
         ids = ds.frames(("test", "unlabelled", "labelled"))[:8]
         images, cams = ds.images(ids), ds.calibration(ids, dtype=np.float64)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
-        print(f"warning: cannot read frames from {data} to compare 3D points ({exc})", file=sys.stderr)
+        log.warning(f"cannot read frames from {data} to compare 3D points ({exc})")
         return None, 0
     ref = Detector.load(run_dir, "cpu")(images, cams)
     got = load_exported(path, fmt)(images, cams)

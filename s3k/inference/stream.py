@@ -19,6 +19,7 @@ the detector goes. With ``rerun`` the views, the detections and the 3D points ar
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -32,7 +33,10 @@ import numpy as np
 from s3k.data import video
 from s3k.data.video import prefetch
 from s3k.errors import UserError
+from s3k.messages import note
 from s3k.readout import DEFAULT_MIN_WEIGHT
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Source", "StreamSummary", "open_source", "stream"]
 
@@ -141,7 +145,7 @@ def _frame_line(i: int, t: float, keypoints: list[str], X: np.ndarray, valid: np
 def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None = None,
            out: IO[str] = sys.stdout, min_weight: float = DEFAULT_MIN_WEIGHT, max_frames: int | None = None,
            log: Callable[[int, list[np.ndarray], Any], None] | None = None,
-           say: Callable[[str], None] = lambda text: print(text, file=sys.stderr)) -> StreamSummary:
+           say: Callable[[str], None] | None = None) -> StreamSummary:
     """Detect every frame of the synchronized ``sources`` and write one JSON line per frame to ``out``
     (module docstring).
 
@@ -154,8 +158,9 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
         min_weight: as for :func:`s3k.readout.read_out`.
         max_frames: stop after this many frames (default: at the end of the shortest source).
         log: called with ``(frame, views, detection)`` after each frame (the Rerun logger).
-        say: where the notes on keeping up go.
+        say: where the notes on keeping up go (default: logged at ``s3k.messages.NOTE``).
     """
+    say = say or note
     keypoints = detector.keypoints
     live = any(s.live for s in sources.values())
     rates = [s.fps for s in sources.values() if s.fps > 0]

@@ -19,7 +19,7 @@ reprojected 3D keypoints (filled discs) and the per-view detections (crosses), o
 
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +36,8 @@ from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.readout import DEFAULT_MIN_WEIGHT
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
            "track_videos"]
@@ -215,12 +217,11 @@ def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int
     n_video = min(counts.values())
     if len(set(counts.values())) > 1:
         lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
-        print(f"warning: the videos have different lengths ({lengths}); tracking the first {n_video} frames "
-              "of each", file=sys.stderr)
+        log.warning(f"the videos have different lengths ({lengths}); tracking the first {n_video} frames "
+                    "of each")
     rates = {c.name: c.fps for c in inputs}
     if max(rates.values()) - min(rates.values()) > 1e-3 * max(rates.values()):
-        print(f"warning: the videos have different frame rates ({rates}); frames are paired by index",
-              file=sys.stderr)
+        log.warning(f"the videos have different frame rates ({rates}); frames are paired by index")
     if start >= n_video:
         raise UserError(f"--start {start}: the videos have {n_video} frames")
     return n_video if stop is None else min(stop, n_video)

@@ -30,8 +30,10 @@ server printed (``?token=`` in the first URL, then a cookie).
 from __future__ import annotations
 
 import hmac
+import logging
 import secrets
 import socket
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +53,9 @@ from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels, undo_prop
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 from s3k.label.suggest import UP, Suggestions, Up
+from s3k.messages import say
+
+log = logging.getLogger(__name__)
 
 __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
 
@@ -319,10 +324,12 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
-          labeller: str | None = None, device: str = "cpu", announce=print,
+          labeller: str | None = None, device: str = "cpu", announce: Callable[[str], None] | None = None,
           up: Up = UP, ignore_geometry: bool = False) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
     import uvicorn
+
+    announce = announce or say
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family) as probe:  # a port in use is the user's to change, said in one line

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
+from s3k.messages import say
 from s3k.robot.agent_checkpoint import checkpoint_folder, load_checkpoint, save_checkpoint
 from s3k.robot.detect import RunDetector
 from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action
@@ -307,7 +308,7 @@ def evaluate_agent(model, env: gym.Env, episodes: int, seed: int) -> dict:
 
 # ---------------------------------------------------------------------------------------------- training
 def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
-                log: Callable[[str], None] = print) -> dict:
+                log: Callable[[str], None] = say) -> dict:
     """Trains (or with ``resume`` continues) the agent of ``cfg`` in run folder ``out``.
 
     Returns the final evaluation: ``{"agent", "seed", "env_steps", "success_rate", "true_success_rate",

@@ -55,7 +55,7 @@ from s3k.train.sampling import draw_batch, prepare
 from s3k.train.step import _all_finite, _lr_lambda, compute_losses
 from s3k.train.validation import labelled_distances, layout_size, validate
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
 
 @dataclass

@@ -27,7 +27,7 @@ from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import DistInfo
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -41,11 +41,14 @@ class _TqdmHandler(logging.Handler):
 
 
 def _setup_logging(run_dir: Path, main: bool) -> None:
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    for h in list(log.handlers):
+    """The training room's logger (``s3k.train``, the parent of its modules' loggers) writes to the run's
+    log file and the console while the run goes, and nowhere else."""
+    room = logging.getLogger("s3k.train")
+    room.setLevel(logging.INFO)
+    room.propagate = False
+    for h in list(room.handlers):
         if getattr(h, "_s3k", False):
-            log.removeHandler(h)
+            room.removeHandler(h)
             h.close()
     handlers: list[logging.Handler] = [logging.NullHandler()]
     if main:
@@ -56,7 +59,7 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
         handlers = [fh, th]
     for h in handlers:
         h._s3k = True  # type: ignore[attr-defined]
-        log.addHandler(h)
+        room.addHandler(h)
 
 
 # ------------------------------------------------------------------------------------------------------------

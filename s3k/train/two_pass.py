@@ -33,7 +33,7 @@ import json
 import os
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,7 @@ from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
 from s3k.geometry import triangulate_labels
 from s3k.inference.predict import detect_store, split_frames
+from s3k.messages import say
 from s3k.ranges import Range
 from s3k.train.loop import train
 from s3k.train.run_setup import check_trained_as, frames_used
@@ -196,7 +197,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                    coarse_stride: int | None = None, coarse_lr: float | None = None,
                    crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
-                   keep_crops: bool = False, log=print) -> dict[str, Any]:
+                   keep_crops: bool = False, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
     complete, so ``resume`` continues a killed run at the stage where it stopped.
 
@@ -225,7 +226,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         when it was complete before this call.
     """
 
-    data, out = Path(data), Path(out)
+    data, out, log = Path(data), Path(out), log or say
     # every option of both passes is checked before the coarse pass trains
     for value, bounds, option in ((coarse_size, Range(ge=16), "--coarse-size"), (crop_size, Range(ge=16),
                                   "--crop-size"), (margin, Range(ge=0), "--crop-margin"),

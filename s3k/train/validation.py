@@ -25,7 +25,7 @@ from s3k.geometry import triangulate_labels
 from s3k.inference.evaluate import evaluate_store
 from s3k.inference.predict import detect_store
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
 
 def mean_pairwise_distance(X: torch.Tensor, valid: torch.Tensor) -> float:

@@ -22,6 +22,7 @@ joint a camera cannot see is unlabelled there.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,8 @@ from s3k.data.formats.safe_pickle import load_pickle
 from s3k.data.rig import Rig
 from s3k.errors import UserError
 from s3k.geometry import Cameras, project
+
+log = logging.getLogger(__name__)
 
 _SEGMENTS = ["body_coxa", "coxa_femur", "femur_tibia", "tibia_tarsus", "tarsus_tip"]
 # Limbs 0-4 are one side (three legs, antenna, stripes), 5-9 the other.
@@ -211,7 +214,7 @@ def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]],
     C, T, J, _ = points.shape
     names = JOINTS if J == len(JOINTS) else [f"joint_{j}" for j in range(J)]
     layout, why = points2d_layout(points, sizes, rig, _points3d(data, T, J))
-    print(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
+    log.info(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
     tables = {}
     for c in range(C):
         cam = f"camera_{c}"

@@ -18,7 +18,7 @@ videos in SLEAP.
 from __future__ import annotations
 
 import csv
-import sys
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,8 @@ from s3k.errors import UserError
 from s3k.fileio import open_text
 from s3k.geometry.warp import crop_resize_matrix, transform_points
 from s3k.outputs import check_output, check_output_folder
+
+log = logging.getLogger(__name__)
 
 FORMATS = ("dlc", "lightning-pose", "sleap", "nwb")
 SUFFIX = {"sleap": ".slp", "nwb": ".nwb"}
@@ -176,7 +178,7 @@ def export_labels(
         # view
         keep = np.isfinite(table.uv).all(-1).any(-1) if fmt == "dlc" else np.ones(len(ids), bool)
         if not keep.any():
-            print(f"warning: camera {cam} has no labels; no CSV written for it")
+            log.warning(f"camera {cam} has no labels; no CSV written for it")
             continue
         names = [f"labeled-data/{cam}/img{int(f):06d}.png" for f in table.frame_ids[keep]]
         if fmt == "dlc":
@@ -249,8 +251,8 @@ def export_tracks(
                         f"{source_path(csv_path).name} with it as 's3k track' and 's3k predict' write)",
                         hint="pass --units (e.g. mm), or --calibration with the rig's calibration")
     if source is not None and source["units"] not in (units, "unknown"):
-        print(f"warning: {csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
-              f"written as {units}", file=sys.stderr)
+        log.warning(f"{csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
+                    f"written as {units}")
     path = write_nwb_tracks(out, keypoints, fnums, X, score, fps=fps, units=units, rig=rig,
                             description=f"3D keypoints from {csv_path.name} (s3k)")
     return path, units

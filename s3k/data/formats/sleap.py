@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -12,6 +13,8 @@ from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.slp import TRACK_HINT, read_slp, slp_track_frames, slp_tracks
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+
+log = logging.getLogger(__name__)
 
 
 def _names(values, path: Path | str, field: str) -> list[str]:
@@ -135,7 +138,7 @@ def default_track(paths: list[str | Path], predictions: bool = False) -> str | N
         return None
     chosen = max(counts, key=counts.__getitem__)
     listed = ", ".join(f"{name} {n}" for name, n in counts.items())
-    print(f"note: {len(counts)} tracks are labelled (frames: {listed}); importing {chosen}, the most "
+    log.info(f"note: {len(counts)} tracks are labelled (frames: {listed}); importing {chosen}, the most "
           "labelled (--sleap-track NAME picks another, --sleap-track all writes one dataset per track)")
     return chosen
 
