@@ -326,7 +326,7 @@ def resumable_fields(cls: type = TrainConfig) -> set[str]:
     return {f.name for _, f, _ in leaf_fields(cls) if f.metadata.get("resumable")}
 
 
-def _default(f: dataclasses.Field) -> Any:
+def field_default(f: dataclasses.Field) -> Any:
     if f.default is not dataclasses.MISSING:
         return f.default
     return f.default_factory()  # type: ignore[misc,operator]
@@ -336,11 +336,11 @@ def default_of(name: str, cls: type = TrainConfig) -> Any:
     """The default of the field ``name`` of ``cls``, for settings elsewhere that start from it."""
     for _, f, _ in leaf_fields(cls):
         if f.name == name:
-            return _default(f)
+            return field_default(f)
     raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 
-def _base_type(tp: Any) -> tuple[Any, bool]:
+def base_type(tp: Any) -> tuple[Any, bool]:
     """(type without Optional, is_optional); a union with ``str`` (a ``Literal`` of named values that also
     takes other names) is ``str``."""
     origin = typing.get_origin(tp)
@@ -356,7 +356,7 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
     Raises:
         UserError: naming ``where`` (file and field) and the offending value.
     """
-    base, optional = _base_type(tp)
+    base, optional = base_type(tp)
     if value is None or (optional and isinstance(value, str) and value.lower() in ("none", "null")):
         if optional:
             return None

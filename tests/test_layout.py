@@ -262,3 +262,14 @@ def test_the_library_logs_and_never_prints():
                              and node.args[0].id == "__name__")):
                 named.append(f"{rel}:{node.lineno}")
     assert printing == [] and named == []
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """A name that starts with ``_`` is its module's own: another module that needs it gets a public name."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                found += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    assert found == []

@@ -13,10 +13,10 @@ from typing import Any
 
 from s3k.config import (
     TrainConfig,
-    _base_type,
-    _default,
+    base_type,
     coerce,
     config_from_dict,
+    field_default,
     leaf_fields,
     read_config_file,
 )
@@ -37,8 +37,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
     for section, f, tp in leaf_fields(cls):
         if section is not None and section not in groups:
             groups[section] = parser.add_argument_group(f"configuration: {section.replace('_', '-')}")
-        base, _ = _base_type(tp)
-        default = _default(f)
+        base, _ = base_type(tp)
+        default = field_default(f)
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
         text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
         flag = f"--{f.name.replace('_', '-')}"
@@ -72,7 +72,7 @@ def _parser(f, tp: Any):
             raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
         return value
 
-    parse.__name__ = getattr(_base_type(tp)[0], "__name__", "value")
+    parse.__name__ = getattr(base_type(tp)[0], "__name__", "value")
     if bounds is not None:
         parse.range = bounds  # type: ignore[attr-defined]
     return parse

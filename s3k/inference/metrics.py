@@ -206,19 +206,19 @@ def keypoint_order(model_keypoints, dataset_keypoints) -> np.ndarray:
     return np.array([data_kp.index(k) for k in model_kp], dtype=np.int64)
 
 
-def _fmt(v) -> str:
+def format_metric(v) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
 
 
 def format_table(metrics: dict[str, Any]) -> str:
     """Human-readable table of a metrics dict."""
     lines = [f"{'':<16}" + "".join(f"{m:>15}" for m in METRICS)]
-    lines.append(f"{'all':<16}" + "".join(f"{_fmt(metrics[m]):>15}" for m in METRICS))
+    lines.append(f"{'all':<16}" + "".join(f"{format_metric(metrics[m]):>15}" for m in METRICS))
     for name, d in metrics["per_keypoint"].items():
-        lines.append(f"{'kp ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+        lines.append(f"{'kp ' + name:<16}" + "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS))
     for name, d in metrics["per_camera"].items():
-        lines.append(f"{'cam ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+        lines.append(f"{'cam ' + name:<16}" + "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS))
     lines.append(f"frames {metrics['n_frames']}, 2D terms {metrics['n_2d']}, 3D terms {metrics['n_3d']}, "
-                 f"triangulated {_fmt(metrics['triangulated_fraction'])}, "
-                 f"mm_per_px {_fmt(metrics.get('mm_per_px'))}")
+                 f"triangulated {format_metric(metrics['triangulated_fraction'])}, "
+                 f"mm_per_px {format_metric(metrics.get('mm_per_px'))}")
     return "\n".join(lines)

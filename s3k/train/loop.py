@@ -50,9 +50,16 @@ from s3k.train.distributed import (
     shard,
     wrap_model,
 )
-from s3k.train.run_setup import _meta, _open_data, _reference_layout, _setup_logging, _start_run, data_path
+from s3k.train.run_setup import (
+    data_path,
+    detector_meta,
+    open_data,
+    reference_layout,
+    setup_logging,
+    start_run,
+)
 from s3k.train.sampling import draw_batch, prepare
-from s3k.train.step import _all_finite, _lr_lambda, compute_losses
+from s3k.train.step import all_finite, compute_losses, lr_lambda
 from s3k.train.validation import labelled_distances, layout_size, validate
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
@@ -96,7 +103,7 @@ class _Loop:
         self.model = wrap_model(self.net, device, info)
         self.gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
-        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout-tol holds the pseudo-labels to
@@ -143,7 +150,7 @@ class _Loop:
         rngs = gather(ckpt.rng_state(self.gen), self.info)
         if not self.info.main:
             return
-        if not _all_finite(self.net):
+        if not all_finite(self.net):
             log.error("step %d: model holds non-finite values; checkpoint not written", self.step)
             return
         ckpt.save_checkpoint(self.out / CHECKPOINT_FILE, step=self.step, model=self.net.state_dict(),
@@ -311,10 +318,10 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
         torch.set_num_threads(cfg.threads)
     if info.main:
         run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
-    d = _open_data(source, cfg)
+    d = open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
-    layout = _reference_layout(data, distances, cfg)
-    meta = _meta(d, cfg, distances)
+    layout = reference_layout(data, distances, cfg)
+    meta = detector_meta(d, cfg, distances)
     # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
     t0 = time.perf_counter()
     lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
@@ -325,9 +332,9 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
             if store is not None:
                 store.to(device)
     t_load = time.perf_counter() - t0
-    state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
+    state = start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
-        _setup_logging(out, False)
+        setup_logging(out, False)
     loop = _Loop(cfg, meta, device, info, out, layout)
     if state is not None:
         loop.restore(state, out / CHECKPOINT_FILE)
@@ -369,7 +376,7 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
         if callback is not None:
             callback(step, terms)
     broadcast_buffers(loop.net, info)
-    if status == "done" and not _all_finite(loop.net):  # e.g. a learning rate too large for float32
+    if status == "done" and not all_finite(loop.net):  # e.g. a learning rate too large for float32
         log.error("training ended at step %d with non-finite weights; no model was written", loop.step)
         status = "nonfinite"
     timing = monitor.close(status, loop.step)

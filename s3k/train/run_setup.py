@@ -40,7 +40,7 @@ class _TqdmHandler(logging.Handler):
             tqdm.write(self.format(record))
 
 
-def _setup_logging(run_dir: Path, main: bool) -> None:
+def setup_logging(run_dir: Path, main: bool) -> None:
     """The training room's logger (``s3k.train``, the parent of its modules' loggers) writes to the run's
     log file and the console while the run goes, and nowhere else."""
     room = logging.getLogger("s3k.train")
@@ -105,7 +105,7 @@ def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dic
     return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
 
 
-def _open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
+def open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
     """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
     ds, source_size = _open_at_network_size(data, cfg)
     labelled = np.asarray(ds.frames("labelled"))
@@ -142,7 +142,7 @@ def frames_used(ds: DatasetLike, cfg: TrainConfig) -> np.ndarray:
     return everything[np.isin(everything, np.concatenate(used))]
 
 
-def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
+def reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
     """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout-tol``
     holds pseudo-labels to them (None when off)."""
     if not (cfg.unsup and cfg.layout_tol > 0):
@@ -154,7 +154,7 @@ def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> tor
     return layout
 
 
-def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
+def detector_meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     """What inference needs; a rigid object's labelled layout (``--layout-tol``) goes into the read-out."""
     rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
@@ -168,7 +168,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     )
 
 
-def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
+def start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
                overwrite: bool, command: str | None, info: DistInfo) -> dict[str, Any] | None:
     """Check the run folder (and the run being resumed) then write its configuration; returns the
     checkpoint to resume from, or None. Nothing is written unless every check passes."""
@@ -181,7 +181,7 @@ def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: Detector
     if overwrite:
         run_folder.clear_run(out)
     out.mkdir(parents=True, exist_ok=True)
-    _setup_logging(out, info.main)
+    setup_logging(out, info.main)
     run_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
     if changed:
         log.info("resumed with changed settings: %s",

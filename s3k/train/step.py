@@ -73,7 +73,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     return loss, terms
 
 
-def _lr_lambda(cfg: TrainConfig):
+def lr_lambda(cfg: TrainConfig):
     def f(step: int) -> float:
         frac = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
         return cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
@@ -81,6 +81,6 @@ def _lr_lambda(cfg: TrainConfig):
     return f
 
 
-def _all_finite(module: nn.Module) -> bool:
+def all_finite(module: nn.Module) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in list(module.parameters()) + list(module.buffers())
                if t.is_floating_point())
