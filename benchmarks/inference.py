@@ -44,6 +44,7 @@ from benchmarks.common import (  # noqa: E402
     network_fields,
     network_summary,
 )
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.config import TrainConfig  # noqa: E402
 from s3k.geometry import Cameras  # noqa: E402
 from s3k.model import count_conv_flops  # noqa: E402
@@ -176,4 +177,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        sys.exit(main())
