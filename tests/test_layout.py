@@ -273,3 +273,19 @@ def test_no_private_name_is_imported_from_another_module():
                 found += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
                           if a.name.startswith("_") and not a.name.startswith("__")]
     assert found == []
+
+
+def test_the_data_room_never_decides_by_a_command_line_flag():
+    """Below s3k/cli/ the import's formats are dataclasses (s3k.data.import_labels): no module of the data
+    room compares a value with a flag such as ``"--sleap"`` or holds a list of them (its messages may still
+    name the option that fixes a problem)."""
+    found = []
+    for path in sorted((PACKAGE / "data").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            flags = [c for c in ast.walk(node) if isinstance(c, ast.Constant) and isinstance(c.value, str)
+                     and c.value.startswith("--")]
+            listed = (isinstance(node, (ast.Tuple, ast.List, ast.Set)) and len(node.elts) > 1
+                      and len(flags) == len(node.elts))
+            if flags and (isinstance(node, ast.Compare) or listed):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert found == []
