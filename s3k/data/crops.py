@@ -232,8 +232,8 @@ class CropCutter:
                            mask, points, self.names, self.extent, self.size, description)
 
 
-def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, size: int,
-              keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
+def cut_crops(source: str | os.PathLike | DatasetLike, centres: Mapping[int, np.ndarray], extent: float,
+              size: int, keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
               splits: Sequence[str] | None = None, frames: Sequence[int] | None = None,
               description: str | None = None) -> CropDataset:
     """The crops of every frame of ``source`` (a :class:`s3k.data.Dataset` or its folder) around ``centres``.
@@ -255,7 +255,7 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     Raises:
         UserError: an unknown keypoint, or a frame without an estimate when ``fallback`` is off.
     """
-    ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
+    ds = Dataset.open(os.fspath(source), cache="none") if isinstance(source, (str, os.PathLike)) else source
     cutter = CropCutter(ds, extent, size, keypoints, fallback)
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
     if frames is not None:

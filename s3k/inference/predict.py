@@ -17,6 +17,7 @@ import numpy as np
 from s3k.choices import Device
 from s3k.data import Dataset
 from s3k.data.frames import FrameBatch, FrameStore
+from s3k.data.protocol import DatasetLike
 from s3k.data.tables import SPLITS
 from s3k.data.tracks_csv import check_output, csv_rows, write_csv
 from s3k.detector import Detection, Detector
@@ -32,7 +33,7 @@ def detect_store(detector: Detector, store: FrameStore, batch_size: int = 16,
         yield batch, detector(batch.images, batch.cams, keep_heatmaps=keep_heatmaps).cpu()
 
 
-def split_frames(dataset, split: str) -> np.ndarray:
+def split_frames(dataset: DatasetLike, split: str) -> np.ndarray:
     """Frame ids of a split, or of every split for 'all' (labelled, unlabelled, then test frames)."""
     return np.asarray(dataset.frames(SPLITS if split == "all" else split))
 

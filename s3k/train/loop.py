@@ -308,8 +308,8 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
         finish_distributed(info)
 
 
-def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
-           command: str | None, info: DistInfo) -> TrainResult:
+def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool,
+           callback, command: str | None, info: DistInfo) -> TrainResult:
     data = data_path(source)
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":

@@ -66,7 +66,7 @@ ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of the frames
 CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "crops", "fine"), summed over a run's attempts
 
 
-def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
+def crop_rule_from_labels(dataset: DatasetLike, size: int, margin: float = 0.3) -> CropRule:
     """The run's crop rule from the labelled frames' triangulated labels (never from ground truth).
 
     ``extent = 2 * r * (1 + margin)`` with ``r`` the largest distance of a labelled keypoint from the middle

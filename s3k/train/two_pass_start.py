@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
 from s3k.geometry import triangulate_labels
@@ -101,7 +102,7 @@ def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     return config, options
 
 
-def crop_extent_warning(dataset, extent: float, crop_size: int, coarse_size: int) -> str | None:
+def crop_extent_warning(dataset: DatasetLike, extent: float, crop_size: int, coarse_size: int) -> str | None:
     """A warning when crops of side ``extent`` (world units), centred where the labelled keypoints lie, are at
     least as large as the images in most cameras: the refining pass then sees the whole image, at no finer a
     scale than the coarse pass. None otherwise, or when no labelled keypoint can be triangulated."""

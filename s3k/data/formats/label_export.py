@@ -119,7 +119,7 @@ def _rig(ds: Any) -> dict[str, Any] | None:
     return rig
 
 
-def _write_images(ds: Any, ids: np.ndarray, c: int, paths: list[Path]) -> None:
+def _write_images(ds: Dataset, ids: np.ndarray, c: int, paths: list[Path]) -> None:
     """Camera ``c``'s images of frames ``ids`` to ``paths`` (PNG)."""
     for start in range(0, len(ids), 64):
         images = ds.images(ids[start:start + 64])
