@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.poses import by_pose, labelled_poses, predictions  # noqa: E402
 
 
@@ -59,4 +60,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

@@ -31,6 +31,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.accuracy import finished  # noqa: E402
 from s3k.robot.results import GRASP_SOURCES as SOURCES  # noqa: E402
 from s3k.robot.results import grasps_over_seeds, with_grasp  # noqa: E402
@@ -107,4 +108,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

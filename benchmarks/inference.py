@@ -44,10 +44,11 @@ from benchmarks.common import (  # noqa: E402
     network_fields,
     network_summary,
 )
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.config import TrainConfig  # noqa: E402
 from s3k.geometry import Cameras  # noqa: E402
 from s3k.model import count_conv_flops  # noqa: E402
-from s3k.readout import read_out  # noqa: E402
+from s3k.readout import ReadoutConfig, read_out  # noqa: E402
 
 
 def look_at_rig(num_cameras: int, size: int, distance: float = 1.0) -> Cameras:
@@ -76,7 +77,8 @@ def make_pipeline(model: torch.nn.Module, cams: Cameras, stride: int, sigma: flo
         if not channels_last:
             images = images.contiguous()
         logits = model(images)
-        result = read_out(logits[None], cams, stride, sigma, max_residual_px=max_residual_px)
+        result = read_out(logits[None], cams, stride, sigma,
+                          config=ReadoutConfig(max_residual_px=max_residual_px))
         return result.X[0], result.valid[0]
 
     return run
@@ -175,4 +177,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        sys.exit(main())

@@ -45,6 +45,7 @@ from benchmarks.common import (  # noqa: E402
     random_frames,
 )
 from benchmarks.inference import look_at_rig, make_pipeline  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.inference.export import export_module, output_names  # noqa: E402
 from s3k.model import count_conv_flops  # noqa: E402
 from s3k.readout import read_out, select_views, triangulate  # noqa: E402
@@ -182,4 +183,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        sys.exit(main())

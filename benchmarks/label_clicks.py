@@ -34,6 +34,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.label_clicks import ground_truth, run_way  # noqa: E402
 
 
@@ -77,4 +78,5 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        main()

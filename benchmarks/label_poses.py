@@ -26,6 +26,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.experiments.grid import LABEL_CHOICES  # noqa: E402
 from s3k.experiments.poses import label_poses  # noqa: E402
@@ -55,4 +56,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

@@ -33,6 +33,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.poses import POSES, bias, error_stats, pose_classes  # noqa: E402
 
 
@@ -119,4 +120,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

@@ -21,6 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.sim.generate import SimulateConfig, default_workers, frame_plan, frame_rng, simulate  # noqa: E402
 from s3k.sim.scenes import make_scene  # noqa: E402
 
@@ -83,4 +84,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        main()

@@ -28,6 +28,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 
 #: way -> (rigid read-out in the coarse pass, in the refining pass, ties settled, coarse heatmaps in search)
 WAYS = {"neither": (False, False, True, True), "coarse only": (True, False, True, True),
@@ -104,4 +105,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

@@ -50,6 +50,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.experiments.accuracy import evaluate, run_jobs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -317,4 +318,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

@@ -21,6 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from benchmarks.common import git_revision  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 
 # name -> (arguments after `python`, the headline figures to take medians of)
 BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
@@ -92,4 +93,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        main()

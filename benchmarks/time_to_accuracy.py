@@ -31,6 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 ROOT = Path(__file__).resolve().parents[1]
 
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.presets import PRESETS  # noqa: E402
 
 
@@ -122,4 +123,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

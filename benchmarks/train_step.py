@@ -37,6 +37,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import conv_ceiling, emit, matmul_flops  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.config import TrainConfig, default_of  # noqa: E402
 from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
 from s3k.train import train  # noqa: E402
@@ -119,4 +120,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        sys.exit(main())

@@ -29,6 +29,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, machine_info, matmul_flops  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.geometry import triangulate_rays  # noqa: E402
 
 TARGET = 10e6  # solves per second (docs/method.md#performance-targets)
@@ -157,4 +158,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        sys.exit(main())

@@ -29,6 +29,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import crop_figures, ensure_box_render, finish, git_revision, train_side_by_side  # noqa: E402
+from s3k.cli import showing_library_messages  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,4 +94,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with showing_library_messages():  # the library's notes and warnings, as under s3k
+        raise SystemExit(main())

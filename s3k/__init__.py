@@ -5,6 +5,7 @@ size, on any device), :class:`s3k.Cameras`, :class:`s3k.Dataset`, :class:`s3k.Tr
 :func:`s3k.train`.
 """
 
+import importlib
 from typing import Any
 
 __version__ = "0.1.0"
@@ -16,7 +17,5 @@ _PUBLIC = {"Detector": "s3k.detector", "Cameras": "s3k.geometry", "Dataset": "s3
 
 def __getattr__(name: str) -> Any:
     if name in _PUBLIC:
-        import importlib
-
         return getattr(importlib.import_module(_PUBLIC[name]), name)
     raise AttributeError(f"module 's3k' has no attribute {name!r}")

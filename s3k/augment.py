@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -238,8 +239,6 @@ def warp_images_uint8(images: Tensor, M: Tensor) -> Tensor:
     Returns:
         (N, H, W, Ch) uint8 tensor.
     """
-    import cv2
-
     if images.ndim != 4 or images.dtype != torch.uint8 or M.shape != (images.shape[0], 3, 3):
         raise ValueError(f"images (N, H, W, Ch) uint8 and M (N, 3, 3) expected, got {tuple(images.shape)} "
                          f"{images.dtype} and {tuple(M.shape)}")

@@ -30,17 +30,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from s3k.budget import check_config_fits
+from s3k.choices import Device, Norm, Precision
 from s3k.errors import UserError
 from s3k.ranges import Range
 
+MAX_STEPS = 100_000_000
+"""The most steps a training takes: the paper trained 150k; 1e8 steps are days at a millisecond a step."""
+MAX_RES_BLOCKS = 100
+"""The most residual blocks at the U-Net's lowest resolution (the paper: a few)."""
 
-def _f(default: Any, help: str, resumable: bool = False, **bounds: float) -> Any:
+
+def _f(default: Any, help: str, resumable: bool = False, **bounds: Any) -> Any:
     """A dataclass field with a default, its documentation and, for a number, its range.
 
     ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
     not what it learns from); every other field must match the run being resumed. ``bounds`` (``ge``, ``gt``,
-    ``le``, ``lt``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it is parsed
-    and by :meth:`TrainConfig.validate`; a float field must also be finite.
+    ``le``, ``lt``, ``one_of``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it
+    is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
     """
     metadata: dict[str, Any] = {"help": help, "resumable": resumable}
     if isinstance(default, (int, float)) and not isinstance(default, bool):
@@ -56,9 +63,11 @@ class ModelConfig:
                             "size)", ge=0)
     channels: tuple[int, ...] = _f((16, 32, 32, 32), "U-Net channels per level, level 0 at heatmap "
                                                      "resolution; len - 1 downsamplings by 2")
-    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0)
-    norm: str = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
-    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels", ge=1)
+    res_blocks: int = _f(2, "residual blocks (3 convolutions each) at the U-Net's lowest resolution", ge=0,
+                         le=MAX_RES_BLOCKS)
+    norm: Norm = _f("batch", "normalization after each convolution: 'batch', 'group' or 'none'")
+    stride: int = _f(2, "heatmap stride: one heatmap cell covers stride x stride image pixels",
+                     one_of=(1, 2, 4))
     sigma: float = _f(1.5, "target Gaussian width in heatmap cells (sigma in image pixels is sigma * stride)",
                       gt=0)
 
@@ -82,7 +91,7 @@ class AugmentationConfig:
 class ScheduleConfig:
     """Optimization: steps, batches, learning rate."""
 
-    steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1)
+    steps: int = _f(3000, "number of optimizer steps", resumable=True, ge=1, le=MAX_STEPS)
     batch_labelled: int = _f(4, "labelled frames per step (each frame gives C camera images)", ge=1)
     batch_unlabelled: int = _f(4, "unlabelled frames per step for the self-supervised term", ge=0)
     lr: float = _f(1e-3, "Adam learning rate at the start", gt=0, le=1)
@@ -99,7 +108,9 @@ class SelfSupervisionConfig:
                            "baseline (same network, no unlabelled batch)")
     alpha: float = _f(0.5, "weight of the self-supervised loss once ramped up (paper: 0.5)", ge=0)
     warmup_steps: int = _f(750, "labels-only steps before the self-supervised term starts (alpha = 0); "
-                                "avoids locking in a collapse from a random network", ge=0)
+                                "avoids locking in a collapse from a random network; when the warm-up and "
+                                "ramp outlast --steps both shrink in proportion to end at the last step",
+                           ge=0)
     ramp_steps: int = _f(750, "steps over which alpha rises linearly from 0 to --alpha after the warm-up",
                          ge=0)
     outlier_px: float = _f(6.0, "leave out of each pseudo-label the views whose detection misses the other "
@@ -154,11 +165,11 @@ class ExecutionConfig:
     """Randomness and where and how the computation runs."""
 
     seed: int = _f(0, "random seed (batches, augmentation, initialization)", ge=0)
-    device: str = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
+    device: Device = _f("auto", "'auto' (GPU when available), 'cpu', 'cuda' or 'cuda:N'", resumable=True)
     threads: int = _f(0, "torch intra-op threads (0: torch's default); on a shared CPU 1 is often fastest, "
                          "since threads waiting for a busy core stall every convolution",
                       resumable=True, ge=0)
-    precision: str = _f("float32", "the network's arithmetic in training: 'float32', 'bfloat16', or "
+    precision: Precision = _f("float32", "the network's arithmetic in training: 'float32', 'bfloat16', or "
                                    "'auto' (bfloat16 autocast where the hardware computes it natively: a "
                                    "CUDA GPU with bfloat16, a CPU with AVX512-BF16 or AMX; else float32); "
                                    "the heatmap head, the losses and the read-out stay float32. bfloat16 "
@@ -214,8 +225,26 @@ class TrainConfig:
         """A copy with the flat fields ``values`` changed."""
         return self.from_flat(base=self, **values)
 
+    def unsup_schedule(self) -> tuple[int, int]:
+        """The warm-up and ramp steps this run uses: ``--warmup-steps`` and ``--ramp-steps``, unless together
+        they outlast ``--steps``; then both shrink in proportion to end at the last step, so that the
+        self-supervised term switches on in every S3K run (with the defaults, 750 + 750, a 200-step run warms
+        up for 100 steps and ramps over the last 100).
+
+        Example:
+            >>> TrainConfig.from_flat(steps=200).unsup_schedule(), TrainConfig().unsup_schedule()
+            ((100, 100), (750, 750))
+        """
+        s = self.self_supervision
+        warmup, ramp, steps = int(s.warmup_steps), int(s.ramp_steps), int(self.schedule.steps)
+        if warmup + ramp <= steps:
+            return warmup, ramp
+        scaled = steps * warmup // (warmup + ramp)
+        return scaled, steps - scaled
+
     def alpha_at(self, step: int) -> float:
-        """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha.
+        """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha
+        (the warm-up and ramp of :meth:`unsup_schedule`).
 
         Args:
             step: 0-based optimizer step.
@@ -224,11 +253,12 @@ class TrainConfig:
             The alpha used at that step (always 0 for the labels-only baseline).
         """
         s = self.self_supervision
-        if not s.unsup or step < s.warmup_steps:
+        warmup, ramp = self.unsup_schedule()
+        if not s.unsup or step < warmup:
             return 0.0
-        if s.ramp_steps <= 0:
+        if ramp <= 0:
             return float(s.alpha)
-        return float(s.alpha) * min(1.0, (step - s.warmup_steps + 1) / s.ramp_steps)
+        return float(s.alpha) * min(1.0, (step - warmup + 1) / ramp)
 
     def sigma_px(self) -> float:
         """Target Gaussian width in image pixels."""
@@ -248,6 +278,7 @@ class TrainConfig:
                             hint="pass --precision auto, float32 or bfloat16")
         if not self.channels or any(c <= 0 for c in self.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
+        check_config_fits(self)  # a network that cannot fit in memory, whatever the dataset
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready flat dictionary of all fields (tuples as lists)."""
@@ -295,7 +326,7 @@ def resumable_fields(cls: type = TrainConfig) -> set[str]:
     return {f.name for _, f, _ in leaf_fields(cls) if f.metadata.get("resumable")}
 
 
-def _default(f: dataclasses.Field) -> Any:
+def field_default(f: dataclasses.Field) -> Any:
     if f.default is not dataclasses.MISSING:
         return f.default
     return f.default_factory()  # type: ignore[misc,operator]
@@ -305,16 +336,17 @@ def default_of(name: str, cls: type = TrainConfig) -> Any:
     """The default of the field ``name`` of ``cls``, for settings elsewhere that start from it."""
     for _, f, _ in leaf_fields(cls):
         if f.name == name:
-            return _default(f)
+            return field_default(f)
     raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 
-def _base_type(tp: Any) -> tuple[Any, bool]:
-    """(type without Optional, is_optional)."""
+def base_type(tp: Any) -> tuple[Any, bool]:
+    """(type without Optional, is_optional); a union with ``str`` (a ``Literal`` of named values that also
+    takes other names) is ``str``."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return args[0], len(args) < len(typing.get_args(tp))
+        return (str if str in args else args[0]), len(args) < len(typing.get_args(tp))
     return tp, False
 
 
@@ -324,7 +356,7 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
     Raises:
         UserError: naming ``where`` (file and field) and the offending value.
     """
-    base, optional = _base_type(tp)
+    base, optional = base_type(tp)
     if value is None or (optional and isinstance(value, str) and value.lower() in ("none", "null")):
         if optional:
             return None
@@ -356,6 +388,10 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
         if base is str:
             if not isinstance(value, str):
                 raise ValueError("expected a string")
+            return value
+        if typing.get_origin(base) is typing.Literal:
+            if value not in typing.get_args(base):
+                raise ValueError(f"expected one of {', '.join(map(str, typing.get_args(base)))}")
             return value
     except (TypeError, ValueError) as exc:
         raise UserError(f"{where}: invalid value {value!r} ({exc})") from None

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 __all__ = ["draw_edges", "draw_overlay", "draw_views", "edge_indices", "keypoint_colours"]
@@ -29,7 +30,6 @@ def draw_edges(image: np.ndarray, uv: np.ndarray, edges: np.ndarray, colour=SKEL
                thickness: int = 1, scale: float = 1.0) -> None:
     """Draw the skeleton's ``edges (E, 2)`` between the points ``uv (K, 2)`` (pixels; an edge with a NaN or
     far-off end is skipped) on ``image`` in place, ``scale`` times the pixel coordinates."""
-    import cv2
 
     shift = 4
     for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
@@ -42,8 +42,6 @@ def draw_edges(image: np.ndarray, uv: np.ndarray, edges: np.ndarray, colour=SKEL
 
 def keypoint_colours(n: int) -> list[tuple[int, int, int]]:
     """``n`` distinct saturated RGB colours (hues evenly spaced)."""
-    import cv2
-
     hsv = np.array([[[int(180 * k / max(n, 1)), 230, 255] for k in range(n)]], dtype=np.uint8)
     rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
     return [(int(c[0]), int(c[1]), int(c[2])) for c in rgb]
@@ -61,8 +59,6 @@ def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np
         colours: one RGB colour per keypoint.
         edges: ``(E, 2)`` skeleton edges (:func:`edge_indices`), drawn between the reprojected points.
     """
-    import cv2
-
     out = np.ascontiguousarray(image).copy()
     H, W = out.shape[:2]
     r = max(2, round(min(H, W) / 80))
@@ -102,8 +98,6 @@ def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray
     Returns:
         (scale * H, C * scale * W, 3) uint8 RGB image.
     """
-    import cv2
-
     C, H, W, _ = images.shape
     colours = keypoint_colours(pred_uv.shape[1])
     tiles = []

@@ -17,6 +17,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from s3k.errors import UserError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
@@ -73,8 +75,6 @@ def read_text(path: str | Path) -> str:
         UserError: the file is not UTF-8 text, naming the file, the line and the byte (a CSV saved as
             Latin-1 or Windows-1252 is the usual case).
     """
-    from s3k.errors import UserError
-
     data = Path(path).read_bytes()
     try:
         return data.decode("utf-8-sig")

@@ -33,7 +33,7 @@ from s3k.heatmaps import (
 )
 from s3k.readout import ReadoutConfig
 
-__all__ = ["PseudoLabelRule", "coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels",
+__all__ = ["coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels",
            "self_supervised_loss", "supervised_loss"]
 
 MIN_DEPTH = 1e-6
@@ -203,12 +203,6 @@ def supervised_loss(
     return _reprojection_loss(logits, X, valid, cams, stride, sigma, coord_weight, weights=weights)
 
 
-PseudoLabelRule = ReadoutConfig.for_pseudo_labels
-"""How the network's detections of an unlabelled frame become its pseudo-label: the read-out's
-:class:`s3k.readout.ReadoutConfig` for pseudo-labels (``PseudoLabelRule(max_residual_px, window, layout,
-layout_tol, layout_fit)``; a training's is :meth:`s3k.readout.ReadoutConfig.of_training`)."""
-
-
 def self_supervised_loss(
     logits: Tensor,
     cams: Cameras,
@@ -281,7 +275,8 @@ def pseudo_labels(
         which of them give a term, the detections, their variances and the weights used (zero for a view left
         out).
     """
-    ro = readout.read_out(logits.detach(), cams, stride, sigma, config=rule or PseudoLabelRule(),
+    ro = readout.read_out(logits.detach(), cams, stride, sigma, None,
+                          rule or ReadoutConfig.for_pseudo_labels(),
                           weights=None if weights is None else weights.detach())
     X = torch.where(ro.valid[..., None], ro.X, torch.zeros_like(ro.X))  # a point that gives no term: 0
     wts = torch.where(ro.used, ro.weights, torch.zeros_like(ro.weights))

@@ -31,11 +31,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from s3k import readout
+from s3k.choices import NORMS, Norm
 from s3k.heatmaps import heatmap_size
 
 __all__ = ["UNetConfig", "UNet", "detect", "conv_layers", "count_conv_flops"]
 
-_NORMS = ("batch", "group", "none")
 
 
 @dataclass
@@ -55,7 +55,7 @@ class UNetConfig:
     stride: int = 2
     """Heatmap stride: image pixels per heatmap cell along each axis, 1, 2 or 4. At 128 px, stride 2 gives
     64 x 64 heatmaps."""
-    norm: str = "batch"
+    norm: Norm = "batch"
     """Normalization after each convolution: ``"batch"`` (BatchNorm, folded away at inference by
     :meth:`UNet.fused`), ``"group"`` (GroupNorm with groups of 8 channels; independent of batch composition)
     or ``"none"``."""
@@ -66,8 +66,8 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.channels must be non-empty, all >= 1, got {self.channels}")
         if self.stride not in (1, 2, 4):
             raise ValueError(f"UNetConfig.stride must be 1, 2 or 4, got {self.stride!r}")
-        if self.norm not in _NORMS:
-            raise ValueError(f"UNetConfig.norm must be one of {_NORMS}, got {self.norm!r}")
+        if self.norm not in NORMS:
+            raise ValueError(f"UNetConfig.norm must be one of {NORMS}, got {self.norm!r}")
         if self.norm == "group" and any(c % min(8, c) for c in self.channels):
             raise ValueError(f"UNetConfig.norm='group' needs channels divisible by 8, got {self.channels}")
         if self.res_blocks < 0 or self.encoder_convs < 0 or self.in_channels < 1:
@@ -99,7 +99,7 @@ class UNetConfig:
         return cls(**kwargs)
 
 
-def _norm(kind: str, channels: int) -> nn.Module:
+def _norm(kind: Norm, channels: int) -> nn.Module:
     if kind == "batch":
         return nn.BatchNorm2d(channels)
     if kind == "group":
@@ -112,7 +112,7 @@ class ConvNormAct(nn.Sequential):
 
     def __init__(
         self, cin: int, cout: int, kernel: int = 3, stride: int = 1, padding: int | None = None,
-        norm: str = "batch", act: bool = True,
+        norm: Norm = "batch", act: bool = True,
     ) -> None:
         pad = (kernel - 1) // 2 if padding is None else padding
         layers: list[nn.Module] = [nn.Conv2d(cin, cout, kernel, stride, pad, bias=norm == "none")]
@@ -126,7 +126,7 @@ class ConvNormAct(nn.Sequential):
 class ResBlock(nn.Module):
     """Three 3x3 convolutions with an identity shortcut: ``relu(x + f(x))``."""
 
-    def __init__(self, channels: int, norm: str) -> None:
+    def __init__(self, channels: int, norm: Norm) -> None:
         super().__init__()
         self.body = nn.Sequential(
             ConvNormAct(channels, channels, norm=norm),
@@ -167,7 +167,7 @@ class HeatmapHead(nn.Conv2d):
 class Up(nn.Module):
     """Decoder step: 1x1 conv to the skip's channels at low resolution, nearest x2, add the skip, 3x3 conv."""
 
-    def __init__(self, cin: int, cout: int, norm: str) -> None:
+    def __init__(self, cin: int, cout: int, norm: Norm) -> None:
         super().__init__()
         self.reduce = nn.Conv2d(cin, cout, 1, bias=False) if cin != cout else nn.Identity()
         self.conv = ConvNormAct(cout, cout, norm=norm)

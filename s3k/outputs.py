@@ -23,14 +23,17 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import shutil
-import sys
 from collections.abc import Callable, Collection, Iterator, Mapping
 from pathlib import Path
 
 from s3k.errors import UserError
+from s3k.messages import NOTE
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DATASET_MARKER", "DATASET_NAMES", "OUTPUT_MARKER", "RUN_NAMES", "RUN_NEIGHBOURS",
            "UNFINISHED_MARKER", "check_companion", "check_folder", "check_output", "check_output_folder",
@@ -361,7 +364,7 @@ def check_replaceable(out: str | Path, overwrite: bool, inputs: Mapping[str, obj
     shown = Path(out)
     out = _real(shown)
     for line in recover_folder(out):
-        print(f"note: {line}", file=sys.stderr)
+        log.log(NOTE, f"note: {line}")
     target = out.resolve()
     for folder in target.parents:
         if is_dataset(folder):

@@ -12,6 +12,8 @@ Example:
     'must be a finite number'
     >>> Range(ge=0, lt=1).describe()
     'in [0, 1)'
+    >>> Range(one_of=(1, 2, 4)).problem(3)
+    'must be one of 1, 2, 4'
 """
 
 from __future__ import annotations
@@ -25,15 +27,20 @@ from s3k.errors import UserError
 
 @dataclass(frozen=True)
 class Range:
-    """Bounds of a number: ``ge`` / ``gt`` (at least / above), ``le`` / ``lt`` (at most / below)."""
+    """Bounds of a number: ``ge`` / ``gt`` (at least / above), ``le`` / ``lt`` (at most / below); or the
+    values it may take, ``one_of``."""
 
     ge: float | None = None
     gt: float | None = None
     le: float | None = None
     lt: float | None = None
+    one_of: tuple[float, ...] | None = None
 
     def describe(self) -> str:
-        """The bounds in words, e.g. ``'>= 1'``, ``'in [0, 1)'``; ``''`` when unbounded."""
+        """The bounds in words, e.g. ``'>= 1'``, ``'in [0, 1)'``, ``'one of 1, 2, 4'``; ``''`` when
+        unbounded."""
+        if self.one_of is not None:
+            return "one of " + ", ".join(f"{v:g}" for v in self.one_of)
         low = (f"[{self.ge:g}" if self.ge is not None else f"({self.gt:g}" if self.gt is not None else None)
         high = (f"{self.le:g}]" if self.le is not None else f"{self.lt:g})" if self.lt is not None else None)
         if low and high:
@@ -50,6 +57,8 @@ class Range:
             return "must be a number"
         if isinstance(value, float) and not math.isfinite(value):
             return "must be a finite number"
+        if self.one_of is not None and value not in self.one_of:
+            return f"must be {self.describe()}"
         out = ((self.ge is not None and value < self.ge) or (self.gt is not None and value <= self.gt)
                or (self.le is not None and value > self.le) or (self.lt is not None and value >= self.lt))
         return f"must be {self.describe()}" if out else None

@@ -6,15 +6,22 @@ from its own board views and its pose from board corners placed in the world by 
 
 from __future__ import annotations
 
+import glob
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
+from s3k.data.formats.anipose import read_anipose_calibration
+from s3k.data.formats.labels2d import frame_id_from_path
+from s3k.errors import UserError
+from s3k.fileio import resolve_from
 from s3k.geometry import Cameras
+from s3k.geometry.warp import crop_resize_matrix
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -34,8 +41,6 @@ class CharucoBoardSpec:
     dict_size: int = 50
 
     def cv2_board(self):
-        import cv2
-
         name = f"DICT_{self.marker_bits}X{self.marker_bits}_{self.dict_size}"
         if not hasattr(cv2.aruco, name):
             raise ValueError(f"no ArUco dictionary {name} in OpenCV (marker_bits, dict_size)")
@@ -78,9 +83,6 @@ def detect_charuco(image_paths, board: CharucoBoardSpec, min_corners: int = 6) -
     Returns:
         ``{key: (ids (n,) int, corners (n, 2) float64 pixels)}``.
     """
-    import cv2
-
-    from s3k.data.formats.labels2d import frame_id_from_path
 
     detector = cv2.aruco.CharucoDetector(board.cv2_board())
     found = {}
@@ -124,8 +126,6 @@ def recalibrate_charuco(
         board: the board.
         reference: trusted cameras.
     """
-    import cv2
-
     c = rig.index(camera)
     W, H = (int(v) for v in rig.size[c])
     cams = rig.cameras.numpy()
@@ -212,16 +212,10 @@ def recalibrate_dataset(
         charuco: ``{camera: glob}`` of calibration images (default:
             ``<calibration dir>/<camera>/calibration_images/*.jpg``).
     """
-    import glob
-
-    from s3k.data.formats.anipose import read_anipose_calibration
-    from s3k.errors import UserError
-    from s3k.geometry.warp import crop_resize_matrix
 
     source = ds.source if isinstance(ds.source, dict) else {}
     toml_path = calibration
     if not toml_path and source.get("calibration"):
-        from s3k.fileio import resolve_from
 
         toml_path = resolve_from(ds.path, source["calibration"])
     if not toml_path:

@@ -85,11 +85,10 @@ def test_notes_stay_out_of_the_recorded_command():
 
 
 def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monkeypatch):
-    import s3k.inference.evaluate
     from s3k.experiments import accuracy
 
     calls = []
-    monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run",
+    monkeypatch.setattr(accuracy, "evaluate_run",
                         lambda run, data, split, device: calls.append(run) or {"median_mm": 2.0})
     run = tmp_path / "s3k-seed0"
     cache = tmp_path / "s3k-seed0-test.json"
@@ -100,7 +99,7 @@ def test_an_evaluation_cached_by_an_older_read_out_is_made_again(tmp_path, monke
 
 
 def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     from s3k.data import Dataset
     from s3k.experiments.accuracy import data_names, labelled_view
@@ -122,7 +121,7 @@ def test_ten_labelled_frames_chosen_from_a_larger_pool(tmp_path):
 
 
 def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     from s3k import cli
     from s3k.presets import PRESETS

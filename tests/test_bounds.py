@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from synthetic_rig import count_decodes, make_dataset
+from helpers.synthetic_rig import count_decodes, make_dataset
 from test_importers import recording  # noqa: F401 - the fixture
 
 from s3k import cli

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from real_recording import REAL, needs_real
+from helpers.real_recording import REAL, needs_real
 
 from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
 from s3k.geometry import Cameras

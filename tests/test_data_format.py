@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from synthetic_rig import count_decodes
+from helpers.synthetic_rig import count_decodes
 
 from s3k.data import Dataset, DatasetError, DatasetWarning, DatasetWriter, check_dataset
 from s3k.data.tables import CALIBRATION_COLUMNS

@@ -14,9 +14,6 @@ from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_images, region_around, resample_regions
 from s3k.model import UNet, UNetConfig
 
-DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
-    not torch.cuda.is_available(), reason="no CUDA GPU on this machine")])]
-
 
 def _rig(size: int) -> Cameras:
     """Four cameras 1 m from the origin on a ring, looking at it."""
@@ -42,7 +39,6 @@ def _net(size: int, keypoints: int = 3) -> tuple[UNet, DetectorMeta]:
     return UNet(keypoints, config).eval(), meta
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])
 def test_a_detector_reads_frames_on_any_device_and_gives_results_there(device, precision):
     net, meta = _net(32)

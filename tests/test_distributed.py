@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 SCRIPT = textwrap.dedent(
     """

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k.detector import DetectorMeta
 from s3k.draw import draw_overlay, draw_views, edge_indices, keypoint_colours
@@ -57,8 +57,8 @@ def test_a_run_records_its_datasets_skeleton(tmp_path):
 
 
 def test_track_overlay_draws_the_runs_skeleton(tmp_path, monkeypatch):
+    from helpers.tiny_detector import save_run
     from test_track import CAMERAS, KEYPOINTS, NET_SIZE, VIDEO_SIZE, make_rig
-    from tiny_detector import save_run
 
     import s3k.draw
     from s3k import cli

@@ -99,7 +99,7 @@ def test_pose_counts_split_the_sides_by_edge():
 def test_label_poses_counts_each_choice_of_labels_by_pose(tmp_path):
     import json
 
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     from s3k.experiments.grid import LABEL_CHOICES
     from s3k.experiments.poses import label_poses

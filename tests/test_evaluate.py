@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
 
 from s3k.cli import main as cli_main
 from s3k.data import Dataset

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 import s3k
 import s3k.experiments as ex
@@ -453,14 +453,14 @@ def test_label_efficiency_sweep_cli_resumes_and_summarizes(workspace, capsys):
 
 
 def test_alpha_sweep_resumes_after_a_kill_during_evaluation(workspace, monkeypatch):
-    import s3k.inference.evaluate
+    import s3k.experiments.runner as runner
 
-    real = s3k.inference.evaluate.evaluate_run
+    real = runner.evaluate_run
 
     def killed(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run", killed)
+    monkeypatch.setattr(runner, "evaluate_run", killed)
     with pytest.raises(KeyboardInterrupt):
         ex.run_experiment(toy_options("alpha", workspace), log=lambda m: None)
     first = ex.plan(toy_options("alpha", workspace))[0]
@@ -469,7 +469,7 @@ def test_alpha_sweep_resumes_after_a_kill_during_evaluation(workspace, monkeypat
     with file_lock(run_dir / LOCK_FILE, blocking=False) as free:
         assert free  # the interrupted process left no claim behind
     trained_at = (run_dir / "model.pt").stat().st_mtime_ns
-    monkeypatch.setattr(s3k.inference.evaluate, "evaluate_run", real)
+    monkeypatch.setattr(runner, "evaluate_run", real)
     outcome = ex.run_experiment(toy_options("alpha", workspace), log=lambda m: None)
     check_sweep(workspace, "alpha", outcome)
     assert (run_dir / "model.pt").stat().st_mtime_ns == trained_at  # finished run not trained again

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tiny_detector import save_run
+from helpers.tiny_detector import save_run
 
 from s3k import cli
 from s3k.detector import DetectorMeta, load_network
@@ -88,7 +88,7 @@ def test_exported_files_carry_the_metadata(run_dir, tmp_path):
 
 
 def test_export_verifies_on_the_runs_dataset(tmp_path):
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     data = make_dataset(tmp_path / "data", size=32, labelled=1, unlabelled=1, test=1)
     run = make_run(tmp_path / "run", dataset=str(data), norm="group")
@@ -198,7 +198,7 @@ def test_export_of_a_checkpoint_is_checked_against_that_checkpoint(tmp_path, cap
     compared with the run's final model, and failed by millimetres while the logits matched)."""
     import shutil
 
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     data = make_dataset(tmp_path / "data", size=32, labelled=1, unlabelled=1, test=2)
     run = make_run(tmp_path / "run", dataset=str(data), norm="group")

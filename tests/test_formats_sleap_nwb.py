@@ -7,8 +7,8 @@ import csv
 import numpy as np
 import pytest
 import torch
-from real_recording import REAL, needs_real
-from synthetic_rig import LAYOUT, project, random_rotation, rig
+from helpers.real_recording import REAL, needs_real
+from helpers.synthetic_rig import LAYOUT, project, random_rotation, rig
 
 from s3k.cli import main
 from s3k.data import Dataset, DatasetWriter, check_dataset

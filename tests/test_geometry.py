@@ -210,7 +210,6 @@ def test_project_float32_close_to_float64():
     torch.testing.assert_close(uv32.double(), uv64, atol=2e-3, rtol=0)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_points_behind_camera_are_flagged_and_finite(dtype):
     cams = cams_of(random_rig((), seed=11), dtype)
     centre = cams.centres()
@@ -499,7 +498,6 @@ def degenerate_cases(dtype) -> dict[str, tuple[torch.Tensor, torch.Tensor, torch
     }
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_triangulate_rays_degenerate_inputs_are_invalid_finite_and_differentiable(dtype):
     for name, (o, d, w) in degenerate_cases(dtype).items():
         o, d, w = (x.detach().clone().requires_grad_(True) for x in (o, d, w))

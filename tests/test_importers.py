@@ -6,11 +6,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from real_recording import REAL, needs_real
+from helpers.real_recording import REAL, needs_real
 
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
 from s3k.data import recording as rec
 from s3k.data.formats import anipose, dlc, labels2d, sleap
+from s3k.data.import_labels import LABEL_FORMATS, SleapFiles
 from s3k.data.rig import Rig
 from s3k.errors import UserError
 from s3k.geometry import Cameras
@@ -467,8 +468,10 @@ def test_import_recording_takes_typed_arguments(recording, tmp_path):
     root = recording["root"]
     path = rec.import_recording(
         root / "calibration.toml", {cam: root / f"{cam}.mkv" for cam in CAMS}, tmp_path / "lib",
-        sleap={cam: root / f"{cam}.analysis.h5" for cam in CAMS}, labelled=3, test=2, seed=1, size=(32, 24),
-        crops={"north": (8.0, 4.0, 56.0, 40.0)}, keypoints=["tail", "head"],
+        SleapFiles({cam: root / f"{cam}.analysis.h5" for cam in CAMS}),
+        split=rec.SplitOptions(labelled=3, test=2, seed=1),
+        images=rec.ImageOptions(size=(32, 24), crops={"north": (8.0, 4.0, 56.0, 40.0)}),
+        keypoints=["tail", "head"],
     )
     assert path == tmp_path / "lib"
     assert _import(recording, tmp_path / "cli", "--labelled", "3", "--test", "2", "--seed", "1", "--size",
@@ -482,9 +485,11 @@ def test_import_recording_takes_typed_arguments(recording, tmp_path):
     np.testing.assert_array_equal(lib.calibration(ids).K.numpy(), cli.calibration(ids).K.numpy())
     with pytest.raises(UserError, match="no labels given: name the keypoints with --keypoints"):
         rec.import_recording(root / "calibration.toml", {"north": root / "north.mkv"}, tmp_path / "x")
-    with pytest.raises(UserError, match="at most one of .*got --sleap, --dlc"):
+    with pytest.raises(UserError, match=r"labels given for cameras \['south'\] that have no --videos entry"):
         rec.import_recording(root / "calibration.toml", {"north": root / "north.mkv"}, tmp_path / "x",
-                             sleap={"north": root / "north.analysis.h5"}, dlc={"north": root / "x.csv"})
+                             SleapFiles({"south": root / "south.analysis.h5"}))
+    assert set(LABEL_FORMATS) == {"sleap", "sleap-project", "nwb", "deeplabcut", "lightning-pose", "openpose",
+                                  "mmpose", "deepfly3d"}
 
 
 def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):

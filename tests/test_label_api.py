@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from label_data import make_label_dataset
-from synthetic_rig import CAMERAS, KEYPOINTS
-from tiny_detector import save_run
+from helpers.label_data import make_label_dataset
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS
+from helpers.tiny_detector import save_run
 
 pytest.importorskip("fastapi")
 with warnings.catch_warnings():

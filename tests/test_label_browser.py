@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from label_data import make_label_dataset
-from synthetic_rig import CAMERAS
+from helpers.label_data import make_label_dataset
+from helpers.synthetic_rig import CAMERAS
 
 CHROMIUM = "/usr/bin/chromium"
 if shutil.which(CHROMIUM) is None:
@@ -326,8 +326,8 @@ def test_a_late_answer_for_an_earlier_frame_does_not_replace_the_frame_navigated
 
 
 def test_frames_to_label_by_pose_coverage_and_in_proportion(tmp_path, browser):
-    from synthetic_rig import KEYPOINTS
-    from tiny_detector import save_run
+    from helpers.synthetic_rig import KEYPOINTS
+    from helpers.tiny_detector import save_run
 
     from s3k.detector import DetectorMeta
     from s3k.label.server import LabelApp

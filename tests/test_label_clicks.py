@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from label_data import make_label_dataset
-from synthetic_rig import CAMERAS, KEYPOINTS
+from helpers.label_data import make_label_dataset
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 pytest.importorskip("fastapi")
 

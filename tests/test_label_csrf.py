@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from label_data import make_label_dataset
-from synthetic_rig import CAMERAS, KEYPOINTS
+from helpers.label_data import make_label_dataset
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 pytest.importorskip("fastapi")
 with warnings.catch_warnings():

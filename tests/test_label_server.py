@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from label_data import make_label_dataset
-from synthetic_rig import CAMERAS, KEYPOINTS
+from helpers.label_data import make_label_dataset
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 httpx = pytest.importorskip("httpx")
 pytest.importorskip("uvicorn")

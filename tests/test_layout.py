@@ -118,11 +118,11 @@ def test_tests_do_not_import_benchmarks():
     assert not importers, f"tests importing benchmarks/: {importers}"
 
 
-ROOMS_OF_SHORT_FUNCTIONS = ("detector", "readout", "train", "inference")
+ROOMS_OF_SHORT_FUNCTIONS = ("detector", "readout", "train", "inference", "data", "label")
 MAX_FUNCTION_LINES = 80
 
 
-def test_no_function_of_the_detector_readout_training_and_inference_rooms_is_over_80_lines():
+def test_no_function_of_the_detector_readout_training_inference_data_and_label_rooms_is_over_80_lines():
     long = []
     for room in ROOMS_OF_SHORT_FUNCTIONS:
         for path in sorted((PACKAGE / room).rglob("*.py")):
@@ -139,9 +139,9 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "losses", "augment", "config", "presets"],
-    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
-     "recalibration"],
+    ["readout", "model", "losses", "augment", "config", "presets", "budget"],
+    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
+     "calibration", "recalibration"],
 ]
 
 
@@ -168,3 +168,124 @@ def test_imports_go_downwards_only():
                     upwards.append(f"{path.relative_to(ROOT)} imports {name}")
     assert not unplaced, f"rooms missing from LAYERS: {sorted(unplaced)}"
     assert upwards == []
+
+
+HEAVY_OPTIONAL = {  # imported where used, so that a command that does not need one never pays for it
+    "onnx", "onnxruntime", "google.protobuf",  # the export extra (protobuf comes with onnx)
+    "sleap_io", "pynwb", "ndx_pose",  # the formats extra
+    "gymnasium", "stable_baselines3",  # the robot extra
+    "fastapi", "uvicorn",  # the label extra
+    "rerun",  # the stream extra
+    "mujoco",  # the simulator: an OpenGL context on import
+    "matplotlib", "tensorboard", "torch.utils.tensorboard",  # seconds to import, for figures and logs only
+}
+
+
+def _import_targets(node: ast.Import | ast.ImportFrom, name: str, path: Path) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    base = node.module or ""
+    if node.level:
+        up = package.split(".")[: len(package.split(".")) - node.level + 1]
+        base = ".".join([*up, base] if base else up)
+    return [base, *(f"{base}.{a.name}" for a in node.names)]
+
+
+def _heavy_modules(modules: dict[str, Path]) -> set[str]:
+    """The s3k modules that import a heavy optional dependency, or such a module, at their top level."""
+    top: dict[str, list[str]] = {}
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        nodes = [n for stmt in tree.body if not isinstance(stmt, (ast.FunctionDef, ast.AsyncFunctionDef,
+                                                                   ast.ClassDef)) for n in ast.walk(stmt)]
+        top[name] = [t for n in nodes if isinstance(n, (ast.Import, ast.ImportFrom))
+                     for t in _import_targets(n, name, path)]
+    heavy = {name for name, targets in top.items() if any(_is_heavy(t) for t in targets)}
+    while True:
+        more = {name for name, targets in top.items()
+                if name not in heavy and any(t in heavy for t in targets)}
+        if not more:
+            return heavy
+        heavy |= more
+
+
+def _is_heavy(target: str) -> bool:
+    return any(target == h or target.startswith(h + ".") for h in HEAVY_OPTIONAL)
+
+
+def test_imports_inside_functions_are_only_of_heavy_optional_dependencies():
+    """Every other import is at the top of its module, where a reader sees what the module needs. Inside a
+    function are only imports of HEAVY_OPTIONAL and of the s3k modules that import one, and fallbacks inside
+    ``try`` (``tomllib`` before Python 3.11)."""
+    modules = _modules()
+    heavy = _heavy_modules(modules)
+    inside = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        guarded = {id(n) for t in ast.walk(tree) if isinstance(t, ast.Try) for n in ast.walk(t)}
+        for func in ast.walk(tree):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(func):
+                if not isinstance(node, (ast.Import, ast.ImportFrom)) or id(node) in guarded:
+                    continue
+                targets = _import_targets(node, name, path)
+                if not any(_is_heavy(t) or t in heavy for t in targets):
+                    inside.append(f"{path.relative_to(ROOT)}:{node.lineno} {targets[0]}")
+    assert sorted(set(inside)) == []
+
+
+def test_the_function_import_rule_sees_an_import_it_must_refuse():
+    tree = ast.parse("def f():\n    import json\n    from s3k import errors\n")
+    found = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+    assert [_import_targets(n, "s3k.x", PACKAGE / "x.py")[0] for n in found] == ["json", "s3k"]
+    assert not _is_heavy("json") and _is_heavy("torch.utils.tensorboard") and not _is_heavy("torch")
+
+
+LOGGERS_CONFIGURED = {"s3k/cli/__init__.py", "s3k/train/run_setup.py"}  # they set up where records go
+
+
+def test_the_library_logs_and_never_prints():
+    """Outside s3k/cli/ no module calls or passes ``print`` (the library logs to
+    ``logging.getLogger(__name__)``; the command line shows the records, s3k.messages), and a logger is
+    named by its module everywhere but where logging is configured."""
+    printing, named = [], []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Name) and node.id == "print" and not rel.startswith("s3k/cli/"):
+                printing.append(f"{rel}:{node.lineno}")
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr == "getLogger" and rel not in LOGGERS_CONFIGURED
+                    and not (len(node.args) == 1 and isinstance(node.args[0], ast.Name)
+                             and node.args[0].id == "__name__")):
+                named.append(f"{rel}:{node.lineno}")
+    assert printing == [] and named == []
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """A name that starts with ``_`` is its module's own: another module that needs it gets a public name."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                found += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    assert found == []
+
+
+def test_the_data_room_never_decides_by_a_command_line_flag():
+    """Below s3k/cli/ the import's formats are dataclasses (s3k.data.import_labels): no module of the data
+    room compares a value with a flag such as ``"--sleap"`` or holds a list of them (its messages may still
+    name the option that fixes a problem)."""
+    found = []
+    for path in sorted((PACKAGE / "data").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            flags = [c for c in ast.walk(node) if isinstance(c, ast.Constant) and isinstance(c.value, str)
+                     and c.value.startswith("--")]
+            listed = (isinstance(node, (ast.Tuple, ast.List, ast.Set)) and len(node.elts) > 1
+                      and len(flags) == len(node.elts))
+            if flags and (isinstance(node, ast.Compare) or listed):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert found == []

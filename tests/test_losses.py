@@ -15,7 +15,6 @@ from s3k.heatmaps import (
     spatial_softmax,
 )
 from s3k.losses import (
-    PseudoLabelRule,
     kl_divergence,
     kl_loss,
     l2_non_bias,
@@ -23,7 +22,7 @@ from s3k.losses import (
     supervised_loss,
 )
 from s3k.model import UNet
-from s3k.readout import window_cells
+from s3k.readout import ReadoutConfig, window_cells
 
 H = W = 64
 STRIDE = 2
@@ -345,7 +344,8 @@ def test_self_supervised_pseudo_label_leaves_out_a_view_off_the_consensus():
     confused[:, 1, 0] += torch.tensor([9.0, -7.0], dtype=torch.float64)  # a sharp heatmap on the wrong spot
     logits = _logits_at(confused).float()
     _, plain = self_supervised_loss(logits, cams, STRIDE, SIGMA)
-    _, robust = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(max_residual_px=2.0))
+    _, robust = self_supervised_loss(logits, cams, STRIDE, SIGMA,
+                                     rule=ReadoutConfig.for_pseudo_labels(max_residual_px=2.0))
     assert (plain["points"][:, 0] - X[:, 0]).norm(dim=-1).min() > 1e-3
     torch.testing.assert_close(robust["points"], X, atol=2e-4, rtol=0)
     assert (robust["weights"][:, 1, 0] == 0).all() and (robust["weights"][:, :, 1:] > 0).all()
@@ -379,8 +379,10 @@ def test_self_supervised_pseudo_label_window_ignores_spread_probability():
     cams, X = _rig(), _points()
     target, _ = gaussian_targets(_project_all(cams, X), None, h, w, STRIDE, SIGMA)
     logits = (0.8 * target + 0.2 / (h * w)).log().float()
-    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(window=0))
-    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=PseudoLabelRule(window=5))
+    _, whole = self_supervised_loss(logits, cams, STRIDE, SIGMA,
+                                    rule=ReadoutConfig.for_pseudo_labels(window=0))
+    _, windowed = self_supervised_loss(logits, cams, STRIDE, SIGMA,
+                                       rule=ReadoutConfig.for_pseudo_labels(window=5))
     assert (whole["points"] - X).norm(dim=-1).max() > 5e-3
     torch.testing.assert_close(windowed["points"], X, atol=1e-3, rtol=0)
 
@@ -398,11 +400,11 @@ def test_self_supervised_layout_check_masks_a_collapsed_pseudo_label():
     _, plain = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA)
     assert plain["points_valid"].all()
     loss, held = self_supervised_loss(_logits_at(_project_all(cams, collapsed)).float(), cams, STRIDE, SIGMA,
-                                      rule=PseudoLabelRule(layout=ref, layout_tol=0.2))
+                                      rule=ReadoutConfig.for_pseudo_labels(layout=ref, layout_tol=0.2))
     assert held["points_valid"][0].all() and not held["points_valid"][1].any()
     assert held["mask"][0].all() and not held["mask"][1].any()
     _, intact = self_supervised_loss(_logits_at(_project_all(cams, same)).float(), cams, STRIDE, SIGMA,
-                                     rule=PseudoLabelRule(layout=ref, layout_tol=0.2))
+                                     rule=ReadoutConfig.for_pseudo_labels(layout=ref, layout_tol=0.2))
     assert intact["points_valid"].all()
 
 
@@ -416,9 +418,9 @@ def test_self_supervised_layout_fit_gives_the_layout_its_shape():
     off = X.clone()
     off[0, 1] += torch.tensor([0.006, -0.004, 0.003], dtype=off.dtype)
     logits = _logits_at(_project_all(cams, off)).float()
-    rule = PseudoLabelRule(window=5, layout=ref, layout_tol=0.2)
+    rule = ReadoutConfig.for_pseudo_labels(window=5, layout=ref, layout_tol=0.2)
     _, plain = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=rule)
-    fit_rule = PseudoLabelRule(window=5, layout=ref, layout_tol=0.2, layout_fit=True)
+    fit_rule = ReadoutConfig.for_pseudo_labels(window=5, layout=ref, layout_tol=0.2, layout_fit=True)
     _, fitted = self_supervised_loss(logits, cams, STRIDE, SIGMA, rule=fit_rule)
     assert plain["points_valid"].all() and fitted["points_valid"].all()
     torch.testing.assert_close(plain["points"], off, atol=1e-3, rtol=0)

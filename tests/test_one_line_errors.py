@@ -9,7 +9,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 from test_importers import CAMS, recording  # noqa: F401 - the fixture
 
 from s3k import cli

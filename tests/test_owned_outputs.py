@@ -9,7 +9,7 @@ import os
 from pathlib import Path
 
 import pytest
-from tiny_detector import save_run
+from helpers.tiny_detector import save_run
 
 from s3k import cli
 from s3k.detector import DetectorMeta

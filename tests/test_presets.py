@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.config import TrainConfig

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, make_dataset
+from helpers.synthetic_rig import KEYPOINTS, make_dataset
 from torch import nn
 
 from s3k.data.frames import FrameStore, images_to_float, open_dataset
@@ -33,7 +33,7 @@ from s3k.inference.export import DetectorWithMoments
 from s3k.inference.predict import detect_store
 from s3k.losses import self_supervised_loss
 from s3k.model import detect
-from s3k.readout import read_out, select_views, triangulate, window_cells
+from s3k.readout import ReadoutConfig, read_out, select_views, triangulate, window_cells
 
 SIZE, STRIDE, SIGMA = 32, 2, 2.0
 #: A detector's description with this module's read-out settings (no outlier threshold).
@@ -143,7 +143,8 @@ def test_read_out_fields(scene):
     mean = peak_window_mean(probs, STRIDE, window_cells(SIGMA, STRIDE))
     torch.testing.assert_close(r.probs, probs)
     torch.testing.assert_close(r.uv, mean)
-    whole = read_out(scene.logits, scene.batch.cams, STRIDE, SIGMA, window=0)  # the paper's read-out
+    # the paper's read-out
+    whole = read_out(scene.logits, scene.batch.cams, STRIDE, SIGMA, config=ReadoutConfig(window=0))
     torch.testing.assert_close(whole.uv, whole_mean)
     torch.testing.assert_close(r.weights, confidence_weight(var, SIGMA))
     assert r.used.all() and (r.ncams == scene.C).all()  # every finite view (weights are always > 0)
@@ -164,7 +165,7 @@ def test_read_out_reads_the_peak_not_the_spread(scene):
     probs = spatial_softmax(scene.logits.double())
     spread = (0.9 * probs + 0.1 / (h * w)).log()
     windowed = read_out(spread, cams, STRIDE, SIGMA)
-    whole = read_out(spread, cams, STRIDE, SIGMA, window=0)
+    whole = read_out(spread, cams, STRIDE, SIGMA, config=ReadoutConfig(window=0))
     pull = (whole.uv - sharp.uv).norm(dim=-1)
     assert pull.median() > 0.2  # pixels
     assert (windowed.uv - sharp.uv).norm(dim=-1).median() < 0.25 * pull.median()
@@ -176,7 +177,7 @@ def test_min_weight_drops_views_and_invalid_points_are_nan(scene):
     logits[:, 1:] = 0.0  # flat heatmaps in all but one camera: weight about 0.05
     soft = read_out(logits, scene.batch.cams, STRIDE, SIGMA)
     assert soft.valid.all()  # every view counts, weighted
-    hard = read_out(logits, scene.batch.cams, STRIDE, SIGMA, min_weight=0.5)
+    hard = read_out(logits, scene.batch.cams, STRIDE, SIGMA, config=ReadoutConfig(min_weight=0.5))
     assert (hard.ncams == 1).all() and not hard.valid.any()
     assert torch.isnan(hard.X).all() and torch.isnan(hard.reproj).all() and torch.isnan(hard.error).all()
     assert torch.isfinite(hard.score).all()
@@ -190,7 +191,7 @@ def test_min_weight_drops_views_and_invalid_points_are_nan(scene):
 
 def _rig_views(B=5):
     """A 4-camera rig, B frames of the synthetic layout and their exact projections."""
-    from synthetic_rig import LAYOUT, rig
+    from helpers.synthetic_rig import LAYOUT, rig
 
     K, dist, R, t = rig(64)
     cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
@@ -265,7 +266,7 @@ def test_outlier_threshold_is_in_network_pixels_whatever_the_pixel_maps(scene):
     # more than a third of it (in pixels three times as fine they would miss by more).
     threshold = 1.0
     assert float(plain.residual[:, 2, 0].min()) > threshold
-    ref = read_out(logits, cams, STRIDE, SIGMA, max_residual_px=threshold)
+    ref = read_out(logits, cams, STRIDE, SIGMA, config=ReadoutConfig(max_residual_px=threshold))
     assert not ref.used[:, 2, 0].any() and int(ref.used.sum()) == int(plain.used.sum()) - scene.B
     assert float(ref.residual[ref.used].max()) > threshold / 3
     assert (ref.X[:, 0] - plain.X[:, 0]).norm(dim=-1).min() > 1e-4  # the outlier moved the plain point
@@ -274,7 +275,7 @@ def test_outlier_threshold_is_in_network_pixels_whatever_the_pixel_maps(scene):
     maps = np.repeat(M[None], scene.C, axis=0)
     video = Cameras(torch.as_tensor(np.linalg.inv(M)) @ cams.K.double(), cams.dist.double(), cams.R.double(),
                     cams.t.double())
-    tracked = read_out(logits, video, STRIDE, SIGMA, maps, max_residual_px=threshold)
+    tracked = read_out(logits, video, STRIDE, SIGMA, maps, ReadoutConfig(max_residual_px=threshold))
     assert torch.equal(tracked.used, ref.used)
     torch.testing.assert_close(tracked.X, ref.X, rtol=0, atol=1e-9)
 
@@ -361,19 +362,19 @@ def test_layout_read_out_finds_a_keypoint_taken_for_its_neighbour():
     confused = _mixed_logits(cams, X, size, sigma, [[(1, 0.95), (0, 0.05)], [(1, 1.0)], [(2, 1.0)]])
     plain = read_out(confused, cams, 1, sigma)
     assert float((plain.X[:, 0] - X[:, 1]).norm(dim=-1).max()) < 2e-3  # on its neighbour
-    held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    held = read_out(confused, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1))
     assert held.valid.all()
     assert float((held.X - X).norm(dim=-1).max()) < 1e-3
     assert float((plain.X[:, 1:] - X[:, 1:]).norm(dim=-1).max()) < 1e-3
     # right detections stay right, and nothing changes without a tolerance
-    torch.testing.assert_close(read_out(good, cams, 1, sigma, layout=ref, layout_tol=0.1).X, X,
-                               rtol=0, atol=1e-3)
-    torch.testing.assert_close(read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.0).X, plain.X)
+    rigid, off = ReadoutConfig(layout=ref, layout_tol=0.1), ReadoutConfig(layout=ref, layout_tol=0.0)
+    torch.testing.assert_close(read_out(good, cams, 1, sigma, config=rigid).X, X, rtol=0, atol=1e-3)
+    torch.testing.assert_close(read_out(confused, cams, 1, sigma, config=off).X, plain.X)
     # the same heatmaps read in video pixels three times as fine as the network's
     M = crop_resize_matrix((-6.0, 3.0, 3 * size - 6.0, 3 * size + 3.0), (size, size))
     maps = np.repeat(M[None], cams.shape[0], axis=0)
     video = Cameras(torch.as_tensor(np.linalg.inv(M)) @ cams.K, cams.dist, cams.R, cams.t)
-    tracked = read_out(confused, video, 1, sigma, maps, layout=ref, layout_tol=0.1)
+    tracked = read_out(confused, video, 1, sigma, maps, ReadoutConfig(layout=ref, layout_tol=0.1))
     torch.testing.assert_close(tracked.X, held.X, rtol=0, atol=1e-9)
 
 
@@ -423,7 +424,7 @@ def test_a_layout_tie_is_settled_by_the_heatmaps():
     assert settled.tolist() == [[True, True, False]] * 3
     # the frames settled come with the search for keypoint 2, which need not run again
     assert sorted(found) == [0, 1, 2] and all([f[:2] for f in found[b]] == [(b, 2)] for b in found)
-    held = read_out(logits, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    held = read_out(logits, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1))
     assert held.valid.all()
     # keypoint 0 stays where every view saw it, and keypoint 2 comes nearer its place (its detections in
     # cameras 1-3 are still read next to the stronger wrong peak)
@@ -449,11 +450,12 @@ def test_a_layout_prior_tells_a_keypoint_from_its_mirror_image():
     both = torch.stack([X, mirror], dim=2).flatten(1, 2)  # (B, 6, 3): keypoint 0 at 0, its mirror at 1
     parts = [[(2, 0.9), (0, 0.05), (1, 0.05)], [(2, 1.0)], [(4, 1.0)]]
     confused = _mixed_logits(cams, both, size, sigma, parts)[:, :, :3]
-    plain = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1)
+    plain = read_out(confused, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1))
     for favoured, other in ((X, mirror), (mirror, X)):
         coarse = _mixed_logits(cams, favoured, size, 3 * sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]]).exp()
         prior = LayoutPrior(coarse, cams, 1)
-        held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1, prior=prior)
+        held = read_out(confused, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1),
+                        prior=prior)
         near, far = ((held.X[:, 0] - P[:, 0]).norm(dim=-1) for P in (favoured, other))
         assert bool((near < 0.2 * far).all()), (near, far)
     # the side the heatmaps alone chose is one of the two
@@ -461,5 +463,6 @@ def test_a_layout_prior_tells_a_keypoint_from_its_mirror_image():
     assert float(near.max()) < 0.03
     # and with the prior favouring its own place, the read-out is as exact as with clear heatmaps
     coarse = _mixed_logits(cams, X, size, 3 * sigma, [[(0, 1.0)], [(1, 1.0)], [(2, 1.0)]]).exp()
-    held = read_out(confused, cams, 1, sigma, layout=ref, layout_tol=0.1, prior=LayoutPrior(coarse, cams, 1))
+    held = read_out(confused, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1),
+                    prior=LayoutPrior(coarse, cams, 1))
     assert float((held.X - X).norm(dim=-1).max()) < 1e-3

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k.data import Dataset
 from s3k.data.crops import object_centres, write_crop_dataset

@@ -8,9 +8,9 @@ import shutil
 
 import numpy as np
 import torch
-from real_recording import REAL, needs_real
+from helpers.real_recording import REAL, needs_real
+from helpers.tiny_detector import save_run
 from test_track import CAMERAS, KEYPOINTS, recording, tiny_run  # noqa: F401 (fixture)
-from tiny_detector import save_run
 
 from s3k import cli
 from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
@@ -98,7 +98,7 @@ def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(record
 def test_predict_refuses_another_object_and_describes_the_calibration(tmp_path, capsys):
     """s3k predict refuses a run whose keypoints are not the dataset's (evaluate refuses it too), with
     --other-rig to write it anyway; and says how the dataset's calibration differs from the run's."""
-    from synthetic_rig import make_dataset
+    from helpers.synthetic_rig import make_dataset
 
     from s3k.data import Dataset
     from s3k.detector.geometry_record import training_geometry

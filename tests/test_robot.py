@@ -279,7 +279,7 @@ def test_summary_holds_only_what_was_measured(tmp_path):
 
 
 def test_grasp_command_with_a_run_reads_its_detector_and_dataset_seed(tmp_path):
-    from tiny_detector import save_run
+    from helpers.tiny_detector import save_run
 
     from s3k.cli import main
     from s3k.detector import DetectorMeta

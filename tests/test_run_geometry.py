@@ -8,8 +8,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from synthetic_rig import CAMERAS, KEYPOINTS, make_dataset
-from tiny_detector import save_run
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS, make_dataset
+from helpers.tiny_detector import save_run
 
 from s3k import cli
 from s3k.data import Dataset

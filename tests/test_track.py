@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from tiny_detector import save_run
+from helpers.tiny_detector import save_run
 
 from s3k import cli
 from s3k.data.formats.anipose import write_anipose_calibration
@@ -37,7 +37,7 @@ from s3k.heatmaps import (
 )
 from s3k.inference.track import fit_box, prepare_cameras
 from s3k.model import UNetConfig
-from s3k.readout import read_out, window_cells
+from s3k.readout import ReadoutConfig, read_out, window_cells
 
 CAMERAS = ["left", "top", "right"]
 KEYPOINTS = ["nose", "ear", "tail"]
@@ -187,7 +187,7 @@ def test_synchronized_frames_pairs_by_index(recording):
 
 def points_from_logits(logits, cams, maps, stride, sigma, min_weight=0.5) -> SimpleNamespace:
     """``read_out`` in the videos' pixels, as numpy arrays (a threshold of 0.5 drops flat heatmaps)."""
-    r = read_out(logits, cams, stride, sigma, maps, min_weight)
+    r = read_out(logits, cams, stride, sigma, maps, ReadoutConfig(min_weight=min_weight))
     return SimpleNamespace(X=r.X.numpy(), valid=r.valid.numpy(), error=r.error.numpy(), ncams=r.ncams.numpy(),
                            score=r.score.numpy(), uv=r.uv.numpy(), weight=r.weights.numpy(),
                            used=r.used.numpy(), reproj=r.reproj.numpy())

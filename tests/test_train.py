@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, make_dataset
+from helpers.synthetic_rig import KEYPOINTS, make_dataset
 
 import s3k.train.loop as loop_module
 from s3k.cli import main as cli_main
@@ -371,7 +371,7 @@ def test_mean_pairwise_distance():
 def test_labelled_distances_are_the_rigid_layout(tiny_dataset, tmp_path):
     """The labelled frames' triangulated keypoints give the synthetic triangle's side lengths; a dataset
     whose labels triangulate nothing is refused by --layout-tol, naming it."""
-    from synthetic_rig import LAYOUT
+    from helpers.synthetic_rig import LAYOUT
 
     from s3k.train import labelled_distances
 
@@ -427,7 +427,8 @@ def test_collapse_warning(tiny_dataset, tmp_path):
         assert out["layout_ratio"] < 0.05
         assert any("possible collapse" in r for r in records)
         records.clear()
-        validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100), 5)
+        validate(net, result.meta, store, torch.device("cpu"), ref, tiny_config(warmup_steps=100, steps=200),
+                 5)
         assert not any("possible collapse" in r for r in records)  # still in the labels-only warm-up
     finally:
         logger.removeHandler(handler)

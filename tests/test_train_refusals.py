@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k.cli import main as cli_main
 from s3k.detector import load_network
@@ -24,8 +24,8 @@ TINY = ["--steps", "2", "--batch_labelled", "2", "--batch_unlabelled", "2", "--c
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return make_dataset(tmp_path_factory.mktemp("data") / "ds", size=32, labelled=3, unlabelled=3, test=2)
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 @pytest.fixture(scope="module")

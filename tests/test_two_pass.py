@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
+from helpers.synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
 from test_track import CAMERAS as TRACK_CAMERAS
 from test_track import KEYPOINTS as TRACK_KEYPOINTS
 from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points

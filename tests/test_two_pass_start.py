@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.data import Dataset

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from real_recording import REAL, needs_real
-from synthetic_rig import make_dataset
+from helpers.real_recording import REAL, needs_real
+from helpers.synthetic_rig import make_dataset
+from helpers.tiny_detector import save_run
 from test_track import CAMERAS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points
-from tiny_detector import save_run
 
 from s3k import cli
 from s3k.data.formats.anipose import write_anipose_calibration

@@ -12,16 +12,25 @@ command's ``--help`` states the options' defaults and ends with examples (:func:
 Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
 missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
 status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
+
+The library never prints: its modules log to ``logging.getLogger(__name__)``. While a command runs, the
+``s3k`` logger's messages are shown as the command's own (:class:`_Messages`): notes and results on standard
+output, warnings on standard error as ``warning: ...``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import os
 import shlex
 import sys
 from typing import Any
+
+from s3k import __version__
+from s3k.errors import UserError
 
 # name -> (module in s3k.cli, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -121,8 +130,6 @@ def describe_error(exc: BaseException) -> str | None:
     the operating system's refusals (missing file, permission, full disk), which are reported with the path
     they name.
     """
-    from s3k.errors import UserError
-
     if isinstance(exc, UserError):
         return str(exc)
     if isinstance(exc, OSError):
@@ -135,6 +142,39 @@ def describe_error(exc: BaseException) -> str | None:
     return None
 
 
+class _Messages(logging.Handler):
+    """The library's log records as a command's output (:mod:`s3k.messages`): INFO and below on stdout as
+    written, NOTE on stderr as written, WARNING and above on stderr prefixed ``warning: ``. The streams are
+    looked up at each record, so a redirected ``sys.stdout`` (a test's capture) receives them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+        except Exception:  # noqa: BLE001 - a malformed record is logging's own error to report
+            self.handleError(record)
+            return
+        if record.levelno >= logging.WARNING:
+            print(f"warning: {text}", file=sys.stderr)
+        elif record.levelno > logging.INFO:
+            print(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stdout)
+
+
+@contextlib.contextmanager
+def showing_library_messages():
+    """Show the ``s3k`` logger's INFO and WARNING records as the command's output while the block runs."""
+    logger = logging.getLogger("s3k")
+    handler, level = _Messages(logging.INFO), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = os.environ.get("S3K_DEBUG", "") not in ("", "0")
@@ -144,8 +184,6 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0].startswith("-"):
         args = top.parse_args(argv)
         if args.version:
-            from s3k import __version__
-
             print(__version__)
         else:
             top.print_help()
@@ -159,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     args = command_parser(name, module).parse_args(rest)
     args.command_line = shlex.join(["s3k", name, *rest])  # what was run, for commands that record it
     try:
-        return int(module.run(args) or 0)
+        with showing_library_messages():
+            return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print(f"s3k {name}: interrupted", file=sys.stderr)
         return 130

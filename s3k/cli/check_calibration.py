@@ -8,9 +8,14 @@ import argparse
 
 import numpy as np
 
+from s3k.calibration import check_calibration
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
+from s3k.data import Dataset
+from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.errors import UserError
+from s3k.outputs import check_output
+from s3k.recalibration import recalibrate_dataset
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -51,10 +56,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
-    from s3k.calibration import check_calibration
-    from s3k.data.formats.anipose import write_anipose_calibration
-    from s3k.recalibration import recalibrate_dataset
-
     targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
     if not targets:
         print("recalibration: no camera to recalibrate")
@@ -94,12 +95,7 @@ def _no_labels(ds, path: str, splits: list[str], n_frames: int) -> tuple[str, st
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.calibration import check_calibration
-    from s3k.data import Dataset
-
     if args.write_calibration:
-        from s3k.outputs import check_output
-
         check_output(args.write_calibration, args.overwrite, inputs={"--calibration": args.calibration},
                      option="--write-calibration")
     ds = Dataset.open(args.dataset)

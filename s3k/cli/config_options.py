@@ -13,10 +13,10 @@ from typing import Any
 
 from s3k.config import (
     TrainConfig,
-    _base_type,
-    _default,
+    base_type,
     coerce,
     config_from_dict,
+    field_default,
     leaf_fields,
     read_config_file,
 )
@@ -37,8 +37,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
     for section, f, tp in leaf_fields(cls):
         if section is not None and section not in groups:
             groups[section] = parser.add_argument_group(f"configuration: {section.replace('_', '-')}")
-        base, _ = _base_type(tp)
-        default = _default(f)
+        base, _ = base_type(tp)
+        default = field_default(f)
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
         text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
         flag = f"--{f.name.replace('_', '-')}"
@@ -46,8 +46,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
             kwargs: dict[str, Any] = dict(action=argparse.BooleanOptionalAction)
         else:
             is_tuple = typing.get_origin(base) is tuple
-            kwargs = dict(metavar="N,N,..." if is_tuple else getattr(base, "__name__", "V").upper(),
-                          type=_parser(f, tp))
+            named = typing.get_origin(base) is typing.Literal
+            metavar = ("N,N,..." if is_tuple else "{" + ",".join(typing.get_args(base)) + "}" if named
+                       else getattr(base, "__name__", "V").upper())
+            kwargs = dict(metavar=metavar, type=_parser(f, tp))
         groups[section].add_argument(flag, dest=f.name, default=argparse.SUPPRESS, help=text, **kwargs)
         if "_" in f.name:  # the field's own spelling is accepted too, not shown
             alias = groups[section].add_argument(f"--{f.name}", dest=f.name, default=argparse.SUPPRESS,
@@ -70,7 +72,7 @@ def _parser(f, tp: Any):
             raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
         return value
 
-    parse.__name__ = getattr(_base_type(tp)[0], "__name__", "value")
+    parse.__name__ = getattr(base_type(tp)[0], "__name__", "value")
     if bounds is not None:
         parse.range = bounds  # type: ignore[attr-defined]
     return parse

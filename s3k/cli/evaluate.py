@@ -9,8 +9,10 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run
 from s3k.inference.metrics import format_table
+from s3k.outputs import check_folder, claim_folder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -59,12 +61,8 @@ def _earlier_report(folder) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     if not args.ignore_geometry:
-        from s3k.detector.geometry_record import check_dataset
-
         check_dataset(args.run, args.data)
     if args.report:  # a new or empty folder, or an earlier report: never over files s3k did not write
-        from s3k.outputs import check_folder, claim_folder
-
         check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report",
                      writes={"metrics.json"}, owns=_earlier_report)
         claim_folder(args.report, "report")

@@ -25,6 +25,7 @@ from s3k.experiments import (
     summarize,
     verdict,
 )
+from s3k.outputs import check_folder
 
 
 def _int_list(text: str) -> list[int]:
@@ -142,7 +143,6 @@ def run(args: argparse.Namespace) -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
-    from s3k.outputs import check_folder
 
     exp_dir = Path(args.out) / args.name
     failed: list[str] = []

@@ -4,12 +4,23 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import zipfile
+from pathlib import Path
 
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
-from s3k.inference.export import DEFAULT_TOLERANCE, FORMATS, export_detector
+from s3k.inference.export import (
+    DEFAULT_TOLERANCE,
+    EXPORTED_TWO_PASS,
+    FORMATS,
+    META_KEY,
+    export_detector,
+    written_files,
+)
+from s3k.outputs import check_companion, check_output, staging_folder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -41,11 +52,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from s3k.inference.export import written_files
-    from s3k.outputs import check_companion, check_output, staging_folder
-
     checkpoint = Path(args.run) / args.checkpoint if args.checkpoint else None
     out = check_output(args.out, args.overwrite, inputs={"--checkpoint": checkpoint})
     for path in written_files(args.run, out):  # a two-pass run writes a file per pass and the rule beside it
@@ -81,11 +87,6 @@ def run(args: argparse.Namespace) -> int:
 def _exported(path, fmt: str) -> bool:
     """True when ``path`` is a file ``s3k export`` wrote (a two-pass export's description, or a pass's
     network carrying s3k's metadata); read without running anything in it."""
-    import json
-    import zipfile
-
-    from s3k.inference.export import EXPORTED_TWO_PASS, META_KEY
-
     try:
         if path.suffix == ".json":
             return json.loads(path.read_text()).get("format") == EXPORTED_TWO_PASS

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from s3k.cli import examples
-from s3k.data.formats.label_export import FORMATS
+from s3k.data.formats.label_export import FORMATS, export_labels
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -31,8 +31,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.formats.label_export import export_labels
-
     written = export_labels(args.dataset, args.format, args.out, splits=args.split, scorer=args.scorer,
                             images=not args.no_images, overwrite=args.overwrite)
     for path in written:

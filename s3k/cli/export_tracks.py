@@ -7,6 +7,7 @@ import argparse
 
 from s3k.cli import examples
 from s3k.cli.options import name, number
+from s3k.data.formats.label_export import export_tracks
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -33,8 +34,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.formats.label_export import export_tracks
-
     path, units = export_tracks(args.csv, args.format, args.out, fps=args.fps, calibration=args.calibration,
                                 units=args.units, overwrite=args.overwrite)
     print(f"wrote {path} (units {units})")

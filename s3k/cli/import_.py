@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 from typing import Any
 
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
+from s3k.data import import_labels as fmt
+from s3k.data.formats.sleap import sleap_tracks
+from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 from s3k.errors import UserError
 
 
@@ -105,50 +109,67 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "the CSVs lie in, else an anipose config.toml beside or above --calibration)")
 
 
-def run(args: argparse.Namespace) -> int:
-    from s3k.data.recording import import_recording
+def _labels(args: argparse.Namespace, track: str | None) -> Any:
+    """The label format the options name (:mod:`s3k.data.import_labels`), or None."""
+    camera_map = camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None
+    sleap = dict(track=track, camera_map=camera_map, accept_predictions=args.accept_predictions)
+    project = _sleap_project(args)
+    if project is not None:
+        return fmt.SleapProject(project, **sleap)
+    if args.sleap:
+        return fmt.SleapFiles(camera_pairs(args.sleap, "--sleap"), **sleap)
+    if args.nwb:
+        return fmt.Nwb(args.nwb, camera_map=camera_map, accept_predictions=args.accept_predictions)
+    if args.dlc:
+        return fmt.DeepLabCut(camera_pairs(args.dlc, "--dlc"), frame_ids_from=args.frame_ids_from)
+    if args.lightning_pose:
+        return fmt.LightningPose(args.lightning_pose, frame_ids_from=args.frame_ids_from)
+    if args.openpose:
+        return fmt.OpenPose(camera_pairs(args.openpose, "--openpose"), min_score=args.min_score)
+    if args.mmpose:
+        return fmt.MMPose(camera_pairs(args.mmpose, "--mmpose"), min_score=args.min_score)
+    if args.deepfly3d:
+        return fmt.DeepFly3D(args.deepfly3d)
+    return None
 
-    videos = camera_pairs(args.videos, "--videos")
+
+def _sleap_project(args: argparse.Namespace) -> str | None:
+    """The one SLEAP project ``--sleap FILE.slp`` names (None for ``CAM=FILE`` pairs)."""
     project = args.sleap[0] if args.sleap and len(args.sleap) == 1 and "=" not in args.sleap[0] else None
     if project is not None and not project.lower().endswith(".slp"):
         raise UserError(f"--sleap {project!r}: expected CAMERA=FILE, or one project FILE.slp")
+    return project
+
+
+def run(args: argparse.Namespace) -> int:
+    videos = dict(camera_pairs(args.videos, "--videos"))
     common: dict[str, Any] = dict(
-        sleap=camera_pairs(args.sleap, "--sleap") if args.sleap and project is None else None,
-        sleap_project=project, nwb=args.nwb,
-        camera_map=camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None,
-        accept_predictions=args.accept_predictions,
-        dlc=camera_pairs(args.dlc, "--dlc") if args.dlc else None,
-        lightning_pose=args.lightning_pose,
-        openpose=camera_pairs(args.openpose, "--openpose") if args.openpose else None,
-        mmpose=camera_pairs(args.mmpose, "--mmpose") if args.mmpose else None,
-        deepfly3d=args.deepfly3d, min_score=args.min_score,
-        frame_ids_from=args.frame_ids_from,
-        overwrite=args.overwrite,
-        labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
-        test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views,
-        size=parse_size(args.size), scale=args.scale,
-        crops=parse_crops(args.crop, list(videos)) if args.crop else None,
-        units=args.units,
+        split=SplitOptions(
+            labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
+            test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views),
+        images=ImageOptions(
+            size=parse_size(args.size), scale=args.scale,
+            crops=parse_crops(args.crop, list(videos)) if args.crop else None,
+            video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
+            if args.video_region else None),
+        units=args.units, overwrite=args.overwrite,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
-        video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
-        if args.video_region else None,
         skeleton=args.skeleton,
     )
     if args.sleap_track != "all":
-        import_recording(args.calibration, dict(videos), args.out, sleap_track=args.sleap_track, **common)
+        import_recording(args.calibration, videos, args.out, _labels(args, args.sleap_track), **common)
         return 0
-    from pathlib import Path
 
-    from s3k.data.formats.sleap import sleap_tracks
-
-    files = [project] if project else list((common["sleap"] or {}).values())
+    project = _sleap_project(args)
+    files: list[str | Path] = ([project] if project else
+                               list(camera_pairs(args.sleap, "--sleap").values()) if args.sleap else [])
     if not files:
         raise UserError("--sleap-track all needs SLEAP labels (--sleap)")
     tracks = sleap_tracks(files)
     for i, track in enumerate(tracks):
         folder = track if re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9_.+-]*", track) else f"track_{i}"
         print(f"track {track} -> {Path(args.out) / folder}")
-        import_recording(args.calibration, dict(videos), Path(args.out) / folder, sleap_track=track, **common)
+        import_recording(args.calibration, videos, Path(args.out) / folder, _labels(args, track), **common)
     return 0
 
 

@@ -13,6 +13,8 @@ from pathlib import Path
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.errors import UserError
+from s3k.label.propagate import DEFAULT_MAX_CHANGED, describe, propagate_labels, undo_propagation
+from s3k.label.suggest import UP
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +43,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "token in the printed URL")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
     parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
-    from s3k.label.suggest import UP
 
     parser.add_argument("--up", default=",".join(f"{c:g}" for c in UP or ()) or "none", metavar="X,Y,Z",
                         help="the table's normal in the calibration's world frame: the pose rankings count a "
@@ -94,8 +95,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("s3k label propagate needs the dataset folder",
                         hint="s3k label propagate DATASET --frames A:B")
     if propagate:
-        from s3k.label.propagate import DEFAULT_MAX_CHANGED, describe, propagate_labels, undo_propagation
-
         if args.undo:
             source, frames = undo_propagation(args.target, labeller=args.labeller)
             print(f"undid the propagation from frame {source}: frame(s) {', '.join(map(str, frames))} have "

@@ -15,7 +15,9 @@ from collections.abc import Callable
 from typing import Any
 
 from s3k.errors import UserError
+from s3k.inference.track import FIT_MODES
 from s3k.ranges import Range
+from s3k.readout import DEFAULT_MIN_WEIGHT
 
 
 def number(kind: type = float, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
@@ -108,9 +110,6 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
     """The options of a command that reads the synchronized frames of a calibrated rig through a run's
     detector (``s3k track``, ``s3k stream``): the calibration and its unit, the part of the calibrated image
     each camera shows, each camera's box onto the detector's input, the views' confidence and the device."""
-    from s3k.inference.track import FIT_MODES
-    from s3k.readout import DEFAULT_MIN_WEIGHT
-
     parser.add_argument("--calibration", required=True,
                         help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
                         "DeepFly3D .pkl (as for 's3k import')")

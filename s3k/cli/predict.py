@@ -7,7 +7,11 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.options import add_other_rig_option, number
+from s3k.data import Dataset
+from s3k.data.tracks_csv import write_source
 from s3k.inference.predict import predict_dataset
+from s3k.inference.rig_check import check_dataset_rig
+from s3k.outputs import check_output
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -28,16 +32,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.outputs import check_output
-
     check_output(args.out, args.overwrite, inputs={"--data": args.data})
-    from s3k.inference.rig_check import check_dataset_rig
-
     check_dataset_rig(args.run, args.data, refuse=not args.other_rig)
     summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
                               args.overwrite)
-    from s3k.data import Dataset
-    from s3k.data.tracks_csv import write_source
 
     write_source(summary.path, Dataset.open(args.data, cache="none").units, run=args.run, dataset=args.data)
     for text in summary.warnings:

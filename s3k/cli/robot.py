@@ -15,9 +15,16 @@ import argparse
 import dataclasses
 import json
 import sys
+from pathlib import Path
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.detector import training_dataset
+from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
+from s3k.outputs import check_output, check_output_folder, check_replaceable
+from s3k.robot.detect import RunDetector
+from s3k.robot.results import write_summary
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -96,9 +103,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _dataset_object_seed(run: str) -> int | None:
     """The ``object_seed`` of the plush dataset run ``run`` was trained on, when its metadata says so."""
-    from pathlib import Path
-
-    from s3k.detector import training_dataset
 
     dataset = training_dataset(run)
     try:
@@ -113,9 +117,6 @@ def _dataset_object_seed(run: str) -> int | None:
 
 
 def _grasp(args: argparse.Namespace) -> int:
-    from s3k.errors import UserError
-    from s3k.fileio import atomic_write_json
-    from s3k.outputs import check_output
     from s3k.robot.grasp import KeypointSource, detector_keypoints, ground_truth_keypoints, run_trials
     from s3k.sim.plush import PlushScene
 
@@ -127,7 +128,6 @@ def _grasp(args: argparse.Namespace) -> int:
     else:
         if args.run is None:
             raise UserError("RUN: give a trained run, or --ground-truth for the upper bound")
-        from s3k.robot.detect import RunDetector
 
         detector = RunDetector(args.run, PlushScene.keypoints, device=args.device)
         W, H = detector.image_size
@@ -157,16 +157,11 @@ def _grasp(args: argparse.Namespace) -> int:
 
 
 def _train_agent(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from s3k.errors import UserError
-
     try:
         import gymnasium  # noqa: F401
         import stable_baselines3  # noqa: F401
     except ImportError as exc:
         raise UserError(f"s3k robot train-agent needs {exc.name}", hint="pip install 's3k[robot]'") from exc
-    from s3k.outputs import check_output_folder
     from s3k.robot.agents import AgentConfig, saved_config, train_agent
 
     check_output_folder(args.out)  # never inside a dataset, nor a run's own files
@@ -183,7 +178,6 @@ def _train_agent(args: argparse.Namespace) -> int:
 
 
 def _simulate_insertion(args: argparse.Namespace) -> int:
-    from s3k.outputs import check_replaceable
     from s3k.robot.insertion_data import write_insertion_dataset
 
     check_replaceable(args.out, args.overwrite)  # as simulate: never inside a dataset, nor someone's files
@@ -195,9 +189,6 @@ def _simulate_insertion(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    from s3k.outputs import check_output
-    from s3k.robot.results import write_summary
-
     check_output(args.out, args.overwrite, inputs={"--grasp-s3k": args.grasp_s3k,
                                                    "--grasp-labels-only": args.grasp_labels_only,
                                                    "--grasp-ground-truth": args.grasp_ground_truth})

@@ -7,6 +7,7 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.outputs import check_output
 from s3k.sim.generate import MAX_SIZE
 from s3k.sim.scene import NUM_TRAIN_INSTANCES
 from s3k.sim.scenes import SCENES
@@ -76,8 +77,6 @@ def run(args: argparse.Namespace) -> int:
         unlabelled_arrangements=args.unlabelled_arrangements,
     )
     if args.preview:
-        from s3k.outputs import check_output
-
         check_output(args.preview, args.overwrite, option="--preview")
     summary = simulate(cfg, args.out, workers=args.workers, progress=not args.no_progress,
                        overwrite=args.overwrite, preview=args.preview)

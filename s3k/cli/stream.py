@@ -6,9 +6,19 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number
+from s3k.cli.options import add_rig_options, camera_pairs, number, parse_crops
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.detector import Detector
+from s3k.detector.geometry_record import track_crops
 from s3k.errors import UserError
+from s3k.inference.rerun_log import recording_summary
+from s3k.inference.rig_check import check_rig
+from s3k.inference.stream import open_source, rerun_logger, stream
+from s3k.inference.track import fit_box, say_calibration
+from s3k.outputs import check_output
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -45,12 +55,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
     """The calibration's cameras of the sources and each source's box onto the detector's input."""
-    import numpy as np
-
-    from s3k.cli.options import parse_crops
-    from s3k.data.formats.calibration_files import read_calibration
-    from s3k.detector.geometry_record import track_crops
-    from s3k.inference.track import fit_box
 
     names = list(sources)
     calib = read_calibration(args.calibration, units=args.units)
@@ -67,9 +71,8 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
     calib = calib.select(names)
-    from s3k.inference.track import _say_calibration
 
-    _say_calibration(args.run, calib, names, args.calibration)
+    say_calibration(args.run, calib, names, args.calibration)
     crops = parse_crops(args.crop, names) if args.crop else None
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
     for line in notes:
@@ -86,17 +89,10 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.cli.options import camera_pairs
-    from s3k.detector import Detector
-    from s3k.inference.stream import open_source, rerun_logger, stream
-    from s3k.outputs import check_output
-
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
     if not args.other_rig:
-        from s3k.inference.rig_check import check_rig
-
         check_rig(args.run, list(specs), what="--sources")
     if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
         check_output(args.rerun, args.overwrite, option="--rerun",
@@ -121,7 +117,6 @@ def run(args: argparse.Namespace) -> int:
     if close is not None:
         close(True)
     if args.rerun and args.rerun != "spawn":
-        from s3k.inference.rerun_log import recording_summary
 
         saved = recording_summary(args.rerun)
         print(f"s3k stream: wrote {args.rerun}: {len(saved['frames'])} frames, {saved['bytes'] / 1e6:.2f} MB "

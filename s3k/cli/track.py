@@ -8,9 +8,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number
+from s3k.cli.options import add_rig_options, number, parse_crops
+from s3k.data import video
+from s3k.data.tracks_csv import write_source
+from s3k.detector.geometry_record import track_crops
 from s3k.errors import UserError
+from s3k.inference.rig_check import check_rig
 from s3k.inference.track import empty_result_hint, track_videos
+from s3k.outputs import check_folder, check_output, claim_folder
 
 
 def parse_videos(values: Sequence[str]) -> dict[str, Path]:
@@ -80,17 +85,10 @@ def keypoint_line(summary, k: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.cli.options import parse_crops
-    from s3k.data import video
-    from s3k.detector.geometry_record import track_crops
-    from s3k.outputs import check_folder, check_output, claim_folder
-
     videos = parse_videos(args.videos)
     check_output(args.out, args.overwrite,
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
     if not args.other_rig:
-        from s3k.inference.rig_check import check_rig
-
         check_rig(args.run, list(videos), what="--videos")
     if args.overlay:
         check_folder(args.overlay, "folder of overlay videos", option="--overlay",
@@ -110,7 +108,6 @@ def run(args: argparse.Namespace) -> int:
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,
     )
-    from s3k.data.tracks_csv import write_source
 
     write_source(summary.path, summary.units, run=args.run, calibration=args.calibration, fps=summary.fps)
     print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")

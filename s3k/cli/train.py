@@ -12,7 +12,12 @@ from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
 from s3k.detector import CONFIG_FILE, read_run_config
-from s3k.train.two_pass import REFERENCE_CROP
+from s3k.errors import UserError
+from s3k.outputs import check_output_folder
+from s3k.presets import PRESETS, preset
+from s3k.train import train
+from s3k.train.two_pass import REFERENCE_CROP, train_two_pass
+from s3k.train.two_pass_start import DEFAULTS, OPTIONS_FILE, read_options
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -31,7 +36,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "preloading and the validation, logging and checkpoint cadence)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
-    from s3k.presets import PRESETS
 
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
@@ -75,9 +79,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.outputs import check_output_folder
-    from s3k.train import train
-
     check_output_folder(args.out, inputs={"DATASET": args.dataset, "--config": args.config})
     chosen = _preset(args)
     if args.two_pass:
@@ -102,7 +103,6 @@ def _preset(args: argparse.Namespace) -> TrainConfig | None:
     gives the two-pass options that the command line leaves out."""
     if args.preset is None:
         return None
-    from s3k.presets import preset
 
     chosen = preset(args.preset)
     if chosen.two_pass is not None:
@@ -115,10 +115,6 @@ def _preset(args: argparse.Namespace) -> TrainConfig | None:
 
 
 def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -> int:
-    from s3k.errors import UserError
-    from s3k.train.two_pass import train_two_pass
-    from s3k.train.two_pass_start import DEFAULTS, OPTIONS_FILE, read_options
-
     saved = read_options(args.out) if args.resume else None
     where = f"{Path(args.out) / OPTIONS_FILE}"
     base = chosen if saved is None else config_from_dict(TrainConfig, saved[0], where=where)

@@ -9,6 +9,7 @@ import argparse
 
 from s3k.cli import examples
 from s3k.cli.options import number
+from s3k.data.validate import validate_dataset
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -25,10 +26,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from s3k.data.validate import validate_dataset
-
-    ok = validate_dataset(
+    ok, lines = validate_dataset(
         args.dataset, check_images=not args.no_images, workers=args.workers,
         max_per_field=args.max_per_field, strict=args.strict,
     )
+    print("\n".join(lines))
     return 0 if ok else 1

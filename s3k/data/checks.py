@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.data.dataset import Dataset, _parse
+from s3k.data.dataset import Dataset, parse_folder
 from s3k.data.images import ImageReadError, decode_image, header_size
 from s3k.data.problems import DatasetError, Problem, Problems
 from s3k.data.sources import PngImages
@@ -37,7 +37,7 @@ def check_dataset(
     """
     root = Path(path)
     P = Problems()
-    contents = _parse(root, P)
+    contents = parse_folder(root, P)
     if contents is None:
         return P.items, None
     dataset = Dataset(contents, cache="none", workers=workers)

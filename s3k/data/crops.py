@@ -12,6 +12,8 @@ with the rule the two-pass detector applies at inference (:func:`s3k.geometry.wa
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -19,8 +21,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.data.dataset import Dataset
+from s3k.data.protocol import DatasetLike
+from s3k.data.writer import DatasetWriter
 from s3k.errors import UserError
-from s3k.geometry import Cameras
+from s3k.geometry import Cameras, workspace_centre
+from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
 
 __all__ = ["CropCutter", "CropDataset", "cut_crops", "object_centres", "write_crop_dataset"]
 
@@ -55,7 +61,7 @@ class CropDataset:
 
     static_calibration = False
 
-    def __init__(self, source: Any, frame_ids: np.ndarray, splits: np.ndarray, images: np.ndarray,
+    def __init__(self, source: DatasetLike, frame_ids: np.ndarray, splits: np.ndarray, images: np.ndarray,
                  cams: Cameras, maps: np.ndarray, uv: np.ndarray, mask: np.ndarray,
                  points: tuple[np.ndarray, np.ndarray] | None, keypoints: list[str], extent: float, size: int,
                  description: str | None = None) -> None:
@@ -140,10 +146,6 @@ class CropDataset:
 
     def write(self, out: str | Path, overwrite: bool = False) -> Path:
         """Save the crops as a dataset folder ``out`` (written beside as ``out.tmp``, then renamed)."""
-        import os
-        import shutil
-
-        from s3k.data.writer import DatasetWriter
 
         out = Path(out)
         if out.exists() and not overwrite:
@@ -179,7 +181,7 @@ class CropCutter:
         extent, size, keypoints, fallback: as for :func:`cut_crops`.
     """
 
-    def __init__(self, source: Any, extent: float, size: int, keypoints: Sequence[str] | None = None,
+    def __init__(self, source: DatasetLike, extent: float, size: int, keypoints: Sequence[str] | None = None,
                  fallback: bool = False) -> None:
         self.ds, self.extent, self.size, self.fallback = source, float(extent), int(size), fallback
         self.names = list(source.keypoints if keypoints is None else keypoints)
@@ -230,8 +232,8 @@ class CropCutter:
                            mask, points, self.names, self.extent, self.size, description)
 
 
-def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, size: int,
-              keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
+def cut_crops(source: str | os.PathLike | DatasetLike, centres: Mapping[int, np.ndarray], extent: float,
+              size: int, keypoints: Sequence[str] | None = None, *, fallback: bool = False, chunk: int = 32,
               splits: Sequence[str] | None = None, frames: Sequence[int] | None = None,
               description: str | None = None) -> CropDataset:
     """The crops of every frame of ``source`` (a :class:`s3k.data.Dataset` or its folder) around ``centres``.
@@ -253,9 +255,7 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     Raises:
         UserError: an unknown keypoint, or a frame without an estimate when ``fallback`` is off.
     """
-    from s3k.data.dataset import Dataset
-
-    ds = Dataset.open(source, cache="none") if isinstance(source, (str, Path)) else source
+    ds = Dataset.open(os.fspath(source), cache="none") if isinstance(source, (str, os.PathLike)) else source
     cutter = CropCutter(ds, extent, size, keypoints, fallback)
     ids = np.concatenate([np.asarray(ds.frames(s)) for s in (splits or ("labelled", "unlabelled", "test"))])
     if frames is not None:
@@ -265,13 +265,10 @@ def cut_crops(source: Any, centres: Mapping[int, np.ndarray], extent: float, siz
     return cutter.result(description)
 
 
-def _cut_chunk(ds, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float, size: int,
-               images: np.ndarray | torch.Tensor | None = None):
+def _cut_chunk(ds: DatasetLike, frames: np.ndarray, centre: torch.Tensor, kps: list[int], extent: float,
+               size: int, images: np.ndarray | torch.Tensor | None = None):
     """Crop one batch of frames around ``centre (B, 3)``: ``(uint8 crops, maps M, (K', dist, R, t, labels uv,
     labels mask[, points, points mask]))``; a label outside its crop is left out."""
-    from s3k.geometry import workspace_centre
-    from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
-
     if images is None:
         images = ds.images(frames)  # (B, C, H, W, 3) uint8
     cams = ds.calibration(frames, np.float64)

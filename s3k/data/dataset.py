@@ -64,7 +64,7 @@ class _Contents:
     held: ImageCache | None = None  # frames at their stored size kept in memory (Dataset.hold_frames)
 
 
-def _parse(root: Path, P: Problems) -> _Contents | None:
+def parse_folder(root: Path, P: Problems) -> _Contents | None:
     meta = read_metadata(root, P, IMAGE_SOURCES)
     if meta is None:
         return None
@@ -182,7 +182,7 @@ class Dataset:
             DatasetError: naming the first problem (file, field, line/frame/camera); ``problems`` has all.
         """
         P = Problems()
-        contents = _parse(Path(path), P)
+        contents = parse_folder(Path(path), P)
         if P.errors or contents is None:
             raise DatasetError(path, P.errors)
         outside = P.warnings

@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from s3k.data.dataset import Dataset
+from s3k.data.protocol import DatasetLike
 from s3k.geometry import Cameras
 
 
@@ -70,8 +72,6 @@ def images_to_float(images: Tensor, device: torch.device | str | None = None) ->
 def open_dataset(path, out_size: tuple[int, int] | None = None, cache: str = "disk"):
     """Open a dataset, resized to ``out_size`` (W, H) when given (intrinsics and labels follow exactly);
     ``path`` may also be a dataset already open (e.g. :class:`s3k.data.crops.CropDataset`)."""
-    from s3k.data import Dataset
-
     ds = Dataset.open(os.fspath(path), cache=cache) if isinstance(path, (str, os.PathLike)) else path
     return ds if out_size is None else ds.resized(out_size)
 
@@ -97,8 +97,8 @@ class FrameStore:
         chunk: frames per read while preloading without a dataset cache.
     """
 
-    def __init__(self, dataset, frame_ids, preload_mb: int = 2048, labels: bool = False, points: bool = False,
-                 chunk: int = 64) -> None:
+    def __init__(self, dataset: DatasetLike, frame_ids, preload_mb: int = 2048, labels: bool = False,
+                 points: bool = False, chunk: int = 64) -> None:
         self.dataset = dataset
         self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
         self.out_size = (int(dataset.image_size[0]), int(dataset.image_size[1]))

@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import h5py
+
 from s3k.errors import UserError
 
 __all__ = ["check_self_contained", "open_hdf5"]
@@ -20,8 +22,6 @@ __all__ = ["check_self_contained", "open_hdf5"]
 def check_self_contained(h5: Any, path: str | Path) -> None:
     """Raise :class:`UserError` when the open ``h5py.File`` ``h5`` has an external link, a dataset stored in
     other files or a virtual dataset."""
-    import h5py
-
     links: list[str] = []
     h5.visit_links(links.append)  # links of every group reached inside the file; none followed outside
     for name in links:
@@ -48,8 +48,6 @@ def check_self_contained(h5: Any, path: str | Path) -> None:
 def open_hdf5(path: str | Path, what: str = "HDF5") -> Any:
     """``h5py.File(path, "r")``, refused in one line (naming ``what`` the file should be) when it is not an
     HDF5 file or is not self-contained (:func:`check_self_contained`)."""
-    import h5py
-
     try:
         h5 = h5py.File(path, "r")
     except OSError as exc:

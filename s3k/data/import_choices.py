@@ -5,12 +5,14 @@ labels that fall outside the images (:func:`drop_outside`), and which frames are
 
 from __future__ import annotations
 
-import sys
+import logging
 from collections.abc import Sequence
 
 import numpy as np
 
 from s3k.errors import UserError
+
+log = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixel edge coordinates
 
@@ -70,7 +72,7 @@ def pad_to_one_size(boxes: list[Box], cameras: list[str]) -> list[Box]:
             or H - min(heights) > PADDING_PX:
         return boxes
     grown = [cam for cam, w, h in zip(cameras, widths, heights) if (w, h) != (W, H)]
-    print(f"note: the images of {', '.join(grown)} are padded with black at the right and bottom to "
+    log.info(f"note: the images of {', '.join(grown)} are padded with black at the right and bottom to "
           f"{W:g}x{H:g}, the largest camera's size (--size W,H resizes instead)")
     return [(b[0], b[1], b[0] + W, b[1] + H) for b in boxes]
 
@@ -133,9 +135,9 @@ def drop_outside(uv: np.ndarray, areas: np.ndarray, cameras: list[str], names: l
             f"dropped (e.g. camera {cameras[c]} frame {f} {names[k]} at x {u:.0f}, y {v:.0f} in {W:g}x{H:g})")
     uv[~inside] = np.nan
     if outside.sum() <= known.sum() / 2:
-        print(f"note: {text}")
+        log.info(f"note: {text}")
         return ""
-    print(f"warning: {text}", file=sys.stderr)
+    log.warning(text)
     return text
 
 
@@ -160,6 +162,6 @@ def labelled_count(candidates: np.ndarray, labelled: int | str | None, test: int
         return labelled
     left = max(len(candidates) - max(test, 0), 0)
     if left < DEFAULT_LABELLED:
-        print(f"note: {len(candidates)} frames have a keypoint labelled in >= {min_views} cameras: "
+        log.info(f"note: {len(candidates)} frames have a keypoint labelled in >= {min_views} cameras: "
               f"{left} labelled, {test} test (--labelled N and --test N choose)")
     return min(DEFAULT_LABELLED, left)

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.calibration import check_calibration
+
 __all__ = ["calibration_findings", "calibration_warnings", "kept_labels_summary"]
 
 
@@ -31,8 +33,6 @@ def calibration_findings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequen
                          image_size: tuple[int, int], dataset: str | Path) -> list[tuple[str, str]]:
     """:func:`calibration_warnings` with a severity each: ``"error"`` for cameras the check finds
     inconsistent (training would learn wrong targets there), ``"warning"`` for the other notes."""
-    from s3k.calibration import check_calibration
-
     uv, mask = np.asarray(uv, dtype=np.float64), np.asarray(mask, dtype=bool)
     if uv.ndim != 4 or not mask.any():
         return []

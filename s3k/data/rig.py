@@ -13,7 +13,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from s3k.data.cameras import camera_defects
+from s3k.errors import UserError
 from s3k.geometry import Cameras
+from s3k.geometry.warp import resize_crop
 
 
 @dataclass
@@ -44,9 +47,6 @@ class Rig:
         """This rig, after refusing (:class:`s3k.errors.UserError` naming ``source``, the camera and the
         field) a value that is not finite, a singular ``K`` or an ``R`` that is not a rotation (a Rodrigues
         vector of 1e300, a scaled matrix)."""
-        from s3k.data.cameras import camera_defects
-        from s3k.errors import UserError
-
         a = self.cameras.numpy()
         for name, defects in zip(self.names, camera_defects(a["K"], a["dist"], a["R"], a["t"])):
             if defects:
@@ -94,8 +94,6 @@ class Rig:
         Raises:
             KeyError: an unknown camera. ValueError: a region of fractional or non-positive size.
         """
-        from s3k.geometry.warp import resize_crop
-
         arrays = self.cameras.numpy()
         size = self.size.copy()
         for name, box in regions.items():

@@ -149,6 +149,28 @@ class Meta:
     skeleton: list[tuple[str, str]]
 
 
+def _check_image_pattern(pattern: Any, P: Problems) -> None:
+    """Record an error unless ``images.pattern`` is a relative path inside the folder that uses both
+    ``{camera}`` and ``{frame}``."""
+    try:
+        ok = isinstance(pattern, str) and pattern.format(camera="a", frame=1) != pattern.format(
+            camera="b", frame=2
+        )
+        ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="a", frame=2)
+        ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="b", frame=1)
+        where = PurePosixPath(pattern.format(camera="a", frame=1).replace("\\", "/"))
+        ok = ok and not where.is_absolute() and ".." not in where.parts and ":" not in where.parts[0]
+    except (KeyError, IndexError, ValueError, AttributeError):
+        ok = False
+    if not ok:
+        P.error(
+            METADATA_FILE,
+            "images.pattern",
+            "must be a relative path inside the dataset folder that uses both {camera} and {frame} "
+            f"(e.g. {DEFAULT_IMAGE_PATTERN!r}), got {pattern!r}",
+        )
+
+
 def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta | None:
     """``s3k.json``; ``image_types`` are the known ``images.type`` values (:mod:`s3k.data.sources`)."""
     if not root.is_dir():
@@ -196,24 +218,7 @@ def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta
             f"must be an object whose 'type' is one of {sorted(image_types)}, got {images!r}",
         )
     elif images.get("type", "png") == "png":
-        pattern = images.get("pattern", DEFAULT_IMAGE_PATTERN)
-        try:
-            ok = isinstance(pattern, str) and pattern.format(camera="a", frame=1) != pattern.format(
-                camera="b", frame=2
-            )
-            ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="a", frame=2)
-            ok = ok and pattern.format(camera="a", frame=1) != pattern.format(camera="b", frame=1)
-            where = PurePosixPath(pattern.format(camera="a", frame=1).replace("\\", "/"))
-            ok = ok and not where.is_absolute() and ".." not in where.parts and ":" not in where.parts[0]
-        except (KeyError, IndexError, ValueError, AttributeError):
-            ok = False
-        if not ok:
-            P.error(
-                METADATA_FILE,
-                "images.pattern",
-                "must be a relative path inside the dataset folder that uses both {camera} and {frame} "
-                f"(e.g. {DEFAULT_IMAGE_PATTERN!r}), got {pattern!r}",
-            )
+        _check_image_pattern(images.get("pattern", DEFAULT_IMAGE_PATTERN), P)
     skeleton: list[tuple[str, str]] = []
     raw_skeleton = meta.get("skeleton", [])
     if not isinstance(raw_skeleton, list) or not all(

@@ -10,26 +10,11 @@ without any usable label trains on a loss that is exactly zero.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
-
 import numpy as np
 import torch
 
-from s3k.geometry import Cameras, project, triangulate_labels
-
-
-class DatasetLike(Protocol):
-    """What the check reads of an :class:`s3k.data.Dataset` (named here so that the dataset, whose summary
-    counts usable labels, and this module do not import each other)."""
-
-    keypoints: list[str]
-    image_size: tuple[int, int]
-
-    def frames(self, split: Any = None) -> np.ndarray: ...
-
-    def labels(self, frame_ids: Any, dtype: Any = ...) -> tuple[np.ndarray, np.ndarray]: ...
-
-    def calibration(self, frame_ids: Any, dtype: Any = ...) -> Cameras: ...
+from s3k.data.protocol import DatasetLike
+from s3k.geometry import project, triangulate_labels
 
 # Camera-frame depth at or below which a point counts as behind the camera (as in the supervised loss).
 MIN_DEPTH = 1e-6

@@ -1,7 +1,7 @@
 """The report of ``s3k validate DATASET``: every problem, then what is there.
 
 Unlike :meth:`s3k.data.Dataset.open`, which stops with the errors of the tables, this collects every problem
-(tables, calibration, image files and their pixels, labels that give no training target), prints each one
+(tables, calibration, image files and their pixels, labels that give no training target) and reports each one
 naming the file, the field and the line/frame/camera, then a summary: frames per split and labels per keypoint
 per camera. The dataset is usable when there is no error (and, with ``strict``, no warning).
 """
@@ -11,63 +11,67 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from s3k.data.checks import check_dataset
 from s3k.data.dataset import Dataset
+from s3k.data.import_report import calibration_findings
 from s3k.data.problems import Problem
 from s3k.data.tables import SPLITS
 
 
-def _print_problems(problems: list[Problem], limit: int) -> None:
+def _problem_lines(problems: list[Problem], limit: int) -> list[str]:
+    out = []
     shown: Counter = Counter()
     hidden: Counter = Counter()
     for p in problems:
         key = (p.severity, p.file if "/" not in p.file else p.file.rsplit("/", 1)[0] + "/*", p.field)
         if shown[key] < limit:
-            print(f"{p.severity.upper():7} {p}")
+            out.append(f"{p.severity.upper():7} {p}")
             shown[key] += 1
         else:
             hidden[key] += 1
     for (severity, file, fld), n in hidden.items():
-        print(f"{severity.upper():7} {file}: field '{fld}': ... and {n} more like the above")
+        out.append(f"{severity.upper():7} {file}: field '{fld}': ... and {n} more like the above")
+    return out
 
 
-def _print_summary(ds: Dataset) -> None:
+def _summary_lines(ds: Dataset) -> list[str]:
+    out = []
     s = ds.summary()
     W, H = s["image_size"]
-    print(
+    out.append(
         f"dataset {ds.path}: {s['frames']} frames, {len(ds.cameras)} cameras, {len(ds.keypoints)} keypoints, "
         f"images {W}x{H}, calibration {s['calibration']}, units {s['units']}"
     )
-    print("frames per split: " + ", ".join(f"{name} {s['splits'][name]}" for name in SPLITS))
+    out.append("frames per split: " + ", ".join(f"{name} {s['splits'][name]}" for name in SPLITS))
     width = max(len(k) for k in ds.keypoints)
     cam_width = max(6, *(len(c) for c in ds.cameras))
-    print(
+    out.append(
         "labels (visible, inside the image) per split: "
         + ", ".join(f"{name} {s['labels_per_split'][name]}" for name in SPLITS)
     )
-    print("labels per keypoint and camera in the labelled split:")
-    print(" " * (width + 2) + " ".join(f"{c:>{cam_width}}" for c in ds.cameras))
+    out.append("labels per keypoint and camera in the labelled split:")
+    out.append(" " * (width + 2) + " ".join(f"{c:>{cam_width}}" for c in ds.cameras))
     for k in ds.keypoints:
-        print(f"  {k:<{width}}" + " ".join(f"{s['labels'][k][c]:>{cam_width}}" for c in ds.cameras))
+        out.append(f"  {k:<{width}}" + " ".join(f"{s['labels'][k][c]:>{cam_width}}" for c in ds.cameras))
     n_lab = s["splits"]["labelled"]
-    print(
+    out.append(
         f"labelled frames with a keypoint labelled in >= 2 cameras: {s['triangulable_labelled_frames']} of "
         f"{n_lab}; with a usable label (triangulated in front of a camera, inside its image; usable for "
         f"training): {s['usable_labelled_frames']} of {n_lab}"
     )
     if s["points3d"] is None:
-        print("ground-truth 3D points: none")
+        out.append("ground-truth 3D points: none")
     else:
-        print(f"ground-truth 3D points: {s['points3d']}")
+        out.append(f"ground-truth 3D points: {s['points3d']}")
+    return out
 
 
 def _calibration_check(ds: Dataset, path: str | Path) -> list[tuple[str, str]]:
     """``s3k check-calibration``'s consistency test on the labels of the labelled and test frames, as
     ``(severity, line)`` naming the repair (:func:`s3k.data.import_report.calibration_findings`): a camera
     found inconsistent is an error (training would learn wrong targets there), a note a warning."""
-    import numpy as np
-
-    from s3k.data.import_report import calibration_findings
 
     ids = np.concatenate([np.asarray(ds.frames(s), dtype=np.int64) for s in ("labelled", "test")])
     if not len(ids):
@@ -84,8 +88,8 @@ def validate_dataset(
     workers: int | None = None,
     max_per_field: int = 10,
     strict: bool = False,
-) -> bool:
-    """Check a dataset folder and print the report; True when it is usable.
+) -> tuple[bool, list[str]]:
+    """Check a dataset folder; whether it is usable, and the report's lines.
 
     Args:
         path: dataset folder.
@@ -95,22 +99,20 @@ def validate_dataset(
         strict: warnings make the dataset fail too.
 
     Returns:
-        False when there is an error (``UNUSABLE``) or, with ``strict``, a warning.
+        ``(usable, lines)``: False when there is an error (``UNUSABLE``) or, with ``strict``, a warning; the
+        report, one problem or figure a line, the verdict last.
     """
     problems, dataset = check_dataset(path, check_images=check_images, workers=workers)
     errors = [p for p in problems if p.severity == "error"]
     warnings = [p for p in problems if p.severity == "warning"]
-    _print_problems(problems, max_per_field)
+    lines = _problem_lines(problems, max_per_field)
     if dataset is not None:
-        _print_summary(dataset)
+        lines += _summary_lines(dataset)
         for severity, line in _calibration_check(dataset, path):
-            print(f"{severity.upper():7} {line}")
+            lines.append(f"{severity.upper():7} {line}")
             (errors if severity == "error" else warnings).append(Problem(severity, "calibration", None, line))
     if errors:
-        print(f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {path}")
-        return False
+        return False, [*lines, f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {path}"]
     if warnings and strict:
-        print(f"FAILED (--strict): {len(warnings)} warning(s) in {path}")
-        return False
-    print(f"OK: {path} ({len(warnings)} warning(s))")
-    return True
+        return False, [*lines, f"FAILED (--strict): {len(warnings)} warning(s) in {path}"]
+    return True, [*lines, f"OK: {path} ({len(warnings)} warning(s))"]

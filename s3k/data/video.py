@@ -19,17 +19,17 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from s3k.data import imageseq
+from s3k.data.images import decode_image
 from s3k.errors import UserError
 
 SEQUENCE_FPS = 30.0  # an image sequence records no frame rate; this one is used for overlay videos
 
 
 def _read_image(path: Path) -> np.ndarray:
-    from s3k.data.images import decode_image
-
     return decode_image(path)
 
 
@@ -195,8 +195,6 @@ def extract_frames(
     Returns:
         The written paths, in frame order.
     """
-    import cv2
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []

@@ -209,8 +209,7 @@ class DatasetWriter:
             raise ValueError(f"frame_id {frame_id} added twice")
         if split not in SPLITS:
             raise ValueError(f"split must be one of {list(SPLITS)}, got {split!r}")
-        C, Kp = len(self.cameras), len(self.keypoints)
-        W, H = self.image_size
+        Kp = len(self.keypoints)
         extra = dict(extra or {})
         for key in extra:
             if key in FRAMES_COLUMNS or not NAME_RE.match(str(key)) or "," in str(key):
@@ -225,6 +224,33 @@ class DatasetWriter:
             if self.static is not None and not all(np.array_equal(a, b) for a, b in zip(cal, self.static)):
                 raise ValueError("calibration differs from the writer's static calibration")
 
+        imgs = self._check_images(images)
+        label_rows = [] if labels is None else self._label_rows(frame_id, labels, visible)
+        point_rows = []
+        if points3d is not None:
+            X = np.asarray(points3d, dtype=np.float64)
+            if X.shape != (Kp, 3):
+                raise ValueError(f"points3d must have shape {(Kp, 3)}, got {X.shape}")
+            for k in range(Kp):
+                if np.isfinite(X[k]).all():
+                    point_rows.append(f"{frame_id},{self.keypoints[k]},{','.join(_fmt(x) for x in X[k])}")
+
+        for c, im in enumerate(imgs):
+            rel = DEFAULT_IMAGE_PATTERN.format(camera=self.cameras[c], frame=frame_id)
+            ok, data = cv2.imencode(".png", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), self.png_params)
+            if not ok:  # pragma: no cover
+                raise ValueError(f"{rel}: PNG encoding failed")
+            data.tofile(str(self.path / rel))
+        self._seen.add(frame_id)
+        self._frames.append((frame_id, split, extra))
+        self._calibrations.append(cal)
+        self._labels.extend(label_rows)
+        self._points.extend(point_rows)
+
+    def _check_images(self, images: Any) -> list[np.ndarray]:
+        """A frame's images as ``C`` arrays ``uint8 (H, W, 3)`` to write (none for tables only or videos)."""
+        C = len(self.cameras)
+        W, H = self.image_size
         if self.tables_only:
             if images is not None:
                 raise ValueError("this writer writes tables only; pass images=None")
@@ -242,51 +268,35 @@ class DatasetWriter:
                         f"images[{c}] ({self.cameras[c]}) must be uint8 {(H, W, 3)}, got "
                         f"{im.dtype} {im.shape}"
                     )
+            return imgs
         elif images is not None:
             raise ValueError("this writer stores videos; pass images=None and extra={'video_frame': i}")
+        return []
 
+    def _label_rows(self, frame_id: int, labels: Any, visible: Any) -> list[str]:
+        """labels.csv rows of a frame's labels (``uv`` or ``(uv, mask)``), checked."""
+        C, Kp = len(self.cameras), len(self.keypoints)
+        if isinstance(labels, tuple):
+            uv, lmask = (np.asarray(x) for x in labels)
+        else:
+            uv = np.asarray(labels, dtype=np.float64)
+            lmask = np.isfinite(uv).all(-1)
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.shape != (C, Kp, 2) or lmask.shape != (C, Kp):
+            raise ValueError(f"labels must be uv {(C, Kp, 2)} (and mask {(C, Kp)}), got {uv.shape}")
+        vis = np.ones((C, Kp), bool) if visible is None else np.asarray(visible, bool)
+        if vis.shape != (C, Kp):
+            raise ValueError(f"visible must have shape {(C, Kp)}, got {vis.shape}")
         label_rows = []
-        if labels is not None:
-            if isinstance(labels, tuple):
-                uv, lmask = (np.asarray(x) for x in labels)
-            else:
-                uv = np.asarray(labels, dtype=np.float64)
-                lmask = np.isfinite(uv).all(-1)
-            uv = np.asarray(uv, dtype=np.float64)
-            if uv.shape != (C, Kp, 2) or lmask.shape != (C, Kp):
-                raise ValueError(f"labels must be uv {(C, Kp, 2)} (and mask {(C, Kp)}), got {uv.shape}")
-            vis = np.ones((C, Kp), bool) if visible is None else np.asarray(visible, bool)
-            if vis.shape != (C, Kp):
-                raise ValueError(f"visible must have shape {(C, Kp)}, got {vis.shape}")
-            for c, k in zip(*np.nonzero(lmask.astype(bool))):
-                u, v = uv[c, k]
-                if vis[c, k] and not (np.isfinite(u) and np.isfinite(v)):
-                    raise ValueError(f"labels[{c}, {k}] is marked labelled but not finite: {uv[c, k]}")
-                cells = ["" if not np.isfinite(x) else _fmt(x) for x in (u, v)]
-                label_rows.append(
-                    f"{frame_id},{self.cameras[c]},{self.keypoints[k]},{cells[0]},{cells[1]},{int(vis[c, k])}"
-                )
-        point_rows = []
-        if points3d is not None:
-            X = np.asarray(points3d, dtype=np.float64)
-            if X.shape != (Kp, 3):
-                raise ValueError(f"points3d must have shape {(Kp, 3)}, got {X.shape}")
-            for k in range(Kp):
-                if np.isfinite(X[k]).all():
-                    point_rows.append(f"{frame_id},{self.keypoints[k]},{','.join(_fmt(x) for x in X[k])}")
-
-        if self.videos is None and not self.tables_only:
-            for c, im in enumerate(imgs):
-                rel = DEFAULT_IMAGE_PATTERN.format(camera=self.cameras[c], frame=frame_id)
-                ok, data = cv2.imencode(".png", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), self.png_params)
-                if not ok:  # pragma: no cover
-                    raise ValueError(f"{rel}: PNG encoding failed")
-                data.tofile(str(self.path / rel))
-        self._seen.add(frame_id)
-        self._frames.append((frame_id, split, extra))
-        self._calibrations.append(cal)
-        self._labels.extend(label_rows)
-        self._points.extend(point_rows)
+        for c, k in zip(*np.nonzero(lmask.astype(bool))):
+            u, v = uv[c, k]
+            if vis[c, k] and not (np.isfinite(u) and np.isfinite(v)):
+                raise ValueError(f"labels[{c}, {k}] is marked labelled but not finite: {uv[c, k]}")
+            cells = ["" if not np.isfinite(x) else _fmt(x) for x in (u, v)]
+            label_rows.append(
+                f"{frame_id},{self.cameras[c]},{self.keypoints[k]},{cells[0]},{cells[1]},{int(vis[c, k])}"
+            )
+        return label_rows
 
     def close(self) -> Path:
         """Write frames.csv, calibration, labels.csv, points3d.csv and (last) s3k.json; returns the folder."""

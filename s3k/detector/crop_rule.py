@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
 from s3k.geometry import Cameras, workspace_centre
 
 __all__ = ["TWO_PASS_FILE", "CropRule", "crop_centres", "extent_middle", "is_two_pass", "read_two_pass",
@@ -73,8 +74,6 @@ def read_two_pass(run_dir: str | Path) -> tuple[CropRule, Path, Path]:
 
 def write_two_pass(run_dir: Path, rule: CropRule, coarse_size: int, keypoints) -> None:
     """Write ``RUN/two_pass.json``: the rule, the passes' folders, the coarse size and the keypoints."""
-    from s3k.fileio import atomic_write_json
-
     info = {**asdict(rule), "coarse": "coarse", "fine": "fine", "coarse_size": coarse_size,
             "keypoints": list(keypoints)}
     atomic_write_json(info, run_dir / TWO_PASS_FILE)

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from s3k.choices import Arithmetic, Device, Precision
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
@@ -93,7 +94,7 @@ def native_bfloat16(device: torch.device) -> bool:
     return False
 
 
-def training_precision(name: str, device: torch.device) -> str:
+def training_precision(name: Precision, device: torch.device) -> Arithmetic:
     """``--precision`` resolved on ``device``: ``"auto"`` is ``"bfloat16"`` where :func:`native_bfloat16`,
     else ``"float32"``."""
     if name == "auto":
@@ -101,7 +102,7 @@ def training_precision(name: str, device: torch.device) -> str:
     return name
 
 
-def autocast(device: torch.device, precision: str):
+def autocast(device: torch.device, precision: Arithmetic):
     """The autocast context of ``precision`` (a key of :data:`PRECISIONS`) on ``device``; a no-op for
     float32."""
     dtype = PRECISIONS[precision]
@@ -227,7 +228,8 @@ def _whole_images(views: list[Tensor]) -> Tensor:
 class _Pass:
     """One network with its meta: images of the network's input size -> logits, on ``device``."""
 
-    def __init__(self, net: Network, meta: DetectorMeta, device: torch.device, precision: str = "float32"):
+    def __init__(self, net: Network, meta: DetectorMeta, device: torch.device,
+                 precision: Arithmetic = "float32"):
         if precision not in PRECISIONS:
             raise UserError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
         self.net, self.meta, self.device, self.precision = net, meta, device, precision
@@ -295,7 +297,7 @@ class Detector:
     crops, whose principal point may lie anywhere."""
 
     @staticmethod
-    def load(run: str | Path, device: str | torch.device = "auto", precision: str = "float32",
+    def load(run: str | Path, device: Device | torch.device = "auto", precision: Arithmetic = "float32",
              checkpoint: str | None = None) -> Detector:
         """The detector of a run folder of ``s3k train`` (one pass or ``--two-pass``), in eval mode, its
         BatchNorm folded into the convolutions (the same function, fewer operations).
@@ -371,15 +373,15 @@ class Detector:
 class OnePassDetector(Detector):
     """One network on each view's region (:class:`Detector`)."""
 
-    def __init__(self, net: Network, meta: DetectorMeta, device: str | torch.device = "cpu",
-                 precision: str = "float32") -> None:
+    def __init__(self, net: Network, meta: DetectorMeta, device: Device | torch.device = "cpu",
+                 precision: Arithmetic = "float32") -> None:
         self.device = torch.device(device)
         self.meta = meta
         self.pass_ = _Pass(net, meta, self.device, precision)
         self.readout = meta.readout_config()  # built once: its layout tensor is not rebuilt for every frame
 
     @classmethod
-    def from_run(cls, run: str | Path, device: torch.device, precision: str = "float32",
+    def from_run(cls, run: str | Path, device: torch.device, precision: Arithmetic = "float32",
                  checkpoint: str | None = None) -> OnePassDetector:
         model, meta = load_network(run, device, checkpoint)
         if isinstance(model, UNet):  # the fast form of the same network
@@ -397,7 +399,7 @@ class OnePassDetector(Detector):
                   else dataclasses.replace(self.readout, min_weight=min_weight))
         # frames of the network's size, whole: the pixel maps are the identity, and the read-out skips them
         ro = read_out(self.pass_.logits(x), cams, self.meta.stride, self.meta.sigma,
-                      None if as_they_are else maps, keep_heatmaps=keep, config=config, prior=prior)
+                      None if as_they_are else maps, config, keep_heatmaps=keep, prior=prior)
         return Detection(**{f.name: getattr(ro, f.name) for f in fields(ro)}, pixel_maps=maps,
                          inputs=x if keep else None, input_size=self.pass_.size)
 

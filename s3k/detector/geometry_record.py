@@ -28,7 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data import Dataset
+from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
+from s3k.geometry.warp import crop_resize_matrix
 
 __all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "frame_calibration", "mismatches",
            "run_geometry", "track_crops", "training_geometry"]
@@ -41,7 +44,7 @@ def _box_text(box) -> str:
     return ",".join(f"{v:g}" for v in box)
 
 
-def dataset_geometry(ds: Any) -> dict[str, Any]:
+def dataset_geometry(ds: DatasetLike) -> dict[str, Any]:
     """``{"cameras": {camera: {"box": [x0, y0, x1, y1], "frame_size": [W, H]}}, "image_size": [W, H]}`` of an
     opened :class:`s3k.data.Dataset`: the part of each camera's full frame its stored images show (pixel edge
     coordinates of the frame; the import's crop box, composed with any crop the dataset was opened with)."""
@@ -62,7 +65,7 @@ def dataset_geometry(ds: Any) -> dict[str, Any]:
     return {"cameras": cameras, "image_size": [int(Ws), int(Hs)]}
 
 
-def training_geometry(ds: Any) -> dict[str, Any]:
+def training_geometry(ds: DatasetLike) -> dict[str, Any]:
     """What a run records of its training dataset ``ds``: :func:`dataset_geometry`, ``"dataset"``, its
     path and identity (keypoints, cameras and fingerprint, as ``--resume`` checks them), and a static rig's
     ``"calibration"`` in frame pixels (:func:`frame_calibration`)."""
@@ -74,13 +77,11 @@ def training_geometry(ds: Any) -> dict[str, Any]:
     return record
 
 
-def frame_calibration(ds: Any) -> dict[str, Any] | None:
+def frame_calibration(ds: DatasetLike) -> dict[str, Any] | None:
     """``{"units", "cameras": {camera: {"K", "dist", "R", "t", "frame_size"}}}``: a static dataset's cameras
     in the pixels of its cameras' full frames (:func:`dataset_geometry`), as a run records them for the
     check of the calibration it is given at tracking time; None for a per-frame calibration."""
-    from s3k.geometry.warp import crop_resize_matrix
-
-    if not ds.static_calibration:
+    if not isinstance(ds, Dataset) or not ds.static_calibration:  # crops never share one static rig
         return None
     geometry = dataset_geometry(ds)
     arrays = ds.rig(np.float64).numpy()
@@ -92,7 +93,6 @@ def frame_calibration(ds: Any) -> dict[str, Any] | None:
                         "R": arrays["R"][c].tolist(), "t": arrays["t"][c].tolist(),
                         "frame_size": list(entry["frame_size"])}
     return {"units": str(ds.units), "cameras": cameras}
-
 
 
 def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
@@ -136,8 +136,6 @@ def check_dataset(run_dir: str | Path, data: str | Path, option: str = "--ignore
         UserError: naming the first camera, both boxes, the import options that give a matching dataset and
             ``option``.
     """
-    from s3k.data import Dataset
-
     recorded = run_geometry(run_dir)
     if recorded is None:
         return
@@ -203,7 +201,7 @@ def track_crops(run_dir: str | Path, frame_sizes: dict[str, tuple[int, int]], cr
     return crops, notes
 
 
-def dataset_identity(ds: Any) -> dict[str, Any]:
+def dataset_identity(ds: DatasetLike) -> dict[str, Any]:
     """What must stay the same for a run to be resumed on a dataset: keypoint and camera names and a
     fingerprint (SHA-256 of the metadata, the frame ids and their splits, the labels and the calibration)."""
     ids = ds.frames()

@@ -4,13 +4,15 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
 
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadOut, ReadoutConfig, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT, ReadoutConfig
 
 __all__ = ["DetectorMeta"]
 
@@ -69,21 +71,11 @@ class DetectorMeta:
         return ReadoutConfig(min_weight=min_weight, max_residual_px=self.max_residual_px,
                              layout=self.layout_distances, layout_tol=self.layout_tol)
 
-    def read_out(self, logits: torch.Tensor, cams, pixel_maps=None, min_weight: float = DEFAULT_MIN_WEIGHT,
-                 keep_heatmaps: bool = False) -> ReadOut:
-        """This detector's :func:`s3k.readout.read_out` of its ``logits``, with :meth:`readout_config`, so
-        every command reads a detector out the same way."""
-        return read_out(logits, cams, self.stride, self.sigma, pixel_maps, keep_heatmaps=keep_heatmaps,
-                        config=self.readout_config(min_weight))
-
     def recorded_skeleton(self) -> list[tuple[str, str]]:
         """``skeleton``; for a run trained before it was recorded, the skeleton of the training dataset's
         ``s3k.json`` where that is still readable (else none)."""
         if self.skeleton or not self.geometry:
             return list(self.skeleton)
-        import json
-        from pathlib import Path
-
         path = (self.geometry.get("dataset") or {}).get("path")
         try:
             doc = json.loads((Path(path) / "s3k.json").read_text()) if path else {}

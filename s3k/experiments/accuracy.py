@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -15,6 +17,14 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from s3k.data import Dataset
+from s3k.experiments.views import make_view, select_frames
+from s3k.inference.evaluate import evaluate_run
+from s3k.messages import NOTE
+from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+
+log = logging.getLogger(__name__)
 
 FIGURES = ("median_mm", "rms_mm", "pck_5mm", "pck_10mm", "rms_px", "mm_per_px")
 MODELS = {"s3k": [], "labels_only": ["--no-unsup"]}
@@ -46,8 +56,6 @@ STAGE_TIMES = "stage_times.json"
 def timed(work: Path, stage: str):
     """Record the wall time and the CPU time (this process and its finished children) of the block as
     ``stage`` in ``work/stage_times.json``; a block that raises records nothing."""
-    import resource
-
     def cpu() -> float:
         return sum(u.ru_utime + u.ru_stime for u in (resource.getrusage(resource.RUSAGE_SELF),
                                                     resource.getrusage(resource.RUSAGE_CHILDREN)))
@@ -102,8 +110,6 @@ def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int, labelled: i
     frames, chosen by ``choice`` and ``seed``, and all its unlabelled and test frames."""
     if (out / "s3k.json").is_file():
         return out
-    from s3k.data import Dataset
-    from s3k.experiments.views import make_view, select_frames
 
     pool = Dataset.open(pool_dir, cache="none")
     frames = select_frames(pool, labelled, len(pool.frames("unlabelled")), seed, choice=choice)
@@ -134,8 +140,6 @@ def reuse_coarse(source: Path, runs: list[Path]) -> None:
     allows), and that stage's CPU minutes in the run's record. ``s3k train --two-pass --resume`` then cuts the
     crops and trains the refining pass, after checking that the coarse pass is what this benchmark's options
     would make."""
-    from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
-
     for run in runs:
         if run.exists():
             continue
@@ -215,7 +219,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
             name, cmd, record = pending.pop(0)
             spent = _read_record(record)
             record.write_text(json.dumps(spent) + "\n")
-            print(f"training {name}", file=sys.stderr, flush=True)
+            log.log(NOTE, f"training {name}")
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
             running[proc.pid] = (name, record, time.time(), proc)
         pid, status, usage = os.wait4(-1, os.WNOHANG)
@@ -242,7 +246,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
         spent["wall_minutes"] += (time.time() - started) / 60
         record.write_text(json.dumps(spent) + "\n")
-        print(f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes", file=sys.stderr, flush=True)
+        log.log(NOTE, f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes")
 
 
 #: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (another
@@ -259,7 +263,6 @@ def evaluate(run: Path, data: Path) -> dict:
         metrics = json.loads(path.read_text())
         if metrics.get("readout") == READOUT:
             return metrics
-    from s3k.inference.evaluate import evaluate_run
 
     with timed(run.parent, f"evaluate-{run.name}"):
         metrics = {**evaluate_run(run, data, split="test", device="cpu"), "readout": READOUT}
@@ -291,8 +294,6 @@ def stage_summary(work: Path, seeds: list[int], runs: dict[tuple[int, str], Path
     (wall and CPU, per seed: :func:`timed`), each model's training stages (CPU, from its run's
     ``cpu.json``: ``coarse``, ``crops``, ``fine``) and its evaluation (wall and CPU). A stage that did not
     run in ``work`` (linked from elsewhere) is left out."""
-    from s3k.train.two_pass import read_cpu
-
     times = stage_times(work)
 
     def mean_of(keys: list[str]) -> dict[str, float] | None:

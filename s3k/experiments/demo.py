@@ -31,7 +31,21 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from s3k.detector import PROGRESS_FILE
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from s3k.data import Dataset
+from s3k.data.frames import FrameStore
+from s3k.detector import PROGRESS_FILE, Detector
+from s3k.experiments.accuracy import labelled_view
+from s3k.experiments.demo_figure import demo_figure, frame_detections
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.metrics import mm_per_unit
+from s3k.inference.report import write_report
+from s3k.messages import say
+from s3k.outputs import check_folder, claim_folder, made_by_s3k, owns_run
+from s3k.presets import preset
 
 
 @dataclass
@@ -50,8 +64,6 @@ class DemoConfig:
 
     def steps(self) -> tuple[int, int]:
         """``(coarse pass steps, refining pass steps)`` of the preset with ``options`` over it."""
-        from s3k.presets import preset
-
         chosen = preset(self.preset)
         fine = int(chosen.config.get("steps", 0))
         coarse = int((chosen.two_pass or {}).get("coarse_steps") or fine)
@@ -155,8 +167,6 @@ class _ProgressBars:
     """One tqdm bar per training, fed from each run's ``progress.json`` and ``train.log``."""
 
     def __init__(self, jobs: list[tuple[str, Path, int]], coarse_steps: int = 0) -> None:
-        from tqdm import tqdm
-
         self.coarse_steps = coarse_steps
         width = max(len(name) for name, _, _ in jobs)
         self.jobs = [(folder, tqdm(total=steps, desc=f"{name:<{width}}", position=i, dynamic_ncols=True,
@@ -213,7 +223,6 @@ def _last_validation(folder: Path) -> str:
 
 def _data(out: Path, demo: DemoConfig, progress: bool, log, timings: dict[str, float]) -> Path:
     """Render the pool and make the labelled view (each once); returns the dataset trained on."""
-    from s3k.experiments.accuracy import labelled_view
     from s3k.sim.generate import SimulateConfig, simulate
 
     pool, data = out / "pool", out / "data"
@@ -237,14 +246,6 @@ def _data(out: Path, demo: DemoConfig, progress: bool, log, timings: dict[str, f
 
 def _evaluate(out: Path, data: Path, log) -> tuple[dict[str, dict], dict[str, object]]:
     """Both models on the test frames: their metrics (and reports), and their 3D errors in mm."""
-    import numpy as np
-
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
-    from s3k.detector import Detector
-    from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.metrics import mm_per_unit
-    from s3k.inference.report import write_report
 
     ds = Dataset.open(data, cache="none")
     store = FrameStore(ds, ds.frames("test"), preload_mb=0, labels=True, points=True)
@@ -267,17 +268,14 @@ DEMO_NAMES = frozenset({"pool", "data", "s3k", "baseline", "report"})
 def is_demo_folder(folder: Path) -> bool:
     """True when ``folder`` holds a demo of an earlier call (made before demo folders were marked): only the
     demo's own folders, one of them its dataset or a run."""
-    from s3k.outputs import made_by_s3k, owns_run
-
     names = {p.name for p in folder.iterdir() if not p.name.startswith(".")}
     return names <= DEMO_NAMES and any(made_by_s3k(folder / n) or owns_run(folder / n)
                                        for n in ("pool", "data", "s3k", "baseline"))
 
 
-def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print,
+def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=say,
              parallel: bool = True) -> dict:
     """Run the whole demo into ``out``; returns ``{"labels only": metrics, "S3K": metrics, ...}``."""
-    from s3k.outputs import check_folder, claim_folder
 
     # a new or empty folder, or an earlier demo: never someone's files
     out = check_folder(out, "demo", owns=is_demo_folder, ours=DEMO_NAMES)
@@ -297,7 +295,6 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
             subprocess.run(train_command(demo, data, folder, own, threads=0), check=True,
                            stdout=None if progress else subprocess.DEVNULL)
             timings[f"train_{folder.name}_s"] = time.perf_counter() - t
-    import torch
 
     torch.set_num_threads(1)  # the evaluation is short; one thread is robust on a shared machine
     t = time.perf_counter()
@@ -333,11 +330,6 @@ def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print
 
 
 def _picture(path: Path, data: Path, results: dict[str, dict], errors, scale: str) -> None:
-    import numpy as np
-
-    from s3k.data import Dataset
-    from s3k.experiments.demo_figure import demo_figure, frame_detections
-
     ds = Dataset.open(data, cache="none")
     test = ds.frames("test")
     shown = test[np.linspace(0, len(test) - 1, min(2, len(test))).astype(int)]

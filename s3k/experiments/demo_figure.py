@@ -13,6 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+
+from s3k.detector import Detector
+from s3k.draw import keypoint_colours
+from s3k.geometry import project
 
 __all__ = ["MARKERS", "demo_figure", "frame_detections"]
 
@@ -22,9 +27,6 @@ MARKERS = {"S3K": ("x", 70), "labels only": ("+", 90)}
 
 def frame_detections(run: str | Path, data: Any, frame_ids: Sequence[int]) -> np.ndarray:
     """The detections ``(B, C, K, 2)`` of the run's detector in the frames' own pixels (NaN where none)."""
-    import torch
-
-    from s3k.detector import Detector
 
     detector = Detector.load(run, "cpu")
     images = torch.from_numpy(np.ascontiguousarray(data.images(frame_ids)))
@@ -60,10 +62,7 @@ def demo_figure(out: str | Path, data: Any, frame_ids: Sequence[int], detections
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import torch
 
-    from s3k.draw import keypoint_colours
-    from s3k.geometry import project
 
     images = data.images(frame_ids)  # (B, C, H, W, 3)
     B, C = images.shape[:2]

@@ -16,16 +16,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from s3k.data import Dataset
+from s3k.geometry import project
 
 
 def ground_truth(data: Path) -> dict[str, Any]:
     """``uv (N, C, K, 2)`` true projections, ``visible (N, C, K)`` (the dataset's labels), ``points (N, K,
     3)``, ``frames (N,)`` of a simulated dataset."""
-    import torch
-
-    from s3k.geometry import project
 
     ds = Dataset.open(data, cache="none")
     ids = ds.frames()

@@ -15,6 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data import Dataset
+from s3k.data.tracks_csv import read_csv
+from s3k.experiments.views import select_frames
+from s3k.inference.metrics import mm_per_unit
+from s3k.inference.predict import predict_dataset
+
 COLLAPSE_RATIO = 0.5
 POSES = ("normal up", "normal down", "on a side")  # the classes of pose_classes
 EDGES = ("edge 0-1 level", "edge 0-1 upright")  # the classes of side_edges
@@ -123,11 +129,6 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
 
 def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarray, float]:
     """``(predicted, true, mm per world unit)`` points of ``data``'s ``split`` by ``run``."""
-    from s3k.data import Dataset
-    from s3k.data.tracks_csv import read_csv
-    from s3k.inference.metrics import mm_per_unit
-    from s3k.inference.predict import predict_dataset
-
     ds = Dataset.open(data, cache="none")
     ids = ds.frames(split)
     truth = ds.points3d(ids)
@@ -153,8 +154,6 @@ def pose_counts(X: np.ndarray) -> dict[str, int]:
 
 def labelled_poses(data: Path) -> dict[str, int] | None:
     """:func:`pose_counts` of the labelled frames of the dataset ``data`` (None: no 3D points)."""
-    from s3k.data import Dataset
-
     ds = Dataset.open(data, cache="none")
     points = ds.points3d(ds.frames("labelled"))
     return None if points is None else pose_counts(np.where(points[1][..., None], points[0], np.nan))
@@ -169,9 +168,6 @@ def true_poses(pool, split: str) -> np.ndarray:
 
 
 def pool_report(path: Path, choices: list[str], labelled: int, seed: int | None) -> dict:
-    from s3k.data import Dataset
-    from s3k.experiments.views import select_frames
-
     pool = Dataset.open(path, cache="none")
     if seed is None:
         seed = (pool.source or {}).get("seed")

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from s3k.config import TrainConfig
+from s3k.data import Dataset
 from s3k.detector import CHECKPOINT_FILE
 from s3k.errors import UserError
 from s3k.experiments.findings import fmt
@@ -34,6 +35,10 @@ from s3k.experiments.grid import (
 from s3k.experiments.report import source_revision, summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
 from s3k.fileio import atomic_write_json, file_lock
+from s3k.inference.evaluate import evaluate_run
+from s3k.messages import say
+from s3k.train import read_checkpoint_step, train
+from s3k.train.two_pass import train_two_pass
 
 #: Config fields that do not change a run's result: a finished run is kept when only these differ.
 _NEUTRAL_FIELDS = ("progress", "device", "threads", "preload_mb", "val_every", "val_frames", "log_every",
@@ -76,8 +81,6 @@ def _describe(two_pass: dict[str, Any] | None, label_choice: str) -> str:
 def checkpoint_step(run_dir: Path) -> int:
     """The step of ``run_dir``'s last checkpoint, 0 when there is none or it cannot be read (training then
     decides what to do with it). Read by the checkpoint's own reader: a crafted file runs no code."""
-    from s3k.train import read_checkpoint_step
-
     path = run_dir / CHECKPOINT_FILE
     if not path.is_file():
         return 0
@@ -87,7 +90,7 @@ def checkpoint_step(run_dir: Path) -> int:
 
 
 def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
-            log: Callable[[str], None] = print) -> dict[str, Any] | None:
+            log: Callable[[str], None] = say) -> dict[str, Any] | None:
     """Train and evaluate one run unless finished; returns its result (None: another process has it).
 
     Raises:
@@ -122,11 +125,6 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
 def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
                         log: Callable[[str], None]) -> dict[str, Any]:
     """The data, training and evaluation of one claimed run; returns its result record."""
-    from s3k.data import Dataset
-    from s3k.inference.evaluate import evaluate_run
-    from s3k.train import train
-    from s3k.train.two_pass import train_two_pass
-
     run_dir = exp_dir / "runs" / spec.name
     t0 = time.perf_counter()
     pool_dir, _ = ensure_pool(data_dir, spec.pool, opts.workers, opts.progress, log)
@@ -208,7 +206,7 @@ def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale:
 def check_pools_fit(runs: list[RunSpec], opts: Options, data_dir: Path) -> None:
     """Refuse, before the sweep starts, a pool that cannot be rendered here (the memory and disk checks of
     ``s3k simulate``): every run reading it would fail. The message names the option that sets its size."""
-    from s3k.sim.generate import check_disk, check_memory, default_workers
+    from s3k.sim.generate import check_disk, check_memory, default_workers  # heavy: MuJoCo
 
     workers = opts.workers or default_workers()
     option = "--render" if opts.two_pass and opts.render else "--size"
@@ -224,7 +222,7 @@ def check_pools_fit(runs: list[RunSpec], opts: Options, data_dir: Path) -> None:
                             "--unlabelled") from exc
 
 
-def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_experiment(opts: Options, log: Callable[[str], None] = say) -> dict[str, Any]:
     """Run every missing run of a sweep, then summarize. Returns ``{"trained", "skipped", "failed",
     "summary"}`` (run names trained now, already finished or held by another process, failed).
 

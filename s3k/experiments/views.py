@@ -21,6 +21,8 @@ from s3k.data import Dataset, DatasetWriter
 from s3k.errors import UserError
 from s3k.experiments.grid import LABEL_CHOICES, PoolSpec
 from s3k.fileio import file_lock
+from s3k.label.suggest import POSE_ORDERS
+from s3k.messages import say
 
 #: frames.csv columns that group frames for a stratified pick, in order of preference.
 GROUP_COLUMNS = ("segment", "instance")
@@ -30,7 +32,7 @@ _IMAGES = "images"
 
 
 def ensure_pool(data_dir: Path, pool: PoolSpec, workers: int | None = None, progress: bool = True,
-                log: Callable[[str], None] = print) -> tuple[Path, bool]:
+                log: Callable[[str], None] = say) -> tuple[Path, bool]:
     """Render ``pool`` into ``data_dir/pool.name`` unless it is there; returns (path, rendered now).
 
     A process that finds the pool being rendered by another waits for it (a lock on ``.NAME.lock`` beside
@@ -129,8 +131,6 @@ def pose_pick(pool: Dataset, ids: np.ndarray, n: int, rng: np.random.Generator,
     Raises:
         ValueError: the pool has no 3D points for these frames, or ``choice`` is not a pose order.
     """
-    from s3k.label.suggest import POSE_ORDERS
-
     if choice not in POSE_ORDERS:
         raise ValueError(f"label choice: {choice!r} is not a pose order ({', '.join(POSE_ORDERS)})")
     ids = np.asarray(ids, dtype=np.int64)

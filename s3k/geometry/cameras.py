@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from s3k.geometry.rotations import rodrigues_to_matrix
-from s3k.geometry.shapes import _broadcast, _check_last
+from s3k.geometry.shapes import broadcast_shapes, check_last
 
 
 @dataclasses.dataclass(eq=False)
@@ -50,12 +50,12 @@ class Cameras:
     t: Tensor
 
     def __post_init__(self) -> None:
-        _check_last("Cameras.K", self.K, (3, 3))
-        _check_last("Cameras.R", self.R, (3, 3))
-        _check_last("Cameras.t", self.t, (3,))
+        check_last("Cameras.K", self.K, (3, 3))
+        check_last("Cameras.R", self.R, (3, 3))
+        check_last("Cameras.t", self.t, (3,))
         if self.dist is None:
             self.dist = self.K.new_zeros(self.K.shape[:-2] + (5,))
-        _check_last("Cameras.dist", self.dist, (5,))
+        check_last("Cameras.dist", self.dist, (5,))
         fields = {"K": self.K, "dist": self.dist, "R": self.R, "t": self.t}
         for name, x in fields.items():
             if x.dtype != self.K.dtype or x.device != self.K.device:
@@ -63,7 +63,7 @@ class Cameras:
                     f"Cameras.{name}: dtype/device {x.dtype}/{x.device} differs from "
                     f"Cameras.K {self.K.dtype}/{self.K.device}"
                 )
-        lead = _broadcast(
+        lead = broadcast_shapes(
             [f"Cameras.{n}" for n in fields],
             [self.K.shape[:-2], self.dist.shape[:-1], self.R.shape[:-2], self.t.shape[:-1]],
         )

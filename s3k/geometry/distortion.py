@@ -6,10 +6,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from s3k.geometry.shapes import _broadcast, _check_last
+from s3k.geometry.shapes import broadcast_shapes, check_last
 
 
-def _distort_terms(x: Tensor, y: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+def distort_terms(x: Tensor, y: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
     """OpenCV's 5-term model on normalized coords; ``d`` is (..., 5) broadcastable to x[..., None]."""
     k1, k2, p1, p2, k3 = d.unbind(-1)
     r2 = x * x + y * y
@@ -21,9 +21,9 @@ def _distort_terms(x: Tensor, y: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _check_dist(xy: Tensor, dist: Tensor, name: str) -> None:
-    _check_last(f"{name}: xy", xy, (2,), min_ndim=2)
-    _check_last(f"{name}: dist", dist, (5,))
-    _broadcast([f"{name}: xy", f"{name}: dist"], [xy.shape[:-2], dist.shape[:-1]])
+    check_last(f"{name}: xy", xy, (2,), min_ndim=2)
+    check_last(f"{name}: dist", dist, (5,))
+    broadcast_shapes([f"{name}: xy", f"{name}: dist"], [xy.shape[:-2], dist.shape[:-1]])
 
 
 def distort(xy: Tensor, dist: Tensor) -> Tensor:
@@ -39,7 +39,7 @@ def distort(xy: Tensor, dist: Tensor) -> Tensor:
         (*, N, 2) distorted normalized coordinates.
     """
     _check_dist(xy, dist, "distort")
-    xd, yd = _distort_terms(xy[..., 0], xy[..., 1], dist[..., None, :])
+    xd, yd = distort_terms(xy[..., 0], xy[..., 1], dist[..., None, :])
     return torch.stack([xd, yd], dim=-1)
 
 
@@ -113,5 +113,5 @@ def undistort(xy_distorted: Tensor, dist: Tensor, iters: int = 5) -> Tensor:
     # implicit one, -J^-1 (df/ddist - dx0/d.), exact at convergence.
     with torch.no_grad():
         _, diag, off = _distort_and_jacobian(xs, c)
-    fx, fy = _distort_terms(xs[..., 0], xs[..., 1], dist[..., None, :])
+    fx, fy = distort_terms(xs[..., 0], xs[..., 1], dist[..., None, :])
     return _newton_step(xs, torch.stack([fx, fy], -1) - xy0, diag, off)

@@ -8,8 +8,8 @@ import torch
 from torch import Tensor
 
 from s3k.geometry.cameras import Cameras, camera_centres
-from s3k.geometry.distortion import _distort_terms, undistort
-from s3k.geometry.shapes import _broadcast, _check_last
+from s3k.geometry.distortion import distort_terms, undistort
+from s3k.geometry.shapes import broadcast_shapes, check_last
 
 # Normalized image coordinates are clamped to this magnitude in `project` so that points at or behind the
 # camera plane (and the polynomial distortion of them) stay finite, even in float32: r^6 * x <= 1e21.
@@ -51,16 +51,16 @@ def project(cams: Cameras, X: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor
         >>> project(cams, torch.tensor([[0.5, 0.0, 2.0]]))[0]
         tensor([[0.2500, 0.0000]])
     """
-    _check_last("project: X", X, (3,), min_ndim=2)
+    check_last("project: X", X, (3,), min_ndim=2)
     if X.dtype != cams.dtype:
         raise ValueError(f"project: X dtype {X.dtype} differs from the cameras' {cams.dtype}")
-    _broadcast(["project: X", "cameras"], [X.shape[:-2], cams.shape])
+    broadcast_shapes(["project: X", "cameras"], [X.shape[:-2], cams.shape])
     assert cams.dist is not None
     Xc = X @ cams.R.transpose(-1, -2) + cams.t[..., None, :]
     depth = Xc[..., 2]
     xy = Xc[..., :2] / depth.clamp(min=eps)[..., None]
     xy = xy.clamp(-_MAX_NORMALIZED, _MAX_NORMALIZED)
-    xd, yd = _distort_terms(xy[..., 0], xy[..., 1], cams.dist[..., None, :])
+    xd, yd = distort_terms(xy[..., 0], xy[..., 1], cams.dist[..., None, :])
     uv = _apply_K(cams.K, torch.stack([xd, yd], dim=-1)).clamp(-_MAX_PIXELS, _MAX_PIXELS)
     return uv, depth
 
@@ -80,8 +80,8 @@ def undistort_pixels(cams: Cameras, uv: Tensor, iters: int = 5) -> Tensor:
     Returns:
         (*L, N, 2) undistorted pixels.
     """
-    _check_last("undistort_pixels: uv", uv, (2,), min_ndim=2)
-    _broadcast(["undistort_pixels: uv", "cameras"], [uv.shape[:-2], cams.shape])
+    check_last("undistort_pixels: uv", uv, (2,), min_ndim=2)
+    broadcast_shapes(["undistort_pixels: uv", "cameras"], [uv.shape[:-2], cams.shape])
     assert cams.dist is not None
     if not _needs_undistort(cams.dist):
         return uv + torch.zeros_like(cams.t[..., None, :2])
@@ -104,8 +104,8 @@ def pixel_rays(cams: Cameras, uv: Tensor, iters: int = 5) -> tuple[Tensor, Tenso
         origins: (*L, N, 3) camera centres (expanded over N).
         directions: (*L, N, 3) unit directions in the world frame.
     """
-    _check_last("pixel_rays: uv", uv, (2,), min_ndim=2)
-    lead = _broadcast(["pixel_rays: uv", "cameras"], [uv.shape[:-2], cams.shape])
+    check_last("pixel_rays: uv", uv, (2,), min_ndim=2)
+    lead = broadcast_shapes(["pixel_rays: uv", "cameras"], [uv.shape[:-2], cams.shape])
     assert cams.dist is not None
     xy = _apply_K_inv(cams.K, uv)
     if _needs_undistort(cams.dist):

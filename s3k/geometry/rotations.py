@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from s3k.geometry.shapes import _check_last
+from s3k.geometry.shapes import check_last
 
 
 def _skew(v: Tensor) -> Tensor:
@@ -26,7 +26,7 @@ def rodrigues_to_matrix(rvec: Tensor) -> Tensor:
     Returns:
         (*, 3, 3) rotation matrices.
     """
-    _check_last("rodrigues_to_matrix: rvec", rvec, (3,))
+    check_last("rodrigues_to_matrix: rvec", rvec, (3,))
     th2 = (rvec * rvec).sum(-1)
     small = th2 < 1e-4
     th2s = torch.where(small, torch.ones_like(th2), th2)
@@ -57,7 +57,7 @@ def matrix_to_rodrigues(R: Tensor) -> Tensor:
     Returns:
         (*, 3) axis * angle, angle in [0, pi].
     """
-    _check_last("matrix_to_rodrigues: R", R, (3, 3))
+    check_last("matrix_to_rodrigues: R", R, (3, 3))
     v = 0.5 * torch.stack(
         [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], dim=-1
     )

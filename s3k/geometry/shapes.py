@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 
-def _check_last(name: str, x: Tensor, sizes: Sequence[int], min_ndim: int | None = None) -> None:
+def check_last(name: str, x: Tensor, sizes: Sequence[int], min_ndim: int | None = None) -> None:
     """Raise a ValueError naming ``name`` unless ``x`` is a floating tensor ending in ``sizes``."""
     if not isinstance(x, Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
@@ -36,7 +36,7 @@ def _broadcast_shape(*shapes: Sequence[int]) -> torch.Size | None:
     return torch.Size(out)
 
 
-def _broadcast(names: Sequence[str], shapes: Sequence[Sequence[int]]) -> torch.Size:
+def broadcast_shapes(names: Sequence[str], shapes: Sequence[Sequence[int]]) -> torch.Size:
     """Broadcast leading shapes, with an error that names the arguments."""
     out = _broadcast_shape(*shapes)
     if out is None:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from s3k.geometry.cameras import Cameras
 from s3k.geometry.projection import pixel_rays
-from s3k.geometry.shapes import _broadcast, _check_last
+from s3k.geometry.shapes import broadcast_shapes, check_last
 
 
 def triangulate_rays(
@@ -63,8 +63,8 @@ def triangulate_rays(
         >>> triangulate_rays(o, d)
         (tensor([0.5000, 0.5000, 0.0000]), tensor(True))
     """
-    _check_last("triangulate_rays: origins", origins, (3,), min_ndim=2)
-    _check_last("triangulate_rays: directions", directions, (3,), min_ndim=2)
+    check_last("triangulate_rays: origins", origins, (3,), min_ndim=2)
+    check_last("triangulate_rays: directions", directions, (3,), min_ndim=2)
     if weights is None:
         weights = directions.new_ones(()).expand(directions.shape[:-1])
     elif not isinstance(weights, Tensor) or weights.ndim < 1 or not weights.is_floating_point():
@@ -78,7 +78,7 @@ def triangulate_rays(
         )
     weights = weights.to(origins.dtype)
     names = ["triangulate_rays: origins", "triangulate_rays: directions", "triangulate_rays: weights"]
-    lead = _broadcast(names, [origins.shape[:-1], directions.shape[:-1], weights.shape])
+    lead = broadcast_shapes(names, [origins.shape[:-1], directions.shape[:-1], weights.shape])
     if lead[-1] == 0:
         raise ValueError("triangulate_rays: no views (V = 0)")
     if fused:
@@ -172,7 +172,7 @@ def _solve_planar(
 def _triangulate(
     o: Tensor, d: Tensor, w: Tensor, min_weight: float, min_rel_det: float
 ) -> tuple[Tensor, Tensor]:
-    lead = _broadcast(["origins", "directions", "weights"], [o.shape[:-2], d.shape[:-2], w.shape[:-1]])
+    lead = broadcast_shapes(["origins", "directions", "weights"], [o.shape[:-2], d.shape[:-2], w.shape[:-1]])
     n = math.prod(lead)
     if n < _PLANAR_MIN:
         # Few points (a training batch): the cost is per op, and the matrix form has the fewest ops.
@@ -265,7 +265,7 @@ def _triangulate_fused(
         # Static shapes except the number of points (marked dynamic below): a fixed V lets the compiler unroll
         # the loop over views, which doubles the speed against a fully dynamic kernel.
         _FUSED_SOLVE = torch.compile(_solve_interleaved, dynamic=False)
-    lead = _broadcast(["origins", "directions", "weights"], [o.shape[:-2], d.shape[:-2], w.shape[:-1]])
+    lead = broadcast_shapes(["origins", "directions", "weights"], [o.shape[:-2], d.shape[:-2], w.shape[:-1]])
     v = max(o.shape[-2], d.shape[-2], w.shape[-1])
     n = math.prod(lead)
     o = o.expand(lead + (v, 3)).reshape(n, v, 3)
@@ -303,10 +303,10 @@ def triangulate_pixels(
     """
     if len(cams.shape) < 1:
         raise ValueError("triangulate_pixels: cameras need a view dim (the last leading dim)")
-    _check_last("triangulate_pixels: uv", uv, (2,), min_ndim=3)
+    check_last("triangulate_pixels: uv", uv, (2,), min_ndim=3)
     if uv.dtype != cams.dtype:
         raise ValueError(f"triangulate_pixels: uv dtype {uv.dtype} differs from the cameras' {cams.dtype}")
-    lead = _broadcast(["triangulate_pixels: uv", "cameras"], [uv.shape[:-2], cams.shape])
+    lead = broadcast_shapes(["triangulate_pixels: uv", "cameras"], [uv.shape[:-2], cams.shape])
     n = uv.shape[-2]
     if weights is None:
         weights = torch.ones((), dtype=uv.dtype, device=uv.device)

@@ -15,8 +15,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.choices import Device
+from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detection, Detector, TwoPassDetector
+from s3k.draw import edge_indices
 from s3k.errors import UserError
 from s3k.inference.metrics import (
     compute_metrics,
@@ -26,6 +29,7 @@ from s3k.inference.metrics import (
     pixel_sizes_mm,
 )
 from s3k.inference.predict import detect_store
+from s3k.inference.report import write_report
 
 __all__ = ["evaluate_run", "evaluate_store"]
 
@@ -108,12 +112,10 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
     return metrics, arrays
 
 
-def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch_size: int = 16,
+def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", batch_size: int = 16,
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
     """Load a run's detector (one pass or two), evaluate it on ``data``'s ``split`` and optionally write a
     report (:mod:`s3k.inference.report`); returns the metrics."""
-    from s3k.data import Dataset
-
     detector = Detector.load(run_dir, device)
     ds = Dataset.open(data, cache="none")
     keypoint_order(detector.keypoints, ds.keypoints)  # refuse a mismatch before detecting anything
@@ -125,9 +127,6 @@ def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     if report:
-        from s3k.draw import edge_indices
-        from s3k.inference.report import write_report
-
         edges = edge_indices(detector.meta.recorded_skeleton() or ds.skeleton, detector.keypoints)
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})",
                      edges=edges)

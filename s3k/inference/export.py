@@ -20,20 +20,34 @@ JSON), so a consumer needs no other file.
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from s3k import readout
+from s3k.data import Dataset
+from s3k.detector import (
+    CropRule,
+    Detector,
+    DetectorMeta,
+    OnePassDetector,
+    TwoPassDetector,
+    load_network,
+    training_dataset,
+)
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
 from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
+from s3k.inference.metrics import mm_per_unit
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FORMATS",
@@ -250,9 +264,7 @@ def verification_images(meta, dataset: str | Path | None, count: int = 6,
                 imgs = imgs.reshape(-1, H, W, 3)[:count].transpose(0, 3, 1, 2).astype(np.float32) / 255.0
                 return np.ascontiguousarray(imgs), f"{len(imgs)} images of dataset {dataset}"
         except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
-            print(f"warning: cannot read verification frames from {dataset} ({exc}); using synthetic images",
-                  file=sys.stderr)
-    import cv2
+            log.warning(f"cannot read verification frames from {dataset} ({exc}); using synthetic images")
 
     rng = np.random.default_rng(seed)
     out = np.empty((count, 3, H, W), np.float32)
@@ -310,8 +322,6 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
     Returns:
         An :class:`ExportReport`; ``report.ok`` says whether the verification passed.
     """
-    from s3k.detector import load_network, training_dataset
-
     if fmt not in FORMATS:
         raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     run_dir, out = Path(run_dir), Path(out)
@@ -355,10 +365,6 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None,
                    checkpoint: str | None = None) -> tuple[float | None, int]:
     """The largest 3D difference (mm) between the exported detector and PyTorch's on up to 8 frames of
     ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
-    from s3k.data import Dataset
-    from s3k.detector import Detector
-    from s3k.inference.metrics import mm_per_unit
-
     if data is None or not Path(data).is_dir():
         return None, 0
     try:
@@ -366,7 +372,7 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None,
         ids = ds.frames(("test", "unlabelled", "labelled"))[:8]
         images, cams = ds.images(ids), ds.calibration(ids, dtype=np.float64)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
-        print(f"warning: cannot read frames from {data} to compare 3D points ({exc})", file=sys.stderr)
+        log.warning(f"cannot read frames from {data} to compare 3D points ({exc})")
         return None, 0
     ref = Detector.load(run_dir, "cpu", checkpoint=checkpoint)(images, cams)  # the network exported
     got = load_exported(path, fmt)(images, cams)
@@ -391,8 +397,6 @@ class _ExportedNetwork:
 
 def read_exported_meta(path: str | Path, fmt: str):
     """The :class:`s3k.detector.DetectorMeta` an exported file carries."""
-    from s3k.detector import DetectorMeta
-
     if fmt == "onnx":
         import onnx
         from google.protobuf.message import DecodeError
@@ -429,8 +433,6 @@ def load_exported(path: str | Path, fmt: str | None = None):
     Raises:
         UserError: one line naming the file and the field, or a TorchScript file not asked for.
     """
-    from s3k.detector import CropRule, OnePassDetector, TwoPassDetector
-
     path = Path(path)
     if path.suffix == ".json":
         doc = two_pass_doc(path)

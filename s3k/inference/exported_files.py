@@ -5,6 +5,7 @@ files hold code)."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from s3k.errors import UserError
@@ -22,7 +23,6 @@ def two_pass_doc(path: Path) -> dict:
     Raises:
         UserError: one line naming the file and the field.
     """
-    import math
 
     try:
         doc = json.loads(path.read_text())

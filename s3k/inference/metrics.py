@@ -24,8 +24,10 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
 
 from s3k.errors import UserError
+from s3k.geometry import project, workspace_centre
 
 __all__ = ["METRICS", "UNIT_TO_MM", "compute_metrics", "format_table", "ground_truth_2d", "keypoint_order",
            "mm_per_unit", "pixel_sizes_mm"]
@@ -153,9 +155,6 @@ def pixel_sizes_mm(cams, unit_mm: float = 1000.0) -> np.ndarray:
         ``(B, C)`` (or ``(C,)``) float64, NaN where the axes do not meet (fewer than two cameras, parallel
         axes) or the centre is behind a camera.
     """
-    import torch
-
-    from s3k.geometry import project, workspace_centre
 
     cams = cams.to(torch.float64)
     centre, valid = workspace_centre(cams)  # (*L[:-1], 3)
@@ -173,9 +172,6 @@ def ground_truth_2d(batch, image_size: tuple[int, int] | None):
         ``(gt_uv (B, C, K, 2), gt_mask (B, C, K))`` numpy arrays; the mask keeps points in front of the camera
         and, unless ``image_size`` is None, inside ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
     """
-    import torch
-
-    from s3k.geometry import project
 
     if batch.points is not None:
         uv_t, depth = project(batch.cams.to(dtype=torch.float64), batch.points.double()[:, None])
@@ -210,19 +206,19 @@ def keypoint_order(model_keypoints, dataset_keypoints) -> np.ndarray:
     return np.array([data_kp.index(k) for k in model_kp], dtype=np.int64)
 
 
-def _fmt(v) -> str:
+def format_metric(v) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
 
 
 def format_table(metrics: dict[str, Any]) -> str:
     """Human-readable table of a metrics dict."""
     lines = [f"{'':<16}" + "".join(f"{m:>15}" for m in METRICS)]
-    lines.append(f"{'all':<16}" + "".join(f"{_fmt(metrics[m]):>15}" for m in METRICS))
+    lines.append(f"{'all':<16}" + "".join(f"{format_metric(metrics[m]):>15}" for m in METRICS))
     for name, d in metrics["per_keypoint"].items():
-        lines.append(f"{'kp ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+        lines.append(f"{'kp ' + name:<16}" + "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS))
     for name, d in metrics["per_camera"].items():
-        lines.append(f"{'cam ' + name:<16}" + "".join(f"{_fmt(d.get(m)):>15}" for m in METRICS))
+        lines.append(f"{'cam ' + name:<16}" + "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS))
     lines.append(f"frames {metrics['n_frames']}, 2D terms {metrics['n_2d']}, 3D terms {metrics['n_3d']}, "
-                 f"triangulated {_fmt(metrics['triangulated_fraction'])}, "
-                 f"mm_per_px {_fmt(metrics.get('mm_per_px'))}")
+                 f"triangulated {format_metric(metrics['triangulated_fraction'])}, "
+                 f"mm_per_px {format_metric(metrics.get('mm_per_px'))}")
     return "\n".join(lines)

@@ -14,8 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.choices import Device
+from s3k.data import Dataset
 from s3k.data.frames import FrameBatch, FrameStore
+from s3k.data.protocol import DatasetLike
 from s3k.data.tables import SPLITS
+from s3k.data.tracks_csv import check_output, csv_rows, write_csv
 from s3k.detector import Detection, Detector
 
 __all__ = ["PredictSummary", "detect_store", "predict_dataset", "split_frames"]
@@ -29,7 +33,7 @@ def detect_store(detector: Detector, store: FrameStore, batch_size: int = 16,
         yield batch, detector(batch.images, batch.cams, keep_heatmaps=keep_heatmaps).cpu()
 
 
-def split_frames(dataset, split: str) -> np.ndarray:
+def split_frames(dataset: DatasetLike, split: str) -> np.ndarray:
     """Frame ids of a split, or of every split for 'all' (labelled, unlabelled, then test frames)."""
     return np.asarray(dataset.frames(SPLITS if split == "all" else split))
 
@@ -45,7 +49,7 @@ class PredictSummary:
 
 
 def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, split: str = "test",
-                    batch_size: int = 16, device: str = "auto", overwrite: bool = False) -> PredictSummary:
+                    batch_size: int = 16, device: Device = "auto", overwrite: bool = False) -> PredictSummary:
     """Predict the frames of a dataset split and write the 3D CSV (:mod:`s3k.data.tracks_csv`).
 
     Args:
@@ -60,9 +64,6 @@ def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, spli
     Raises:
         UserError: ``out`` is a file of the dataset, or exists without ``overwrite``.
     """
-    from s3k.data import Dataset
-    from s3k.data.tracks_csv import check_output, csv_rows, write_csv
-
     out = check_output(out, overwrite, dataset=data)
     detector = Detector.load(run_dir, device)
     ds = Dataset.open(data, cache="none")

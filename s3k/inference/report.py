@@ -7,10 +7,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from s3k.draw import draw_views
-from s3k.inference.metrics import _fmt
+from s3k.inference.metrics import format_metric
 
 __all__ = ["write_report"]
 
@@ -22,7 +23,6 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     import matplotlib
 
     matplotlib.use("Agg")
-    import cv2
     import matplotlib.pyplot as plt
 
     out = Path(out_dir)
@@ -36,13 +36,14 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     axes[0].hist(err2d, bins=50, color="tab:blue")
     axes[0].set_xlabel("2D error per view (px)")
     axes[0].set_ylabel("count")
-    axes[0].set_title(f"rms_px {_fmt(metrics['rms_px'])}")
+    axes[0].set_title(f"rms_px {format_metric(metrics['rms_px'])}")
     if arrays.get("X_gt") is not None:
         e3 = np.linalg.norm(arrays["X"] - arrays["X_gt"], axis=-1) * unit_mm
         sel = arrays["X_valid"] & arrays["X_gt_mask"]
         axes[1].hist(e3[sel], bins=50, color="tab:orange")
         axes[1].set_xlabel("3D error (mm)")
-        axes[1].set_title(f"median_mm {_fmt(metrics['median_mm'])}, rms_mm {_fmt(metrics['rms_mm'])}")
+        axes[1].set_title(f"median_mm {format_metric(metrics['median_mm'])}, "
+                          f"rms_mm {format_metric(metrics['rms_mm'])}")
     else:
         axes[1].set_axis_off()
     fig.suptitle(title)

@@ -28,10 +28,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import torch
 
 from s3k.draw import edge_indices, keypoint_colours
 from s3k.errors import UserError
+from s3k.geometry import project
+from s3k.geometry.warp import crop_resize_matrix
 
 __all__ = ["RerunLog", "recording_summary", "rerun_module"]
 
@@ -51,7 +55,6 @@ def rerun_module(option: str = "--rerun") -> Any:
 def _display_map(size: Sequence[int], scale: float) -> tuple[np.ndarray, tuple[int, int]]:
     """The pixel map from s3k's pixels of an image of ``size (W, H)`` to Rerun's pixels of the logged image
     (downscaled by ``scale``, pixel centres at half-integers), and the logged image's size."""
-    from s3k.geometry.warp import crop_resize_matrix
 
     W, H = int(size[0]), int(size[1])
     out = (max(1, round(W * scale)), max(1, round(H * scale)))
@@ -164,7 +167,6 @@ class RerunLog:
 
     def images(self, views: Sequence[np.ndarray]) -> None:
         """Log the current frame's views (``uint8 (H, W, 3)`` RGB each), downscaled and JPEG-compressed."""
-        import cv2
 
         for cam, view in zip(self.cameras, views):
             image = np.ascontiguousarray(view)
@@ -230,9 +232,7 @@ class RerunLog:
     def reprojections(self, cams: Any, X: np.ndarray, valid: np.ndarray) -> None:
         """Project ``X (K, 3)`` into the cameras ``(C,)`` (with lens distortion) and log where ``valid`` and
         in front of the camera."""
-        import torch
 
-        from s3k.geometry import project
 
         X64 = torch.as_tensor(np.nan_to_num(np.asarray(X, dtype=np.float64)))
         uv, depth = project(cams.to(dtype=torch.float64), X64)

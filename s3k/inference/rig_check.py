@@ -15,16 +15,25 @@ rig and object, and that the calibration given is sound and the one the run was 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
+from s3k.calibration import identical_cameras
+from s3k.data import Dataset
+from s3k.detector import training_dataset
+from s3k.detector.geometry_record import check_dataset, frame_calibration
 from s3k.errors import UserError
 from s3k.geometry import Cameras
+from s3k.inference.metrics import mm_per_unit
 
 __all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration", "run_record"]
+
+log = logging.getLogger(__name__)
 
 OVERRIDE = "--other-rig"
 """The option of ``s3k predict``, ``track`` and ``stream`` that uses a run on another rig or object anyway."""
@@ -79,9 +88,6 @@ def run_calibration(run_dir: str | Path) -> dict[str, Any] | None:
     recorded = geometry.get("calibration") if isinstance(geometry, dict) else None
     if isinstance(recorded, dict) and isinstance(recorded.get("cameras"), dict):
         return recorded
-    from s3k.detector import training_dataset
-    from s3k.detector.geometry_record import frame_calibration
-
     try:
         path = training_dataset(run_dir)
     except (FileNotFoundError, UserError, ValueError, OSError):
@@ -89,16 +95,12 @@ def run_calibration(run_dir: str | Path) -> dict[str, Any] | None:
     if not path or not (Path(path) / "s3k.json").is_file():
         return None
     try:
-        from s3k.data import Dataset
-
         return frame_calibration(Dataset.open(path, cache="none"))
     except (ValueError, OSError, KeyError, UserError):
         return None
 
 
 def _identical(cams: Cameras, names: list[str]) -> list[str]:
-    from s3k.calibration import identical_cameras
-
     return [f"calibration: {note} (usually a copy error in the calibration file; s3k check-calibration "
             "DATASET --recalibrate CAM recalibrates the copy)" for note in identical_cameras(cams, names)]
 
@@ -138,8 +140,6 @@ def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], unit
         sizes: ``{camera: (W, H)}`` of those frames.
         source: the calibration's file or dataset, for the message.
     """
-    from s3k.inference.metrics import mm_per_unit
-
     notes = _identical(cams, names)
     want = run_calibration(run_dir)
     if want is None:
@@ -167,18 +167,11 @@ def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], unit
 def check_dataset_rig(run_dir: str | Path, data: str | Path, refuse: bool = True) -> None:
     """``s3k predict``'s checks of a dataset for a run: with ``refuse``, the images' part of the frames
     (:func:`s3k.detector.geometry_record.check_dataset`), the cameras and the keypoints (:func:`check_rig`);
-    then the dataset's static calibration (:func:`calibration_notes`), printed on stderr.
+    then the dataset's static calibration (:func:`calibration_notes`), logged as warnings.
 
     Raises:
         UserError: another rig or object, naming :data:`OVERRIDE`.
     """
-    import sys
-
-    import torch
-
-    from s3k.data import Dataset
-    from s3k.detector.geometry_record import check_dataset, frame_calibration
-
     if refuse:
         check_dataset(run_dir, data, option=OVERRIDE)
     ds = Dataset.open(data, cache="none")
@@ -192,4 +185,4 @@ def check_dataset_rig(run_dir: str | Path, data: str | Path, refuse: bool = True
     cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
     sizes = {c: tuple(e["frame_size"]) for c, e in zip(ds.cameras, entries)}
     for line in calibration_notes(run_dir, cams, list(ds.cameras), frames["units"], sizes, data):
-        print(line, file=sys.stderr)
+        log.warning(line.removeprefix("warning: "))

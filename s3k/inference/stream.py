@@ -20,16 +20,24 @@ s3k[stream]``; :mod:`s3k.inference.rerun_log`). Ctrl-C stops the stream between 
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, Any
 
+import cv2
 import numpy as np
 
+from s3k.data import imageseq, video
+from s3k.data.video import prefetch
 from s3k.errors import UserError
+from s3k.inference.rerun_log import RerunLog
+from s3k.messages import note
 from s3k.readout import DEFAULT_MIN_WEIGHT
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Source", "StreamSummary", "open_source", "stream"]
 
@@ -60,8 +68,6 @@ class FileSource(Source):
     """A video file or an image sequence (:mod:`s3k.data.video`)."""
 
     def __init__(self, spec: str) -> None:
-        from s3k.data import imageseq, video
-
         self.spec, self.live = spec, False
         self.size = video.frame_size(spec)
         # an image sequence records no frame rate: unknown (0) unless ``s3k stream --fps`` gives it
@@ -76,8 +82,6 @@ class CameraSource(Source):
     """A camera opened with OpenCV (``cv2.VideoCapture``)."""
 
     def __init__(self, spec: str) -> None:
-        import cv2
-
         self.spec, self.live = spec, True
         self._cap = cv2.VideoCapture(int(spec) if spec.isdigit() else spec)
         if not self._cap.isOpened():
@@ -104,8 +108,6 @@ class CameraSource(Source):
 
 def open_source(spec: str) -> Source:
     """A camera (an index, or a ``/dev/video*`` device) or a video file / image sequence."""
-    from s3k.data import video
-
     if spec.isdigit() or spec.startswith("/dev/video"):
         return CameraSource(spec)
     if not video.exists(spec):
@@ -146,7 +148,7 @@ def _frame_line(i: int, t: float, keypoints: list[str], X: np.ndarray, valid: np
 def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None = None,
            out: IO[str] = sys.stdout, min_weight: float = DEFAULT_MIN_WEIGHT, max_frames: int | None = None,
            log: Callable[[int, list[np.ndarray], Any], None] | None = None,
-           say: Callable[[str], None] = lambda text: print(text, file=sys.stderr)) -> StreamSummary:
+           say: Callable[[str], None] | None = None) -> StreamSummary:
     """Detect every frame of the synchronized ``sources`` and write one JSON line per frame to ``out``
     (module docstring).
 
@@ -159,8 +161,9 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
         min_weight: as for :func:`s3k.readout.read_out`.
         max_frames: stop after this many frames (default: at the end of the shortest source).
         log: called with ``(frame, views, detection)`` after each frame (the Rerun logger).
-        say: where the notes on keeping up go.
+        say: where the notes on keeping up go (default: logged at ``s3k.messages.NOTE``).
     """
+    say = say or note
     keypoints = detector.keypoints
     live = any(s.live for s in sources.values())
     rates = [s.fps for s in sources.values() if s.fps > 0]
@@ -169,8 +172,6 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     i, behind, said, interrupted = 0, 0, start, False
     frames = _frames(list(sources.values()))
     if not live:  # files: the next frame is decoded while this one is detected (a camera's is read fresh)
-        from s3k.data.video import prefetch
-
         frames = prefetch(frames, depth=2)
     try:
         while max_frames is None or i < max_frames:
@@ -208,7 +209,6 @@ def rerun_logger(detector, cameras: list[str], cams, sizes: list[tuple[int, int]
     JPEG), the detections, the 3D points with their skeleton and confidence, and their reprojections to Rerun
     (:class:`s3k.inference.rerun_log.RerunLog`): ``target`` "spawn" (a viewer), or a ``.rrd`` file to write.
     Returns ``(log, close)``; ``close(keep)`` completes the file (or, ``keep=False``, removes it)."""
-    from s3k.inference.rerun_log import RerunLog
 
     rec = RerunLog("s3k stream", target, detector.keypoints, cameras, detector.meta.recorded_skeleton(),
                    image_scale=image_scale, jpeg_quality=jpeg_quality, units=detector.units)

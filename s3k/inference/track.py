@@ -19,15 +19,26 @@ reprojected 3D keypoints (filled discs) and the per-view detections (crosses), o
 
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from s3k.choices import Device
+from s3k.data import imageseq, video
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.data.tracks_csv import check_output, csv_rows, write_csv
+from s3k.detector import Detector
+from s3k.draw import draw_overlay, edge_indices, keypoint_colours
 from s3k.errors import UserError
 from s3k.geometry import Cameras
+from s3k.geometry.warp import crop_resize_matrix
+from s3k.inference.rig_check import calibration_notes
 from s3k.readout import DEFAULT_MIN_WEIGHT
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
            "track_videos"]
@@ -111,9 +122,6 @@ def prepare_cameras(videos: dict[str, Path], calibration, net_size: tuple[int, i
         ValueError: an unreadable video.
         FileNotFoundError: a missing video file.
     """
-    from s3k.data import video
-    from s3k.geometry.warp import crop_resize_matrix
-
     known = list(calibration.names)
     unknown = [c for c in videos if c not in known]
     if unknown:
@@ -177,8 +185,6 @@ class TrackSummary:
 def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int | None):
     """Yield ``(fnums, frames)`` from the synchronized videos: ``frames`` a list of ``B`` lists of ``C`` uint8
     images at the videos' own sizes."""
-    from s3k.data import video
-
     fnums, frames = [], []
     for i, views in video.synchronized_frames([c.path for c in inputs], start, stop):
         fnums.append(i)
@@ -213,18 +219,15 @@ def _check_inputs(videos: dict[str, Path], batch: int, start: int, stop: int | N
 
 def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int:
     """The frame index to stop before; warns about videos of different lengths or frame rates."""
-    from s3k.data import video
-
     counts = {c.name: video.frame_count(c.path) for c in inputs}
     n_video = min(counts.values())
     if len(set(counts.values())) > 1:
         lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
-        print(f"warning: the videos have different lengths ({lengths}); tracking the first {n_video} frames "
-              "of each", file=sys.stderr)
+        log.warning(f"the videos have different lengths ({lengths}); tracking the first {n_video} frames "
+                    "of each")
     rates = {c.name: c.fps for c in inputs}
     if max(rates.values()) - min(rates.values()) > 1e-3 * max(rates.values()):
-        print(f"warning: the videos have different frame rates ({rates}); frames are paired by index",
-              file=sys.stderr)
+        log.warning(f"the videos have different frame rates ({rates}); frames are paired by index")
     if start >= n_video:
         raise UserError(f"--start {start}: the videos have {n_video} frames")
     return n_video if stop is None else min(stop, n_video)
@@ -233,7 +236,7 @@ def _frame_range(inputs: list[CameraInput], start: int, stop: int | None) -> int
 def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str | Path, out: str | Path,
                  overlay: str | Path | None = None, batch: int = 8, start: int = 0, stop: int | None = None,
                  min_weight: float = DEFAULT_MIN_WEIGHT, fit: str = "pad",
-                 crops: dict[str, tuple[float, ...]] | None = None, device: str = "auto",
+                 crops: dict[str, tuple[float, ...]] | None = None, device: Device = "auto",
                  units: str | None = None, progress: bool = True, overwrite: bool = False,
                  video_regions: dict[str, tuple[float, ...]] | None = None) -> TrackSummary:
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).
@@ -261,11 +264,6 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     Returns:
         A :class:`TrackSummary`.
     """
-    from s3k.data import video
-    from s3k.data.formats.calibration_files import read_calibration
-    from s3k.data.tracks_csv import check_output
-    from s3k.detector import Detector
-
     _check_inputs(videos, batch, start, stop, min_weight)
     out = check_output(out, overwrite)
     calib = read_calibration(calibration, units=units)
@@ -276,7 +274,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
             calib = calib.with_video_regions(video_regions)  # type: ignore[arg-type]
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
-    _say_calibration(run_dir, calib, [c for c in videos if c in calib.names], calibration)
+    say_calibration(run_dir, calib, [c for c in videos if c in calib.names], calibration)
     detector = Detector.load(run_dir, device)
     inputs, cams = prepare_cameras(videos, calib, detector.input_size, fit, crops)
     end = _frame_range(inputs, start, stop)
@@ -288,21 +286,17 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                         _common_rate(inputs))
 
 
-def _say_calibration(run_dir, calib, names: list[str], source) -> None:
-    """Print on stderr what :func:`s3k.inference.rig_check.calibration_notes` finds in the calibration of
+def say_calibration(run_dir, calib, names: list[str], source) -> None:
+    """Log as warnings what :func:`s3k.inference.rig_check.calibration_notes` finds in the calibration of
     the cameras ``names``: copies, and how it differs from the run's."""
-    from s3k.inference.rig_check import calibration_notes
-
     rig = calib.select(names)
     sizes = {n: (int(w), int(h)) for n, (w, h) in zip(rig.names, rig.size)}
     for line in calibration_notes(run_dir, rig.cameras, rig.names, rig.units, sizes, source):
-        print(line, file=sys.stderr)
+        log.warning(line.removeprefix("warning: "))
 
 
 def _common_rate(inputs: list[CameraInput]) -> float | None:
     """The frame rate every video declares (None where they differ or an image sequence records none)."""
-    from s3k.data import imageseq
-
     if any(imageseq.is_sequence(c.path) for c in inputs):
         return None
     rates = [float(c.fps) for c in inputs]
@@ -312,11 +306,6 @@ def _common_rate(inputs: list[CameraInput]) -> float | None:
 def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):
     """Detect every batch of ``frames``, write the CSV (and overlays); ``(frames, keypoints, valid fraction,
     median error, passing fraction)`` for the :class:`TrackSummary`."""
-    from tqdm import tqdm
-
-    from s3k.data import video
-    from s3k.data.tracks_csv import csv_rows, write_csv
-    from s3k.draw import draw_overlay, edge_indices, keypoint_colours
 
     writers = []
     if overlay is not None:

@@ -18,17 +18,31 @@ The skeleton is the dataset's, the run's, or ``--skeleton FILE``'s (any file
 from __future__ import annotations
 
 import csv
-import sys
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
+from s3k.data import Dataset, video
+from s3k.data.formats.calibration_files import read_calibration
+from s3k.data.formats.skeleton import check_edges, read_skeleton
+from s3k.data.frames import FrameStore
+from s3k.data.tracks_csv import read_source
+from s3k.detector import Detector, DetectorMeta
+from s3k.detector.crop_rule import is_two_pass
+from s3k.detector.run_folder import read_run_config, training_dataset
 from s3k.errors import UserError
 from s3k.fileio import open_text
+from s3k.geometry import triangulate_labels
+from s3k.inference.metrics import keypoint_order
+from s3k.inference.predict import detect_store, split_frames
 from s3k.inference.rerun_log import RerunLog
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ViewOptions", "read_tracks", "target_kind", "view_dataset", "view_run", "view_tracks"]
 
@@ -58,7 +72,6 @@ class ViewOptions:
     def recorder(self, keypoints: Sequence[str], cameras: Sequence[str], skeleton: Sequence[Sequence[str]],
                  units: str) -> RerunLog:
         if self.skeleton is not None:
-            from s3k.data.formats.skeleton import check_edges, read_skeleton
 
             skeleton = check_edges(read_skeleton(self.skeleton), keypoints, f"--skeleton {self.skeleton}")
         return RerunLog("s3k view", self.target, keypoints, cameras, skeleton, self.image_scale,
@@ -84,9 +97,6 @@ def target_kind(path: str | Path) -> str:
 
 def run_skeleton(run: str | Path) -> list[tuple[str, str]]:
     """The skeleton a run recorded (:meth:`s3k.detector.DetectorMeta.recorded_skeleton`; ``[]`` if none)."""
-    from s3k.detector import DetectorMeta
-    from s3k.detector.crop_rule import is_two_pass
-    from s3k.detector.run_folder import read_run_config
 
     run = Path(run)
     try:
@@ -131,9 +141,6 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
                 videos: dict[str, str] | None = None, units: str | None = None) -> int:
     """Log the tracks of ``csv_path`` with the rig's cameras (and the ``videos``' frames); returns the
     number of frames logged."""
-    from s3k.data import video
-    from s3k.data.formats.calibration_files import read_calibration
-    from s3k.data.tracks_csv import read_source
 
     csv_path = Path(csv_path)
     source = read_source(csv_path) or {}
@@ -162,9 +169,8 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
                             hint=f"give its video with --videos {name}=FILE")
         if name in sizes and tuple(sizes[name]) != tuple(int(v) for v in rig.size[c]):
             W, H = sizes[name]
-            print(f"warning: --videos {name}: frames of {W}x{H} px but {calibration} gives "
-                  f"{rig.size[c][0]}x{rig.size[c][1]}; the reprojections assume the calibrated image",
-                  file=sys.stderr)
+            log.warning(f"--videos {name}: frames of {W}x{H} px but {calibration} gives "
+                        f"{rig.size[c][0]}x{rig.size[c][1]}; the reprojections assume the calibrated image")
     skeleton = run_skeleton(source["run"]) if source.get("run") else []
     rows = {int(f): i for i, f in enumerate(fnums)}
     frames = opts.pick(sorted(rows))
@@ -199,9 +205,7 @@ def _truth(ds: Any, ids: np.ndarray, cams: Any, uv: np.ndarray, mask: np.ndarray
     points = ds.points3d(ids)
     if points is not None:
         return np.asarray(points[0], dtype=np.float64), np.asarray(points[1], dtype=bool)
-    import torch
 
-    from s3k.geometry import triangulate_labels
 
     X, valid = triangulate_labels(cams, torch.as_tensor(uv), torch.as_tensor(mask))
     return X.numpy(), valid.numpy()
@@ -210,8 +214,6 @@ def _truth(ds: Any, ids: np.ndarray, cams: Any, uv: np.ndarray, mask: np.ndarray
 def view_dataset(data: str | Path, opts: ViewOptions, split: str = "all") -> int:
     """Log a dataset's frames of ``split``: cameras, images, 2D labels and 3D keypoints; returns the number of
     frames logged."""
-    from s3k.data import Dataset
-    from s3k.inference.predict import split_frames
 
     ds = Dataset.open(data, cache="none")
     ids = np.array(opts.pick(split_frames(ds, split)), dtype=np.int64)
@@ -244,12 +246,6 @@ def view_run(run: str | Path, opts: ViewOptions, data: str | Path | None = None,
              device: str = "auto", batch_size: int = 8) -> int:
     """Log a run's detections on a dataset split (as ``s3k evaluate`` detects them) beside the ground truth;
     returns the number of frames logged."""
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
-    from s3k.detector import Detector
-    from s3k.detector.run_folder import training_dataset
-    from s3k.inference.metrics import keypoint_order
-    from s3k.inference.predict import detect_store, split_frames
 
     data = data or training_dataset(run)
     if not data:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.data import Dataset
 from s3k.errors import UserError
 from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
@@ -92,6 +93,69 @@ def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 100.0 * (diff > CHANGE_LEVEL).mean(axis=(1, 2))
 
 
+def _check_still(ds: Dataset, ids: list[int], source: int, max_changed: float,
+                 words: dict[str, str] = CLI_WORDS) -> None:
+    """Refuse a frame of ``ids`` whose calibration differs from frame ``source``'s or whose images differ
+    from its in more than ``max_changed`` percent of a camera's pixels (checked before anything is
+    written); ``words`` name the options in the refusals."""
+    ref_cams = ds.calibration([source], np.float64).numpy()
+    ref_images = ds.images([source])[0]
+    for f in ids:
+        if f == source:
+            continue
+        cams = ds.calibration([f], np.float64).numpy()
+        for name in ("K", "dist", "R", "t"):
+            a, b = ref_cams[name], cams[name]
+            if not np.allclose(a, b, rtol=1e-9, atol=1e-12):
+                c = int(np.argmax(np.abs(a - b).reshape(len(ds.cameras), -1).max(axis=1)))
+                raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s calibration ({name}) "
+                                f"differs from frame {source}'s",
+                                hint=f"{words['choose']} where the cameras do not move")
+        changed = changed_pixels(ref_images, ds.images([f])[0])
+        c = int(np.argmax(changed))
+        if changed[c] > max_changed:
+            raise UserError(f"frame {f} is not still: {changed[c]:.2f}% of camera {ds.cameras[c]}'s pixels "
+                            f"differ from frame {source}'s (more than {max_changed:g}%)",
+                            hint=f"{words['choose']} where nothing moves, or {words['raise']}")
+
+
+def _copies(ds: Dataset, store: LabelStore, ids: list[int], source: int, tri: dict[str, np.ndarray]
+            ) -> tuple[dict[int, list[Edit]], dict[int, tuple[int, int]], list[tuple[int, str, str]]]:
+    """The edits that copy frame ``source``'s triangulated labels ``tri`` onto the frames ``ids``: per frame
+    the edits and (new, replaced) counts, and every label an edit would replace."""
+    W, H = ds.source_image_size
+    i_src = store.row(source)
+    edits: dict[int, list[Edit]] = {}
+    per_frame: dict[int, tuple[int, int]] = {}
+    replaced: list[tuple[int, str, str]] = []
+    for f in ids:
+        if f == source:
+            continue
+        i = store.row(f)
+        items, n_old = [], 0
+        for k, kp in enumerate(ds.keypoints):
+            if not tri["valid"][k]:
+                continue
+            for c, cam in enumerate(ds.cameras):
+                if store.present[i_src, c, k] and not store.visible[i_src, c, k]:
+                    edit = Edit(cam, kp, visible=False)
+                else:
+                    u, v = tri["reproj"][c, k]
+                    if not (np.isfinite(u) and -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5):
+                        continue
+                    edit = Edit(cam, kp, float(u), float(v))
+                if store.present[i, c, k]:
+                    if _same(edit, store.uv[i, c, k], bool(store.visible[i, c, k])):
+                        continue  # already there: no change
+                    replaced.append((f, cam, kp))
+                    n_old += 1
+                items.append(edit)
+        if items:
+            edits[f] = items
+            per_frame[f] = (len(items) - n_old, n_old)
+    return edits, per_frame, replaced
+
+
 def propagate_labels(data: str | Path, first: int, last: int, source: int | None = None,
                      max_changed: float = DEFAULT_MAX_CHANGED, store: LabelStore | None = None,
                      labeller: str | None = None, *, overwrite: bool = False, allow_test: bool = False,
@@ -120,8 +184,6 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
             that changes the threshold), a test frame without ``allow_test``, or an existing label that
             would change without ``overwrite``.
     """
-    from s3k.data import Dataset
-
     # nan compares false with every percentage: it would let every frame pass as still
     MAX_CHANGED_RANGE.check(max_changed, words["max_changed"], hint="give a percentage from 0 to 100")
     ds = Dataset.open(data, cache="none")
@@ -160,58 +222,9 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         raise UserError(f"{words['from'].format(source=source)}: frame {source} has no keypoint labelled in "
                         "2 or more views",
                         hint="label it in a second view first")
-    # Still: the same calibration and (nearly) the same images as the source frame, checked before writing.
-    ref_cams = ds.calibration([source], np.float64).numpy()
-    ref_images = ds.images([source])[0]
-    for f in ids:
-        if f == source:
-            continue
-        cams = ds.calibration([f], np.float64).numpy()
-        for name in ("K", "dist", "R", "t"):
-            a, b = ref_cams[name], cams[name]
-            if not np.allclose(a, b, rtol=1e-9, atol=1e-12):
-                c = int(np.argmax(np.abs(a - b).reshape(len(ds.cameras), -1).max(axis=1)))
-                raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s calibration ({name}) "
-                                f"differs from frame {source}'s",
-                                hint=f"{words['choose']} where the cameras do not move")
-        changed = changed_pixels(ref_images, ds.images([f])[0])
-        c = int(np.argmax(changed))
-        if changed[c] > max_changed:
-            raise UserError(f"frame {f} is not still: {changed[c]:.2f}% of camera {ds.cameras[c]}'s pixels "
-                            f"differ from frame {source}'s (more than {max_changed:g}%)",
-                            hint=f"{words['choose']} where nothing moves, or {words['raise']}")
-    W, H = ds.source_image_size
-    uv_src, _ = store.arrays(source)
-    i_src = store.row(source)
-    edits: dict[int, list[Edit]] = {}
-    per_frame: dict[int, tuple[int, int]] = {}
-    replaced: list[tuple[int, str, str]] = []
+    _check_still(ds, ids, source, max_changed, words)
+    edits, per_frame, replaced = _copies(ds, store, ids, source, tri)
     keypoints = [kp for k, kp in enumerate(ds.keypoints) if tri["valid"][k]]
-    for f in ids:
-        if f == source:
-            continue
-        i = store.row(f)
-        items, n_old = [], 0
-        for k, kp in enumerate(ds.keypoints):
-            if not tri["valid"][k]:
-                continue
-            for c, cam in enumerate(ds.cameras):
-                if store.present[i_src, c, k] and not store.visible[i_src, c, k]:
-                    edit = Edit(cam, kp, visible=False)
-                else:
-                    u, v = tri["reproj"][c, k]
-                    if not (np.isfinite(u) and -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5):
-                        continue
-                    edit = Edit(cam, kp, float(u), float(v))
-                if store.present[i, c, k]:
-                    if _same(edit, store.uv[i, c, k], bool(store.visible[i, c, k])):
-                        continue  # already there: no change
-                    replaced.append((f, cam, kp))
-                    n_old += 1
-                items.append(edit)
-        if items:
-            edits[f] = items
-            per_frame[f] = (len(items) - n_old, n_old)
     if replaced and not overwrite:
         f, cam, kp = replaced[0]
         frames = sorted({r[0] for r in replaced})

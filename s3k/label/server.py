@@ -38,21 +38,33 @@ server printed (``?token=`` in the first URL, then a cookie).
 from __future__ import annotations
 
 import hmac
+import logging
 import secrets
+import socket
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import torch
 from fastapi import Body, FastAPI, HTTPException, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
+from s3k.data import Dataset
+from s3k.detector.geometry_record import check_dataset
 from s3k.errors import UserError
+from s3k.inference.metrics import mm_per_unit
+from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
+from s3k.label.skeleton import edit_skeleton
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
-from s3k.label.suggest import UP, Up
+from s3k.label.suggest import UP, Suggestions, Up
+from s3k.messages import say
+
+log = logging.getLogger(__name__)
 
 __all__ = ["LOOPBACK", "LabelApp", "create_app", "serve"]
 
@@ -95,8 +107,6 @@ class LabelApp:
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
                  device: str = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
-        from s3k.data import Dataset
-
         self.root = Path(data)
         self.up = up  # the table's normal in world coordinates: the pose rankings ignore the turn about it
         self.dataset = Dataset.open(self.root)
@@ -104,9 +114,6 @@ class LabelApp:
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.suggestions = None
         if run is not None:
-            from s3k.detector.geometry_record import check_dataset
-            from s3k.label.suggest import Suggestions
-
             if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
                 check_dataset(run, self.root)
 
@@ -212,6 +219,16 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
+    _add_guard(app, allowed_hosts, token)
+    _add_frame_routes(app, state)
+    _add_tool_routes(app, state)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    return app
+
+
+def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None) -> None:
+    """Every request's checks: a capped body, an allowed ``Host``, the token."""
+
     @app.middleware("http")
     async def guard(request: Request, call_next):
         if request.method not in ("GET", "HEAD", "OPTIONS"):  # bodies are read whole: their size is capped
@@ -238,6 +255,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         if token is not None and request.query_params.get("token"):
             response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
         return response
+
+
+def _add_frame_routes(app: FastAPI, state: LabelApp) -> None:
+    """The page, the dataset's meta, a frame's state, images, labels, undo and history."""
 
     def frame_or_404(frame: int) -> int:
         if frame not in state.store.frames.row_of:
@@ -314,6 +335,11 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     def history(frame: int) -> list[dict[str, Any]]:
         return state.store.history(frame_or_404(frame))
 
+
+def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
+    """The run's rankings of frames, propagation of a frame's labels over still frames (with its undo), and
+    the skeleton's edits."""
+
     @app.get("/api/ranking")
     def ranking(split: str = "unlabelled", limit: int = 100, by: str = "doubt") -> Any:
         if state.suggestions is None:
@@ -325,8 +351,6 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         ids = state.dataset.frames(None if split == "all" else split)
         limit = max(0, limit)
         if by in ("coverage", "representative"):
-            from s3k.inference.metrics import mm_per_unit
-
             poses = state.labelled_poses(state.suggestions.keypoints)
             return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
                                               order=by, up=state.up)[:limit]
@@ -334,8 +358,6 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
-        from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels
-
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
@@ -349,8 +371,6 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/propagate/undo")
     def propagate_undo() -> Any:
-        from s3k.label.propagate import undo_propagation
-
         try:
             source, frames = undo_propagation(state.root, store=state.store)
         except UserError as exc:
@@ -359,8 +379,6 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/skeleton")
     def skeleton(body: SkeletonIn) -> Any:
-        from s3k.label.skeleton import edit_skeleton
-
         try:
             edges = edit_skeleton(state.root, state.dataset.keypoints, add=body.add, remove=body.remove)
         except UserError as exc:
@@ -368,18 +386,14 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         state.dataset.skeleton = edges
         return {"skeleton": [list(e) for e in edges]}
 
-    app.mount("/static", StaticFiles(directory=STATIC), name="static")
-    return app
-
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
-          labeller: str | None = None, device: str = "cpu", announce=print,
+          labeller: str | None = None, device: str = "cpu", announce: Callable[[str], None] | None = None,
           up: Up = UP, ignore_geometry: bool = False) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
-    import socket
-
-    import torch
     import uvicorn
+
+    announce = announce or say
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family) as probe:  # a port in use is the user's to change, said in one line

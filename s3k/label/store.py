@@ -36,8 +36,17 @@ from typing import Any
 
 import numpy as np
 
-from s3k.data.problems import Problems
-from s3k.data.tables import FRAMES_FILE, LABELS_COLUMNS, LABELS_FILE, SPLITS, read_frames, read_labels
+from s3k.data.problems import DatasetError, Problems
+from s3k.data.sources import IMAGE_SOURCES
+from s3k.data.tables import (
+    FRAMES_FILE,
+    LABELS_COLUMNS,
+    LABELS_FILE,
+    SPLITS,
+    read_frames,
+    read_labels,
+    read_metadata,
+)
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, file_lock
 
@@ -103,14 +112,9 @@ class LabelStore:
     @classmethod
     def open(cls, root: str | Path, labeller: str | None = None, promote: bool = True) -> LabelStore:
         """Open the labels of a dataset folder (its tables are validated first)."""
-        from s3k.data.sources import IMAGE_SOURCES
-        from s3k.data.tables import read_metadata
-
         P = Problems()
         meta = read_metadata(Path(root), P, IMAGE_SOURCES)
         if meta is None or P.errors:
-            from s3k.data.problems import DatasetError
-
             raise DatasetError(root, P.errors)
         return cls(root, meta, labeller, promote)
 
@@ -128,13 +132,9 @@ class LabelStore:
         P = Problems()
         frames = read_frames(self.root, P)
         if frames is None or P.errors:
-            from s3k.data.problems import DatasetError
-
             raise DatasetError(self.root, P.errors)
         labels = read_labels(self.root, self.meta, frames, P)
         if P.errors:
-            from s3k.data.problems import DatasetError
-
             raise DatasetError(self.root, P.errors)
         self.frames = frames
         self.uv = labels.uv  # (N, C, K, 2) float64, NaN where absent (or occluded without a position)

@@ -37,7 +37,11 @@ from typing import Any
 
 import numpy as np
 
+from s3k.data import Dataset
+from s3k.data.frames import FrameStore
+from s3k.detector import Detector
 from s3k.errors import UserError
+from s3k.inference.predict import detect_store
 
 __all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "Up", "coverage_order", "pose_distances",
            "representative_order"]
@@ -190,9 +194,6 @@ class Suggestions:
 
     def __init__(self, run_dir: str | Path, data: str | Path, device: str = "cpu",
                  batch_size: int = 16) -> None:
-        from s3k.data import Dataset
-        from s3k.detector import Detector
-
         self.detector = Detector.load(run_dir, device)
         self.batch_size = batch_size
         self.dataset = Dataset.open(data, cache="memory")
@@ -209,9 +210,6 @@ class Suggestions:
         """Per frame: ``uv (C, K, 2)`` detections, ``weights (C, K)``, ``X (K, 3)``, ``valid (K,)``,
         ``reproj (C, K, 2)``, ``residual (C, K)`` in the dataset's pixels, keypoints in the run's order, and
         ``sigma_px`` the run's target width in those pixels."""
-        from s3k.data.frames import FrameStore
-        from s3k.inference.predict import detect_store
-
         with self._lock:
             todo = [int(f) for f in frame_ids if int(f) not in self._cache]
             if todo:

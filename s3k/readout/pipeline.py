@@ -24,7 +24,6 @@ from s3k.readout.rigid import (
     settle_ties,
 )
 from s3k.readout.views import (
-    DEFAULT_MIN_WEIGHT,
     DTYPE,
     moments,
     reject_outliers,
@@ -116,11 +115,13 @@ def _to_camera_pixels(net_uv: Tensor, Minv: Tensor) -> Tensor:
     return net_uv @ Minv[..., :2, :2].transpose(-1, -2) + Minv[..., None, :2, 2]
 
 
+DEFAULT_CONFIG = ReadoutConfig()
+"""The inference read-out without a detector's settings: confident views, no outlier test, no layout."""
+
+
 def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
-             pixel_maps: np.ndarray | Tensor | None = None, min_weight: float = DEFAULT_MIN_WEIGHT,
-             keep_heatmaps: bool = False, max_residual_px: float | None = None,
-             window: int | None = None, layout: Tensor | None = None, layout_tol: float = 0.0, *,
-             config: ReadoutConfig | None = None, weights: Tensor | None = None,
+             pixel_maps: np.ndarray | Tensor | None = None, config: ReadoutConfig = DEFAULT_CONFIG, *,
+             keep_heatmaps: bool = False, weights: Tensor | None = None,
              prior: LayoutPrior | None = None) -> ReadOut:
     """Heatmap logits of a batch of synchronized frames -> detections, weights and 3D points.
 
@@ -132,10 +133,10 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         pixel_maps: ``(C, 3, 3)`` or per frame ``(B, C, 3, 3)`` affine maps from the cameras' pixels to the
             network-input pixels (for cameras of the original images that were cropped and resized for the
             network), or None when ``cams`` are the network input's cameras.
+        config: every setting in one :class:`ReadoutConfig` (a detector's,
+            :meth:`s3k.detector.DetectorMeta.readout_config`, or the pseudo-labels',
+            :meth:`ReadoutConfig.for_pseudo_labels`); default: the plain inference read-out.
         keep_heatmaps: also return the softmax heatmaps.
-        min_weight, max_residual_px, window, layout, layout_tol: the settings of an inference read-out
-            (:class:`ReadoutConfig`'s fields), when no ``config`` is given.
-        config: every setting in one :class:`ReadoutConfig` (a detector's, or the pseudo-labels').
         weights: ``(B, C, K)`` triangulation weights instead of the confidence weights.
         prior: another network's heatmaps of the same frames, whose evidence joins the views' in the rigid
             read-out's search (:class:`s3k.readout.LayoutPrior`).
@@ -143,8 +144,6 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     Returns:
         A :class:`ReadOut`.
     """
-    if config is None:
-        config = ReadoutConfig(window, min_weight, max_residual_px, layout, layout_tol)
     if not isinstance(logits, Tensor) or logits.ndim != 5:
         shape = tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__
         raise ValueError(f"read_out: logits must be (B, C, K, h, w), got {shape}")

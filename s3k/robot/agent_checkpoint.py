@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 
+from s3k.detector import atomic_save, load_torch_file
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_bytes, atomic_write_json
 
@@ -28,9 +30,6 @@ def save_checkpoint(model, folder: Path, state: dict) -> None:
     previous checkpoint is kept as ``folder.old`` in between), so a kill at any point leaves one complete
     checkpoint: :func:`checkpoint_folder` finds it.
     """
-    import shutil
-
-    from s3k.detector import atomic_save
 
     tmp, old = folder.with_name(folder.name + ".tmp"), folder.with_name(folder.name + ".old")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -64,8 +63,6 @@ def checkpoint_folder(folder: Path) -> Path | None:
 
 def load_checkpoint(model, folder: Path) -> dict:
     """Restores what :func:`save_checkpoint` wrote into ``model``; returns ``state.json``."""
-    from s3k.detector import load_torch_file
-
     state = json.loads((folder / "state.json").read_text())
     saved = load_torch_file(folder / "agent.pt", "agent checkpoint", ["policy", "actor_optimizer",
                                                                      "critic_optimizer"])

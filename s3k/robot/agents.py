@@ -19,10 +19,15 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import torch
+import torch as th
+import torch.nn.functional as F
 
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
+from s3k.messages import say
 from s3k.robot.agent_checkpoint import checkpoint_folder, load_checkpoint, save_checkpoint
+from s3k.robot.detect import RunDetector
 from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action
 
 AGENTS = ("keypoints", "beta_vae")
@@ -126,8 +131,6 @@ def td3_with_demonstrations():
     show and fails there; with the visited states relabelled it stays near the expert whatever the Q-term's
     weight.
     """
-    import torch as th
-    import torch.nn.functional as F
     from stable_baselines3 import TD3
     from stable_baselines3.common.utils import polyak_update
 
@@ -226,8 +229,6 @@ def make_env(cfg: AgentConfig, vae=None, detector=None, training: bool = True) -
     (stateless) may be shared between environments, else ``cfg.run``'s is loaded. Only a ``training`` one
     labels its steps with the expert's action (``cfg.expert_relabel``); an evaluation needs no labels."""
     if detector is None and cfg.run is not None:
-        from s3k.robot.detect import RunDetector
-
         detector = RunDetector(cfg.run, KEYPOINTS)
         if detector.image_size != (cfg.image_size, cfg.image_size):
             raise UserError(f"image_size (--image-size): run {cfg.run} reads {detector.image_size[0]} x "
@@ -307,7 +308,7 @@ def evaluate_agent(model, env: gym.Env, episodes: int, seed: int) -> dict:
 
 # ---------------------------------------------------------------------------------------------- training
 def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
-                log: Callable[[str], None] = print) -> dict:
+                log: Callable[[str], None] = say) -> dict:
     """Trains (or with ``resume`` continues) the agent of ``cfg`` in run folder ``out``.
 
     Returns the final evaluation: ``{"agent", "seed", "env_steps", "success_rate", "true_success_rate",
@@ -315,7 +316,6 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
     ``final``; its ``evaluations`` hold the curve, one every ``eval_every`` steps). ``cpu_seconds`` is the
     process CPU time of the run over all its resumptions, the beta-VAE's training included.
     """
-    import torch
     from stable_baselines3.common.noise import NormalActionNoise
 
     out = Path(out)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s3k.detector import Detector
+from s3k.detector import Detector, TwoPassDetector
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 
@@ -43,8 +43,6 @@ class RunDetector:
         """The size ``(W, H)`` to render at: a one-pass detector's input (no resampling needed); for a
         two-pass one, the size of the images it was trained on, since its refining pass cuts its crops from
         the rendered views."""
-        from s3k.detector import TwoPassDetector
-
         if isinstance(self.detector, TwoPassDetector) and self.detector.coarse.meta.source_image_size:
             W, H = self.detector.coarse.meta.source_image_size
             return int(W), int(H)

@@ -14,7 +14,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from s3k.data import DatasetWriter
 from s3k.errors import UserError
 from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action
 from s3k.sim.camera import project_points
@@ -33,9 +35,6 @@ def write_insertion_dataset(out: str | Path, labelled: int = 10, unlabelled: int
         camera_seed: the environment's camera rig (``InsertionEnv(camera_seed=...)``; agents use 0).
         noise: standard deviation of the Gaussian noise added to the demonstrator's actions (in [-1, 1]).
     """
-    from tqdm import tqdm
-
-    from s3k.data import DatasetWriter
 
     for name, n in (("labelled", labelled), ("unlabelled", unlabelled), ("test", test)):
         if n < 0:

@@ -35,7 +35,7 @@ import numpy as np
 from s3k.sim.camera import camera_from_model
 from s3k.sim.gripper import Gripper, gripper_xml
 from s3k.sim.render import MultiViewRenderer
-from s3k.sim.scene import CameraSampler, _quat_from_mat
+from s3k.sim.scene import CameraSampler, quat_from_mat
 
 CONTROL_HZ = 4.0
 EPISODE_SECONDS = 10.0
@@ -166,7 +166,7 @@ class InsertionEnv(gym.Env):
         eyes, mats = sampler.sample(np.random.default_rng([camera_seed, 0x1A5]), 4)
         for c, e, m in zip(self._cams, eyes, mats):
             self.model.cam_pos[c] = e
-            self.model.cam_quat[c] = _quat_from_mat(m)
+            self.model.cam_quat[c] = quat_from_mat(m)
         self._renderer: MultiViewRenderer | None = None
         self.substeps = int(round(1.0 / CONTROL_HZ / self.model.opt.timestep))
         self.max_steps = int(round(EPISODE_SECONDS * CONTROL_HZ))

@@ -15,15 +15,22 @@ import dataclasses
 import functools
 import multiprocessing as mp
 import os
+import shutil
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from s3k.data import DatasetWriter
 from s3k.data.cache import available_memory
 from s3k.errors import UserError
+from s3k.geometry import Cameras
+from s3k.inference.metrics import pixel_sizes_mm
+from s3k.outputs import check_replaceable, replace_folder
 from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, FrameSpec, Scene, SimFrame
 from s3k.sim.scenes import SCENES, make_scene
 
@@ -182,10 +189,6 @@ def scene_mm_per_px(scene: str, size: int, frames: int = 200, seed: int = 0, obj
     median over frames and cameras: what turns a pixel error of this scene at this size into millimetres on
     the object. The focal length grows with the image size and nothing else does, so it scales as 1 / size.
     """
-    import torch
-
-    from s3k.geometry import Cameras
-    from s3k.inference.metrics import pixel_sizes_mm
 
     cfg = SimulateConfig(scene, size=size, labelled=0, unlabelled=0, test=frames, seed=seed,
                          object_seed=object_seed)
@@ -273,8 +276,6 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
         A summary: ``{"path", "frames", "images", "seconds", "images_per_s"}``.
     """
 
-    from s3k.outputs import check_replaceable, replace_folder
-
     workers = default_workers() if workers is None else max(1, int(workers))
     out = check_replaceable(out, overwrite)
     check_memory(cfg, workers)
@@ -295,9 +296,6 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
 def _render_into(path: Path, cfg: SimulateConfig, specs: list[FrameSpec], workers: int, progress: bool,
                  png_compression: int, preview: bool) -> list[SimFrame]:
     """Render ``specs`` into the dataset folder ``path``; returns the frames of the preview."""
-    from tqdm import tqdm
-
-    from s3k.data import DatasetWriter
 
     scene_cls = SCENES[cfg.scene]
     cameras = [f"cam{i}" for i in range(4)]
@@ -362,7 +360,6 @@ def disk_needed(cfg: SimulateConfig) -> int:
 def check_disk(cfg: SimulateConfig, out: str | Path) -> None:
     """Refuse, before anything is rendered, a dataset whose images cannot fit on the disk that holds ``out``
     (nor the plan of its frames in memory), naming the count that makes it so."""
-    import shutil
 
     where = Path(out).absolute()
     while not where.exists() and where != where.parent:

@@ -29,7 +29,7 @@ import mujoco
 import numpy as np
 
 from s3k.sim.gripper import Gripper, gripper_xml, yaw_rotation
-from s3k.sim.scene import CameraSampler, FrameSpec, Scene, _fmt
+from s3k.sim.scene import CameraSampler, FrameSpec, Scene, floats
 
 NUM_ARRANGEMENTS = 10  # the arrangements of a rendered dataset
 TRAIN_ARRANGEMENTS = 7  # arrangements 0..6 train, 7..9 test; 10..12 only for grasp trials
@@ -89,17 +89,17 @@ class ToyShape:
 def toy_xml(name: str, shape: ToyShape, group: int = 0) -> str:
     """A toy body ``name`` (free joint) with hinged front legs and tail; keypoint sites ``name_kp{i}``."""
     s = shape
-    col = _fmt([*s.colour, 1.0])
-    dark = _fmt([0.05, 0.04, 0.04, 1.0])
+    col = floats([*s.colour, 1.0])
+    dark = floats([0.05, 0.04, 0.04, 1.0])
     g = f'group="{group}" friction="1.2 0.02 0.001" condim="4"'
     zc = s.body_radius
     head = s.head_centre()
     hr = s.head_radius
     eyes = "".join(
         f'<geom type="sphere" size="{0.18 * hr:.4g}" '
-        f'pos="{_fmt(head + hr * np.array([0.8, side * 0.35, 0.4]))}" '
+        f'pos="{floats(head + hr * np.array([0.8, side * 0.35, 0.4]))}" '
         f'rgba="{dark}" contype="0" conaffinity="0" group="{group}" mass="0"/>' for side in (1, -1))
-    nose = (f'<geom type="sphere" size="{0.2 * hr:.4g}" pos="{_fmt(head + hr * np.array([0.95, 0, 0]))}" '
+    nose = (f'<geom type="sphere" size="{0.2 * hr:.4g}" pos="{floats(head + hr * np.array([0.95, 0, 0]))}" '
             f'rgba="{dark}" contype="0" conaffinity="0" group="{group}" mass="0"/>')
     hind = "".join(
         f'<geom type="capsule" size="{s.leg_radius:.4g}" '
@@ -111,17 +111,17 @@ def toy_xml(name: str, shape: ToyShape, group: int = 0) -> str:
         hip, paw = shape.leg_line(side)
         sock_start = hip + 0.7 * (paw - hip)
         legs += f"""
-    <body name="{name}_{label}_leg" pos="{_fmt(hip)}">
-      <inertial pos="{_fmt((paw - hip) / 2)}" mass="0.012" diaginertia="6e-6 6e-6 1e-6"/>
+    <body name="{name}_{label}_leg" pos="{floats(hip)}">
+      <inertial pos="{floats((paw - hip) / 2)}" mass="0.012" diaginertia="6e-6 6e-6 1e-6"/>
       <joint name="{name}_{label}_leg" type="hinge"
-             axis="{_fmt([-math.sin(s.leg_splay) * side, math.cos(s.leg_splay), 0])}"
+             axis="{floats([-math.sin(s.leg_splay) * side, math.cos(s.leg_splay), 0])}"
              range="-80 4" stiffness="0.02" damping="0.01"/>
-      <geom type="capsule" size="{s.leg_radius:.4g}" fromto="0 0 0 {_fmt(sock_start - hip)}"
+      <geom type="capsule" size="{s.leg_radius:.4g}" fromto="0 0 0 {floats(sock_start - hip)}"
             rgba="{col}" {g}/>
       <geom type="capsule" size="{s.leg_radius * 1.05:.4g}"
-            fromto="{_fmt(sock_start - hip)} {_fmt(paw - hip)}"
-            rgba="{_fmt([*sock, 1.0])}" {g}/>
-      <site name="{name}_kp{2 if side == 1 else 3}" pos="{_fmt(paw - hip)}" size="0.003"/>
+            fromto="{floats(sock_start - hip)} {floats(paw - hip)}"
+            rgba="{floats([*sock, 1.0])}" {g}/>
+      <site name="{name}_kp{2 if side == 1 else 3}" pos="{floats(paw - hip)}" size="0.003"/>
     </body>"""
     root, tip = shape.tail_line()
     return f"""
@@ -130,23 +130,23 @@ def toy_xml(name: str, shape: ToyShape, group: int = 0) -> str:
   <inertial pos="0 0 {zc:.4g}" mass="0.12" diaginertia="1.2e-4 1.6e-4 1.6e-4"/>
   <geom type="capsule" size="{zc:.4g}" fromto="{-s.body_half:.4g} 0 {zc:.4g} {s.body_half:.4g} 0 {zc:.4g}"
         rgba="{col}" {g}/>
-  <geom type="sphere" size="{hr:.4g}" pos="{_fmt(head)}" rgba="{col}" {g}/>
+  <geom type="sphere" size="{hr:.4g}" pos="{floats(head)}" rgba="{col}" {g}/>
   {eyes}{nose}
   <geom type="ellipsoid" size="{0.35 * hr:.4g} {0.15 * hr:.4g} {0.4 * hr:.4g}"
-        pos="{_fmt(head + hr * np.array([-0.2, 0.8, 0.75]))}" rgba="{col}" contype="0" conaffinity="0"
+        pos="{floats(head + hr * np.array([-0.2, 0.8, 0.75]))}" rgba="{col}" contype="0" conaffinity="0"
         group="{group}" mass="0"/>
   <geom type="ellipsoid" size="{0.35 * hr:.4g} {0.15 * hr:.4g} {0.4 * hr:.4g}"
-        pos="{_fmt(head + hr * np.array([-0.2, -0.8, 0.75]))}" rgba="{col}" contype="0" conaffinity="0"
+        pos="{floats(head + hr * np.array([-0.2, -0.8, 0.75]))}" rgba="{col}" contype="0" conaffinity="0"
         group="{group}" mass="0"/>
   {hind}
-  <site name="{name}_kp0" pos="{_fmt(head)}" size="0.003"/>
+  <site name="{name}_kp0" pos="{floats(head)}" size="0.003"/>
   <site name="{name}_kp1" pos="0 0 {zc:.4g}" size="0.003"/>
   {legs}
-  <body name="{name}_tail" pos="{_fmt(root)}">
-    <inertial pos="{_fmt((tip - root) / 2)}" mass="0.005" diaginertia="2e-6 2e-6 1e-7"/>
+  <body name="{name}_tail" pos="{floats(root)}">
+    <inertial pos="{floats((tip - root) / 2)}" mass="0.005" diaginertia="2e-6 2e-6 1e-7"/>
     <joint name="{name}_tail" type="hinge" axis="0 0 1" range="-40 40" stiffness="0.01" damping="0.005"/>
-    <geom type="capsule" size="0.007" fromto="0 0 0 {_fmt(tip - root)}" rgba="{col}" {g}/>
-    <site name="{name}_kp4" pos="{_fmt(tip - root)}" size="0.003"/>
+    <geom type="capsule" size="0.007" fromto="0 0 0 {floats(tip - root)}" rgba="{col}" {g}/>
+    <site name="{name}_kp4" pos="{floats(tip - root)}" size="0.003"/>
   </body>
 </body>"""
 

@@ -118,17 +118,17 @@ class CameraSampler:
         return np.array(eyes), np.array(mats)
 
 
-def _fmt(a) -> str:
+def floats(a) -> str:
     return " ".join(f"{float(x):.6g}" for x in np.ravel(a))
 
 
-def _quat_from_mat(mat: np.ndarray) -> np.ndarray:
+def quat_from_mat(mat: np.ndarray) -> np.ndarray:
     q = np.empty(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(mat, dtype=np.float64).ravel())
     return q
 
 
-def _rot(axis: str, angle: float) -> np.ndarray:
+def axis_rotation(axis: str, angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     if axis == "x":
         return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
@@ -140,11 +140,11 @@ def _rot(axis: str, angle: float) -> np.ndarray:
 # Orientations that put each face of a box down on the table: (rotation, index of the vertical axis).
 _RESTING = {
     "+z up": (np.eye(3), 2),
-    "-z up": (_rot("x", np.pi), 2),
-    "+x down": (_rot("y", np.pi / 2), 0),
-    "-x down": (_rot("y", -np.pi / 2), 0),
-    "+y down": (_rot("x", -np.pi / 2), 1),
-    "-y down": (_rot("x", np.pi / 2), 1),
+    "-z up": (axis_rotation("x", np.pi), 2),
+    "+x down": (axis_rotation("y", np.pi / 2), 0),
+    "-x down": (axis_rotation("y", -np.pi / 2), 0),
+    "+y down": (axis_rotation("x", -np.pi / 2), 1),
+    "-y down": (axis_rotation("x", np.pi / 2), 1),
 }
 
 
@@ -159,7 +159,7 @@ def resting_box_pose(
     names = list(_RESTING)
     name = names[int(rng.choice(len(names), p=np.asarray(p_faces) / np.sum(p_faces)))]
     base, axis = _RESTING[name]
-    rot = _rot("z", rng.uniform(0, 2 * np.pi)) @ base
+    rot = axis_rotation("z", rng.uniform(0, 2 * np.pi)) @ base
     return rot, float(half[axis]), name
 
 
@@ -302,12 +302,12 @@ class Scene:
         """Places the cameras: positions (C, 3) and MuJoCo orientations (C, 3, 3) in world coordinates."""
         for i, cam in enumerate(self.camera_ids):
             self.model.cam_pos[cam] = eyes[i]
-            self.model.cam_quat[cam] = _quat_from_mat(xmats[i])
+            self.model.cam_quat[cam] = quat_from_mat(xmats[i])
 
     def set_mocap(self, body: int, pos: np.ndarray, rot: np.ndarray) -> None:
         mid = int(self.model.body_mocapid[body])
         self.data.mocap_pos[mid] = pos
-        self.data.mocap_quat[mid] = _quat_from_mat(rot)
+        self.data.mocap_quat[mid] = quat_from_mat(rot)
 
     def sample_environment(self, rng: np.random.Generator) -> dict:
         """Random table texture and tint, key light direction and colour, ambient and headlight levels."""

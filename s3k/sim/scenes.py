@@ -20,9 +20,9 @@ from s3k.sim.scene import (
     NUM_INSTANCES,
     CameraSampler,
     Scene,
-    _fmt,
-    _quat_from_mat,
-    _rot,
+    axis_rotation,
+    floats,
+    quat_from_mat,
     resting_box_pose,
 )
 
@@ -44,7 +44,7 @@ class BoxScene(Scene):
         self.box_half = half
         assets = self._texture("box", textures.box_faces(rng, BOX_DIMS, 128), cube=True)
         assets += '<material name="box" texture="box" specular="0.2" shininess="0.3"/>'
-        body = (f'<body name="box" mocap="true"><geom name="box" type="box" size="{_fmt(half)}" '
+        body = (f'<body name="box" mocap="true"><geom name="box" type="box" size="{floats(half)}" '
                 f'material="box" contype="0" conaffinity="0"/></body>')
         return assets, body
 
@@ -63,7 +63,7 @@ class BoxScene(Scene):
         a = rng.uniform(0, 2 * np.pi)
         pos = np.array([r * math.cos(a), r * math.sin(a), z])
         self.place_box(pos, rot)
-        return {"box_pos": pos.tolist(), "box_quat": _quat_from_mat(rot).tolist(), "resting_face": face}
+        return {"box_pos": pos.tolist(), "box_quat": quat_from_mat(rot).tolist(), "resting_face": face}
 
     def sample_objects(self, spec, rng):
         return self.sample_box(rng)
@@ -170,7 +170,7 @@ class DistractorScene(BoxScene):
                 rot, z, _ = resting_box_pose(rng, half, (0.4, 0.4, 0.05, 0.05, 0.05, 0.05))
                 radius = float(np.linalg.norm(half[:2])) * 0.8
             else:
-                rot, z = _rot("z", rng.uniform(0, 2 * np.pi)), half[2]
+                rot, z = axis_rotation("z", rng.uniform(0, 2 * np.pi)), half[2]
                 radius = half[0]
             # Rejection-sample a spot near the box that does not overlap what is already placed.
             for _ in range(50):
@@ -274,8 +274,9 @@ class CategoryScene(Scene):
                            else np.r_[tex[-8:].reshape(-1, 3).mean(0) / 255, 1.0])
             line = shape.handle_centre_line()
             caps = "".join(
-                f'<geom name="mug{i}_handle{j}" type="capsule" fromto="{_fmt(line[j])} {_fmt(line[j + 1])}" '
-                f'size="{shape.handle_tube:.5g}" rgba="{_fmt(handle_rgba)}" contype="0" conaffinity="0"/>'
+                f'<geom name="mug{i}_handle{j}" type="capsule" '
+                f'fromto="{floats(line[j])} {floats(line[j + 1])}" '
+                f'size="{shape.handle_tube:.5g}" rgba="{floats(handle_rgba)}" contype="0" conaffinity="0"/>'
                 for j in range(len(line) - 1)
             )
             bodies += (f'<body name="mug{i}" mocap="true" pos="0 0 -1"><geom name="mug{i}" type="mesh" '
@@ -306,9 +307,9 @@ class CategoryScene(Scene):
         r = self.placement_radius * math.sqrt(rng.uniform())
         a = rng.uniform(0, 2 * np.pi)
         pos = np.array([r * math.cos(a), r * math.sin(a), 0.0])
-        rot = _rot("z", rng.uniform(0, 2 * np.pi))
+        rot = axis_rotation("z", rng.uniform(0, 2 * np.pi))
         self.set_instance(spec.instance, pos, rot)
-        return {"object_pos": pos.tolist(), "object_quat": _quat_from_mat(rot).tolist()}
+        return {"object_pos": pos.tolist(), "object_quat": quat_from_mat(rot).tolist()}
 
     def keypoints_world(self):
         b = self._mug_bodies[self.instance]

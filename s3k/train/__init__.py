@@ -10,7 +10,9 @@ network in one forward pass, and give
 
 ``alpha(step)`` is 0 for ``warmup_steps`` labels-only steps, then rises linearly to ``alpha`` over
 ``ramp_steps`` (``TrainConfig.alpha_at``): from a random network the self-supervised term would lock in a
-collapse (every keypoint at one confident 3D point), so the labels first shape the heatmaps. ``--no-unsup``
+collapse (every keypoint at one confident 3D point), so the labels first shape the heatmaps. When warm-up and
+ramp together outlast ``steps`` both shrink in proportion to end at the last step
+(``TrainConfig.unsup_schedule``); the log names the step where the term switches on. ``--no-unsup``
 trains the labels-only baseline: same network, same labels, no unlabelled batch.
 
 Robustness:

@@ -18,20 +18,24 @@ from typing import Any
 
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from s3k.augment import NoiseBank
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
+from s3k.data.protocol import DatasetLike
 from s3k.detector import (
     CHECKPOINT_FILE,
     MODEL_FILE,
     PROGRESS_FILE,
     TENSORBOARD_DIR,
     DetectorMeta,
+    pick_device,
     save_model_file,
     training_precision,
 )
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
 from s3k.model import UNet, UNetConfig
 from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
@@ -46,12 +50,19 @@ from s3k.train.distributed import (
     shard,
     wrap_model,
 )
-from s3k.train.run_setup import _meta, _open_data, _reference_layout, _setup_logging, _start_run, data_path
+from s3k.train.run_setup import (
+    data_path,
+    detector_meta,
+    open_data,
+    reference_layout,
+    setup_logging,
+    start_run,
+)
 from s3k.train.sampling import draw_batch, prepare
-from s3k.train.step import _all_finite, _lr_lambda, compute_losses
+from s3k.train.step import all_finite, compute_losses, lr_lambda
 from s3k.train.validation import labelled_distances, layout_size, validate
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
 
 @dataclass
@@ -92,7 +103,7 @@ class _Loop:
         self.model = wrap_model(self.net, device, info)
         self.gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
-        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout-tol holds the pseudo-labels to
@@ -139,7 +150,7 @@ class _Loop:
         rngs = gather(ckpt.rng_state(self.gen), self.info)
         if not self.info.main:
             return
-        if not _all_finite(self.net):
+        if not all_finite(self.net):
             log.error("step %d: model holds non-finite values; checkpoint not written", self.step)
             return
         ckpt.save_checkpoint(self.out / CHECKPOINT_FILE, step=self.step, model=self.net.state_dict(),
@@ -211,8 +222,6 @@ class _Monitor:
 
             self.writer = SummaryWriter(str(out / TENSORBOARD_DIR))
             if cfg.progress:
-                from tqdm import tqdm
-
                 self.bar = tqdm(total=cfg.steps, initial=step, desc="S3K" if cfg.unsup else "labels only",
                                 dynamic_ncols=True, smoothing=0.05)
         self.t_data = self.t_total = 0.0
@@ -231,8 +240,6 @@ class _Monitor:
             self.writer.add_scalar("time/step_s", self.t_total / self.n_timed, step)
             self.writer.add_scalar("time/data_fraction", self.t_data / max(self.t_total, 1e-12), step)
         if self.progress_file is not None and (step % self.cfg.log_every == 0 or step == self.cfg.steps):
-            from s3k.fileio import atomic_write_json
-
             atomic_write_json({"step": step, "steps": self.cfg.steps,
                                "seconds": time.perf_counter() - self.started}, self.progress_file)
         if self.bar is not None:
@@ -255,7 +262,21 @@ class _Monitor:
         return timing
 
 
-def train(data: str | Path | Any, out: str | Path, cfg: TrainConfig, resume: bool = False, callback=None, *,
+def _log_unsup_schedule(cfg: TrainConfig) -> None:
+    """Say at which step the self-supervised term switches on and when it reaches its weight."""
+    if not cfg.unsup:
+        return
+    warmup, ramp = cfg.unsup_schedule()
+    scaled = ("" if (warmup, ramp) == (cfg.warmup_steps, cfg.ramp_steps) else
+              f" (--warmup-steps {cfg.warmup_steps} and --ramp-steps {cfg.ramp_steps} shrunk in proportion "
+              f"to fit the {cfg.steps} steps)")
+    # steps counted from 1, as the progress and TensorBoard count them
+    log.info("self-supervised term: switches on at step %d, alpha reaches %g at step %d%s", warmup + 1,
+             cfg.alpha, warmup + max(ramp, 1), scaled)
+
+
+def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, resume: bool = False,
+          callback=None, *,
           overwrite: bool = False, command: str | None = None) -> TrainResult:
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
 
@@ -287,10 +308,8 @@ def train(data: str | Path | Any, out: str | Path, cfg: TrainConfig, resume: boo
         finish_distributed(info)
 
 
-def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool, callback,
-           command: str | None, info: DistInfo) -> TrainResult:
-    from s3k.detector import pick_device
-
+def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool,
+           callback, command: str | None, info: DistInfo) -> TrainResult:
     data = data_path(source)
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":
@@ -299,10 +318,10 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
         torch.set_num_threads(cfg.threads)
     if info.main:
         run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
-    d = _open_data(source, cfg)
+    d = open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
-    layout = _reference_layout(data, distances, cfg)
-    meta = _meta(d, cfg, distances)
+    layout = reference_layout(data, distances, cfg)
+    meta = detector_meta(d, cfg, distances)
     # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
     t0 = time.perf_counter()
     lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
@@ -313,9 +332,9 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
             if store is not None:
                 store.to(device)
     t_load = time.perf_counter() - t0
-    state = _start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
+    state = start_run(data, out, cfg, d, meta, resume, overwrite, command, info)
     if not info.main:
-        _setup_logging(out, False)
+        setup_logging(out, False)
     loop = _Loop(cfg, meta, device, info, out, layout)
     if state is not None:
         loop.restore(state, out / CHECKPOINT_FILE)
@@ -332,6 +351,7 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
              device, info.world, loop.precision, t_load, lab_store.preloaded)
     log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
+    _log_unsup_schedule(cfg)
 
     monitor = _Monitor(cfg, out, info, loop.step)
     aug = cfg.augmentation if cfg.augment else None
@@ -356,7 +376,7 @@ def _train(source: Any, out: Path, cfg: TrainConfig, resume: bool, overwrite: bo
         if callback is not None:
             callback(step, terms)
     broadcast_buffers(loop.net, info)
-    if status == "done" and not _all_finite(loop.net):  # e.g. a learning rate too large for float32
+    if status == "done" and not all_finite(loop.net):  # e.g. a learning rate too large for float32
         log.error("training ended at step %d with non-finite weights; no model was written", loop.step)
         status = "nonfinite"
     timing = monitor.close(status, loop.step)

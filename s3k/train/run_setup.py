@@ -12,10 +12,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from s3k.budget import check_fits
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.data.frames import model_image_size, open_dataset
+from s3k.data.protocol import DatasetLike
 from s3k.detector import CHECKPOINT_FILE, LOG_FILE, DetectorMeta
 from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
@@ -24,7 +27,7 @@ from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import DistInfo
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -33,18 +36,19 @@ log = logging.getLogger("s3k.train")
 
 class _TqdmHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
-        from tqdm import tqdm
-
         with contextlib.suppress(Exception):
             tqdm.write(self.format(record))
 
 
-def _setup_logging(run_dir: Path, main: bool) -> None:
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    for h in list(log.handlers):
+def setup_logging(run_dir: Path, main: bool) -> None:
+    """The training room's logger (``s3k.train``, the parent of its modules' loggers) writes to the run's
+    log file and the console while the run goes, and nowhere else."""
+    room = logging.getLogger("s3k.train")
+    room.setLevel(logging.INFO)
+    room.propagate = False
+    for h in list(room.handlers):
         if getattr(h, "_s3k", False):
-            log.removeHandler(h)
+            room.removeHandler(h)
             h.close()
     handlers: list[logging.Handler] = [logging.NullHandler()]
     if main:
@@ -55,7 +59,7 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
         handlers = [fh, th]
     for h in handlers:
         h._s3k = True  # type: ignore[attr-defined]
-        log.addHandler(h)
+        room.addHandler(h)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -66,22 +70,26 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
 class _Data:
     """The dataset opened once at the network's input size, and the frames each role uses."""
 
-    ds: Any
+    ds: DatasetLike
     source_size: tuple[int, int]
     labelled: np.ndarray
     unlabelled: np.ndarray
     val: np.ndarray
 
 
-def data_path(data: Any) -> Path:
+def data_path(data: str | os.PathLike | DatasetLike) -> Path:
     """The folder of ``data``: a dataset folder, or the source folder of a dataset held in memory."""
     return Path(data) if isinstance(data, (str, os.PathLike)) else Path(data.path)
 
 
-def _open_at_network_size(data: Any, cfg: TrainConfig) -> tuple[Any, tuple[int, int]]:
+def _open_at_network_size(data: str | os.PathLike | DatasetLike,
+                          cfg: TrainConfig) -> tuple[DatasetLike, tuple[int, int]]:
     """``data`` opened at the network's input size, and its own image size."""
     ds = open_dataset(data)
     source_size = (int(ds.image_size[0]), int(ds.image_size[1]))
+    check_fits(cfg, cameras=len(ds.cameras), keypoints=len(ds.keypoints), source_size=source_size,
+               frames=[len(ds.frames(split)) for split in ("labelled", "unlabelled", "test")],
+               where=str(data_path(data)))  # before any frame is decoded or file written
     return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
 
 
@@ -97,7 +105,7 @@ def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dic
     return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
 
 
-def _open_data(data: Any, cfg: TrainConfig) -> _Data:
+def open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
     """Open ``data`` at the network's size; refuse a dataset this configuration cannot train on."""
     ds, source_size = _open_at_network_size(data, cfg)
     labelled = np.asarray(ds.frames("labelled"))
@@ -114,7 +122,8 @@ def _open_data(data: Any, cfg: TrainConfig) -> _Data:
     return _Data(ds, source_size, labelled, unlabelled, _validation_frames(ds, cfg, labelled, unlabelled))
 
 
-def _validation_frames(ds: Any, cfg: TrainConfig, labelled: np.ndarray, unlabelled: np.ndarray) -> np.ndarray:
+def _validation_frames(ds: DatasetLike, cfg: TrainConfig, labelled: np.ndarray,
+                       unlabelled: np.ndarray) -> np.ndarray:
     """``--val-frames`` frames spread evenly over ``--val-split`` (over the unlabelled frames, else the
     labelled ones, when that split is empty)."""
     val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
@@ -124,7 +133,7 @@ def _validation_frames(ds: Any, cfg: TrainConfig, labelled: np.ndarray, unlabell
     return val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
 
 
-def frames_used(ds: Any, cfg: TrainConfig) -> np.ndarray:
+def frames_used(ds: DatasetLike, cfg: TrainConfig) -> np.ndarray:
     """The frames a training of ``cfg`` on ``ds`` reads, in ``ds``'s order: the labelled ones, the unlabelled
     ones when the self-supervised term is on, and the validation frames."""
     labelled, unlabelled = np.asarray(ds.frames("labelled")), np.asarray(ds.frames("unlabelled"))
@@ -133,7 +142,7 @@ def frames_used(ds: Any, cfg: TrainConfig) -> np.ndarray:
     return everything[np.isin(everything, np.concatenate(used))]
 
 
-def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
+def reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
     """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout-tol``
     holds pseudo-labels to them (None when off)."""
     if not (cfg.unsup and cfg.layout_tol > 0):
@@ -145,11 +154,11 @@ def _reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> tor
     return layout
 
 
-def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
+def detector_meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     """What inference needs; a rigid object's labelled layout (``--layout-tol``) goes into the read-out."""
     rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
-        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=tuple(d.ds.image_size),
+        keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=d.ds.image_size,
         stride=cfg.stride, sigma=cfg.sigma_px(),
         model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
                          norm=cfg.norm).to_dict(),
@@ -159,7 +168,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     )
 
 
-def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
+def start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorMeta, resume: bool,
                overwrite: bool, command: str | None, info: DistInfo) -> dict[str, Any] | None:
     """Check the run folder (and the run being resumed) then write its configuration; returns the
     checkpoint to resume from, or None. Nothing is written unless every check passes."""
@@ -172,7 +181,7 @@ def _start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: Detector
     if overwrite:
         run_folder.clear_run(out)
     out.mkdir(parents=True, exist_ok=True)
-    _setup_logging(out, info.main)
+    setup_logging(out, info.main)
     run_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
     if changed:
         log.info("resumed with changed settings: %s",

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import nn
 
+from s3k.choices import Arithmetic
 from s3k.config import TrainConfig
 from s3k.detector import autocast
 from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
@@ -15,7 +16,7 @@ from s3k.readout import ReadoutConfig
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,
                    weight_decay_model: nn.Module, rule: ReadoutConfig,
-                   teacher: nn.Module | None = None, precision: str = "float32"
+                   teacher: nn.Module | None = None, precision: Arithmetic = "float32"
                    ) -> tuple[torch.Tensor, dict[str, float]]:
     """The training loss of one step (one forward pass over labelled and unlabelled images).
 
@@ -72,7 +73,7 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
     return loss, terms
 
 
-def _lr_lambda(cfg: TrainConfig):
+def lr_lambda(cfg: TrainConfig):
     def f(step: int) -> float:
         frac = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
         return cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
@@ -80,6 +81,6 @@ def _lr_lambda(cfg: TrainConfig):
     return f
 
 
-def _all_finite(module: nn.Module) -> bool:
+def all_finite(module: nn.Module) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in list(module.parameters()) + list(module.buffers())
                if t.is_floating_point())

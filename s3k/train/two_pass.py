@@ -30,16 +30,34 @@ the crops at training (labelled and unlabelled frames) and at inference (``s3k e
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from s3k.data import Dataset
+from s3k.data.cache import available_memory
+from s3k.data.crops import CropCutter, cut_crops
+from s3k.data.frames import FrameStore
+from s3k.data.protocol import DatasetLike
+from s3k.data.tracks_csv import csv_rows, read_csv, rows_points, write_csv
+from s3k.detector import Detector, read_run_config, read_two_pass
 from s3k.detector.crop_rule import CropRule, extent_middle, is_two_pass, write_two_pass
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
+from s3k.geometry import triangulate_labels
+from s3k.inference.predict import detect_store, split_frames
+from s3k.messages import say
+from s3k.outputs import check_run_folder
+from s3k.ranges import Range
+from s3k.train.loop import train
+from s3k.train.run_setup import check_trained_as, frames_used
+from s3k.train.two_pass_start import OPTIONS_FILE, crop_extent_warning, is_stub, write_options
 
 __all__ = ["CPU_FILE", "ESTIMATES_FILE", "REFERENCE_CROP", "coarse_estimates", "crop_rule_from_labels",
            "estimates_and_crops", "read_cpu", "refining_config", "train_two_pass", "training_crops",
@@ -49,7 +67,7 @@ ESTIMATES_FILE = "estimates.csv"  # the coarse pass's 3D keypoints of the frames
 CPU_FILE = "cpu.json"  # CPU seconds per stage ("coarse", "crops", "fine"), summed over a run's attempts
 
 
-def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
+def crop_rule_from_labels(dataset: DatasetLike, size: int, margin: float = 0.3) -> CropRule:
     """The run's crop rule from the labelled frames' triangulated labels (never from ground truth).
 
     ``extent = 2 * r * (1 + margin)`` with ``r`` the largest distance of a labelled keypoint from the middle
@@ -59,8 +77,6 @@ def crop_rule_from_labels(dataset, size: int, margin: float = 0.3) -> CropRule:
     Raises:
         UserError: no labelled frame has two triangulated keypoints.
     """
-    from s3k.geometry import triangulate_labels
-
     ids = dataset.frames("labelled")
     radius = 0.0
     if len(ids):
@@ -84,12 +100,6 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
                      batch_size: int = 32) -> dict[int, np.ndarray]:
     """The coarse pass's 3D keypoints of every frame of ``data`` (:class:`s3k.detector.Detector` on the
     frames at the dataset's resolution, on ``device``), written once to ``out_csv`` and read back."""
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
-    from s3k.data.tracks_csv import csv_rows, read_csv, write_csv
-    from s3k.detector import Detector, read_run_config
-    from s3k.inference.predict import detect_store, split_frames
-
     if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
         return read_csv(out_csv, read_run_config(run_dir)["meta"]["keypoints"])
     detector = Detector.load(run_dir, device)
@@ -103,18 +113,13 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     return read_csv(out_csv, detector.keypoints)
 
 
-def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device: str | torch.device = "cpu",
+def estimates_and_crops(run_dir: Path, ds: DatasetLike, out_csv: Path, rule: CropRule,
+                        device: str | torch.device = "cpu",
                         batch_size: int = 32, frames: np.ndarray | None = None):
     """The coarse pass's estimates of every frame of ``ds``, or of ``frames`` (written to ``out_csv``), and
     the crops around them (:func:`training_crops`), each frame decoded once for both. The crops are cut
     around the estimates as the file holds them, so that a resumed run, which cuts them again from the file,
     gets the same crops of the same frames."""
-    from s3k.data.crops import CropCutter
-    from s3k.data.frames import FrameStore
-    from s3k.data.tracks_csv import csv_rows, rows_points, write_csv
-    from s3k.detector import Detector
-    from s3k.inference.predict import detect_store, split_frames
-
     description = f"crops of {rule.extent:g} {ds.units} around the coarse pass's estimates"
     if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
         estimates = coarse_estimates(run_dir, ds.path, out_csv)
@@ -145,8 +150,6 @@ def training_crops(data, estimates: Mapping[int, np.ndarray], rule: CropRule, sp
     """The crops of ``data`` (of its ``frames`` when given) around ``estimates`` by ``rule``, in memory (a
     :class:`s3k.data.crops.CropDataset`), each frame cut around the crop centre of its estimates
     (:func:`s3k.detector.crop_centres`, the rule the detector applies at inference)."""
-    from s3k.data.crops import cut_crops
-
     return cut_crops(data, _centres(estimates, data), rule.extent, rule.size, fallback=True, splits=splits,
                      frames=frames, description=description)
 
@@ -195,7 +198,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                    coarse_stride: int | None = None, coarse_lr: float | None = None,
                    crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
-                   keep_crops: bool = False, log=print) -> dict[str, Any]:
+                   keep_crops: bool = False, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
     complete, so ``resume`` continues a killed run at the stage where it stopped.
 
@@ -223,13 +226,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         ``{"coarse": ..., "fine": ..., "rule": CropRule}``, a pass's :class:`s3k.train.TrainResult` or None
         when it was complete before this call.
     """
-    import shutil
-
-    from s3k.outputs import check_run_folder
-    from s3k.ranges import Range
-    from s3k.train.two_pass_start import OPTIONS_FILE, is_stub, write_options
-
-    data, out = Path(data), Path(out)
+    data, out, log = Path(data), Path(out), log or say
     # every option of both passes is checked before the coarse pass trains
     for value, bounds, option in ((coarse_size, Range(ge=16), "--coarse-size"), (crop_size, Range(ge=16),
                                   "--crop-size"), (margin, Range(ge=0), "--crop-margin"),
@@ -272,11 +269,6 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
                     coarse_rotation: float | None, crop_size: int, margin: float, extent: float | None,
                     command: str | None, log, keep_crops: bool = False,
                     coarse_stride: int | None = None, coarse_lr: float | None = None) -> dict[str, Any]:
-    from s3k.data import Dataset
-    from s3k.train import train
-    from s3k.train.run_setup import frames_used
-    from s3k.train.two_pass_start import crop_extent_warning
-
     ds = Dataset.open(data, cache="none")
     rule = (CropRule(float(extent), int(crop_size), 0.0) if extent is not None
             else crop_rule_from_labels(ds, crop_size, margin))
@@ -319,12 +311,10 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
     return results
 
 
-def _hold_frames(ds, cfg, log) -> bool:
+def _hold_frames(ds: Dataset, cfg, log) -> bool:
     """Keep the frames the coarse pass decodes in memory for the crops (:meth:`s3k.data.Dataset.hold_frames`)
     when they take at most half the memory available now and ``--preload-mb`` is not 0; otherwise the crops
     decode them again."""
-    from s3k.data.cache import available_memory
-
     have = available_memory()
     if cfg.preload_mb == 0 or have is None or ds.stored_mib > have / 2**20 / 2:
         log(f"the crops will decode the frames again: the {ds.stored_mib:.0f} MiB of full-resolution frames "
@@ -340,8 +330,6 @@ def _check_rule(out: Path, rule: CropRule) -> None:
     """Refuse a crop rule other than the one a complete run recorded, or a crop size other than the one its
     refining pass was started at (another extent there changes the crops' calibration, which ``--resume``
     refuses)."""
-    from s3k.detector import read_run_config, read_two_pass
-
     if is_two_pass(out):
         done, _, _ = read_two_pass(out)
         extent, size = done.extent, done.size
@@ -387,8 +375,6 @@ class _StageClock:
     its last tick is kept. Only the main process of a distributed run writes."""
 
     def __init__(self, run_dir: Path, stage: str, every: int = 50) -> None:
-        import os
-
         self.path, self.stage, self.every = run_dir / CPU_FILE, stage, every
         self.writes = os.environ.get("RANK", "0") == "0"
 
@@ -404,7 +390,6 @@ class _StageClock:
     def _write(self) -> None:
         if not self.writes:
             return
-        from s3k.fileio import atomic_write_json
 
         spent = read_cpu(self.path.parent)
         spent[self.stage] = self.before + time.process_time() - self.started
@@ -418,8 +403,6 @@ def _train_pass(train, data, run: Path, cfg, command, log, what: str, clock: _St
     """Train one pass unless its model exists (then None, after checking it was trained as this call would
     train it); resume a pass whose folder exists."""
     if (run / "model.pt").is_file():
-        from s3k.train import check_trained_as
-
         try:
             changed = check_trained_as(data, run, cfg)
             if "steps" in changed:  # a finished pass is not continued: it would be kept at its steps

@@ -16,8 +16,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
+from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_json
+from s3k.geometry import triangulate_labels
+from s3k.geometry.warp import metric_crop_boxes
 
 OPTIONS_FILE = "two_pass_options.json"
 # the defaults of s3k.train.two_pass.train_two_pass (crop_size: s3k.train.two_pass.REFERENCE_CROP)
@@ -36,8 +41,6 @@ def is_stub(run_dir: str | Path) -> bool:
 
 def write_options(run_dir: str | Path, cfg, options: dict[str, Any]) -> None:
     """Record ``cfg`` (:class:`s3k.config.TrainConfig`) and the two-pass ``options`` in ``run_dir``."""
-    from s3k.fileio import atomic_write_json
-
     unknown = set(options) - set(DEFAULTS)
     if unknown:
         raise ValueError(f"unknown two-pass options {sorted(unknown)}")
@@ -99,14 +102,10 @@ def _from_passes(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]] | None:
     return config, options
 
 
-def crop_extent_warning(dataset, extent: float, crop_size: int, coarse_size: int) -> str | None:
+def crop_extent_warning(dataset: DatasetLike, extent: float, crop_size: int, coarse_size: int) -> str | None:
     """A warning when crops of side ``extent`` (world units), centred where the labelled keypoints lie, are at
     least as large as the images in most cameras: the refining pass then sees the whole image, at no finer a
     scale than the coarse pass. None otherwise, or when no labelled keypoint can be triangulated."""
-    import torch
-
-    from s3k.geometry import triangulate_labels
-    from s3k.geometry.warp import metric_crop_boxes
 
     ids = dataset.frames("labelled")
     if not len(ids):

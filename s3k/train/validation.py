@@ -18,10 +18,14 @@ from torch import nn
 
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
-from s3k.detector import DetectorMeta
+from s3k.data.protocol import DatasetLike
+from s3k.detector import DetectorMeta, OnePassDetector
+from s3k.draw import draw_views
 from s3k.geometry import triangulate_labels
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.predict import detect_store
 
-log = logging.getLogger("s3k.train")
+log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
 
 def mean_pairwise_distance(X: torch.Tensor, valid: torch.Tensor) -> float:
@@ -40,7 +44,7 @@ def mean_pairwise_distance(X: torch.Tensor, valid: torch.Tensor) -> float:
     return float(d[pair].mean()) if pair.any() else float("nan")
 
 
-def _labelled_points(dataset: Any, frame_ids: np.ndarray, chunk: int = 256):
+def _labelled_points(dataset: DatasetLike, frame_ids: np.ndarray, chunk: int = 256):
     """``(X (B, K, 3), valid (B, K))`` per chunk of ``frame_ids``: the keypoints triangulated from the labels.
 
     Reads labels and calibration only (no image); a keypoint labelled in >= 2 cameras is triangulated with
@@ -64,13 +68,13 @@ def layout_size(distances: torch.Tensor) -> float:
     return float(upper.mean()) if len(upper) else float("nan")
 
 
-def labelled_layout(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> float:
+def labelled_layout(dataset: DatasetLike, frame_ids: np.ndarray, chunk: int = 256) -> float:
     """The size of the layout triangulated from the labels (:func:`layout_size` of
     :func:`labelled_distances`)."""
     return layout_size(labelled_distances(dataset, frame_ids, chunk))
 
 
-def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) -> torch.Tensor:
+def labelled_distances(dataset: DatasetLike, frame_ids: np.ndarray, chunk: int = 256) -> torch.Tensor:
     """``(K, K)`` float64: for every pair of keypoints the median over the labelled frames of their distance,
     triangulated from the labels (NaN for a pair no frame has both of, and on the diagonal); the rigid layout
     that ``--layout-tol`` holds pseudo-labels to."""
@@ -90,11 +94,6 @@ def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) ->
 def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
              ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
     """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
-    from s3k.detector import OnePassDetector
-    from s3k.draw import draw_views
-    from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.predict import detect_store
-
     record: dict[str, Any] = {"step": step}
     if store is None or len(store) == 0:
         return record

@@ -12,12 +12,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
 from s3k.data.rig import Rig
 from s3k.errors import UserError
 from s3k.geometry import Cameras
+from s3k.geometry.rotations import rodrigues_to_matrix
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -88,6 +90,23 @@ def _load_toml(path: Path, what: str) -> dict:
         raise UserError(f"{path}: not {what} (not valid TOML: {exc})") from None
 
 
+def _calibration_units(path: Path, metadata: dict) -> str:
+    """The world unit of an anipose calibration: ``[metadata] units``, else that of the board's square length
+    (``[metadata]``, a ``board.toml`` beside it, or the anipose project's ``config.toml``)."""
+    if isinstance(metadata.get("units"), str):
+        return metadata["units"]
+    square = metadata.get("square_length")
+    board = path.parent / "board.toml"
+    if square is None and board.is_file():
+        square = _load_toml(board, "a board.toml").get("square_length")
+    if square is None:
+        square = _project_square_length(path)
+    try:
+        return _units_from_board(float(square) if square is not None else None)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
+
+
 def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
     """Read an anipose ``calibration.toml``.
 
@@ -153,22 +172,8 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         rvecs.append(_rotation(path, section, table))
         ts.append(_numbers(path, section, table, "translation", (3,)))
         sizes.append(size.astype(np.int64))
-    if units is None and isinstance(metadata.get("units"), str):
-        units = metadata["units"]
-    if units is None:
-        square = metadata.get("square_length")
-        board = path.parent / "board.toml"
-        if square is None and board.is_file():
-            square = _load_toml(board, "a board.toml").get("square_length")
-        if square is None:
-            square = _project_square_length(path)
-        try:
-            units = _units_from_board(float(square) if square is not None else None)
-        except (TypeError, ValueError):
-            raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
+    units = _calibration_units(path, metadata) if units is None else units
     if any(r.shape == (3, 3) for r in rvecs):  # matrices in some sections: every rotation as a matrix
-        from s3k.geometry.rotations import rodrigues_to_matrix
-
         rvecs = [r if r.shape == (3, 3) else rodrigues_to_matrix(torch.from_numpy(r)).numpy() for r in rvecs]
         for name, r in zip(names, rvecs):
             if not np.isfinite(r).all():
@@ -195,8 +200,6 @@ def _toml_value(value: Any) -> str:
 
 def write_anipose_calibration(path: str | Path, rig: Rig) -> None:
     """Write ``rig`` as an anipose ``calibration.toml`` (read back by :func:`read_anipose_calibration`)."""
-    import cv2
-
     cams = rig.cameras.numpy()
     lines = []
     for c, name in enumerate(rig.names):

@@ -11,6 +11,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from s3k.data.formats.anipose import read_anipose_calibration
+from s3k.data.formats.deepfly3d import read_deepfly3d_calibration
+from s3k.data.formats.opencv_calib import read_opencv_calibration
+from s3k.data.formats.qualisys import read_qualisys_calibration
 from s3k.data.rig import Rig
 
 FORMATS = ("anipose", "qualisys", "opencv", "deepfly3d")
@@ -46,12 +50,6 @@ def read_calibration(path: str | Path, units: str | None = None) -> Rig:
         FileNotFoundError: no such file. UserError: a bad file, naming it and the field.
     """
     kind = calibration_format(path)
-    if kind == "deepfly3d":
-        from s3k.data.formats.deepfly3d import read_deepfly3d_calibration as read
-    elif kind == "qualisys":
-        from s3k.data.formats.qualisys import read_qualisys_calibration as read
-    elif kind == "opencv":
-        from s3k.data.formats.opencv_calib import read_opencv_calibration as read
-    else:
-        from s3k.data.formats.anipose import read_anipose_calibration as read
+    read = {"deepfly3d": read_deepfly3d_calibration, "qualisys": read_qualisys_calibration,
+            "opencv": read_opencv_calibration}.get(kind, read_anipose_calibration)
     return read(path, units).checked(path)  # rotations that are rotations, finite values

@@ -22,6 +22,7 @@ joint a camera cannot see is unlabelled there.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,9 @@ from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.safe_pickle import load_pickle
 from s3k.data.rig import Rig
 from s3k.errors import UserError
-from s3k.geometry import Cameras
+from s3k.geometry import Cameras, project
+
+log = logging.getLogger(__name__)
 
 _SEGMENTS = ["body_coxa", "coxa_femur", "femur_tibia", "tibia_tarsus", "tarsus_tip"]
 # Limbs 0-4 are one side (three legs, antenna, stripes), 5-9 the other.
@@ -149,8 +152,6 @@ def _reprojection_layout(points: np.ndarray, sizes: dict[str, tuple[int, int]], 
                          points3d: np.ndarray) -> tuple[str, float] | None:
     """The layout whose pixels lie nearest the reprojection of ``points3d (T, J, 3)`` through ``rig``, with
     its median distance (px); None when no layout is clearly the nearest."""
-    from s3k.geometry import project
-
     errors: dict[str, list[np.ndarray]] = {layout: [] for layout in LAYOUTS}
     for c in range(points.shape[0]):
         cam = f"camera_{c}"
@@ -223,11 +224,11 @@ def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]],
     C, T, J, _ = points.shape
     names = JOINTS if J == len(JOINTS) else [f"joint_{j}" for j in range(J)]
     layout, why = points2d_layout(points, sizes, rig, _points3d(data, T, J))
-    print(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
+    log.info(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
     marked = _no_estimate(points) & np.isfinite(points).all(-1)
     if marked.any():
-        print(f"note: {path}: {int(marked.sum())} of {marked.size} points2d hold (0, 0) or (0, 1), "
-              "DeepFly3D's marks for a joint without an estimate: read as unlabelled")
+        log.info(f"note: {path}: {int(marked.sum())} of {marked.size} points2d hold (0, 0) or (0, 1), "
+                 "DeepFly3D's marks for a joint without an estimate: read as unlabelled")
     tables = {}
     for c in range(C):
         cam = f"camera_{c}"

@@ -11,7 +11,86 @@ import numpy as np
 from s3k.data.formats.labels2d import LabelTable, frame_id_from_path
 from s3k.data.formats.skeleton import dlc_project_config, read_skeleton
 from s3k.errors import UserError
-from s3k.fileio import open_text
+from s3k.fileio import atomic_path, open_text
+
+
+def _bodypart_columns(path: Path, coords_row: list[str], parts_row: list[str], n_index: int
+                      ) -> tuple[list[str], dict[str, int], dict[str, int]]:
+    """The bodyparts in column order and the columns of their x and y."""
+    keypoints: list[str] = []
+    x_col: dict[str, int] = {}
+    y_col: dict[str, int] = {}
+    for col in range(n_index, len(coords_row)):
+        coord = coords_row[col].strip().lower()
+        part = parts_row[col].strip() if col < len(parts_row) else ""
+        if not part:
+            raise UserError(f"{path}: header row 'bodyparts' is empty at column {col + 1}")
+        if coord not in ("x", "y", "likelihood"):
+            raise UserError(
+                f"{path}: header row 'coords' column {col + 1} is {coords_row[col]!r}; "
+                "expected x, y or likelihood"
+            )
+        if part not in keypoints:
+            keypoints.append(part)
+        target = x_col if coord == "x" else y_col if coord == "y" else None
+        if target is not None:
+            if part in target:
+                raise UserError(f"{path}: bodypart {part!r} has two {coord!r} columns")
+            target[part] = col
+    for part in keypoints:
+        if part not in x_col or part not in y_col:
+            raise UserError(f"{path}: bodypart {part!r} needs both an x and a y column")
+    if not keypoints:
+        raise UserError(f"{path}: no bodypart columns")
+    return keypoints, x_col, y_col
+
+
+def _row_points(path: Path, row: list[str], line: int, index_text: str, keypoints: list[str],
+                x_col: dict[str, int], y_col: dict[str, int]) -> np.ndarray:
+    """``(K, 2)`` the row's points, NaN where a cell is empty."""
+    uv = np.full((len(keypoints), 2), np.nan)
+    for k, part in enumerate(keypoints):
+        for a, col in enumerate((x_col[part], y_col[part])):
+            cell = row[col].strip()
+            if cell == "" or cell.lower() == "nan":
+                continue
+            try:
+                uv[k, a] = float(cell)
+            except ValueError:
+                raise UserError(
+                    f"{path}: line {line} ({index_text or 'no image path'}), bodypart {part!r} "
+                    f"{'xy'[a]}: {cell!r} is not a number"
+                ) from None
+    return uv
+
+
+def _header_rows(path: Path, rows: list[list[str]]) -> tuple[dict[str, list[str]], int, int]:
+    """A label CSV's header rows by name, the first data row, and the number of leading index columns (those
+    whose ``coords`` cell is empty); refuses missing header rows and a multi-animal CSV."""
+    header: dict[str, list[str]] = {}
+    r = 0
+    while r < len(rows) and rows[r] and rows[r][0].strip().lower() in ("scorer", "individuals", "bodyparts",
+                                                                       "coords"):
+        header[rows[r][0].strip().lower()] = rows[r]
+        r += 1
+    for name in ("scorer", "bodyparts", "coords"):
+        if name not in header:
+            raise UserError(
+                f"{path}: missing the {name!r} header row (expected three header rows "
+                "scorer/bodyparts/coords, each starting with its name)"
+            )
+    coords_row = header["coords"]
+    n_index = 1
+    while n_index < len(coords_row) and coords_row[n_index].strip() == "":
+        n_index += 1
+    if "individuals" in header:
+        individuals = {v.strip() for v in header["individuals"][n_index:] if v.strip()}
+        if len(individuals) > 1:
+            raise UserError(
+                f"{path}: multi-animal CSV with individuals {sorted(individuals)}; s3k imports one animal "
+                "per recording (split the CSV per individual)"
+            )
+    return header, r, n_index
 
 
 def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
@@ -39,56 +118,9 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
         raise ValueError(f"frame_ids_from must be 'path' or 'row', got {frame_ids_from!r}")
     with open_text(path) as f:
         rows = list(csv.reader(f))
-    header: dict[str, list[str]] = {}
-    r = 0
-    while r < len(rows) and rows[r] and rows[r][0].strip().lower() in ("scorer", "individuals", "bodyparts",
-                                                                       "coords"):
-        header[rows[r][0].strip().lower()] = rows[r]
-        r += 1
-    for name in ("scorer", "bodyparts", "coords"):
-        if name not in header:
-            raise UserError(
-                f"{path}: missing the {name!r} header row (expected three header rows "
-                "scorer/bodyparts/coords, each starting with its name)"
-            )
+    header, r, n_index = _header_rows(path, rows)
     coords_row, parts_row = header["coords"], header["bodyparts"]
-    # Leading index columns: those whose coords cell is empty or the row label itself.
-    n_index = 1
-    while n_index < len(coords_row) and coords_row[n_index].strip() == "":
-        n_index += 1
-    if "individuals" in header:
-        individuals = {v.strip() for v in header["individuals"][n_index:] if v.strip()}
-        if len(individuals) > 1:
-            raise UserError(
-                f"{path}: multi-animal CSV with individuals {sorted(individuals)}; s3k imports one animal "
-                "per recording (split the CSV per individual)"
-            )
-    keypoints: list[str] = []
-    x_col: dict[str, int] = {}
-    y_col: dict[str, int] = {}
-    for col in range(n_index, len(coords_row)):
-        coord = coords_row[col].strip().lower()
-        part = parts_row[col].strip() if col < len(parts_row) else ""
-        if not part:
-            raise UserError(f"{path}: header row 'bodyparts' is empty at column {col + 1}")
-        if coord not in ("x", "y", "likelihood"):
-            raise UserError(
-                f"{path}: header row 'coords' column {col + 1} is {coords_row[col]!r}; "
-                "expected x, y or likelihood"
-            )
-        if part not in keypoints:
-            keypoints.append(part)
-        target = x_col if coord == "x" else y_col if coord == "y" else None
-        if target is not None:
-            if part in target:
-                raise UserError(f"{path}: bodypart {part!r} has two {coord!r} columns")
-            target[part] = col
-    for part in keypoints:
-        if part not in x_col or part not in y_col:
-            raise UserError(f"{path}: bodypart {part!r} needs both an x and a y column")
-    if not keypoints:
-        raise UserError(f"{path}: no bodypart columns")
-
+    keypoints, x_col, y_col = _bodypart_columns(path, coords_row, parts_row, n_index)
     ids: list[int] = []
     uvs: list[np.ndarray] = []
     n_cols = len(coords_row)
@@ -105,19 +137,7 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
             frame = frame_id_from_path(index_text) if not index_text.isdigit() else int(index_text)
         if frame is None:
             frame = row_no
-        uv = np.full((len(keypoints), 2), np.nan)
-        for k, part in enumerate(keypoints):
-            for a, col in enumerate((x_col[part], y_col[part])):
-                cell = row[col].strip()
-                if cell == "" or cell.lower() == "nan":
-                    continue
-                try:
-                    uv[k, a] = float(cell)
-                except ValueError:
-                    raise UserError(
-                        f"{path}: line {line} ({index_text or 'no image path'}), bodypart {part!r} "
-                        f"{'xy'[a]}: {cell!r} is not a number"
-                    ) from None
+        uv = _row_points(path, row, line, index_text, keypoints, x_col, y_col)
         # A keypoint is labelled only when both coordinates are.
         uv[np.isnan(uv).any(axis=1)] = np.nan
         ids.append(frame)
@@ -164,8 +184,6 @@ def write_dlc_csv(path: str | Path, table: LabelTable, image_paths: list[str], s
         image_paths: the image path of each row, relative to the project folder (``labeled-data/...``).
         scorer: the scorer (annotator) name of the header.
     """
-    from s3k.fileio import atomic_path
-
     if len(image_paths) != len(table.frame_ids):
         raise ValueError(f"{len(image_paths)} image paths for {len(table.frame_ids)} frames")
     header = [

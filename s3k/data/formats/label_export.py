@@ -18,23 +18,38 @@ videos in SLEAP.
 
 from __future__ import annotations
 
+import csv
+import logging
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from s3k.data.dataset import Dataset
+from s3k.data.formats.anipose import read_anipose_calibration
+from s3k.data.formats.dlc import write_dlc_csv
 from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.nwb import write_nwb_labels, write_nwb_tracks
+from s3k.data.formats.skeleton import write_dlc_config
+from s3k.data.formats.slp import write_slp
+from s3k.data.tables import DEFAULT_IMAGE_PATTERN
+from s3k.data.tracks_csv import read_csv, read_source, source_path
 from s3k.errors import UserError
-from s3k.fileio import open_text
+from s3k.fileio import open_text, resolve_from
+from s3k.geometry.warp import crop_resize_matrix, transform_points
+from s3k.outputs import check_output, check_output_folder
+
+log = logging.getLogger(__name__)
 
 FORMATS = ("dlc", "lightning-pose", "sleap", "nwb")
 SUFFIX = {"sleap": ".slp", "nwb": ".nwb"}
 
 
-def dataset_tables(ds: Any, splits: Sequence[str] | None = None) -> tuple[np.ndarray, dict[str, LabelTable]]:
+def dataset_tables(ds: Dataset, splits: Sequence[str] | None = None
+                   ) -> tuple[np.ndarray, dict[str, LabelTable]]:
     """The dataset's labels as one :class:`LabelTable` per camera over the frames with a label.
 
     Returns:
@@ -59,18 +74,14 @@ def dataset_tables(ds: Any, splits: Sequence[str] | None = None) -> tuple[np.nda
     }
 
 
-def _image_path(ds: Any, cam: str, frame: int) -> Path:
-    from s3k.data.tables import DEFAULT_IMAGE_PATTERN
-
+def _image_path(ds: Dataset, cam: str, frame: int) -> Path:
     pattern = ds.metadata.get("images", {}).get("pattern", DEFAULT_IMAGE_PATTERN)
     return (Path(ds.path) / pattern.format(camera=cam, frame=int(frame))).resolve()
 
 
-def source_maps(ds: Any) -> dict[str, np.ndarray] | None:
+def source_maps(ds: Dataset) -> dict[str, np.ndarray] | None:
     """``{camera: M}``, the pixel map of ``s3k import``'s crop and resize from the source video to the
     dataset's images, for a dataset imported from videos; else None."""
-    from s3k.geometry.warp import crop_resize_matrix
-
     source = ds.source if isinstance(ds.source, dict) else {}
     videos, boxes = source.get("videos"), source.get("crop_boxes")
     if not isinstance(videos, dict) or not isinstance(boxes, dict) or not set(ds.cameras) <= set(boxes):
@@ -81,8 +92,6 @@ def source_maps(ds: Any) -> dict[str, np.ndarray] | None:
 def video_references(ds: Any, tables: dict[str, LabelTable]) -> dict[str, Any]:
     """``{camera: video file, or a list of image files}`` that the labels' frame numbers index. For a
     dataset imported from videos the labels are mapped into the videos' pixels (``tables`` changes)."""
-    from s3k.geometry.warp import transform_points
-
     images = ds.metadata.get("images", {})
     if images.get("type") == "video":
         return {cam: str((Path(ds.path) / images["videos"][cam]).resolve()) for cam in ds.cameras}
@@ -90,7 +99,6 @@ def video_references(ds: Any, tables: dict[str, LabelTable]) -> dict[str, Any]:
     if maps is not None:
         for cam in ds.cameras:
             tables[cam].uv = transform_points(tables[cam].uv, np.linalg.inv(maps[cam]))
-        from s3k.fileio import resolve_from
 
         return {cam: str(resolve_from(ds.path, ds.source["videos"][cam])) for cam in ds.cameras}
     if np.array_equal(np.sort(ds.frame_ids), np.arange(len(ds.frame_ids))):
@@ -115,10 +123,8 @@ def _rig(ds: Any) -> dict[str, Any] | None:
     return rig
 
 
-def _write_images(ds: Any, ids: np.ndarray, c: int, paths: list[Path]) -> None:
+def _write_images(ds: Dataset, ids: np.ndarray, c: int, paths: list[Path]) -> None:
     """Camera ``c``'s images of frames ``ids`` to ``paths`` (PNG)."""
-    import cv2
-
     for start in range(0, len(ids), 64):
         images = ds.images(ids[start:start + 64])
         for b, target in enumerate(paths[start:start + 64]):
@@ -148,9 +154,6 @@ def export_labels(
         images: write the labelled frames' images beside the CSVs (``dlc`` / ``lightning-pose``).
         overwrite: replace existing output files.
     """
-    from s3k.data import Dataset
-    from s3k.outputs import check_output_folder
-
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}")
     out = Path(out)
@@ -165,15 +168,11 @@ def export_labels(
         refs = video_references(ds, tables)
         rig = _rig(ds)
         if fmt == "sleap":
-            from s3k.data.formats.slp import write_slp
-
             return [write_slp(out, tables, refs, skeleton=ds.skeleton, rig=rig)]
-        from s3k.data.formats.nwb import write_nwb_labels
 
         return [write_nwb_labels(out, tables, refs, skeleton=ds.skeleton, rig=rig,
                                  description=f"2D keypoint labels of the s3k dataset {Path(ds.path).name}")]
 
-    from s3k.data.formats.dlc import write_dlc_csv
 
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder for --format {fmt}")
@@ -186,7 +185,7 @@ def export_labels(
         # view
         keep = np.isfinite(table.uv).all(-1).any(-1) if fmt == "dlc" else np.ones(len(ids), bool)
         if not keep.any():
-            print(f"warning: camera {cam} has no labels; no CSV written for it")
+            log.warning(f"camera {cam} has no labels; no CSV written for it")
             continue
         names = [f"labeled-data/{cam}/img{int(f):06d}.png" for f in table.frame_ids[keep]]
         if fmt == "dlc":
@@ -200,7 +199,6 @@ def export_labels(
         if images:
             _write_images(ds, ids[keep], c=ds.cameras.index(cam), paths=[out / n for n in names])
     if fmt == "dlc" and written:
-        from s3k.data.formats.skeleton import write_dlc_config
 
         # the project's config.yaml: its bodyparts and skeleton, which DeepLabCut and s3k import read
         written.append(write_dlc_config(config, ds.keypoints, ds.skeleton, scorer,
@@ -235,11 +233,6 @@ def export_tracks(
         UserError: the unit or the frame rate is not known (none given, no calibration, nothing beside the
             CSV): never guessed.
     """
-    import csv
-
-    from s3k.data.formats.nwb import write_nwb_tracks
-    from s3k.data.tracks_csv import read_csv, read_source, source_path
-    from s3k.outputs import check_output
 
     if fmt != "nwb":
         raise UserError(f"--format {fmt!r}: 3D tracks export to nwb")
@@ -259,8 +252,6 @@ def export_tracks(
     score = _column(csv_path, header, [f"{k}_score" for k in keypoints], fnums)
     rig = None
     if calibration is not None:
-        from s3k.data.formats.anipose import read_anipose_calibration
-
         r = read_anipose_calibration(calibration, units=units)
         arrays = r.cameras.numpy()
         rig = {cam: (arrays["K"][c], arrays["dist"][c], arrays["R"][c], arrays["t"][c], tuple(r.size[c]))
@@ -274,8 +265,8 @@ def export_tracks(
                         f"{source_path(csv_path).name} with it as 's3k track' and 's3k predict' write)",
                         hint="pass --units (e.g. mm), or --calibration with the rig's calibration")
     if source is not None and source["units"] not in (units, "unknown"):
-        print(f"warning: {csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
-              f"written as {units}", file=sys.stderr)
+        log.warning(f"{csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
+                    f"written as {units}")
     if fps is None:
         fps = _source_rate(source)
     if fps is None:
@@ -299,8 +290,6 @@ def _source_rate(source: dict[str, str] | None) -> float | None:
 
 def _column(path: Path, header: list[str], names: list[str], fnums: np.ndarray) -> np.ndarray:
     """``(T, len(names))`` float values of columns ``names`` in the rows of ``fnums`` (NaN where empty)."""
-    import csv
-
     cols = [header.index(n) if n in header else None for n in names]
     fcol = header.index("fnum")
     rows: dict[int, list[float]] = {}

@@ -24,6 +24,7 @@ import numpy as np
 from s3k.data.formats.labels2d import LabelTable, unique_edges
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+from s3k.fileio import atomic_path
 
 
 def _modules() -> tuple[Any, Any]:
@@ -67,6 +68,24 @@ def _camera_of(obj: Any, cameras: Sequence[str], camera_map: Mapping[str, str]) 
         if name in cameras and name not in camera_map:
             return name
     return None
+
+
+def _add_predictions(path: Path, estimations: list[Any], cameras: Sequence[str], camera_map: dict[str, str],
+                     tables: dict[str, LabelTable]) -> None:
+    """The ``PoseEstimation`` series of the cameras without training frames, as their tables."""
+    for pe in estimations:
+        found = _camera_of(pe, cameras, camera_map)
+        if found is None or found in tables:
+            continue
+        series = dict(pe.pose_estimation_series)
+        names = [str(n) for n in pe.skeleton.nodes[:]] if pe.skeleton is not None else list(series)
+        names = [n for n in names if n in series]
+        data = [np.asarray(series[n].data[:], dtype=np.float64)[:, :2] for n in names]
+        uv = np.stack(data, axis=1)  # (T, K, 2)
+        uv[np.isnan(uv).any(axis=2)] = np.nan
+        tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv, f"{path} ({pe.name})",
+                                   skeleton_source=str(path),
+                                   skeleton=[e for e in _edges(pe.skeleton, names) if set(e) <= set(names)])
 
 
 def read_nwb(
@@ -139,20 +158,7 @@ def read_nwb(
 
         estimations = [o for o in objects if isinstance(o, ndx_pose.PoseEstimation)]
         if predictions:
-            for pe in estimations:
-                found = _camera_of(pe, cameras, camera_map)
-                if found is None or found in tables:
-                    continue
-                series = dict(pe.pose_estimation_series)
-                names = [str(n) for n in pe.skeleton.nodes[:]] if pe.skeleton is not None else list(series)
-                names = [n for n in names if n in series]
-                data = [np.asarray(series[n].data[:], dtype=np.float64)[:, :2] for n in names]
-                uv = np.stack(data, axis=1)  # (T, K, 2)
-                uv[np.isnan(uv).any(axis=2)] = np.nan
-                tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv,
-                                           f"{path} ({pe.name})", skeleton_source=str(path),
-                                           skeleton=[e for e in _edges(pe.skeleton, names)
-                                                     if set(e) <= set(names)])
+            _add_predictions(path, estimations, cameras, camera_map, tables)
     if not any(np.isfinite(t.uv).any() for t in tables.values()):
         if estimations and not predictions:
             raise UserError(f"{path}: no training frames (labels), only {len(estimations)} PoseEstimation "
@@ -209,8 +215,6 @@ def _cameras(nwb: Any, names: Sequence[str], rig: Mapping[str, Any] | None) -> d
 
 
 def _write(nwb: Any, path: str | Path) -> Path:
-    from s3k.fileio import atomic_path
-
     pynwb, _ = _modules()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -54,8 +55,6 @@ def _matrix(path: Path, key: str, node) -> np.ndarray:
 
 
 def _read_one(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
-    import cv2
-
     head = path.read_bytes()[:65536]
     if b"<!DOCTYPE" in head or b"<!ENTITY" in head:  # OpenCV's own files never declare them
         raise UserError(f"{path}: an XML file with a DOCTYPE or entities is not an OpenCV calibration file")

@@ -15,6 +15,8 @@ import pickle
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from s3k.errors import UserError
 
 _ALLOWED = {
@@ -32,8 +34,6 @@ _ALLOWED = {
 
 def _nbytes(shape: Any, dtype: Any) -> int | None:
     """Bytes of an array of ``shape`` and ``dtype``, None when they do not describe one."""
-    import numpy as np
-
     try:
         dims = [int(shape)] if isinstance(shape, int) else [int(s) for s in shape]
         return math.prod(max(d, 0) for d in dims) * np.dtype(dtype).itemsize
@@ -48,8 +48,6 @@ class _Ndarray:
         self.unpickler = unpickler
 
     def __call__(self, shape: Any, dtype: Any = float, *args: Any, **kwargs: Any) -> Any:
-        import numpy as np
-
         self.unpickler.allocate(shape, dtype)
         return np.ndarray(shape, dtype, *args, **kwargs)
 
@@ -79,8 +77,6 @@ class RestrictedUnpickler(pickle.Unpickler):
             def reconstruct(subtype: Any, shape: Any, dtype: Any) -> Any:
                 self.allocate(shape, dtype)
                 if isinstance(subtype, _Ndarray):
-                    import numpy as np
-
                     subtype = np.ndarray
                 return real(subtype, shape, dtype)
 

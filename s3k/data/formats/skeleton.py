@@ -22,7 +22,10 @@ from typing import Any
 import numpy as np
 
 from s3k.data.formats.labels2d import unique_edges
+from s3k.data.formats.slp import load_slp
+from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+from s3k.fileio import atomic_path
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -59,7 +62,6 @@ def _chains(value: Any, where: str) -> list[Edge]:
 
 
 def _slp_edges(path: Path) -> list[Edge]:
-    from s3k.data.formats.slp import load_slp
 
     skeletons = list(load_slp(path).skeletons)
     if len(skeletons) != 1:
@@ -110,7 +112,6 @@ def read_skeleton(path: str | Path) -> list[Edge]:
     if suffix == ".slp":
         return _slp_edges(path)
     if suffix in (".h5", ".hdf5"):
-        from s3k.data.hdf5 import open_hdf5
 
         with open_hdf5(path, "HDF5 (SLEAP analysis file)") as h5:
             return analysis_edges(h5, path)
@@ -171,7 +172,6 @@ def write_dlc_config(path: str | Path, keypoints: Sequence[str], skeleton: Seque
     """Write a DeepLabCut project's ``config.yaml`` with the keys its label readers use: ``Task``,
     ``scorer``, ``project_path``, ``video_sets``, ``bodyparts``, ``skeleton`` (pairs) and the drawing
     defaults."""
-    from s3k.fileio import atomic_path
 
     try:
         import yaml

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -10,9 +11,11 @@ import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.skeleton import analysis_edges, check_edges
-from s3k.data.formats.slp import TRACK_HINT
+from s3k.data.formats.slp import TRACK_HINT, read_slp, slp_track_frames, slp_tracks
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+
+log = logging.getLogger(__name__)
 
 
 def _names(values, path: Path | str, field: str) -> list[str]:
@@ -120,8 +123,6 @@ def track_frame_counts(path: str | Path, predictions: bool = False) -> dict[str,
     """``{track: frames with a labelled point}`` of a SLEAP analysis file or project (``.slp``: the instances
     labelled by a person, and predicted ones with ``predictions``)."""
     if Path(path).suffix.lower() == ".slp":
-        from s3k.data.formats.slp import slp_track_frames
-
         return slp_track_frames(path, predictions)
     _, tracks, names, _, _ = _analysis_arrays(path)
     counts = np.isfinite(tracks).any(axis=(1, 2)).sum(axis=0)
@@ -140,7 +141,7 @@ def default_track(paths: list[str | Path], predictions: bool = False) -> str | N
         return None
     chosen = max(counts, key=counts.__getitem__)
     listed = ", ".join(f"{name} {n}" for name, n in counts.items())
-    print(f"note: {len(counts)} tracks are labelled (frames: {listed}); importing {chosen}, the most "
+    log.info(f"note: {len(counts)} tracks are labelled (frames: {listed}); importing {chosen}, the most "
           "labelled (--sleap-track NAME picks another, --sleap-track all writes one dataset per track)")
     return chosen
 
@@ -160,8 +161,6 @@ def read_sleap_file(path: str | Path, camera: str, track: str | int | None = Non
     """One camera's labels from a SLEAP analysis file (``.h5``) or project (``.slp``, its video of
     ``camera``; :func:`s3k.data.formats.slp.read_slp`)."""
     if Path(path).suffix.lower() == ".slp":
-        from s3k.data.formats.slp import read_slp
-
         mine = {camera: camera_map[camera]} if camera_map and camera in camera_map else None
         tables = read_slp(path, [camera], camera_map=mine, track=track, predictions=predictions)
         return tables[camera]
@@ -170,8 +169,6 @@ def read_sleap_file(path: str | Path, camera: str, track: str | int | None = Non
 
 def sleap_tracks(paths: list[str | Path]) -> list[str]:
     """The track names of SLEAP files (analysis ``.h5`` or project ``.slp``), in first-seen order."""
-    from s3k.data.formats.slp import slp_tracks
-
     names: list[str] = []
     for path in paths:
         found = slp_tracks(path) if Path(path).suffix.lower() == ".slp" else sleap_analysis_tracks(path)

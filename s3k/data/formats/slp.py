@@ -19,11 +19,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable, unique_edges
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
+from s3k.fileio import atomic_path
 
 # The hint of both SLEAP readers (projects here, analysis files in s3k.data.formats.sleap) when several tracks
 # hold labels.
@@ -133,6 +135,31 @@ def _track_choice(labels: Any, path: Path, track: str | int | None) -> tuple[Any
                     hint="give a track name or index with --sleap-track")
 
 
+def _candidates(lf: Any, chosen_track: Any, predictions: bool) -> list[Any]:
+    """A labelled frame's instances of ``chosen_track`` (any without one): those labelled by a person, else,
+    with ``predictions``, the predicted ones, most confident first."""
+    users = list(lf.user_instances)
+    if chosen_track is not None:
+        users = [i for i in users if i.track is chosen_track]
+    if users or not predictions:
+        return users
+    preds = list(lf.predicted_instances)
+    if chosen_track is not None:
+        preds = [i for i in preds if i.track is chosen_track]
+    return sorted(preds, key=lambda i: -float(i.score))
+
+
+def _refuse_several_tracks(labels: Any, path: Path, predictions: bool) -> None:
+    """Refuse a project whose instances belong to several tracks when none was chosen."""
+    used: list[str] = []
+    for lf in labels.labeled_frames:
+        for inst in _candidates(lf, None, predictions):
+            if inst.track is not None and inst.track.name not in used:
+                used.append(inst.track.name)
+    if len(used) > 1:
+        raise UserError(f"{path}: instances of {len(used)} tracks ({', '.join(used)})", hint=TRACK_HINT)
+
+
 def read_slp(
     path: str | Path,
     cameras: Sequence[str],
@@ -171,25 +198,8 @@ def read_slp(
         raise UserError(f"{path}: no labelled frames (the project has {len(labels.labeled_frames)} frames "
                         f"and {n_user} instances)")
 
-    def candidates(lf: Any) -> list[Any]:
-        users = list(lf.user_instances)
-        if chosen_track is not None:
-            users = [i for i in users if i.track is chosen_track]
-        if users or not predictions:
-            return users
-        preds = list(lf.predicted_instances)
-        if chosen_track is not None:
-            preds = [i for i in preds if i.track is chosen_track]
-        return sorted(preds, key=lambda i: -float(i.score))
-
     if chosen_track is None and instance_index is None:
-        used = []
-        for lf in labels.labeled_frames:
-            for inst in candidates(lf):
-                if inst.track is not None and inst.track.name not in used:
-                    used.append(inst.track.name)
-        if len(used) > 1:
-            raise UserError(f"{path}: instances of {len(used)} tracks ({', '.join(used)})", hint=TRACK_HINT)
+        _refuse_several_tracks(labels, path, predictions)
 
     skeletons = list(labels.skeletons)
     if len(skeletons) != 1:
@@ -199,7 +209,7 @@ def read_slp(
     for lf in labels.labeled_frames:
         if id(lf.video) not in by_video:
             continue
-        pool = candidates(lf)
+        pool = _candidates(lf, chosen_track, predictions)
         if instance_index is not None:
             pool = pool[instance_index:instance_index + 1]
         elif chosen_track is None and len(pool) > 1:
@@ -247,9 +257,6 @@ def write_slp(
         rig: ``{camera: (K (3, 3), dist (5,), R (3, 3), t (3,), (W, H))}`` to store as a recording session
             (SLEAP's multi-view calibration); the session also ties each video to its camera by name.
     """
-    import cv2
-
-    from s3k.fileio import atomic_path
 
     sio = _sleap_io()
     keypoints = next(iter(tables.values())).keypoints

@@ -9,6 +9,6 @@ from pathlib import Path
 
 import pytest
 
-REAL = Path(__file__).resolve().parents[2] / "shared/data/real/sleap-anipose-minimal_session/minimal_session"
+REAL = Path(__file__).resolve().parents[3] / "shared/data/real/sleap-anipose-minimal_session/minimal_session"
 
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"real recording not available at {REAL}")

@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from synthetic_rig import CAMERAS, COLOURS, KEYPOINTS, LAYOUT, random_rotation, rig
 
+from helpers.synthetic_rig import CAMERAS, COLOURS, KEYPOINTS, LAYOUT, random_rotation, rig
 from s3k.geometry import Cameras, project
 
 SPLITS = ["labelled", "unlabelled", "unlabelled", "unlabelled", "unlabelled", "unlabelled", "test"]

@@ -1,0 +1,27 @@
+"""The fixed choices of settings, as ``Literal`` types: a checker catches a misspelt one, and the command line
+offers exactly these (``s3k.cli.config_options`` turns a ``Literal`` field into ``choices``).
+
+Example:
+    >>> typing.get_args(Norm)
+    ('batch', 'group', 'none')
+"""
+
+from __future__ import annotations
+
+import typing
+from typing import Literal
+
+__all__ = ["NORMS", "Arithmetic", "Device", "Norm", "Precision"]
+
+Precision = Literal["auto", "float32", "bfloat16"]
+"""A training's arithmetic (``--precision``): float32, bfloat16 autocast, or ``"auto"`` (bfloat16 where the
+hardware computes it natively, else float32)."""
+Arithmetic = Literal["float32", "bfloat16", "float16"]
+"""A network's arithmetic as it runs (a training's :data:`Precision` resolved, or a detector's)."""
+Norm = Literal["batch", "group", "none"]
+"""The U-Net's normalization after each convolution."""
+Device = Literal["auto", "cpu", "cuda"] | str
+"""Where the network runs: ``"auto"`` (a GPU when there is one), ``"cpu"``, ``"cuda"``, or a device name torch
+takes, such as ``"cuda:1"``."""
+
+NORMS: tuple[str, ...] = typing.get_args(Norm)

@@ -1,0 +1,46 @@
+"""Fixtures shared by the tests: a tiny dataset and a tiny run folder (built once per session), and the
+devices and float types a tensor function is checked on. The helpers they are built from are in
+``tests/helpers`` (``from helpers.synthetic_rig import make_dataset``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from helpers.synthetic_rig import CAMERAS, KEYPOINTS, make_dataset
+from helpers.tiny_detector import save_run
+
+from s3k.detector import DetectorMeta
+from s3k.model import UNetConfig
+
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA GPU on this machine")])]
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """A dataset folder of the synthetic rig: 32 px images, 3 labelled, 3 unlabelled and 2 test frames of 4
+    cameras. Shared by the session: a test must not change it (a training may add its image cache)."""
+    return make_dataset(tmp_path_factory.mktemp("tiny") / "ds", size=32, labelled=3, unlabelled=3, test=2)
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """A run folder holding an untrained detector of the synthetic rig's keypoints and cameras (32 px, a
+    two-level U-Net); shared by the session, read only."""
+    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(32, 32), stride=2,
+                        sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
+    return save_run(tmp_path_factory.mktemp("tiny") / "run", meta, seed=0)
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """Each device a tensor function runs on: the CPU, and a CUDA GPU where there is one."""
+    return torch.device(request.param)
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
+def dtype(request) -> torch.dtype:
+    """Each float type a tensor function works in."""
+    return request.param

@@ -1,0 +1,11 @@
+"""What the tests share: small datasets and run folders built in a few seconds, the real recording's place.
+
+- :mod:`helpers.synthetic_rig`: a static 4-camera rig looking at a rigid triangle of three keypoints;
+  ``make_dataset`` writes a dataset folder of it (``KEYPOINTS``, ``CAMERAS``, ``LAYOUT``, ``rig``,
+  ``project``, ``random_rotation``; ``count_decodes`` counts the images a module decodes).
+- :mod:`helpers.label_data`: coloured dots for the labelling app's tests (``make_label_dataset``).
+- :mod:`helpers.tiny_detector`: ``save_run``, a run folder holding an untrained tiny detector.
+- :mod:`helpers.real_recording`: ``REAL``, the read-only real recording; ``needs_real`` skips without it.
+
+``tests/conftest.py`` builds fixtures on them (``tiny_dataset``, ``tiny_run``, ``device``, ``dtype``).
+"""
