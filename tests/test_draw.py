@@ -60,7 +60,7 @@ def test_track_overlay_draws_the_runs_skeleton(tmp_path, monkeypatch):
     from helpers.tiny_detector import save_run
     from test_track import CAMERAS, KEYPOINTS, NET_SIZE, VIDEO_SIZE, make_rig
 
-    import s3k.draw
+    import s3k.inference.track
     from s3k import cli
     from s3k.data.formats.anipose import write_anipose_calibration
     from s3k.data.video import write_video
@@ -75,13 +75,13 @@ def test_track_overlay_draws_the_runs_skeleton(tmp_path, monkeypatch):
                         sigma=2.0, units="mm", skeleton=[("tail", "nose")],
                         model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
     run = save_run(tmp_path / "run", meta, seed=0)
-    edges, real = [], s3k.draw.draw_overlay
+    edges, real = [], s3k.inference.track.draw_overlay
 
     def draw(*args, **kwargs):
         edges.append(args[5])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(s3k.draw, "draw_overlay", draw)
+    monkeypatch.setattr(s3k.inference.track, "draw_overlay", draw)  # as the tracker imported it
     assert cli.main(["track", str(run), "--videos", *[f"{c}={tmp_path / c}.mkv" for c in CAMERAS],
                      "--calibration", str(calib), "--out", str(tmp_path / "p.csv"), "--overlay",
                      str(tmp_path / "ov"), "--no-progress"]) == 0

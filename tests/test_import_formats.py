@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from test_importers import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
-from s3k.cli import main
+from s3k.cli import main, showing_library_messages
 from s3k.data import check_dataset
 from s3k.data.formats import anipose
 from s3k.data.formats.calibration_files import calibration_format, read_calibration
@@ -489,7 +489,8 @@ def test_deepfly3d_no_estimate_marks_are_unlabelled_and_named(tmp_path, capsys):
     points[:, 2, :2] = 0.0
     with open(tmp_path / "r.pkl", "wb") as f:
         pickle.dump({"points2d": points}, f)
-    tables = read_deepfly3d_pose(tmp_path / "r.pkl", {f"camera_{c}": (960, 480) for c in range(7)})
+    with showing_library_messages():  # the library logs its notes; the command line prints them
+        tables = read_deepfly3d_pose(tmp_path / "r.pkl", {f"camera_{c}": (960, 480) for c in range(7)})
     idx = JOINTS.index("RF_body_coxa")  # seen by camera 0
     uv = tables["camera_0"].uv
     assert np.isnan(uv[1, idx]).all() and np.isnan(uv[2, idx]).all()
