@@ -132,3 +132,88 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+
+
+def add_filter_options(parser: argparse.ArgumentParser, default: str) -> None:
+    """The options of the filter over time (``s3k track`` offline, ``s3k stream`` causal;
+    :class:`s3k.inference.kalman.FilterSettings`), ``--filter`` defaulting to ``default``."""
+    from s3k.inference.kalman import MODELS
+
+    g = parser.add_argument_group(
+        "filtering over time (docs/tracks.md)",
+        "a Kalman filter in 3D per keypoint whose measurement noise comes from each detection's confidence "
+        "and reprojection residual; jumps beyond the innovation gate are rejected and bridged, as are short "
+        "gaps; a rigid object's layout and a skeleton's limb lengths hold the points as soft constraints")
+    g.add_argument("--filter", choices=("kalman", "none"), default=default,
+                   help=f"filter the 3D points over time (default {default})")
+    g.add_argument("--filter-model", choices=list(MODELS), default="velocity",
+                   help="motion model of each keypoint: constant velocity or constant acceleration (default "
+                        "velocity)")
+    g.add_argument("--filter-process-noise", type=number(gt=0), default=None, metavar="Q",
+                   help="standard deviation of the white noise driving the motion, world units per frame "
+                        "squared (cubed for acceleration) (default: fitted per keypoint by likelihood)")
+    g.add_argument("--filter-noise-scale", type=number(gt=0), default=None, metavar="S",
+                   help="scale of the measurement noise (default: fitted per keypoint by likelihood)")
+    g.add_argument("--filter-noise-px", type=number(ge=0), default=None, metavar="PX",
+                   help="least reprojection residual a detection counts with, pixels (default: the "
+                        "keypoint's median residual)")
+    g.add_argument("--filter-gate", type=number(ge=0), default=4.0, metavar="SIGMAS",
+                   help="reject a point further than this many standard deviations from the prediction "
+                        "(default 4; 0: never)")
+    g.add_argument("--filter-max-gap", type=number(int, ge=0), default=10, metavar="FRAMES",
+                   help="bridge up to this many missing or rejected frames; after a longer gap the filter "
+                        "starts again (default 10)")
+    g.add_argument("--filter-rigid", choices=("auto", "on", "off"), default="auto",
+                   help="hold the points to the rigid layout the run was trained with (--layout-tol); auto: "
+                        "when it has one (default auto)")
+    g.add_argument("--filter-layout-std", type=number(gt=0), default=None, metavar="W",
+                   help="how far a point may stand off the rigid layout, world units (default: fitted)")
+    g.add_argument("--filter-limbs", nargs="+", default=None, metavar="A,B",
+                   help="limbs (pairs of keypoints) whose lengths are held near their median over the track, "
+                        "or 'none' (default: the skeleton of the run's dataset, when it has one)")
+    g.add_argument("--filter-limb-std", type=number(gt=0), default=None, metavar="W",
+                   help="how far a limb's length may stand off its median, world units (default: its robust "
+                        "spread over the track)")
+
+
+def filter_settings(args: argparse.Namespace):
+    """The :class:`s3k.inference.kalman.FilterSettings` of :func:`add_filter_options`' options."""
+    from s3k.inference.kalman import FilterSettings
+
+    rigid = {"auto": None, "on": True, "off": False}[args.filter_rigid]
+    return FilterSettings(method=args.filter, model=args.filter_model,
+                          process_noise=args.filter_process_noise, noise_scale=args.filter_noise_scale,
+                          noise_px=args.filter_noise_px, gate=args.filter_gate, max_gap=args.filter_max_gap,
+                          rigid=rigid, layout_std=args.filter_layout_std,
+                          limb_std=args.filter_limb_std).check()
+
+
+def filter_limbs(args: argparse.Namespace, run: str) -> tuple[list[tuple[str, str]], str | None]:
+    """``(limbs, note)``: the pairs of ``--filter-limbs``, or the skeleton of the dataset the run was trained
+    on (``note`` says so), or none."""
+    if args.filter_limbs is not None:
+        if args.filter_limbs == ["none"]:
+            return [], None
+        pairs = []
+        for text in args.filter_limbs:
+            a, sep, b = text.partition(",")
+            if not sep or not a or not b or "," in b:
+                raise UserError(f"--filter-limbs {text!r}: expected two keypoint names A,B")
+            pairs.append((a, b))
+        return pairs, None
+    if args.filter == "none":
+        return [], None
+    from s3k.detector.geometry_record import run_geometry
+
+    path = ((run_geometry(run) or {}).get("dataset") or {}).get("path")
+    if not path:
+        return [], None
+    try:
+        from s3k.data import Dataset
+
+        skeleton = [tuple(e) for e in Dataset.open(path, cache="none").skeleton]
+    except (OSError, UserError):
+        return [], None
+    if not skeleton:
+        return [], None
+    return skeleton, f"filter: holding the {len(skeleton)} limbs of {path}'s skeleton near their lengths"  # type: ignore[return-value]
