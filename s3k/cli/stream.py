@@ -7,7 +7,7 @@ import argparse
 import sys
 
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number
+from s3k.cli.options import add_filter_options, add_rig_options, number
 from s3k.errors import UserError
 
 
@@ -20,7 +20,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.epilog = examples(
         "s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 side=2 top=3 --rerun",
         "s3k stream runs/box --calibration calibration.toml --sources back=back.mp4 mid=mid.mp4 "
-        "side=side.mp4 top=top.mp4 --max-frames 100 > points.jsonl")
+        "side=side.mp4 top=top.mp4 --max-frames 100 > points.jsonl",
+        "s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 side=2 top=3 "
+        "--filter kalman")
     parser.add_argument("run", help="run folder written by 's3k train' (one pass or --two-pass)")
     parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
                         help="one source per camera: a camera index (0) or device (/dev/video2), a video "
@@ -31,6 +33,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
                         ".rrd file given here (needs rerun-sdk; default: off)")
     add_rig_options(parser)
+    add_filter_options(parser, "none")
 
 
 def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
@@ -72,6 +75,27 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
     return calib.cameras, boxes
 
 
+def _filter(args: argparse.Namespace, detector, cams):
+    """The causal filter of the ``--filter`` options, or None."""
+    from s3k.cli.options import filter_limbs, filter_settings
+    from s3k.inference.track_filter import StreamFilter, layout_shape_of
+
+    settings = filter_settings(args)
+    if settings.method == "none":
+        return None
+    limbs, note = filter_limbs(args, args.run)
+    if note:
+        print(note, file=sys.stderr)
+    names = detector.keypoints
+    for a, b in limbs:
+        for n in (a, b):
+            if n not in names:
+                raise UserError(f"--filter-limbs: keypoint {n!r} is not one of the run's "
+                                f"({', '.join(names)})")
+    return StreamFilter(settings, len(names), cams.numpy(), layout_shape_of(detector.meta.layout),
+                        [(names.index(a), names.index(b)) for a, b in limbs])
+
+
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import camera_pairs
     from s3k.detector import Detector
@@ -84,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     sources = {name: open_source(spec) for name, spec in specs.items()}
     cams, boxes = _cameras(args, sources, detector.input_size)
     log = rerun_logger(detector.keypoints, list(sources), args.rerun) if args.rerun else None
-    summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
+    summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log,
+                     filter=_filter(args, detector, cams))
     pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else "")
     if summary.behind > 1:
         pace += f", up to {summary.behind} frames behind"

@@ -121,17 +121,18 @@ def _matrices(model: str) -> tuple[np.ndarray, np.ndarray]:
 class _State:
     """The filter's state over leading dims ``L`` (candidates x keypoints): mean ``m (*L, 3, n)``,
     covariance ``P (*L, n, n)`` shared by the axes, ``init (*L)`` whether a segment has started, ``gap (*L)``
-    frames since the last measurement taken."""
+    frames since the last measurement taken, ``count (*L)`` measurements taken in the segment."""
 
     m: np.ndarray
     P: np.ndarray
     init: np.ndarray
     gap: np.ndarray
+    count: np.ndarray
 
     @classmethod
     def empty(cls, shape: tuple[int, ...], n: int) -> _State:
         return cls(np.zeros((*shape, 3, n)), np.tile(np.eye(n), (*shape, 1, 1)), np.zeros(shape, bool),
-                   np.zeros(shape, np.int64))
+                   np.zeros(shape, np.int64), np.zeros(shape, np.int64))
 
 
 @dataclass
@@ -163,23 +164,26 @@ def _step(state: _State, z: np.ndarray, r: np.ndarray, q: np.ndarray, settings: 
     d2 = (y**2).sum(-1) / S
     restart = seen & (~state.init | (state.gap >= settings.max_gap))
     live = seen & ~restart
-    rejected = live & (settings.gate > 0) & (d2 > settings.gate**2)
+    # no gate until the segment's first n measurements have placed its velocity (and acceleration)
+    rejected = live & (settings.gate > 0) & (d2 > settings.gate**2) & (state.count >= n)
     taken = live & ~rejected
     gain = P_p[..., :, 0] / S[..., None]  # (*L, n)
     m_u = m_p + y[..., None] * gain[..., None, :]
     P_u = P_p - gain[..., :, None] * P_p[..., None, 0, :]
     m_r = np.zeros_like(m_p)
     m_r[..., 0] = np.nan_to_num(z)
-    prior = np.concatenate([r[..., None], np.broadcast_to(100.0 * (r + q**2)[..., None], (*r.shape, n - 1))],
+    prior = np.concatenate([r[..., None], np.broadcast_to(1e4 * (r + q**2)[..., None], (*r.shape, n - 1))],
                            -1)
     P_r = prior[..., None] * np.eye(n)
     m = np.where(taken[..., None, None], m_u, np.where(restart[..., None, None], m_r, m_p))
     P = np.where(taken[..., None, None], P_u, np.where(restart[..., None, None], P_r, P_p))
     init = state.init | restart
     gap = np.where(taken | restart, 0, state.gap + 1)
+    count = np.where(restart, 1, state.count + taken)
     nll = 0.5 * (d2 + 3 * np.log(S))
-    cost = np.where(taken, np.minimum(nll, floor), np.where(rejected, floor, 0.0))
-    return _Step(m_p, P_p, _State(m, P, init, gap), taken, rejected, restart, cost)
+    settled = state.count >= n  # the first measurements of a segment place it: they cost nothing
+    cost = np.where(taken & settled, np.minimum(nll, floor), np.where(rejected, floor, 0.0))
+    return _Step(m_p, P_p, _State(m, P, init, gap, count), taken, rejected, restart, cost)
 
 
 def _floor(std: np.ndarray, gate: float) -> np.ndarray:
