@@ -40,6 +40,12 @@ __all__ = ["MODELS", "CausalFilter", "FilterSettings", "Smoothed", "fit_noise", 
 MODELS = {"velocity": 2, "acceleration": 3}
 """The motion models and the size of their state per axis."""
 
+#: Measurements rejected in a row after which the filter starts again at the next one (it has lost the point).
+LOST = 3
+#: What a rejected measurement costs in the noise fit beyond a Gaussian one at the gate: an outlier density
+#: of about 1% spread over a region 20 standard deviations wide.
+OUTLIER_COST = 3.0
+
 #: Frames of history at which :class:`CausalFilter` fits its noise again (then every ``REFIT_LAST`` frames).
 REFIT_AT = (16, 32, 64, 128, 256)
 REFIT_LAST = 256
@@ -121,18 +127,20 @@ def _matrices(model: str) -> tuple[np.ndarray, np.ndarray]:
 class _State:
     """The filter's state over leading dims ``L`` (candidates x keypoints): mean ``m (*L, 3, n)``,
     covariance ``P (*L, n, n)`` shared by the axes, ``init (*L)`` whether a segment has started, ``gap (*L)``
-    frames since the last measurement taken, ``count (*L)`` measurements taken in the segment."""
+    frames since the last measurement taken, ``count (*L)`` measurements taken in the segment, ``miss (*L)``
+    measurements rejected in a row."""
 
     m: np.ndarray
     P: np.ndarray
     init: np.ndarray
     gap: np.ndarray
     count: np.ndarray
+    miss: np.ndarray
 
     @classmethod
     def empty(cls, shape: tuple[int, ...], n: int) -> _State:
         return cls(np.zeros((*shape, 3, n)), np.tile(np.eye(n), (*shape, 1, 1)), np.zeros(shape, bool),
-                   np.zeros(shape, np.int64), np.zeros(shape, np.int64))
+                   np.zeros(shape, np.int64), np.zeros(shape, np.int64), np.zeros(shape, np.int64))
 
 
 @dataclass
@@ -151,9 +159,11 @@ class _Step:
 
 
 def _step(state: _State, z: np.ndarray, r: np.ndarray, q: np.ndarray, settings: FilterSettings,
-          FQ: tuple[np.ndarray, np.ndarray], floor: np.ndarray) -> _Step:
+          FQ: tuple[np.ndarray, np.ndarray], floor: np.ndarray, force: np.ndarray | bool = False) -> _Step:
     """One frame: predict, gate, update (or start a segment). ``z (K, 3)`` the measurement (NaN: missing),
-    ``r (*L)`` its variance, ``q (*L)`` the process noise, ``floor (*L)`` the cost of a rejection."""
+    ``r (*L)`` its variance, ``q (*L)`` the process noise, ``floor (*L)`` the cost of a rejection; ``force``
+    starts a segment at the measurement. A segment also starts after ``max_gap`` frames without a
+    measurement taken, and after ``LOST`` measurements rejected in a row (the filter has lost the point)."""
     F, Q1 = FQ
     n = F.shape[0]
     m_p = np.einsum("...an,mn->...am", state.m, F)
@@ -162,7 +172,7 @@ def _step(state: _State, z: np.ndarray, r: np.ndarray, q: np.ndarray, settings: 
     S = P_p[..., 0, 0] + r
     y = np.nan_to_num(z) - m_p[..., 0]
     d2 = (y**2).sum(-1) / S
-    restart = seen & (~state.init | (state.gap >= settings.max_gap))
+    restart = seen & (~state.init | (state.gap >= settings.max_gap) | (state.miss >= LOST) | force)
     live = seen & ~restart
     # no gate until the segment's first n measurements have placed its velocity (and acceleration)
     rejected = live & (settings.gate > 0) & (d2 > settings.gate**2) & (state.count >= n)
@@ -180,10 +190,11 @@ def _step(state: _State, z: np.ndarray, r: np.ndarray, q: np.ndarray, settings: 
     init = state.init | restart
     gap = np.where(taken | restart, 0, state.gap + 1)
     count = np.where(restart, 1, state.count + taken)
+    miss = np.where(rejected, state.miss + 1, np.where(taken | restart, 0, state.miss))
     nll = 0.5 * (d2 + 3 * np.log(S))
     settled = state.count >= n  # the first measurements of a segment place it: they cost nothing
     cost = np.where(taken & settled, np.minimum(nll, floor), np.where(rejected, floor, 0.0))
-    return _Step(m_p, P_p, _State(m, P, init, gap, count), taken, rejected, restart, cost)
+    return _Step(m_p, P_p, _State(m, P, init, gap, count, miss), taken, rejected, restart, cost)
 
 
 def _floor(std: np.ndarray, gate: float) -> np.ndarray:
@@ -192,7 +203,7 @@ def _floor(std: np.ndarray, gate: float) -> np.ndarray:
     med = nanmedian(std)
     med = np.where(np.isfinite(med) & (med > 0), med, 1.0)
     g2 = gate**2 if gate > 0 else 25.0
-    return 0.5 * (g2 + 3 * np.log(med**2))
+    return 0.5 * (g2 + 3 * np.log(med**2)) + OUTLIER_COST
 
 
 @dataclass
@@ -214,7 +225,7 @@ class Forward:
 
 
 def forward(X: np.ndarray, std: np.ndarray, q: np.ndarray, s: np.ndarray, settings: FilterSettings,
-            keep: bool = True) -> Forward:
+            keep: bool = True, force: np.ndarray | None = None) -> Forward:
     """The forward filter over a track ``X (T, K, 3)`` (NaN: missing) with measurement standard deviations
     ``std (T, K)``, for every candidate ``q``, ``s`` of shape ``(*G, K)`` at once (``keep=False``: only the
     cost, without the per-frame arrays)."""
@@ -227,7 +238,8 @@ def forward(X: np.ndarray, std: np.ndarray, q: np.ndarray, s: np.ndarray, settin
     steps: list[_Step] = []
     cost = np.zeros(q.shape)
     for t in range(len(X)):
-        st = _step(state, X[t], (s * std[t]) ** 2, q, settings, FQ, floor)
+        st = _step(state, X[t], (s * std[t]) ** 2, q, settings, FQ, floor,
+                   False if force is None else force[t])
         cost += st.cost
         state = st.state
         if keep:
@@ -293,6 +305,20 @@ class Smoothed:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+def _lost_starts(rejected: np.ndarray) -> np.ndarray:
+    """``(T, K)`` the first frame of every run of at least ``LOST`` rejections in consecutive frames."""
+    out = np.zeros_like(rejected)
+    for k in range(rejected.shape[1]):
+        idx = np.flatnonzero(rejected[:, k])
+        if len(idx) < LOST:
+            continue
+        breaks = np.flatnonzero(np.diff(idx) > 1) + 1
+        for run in np.split(idx, breaks):
+            if len(run) >= LOST:
+                out[run[0], k] = True
+    return out
+
+
 def smooth(X: np.ndarray, std: np.ndarray, settings: FilterSettings) -> Smoothed:
     """The offline smoother (module docstring): noise fitted (unless given), forward filter, RTS smoother
     over each segment. Frames between a segment's first and last measurement are placed (a missing or
@@ -300,6 +326,13 @@ def smooth(X: np.ndarray, std: np.ndarray, settings: FilterSettings) -> Smoothed
     X = np.asarray(X, np.float64)
     q, s = fit_noise(X, std, settings)
     fw = forward(X, std, q, s, settings)
+    force = np.zeros(X.shape[:2], bool)
+    for _ in range(10):  # a point lost: the segment starts again at the first measurement it rejected
+        starts = _lost_starts(fw.rejected) & ~force
+        if not starts.any():
+            break
+        force |= starts
+        fw = forward(X, std, q, s, settings, force=force)
     T = len(X)
     F = _matrices(settings.model)[0]
     m_s, P_s = fw.m_f.copy(), fw.P_f.copy()
