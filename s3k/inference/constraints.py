@@ -9,7 +9,7 @@
 - **A skeleton's limbs**: each limb's length is held near its median over the track by minimising
   ``sum_k |x_k - x^_k|^2 / v_k + sum_limbs (|x_i - x_j| - L)^2 / l^2`` (extended position-based dynamics, a
   few iterations per frame): a point placed with little confidence moves more than a confident one. ``l`` is
-  the limb's robust spread over the track (``limb_std`` when given).
+  the limb's robust spread over the track's detections (``limb_std`` when given).
 """
 
 from __future__ import annotations

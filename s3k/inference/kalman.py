@@ -265,7 +265,7 @@ def _base_scale(X: np.ndarray) -> np.ndarray:
 
 
 Q_GRID = 2.0 ** np.arange(-10.0, 5.0)
-S_GRID = 2.0 ** np.arange(-3.0, 4.0)
+S_GRID = 2.0 ** np.arange(-6.0, 4.0)
 
 
 def fit_noise(X: np.ndarray, std: np.ndarray, settings: FilterSettings) -> tuple[np.ndarray, np.ndarray]:

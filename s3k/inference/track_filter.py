@@ -96,7 +96,7 @@ def filter_track(X: np.ndarray, error: np.ndarray, score: np.ndarray, used: np.n
         out.X, out.var, info["layout_std"] = hold_to_layout(out.X, out.var, out.valid, shape,
                                                             settings.layout_std)
     if edges:
-        L, spread = limb_reference(out.X, edges, settings.limb_std)
+        L, spread = limb_reference(X, edges, settings.limb_std)  # the detections' own spread
         out.X = hold_limbs(out.X, out.var, out.valid, edges, L, spread)
         info["limbs"] = [{"edge": list(e), "length": float(a), "std": float(b)}
                          for e, a, b in zip(edges, L, spread)]
@@ -137,7 +137,7 @@ class StreamFilter:
         if rigid and self.shape is not None:
             out, var, _ = hold_to_layout(out, var, valid[None], self.shape, self.settings.layout_std or None)
         if self.edges:
-            self.placed.append(out[0])
+            self.placed.append(X[0])  # the detections' own spread
             L, spread = limb_reference(np.stack(self.placed[-256:]), self.edges, self.settings.limb_std)
             out = hold_limbs(out, var, valid[None], self.edges, L, spread)
         return out[0], valid, rejected
