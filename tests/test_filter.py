@@ -141,3 +141,12 @@ def test_doubt_ranks_a_rejected_jump_a_large_residual_and_a_missing_point_first(
     d = doubt(w, r, valid, rejected)["doubt"]
     order = list(np.argsort(-d))
     assert order[0] == 5 and set(order[1:3]) == {2, 4} and order[3] == 1
+
+
+def test_the_benchmarks_delay_finds_a_lag_of_one_frame():
+    from s3k.experiments.track_filter import delay, jitter
+
+    truth = trajectory()
+    lagged = np.concatenate([truth[:1], truth[:-1]])  # each frame shows the one before
+    assert delay(lagged, truth)[0] == 1 and delay(truth, truth)[0] == 0
+    assert jitter(truth) < jitter(truth + np.random.default_rng(0).normal(0, 1, truth.shape))
