@@ -42,9 +42,10 @@ MODELS = {"velocity": 2, "acceleration": 3}
 
 #: Measurements rejected in a row after which the filter starts again at the next one (it has lost the point).
 LOST = 3
-#: What a rejected measurement costs in the noise fit beyond a Gaussian one at the gate: an outlier density
-#: of about 1% spread over a region 20 standard deviations wide.
-OUTLIER_COST = 3.0
+#: The outliers' share and the width of the region they fall in, in robust sizes of the track's second
+#: differences: a rejected measurement costs the log-density of that uniform outlier model.
+OUTLIER_SHARE = 0.01
+OUTLIER_WIDTH = 20.0
 
 #: Frames of history at which :class:`CausalFilter` fits its noise again (then every ``REFIT_LAST`` frames).
 REFIT_AT = (16, 32, 64, 128, 256)
@@ -191,19 +192,17 @@ def _step(state: _State, z: np.ndarray, r: np.ndarray, q: np.ndarray, settings: 
     gap = np.where(taken | restart, 0, state.gap + 1)
     count = np.where(restart, 1, state.count + taken)
     miss = np.where(rejected, state.miss + 1, np.where(taken | restart, 0, state.miss))
-    nll = 0.5 * (d2 + 3 * np.log(S))
+    nll = 0.5 * d2 + 1.5 * np.log(2 * np.pi * S)
     settled = state.count >= n  # the first measurements of a segment place it: they cost nothing
     cost = np.where(taken & settled, np.minimum(nll, floor), np.where(rejected, floor, 0.0))
     return _Step(m_p, P_p, _State(m, P, init, gap, count, miss), taken, rejected, restart, cost)
 
 
-def _floor(std: np.ndarray, gate: float) -> np.ndarray:
-    """``(K,)`` the cost of a rejected measurement: a Gaussian term at the gate with the keypoint's median
-    measurement variance (a constant, so rejecting cannot make a small noise look likely)."""
-    med = nanmedian(std)
-    med = np.where(np.isfinite(med) & (med > 0), med, 1.0)
-    g2 = gate**2 if gate > 0 else 25.0
-    return 0.5 * (g2 + 3 * np.log(med**2)) + OUTLIER_COST
+def _floor(X: np.ndarray) -> np.ndarray:
+    """``(K,)`` the cost of a rejected measurement: the negative log-density of an outlier, a share
+    ``OUTLIER_SHARE`` spread uniformly over a cube ``OUTLIER_WIDTH`` robust second differences wide. It does
+    not depend on the noise being fitted, so rejecting cannot make a small noise look likely."""
+    return -np.log(OUTLIER_SHARE) + 3 * np.log(OUTLIER_WIDTH * _base_scale(X))
 
 
 @dataclass
@@ -234,7 +233,7 @@ def forward(X: np.ndarray, std: np.ndarray, q: np.ndarray, s: np.ndarray, settin
     FQ = _matrices(settings.model)
     n = FQ[0].shape[0]
     state = _State.empty(q.shape, n)
-    floor = np.broadcast_to(_floor(std, settings.gate), q.shape)
+    floor = np.broadcast_to(_floor(X), q.shape)
     steps: list[_Step] = []
     cost = np.zeros(q.shape)
     for t in range(len(X)):
@@ -396,7 +395,7 @@ class CausalFilter:
         del self.history[:-REFIT_LAST]
         self.seen += 1
         self._noise()
-        floor = _floor(np.stack([h[1] for h in self.history]), self.settings.gate)
+        floor = _floor(np.stack([h[0] for h in self.history]))
         st = _step(self.state, X, (self.s * std) ** 2, self.q, self.settings, self.FQ, floor)
         self.state = st.state
         valid = st.state.init & (st.state.gap <= self.settings.max_gap)
