@@ -147,6 +147,8 @@ class CalibrationCheck:
         notes: other findings (e.g. two cameras with identical parameters, which usually means a copy error).
         undecided: the test stopped before judging every camera (too few points, or a pair that cannot
             triangulate).
+        unchecked: cameras with fewer than ``min_points`` leave-one-out residuals (e.g. no labels), which
+            the test cannot judge.
     """
 
     cameras: list[CameraResidual]
@@ -157,6 +159,8 @@ class CalibrationCheck:
     min_px: float = 0.0
     notes: list[str] = field(default_factory=list)
     undecided: bool = False
+    unchecked: list[str] = field(default_factory=list)
+    min_points: int = 10
 
     def format(self) -> str:
         """A plain-text report."""
@@ -180,9 +184,17 @@ class CalibrationCheck:
             lines.append(f"INCONSISTENT: {', '.join(self.inconsistent)}")
             lines.append("residual with the consistent cameras only triangulating:")
             lines += table(self.consistent)
-        else:
-            lines.append("no camera could be judged inconsistent, but the test was incomplete (see above)"
-                         if self.undecided else "all cameras consistent")
+        elif self.undecided:
+            lines.append("no camera could be judged inconsistent, but the test was incomplete (see above)")
+        elif not self.unchecked:
+            lines.append("all cameras consistent")
+        if self.unchecked:
+            counts = {r.name: r.loo_n for r in self.cameras}
+            lines.append(f"could not check camera(s) {', '.join(self.unchecked)}: "
+                         + ", ".join(f"{c} has {counts.get(c, 0)}" for c in self.unchecked)
+                         + f" leave-one-out residuals, fewer than the {self.min_points} the test needs "
+                         "(label more keypoints in them)" + ("" if self.inconsistent or self.undecided else
+                                                    "; the others are consistent"))
         return "\n".join(lines)
 
 
@@ -191,6 +203,19 @@ def _residual_rows(names, res, loo) -> list[CameraResidual]:
     for c, name in enumerate(names):
         rows.append(CameraResidual(name, *_stats(res[:, c]), *_stats(loo[:, c])))
     return rows
+
+
+def identical_cameras(cams: Cameras, names: list[str]) -> list[str]:
+    """``"A and B have identical calibration parameters"`` for every pair of cameras ``(C,)`` or ``(B, C)``
+    whose parameters are equal (a copy error; the first finding of :func:`check_calibration`, which needs
+    no labels)."""
+    cams = _as_cameras(cams)
+    C = len(names)
+    lead = len(cams.shape)
+    fields = [v.reshape(-1, C, *v.shape[lead:]) for v in cams.numpy().values()]
+    return [f"{names[a]} and {names[b]} have identical calibration parameters"
+            for a in range(C) for b in range(a + 1, C)
+            if all(np.array_equal(v[:, a], v[:, b]) for v in fields)]
 
 
 def check_calibration(
@@ -225,20 +250,16 @@ def check_calibration(
     if np.asarray(uv).ndim == 4 and np.asarray(uv).shape[1] != C:
         raise ValueError(f"names has {C} cameras, uv has {np.asarray(uv).shape[1]}")
     res = reprojection_residuals(cams, uv, mask)
-    lead = len(cams.shape)
-    fields = [v.reshape(-1, C, *v.shape[lead:]) for v in cams.numpy().values()]
-    notes = []
-    for a in range(C):
-        for b in range(a + 1, C):
-            if all(np.array_equal(v[:, a], v[:, b]) for v in fields):
-                notes.append(f"{names[a]} and {names[b]} have identical calibration parameters")
+    notes = identical_cameras(cams, names)
     loo = leave_one_out_residuals(cams, uv, mask)
     if min_px is None:
         if image_size is None:
             pp = cams.K[..., :2, 2].reshape(-1, 2).mean(dim=0).numpy()
             image_size = (2 * pp[0] + 1, 2 * pp[1] + 1)
         min_px = 0.005 * float(np.hypot(*image_size))
-    check = CalibrationCheck(_residual_rows(names, res, loo), [], factor=factor, min_px=min_px, notes=notes)
+    check = CalibrationCheck(_residual_rows(names, res, loo), [], factor=factor, min_px=min_px, notes=notes,
+                             min_points=min_points)
+    check.unchecked = [r.name for r in check.cameras if r.loo_n < min_points]
 
     active = np.ones(C, bool)
     while active.sum() >= 3:

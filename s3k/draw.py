@@ -1,4 +1,5 @@
-"""Drawing keypoints on images: one colour per keypoint, shared by every picture s3k makes.
+"""Drawing keypoints on images: one colour per keypoint, the skeleton's edges in white, shared by every
+picture s3k makes.
 
 :func:`draw_overlay` marks one camera's detections and reprojected 3D points on a video frame (``s3k track
 --overlay``); :func:`draw_views` puts a frame's camera views side by side with their heatmaps, predicted and
@@ -12,7 +13,31 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["draw_overlay", "draw_views", "keypoint_colours"]
+__all__ = ["draw_edges", "draw_overlay", "draw_views", "edge_indices", "keypoint_colours"]
+
+SKELETON_COLOUR = (255, 255, 255)
+
+
+def edge_indices(skeleton: Sequence[Sequence[str]], keypoints: Sequence[str]) -> np.ndarray:
+    """``(E, 2)`` int keypoint indices of the skeleton's edges (those naming another keypoint left out)."""
+    index = {k: i for i, k in enumerate(keypoints)}
+    pairs = [(index[a], index[b]) for a, b in skeleton if a in index and b in index]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def draw_edges(image: np.ndarray, uv: np.ndarray, edges: np.ndarray, colour=SKELETON_COLOUR,
+               thickness: int = 1, scale: float = 1.0) -> None:
+    """Draw the skeleton's ``edges (E, 2)`` between the points ``uv (K, 2)`` (pixels; an edge with a NaN or
+    far-off end is skipped) on ``image`` in place, ``scale`` times the pixel coordinates."""
+    import cv2
+
+    shift = 4
+    for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
+        ends = np.asarray(uv, dtype=np.float64)[[a, b]]
+        if not np.isfinite(ends).all() or np.abs(ends).max() > 1e5:
+            continue
+        p, q = (tuple(int(round(((v + 0.5) * scale - 0.5) * (1 << shift))) for v in end) for end in ends)
+        cv2.line(image, p, q, colour, thickness, cv2.LINE_AA, shift)
 
 
 def keypoint_colours(n: int) -> list[tuple[int, int, int]]:
@@ -25,7 +50,7 @@ def keypoint_colours(n: int) -> list[tuple[int, int, int]]:
 
 
 def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np.ndarray,
-                 colours: Sequence[tuple[int, int, int]]) -> np.ndarray:
+                 colours: Sequence[tuple[int, int, int]], edges: np.ndarray | None = None) -> np.ndarray:
     """Draw one camera's keypoints on a copy of ``image`` (H, W, 3) RGB.
 
     Args:
@@ -34,12 +59,16 @@ def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np
         uv: ``(K, 2)`` the view's own detections: crosses, thick where the view was used.
         used: ``(K,)`` whether the view entered the triangulation.
         colours: one RGB colour per keypoint.
+        edges: ``(E, 2)`` skeleton edges (:func:`edge_indices`), drawn between the reprojected points.
     """
     import cv2
 
     out = np.ascontiguousarray(image).copy()
     H, W = out.shape[:2]
     r = max(2, round(min(H, W) / 80))
+    if edges is not None and len(edges):
+        draw_edges(out, reproj, edges, (0, 0, 0), max(2, r // 2) + 2)  # a dark rim: seen on any background
+        draw_edges(out, reproj, edges, SKELETON_COLOUR, max(2, r // 2))
     shift = 4  # sub-pixel drawing: coordinates in 1/16 px
     for k, colour in enumerate(colours):
         # Pixel (0, 0) is the centre of the top-left pixel for s3k and for OpenCV's drawing alike.
@@ -57,7 +86,8 @@ def draw_overlay(image: np.ndarray, reproj: np.ndarray, uv: np.ndarray, used: np
 
 
 def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray, true_uv: np.ndarray | None,
-               true_mask: np.ndarray | None = None, scale: int = 3) -> np.ndarray:
+               true_mask: np.ndarray | None = None, scale: int = 3,
+               edges: np.ndarray | None = None) -> np.ndarray:
     """One frame's views side by side with heatmaps, predicted (cross) and true (circle) keypoints.
 
     Args:
@@ -67,6 +97,7 @@ def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray
         true_uv: (C, K, 2) ground truth, or None.
         true_mask: (C, K) bool, or None (all shown).
         scale: upscaling factor for legibility.
+        edges: ``(E, 2)`` skeleton edges (:func:`edge_indices`), drawn between the predicted points.
 
     Returns:
         (scale * H, C * scale * W, 3) uint8 RGB image.
@@ -87,6 +118,8 @@ def draw_views(images: np.ndarray, probs: np.ndarray | None, pred_uv: np.ndarray
             alpha = (0.6 * heat)[..., None]
             tile = (tile * (1 - alpha) + coloured * alpha).astype(np.uint8)
         tile = np.ascontiguousarray(tile)
+        if edges is not None and len(edges):
+            draw_edges(tile, pred_uv[c], edges, SKELETON_COLOUR, 1, scale)
         for k in range(pred_uv.shape[1]):
             col = colours[k]
 

@@ -123,3 +123,11 @@ def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
             yield True
         finally:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def resolve_from(folder: str | Path, value: str | Path) -> Path:
+    """A path recorded in a dataset's ``s3k.json`` (``source``): absolute as it is, relative from the dataset
+    folder ``folder`` (``s3k import`` writes the paths it was given relative as relative to the dataset, so
+    that a dataset moved together with its recording still finds it)."""
+    path = Path(value)
+    return path if path.is_absolute() else Path(folder) / path

@@ -219,7 +219,11 @@ def recalibrate_dataset(
     from s3k.geometry.warp import crop_resize_matrix
 
     source = ds.source if isinstance(ds.source, dict) else {}
-    toml_path = calibration or source.get("calibration")
+    toml_path = calibration
+    if not toml_path and source.get("calibration"):
+        from s3k.fileio import resolve_from
+
+        toml_path = resolve_from(ds.path, source["calibration"])
     if not toml_path:
         raise UserError("recalibration needs the recording's calibration.toml (the dataset does not name it)",
                         hint="pass --calibration")

@@ -303,3 +303,48 @@ def test_cli_without_labels_says_labels_are_needed(tmp_path, capsys):
     assert main(["check-calibration", str(labelled), "--splits", "unlabelled"]) == 1
     assert "no frames in unlabelled; the check triangulates 2D labels; use the labelled and test frames: " \
            "--splits labelled,test" in capsys.readouterr().err
+
+
+def test_camera_without_labels_is_not_called_consistent(tmp_path, capsys):
+    """A camera with no labels (its row all nan) cannot be judged: the report says so and does not call
+    every camera consistent."""
+    from s3k.cli import main
+
+    rig = make_rig()
+    uv, mask = observe(rig, B=20, noise=0.3)
+    mask[:, 2] = False
+    uv[:, 2] = np.nan
+    check = check_calibration(cameras(rig), uv, mask, NAMES)
+    text = check.format()
+    assert check.unchecked == [NAMES[2]], text
+    assert "all cameras consistent" not in text
+    assert f"could not check camera(s) {NAMES[2]}: {NAMES[2]} has 0 leave-one-out residuals" in text
+
+    from s3k.data import DatasetWriter
+
+    K, d, R, t = rig
+    with DatasetWriter(tmp_path / "ds", [f"k{i}" for i in range(uv.shape[2])], NAMES, (640, 480), "mm",
+                       calibration=(K, d, R, t)) as writer:
+        for b in range(len(uv)):
+            writer.add_frame(b, "labelled", np.zeros((4, 480, 640, 3), np.uint8),
+                             labels=(np.nan_to_num(uv[b]), mask[b]))
+    assert main(["check-calibration", str(tmp_path / "ds")]) == 0
+    out = capsys.readouterr().out
+    assert "all cameras consistent" not in out
+    assert f"could not check camera(s) {NAMES[2]}" in out
+
+
+def test_validate_fails_a_dataset_with_an_inconsistent_camera(tmp_path, capsys):
+    """``s3k validate`` does not exit 0 with "OK" on a dataset whose camera the calibration check calls
+    inconsistent: that camera would train on wrong targets."""
+    from s3k.cli import main
+
+    rig = make_rig()
+    bad = cameras(rig, rotate=3, angle_deg=2.0).numpy()
+    path = _write_dataset(tmp_path / "bad", [bad[k] for k in ("K", "dist", "R", "t")], rig)
+    assert main(["validate", str(path), "--no-images"]) == 1
+    out = capsys.readouterr().out
+    assert "ERROR   calibration: camera(s) d disagree with the others' labels" in out
+    assert "OK:" not in out and out.splitlines()[-1].startswith("UNUSABLE: 1 error(s)")
+    good = _write_dataset(tmp_path / "good", rig, rig)
+    assert main(["validate", str(good), "--no-images"]) == 0

@@ -147,3 +147,38 @@ def test_a_rigid_two_pass_detector_lends_its_coarse_heatmaps_to_the_layout_searc
             torch.testing.assert_close(prior.cams.K, out.coarse.network_cameras().K.expand_as(prior.cams.K))
             assert detector(frames, cams).coarse.probs is None  # kept only when asked for
         priors.clear()
+
+
+def test_frames_the_detector_would_misread_are_refused_in_one_line():
+    """Float frames in [0, 1], frames twice (or half) the size the intrinsics describe, and a list that reads
+    as cameras and as frames alike are refused; the same frames given right are read."""
+    from s3k.errors import UserError
+
+    net, meta = _net(32)
+    detector = OnePassDetector(net, meta)
+    gen = torch.Generator().manual_seed(2)
+    frames = torch.randint(0, 256, (4, 4, 64, 64, 3), dtype=torch.uint8, generator=gen)
+    cams = _rig(64)
+    ref = detector(frames, cams)
+    with pytest.raises(UserError, match="float32 frames; the detector reads uint8") as err:
+        detector(frames.float() / 255, cams)
+    assert "\n" not in str(err.value)
+    with pytest.raises(UserError, match=r"camera 0's frames are 128x128 px but its intrinsics .* describe "
+                                        r"64x64 px frames \(2x\)"):
+        detector(frames.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3), cams)
+    with pytest.raises(UserError, match="describe 64x64 px frames"):
+        detector(frames[:, :, ::2, ::2], cams)
+    # a calibration whose principal point lies off the centre, as calibrated ones do: still told apart
+    off = Cameras(cams.K.clone(), cams.dist, cams.R, cams.t)
+    off.K[:, 0, 2] += 3.0
+    off.K[:, 1, 2] -= 2.0
+    detector(frames, off)
+    with pytest.raises(UserError, match=r"camera 0's frames are 128x128 px"):
+        detector(frames.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3), off)
+    # four cameras' arrays of four frames each, or four frames of four cameras: refused, naming the fix
+    with pytest.raises(UserError, match=r"reads both as 4 cameras' frames and as 4 frames of 4 cameras"):
+        detector(list(frames.unbind(1)), cams)
+    # unambiguous: a list of another length of frames, or per-camera arrays of another batch size
+    out = detector(list(frames[:3].unbind(1)), cams)
+    assert torch.equal(out.X, ref.X[:3])
+    np.testing.assert_array_equal(detector(frames.numpy(), cams).X.numpy(), ref.X.numpy())

@@ -136,3 +136,94 @@ def test_export_errors(run_dir, tmp_path, capsys):
     missing = str(tmp_path / "missing")
     assert cli.main(["export", missing, "--format", "onnx", "--out", str(tmp_path / "x")]) == 1
     assert "missing" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_load_exported_runs_torchscript_only_when_asked(run_dir, tmp_path):
+    """A TorchScript file is a program: load_exported refuses it unless the caller asks for TorchScript."""
+    from s3k.errors import UserError
+    from s3k.inference.export import load_exported
+
+    ts = export_detector(run_dir, "torchscript", tmp_path / "d.pt").path
+    with pytest.raises(UserError, match="TorchScript export, which runs code .* fmt='torchscript'") as err:
+        load_exported(ts)
+    assert "\n" not in str(err.value)
+    assert load_exported(ts, "torchscript").keypoints == ["a", "b", "c"]
+    onnx_path = export_detector(run_dir, "onnx", tmp_path / "d.onnx").path
+    assert load_exported(onnx_path).keypoints == ["a", "b", "c"]
+    # a two-pass export's JSON naming TorchScript files: refused too unless asked
+    doc = {"format": "s3k-exported-two-pass/1", "extent": 0.3, "size": 40, "margin": 0.1,
+           "runtime": "torchscript", "coarse": "d.pt", "fine": "d.pt"}
+    (tmp_path / "two.json").write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="TorchScript export"):
+        load_exported(tmp_path / "two.json")
+    (tmp_path / "junk.onnx").write_bytes(b"\x00not a model at all\xff" * 10)
+    with pytest.raises(UserError, match="junk.onnx: not an ONNX file"):
+        load_exported(tmp_path / "junk.onnx")
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: "{not json", "not a two-pass export of s3k \\(not JSON"),
+    (lambda d: {**d, "format": "other"}, "format 'other', expected"),
+    (lambda d: {k: v for k, v in d.items() if k != "fine"}, "field\\(s\\) fine missing"),
+    (lambda d: {**d, "extent": float("inf")}, "field 'extent' is inf; expected a finite positive number"),
+    (lambda d: {**d, "extent": -1.0}, "field 'extent' is -1.0"),
+    (lambda d: {**d, "size": 12.5}, "field 'size' is 12.5; expected a finite positive whole number"),
+    (lambda d: {**d, "margin": "x"}, "field 'margin' is 'x'"),
+    (lambda d: {**d, "coarse": "../outside.onnx"},
+     "field 'coarse' is '../outside.onnx'; expected the name of a file beside it"),
+    (lambda d: {**d, "fine": "/etc/hostname"}, "field 'fine' is '/etc/hostname'"),
+    (lambda d: {**d, "fine": "absent.onnx"}, "field 'fine' names absent.onnx, which is not in"),
+])
+def test_load_exported_checks_the_two_pass_json(run_dir, tmp_path, edit, match):
+    from s3k.errors import UserError
+    from s3k.inference.export import load_exported
+
+    folder = tmp_path / "export"
+    folder.mkdir()
+    export_detector(run_dir, "onnx", folder / "d.onnx")
+    (tmp_path / "outside.onnx").write_bytes((folder / "d.onnx").read_bytes())
+    good = {"format": "s3k-exported-two-pass/1", "extent": 0.3, "size": 40, "margin": 0.1, "runtime": "onnx",
+            "coarse": "d.onnx", "fine": "d.onnx"}
+    path = folder / "d.json"
+    edited = edit(good)
+    path.write_text(edited if isinstance(edited, str) else json.dumps(edited))
+    with pytest.raises(UserError, match=match) as err:
+        load_exported(path)
+    assert "\n" not in str(err.value) and "d.json" in str(err.value)
+
+
+def test_export_of_a_checkpoint_is_checked_against_that_checkpoint(tmp_path, capsys):
+    """``--checkpoint`` exports that file's network: its 3D check compares with the same network (it was
+    compared with the run's final model, and failed by millimetres while the logits matched)."""
+    import shutil
+
+    from synthetic_rig import make_dataset
+
+    data = make_dataset(tmp_path / "data", size=32, labelled=1, unlabelled=1, test=2)
+    run = make_run(tmp_path / "run", dataset=str(data), norm="group")
+    other = make_run(tmp_path / "other", dataset=str(data), norm="group")  # same meta, other weights
+    state = torch.load(other / "model.pt", weights_only=True)
+    state["model"] = {k: v + 0.05 * torch.randn_like(v) if v.is_floating_point() else v
+                      for k, v in state["model"].items()}
+    torch.save(state, run / "early.pt")
+    shutil.rmtree(other)
+    code = cli.main(["export", str(run), "--format", "onnx", "--out", str(tmp_path / "d.onnx"),
+                     "--checkpoint", "early.pt"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "max 3D difference from PyTorch's detector on 4 frames" in captured.out
+
+
+def test_a_failed_3d_check_is_named(run_dir, tmp_path, capsys, monkeypatch):
+    """When the 3D points fail while every output is within --tolerance, the error names the 3D check and
+    its figure, not the outputs' tolerance."""
+    import s3k.inference.export as export
+
+    monkeypatch.setattr(export, "_verify_points", lambda *args, **kwargs: (10.6, 8))
+    assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(tmp_path / "d.onnx")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert ("3D points differ from PyTorch's detector's by 10.6 mm on 8 frames (3D tolerance 0.1 mm)"
+            in err), err
+    assert "0.0001" not in err and "output logits" not in err

@@ -501,3 +501,119 @@ def test_real_sleap_project_matches_its_analysis_file():
     analysis = read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
     assert table.keypoints == analysis.keypoints and len(table.keypoints) == 15
     np.testing.assert_array_equal(table.dense(120), analysis.uv)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The skeleton: imported from SLEAP, DeepLabCut and anipose, exported to SLEAP and DeepLabCut
+
+EDGES = [("a", "b"), ("b", "c")]
+
+
+@pytest.mark.parametrize("fmt", ["dlc", "sleap", "nwb"])
+def test_skeleton_round_trips_through_sleap_dlc_and_nwb(rec, tmp_path, fmt):
+    """s3k -> DLC project / SLEAP project / NWB (read by PyYAML / sleap-io / pynwb as those tools read them)
+    -> s3k."""
+    import yaml
+
+    ds_path, _ = _dataset(rec, tmp_path / "ds")
+    assert Dataset.open(ds_path, cache="none").skeleton == EDGES
+    out = tmp_path / {"sleap": "x.slp", "nwb": "x.nwb"}.get(fmt, "export")
+    assert main(["export-labels", str(ds_path), "--format", fmt, "--out", str(out), "--no-images"]) == 0
+    if fmt == "nwb":
+        with pynwb.NWBHDF5IO(str(out), "r") as io:
+            skeleton = io.read().processing["behavior"]["Skeletons"].skeletons["s3k"]
+            np.testing.assert_array_equal(skeleton.edges[:], [[0, 1], [1, 2]])
+        labels = ["--nwb", str(out)]
+    elif fmt == "sleap":
+        assert sio.load_slp(str(out), open_videos=False).skeletons[0].edge_names == EDGES
+        labels = ["--sleap", str(out)]
+    else:
+        config = yaml.safe_load((out / "config.yaml").read_text())
+        assert config["bodyparts"] == list(KPS) and config["skeleton"] == [list(e) for e in EDGES]
+        assert set(config["video_sets"]) == set(CAMS) and config["scorer"] == "s3k"
+        labels = ["--dlc", *[f"{cam}={out}/labeled-data/{cam}/CollectedData_s3k.csv" for cam in CAMS]]
+    assert _import(rec, tmp_path / "back", *labels) == 0
+    assert Dataset.open(tmp_path / "back", cache="none").skeleton == EDGES
+
+
+def test_sleap_edges_are_imported_from_projects_and_analysis_files(rec, tmp_path, capsys):
+    import h5py
+
+    slp = _project(tmp_path / "labels.slp", rec)
+    labels = sio.load_slp(str(slp), open_videos=False)
+    labels.skeletons[0].add_edge("c", "a")
+    sio.save_slp(labels, str(slp))
+    assert _import(rec, tmp_path / "ds", "--sleap", str(slp)) == 0
+    assert f"skeleton: 1 edges from {slp}" in capsys.readouterr().out
+    assert Dataset.open(tmp_path / "ds", cache="none").skeleton == [("c", "a")]
+    # --keypoints leaves out the edges to the keypoints it drops
+    assert _import(rec, tmp_path / "ab", "--sleap", str(slp), extra=["--keypoints", "a,b"]) == 0
+    assert "skeleton: 0 edges" in capsys.readouterr().out
+    assert Dataset.open(tmp_path / "ab", cache="none").skeleton == []
+
+    files = []
+    for c, cam in enumerate(CAMS):  # SLEAP's analysis layout: tracks (tracks, 2, nodes, frames)
+        path = tmp_path / f"{cam}.analysis.h5"
+        with h5py.File(path, "w") as f:
+            f["tracks"] = rec["uv"][:, c].transpose(2, 1, 0)[None]
+            f["node_names"] = np.array([k.encode() for k in KPS])
+            f["edge_names"] = np.array([[b"a", b"b"], [b"b", b"c"]])
+            f["edge_inds"] = np.array([[0, 1], [1, 2]])
+        files.append(f"{cam}={path}")
+    assert _import(rec, tmp_path / "h5", "--sleap", *files) == 0
+    assert Dataset.open(tmp_path / "h5", cache="none").skeleton == EDGES
+
+
+def test_skeleton_from_an_anipose_project_and_from_a_file_given(rec, tmp_path, capsys):
+    import shutil
+
+    ds_path, _ = _dataset(rec, tmp_path / "ds")
+    assert main(["export-labels", str(ds_path), "--format", "dlc", "--out", str(tmp_path / "csv"),
+                 "--no-images"]) == 0
+    (tmp_path / "csv" / "config.yaml").unlink()  # CSVs alone: no skeleton of their own
+    dlc = ["--dlc", *[f"{cam}={tmp_path}/csv/labeled-data/{cam}/CollectedData_s3k.csv" for cam in CAMS]]
+    project = tmp_path / "project"
+    (project / "session1" / "calibration").mkdir(parents=True)
+    calibration = project / "session1" / "calibration" / "calibration.toml"
+    shutil.copy(rec["root"] / "calibration.toml", calibration)
+    (project / "config.toml").write_text('[labeling]\nscheme = [["c", "b", "a"]]\n')
+    argv = ["import", "--calibration", str(calibration), "--videos",
+            *[f"{cam}={rec['root'] / cam}.mkv" for cam in CAMS], *dlc, "--labelled", "all",
+            "--min-views", "1"]
+    assert main([*argv, "--out", str(tmp_path / "anipose")]) == 0
+    assert f"skeleton: 2 edges from {project / 'config.toml'}" in capsys.readouterr().out
+    assert Dataset.open(tmp_path / "anipose", cache="none").skeleton == [("c", "b"), ("b", "a")]
+    # --skeleton takes it from any of those files, here another dataset
+    assert main([*argv, "--out", str(tmp_path / "given"), "--skeleton", str(ds_path)]) == 0
+    assert Dataset.open(tmp_path / "given", cache="none").skeleton == EDGES
+    (tmp_path / "bad.yaml").write_text("skeleton:\n- [a, nose]\n")
+    assert main([*argv, "--out", str(tmp_path / "bad"), "--skeleton", str(tmp_path / "bad.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "bad.yaml: skeleton edge a-nose names 'nose', which is not a keypoint (a, b, c)" in err
+    assert len(err.strip().splitlines()) <= 2 and not (tmp_path / "bad").exists()
+
+
+def test_dataset_skeleton_is_checked_on_load(rec, tmp_path):
+    import json
+
+    ds_path, _ = _dataset(rec, tmp_path / "ds")
+    meta = json.loads((ds_path / "s3k.json").read_text())
+    for bad, message in (([["a", "nose"]], "unknown keypoint 'nose'"),
+                         ([["b", "b"]], "joins a keypoint to itself"),
+                         ([["a"]], "list of \\[keypoint, keypoint\\] pairs")):
+        (ds_path / "s3k.json").write_text(json.dumps({**meta, "skeleton": bad}))
+        with pytest.raises(UserError, match=message):
+            Dataset.open(ds_path, cache="none")
+
+
+@needs_real
+def test_real_recording_sleap_files_carry_the_skeleton():
+    from s3k.data.formats.skeleton import read_skeleton
+    from s3k.data.formats.sleap import read_sleap_analysis
+    from s3k.data.formats.slp import read_slp
+
+    slp = REAL / "back" / "minimal_back_proofread.slp"
+    table = read_slp(slp, ["back"], predictions=True)["back"]
+    analysis = read_sleap_analysis(REAL / "back" / "minimal_back_proofread.analysis.h5")
+    assert len(table.skeleton) == 14 and ("Head", "Nose") in table.skeleton
+    assert sorted(analysis.skeleton) == sorted(table.skeleton) == sorted(read_skeleton(slp))

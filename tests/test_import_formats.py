@@ -478,3 +478,60 @@ def test_video_region_with_padding_moves_the_principal_point_out(recording):  # 
     np.testing.assert_array_equal(K[[0, 2]], ref[[0, 2]])
     with pytest.raises(ValueError, match="whole-pixel size"):
         rig.with_video_regions({"east": (0, 0, 10.5, 10)})
+
+
+def test_deepfly3d_no_estimate_marks_are_unlabelled_and_named(tmp_path, capsys):
+    """Points DeepFly3D marks (0, 1) for "no estimate" (the top-right corner as fractions) are unlabelled, and
+    the import says so, instead of dropping them as labels outside the images."""
+    T = 3
+    points = np.full((7, T, len(JOINTS), 2), 0.5)
+    points[:, 1, :4] = (0.0, 1.0)
+    points[:, 2, :2] = 0.0
+    with open(tmp_path / "r.pkl", "wb") as f:
+        pickle.dump({"points2d": points}, f)
+    tables = read_deepfly3d_pose(tmp_path / "r.pkl", {f"camera_{c}": (960, 480) for c in range(7)})
+    idx = JOINTS.index("RF_body_coxa")  # seen by camera 0
+    uv = tables["camera_0"].uv
+    assert np.isnan(uv[1, idx]).all() and np.isnan(uv[2, idx]).all()
+    np.testing.assert_allclose(uv[0, idx], [480.0, 240.0])
+    out = capsys.readouterr().out
+    assert (f"{7 * 6} of {points[..., 0].size} points2d hold (0, 0) or (0, 1), DeepFly3D's marks for a "
+            "joint without an estimate: read as unlabelled") in out
+
+
+def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_path, monkeypatch):  # noqa: F811
+    """Paths given relative are written relative to the dataset folder: a dataset moved together with its
+    recording still finds its calibration, videos and labels; absolute paths stay absolute."""
+    import shutil
+
+    from s3k.data import Dataset
+    from s3k.fileio import resolve_from
+
+    root = recording["root"]
+    monkeypatch.chdir(root.parent)
+    rel = root.name
+
+    def run(folder, out):
+        return main(["import", "--calibration", f"{folder}/calibration.toml",
+                     "--videos", *[f"{c}={folder}/{c}.mkv" for c in CAMS], "--out", out,
+                     "--sleap", *[f"{c}={folder}/{c}.analysis.h5" for c in CAMS]])
+
+    assert run(rel, "project/ds") == 0
+    source = json.loads((root.parent / "project/ds/s3k.json").read_text())["source"]
+    assert source["calibration"] == f"../../{rel}/calibration.toml"
+    assert source["videos"] == {c: f"../../{rel}/{c}.mkv" for c in CAMS}
+    assert source["labels"] == {c: f"../../{rel}/{c}.analysis.h5" for c in CAMS}
+    # moved together, elsewhere: the recorded paths still lead to the files
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    shutil.copytree(root.parent / "project", moved / "project")
+    shutil.copytree(root, moved / rel)
+    ds = Dataset.open(moved / "project/ds", cache="none")
+    for value in [ds.source["calibration"], *ds.source["videos"].values(), *ds.source["labels"].values()]:
+        found = resolve_from(ds.path, value).resolve()
+        assert found.is_file() and moved / rel in found.parents
+    # given absolute: recorded absolute
+    assert run(str(root), "abs") == 0
+    source = json.loads((root.parent / "abs/s3k.json").read_text())["source"]
+    assert source["calibration"] == str(root / "calibration.toml")
+    assert source["videos"] == {c: str(root / f"{c}.mkv") for c in CAMS}

@@ -219,7 +219,8 @@ def test_propagate_over_a_still_stretch(truth):
     r = client.post("/api/propagate", json={"first": 0, "last": 3})
     assert r.status_code == 200, r.text
     assert r.json() == {"source": 0, "frames": [1, 2, 3], "keypoints": KEYPOINTS, "labels": 3 * 12,
-                        "replaced": 0, "dry_run": False}
+                        "replaced": 0, "dry_run": False,
+                        "per_frame": {"1": [12, 0], "2": [12, 0], "3": [12, 0]}}
     ds = Dataset.open(truth.path)
     uv, mask = ds.labels([1, 2, 3])
     expected = np.ones((3, 4, 3), bool)
@@ -233,7 +234,9 @@ def test_propagate_over_a_still_stretch(truth):
     before = (truth.path / "labels.csv").read_text()
     r = client.post("/api/propagate", json={"first": 0, "last": 5})
     assert r.status_code == 400
-    assert "frame 4 is not still" in r.json()["detail"] and "--max-changed" in r.json()["detail"]
+    detail = r.json()["detail"]  # in the words of the page's form, not the command line's
+    assert "frame 4 is not still" in detail and "raise 'changed pixels at most'" in detail
+    assert "--" not in detail
     assert (truth.path / "labels.csv").read_text() == before
     # with a looser threshold the same stretch is accepted; frames 1-3 already hold the copy: no change there
     r = client.post("/api/propagate", json={"first": 0, "last": 5, "max_changed": 100.0})
@@ -248,7 +251,7 @@ def test_propagate_refuses_a_threshold_out_of_range(truth, limit):
     before = (truth.path / "labels.csv").read_text()
     r = client.post("/api/propagate", content=f'{{"first": 0, "last": 5, "max_changed": {limit}}}',
                     headers={"content-type": "application/json"})
-    assert r.status_code == 400 and "--max-changed" in r.json()["detail"]
+    assert r.status_code == 400 and "'changed pixels at most'" in r.json()["detail"]
     assert (truth.path / "labels.csv").read_text() == before
 
 
@@ -596,3 +599,30 @@ def test_request_bodies_are_capped(truth):
     assert after == before
     ok = client.post("/api/frame/0/label", json={"version": 0, "edits": []})
     assert ok.status_code == 200  # an ordinary request still goes through
+
+
+def test_skeleton_edges_are_added_and_removed_in_s3k_json(truth):
+    """The dataset's skeleton is sent with the metadata and edited through the app: each change is written
+    to s3k.json at once, every other field kept; bad edges are refused, naming the keypoint or edge."""
+    meta_before = json.loads((truth.path / "s3k.json").read_text())
+    client = TestClient(create_app(truth.path))
+    assert client.get("/api/meta").json()["skeleton"] == []
+    r = client.post("/api/skeleton", json={"add": ["a", "b"]})
+    assert r.status_code == 200 and r.json()["skeleton"] == [["a", "b"]]
+    r = client.post("/api/skeleton", json={"add": ["c", "b"]})
+    assert r.json()["skeleton"] == [["a", "b"], ["c", "b"]]
+    for body, words in [({"add": ["b", "a"]}, "the edge b - a is already in"),
+                        ({"add": ["a", "nose"]}, "unknown keypoint 'nose'"),
+                        ({"add": ["a", "a"]}, "two different keypoints"),
+                        ({"add": ["a"]}, "an edge is two keypoint names"),
+                        ({"remove": ["a", "c"]}, "no edge a - c to remove")]:
+        r = client.post("/api/skeleton", json=body)
+        assert r.status_code == 400 and words in r.json()["detail"], r.json()
+    assert client.post("/api/skeleton", json={"remove": ["b", "a"]}).json()["skeleton"] == [["c", "b"]]
+    meta = json.loads((truth.path / "s3k.json").read_text())
+    assert meta.pop("skeleton") == [["c", "b"]]
+    meta_before.pop("skeleton", None)
+    assert meta == meta_before  # nothing else changed
+    assert Dataset.open(truth.path).skeleton == [("c", "b")]
+    assert TestClient(create_app(truth.path)).get("/api/meta").json()["skeleton"] == [["c", "b"]]
+    assert not list(truth.path.glob(".s3k.json.*"))  # no temporary file left

@@ -37,11 +37,14 @@ SHOTS = os.environ.get("S3K_SCREENSHOTS")
 class Server:
     """The app on a free loopback port, in a thread of this process."""
 
-    def __init__(self, data: Path, run: Path | None = None) -> None:
+    def __init__(self, data: Path, run: Path | None = None, record: list | None = None) -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
-        config = uvicorn.Config(create_app(data, run), host="127.0.0.1", port=self.port, log_level="warning")
+        self.app = app = create_app(data, run)
+        if record is not None:  # every answer's (method, path, status), as the server sent it
+            app = recording(app, record)
+        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
@@ -56,6 +59,18 @@ class Server:
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=10)
+
+
+def recording(app, log: list):
+    async def recorded(scope, receive, send):
+        async def sent(message):
+            if message["type"] == "http.response.start":
+                log.append((scope["method"], scope["path"], message["status"]))
+            await send(message)
+
+        await app(scope, receive, sent if scope["type"] == "http" else send)
+
+    return recorded
 
 
 @pytest.fixture
@@ -115,9 +130,7 @@ def test_label_by_clicking_in_two_views(tmp_path, browser):
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(url)
         page.wait_for_selector("body[data-ready='1']")
-        assert page.locator(".view svg").count() == 4  # every view of the frame, side by side
-        boxes = [page.locator(f".view[data-camera={c}]").bounding_box() for c in CAMERAS]
-        assert len({round(b["y"]) for b in boxes}) == 1
+        assert page.locator(".view svg").count() == 4  # every view of the frame
         for _ in range(4):  # keyboard: to frame 4
             page.keyboard.press("ArrowRight")
         page.wait_for_function("document.body.dataset.frame === '4'")
@@ -380,6 +393,21 @@ def test_screenshots_of_the_box_scene(tmp_path, browser):
         wait_version(page, 2)
         page.mouse.move(*page_xy(page, "cam2", uv[2, 1] + [30, 30]))
         shot(page, "label-reprojection.png")
+    # the whole window at 1500x900: every keypoint labelled in two views, the skeleton joining them
+    from s3k.label.skeleton import edit_skeleton
+    from s3k.label.store import Edit
+
+    K = len(ds.keypoints)
+    for k in range(K):
+        edit_skeleton(data, ds.keypoints, add=[ds.keypoints[k], ds.keypoints[(k + 1) % K]])
+    LabelStore.open(data).save(0, [Edit(ds.cameras[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                   for k, kp in enumerate(ds.keypoints) for c in (0, 3)], None)
+    with Server(data) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        assert page.locator(".view[data-camera=cam1] line.bone").count() == K
+        shot(page, "label-window.png")
     run = os.environ.get("S3K_LABEL_RUN")
     if run:
         with Server(data, Path(run)) as url:
@@ -388,3 +416,330 @@ def test_screenshots_of_the_box_scene(tmp_path, browser):
             page.wait_for_selector("body[data-ready='1']")
             page.wait_for_selector("#ranking li")
             shot(page, "label-suggestions.png")
+
+
+ATTACK = """<!doctype html><html><body><script>
+// another site's page: forms (every encoding a form has) and no-cors fetches to each state-changing route
+const target = TARGET, paths = PATHS;
+const body = {version: 0, edits: [{camera: "cam0", keypoint: "a", u: 5, v: 5}], first: 0, last: 3,
+              overwrite: true, add: ["a", "c"], unlock: true};
+const text = JSON.stringify(body);
+let n = 0;
+for (const path of paths) {
+  for (const enctype of ["application/x-www-form-urlencoded", "multipart/form-data", "text/plain"]) {
+    const name = `f${n++}`;
+    const frame = document.createElement("iframe");
+    frame.name = name;
+    document.body.appendChild(frame);
+    const form = document.createElement("form");
+    Object.assign(form, {action: target + path, method: "POST", enctype, target: name});
+    const input = document.createElement("input");  // text/plain sends name=value: a JSON body
+    Object.assign(input, {type: "hidden", name: text.slice(0, -1) + ', "x": "', value: '"}'});
+    form.appendChild(input);
+    document.body.appendChild(form);
+    form.submit();
+  }
+  fetch(target + path, {method: "POST", mode: "no-cors", body: text,
+                        headers: {"Content-Type": "application/json"}}).catch(() => {});
+  fetch(target + path, {method: "POST", mode: "no-cors"}).catch(() => {});
+}
+</script></body></html>"""
+
+
+def test_a_page_of_another_origin_cannot_change_the_labels(tmp_path, browser):
+    """The page of another site (another port of 127.0.0.1) submits forms and no-cors fetches to every
+    state-changing route of the app: the server refuses each, and nothing in the dataset changes."""
+    import http.server
+    import json
+
+    from s3k.label.propagate import propagate_labels
+    from s3k.label.store import Edit
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    uv = truth.uv(0)
+    LabelStore.open(truth.path).save(0, [Edit(CAMERAS[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                         for k, kp in enumerate(["a", "b", "c"]) for c in (0, 1)], None)
+    propagate_labels(truth.path, 0, 2)  # something for /api/propagate/undo to undo
+    before = {p.name: p.read_bytes() for p in sorted(truth.path.rglob("*")) if p.is_file()}
+    log: list = []
+    server = Server(truth.path, record=log)
+    changing = {"POST", "PUT", "PATCH", "DELETE"}  # every such route of the app, a later one too
+    paths = sorted({route.path.replace("{frame}", "4") for route in server.app.routes
+                    if getattr(route, "methods", None) and route.methods & changing})
+    assert "/api/propagate/undo" in paths and "/api/frame/4/label" in paths
+    with server as url:
+        page = ATTACK.replace("TARGET", json.dumps(url.rstrip("/"))).replace("PATHS", json.dumps(paths))
+
+        class Attacker(http.server.BaseHTTPRequestHandler):
+            def do_GET(self):  # noqa: N802 - http.server's name
+                self.send_response(200)
+                self.send_header("Content-Type", "text/html")
+                self.end_headers()
+                self.wfile.write(page.encode())
+
+            def log_message(self, *args):
+                pass
+
+        evil = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Attacker)
+        threading.Thread(target=evil.serve_forever, daemon=True).start()
+        try:
+            tab = browser.new_page()
+            tab.goto(f"http://127.0.0.1:{evil.server_address[1]}/")
+            deadline = time.monotonic() + 60
+            while len([e for e in log if e[0] == "POST"]) < 5 * len(paths):  # 3 forms, 2 fetches a route
+                assert time.monotonic() < deadline, log
+                tab.wait_for_timeout(50)
+        finally:
+            evil.shutdown()
+    posts = [e for e in log if e[0] == "POST"]
+    assert sorted({p for _, p, _ in posts}) == paths
+    assert all(status in (403, 415) for _, _, status in posts), posts
+    assert {p.name: p.read_bytes() for p in sorted(truth.path.rglob("*")) if p.is_file()} == before
+
+
+def test_at_1500x900_the_views_fill_the_window_with_the_skeleton_drawn_and_edited(tmp_path, browser):
+    """Four views in a 2x2 grid that fills the page beside the sidebar; the skeleton's edges drawn in every
+    view, added and removed in the page and written to s3k.json; markers name their keypoint."""
+    import json
+
+    from s3k.label.store import Edit
+
+    truth = make_label_dataset(tmp_path / "ds", size=96)
+    uv = truth.uv(4)
+    LabelStore.open(truth.path).save(4, [Edit(CAMERAS[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                         for k, kp in enumerate(["a", "b", "c"]) for c in (0, 1)], None)
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "?frame=4")
+        page.wait_for_selector("body[data-ready='1']")
+        boxes = [page.locator(f".view[data-camera={c}]").bounding_box() for c in CAMERAS]
+        assert len({round(b["x"]) for b in boxes}) == 2 and len({round(b["y"]) for b in boxes}) == 2
+        grid = page.locator("#views").bounding_box()
+        assert grid["y"] + grid["height"] == pytest.approx(900, abs=1)  # down to the window's bottom
+        assert grid["width"] >= 1500 - 300  # all but the sidebar
+        covered = sum(b["width"] * b["height"] for b in boxes) / (grid["width"] * grid["height"])
+        assert covered > 0.9
+        for c in CAMERAS:  # each image shown at about 4 times its 96 pixels, whole, in its view
+            image = page.locator(f".view[data-camera={c}] svg > image").bounding_box()
+            assert image["width"] > 350 and image["height"] > 350
+            view = page.locator(f".view[data-camera={c}]").bounding_box()
+            assert view["y"] <= image["y"] and image["y"] + image["height"] <= view["y"] + view["height"] + 1
+        assert page.evaluate("document.scrollingElement.scrollHeight") <= 900  # nothing below the fold
+        # a click still lands where it is aimed in the larger views
+        page.locator("#keypoints li[data-keypoint=c]").click()
+        page.mouse.click(*page_xy(page, "cam3", uv[3, 2]))
+        wait_version(page, 2)
+        got = [lab for lab in page.evaluate("s3kLabel.app.frame.labels") if lab["camera"] == "cam3"]
+        np.testing.assert_allclose((got[0]["u"], got[0]["v"]), uv[3, 2], atol=0.3)
+
+        # tooltips: every marker names its keypoint
+        titles = page.eval_on_selector_all(".view[data-camera=cam2] [data-keypoint] > title",
+                                           "ts => ts.map(t => [t.parentNode.dataset.keypoint, "
+                                           "t.textContent])")
+        assert {kp for kp, _ in titles} == {"a", "b", "c"}
+        assert all(text.startswith(kp + ":") for kp, text in titles)
+
+        # the skeleton: none yet; add a-b and b-c in the page, remove a-b
+        assert page.locator("line.bone").count() == 0
+        for a, b in (("a", "b"), ("b", "c")):
+            page.select_option("#edge-a", a)
+            page.select_option("#edge-b", b)
+            page.click("#skeleton-add button")
+            page.wait_for_selector(f"#skeleton li[data-edge='{a}-{b}']")
+        assert json.loads((truth.path / "s3k.json").read_text())["skeleton"] == [["a", "b"], ["b", "c"]]
+        for c in CAMERAS:  # drawn in every view, from keypoint to keypoint
+            assert page.locator(f".view[data-camera={c}] line.bone").count() == 2
+        bone = page.locator(".view[data-camera=cam0] line.bone[data-edge='a-b']")
+        ends = [float(bone.get_attribute(k)) for k in ("x1", "y1", "x2", "y2")]
+        np.testing.assert_allclose(ends, [*uv[0, 0], *uv[0, 1]], atol=1e-6)
+        page.select_option("#edge-a", "c")
+        page.select_option("#edge-b", "b")
+        page.click("#skeleton-add button")  # c-b is b-c: refused
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        assert "already" in page.inner_text("#status")
+        page.click("#skeleton li[data-edge='a-b'] button")
+        page.wait_for_selector("#skeleton li[data-edge='a-b']", state="detached")
+        assert page.locator(".view[data-camera=cam1] line.bone").count() == 1
+        assert errors == []
+    assert Dataset.open(truth.path).skeleton == [("b", "c")]
+
+
+def test_redo_relocking_test_frames_and_accept_says_why_nothing_was_taken(tmp_path, browser):
+    import json
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+
+    def unsure(route):  # a run's suggestions, none confident
+        state = route.fetch().json()
+        state["suggestions"] = {"a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.3, "residual": 0.5}}}
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(state))
+
+    with Server(truth.path) as url:
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.route("**/api/frame/5", unsure)
+        page.goto(url + "?frame=4")
+        page.wait_for_selector("body[data-ready='1']")
+        for i, x in enumerate((20.0, 30.0)):
+            page.mouse.click(*page_xy(page, "cam0", (x, 25.0)))
+            wait_version(page, i + 1)
+
+        def u_of_a():
+            return [lab["u"] for lab in page.evaluate("s3kLabel.app.frame.labels")]
+
+        page.keyboard.press("Control+z")
+        wait_version(page, 3)
+        page.keyboard.press("Control+z")
+        wait_version(page, 4)
+        assert u_of_a() == []
+        page.keyboard.press("Control+Shift+Z")  # redo, not undo
+        wait_version(page, 5)
+        assert u_of_a() == pytest.approx([20.0], abs=0.3)
+        page.keyboard.press("Control+y")
+        wait_version(page, 6)
+        assert u_of_a() == pytest.approx([30.0], abs=0.3)
+        page.keyboard.press("Control+y")  # nothing left to redo
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        assert "no undone edit to redo" in page.inner_text("#status")
+        page.keyboard.press("Control+z")
+        wait_version(page, 7)
+        page.mouse.click(*page_xy(page, "cam0", (40.0, 25.0)))  # a new edit: nothing to redo any more
+        wait_version(page, 8)
+        page.keyboard.press("Control+Shift+Z")
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        assert u_of_a() == pytest.approx([40.0], abs=0.3)
+
+        # accept with no confident view: said, nothing saved
+        page.keyboard.press("ArrowRight")
+        page.wait_for_function("document.body.dataset.frame === '5'")
+        page.keyboard.press("a")
+        page.wait_for_function("document.getElementById('status').className === 'note'")
+        assert "nothing accepted" in page.inner_text("#status") and "below 0.5" in page.inner_text("#status")
+        page.evaluate("setStatus('', '')")
+        page.keyboard.press("Shift+A")  # accept all
+        page.wait_for_function("document.getElementById('status').className === 'note'")
+        status = page.inner_text("#status")
+        assert "nothing accepted" in status and "any keypoint" in status
+        assert page.evaluate("document.body.dataset.version") == "0"
+
+        # a test frame, unlocked and left, is locked again; and it can be locked by hand
+        page.keyboard.press("ArrowRight")
+        page.wait_for_function("document.body.dataset.frame === '6'")
+        assert page.evaluate("document.body.dataset.locked") == "1"
+        page.click("#unlock")
+        assert page.evaluate("document.body.dataset.locked") == "0" and page.inner_text("#unlock") == \
+            "lock test frame"
+        page.keyboard.press("ArrowLeft")
+        page.wait_for_function("document.body.dataset.frame === '5'")
+        page.keyboard.press("ArrowRight")
+        page.wait_for_function("document.body.dataset.frame === '6'")
+        assert page.evaluate("document.body.dataset.locked") == "1"
+        page.mouse.click(*page_xy(page, "cam0", (20.0, 30.0)))
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        assert "read-only" in page.inner_text("#status")
+        page.click("#unlock")
+        page.click("#unlock")  # locked again by hand
+        assert page.evaluate("document.body.dataset.locked") == "1"
+        page.mouse.click(*page_xy(page, "cam0", (20.0, 30.0)))
+        page.wait_for_function("document.getElementById('status').textContent.includes('read-only')")
+        assert errors == []
+    _, mask = Dataset.open(truth.path).labels([5, 6])
+    assert not mask.any()
+
+
+def test_the_ranking_n_goes_to_the_worst_frame_not_yet_seen_and_the_list_follows(tmp_path, browser):
+    """``n`` takes the highest-ranked frame not yet opened; the list highlights the current frame's entry and
+    scrolls to it; entry numbers of three digits are shown whole. The ranking is the server's format, made
+    up here: 120 entries, the dataset's frames among made-up ones."""
+    import json
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    order = [1000 + i for i in range(120)]
+    order[0], order[1], order[2], order[116] = 3, 1, 2, 5
+    rows = [{"frame": f, "score": 10.0 - i / 20, "residual_px": 1.0, "worst_view_px": 2.0, "confidence": 0.5}
+            for i, f in enumerate(order)]
+
+    def with_run(route):
+        meta = route.fetch().json()
+        meta["run"] = True
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(meta))
+
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.route("**/api/meta", with_run)
+        page.route("**/api/ranking*", lambda route: route.fulfill(status=200, content_type="application/json",
+                                                                   body=json.dumps(rows)))
+        page.goto(url)
+        page.wait_for_selector("#ranking li")
+        page.keyboard.press("n")
+        page.wait_for_function("document.body.dataset.frame === '3'")
+        page.locator("#ranking li[data-frame='2']").click()  # the third entry, opened by hand
+        page.wait_for_function("document.body.dataset.frame === '2'")
+        page.keyboard.press("n")  # the worst not yet seen: 1 (3 and 2 were)
+        page.wait_for_function("document.body.dataset.frame === '1'")
+        assert page.locator("#ranking li.current").get_attribute("data-frame") == "1"
+        page.evaluate("s3kLabel.gotoFrame(5)")  # entry 117, far down the list: scrolled into sight
+        page.wait_for_function("document.body.dataset.frame === '5'")
+        current = page.locator("#ranking li.current")
+        assert current.get_attribute("data-frame") == "5" and current.inner_text().startswith("117.")
+        box, item = page.locator("#ranking").bounding_box(), current.bounding_box()
+        assert box["y"] <= item["y"] and item["y"] + item["height"] <= box["y"] + box["height"] + 1
+        ranks = page.eval_on_selector_all("#ranking .rank", "rs => rs.map(r => [r.textContent, "
+                                          "r.getBoundingClientRect().left, r.scrollWidth <= r.clientWidth])")
+        assert [r[0] for r in ranks] == [f"{i + 1}." for i in range(120)]
+        assert all(left >= box["x"] and whole for _, left, whole in ranks)
+
+        # 15 keypoint colours, each pair far apart in CIELAB (the hue circle gave greens 13 apart)
+        hexes = page.evaluate("Array.from({length: 15}, (_, k) => s3kLabel.colour(k, 15))")
+        assert errors == []
+    rgb = np.array([[int(h[i:i + 2], 16) / 255 for i in (1, 3, 5)] for h in hexes])
+    lin = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+    xyz = lin @ np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]]).T
+    f = np.cbrt(np.maximum(xyz / [0.95047, 1.0, 1.08883], 0.008856))
+    lab = np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
+    gaps = np.linalg.norm(lab[:, None] - lab[None], axis=-1)[np.triu_indices(15, 1)]
+    assert len(set(hexes)) == 15 and gaps.min() > 25
+
+
+def test_the_propagate_form_previews_copies_and_undoes_in_the_pages_words(tmp_path, browser):
+    from s3k.label.store import Edit
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    uv = truth.uv(0)
+    LabelStore.open(truth.path).save(0, [Edit(CAMERAS[c], kp, float(uv[c, k, 0]), float(uv[c, k, 1]))
+                                         for k, kp in enumerate(["a", "b", "c"]) for c in (0, 1)], None)
+    LabelStore.open(truth.path).save(2, [Edit("cam2", "a", 5.0, 5.0)], None)  # a label the copy would replace
+    labels = (truth.path / "labels.csv").read_text()
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "?frame=0")
+        page.wait_for_selector("body[data-ready='1']")
+        page.click("#propagate-box summary")
+        page.fill("#prop-first", "0")
+        page.fill("#prop-last", "3")
+        page.click("#prop-copy")  # would replace frame 2's label: refused in the page's words
+        page.wait_for_function("document.getElementById('status').className === 'error'")
+        refusal = page.inner_text("#status")
+        assert "would replace 1 existing label" in refusal and "'replace existing labels'" in refusal
+        assert "--" not in refusal
+        page.check("#prop-overwrite")
+        page.click("#prop-preview")
+        page.wait_for_function("document.getElementById('status').className === 'note'")
+        assert "nothing was written" in page.inner_text("#status")
+        assert "frame 2: 11 new label(s), 1 replaced" in page.inner_text("#prop-result")
+        assert (truth.path / "labels.csv").read_text() == labels
+        page.click("#prop-copy")
+        page.wait_for_function("document.getElementById('status').textContent.startsWith('copied')")
+        assert Dataset.open(truth.path).labels([1, 2, 3])[1].sum() == 3 * 12
+        page.click("#prop-undo")
+        page.wait_for_function("document.getElementById('status').textContent.startsWith('undid')")
+        assert errors == []
+    _, mask = Dataset.open(truth.path).labels([1, 2, 3])
+    assert mask.sum() == 1 and mask[1, 2, 0]  # frame 2's own label back, frames 1 and 3 empty again

@@ -140,3 +140,65 @@ def test_app_undo_steps_back_through_the_history_and_test_frames_are_locked(trut
     assert r.status_code == 200 and r.json()["split"] == "test"
     assert client.post("/api/frame/6/undo", json={"version": 1}).status_code == 403
     assert client.post("/api/frame/6/undo", json={"version": 1, "unlock": True}).status_code == 200
+
+
+def test_redo_reverts_undos_in_turn_and_a_new_edit_ends_them(truth):
+    """Ctrl+Shift+Z / Ctrl+Y: undos stack up and each redo takes the latest off; an edit empties the stack."""
+    from s3k.errors import UserError
+
+    client = TestClient(create_app(truth.path))
+
+    def state(version, how):
+        r = client.post(f"/api/frame/4/{how}", json={"version": version})
+        assert r.status_code == 200, r.text
+        return [(x["u"], x["v"]) for x in r.json()["labels"]]
+
+    for v, u in enumerate((20.0, 25.0, 30.0)):
+        edit = {"camera": "cam0", "keypoint": "a", "u": u, "v": 30.0}
+        assert client.post("/api/frame/4/label", json={"version": v, "edits": [edit]}).status_code == 200
+    assert state(3, "undo") == [(25.0, 30.0)]
+    assert state(4, "undo") == [(20.0, 30.0)]
+    assert state(5, "redo") == [(25.0, 30.0)]
+    assert state(6, "redo") == [(30.0, 30.0)]
+    r = client.post("/api/frame/4/redo", json={"version": 7})
+    assert r.status_code == 400 and "no undone edit to redo" in r.json()["detail"]
+    assert state(7, "undo") == [(25.0, 30.0)]  # a redo is an edit that undo takes back
+    assert state(8, "redo") == [(30.0, 30.0)]
+    assert state(9, "undo") == [(25.0, 30.0)]
+    edit = {"camera": "cam1", "keypoint": "b", "u": 5.0, "v": 5.0}
+    assert client.post("/api/frame/4/label", json={"version": 10, "edits": [edit]}).status_code == 200
+    assert client.post("/api/frame/4/redo", json={"version": 11}).status_code == 400  # the edit ended them
+    assert client.post("/api/frame/4/redo", json={"version": 3}).status_code == 409  # stale
+    hist = client.get("/api/frame/4/history").json()
+    assert [e["source"] for e in hist][3:7] == ["undo click", "undo click", "redo click", "redo click"]
+    assert [e.get("redoes") for e in hist][5:7] == [5, 4]  # each names the undo it reverts
+    # the store's own view, as a new process reads it; test frames stay locked for redo too
+    store = LabelStore.open(truth.path)
+    assert store.last_undo(4) is None
+    with pytest.raises(UserError, match="no undone edit"):
+        store.redo(4)
+    assert client.post("/api/frame/6/redo", json={"version": 0}).status_code == 403
+    # a redo that brings labels back to an unlabelled frame moves it to the labelled split again
+    edit = {"camera": "cam0", "keypoint": "a", "u": 20.0, "v": 30.0}
+    r = client.post("/api/frame/5/label", json={"version": 0, "edits": [edit]})
+    assert r.json()["split"] == "labelled"
+    assert client.post("/api/frame/5/undo", json={"version": 1}).json()["split"] == "unlabelled"
+    assert client.post("/api/frame/5/redo", json={"version": 2}).json()["split"] == "labelled"
+    assert splits(truth.path)[5] == "labelled"
+
+
+def test_the_apps_propagation_refusals_name_its_form_and_the_command_line_its_flags(truth, capsys):
+    client = TestClient(create_app(truth.path))
+    store = LabelStore.open(truth.path)
+    label_views(store, truth, 0)
+    store.save(2, [Edit("cam0", "a", 10.0, 12.0)], None)
+    cases = [({"first": 0, "last": 3}, "tick 'replace existing labels' to replace them, or 'preview'"),
+             ({"first": 5, "last": 6, "max_changed": 100}, "tick 'include test frames' to write them"),
+             ({"first": 3, "last": 1}, "frames 3 to 1: the last frame comes before the first"),
+             ({"first": 0, "last": 5, "overwrite": True}, "raise 'changed pixels at most'")]
+    for body, words in cases:
+        r = client.post("/api/propagate", json={"source": 0, **body})
+        assert r.status_code == 400 and words in r.json()["detail"], r.json()
+        assert "--" not in r.json()["detail"]
+    assert cli.main(["label", "propagate", str(truth.path), "--frames", "3:1"]) == 1
+    assert "--frames 3:1: the last frame comes before the first" in capsys.readouterr().err

@@ -97,3 +97,32 @@ def test_a_run_without_a_record_is_not_checked(datasets, tmp_path):
     run = save_run(tmp_path / "old", meta, seed=0)
     assert run_geometry(run) is None
     check_dataset(run, datasets["whole"])  # nothing recorded, nothing refused
+
+
+def test_training_records_the_calibration_in_frame_pixels(datasets, tmp_path):
+    """The run records its static rig in the pixels of the cameras' full frames (the import's crop and
+    resize undone), so that the calibration given to track and stream compares with it."""
+    import numpy as np
+
+    from s3k.detector.geometry_record import frame_calibration
+    from s3k.inference.rig_check import run_calibration
+
+    run = tmp_path / "run"
+    assert cli.main(["train", str(datasets["cropped"]), "--out", str(run), "--steps", "1", "--channels",
+                     "8,8", "--batch-labelled", "2", "--batch-unlabelled", "2", "--val-every", "0",
+                     "--no-progress", "--threads", "1"]) == 0
+    _, meta = load_network(run)
+    recorded = meta.geometry["calibration"]
+    assert run_calibration(run) == recorded and recorded["units"] == "m"
+    ds = Dataset.open(datasets["cropped"])
+    K = ds.rig(np.float64).numpy()["K"][2]
+    entry = recorded["cameras"]["cam2"]
+    assert entry["frame_size"] == [64, 48]
+    np.testing.assert_allclose(entry["K"], K + np.array([[0, 0, 16.0], [0, 0, 8.0], [0, 0, 0]]), atol=1e-9)
+    np.testing.assert_allclose(entry["R"], ds.rig(np.float64).numpy()["R"][2], atol=0)
+    # the same part of frames of twice the resolution: focal lengths and principal points twice as large
+    twice = frame_calibration(Dataset.open(datasets["rescaled"]))["cameras"]["cam2"]
+    K2 = Dataset.open(datasets["rescaled"]).rig(np.float64).numpy()["K"][2]
+    np.testing.assert_allclose(np.asarray(twice["K"])[:2, :2], 2 * K2[:2, :2], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(twice["K"])[:2, 2], 2 * (K2[:2, 2] + 0.5) - 0.5 + [32.0, 16.0],
+                               atol=1e-9)

@@ -142,5 +142,57 @@ def test_stream_logs_to_a_rerun_recording(rig_videos, monkeypatch, tmp_path, cap
     rrd = tmp_path / "stream.rrd"
     assert cli.main(["stream", "run", "--calibration", str(v["calibration"]), "--max-frames", "2", "--rerun",
                      str(rrd), "--sources", *[f"{c}={v['videos'][c]}" for c in CAMERAS]]) == 0
-    assert len(capsys.readouterr().out.splitlines()) == 2
-    assert rrd.is_file() and rrd.stat().st_size > 0
+    captured = capsys.readouterr()
+    assert len(captured.out.splitlines()) == 2
+    from s3k.inference.rerun_log import recording_summary
+
+    summary = recording_summary(rrd)  # read back with Rerun's own reader
+    assert summary["frames"] == [0, 1] and f"wrote {rrd}: 2 frames" in captured.err
+    for cam in CAMERAS:  # each camera's frustum and compressed view, its detections and reprojections
+        for entity in ("", "/image", "/detections", "/reprojections"):
+            assert f"/world/cameras/{cam}{entity}" in summary["entities"]
+        assert "EncodedImage:blob" in summary["entities"][f"/world/cameras/{cam}/image"]
+    assert {"/world/keypoints", "/world/skeleton", "/confidence/nose"} <= set(summary["entities"])
+
+
+def test_ctrl_c_in_the_logger_counts_every_line_written(rig_videos):
+    """Ctrl-C while the 5th frame is logged (its line already written): the summary counts 5 frames."""
+    import io
+
+    v = rig_videos
+    detector = OnePassDetector(v["oracle"], v["meta"])
+    sources = {name: _Interrupting(c, 9) for c, name in enumerate(CAMERAS)}
+    out = io.StringIO()
+
+    def log(i, views, det):
+        if i == 4:
+            raise KeyboardInterrupt
+
+    summary = stream(detector, sources, v["cams"], v["boxes"], out, log=log)
+    assert summary.interrupted
+    assert len(out.getvalue().splitlines()) == 5 and summary.frames == 5
+
+
+def test_image_folders_have_no_frame_rate_unless_given(rig_videos, monkeypatch, capsys, tmp_path):
+    """Image folders record no frame rate: the summary says it is unknown, and ``--fps`` gives it."""
+    import cv2
+
+    import s3k.detector.detector
+    from s3k.data import video
+
+    v = rig_videos
+    monkeypatch.setattr(s3k.detector.detector, "load_network", lambda *a, **k: (v["oracle"], v["meta"]))
+    folders = {}
+    for name in CAMERAS:
+        folders[name] = tmp_path / f"{name}-frames"
+        folders[name].mkdir()
+        for i, frame in video.iter_frames(v["videos"][name]):
+            cv2.imwrite(str(folders[name] / f"img{i:03d}.png"), frame[..., ::-1])
+    args = ["stream", "run", "--calibration", str(v["calibration"]), "--sources",
+            *[f"{c}={folders[c]}" for c in CAMERAS]]
+    assert cli.main(args) == 0
+    err = capsys.readouterr().err
+    assert f"{FRAMES} frames in" in err and "frames/s" in err and "30 frames/s" not in err
+    assert f"the frame rate of {', '.join(CAMERAS)} is unknown (--fps gives it)" in err
+    assert cli.main([*args, "--fps", "12.5"]) == 0
+    assert "the sources run at 12.5 frames/s" in capsys.readouterr().err

@@ -424,7 +424,9 @@ class OracleDetector(torch.nn.Module):
         return self.logits[f, c]
 
 
-def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_path, monkeypatch, capsys):
+def _oracle_track(recording, tmp_path, monkeypatch):
+    """Lossless videos of ``recording``'s rig (25 frames/s) and an oracle detector loaded for any run:
+    ``(oracle, track arguments, CSV, true points)``."""
     import s3k.detector.detector
 
     rig = recording["rig"]
@@ -449,6 +451,11 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
     args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out),
             "--no-progress", "--batch", "4", "--filter", "none",
             "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
+    return oracle, args, out, X
+
+
+def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_path, monkeypatch, capsys):
+    oracle, args, out, X = _oracle_track(recording, tmp_path, monkeypatch)
     assert cli.main(args) == 0
     assert oracle.calls == 2 and "warning" not in capsys.readouterr().err
     points = read_csv(out, KEYPOINTS)
@@ -586,3 +593,30 @@ def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_dou
     assert [int(r["rank"]) for r in rows] == list(range(1, FRAMES + 1))
     doubts = [float(r["doubt"]) for r in rows]
     assert doubts == sorted(doubts, reverse=True)
+
+
+def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tmp_path, monkeypatch, capsys):
+    """The README's ``s3k export-tracks points3d.csv --format nwb --out tracks.nwb`` runs as written on what
+    ``s3k track`` wrote: the frame rate (25 frames/s) comes from the CSV's ``.s3k.json``."""
+    import re
+    import shlex
+
+    pytest.importorskip("pynwb")
+    from s3k.data.formats.nwb import read_nwb_tracks
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    command = re.search(r"`(s3k export-tracks [^`]*)`", readme)
+    assert command is not None, "the README shows no s3k export-tracks command"
+    argv = shlex.split(command.group(1))[1:]
+    assert "--fps" not in argv
+    _, args, out, _ = _oracle_track(recording, tmp_path, monkeypatch)
+    assert out.name == "points3d.csv" and cli.main(args) == 0
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    _, times, *_ = read_nwb_tracks(tmp_path / "tracks.nwb")
+    np.testing.assert_allclose(times, np.arange(FRAMES) / 25.0)
+    # a CSV without a recorded rate (as s3k predict writes) is refused in one line naming --fps
+    (tmp_path / "points3d.csv.s3k.json").write_text('{"units": "mm"}')
+    assert cli.main([*argv, "--overwrite"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "frame rate" in err and "--fps" in err

@@ -20,7 +20,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "write a report with a picture (OUT/report/demo.png).")
     parser.epilog = examples("s3k demo", "s3k demo --quick --out /tmp/s3k-quick",
                              "s3k demo --preset box-headline --out s3k-demo-headline")
-    parser.add_argument("--out", default="s3k-demo", help="output folder (default: s3k-demo)")
+    parser.add_argument("--out", default="s3k-demo",
+                        help="output folder: new, empty, or an earlier demo to continue (default: s3k-demo)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny version (about a minute) to check the set-up; its figures mean nothing")
     parser.add_argument("--unlabelled", type=number(int, ge=0), default=None,

@@ -24,7 +24,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="split to evaluate (default: test)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--report", metavar="DIR", default=None,
-                        help="write metrics.json, plots and view overlays to DIR (default: no report)")
+                        help="write metrics.json, plots and view overlays to DIR, a new or empty folder or "
+                             "an earlier report (default: no report)")
     parser.add_argument("--overlays", type=number(int, ge=0), default=6,
                         help="frames drawn in the report (default: 6)")
     parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
@@ -45,15 +46,28 @@ def _two_pass_pixels(metrics: dict) -> str:
     return line if image is None else f"{line}; in the dataset's own images rms_px is {image:.2f} px"
 
 
+def _earlier_report(folder) -> bool:
+    """True when ``folder`` holds only what ``--report`` wrote before its folders were marked: the metrics of
+    an evaluation and PNGs."""
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return (isinstance(metrics, dict) and "rms_px" in metrics and "n_frames" in metrics
+            and all(p.name == "metrics.json" or p.suffix == ".png" for p in folder.iterdir()))
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.ignore_geometry:
         from s3k.detector.geometry_record import check_dataset
 
         check_dataset(args.run, args.data)
-    if args.report:
-        from s3k.outputs import check_output_folder
+    if args.report:  # a new or empty folder, or an earlier report: never over files s3k did not write
+        from s3k.outputs import check_folder, claim_folder
 
-        check_output_folder(args.report, inputs={"RUN": args.run, "--data": args.data}, option="--report")
+        check_folder(args.report, "report", inputs={"RUN": args.run, "--data": args.data}, option="--report",
+                     writes={"metrics.json"}, owns=_earlier_report)
+        claim_folder(args.report, "report")
     metrics = evaluate_run(args.run, args.data, args.split, args.device, args.batch_size, args.report,
                            args.overlays)
     units = _two_pass_pixels(metrics) if "two_pass" in metrics else None

@@ -19,6 +19,7 @@ from s3k.experiments import (
     describe_plan,
     plan,
     publish,
+    published,
     resummarize,
     run_experiment,
     summarize,
@@ -109,8 +110,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="only (re)write summary.json, plots and README.md from the finished runs "
                              "(without NAME/runs/: from the grid points of NAME/summary.json)")
     parser.add_argument("--publish", default=None, metavar="DIR",
-                        help="then copy summary.json, README.md and plots to DIR, e.g. docs/results/NAME "
-                             "(default: not copied)")
+                        help="then copy summary.json, README.md and plots to DIR, e.g. docs/results/NAME: a "
+                             "new or empty folder or one published for NAME before (default: not copied)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -141,8 +142,16 @@ def run(args: argparse.Namespace) -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
+    from s3k.outputs import check_folder
+
     exp_dir = Path(args.out) / args.name
     failed: list[str] = []
+    check_folder(exp_dir, "experiment folder", owns=lambda folder: (folder / "runs").is_dir()
+                 or published(folder, args.name), writes={"runs", "README.md", SUMMARY_FILE})
+    if args.publish:  # before any work: never into a dataset, nor over files s3k did not publish
+
+        check_folder(args.publish, "published experiment", inputs={"--out": exp_dir}, option="--publish",
+                     owns=lambda folder: published(folder, args.name), writes={"README.md", SUMMARY_FILE})
     if args.summarize_only:
         if (exp_dir / "runs").is_dir():
             summary = summarize(exp_dir, args.name)

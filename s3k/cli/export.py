@@ -44,17 +44,24 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from s3k.inference.export import written_files
-    from s3k.outputs import check_output
+    from s3k.outputs import check_companion, check_output, staging_folder
 
     checkpoint = Path(args.run) / args.checkpoint if args.checkpoint else None
-    for path in written_files(args.run, args.out):  # a two-pass run writes a file per pass and the rule
-        check_output(path, args.overwrite, inputs={"--checkpoint": checkpoint})
-    try:
-        report = export_detector(args.run, args.format, args.out, with_moments=args.with_moments,
-                                 fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,
-                                 verify_data=args.verify_data, checkpoint=args.checkpoint)
-    except ImportError as exc:  # onnx / onnxruntime are optional
-        raise UserError(f"--format {args.format} needs a package that is not installed ({exc})") from exc
+    out = check_output(args.out, args.overwrite, inputs={"--checkpoint": checkpoint})
+    for path in written_files(args.run, out):  # a two-pass run writes a file per pass and the rule beside it
+        if path != out:
+            check_output(path, True, inputs={"--checkpoint": checkpoint})
+            check_companion(path, args.overwrite, str(out), lambda p: _exported(p, args.format))
+    with staging_folder(out) as tmp:  # written and checked beside --out; moved into place only if it passes
+        try:
+            report = export_detector(args.run, args.format, tmp / out.name, with_moments=args.with_moments,
+                                     fuse=not args.no_fuse, opset=args.opset, tolerance=args.tolerance,
+                                     verify_data=args.verify_data, checkpoint=args.checkpoint)
+        except ImportError as exc:  # onnx / onnxruntime are optional
+            raise UserError(f"--format {args.format} needs a package that is not installed ({exc})") from exc
+        if report.ok:
+            report.files = [p.replace(out.parent / p.name) for p in report.files]
+        report.path = out.parent / report.path.name
     diffs = ", ".join(f"{k} {v:.3g}" for k, v in report.max_diff.items())
     print(f"wrote {', '.join(str(f) for f in report.files)} ({report.format}; outputs: "
           f"{', '.join(report.outputs)})")
@@ -65,7 +72,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"max 3D difference from PyTorch's detector on {report.frames_3d} frames: "
               f"{report.max_diff_mm:.3g} mm (tolerance {report.tolerance_mm:g} mm)")
     if not report.ok:
-        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model within "
-              f"{report.tolerance:g}", file=sys.stderr)
+        print(f"s3k export: error: {report.path} does not reproduce the PyTorch model: "
+              f"{'; '.join(report.failures())}; nothing was written", file=sys.stderr)
         return 1
     return 0
+
+
+def _exported(path, fmt: str) -> bool:
+    """True when ``path`` is a file ``s3k export`` wrote (a two-pass export's description, or a pass's
+    network carrying s3k's metadata); read without running anything in it."""
+    import json
+    import zipfile
+
+    from s3k.inference.export import EXPORTED_TWO_PASS, META_KEY
+
+    try:
+        if path.suffix == ".json":
+            return json.loads(path.read_text()).get("format") == EXPORTED_TWO_PASS
+        if fmt == "onnx":
+            import onnx
+
+            model = onnx.load(str(path), load_external_data=False)
+            return any(p.key == META_KEY for p in model.metadata_props)
+        with zipfile.ZipFile(path) as z:
+            return any(n.endswith(f"/extra/{META_KEY}.json") for n in z.namelist())
+    except Exception:  # noqa: BLE001 - anything unreadable is not ours
+        return False

@@ -14,14 +14,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Write 3D keypoints (the anipose-style CSV of 's3k track' or 's3k predict') as an NWB file: an "
         "ndx-pose MultiCameraPoseEstimation with one series (x, y, z, confidence) per keypoint."
     )
-    parser.epilog = examples("s3k export-tracks points3d.csv --format nwb --out tracks.nwb --fps 30",
+    parser.epilog = examples("s3k export-tracks points3d.csv --format nwb --out tracks.nwb",
                              "s3k export-tracks points3d.csv --format nwb --out tracks.nwb --fps 100 "
                              "--calibration calibration.toml")
     parser.add_argument("csv", help="3D keypoints CSV")
     parser.add_argument("--format", required=True, choices=["nwb"], help="output format")
     parser.add_argument("--out", required=True, help="FILE.nwb to write")
-    parser.add_argument("--fps", type=number(gt=0), required=True,
-                        help="frame rate of the videos; timestamps are fnum / fps seconds")
+    parser.add_argument("--fps", type=number(gt=0), default=None,
+                        help="frame rate of the videos; timestamps are fnum / fps seconds (default: the rate "
+                        "'s3k track' wrote beside the CSV in CSV.s3k.json; refused when none says)")
     parser.add_argument("--calibration", default=None,
                         help="anipose calibration.toml of the rig (stored as calibrated cameras; gives the "
                              "unit; default: none)")

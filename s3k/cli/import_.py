@@ -98,6 +98,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keypoints", default=None,
                         help="comma-separated keypoints to keep (default all); names them when no labels are "
                         "given")
+    parser.add_argument("--skeleton", default=None, metavar="FILE",
+                        help="take the skeleton (edges between keypoints, for drawing) from a SLEAP .slp or "
+                        "analysis .h5, a DeepLabCut config.yaml, an anipose config.toml or an s3k dataset "
+                        "(default: the labels' own: SLEAP's edges, the config.yaml of a DeepLabCut project "
+                        "the CSVs lie in, else an anipose config.toml beside or above --calibration)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -127,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
         if args.video_region else None,
+        skeleton=args.skeleton,
     )
     if args.sleap_track != "all":
         import_recording(args.calibration, dict(videos), args.out, sleap_track=args.sleap_track, **common)

@@ -132,6 +132,15 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
                         "its confidence, as in training and 's3k evaluate'; 0.5 drops views whose heatmap "
                         "spread exceeds 2 sigma)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    add_other_rig_option(parser)
+
+
+def add_other_rig_option(parser: argparse.ArgumentParser) -> None:
+    """``--other-rig``: use a run on cameras (or a dataset's keypoints) it was not trained on
+    (:func:`s3k.inference.rig_check.check_rig`)."""
+    parser.add_argument("--other-rig", action="store_true",
+                        help="use the run on cameras, keypoints or images other than those it was trained on "
+                        "(refused by default: its results there are wrong)")
 
 
 def add_filter_options(parser: argparse.ArgumentParser, default: str) -> None:
@@ -170,7 +179,7 @@ def add_filter_options(parser: argparse.ArgumentParser, default: str) -> None:
                    help="how far a point may stand off the rigid layout, world units (default: fitted)")
     g.add_argument("--filter-limbs", nargs="+", default=None, metavar="A,B",
                    help="limbs (pairs of keypoints) whose lengths are held near their median over the track, "
-                        "or 'none' (default: the skeleton of the run's dataset, when it has one)")
+                        "or 'none' (default: the skeleton the run recorded from its dataset, if any)")
     g.add_argument("--filter-limb-std", type=number(gt=0), default=None, metavar="W",
                    help="how far a limb's length may stand off its median, world units (default: its robust "
                         "spread over the track)")
@@ -188,32 +197,16 @@ def filter_settings(args: argparse.Namespace):
                           limb_std=args.filter_limb_std).check()
 
 
-def filter_limbs(args: argparse.Namespace, run: str) -> tuple[list[tuple[str, str]], str | None]:
-    """``(limbs, note)``: the pairs of ``--filter-limbs``, or the skeleton of the dataset the run was trained
-    on (``note`` says so), or none."""
-    if args.filter_limbs is not None:
-        if args.filter_limbs == ["none"]:
-            return [], None
-        pairs = []
-        for text in args.filter_limbs:
-            a, sep, b = text.partition(",")
-            if not sep or not a or not b or "," in b:
-                raise UserError(f"--filter-limbs {text!r}: expected two keypoint names A,B")
-            pairs.append((a, b))
-        return pairs, None
-    if args.filter == "none":
-        return [], None
-    from s3k.detector.geometry_record import run_geometry
-
-    path = ((run_geometry(run) or {}).get("dataset") or {}).get("path")
-    if not path:
-        return [], None
-    try:
-        from s3k.data import Dataset
-
-        skeleton = [tuple(e) for e in Dataset.open(path, cache="none").skeleton]
-    except (OSError, UserError):
-        return [], None
-    if not skeleton:
-        return [], None
-    return skeleton, f"filter: holding the {len(skeleton)} limbs of {path}'s skeleton near their lengths"  # type: ignore[return-value]
+def filter_limbs(args: argparse.Namespace) -> list[tuple[str, str]] | None:
+    """The pairs of ``--filter-limbs`` (``[]`` for ``none``), or None: the skeleton the run recorded."""
+    if args.filter_limbs is None:
+        return None
+    if args.filter_limbs == ["none"]:
+        return []
+    pairs = []
+    for text in args.filter_limbs:
+        a, sep, b = text.partition(",")
+        if not sep or not a or not b or "," in b:
+            raise UserError(f"--filter-limbs {text!r}: expected two keypoint names A,B")
+        pairs.append((a, b))
+    return pairs

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from s3k.cli import examples
-from s3k.cli.options import number
+from s3k.cli.options import add_other_rig_option, number
 from s3k.inference.predict import predict_dataset
 
 
@@ -24,12 +24,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
                         help="frames per forward pass (default: 16)")
     parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    add_other_rig_option(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from s3k.outputs import check_output
 
     check_output(args.out, args.overwrite, inputs={"--data": args.data})
+    from s3k.inference.rig_check import check_dataset_rig
+
+    check_dataset_rig(args.run, args.data, refuse=not args.other_rig)
     summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
                               args.overwrite)
     from s3k.data import Dataset

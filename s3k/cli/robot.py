@@ -38,6 +38,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                    help="held-out arrangements 7, 8, ..., up to 12: 7-9 are the datasets' test arrangements, "
                         "10-12 in no dataset (default 6)")
     g.add_argument("--out", required=True, help="JSON file to write (successes, trials, per-trial results)")
+    g.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     g.add_argument("--seed", type=number(int, ge=0), default=0,
                    help="draws each trial's lighting and gripper start (default 0)")
     g.add_argument("--object-seed", type=number(int, ge=0), default=None,
@@ -84,6 +85,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                        epilog=examples("s3k robot summarize --out summary.json --grasp-s3k grasp-s3k.json "
                                        "--rl-keypoints runs/rl/kp-0 runs/rl/kp-1"))
     s.add_argument("--out", required=True, help="summary JSON to write")
+    s.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     s.add_argument("--grasp-s3k", default=None, help="s3k robot grasp result with the S3K run")
     s.add_argument("--grasp-labels-only", default=None, help="... with the labels-only run")
     s.add_argument("--grasp-ground-truth", default=None, help="... with --ground-truth")
@@ -113,6 +115,7 @@ def _dataset_object_seed(run: str) -> int | None:
 def _grasp(args: argparse.Namespace) -> int:
     from s3k.errors import UserError
     from s3k.fileio import atomic_write_json
+    from s3k.outputs import check_output
     from s3k.robot.grasp import KeypointSource, detector_keypoints, ground_truth_keypoints, run_trials
     from s3k.sim.plush import PlushScene
 
@@ -137,6 +140,7 @@ def _grasp(args: argparse.Namespace) -> int:
             args.object_seed = _dataset_object_seed(args.run)
     if args.object_seed is None:
         args.object_seed = 0
+    check_output(args.out, args.overwrite, inputs={"RUN": args.run})  # before the trials: never a lost hour
 
     def progress(i: int, r) -> None:
         print(f"trial {i + 1}/{args.trials}: {'success' if r.success else 'failure'} (paw lifted "
@@ -162,8 +166,10 @@ def _train_agent(args: argparse.Namespace) -> int:
         import stable_baselines3  # noqa: F401
     except ImportError as exc:
         raise UserError(f"s3k robot train-agent needs {exc.name}", hint="pip install 's3k[robot]'") from exc
+    from s3k.outputs import check_output_folder
     from s3k.robot.agents import AgentConfig, saved_config, train_agent
 
+    check_output_folder(args.out)  # never inside a dataset, nor a run's own files
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(AgentConfig)
              if getattr(args, f.name) is not None}
     base = {}
@@ -177,8 +183,10 @@ def _train_agent(args: argparse.Namespace) -> int:
 
 
 def _simulate_insertion(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_replaceable
     from s3k.robot.insertion_data import write_insertion_dataset
 
+    check_replaceable(args.out, args.overwrite)  # as simulate: never inside a dataset, nor someone's files
     summary = write_insertion_dataset(args.out, args.labelled, args.unlabelled, args.test, size=args.size,
                                       seed=args.seed, overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote {summary['path']}: {summary['frames']} frames ({args.labelled} labelled, {args.unlabelled} "
@@ -187,8 +195,12 @@ def _simulate_insertion(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
+    from s3k.outputs import check_output
     from s3k.robot.results import write_summary
 
+    check_output(args.out, args.overwrite, inputs={"--grasp-s3k": args.grasp_s3k,
+                                                   "--grasp-labels-only": args.grasp_labels_only,
+                                                   "--grasp-ground-truth": args.grasp_ground_truth})
     summary = write_summary(args.out, grasp_s3k=args.grasp_s3k, grasp_labels_only=args.grasp_labels_only,
                             grasp_ground_truth=args.grasp_ground_truth, rl_keypoints=args.rl_keypoints,
                             rl_beta_vae=args.rl_beta_vae, machine=args.machine)

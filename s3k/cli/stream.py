@@ -30,8 +30,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=number(int, ge=1), default=None,
                         help="stop after this many frames (default: until a source ends, or Ctrl-C)")
     parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="FILE.rrd",
-                        help="log the views, detections and 3D points to a Rerun viewer (spawned), or to a "
-                        ".rrd file given here (needs rerun-sdk; default: off)")
+                        help="log the cameras, views, detections, 3D points with their skeleton and "
+                        "confidence to a Rerun viewer (spawned), or to a .rrd file given here (needs "
+                        "rerun-sdk; default: off)")
+    parser.add_argument("--image-scale", type=number(float, gt=0, le=1), default=0.5,
+                        help="--rerun: size of the logged views relative to the sources' (default "
+                        "%(default)s)")
+    parser.add_argument("--jpeg-quality", type=number(int, ge=1, le=100), default=75,
+                        help="--rerun: JPEG quality of the logged views (default %(default)s)")
+    parser.add_argument("--fps", type=number(gt=0), default=None,
+                        help="frame rate of sources that record none (image folders and patterns; default: "
+                        "unknown)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the --rerun file if it exists")
     add_rig_options(parser)
     add_filter_options(parser, "none")
 
@@ -60,6 +70,9 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
     calib = calib.select(names)
+    from s3k.inference.track import _say_calibration
+
+    _say_calibration(args.run, calib, names, args.calibration)
     crops = parse_crops(args.crop, names) if args.crop else None
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
     for line in notes:
@@ -78,39 +91,64 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
 def _filter(args: argparse.Namespace, detector, cams):
     """The causal filter of the ``--filter`` options, or None."""
     from s3k.cli.options import filter_limbs, filter_settings
+    from s3k.inference.track import limb_indices
     from s3k.inference.track_filter import StreamFilter, layout_shape_of
 
     settings = filter_settings(args)
     if settings.method == "none":
         return None
-    limbs, note = filter_limbs(args, args.run)
-    if note:
-        print(note, file=sys.stderr)
-    names = detector.keypoints
-    for a, b in limbs:
-        for n in (a, b):
-            if n not in names:
-                raise UserError(f"--filter-limbs: keypoint {n!r} is not one of the run's "
-                                f"({', '.join(names)})")
-    return StreamFilter(settings, len(names), cams.numpy(), layout_shape_of(detector.meta.layout),
-                        [(names.index(a), names.index(b)) for a, b in limbs])
+    limbs = filter_limbs(args)
+    limbs = detector.meta.recorded_skeleton() if limbs is None else limbs
+    return StreamFilter(settings, len(detector.keypoints), cams.numpy(),
+                        layout_shape_of(detector.meta.layout), limb_indices(limbs, detector.keypoints))
 
 
 def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import camera_pairs
     from s3k.detector import Detector
     from s3k.inference.stream import open_source, rerun_logger, stream
+    from s3k.outputs import check_output
 
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
+    if not args.other_rig:
+        from s3k.inference.rig_check import check_rig
+
+        check_rig(args.run, list(specs), what="--sources")
+    if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
+        check_output(args.rerun, args.overwrite, option="--rerun",
+                     inputs={"--calibration": args.calibration, "RUN": args.run,
+                             "--sources": list(specs.values())})
     detector = Detector.load(args.run, args.device)
     sources = {name: open_source(spec) for name, spec in specs.items()}
+    if args.fps:
+        for source in sources.values():
+            source.fps = source.fps or float(args.fps)
     cams, boxes = _cameras(args, sources, detector.input_size)
-    log = rerun_logger(detector.keypoints, list(sources), args.rerun) if args.rerun else None
-    summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log,
-                     filter=_filter(args, detector, cams))
-    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else "")
+    filt = _filter(args, detector, cams)
+    log, close = None, None
+    if args.rerun:
+        log, close = rerun_logger(detector, list(sources), cams, [s.size for s in sources.values()],
+                                  args.rerun, args.image_scale, args.jpeg_quality)
+    try:
+        summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log,
+                         filter=filt)
+    except BaseException:
+        if close is not None:
+            close(False)
+        raise
+    if close is not None:
+        close(True)
+    if args.rerun and args.rerun != "spawn":
+        from s3k.inference.rerun_log import recording_summary
+
+        saved = recording_summary(args.rerun)
+        print(f"s3k stream: wrote {args.rerun}: {len(saved['frames'])} frames, {saved['bytes'] / 1e6:.2f} MB "
+              f"({saved['bytes_per_frame'] / 1e6:.3f} MB a frame)", file=sys.stderr)
+    unknown = [name for name, s in sources.items() if not s.fps]
+    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else
+            f"; the frame rate of {', '.join(unknown)} is unknown (--fps gives it)")
     if summary.behind > 1:
         pace += f", up to {summary.behind} frames behind"
     print(f"s3k stream: {summary.frames} frames in {summary.seconds:.2f} s, {summary.fps:.1f} frames/s{pace}"

@@ -49,7 +49,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="CSV file to write")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--overlay", default=None, metavar="DIR",
-                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn (default: none)")
+                        help="write DIR/<camera>.mp4 with the reprojected keypoints drawn; DIR is new, empty "
+                             "or an earlier overlay folder (default: none)")
     parser.add_argument("--batch", type=number(int, ge=1), default=8,
                         help="frames per forward pass (default 8)")
     parser.add_argument("--start", type=number(int, ge=0), default=0, help="first frame index (default 0)")
@@ -88,20 +89,28 @@ def run(args: argparse.Namespace) -> int:
     from s3k.cli.options import filter_limbs, filter_settings, parse_crops
     from s3k.data import video
     from s3k.detector.geometry_record import track_crops
-    from s3k.outputs import check_output, check_output_folder
+    from s3k.outputs import check_folder, check_output, claim_folder
 
     videos = parse_videos(args.videos)
     check_output(args.out, args.overwrite,
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
+    if not args.other_rig:
+        from s3k.inference.rig_check import check_rig
+
+        check_rig(args.run, list(videos), what="--videos")
     if args.overlay:
-        check_output_folder(args.overlay, inputs={"--calibration": args.calibration}, option="--overlay")
+        check_folder(args.overlay, "folder of overlay videos", option="--overlay",
+                     inputs={"--calibration": args.calibration, "--videos": list(videos.values())},
+                     writes={f"{c}.mp4" for c in videos})
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
     settings = filter_settings(args)
-    limbs, note = filter_limbs(args, args.run)
-    for line in notes + ([note] if note else []):
+    limbs = filter_limbs(args)
+    for line in notes:
         print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
+    if args.overlay:
+        claim_folder(args.overlay, "folder of overlay videos")
     summary = track_videos(
         args.run, videos, args.calibration, args.out, overlay=args.overlay, batch=args.batch,
         start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit or "pad", crops=crops,
@@ -120,9 +129,11 @@ def _report(args: argparse.Namespace, summary, videos: dict[str, Path]) -> None:
     details = {"videos": {c: str(p) for c, p in videos.items()}, "start": args.start,
                "doubt": summary.doubt.name if summary.doubt else None}
     if summary.raw is not None:
-        write_source(summary.raw, summary.units, details, run=args.run, calibration=args.calibration)
+        write_source(summary.raw, summary.units, details, run=args.run, calibration=args.calibration,
+                     fps=summary.fps)
         details.update(raw=summary.raw.name, filter=summary.filter)
-    write_source(summary.path, summary.units, details, run=args.run, calibration=args.calibration)
+    write_source(summary.path, summary.units, details, run=args.run, calibration=args.calibration,
+                 fps=summary.fps)
     what = "filtered " if summary.raw is not None else ""
     print(f"wrote {summary.frames} {what}frames to {summary.path} (units: {summary.units})")
     for k, kp in enumerate(summary.keypoints):

@@ -29,6 +29,9 @@ from s3k.geometry import Cameras
 
 # R is a rotation when max |R R^T - I| and |det R - 1| are below this (tolerates 6-digit rounding).
 ROTATION_TOLERANCE = 1e-4
+MAX_EXTENT = 1e9
+"""Largest translation component of a camera, in any world unit (1000 km in millimetres): beyond it the file
+is corrupted or mis-scaled, and projections lose their precision or overflow."""
 
 
 def cameras_of(K: Any, dist: Any, R: Any, t: Any) -> Cameras:
@@ -68,6 +71,10 @@ def camera_defects(
     for name, ok in finite.items():
         for i in np.flatnonzero(~ok):
             out[i].append((name, "not finite (NaN or inf)"))
+    extent = np.abs(np.where(np.isfinite(t), t, 0.0)).max(axis=-1)
+    for i in np.flatnonzero(finite["t"] & (extent > MAX_EXTENT)):
+        out[i].append(("t", f"{t[i].tolist()} is beyond any rig (a component above {MAX_EXTENT:g} in any "
+                            "unit: a corrupted or mis-scaled file)"))
     Ks = np.where(np.isfinite(K), K, 0.0)
     last_row_err = np.abs(Ks[:, 2] - [0.0, 0.0, 1.0]).max(axis=-1)
     detK = np.linalg.det(Ks)

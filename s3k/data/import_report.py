@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["calibration_warnings", "kept_labels_summary"]
+__all__ = ["calibration_findings", "calibration_warnings", "kept_labels_summary"]
 
 
 def calibration_warnings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequence[str],
@@ -24,6 +24,13 @@ def calibration_warnings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequen
     """The findings of :func:`s3k.calibration.check_calibration` on labels ``uv (B, C, K, 2)``, ``mask
     (B, C, K)`` seen by ``cams`` (``Cameras`` ``(C,)`` or ``(B, C)``), as warnings that name the repair
     (``s3k check-calibration DATASET --recalibrate``); empty when the cameras agree or cannot be judged."""
+    return [line for _, line in calibration_findings(cams, uv, mask, cameras, image_size, dataset)]
+
+
+def calibration_findings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequence[str],
+                         image_size: tuple[int, int], dataset: str | Path) -> list[tuple[str, str]]:
+    """:func:`calibration_warnings` with a severity each: ``"error"`` for cameras the check finds
+    inconsistent (training would learn wrong targets there), ``"warning"`` for the other notes."""
     from s3k.calibration import check_calibration
 
     uv, mask = np.asarray(uv, dtype=np.float64), np.asarray(mask, dtype=bool)
@@ -33,14 +40,14 @@ def calibration_warnings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequen
         warnings.simplefilter("ignore", RuntimeWarning)
         check = check_calibration(cams, uv, mask, list(cameras), image_size=image_size)
     repair = f"s3k check-calibration {dataset} --recalibrate flagged"
-    out = [f"calibration: {note} (usually a copy error in the calibration file); check it with "
-           f"s3k check-calibration {dataset} and recalibrate the copy with --recalibrate CAM"
+    out = [("warning", f"calibration: {note} (usually a copy error in the calibration file); check it with "
+            f"s3k check-calibration {dataset} and recalibrate the copy with --recalibrate CAM")
            for note in check.notes]
     if check.inconsistent:
         why = "; ".join(d for d in check.decisions if d.endswith("INCONSISTENT"))
-        out.append(f"calibration: camera(s) {', '.join(check.inconsistent)} disagree with the others' "
-                   f"labels ({why}); training would learn wrong targets there: repair with {repair} (it "
-                   "recalibrates them from ChArUco frames), or import without them")
+        out.append(("error", f"calibration: camera(s) {', '.join(check.inconsistent)} disagree with the "
+                   f"others' labels ({why}); training would learn wrong targets there: repair with {repair} "
+                   "(it recalibrates them from ChArUco frames), or import without them"))
     return out
 
 

@@ -161,6 +161,36 @@ def _label_tables(
     return kind, {cam: str(p) for cam, p in files.items()}, tables
 
 
+def _skeleton(tables: Mapping[str, LabelTable], labels_keypoints: list[str], keypoints: list[str],
+              skeleton: str | Path | None, calibration: str | Path) -> list[tuple[str, str]]:
+    """The dataset's skeleton: the file given (``--skeleton``), else the labels' own (SLEAP's edges, a
+    DeepLabCut project's config.yaml), else an anipose project's config.toml above the calibration; its edges
+    between the kept ``keypoints``."""
+    from s3k.data.formats.skeleton import anipose_project_config, check_edges, read_skeleton, unique_edges
+
+    edges: list[tuple[str, str]] = []
+    source = ""
+    if skeleton is not None:
+        edges, source = read_skeleton(skeleton), str(skeleton)
+        check_edges(edges, labels_keypoints or keypoints, f"--skeleton {skeleton}")
+        if not edges:
+            _warn(f"--skeleton {skeleton}: the file gives no skeleton edges")
+    else:
+        for table in tables.values():
+            if table.skeleton:
+                edges, source = unique_edges([*edges, *table.skeleton]), source or table.skeleton_source
+        config = anipose_project_config(calibration) if not edges else None
+        if config is not None:
+            edges, source = read_skeleton(config), str(config)
+            edges = [e for e in edges if set(e) <= set(labels_keypoints or keypoints)]
+    kept = [e for e in edges if set(e) <= set(keypoints)]
+    if edges:
+        left = len(edges) - len(kept)
+        dropped = f" ({left} to keypoints not kept left out)" if left else ""
+        print(f"skeleton: {len(kept)} edges from {source}{dropped}")
+    return kept
+
+
 def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
     """Frames each video decodes to; a warning when the container header says otherwise."""
     from s3k.data import video
@@ -173,6 +203,18 @@ def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
             _warn(f"{path}: the header says {header} frames but {decoded} decode; using {decoded}")
         counts[cam] = decoded
     return counts
+
+
+def _recorded(path: str | Path, out: str | Path) -> str:
+    """How ``s3k.json`` records a source file: absolute when given absolute, else relative to the dataset
+    folder ``out`` (read back with :func:`s3k.fileio.resolve_from`), so that a dataset moved together with
+    its recording keeps finding it."""
+    import os
+
+    path = Path(path)
+    if path.is_absolute():
+        return str(path)
+    return Path(os.path.relpath(path.resolve(), Path(out).resolve())).as_posix()
 
 
 def import_recording(
@@ -205,6 +247,7 @@ def import_recording(
     units: str | None = None,
     keypoints: Sequence[str] | None = None,
     video_regions: Mapping[str, Sequence[float]] | None = None,
+    skeleton: str | Path | None = None,
 ) -> Path:
     """Convert a recording to a dataset folder; returns the folder.
 
@@ -245,6 +288,8 @@ def import_recording(
         keypoints: keypoints to keep, in this order (default: all, in the label files' order).
         video_regions: ``{camera: (x0, y0, x1, y1)}``: the region of the calibrated image each video shows
             (:meth:`s3k.data.rig.Rig.with_video_regions`), for videos a few pixels smaller or larger.
+        skeleton: a file to take the skeleton from (:func:`s3k.data.formats.skeleton.read_skeleton`);
+            default: the labels' own (SLEAP, a DeepLabCut project), else an anipose project's config.toml.
     """
     from s3k.data import video
     from s3k.data.writer import DatasetWriter
@@ -277,8 +322,10 @@ def import_recording(
         missing = [k for k in keypoints if k not in names]
         if missing:
             raise UserError(f"--keypoints: {missing} not in the labels ({', '.join(names)})")
+    label_names = list(names)
     if keypoints:
         names = list(keypoints)
+    edges = _skeleton(tables, label_names, names, skeleton, calibration)
 
     # Frames: the count each video decodes to.
     counts = _frame_counts(videos)
@@ -328,9 +375,9 @@ def import_recording(
 
     source = {
         "importer": kind,
-        "calibration": str(Path(calibration).resolve()),
-        "videos": {cam: str(Path(p).resolve()) for cam, p in videos.items()},
-        "labels": {cam: str(Path(p).resolve()) for cam, p in files.items()},
+        "calibration": _recorded(calibration, out),
+        "videos": {cam: _recorded(p, out) for cam, p in videos.items()},
+        "labels": {cam: _recorded(p, out) for cam, p in files.items()},
         "crop_boxes": {cam: list(b) for cam, b in zip(cameras, boxes)},
         "source_image_size": {cam: [int(v) for v in rig.size[c]] for c, cam in enumerate(cameras)},
         "split_seed": seed,
@@ -342,7 +389,7 @@ def import_recording(
     with replace_folder(out, overwrite) as tmp:
         writer = DatasetWriter(
             tmp, names, cameras, out_size, rig.units,
-            calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source,
+            calibration=(K_out, arrays["dist"], arrays["R"], arrays["t"]), source=source, skeleton=edges,
             description=f"imported from {what} and {Path(calibration).name}",
         )
         streams = [video.iter_frames(videos[cam], wanted) for cam in cameras]

@@ -227,6 +227,8 @@ def read_metadata(root: Path, P: Problems, image_types: Collection[str]) -> Meta
             for n in (a, b):
                 if n not in keypoints:
                     P.error(METADATA_FILE, "skeleton", f"unknown keypoint {n!r}; keypoints are {keypoints}")
+            if a == b:
+                P.error(METADATA_FILE, "skeleton", f"edge [{a!r}, {b!r}] joins a keypoint to itself")
             skeleton.append((a, b))
     if len(P.errors) > n_errors:
         return None

@@ -61,18 +61,19 @@ def _print_summary(ds: Dataset) -> None:
         print(f"ground-truth 3D points: {s['points3d']}")
 
 
-def _calibration_check(ds: Dataset, path: str | Path) -> list[str]:
+def _calibration_check(ds: Dataset, path: str | Path) -> list[tuple[str, str]]:
     """``s3k check-calibration``'s consistency test on the labels of the labelled and test frames, as
-    warnings naming the repair (:func:`s3k.data.import_report.calibration_warnings`)."""
+    ``(severity, line)`` naming the repair (:func:`s3k.data.import_report.calibration_findings`): a camera
+    found inconsistent is an error (training would learn wrong targets there), a note a warning."""
     import numpy as np
 
-    from s3k.data.import_report import calibration_warnings
+    from s3k.data.import_report import calibration_findings
 
     ids = np.concatenate([np.asarray(ds.frames(s), dtype=np.int64) for s in ("labelled", "test")])
     if not len(ids):
         return []
     uv, mask = ds.labels(ids)
-    return calibration_warnings(ds.calibration(ids, dtype=np.float64), uv, mask, ds.cameras, ds.image_size,
+    return calibration_findings(ds.calibration(ids, dtype=np.float64), uv, mask, ds.cameras, ds.image_size,
                                 path)
 
 
@@ -102,9 +103,9 @@ def validate_dataset(
     _print_problems(problems, max_per_field)
     if dataset is not None:
         _print_summary(dataset)
-        for line in _calibration_check(dataset, path):
-            print(f"{'WARNING':7} {line}")
-            warnings.append(Problem("warning", "calibration", None, line))
+        for severity, line in _calibration_check(dataset, path):
+            print(f"{severity.upper():7} {line}")
+            (errors if severity == "error" else warnings).append(Problem(severity, "calibration", None, line))
     if errors:
         print(f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {path}")
         return False

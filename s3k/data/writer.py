@@ -39,7 +39,7 @@ from s3k.data.tables import (
     check_names,
 )
 from s3k.errors import UserError
-from s3k.outputs import UNFINISHED_MARKER, made_by_s3k
+from s3k.outputs import UNFINISHED_MARKER, foreign_dataset_file, made_by_s3k
 
 Calibration = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # K (C, 3, 3), dist (C, 5), R, t (C, 3)
 
@@ -129,6 +129,11 @@ class DatasetWriter:
             if not made_by_s3k(self.path):  # never someone's other files
                 raise UserError(f"{self.path} is not a dataset (no s3k.json): --overwrite replaces only a "
                                 "folder s3k made", hint="give another folder, or empty it first")
+            foreign = foreign_dataset_file(self.path)
+            if foreign is not None:  # a file put in the dataset by hand is not deleted with it
+                raise UserError(f"{self.path} holds {foreign.relative_to(self.path)}, which is not a file of "
+                                "the dataset; --overwrite would delete it",
+                                hint="move it out, or give another folder")
             shutil.rmtree(self.path)
         self.path.mkdir(parents=True, exist_ok=True)
         (self.path / UNFINISHED_MARKER).write_text("a dataset being written; s3k.json comes last\n")

@@ -148,12 +148,25 @@ class Detection(ReadOut):
         return self.to("cpu")
 
 
-def _views(images: Any) -> tuple[list[Tensor], bool]:
+def _views(images: Any, cameras: int | None = None) -> tuple[list[Tensor], bool]:
     """``(per camera uint8 (B, H_c, W_c, 3), single frame)`` from ``(B, C, H, W, 3)``, one frame ``(C, H, W,
-    3)``, or a sequence of ``C`` arrays ``(B, H_c, W_c, 3)`` (cameras of different sizes)."""
+    3)``, or a sequence of ``C`` arrays ``(B, H_c, W_c, 3)`` (cameras of different sizes).
+
+    Raises:
+        UserError: frames that are not uint8 (float frames in [0, 1] read as near black), or a sequence
+            that reads as ``C`` cameras' frames and as ``B`` frames of ``C`` cameras alike (``cameras`` of
+            them, each ``(cameras, H, W, 3)``).
+    """
     if isinstance(images, (list, tuple)):
         views = [torch.as_tensor(np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v) for v in images]
         single = False
+        shapes = {tuple(v.shape) for v in views}
+        if (cameras is not None and cameras > 1 and len(views) == cameras and len(shapes) == 1
+                and views[0].ndim == 4 and views[0].shape[0] == cameras):
+            raise UserError(
+                f"images: a list of {cameras} arrays of shape {tuple(views[0].shape)} reads both as "
+                f"{cameras} cameras' frames and as {cameras} frames of {cameras} cameras",
+                hint="pass one array (B, C, H, W, 3), e.g. np.stack(frames) for a list of frames")
     else:
         x = torch.as_tensor(np.ascontiguousarray(images) if isinstance(images, np.ndarray) else images)
         single = x.ndim == 4
@@ -165,9 +178,45 @@ def _views(images: Any) -> tuple[list[Tensor], bool]:
     for v in views:
         if v.ndim != 4 or v.shape[-1] != 3:
             raise ValueError(f"images: each camera's frames must be (B, H, W, 3), got {tuple(v.shape)}")
+        if v.dtype != torch.uint8:
+            raise UserError(f"images: {str(v.dtype).replace('torch.', '')} frames; the detector reads uint8 "
+                            "RGB frames with values 0-255",
+                            hint="convert them, e.g. (frames * 255).round().astype(np.uint8) for floats in "
+                                 "[0, 1]")
     if len({len(v) for v in views}) != 1:
         raise ValueError("images: every camera needs the same number of frames")
     return views, single
+
+
+SIZE_RATIO = 1.5
+"""Frames at least this many times (or at most its inverse) the size their cameras' centred principal point
+describes are refused (:func:`_check_sizes`)."""
+
+
+def _check_sizes(views: list[Tensor], cams: Cameras) -> None:
+    """Refuse frames whose size disagrees with their cameras' intrinsics: a principal point that sits at
+    about the same fraction of the frame in both axes (the two ratios within 25%: calibrated principal points
+    lie a few percent off the centre), as the centre of an image :data:`SIZE_RATIO` times larger or smaller
+    does (frames resized, or cameras of the full frames given with resized ones). A crop of a frame whose
+    principal point falls there too is refused as well: :attr:`Detector.check_frames` turns the check off.
+
+    Raises:
+        UserError: naming the camera, the frame size and the size its intrinsics describe.
+    """
+    pp = cams.K[..., :2, 2].reshape(-1, len(views), 2).mean(dim=0).cpu()  # (C, 2)
+    for c, v in enumerate(views):
+        H, W = int(v.shape[1]), int(v.shape[2])
+        cx, cy = float(pp[c, 0]), float(pp[c, 1])
+        if cx <= 0 or cy <= 0:
+            continue
+        su, sv = W / (2 * cx + 1), H / (2 * cy + 1)
+        s = (su + sv) / 2
+        if abs(su - sv) <= 0.25 * s and (min(su, sv) >= SIZE_RATIO or max(su, sv) <= 1 / SIZE_RATIO):
+            raise UserError(
+                f"images: camera {c}'s frames are {W}x{H} px but its intrinsics (principal point "
+                f"{cx:.1f}, {cy:.1f}) describe {2 * cx + 1:.0f}x{2 * cy + 1:.0f} px frames ({s:.2g}x)",
+                hint="resize the frames to the calibration's size, or give the cameras of these frames (K' = "
+                     "M K, s3k.geometry.warp); set detector.check_frames = False to use them as they are")
 
 
 def _whole_images(views: list[Tensor]) -> Tensor:
@@ -241,6 +290,9 @@ class Detector:
 
     meta: DetectorMeta
     device: torch.device
+    check_frames: bool = True
+    """Refuse whole frames whose size disagrees with the cameras' intrinsics (:func:`_check_sizes`); off for
+    crops, whose principal point may lie anywhere."""
 
     @staticmethod
     def load(run: str | Path, device: str | torch.device = "auto", precision: str = "float32",
@@ -280,9 +332,12 @@ class Detector:
         """The read-out of synchronized frames.
 
         Args:
-            images: uint8 frames ``(B, C, H, W, 3)`` (RGB), one frame ``(C, H, W, 3)``, or a sequence of
-                ``C`` arrays ``(B, H_c, W_c, 3)`` when the cameras' sizes differ; numpy or torch.
-            cams: the cameras ``(C,)`` or ``(B, C)`` in the frames' own pixels.
+            images: uint8 frames ``(B, C, H, W, 3)`` (RGB, 0-255), one frame ``(C, H, W, 3)``, or a sequence
+                of ``C`` arrays ``(B, H_c, W_c, 3)`` when the cameras' sizes differ; numpy or torch. Other
+                dtypes (float frames in [0, 1]) are refused, and so is a sequence of ``C`` arrays of ``C``
+                frames of one size (it reads as ``C`` frames too: stack it).
+            cams: the cameras ``(C,)`` or ``(B, C)`` in the frames' own pixels: frames of another size than
+                the intrinsics describe are refused (:attr:`check_frames`).
             boxes: ``(C, 4)`` or ``(B, C, 4)`` region of each view (pixel edge coordinates) that the
                 (first) network sees, resampled to its input; default the whole image.
             min_weight: views with a confidence weight at or below this are not triangulated.
@@ -292,7 +347,9 @@ class Detector:
             A :class:`Detection` (float64) in the frames' pixels and the cameras' world frame, on the device
             the frames are on (a single frame keeps a batch of one).
         """
-        views, _ = _views(images)
+        views, _ = _views(images, int(cams.shape[-1]))
+        if self.check_frames and boxes is None:
+            _check_sizes(views, cams)
         home = views[0].device
         B = len(views[0])
         cams = cams.to(device=self.device, dtype=torch.float64)

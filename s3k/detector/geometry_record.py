@@ -30,8 +30,8 @@ import numpy as np
 
 from s3k.errors import UserError
 
-__all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "mismatches", "run_geometry", "track_crops",
-           "training_geometry"]
+__all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "frame_calibration", "mismatches",
+           "run_geometry", "track_crops", "training_geometry"]
 
 TOLERANCE = 2e-3
 """Largest difference between two boxes, as a fraction of the frame's width or height, that still matches."""
@@ -63,10 +63,36 @@ def dataset_geometry(ds: Any) -> dict[str, Any]:
 
 
 def training_geometry(ds: Any) -> dict[str, Any]:
-    """What a run records of its training dataset ``ds``: :func:`dataset_geometry` and ``"dataset"``, its
-    path and identity (keypoints, cameras and fingerprint, as ``--resume`` checks them)."""
+    """What a run records of its training dataset ``ds``: :func:`dataset_geometry`, ``"dataset"``, its
+    path and identity (keypoints, cameras and fingerprint, as ``--resume`` checks them), and a static rig's
+    ``"calibration"`` in frame pixels (:func:`frame_calibration`)."""
+    identity = {"path": str(Path(ds.path).resolve()), **dataset_identity(ds)}
+    record = {**dataset_geometry(ds), "dataset": identity}
+    calibration = frame_calibration(ds)
+    if calibration is not None:
+        record["calibration"] = calibration
+    return record
 
-    return {**dataset_geometry(ds), "dataset": {"path": str(Path(ds.path).resolve()), **dataset_identity(ds)}}
+
+def frame_calibration(ds: Any) -> dict[str, Any] | None:
+    """``{"units", "cameras": {camera: {"K", "dist", "R", "t", "frame_size"}}}``: a static dataset's cameras
+    in the pixels of its cameras' full frames (:func:`dataset_geometry`), as a run records them for the
+    check of the calibration it is given at tracking time; None for a per-frame calibration."""
+    from s3k.geometry.warp import crop_resize_matrix
+
+    if not ds.static_calibration:
+        return None
+    geometry = dataset_geometry(ds)
+    arrays = ds.rig(np.float64).numpy()
+    cameras = {}
+    for c, cam in enumerate(ds.cameras):
+        entry = geometry["cameras"][cam]
+        M = crop_resize_matrix(tuple(entry["box"]), tuple(ds.image_size))
+        cameras[cam] = {"K": (np.linalg.inv(M) @ arrays["K"][c]).tolist(), "dist": arrays["dist"][c].tolist(),
+                        "R": arrays["R"][c].tolist(), "t": arrays["t"][c].tolist(),
+                        "frame_size": list(entry["frame_size"])}
+    return {"units": str(ds.units), "cameras": cameras}
+
 
 
 def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:

@@ -39,6 +39,9 @@ class DetectorMeta:
             and the training dataset's path and identity
             (:func:`s3k.detector.geometry_record.training_geometry`), so that inputs are cropped the same way
             or refused; None for a run trained before it was recorded.
+        skeleton: the training dataset's skeleton, edges as keypoint name pairs (drawn by ``s3k track
+            --overlay``, ``s3k view`` and ``s3k stream --rerun``; empty for none, or a run trained before it
+            was recorded).
     """
 
     keypoints: list[str]
@@ -53,6 +56,7 @@ class DetectorMeta:
     layout: list[list[float]] | None = None
     layout_tol: float = 0.0
     geometry: dict[str, Any] | None = None
+    skeleton: list[tuple[str, str]] = field(default_factory=list)
 
     @property
     def max_residual_px(self) -> float | None:
@@ -71,6 +75,23 @@ class DetectorMeta:
         every command reads a detector out the same way."""
         return read_out(logits, cams, self.stride, self.sigma, pixel_maps, keep_heatmaps=keep_heatmaps,
                         config=self.readout_config(min_weight))
+
+    def recorded_skeleton(self) -> list[tuple[str, str]]:
+        """``skeleton``; for a run trained before it was recorded, the skeleton of the training dataset's
+        ``s3k.json`` where that is still readable (else none)."""
+        if self.skeleton or not self.geometry:
+            return list(self.skeleton)
+        import json
+        from pathlib import Path
+
+        path = (self.geometry.get("dataset") or {}).get("path")
+        try:
+            doc = json.loads((Path(path) / "s3k.json").read_text()) if path else {}
+        except (OSError, ValueError):
+            return []
+        edges = doc.get("skeleton") if isinstance(doc, dict) else None
+        return [(a, b) for a, b in edges or [] if isinstance(a, str) and isinstance(b, str)
+                and a in self.keypoints and b in self.keypoints]
 
     @property
     def layout_distances(self) -> torch.Tensor | None:
@@ -96,5 +117,7 @@ class DetectorMeta:
             d["source_image_size"] = tuple(d["source_image_size"])
         if d.get("layout") is not None:
             d["layout"] = [[math.nan if v is None else float(v) for v in row] for row in d["layout"]]
+        d["skeleton"] = [(str(a), str(b)) for a, b in d.get("skeleton") or []
+                         if a in d.get("keypoints", ()) and b in d.get("keypoints", ())]
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})

@@ -58,11 +58,11 @@ from s3k.experiments.grid import (
     RunSpec,
     plan,
 )
-from s3k.experiments.report import publish, resummarize, summarize
+from s3k.experiments.report import publish, published, resummarize, summarize
 from s3k.experiments.runner import describe_plan, run_experiment
 from s3k.experiments.views import stratified_pick
 
 __all__ = ["DESCRIPTIONS", "EXPERIMENTS", "LABEL_CHOICES", "PAPER_CATEGORY_TEST_PX", "PAPER_MM_PER_PX",
            "SCALES", "SUMMARY_FILE", "Options", "PoolSpec", "RunSpec", "aggregate", "describe_plan",
-           "findings", "plan", "publish", "resummarize", "run_experiment", "stratified_pick", "summarize",
-           "verdict"]
+           "findings", "plan", "publish", "published", "resummarize", "run_experiment", "stratified_pick",
+           "summarize", "verdict"]

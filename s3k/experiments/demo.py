@@ -260,11 +260,28 @@ def _evaluate(out: Path, data: Path, log) -> tuple[dict[str, dict], dict[str, ob
     return results, errors
 
 
+DEMO_NAMES = frozenset({"pool", "data", "s3k", "baseline", "report"})
+"""What a demo folder holds (its hidden neighbours of an interrupted rendering aside)."""
+
+
+def is_demo_folder(folder: Path) -> bool:
+    """True when ``folder`` holds a demo of an earlier call (made before demo folders were marked): only the
+    demo's own folders, one of them its dataset or a run."""
+    from s3k.outputs import made_by_s3k, owns_run
+
+    names = {p.name for p in folder.iterdir() if not p.name.startswith(".")}
+    return names <= DEMO_NAMES and any(made_by_s3k(folder / n) or owns_run(folder / n)
+                                       for n in ("pool", "data", "s3k", "baseline"))
+
+
 def run_demo(out: str | Path, demo: DemoConfig, progress: bool = True, log=print,
              parallel: bool = True) -> dict:
     """Run the whole demo into ``out``; returns ``{"labels only": metrics, "S3K": metrics, ...}``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    from s3k.outputs import check_folder, claim_folder
+
+    # a new or empty folder, or an earlier demo: never someone's files
+    out = check_folder(out, "demo", owns=is_demo_folder, ours=DEMO_NAMES)
+    claim_folder(out, "demo")
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     data = _data(out, demo, progress, log, timings)

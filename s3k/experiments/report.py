@@ -382,6 +382,16 @@ def readme(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def published(folder: Path, exp: str) -> bool:
+    """True when ``folder`` holds what :func:`publish` copied there for the experiment ``exp`` (its
+    ``summary.json``)."""
+    try:
+        doc = json.loads((folder / SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("experiment") == exp and "points" in doc
+
+
 def publish(exp_dir: Path, dest: Path) -> list[Path]:
     """Copy an experiment's summary.json, README.md and figures to ``dest`` (e.g. docs/results/NAME)."""
     dest.mkdir(parents=True, exist_ok=True)

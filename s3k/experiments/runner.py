@@ -205,6 +205,25 @@ def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale:
             f"(one process, one thread per run; about half the wall time with two invocations in parallel)")
 
 
+def check_pools_fit(runs: list[RunSpec], opts: Options, data_dir: Path) -> None:
+    """Refuse, before the sweep starts, a pool that cannot be rendered here (the memory and disk checks of
+    ``s3k simulate``): every run reading it would fail. The message names the option that sets its size."""
+    from s3k.sim.generate import check_disk, check_memory, default_workers
+
+    workers = opts.workers or default_workers()
+    option = "--render" if opts.two_pass and opts.render else "--size"
+    for pool in {spec.pool.name: spec.pool for spec in runs}.values():
+        if (data_dir / pool.name / "s3k.json").is_file():
+            continue
+        try:
+            check_memory(pool.simulate_config(), workers)
+            check_disk(pool.simulate_config(), data_dir)
+        except UserError as exc:
+            raise UserError(f"{option} {pool.size}: the sweep's pool {pool.name} cannot be rendered here "
+                            f"({exc.message}); every run would fail", hint=f"lower {option}, --test or "
+                            "--unlabelled") from exc
+
+
 def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every missing run of a sweep, then summarize. Returns ``{"trained", "skipped", "failed",
     "summary"}`` (run names trained now, already finished or held by another process, failed).
@@ -216,6 +235,7 @@ def run_experiment(opts: Options, log: Callable[[str], None] = print) -> dict[st
     runs = plan(opts)
     exp_dir = opts.out / opts.experiment
     data_dir = opts.out / "data"
+    check_pools_fit(runs, opts, data_dir)
     exp_dir.mkdir(parents=True, exist_ok=True)
     log(describe_plan(runs, exp_dir, data_dir, opts.scale))
     trained: list[str] = []

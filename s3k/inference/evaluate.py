@@ -125,7 +125,10 @@ def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     if report:
+        from s3k.draw import edge_indices
         from s3k.inference.report import write_report
 
-        write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})")
+        edges = edge_indices(detector.meta.recorded_skeleton() or ds.skeleton, detector.keypoints)
+        write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})",
+                     edges=edges)
     return metrics

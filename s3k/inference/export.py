@@ -33,6 +33,7 @@ from s3k import readout
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
+from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
 
 __all__ = [
     "FORMATS",
@@ -51,11 +52,9 @@ __all__ = [
     "verification_images",
 ]
 
-FORMATS = ("onnx", "torchscript")
 META_KEY = "s3k_meta"
 DEFAULT_TOLERANCE = 1e-4
 DEFAULT_TOLERANCE_MM = 0.1
-EXPORTED_TWO_PASS = "s3k-exported-two-pass/1"
 TRACE_BATCH = 2
 
 
@@ -123,8 +122,19 @@ class ExportReport:
 
     @property
     def ok(self) -> bool:
-        points_ok = self.max_diff_mm is None or self.max_diff_mm <= self.tolerance_mm
-        return points_ok and all(np.isfinite(v) and v <= self.tolerance for v in self.max_diff.values())
+        return not self.failures()
+
+    def failures(self) -> list[str]:
+        """The checks that failed, each in words with its figure and bound (empty when all passed)."""
+        out = [f"output {key} differs from PyTorch's by {value:.3g} (--tolerance {self.tolerance:g})"
+               for key, value in self.max_diff.items()
+               if not (np.isfinite(value) and value <= self.tolerance)]
+        if self.max_diff_mm is not None and not self.max_diff_mm <= self.tolerance_mm:
+            what = (f"by {self.max_diff_mm:.3g} mm" if np.isfinite(self.max_diff_mm)
+                    else "in which keypoints are triangulated")
+            out.append(f"the exported detector's 3D points differ from PyTorch's detector's {what} on "
+                       f"{self.frames_3d} frames (3D tolerance {self.tolerance_mm:g} mm)")
+        return out
 
 
 def output_names(with_moments: bool) -> list[str]:
@@ -336,12 +346,13 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
         report.path = out.with_suffix(".json")
         report.path.write_text(json.dumps(doc, indent=1) + "\n")
         report.files.append(report.path)
-    report.max_diff_mm, report.frames_3d = _verify_points(run_dir, report.path, fmt, verify_data)
+    report.max_diff_mm, report.frames_3d = _verify_points(run_dir, report.path, fmt, verify_data,
+                                                          None if is_two_pass(run_dir) else checkpoint)
     return report
 
 
-def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
-                   ) -> tuple[float | None, int]:
+def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None,
+                   checkpoint: str | None = None) -> tuple[float | None, int]:
     """The largest 3D difference (mm) between the exported detector and PyTorch's on up to 8 frames of
     ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
     from s3k.data import Dataset
@@ -357,7 +368,7 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"warning: cannot read frames from {data} to compare 3D points ({exc})", file=sys.stderr)
         return None, 0
-    ref = Detector.load(run_dir, "cpu")(images, cams)
+    ref = Detector.load(run_dir, "cpu", checkpoint=checkpoint)(images, cams)  # the network exported
     got = load_exported(path, fmt)(images, cams)
     both = ref.valid & got.valid
     if bool((ref.valid != got.valid).any()):
@@ -384,8 +395,13 @@ def read_exported_meta(path: str | Path, fmt: str):
 
     if fmt == "onnx":
         import onnx
+        from google.protobuf.message import DecodeError
 
-        props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+        try:
+            model = onnx.load(str(path), load_external_data=False)
+        except DecodeError:
+            raise UserError(f"{path}: not an ONNX file (it does not decode as one)") from None
+        props = {p.key: p.value for p in model.metadata_props}
         text = props.get(META_KEY)
     else:
         extra = {f"{META_KEY}.json": ""}
@@ -395,22 +411,36 @@ def read_exported_meta(path: str | Path, fmt: str):
         text = extra[f"{META_KEY}.json"] or None
     if not text:
         raise UserError(f"{path}: no {META_KEY} in the file; not exported by s3k export")
-    return DetectorMeta.from_dict(json.loads(text))
+    try:
+        meta = DetectorMeta.from_dict(json.loads(text))
+        if len(meta.image_size) != 2 or not meta.keypoints or int(meta.stride) < 1:
+            raise ValueError("image_size, keypoints or stride")
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(f"{path}: its {META_KEY} is not an s3k detector's metadata ({exc})") from None
+    return meta
 
 
 def load_exported(path: str | Path, fmt: str | None = None):
-    """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime (or
-    TorchScript): a one-pass file, or the ``.json`` a two-pass export writes beside its two files."""
+    """An exported detector as a :class:`s3k.detector.Detector` whose networks run in ONNX Runtime: a
+    one-pass file, or the ``.json`` a two-pass export writes beside its two files (checked: its fields, its
+    crop rule's finite extent, its files inside its own folder). TorchScript files run only with
+    ``fmt="torchscript"``: they hold code.
+
+    Raises:
+        UserError: one line naming the file and the field, or a TorchScript file not asked for.
+    """
     from s3k.detector import CropRule, OnePassDetector, TwoPassDetector
 
     path = Path(path)
     if path.suffix == ".json":
-        doc = json.loads(path.read_text())
-        if doc.get("format") != EXPORTED_TWO_PASS:
-            raise UserError(f"{path}: not a two-pass export of s3k (format {doc.get('format')!r})")
-        runtime = fmt or str(doc.get("runtime", "onnx"))
-        passes = [load_exported(path.with_name(str(doc[name])), runtime) for name in ("coarse", "fine")]
+        doc = two_pass_doc(path)
+        runtime = runtime_of(path, fmt, str(doc.get("runtime", "onnx")))
+        folder = path.resolve().parent
+        passes = [load_exported(folder / str(doc[name]), runtime) for name in ("coarse", "fine")]
         rule = CropRule(float(doc["extent"]), int(doc["size"]), float(doc.get("margin", 0.0)))
         return TwoPassDetector(passes[0], passes[1], rule)  # type: ignore[arg-type]
-    runtime = fmt or ("onnx" if path.suffix == ".onnx" else "torchscript")
-    return OnePassDetector(_ExportedNetwork(path, runtime), read_exported_meta(path, runtime), "cpu")
+    runtime = runtime_of(path, fmt, None)
+    if not path.is_file():
+        raise FileNotFoundError(2, "exported detector not found", str(path))
+    meta = read_exported_meta(path, runtime)  # first: it refuses a file that is not an export in one line
+    return OnePassDetector(_ExportedNetwork(path, runtime), meta, "cpu")

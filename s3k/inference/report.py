@@ -16,8 +16,9 @@ __all__ = ["write_report"]
 
 
 def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str, Any], unit_mm: float,
-                 title: str = "") -> list[Path]:
-    """Write metrics.json, plots (error histograms, per-keypoint errors) and view overlays to ``out_dir``."""
+                 title: str = "", edges: np.ndarray | None = None) -> list[Path]:
+    """Write metrics.json, plots (error histograms, per-keypoint errors) and view overlays to ``out_dir``
+    (``edges``: the skeleton's ``(E, 2)`` keypoint indices, drawn between the detections)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -72,7 +73,7 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     if arrays.get("images") is not None:
         for i in range(len(arrays["images"])):
             img = draw_views(arrays["images"][i], arrays["probs"][i], arrays["pred_uv"][i],
-                             arrays["gt_uv"][i], arrays["gt_mask"][i])
+                             arrays["gt_uv"][i], arrays["gt_mask"][i], edges=edges)
             path = out / f"overlay_{i:02d}_frame_{arrays['frame_ids'][i]}.png"
             cv2.imwrite(str(path), img[..., ::-1])
             written.append(path)

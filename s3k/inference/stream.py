@@ -16,8 +16,9 @@ detector's and ``rejected`` the keypoints whose jump the filter rejected; ``late
 world frame and units (null where not triangulated); ``latency_ms`` is the time from reading the frame to
 its points. Live cameras run at their own rate: when the detector is slower, the stream says on stderr how
 many frames behind it is (it reads the newest frame, so it never lags further). Files are read as fast as
-the detector goes. With ``rerun`` the views, the detections and the 3D points are logged to a Rerun viewer
-(``rerun-sdk``, ``pip install s3k[stream]``). Ctrl-C stops the stream between two frames.
+the detector goes. With ``rerun`` the cameras, the views (JPEG, downscaled), the detections, the 3D points
+with their skeleton and confidence are logged to a Rerun viewer or file (``rerun-sdk``, ``pip install
+s3k[stream]``; :mod:`s3k.inference.rerun_log`). Ctrl-C stops the stream between two frames.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -64,10 +64,12 @@ class FileSource(Source):
     """A video file or an image sequence (:mod:`s3k.data.video`)."""
 
     def __init__(self, spec: str) -> None:
-        from s3k.data import video
+        from s3k.data import imageseq, video
 
         self.spec, self.live = spec, False
-        self.size, self.fps = video.frame_size(spec), video.frame_rate(spec)
+        self.size = video.frame_size(spec)
+        # an image sequence records no frame rate: unknown (0) unless ``s3k stream --fps`` gives it
+        self.fps = 0.0 if imageseq.is_sequence(spec) else video.frame_rate(spec)
         self._frames: Iterator[tuple[int, np.ndarray]] = video.iter_frames(spec)
 
     def read(self) -> np.ndarray | None:
@@ -202,10 +204,10 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
             done = time.perf_counter()
             out.write(_frame_line(i, read - start, keypoints, det.X[0].numpy(), det.valid[0].numpy(),
                                   done - read, filtered) + "\n")
+            i += 1  # counted as soon as its line is written: Ctrl-C in the flush or the logger keeps it
             out.flush()
             if log is not None:
-                log(i, views, det)  # type: ignore[arg-type]
-            i += 1
+                log(i - 1, views, det)  # type: ignore[arg-type]
             if live and rate > 0:
                 lag = int((done - start) * rate) - i
                 behind = max(behind, lag)
@@ -222,27 +224,19 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     return StreamSummary(i, seconds, i / seconds if seconds > 0 else 0.0, rate, behind, interrupted)
 
 
-def rerun_logger(keypoints: list[str], cameras: list[str], target: str) -> Callable:
-    """A ``log`` for :func:`stream` that sends the views, the detections and the 3D points to Rerun:
-    ``target`` "spawn" (a viewer), or a ``.rrd`` file to write."""
-    try:
-        import rerun as rr
-    except ImportError:
-        raise UserError("--rerun needs the Rerun SDK, which is not installed",
-                        hint="pip install 's3k[stream]' (or rerun-sdk)") from None
-    rr.init("s3k stream", spawn=target == "spawn")
-    if target != "spawn":
-        rr.save(str(Path(target)))
+def rerun_logger(detector, cameras: list[str], cams, sizes: list[tuple[int, int]], target: str,
+                 image_scale: float = 0.5, jpeg_quality: int = 75) -> tuple[Callable, Callable[[bool], None]]:
+    """A ``log`` for :func:`stream` that sends the rig's cameras, the views (downscaled by ``image_scale``,
+    JPEG), the detections, the 3D points with their skeleton and confidence, and their reprojections to Rerun
+    (:class:`s3k.inference.rerun_log.RerunLog`): ``target`` "spawn" (a viewer), or a ``.rrd`` file to write.
+    Returns ``(log, close)``; ``close(keep)`` completes the file (or, ``keep=False``, removes it)."""
+    from s3k.inference.rerun_log import RerunLog
+
+    rec = RerunLog("s3k stream", target, detector.keypoints, cameras, detector.meta.recorded_skeleton(),
+                   image_scale=image_scale, jpeg_quality=jpeg_quality, units=detector.units)
+    rec.cameras_at(cams, sizes)
 
     def log(i: int, views: list[np.ndarray], det) -> None:
-        rr.set_time("frame", sequence=i)
-        uv, used = det.uv[0].numpy(), det.used[0].numpy()
-        for c, cam in enumerate(cameras):
-            rr.log(f"views/{cam}/image", rr.Image(views[c]))
-            rr.log(f"views/{cam}/detections", rr.Points2D(uv[c][used[c]], labels=[
-                k for k, u in zip(keypoints, used[c]) if u]))
-        valid = det.valid[0].numpy()
-        rr.log("world/keypoints", rr.Points3D(det.X[0].numpy()[valid],
-                                              labels=[k for k, v in zip(keypoints, valid) if v]))
+        rec.detection(i, views, det.cpu())
 
-    return log
+    return log, rec.close

@@ -32,8 +32,8 @@ from s3k.inference.kalman import FilterSettings
 from s3k.inference.track_filter import doubt, doubt_path, filter_track, layout_shape_of, raw_path, write_doubt
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
-__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
-           "track_videos"]
+__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "limb_indices",
+           "prepare_cameras", "track_videos"]
 
 FIT_MODES = ("pad", "crop", "stretch")
 
@@ -167,6 +167,7 @@ class TrackSummary:
             else None (``path`` holds them).
         doubt: the frames ranked by doubt (:func:`s3k.inference.track_filter.write_doubt`).
         filter: the filter's settings and what it fitted and did, or None.
+        fps: the videos' frame rate (None where they differ or an image sequence records none).
     """
 
     frames: int
@@ -177,6 +178,7 @@ class TrackSummary:
     min_weight: float
     units: str
     path: Path
+    fps: float | None = None
     raw: Path | None = None
     doubt: Path | None = None
     filter: dict | None = None
@@ -198,8 +200,11 @@ def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int 
         yield fnums, frames
 
 
-def _stack_views(frames: list[list[np.ndarray]]) -> list[np.ndarray]:
-    """``B`` frames of ``C`` images -> ``C`` arrays ``(B, H_c, W_c, 3)`` (:class:`s3k.detector.Detector`)."""
+def _stack_views(frames: list[list[np.ndarray]]) -> np.ndarray | list[np.ndarray]:
+    """``B`` frames of ``C`` images -> one array ``(B, C, H, W, 3)`` when the cameras' sizes agree, else ``C``
+    arrays ``(B, H_c, W_c, 3)`` (:class:`s3k.detector.Detector`)."""
+    if len({f.shape for frame in frames for f in frame}) == 1:
+        return np.stack([np.stack(frame) for frame in frames])
     return [np.stack([f[c] for f in frames]) for c in range(len(frames[0]))]
 
 
@@ -242,7 +247,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                  units: str | None = None, progress: bool = True, overwrite: bool = False,
                  video_regions: dict[str, tuple[float, ...]] | None = None,
                  filter_settings: FilterSettings | None = None,
-                 skeleton: Sequence[tuple[str, str]] = ()) -> TrackSummary:
+                 skeleton: Sequence[tuple[str, str]] | None = None) -> TrackSummary:
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).
 
     Args:
@@ -266,7 +271,8 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
             (:meth:`s3k.data.rig.Rig.with_video_regions`).
         filter_settings: filter the points over time (:mod:`s3k.inference.kalman`; the raw points go to
             ``<stem>.raw.csv``), or None / ``method="none"``: no filter.
-        skeleton: the limbs a filter holds near their lengths, pairs of keypoint names.
+        skeleton: the limbs a filter holds near their lengths, pairs of keypoint names (None: the skeleton
+            the run recorded from its dataset).
 
     Returns:
         A :class:`TrackSummary`; the frames ranked by doubt are written to ``<stem>.doubt.csv``.
@@ -289,15 +295,18 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
             calib = calib.with_video_regions(video_regions)  # type: ignore[arg-type]
         except (KeyError, ValueError) as exc:
             raise UserError(f"--video-region: {exc.args[0]}") from None
+    _say_calibration(run_dir, calib, [c for c in videos if c in calib.names], calibration)
     detector = Detector.load(run_dir, device)
     inputs, cams = prepare_cameras(videos, calib, detector.input_size, fit, crops)
     end = _frame_range(inputs, start, stop)
     boxes = np.array([c.box for c in inputs], dtype=np.float64)
     frames = video.prefetch(_frame_batches(inputs, batch, start, end))
-    edges = _edges(skeleton, detector.keypoints)
+    limbs = detector.meta.recorded_skeleton() if skeleton is None else skeleton
+    edges = limb_indices(limbs, detector.keypoints)
     got = _track(detector, frames, cams, boxes, min_weight, raw, overlay, inputs, end - start, progress)
     n, keypoints, valid, error, passing = _summary_of(got, detector.keypoints)
-    summary = TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out)
+    summary = TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out,
+                           _common_rate(inputs))
     rejected = None
     if filtering:
         assert filter_settings is not None
@@ -310,7 +319,7 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     return summary
 
 
-def _edges(skeleton: Sequence[tuple[str, str]], keypoints: list[str]) -> list[tuple[int, int]]:
+def limb_indices(skeleton: Sequence[tuple[str, str]], keypoints: list[str]) -> list[tuple[int, int]]:
     """The skeleton's limbs as keypoint index pairs; a name the run does not have is refused."""
     out = []
     for a, b in skeleton:
@@ -333,6 +342,27 @@ def _write_filtered(got: _Collected, cams: Cameras, settings: FilterSettings, de
         ncams = np.where(res.measured, got.ncams, 0)  # 0: no measurement entered the filter there
         writer.writerows(array_rows(got.fnums.tolist(), res.X, got.error, ncams, got.score))
     return res
+
+
+def _say_calibration(run_dir, calib, names: list[str], source) -> None:
+    """Print on stderr what :func:`s3k.inference.rig_check.calibration_notes` finds in the calibration of
+    the cameras ``names``: copies, and how it differs from the run's."""
+    from s3k.inference.rig_check import calibration_notes
+
+    rig = calib.select(names)
+    sizes = {n: (int(w), int(h)) for n, (w, h) in zip(rig.names, rig.size)}
+    for line in calibration_notes(run_dir, rig.cameras, rig.names, rig.units, sizes, source):
+        print(line, file=sys.stderr)
+
+
+def _common_rate(inputs: list[CameraInput]) -> float | None:
+    """The frame rate every video declares (None where they differ or an image sequence records none)."""
+    from s3k.data import imageseq
+
+    if any(imageseq.is_sequence(c.path) for c in inputs):
+        return None
+    rates = [float(c.fps) for c in inputs]
+    return rates[0] if rates and max(rates) - min(rates) <= 1e-3 * max(rates) else None
 
 
 @dataclass
@@ -359,13 +389,14 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
 
     from s3k.data import video
     from s3k.data.tracks_csv import csv_rows, write_csv
-    from s3k.draw import draw_overlay, keypoint_colours
+    from s3k.draw import draw_overlay, edge_indices, keypoint_colours
 
     writers = []
     if overlay is not None:
         Path(overlay).mkdir(parents=True, exist_ok=True)
         writers = [video.VideoWriter(Path(overlay) / f"{c.name}.mp4", c.fps) for c in inputs]
     colours = keypoint_colours(len(detector.keypoints))
+    edges = edge_indices(detector.meta.recorded_skeleton(), detector.keypoints)
     parts: dict[str, list[np.ndarray]] = {name: [] for name in _Collected.__dataclass_fields__}
     try:
         with write_csv(out, detector.keypoints) as writer:
@@ -376,7 +407,8 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
                 reproj, uv, used = result.reproj.numpy(), result.uv.numpy(), result.used.numpy()
                 for c, w in enumerate(writers):
                     for b in range(len(fnums)):
-                        w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours))
+                        w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours,
+                                             edges))
                 for name, value in (("fnums", np.asarray(fnums)), ("X", result.X), ("error", result.error),
                                     ("ncams", result.ncams), ("score", result.score), ("valid", result.valid),
                                     ("used", result.used), ("weights", result.weights),

@@ -8,6 +8,7 @@ Modules, one job each:
   curves) with s3k's cameras and read-out.
 - :mod:`~s3k.label.propagate`: ``propagate_labels``, one frame's 3D labels copied to a still stretch.
 - :mod:`~s3k.label.suggest`: a trained run's suggestions and its ranking of frames by multi-view doubt.
+- :mod:`~s3k.label.skeleton`: ``edit_skeleton``, the dataset's skeleton edges edited in ``s3k.json``.
 - :mod:`~s3k.label.server`: the FastAPI app and ``serve``; the page itself is ``static/``.
 
 The web modules import FastAPI; the others do not, so ``propagate_labels`` works without it.

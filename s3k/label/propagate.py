@@ -29,8 +29,8 @@ from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
 from s3k.ranges import Range
 
-__all__ = ["CHANGE_LEVEL", "DEFAULT_MAX_CHANGED", "PropagateResult", "changed_pixels", "describe",
-           "propagate_labels", "undo_propagation"]
+__all__ = ["APP_WORDS", "CHANGE_LEVEL", "CLI_WORDS", "DEFAULT_MAX_CHANGED", "PropagateResult",
+           "changed_pixels", "describe", "propagate_labels", "undo_propagation"]
 
 CHANGE_LEVEL = 24
 """A pixel has changed when a channel differs by more than this many grey levels (0-255)."""
@@ -39,6 +39,16 @@ DEFAULT_MAX_CHANGED = 0.2
 """Largest share of changed pixels, in percent of a camera's image, of a still frame."""
 MAX_CHANGED_RANGE = Range(ge=0, le=100)
 """The values ``max_changed`` (``--max-changed``) takes."""
+
+CLI_WORDS = {"frames": "--frames {first}:{last}", "from": "--from {source}", "choose": "choose --frames",
+             "max_changed": "--max-changed", "raise": "raise --max-changed", "from_any": "pass --from FRAME",
+             "overwrite": "pass --overwrite", "allow_test": "pass --allow-test", "dry_run": "--dry-run"}
+"""How a refusal names the options: the command line's flags (``s3k label propagate``)."""
+APP_WORDS = {"frames": "frames {first} to {last}", "from": "frame {source} (the one copied)",
+             "choose": "choose frames", "max_changed": "'changed pixels at most'", "raise": "raise 'changed "
+             "pixels at most'", "from_any": "open a labelled frame and copy from it", "overwrite": "tick "
+             "'replace existing labels'", "allow_test": "tick 'include test frames'", "dry_run": "'preview'"}
+"""The same in the labelling app's words (its *Propagate to still frames* form)."""
 
 
 @dataclass
@@ -85,7 +95,7 @@ def changed_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def propagate_labels(data: str | Path, first: int, last: int, source: int | None = None,
                      max_changed: float = DEFAULT_MAX_CHANGED, store: LabelStore | None = None,
                      labeller: str | None = None, *, overwrite: bool = False, allow_test: bool = False,
-                     dry_run: bool = False) -> PropagateResult:
+                     dry_run: bool = False, words: dict[str, str] = CLI_WORDS) -> PropagateResult:
     """Copy the 3D labels of frame ``source`` to every frame with an id in ``first..last`` (inclusive).
 
     Args:
@@ -99,6 +109,7 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         overwrite: replace existing labels that differ from the copy (else refused).
         allow_test: read from and write to test frames (else refused).
         dry_run: compute the changes, write nothing.
+        words: how refusals name the options (:data:`CLI_WORDS`, the app's :data:`APP_WORDS`).
 
     Returns:
         A :class:`PropagateResult`.
@@ -112,20 +123,21 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
     from s3k.data import Dataset
 
     # nan compares false with every percentage: it would let every frame pass as still
-    MAX_CHANGED_RANGE.check(max_changed, "--max-changed", hint="give a percentage from 0 to 100")
+    MAX_CHANGED_RANGE.check(max_changed, words["max_changed"], hint="give a percentage from 0 to 100")
     ds = Dataset.open(data, cache="none")
     store = store or LabelStore.open(data, labeller=labeller)
     store.refresh()
+    stretch, chosen = words["frames"].format(first=first, last=last), words["from"].format(source=source)
     if last < first:
-        raise UserError(f"--frames {first}:{last}: the last frame comes before the first")
+        raise UserError(f"{stretch}: the last frame comes before the first")
     ids = [int(f) for f in ds.frame_ids if first <= f <= last]
     if not ids:
-        raise UserError(f"--frames {first}:{last}: no frame of {ds.path} has an id in that range")
+        raise UserError(f"{stretch}: no frame of {ds.path} has an id in that range")
     tests = [f for f in ids if store.split(f) == "test"]
     if tests and not allow_test:
-        raise UserError(f"--frames {first}:{last}: frame(s) {_listed(tests)} are test frames, whose labels "
-                        "are held out for evaluation; nothing was written",
-                        hint="choose --frames without them, or pass --allow-test to write them")
+        raise UserError(f"{stretch}: frame(s) {_listed(tests)} are test frames, whose labels are held out "
+                        "for evaluation; nothing was written",
+                        hint=f"{words['choose']} without them, or {words['allow_test']} to write them")
 
     def solved(frame: int) -> dict[str, np.ndarray]:
         uv, mask = store.arrays(frame)
@@ -135,17 +147,18 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         counts = [(int(solved(f)["valid"].sum()), -i, f) for i, f in enumerate(ids)]
         best = max(counts)
         if best[0] == 0:
-            raise UserError(f"--frames {first}:{last}: no frame there has a keypoint labelled in 2 or more "
-                            "views", hint="label one frame first, or pass --from FRAME")
+            raise UserError(f"{stretch}: no frame there has a keypoint labelled in 2 or more views",
+                            hint=f"label one frame first, or {words['from_any']}")
         source = best[2]
     elif source not in store.frames.row_of:
-        raise UserError(f"--from {source}: frame {source} is not listed in {ds.path / 'frames.csv'}")
+        raise UserError(f"{chosen}: frame {source} is not listed in {ds.path / 'frames.csv'}")
     elif store.split(source) == "test" and not allow_test:
-        raise UserError(f"--from {source}: frame {source} is a test frame, whose labels are held out for "
-                        "evaluation", hint="copy from another frame, or pass --allow-test")
+        raise UserError(f"{chosen}: frame {source} is a test frame, whose labels are held out for "
+                        "evaluation", hint=f"copy from another frame, or {words['allow_test']}")
     tri = solved(source)
     if not tri["valid"].any():
-        raise UserError(f"--from {source}: frame {source} has no keypoint labelled in 2 or more views",
+        raise UserError(f"{words['from'].format(source=source)}: frame {source} has no keypoint labelled in "
+                        "2 or more views",
                         hint="label it in a second view first")
     # Still: the same calibration and (nearly) the same images as the source frame, checked before writing.
     ref_cams = ds.calibration([source], np.float64).numpy()
@@ -160,13 +173,13 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
                 c = int(np.argmax(np.abs(a - b).reshape(len(ds.cameras), -1).max(axis=1)))
                 raise UserError(f"frame {f} is not still: camera {ds.cameras[c]}'s calibration ({name}) "
                                 f"differs from frame {source}'s",
-                                hint="choose --frames where the cameras do not move")
+                                hint=f"{words['choose']} where the cameras do not move")
         changed = changed_pixels(ref_images, ds.images([f])[0])
         c = int(np.argmax(changed))
         if changed[c] > max_changed:
             raise UserError(f"frame {f} is not still: {changed[c]:.2f}% of camera {ds.cameras[c]}'s pixels "
                             f"differ from frame {source}'s (more than {max_changed:g}%)",
-                            hint="choose --frames where nothing moves, or raise --max-changed")
+                            hint=f"{words['choose']} where nothing moves, or {words['raise']}")
     W, H = ds.source_image_size
     uv_src, _ = store.arrays(source)
     i_src = store.row(source)
@@ -204,8 +217,8 @@ def propagate_labels(data: str | Path, first: int, last: int, source: int | None
         frames = sorted({r[0] for r in replaced})
         raise UserError(f"propagating frame {source} would replace {len(replaced)} existing label(s) in "
                         f"frame(s) {_listed(frames)} (first: frame {f}, camera {cam}, keypoint {kp}); "
-                        "nothing was written", hint="pass --overwrite to replace them, or --dry-run to list "
-                        "the changes")
+                        "nothing was written", hint=f"{words['overwrite']} to replace them, or "
+                        f"{words['dry_run']} to list the changes")
     if edits and not dry_run:
         store.save_many(edits, None, source=f"propagate from {source}")
     return PropagateResult(int(source), sorted(edits), keypoints, sum(len(e) for e in edits.values()),

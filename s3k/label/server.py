@@ -13,15 +13,23 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   ``version`` is stale, 400 naming the field when an edit is invalid, 403 for a test frame (its labels are
   held out for evaluation) unless ``unlock`` is true.
 - ``POST /api/frame/{frame}/undo``: ``{"version", "unlock"}``; reverts the frame's latest edit not yet undone
-  (the history keeps both), 400 when there is none.
+  (the history keeps both), 400 when there is none. ``POST /api/frame/{frame}/redo``: the same body; reverts
+  the latest undo not yet redone, 400 when there is none (or the frame was edited since).
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
   run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
   ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
-  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels`; ``POST /api/propagate/undo`` undoes the latest.
+  "dry_run"}``, :func:`s3k.label.propagate.propagate_labels` (refusals in the page's words), with
+  ``per_frame`` (``{frame: [new, replaced]}``); ``POST /api/propagate/undo`` undoes the latest.
+- ``POST /api/skeleton``: ``{"add": [a, b]}`` or ``{"remove": [a, b]}``; the dataset's skeleton (edges between
+  keypoints, drawn in every view) after the change, written to ``s3k.json`` (:mod:`s3k.label.skeleton`).
 
-Request bodies larger than :data:`MAX_BODY_BYTES` are refused unread (413). Files are served only from the
+Every request that changes the dataset (any method but GET, HEAD and OPTIONS) must come from the app's own
+page or from a script, never from another web page: an ``Origin`` (or, without one, a ``Sec-Fetch-Site``)
+other than the server's own is refused (403), and so is a body that is not ``application/json`` (415), which a
+form or a ``no-cors`` fetch of another page cannot send. Request bodies larger than :data:`MAX_BODY_BYTES`
+are refused unread (413). Files are served only from the
 package's ``static`` folder; images only by frame id and camera name, so no
 request names a path. Bound to another interface than the loopback, every request must carry the token the
 server printed (``?token=`` in the first URL, then a cookie).
@@ -65,6 +73,11 @@ class SaveIn(BaseModel):
 class UndoIn(BaseModel):
     version: int
     unlock: bool = False
+
+
+class SkeletonIn(BaseModel):
+    add: list[str] | None = None  # [keypoint, keypoint]
+    remove: list[str] | None = None
 
 
 class PropagateIn(BaseModel):
@@ -149,6 +162,34 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": message, **extra}, status_code=status)
 
 
+def _cross_site(request: Request) -> JSONResponse | None:
+    """Why a state-changing request is refused as possibly sent by another web page (None: it is not).
+
+    A page elsewhere can make the browser send a form or a ``no-cors`` fetch to this server (the Host check
+    passes: the browser names 127.0.0.1). Such a request names its page's origin in ``Origin`` (or, from
+    some browsers, only ``Sec-Fetch-Site``), and it cannot carry ``Content-Type: application/json`` without
+    the server's consent (a CORS preflight, which this server never grants). So a request is taken only when
+    its origin is this server's own (same scheme, host and port) or unnamed (a script, not a browser page),
+    and its body is JSON.
+    """
+    own = f"{request.url.scheme}://{request.headers.get('host', '')}".lower()
+    origin = request.headers.get("origin")
+    if origin is not None:
+        if origin.strip().lower() != own:
+            return _error(403, f"cross-site request refused: origin {origin!r} is not this app's ({own}); "
+                               "edit the labels from the page s3k label serves")
+    else:
+        site = request.headers.get("sec-fetch-site")
+        if site is not None and site.strip().lower() not in ("same-origin", "none"):
+            return _error(403, f"cross-site request refused: Sec-Fetch-Site is {site!r}; edit the labels "
+                               "from the page s3k label serves")
+    kind = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if kind != "application/json":
+        return _error(415, f"Content-Type {kind or 'missing'!r} refused: every request that changes the "
+                           "dataset must send application/json")
+    return None
+
+
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
                up: Up = UP, ignore_geometry: bool = False) -> FastAPI:
@@ -183,6 +224,10 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             host = request.headers.get("host", "").rsplit(":", 1)[0].strip("[]")
             if host not in allowed_hosts:
                 return _error(400, f"host {host!r} refused; open the URL s3k label printed")
+        if request.method not in ("GET", "HEAD", "OPTIONS"):
+            refused = _cross_site(request)
+            if refused is not None:
+                return refused
         given = None
         if token is not None:
             given = request.query_params.get("token") or request.cookies.get(TOKEN_COOKIE) \
@@ -246,12 +291,19 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/frame/{frame}/undo")
     def undo(frame: int, body: UndoIn) -> Any:
+        return step(frame, body, state.store.undo)
+
+    @app.post("/api/frame/{frame}/redo")
+    def redo(frame: int, body: UndoIn) -> Any:
+        return step(frame, body, state.store.redo)
+
+    def step(frame: int, body: UndoIn, how: Any) -> Any:
         frame_or_404(frame)
         refused = locked(frame, body.unlock)
         if refused is not None:
             return refused
         try:
-            state.store.undo(frame, body.version)
+            how(frame, body.version)
         except StaleVersion as exc:
             return _error(409, str(exc), current=state.frame_state(frame))
         except UserError as exc:
@@ -282,17 +334,18 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way
-        from s3k.label.propagate import DEFAULT_MAX_CHANGED, propagate_labels
+        from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels
 
         limit = DEFAULT_MAX_CHANGED if body.max_changed is None else body.max_changed
         try:
             result = propagate_labels(state.root, body.first, body.last, body.source, limit,
                                       store=state.store, overwrite=body.overwrite, allow_test=body.allow_test,
-                                      dry_run=body.dry_run)
+                                      dry_run=body.dry_run, words=APP_WORDS)
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": result.source, "frames": result.frames, "keypoints": result.keypoints,
-                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run}
+                "labels": result.labels, "replaced": result.replaced, "dry_run": result.dry_run,
+                "per_frame": {str(f): list(n) for f, n in sorted(result.per_frame.items())}}
 
     @app.post("/api/propagate/undo")
     def propagate_undo() -> Any:
@@ -303,6 +356,17 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         except UserError as exc:
             return _error(400, str(exc))
         return {"source": source, "frames": frames}
+
+    @app.post("/api/skeleton")
+    def skeleton(body: SkeletonIn) -> Any:
+        from s3k.label.skeleton import edit_skeleton
+
+        try:
+            edges = edit_skeleton(state.root, state.dataset.keypoints, add=body.add, remove=body.remove)
+        except UserError as exc:
+            return _error(400, str(exc))
+        state.dataset.skeleton = edges
+        return {"skeleton": [list(e) for e in edges]}
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app

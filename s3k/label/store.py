@@ -18,6 +18,8 @@ entries of one save (a propagation writes many frames at once) and each changed 
 The frames' versions are read back from it when a store opens. An undo (:meth:`LabelStore.undo`, the app's
 Ctrl+Z; :meth:`LabelStore.undo_batch`, ``s3k label propagate --undo``) is an entry of its own that puts the
 ``before`` labels back and names the version it reverts (``undoes``), so nothing is ever erased from the log.
+A redo (:meth:`LabelStore.redo`, Ctrl+Shift+Z or Ctrl+Y) reverts the latest undo not yet redone, as an entry
+naming it (``redoes``); a new edit of the frame empties its redo stack, as in any editor.
 """
 
 from __future__ import annotations
@@ -260,13 +262,15 @@ class LabelStore:
         return self.save_many({frame: edits}, {frame: version}, source)[frame]
 
     def save_many(self, edits: dict[int, list[Edit]], versions: dict[int, int | None] | None = None,
-                  source: str = "click", undoes: dict[int, dict[str, Any]] | None = None
-                  ) -> dict[int, dict[str, Any]]:
+                  source: str = "click", undoes: dict[int, dict[str, Any]] | None = None,
+                  redoes: dict[int, dict[str, Any]] | None = None) -> dict[int, dict[str, Any]]:
         """:meth:`save` for several frames in one write of the table (``versions`` per frame). The entries of
         one call share a ``batch`` id in the history; ``undoes`` (``{frame: history entry}``, for
-        :meth:`undo`) marks each frame's entry as the undoing of that one."""
+        :meth:`undo`) marks each frame's entry as the undoing of that one, ``redoes`` (for :meth:`redo`) as
+        the redoing of that undo."""
         versions = versions or {}
         undoes = undoes or {}
+        redoes = redoes or {}
         batch = f"{time.time_ns():x}-{os.getpid()}"
         edits = {f: es for f, es in edits.items() if es}  # nothing to change: no new version either
         if not edits:
@@ -305,6 +309,8 @@ class LabelStore:
                 entry: dict[str, Any] = {"time": now, "labeller": self.labeller, "frame": int(f),
                                          "version": self.version(f) + 1, "source": source, "batch": batch,
                                          "changes": changes}
+                if f in redoes:
+                    entry["redoes"] = int(redoes[f]["version"])
                 undone = undoes.get(f)
                 if undone is not None:
                     entry["undoes"] = int(undone["version"])
@@ -355,6 +361,19 @@ class LabelStore:
                                 bool(before.get("visible", True))))
         return out
 
+    def last_undo(self, frame: int) -> dict[str, Any] | None:
+        """The frame's latest undo that no redo has reverted yet, if no edit came after it (None: nothing
+        to redo). Undos stack up, each redo takes the top one off, any other edit empties the stack."""
+        stack: list[dict[str, Any]] = []
+        for entry in self.history(int(frame)):
+            if "undoes" in entry:
+                stack.append(entry)
+            elif "redoes" in entry:
+                stack = [e for e in stack if int(e.get("version", -1)) != int(entry["redoes"])]
+            else:
+                stack = []
+        return stack[-1] if stack else None
+
     def undo(self, frame: int, version: int | None = None) -> dict[str, Any]:
         """Revert the frame's latest edit (:meth:`last_edit`), as a new version; returns
         :meth:`frame_labels`. ``version``: the frame version the undo was asked against (as for :meth:`save`).
@@ -363,16 +382,27 @@ class LabelStore:
             StaleVersion: ``version`` is older than the stored one.
             UserError: the frame has no edit left to undo.
         """
-        with self._mutex:  # save_many takes the file lock and refuses the undo if another process saved
+        return self._step(frame, version, redo=False)
+
+    def redo(self, frame: int, version: int | None = None) -> dict[str, Any]:
+        """Revert the frame's latest undo not yet redone (:meth:`last_undo`), as :meth:`undo` does an edit;
+        UserError when there is none (no undo, or an edit since)."""
+        return self._step(frame, version, redo=True)
+
+    def _step(self, frame: int, version: int | None, redo: bool) -> dict[str, Any]:
+        with self._mutex:  # save_many takes the file lock and refuses the step if another process saved
             self.refresh()
             if version is not None and int(version) != self.version(frame):
                 raise StaleVersion(int(frame), int(version), self.version(frame))
-            entry = self.last_edit(frame)
+            entry = self.last_undo(frame) if redo else self.last_edit(frame)
             if entry is None:
-                raise UserError(f"frame {frame}: no edit to undo in {self.root / HISTORY_FILE}")
-            source = f"undo {entry.get('source', 'edit')}"[:60]
+                what = "undone edit to redo" if redo else "edit to undo"
+                raise UserError(f"frame {frame}: no {what} in {self.root / HISTORY_FILE}")
+            done = str(entry.get("source", "edit"))
+            source = (f"redo {done.removeprefix('undo ')}" if redo else f"undo {done}")[:60]
             return self.save_many({frame: self._reverting(entry)}, {frame: self.version(frame)}, source,
-                                  undoes={frame: entry})[frame]
+                                  undoes=None if redo else {frame: entry},
+                                  redoes={frame: entry} if redo else None)[frame]
 
     def undo_batch(self, batch: str, source: str = "undo") -> list[int]:
         """Revert every frame's entry of one :meth:`save_many` call (e.g. a propagation); returns the frames.

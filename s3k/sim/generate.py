@@ -278,6 +278,7 @@ def simulate(cfg: SimulateConfig, out: str | Path, workers: int | None = None, p
     workers = default_workers() if workers is None else max(1, int(workers))
     out = check_replaceable(out, overwrite)
     check_memory(cfg, workers)
+    check_disk(cfg, out)
     specs = frame_plan(cfg)
     t0 = time.perf_counter()
     with replace_folder(out, overwrite) as tmp:  # out appears complete, or stays as it was
@@ -345,6 +346,38 @@ def check_memory(cfg: SimulateConfig, workers: int) -> None:
         raise UserError(f"{n} frames of {cfg.size}x{cfg.size} px with {workers} rendering processes need "
                         f"about {need / 2**30:.1f} GiB of memory; {have / 2**30:.1f} GiB are available",
                         hint="lower --size, --labelled/--unlabelled/--test or --workers")
+
+
+PNG_FRACTION = 0.1
+"""A lower bound on a rendered view's PNG size as a fraction of its raw RGB bytes (measured: about 0.5 at
+96 px, 0.7 at 32 px)."""
+
+
+def disk_needed(cfg: SimulateConfig) -> int:
+    """Bytes a dataset's PNGs take at the least (4 views a frame; the tables are small beside them)."""
+    n = cfg.labelled + cfg.unlabelled + cfg.test
+    return int(n * 4 * (PNG_FRACTION * cfg.size * cfg.size * 3 + 100))
+
+
+def check_disk(cfg: SimulateConfig, out: str | Path) -> None:
+    """Refuse, before anything is rendered, a dataset whose images cannot fit on the disk that holds ``out``
+    (nor the plan of its frames in memory), naming the count that makes it so."""
+    import shutil
+
+    where = Path(out).absolute()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        free = shutil.disk_usage(where).free
+    except OSError:
+        return
+    need = disk_needed(cfg)
+    if need > free:
+        counts = {"--labelled": cfg.labelled, "--unlabelled": cfg.unlabelled, "--test": cfg.test}
+        option = max(counts, key=lambda k: counts[k])
+        raise UserError(f"{option} {counts[option]}: {sum(counts.values())} frames of {cfg.size}x{cfg.size} "
+                        f"px (4 views each) need at least {need / 2**30:.1f} GiB of disk; "
+                        f"{free / 2**30:.1f} GiB are free at {where}", hint=f"lower {option} or --size")
 
 
 # ---------------------------------------------------------------------------------------------- preview

@@ -31,7 +31,7 @@ from s3k.detector import (
     write_run_config,
 )
 from s3k.errors import UserError
-from s3k.outputs import check_output_folder
+from s3k.outputs import check_output_folder, check_run_folder
 
 
 def is_run_folder(out: Path) -> bool:
@@ -53,9 +53,7 @@ def check_out(out: Path, resume: bool, overwrite: bool, data: Path | None = None
         existing = existing.parent
     if not _can_create_in(existing):
         raise UserError(f"--out {out}: {existing} is not writable", hint="choose another --out")
-    if not resume and not overwrite and is_run_folder(out):
-        raise UserError(f"{out} already holds a run", hint="pass --resume to continue it or --overwrite to "
-                                                           "replace it, or choose another --out")
+    check_run_folder(out, resume, overwrite)  # a folder of other files is never trained into nor cleared
 
 
 def _can_create_in(folder: Path) -> bool:

@@ -155,7 +155,7 @@ def _meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
                          norm=cfg.norm).to_dict(),
         units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
         layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
-        geometry=training_geometry(d.ds),
+        geometry=training_geometry(d.ds), skeleton=list(getattr(d.ds, "skeleton", [])),
     )
 
 

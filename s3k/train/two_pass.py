@@ -228,6 +228,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
     """
     import shutil
 
+    from s3k.outputs import check_run_folder
     from s3k.ranges import Range
     from s3k.train.two_pass_start import OPTIONS_FILE, is_stub, write_options
 
@@ -245,6 +246,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                         f"got {coarse_stride}")
     if coarse_lr is not None:
         Range(gt=0, le=1).check(coarse_lr, "--coarse-lr")
+    check_run_folder(out, resume, overwrite, whole=True)  # --overwrite deletes the folder: only a run's files
     if out.exists() and not resume and not is_stub(out):  # a start that trained nothing is not kept
         if not overwrite:
             raise UserError(f"{out} exists", hint="pass --resume to continue it or --overwrite to replace it")

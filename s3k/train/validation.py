@@ -100,6 +100,7 @@ def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, devic
         return record
     net.eval()
     detector = OnePassDetector(net, meta, device)  # the network as it is now, on the store's frames
+    detector.check_frames = False  # a refining pass's crops: their principal points lie anywhere
     try:
         metrics, arrays = evaluate_store(detector, store, 16, meta.units, keep=1)
         X, valid = torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["X_valid"])

@@ -53,6 +53,18 @@ def _numbers(path: Path, section: str, table: dict, key: str, shape: tuple[int, 
     return value
 
 
+def _rotation(path: Path, section: str, table: dict) -> np.ndarray:
+    """A section's ``rotation``: anipose's Rodrigues vector ``(3,)``, or the world->camera matrix ``(3, 3)``
+    other tools write there (checked to be a rotation by :meth:`s3k.data.rig.Rig.checked`)."""
+    value = _numbers(path, section, table, "rotation", None)
+    if value.size == 3:
+        return value
+    if value.size == 9 and np.asarray(table["rotation"], dtype=np.float64).shape == (3, 3):
+        return value.reshape(3, 3)
+    raise UserError(f"{path}: [{section}] rotation has shape {np.asarray(table['rotation']).shape}, expected "
+                    "(3,) (a Rodrigues vector) or (3, 3) (a rotation matrix)")
+
+
 def _project_square_length(path: Path) -> float | None:
     """``[calibration] board_square_side_length`` of the anipose project ``config.toml`` in the calibration's
     folder or one of its three parents (anipose keeps ``calibration.toml`` in ``SESSION/calibration/``)."""
@@ -138,7 +150,7 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
         names.append(name)
         Ks.append(K / K[2, 2])
         dists.append(np.concatenate([d[:5], np.zeros(max(0, 5 - d.size))]))
-        rvecs.append(_numbers(path, section, table, "rotation", (3,)))
+        rvecs.append(_rotation(path, section, table))
         ts.append(_numbers(path, section, table, "translation", (3,)))
         sizes.append(size.astype(np.int64))
     if units is None and isinstance(metadata.get("units"), str):
@@ -154,6 +166,13 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
             units = _units_from_board(float(square) if square is not None else None)
         except (TypeError, ValueError):
             raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
+    if any(r.shape == (3, 3) for r in rvecs):  # matrices in some sections: every rotation as a matrix
+        from s3k.geometry.rotations import rodrigues_to_matrix
+
+        rvecs = [r if r.shape == (3, 3) else rodrigues_to_matrix(torch.from_numpy(r)).numpy() for r in rvecs]
+        for name, r in zip(names, rvecs):
+            if not np.isfinite(r).all():
+                raise UserError(f"{path}: camera {name}: its rotation vector gives no rotation")
     # Rodrigues vectors (C, 3) have the shape of t: from_numpy converts them to matrices.
     cams = Cameras.from_numpy(np.stack(Ks), np.stack(dists), np.stack(rvecs), np.stack(ts),
                               dtype=torch.float64)

@@ -130,9 +130,19 @@ def _in_pixels(points: np.ndarray, layout: str, W: float, H: float) -> np.ndarra
     return points.astype(np.float64, copy=True)
 
 
+NO_ESTIMATE = ((0.0, 0.0), (0.0, 1.0))
+"""The values DeepFly3D's files write for a joint without an estimate: (0, 0), and (0, 1) in some results
+(as fractions, the top-right corner of the image, where no joint lies)."""
+
+
+def _no_estimate(points: np.ndarray) -> np.ndarray:
+    """Points that hold one of :data:`NO_ESTIMATE` exactly."""
+    return np.logical_or.reduce([(points == np.asarray(mark)).all(-1) for mark in NO_ESTIMATE])
+
+
 def _known(points: np.ndarray) -> np.ndarray:
-    """Points with an estimate: finite and not DeepFly3D's (0, 0) for none."""
-    return np.isfinite(points).all(-1) & ~(points == 0).all(-1)
+    """Points with an estimate: finite and none of DeepFly3D's :data:`NO_ESTIMATE` marks."""
+    return np.isfinite(points).all(-1) & ~_no_estimate(points)
 
 
 def _reprojection_layout(points: np.ndarray, sizes: dict[str, tuple[int, int]], rig: Rig,
@@ -214,6 +224,10 @@ def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]],
     names = JOINTS if J == len(JOINTS) else [f"joint_{j}" for j in range(J)]
     layout, why = points2d_layout(points, sizes, rig, _points3d(data, T, J))
     print(f"note: {path}: points2d read as {LAYOUTS[layout]}: {why}")
+    marked = _no_estimate(points) & np.isfinite(points).all(-1)
+    if marked.any():
+        print(f"note: {path}: {int(marked.sum())} of {marked.size} points2d hold (0, 0) or (0, 1), "
+              "DeepFly3D's marks for a joint without an estimate: read as unlabelled")
     tables = {}
     for c in range(C):
         cam = f"camera_{c}"
@@ -227,7 +241,7 @@ def read_deepfly3d_pose(path: str | Path, sizes: dict[str, tuple[int, int]],
             uv[:, ~seen] = np.nan
             unseen = [names[j] for j in np.flatnonzero(~seen)]
         uv[~np.isfinite(uv).all(-1)] = np.nan
-        uv[~_known(points[c])] = np.nan  # DeepFly3D writes zeros for joints it has no estimate of
+        uv[~_known(points[c])] = np.nan  # DeepFly3D's marks for joints it has no estimate of
         tables[cam] = LabelTable(list(names), np.arange(T, dtype=np.int64), uv, f"{path} camera {c}", unseen)
     return tables
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable, frame_id_from_path
+from s3k.data.formats.skeleton import dlc_project_config, read_skeleton
 from s3k.errors import UserError
 from s3k.fileio import open_text
 
@@ -18,7 +19,9 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
 
     Layout: header rows ``scorer``, (``individuals``, single animal only), ``bodyparts``, ``coords``; then one
     row per image: leading index column(s) with the image path (or a frame number), then ``x, y`` (and
-    optionally ``likelihood``, ignored) per bodypart. Empty cells (or NaN) mean unlabelled.
+    optionally ``likelihood``, ignored) per bodypart. Empty cells (or NaN) mean unlabelled. A CSV in
+    DeepLabCut's project layout (``PROJECT/labeled-data/VIDEO/``) takes the skeleton of
+    ``PROJECT/config.yaml`` (its edges between the CSV's bodyparts).
 
     Args:
         path: the CSV file.
@@ -129,7 +132,12 @@ def read_dlc_csv(path: str | Path, frame_ids_from: str = "path") -> LabelTable:
             "frame_ids_from='row' if the names do not number the frames)"
         )
     order = np.argsort(frame_ids)
-    return LabelTable(keypoints, frame_ids[order], np.stack(uvs)[order], str(path))
+    table = LabelTable(keypoints, frame_ids[order], np.stack(uvs)[order], str(path))
+    config = dlc_project_config(path)
+    if config is not None:  # the project's skeleton, where the CSV lies in DeepLabCut's project layout
+        table.skeleton = [e for e in read_skeleton(config) if set(e) <= set(keypoints)]
+        table.skeleton_source = str(config)
+    return table
 
 
 def find_lightning_pose_csvs(folder: str | Path, views: list[str]) -> dict[str, Path]:

@@ -2,7 +2,8 @@
 (``s3k export-tracks``).
 
 Formats: ``dlc`` (one DeepLabCut CSV per camera, ``labeled-data/<camera>/CollectedData_<scorer>.csv``, with
-the labelled images beside it), ``lightning-pose`` (Lightning Pose's multi-view layout:
+the labelled images beside it, and the project's ``config.yaml`` with the bodyparts and the skeleton),
+``lightning-pose`` (Lightning Pose's multi-view layout:
 ``CollectedData_<camera>.csv`` per view, the same frames on the same rows of every view, images under
 ``labeled-data/<camera>/``), ``sleap`` (one ``.slp`` project, a video per camera, a recording session with
 the calibration) and ``nwb`` (ndx-pose training frames, cameras as calibrated devices).
@@ -17,6 +18,7 @@ videos in SLEAP.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -88,7 +90,9 @@ def video_references(ds: Any, tables: dict[str, LabelTable]) -> dict[str, Any]:
     if maps is not None:
         for cam in ds.cameras:
             tables[cam].uv = transform_points(tables[cam].uv, np.linalg.inv(maps[cam]))
-        return {cam: str(ds.source["videos"][cam]) for cam in ds.cameras}
+        from s3k.fileio import resolve_from
+
+        return {cam: str(resolve_from(ds.path, ds.source["videos"][cam])) for cam in ds.cameras}
     if np.array_equal(np.sort(ds.frame_ids), np.arange(len(ds.frame_ids))):
         return {cam: [str(_image_path(ds, cam, f)) for f in range(len(ds.frame_ids))] for cam in ds.cameras}
     return {cam: f"{cam}.mp4" for cam in ds.cameras}
@@ -173,6 +177,9 @@ def export_labels(
 
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder for --format {fmt}")
+    config = out / "config.yaml"
+    if fmt == "dlc" and config.exists() and not overwrite:
+        raise UserError(f"{config} exists", hint="pass --overwrite to replace it")
     written = []
     for cam, table in tables.items():
         # DLC: the frames labelled in this camera; Lightning Pose: the same frames on the same rows of every
@@ -192,6 +199,12 @@ def export_labels(
         written.append(write_dlc_csv(path, table, names, scorer=scorer))
         if images:
             _write_images(ds, ids[keep], c=ds.cameras.index(cam), paths=[out / n for n in names])
+    if fmt == "dlc" and written:
+        from s3k.data.formats.skeleton import write_dlc_config
+
+        # the project's config.yaml: its bodyparts and skeleton, which DeepLabCut and s3k import read
+        written.append(write_dlc_config(config, ds.keypoints, ds.skeleton, scorer,
+                                        [str(p.parent.name) for p in written], Path(ds.path).name))
     return written
 
 
@@ -200,7 +213,7 @@ def export_tracks(
     fmt: str,
     out: str | Path,
     *,
-    fps: float,
+    fps: float | None = None,
     calibration: str | Path | None = None,
     units: str | None = None,
     overwrite: bool = False,
@@ -211,14 +224,16 @@ def export_tracks(
         csv_path: the anipose-style 3D CSV.
         fmt: ``"nwb"``.
         out: the ``.nwb`` file.
-        fps: frame rate of the videos (timestamps are ``fnum / fps``).
+        fps: frame rate of the videos (timestamps are ``fnum / fps``); default the one ``s3k track`` wrote
+            beside the CSV (:func:`s3k.data.tracks_csv.read_source`).
         calibration: the anipose ``calibration.toml`` of the rig, stored with the tracks and giving the unit.
         units: world unit (default: the calibration's, else the one ``s3k track`` / ``s3k predict`` wrote
             beside the CSV, :func:`s3k.data.tracks_csv.read_source`).
         overwrite: replace an existing file.
 
     Raises:
-        UserError: the unit is not known (none given, no calibration, nothing beside the CSV): never guessed.
+        UserError: the unit or the frame rate is not known (none given, no calibration, nothing beside the
+            CSV): never guessed.
     """
     import csv
 
@@ -261,9 +276,25 @@ def export_tracks(
     if source is not None and source["units"] not in (units, "unknown"):
         print(f"warning: {csv_path}'s points are in {source['units']} ({source_path(csv_path).name}) but are "
               f"written as {units}", file=sys.stderr)
+    if fps is None:
+        fps = _source_rate(source)
+    if fps is None:
+        raise UserError(f"{csv_path}: the frame rate of its frames is not known (no "
+                        f"{source_path(csv_path).name} with it, as 's3k track' writes from videos)",
+                        hint="pass --fps (e.g. --fps 30)")
     path = write_nwb_tracks(out, keypoints, fnums, X, score, fps=fps, units=units, rig=rig,
                             description=f"3D keypoints from {csv_path.name} (s3k)")
     return path, units
+
+
+def _source_rate(source: dict[str, str] | None) -> float | None:
+    """The frame rate recorded beside a 3D CSV (``fps`` of its ``.s3k.json``), None when absent or not a
+    positive finite number."""
+    try:
+        fps = float((source or {}).get("fps", "nan"))
+    except ValueError:
+        return None
+    return fps if math.isfinite(fps) and fps > 0 else None
 
 
 def _column(path: Path, header: list[str], names: list[str], fnums: np.ndarray) -> np.ndarray:

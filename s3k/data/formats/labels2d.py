@@ -7,6 +7,7 @@ Pixel (0, 0) is the centre of the top-left pixel in DeepLabCut, Lightning Pose a
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,8 @@ class LabelTable:
         source: the file it came from (for messages).
         unseen: keypoints the format's documented rule says this camera cannot see (left unlabelled without
             a warning of their own: :func:`coverage_warnings`).
+        skeleton: edges between keypoints that the source gives (``[]`` where it gives none), and
+            ``skeleton_source`` the file they came from.
     """
 
     keypoints: list[str]
@@ -33,6 +36,8 @@ class LabelTable:
     uv: np.ndarray
     source: str = ""
     unseen: list[str] = field(default_factory=list)
+    skeleton: list[tuple[str, str]] = field(default_factory=list)
+    skeleton_source: str = ""
 
     def dense(self, num_frames: int, keypoints: list[str] | None = None) -> np.ndarray:
         """``(num_frames, K', 2)`` indexed by frame id (NaN where absent), keypoints in the given order."""
@@ -46,6 +51,18 @@ class LabelTable:
         keep = self.frame_ids < num_frames
         out[self.frame_ids[keep]] = self.uv[keep][:, order]
         return out
+
+
+def unique_edges(edges: Iterable[Sequence[str]]) -> list[tuple[str, str]]:
+    """``edges`` as ``(a, b)`` tuples, each undirected edge once (the first seen), self-loops dropped."""
+    out: list[tuple[str, str]] = []
+    seen: set[frozenset[str]] = set()
+    for a, b in edges:
+        key = frozenset((str(a), str(b)))
+        if len(key) == 2 and key not in seen:
+            seen.add(key)
+            out.append((str(a), str(b)))
+    return out
 
 
 _DIGITS = re.compile(r"(\d+)")

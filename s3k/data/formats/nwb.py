@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable, unique_edges
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
 
@@ -106,6 +106,7 @@ def read_nwb(
         objects = list(nwb.objects.values())
         frames: dict[str, dict[int, np.ndarray]] = {}
         keypoints: list[str] | None = None
+        edges: list[tuple[str, str]] = []
         seen: list[str] = []
         for obj in objects:
             if not isinstance(obj, ndx_pose.TrainingFrame):
@@ -121,7 +122,7 @@ def read_nwb(
             inst = instances[0]
             nodes = [str(n) for n in inst.skeleton.nodes[:]]
             if keypoints is None:
-                keypoints = nodes
+                keypoints, edges = nodes, _edges(inst.skeleton, nodes)
             elif nodes != keypoints:
                 raise UserError(f"{path}: training frame {obj.name!r} uses skeleton {nodes}, others "
                                 f"{keypoints}")
@@ -133,6 +134,8 @@ def read_nwb(
                 raise UserError(f"{path}: training frame {obj.name!r} has no source_video_frame_index")
             frames.setdefault(found, {})[int(obj.source_video_frame_index)] = uv
         tables = {cam: _table(keypoints or [], f, f"{path} ({cam})") for cam, f in frames.items()}
+        for table in tables.values():
+            table.skeleton, table.skeleton_source = list(edges), str(path)
 
         estimations = [o for o in objects if isinstance(o, ndx_pose.PoseEstimation)]
         if predictions:
@@ -147,7 +150,9 @@ def read_nwb(
                 uv = np.stack(data, axis=1)  # (T, K, 2)
                 uv[np.isnan(uv).any(axis=2)] = np.nan
                 tables[found] = LabelTable(names, np.arange(len(uv), dtype=np.int64), uv,
-                                           f"{path} ({pe.name})")
+                                           f"{path} ({pe.name})", skeleton_source=str(path),
+                                           skeleton=[e for e in _edges(pe.skeleton, names)
+                                                     if set(e) <= set(names)])
     if not any(np.isfinite(t.uv).any() for t in tables.values()):
         if estimations and not predictions:
             raise UserError(f"{path}: no training frames (labels), only {len(estimations)} PoseEstimation "
@@ -157,6 +162,16 @@ def read_nwb(
         raise UserError(f"{path}: no labelled frames for cameras {', '.join(cameras)} (video / camera names "
                         f"in the file: {found})", hint="name them with --camera-map CAMERA=NAME")
     return tables
+
+
+def _edges(skeleton: Any, nodes: list[str]) -> list[tuple[str, str]]:
+    """An ndx-pose skeleton's edges (node index pairs) as keypoint name pairs."""
+    if skeleton is None or skeleton.edges is None:
+        return []
+    all_nodes = [str(n) for n in skeleton.nodes[:]]
+    pairs = np.asarray(skeleton.edges[:], dtype=np.int64).reshape(-1, 2)
+    return unique_edges((all_nodes[a], all_nodes[b]) for a, b in pairs
+                        if 0 <= a < len(all_nodes) and 0 <= b < len(all_nodes))
 
 
 def _table(keypoints: list[str], frames: dict[int, np.ndarray], source: str) -> LabelTable:

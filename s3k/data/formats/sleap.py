@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.skeleton import analysis_edges, check_edges
 from s3k.data.formats.slp import TRACK_HINT
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
@@ -27,9 +28,9 @@ def _names(values, path: Path | str, field: str) -> list[str]:
     return names
 
 
-def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str], np.ndarray]:
-    """``(node names, tracks (frames, nodes, 2, tracks), track names, occupancy (frames, tracks))`` of an
-    analysis file; a point of an unoccupied frame, or with a NaN coordinate, is NaN."""
+def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str], np.ndarray, list]:
+    """``(node names, tracks (frames, nodes, 2, tracks), track names, occupancy (frames, tracks), skeleton
+    edges)`` of an analysis file; a point of an unoccupied frame, or with a NaN coordinate, is NaN."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: SLEAP analysis file not found")
@@ -41,6 +42,7 @@ def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str]
         tracks = np.asarray(h5["tracks"][()], dtype=np.float64)
         names = _names(h5["track_names"][()], path, "track_names") if "track_names" in h5 else None
         occupancy = np.asarray(h5["track_occupancy"][()]) if "track_occupancy" in h5 else None
+        edges = analysis_edges(h5, path)
     n_nodes = len(nodes)
     if tracks.ndim != 4:
         raise UserError(f"{path}: 'tracks' has shape {tracks.shape}, expected 4 dimensions")
@@ -71,7 +73,7 @@ def _analysis_arrays(path: str | Path) -> tuple[list[str], np.ndarray, list[str]
         )
     tracks = np.where((occupancy == 0)[:, None, None, :], np.nan, tracks)
     tracks = np.where(np.isnan(tracks).any(axis=2, keepdims=True), np.nan, tracks)
-    return nodes, tracks, names, occupancy
+    return nodes, tracks, names, occupancy, edges
 
 
 def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> LabelTable:
@@ -89,7 +91,7 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
     Returns:
         The labels of every video frame (``frame_ids = 0..n_frames-1``).
     """
-    nodes, tracks, names, _ = _analysis_arrays(path)
+    nodes, tracks, names, _, edges = _analysis_arrays(path)
     path = Path(path)
     n_frames, _, _, n_tracks = tracks.shape
     if track is None:
@@ -109,7 +111,8 @@ def read_sleap_analysis(path: str | Path, track: str | int | None = None) -> Lab
     if not np.isfinite(uv).any():
         what = f"track {names[ti]!r} has no labelled point" if n_frames else "the file holds 0 frames"
         raise UserError(f"{path}: no labelled frames ({what})")
-    return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path))
+    return LabelTable(nodes, np.arange(n_frames, dtype=np.int64), uv, str(path),
+                      skeleton=check_edges(edges, nodes, f"{path}: edge_names"), skeleton_source=str(path))
 
 
 
@@ -120,7 +123,7 @@ def track_frame_counts(path: str | Path, predictions: bool = False) -> dict[str,
         from s3k.data.formats.slp import slp_track_frames
 
         return slp_track_frames(path, predictions)
-    _, tracks, names, _ = _analysis_arrays(path)
+    _, tracks, names, _, _ = _analysis_arrays(path)
     counts = np.isfinite(tracks).any(axis=(1, 2)).sum(axis=0)
     return {name: int(n) for name, n in zip(names, counts)}
 

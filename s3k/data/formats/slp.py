@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.labels2d import LabelTable, unique_edges
 from s3k.data.hdf5 import open_hdf5
 from s3k.errors import UserError
 
@@ -218,7 +218,8 @@ def read_slp(
         frames = by_video[id(video)]
         ids = np.array(sorted(frames), dtype=np.int64)
         uv = np.stack([frames[i] for i in ids]) if len(ids) else np.zeros((0, len(keypoints), 2))
-        tables[cam] = LabelTable(keypoints, ids, uv, f"{path} ({video_name(video)})")
+        tables[cam] = LabelTable(keypoints, ids, uv, f"{path} ({video_name(video)})",
+                                 skeleton=unique_edges(skeletons[0].edge_names), skeleton_source=str(path))
     if not any(np.isfinite(t.uv).any() for t in tables.values()):
         which = f"track {chosen_track.name!r}" if chosen_track is not None else (
             f"instance {instance_index}" if instance_index is not None else "any instance")

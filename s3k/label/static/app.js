@@ -12,10 +12,18 @@ const app = {
   views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
   loading: 0,  // frame loads not yet answered
   versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
-  unlocked: new Set(),  // test frames the user unlocked for editing
+  unlocked: new Set(),  // the test frame the user unlocked for editing (locked again when left)
+  visited: new Set(),  // frames shown in this page: n skips them
 };
 
-function colour(k, n) { return `hsl(${Math.round((360 * k) / Math.max(n, 1) + 10) % 360}, 85%, 58%)`; }
+// 15 colours far apart in CIELAB (each pair more than 25 apart; none dark, for a dark page), one a keypoint;
+// beyond 15 keypoints, hues spread over the circle
+const PALETTE = ["#e6194b", "#3cb44b", "#ffe119", "#4363d8", "#f58231", "#46f0f0", "#f032e6", "#bcf60c",
+                 "#fabebe", "#9a6324", "#e6beff", "#aaffc3", "#808000", "#fffac8", "#911eb4"];
+function colour(k, n) {
+  if (n <= PALETTE.length) return PALETTE[k];
+  return `hsl(${Math.round((360 * k) / Math.max(n, 1) + 10) % 360}, 85%, 58%)`;
+}
 
 async function api(path, options = {}) {
   const headers = Object.assign({ "Content-Type": "application/json" }, options.headers || {});
@@ -36,6 +44,11 @@ function el(tag, attrs = {}, parent = null) {
   const node = document.createElementNS(SVG, tag);
   for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
   if (parent) parent.appendChild(node);
+  return node;
+}
+
+function titled(node, text) {  // the tooltip of an SVG marker
+  el("title", {}, node).textContent = text;
   return node;
 }
 
@@ -68,6 +81,30 @@ function buildViews() {
     attachPointer(view);
     svg.addEventListener("wheel", (ev) => { ev.preventDefault(); zoom(view, ev); }, { passive: false });
   }
+  layoutViews();
+}
+
+function layoutViews() {
+  // the views fill the space beside the sidebar: the number of columns that shows the images largest
+  const box = document.getElementById("views");
+  const n = app.meta.cameras.length;
+  const [W, H] = app.meta.image_size;
+  const style = getComputedStyle(box);
+  const gap = parseFloat(style.columnGap) || 0;
+  const aw = box.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight);
+  const ah = box.clientHeight - parseFloat(style.paddingTop) - parseFloat(style.paddingBottom);
+  const first = box.querySelector(".view");
+  const frame = first ? first.offsetHeight - first.querySelector("svg").clientHeight : 28;  // bar and border
+  const side = first ? first.offsetWidth - first.clientWidth : 4;
+  let cols = 1;
+  let best = -1;
+  for (let c = 1; c <= n; c++) {
+    const rows = Math.ceil(n / c);
+    const scale = Math.min(((aw - gap * (c - 1)) / c - side) / W, ((ah - gap * (rows - 1)) / rows - frame) / H);
+    if (scale > best + 1e-9) { cols = c; best = scale; }
+  }
+  box.style.gridTemplateColumns = `repeat(${cols}, minmax(0, 1fr))`;
+  box.style.gridTemplateRows = `repeat(${Math.ceil(n / cols)}, minmax(0, 1fr))`;
 }
 
 function toImage(view, clientX, clientY) {
@@ -85,7 +122,10 @@ function toClient(cam, u, v) {  // for tests and tools: where image pixel (u, v)
   return [p.x, p.y];
 }
 
-function unitsPerPixel(view) { return view.box[2] / Math.max(view.svg.clientWidth, 1); }
+function unitsPerPixel(view) {  // image pixels per screen pixel (the view keeps the image's aspect)
+  const m = view.svg.getScreenCTM();
+  return m && m.a > 0 ? 1 / m.a : view.box[2] / Math.max(view.svg.clientWidth, 1);
+}
 
 function setBox(view, box) {
   view.box = box;
@@ -185,6 +225,11 @@ function attachPointer(view) {
 
 // ---- drawing -------------------------------------------------------------------------------------------
 
+function pointIn(cam, kp, preview = null) {  // where a skeleton edge meets the keypoint in a view
+  if (preview && preview.kp === kp) return preview.uv;
+  return markersOf(cam, kp)[0] || null;  // its label, else its reprojection, else the run's suggestion
+}
+
 function labelOf(cam, kp) {
   return (app.frame ? app.frame.labels : []).find((l) => l.camera === cam && l.keypoint === kp) || null;
 }
@@ -199,6 +244,15 @@ function drawView(view, preview = null) {
   const geometry = app.frame.geometry || {};
   const suggestions = app.frame.suggestions || {};
   const order = kps.map((_, k) => k).filter((k) => k !== app.kp).concat([app.kp]);  // current on top
+  const bones = el("g", { class: "skeleton" }, g);  // the skeleton's edges, under the markers
+  for (const [a, b] of app.meta.skeleton || []) {
+    const pa = pointIn(view.cam, a, preview);
+    const pb = pointIn(view.cam, b, preview);
+    if (!pa || !pb) continue;
+    const at = { x1: pa[0], y1: pa[1], x2: pb[0], y2: pb[1], "data-edge": `${a}-${b}` };
+    el("line", Object.assign({ class: "bone-halo" }, at), bones);
+    el("line", Object.assign({ class: "bone" }, at), bones);
+  }
   for (const k of order) {
     const kp = kps[k];
     const col = colour(k, kps.length);
@@ -214,8 +268,9 @@ function drawView(view, preview = null) {
     const sug = suggestions[kp] && suggestions[kp][view.cam];
     if (sug && !lab) {
       el("circle", { class: "suggestion-halo", cx: sug.u, cy: sug.v, r: 7 * s }, layer);
-      el("circle", { class: "suggestion", cx: sug.u, cy: sug.v, r: 7 * s, stroke: col, "data-keypoint": kp,
-                     "data-kind": "suggestion", "data-draggable": "1" }, layer);
+      titled(el("circle", { class: "suggestion", cx: sug.u, cy: sug.v, r: 7 * s, stroke: col, "data-keypoint": kp,
+                            "data-kind": "suggestion", "data-draggable": "1" }, layer),
+             `${kp}: the run's suggestion (confidence ${(+sug.weight).toFixed(2)})`);
     }
     let at = lab && lab.visible && lab.u !== null ? [lab.u, lab.v] : null;
     if (preview && preview.kp === kp) at = preview.uv;
@@ -225,12 +280,13 @@ function drawView(view, preview = null) {
       const rot = `rotate(45 ${rp[0]} ${rp[1]})`;
       el("rect", { class: "reproj-halo", x: rp[0] - r, y: rp[1] - r, width: 2 * r, height: 2 * r, transform: rot },
          layer);
-      el("rect", { class: "reproj", x: rp[0] - r, y: rp[1] - r, width: 2 * r, height: 2 * r, stroke: col,
-                   transform: rot, "data-keypoint": kp, "data-kind": "reproj", "data-draggable": at ? "0" : "1" },
-         layer);
+      titled(el("rect", { class: "reproj", x: rp[0] - r, y: rp[1] - r, width: 2 * r, height: 2 * r, stroke: col,
+                          transform: rot, "data-keypoint": kp, "data-kind": "reproj",
+                          "data-draggable": at ? "0" : "1" }, layer), `${kp}: reprojection of its 3D point`);
     }
     if (at) {
       const mark = el("g", { class: "label", "data-keypoint": kp, "data-kind": "label", "data-draggable": "1" }, layer);
+      titled(mark, `${kp}: label`);
       el("circle", { class: "marker", cx: at[0], cy: at[1], r: 5 * s, fill: "none", stroke: "#fff" }, mark);
       el("circle", { class: "marker-core", cx: at[0], cy: at[1], r: 2.5 * s, fill: col, stroke: "#000" }, mark);
       el("circle", { cx: at[0], cy: at[1], r: 11 * s, fill: "transparent" }, mark);  // easier to grab
@@ -240,6 +296,7 @@ function drawView(view, preview = null) {
       const x = 8 * s + (k % 8) * 16 * s;
       const y = 8 * s;
       const mark = el("g", { class: "occluded", "data-keypoint": kp, "data-kind": "occluded", stroke: col }, layer);
+      titled(mark, `${kp}: not visible in this view`);
       el("line", { x1: x - r, y1: y - r, x2: x + r, y2: y + r }, mark);
       el("line", { x1: x - r, y1: y + r, x2: x + r, y2: y - r }, mark);
       void W;
@@ -283,7 +340,9 @@ function selectKeypoint(k, redraw = true) {
 // ---- frames and saving ---------------------------------------------------------------------------------
 
 function showFrame(state) {
+  if (app.frame && app.frame.frame !== state.frame) app.unlocked.clear();  // a test frame locks when left
   app.frame = state;
+  app.visited.add(state.frame);
   app.versions[state.frame] = state.version;
   const f = state.frame;
   for (const view of Object.values(app.views)) {
@@ -297,7 +356,22 @@ function showFrame(state) {
   document.body.dataset.version = state.version;
   drawAll();
   showLock();
-  for (const li of document.querySelectorAll("#ranking li")) li.classList.toggle("current", +li.dataset.frame === f);
+  markRanking();
+}
+
+function markRanking() {  // the current frame's entry of the ranking: highlighted and scrolled into sight
+  const f = app.frame ? app.frame.frame : null;
+  const list = document.getElementById("ranking");
+  for (const li of list.querySelectorAll("li")) {
+    const on = +li.dataset.frame === f;
+    li.classList.toggle("current", on);
+    if (!on) continue;
+    // the list's own scroll only: the sidebar and the page stay where the user left them
+    const outer = list.getBoundingClientRect();
+    const inner = li.getBoundingClientRect();
+    if (inner.top < outer.top) list.scrollTop -= outer.top - inner.top;
+    else if (inner.bottom > outer.bottom) list.scrollTop += inner.bottom - outer.bottom;
+  }
 }
 
 async function loadFrame(index) {
@@ -330,7 +404,7 @@ function refuseLocked() {
             "press unlock to edit it", "error");
 }
 
-function saveEdits(edits, source) {
+function saveEdits(edits, source, note = "") {
   if (!app.frame) return Promise.resolve();
   if (isLocked()) { refuseLocked(); return Promise.resolve(); }
   // optimistic display; the server's answer replaces it
@@ -364,50 +438,61 @@ function saveEdits(edits, source) {
     if (app.frame.frame === frame) showFrame(r.body);
     const entry = app.frames.find((x) => x.frame === frame);
     if (entry) { entry.split = r.body.split; entry.labels = r.body.labels.filter((l) => l.visible).length; }
-    if (!app.pending) setStatus(`saved (frame ${frame}, version ${r.body.version})`, "saved");
+    if (!app.pending) setStatus(`saved (frame ${frame}, version ${r.body.version})${note}`, "saved");
   });
   return app.queue;
 }
 
-function undo() {  // Ctrl+Z: the frame's latest edit not yet undone, from the label history
+// Ctrl+Z: the frame's latest edit not yet undone; Ctrl+Shift+Z or Ctrl+Y: the latest undo not yet redone
+// (both from the label history, on the server)
+function undo() { return step("undo", "undoing", "undone"); }
+function redo() { return step("redo", "redoing", "redone"); }
+
+function step(kind, doing, done) {
   if (!app.frame) return Promise.resolve();
   if (isLocked()) { refuseLocked(); return Promise.resolve(); }
   const frame = app.frame.frame;
   const unlock = app.unlocked.has(frame);
   app.pending += 1;
-  setStatus("undoing", "pending");
+  setStatus(doing, "pending");
   app.queue = app.queue.then(async () => {
-    const r = await api(`api/frame/${frame}/undo`, { method: "POST",
+    const r = await api(`api/frame/${frame}/${kind}`, { method: "POST",
       body: JSON.stringify({ version: app.versions[frame], unlock }) });
     app.pending -= 1;
     const body = r.body || {};
     if (r.status === 409) {
       app.versions[frame] = body.current.version;
       if (app.frame.frame === frame) showFrame(body.current);
-      setStatus(`not undone: ${body.detail}; showing the newer labels`, "error");
+      setStatus(`not ${done}: ${body.detail}; showing the newer labels`, "error");
       return;
     }
-    if (!r.ok) { setStatus(`not undone: ${typeof body.detail === "string" ? body.detail : r.status}`, "error"); return; }
+    if (!r.ok) { setStatus(`not ${done}: ${typeof body.detail === "string" ? body.detail : r.status}`, "error"); return; }
     app.versions[frame] = body.version;
     if (app.frame.frame === frame) showFrame(body);
-    if (!app.pending) setStatus(`undone (frame ${frame}, version ${body.version})`, "saved");
+    if (!app.pending) setStatus(`${done} (frame ${frame}, version ${body.version})`, "saved");
   });
   return app.queue;
 }
 
-function unlockFrame() {
+function toggleLock() {  // unlock the test frame shown, or lock it again
   if (!app.frame) return;
-  app.unlocked.add(app.frame.frame);
+  const f = app.frame.frame;
+  if (isLocked()) {
+    app.unlocked.add(f);
+    setStatus(`frame ${f} unlocked: edits to this test frame are saved until you lock it or leave it`, "");
+  } else {
+    app.unlocked.delete(f);
+    setStatus(`frame ${f} locked again: read-only`, "");
+  }
   showLock();
-  setStatus(`frame ${app.frame.frame} unlocked: edits to this test frame are saved`, "");
 }
 
 function showLock() {
   const button = document.getElementById("unlock");
   const test = !!app.frame && app.frame.split === "test";
   button.hidden = !test;
-  button.disabled = !isLocked();
-  button.textContent = isLocked() ? "unlock test frame" : "test frame unlocked";
+  button.textContent = isLocked() ? "unlock test frame" : "lock test frame";
+  button.classList.toggle("unlocked", test && !isLocked());
   document.body.dataset.locked = isLocked() ? "1" : "0";
 }
 
@@ -423,18 +508,32 @@ function removeLabel(cam) {
 }
 
 function acceptSuggestions(all) {
-  const sug = (app.frame && app.frame.suggestions) || {};
+  if (!app.frame) return Promise.resolve();
+  const sug = app.frame.suggestions || {};
   const kps = all ? app.meta.keypoints : [app.meta.keypoints[app.kp]];
   const edits = [];
+  const unsure = [];  // views without a label where the run is not confident
+  let offered = 0;
   for (const kp of kps) {
     for (const [cam, s] of Object.entries(sug[kp] || {})) {
       const [W, H] = app.meta.image_size;
       if (labelOf(cam, kp) || s.u < -0.5 || s.v < -0.5 || s.u > W - 0.5 || s.v > H - 0.5) continue;
-      if (!(s.weight >= CONFIDENT)) continue;  // not confident in this view: the part may be hidden there
+      offered += 1;
+      if (!(s.weight >= CONFIDENT)) {  // not confident in this view: the part may be hidden there
+        unsure.push(`${kp} in ${cam}: ${(+s.weight).toFixed(2)}`);
+        continue;
+      }
       edits.push({ camera: cam, keypoint: kp, u: s.u, v: s.v, visible: true });
     }
   }
-  if (edits.length) return saveEdits(edits, "accept");
+  const which = all ? "any keypoint" : `keypoint ${kps[0]}`;
+  const listed = unsure.slice(0, 4).join(", ") + (unsure.length > 4 ? `, ${unsure.length - 4} more` : "");
+  const below = `the run's confidence is below ${CONFIDENT} (${listed})`;
+  if (edits.length) return saveEdits(edits, "accept", unsure.length ? `; not accepted where ${below}` : "");
+  if (isLocked()) refuseLocked();
+  else if (offered) setStatus(`nothing accepted: in every view without a label of ${which}, ${below}; ` +
+                              "place those by hand", "note");
+  else setStatus(`nothing to accept: the run suggests no unlabelled view of ${which} in this frame`, "note");
   return Promise.resolve();
 }
 
@@ -446,22 +545,26 @@ async function loadRanking() {
   const list = document.getElementById("ranking");
   list.innerHTML = "";
   const fixed = (x, unit) => (x === null ? "-" : `${x.toFixed(unit === "mm" ? 1 : 2)}${unit ? " " + unit : ""}`);
-  for (const row of r.body) {
+  r.body.forEach((row, i) => {
     const li = document.createElement("li");
     li.dataset.frame = row.frame;
+    li.innerHTML = `<span class="rank"></span><span class="entry"></span>`;
+    li.querySelector(".rank").textContent = `${i + 1}.`;
+    const entry = li.querySelector(".entry");
     if (by === "coverage" || by === "representative") {
       // greedy: each frame above counts as labelled, so labelling down the list covers the poses in turn
-      li.textContent = `frame ${row.frame}: ${fixed(row.pose_mm, "mm")}`;
+      entry.textContent = `frame ${row.frame}: ${fixed(row.pose_mm, "mm")}`;
       li.title = "distance of the run's 3D keypoints from the nearest labelled pose (and from the frames above)";
     } else {
-      li.textContent = `frame ${row.frame}: ${fixed(row.score, "")}`;
+      entry.textContent = `frame ${row.frame}: ${fixed(row.score, "")}`;
       li.title = `residual ${fixed(row.residual_px, "px")}, worst view ${fixed(row.worst_view_px, "px")}, ` +
         `confidence ${row.confidence.toFixed(2)}`;
     }
     li.addEventListener("click", () => gotoFrame(row.frame));
     list.appendChild(li);
-  }
+  });
   document.getElementById("ranking-box").hidden = false;
+  markRanking();
 }
 
 function gotoFrame(f) {
@@ -471,19 +574,99 @@ function gotoFrame(f) {
   return Promise.resolve();
 }
 
-function nextRanked() {
-  if (!app.ranking.length) return;
+function nextRanked() {  // n: the best-placed frame of the ranking (worst first) not yet opened in this page
+  if (!app.ranking.length) return Promise.resolve();
   const cur = app.frame ? app.frame.frame : null;
-  const i = app.ranking.findIndex((r) => r.frame === cur);
-  gotoFrame(app.ranking[(i + 1) % app.ranking.length].frame);
+  let row = app.ranking.find((r) => r.frame !== cur && !app.visited.has(r.frame));
+  let note = "";
+  if (!row) {  // every frame of the list seen: start again from the top
+    app.visited = new Set(cur === null ? [] : [cur]);
+    row = app.ranking.find((r) => r.frame !== cur);
+    note = "every frame of the list has been opened: n starts again from the top";
+  }
+  if (!row) return Promise.resolve();
+  return gotoFrame(row.frame).then(() => { if (note) setStatus(note, "note"); });
+}
+
+// ---- propagation and skeleton ---------------------------------------------------------------------------
+
+function detailOf(r) { return r.body && typeof r.body.detail === "string" ? r.body.detail : `HTTP ${r.status}`; }
+
+async function propagate(preview) {  // the form's "preview" (nothing written) and "copy"
+  if (!app.frame) return;
+  const value = (id) => document.getElementById(id).value;
+  const body = { first: +value("prop-first"), last: +value("prop-last"), source: app.frame.frame,
+                 max_changed: +value("prop-max"), overwrite: document.getElementById("prop-overwrite").checked,
+                 allow_test: document.getElementById("prop-test").checked, dry_run: preview };
+  await app.queue;
+  const r = await api("api/propagate", { method: "POST", body: JSON.stringify(body) });
+  const out = document.getElementById("prop-result");
+  if (!r.ok) { out.textContent = ""; setStatus(`not propagated: ${detailOf(r)}`, "error"); return; }
+  const p = r.body;
+  out.textContent = Object.entries(p.per_frame)
+    .map(([f, [fresh, old]]) => `frame ${f}: ${fresh} new label(s)${old ? `, ${old} replaced` : ""}`).join("\n");
+  const what = `frame ${p.source}'s ${p.keypoints.length} keypoint(s) to ${p.frames.length} frame(s): ` +
+    `${p.labels} label(s)${p.replaced ? `, ${p.replaced} of them replacing existing ones` : ""}`;
+  if (preview) { setStatus(`preview: would copy ${what}; nothing was written`, "note"); return; }
+  await loadFrame(app.frameIndex);  // the frame's labels, versions of the frames written
+  setStatus(`copied ${what}; 'undo last propagation' puts them back`, "saved");
+}
+
+async function undoPropagation() {
+  await app.queue;
+  const r = await api("api/propagate/undo", { method: "POST", body: "{}" });
+  if (!r.ok) { setStatus(`nothing undone: ${detailOf(r)}`, "error"); return; }
+  document.getElementById("prop-result").textContent = "";
+  await loadFrame(app.frameIndex);
+  setStatus(`undid the propagation from frame ${r.body.source}: frame(s) ${r.body.frames.join(", ")}`, "saved");
+}
+
+function startSkeleton() {
+  for (const id of ["edge-a", "edge-b"]) {
+    const select = document.getElementById(id);
+    for (const kp of app.meta.keypoints) select.appendChild(new Option(kp, kp));
+  }
+  document.getElementById("edge-b").selectedIndex = Math.min(1, app.meta.keypoints.length - 1);
+  document.getElementById("skeleton-add").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    editSkeleton({ add: [document.getElementById("edge-a").value, document.getElementById("edge-b").value] });
+  });
+  drawSkeletonList();
+}
+
+function drawSkeletonList() {
+  const list = document.getElementById("skeleton");
+  list.innerHTML = "";
+  for (const [a, b] of app.meta.skeleton) {
+    const li = document.createElement("li");
+    li.dataset.edge = `${a}-${b}`;
+    li.innerHTML = `<span class="edge"></span><button type="button" title="remove this edge">remove</button>`;
+    li.querySelector(".edge").textContent = `${a} \u2013 ${b}`;
+    li.querySelector("button").addEventListener("click", () => editSkeleton({ remove: [a, b] }));
+    list.appendChild(li);
+  }
+  document.getElementById("skeleton-empty").hidden = app.meta.skeleton.length > 0;
+}
+
+async function editSkeleton(change) {  // written to the dataset's s3k.json by the server
+  await app.queue;
+  const r = await api("api/skeleton", { method: "POST", body: JSON.stringify(change) });
+  if (!r.ok) { setStatus(`skeleton not changed: ${detailOf(r)}`, "error"); return; }
+  app.meta.skeleton = r.body.skeleton;
+  drawSkeletonList();
+  drawAll();
+  const [a, b] = change.add || change.remove;
+  setStatus(`skeleton saved: edge ${a} \u2013 ${b} ${change.add ? "added" : "removed"}`, "saved");
 }
 
 // ---- start ---------------------------------------------------------------------------------------------
 
 function onKey(ev) {
-  if (ev.target.tagName === "INPUT") return;
+  if (["INPUT", "SELECT", "TEXTAREA"].includes(ev.target.tagName)) return;
   const k = ev.key;
-  if ((ev.ctrlKey || ev.metaKey) && (k === "z" || k === "Z")) undo();
+  const mod = (ev.ctrlKey || ev.metaKey) && !ev.altKey;
+  if (mod && (((k === "z" || k === "Z") && ev.shiftKey) || k === "y" || k === "Y")) redo();
+  else if (mod && (k === "z" || k === "Z")) undo();
   else if (ev.ctrlKey || ev.metaKey || ev.altKey) return;  // the browser's own shortcuts
   else if (k === "ArrowRight" || k === ".") loadFrame(app.frameIndex + 1);
   else if (k === "ArrowLeft" || k === ",") loadFrame(app.frameIndex - 1);
@@ -511,26 +694,19 @@ async function start() {
   document.getElementById("next-frame").addEventListener("click", () => loadFrame(app.frameIndex + 1));
   document.getElementById("frame-input").addEventListener("change", (ev) => gotoFrame(ev.target.value));
   document.getElementById("reset-zoom").addEventListener("click", resetZoom);
-  document.getElementById("unlock").addEventListener("click", unlockFrame);
+  document.getElementById("unlock").addEventListener("click", toggleLock);
   document.getElementById("brightness").addEventListener("input", (ev) => {
     app.brightness = +ev.target.value;
     for (const view of Object.values(app.views)) view.image.style.filter = `brightness(${app.brightness})`;
   });
   document.getElementById("accept-one").addEventListener("click", () => acceptSuggestions(false));
   document.getElementById("accept-all").addEventListener("click", () => acceptSuggestions(true));
-  document.getElementById("propagate").addEventListener("submit", async (ev) => {
-    ev.preventDefault();
-    const first = +document.getElementById("prop-first").value;
-    const last = +document.getElementById("prop-last").value;
-    await app.queue;
-    const p = await api("api/propagate", { method: "POST",
-      body: JSON.stringify({ first, last, source: app.frame.frame }) });
-    if (!p.ok) { setStatus(`not propagated: ${p.body.detail}`, "error"); return; }
-    setStatus(`copied to ${p.body.frames.length} frames (${p.body.labels} labels)`, "saved");
-    await loadFrame(app.frameIndex);
-  });
+  document.getElementById("propagate").addEventListener("submit", (ev) => { ev.preventDefault(); propagate(false); });
+  document.getElementById("prop-preview").addEventListener("click", () => propagate(true));
+  document.getElementById("prop-undo").addEventListener("click", undoPropagation);
+  startSkeleton();
   window.addEventListener("keydown", onKey);
-  window.addEventListener("resize", drawAll);
+  window.addEventListener("resize", () => { layoutViews(); drawAll(); });
   if (r.body.run) {
     document.getElementById("suggest-tools").hidden = false;
     document.getElementById("rank-by").addEventListener("change", loadRanking);
@@ -542,5 +718,5 @@ async function start() {
   document.body.dataset.ready = "1";
 }
 
-window.s3kLabel = { app, toClient, saveEdits, loadFrame, gotoFrame, undo };
+window.s3kLabel = { app, toClient, saveEdits, loadFrame, gotoFrame, undo, redo, colour };
 start();

@@ -1,0 +1,195 @@
+"""What ``s3k predict``, ``track`` and ``stream`` check before they detect: that the run was trained on this
+rig and object, and that the calibration given is sound and the one the run was trained with.
+
+- :func:`check_rig` refuses cameras the run was never trained on (another rig) and, for a dataset, other
+  keypoints (another object), as ``s3k evaluate`` and ``s3k label`` refuse such a pair; the override is
+  named in the message (``--other-rig``).
+- :func:`calibration_notes` runs the label-free part of the check ``s3k import`` runs (two cameras with
+  identical parameters: a copy error) and says how the calibration differs from the one the run was trained
+  with (:func:`s3k.detector.geometry_record.training_geometry` records it in frame pixels; runs trained before
+  that record are compared with their training dataset when it is still there): which cameras, by how many
+  millimetres (centre), degrees (orientation) and pixels of focal length. Points move with the calibration,
+  and the reprojection error cannot tell: only these lines do.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from s3k.errors import UserError
+from s3k.geometry import Cameras
+
+__all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration", "run_record"]
+
+OVERRIDE = "--other-rig"
+"""The option of ``s3k predict``, ``track`` and ``stream`` that uses a run on another rig or object anyway."""
+
+CENTRE_MM, ANGLE_DEG, FOCAL_REL = 1.0, 0.1, 0.005
+"""Differences from the run's calibration below these (centre in mm, orientation in degrees, focal length as a
+fraction) are not reported."""
+
+
+def run_record(run_dir: str | Path) -> dict[str, Any] | None:
+    """The ``meta`` a run folder's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
+    cameras, units, geometry; None when there is none to read."""
+    run_dir = Path(run_dir)
+    if (run_dir / "two_pass.json").is_file():
+        run_dir = run_dir / "coarse"
+    try:
+        doc = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    meta = doc.get("meta") if isinstance(doc, dict) else None
+    return meta if isinstance(meta, dict) else None
+
+
+def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | None = None,
+              what: str = "--calibration") -> None:
+    """Refuse to use the run ``run_dir`` on ``cameras`` it was not trained on, or (``keypoints``, a
+    dataset's) on other keypoints; nothing to check for a run that records neither.
+
+    Raises:
+        UserError: naming the cameras or keypoints, the run's, and :data:`OVERRIDE`.
+    """
+    meta = run_record(run_dir) or {}
+    trained = [str(c) for c in meta.get("cameras") or []]
+    unknown = [c for c in cameras if trained and c not in trained]
+    hint = f"use a run trained on this rig and object, or pass {OVERRIDE} to use this one anyway"
+    if unknown:
+        raise UserError(f"{what}: camera(s) {', '.join(map(repr, unknown))} are not among the cameras "
+                        f"{', '.join(trained)} the run {run_dir} was trained on: another rig, where its "
+                        "results would be wrong", hint=hint)
+    model = [str(k) for k in meta.get("keypoints") or []]
+    if keypoints is not None and model and set(keypoints) != set(model):  # matched by name, in any order
+        raise UserError(f"{what}: the dataset's keypoints {', '.join(keypoints)} are not the run's "
+                        f"{', '.join(model)} ({run_dir}): another object, whose points would be named after "
+                        "the run's keypoints", hint=hint)
+
+
+def run_calibration(run_dir: str | Path) -> dict[str, Any] | None:
+    """The calibration the run was trained with, in its cameras' frame pixels: recorded in the run, else
+    read from its training dataset when that is still there and static; None when unknown."""
+    meta = run_record(run_dir) or {}
+    geometry = meta.get("geometry")
+    recorded = geometry.get("calibration") if isinstance(geometry, dict) else None
+    if isinstance(recorded, dict) and isinstance(recorded.get("cameras"), dict):
+        return recorded
+    from s3k.detector import training_dataset
+    from s3k.detector.geometry_record import frame_calibration
+
+    try:
+        path = training_dataset(run_dir)
+    except (FileNotFoundError, UserError, ValueError, OSError):
+        return None
+    if not path or not (Path(path) / "s3k.json").is_file():
+        return None
+    try:
+        from s3k.data import Dataset
+
+        return frame_calibration(Dataset.open(path, cache="none"))
+    except (ValueError, OSError, KeyError, UserError):
+        return None
+
+
+def _identical(cams: Cameras, names: list[str]) -> list[str]:
+    from s3k.calibration import identical_cameras
+
+    return [f"calibration: {note} (usually a copy error in the calibration file; s3k check-calibration "
+            "DATASET --recalibrate CAM recalibrates the copy)" for note in identical_cameras(cams, names)]
+
+
+def _difference(name: str, want: dict[str, Any], K, R, t, size, scale: float) -> str | None:
+    """How camera ``name`` (``K, R, t`` in pixels of frames of ``size``, world units ``scale`` mm each)
+    differs from the run's entry ``want``; None when within the tolerances."""
+    Kw, Rw, tw = (np.asarray(want[k], dtype=np.float64) for k in ("K", "R", "t"))
+    frame = want.get("frame_size") or size
+    fw = Kw[0, 0] * (size[0] / frame[0] if frame[0] else 1.0)  # the run's focal at this frame size
+    centre = -R.T @ t * scale
+    centre_w = -Rw.T @ tw * want["_scale"]
+    moved = float(np.linalg.norm(centre - centre_w))
+    cos = (np.trace(R @ Rw.T) - 1) / 2
+    turned = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    focal = abs(K[0, 0] - fw) / max(abs(fw), 1e-12)
+    parts = []
+    if not moved <= CENTRE_MM:
+        parts.append(f"centre {moved:.3g} mm away")
+    if not turned <= ANGLE_DEG:
+        parts.append(f"turned {turned:.3g} deg")
+    if not focal <= FOCAL_REL:
+        parts.append(f"focal {K[0, 0]:.1f} px vs {fw:.1f} px")
+    return f"{name} ({', '.join(parts)})" if parts else None
+
+
+def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], units: str,
+                      sizes: dict[str, tuple[int, int]], source: str | Path) -> list[str]:
+    """Warnings (``warning: ...`` lines) on the calibration ``source`` given to a run: cameras with identical
+    parameters, and how it differs from the run's own calibration (module docstring).
+
+    Args:
+        run_dir: the run folder.
+        cams: the cameras ``(C,)`` in the pixels of the frames they see, float64.
+        names: their names.
+        units: their world unit.
+        sizes: ``{camera: (W, H)}`` of those frames.
+        source: the calibration's file or dataset, for the message.
+    """
+    from s3k.inference.metrics import mm_per_unit
+
+    notes = _identical(cams, names)
+    want = run_calibration(run_dir)
+    if want is None:
+        return [f"warning: {source}: {n}" for n in notes]
+    scale, want_scale = mm_per_unit(units), mm_per_unit(want.get("units", "unknown"))
+    if not (math.isfinite(scale) and math.isfinite(want_scale)):  # one unit unknown: compare as they are
+        scale = want_scale = 1.0
+    a = cams.numpy()
+    diffs = []
+    for c, name in enumerate(names):
+        entry = want["cameras"].get(name)
+        if entry is None:
+            continue
+        d = _difference(name, {**entry, "_scale": want_scale}, a["K"][c], a["R"][c], a["t"][c],
+                        tuple(sizes.get(name, entry.get("frame_size") or (0, 0))), scale)
+        if d:
+            diffs.append(d)
+    if diffs:
+        notes.append(f"calibration differs from the one the run {run_dir} was trained with: "
+                     f"{'; '.join(diffs)}; the 3D points move with it (and the reprojection error does not "
+                     "show it)")
+    return [f"warning: {source}: {n}" for n in notes]
+
+
+def check_dataset_rig(run_dir: str | Path, data: str | Path, refuse: bool = True) -> None:
+    """``s3k predict``'s checks of a dataset for a run: with ``refuse``, the images' part of the frames
+    (:func:`s3k.detector.geometry_record.check_dataset`), the cameras and the keypoints (:func:`check_rig`);
+    then the dataset's static calibration (:func:`calibration_notes`), printed on stderr.
+
+    Raises:
+        UserError: another rig or object, naming :data:`OVERRIDE`.
+    """
+    import sys
+
+    import torch
+
+    from s3k.data import Dataset
+    from s3k.detector.geometry_record import check_dataset, frame_calibration
+
+    if refuse:
+        check_dataset(run_dir, data, option=OVERRIDE)
+    ds = Dataset.open(data, cache="none")
+    if refuse:
+        check_rig(run_dir, list(ds.cameras), list(ds.keypoints), what=f"--data {data}")
+    frames = frame_calibration(ds)
+    if frames is None:
+        return
+    entries = [frames["cameras"][c] for c in ds.cameras]
+    K, dist, R, t = (np.stack([e[k] for e in entries]) for k in ("K", "dist", "R", "t"))
+    cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
+    sizes = {c: tuple(e["frame_size"]) for c, e in zip(ds.cameras, entries)}
+    for line in calibration_notes(run_dir, cams, list(ds.cameras), frames["units"], sizes, data):
+        print(line, file=sys.stderr)
