@@ -16,12 +16,16 @@ training anything. The answer is printed last, then the summary's head as JSON.
 
 Example::
 
-    python benchmarks/label_curve.py                     # 30 trainings: about 5 CPU-hours, 2.5 h on 2 cores
+    python benchmarks/label_curve.py                     # 30 trainings: 15 x (11.4 + 6.2) CPU-minutes
+                                                         # by the headline's, about 2.5 h on 2 idle cores
     python benchmarks/label_curve.py --seeds 1           # seed 0's curve first; the same command with
                                                          # --seeds 3 continues it
     python benchmarks/label_curve.py --summary-only      # summary and figure from the results so far
-    python benchmarks/label_curve.py --scene plush --unlabelled-arrangements 57 \\
-        --work runs/label-curve-plush --results docs/results/accuracy/label-curve/plush
+    python benchmarks/label_curve.py --scene plush --unlabelled-arrangements 50 --label-choice random \\
+        --preset none --crop-size 128 --steps 4000 --coarse-steps 4000 --train-options \\
+        '--rotation-deg 15 --coarse-rotation 180 --sigma 1.0 --outlier-px 6 --pseudo-window 5 \\
+        --val-every 500 --precision auto' --work runs/label-curve-plush \\
+        --results docs/results/accuracy/label-curve/plush   # the plush headline's configuration
 """
 
 from __future__ import annotations
@@ -59,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--labels", type=label_counts, default=LABEL_COUNTS,
                    help="labelled frame counts (default 5,10,20,50,100)")
     p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
-    p.add_argument("--preset", default="box-headline", choices=list(PRESETS),
-                   help="the configuration both models train with (default box-headline)")
+    p.add_argument("--preset", default="box-headline", choices=[*PRESETS, "none"],
+                   help="the configuration both models train with (default box-headline; none: the options "
+                        "below and --train-options only)")
     p.add_argument("--scene", choices=("box", "plush"), default="box")
     p.add_argument("--render", type=int, default=384, help="rendered image size (default 384)")
     p.add_argument("--unlabelled", type=int, default=2000, help="unlabelled frames (default 2000)")
@@ -95,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     try:
         opts = CurveOptions.from_preset(
-            args.preset, labels=args.labels, seeds=args.seeds, scene=args.scene, render=args.render,
+            None if args.preset == "none" else args.preset, labels=args.labels, seeds=args.seeds,
+            scene=args.scene, render=args.render,
             unlabelled=args.unlabelled, test=args.test, label_pool=args.label_pool or max(args.labels),
             label_choice=args.label_choice, unlabelled_arrangements=args.unlabelled_arrangements,
             steps=args.steps, coarse_steps=args.coarse_steps, coarse_size=args.coarse_size,

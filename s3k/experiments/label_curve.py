@@ -86,10 +86,13 @@ class CurveOptions:
                              "(raise --label-pool)")
 
     @classmethod
-    def from_preset(cls, preset: str, **given: Any) -> CurveOptions:
-        """The options with ``s3k train --preset PRESET``'s two-pass sizes and steps, unless ``given``."""
+    def from_preset(cls, preset: str | None, **given: Any) -> CurveOptions:
+        """The options with ``s3k train --preset PRESET``'s two-pass sizes and steps, unless ``given`` (None:
+        no preset, the ``given`` options and the defaults above)."""
         from s3k.presets import PRESETS
 
+        if preset is None:
+            return cls(**{k: v for k, v in given.items() if v is not None})
         chosen = PRESETS[preset]
         two = chosen.two_pass or {}
         defaults: dict[str, Any] = {"passes": 2 if chosen.two_pass else 1,
