@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.experiments.outside_rig import evaluate_rigs, render_test_sets, table  # noqa: E402
 from s3k.sim.rigs import RIGS  # noqa: E402
 
@@ -46,6 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="result JSON (default: printed only)")
     p.add_argument("--device", default="cpu", help="where the run is evaluated (default cpu)")
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: CPUs available)")
+    p.add_argument("--notes", default=None,
+                   help="text kept in the result, e.g. the revision the run was trained at (left out of the "
+                        "recorded command)")
     args = p.parse_args(argv)
     rigs = [r for r in args.rigs.split(",") if r]
     unknown = [r for r in rigs if r not in RIGS]
@@ -54,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     work = Path(args.work or ROOT / "runs" / "outside-rig")
     sets = render_test_sets(args.scene, args.size, args.test, args.seed, work, rigs, workers=args.workers)
-    result = {"command": shlex.join(["python", "benchmarks/outside_rig.py", *(sys.argv[1:] if argv is None
-                                                                              else argv)]),
+    given = without_notes(sys.argv[1:] if argv is None else argv)
+    result = {"command": shlex.join(["python", "benchmarks/outside_rig.py", *given]),
               "git_revision": git_revision(), "run": str(Path(args.run).resolve()),
               "scale": f"{args.scene} at {args.size} px, {args.test} test frames per rig, sampling seed "
                        f"{args.seed}",
@@ -63,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     machine = machine_info()
     result["machine"] = machine
     result["avx512_bf16"] = "avx512_bf16" in machine["cpu_flags"]
+    if args.notes:
+        result["notes"] = args.notes
     for line in table(result):
         print(line, file=sys.stderr)
     write_and_emit(result, args.out)
