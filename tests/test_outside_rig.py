@@ -5,6 +5,8 @@ evaluated on each against in-range."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,9 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
     points = {rig: Dataset.open(path, cache="none").points3d(np.arange(4))[0] for rig, path in sets.items()}
     assert all(np.allclose(points[rig], points["train"]) for rig in RIGS)
     assert Dataset.open(sets["low"], cache="none").frames("labelled").size == 0
+    source = json.loads((sets["low"] / "s3k.json").read_text())["source"]
+    assert source["rig"] == "low" and source["cameras"]["elevation_deg"] == [10.0, 20.0]
+    assert "rig" not in json.loads((sets["train"] / "s3k.json").read_text())["source"]
     again = render_test_sets("box", 32, 4, 7, tmp_path / "sets", rigs=("low",), workers=1)
     assert again == {"low": sets["low"]}
 
@@ -77,3 +82,11 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
     assert "median_ratio_to_in_range" not in rows["train"]
     lines = table(result)
     assert len(lines) == 1 + len(RIGS) and lines[2].startswith("low ") and lines[2].split()[4].endswith("x")
+
+
+def test_an_unknown_rig_is_a_one_line_error():
+    from s3k.errors import UserError
+    from s3k.sim.generate import SimulateConfig
+
+    with pytest.raises(UserError, match=r"rig \(--rig\): unknown camera rig 'side'"):
+        SimulateConfig("box", rig="side")
