@@ -63,10 +63,12 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
         assert entry["median_mm"]["per_seed"] == [r["median_mm"]]
         assert entry["rms_mm"]["per_seed"] == [r["rms_mm"]]
         assert entry["pck_10mm"]["per_seed"] == [r["pck_10mm"]] and r["train_cpu_minutes"] > 0
+        assert r["trained_at_revisions"] == ["abc"]
     on_disk = json.loads((results / "summary.json").read_text())
     assert on_disk["command"].startswith("python benchmarks/label_curve.py")
     assert on_disk["git_revision"] == "abc"
-    assert on_disk["avx512_bf16"] is True and on_disk["machine"]["cpu_flags"] == MACHINE["cpu_flags"]
+    assert on_disk["trained_at_revisions"] == ["abc"] and on_disk["avx512_bf16"] is True
+    assert on_disk["machine"]["cpu_flags"] == MACHINE["cpu_flags"]
     figure = results / "label-curve.png"
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -93,8 +95,8 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
     killed = Job(4, "s3k", 0)
     killed.result(work).unlink()
     (killed.run(work) / "two_pass.json").unlink()
-    planned = pending_trainings(opts, work, prepare_data(opts, work))
-    assert [name for name, _, _ in planned] == [killed.name]
+    planned = pending_trainings(opts, work, prepare_data(opts, work), "def")
+    assert [name for name, _, _ in planned] == [killed.name] and killed.trained_at(work) == ["abc", "def"]
     assert planned[0][1][-1] == "--resume" and str(killed.run(work)) in planned[0][1]
 
 

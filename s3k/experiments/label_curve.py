@@ -127,6 +127,15 @@ class Job:
         run = self.run(work)
         return run.with_name(run.name + "-result.json")
 
+    def revisions(self, work: Path) -> Path:
+        """The revisions the run's training was started or resumed at, in order."""
+        run = self.run(work)
+        return run.with_name(run.name + "-revisions.json")
+
+    def trained_at(self, work: Path) -> list[str]:
+        path = self.revisions(work)
+        return list(json.loads(path.read_text())) if path.is_file() else []
+
 
 def jobs(opts: CurveOptions) -> list[Job]:
     """Every job of the curve, seed by seed (a whole curve of seed 0 first), S3K before labels only."""
@@ -154,16 +163,18 @@ def prepare_data(opts: CurveOptions, work: Path) -> dict[tuple[int, int], Path]:
     return data
 
 
-def pending_trainings(opts: CurveOptions, work: Path,
-                      data: dict[tuple[int, int], Path]) -> list[tuple[str, list[str], Path]]:
+def pending_trainings(opts: CurveOptions, work: Path, data: dict[tuple[int, int], Path],
+                      revision: str = "unknown") -> list[tuple[str, list[str], Path]]:
     """The training commands of the jobs without a result whose run has not finished (a run begun is
-    resumed: its command has ``--resume``), in :func:`jobs` order."""
+    resumed: its command has ``--resume``), in :func:`jobs` order; ``revision`` is added to each one's
+    revisions."""
     out = []
     for job in jobs(opts):
         run = job.run(work)
         if job.result(work).is_file() or finished(run, opts.passes):
             continue
         run.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json([*job.trained_at(work), revision], job.revisions(work))
         out.append((job.name, train_command(opts, data[job.labels, job.seed], run, job.seed, job.model),
                     job.record(work)))
     return out
@@ -183,7 +194,7 @@ def write_results(opts: CurveOptions, work: Path, data: dict[tuple[int, int], Pa
                   "data": str(data[job.labels, job.seed]),
                   **{k: float(metrics[k]) for k in JOB_FIGURES if k in metrics},
                   "train_cpu_minutes": spent["cpu_minutes"], "train_wall_minutes": spent["wall_minutes"],
-                  "evaluated_at_revision": revision}
+                  "trained_at_revisions": job.trained_at(work), "evaluated_at_revision": revision}
         atomic_write_json(result, path)
         written.append(job)
     return written
@@ -270,6 +281,8 @@ def write_summary(opts: CurveOptions, work: Path, results_dir: Path, command: st
         "labels": list(opts.labels), "seeds": list(range(opts.seeds)),
         "jobs_with_results": len(results),
         "missing_jobs": [job.name for job in missing],
+        "trained_at_revisions": sorted({v for r in results.values()
+                                        for v in r.get("trained_at_revisions", [])}),
         "evaluated_at_revisions": sorted({r.get("evaluated_at_revision", "unknown")
                                           for r in results.values()}),
         **curve_summary(opts, results),
@@ -338,7 +351,7 @@ def run_curve(opts: CurveOptions, work: Path, results_dir: Path, command: str, r
     work.mkdir(parents=True, exist_ok=True)
     if not summary_only:
         data = prepare_data(opts, work)
-        run_jobs(pending_trainings(opts, work, data), opts.parallel)
+        run_jobs(pending_trainings(opts, work, data, revision), opts.parallel)
         for job in write_results(opts, work, data, revision):
             print(f"result {job.name}", file=sys.stderr, flush=True)
     return write_summary(opts, work, results_dir, command, revision, machine, notes)
