@@ -70,9 +70,21 @@ def stage_times(work: Path) -> dict[str, dict[str, float]]:
 def render(args, seed: int, work: Path) -> Path:
     """The seed's dataset, rendered once (with ``--label-pool`` labelled frames: a view of it with the 10
     chosen by ``--label-choice``); each stage's time is recorded (:func:`timed`)."""
-    pool = args.label_pool
+    out = render_pool(args, seed, work)
+    if args.label_pool == LABELLED:
+        return out
     names = data_names(args, seed)
-    out = work / names[0]
+    if (work / names[1] / "s3k.json").is_file():
+        return work / names[1]
+    with timed(work, f"label_choice-seed{seed}"):
+        return labelled_view(out, work / names[1], args.label_choice, seed)
+
+
+def render_pool(args, seed: int, work: Path) -> Path:
+    """The seed's rendered dataset with all ``--label-pool`` labelled frames, rendered once (its time recorded
+    as ``render-seedN``)."""
+    pool = args.label_pool
+    out = work / data_names(args, seed)[0]
     if not (out / "s3k.json").is_file() and args.scene == "insertion":
         from s3k.robot.insertion_data import write_insertion_dataset
 
@@ -89,12 +101,7 @@ def render(args, seed: int, work: Path) -> Path:
             simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
                                     test=args.test, seed=seed, **extra),
                      out, workers=args.parallel, progress=False, overwrite=True)
-    if pool == LABELLED:
-        return out
-    if (work / names[1] / "s3k.json").is_file():
-        return work / names[1]
-    with timed(work, f"label_choice-seed{seed}"):
-        return labelled_view(out, work / names[1], args.label_choice, seed)
+    return out
 
 
 def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int, labelled: int = LABELLED) -> Path:
