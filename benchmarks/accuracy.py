@@ -64,10 +64,10 @@ from s3k.experiments.accuracy import (  # noqa: E402
     LABELLED,
     MODELS,
     TARGETS,
-    _read_record,
     _stats,
     evaluate,
     finished,
+    read_record,
     render,
     reuse_coarse,
     reuse_labels_only,
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             for m in MODELS for s in seeds if not finished(runs[s, m], args.passes)]
     run_jobs(jobs, args.parallel)
     metrics = {key: evaluate(run, data[key[0]]) for key, run in runs.items()}
-    cpu = {key: _read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}
+    cpu = {key: read_record(run.with_name(run.name + "-cpu.json")) for key, run in runs.items()}
     chosen = "" if args.label_pool == LABELLED else \
         f" ({args.label_choice} choice of {args.label_pool} rendered)"
     spread = (f" (over the 7 training and {args.unlabelled_arrangements} further arrangements)"

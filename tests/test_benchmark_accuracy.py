@@ -40,7 +40,7 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
     total when the run resumes; a finished job leaves no unfinished entry."""
     import json
 
-    from s3k.experiments.accuracy import _cpu_minutes_so_far, _read_record, run_jobs
+    from s3k.experiments.accuracy import _cpu_minutes_so_far, read_record, run_jobs
 
     record = tmp_path / "s3k-seed0-cpu.json"
     record.write_text(json.dumps({"cpu_minutes": 2.0, "wall_minutes": 3.0, "unfinished_cpu_minutes": 1.5,
@@ -55,7 +55,7 @@ def test_cpu_record_counts_the_minutes_of_an_interrupted_run(tmp_path):
     # a run that finished as its benchmark died is not trained again; its record still counts what it spent
     record.write_text(json.dumps({"cpu_minutes": 0.0, "wall_minutes": 0.0, "unfinished_cpu_minutes": 31.5,
                                   "unfinished_wall_minutes": 35.0}))
-    assert _read_record(record) == {"cpu_minutes": 31.5, "wall_minutes": 35.0}
+    assert read_record(record) == {"cpu_minutes": 31.5, "wall_minutes": 35.0}
     with pytest.raises(SystemExit, match="s3k seed 1 failed"):
         fail = [sys.executable, "-c", "raise SystemExit(3)"]
         run_jobs([("s3k seed 1", fail, tmp_path / "r.json")], parallel=1, poll_s=0.05)

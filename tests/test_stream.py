@@ -79,6 +79,28 @@ def test_stream_prints_a_line_per_frame_with_the_true_points(rig_videos, monkeyp
     assert len(err.splitlines()) == 1 and "missing.mkv" in err
 
 
+def test_stream_filter_is_causal_and_keeps_the_raw_points(rig_videos, monkeypatch, capsys):
+    import s3k.detector.detector
+
+    v = rig_videos
+    monkeypatch.setattr(s3k.detector.detector, "load_network", lambda *a, **k: (v["oracle"], v["meta"]))
+    args = ["stream", "run", "--calibration", str(v["calibration"]), "--filter", "kalman",
+            "--sources", *[f"{c}={v['videos'][c]}" for c in CAMERAS]]
+    assert cli.main(args) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line["frame"] for line in lines] == list(range(FRAMES))
+    for line in lines:
+        raw = np.array([line["raw"][k] for k in KEYPOINTS])
+        np.testing.assert_allclose(raw, v["X"][line["frame"]], rtol=0, atol=1e-3)
+        assert all(line["valid"].values()) and line["rejected"] == []
+    # the first frame has nothing before it: the filter starts at the measurement
+    assert lines[0]["points"] == lines[0]["raw"]
+    # the same frames cut short give the same lines: no frame depends on one after it
+    assert cli.main([*args, "--max-frames", "3"]) == 0
+    short = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [s["points"] for s in short] == [line["points"] for line in lines[:3]]
+
+
 class _Interrupting(Source):
     """A source that gives ``n`` frames of one grey level per frame, then is interrupted (Ctrl-C)."""
 

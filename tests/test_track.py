@@ -9,6 +9,7 @@ pipeline after it is, with heatmaps peaked at known projections.
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -357,8 +358,9 @@ def test_track_range_batch_and_camera_order_do_not_change_results(recording, tmp
     assert _track(recording, full, "--min-weight", "0", "--batch", "8") == 0
     assert _track(recording, part, "--min-weight", "0", "--batch", "2", "--start", "2", "--stop", "5",
                   order=["right", "left", "top"]) == 0
-    h1, v1 = _read_csv(full)
-    h2, v2 = _read_csv(part)
+    # the detections (the filter sees the range it is given)
+    h1, v1 = _read_csv(full.with_name("full.raw.csv"))
+    h2, v2 = _read_csv(part.with_name("part.raw.csv"))
     assert h1 == h2
     np.testing.assert_array_equal(v2[:, -1], [2, 3, 4])
     np.testing.assert_allclose(v2, v1[2:5], rtol=1e-4, atol=1e-4)
@@ -447,7 +449,8 @@ def _oracle_track(recording, tmp_path, monkeypatch):
 
     out = tmp_path / "points3d.csv"
     args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out),
-            "--no-progress", "--batch", "4", "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
+            "--no-progress", "--batch", "4", "--filter", "none",
+            "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
     return oracle, args, out, X
 
 
@@ -565,6 +568,31 @@ def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_
         "its views triangulate to no valid point (rays near parallel or the point behind a camera: check "
         "--calibration, --video-region and --crop)")
     assert keypoint_line(summary, 1) == "100% valid, median error 2.00 px"
+
+
+def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_doubt(recording, tmp_path):
+    out, plain = tmp_path / "points3d.csv", tmp_path / "plain.csv"
+    assert _track(recording, out, "--min-weight", "0", "--filter-gate", "3",
+                  "--filter-model", "acceleration") == 0
+    assert _track(recording, plain, "--min-weight", "0", "--filter", "none") == 0
+    assert not (tmp_path / "plain.raw.csv").exists()
+    # the raw points are what an unfiltered track writes; the filtered CSV has the same layout
+    assert (tmp_path / "points3d.raw.csv").read_text() == plain.read_text()
+    h1, filtered = _read_csv(out)
+    h2, raw = _read_csv(plain)
+    assert h1 == h2 and np.array_equal(filtered[:, -1], raw[:, -1])
+    source = json.loads((tmp_path / "points3d.csv.s3k.json").read_text())
+    assert source["raw"] == "points3d.raw.csv" and source["doubt"] == "points3d.doubt.csv"
+    settings = source["filter"]["settings"]
+    assert settings["model"] == "acceleration" and settings["gate"] == 3
+    assert len(source["filter"]["process_noise"]) == len(KEYPOINTS)
+    assert source["videos"] == {c: str(recording["videos"][c]) for c in CAMERAS}
+    with open(tmp_path / "points3d.doubt.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(int(r["fnum"]) for r in rows) == list(range(FRAMES))
+    assert [int(r["rank"]) for r in rows] == list(range(1, FRAMES + 1))
+    doubts = [float(r["doubt"]) for r in rows]
+    assert doubts == sorted(doubts, reverse=True)
 
 
 def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tmp_path, monkeypatch, capsys):

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from s3k.errors import UserError
+from s3k.inference.kalman import MODELS, FilterSettings
 from s3k.inference.track import FIT_MODES
 from s3k.ranges import Range
 from s3k.readout import DEFAULT_MIN_WEIGHT
@@ -140,3 +141,70 @@ def add_other_rig_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--other-rig", action="store_true",
                         help="use the run on cameras, keypoints or images other than those it was trained on "
                         "(refused by default: its results there are wrong)")
+
+
+def add_filter_options(parser: argparse.ArgumentParser, default: str) -> None:
+    """The options of the filter over time (``s3k track`` offline, ``s3k stream`` causal;
+    :class:`s3k.inference.kalman.FilterSettings`), ``--filter`` defaulting to ``default``."""
+
+    g = parser.add_argument_group(
+        "filtering over time (docs/tracks.md)",
+        "a Kalman filter in 3D per keypoint whose measurement noise comes from each detection's confidence "
+        "and reprojection residual; jumps beyond the innovation gate are rejected and bridged, as are short "
+        "gaps; a rigid object's layout and a skeleton's limb lengths hold the points as soft constraints")
+    g.add_argument("--filter", choices=("kalman", "none"), default=default,
+                   help=f"filter the 3D points over time (default {default})")
+    g.add_argument("--filter-model", choices=list(MODELS), default="velocity",
+                   help="motion model of each keypoint: constant velocity or constant acceleration (default "
+                        "velocity)")
+    g.add_argument("--filter-process-noise", type=number(gt=0), default=None, metavar="Q",
+                   help="standard deviation of the white noise driving the motion, world units per frame "
+                        "squared (cubed for acceleration) (default: fitted per keypoint by likelihood)")
+    g.add_argument("--filter-noise-scale", type=number(gt=0), default=None, metavar="S",
+                   help="scale of the measurement noise (default: fitted per keypoint by likelihood)")
+    g.add_argument("--filter-noise-px", type=number(ge=0), default=None, metavar="PX",
+                   help="least reprojection residual a detection counts with, pixels (default: the "
+                        "keypoint's median residual)")
+    g.add_argument("--filter-gate", type=number(ge=0), default=4.0, metavar="SIGMAS",
+                   help="reject a point further than this many standard deviations from the prediction "
+                        "(default 4; 0: never)")
+    g.add_argument("--filter-max-gap", type=number(int, ge=0), default=10, metavar="FRAMES",
+                   help="bridge up to this many missing or rejected frames; after a longer gap the filter "
+                        "starts again (default 10)")
+    g.add_argument("--filter-rigid", choices=("auto", "on", "off"), default="auto",
+                   help="hold the points to the rigid layout the run was trained with (--layout-tol); auto: "
+                        "when it has one (default auto)")
+    g.add_argument("--filter-layout-std", type=number(gt=0), default=None, metavar="W",
+                   help="how far a point may stand off the rigid layout, world units (default: fitted)")
+    g.add_argument("--filter-limbs", nargs="+", default=None, metavar="A,B",
+                   help="limbs (pairs of keypoints) whose lengths are held near their median over the track, "
+                        "or 'none' (default: the skeleton the run recorded from its dataset, if any)")
+    g.add_argument("--filter-limb-std", type=number(gt=0), default=None, metavar="W",
+                   help="how far a limb's length may stand off its median, world units (default: its robust "
+                        "spread over the track)")
+
+
+def filter_settings(args: argparse.Namespace):
+    """The :class:`s3k.inference.kalman.FilterSettings` of :func:`add_filter_options`' options."""
+
+    rigid = {"auto": None, "on": True, "off": False}[args.filter_rigid]
+    return FilterSettings(method=args.filter, model=args.filter_model,
+                          process_noise=args.filter_process_noise, noise_scale=args.filter_noise_scale,
+                          noise_px=args.filter_noise_px, gate=args.filter_gate, max_gap=args.filter_max_gap,
+                          rigid=rigid, layout_std=args.filter_layout_std,
+                          limb_std=args.filter_limb_std).check()
+
+
+def filter_limbs(args: argparse.Namespace) -> list[tuple[str, str]] | None:
+    """The pairs of ``--filter-limbs`` (``[]`` for ``none``), or None: the skeleton the run recorded."""
+    if args.filter_limbs is None:
+        return None
+    if args.filter_limbs == ["none"]:
+        return []
+    pairs = []
+    for text in args.filter_limbs:
+        a, sep, b = text.partition(",")
+        if not sep or not a or not b or "," in b:
+            raise UserError(f"--filter-limbs {text!r}: expected two keypoint names A,B")
+        pairs.append((a, b))
+    return pairs

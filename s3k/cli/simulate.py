@@ -9,6 +9,7 @@ from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.outputs import check_output
 from s3k.sim.generate import MAX_SIZE
+from s3k.sim.rigs import RIGS
 from s3k.sim.scene import NUM_TRAIN_INSTANCES
 from s3k.sim.scenes import SCENES
 
@@ -16,7 +17,9 @@ from s3k.sim.scenes import SCENES
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.epilog = examples("s3k simulate box --out data/box",
                              "s3k simulate distractors --out data/distractors --size 128 --labelled 30 "
-                             "--preview distractors.png")
+                             "--preview distractors.png",
+                             "s3k simulate box --out data/box-low --size 384 --labelled 0 --unlabelled 0 "
+                             "--test 50 --seed 1000 --rig low")
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
     parser.add_argument("--size", type=number(int, ge=16, le=MAX_SIZE), default=96,
@@ -45,6 +48,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--unlabelled-arrangements", type=number(int, ge=0), default=0,
                         help="plush: spread the unlabelled frames over this many further arrangements too "
                              "(new toy placements and camera rigs, in no test set; default 0)")
+    parser.add_argument("--rig", choices=list(RIGS), default="train",
+                        help="the cameras: the scene's own rig (train, the default) or one outside its "
+                             "ranges for a test set: low or high elevations, far, or a wide lens "
+                             "(docs/scenes.md)")
     parser.add_argument("--workers", type=number(int, ge=1), default=None,
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
@@ -74,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         test=args.test, seed=args.seed, object_seed=args.object_seed, mode=args.mode or "full",
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
-        unlabelled_arrangements=args.unlabelled_arrangements,
+        unlabelled_arrangements=args.unlabelled_arrangements, rig=args.rig,
     )
     if args.preview:
         check_output(args.preview, args.overwrite, option="--preview")

@@ -9,7 +9,15 @@ import sys
 import numpy as np
 
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, camera_pairs, number, parse_crops
+from s3k.cli.options import (
+    add_filter_options,
+    add_rig_options,
+    camera_pairs,
+    filter_limbs,
+    filter_settings,
+    number,
+    parse_crops,
+)
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.detector import Detector
 from s3k.detector.geometry_record import track_crops
@@ -17,7 +25,8 @@ from s3k.errors import UserError
 from s3k.inference.rerun_log import recording_summary
 from s3k.inference.rig_check import check_rig
 from s3k.inference.stream import open_source, rerun_logger, stream
-from s3k.inference.track import fit_box, say_calibration
+from s3k.inference.track import fit_box, limb_indices, say_calibration
+from s3k.inference.track_filter import StreamFilter, layout_shape_of
 from s3k.outputs import check_output
 
 
@@ -30,7 +39,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.epilog = examples(
         "s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 side=2 top=3 --rerun",
         "s3k stream runs/box --calibration calibration.toml --sources back=back.mp4 mid=mid.mp4 "
-        "side=side.mp4 top=top.mp4 --max-frames 100 > points.jsonl")
+        "side=side.mp4 top=top.mp4 --max-frames 100 > points.jsonl",
+        "s3k stream runs/box --calibration calibration.toml --sources back=0 mid=1 side=2 top=3 "
+        "--filter kalman")
     parser.add_argument("run", help="run folder written by 's3k train' (one pass or --two-pass)")
     parser.add_argument("--sources", nargs="+", required=True, metavar="CAM=SOURCE",
                         help="one source per camera: a camera index (0) or device (/dev/video2), a video "
@@ -51,6 +62,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "unknown)")
     parser.add_argument("--overwrite", action="store_true", help="replace the --rerun file if it exists")
     add_rig_options(parser)
+    add_filter_options(parser, "none")
 
 
 def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int]):
@@ -88,6 +100,18 @@ def _cameras(args: argparse.Namespace, sources: dict, input_size: tuple[int, int
     return calib.cameras, boxes
 
 
+def _filter(args: argparse.Namespace, detector, cams):
+    """The causal filter of the ``--filter`` options, or None."""
+
+    settings = filter_settings(args)
+    if settings.method == "none":
+        return None
+    limbs = filter_limbs(args)
+    limbs = detector.meta.recorded_skeleton() if limbs is None else limbs
+    return StreamFilter(settings, len(detector.keypoints), cams.numpy(),
+                        layout_shape_of(detector.meta.layout), limb_indices(limbs, detector.keypoints))
+
+
 def run(args: argparse.Namespace) -> int:
     specs = camera_pairs(args.sources, "--sources")
     if len(specs) < 2:
@@ -104,12 +128,14 @@ def run(args: argparse.Namespace) -> int:
         for source in sources.values():
             source.fps = source.fps or float(args.fps)
     cams, boxes = _cameras(args, sources, detector.input_size)
+    filt = _filter(args, detector, cams)
     log, close = None, None
     if args.rerun:
         log, close = rerun_logger(detector, list(sources), cams, [s.size for s in sources.values()],
                                   args.rerun, args.image_scale, args.jpeg_quality)
     try:
-        summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log)
+        summary = stream(detector, sources, cams, boxes, sys.stdout, args.min_weight, args.max_frames, log,
+                         filter=filt)
     except BaseException:
         if close is not None:
             close(False)

@@ -8,7 +8,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from s3k.cli import examples
-from s3k.cli.options import add_rig_options, number, parse_crops
+from s3k.cli.options import (
+    add_filter_options,
+    add_rig_options,
+    filter_limbs,
+    filter_settings,
+    number,
+    parse_crops,
+)
 from s3k.data import video
 from s3k.data.tracks_csv import write_source
 from s3k.detector.geometry_record import track_crops
@@ -35,13 +42,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Track synchronized videos of a calibrated rig to 3D keypoints with a trained detector; writes "
         "anipose's 3D CSV (<kp>_x, _y, _z, _error, _ncams, _score per keypoint, then fnum) in the "
-        "calibration's units."
+        "calibration's units, filtered over time (the raw points in <stem>.raw.csv, the filter's settings in "
+        "<file>.s3k.json), and the frames ranked by doubt in <stem>.doubt.csv (for 's3k add-frames')."
     )
     parser.epilog = examples(
         "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
         "--calibration calibration.toml --out points3d.csv",
         "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
-        "--calibration calibration.toml --min-weight 0.5 --overlay overlays --out points3d.csv")
+        "--calibration calibration.toml --min-weight 0.5 --overlay overlays --out points3d.csv",
+        "s3k track runs/mouse --videos back=back.mp4 mid=mid.mp4 side=side.mp4 top=top.mp4 "
+        "--calibration calibration.toml --filter-model acceleration --filter-gate 5 --out points3d.csv",
+        "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 --calibration calibration.toml --filter none "
+        "--out points3d.csv")
     parser.add_argument("run", help="run folder written by 's3k train'")
     parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
@@ -58,6 +70,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="frame index to stop before (default: the end of the shortest video)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_rig_options(parser)
+    add_filter_options(parser, "kalman")
 
 
 def keypoint_line(summary, k: int) -> str:
@@ -97,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)
+    settings = filter_settings(args)
+    limbs = filter_limbs(args)
     for line in notes:
         print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
     if args.overlay:
@@ -106,16 +121,34 @@ def run(args: argparse.Namespace) -> int:
         start=args.start, stop=args.stop, min_weight=args.min_weight, fit=args.fit or "pad", crops=crops,
         device=args.device, units=args.units, progress=not args.no_progress, overwrite=args.overwrite,
         video_regions=parse_crops(args.video_region, list(videos), "--video-region", every=False)
-        if args.video_region else None,
+        if args.video_region else None, filter_settings=settings, skeleton=limbs,
     )
+    _report(args, summary, videos)
+    return 0
 
-    write_source(summary.path, summary.units, run=args.run, calibration=args.calibration, fps=summary.fps)
-    print(f"wrote {summary.frames} frames to {summary.path} (units: {summary.units})")
+
+def _report(args: argparse.Namespace, summary, videos: dict[str, Path]) -> None:
+    """Write the sources beside the CSVs and print what was done."""
+
+    details = {"videos": {c: str(p) for c, p in videos.items()}, "start": args.start,
+               "doubt": summary.doubt.name if summary.doubt else None}
+    if summary.raw is not None:
+        write_source(summary.raw, summary.units, details, run=args.run, calibration=args.calibration,
+                     fps=summary.fps)
+        details.update(raw=summary.raw.name, filter=summary.filter)
+    write_source(summary.path, summary.units, details, run=args.run, calibration=args.calibration,
+                 fps=summary.fps)
+    what = "filtered " if summary.raw is not None else ""
+    print(f"wrote {summary.frames} {what}frames to {summary.path} (units: {summary.units})")
     for k, kp in enumerate(summary.keypoints):
         print(f"  {kp}: {keypoint_line(summary, k)}")
     hint = empty_result_hint(summary)
     if hint:
         print(f"warning: {hint}", file=sys.stderr)
+    if summary.filter is not None:
+        print(f"raw points in {summary.raw}; the filter rejected {summary.filter['rejected']} jump(s) and "
+              f"bridged {summary.filter['bridged']} point(s) (ncams 0 in {summary.path.name})")
+    if summary.doubt is not None:
+        print(f"frames ranked by doubt in {summary.doubt}")
     if args.overlay:
         print(f"overlay videos in {args.overlay}")
-    return 0

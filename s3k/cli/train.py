@@ -11,7 +11,7 @@ from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import number
 from s3k.config import TrainConfig, config_from_dict
-from s3k.detector import CONFIG_FILE, read_run_config
+from s3k.detector import CONFIG_FILE, is_two_pass, read_run_config
 from s3k.errors import UserError
 from s3k.outputs import check_output_folder
 from s3k.presets import PRESETS, preset
@@ -26,6 +26,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Run under 'torchrun --nproc-per-node N' for data-parallel training."
     )
     parser.epilog = examples("s3k train data/box --out runs/box",
+                             "s3k train data/box --out runs/box-more --init-from runs/box --steps 500 "
+                             "--lr 3e-4",
                              "s3k train data/box --out runs/box-2p --two-pass --rotation-deg 15 "
                              "--coarse-rotation 180 --layout-tol 0.2")
     parser.add_argument("dataset", help="dataset folder (see docs/dataset-format.md)")
@@ -36,6 +38,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "preloading and the validation, logging and checkpoint cadence)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
+    parser.add_argument("--init-from", default=None, metavar="RUN",
+                        help="fine-tune: start from RUN's network (same keypoints and architecture; a "
+                             "two-pass RUN with --two-pass, its crops' extent kept) with this run's own "
+                             "--steps, --lr and schedule, e.g. after adding labelled frames (default: a new "
+                             "network)")
 
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
@@ -88,14 +95,23 @@ def run(args: argparse.Namespace) -> int:
         saved = read_run_config(args.out)["config"]
         base = config_from_dict(TrainConfig, saved, where=f"{Path(args.out) / CONFIG_FILE}")
     cfg = config_from_args(args, TrainConfig, base=base)
+    if args.init_from is not None and _is_two_pass(args.init_from):
+
+        raise UserError(f"--init-from {args.init_from}: a two-pass run",
+                        hint="add --two-pass to fine-tune it")
     result = train(args.dataset, args.out, cfg, resume=args.resume, overwrite=args.overwrite,
-                   command=getattr(args, "command_line", None))
+                   command=getattr(args, "command_line", None), init_from=args.init_from)
     if result.status != "done":
         print(f"s3k train: error: training stopped at step {result.step} with non-finite values "
               f"({result.status}); {Path(args.out) / 'model.pt'} was not written; lower --lr, or see "
               f"{Path(args.out) / 'train.log'}", file=sys.stderr)
         return 1
     return 0
+
+
+def _is_two_pass(run: str) -> bool:
+
+    return is_two_pass(run)
 
 
 def _preset(args: argparse.Namespace) -> TrainConfig | None:
@@ -128,5 +144,6 @@ def _run_two_pass(args: argparse.Namespace, chosen: TrainConfig | None = None) -
              "crop_size": args.crop_size, "margin": args.crop_margin, "extent": args.crop_extent}
     options = {k: v if v is not None else (saved[1] if saved else DEFAULTS)[k] for k, v in given.items()}
     train_two_pass(args.dataset, args.out, cfg, **options, resume=args.resume, overwrite=args.overwrite,
-                   command=getattr(args, "command_line", None), keep_crops=args.keep_crops)
+                   command=getattr(args, "command_line", None), keep_crops=args.keep_crops,
+                   init_from=args.init_from)
     return 0

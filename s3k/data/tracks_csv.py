@@ -30,8 +30,8 @@ from s3k import outputs
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json, open_text
 
-__all__ = ["check_output", "csv_header", "csv_rows", "read_csv", "read_source", "rows_points", "source_path",
-           "write_csv", "write_source"]
+__all__ = ["array_rows", "check_output", "csv_header", "csv_rows", "read_csv", "read_source", "rows_points",
+           "source_path", "write_csv", "write_source"]
 
 
 def csv_header(keypoints: Sequence[str]) -> list[str]:
@@ -49,8 +49,13 @@ def _fmt(v: float) -> str:
 def csv_rows(fnums: Sequence[int], result: Any) -> list[list[str]]:
     """One CSV row per frame of ``result``, a :class:`s3k.readout.ReadOut` (its ``X``, ``error``, ``ncams``
     and ``score``; columns of :func:`csv_header`)."""
-    X, error = result.X.cpu().numpy(), result.error.cpu().numpy()
-    ncams, score = result.ncams.cpu().numpy(), result.score.cpu().numpy()
+    return array_rows(fnums, result.X.cpu().numpy(), result.error.cpu().numpy(), result.ncams.cpu().numpy(),
+                      result.score.cpu().numpy())
+
+
+def array_rows(fnums: Sequence[int], X: np.ndarray, error: np.ndarray, ncams: np.ndarray,
+               score: np.ndarray) -> list[list[str]]:
+    """One CSV row per frame from arrays: ``X (B, K, 3)``, ``error``, ``ncams``, ``score`` ``(B, K)``."""
     rows = []
     for b, fnum in enumerate(fnums):
         row: list[str] = []
@@ -129,11 +134,13 @@ def source_path(csv_path: str | Path) -> Path:
     return csv_path.with_name(csv_path.name + ".s3k.json")
 
 
-def write_source(csv_path: str | Path, units: str, **source: object) -> Path:
+def write_source(csv_path: str | Path, units: str, details: dict[str, Any] | None = None,
+                 **source: object) -> Path:
     """Write the unit of the CSV's points and where they came from (``run``, ``calibration``, ``dataset``...)
-    beside it; returns the file."""
+    beside it, and ``details`` as they are (JSON: the videos, the filter's settings); returns the file."""
     path = source_path(csv_path)
-    atomic_write_json({"units": str(units), **{k: str(v) for k, v in source.items() if v is not None}}, path)
+    atomic_write_json({"units": str(units), **{k: str(v) for k, v in source.items() if v is not None},
+                       **(details or {})}, path)
     return path
 
 

@@ -78,9 +78,21 @@ def stage_times(work: Path) -> dict[str, dict[str, float]]:
 def render(args, seed: int, work: Path) -> Path:
     """The seed's dataset, rendered once (with ``--label-pool`` labelled frames: a view of it with the 10
     chosen by ``--label-choice``); each stage's time is recorded (:func:`timed`)."""
-    pool = args.label_pool
+    out = render_pool(args, seed, work)
+    if args.label_pool == LABELLED:
+        return out
     names = data_names(args, seed)
-    out = work / names[0]
+    if (work / names[1] / "s3k.json").is_file():
+        return work / names[1]
+    with timed(work, f"label_choice-seed{seed}"):
+        return labelled_view(out, work / names[1], args.label_choice, seed)
+
+
+def render_pool(args, seed: int, work: Path) -> Path:
+    """The seed's rendered dataset with all ``--label-pool`` labelled frames, rendered once (its time recorded
+    as ``render-seedN``)."""
+    pool = args.label_pool
+    out = work / data_names(args, seed)[0]
     if not (out / "s3k.json").is_file() and args.scene == "insertion":
         from s3k.robot.insertion_data import write_insertion_dataset
 
@@ -97,12 +109,7 @@ def render(args, seed: int, work: Path) -> Path:
             simulate(SimulateConfig(args.scene, size=args.render, labelled=pool, unlabelled=args.unlabelled,
                                     test=args.test, seed=seed, **extra),
                      out, workers=args.parallel, progress=False, overwrite=True)
-    if pool == LABELLED:
-        return out
-    if (work / names[1] / "s3k.json").is_file():
-        return work / names[1]
-    with timed(work, f"label_choice-seed{seed}"):
-        return labelled_view(out, work / names[1], args.label_choice, seed)
+    return out
 
 
 def labelled_view(pool_dir: Path, out: Path, choice: str, seed: int, labelled: int = LABELLED) -> Path:
@@ -194,7 +201,7 @@ def _cpu_minutes_so_far(pid: int) -> float | None:
     return ticks / os.sysconf("SC_CLK_TCK") / 60
 
 
-def _read_record(record: Path) -> dict:
+def read_record(record: Path) -> dict:
     """A training's CPU record, with the minutes of an interrupted attempt (``unfinished_*``) folded in: they
     were spent, whether the run was then resumed or had already finished when its benchmark process died."""
     spent = json.loads(record.read_text()) if record.is_file() else {"cpu_minutes": 0.0, "wall_minutes": 0.0}
@@ -217,7 +224,7 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
     while pending or running:
         while pending and len(running) < parallel:
             name, cmd, record = pending.pop(0)
-            spent = _read_record(record)
+            spent = read_record(record)
             record.write_text(json.dumps(spent) + "\n")
             log.log(NOTE, f"training {name}")
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)

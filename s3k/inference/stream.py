@@ -8,6 +8,10 @@ and one line is written::
     {"frame": 12, "time": 0.48, "points": {"nose": [x, y, z], "tail": null}, "valid": {...},
      "latency_ms": 9.7}
 
+With a filter (``s3k stream --filter kalman``: the causal Kalman filter of :mod:`s3k.inference.kalman`, from
+this frame and the ones before it only) ``points`` and ``valid`` are the filtered points, ``raw`` the
+detector's and ``rejected`` the keypoints whose jump the filter rejected; ``latency_ms`` includes the filter.
+
 ``time`` is seconds since the stream started, when the frame was read; ``points`` are in the calibration's
 world frame and units (null where not triangulated); ``latency_ms`` is the time from reading the frame to
 its points. Live cameras run at their own rate: when the detector is slower, the stream says on stderr how
@@ -137,18 +141,33 @@ def _frames(sources: list[Source]) -> Iterator[list[np.ndarray]]:
         yield views  # type: ignore[misc]
 
 
+def _points(keypoints: list[str], X: np.ndarray, valid: np.ndarray) -> dict[str, Any]:
+    return {k: [round(float(v), 7) for v in X[j]] if valid[j] else None for j, k in enumerate(keypoints)}
+
+
 def _frame_line(i: int, t: float, keypoints: list[str], X: np.ndarray, valid: np.ndarray,
-                latency: float) -> str:
-    points = {k: [round(float(v), 7) for v in X[j]] if valid[j] else None for j, k in enumerate(keypoints)}
-    return json.dumps({"frame": i, "time": round(t, 6), "points": points,
-                       "valid": {k: bool(valid[j]) for j, k in enumerate(keypoints)},
-                       "latency_ms": round(1000 * latency, 3)})
+                latency: float, filtered: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> str:
+    """One frame's JSON line; with ``filtered`` (the causal filter's ``X, valid, rejected``) ``points`` and
+    ``valid`` are the filter's, ``raw`` the detector's points and ``rejected`` the keypoints whose jump the
+    filter rejected."""
+    line: dict[str, Any] = {"frame": i, "time": round(t, 6)}
+    if filtered is None:
+        line["points"] = _points(keypoints, X, valid)
+        line["valid"] = {k: bool(valid[j]) for j, k in enumerate(keypoints)}
+    else:
+        line["points"] = _points(keypoints, filtered[0], filtered[1])
+        line["valid"] = {k: bool(filtered[1][j]) for j, k in enumerate(keypoints)}
+        line["raw"] = _points(keypoints, X, valid)
+        line["rejected"] = [k for j, k in enumerate(keypoints) if filtered[2][j]]
+    line["latency_ms"] = round(1000 * latency, 3)
+    return json.dumps(line)
 
 
 def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None = None,
            out: IO[str] = sys.stdout, min_weight: float = DEFAULT_MIN_WEIGHT, max_frames: int | None = None,
            log: Callable[[int, list[np.ndarray], Any], None] | None = None,
-           say: Callable[[str], None] | None = None) -> StreamSummary:
+           say: Callable[[str], None] | None = None,
+           filter: Callable[[Any], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None) -> StreamSummary:
     """Detect every frame of the synchronized ``sources`` and write one JSON line per frame to ``out``
     (module docstring).
 
@@ -162,6 +181,8 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
         max_frames: stop after this many frames (default: at the end of the shortest source).
         log: called with ``(frame, views, detection)`` after each frame (the Rerun logger).
         say: where the notes on keeping up go (default: logged at ``s3k.messages.NOTE``).
+        filter: the causal filter over time (:class:`s3k.inference.track_filter.StreamFilter`), or None: the
+            lines hold its points, from this frame and the ones before it only.
     """
     say = say or note
     keypoints = detector.keypoints
@@ -180,9 +201,10 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
                 break
             read = time.perf_counter()
             det = detector([v[None] for v in views], cams, boxes, min_weight)  # type: ignore[index]
+            filtered = filter(det) if filter is not None else None
             done = time.perf_counter()
             out.write(_frame_line(i, read - start, keypoints, det.X[0].numpy(), det.valid[0].numpy(),
-                                  done - read) + "\n")
+                                  done - read, filtered) + "\n")
             i += 1  # counted as soon as its line is written: Ctrl-C in the flush or the logger keeps it
             out.flush()
             if log is not None:

@@ -20,6 +20,7 @@ reprojected 3D keypoints (filled discs) and the per-view detections (crosses), o
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,19 +30,21 @@ from tqdm import tqdm
 from s3k.choices import Device
 from s3k.data import imageseq, video
 from s3k.data.formats.calibration_files import read_calibration
-from s3k.data.tracks_csv import check_output, csv_rows, write_csv
+from s3k.data.tracks_csv import array_rows, check_output, csv_rows, write_csv
 from s3k.detector import Detector
 from s3k.draw import draw_overlay, edge_indices, keypoint_colours
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
+from s3k.inference.kalman import FilterSettings
 from s3k.inference.rig_check import calibration_notes
+from s3k.inference.track_filter import doubt, doubt_path, filter_track, layout_shape_of, raw_path, write_doubt
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "prepare_cameras",
-           "track_videos"]
+__all__ = ["FIT_MODES", "CameraInput", "TrackSummary", "empty_result_hint", "fit_box", "limb_indices",
+           "prepare_cameras", "track_videos"]
 
 FIT_MODES = ("pad", "crop", "stretch")
 
@@ -167,7 +170,11 @@ class TrackSummary:
         passing_fraction: per keypoint, the fraction of frames with at least two views above ``min_weight``.
         min_weight: the threshold used.
         units: world unit of the calibration.
-        path: the CSV written.
+        path: the CSV written (the filtered points when a filter ran).
+        raw: the CSV of the unfiltered points when a filter ran (:func:`s3k.inference.track_filter.raw_path`),
+            else None (``path`` holds them).
+        doubt: the frames ranked by doubt (:func:`s3k.inference.track_filter.write_doubt`).
+        filter: the filter's settings and what it fitted and did, or None.
         fps: the videos' frame rate (None where they differ or an image sequence records none).
     """
 
@@ -180,6 +187,9 @@ class TrackSummary:
     units: str
     path: Path
     fps: float | None = None
+    raw: Path | None = None
+    doubt: Path | None = None
+    filter: dict | None = None
 
 
 def _frame_batches(inputs: list[CameraInput], batch: int, start: int, stop: int | None):
@@ -238,7 +248,9 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
                  min_weight: float = DEFAULT_MIN_WEIGHT, fit: str = "pad",
                  crops: dict[str, tuple[float, ...]] | None = None, device: Device = "auto",
                  units: str | None = None, progress: bool = True, overwrite: bool = False,
-                 video_regions: dict[str, tuple[float, ...]] | None = None) -> TrackSummary:
+                 video_regions: dict[str, tuple[float, ...]] | None = None,
+                 filter_settings: FilterSettings | None = None,
+                 skeleton: Sequence[tuple[str, str]] | None = None) -> TrackSummary:
     """Track synchronized videos to 3D keypoints and write anipose's 3D CSV (see the module docstring).
 
     Args:
@@ -260,12 +272,19 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
         overwrite: replace an existing ``out``.
         video_regions: ``{camera: (x0, y0, x1, y1)}``, the region of the calibrated image each video shows
             (:meth:`s3k.data.rig.Rig.with_video_regions`).
+        filter_settings: filter the points over time (:mod:`s3k.inference.kalman`; the raw points go to
+            ``<stem>.raw.csv``), or None / ``method="none"``: no filter.
+        skeleton: the limbs a filter holds near their lengths, pairs of keypoint names (None: the skeleton
+            the run recorded from its dataset).
 
     Returns:
-        A :class:`TrackSummary`.
+        A :class:`TrackSummary`; the frames ranked by doubt are written to ``<stem>.doubt.csv``.
     """
     _check_inputs(videos, batch, start, stop, min_weight)
     out = check_output(out, overwrite)
+    filtering = filter_settings is not None and filter_settings.check().method != "none"
+    raw = check_output(raw_path(out), overwrite) if filtering else out
+    check_output(doubt_path(out), overwrite)
     calib = read_calibration(calibration, units=units)
     calib = calib.with_sizes({cam: video.frame_size(p) for cam, p in videos.items()
                               if cam in calib.names and video.exists(p)})
@@ -280,10 +299,45 @@ def track_videos(run_dir: str | Path, videos: dict[str, Path], calibration: str 
     end = _frame_range(inputs, start, stop)
     boxes = np.array([c.box for c in inputs], dtype=np.float64)
     frames = video.prefetch(_frame_batches(inputs, batch, start, end))
-    n, keypoints, valid, error, passing = _track(detector, frames, cams, boxes, min_weight, out, overlay,
-                                                 inputs, end - start, progress)
-    return TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out,
-                        _common_rate(inputs))
+    limbs = detector.meta.recorded_skeleton() if skeleton is None else skeleton
+    edges = limb_indices(limbs, detector.keypoints)
+    got = _track(detector, frames, cams, boxes, min_weight, raw, overlay, inputs, end - start, progress)
+    n, keypoints, valid, error, passing = _summary_of(got, detector.keypoints)
+    summary = TrackSummary(n, keypoints, valid, error, passing, min_weight, calib.units, out,
+                           _common_rate(inputs))
+    rejected = None
+    if filtering:
+        assert filter_settings is not None
+        rejected = _write_filtered(got, cams, filter_settings, detector, edges, out)
+        summary.raw, summary.filter = raw, {"settings": filter_settings.to_dict(), **rejected.info}
+    summary.doubt = write_doubt(doubt_path(out), got.fnums,
+                                doubt(got.weights, got.residual, got.valid.astype(bool),
+                                      None if rejected is None else rejected.rejected),
+                                detector.keypoints, None if rejected is None else rejected.rejected)
+    return summary
+
+
+def limb_indices(skeleton: Sequence[tuple[str, str]], keypoints: list[str]) -> list[tuple[int, int]]:
+    """The skeleton's limbs as keypoint index pairs; a name the run does not have is refused."""
+    out = []
+    for a, b in skeleton:
+        for name in (a, b):
+            if name not in keypoints:
+                raise UserError(f"--filter-limbs: keypoint {name!r} is not one of the run's "
+                                f"({', '.join(keypoints)})")
+        out.append((keypoints.index(a), keypoints.index(b)))
+    return out
+
+
+def _write_filtered(got: _Collected, cams: Cameras, settings: FilterSettings, detector, edges, out: Path):
+    """Filter the collected track and write its CSV to ``out``; returns the filter's result."""
+    shape = layout_shape_of(detector.meta.layout)
+    res = filter_track(got.X, got.error, got.score, got.used.astype(bool), cams.numpy(), settings, shape,
+                       edges)
+    with write_csv(out, detector.keypoints) as writer:
+        ncams = np.where(res.measured, got.ncams, 0)  # 0: no measurement entered the filter there
+        writer.writerows(array_rows(got.fnums.tolist(), res.X, got.error, ncams, got.score))
+    return res
 
 
 def say_calibration(run_dir, calib, names: list[str], source) -> None:
@@ -303,9 +357,26 @@ def _common_rate(inputs: list[CameraInput]) -> float | None:
     return rates[0] if rates and max(rates) - min(rates) <= 1e-3 * max(rates) else None
 
 
+@dataclass
+class _Collected:
+    """What :func:`_track` keeps of every frame for the filter and the doubt ranking: ``fnums (T,)``, ``X (T,
+    K, 3)``, ``error``, ``ncams``, ``score``, ``valid`` ``(T, K)``, ``used``, ``weights``, ``residual`` ``(T,
+    C, K)``."""
+
+    fnums: np.ndarray
+    X: np.ndarray
+    error: np.ndarray
+    ncams: np.ndarray
+    score: np.ndarray
+    valid: np.ndarray
+    used: np.ndarray
+    weights: np.ndarray
+    residual: np.ndarray
+
+
 def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):
-    """Detect every batch of ``frames``, write the CSV (and overlays); ``(frames, keypoints, valid fraction,
-    median error, passing fraction)`` for the :class:`TrackSummary`."""
+    """Detect every batch of ``frames``, write the CSV of the raw points to ``out`` (and overlays); returns
+    the :class:`_Collected` arrays."""
 
     writers = []
     if overlay is not None:
@@ -313,7 +384,7 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
         writers = [video.VideoWriter(Path(overlay) / f"{c.name}.mp4", c.fps) for c in inputs]
     colours = keypoint_colours(len(detector.keypoints))
     edges = edge_indices(detector.meta.recorded_skeleton(), detector.keypoints)
-    n, valids, errors, passing = 0, [], [], []
+    parts: dict[str, list[np.ndarray]] = {name: [] for name in _Collected.__dataclass_fields__}
     try:
         with write_csv(out, detector.keypoints) as writer:
             bar = tqdm(total=total, unit="frame", disable=not progress, desc="track")
@@ -325,23 +396,31 @@ def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, tota
                     for b in range(len(fnums)):
                         w.write(draw_overlay(originals[b][c], reproj[b, c], uv[b, c], used[b, c], colours,
                                              edges))
-                valids.append(result.valid.numpy())
-                errors.append(result.error.numpy())
-                passing.append((result.ncams >= 2).numpy())
-                n += len(fnums)
+                for name, value in (("fnums", np.asarray(fnums)), ("X", result.X), ("error", result.error),
+                                    ("ncams", result.ncams), ("score", result.score), ("valid", result.valid),
+                                    ("used", result.used), ("weights", result.weights),
+                                    ("residual", result.residual)):
+                    parts[name].append(np.asarray(value))
                 bar.update(len(fnums))
             bar.close()
     finally:
         for w in writers:
             w.close()
-    K = len(detector.keypoints)
-    valid = np.concatenate(valids) if valids else np.zeros((0, K), bool)
-    err = np.concatenate(errors) if errors else np.zeros((0, K))
-    ok = np.concatenate(passing) if passing else np.zeros((0, K), bool)
+    K, C = len(detector.keypoints), len(inputs)
+    empty = {"fnums": (0,), "X": (0, K, 3), "used": (0, C, K), "weights": (0, C, K), "residual": (0, C, K)}
+    return _Collected(**{name: np.concatenate(v) if v else np.zeros(empty.get(name, (0, K)))
+                         for name, v in parts.items()})
+
+
+def _summary_of(got: _Collected, keypoints: list[str]):
+    """``(frames, keypoints, valid fraction, median error, passing fraction)`` of a
+    :class:`TrackSummary`."""
+    K = len(keypoints)
+    valid, err, ok = got.valid.astype(bool), got.error, got.ncams >= 2
     med = [float(np.median(err[valid[:, k], k])) if valid[:, k].any() else float("nan") for k in range(K)]
     frac = [float(valid[:, k].mean()) if len(valid) else 0.0 for k in range(K)]
     pas = [float(ok[:, k].mean()) if len(ok) else 0.0 for k in range(K)]
-    return n, list(detector.keypoints), frac, med, pas
+    return len(got.fnums), list(keypoints), frac, med, pas
 
 
 def empty_result_hint(summary: TrackSummary) -> str | None:

@@ -31,7 +31,8 @@ from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.inference.metrics import pixel_sizes_mm
 from s3k.outputs import check_replaceable, replace_folder
-from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, FrameSpec, Scene, SimFrame
+from s3k.sim.rigs import RIGS, describe_rig, rig_sampler
+from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, CameraSampler, FrameSpec, Scene, SimFrame
 from s3k.sim.scenes import SCENES, make_scene
 
 MODES = ("start", "full")
@@ -63,6 +64,8 @@ class SimulateConfig:
         unlabelled_arrangements: plush only: the unlabelled frames are spread over this many further
             arrangements as well as the 7 training ones (each a new placement of the toys and a new camera
             rig; from arrangement 13 on, so in no test set and no grasp trial). 0: the training ones only.
+        rig: how the cameras are drawn: "train" (the scene's own rig) or a rig outside its ranges, "low",
+            "high", "far" or "wide" (:mod:`s3k.sim.rigs`), for test sets of cameras never seen in training.
     """
 
     scene: str
@@ -77,10 +80,13 @@ class SimulateConfig:
     test_segments: int = 2
     train_instances: int = NUM_TRAIN_INSTANCES
     unlabelled_arrangements: int = 0
+    rig: str = "train"
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
             raise UserError(f"scene: unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
+        if self.rig not in RIGS:
+            raise UserError(f"rig (--rig): unknown camera rig {self.rig!r}; choose from {', '.join(RIGS)}")
         for name in ("labelled", "unlabelled", "test"):
             if getattr(self, name) < 0:
                 raise UserError(f"{name} (--{name}): frame count must be >= 0, got {getattr(self, name)}")
@@ -115,7 +121,13 @@ class SimulateConfig:
                      test_instances=list(range(NUM_TRAIN_INSTANCES, NUM_INSTANCES)))
         if self.scene == "plush" and self.unlabelled_arrangements:
             d.update(unlabelled_arrangements=self.unlabelled_arrangements)
+        if self.rig != "train":
+            d.update(rig=self.rig, cameras=describe_rig(self.cameras()))
         return d
+
+    def cameras(self) -> CameraSampler:
+        """How this dataset's cameras are drawn: the scene's own rig or the one ``rig`` names."""
+        return rig_sampler(SCENES[self.scene].cameras_sampler, self.rig)
 
 
 def _spread(n: int, parts: int) -> list[int]:
@@ -208,10 +220,10 @@ def scene_mm_per_px(scene: str, size: int, frames: int = 200, seed: int = 0, obj
 _WORKER_SCENE: Scene | None = None
 
 
-def _init_worker(scene: str, size: int, seed: int) -> None:
+def _init_worker(scene: str, size: int, seed: int, cameras: CameraSampler) -> None:
     global _WORKER_SCENE
     cv2.setNumThreads(1)
-    _WORKER_SCENE = make_scene(scene, size=size, seed=seed)  # the object seed: the scene's look
+    _WORKER_SCENE = make_scene(scene, size=size, seed=seed, cameras=cameras)  # seed: the scene's look
 
 
 def _render_chunk(args: tuple[int, list[FrameSpec]]) -> list[SimFrame]:
@@ -224,14 +236,15 @@ def render_frames(cfg: SimulateConfig, specs: Sequence[FrameSpec], workers: int 
                   chunk: int = 4) -> Iterator[SimFrame]:
     """Renders ``specs`` in order, in ``workers`` processes (in this process when ``workers <= 1``)."""
     if workers <= 1:
-        with make_scene(cfg.scene, size=cfg.size, seed=cfg.object_seed) as scene:
+        with make_scene(cfg.scene, size=cfg.size, seed=cfg.object_seed, cameras=cfg.cameras()) as scene:
             for s in specs:
                 yield scene.frame(s, frame_rng(cfg.seed, s.frame_id))
         return
     chunks = [(cfg.seed, list(specs[i:i + chunk])) for i in range(0, len(specs), chunk)]
     # spawn: a fresh interpreter per worker, so no OpenGL or thread state is inherited from the parent.
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.scene, cfg.size, cfg.object_seed)) as pool:
+    with ctx.Pool(workers, initializer=_init_worker,
+                  initargs=(cfg.scene, cfg.size, cfg.object_seed, cfg.cameras())) as pool:
         for frames in pool.imap(_render_chunk, chunks):
             yield from frames
 

@@ -171,6 +171,8 @@ class Scene:
         seed: object seed: the scene's textures, object shapes and distractor sets derive from it (the
             frames' poses and cameras come from the generator passed to :meth:`frame`).
         num_cameras: number of cameras (the paper uses 4).
+        cameras: how the cameras are drawn, instead of the scene's own ``cameras_sampler`` (a rig outside
+            the training rig's ranges: :mod:`s3k.sim.rigs`).
     """
 
     name = "scene"
@@ -184,9 +186,12 @@ class Scene:
     OCCLUDER_GROUP = 2
     num_tables = 6
 
-    def __init__(self, size: int = 128, seed: int = 0, num_cameras: int = 4):
+    def __init__(self, size: int = 128, seed: int = 0, num_cameras: int = 4,
+                 cameras: CameraSampler | None = None):
         if size < 8:
             raise ValueError(f"{self.name} scene: image size must be >= 8 px, got {size}")
+        if cameras is not None:
+            self.cameras_sampler = cameras
         self.size = int(size)
         self.seed = int(seed)
         self.num_cameras = int(num_cameras)

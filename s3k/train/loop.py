@@ -30,6 +30,7 @@ from s3k.detector import (
     PROGRESS_FILE,
     TENSORBOARD_DIR,
     DetectorMeta,
+    load_network,
     pick_device,
     save_model_file,
     training_precision,
@@ -144,6 +145,13 @@ class _Loop:
                         self.info.world)
             self.gen.manual_seed(self.cfg.seed * 1000 + self.info.rank + 7919 * self.step)
         log.info("resumed from %s at step %d", path, self.step)
+
+    def start_from(self, weights: dict[str, Any], run: Any) -> None:
+        """Start from another run's network (``train(init_from=...)``), the teacher too."""
+        self.net.load_state_dict(weights)
+        if self.teacher is not None:
+            self.teacher.load_state_dict(weights)
+        log.info("fine-tuning: the network starts from %s", run)
 
     def save(self, final: bool = False) -> None:
         """Write the checkpoint (and at the end ``model.pt``) from rank 0, unless the model is not finite."""
@@ -275,9 +283,26 @@ def _log_unsup_schedule(cfg: TrainConfig) -> None:
              cfg.alpha, warmup + max(ramp, 1), scaled)
 
 
+def _initial_weights(run: str | Path, meta: DetectorMeta) -> dict[str, Any]:
+    """The network weights of the run ``run`` for a run of ``meta`` to start from.
+
+    Raises:
+        UserError: naming the run and what differs (keypoints, architecture).
+    """
+    model, theirs = load_network(run, "cpu")
+    if list(theirs.keypoints) != list(meta.keypoints):
+        raise UserError(f"--init-from {run}: its keypoints {theirs.keypoints} are not this dataset's "
+                        f"{meta.keypoints}", hint="fine-tune a run trained on the same keypoints")
+    if UNetConfig.from_dict(theirs.model) != UNetConfig.from_dict(meta.model):
+        raise UserError(f"--init-from {run}: its network ({theirs.model}) differs from this run's "
+                        f"({meta.model})", hint="give the options it was trained with (--channels, --stride, "
+                        "--norm ...)")
+    return model.state_dict()
+
+
 def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, resume: bool = False,
-          callback=None, *,
-          overwrite: bool = False, command: str | None = None) -> TrainResult:
+          callback=None, *, overwrite: bool = False, command: str | None = None,
+          init_from: str | Path | None = None) -> TrainResult:
     """Train a detector on the dataset folder ``data`` into the run folder ``out``.
 
     Args:
@@ -293,6 +318,9 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
             ``time_data_s``, ``time_step_s``); an exception it raises aborts the run like a kill would.
         overwrite: replace the run in ``out`` (only the files a run holds are deleted).
         command: the command line, recorded in the run's history.
+        init_from: a one-pass run folder whose network (same keypoints and architecture) starts this run
+            instead of a random one: fine-tuning, with this run's own steps, learning rate and schedule. A
+            run resumed from its checkpoint ignores it.
 
     Returns:
         A :class:`TrainResult`.
@@ -303,13 +331,13 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
     cfg.validate()
     info = init_distributed(cfg.device)
     try:
-        return _train(data, Path(out), cfg, resume, overwrite, callback, command, info)
+        return _train(data, Path(out), cfg, resume, overwrite, callback, command, info, init_from)
     finally:
         finish_distributed(info)
 
 
 def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool,
-           callback, command: str | None, info: DistInfo) -> TrainResult:
+           callback, command: str | None, info: DistInfo, init_from: str | Path | None = None) -> TrainResult:
     data = data_path(source)
     device = pick_device(cfg.device, info.local_rank)
     if device.type == "cuda":
@@ -322,6 +350,7 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = reference_layout(data, distances, cfg)
     meta = detector_meta(d, cfg, distances)
+    start = _initial_weights(init_from, meta) if init_from is not None else None  # refused before any write
     # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
     t0 = time.perf_counter()
     lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
@@ -339,6 +368,8 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     if state is not None:
         loop.restore(state, out / CHECKPOINT_FILE)
         del state
+    elif start is not None:
+        loop.start_from(start, init_from)
     elif resume:
         log.info("no checkpoint in %s: starting a new run", out)
     ref_layout = layout_size(distances)

@@ -198,7 +198,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
                    coarse_stride: int | None = None, coarse_lr: float | None = None,
                    crop_size: int = REFERENCE_CROP, margin: float = 0.3, extent: float | None = None,
                    resume: bool = False, overwrite: bool = False, command: str | None = None,
-                   keep_crops: bool = False, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+                   keep_crops: bool = False, log: Callable[[str], None] | None = None,
+                   init_from: str | Path | None = None) -> dict[str, Any]:
     """Train a two-pass detector (module docstring) into ``out``; each stage is skipped when its output is
     complete, so ``resume`` continues a killed run at the stage where it stopped.
 
@@ -221,12 +222,15 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         extent: the crop's side in world units (default: from the labels).
         resume, overwrite, command: as for :func:`s3k.train.train`.
         keep_crops: also write the crops as a dataset folder, ``RUN/crops``.
+        init_from: a two-pass run whose passes start this run's (fine-tuning; :func:`s3k.train.train`), its
+            crops' extent kept unless ``extent`` is given.
 
     Returns:
         ``{"coarse": ..., "fine": ..., "rule": CropRule}``, a pass's :class:`s3k.train.TrainResult` or None
         when it was complete before this call.
     """
     data, out, log = Path(data), Path(out), log or say
+    inits, extent = _init_passes(init_from, extent)
     # every option of both passes is checked before the coarse pass trains
     for value, bounds, option in ((coarse_size, Range(ge=16), "--coarse-size"), (crop_size, Range(ge=16),
                                   "--crop-size"), (margin, Range(ge=0), "--crop-margin"),
@@ -256,7 +260,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
         write_options(out, cfg, options)
     try:
         results = _train_two_pass(data, out, cfg, coarse_size, coarse_steps, coarse_rotation, crop_size,
-                                  margin, extent, command, log, keep_crops, coarse_stride, coarse_lr)
+                                  margin, extent, command, log, keep_crops, coarse_stride, coarse_lr, inits)
     except BaseException:
         if is_stub(out):  # nothing trained: leave no folder that a retry would have to get past
             shutil.rmtree(out, ignore_errors=True)
@@ -268,7 +272,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg, *, coarse_size: int =
 def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: int | None,
                     coarse_rotation: float | None, crop_size: int, margin: float, extent: float | None,
                     command: str | None, log, keep_crops: bool = False,
-                    coarse_stride: int | None = None, coarse_lr: float | None = None) -> dict[str, Any]:
+                    coarse_stride: int | None = None, coarse_lr: float | None = None,
+                    inits: tuple[Path, Path] | None = None) -> dict[str, Any]:
     ds = Dataset.open(data, cache="none")
     rule = (CropRule(float(extent), int(crop_size), 0.0) if extent is not None
             else crop_rule_from_labels(ds, crop_size, margin))
@@ -286,7 +291,7 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
         coarse_data = ds.with_cache("disk")
     with _StageClock(out, "coarse") as clock:
         results["coarse"] = _train_pass(train, coarse_data, out / "coarse", coarse_cfg, command, log,
-                                        "coarse pass", clock)
+                                        "coarse pass", clock, inits[0] if inits else None)
     written = out / "crops"
     with _StageClock(out, "crops"):
         if (written / "s3k.json").is_file():  # written by an earlier call: the refining pass trains on them
@@ -306,9 +311,22 @@ def _train_two_pass(data: Path, out: Path, cfg, coarse_size: int, coarse_steps: 
     ds.release_frames()
     with _StageClock(out, "fine") as clock:
         results["fine"] = _train_pass(train, crops, out / "fine", refining_config(cfg, rule.size), command,
-                                      log, "refining pass", clock)
+                                      log, "refining pass", clock, inits[1] if inits else None)
     write_two_pass(out, rule, coarse_size, ds.keypoints)
     return results
+
+
+def _init_passes(init_from: str | Path | None, extent: float | None
+                 ) -> tuple[tuple[Path, Path] | None, float | None]:
+    """The passes of the two-pass run ``init_from`` that start this run's, and the crops' extent (its own
+    unless ``extent`` is given)."""
+    if init_from is None:
+        return None, extent
+    if not is_two_pass(init_from):
+        raise UserError(f"--init-from {init_from}: not a two-pass run", hint="fine-tune a --two-pass run "
+                        "with --two-pass, a one-pass run without it")
+    rule, coarse, fine = read_two_pass(init_from)
+    return (coarse, fine), rule.extent if extent is None else extent
 
 
 def _hold_frames(ds: Dataset, cfg, log) -> bool:
@@ -399,7 +417,7 @@ class _StageClock:
         self._write()
 
 
-def _train_pass(train, data, run: Path, cfg, command, log, what: str, clock: _StageClock):
+def _train_pass(train, data, run: Path, cfg, command, log, what: str, clock: _StageClock, init_from=None):
     """Train one pass unless its model exists (then None, after checking it was trained as this call would
     train it); resume a pass whose folder exists."""
     if (run / "model.pt").is_file():
@@ -415,7 +433,8 @@ def _train_pass(train, data, run: Path, cfg, command, log, what: str, clock: _St
         log(f"{what}: {run} is complete")
         return None
     log(f"{what}: training {run}")
-    result = train(data, run, cfg, resume=run.exists(), callback=clock.tick, command=command)
+    result = train(data, run, cfg, resume=run.exists(), callback=clock.tick, command=command,
+                   init_from=init_from)
     if result.status != "done":
         raise UserError(f"{what} stopped ({result.status}); see {run / 'train.log'}",
                         hint="fix what the log says and continue with --resume")

@@ -1,0 +1,244 @@
+"""Filtered tracks and one round of the way back on the real recording (docs/tracks.md).
+
+1. ``s3k track`` tracks the recording's four videos with RUN (offline Kalman filter on, the SLEAP
+   skeleton's limbs held near their lengths), and the raw and filtered points are compared: frame-to-frame
+   jitter (median norm of the second difference, mm per frame squared) and the 3D error against the
+   proofread labels triangulated from all four cameras (the calibration given; median and RMS, mm), on the
+   test frames and on all frames.
+2. With ``--loop``: a copy of DATA gets the ``--worst`` frames of the track's doubt ranking (``s3k
+   add-frames``), labelled from the proofread labels as a stand-in for a person (through the labelling app's
+   store, as its clicks would be), RUN is fine-tuned on it (``s3k train --init-from RUN``), and the test
+   frames' 3D error is measured again. With ``--control`` RUN is also trained on as long on an unchanged copy
+   of DATA, so that what the new labels bring is told from what more steps bring.
+
+Example::
+
+    python benchmarks/real_tracks.py --run runs/real/run-s3k --data runs/real/crop \\
+        --calibration runs/real/calibration_fixed.toml --work /tmp/real-tracks --loop --control \\
+        --out docs/results/tracks/real.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+
+CAMERAS = ("back", "mid", "side", "top")
+
+
+def recording_files(recording: Path) -> tuple[dict[str, Path], dict[str, Path]]:
+    videos = {c: recording / c / f"minimal_{c}.mp4" for c in CAMERAS}
+    sleap = {c: recording / c / f"minimal_{c}_proofread.analysis.h5" for c in CAMERAS}
+    return videos, sleap
+
+
+def proofread_points(sleap: dict[str, Path], calibration: Path) -> tuple[list[str], np.ndarray, dict]:
+    """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)})``: the proofread labels triangulated from every
+    camera that has them (NaN where fewer than two), and the labels themselves, full-resolution pixels."""
+    import torch
+
+    from s3k.data.formats.anipose import read_anipose_calibration
+    from s3k.data.formats.sleap import read_sleap_analysis
+    from s3k.geometry import triangulate_pixels
+
+    rig = read_anipose_calibration(calibration)
+    tables = {c: read_sleap_analysis(sleap[c]) for c in rig.names}
+    keypoints = list(tables[rig.names[0]].keypoints)
+    uv = np.stack([tables[c].uv for c in rig.names], axis=1)  # (T, C, K, 2)
+    seen = np.isfinite(uv).all(-1)
+    X, valid = triangulate_pixels(rig.cameras, torch.from_numpy(np.nan_to_num(uv)),
+                                  torch.from_numpy(seen * 1.0))
+    X = np.where((valid.numpy() & (seen.sum(1) >= 2))[..., None], X.numpy(), np.nan)
+    return keypoints, X, {c: tables[c].uv for c in rig.names}
+
+
+def skeleton_of(sleap_file: Path) -> list[str]:
+    """The SLEAP file's edges as ``A,B`` (the dataset's skeleton, which the import does not yet keep)."""
+    import h5py
+
+    with h5py.File(sleap_file, "r") as f:
+        return [f"{a.decode()},{b.decode()}" for a, b in f["edge_names"][:]]
+
+
+def track(run: Path, videos: dict[str, Path], calibration: Path, out: Path, limbs: list[str]) -> None:
+    from s3k import cli
+
+    args = ["track", str(run), "--videos", *[f"{c}={p}" for c, p in videos.items()], "--calibration",
+            str(calibration), "--min-weight", "0.5", "--out", str(out), "--overwrite", "--no-progress"]
+    if limbs:
+        args += ["--filter-limbs", *limbs]
+    if cli.main(args) != 0:
+        raise SystemExit(f"s3k track {run} failed")
+
+
+def compare(csv_path: Path, keypoints: list[str], truth: np.ndarray, splits: dict[int, str]) -> dict:
+    """Raw and filtered points of a track against ``truth``: jitter and errors per split, mm."""
+    from s3k.data.tracks_csv import read_csv
+    from s3k.experiments.track_filter import errors, jitter
+    from s3k.inference.track_filter import raw_path
+
+    out = {}
+    raw_pts = read_csv(raw_path(csv_path), keypoints)
+    filt_pts = read_csv(csv_path, keypoints)
+    frames = sorted(raw_pts)
+    raw = np.stack([raw_pts[f] for f in frames])
+    filt = np.stack([filt_pts[f] for f in frames])
+    ref = truth[frames]
+    placed = np.isfinite(raw).all(-1)
+    split = np.array([splits.get(f, "not imported") for f in frames])
+    for name, X in (("raw", raw), ("filtered", filt)):
+        out[name] = {"jitter_mm_per_frame2": jitter(X), "all": errors(X, ref, 1.0, placed)}
+        for s in ("test", "labelled", "unlabelled"):
+            out[name][s] = errors(X, ref, 1.0, placed & (split == s)[:, None])
+    return out
+
+
+def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray],
+                         keypoints: list[str]) -> int:
+    """Label the dataset's ``frames`` with the proofread labels of their video frames, mapped onto the
+    dataset's images as its import mapped them, through the labelling app's store; returns the labels."""
+    from s3k.data import Dataset
+    from s3k.detector.geometry_record import dataset_geometry
+    from s3k.geometry.warp import crop_resize_matrix
+    from s3k.label.store import Edit, LabelStore
+
+    ds = Dataset.open(data, cache="none")
+    geometry = dataset_geometry(ds)
+    video = dict(zip(ds.frames().tolist(), ds.column("video_frame").astype(int).tolist()))
+    W, H = ds.image_size
+    store = LabelStore.open(data, labeller="proofread (stand-in for a person)")
+    n = 0
+    for f in frames:
+        edits = []
+        for cam in ds.cameras:
+            M = crop_resize_matrix(tuple(geometry["cameras"][cam]["box"]), ds.image_size)
+            for k, kp in enumerate(keypoints):
+                if kp not in ds.keypoints:
+                    continue
+                p = uv[cam][video[f], k]
+                if not np.isfinite(p).all():
+                    continue
+                u, v = (M @ np.array([p[0], p[1], 1.0]))[:2]
+                if -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5:
+                    edits.append(Edit(cam, kp, float(u), float(v)))
+        if edits:
+            store.save(f, edits, store.version(f), source="proofread")
+            n += len(edits)
+    return n
+
+
+def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float) -> None:
+    """``s3k train DATA --out OUT --init-from RUN`` with RUN's configuration, ``steps`` at ``lr``, the
+    self-supervised term on from the start."""
+    from s3k import cli
+
+    config = json.loads((run / "config.json").read_text())["config"]
+    cfg_file = out.with_suffix(".config.json")
+    cfg_file.write_text(json.dumps(config))
+    args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--config", str(cfg_file),
+            "--steps", str(steps), "--lr", str(lr), "--warmup-steps", "0", "--ramp-steps", "0",
+            "--val-every", "0", "--threads", "1", "--no-progress"]
+    if (out / "config.json").is_file():
+        args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
+    if cli.main(args) != 0:
+        raise SystemExit(f"s3k train {out} failed")
+
+
+def copy_dataset(data: Path, to: Path) -> Path:
+    if not (to / "s3k.json").is_file():
+        shutil.copytree(data, to, ignore=shutil.ignore_patterns(".cache"))
+    return to
+
+
+def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv) -> dict:
+    """One round of the way back (module docstring)."""
+    from s3k import cli
+    from s3k.label.queue import read_queue
+
+    work = Path(a.work)
+    data = work / "data-loop"
+    if not (data / "label-queue.csv").is_file():
+        copy_dataset(Path(a.data), data)
+        if cli.main(["add-frames", str(work / "tracked.csv"), "--data", str(data), "--worst", str(a.worst),
+                     "--spacing", str(a.spacing)]) != 0:
+            raise SystemExit("s3k add-frames failed")
+        queued = [int(r["frame"]) for r in read_queue(data)]
+        labels = label_from_proofread(data, queued, uv, keypoints)
+    else:
+        queued, labels = [int(r["frame"]) for r in read_queue(data)], None
+    result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr}
+    fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
+    track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs)
+    result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
+    if a.control:
+        control = copy_dataset(Path(a.data), work / "data-control")
+        fine_tune(Path(a.run), control, work / "run-continued", a.steps, a.lr)
+        track(work / "run-continued", videos, Path(a.calibration), work / "tracked-continued.csv", limbs)
+        result["continued_without_new_labels"] = compare(work / "tracked-continued.csv", keypoints, truth,
+                                                         splits)
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--run", required=True, help="a finished run of 's3k train' on DATA")
+    p.add_argument("--data", required=True, help="the recording's dataset (not changed: the loop copies it)")
+    p.add_argument("--calibration", required=True, help="the calibration the dataset was imported with")
+    p.add_argument("--recording", default="../shared/data/real/sleap-anipose-minimal_session/minimal_session")
+    p.add_argument("--work", required=True, help="folder for the tracks, the copies and the runs")
+    p.add_argument("--loop", action="store_true", help="one round of the way back (module docstring)")
+    p.add_argument("--control", action="store_true", help="also train as long without the new labels")
+    p.add_argument("--worst", type=int, default=10, help="frames to add and label (default 10)")
+    p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
+    p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
+    p.add_argument("--lr", type=float, default=3e-4, help="fine-tuning learning rate (default 3e-4)")
+    p.add_argument("--out", default=None, help="JSON file to write")
+    a = p.parse_args(argv)
+    import torch
+
+    from s3k.data import Dataset
+
+    torch.set_num_threads(1)
+    work = Path(a.work)
+    work.mkdir(parents=True, exist_ok=True)
+    videos, sleap = recording_files(Path(a.recording))
+    keypoints, truth, uv = proofread_points(sleap, Path(a.calibration))
+    ds = Dataset.open(a.data, cache="none")
+    splits = dict(zip(ds.column("video_frame").astype(int).tolist(), ds.split_of(ds.frames()).tolist()))
+    limbs = skeleton_of(sleap["back"])
+    track(Path(a.run), videos, Path(a.calibration), work / "tracked.csv", limbs)
+    given = sys.argv[1:] if argv is None else argv
+    result: dict = {"command": "python benchmarks/real_tracks.py " + shlex.join(given),
+                    "revision": git_revision(), "run": a.run, "units": "mm",
+                    "reference": "proofread labels triangulated from all four cameras",
+                    "limbs": limbs, "before": compare(work / "tracked.csv", keypoints, truth, splits)}
+    source = json.loads((work / "tracked.csv.s3k.json").read_text())
+    result["filter"] = source.get("filter")
+    if a.loop:
+        result["loop"] = loop(a, videos, sleap, keypoints, truth, splits, limbs, uv)
+    for name in ("raw", "filtered"):
+        r = result["before"][name]
+        print(f"{name:8s} jitter {r['jitter_mm_per_frame2']:.3f} mm/frame2; test frames median "
+              f"{r['test']['median']:.2f} mm, RMS {r['test']['rms']:.2f} mm; all frames median "
+              f"{r['all']['median']:.2f} mm")
+    if a.loop:
+        for what in ("after", "continued_without_new_labels"):
+            if what in result["loop"]:
+                r = result["loop"][what]["filtered"]["test"]
+                print(f"{what}: test frames median {r['median']:.2f} mm, RMS {r['rms']:.2f} mm (filtered)")
+    write_and_emit(result, a.out)
+
+
+if __name__ == "__main__":
+    main()

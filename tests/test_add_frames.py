@@ -1,0 +1,74 @@
+"""`s3k add-frames`: the frames a track was most in doubt about, added to a dataset from the videos and queued
+first for labelling (s3k.label.queue)."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+from test_track import CAMERAS, KEYPOINTS, _track, recording  # noqa: F401 (the fixture)
+
+from s3k import cli
+from s3k.data import Dataset, DatasetWriter
+from s3k.data.video import iter_frames
+from s3k.inference.track_filter import DOUBT_COLUMNS
+from s3k.label.queue import read_queue
+
+
+def _dataset(recording, path):  # noqa: F811
+    """Frames 0 (labelled), 1 (test) and 2 (unlabelled) of the recording's videos, ids 0-2, video_frame."""
+    rig = recording["rig"]
+    views = {c: dict(iter_frames(recording["videos"][c], [0, 1, 2])) for c in CAMERAS}
+    with DatasetWriter(path, KEYPOINTS, CAMERAS, tuple(int(v) for v in rig.size[0]), units="mm",
+                       calibration=rig.cameras) as w:
+        uv = np.full((len(CAMERAS), len(KEYPOINTS), 2), 20.0)
+        for f, split in enumerate(["labelled", "test", "unlabelled"]):
+            images = np.stack([views[c][f] for c in CAMERAS])
+            w.add_frame(f, split, images, labels=uv if split != "unlabelled" else None,
+                        extra={"video_frame": f})
+    return path
+
+
+def _rank(path, fnums):
+    with open(path, "w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(DOUBT_COLUMNS)
+        for rank, f in enumerate(fnums, 1):
+            out.writerow([rank, f, 10.0 - rank, 0.5, 1.0, 2.0, 0, 0, KEYPOINTS[0], ""])
+
+
+def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_first(recording, tmp_path,  # noqa: F811
+                                                                                    capsys):
+    data = _dataset(recording, tmp_path / "data")
+    tracks = tmp_path / "points3d.csv"
+    assert _track(recording, tracks, "--min-weight", "0") == 0
+    _rank(tmp_path / "points3d.doubt.csv", [1, 0, 4, 3, 2, 5])  # a test frame and a labelled one first
+    assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "2"]) == 0
+    assert "already test" in capsys.readouterr().out
+    ds = Dataset.open(data, cache="none")
+    assert ds.frames().tolist() == [0, 1, 2, 3, 4]
+    assert ds.column("video_frame").astype(int).tolist() == [0, 1, 2, 4, 3]  # the worse one first
+    assert ds.split_of(np.array([3, 4])).tolist() == ["unlabelled", "unlabelled"]
+    # the new frames' views are the videos' frames (the dataset's images are whole frames)
+    images = ds.images([3, 4])
+    for c, cam in enumerate(CAMERAS):
+        video = dict(iter_frames(recording["videos"][cam], [3, 4]))
+        assert np.array_equal(images[0, c], video[4]) and np.array_equal(images[1, c], video[3])
+    queue = read_queue(data)
+    assert [(int(r["frame"]), int(r["video_frame"]), int(r["rank"])) for r in queue] == [(3, 4, 1), (4, 3, 2)]
+    # a frame the dataset holds is queued without a copy, first; the earlier queue follows
+    _rank(tmp_path / "points3d.doubt.csv", [2, 4])
+    assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "1"]) == 0
+    assert Dataset.open(data, cache="none").frames().tolist() == [0, 1, 2, 3, 4]
+    assert [int(r["frame"]) for r in read_queue(data)] == [2, 3, 4]
+
+
+def test_add_frames_refuses_when_nothing_can_be_queued(recording, tmp_path, capsys):  # noqa: F811
+    data = _dataset(recording, tmp_path / "data")
+    tracks = tmp_path / "points3d.csv"
+    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    _rank(tmp_path / "points3d.doubt.csv", [0, 1])
+    capsys.readouterr()
+    assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "3"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(data) in err and not (data / "label-queue.csv").exists()

@@ -1,0 +1,92 @@
+"""Cameras outside the training rig (s3k.sim.rigs; s3k.experiments.outside_rig, behind
+benchmarks/outside_rig.py): each named rig's ranges lie outside the scene's training rig, the rendered test
+sets' cameras measured back from their calibration do too, with the same object poses, and a run is
+evaluated on each against in-range."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from s3k.sim.rigs import RIGS, rig_sampler
+from s3k.sim.scenes import SCENES
+
+
+@pytest.mark.parametrize("scene", ["box", "category", "plush"])
+def test_each_rig_lies_outside_the_training_ranges(scene):
+    train = SCENES[scene].cameras_sampler
+    assert rig_sampler(train, "train") == train
+    low, high = rig_sampler(train, "low"), rig_sampler(train, "high")
+    assert low.elevation_deg[1] < train.elevation_deg[0] and high.elevation_deg[0] > train.elevation_deg[1]
+    assert 0 < low.elevation_deg[0] < low.elevation_deg[1] and high.elevation_deg[1] < 90
+    assert rig_sampler(train, "far").distance[0] > train.distance[1]
+    assert rig_sampler(train, "wide").fovy_deg > train.fovy_deg
+    for rig in ("low", "high", "far", "wide"):  # one range changed, the rest as in training
+        changed = {k for k in ("distance", "elevation_deg", "fovy_deg", "target", "roll_deg")
+                   if getattr(rig_sampler(train, rig), k) != getattr(train, k)}
+        assert len(changed) == 1
+    with pytest.raises(ValueError, match="unknown 'side'"):
+        rig_sampler(train, "side")
+
+
+def test_test_sets_outside_the_rig_and_the_table(tmp_path):
+    from helpers.tiny_detector import save_run
+
+    from s3k.data import Dataset
+    from s3k.detector import DetectorMeta
+    from s3k.experiments.outside_rig import evaluate_rigs, measured_cameras, outside, render_test_sets, table
+    from s3k.model import UNetConfig
+    from s3k.sim.rigs import describe_rig
+
+    sets = render_test_sets("box", 32, 4, 7, tmp_path / "sets", workers=1)
+    assert list(sets) == list(RIGS)
+    train = SCENES["box"].cameras_sampler
+    ranges = describe_rig(train)
+    measured = {rig: measured_cameras(path, train.target) for rig, path in sets.items()}
+    # the training rig's cameras within its ranges (the aim point's jitter moves the angles a little)
+    assert ranges["elevation_deg"][0] - 3 <= measured["train"]["elevation_deg"][0]
+    assert measured["train"]["elevation_deg"][1] <= ranges["elevation_deg"][1] + 3
+    assert measured["train"]["fovy_deg"] == pytest.approx([train.fovy_deg] * 2, abs=1e-3)
+    assert not any(outside(measured["train"], ranges).values())
+    # each other rig outside in the quantity it changes, and in that one only
+    varied = {"low": "elevation_deg", "high": "elevation_deg", "far": "distance_m", "wide": "fovy_deg"}
+    for rig, quantity in varied.items():
+        assert [k for k, v in outside(measured[rig], ranges).items() if v] == [quantity], rig
+    assert measured["low"]["elevation_deg"][1] < ranges["elevation_deg"][0]
+    assert measured["high"]["elevation_deg"][0] > ranges["elevation_deg"][1]
+    assert measured["far"]["distance_m"][0] > ranges["distance_m"][1]
+    assert measured["wide"]["fovy_deg"][0] > 1.4 * train.fovy_deg
+    # the same object poses in every set: only the cameras differ
+    points = {rig: Dataset.open(path, cache="none").points3d(np.arange(4))[0] for rig, path in sets.items()}
+    assert all(np.allclose(points[rig], points["train"]) for rig in RIGS)
+    assert Dataset.open(sets["low"], cache="none").frames("labelled").size == 0
+    source = json.loads((sets["low"] / "s3k.json").read_text())["source"]
+    assert source["rig"] == "low" and source["cameras"]["elevation_deg"] == [10.0, 20.0]
+    assert "rig" not in json.loads((sets["train"] / "s3k.json").read_text())["source"]
+    again = render_test_sets("box", 32, 4, 7, tmp_path / "sets", rigs=("low",), workers=1)
+    assert again == {"low": sets["low"]}
+
+    meta = DetectorMeta(keypoints=list(SCENES["box"].keypoints), cameras=[f"cam{i}" for i in range(4)],
+                        image_size=(32, 32), stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 16), res_blocks=1).to_dict())
+    run = save_run(tmp_path / "run", meta, seed=0, head_std=0.5)
+    result = evaluate_rigs(run, sets, "box")
+    rows = result["rigs"]
+    assert list(rows) == list(RIGS) and all(row["frames"] == 4 for row in rows.values())
+    for rig in varied:
+        assert rows[rig]["median_ratio_to_in_range"] == pytest.approx(rows[rig]["median_mm"]
+                                                                     / rows["train"]["median_mm"])
+        assert rows[rig]["meets_target"] == (rows[rig]["median_ratio_to_in_range"] <= 1.3)
+    assert "median_ratio_to_in_range" not in rows["train"]
+    lines = table(result)
+    assert len(lines) == 1 + len(RIGS) and lines[2].startswith("low ") and lines[2].split()[4].endswith("x")
+
+
+def test_an_unknown_rig_is_a_one_line_error():
+    from s3k.errors import UserError
+    from s3k.sim.generate import SimulateConfig
+
+    with pytest.raises(UserError, match=r"rig \(--rig\): unknown camera rig 'side'"):
+        SimulateConfig("box", rig="side")
