@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from s3k.cli import showing_library_messages
 from s3k.experiments.label_curve import (
     CurveOptions,
     Job,
@@ -39,7 +40,8 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
     opts = tiny_options()
     assert opts.train_options.startswith("--preset box-headline ") and opts.passes == 2
     work, results = tmp_path / "work", tmp_path / "results"
-    summary = run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
+    with showing_library_messages():  # its progress notes, as the command line shows them
+        summary = run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
     err = capsys.readouterr().err
     assert err.count("training ") == 4 and err.count("result ") == 4
 
