@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import warnings
 
 import cv2
@@ -349,6 +350,15 @@ def test_the_queued_frames_come_first_by_rank_and_labelled_ones_drop_out(truth, 
     ranking = client.get("/api/ranking").json()
     assert [r["frame"] for r in ranking[:2]] == [2, 5] and 4 not in [r["frame"] for r in ranking]
     assert [r["frame"] for r in plain.get("/api/ranking").json()] == [2, 5]
+
+    # a frame added to the dataset while the app runs is listed once the app is started again
+    with open(truth.path / "frames.csv", "a") as fh:
+        fh.write("7,unlabelled\n")
+    for cam in CAMERAS:
+        shutil.copy(truth.path / f"images/{cam}/000005.png", truth.path / f"images/{cam}/000007.png")
+    queue_frames(truth.path, [(7, 8.0)], worst=1)
+    assert [r["frame"] for r in plain.get("/api/ranking").json()] == [2, 5]
+    assert [r["frame"] for r in TestClient(create_app(truth.path)).get("/api/ranking").json()] == [7, 2, 5]
 
 
 def test_a_malformed_queue_is_one_line_naming_the_file(truth):

@@ -81,20 +81,24 @@ def _number(text: str | None, kind: type) -> Any:
     return value if np.isfinite(value) else None
 
 
-def queue_ranking(data: str | Path, ids: np.ndarray, splits: np.ndarray, split: str = "unlabelled"
-                  ) -> tuple[list[dict[str, Any]], np.ndarray]:
+def queue_ranking(data: str | Path, ids: np.ndarray, splits: np.ndarray, split: str = "unlabelled",
+                  shown: np.ndarray | None = None) -> tuple[list[dict[str, Any]], np.ndarray]:
     """The labelling app's *Frames to label* as far as the queue decides it: the queue's frames still
     ``unlabelled`` by ``ids``/``splits`` (the label store's current splits, so a frame labelled since drops
     out), in rank order, as JSON-ready rows ``{"frame", "queue" (its rank), "score" and "doubt" (the
     tracker's), "video_frame", "source"}``; and the other frames of ``split`` (``"all"``: every frame), for a
     run to rank after them. Only the ``unlabelled`` split and ``"all"`` have queued frames; frames the queue
-    names that are not in ``ids`` are passed over.
+    names that are not in ``ids``, or not in ``shown`` when given (the frames the app opened with: one
+    ``s3k add-frames`` added since shows once the app is started again), are passed over.
 
     Raises:
         UserError: ``label-queue.csv`` has a frame or rank that is not a whole number.
     """
     ids = np.asarray(ids, dtype=np.int64)
     splits = np.asarray(splits).astype(str)
+    if shown is not None:
+        keep = np.isin(ids, np.asarray(shown, dtype=np.int64))
+        ids, splits = ids[keep], splits[keep]
     split_of = dict(zip(ids.tolist(), splits.tolist()))
     queued: list[dict[str, Any]] = []
     if split in ("unlabelled", "all"):

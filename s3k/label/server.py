@@ -325,7 +325,8 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             return _error(400, f"by: unknown ranking {by!r} (doubt, coverage or representative)")
         state.store.refresh()
         try:  # the queue's frames still unlabelled first, then the run's ranking of the others
-            queued, ids = queue_ranking(state.root, state.store.frames.ids, state.store.frames.splits, split)
+            queued, ids = queue_ranking(state.root, state.store.frames.ids, state.store.frames.splits, split,
+                                        shown=state.dataset.frames())
         except UserError as exc:
             return _error(400, str(exc))
         limit = max(0, limit)
