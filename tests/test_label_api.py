@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import warnings
 
 import cv2
@@ -320,6 +321,50 @@ def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
     r = client.post(f"/api/frame/{f}/label", json={"version": 0, "edits": edits, "source": "accept"})
     assert r.status_code == 200 and len(r.json()["labels"]) == len(edits)
     assert client.get(f"/api/frame/{f}/history").json()[-1]["source"] == "accept"
+
+
+def test_the_queued_frames_come_first_by_rank_and_labelled_ones_drop_out(truth, tmp_path):
+    """The frames s3k add-frames queued (label-queue.csv) lead the ranking, by rank with the tracker's doubt,
+    before the run's doubt ranking of the other unlabelled frames; a queued frame once labelled leaves the
+    queue and the list. Without a run the list is the queue alone."""
+    from s3k.label.queue import queue_frames
+
+    # frame 0 is labelled and 6 a test frame: passed over; 4, 2, 5 queued in that order (the dataset's ids)
+    queue_frames(truth.path, [(0, 9.0), (4, 7.5), (6, 7.0), (2, 3.25), (5, 1.0)], worst=3)
+    plain = TestClient(create_app(truth.path))
+    listed = plain.get("/api/ranking").json()
+    assert [(r["frame"], r["queue"], r["doubt"]) for r in listed] == [(4, 1, 7.5), (2, 2, 3.25), (5, 3, 1.0)]
+    assert plain.get("/api/ranking?limit=2").json() == listed[:2]
+    assert plain.get("/api/ranking?split=test").status_code == 404  # no queue there, no run
+
+    client = TestClient(create_app(truth.path, run=tiny_run(tmp_path / "run")))
+    ranking = client.get("/api/ranking").json()
+    assert [r["frame"] for r in ranking[:3]] == [4, 2, 5] and [r["queue"] for r in ranking[:3]] == [1, 2, 3]
+    rest = ranking[3:]  # the run's ranking of the other unlabelled frames, worst first, each once
+    assert sorted(r["frame"] for r in rest) == [1, 3] and all("queue" not in r for r in rest)
+    assert rest[0]["score"] >= rest[1]["score"]
+    for by in ("coverage", "representative"):
+        assert [r["frame"] for r in client.get(f"/api/ranking?by={by}").json()][:3] == [4, 2, 5]
+
+    label_frame(client, truth, 4)  # labelled: no longer queued, nor among the unlabelled frames
+    ranking = client.get("/api/ranking").json()
+    assert [r["frame"] for r in ranking[:2]] == [2, 5] and 4 not in [r["frame"] for r in ranking]
+    assert [r["frame"] for r in plain.get("/api/ranking").json()] == [2, 5]
+
+    # a frame added to the dataset while the app runs is listed once the app is started again
+    with open(truth.path / "frames.csv", "a") as fh:
+        fh.write("7,unlabelled\n")
+    for cam in CAMERAS:
+        shutil.copy(truth.path / f"images/{cam}/000005.png", truth.path / f"images/{cam}/000007.png")
+    queue_frames(truth.path, [(7, 8.0)], worst=1)
+    assert [r["frame"] for r in plain.get("/api/ranking").json()] == [2, 5]
+    assert [r["frame"] for r in TestClient(create_app(truth.path)).get("/api/ranking").json()] == [7, 2, 5]
+
+
+def test_a_malformed_queue_is_one_line_naming_the_file(truth):
+    (truth.path / "label-queue.csv").write_text("frame,rank,doubt,video_frame,source\nfour,1,2.0,4,t.csv\n")
+    r = TestClient(create_app(truth.path)).get("/api/ranking")
+    assert r.status_code == 400 and "label-queue.csv" in r.json()["detail"] and "'four'" in r.json()["detail"]
 
 
 def test_a_run_with_other_keypoints_is_refused(truth, tmp_path):

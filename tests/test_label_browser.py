@@ -706,6 +706,38 @@ def test_the_ranking_n_goes_to_the_worst_frame_not_yet_seen_and_the_list_follows
     assert len(set(hexes)) == 15 and gaps.min() > 25
 
 
+def test_the_queued_frames_lead_the_list_and_n_walks_them_in_rank_order(tmp_path, browser):
+    """The frames s3k add-frames queued are the list (no run here), rank 1 first with the tracker's doubt;
+    ``n`` opens it; once labelled it leaves the list and ``n`` opens the next queued frame."""
+    from s3k.label.queue import queue_frames
+
+    truth = make_label_dataset(tmp_path / "ds", size=64)
+    queue_frames(truth.path, [(0, 9.0), (4, 7.5), (2, 3.25), (5, 1.0)], worst=3)  # 0 is labelled: passed over
+    uv = truth.uv(4)
+    with Server(truth.path) as url:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url)
+        page.wait_for_selector("body[data-ready='1']")
+        page.wait_for_selector("#ranking li")
+        items = page.locator("#ranking li")
+        assert [items.nth(i).get_attribute("data-frame") for i in range(items.count())] == ["4", "2", "5"]
+        assert items.first.inner_text().replace("\n", " ") == "1. frame 4: 7.50 queued"
+        assert not page.locator("#rank-by-label").is_visible()  # no run: the queue alone, no other order
+        assert page.evaluate("document.body.dataset.frame") == "0"
+        page.keyboard.press("n")
+        page.wait_for_function("document.body.dataset.frame === '4'")
+        assert page.locator("#ranking li.current").get_attribute("data-frame") == "4"
+        page.mouse.click(*page_xy(page, "cam0", uv[0, 0]))  # labelled: frame 4 leaves the queue
+        wait_version(page, 1)
+        page.wait_for_function("[...document.querySelectorAll('#ranking li')].map((li) => li.dataset.frame)"
+                               ".join() === '2,5'")
+        page.keyboard.press("n")
+        page.wait_for_function("document.body.dataset.frame === '2'")
+        assert errors == []
+
+
 def test_the_propagate_form_previews_copies_and_undoes_in_the_pages_words(tmp_path, browser):
     from s3k.label.store import Edit
 

@@ -17,6 +17,9 @@ views are cut from the videos as the dataset's own were (the import's crop box a
 says; a dataset whose images are the videos only gets the row. Frames already labelled or held out for
 testing are never queued. All of it happens under the dataset's label lock (``.labels.lock``), as the app's
 edits do.
+
+The labelling app lists the queue's frames still unlabelled first in its *Frames to label*, by rank and with
+their doubt, before a run's own ranking of the other frames (:func:`queue_ranking`).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,7 +41,7 @@ from s3k.fileio import atomic_path, file_lock, open_text
 from s3k.geometry.warp import resize_crop
 from s3k.label.store import LOCK_FILE
 
-__all__ = ["QUEUE_COLUMNS", "QUEUE_FILE", "Queued", "queue_frames", "read_queue"]
+__all__ = ["QUEUE_COLUMNS", "QUEUE_FILE", "Queued", "queue_frames", "queue_ranking", "read_queue"]
 
 QUEUE_FILE = "label-queue.csv"
 QUEUE_COLUMNS = ["frame", "rank", "doubt", "video_frame", "source"]
@@ -62,7 +66,59 @@ def read_queue(data: str | Path) -> list[dict[str, str]]:
         return []
     with open_text(path) as fh:
         rows = list(csv.DictReader(fh))
-    return sorted(rows, key=lambda r: int(r.get("rank") or 0))
+    for line, row in enumerate(rows, 2):
+        for column in ("frame", "rank"):
+            try:
+                int(row.get(column) or "")
+            except ValueError:
+                raise UserError(f"{path}: line {line}: {column} {row.get(column)!r} is not a whole number",
+                                hint=f"fix or delete {QUEUE_FILE}; s3k add-frames writes it anew") from None
+    return sorted(rows, key=lambda r: int(r["rank"]))
+
+
+def _number(text: str | None, kind: type) -> Any:
+    """``text`` as ``kind`` (int or float), None when empty or not such a number (JSON-ready)."""
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        return None
+    return value if np.isfinite(value) else None
+
+
+def queue_ranking(data: str | Path, ids: np.ndarray, splits: np.ndarray, split: str = "unlabelled",
+                  shown: np.ndarray | None = None) -> tuple[list[dict[str, Any]], np.ndarray]:
+    """The labelling app's *Frames to label* as far as the queue decides it: the queue's frames still
+    ``unlabelled`` by ``ids``/``splits`` (the label store's current splits, so a frame labelled since drops
+    out), in rank order, as JSON-ready rows ``{"frame", "queue" (its rank), "score" and "doubt" (the
+    tracker's), "video_frame", "source"}``; and the other frames of ``split`` (``"all"``: every frame), for a
+    run to rank after them. Only the ``unlabelled`` split and ``"all"`` have queued frames; frames the queue
+    names that are not in ``ids``, or not in ``shown`` when given (the frames the app opened with: one
+    ``s3k add-frames`` added since shows once the app is started again), are passed over.
+
+    Raises:
+        UserError: ``label-queue.csv`` has a frame or rank that is not a whole number.
+    """
+    ids = np.asarray(ids, dtype=np.int64)
+    splits = np.asarray(splits).astype(str)
+    if shown is not None:
+        keep = np.isin(ids, np.asarray(shown, dtype=np.int64))
+        ids, splits = ids[keep], splits[keep]
+    split_of = dict(zip(ids.tolist(), splits.tolist()))
+    queued: list[dict[str, Any]] = []
+    if split in ("unlabelled", "all"):
+        seen: set[int] = set()
+        for row in read_queue(data):
+            frame = int(row["frame"])
+            if split_of.get(frame) != "unlabelled" or frame in seen:
+                continue
+            seen.add(frame)
+            doubt = _number(row.get("doubt"), float)
+            queued.append({"frame": frame, "queue": int(row["rank"]), "score": doubt, "doubt": doubt,
+                           "video_frame": _number(row.get("video_frame"), int),
+                           "source": row.get("source") or ""})
+    rest = ids if split == "all" else ids[splits == split]
+    done = np.array([q["frame"] for q in queued], dtype=np.int64)
+    return queued, rest[~np.isin(rest, done)]
 
 
 def _pick(ranked: Sequence[tuple[int, float]], worst: int, held: dict[int, tuple[int, str]], spacing: int,

@@ -16,9 +16,11 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   (the history keeps both), 400 when there is none. ``POST /api/frame/{frame}/redo``: the same body; reverts
   the latest undo not yet redone, 400 when there is none (or the frame was edited since).
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
-- ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: with a run, frames of a split ordered by the
-  run's doubt, worst first; ``by=coverage``: by how far the run places them from every labelled frame's pose;
-  ``by=representative``: poses in proportion to how often they occur (:mod:`s3k.label.suggest`).
+- ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: the frames ``s3k add-frames`` queued that are
+  still unlabelled first, by rank, with the tracker's doubt (:func:`s3k.label.queue.queue_ranking`); then,
+  with a run, the split's other frames ordered by the run's doubt, worst first; ``by=coverage``: by how far
+  the run places them from every labelled frame's pose; ``by=representative``: poses in proportion to how
+  often they occur (:mod:`s3k.label.suggest`).
 - ``POST /api/propagate``: ``{"first", "last", "source", "max_changed", "overwrite", "allow_test",
   "dry_run"}``, :func:`s3k.label.propagate.propagate_labels` (refusals in the page's words), with
   ``per_frame`` (``{frame: [new, replaced]}``); ``POST /api/propagate/undo`` undoes the latest.
@@ -58,6 +60,7 @@ from s3k.detector.geometry_record import check_dataset
 from s3k.errors import UserError
 from s3k.inference.metrics import mm_per_unit
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
+from s3k.label.queue import queue_ranking
 from s3k.label.skeleton import edit_skeleton
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
@@ -342,19 +345,26 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
     @app.get("/api/ranking")
     def ranking(split: str = "unlabelled", limit: int = 100, by: str = "doubt") -> Any:
-        if state.suggestions is None:
-            return _error(404, "no run: start s3k label with --run RUN to rank frames")
         if split not in ("labelled", "unlabelled", "test", "all"):
             return _error(400, f"unknown split {split!r}")
         if by not in ("doubt", "coverage", "representative"):
             return _error(400, f"by: unknown ranking {by!r} (doubt, coverage or representative)")
-        ids = state.dataset.frames(None if split == "all" else split)
+        state.store.refresh()
+        try:  # the queue's frames still unlabelled first, then the run's ranking of the others
+            queued, ids = queue_ranking(state.root, state.store.frames.ids, state.store.frames.splits, split,
+                                        shown=state.dataset.frames())
+        except UserError as exc:
+            return _error(400, str(exc))
         limit = max(0, limit)
+        if state.suggestions is None:
+            if queued:
+                return queued[:limit]
+            return _error(404, "no run and no frames queued: start s3k label with --run RUN to rank frames")
         if by in ("coverage", "representative"):
             poses = state.labelled_poses(state.suggestions.keypoints)
-            return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
-                                              order=by, up=state.up)[:limit]
-        return state.suggestions.ranking(ids)[:limit]
+            return (queued + state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
+                                                        order=by, up=state.up))[:limit]
+        return (queued + state.suggestions.ranking(ids))[:limit]
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way

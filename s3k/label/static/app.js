@@ -9,7 +9,7 @@ const CONFIDENT = 0.5;
 const TOKEN = new URLSearchParams(location.search).get("token");
 const app = {
   meta: null, frames: [], frameIndex: 0, frame: null, kp: 0, brightness: 1,
-  views: {}, hover: null, queue: Promise.resolve(), ranking: [], pending: 0,
+  views: {}, hover: null, queue: Promise.resolve(), ranking: [], run: false, pending: 0,
   loading: 0,  // frame loads not yet answered
   versions: {},  // frame -> the version this page last saw, sent with the next edit of that frame
   unlocked: new Set(),  // the test frame the user unlocked for editing (locked again when left)
@@ -357,6 +357,8 @@ function showFrame(state) {
   drawAll();
   showLock();
   markRanking();
+  // a queued frame that has been labelled leaves the queue: the list is fetched again without it
+  if (state.split !== "unlabelled" && app.ranking.some((r) => r.queue !== undefined && r.frame === f)) loadRanking();
 }
 
 function markRanking() {  // the current frame's entry of the ranking: highlighted and scrolled into sight
@@ -537,8 +539,8 @@ function acceptSuggestions(all) {
   return Promise.resolve();
 }
 
-async function loadRanking() {
-  const by = document.getElementById("rank-by").value;
+async function loadRanking() {  // the frames s3k add-frames queued first (by rank), then the run's ranking
+  const by = app.run ? document.getElementById("rank-by").value : "doubt";
   const r = await api(`api/ranking?split=unlabelled&limit=200&by=${by}`);
   if (!r.ok) return;
   app.ranking = r.body;
@@ -551,7 +553,13 @@ async function loadRanking() {
     li.innerHTML = `<span class="rank"></span><span class="entry"></span>`;
     li.querySelector(".rank").textContent = `${i + 1}.`;
     const entry = li.querySelector(".entry");
-    if (by === "coverage" || by === "representative") {
+    if (row.queue !== undefined) {  // queued by s3k add-frames: the tracker's doubt
+      li.classList.add("queued");
+      entry.textContent = `frame ${row.frame}: ${fixed(row.doubt, "")} queued`;
+      li.title = `queued by s3k add-frames (rank ${row.queue}` +
+        (row.video_frame === null ? "" : `, video frame ${row.video_frame}`) +
+        (row.source ? ` of ${row.source}` : "") + "): the tracker's doubt";
+    } else if (by === "coverage" || by === "representative") {
       // greedy: each frame above counts as labelled, so labelling down the list covers the poses in turn
       entry.textContent = `frame ${row.frame}: ${fixed(row.pose_mm, "mm")}`;
       li.title = "distance of the run's 3D keypoints from the nearest labelled pose (and from the frames above)";
@@ -707,11 +715,13 @@ async function start() {
   startSkeleton();
   window.addEventListener("keydown", onKey);
   window.addEventListener("resize", () => { layoutViews(); drawAll(); });
-  if (r.body.run) {
+  app.run = r.body.run;
+  if (app.run) {
     document.getElementById("suggest-tools").hidden = false;
     document.getElementById("rank-by").addEventListener("change", loadRanking);
-    loadRanking();
   }
+  document.getElementById("rank-by-label").hidden = !app.run;  // without a run the list is the queue alone
+  loadRanking();  // without a run and a queue: none (404), the list stays hidden
   const want = new URLSearchParams(location.search).get("frame");
   const i = want === null ? 0 : Math.max(0, app.frames.findIndex((x) => x.frame === +want));
   await loadFrame(i);
