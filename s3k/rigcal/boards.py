@@ -65,12 +65,17 @@ class Board:
         if not hasattr(cv2.aruco, name):
             raise UserError(f"no ArUco dictionary {name} in OpenCV", hint="check marker_bits and dict_size")
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
-                                      self.marker_length, dictionary)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, dictionary
+        )
 
     def describe(self) -> str:
-        kind = (f"ChArUco, markers {self.marker_length:g}, DICT_{self.marker_bits}X{self.marker_bits}_"
-                f"{self.dict_size}" if self.charuco else "checkerboard")
+        kind = (
+            f"ChArUco, markers {self.marker_length:g}, DICT_{self.marker_bits}X{self.marker_bits}_"
+            f"{self.dict_size}"
+            if self.charuco
+            else "checkerboard"
+        )
         return f"{self.squares_x}x{self.squares_y} squares of {self.square_length:g} ({kind})"
 
 
@@ -80,7 +85,9 @@ def read_board_toml(path) -> Board:
     ``marker_length`` gives a checkerboard)."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"{path}: board file not found", hint="pass --board FILE or --squares/--square-length")
+        raise UserError(
+            f"{path}: board file not found", hint="pass --board FILE or --squares/--square-length"
+        )
     try:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
@@ -89,9 +96,14 @@ def read_board_toml(path) -> Board:
         if key not in data:
             raise UserError(f"{path}: no field {key!r} (a board needs board_x, board_y, square_length)")
     checker = str(data.get("board_type", "")).lower() == "checkerboard" or "marker_length" not in data
-    return Board(int(data["board_x"]), int(data["board_y"]), float(data["square_length"]),
-                 0.0 if checker else float(data["marker_length"]), int(data.get("marker_bits", 4)),
-                 int(data.get("dict_size", 50)))
+    return Board(
+        int(data["board_x"]),
+        int(data["board_y"]),
+        float(data["square_length"]),
+        0.0 if checker else float(data["marker_length"]),
+        int(data.get("marker_bits", 4)),
+        int(data.get("dict_size", 50)),
+    )
 
 
 @dataclass
@@ -116,17 +128,17 @@ def _detect_one(image: np.ndarray, board: Board, detector, min_corners: int):
             return None, seen
         return (ids.reshape(-1).astype(int), corners.reshape(-1, 2).astype(np.float64)), seen
     nx, ny = board.squares_x - 1, board.squares_y - 1
-    ok, corners = cv2.findChessboardCornersSB(gray, (nx, ny), cv2.CALIB_CB_NORMALIZE_IMAGE)
+    ok, corners = cv2.findChessboardCornersSB(gray, (nx, ny), flags=cv2.CALIB_CB_NORMALIZE_IMAGE)  # type: ignore[call-overload]
     if not ok:
         return None, ()
     return (np.arange(nx * ny), corners.reshape(-1, 2).astype(np.float64)), ()
 
 
-def frames_of(source: str | Path) -> tuple[list[int], object]:
+def frames_of(source: str | Path) -> tuple[list[int], list[Path] | None]:
     """``(frame keys, reader)`` of a video or image folder/glob: a video's frames are keyed by index, an image
     sequence's by the last number in each file name (anipose's ``<camera>-<time>-<index>.jpg``), which pairs
     the views of one board position."""
-    from s3k.data import imageseq, video
+    from s3k.data import imageseq
     from s3k.data.formats.labels2d import frame_id_from_path
 
     if imageseq.is_sequence(source):
@@ -134,10 +146,10 @@ def frames_of(source: str | Path) -> tuple[list[int], object]:
         keys = [frame_id_from_path(str(f)) for f in files]
         if any(k is None for k in keys) or len(set(keys)) != len(keys):
             keys = list(range(len(files)))  # no usable numbers: the sorted order pairs the views
-        return [int(k) for k in keys], ("images", files)  # type: ignore[arg-type]
+        return [int(k) for k in keys], files  # type: ignore[arg-type]
     if not Path(source).is_file():
         raise UserError(f"{source}: no such video, image folder or pattern")
-    return [], ("video", source)
+    return [], None
 
 
 def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corners: int = 6) -> Detections:
@@ -147,13 +159,13 @@ def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corner
     from s3k.data import video
 
     detector = cv2.aruco.CharucoDetector(board.cv2_board()) if board.charuco else None
-    keys, (kind, what) = frames_of(source)  # type: ignore[misc]
+    keys, files = frames_of(source)
     found: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     seen: set[int] = set()
     size = (0, 0)
     images = 0
-    if kind == "images":
-        items = ((k, f) for i, (k, f) in enumerate(zip(keys, what)) if i % every == 0)
+    if files is not None:
+        items = ((k, f) for i, (k, f) in enumerate(zip(keys, files)) if i % every == 0)
         for key, file in items:
             image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)
             if image is None:
@@ -164,7 +176,7 @@ def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corner
             if hit is not None:
                 found[key] = hit
     else:
-        for i, image in video.iter_frames(what):
+        for i, image in video.iter_frames(source):
             if i % every:
                 continue
             size, images = (image.shape[1], image.shape[0]), images + 1
@@ -180,13 +192,19 @@ def check_board_matches(name: str, source, det: Detections, board: Board) -> Non
     not have, or no detection at all."""
     if board.charuco and det.marker_ids and max(det.marker_ids) >= board.n_markers:
         raise UserError(
-            f"camera {name} ({source}): the images show ArUco markers with ids up to {max(det.marker_ids)}, but "
+            f"camera {name} ({source}): the images show ArUco markers with ids up to "
+            f"{max(det.marker_ids)}, but "
             f"the board {board.describe()} has markers 0-{board.n_markers - 1}: the board's size does not "
-            "match the detections", hint="check board_x, board_y in board.toml (or --squares)")
+            "match the detections",
+            hint="check board_x, board_y in board.toml (or --squares)",
+        )
     if not det.frames:
-        what = (f"{len(det.marker_ids)} ArUco marker ids but no ChArUco corners" if det.marker_ids
-                else "no board")
+        what = (
+            f"{len(det.marker_ids)} ArUco marker ids but no ChArUco corners" if det.marker_ids else "no board"
+        )
         raise UserError(
             f"camera {name} ({source}): {what} found in {det.images} image(s) for the board "
-            f"{board.describe()}", hint="check the board's size and dictionary (board.toml, --squares, "
-            "--dict) and that the board is in view")
+            f"{board.describe()}",
+            hint="check the board's size and dictionary (board.toml, --squares, "
+            "--dict) and that the board is in view",
+        )

@@ -41,8 +41,8 @@ def _pack(intr, R, t, views, points) -> np.ndarray:
 
 def _residuals(x: np.ndarray, C: int, V: int, obs: Observations, corners3d: np.ndarray) -> np.ndarray:
     cams = x[: C * NCP].reshape(C, NCP)
-    views = x[C * NCP: C * NCP + V * 6].reshape(V, 6)
-    points = x[C * NCP + V * 6:].reshape(-1, 3)
+    views = x[C * NCP : C * NCP + V * 6].reshape(V, 6)
+    points = x[C * NCP + V * 6 :].reshape(-1, 3)
     Rc = rodrigues(cams[:, :3])
     Rv = rodrigues(views[:, :3])
     Xw = np.einsum("nij,nj->ni", Rv[obs.view], corners3d[obs.corner]) + views[obs.view, 3:]
@@ -74,14 +74,26 @@ def _sparsity(C: int, V: int, P: int, obs: Observations):
     block(n + np.arange(m), obs.pcam * NCP, NCP)
     block(n + np.arange(m), C * NCP + V * 6 + obs.ppoint * 3, 3)
     r, c = np.concatenate(rows), np.concatenate(cols)
-    return coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(2 * (n + m), C * NCP + V * 6 + P * 3)).tocsc()
+    return coo_matrix(
+        (np.ones(len(r), np.int8), (r, c)), shape=(2 * (n + m), C * NCP + V * 6 + P * 3)
+    ).tocsc()
 
 
-def bundle_adjust(intr: list[Intrinsics], R: list[np.ndarray], t: list[np.ndarray],
-                  views: list[tuple[np.ndarray, np.ndarray]], obs: Observations, corners3d: np.ndarray, *,
-                  points: np.ndarray | None = None, fixed: list[int] | None = None,
-                  free_principal_point: bool = False, loss_scale_px: float = 1.0,
-                  max_evaluations: int = 200) -> Adjusted:
+def bundle_adjust(
+    intr: list[Intrinsics],
+    R: list[np.ndarray],
+    t: list[np.ndarray],
+    views: list[tuple[np.ndarray, np.ndarray]],
+    obs: Observations,
+    corners3d: np.ndarray,
+    *,
+    points: np.ndarray | None = None,
+    fixed: list[int] | None = None,
+    free_principal_point: bool = False,
+    radial: int = 2,
+    loss_scale_px: float = 1.0,
+    max_evaluations: int = 200,
+) -> Adjusted:
     """Refine cameras, board views and extra points jointly.
 
     Args:
@@ -93,6 +105,7 @@ def bundle_adjust(intr: list[Intrinsics], R: list[np.ndarray], t: list[np.ndarra
         fixed: cameras held as they are (their pose then fixes the world); default: the first camera's pose
             (its intrinsics are refined).
         free_principal_point: refine ``cx, cy``.
+        radial: radial distortion terms refined: 1 (``k1``, anipose's model) or 2 (``k1, k2``).
         loss_scale_px: the Huber loss's scale: residuals beyond it count linearly (bad detections).
     """
     from scipy.optimize import least_squares
@@ -103,10 +116,12 @@ def bundle_adjust(intr: list[Intrinsics], R: list[np.ndarray], t: list[np.ndarra
     free = np.ones(len(x0), bool)
     for c in range(C):
         if not free_principal_point:
-            free[c * NCP + 9: c * NCP + 11] = False
+            free[c * NCP + 9 : c * NCP + 11] = False
+        if radial < 2:
+            free[c * NCP + 8] = False
     if fixed:
         for c in fixed:
-            free[c * NCP: (c + 1) * NCP] = False
+            free[c * NCP : (c + 1) * NCP] = False
     else:
         free[:6] = False  # gauge: the world is the first camera
     idx = np.flatnonzero(free)
@@ -117,16 +132,30 @@ def bundle_adjust(intr: list[Intrinsics], R: list[np.ndarray], t: list[np.ndarra
         return _residuals(x, C, V, obs, corners3d)
 
     S = _sparsity(C, V, len(pts), obs)[:, idx]
-    sol = least_squares(fun, x0[idx], jac_sparsity=S, loss="huber", f_scale=loss_scale_px, x_scale="jac",
-                        method="trf", max_nfev=max_evaluations)
+    sol = least_squares(
+        fun,
+        x0[idx],
+        jac_sparsity=S,
+        loss="huber",
+        f_scale=loss_scale_px,
+        x_scale="jac",
+        method="trf",
+        max_nfev=max_evaluations,
+    )
     x = x0.copy()
     x[idx] = sol.x
     cams = x[: C * NCP].reshape(C, NCP)
-    vs = x[C * NCP: C * NCP + V * 6].reshape(V, 6)
+    vs = x[C * NCP : C * NCP + V * 6].reshape(V, 6)
     res = _residuals(x, C, V, obs, corners3d)
     n = 2 * len(obs.cam)
     return Adjusted(
-        [Intrinsics(p[6], p[9], p[10], p[7], p[8]) for p in cams], list(rodrigues(cams[:, :3])),
-        [p[3:6].copy() for p in cams], [(rodrigues(v[:3]), v[3:].copy()) for v in vs],
-        x[C * NCP + V * 6:].reshape(-1, 3), res[:n].reshape(-1, 2), res[n:].reshape(-1, 2),
-        float(sol.cost), int(sol.nfev))
+        [Intrinsics(p[6], p[9], p[10], p[7], p[8]) for p in cams],
+        list(rodrigues(cams[:, :3])),
+        [p[3:6].copy() for p in cams],
+        [(rodrigues(v[:3]), v[3:].copy()) for v in vs],
+        x[C * NCP + V * 6 :].reshape(-1, 3),
+        res[:n].reshape(-1, 2),
+        res[n:].reshape(-1, 2),
+        float(sol.cost),
+        int(sol.nfev),
+    )

@@ -51,17 +51,31 @@ class RigCalibration:
         from s3k.data.rig import Rig
 
         a = self.adjusted
-        cams = Cameras.from_numpy(np.stack([i.K() for i in a.intrinsics]), np.stack([i.dist() for i in a.intrinsics]),
-                                  np.stack(a.R), np.stack(a.t), dtype=torch.float64)
-        return Rig(list(self.names), cams, np.asarray(self.sizes), units or _units_from_board(self.board.square_length),
-                   {"board": self.board.describe(), "origin": self.origin})
+        cams = Cameras.from_numpy(
+            np.stack([i.K() for i in a.intrinsics]),
+            np.stack([i.dist() for i in a.intrinsics]),
+            np.stack(a.R),
+            np.stack(a.t),
+            dtype=torch.float64,
+        )
+        return Rig(
+            list(self.names),
+            cams,
+            np.asarray(self.sizes),
+            units or _units_from_board(self.board.square_length),
+            {"board": self.board.describe(), "origin": self.origin},
+        )
 
     def format(self) -> str:
-        lines = [f"{'camera':<12}{'views':>6}{'corners':>9}{'median px':>11}{'rms px':>9}{'coverage':>10}"
-                 f"{'f px':>9}{'k1':>8}"]
+        lines = [
+            f"{'camera':<12}{'views':>6}{'corners':>9}{'median px':>11}{'rms px':>9}{'coverage':>10}"
+            f"{'f px':>9}{'k1':>8}"
+        ]
         for r, i in zip(self.report, self.adjusted.intrinsics):
-            lines.append(f"{r.name:<12}{r.views:>6}{r.corners:>9}{r.median_px:>11.2f}{r.rms_px:>9.2f}"
-                         f"{r.coverage:>9.0%} {i.f:>8.1f}{i.k1:>8.3f}")
+            lines.append(
+                f"{r.name:<12}{r.views:>6}{r.corners:>9}{r.median_px:>11.2f}{r.rms_px:>9.2f}"
+                f"{r.coverage:>9.0%} {i.f:>8.1f}{i.k1:>8.3f}"
+            )
         return "\n".join(lines)
 
 
@@ -100,24 +114,36 @@ def _initial_views(keys, poses, R, t):
     return out
 
 
-def calibrate_detections(names: list[str], detections: list[Detections], board: Board, *,
-                         free_principal_point: bool = False, origin_view: int | None = None,
-                         initial: list | None = None, fixed: list[int] | None = None,
-                         loss_scale_px: float = 1.0) -> RigCalibration:
+def calibrate_detections(
+    names: list[str],
+    detections: list[Detections],
+    board: Board,
+    *,
+    free_principal_point: bool = False,
+    radial: int = 2,
+    origin_view: int | None = None,
+    initial: list | None = None,
+    fixed: list[int] | None = None,
+    loss_scale_px: float = 1.0,
+) -> RigCalibration:
     """A rig from each camera's board detections (see module doc).
 
     Args:
         names: camera names; ``detections`` one per camera, keyed by synchronized frame.
         board: the board (its square length sets the unit).
-        free_principal_point: refine each camera's principal point (default: the image centre, anipose's model).
+        free_principal_point: refine each camera's principal point (default: the image
+            centre, anipose's model).
+        radial: radial distortion terms, 1 (``k1``, anipose's model) or 2 (``k1, k2``).
         origin_view: a frame key whose board pose becomes the world frame (default: the first camera's frame).
         initial: ``[(Intrinsics, R, t) or None]`` per camera: known cameras (their pose gives the world).
         fixed: cameras of ``initial`` held fixed in the adjustment.
     """
-    corners3d = board.cv2_board().getChessboardCorners().astype(np.float64) if board.charuco else board.corners3d()
+    corners3d = (
+        board.cv2_board().getChessboardCorners().astype(np.float64) if board.charuco else board.corners3d()
+    )
     intr, poses, rms = [], [], []
     for name, det in zip(names, detections):
-        i, p, r = initial_intrinsics(name, det.frames, corners3d, det.size, free_principal_point)
+        i, p, r = initial_intrinsics(name, det.frames, corners3d, det.size, free_principal_point, radial)
         intr.append(i)
         poses.append(p)
         rms.append(r)
@@ -130,30 +156,57 @@ def calibrate_detections(names: list[str], detections: list[Detections], board: 
         extr = chain_extrinsics(names, poses)
         R, t = [e[0] for e in extr], [e[1] for e in extr]
     keys = sorted({k for p in poses for k in p})
-    obs = _observations([Detections({k: v for k, v in d.frames.items() if k in p}, d.size)
-                         for d, p in zip(detections, poses)], keys)
-    adj = bundle_adjust(intr, R, t, _initial_views(keys, poses, R, t), obs, corners3d, fixed=fixed,
-                        free_principal_point=free_principal_point, loss_scale_px=loss_scale_px)
+    obs = _observations(
+        [
+            Detections({k: v for k, v in d.frames.items() if k in p}, d.size)
+            for d, p in zip(detections, poses)
+        ],
+        keys,
+    )
+    adj = bundle_adjust(
+        intr,
+        R,
+        t,
+        _initial_views(keys, poses, R, t),
+        obs,
+        corners3d,
+        fixed=fixed,
+        free_principal_point=free_principal_point,
+        radial=radial,
+        loss_scale_px=loss_scale_px,
+    )
     origin = "first camera" if not initial else "the fixed cameras"
     if origin_view is not None:
         if origin_view not in keys:
-            raise UserError(f"--origin-view {origin_view}: no camera saw the board in that frame",
-                            hint=f"choose one of {', '.join(map(str, keys[:10]))}{'...' if len(keys) > 10 else ''}")
+            raise UserError(
+                f"--origin-view {origin_view}: no camera saw the board in that frame",
+                hint=f"choose one of {', '.join(map(str, keys[:10]))}{'...' if len(keys) > 10 else ''}",
+            )
         _move_world(adj, keys.index(origin_view))
         origin = f"board in frame {origin_view}"
     report = []
     for c, name in enumerate(names):
         sel = obs.cam == c
         err = np.linalg.norm(adj.residuals[sel], axis=1)
-        report.append(CameraReport(name, len(poses[c]), int(sel.sum()), float(np.median(err)),
-                                   float(np.sqrt(np.mean(err**2))), coverage(obs.uv[sel], detections[c].size),
-                                   rms[c]))
-    return RigCalibration(list(names), [d.size for d in detections], board, detections, adj, obs, keys, report,
-                          origin)
+        report.append(
+            CameraReport(
+                name,
+                len(poses[c]),
+                int(sel.sum()),
+                float(np.median(err)),
+                float(np.sqrt(np.mean(err**2))),
+                coverage(obs.uv[sel], detections[c].size),
+                rms[c],
+            )
+        )
+    return RigCalibration(
+        list(names), [d.size for d in detections], board, detections, adj, obs, keys, report, origin
+    )
 
 
 def _place_unknown(names, initial, poses):
-    """Cameras of ``initial`` as given; each other camera placed from board views it shares with a known one."""
+    """Cameras of ``initial`` as given; each other camera placed from board views it shares with a known
+    one."""
     from s3k.rigcal.solve import relative_pose
 
     R: list = [None] * len(names)
@@ -164,12 +217,16 @@ def _place_unknown(names, initial, poses):
     for c in range(len(names)):
         if R[c] is not None:
             continue
-        best = max(((len(set(poses[a]) & set(poses[c])), a) for a in range(len(names)) if initial[a] is not None),
-                   default=(0, -1))
+        best = max(
+            ((len(set(poses[a]) & set(poses[c])), a) for a in range(len(names)) if initial[a] is not None),
+            default=(0, -1),
+        )
         if best[0] < 1:
-            raise UserError(f"camera {names[c]} shares no board view with the cameras kept "
-                            f"({', '.join(n for n, v in zip(names, initial) if v is not None)})",
-                            hint="record frames where the board is seen by it and by one of them")
+            raise UserError(
+                f"camera {names[c]} shares no board view with the cameras kept "
+                f"({', '.join(n for n, v in zip(names, initial) if v is not None)})",
+                hint="record frames where the board is seen by it and by one of them",
+            )
         a = best[1]
         R_ab, t_ab = relative_pose(poses[a], poses[c], sorted(set(poses[a]) & set(poses[c])))
         R[c], t[c] = R_ab.T @ R[a], R_ab.T @ (t[a] - t_ab)
@@ -200,3 +257,79 @@ def calibrate_sources(sources: dict[str, str], board: Board, *, every: int = 1, 
 
 def intrinsics_of(K: np.ndarray, dist: np.ndarray) -> Intrinsics:
     return Intrinsics(float(K[0, 0]), float(K[0, 2]), float(K[1, 2]), float(dist[0]), float(dist[1]))
+
+
+def refine_with_points(
+    cal: RigCalibration,
+    uv: np.ndarray,
+    *,
+    radial: int = 2,
+    free_principal_point: bool = False,
+    loss_scale_px: float = 1.0,
+) -> RigCalibration:
+    """Adjust the rig again with extra correspondences: ``uv (T, C, K, 2)`` pixels (NaN where not seen) of
+    points seen by several cameras at once (labelled keypoints), each (frame, keypoint) seen by >= 2 cameras a
+    3D point of the adjustment, started from its triangulation with the board-only rig."""
+    from s3k.geometry import triangulate_pixels
+
+    seen = np.isfinite(uv).all(-1)  # (T, C, K)
+    X, valid = triangulate_pixels(
+        cal.rig().cameras, torch.from_numpy(np.nan_to_num(uv)), torch.from_numpy(seen * 1.0)
+    )
+    use = valid.numpy() & (seen.sum(1) >= 2)  # (T, K)
+    frames, kps = np.nonzero(use)
+    if not len(frames):
+        raise UserError("the labels give no keypoint seen by two cameras in one frame; nothing to add")
+    points = X.numpy()[frames, kps]
+    pcam, ppoint, puv = [], [], []
+    for p, (f, k) in enumerate(zip(frames, kps)):
+        for c in np.flatnonzero(seen[f, :, k]):
+            pcam.append(c)
+            ppoint.append(p)
+            puv.append(uv[f, c, k])
+    o = cal.observations
+    obs = Observations(o.cam, o.view, o.corner, o.uv, np.asarray(pcam), np.asarray(ppoint), np.asarray(puv))
+    a = cal.adjusted
+    corners3d = (
+        cal.board.cv2_board().getChessboardCorners().astype(np.float64)
+        if cal.board.charuco
+        else cal.board.corners3d()
+    )
+    adj = bundle_adjust(
+        a.intrinsics,
+        a.R,
+        a.t,
+        a.views,
+        obs,
+        corners3d,
+        points=points,
+        free_principal_point=free_principal_point,
+        radial=radial,
+        loss_scale_px=loss_scale_px,
+    )
+    report = []
+    for i, r in enumerate(cal.report):
+        sel = obs.cam == i
+        err = np.linalg.norm(adj.residuals[sel], axis=1)
+        report.append(
+            CameraReport(
+                r.name,
+                r.views,
+                r.corners,
+                float(np.median(err)),
+                float(np.sqrt(np.mean(err**2))),
+                r.coverage,
+                r.initial_rms_px,
+            )
+        )
+    return RigCalibration(
+        cal.names,
+        cal.sizes,
+        cal.board,
+        cal.detections,
+        adj,
+        obs,
+        cal.view_keys,
+        report,
+        cal.origin + f", with {len(points)} labelled points",
+    )

@@ -22,8 +22,9 @@ def rodrigues(rvec: np.ndarray) -> np.ndarray:
     k = r / np.where(theta > 1e-12, theta, 1.0)
     kx, ky, kz = k[..., 0], k[..., 1], k[..., 2]
     zero = np.zeros_like(kx)
-    Kx = np.stack([np.stack([zero, -kz, ky], -1), np.stack([kz, zero, -kx], -1),
-                   np.stack([-ky, kx, zero], -1)], -2)
+    Kx = np.stack(
+        [np.stack([zero, -kz, ky], -1), np.stack([kz, zero, -kx], -1), np.stack([-ky, kx, zero], -1)], -2
+    )
     s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
     eye = np.broadcast_to(np.eye(3), Kx.shape)
     return eye + s * Kx + (1 - c) * (Kx @ Kx)
@@ -61,22 +62,37 @@ def project(X_cam: np.ndarray, f, cx, cy, k1, k2) -> np.ndarray:
     return np.stack([f * xy[:, 0] * radial + cx, f * xy[:, 1] * radial + cy], 1)
 
 
-def initial_intrinsics(name: str, frames: dict, corners3d: np.ndarray, size: tuple[int, int],
-                       free_principal_point: bool) -> tuple[Intrinsics, dict[int, tuple[np.ndarray, np.ndarray]], float]:
+def initial_intrinsics(
+    name: str,
+    frames: dict,
+    corners3d: np.ndarray,
+    size: tuple[int, int],
+    free_principal_point: bool,
+    radial: int = 2,
+) -> tuple[Intrinsics, dict[int, tuple[np.ndarray, np.ndarray]], float]:
     """One camera's intrinsics from its own board views (``cv2.calibrateCamera``) and the board pose
     ``(R, t)`` (board -> camera) in each view; returns ``(intrinsics, poses, rms px)``."""
     import cv2
 
     keys = [k for k, (ids, _) in frames.items() if len(ids) >= 6]
     if len(keys) < 3:
-        raise UserError(f"camera {name}: the board was found in {len(keys)} frame(s); calibrating a camera "
-                        "needs at least 3 views of the board", hint="show the board to it in more frames")
+        raise UserError(
+            f"camera {name}: the board was found in {len(keys)} frame(s); calibrating a camera "
+            "needs at least 3 views of the board",
+            hint="show the board to it in more frames",
+        )
     W, H = size
     K0 = np.array([[max(W, H), 0.0, (W - 1) / 2], [0.0, max(W, H), (H - 1) / 2], [0.0, 0.0, 1.0]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST
-             | cv2.CALIB_FIX_K3)
+    flags = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K3
+    )
     if not free_principal_point:
         flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+    if radial < 2:
+        flags |= cv2.CALIB_FIX_K2
     obj = [corners3d[frames[k][0]].astype(np.float32) for k in keys]
     img = [frames[k][1].astype(np.float32) for k in keys]
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (W, H), K0, np.zeros(5), flags=flags)
@@ -113,21 +129,26 @@ def relative_pose(poses_a: dict, poses_b: dict, shared: list[int]) -> tuple[np.n
 
 
 def chain_extrinsics(names: list[str], poses: list[dict]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """World (= the first camera) -> camera poses, chained over a spanning tree of the camera graph whose edges
+    """World (= the first camera) -> camera poses, chained over a spanning tree of the camera graph whose
+    edges
     are board views shared by two cameras (the edges with the most shared views first). A camera that shares
     no board view with the others is a one-line error naming it."""
     C = len(names)
     shared = {(a, b): sorted(set(poses[a]) & set(poses[b])) for a in range(C) for b in range(C) if a != b}
     known = {0: (np.eye(3), np.zeros(3))}
     while len(known) < C:
-        best = max(((len(shared[a, b]), a, b) for a in known for b in range(C) if b not in known),
-                   default=(0, 0, 0))
+        best = max(
+            ((len(shared[a, b]), a, b) for a in known for b in range(C) if b not in known), default=(0, 0, 0)
+        )
         if best[0] < 1:
             lost = [names[b] for b in range(C) if b not in known]
             raise UserError(
-                f"camera {lost[0]} shares no board view with the others ({', '.join(names[a] for a in known)}): "
+                f"camera {lost[0]} shares no board view with the others "
+                f"({', '.join(names[a] for a in known)}): "
                 "no frame shows the board to it and to one of them at once",
-                hint="record frames where the board is seen by it and by a neighbouring camera, or leave it out")
+                hint="record frames where the board is seen by it and by a neighbouring camera, or leave "
+                "it out",
+            )
         _, a, b = best
         R_ab, t_ab = relative_pose(poses[a], poses[b], shared[a, b])  # x_a = R_ab x_b + t_ab
         Ra, ta = known[a]
@@ -138,7 +159,8 @@ def chain_extrinsics(names: list[str], poses: list[dict]) -> list[tuple[np.ndarr
 
 @dataclass
 class Observations:
-    """Every detected board corner: camera ``cam (n,)``, board view ``view (n,)``, corner ``corner (n,)``, pixel
+    """Every detected board corner: camera ``cam (n,)``, board view ``view (n,)``, corner ``corner (n,)``,
+    pixel
     ``uv (n, 2)``; and extra points (labels) ``pcam, ppoint, puv`` seen by several cameras."""
 
     cam: np.ndarray
