@@ -16,9 +16,9 @@ from s3k.inference.metrics import format_table
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Score a trained detector on a dataset split: rms_px, rms_px_reproj, median_mm, "
                           "rms_mm; keypoints are matched to the dataset's by name. Without 3D truth (a real "
-                          "recording), the 3D figures are against the labels triangulated from every labelled "
-                          "view, with bootstrap 95% intervals, and the labels' leave-one-view-out reprojection "
-                          "error is reported.")
+                          "recording), the 3D figures are against the labels triangulated from every "
+                          "labelled view, with bootstrap 95%% intervals, and the labels' leave-one-view-out "
+                          "reprojection error is reported.")
     parser.epilog = examples("s3k evaluate runs/box --data data/box",
                              "s3k evaluate runs/box --data data/box --split labelled --json")
     parser.add_argument("run", help="run folder written by 's3k train'")

@@ -18,6 +18,7 @@ import torch
 from s3k.data.frames import FrameStore
 from s3k.detector import Detection, Detector, TwoPassDetector
 from s3k.errors import UserError
+from s3k.inference.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
 from s3k.inference.metrics import (
     compute_metrics,
     ground_truth_2d,
@@ -25,7 +26,6 @@ from s3k.inference.metrics import (
     mm_per_unit,
     pixel_sizes_mm,
 )
-from s3k.inference.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
 from s3k.inference.predict import detect_store
 
 __all__ = ["evaluate_run", "evaluate_store"]
@@ -106,9 +106,7 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
     metrics["reference_3d"] = "triangulated labels" if from_labels else (
         "3D points" if arrays["X_gt"] is not None else None)
     if from_labels:
-        metrics["labels_3d"] = label_reference_metrics(
-            arrays["X"], arrays["X_valid"], arrays["lab_X"], arrays["lab_valid"], arrays["loo_px"],
-            mm_per_unit(units), list(detector.keypoints))
+        metrics["labels_3d"] = label_reference_metrics(arrays, mm_per_unit(units), list(detector.keypoints))
     sizes, image_err = arrays["mm_per_px"], arrays["image_err"]
     finite = sizes[np.isfinite(sizes)] if sizes is not None else np.zeros(0)
     metrics["mm_per_px"] = float(np.median(finite)) if finite.size else None

@@ -1,4 +1,5 @@
-"""3D figures on a dataset without 3D truth: the labels triangulated from every labelled view are the reference.
+"""3D figures on a dataset without 3D truth: the labels triangulated from every labelled view are the
+reference.
 
 - :func:`triangulate_labels`: each keypoint labelled in >= 2 views of a frame, triangulated (unit weights, the
   dataset's pixels and cameras); the model's 3D points are scored against these in ``s3k evaluate``.
@@ -77,11 +78,13 @@ def _summary(err: np.ndarray) -> dict[str, Any]:
             "ci95_mean": bootstrap_ci(err, np.mean), "n": int(finite.size)}
 
 
-def label_reference_metrics(X: np.ndarray, X_valid: np.ndarray, X_lab: np.ndarray, lab_valid: np.ndarray,
-                            loo_px: np.ndarray, unit_mm: float, keypoints: list[str]) -> dict[str, Any]:
+def label_reference_metrics(arrays: dict[str, Any], unit_mm: float, keypoints: list[str]) -> dict[str, Any]:
     """The figures of a dataset without 3D truth, overall and per keypoint: the distance (mm, or the rig's
-    unit when it is unknown) between the model's points ``X (B, K, 3)`` and the triangulated labels, and the
-    labels' leave-one-view-out reprojection error ``loo_px (B, C, K)`` (pixels of the dataset's images)."""
+    unit when it is unknown) between the model's points ``X (B, K, 3)`` (valid ``X_valid``) and the
+    triangulated labels ``lab_X`` (valid ``lab_valid``), and the labels' leave-one-view-out reprojection error
+    ``loo_px (B, C, K)`` (pixels of the dataset's images); ``arrays`` holds these."""
+    X, X_valid, X_lab, lab_valid, loo_px = (np.asarray(arrays[k]) for k in
+                                            ("X", "X_valid", "lab_X", "lab_valid", "loo_px"))
     scale = unit_mm if np.isfinite(unit_mm) else 1.0
     d = np.where(X_valid & lab_valid, np.linalg.norm(X - X_lab, axis=-1) * scale, np.nan)  # (B, K)
     out: dict[str, Any] = {
@@ -117,6 +120,7 @@ def format_label_reference(ref: dict[str, Any]) -> str:
     for name, r in rows:
         lines.append(f"{name:<16}{_ci(r['model_to_labels_3d'])}   |{_ci(r['labels_leave_one_view_out_px'])}")
     n = ref["model_to_labels_3d"]["n"]
-    lines.append(f"{n} keypoints with labels in >= 2 views; {ref['labels_leave_one_view_out_px']['n']} labelled "
-                 "views with >= 2 other labelled views")
+    n_loo = ref["labels_leave_one_view_out_px"]["n"]
+    lines.append(f"{n} keypoints with labels in >= 2 views; {n_loo} labelled views with >= 2 other labelled "
+                 "views")
     return "\n".join(lines)
