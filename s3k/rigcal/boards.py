@@ -117,7 +117,7 @@ class Detections:
     marker_ids: tuple[int, ...] = ()
 
 
-def _detect_one(image: np.ndarray, board: Board, detector, min_corners: int):
+def detect_image(image: np.ndarray, board: Board, detector, min_corners: int):
     import cv2
 
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
@@ -171,7 +171,7 @@ def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corner
             if image is None:
                 raise UserError(f"{file}: cannot read image")
             size, images = (image.shape[1], image.shape[0]), images + 1
-            hit, markers = _detect_one(image, board, detector, min_corners)
+            hit, markers = detect_image(image, board, detector, min_corners)
             seen.update(markers)
             if hit is not None:
                 found[key] = hit
@@ -180,7 +180,7 @@ def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corner
             if i % every:
                 continue
             size, images = (image.shape[1], image.shape[0]), images + 1
-            hit, markers = _detect_one(image, board, detector, min_corners)
+            hit, markers = detect_image(image, board, detector, min_corners)
             seen.update(markers)
             if hit is not None:
                 found[i] = hit

@@ -142,16 +142,16 @@ def calibrate_detections(
         board.cv2_board().getChessboardCorners().astype(np.float64) if board.charuco else board.corners3d()
     )
     intr, poses, rms = [], [], []
-    for name, det in zip(names, detections):
-        i, p, r = initial_intrinsics(name, det.frames, corners3d, det.size, free_principal_point, radial)
+    for c, (name, det) in enumerate(zip(names, detections)):
+        if initial and initial[c] is not None:  # known intrinsics: the board's pose in each view by PnP
+            i, p, r = initial[c][0], board_poses_pnp(det.frames, corners3d, initial[c][0]), float("nan")
+        else:
+            i, p, r = initial_intrinsics(name, det.frames, corners3d, det.size, free_principal_point, radial)
         intr.append(i)
         poses.append(p)
         rms.append(r)
     if initial and any(v is not None for v in initial):
         R, t = _place_unknown(names, initial, poses)
-        for c, v in enumerate(initial):
-            if v is not None and fixed and c in fixed:
-                intr[c] = v[0]
     else:
         extr = chain_extrinsics(names, poses)
         R, t = [e[0] for e in extr], [e[1] for e in extr]
@@ -202,6 +202,20 @@ def calibrate_detections(
     return RigCalibration(
         list(names), [d.size for d in detections], board, detections, adj, obs, keys, report, origin
     )
+
+
+def board_poses_pnp(frames: dict, corners3d: np.ndarray, intr: Intrinsics) -> dict:
+    """The board's pose ``(R, t)`` (board -> camera) in each view of a camera with known intrinsics."""
+    import cv2
+
+    out = {}
+    for k, (ids, pts) in frames.items():
+        if len(ids) < 6:
+            continue
+        ok, rvec, tvec = cv2.solvePnP(corners3d[ids], pts, intr.K(), intr.dist())
+        if ok:
+            out[k] = (cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+    return out
 
 
 def _place_unknown(names, initial, poses):
