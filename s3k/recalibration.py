@@ -92,7 +92,8 @@ def recalibrate_charuco(
     if len(detections.get(camera, {})) < 3:
         raise ValueError(f"camera {camera!r}: {len(detections.get(camera, {}))} board detections; need >= 3 "
                          "to calibrate")
-    dets = [Detections(detections.get(n, {}), tuple(int(v) for v in rig.size[rig.index(n)])) for n in names]
+    sizes = {n: (int(rig.size[rig.index(n)][0]), int(rig.size[rig.index(n)][1])) for n in names}
+    dets = [Detections(detections.get(n, {}), sizes[n]) for n in names]
     initial: list = [(intrinsics_of(cams["K"][rig.index(n)], cams["dist"][rig.index(n)]),
                       cams["R"][rig.index(n)], cams["t"][rig.index(n)]) for n in reference] + [None]
     try:

@@ -34,7 +34,6 @@ class BoardRig:
 
 
 def _board_image(board: Board) -> np.ndarray:
-    import cv2
 
     m = int(MARGIN * PX_PER_SQUARE)
     w, h = board.squares_x * PX_PER_SQUARE, board.squares_y * PX_PER_SQUARE
@@ -58,8 +57,10 @@ def _xml(board: Board, metres_per_unit: float, eyes: np.ndarray, fovy: float, im
     for i, eye in enumerate(eyes):
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, look_at_xmat(eye, np.zeros(3)).ravel())
-        cams.append(f'<camera name="cam{i}" pos="{" ".join(map(str, eye))}" quat="{" ".join(map(str, quat))}" '
-                    f'fovy="{fovy}"/>')
+        cams.append(
+            f'<camera name="cam{i}" pos="{" ".join(map(str, eye))}" quat="{" ".join(map(str, quat))}" '
+            f'fovy="{fovy}"/>'
+        )
     h, w = image.shape[:2]
     return f"""<mujoco>
   <compiler balanceinertia="true"/>
@@ -79,7 +80,9 @@ def _xml(board: Board, metres_per_unit: float, eyes: np.ndarray, fovy: float, im
 </mujoco>"""
 
 
-def board_poses(n: int, board: Board, metres_per_unit: float, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+def board_poses(
+    n: int, board: Board, metres_per_unit: float, seed: int = 0
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` poses ``(R, t)`` of the board's centre near the origin (where the cameras look), facing up towards
     the cameras (the board's -z towards +z of the world), tilted up to 45 degrees."""
     from scipy.spatial.transform import Rotation
@@ -96,28 +99,45 @@ def board_poses(n: int, board: Board, metres_per_unit: float, seed: int = 0) -> 
     return out
 
 
-def render_board_rig(out: str | Path, board: Board, *, metres_per_unit: float = 0.001, cameras: int = 3,
-                     size: tuple[int, int] = (320, 256), fovy: float = 45.0, distance: float = 0.55,
-                     poses: int = 10, seed: int = 0) -> BoardRig:
+def render_board_rig(
+    out: str | Path,
+    board: Board,
+    *,
+    metres_per_unit: float = 0.001,
+    cameras: int = 3,
+    size: tuple[int, int] = (320, 256),
+    fovy: float = 45.0,
+    distance: float = 0.55,
+    poses: int = 10,
+    seed: int = 0,
+) -> BoardRig:
     """Render ``poses`` board positions into ``cameras`` cameras on a ring ``distance`` m from the origin, 40
     degrees above it; one folder of PNGs per camera under ``out`` (``cam<i>/frame_<k>.png``)."""
     import cv2
 
     angles = np.linspace(0, 2 * np.pi, cameras, endpoint=False) + 0.3
     el = np.radians(50)
-    eyes = np.stack([distance * np.cos(el) * np.cos(angles), distance * np.cos(el) * np.sin(angles),
-                     np.full(cameras, distance * np.sin(el))], 1)
+    eyes = np.stack(
+        [
+            distance * np.cos(el) * np.cos(angles),
+            distance * np.cos(el) * np.sin(angles),
+            np.full(cameras, distance * np.sin(el)),
+        ],
+        1,
+    )
     image = _board_image(board)
     model = mujoco.MjModel.from_xml_string(_xml(board, metres_per_unit, eyes, fovy, image))
     tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, "board")
     adr = int(model.tex_adr[tid])
-    model.tex_data[adr: adr + image.size] = image.reshape(-1)
+    model.tex_data[adr : adr + image.size] = image.reshape(-1)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     W, H = size
     names = [f"cam{i}" for i in range(cameras)]
     ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, n) for n in names]
-    truth = [mujoco_to_opencv(data.cam_xpos[i], data.cam_xmat[i], float(model.cam_fovy[i]), W, H) for i in ids]
+    truth = [
+        mujoco_to_opencv(data.cam_xpos[i], data.cam_xmat[i], float(model.cam_fovy[i]), W, H) for i in ids
+    ]
     folders = {n: Path(out) / n for n in names}
     for f in folders.values():
         f.mkdir(parents=True, exist_ok=True)
@@ -131,5 +151,11 @@ def render_board_rig(out: str | Path, board: Board, *, metres_per_unit: float = 
             rgb = renderer.render(data, ids)["rgb"]
             for n, img in zip(names, rgb):
                 cv2.imwrite(str(folders[n] / f"frame_{k:03d}.png"), img[..., ::-1])
-    return BoardRig(names, np.stack([k for k, _, _ in truth]), np.stack([r for _, r, _ in truth]),
-                    np.stack([t for _, _, t in truth]), folders, (W, H))
+    return BoardRig(
+        names,
+        np.stack([k for k, _, _ in truth]),
+        np.stack([r for _, r, _ in truth]),
+        np.stack([t for _, _, t in truth]),
+        folders,
+        (W, H),
+    )
