@@ -83,8 +83,8 @@ def _xml(board: Board, metres_per_unit: float, eyes: np.ndarray, fovy: float, im
 def board_poses(
     n: int, board: Board, metres_per_unit: float, seed: int = 0
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` poses ``(R, t)`` of the board's centre near the origin (where the cameras look), facing up towards
-    the cameras (the board's -z towards +z of the world), tilted up to 45 degrees."""
+    """``n`` poses ``(R, t)`` of the board's centre near the origin (where the cameras look), facing up
+    towards the cameras (the board's -z towards +z of the world), tilted up to 45 degrees."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
