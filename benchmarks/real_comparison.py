@@ -4,7 +4,8 @@ Each finished pair (``runs/s3k-seedN``, ``runs/baseline-seedN``) is evaluated on
 frames as ``s3k evaluate`` does: the recording has no 3D truth, so the 3D figure is the distance between the
 model's 3D points and the proofread labels triangulated from every labelled view (mm). Per seed: both models'
 mean and median distance, the paired difference of the means (S3K - labels only, over the same keypoints)
-with a 95% bootstrap interval over frames, and rms_px. Over seeds: the mean paired difference with a 95%
+with a 95% bootstrap interval over frames, rms_px, and how much the views of each model disagree on the
+unlabelled frames (what the self-supervised term reduces). Over seeds: the mean paired difference with a 95%
 t-interval (needs >= 2 seeds).
 
     python benchmarks/real_comparison.py [--work /tmp/real-work] [--out FILE.json]
@@ -33,6 +34,23 @@ def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
     ok = arrays["X_valid"] & arrays["lab_valid"]
     d = np.where(ok, np.linalg.norm(arrays["X"] - arrays["lab_X"], axis=-1), np.nan)
     return metrics, d
+
+
+def view_consistency(run: Path, ds: Dataset) -> float:
+    """Median pixel distance, over the unlabelled frames, between each view's detection and the reprojection
+    of the confidence-weighted triangulated point: the disagreement between views that S3K's self-supervised
+    term reduces on those frames (a model whose views already agree leaves it little to do)."""
+    from s3k.inference.predict import detect_store
+
+    detector = Detector.load(run, "cpu")
+    store = FrameStore(ds, np.asarray(ds.frames("unlabelled")), preload_mb=0)
+    d = [
+        np.linalg.norm(p.uv.numpy() - p.reproj.numpy(), axis=-1)[
+            p.valid.numpy()[:, None, :].repeat(p.uv.shape[1], 1)
+        ]
+        for _, p in detect_store(detector, store, 16)
+    ]
+    return float(np.median(np.concatenate(d)))
 
 
 def t_interval(x: list[float]) -> list[float] | None:
