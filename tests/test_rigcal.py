@@ -84,3 +84,15 @@ def test_board_size_not_matching_the_detections(sim_rig):
     det = detect_board(rig.folders["cam0"], small)
     with pytest.raises(UserError, match=r"camera cam0 .*markers with ids up to 1[0-9].*size does not match"):
         check_board_matches("cam0", rig.folders["cam0"], det, small)
+
+
+def test_calibrate_command_one_line_errors(sim_rig, tmp_path, capsys):
+    _, rig, _ = sim_rig
+    out = str(tmp_path / "c.toml")
+    assert cli_main(["calibrate", f"cam0={rig.folders['cam0']}", "--out", out]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no board given" in err[0] and "--board" in err[0]
+    assert cli_main(["calibrate", f"cam0={tmp_path / 'missing.mp4'}", "--squares", "7x5", "--square-length",
+                     "40", "--out", out]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing.mp4" in err[0]
