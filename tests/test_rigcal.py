@@ -96,3 +96,21 @@ def test_calibrate_command_one_line_errors(sim_rig, tmp_path, capsys):
                      "40", "--out", out]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.mp4" in err[0]
+
+
+def test_recovers_the_rig_from_a_checkerboard(tmp_path):
+    """A plain checkerboard (7 x 6 squares: odd in all, so not symmetric under a half turn): OpenCV reads its
+    grid from either end, the dark first square orders it, wrong reads are left out; same tolerances."""
+    board = Board(7, 6, 40.0)
+    rig = render_board_rig(tmp_path, board, cameras=3, size=(640, 512), poses=16, seed=0)
+    cal = calibrate_detections(rig.names, [detect_board(rig.folders[n], board) for n in rig.names], board)
+    a = cal.adjusted
+    R0, t0 = rig.R[0], rig.t[0] * 1000.0
+    for c in range(3):
+        R_true = rig.R[c] @ R0.T
+        t_true = rig.t[c] * 1000.0 - R_true @ t0
+        assert abs(a.intrinsics[c].f / rig.K[c, 0, 0] - 1) < 0.005
+        assert np.linalg.norm(-R_true.T @ t_true - (-a.R[c].T @ a.t[c])) < 2.0
+        assert _angle_deg(a.R[c] @ R_true.T) < 0.2
+    with pytest.raises(UserError, match="looks the same turned by 180 degrees"):
+        check_board_matches("cam0", "x", cal.detections[0], Board(7, 5, 40.0))

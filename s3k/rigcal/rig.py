@@ -175,6 +175,21 @@ def calibrate_detections(
         radial=radial,
         loss_scale_px=loss_scale_px,
     )
+    bad = _bad_views(obs, adj)
+    if bad.any():  # wrong detections (a grid read from the wrong corner): adjust again without them
+        obs = _subset(obs, ~bad)
+        adj = bundle_adjust(
+            adj.intrinsics,
+            adj.R,
+            adj.t,
+            adj.views,
+            obs,
+            corners3d,
+            fixed=fixed,
+            free_principal_point=free_principal_point,
+            radial=radial,
+            loss_scale_px=loss_scale_px,
+        )
     origin = "first camera" if not initial else "the fixed cameras"
     if origin_view is not None:
         if origin_view not in keys:
@@ -191,7 +206,7 @@ def calibrate_detections(
         report.append(
             CameraReport(
                 name,
-                len(poses[c]),
+                len(set(obs.view[sel].tolist())),
                 int(sel.sum()),
                 float(np.median(err)),
                 float(np.sqrt(np.mean(err**2))),
@@ -201,6 +216,28 @@ def calibrate_detections(
         )
     return RigCalibration(
         list(names), [d.size for d in detections], board, detections, adj, obs, keys, report, origin
+    )
+
+
+BAD_VIEW_PX = 5.0  # a camera's view of the board whose median residual exceeds this is a wrong detection
+
+
+def _bad_views(obs: Observations, adj: Adjusted) -> np.ndarray:
+    """``(n,)`` bool: the observations of the (camera, board view) pairs whose median residual exceeds
+    ``max(BAD_VIEW_PX, 10 x the median residual)``."""
+    err = np.linalg.norm(adj.residuals, axis=1)
+    limit = max(BAD_VIEW_PX, 10 * float(np.median(err)))
+    bad = np.zeros(len(err), bool)
+    for c, v in set(zip(obs.cam.tolist(), obs.view.tolist())):
+        sel = (obs.cam == c) & (obs.view == v)
+        if np.median(err[sel]) > limit:
+            bad |= sel
+    return bad
+
+
+def _subset(obs: Observations, keep: np.ndarray) -> Observations:
+    return Observations(
+        obs.cam[keep], obs.view[keep], obs.corner[keep], obs.uv[keep], obs.pcam, obs.ppoint, obs.puv
     )
 
 

@@ -62,6 +62,9 @@ def project(X_cam: np.ndarray, f, cx, cy, k1, k2) -> np.ndarray:
     return np.stack([f * xy[:, 0] * radial + cx, f * xy[:, 1] * radial + cy], 1)
 
 
+OUTLIER_VIEW_FACTOR = 3.0  # a view whose own error exceeds this many times the median view's is left out
+
+
 def initial_intrinsics(
     name: str,
     frames: dict,
@@ -93,9 +96,20 @@ def initial_intrinsics(
         flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
     if radial < 2:
         flags |= cv2.CALIB_FIX_K2
-    obj = [corners3d[frames[k][0]].astype(np.float32) for k in keys]
-    img = [frames[k][1].astype(np.float32) for k in keys]
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (W, H), K0, np.zeros(5), flags=flags)
+
+    def fit(keys):
+        obj = [corners3d[frames[k][0]].astype(np.float32) for k in keys]
+        img = [frames[k][1].astype(np.float32) for k in keys]
+        return cv2.calibrateCameraExtended(obj, img, (W, H), K0, np.zeros(5), flags=flags)
+
+    rms, K, dist, rvecs, tvecs, _, _, per_view = fit(keys)
+    # A wrong detection (a grid taken from the wrong corner) spoils the fit of every view: refit without the
+    # views that fit much worse than the others (the bundle adjustment's robust loss handles the rest).
+    per_view = per_view.reshape(-1)
+    keep = [k for k, e in zip(keys, per_view) if e <= max(OUTLIER_VIEW_FACTOR * np.median(per_view), 1.0)]
+    if len(keep) < len(keys) and len(keep) >= 3:
+        keys = keep
+        rms, K, dist, rvecs, tvecs, _, _, _ = fit(keys)
     d = dist.reshape(-1)
     intr = Intrinsics(float(K[0, 0]), float(K[0, 2]), float(K[1, 2]), float(d[0]), float(d[1]))
     poses = {k: (cv2.Rodrigues(r)[0], t.reshape(3)) for k, r, t in zip(keys, rvecs, tvecs)}
