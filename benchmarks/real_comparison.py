@@ -30,7 +30,9 @@ from s3k.inference.label_reference import bootstrap_ci
 def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
     """The metrics and the (frames, keypoints) mm distances to the triangulated labels (NaN where none)."""
     detector = Detector.load(run, "cpu")
-    metrics, arrays = evaluate_store(detector, FrameStore(ds, ids, preload_mb=0, labels=True), 16, ds.units)
+    metrics, arrays = evaluate_store(
+        detector, FrameStore(ds, ids, preload_mb=0, labels=True), 16, ds.units, label_reference=True
+    )
     ok = arrays["X_valid"] & arrays["lab_valid"]
     d = np.where(ok, np.linalg.norm(arrays["X"] - arrays["lab_X"], axis=-1), np.nan)
     return metrics, d

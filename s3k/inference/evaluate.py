@@ -64,7 +64,7 @@ def _columns(batch, pred: Detection, order: np.ndarray, units: str) -> dict[str,
 
 
 def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, units: str = "m",
-                   keep: int = 0) -> tuple[dict[str, Any], dict[str, Any]]:
+                   keep: int = 0, label_reference: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """Detect every frame of ``store`` and compute :func:`s3k.inference.metrics.compute_metrics`.
 
     Args:
@@ -73,6 +73,9 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
         batch_size: frames per forward pass.
         units: world units of the dataset.
         keep: keep the network inputs and heatmaps of the first ``keep`` frames (for overlays).
+        label_reference: without 3D truth, add ``labels_3d``: the 3D distance to the triangulated labels and
+            the labels' leave-one-view-out error, per keypoint, with bootstrap intervals
+            (:func:`s3k.inference.label_reference.label_reference_metrics`).
 
     The ground truth's keypoints are matched to the detector's by name (:func:`keypoint_order`).
 
@@ -105,7 +108,7 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
                               mm_per_unit(units), detector.keypoints, store.dataset.cameras)
     metrics["reference_3d"] = "triangulated labels" if from_labels else (
         "3D points" if arrays["X_gt"] is not None else None)
-    if from_labels:
+    if from_labels and label_reference:
         metrics["labels_3d"] = label_reference_metrics(arrays, mm_per_unit(units), list(detector.keypoints))
     sizes, image_err = arrays["mm_per_px"], arrays["image_err"]
     finite = sizes[np.isfinite(sizes)] if sizes is not None else np.zeros(0)
@@ -132,7 +135,8 @@ def evaluate_run(run_dir, data, split: str = "test", device: str = "auto", batch
     if len(ids) == 0:
         raise UserError(f"{data}: split {split!r} has no frames", hint="choose another --split")
     store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
-    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=overlays if report else 0)
+    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=overlays if report else 0,
+                                     label_reference=True)
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     if report:

@@ -135,11 +135,12 @@ def detect_image(image: np.ndarray, board: Board, detector, min_corners: int):
 
 
 def _first_square_dark(gray: np.ndarray, uv: np.ndarray, nx: int) -> np.ndarray:
-    """OpenCV returns a checkerboard's corners from any of its four ends, rows along x or mirrored; s3k's board
-    frame (x right, y down the printed side, as OpenCV's and ChArUco boards) turns clockwise in the image, and
-    has a dark square at its origin, so the square inside the first four corners is dark. A mirrored order is
-    reversed along x; then, when that square is the lighter, the order is turned by 180 degrees (unambiguous
-    when ``squares_x + squares_y`` is odd, which :func:`check_board_matches` requires)."""
+    """OpenCV returns a checkerboard's corners from any of its four ends, rows along x or mirrored. s3k's
+    board frame (x right, y down the printed side, as OpenCV's and ChArUco boards) turns clockwise in the
+    image and has a dark square at its origin, so the square inside the first four corners is dark. A
+    mirrored order is reversed along x; then, when that square is the lighter, the order is turned by 180
+    degrees (unambiguous when ``squares_x + squares_y`` is odd, which :func:`check_board_matches`
+    requires)."""
     grid = uv.reshape(-1, nx, 2)
     ex, ey = grid[0, 1] - grid[0, 0], grid[1, 0] - grid[0, 0]
     if ex[0] * ey[1] - ex[1] * ey[0] < 0:
@@ -212,8 +213,8 @@ def check_board_matches(name: str, source, det: Detections, board: Board) -> Non
     not have, or no detection at all."""
     if not board.charuco and (board.squares_x + board.squares_y) % 2 == 0:
         raise UserError(
-            f"checkerboard {board.describe()}: with an even number of squares in all it looks the same turned "
-            "by 180 degrees, so the cameras cannot agree on its corners",
+            f"checkerboard {board.describe()}: with an even number of squares in all it looks the same "
+            "turned by 180 degrees, so the cameras cannot agree on its corners",
             hint="use a board with an odd squares_x + squares_y (e.g. 8x11 or 7x6)",
         )
     if board.charuco and det.marker_ids and max(det.marker_ids) >= board.n_markers:
