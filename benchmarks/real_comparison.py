@@ -96,6 +96,7 @@ def main(argv: list[str] | None = None) -> None:
                     "labels_leave_one_view_out_median_px": met["labels_3d"]["labels_leave_one_view_out_px"][
                         "median"
                     ],
+                    "unlabelled_view_disagreement_median_px": view_consistency(runs[m], ds),
                 }
                 for m, d, met in (("s3k", ds_, ms), ("baseline", db, mb))
             },
