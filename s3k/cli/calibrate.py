@@ -69,8 +69,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     solve.add_argument(
         "--radial",
-        type=int,
-        choices=(1, 2),
+        type=number(int, ge=1, le=2),
         default=2,
         help="radial distortion terms: 1 (k1, anipose's model) or 2 (k1, k2; default)",
     )
