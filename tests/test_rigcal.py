@@ -114,3 +114,31 @@ def test_recovers_the_rig_from_a_checkerboard(tmp_path):
         assert _angle_deg(a.R[c] @ R_true.T) < 0.2
     with pytest.raises(UserError, match="looks the same turned by 180 degrees"):
         check_board_matches("cam0", "x", cal.detections[0], Board(7, 5, 40.0))
+
+
+def test_origin_view_and_extra_points(sim_rig):
+    """--origin-view puts the world on the board of that frame (the rig's shape unchanged); extra points seen
+    by several cameras (labels) join the adjustment and fit to their noise."""
+    from s3k.rigcal.rig import refine_with_points
+
+    _, rig, detections = sim_rig
+    cal = calibrate_detections(rig.names, detections, BOARD)
+    key = cal.view_keys[3]
+    moved = calibrate_detections(rig.names, detections, BOARD, origin_view=key)
+    Rv, tv = moved.adjusted.views[3]
+    assert np.allclose(Rv, np.eye(3), atol=1e-9) and np.allclose(tv, 0, atol=1e-6)
+    centres = [np.stack([-R.T @ t for R, t in zip(c.adjusted.R, c.adjusted.t)]) for c in (cal, moved)]
+    assert np.allclose(np.linalg.norm(centres[0][1:] - centres[0][0], axis=1),
+                       np.linalg.norm(centres[1][1:] - centres[1][0], axis=1), atol=1e-6)
+    # 30 points near where the cameras look (the true world, mm), projected with the truth plus 0.3 px noise
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-60, 60, (30, 3))
+    uv = np.full((1, 3, 30, 2), np.nan)
+    for c in range(3):
+        xc = X @ rig.R[c].T + rig.t[c] * 1000.0
+        uv[0, c] = xc[:, :2] / xc[:, 2:] * rig.K[c, 0, 0] + rig.K[c, :2, 2] + rng.normal(0, 0.3, (30, 2))
+    refined = refine_with_points(cal, uv)
+    assert len(refined.adjusted.points) == 30
+    assert np.median(np.linalg.norm(refined.adjusted.point_residuals, axis=1)) < 1.0
+    for c in range(3):
+        assert abs(refined.adjusted.intrinsics[c].f / rig.K[c, 0, 0] - 1) < 0.005
