@@ -1,5 +1,6 @@
-"""Recalibrating cameras from ChArUco frames (``s3k check-calibration --recalibrate``): a camera's intrinsics
-from its own board views and its pose from board corners placed in the world by trusted cameras
+"""Recalibrating cameras from ChArUco frames (``s3k check-calibration --recalibrate``) with the solver of
+``s3k calibrate`` (:mod:`s3k.rigcal`): a camera's intrinsics from its own board views, its pose from the views
+it shares with trusted cameras, refined by bundle adjustment with the trusted cameras held fixed
 (:func:`recalibrate_charuco`), and a dataset's cameras with some of them recalibrated
 (:func:`recalibrate_dataset`). Which cameras to distrust is :mod:`s3k.calibration`'s check.
 """
@@ -7,7 +8,6 @@ from its own board views and its pose from board corners placed in the world by 
 from __future__ import annotations
 
 import glob
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,56 +22,16 @@ from s3k.errors import UserError
 from s3k.fileio import resolve_from
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
+from s3k.rigcal.boards import Board, Detections, detect_image, read_board_toml
+from s3k.rigcal.rig import calibrate_detections, intrinsics_of
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+CharucoBoardSpec = Board  # the board of anipose's board.toml (s3k.rigcal.boards.Board)
 
-
-@dataclass
-class CharucoBoardSpec:
-    """A ChArUco board as anipose's ``board.toml`` describes it (lengths in the rig's unit)."""
-
-    squares_x: int
-    squares_y: int
-    square_length: float
-    marker_length: float
-    marker_bits: int = 4
-    dict_size: int = 50
-
-    def cv2_board(self):
-        name = f"DICT_{self.marker_bits}X{self.marker_bits}_{self.dict_size}"
-        if not hasattr(cv2.aruco, name):
-            raise ValueError(f"no ArUco dictionary {name} in OpenCV (marker_bits, dict_size)")
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-        return cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), self.square_length, self.marker_length, dictionary
-        )
+__all__ = ["CharucoBoardSpec", "DatasetRecalibration", "Recalibration", "detect_charuco", "read_board_toml",
+           "recalibrate_charuco", "recalibrate_dataset"]
 
 
-def read_board_toml(path) -> CharucoBoardSpec:
-    """Read anipose's ``board.toml`` (``board_x``, ``board_y``, ``square_length``, ``marker_length``,
-    ``marker_bits``, ``dict_size``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: board file not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML ({exc})") from exc
-    for key in ("board_x", "board_y", "square_length", "marker_length"):
-        if key not in data:
-            raise ValueError(f"{path}: no field {key!r} (a ChArUco board needs board_x, board_y, "
-                             "square_length, marker_length)")
-    return CharucoBoardSpec(
-        int(data["board_x"]), int(data["board_y"]),
-        float(data["square_length"]), float(data["marker_length"]),
-        int(data.get("marker_bits", 4)), int(data.get("dict_size", 50)),
-    )
-
-
-def detect_charuco(image_paths, board: CharucoBoardSpec, min_corners: int = 6) -> dict[int, tuple]:
+def detect_charuco(image_paths, board: Board, min_corners: int = 6) -> dict[int, tuple]:
     """Detect ChArUco corners in calibration images.
 
     Args:
@@ -93,9 +53,9 @@ def detect_charuco(image_paths, board: CharucoBoardSpec, min_corners: int = 6) -
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise ValueError(f"{path}: cannot read image")
-        corners, ids, _, _ = detector.detectBoard(image)
-        if ids is not None and len(ids) >= min_corners:
-            found[key] = (ids.reshape(-1).astype(int), corners.reshape(-1, 2).astype(np.float64))
+        hit, _ = detect_image(image, board, detector, min_corners)
+        if hit is not None:
+            found[key] = hit
     return found
 
 
@@ -114,10 +74,12 @@ class Recalibration:
 
 
 def recalibrate_charuco(
-    rig, camera: str, detections: dict[str, dict[int, tuple]], board: CharucoBoardSpec, reference: list[str],
+    rig, camera: str, detections: dict[str, dict[int, tuple]], board: Board, reference: list[str],
 ) -> Recalibration:
-    """Intrinsics of ``camera`` from its own board views, pose from board corners placed in the world by the
-    ``reference`` cameras (trusted, from ``rig``) at the same instants.
+    """Recalibrate ``camera`` with the whole-rig solver of ``s3k calibrate`` (:mod:`s3k.rigcal`), the
+    ``reference`` cameras (trusted, from ``rig``) held fixed: its intrinsics from its own board views
+    (anipose's model: one focal length, centred principal point, k1), its pose from the board views it shares
+    with them, then one bundle adjustment of it and every board pose.
 
     Args:
         rig: :class:`s3k.data.rig.Rig` (full-resolution intrinsics).
@@ -126,51 +88,24 @@ def recalibrate_charuco(
         board: the board.
         reference: trusted cameras.
     """
-    c = rig.index(camera)
-    W, H = (int(v) for v in rig.size[c])
+    names = [*reference, camera]
     cams = rig.cameras.numpy()
-    corners3d = board.cv2_board().getChessboardCorners().astype(np.float64)  # (N, 3) board frame
-    own = detections.get(camera, {})
-    if len(own) < 3:
-        raise ValueError(f"camera {camera!r}: {len(own)} board detections; need >= 3 to calibrate")
-    obj = [corners3d[ids].astype(np.float32) for ids, _ in own.values()]
-    img = [pts.astype(np.float32) for _, pts in own.values()]
-    # The anipose model: one focal length, centred principal point, radial k1 (what calibration.toml holds).
-    K0 = np.array([[max(W, H), 0.0, (W - 1) / 2], [0.0, max(W, H), (H - 1) / 2], [0.0, 0.0, 1.0]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_PRINCIPAL_POINT
-             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
-    rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, np.zeros(5), flags=flags)
-    dist = dist.reshape(-1)[:5]
-    # Board corners in world coordinates, from each reference camera's view of the board (averaged).
-    world_pts, image_pts = [], []
-    for key, (ids, pts) in own.items():
-        placed = []
-        for ref in reference:
-            r = rig.index(ref)
-            if key not in detections.get(ref, {}):
-                continue
-            rids, rpts = detections[ref][key]
-            ok, rvec, tvec = cv2.solvePnP(corners3d[rids], rpts, cams["K"][r], cams["dist"][r])
-            if not ok:
-                continue
-            X_cam = corners3d @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3)
-            placed.append((X_cam - cams["t"][r]) @ cams["R"][r])  # world = R^T (x_cam - t)
-        if placed:
-            world_pts.append(np.mean(placed, axis=0)[ids])
-            image_pts.append(pts)
-    if not world_pts:
+    if len(detections.get(camera, {})) < 3:
+        raise ValueError(f"camera {camera!r}: {len(detections.get(camera, {}))} board detections; need >= 3 "
+                         "to calibrate")
+    sizes = {n: (int(rig.size[rig.index(n)][0]), int(rig.size[rig.index(n)][1])) for n in names}
+    dets = [Detections(detections.get(n, {}), sizes[n]) for n in names]
+    initial: list = [(intrinsics_of(cams["K"][rig.index(n)], cams["dist"][rig.index(n)]),
+                      cams["R"][rig.index(n)], cams["t"][rig.index(n)]) for n in reference] + [None]
+    try:
+        cal = calibrate_detections(names, dets, board, radial=1, initial=initial,
+                                   fixed=list(range(len(reference))))
+    except UserError as exc:
         raise ValueError(f"camera {camera!r}: no board position seen by it and by a reference camera "
-                         f"({', '.join(reference)})")
-    Xw, uv = np.concatenate(world_pts), np.concatenate(image_pts)
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(Xw, uv, K, dist, reprojectionError=8.0)
-    if not ok or inliers is None:
-        raise ValueError(f"camera {camera!r}: pose estimation from {len(Xw)} board corners failed")
-    inl = inliers.reshape(-1)
-    _, rvec, tvec = cv2.solvePnP(Xw[inl], uv[inl], K, dist, rvec, tvec, useExtrinsicGuess=True)
-    proj, _ = cv2.projectPoints(Xw, rvec, tvec, K, dist)
-    err = np.linalg.norm(proj.reshape(-1, 2) - uv, axis=1)
-    return Recalibration(K, dist, cv2.Rodrigues(rvec)[0], tvec.reshape(3), float(rms), float(np.median(err)),
-                         len(world_pts), len(Xw))
+                         f"({', '.join(reference)})") from exc
+    a, rep = cal.adjusted, cal.report[-1]
+    return Recalibration(a.intrinsics[-1].K(), a.intrinsics[-1].dist(), a.R[-1], a.t[-1], rep.initial_rms_px,
+                         rep.median_px, rep.views, rep.corners)
 
 
 # ------------------------------------------------------------------------------------------------------------

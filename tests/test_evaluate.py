@@ -339,3 +339,44 @@ def test_mm_per_px_at_the_workspace_centre(distance, f):
     np.testing.assert_allclose(sizes, 1000.0 * distance / f, rtol=1e-9)
     # one camera alone has no workspace centre
     assert np.isnan(pixel_sizes_mm(cams[:, :1], 1000.0)).all()
+
+
+def test_evaluate_without_3d_truth_scores_against_triangulated_labels(trained, capsys, tmp_path):
+    """A dataset with 2D labels only: the 3D figures are the distance to the labels triangulated from every
+    labelled view (known offsets 2 and 4 mm for keypoints b and c), with intervals; the leave-one-view-out
+    error is zero for exact labels and shows a label moved in one view; the report's mm panels are filled."""
+    from s3k.data import DatasetWriter
+
+    root, ds_path, run = trained
+    ds = Dataset.open(ds_path, cache="none")
+    test_ids = ds.frames("test")
+    (batch, pred), = list(detect_store(Detector.load(run, "cpu"), FrameStore(ds, test_ids), 16))
+    assert pred.valid.all()
+    X_lab = pred.X.double().numpy() + np.array([[0, 0, 0], [0, 0.002, 0], [0, 0, 0.004]])  # b 2 mm, c 4 mm
+    K, dist, R, t = rig(32)
+    labels_only = tmp_path / "labels_only"
+    with DatasetWriter(labels_only, KEYPOINTS, CAMERAS, (32, 32), "m", calibration=(K, dist, R, t)) as w:
+        for b, fid in enumerate(test_ids):
+            uv = project(K, R, t, X_lab[b])  # (C, K, 2)
+            uv[0, 0] += [1.5, 0.0]  # keypoint a moved 1.5 px in cam0
+            w.add_frame(int(fid), "test", batch.images[b].numpy(), None, uv, None)
+    rep = tmp_path / "report"
+    assert cli_main(["evaluate", str(run), "--data", str(labels_only), "--json", "--device", "cpu",
+                     "--report", str(rep)]) == 0
+    m = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert m["reference_3d"] == "triangulated labels"
+    ref = m["labels_3d"]
+    b3, c3 = (ref["per_keypoint"][k]["model_to_labels_3d"] for k in ("b", "c"))
+    assert b3["median"] == pytest.approx(2.0, abs=1e-3) and c3["mean"] == pytest.approx(4.0, abs=1e-3)
+    assert b3["ci95_mean"][0] <= b3["mean"] <= b3["ci95_mean"][1]
+    assert b3["n"] == len(test_ids)
+    assert m["per_keypoint"]["c"]["median_mm"] == pytest.approx(4.0, abs=1e-3)  # the mm columns are filled
+    loo_b = ref["per_keypoint"]["b"]["labels_leave_one_view_out_px"]
+    loo_a = ref["per_keypoint"]["a"]["labels_leave_one_view_out_px"]
+    assert loo_b["median"] == pytest.approx(0.0, abs=1e-3) and loo_b["n"] == len(test_ids) * len(CAMERAS)
+    assert loo_a["mean"] > 0.3
+    with open(rep / "metrics.json") as f:
+        assert json.load(f)["median_mm"] is not None
+    assert cli_main(["evaluate", str(run), "--data", str(labels_only), "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    assert "3D distance to the labels triangulated" in out and "95% CI" in out

@@ -141,7 +141,7 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["detector"],
     ["readout", "model", "losses", "augment", "config", "presets", "budget"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
-     "calibration", "recalibration"],
+     "calibration", "recalibration", "rigcal"],
 ]
 
 

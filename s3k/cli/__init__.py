@@ -45,6 +45,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "import_",
         "convert a recording (anipose, DeepLabCut, Lightning Pose, SLEAP, NWB) to a dataset",
     ),
+    "calibrate": ("calibrate", "calibrate a whole rig from board videos or image folders, anipose TOML out"),
     "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
     "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
     "stream": ("stream", "live 3D keypoints from synchronized cameras or videos, one JSON line per frame"),

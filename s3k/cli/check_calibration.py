@@ -65,9 +65,10 @@ def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
                                 charuco=patterns)
     for cam, fix in fixed.fixes.items():
         print(f"recalibrated {cam} from {fixed.frames[cam]} ChArUco frames: intrinsics rms "
-              f"{fix.intrinsics_rms_px:.2f} px, f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}; pose from "
-              f"{fix.corners} board corners in {fix.frames} frames placed by {', '.join(fixed.reference)}: "
-              f"median {fix.pose_median_px:.2f} px")
+              f"{fix.intrinsics_rms_px:.2f} px; bundle-adjusted with {', '.join(fixed.reference)} held "
+              "fixed: "
+              f"f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}, {fix.corners} board corners in {fix.frames} "
+              f"frames, median {fix.pose_median_px:.2f} px")
     if args.write_calibration:
         write_anipose_calibration(args.write_calibration, fixed.rig)
         print(f"wrote {args.write_calibration}")

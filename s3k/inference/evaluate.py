@@ -21,6 +21,7 @@ from s3k.data.frames import FrameStore
 from s3k.detector import Detection, Detector, TwoPassDetector
 from s3k.draw import edge_indices
 from s3k.errors import UserError
+from s3k.inference.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
 from s3k.inference.metrics import (
     compute_metrics,
     ground_truth_2d,
@@ -34,7 +35,7 @@ from s3k.inference.report import write_report
 __all__ = ["evaluate_run", "evaluate_store"]
 
 COLUMNS = ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid", "X_gt", "X_gt_mask", "weight",
-           "frame_ids", "mm_per_px", "image_err", "placed")
+           "frame_ids", "mm_per_px", "image_err", "placed", "lab_X", "lab_valid", "loo_px")
 
 
 def _to_network(uv: np.ndarray, maps: np.ndarray) -> np.ndarray:
@@ -60,11 +61,14 @@ def _columns(batch, pred: Detection, order: np.ndarray, units: str) -> dict[str,
            "image_err": np.where(gt_mask & inside, np.linalg.norm(uv - gt_img, axis=-1), np.nan)}
     if batch.points is not None and batch.points_mask is not None:
         row["X_gt"], row["X_gt_mask"] = batch.points.numpy()[:, order], batch.points_mask.numpy()[:, order]
+    else:  # no 3D truth: the labels triangulated from every labelled view are the reference
+        row["lab_X"], row["lab_valid"] = triangulate_labels(batch.cams, gt_img, gt_mask)
+        row["loo_px"] = leave_one_view_out(batch.cams, gt_img, gt_mask)
     return row
 
 
 def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, units: str = "m",
-                   keep: int = 0) -> tuple[dict[str, Any], dict[str, Any]]:
+                   keep: int = 0, label_reference: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """Detect every frame of ``store`` and compute :func:`s3k.inference.metrics.compute_metrics`.
 
     Args:
@@ -73,6 +77,9 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
         batch_size: frames per forward pass.
         units: world units of the dataset.
         keep: keep the network inputs and heatmaps of the first ``keep`` frames (for overlays).
+        label_reference: without 3D truth, add ``labels_3d``: the 3D distance to the triangulated labels and
+            the labels' leave-one-view-out error, per keypoint, with bootstrap intervals
+            (:func:`s3k.inference.label_reference.label_reference_metrics`).
 
     The ground truth's keypoints are matched to the detector's by name (:func:`keypoint_order`).
 
@@ -93,13 +100,20 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
             kept_images.append(inputs.numpy())
             kept_probs.append(pred.probs[: keep - n_kept].float().numpy())
     arrays = {k: np.concatenate(v) if v else None for k, v in cols.items()}
-    if len(cols["X_gt"]) != len(cols["X"]):
+    from_labels = len(cols["X_gt"]) != len(cols["X"]) and len(cols["lab_X"]) == len(cols["X"])
+    if from_labels:  # the report's and the metrics' 3D columns measure against the triangulated labels
+        arrays["X_gt"], arrays["X_gt_mask"] = arrays["lab_X"], arrays["lab_valid"]
+    elif len(cols["X_gt"]) != len(cols["X"]):
         arrays["X_gt"] = arrays["X_gt_mask"] = None
     arrays["images"] = np.concatenate(kept_images) if kept_images else None
     arrays["probs"] = np.concatenate(kept_probs) if kept_probs else None
     metrics = compute_metrics(arrays["pred_uv"], arrays["reproj_uv"], arrays["gt_uv"], arrays["gt_mask"],
                               arrays["X"], arrays["X_valid"], arrays["X_gt"], arrays["X_gt_mask"],
                               mm_per_unit(units), detector.keypoints, store.dataset.cameras)
+    metrics["reference_3d"] = "triangulated labels" if from_labels else (
+        "3D points" if arrays["X_gt"] is not None else None)
+    if from_labels and label_reference:
+        metrics["labels_3d"] = label_reference_metrics(arrays, mm_per_unit(units), list(detector.keypoints))
     sizes, image_err = arrays["mm_per_px"], arrays["image_err"]
     finite = sizes[np.isfinite(sizes)] if sizes is not None else np.zeros(0)
     metrics["mm_per_px"] = float(np.median(finite)) if finite.size else None
@@ -123,7 +137,8 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
     if len(ids) == 0:
         raise UserError(f"{data}: split {split!r} has no frames", hint="choose another --split")
     store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
-    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=overlays if report else 0)
+    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=overlays if report else 0,
+                                     label_reference=True)
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     if report:

@@ -41,7 +41,9 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
         e3 = np.linalg.norm(arrays["X"] - arrays["X_gt"], axis=-1) * unit_mm
         sel = arrays["X_valid"] & arrays["X_gt_mask"]
         axes[1].hist(e3[sel], bins=50, color="tab:orange")
-        axes[1].set_xlabel("3D error (mm)")
+        against_labels = metrics.get("reference_3d") == "triangulated labels"
+        axes[1].set_xlabel("3D distance to the triangulated labels (mm)" if against_labels
+                           else "3D error (mm)")
         axes[1].set_title(f"median_mm {format_metric(metrics['median_mm'])}, "
                           f"rms_mm {format_metric(metrics['rms_mm'])}")
     else:
@@ -63,7 +65,8 @@ def write_report(out_dir: str | Path, metrics: dict[str, Any], arrays: dict[str,
     for i, m in enumerate(("median_mm", "rms_mm")):
         axes[1].bar(x + (i - 0.5) * 0.4, [metrics["per_keypoint"][n][m] or 0 for n in names], 0.4, label=m)
     axes[1].set_xticks(x, names, rotation=30)
-    axes[1].set_ylabel("mm")
+    labels_3d = metrics.get("reference_3d") == "triangulated labels"
+    axes[1].set_ylabel("mm, to the triangulated labels" if labels_3d else "mm")
     axes[1].legend()
     fig.suptitle(f"per-keypoint errors {title}")
     fig.tight_layout()

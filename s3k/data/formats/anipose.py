@@ -29,7 +29,7 @@ else:  # pragma: no cover
 CAMERA_FIELDS = ("size", "matrix", "distortions", "rotation", "translation")
 
 
-def _units_from_board(square_length: float | None) -> str:
+def units_from_board(square_length: float | None) -> str:
     # anipose puts the world frame in the unit the user gave the board square in; its documentation and
     # every rig seen so far use millimetres (squares of 10-50). A sub-unit square length means metres.
     if square_length is None:
@@ -102,7 +102,7 @@ def _calibration_units(path: Path, metadata: dict) -> str:
     if square is None:
         square = _project_square_length(path)
     try:
-        return _units_from_board(float(square) if square is not None else None)
+        return units_from_board(float(square) if square is not None else None)
     except (TypeError, ValueError):
         raise UserError(f"{path}: square_length must be a number, got {square!r}") from None
 

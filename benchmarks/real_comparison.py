@@ -1,0 +1,129 @@
+"""S3K against labels only on the real recording, per seed, from the runs of scripts/real-comparison.sh.
+
+Each finished pair (``runs/s3k-seedN``, ``runs/baseline-seedN``) is evaluated on the dataset's 40 held-out
+frames as ``s3k evaluate`` does: the recording has no 3D truth, so the 3D figure is the distance between the
+model's 3D points and the proofread labels triangulated from every labelled view (mm). Per seed: both models'
+mean and median distance, the paired difference of the means (S3K - labels only, over the same keypoints)
+with a 95% bootstrap interval over frames, rms_px, and how much the views of each model disagree on the
+unlabelled frames (what the self-supervised term reduces). Over seeds: the mean paired difference with a 95%
+t-interval (needs >= 2 seeds).
+
+    python benchmarks/real_comparison.py [--work /tmp/real-work] [--out FILE.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import git_revision, write_and_emit
+from s3k.data import Dataset
+from s3k.data.frames import FrameStore
+from s3k.detector import Detector
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.label_reference import bootstrap_ci
+
+
+def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
+    """The metrics and the (frames, keypoints) mm distances to the triangulated labels (NaN where none)."""
+    detector = Detector.load(run, "cpu")
+    metrics, arrays = evaluate_store(
+        detector, FrameStore(ds, ids, preload_mb=0, labels=True), 16, ds.units, label_reference=True
+    )
+    ok = arrays["X_valid"] & arrays["lab_valid"]
+    d = np.where(ok, np.linalg.norm(arrays["X"] - arrays["lab_X"], axis=-1), np.nan)
+    return metrics, d
+
+
+def view_consistency(run: Path, ds: Dataset) -> float:
+    """Median pixel distance, over the unlabelled frames, between each view's detection and the reprojection
+    of the confidence-weighted triangulated point: the disagreement between views that S3K's self-supervised
+    term reduces on those frames (a model whose views already agree leaves it little to do)."""
+    from s3k.inference.predict import detect_store
+
+    detector = Detector.load(run, "cpu")
+    store = FrameStore(ds, np.asarray(ds.frames("unlabelled")), preload_mb=0)
+    d = [
+        np.linalg.norm(p.uv.numpy() - p.reproj.numpy(), axis=-1)[
+            p.valid.numpy()[:, None, :].repeat(p.uv.shape[1], 1)
+        ]
+        for _, p in detect_store(detector, store, 16)
+    ]
+    return float(np.median(np.concatenate(d)))
+
+
+def t_interval(x: list[float]) -> list[float] | None:
+    """95% t-interval of the mean of ``x`` (None for fewer than 2 values)."""
+    if len(x) < 2:
+        return None
+    from scipy import stats
+
+    m, se = float(np.mean(x)), float(np.std(x, ddof=1) / math.sqrt(len(x)))
+    h = float(stats.t.ppf(0.975, len(x) - 1)) * se
+    return [m - h, m + h]
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--work", default="/tmp/real-work", help="the folder of scripts/real-comparison.sh")
+    p.add_argument("--out", default=None, help="JSON file for the figures")
+    a = p.parse_args(argv)
+    work = Path(a.work)
+    ds = Dataset.open(work / "crop", cache="none")
+    ids = np.asarray(ds.frames("test"))
+    seeds, diffs = {}, []
+    for seed in range(100):
+        runs = {m: work / "runs" / f"{m}-seed{seed}" for m in ("s3k", "baseline")}
+        if not all((r / "model.pt").is_file() for r in runs.values()):
+            if not (runs["s3k"] / "config.json").is_file():
+                break
+            continue
+        (ms, ds_), (mb, db) = (distances(runs[m], ds, ids) for m in ("s3k", "baseline"))
+        both = np.isfinite(ds_) & np.isfinite(db)
+        paired = np.where(both, ds_ - db, np.nan)
+        diff = float(np.nanmean(paired))
+        diffs.append(diff)
+        seeds[seed] = {
+            **{
+                m: {
+                    "mean_mm": float(np.nanmean(d[both])),
+                    "median_mm": float(np.nanmedian(d[both])),
+                    "ci95_mean_mm": bootstrap_ci(np.where(both, d, np.nan)),
+                    "rms_px": met["rms_px"],
+                    "labels_leave_one_view_out_median_px": met["labels_3d"]["labels_leave_one_view_out_px"][
+                        "median"
+                    ],
+                    "unlabelled_view_disagreement_median_px": view_consistency(runs[m], ds),
+                }
+                for m, d, met in (("s3k", ds_, ms), ("baseline", db, mb))
+            },
+            "paired_diff_mean_mm": diff,
+            "paired_diff_ci95_mm": bootstrap_ci(paired),
+            "points": int(both.sum()),
+            "frames": int(len(ids)),
+        }
+        print(
+            f"seed {seed}: S3K {seeds[seed]['s3k']['mean_mm']:.3f} mm, labels only "
+            f"{seeds[seed]['baseline']['mean_mm']:.3f} mm, S3K - labels only {diff:+.3f} mm "
+            f"(95% CI {seeds[seed]['paired_diff_ci95_mm']})",
+            flush=True,
+        )
+    result = {
+        "command": "python benchmarks/real_comparison.py",
+        "revision": git_revision(),
+        "runs": "bash scripts/real-comparison.sh (3000 steps, 128 px crops, 10 labelled, 70 unlabelled, "
+        "40 test frames)",
+        "reference": "proofread labels triangulated from every labelled view (>= 2), test frames",
+        "seeds": seeds,
+        "seeds_done": len(seeds),
+        "mean_paired_diff_mm": float(np.mean(diffs)) if diffs else None,
+        "mean_paired_diff_ci95_mm_over_seeds": t_interval(diffs),
+    }
+    write_and_emit(result, a.out)
+
+
+if __name__ == "__main__":
+    main()

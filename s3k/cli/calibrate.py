@@ -1,0 +1,190 @@
+"""``s3k calibrate CAM=SOURCE ... --board board.toml --out calibration.toml``: a whole rig from synchronized
+board videos or image folders (:mod:`s3k.rigcal`)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from s3k.cli import examples
+from s3k.cli.options import camera_pairs, number
+from s3k.data.formats.anipose import write_anipose_calibration
+from s3k.data.formats.sleap import read_sleap_analysis
+from s3k.errors import UserError
+from s3k.outputs import check_output
+from s3k.rigcal.boards import Board, read_board_toml
+from s3k.rigcal.figure import draw_calibration
+from s3k.rigcal.rig import calibrate_sources, refine_with_points
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Calibrate a whole rig from synchronized videos or image folders of a ChArUco board or checkerboard, "
+        "one per camera: each camera's intrinsics and distortion, extrinsics chained over the cameras that "
+        "share board views, then one bundle adjustment over every camera and board pose (Huber loss). "
+        "Prints per camera the reprojection error, views used and image coverage; writes an anipose "
+        "calibration.toml that s3k import reads. The world is the first camera (or --origin-view), the unit "
+        "the board's."
+    )
+    parser.epilog = examples(
+        "s3k calibrate back=calib/back.mp4 mid=calib/mid.mp4 top=calib/top/ --board board.toml "
+        "--out calibration.toml --figure calibration.png",
+        "s3k calibrate cam1=c1/ cam2=c2/ --squares 10x7 --square-length 25 --out calibration.toml",
+    )
+    parser.add_argument(
+        "sources",
+        nargs="+",
+        metavar="CAM=SOURCE",
+        help="per camera a video, an image folder or a glob; frames pair by index (videos) or "
+        "by the last number in the file names (images)",
+    )
+    parser.add_argument("--out", required=True, help="anipose calibration.toml to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out (and --figure) if they exist")
+    board = parser.add_argument_group("board (anipose's board.toml, or these options)")
+    board.add_argument(
+        "--board",
+        default=None,
+        help="anipose board.toml (board_x, board_y, square_length, "
+        "marker_length, marker_bits, dict_size; no marker_length: a checkerboard)",
+    )
+    board.add_argument("--squares", default=None, metavar="XxY", help="squares along x and y, e.g. 8x11")
+    board.add_argument(
+        "--square-length",
+        type=number(gt=0),
+        default=None,
+        help="side of a square, in the unit the calibration is to use (e.g. 24 for mm)",
+    )
+    board.add_argument(
+        "--marker-length",
+        type=number(ge=0),
+        default=0.0,
+        help="ArUco marker side for a ChArUco board (default 0: a plain checkerboard)",
+    )
+    board.add_argument(
+        "--dict",
+        default="4x4_50",
+        metavar="BITSxBITS_SIZE",
+        help="ArUco dictionary of a ChArUco board (default 4x4_50)",
+    )
+    solve = parser.add_argument_group("solver")
+    solve.add_argument("--every", type=number(int, ge=1), default=1, help="use every N-th frame (default 1)")
+    solve.add_argument(
+        "--free-principal-point",
+        action="store_true",
+        help="refine each camera's principal point (default: the image centre, anipose's model)",
+    )
+    solve.add_argument(
+        "--radial",
+        type=number(int, ge=1, le=2),
+        default=2,
+        help="radial distortion terms: 1 (k1, anipose's model) or 2 (k1, k2; default)",
+    )
+    solve.add_argument(
+        "--labels",
+        nargs="+",
+        default=None,
+        metavar="CAM=FILE",
+        help="SLEAP analysis files (.h5) of the recording per camera: their keypoints seen by >= 2 "
+        "cameras in a frame join the adjustment as extra correspondences (after the board-only "
+        "solution)",
+    )
+    solve.add_argument(
+        "--origin-view",
+        type=number(int, ge=0),
+        default=None,
+        metavar="FRAME",
+        help="the board's pose in this frame is the world frame (default: the first camera's)",
+    )
+    solve.add_argument(
+        "--loss-scale",
+        type=number(gt=0),
+        default=1.0,
+        metavar="PX",
+        help="Huber loss scale: residuals beyond it weigh linearly (default 1 px)",
+    )
+    parser.add_argument(
+        "--figure",
+        default=None,
+        metavar="PNG",
+        help="write the picture: detected vs reprojected corners per camera, cameras from above",
+    )
+
+
+def _board(args):
+
+    if args.board:
+        return read_board_toml(args.board)
+    if not args.squares or not args.square_length:
+        raise UserError(
+            "no board given", hint="pass --board board.toml, or --squares XxY and --square-length"
+        )
+    try:
+        sx, sy = (int(v) for v in args.squares.lower().split("x"))
+        bits_text, size_text = args.dict.lower().split("_")
+        bits = int(bits_text.split("x")[0])
+        size = int(size_text)
+    except ValueError:
+        raise UserError(
+            f"--squares {args.squares!r} / --dict {args.dict!r}: expected e.g. 8x11 and 4x4_50"
+        ) from None
+    return Board(sx, sy, float(args.square_length), float(args.marker_length), bits, size)
+
+
+def _with_labels(cal, args):
+
+
+    files = camera_pairs(args.labels, "--labels")
+    unknown = [c for c in files if c not in cal.names]
+    if unknown:
+        raise UserError(
+            f"--labels: camera {unknown[0]!r} is not calibrated here (cameras: {', '.join(cal.names)})"
+        )
+    tables = {c: read_sleap_analysis(f) for c, f in files.items()}
+    T = max(t.uv.shape[0] for t in tables.values())
+    K = max(t.uv.shape[1] for t in tables.values())
+    uv = np.full((T, len(cal.names), K, 2), np.nan)
+    for c, t in tables.items():
+        uv[: t.uv.shape[0], cal.names.index(c), : t.uv.shape[1]] = t.uv
+    return refine_with_points(
+        cal,
+        uv,
+        radial=args.radial,
+        free_principal_point=args.free_principal_point,
+        loss_scale_px=args.loss_scale,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+
+    sources = camera_pairs(args.sources, "CAM=SOURCE")
+    check_output(args.out, args.overwrite, inputs={"--board": args.board}, option="--out")
+    if args.figure:
+        check_output(args.figure, args.overwrite, option="--figure")
+    board = _board(args)
+    start = time.perf_counter()
+    cal = calibrate_sources(
+        sources,
+        board,
+        every=args.every,
+        free_principal_point=args.free_principal_point,
+        radial=args.radial,
+        origin_view=args.origin_view,
+        loss_scale_px=args.loss_scale,
+    )
+    if args.labels:
+        cal = _with_labels(cal, args)
+    seconds = time.perf_counter() - start
+    print(
+        f"calibrated {len(cal.names)} cameras from {len(cal.view_keys)} board views ({board.describe()}) in "
+        f"{seconds:.1f} s; world: {cal.origin}, unit {cal.rig().units}"
+    )
+    print(cal.format())
+    write_anipose_calibration(args.out, cal.rig())
+    print(f"wrote {args.out}")
+    if args.figure:
+
+        draw_calibration(cal, args.figure)
+        print(f"wrote {args.figure}")
+    return 0

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# S3K against labels only on the real recording, over several seeds: the import of scripts/real-example.sh
+# (shipped calibration -> recalibrate the defective camera -> crop around the arena) done once, then one
+# training at a time, S3K and the labels-only baseline (--no-unsup) for seed 0, then seed 1, ...
+#
+#   bash scripts/real-comparison.sh [RECORDING_DIR]
+#
+# $WORK (default /tmp/real-work): dataset $WORK/crop, runs $WORK/runs/{s3k,baseline}-seedN. $SEEDS (default
+# 5), $STEPS (3000), $THREADS (1). Resumable: run it again and it skips what is done and resumes a run that
+# was cut short (s3k train --resume). Trainings run under `nice -n 10`. Evaluate and compare with
+# benchmarks/real_comparison.py.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+D=$(realpath "${1:-../shared/data/real/sleap-anipose-minimal_session/minimal_session}")
+WORK=${WORK:-/tmp/real-work}
+SEEDS=${SEEDS:-5}
+STEPS=${STEPS:-3000}
+THREADS=${THREADS:-1}
+PY=${PYTHON:-python}
+s3k() { "$PY" -m s3k.cli "$@"; }
+mkdir -p "$WORK/runs"
+cams=(back mid side top)
+videos=() sleap=()
+for c in "${cams[@]}"; do
+  videos+=("$c=$D/$c/minimal_$c.mp4")
+  sleap+=("$c=$D/$c/minimal_${c}_proofread.analysis.h5")
+done
+crops=(back=610,350,1122,862 mid=246,374,758,886 side=328,406,840,918 top=266,330,778,842)
+split=(--labelled 10 --test 40 --seed 0)
+
+if [ ! -f "$WORK/crop/s3k.json" ]; then
+  echo "== import $(date +%T)"
+  rm -rf "$WORK/shipped" "$WORK/crop.tmp"
+  s3k import --calibration "$D/calibration.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" "${split[@]}" \
+    --scale 0.25 --out "$WORK/shipped"
+  status=0
+  s3k check-calibration "$WORK/shipped" --recalibrate flagged --write-calibration "$WORK/calibration_fixed.toml" \
+    > "$WORK/check-calibration.txt" || status=$?
+  [ "$status" -le 2 ] || exit "$status"
+  s3k import --calibration "$WORK/calibration_fixed.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" \
+    "${split[@]}" --scale 0.25 --crop "${crops[@]}" --out "$WORK/crop.tmp"
+  mv "$WORK/crop.tmp" "$WORK/crop"
+fi
+
+train() {  # train RUN [options]: new, resumed, or (finished) returns at once
+  local run=$1; shift
+  echo "== $(basename "$run") start $(date +%T)"
+  if [ -f "$run/config.json" ]; then
+    nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --resume --threads "$THREADS" --no-progress
+  else
+    nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" \
+      --no-progress "$@"
+  fi
+  echo "== $(basename "$run") end $(date +%T)"
+}
+for ((s = 0; s < SEEDS; s++)); do
+  train "$WORK/runs/s3k-seed$s" --seed "$s"
+  train "$WORK/runs/baseline-seed$s" --seed "$s" --no-unsup
+done
+echo "== all done $(date +%T)"
