@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from s3k.data.frames import FrameStore
-from s3k.detector import Detection, Detector, TwoPassDetector
+from s3k.detector import Detection, Detector, TwoPassDetector, detect_store
 from s3k.errors import UserError
 from s3k.inference.metrics import (
     compute_metrics,
@@ -25,7 +25,6 @@ from s3k.inference.metrics import (
     mm_per_unit,
     pixel_sizes_mm,
 )
-from s3k.inference.predict import detect_store
 
 __all__ = ["evaluate_run", "evaluate_store"]
 

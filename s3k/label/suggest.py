@@ -210,7 +210,7 @@ class Suggestions:
         ``reproj (C, K, 2)``, ``residual (C, K)`` in the dataset's pixels, keypoints in the run's order, and
         ``sigma_px`` the run's target width in those pixels."""
         from s3k.data.frames import FrameStore
-        from s3k.inference.predict import detect_store
+        from s3k.detector import detect_store
 
         with self._lock:
             todo = [int(f) for f in frame_ids if int(f) not in self._cache]
