@@ -124,12 +124,10 @@ def main(argv: list[str] | None = None) -> int:
                         "summary is written again from finished runs (left out of the recorded command)")
     args = p.parse_args(argv)
     if args.preset:  # the preset's sizes and steps, unless given here
-        chosen = PRESETS[args.preset]
-        two = chosen.two_pass or {}
-        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.config.get("steps", 4000),
-                       **{k: two[k] for k in ("coarse_size", "coarse_steps", "crop_size") if k in two})
+        chosen = PRESETS[args.preset].config
+        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.steps, coarse_size=chosen.coarse_size,
+                       coarse_steps=chosen.coarse_steps, crop_size=chosen.crop_size)
         args = p.parse_args(argv)
-        args.train_options = f"--preset {args.preset} {args.train_options}".strip()
     if args.unlabelled_arrangements and args.scene != "plush":
         p.error("--unlabelled-arrangements: the plush scene only")
     if args.label_pool < LABELLED:
@@ -166,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                  f"two passes: coarse {args.coarse_size} px, {args.coarse_steps or args.steps} steps; crops "
                  f"{args.crop_size} px, {args.steps} steps" if args.passes == 2
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")
+             + (f"; preset {args.preset}" if args.preset else "")
              + (f"; train options {args.train_options!r}" if args.train_options else ""))
     summary = {
         "command": shlex.join(["python", "benchmarks/accuracy.py", *without_notes(

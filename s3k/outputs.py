@@ -31,6 +31,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from s3k.errors import UserError
+from s3k.run_folder import RunFolder
 
 __all__ = ["DATASET_MARKER", "RUN_NAMES", "UNFINISHED_MARKER", "check_output", "check_output_folder",
            "check_replaceable", "is_dataset", "is_run", "made_by_s3k", "recover_folder", "replace_folder"]
@@ -38,12 +39,7 @@ __all__ = ["DATASET_MARKER", "RUN_NAMES", "UNFINISHED_MARKER", "check_output", "
 DATASET_MARKER = "s3k.json"
 """The file that makes a folder a dataset (``s3k.data.tables.METADATA_FILE``)."""
 
-RUN_NAMES = frozenset({
-    # s3k.detector.RUN_FILES: what s3k train writes into a run folder
-    "config.json", "checkpoint.pt", "model.pt", "train.log", "tensorboard", "progress.json",
-    # s3k.train.two_pass: a two-pass run's description, passes, crops, estimates and CPU record
-    "two_pass.json", "coarse", "fine", "crops", "estimates.csv", "cpu.json", "two_pass_options.json",
-})
+RUN_NAMES = frozenset(RunFolder.ONE_PASS_FILES + RunFolder.TWO_PASS_FILES)
 """Names a run folder's own files and folders take (``tests/test_outputs.py`` checks them against the
 modules that write them)."""
 
@@ -56,11 +52,12 @@ def is_dataset(folder: Path) -> bool:
 def is_run(folder: Path) -> bool:
     """True when ``folder`` holds a run of ``s3k train`` (its model or checkpoint, a run's ``config.json``)
     or of ``s3k train --two-pass`` (``two_pass.json``, or a coarse pass)."""
-    if any((folder / name).is_file() for name in ("model.pt", "checkpoint.pt", "two_pass.json")):
+    run = RunFolder(folder)
+    if any(p.is_file() for p in (run.model, run.checkpoint, run.two_pass_file)):
         return True
-    if (folder / "coarse").is_dir() and is_run(folder / "coarse"):
+    if run.coarse.path.is_dir() and is_run(run.coarse.path):
         return True
-    config = folder / "config.json"
+    config = run.config_file
     if not config.is_file():
         return False
     try:

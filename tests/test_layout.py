@@ -139,9 +139,9 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "losses", "augment", "config", "presets"],
+    ["readout", "model", "losses", "augment", "presets"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
-     "recalibration"],
+     "recalibration", "config", "config_files", "run_folder"],
 ]
 
 

@@ -11,15 +11,8 @@ import argparse
 import typing
 from typing import Any
 
-from s3k.config import (
-    TrainConfig,
-    _base_type,
-    _default,
-    coerce,
-    config_from_dict,
-    leaf_fields,
-    read_config_file,
-)
+from s3k.config import TrainConfig, _default, config_from_dict, leaf_fields
+from s3k.config_files import _base_type, coerce, read_config_file
 from s3k.errors import UserError
 
 

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from s3k.errors import UserError
+from s3k.run_folder import RunFolder
 
 __all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "mismatches", "run_geometry", "track_crops",
            "training_geometry"]
@@ -72,11 +73,11 @@ def training_geometry(ds: Any) -> dict[str, Any]:
 def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
     """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
     predates the record or holds none."""
-    run_dir = Path(run_dir)
-    if (run_dir / "two_pass.json").is_file():
-        run_dir = run_dir / "coarse"
+    run = RunFolder(run_dir)
+    if run.is_two_pass():
+        run = run.coarse
     try:
-        doc = json.loads((run_dir / "config.json").read_text())
+        doc = json.loads(run.config_file.read_text())
     except (OSError, ValueError):
         return None
     meta = doc.get("meta") if isinstance(doc, dict) else None

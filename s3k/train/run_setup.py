@@ -16,10 +16,11 @@ import torch
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
 from s3k.data.frames import model_image_size, open_dataset
-from s3k.detector import CHECKPOINT_FILE, LOG_FILE, DetectorMeta
+from s3k.detector import CHECKPOINT_FILE, DetectorMeta
 from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
 from s3k.model import UNetConfig
+from s3k.run_folder import RunFolder
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import DistInfo
@@ -39,7 +40,9 @@ class _TqdmHandler(logging.Handler):
             tqdm.write(self.format(record))
 
 
-def _setup_logging(run_dir: Path, main: bool) -> None:
+def _setup_logging(run_dir: Path | None, main: bool) -> None:
+    """The training log: to the console and ``run_dir``'s log file from the main process (to the console
+    alone without ``run_dir``: a two-pass run between its passes)."""
     log.setLevel(logging.INFO)
     log.propagate = False
     for h in list(log.handlers):
@@ -48,11 +51,13 @@ def _setup_logging(run_dir: Path, main: bool) -> None:
             h.close()
     handlers: list[logging.Handler] = [logging.NullHandler()]
     if main:
-        fh = logging.FileHandler(run_dir / LOG_FILE)
-        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
         th = _TqdmHandler()
         th.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
-        handlers = [fh, th]
+        handlers = [th]
+        if run_dir is not None:
+            fh = logging.FileHandler(RunFolder(run_dir).log)
+            fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+            handlers.insert(0, fh)
     for h in handlers:
         h._s3k = True  # type: ignore[attr-defined]
         log.addHandler(h)
