@@ -141,7 +141,7 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["detector"],
     ["readout", "model", "losses", "augment", "presets"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "draw", "calibration",
-     "recalibration", "config", "config_files", "run_folder"],
+     "recalibration", "config", "config_files", "run_folder", "metrics"],
 ]
 
 
@@ -168,3 +168,12 @@ def test_imports_go_downwards_only():
                     upwards.append(f"{path.relative_to(ROOT)} imports {name}")
     assert not unplaced, f"rooms missing from LAYERS: {sorted(unplaced)}"
     assert upwards == []
+
+
+def test_training_does_not_import_inference():
+    """Training reads frames through the detector room (``s3k.detector.detect_store``, ``evaluate_store``);
+    ``inference/`` is what is done with a trained detector, beside training, not below it."""
+    modules = _modules()
+    found = [f"{name} imports {target}" for name, path in modules.items() if name.startswith("s3k.train")
+             for target in _imported(name, path, modules) if target.startswith("s3k.inference")]
+    assert found == []

@@ -10,7 +10,7 @@ import sys
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.inference.evaluate import evaluate_run
-from s3k.inference.metrics import format_table
+from s3k.metrics import format_table
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

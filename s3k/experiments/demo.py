@@ -243,8 +243,8 @@ def _evaluate(out: Path, data: Path, log) -> tuple[dict[str, dict], dict[str, ob
     from s3k.data.frames import FrameStore
     from s3k.detector import Detector
     from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.metrics import mm_per_unit
     from s3k.inference.report import write_report
+    from s3k.metrics import mm_per_unit
 
     ds = Dataset.open(data, cache="none")
     store = FrameStore(ds, ds.frames("test"), preload_mb=0, labels=True, points=True)

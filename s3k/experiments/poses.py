@@ -125,8 +125,8 @@ def predictions(run: Path, data: Path, split: str) -> tuple[np.ndarray, np.ndarr
     """``(predicted, true, mm per world unit)`` points of ``data``'s ``split`` by ``run``."""
     from s3k.data import Dataset
     from s3k.data.tracks_csv import read_csv
-    from s3k.inference.metrics import mm_per_unit
     from s3k.inference.predict import predict_dataset
+    from s3k.metrics import mm_per_unit
 
     ds = Dataset.open(data, cache="none")
     ids = ds.frames(split)

@@ -346,7 +346,7 @@ def _verify_points(run_dir: Path, path: Path, fmt: str, data: str | Path | None
     ``data`` at its own resolution; ``(None, 0)`` when no dataset frame can be read."""
     from s3k.data import Dataset
     from s3k.detector import Detector
-    from s3k.inference.metrics import mm_per_unit
+    from s3k.metrics import mm_per_unit
 
     if data is None or not Path(data).is_dir():
         return None, 0

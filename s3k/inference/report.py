@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from s3k.draw import draw_views
-from s3k.inference.metrics import _fmt
+from s3k.metrics import _fmt
 
 __all__ = ["write_report"]
 

@@ -273,7 +273,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
         ids = state.dataset.frames(None if split == "all" else split)
         limit = max(0, limit)
         if by in ("coverage", "representative"):
-            from s3k.inference.metrics import mm_per_unit
+            from s3k.metrics import mm_per_unit
 
             poses = state.labelled_poses(state.suggestions.keypoints)
             return state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,

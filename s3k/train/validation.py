@@ -90,9 +90,8 @@ def labelled_distances(dataset: Any, frame_ids: np.ndarray, chunk: int = 256) ->
 def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, device: torch.device,
              ref_layout: float, cfg: TrainConfig, step: int, writer=None) -> dict[str, Any]:
     """Predict the validation frames: metrics, collapse check, overlay image; returns a record."""
-    from s3k.detector import OnePassDetector, detect_store
+    from s3k.detector import OnePassDetector, detect_store, evaluate_store
     from s3k.draw import draw_views
-    from s3k.inference.evaluate import evaluate_store
 
     record: dict[str, Any] = {"step": step}
     if store is None or len(store) == 0:
