@@ -58,6 +58,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
+from s3k.config import default_of  # noqa: E402
 from s3k.experiments.accuracy import (  # noqa: E402
     FIGURES,
     LABELLED,
@@ -100,8 +101,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="how the 10 are chosen from a larger --label-pool: random (default), coverage or "
                         "representative")
     p.add_argument("--passes", type=int, choices=(1, 2), default=2, help="two passes (default) or one")
-    p.add_argument("--coarse-size", type=int, default=96, help="coarse (or only) pass size (default 96)")
-    p.add_argument("--crop-size", type=int, default=128, help="refining pass crop size (default 128)")
+    p.add_argument("--coarse-size", type=int, default=default_of("coarse_size"),
+                   help=f"coarse (or only) pass size (default {default_of('coarse_size')})")
+    p.add_argument("--crop-size", type=int, default=default_of("crop_size"),
+                   help=f"refining pass crop size (default {default_of('crop_size')})")
     p.add_argument("--steps", type=int, default=4000, help="steps of each pass (default 4000)")
     p.add_argument("--coarse-steps", type=int, default=None, help="coarse pass steps (default --steps)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")

@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from synthetic_rig import make_dataset
 
 from s3k import cli
@@ -64,3 +65,26 @@ def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_
     headline = PRESETS["box-headline"].config
     assert PRESETS["box-fast"].config.replace(crop_size=headline.crop_size,
                                               crop_margin=headline.crop_margin) == headline
+
+
+def test_the_two_pass_options_are_the_configurations_fields_with_their_ranges(capsys):
+    """``s3k train --help`` lists the two-pass options in the configuration's own group, and a value out of a
+    field's range is refused as the command line is parsed, naming the option."""
+    import argparse
+
+    from s3k.cli.train import configure_parser
+    from s3k.config import TwoPassConfig, leaf_fields
+
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    fields = [f.name for _, f, _ in leaf_fields(TwoPassConfig)]
+    shown = {a.dest: a for a in parser._actions if a.help != argparse.SUPPRESS}
+    assert set(fields) <= set(shown)
+    assert shown["coarse_size"].type.range.ge == 16 and shown["crop_margin"].type.range.ge == 0
+    for argv, option in ((["--coarse-size", "8"], "--coarse-size"), (["--crop-extent", "0"], "--crop-extent"),
+                         (["--coarse-lr", "2"], "--coarse-lr")):
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args(["data", "--out", "run", *argv])
+        assert exc.value.code == 2 and option in capsys.readouterr().err
+    args = parser.parse_args(["data", "--out", "run", "--two-pass", "--coarse-steps", "none"])
+    assert args.two_pass is True and args.coarse_steps is None

@@ -58,7 +58,7 @@ def _parser(f, tp: Any):
             value = coerce(tp, text, "value")
         except UserError as exc:
             raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
-        problem = bounds.problem(value) if bounds is not None else None
+        problem = bounds.problem(value) if bounds is not None and value is not None else None
         if problem is not None:
             raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
         return value
