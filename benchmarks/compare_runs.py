@@ -13,11 +13,13 @@ import argparse
 import filecmp
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchmarks.common import git_revision, machine_info  # noqa: E402
 from s3k.detector import load_torch_file  # noqa: E402
 from s3k.run_folder import RunFolder  # noqa: E402
 
@@ -27,7 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("before", type=Path)
     p.add_argument("after", type=Path)
     args = p.parse_args(argv)
-    out: dict[str, dict] = {"weights": {}, "files": {}}
+    out: dict = {"command": shlex.join(["python", "benchmarks/compare_runs.py",
+                                        *(sys.argv[1:] if argv is None else argv)]),
+                 "git_revision": git_revision(), "machine": machine_info(), "weights": {}, "files": {}}
     for path in sorted(args.before.rglob("*.pt")):
         rel = path.relative_to(args.before)
         other = args.after / rel
