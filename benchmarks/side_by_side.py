@@ -1,7 +1,8 @@
 """One benchmark script under two checkouts of s3k, alternately, so that a shared machine's drift hits both
 alike: ``--runs`` calls each, in the order before, after, before, after, ...; each call's last line is its
 JSON. Prints one JSON object: the command, both revisions and, per pipeline, every call's frames per second
-and their median, and the ratio of the medians (after / before).
+and their median, the ratio of the medians (after / before) and of each pair of calls made one after the
+other, with their median (the ratio a shared machine's drift between pairs leaves alone).
 
 Example (a checkout of the earlier revision in /tmp/before)::
 
@@ -52,8 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     for name in calls["before"][0]["pipelines"]:
         fps = {side: [c["pipelines"][name]["frames_per_s"] for c in got] for side, got in calls.items()}
         med = {side: statistics.median(v) for side, v in fps.items()}
+        # each after call is compared with the before call just ahead of it: the machine's drift between
+        # pairs does not enter the ratio
+        pairs = [a / b for a, b in zip(fps["after"], fps["before"])]
         pipelines[name] = {"frames_per_s": fps, "median": med,
-                           "after_over_before": med["after"] / med["before"]}
+                           "after_over_before": med["after"] / med["before"],
+                           "after_over_before_pairs": pairs,
+                           "after_over_before_pairs_median": statistics.median(pairs)}
     print(json.dumps({
         "command": shlex.join(["python", "benchmarks/side_by_side.py",
                                *(sys.argv[1:] if argv is None else argv)]),
