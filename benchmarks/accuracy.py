@@ -59,6 +59,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
 from s3k.cli import showing_library_messages  # noqa: E402
+from s3k.config import default_of  # noqa: E402
 from s3k.experiments.accuracy import (  # noqa: E402
     FIGURES,
     LABELLED,
@@ -101,8 +102,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="how the 10 are chosen from a larger --label-pool: random (default), coverage or "
                         "representative")
     p.add_argument("--passes", type=int, choices=(1, 2), default=2, help="two passes (default) or one")
-    p.add_argument("--coarse-size", type=int, default=96, help="coarse (or only) pass size (default 96)")
-    p.add_argument("--crop-size", type=int, default=128, help="refining pass crop size (default 128)")
+    p.add_argument("--coarse-size", type=int, default=default_of("coarse_size"),
+                   help=f"coarse (or only) pass size (default {default_of('coarse_size')})")
+    p.add_argument("--crop-size", type=int, default=default_of("crop_size"),
+                   help=f"refining pass crop size (default {default_of('crop_size')})")
     p.add_argument("--steps", type=int, default=4000, help="steps of each pass (default 4000)")
     p.add_argument("--coarse-steps", type=int, default=None, help="coarse pass steps (default --steps)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")
@@ -125,12 +128,10 @@ def main(argv: list[str] | None = None) -> int:
                         "summary is written again from finished runs (left out of the recorded command)")
     args = p.parse_args(argv)
     if args.preset:  # the preset's sizes and steps, unless given here
-        chosen = PRESETS[args.preset]
-        two = chosen.two_pass or {}
-        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.config.get("steps", 4000),
-                       **{k: two[k] for k in ("coarse_size", "coarse_steps", "crop_size") if k in two})
+        chosen = PRESETS[args.preset].config
+        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.steps, coarse_size=chosen.coarse_size,
+                       coarse_steps=chosen.coarse_steps, crop_size=chosen.crop_size)
         args = p.parse_args(argv)
-        args.train_options = f"--preset {args.preset} {args.train_options}".strip()
     if args.unlabelled_arrangements and args.scene != "plush":
         p.error("--unlabelled-arrangements: the plush scene only")
     if args.label_pool < LABELLED:
@@ -167,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                  f"two passes: coarse {args.coarse_size} px, {args.coarse_steps or args.steps} steps; crops "
                  f"{args.crop_size} px, {args.steps} steps" if args.passes == 2
                  else f"one pass at {args.coarse_size} px, {args.steps} steps")
+             + (f"; preset {args.preset}" if args.preset else "")
              + (f"; train options {args.train_options!r}" if args.train_options else ""))
     summary = {
         "command": shlex.join(["python", "benchmarks/accuracy.py", *without_notes(

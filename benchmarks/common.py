@@ -389,15 +389,18 @@ def ensure_box_render(work: Path, size: int, unlabelled: int, test: int) -> Path
     return render
 
 
-def train_side_by_side(jobs: dict[str, list[str]]) -> None:
-    """Run ``s3k train ARGS`` for every job at once, one thread each; a job whose model exists is skipped,
-    one with a folder is resumed."""
+def train_side_by_side(jobs: dict[str, tuple[Path, Path, Any]]) -> None:
+    """Train every job ``(dataset, run folder, TrainConfig)`` at once, each an ``s3k train`` process of one
+    thread with the options of its configuration; a job whose run is complete is skipped, one with a folder
+    is resumed."""
+    from s3k.run_folder import RunFolder
+
     procs = {}
-    for name, args in jobs.items():
-        out = Path(args[args.index("--out") + 1])
-        if (out / "model.pt").is_file():
+    for name, (data, out, cfg) in jobs.items():
+        if RunFolder(out).is_complete():
             continue
-        cmd = [sys.executable, "-m", "s3k.cli", "train", *args, "--threads", "1", "--no-progress"]
+        cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(out),
+               *cfg.replace(threads=1, progress=False).to_argv()]
         if out.exists():
             cmd.append("--resume")
         env = dict(os.environ, OMP_NUM_THREADS="1")

@@ -94,8 +94,11 @@ def main(argv: list[str] | None = None) -> int:
     suffix = {"labels_only": "", "s3k": tag}
     runs = {name: work / "runs" / f"{view.name}-{name}{suffix[name]}-{args.steps}-s{args.seed}"
             for name in models}
-    train_side_by_side({name: [str(view), "--out", str(runs[name]), "--steps", str(args.steps), "--seed",
-                                str(args.seed), *extra] for name, extra in models.items()})
+    from s3k.config import TrainConfig
+
+    base = TrainConfig.from_flat(steps=args.steps, seed=args.seed)
+    train_side_by_side({name: (view, runs[name], base.with_options(extra, where="--s3k-options"))
+                        for name, extra in models.items()})
     from s3k.inference.evaluate import evaluate_run
 
     result: dict = {"benchmark": "oracle_crops", "command": shlex.join(["python", *sys.argv]),

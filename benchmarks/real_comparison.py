@@ -24,7 +24,7 @@ from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detector
 from s3k.inference.evaluate import evaluate_store
-from s3k.inference.label_reference import bootstrap_ci
+from s3k.label_reference import bootstrap_ci
 
 
 def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:

@@ -51,6 +51,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import emit, git_revision, machine_info  # noqa: E402
 from s3k.cli import showing_library_messages  # noqa: E402
+from s3k.config import TrainConfig  # noqa: E402
 from s3k.experiments.accuracy import evaluate, run_jobs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -213,9 +214,9 @@ def main(argv: list[str] | None = None) -> int:
     jobs = []
     for name, run in runs.items():
         if not (run / "model.pt").is_file():
-            cmd = S3K + ["train", str(plush), "--out", str(run), "--steps", str(args.detector_steps),
-                         "--threads", "1", "--no-progress"]
-            cmd += ["--no-unsup"] if name == "labels_only" else []
+            cfg = TrainConfig.from_flat(steps=args.detector_steps, threads=1, progress=False,
+                                        unsup=name != "labels_only")
+            cmd = S3K + ["train", str(plush), "--out", str(run), *cfg.to_argv()]
             jobs.append((f"plush {name}", cmd + (["--resume"] if run.exists() else []),
                          work / f"plush-{name}.cpu.json"))
     if jobs:
@@ -240,8 +241,8 @@ def main(argv: list[str] | None = None) -> int:
                   "--no-progress", "--overwrite"])
     detector = work / "insertion-s3k"
     if not args.insertion_work and not (detector / "model.pt").is_file():
-        cmd = S3K + ["train", str(insertion), "--out", str(detector), "--steps", str(args.detector_steps),
-                     "--threads", "1", "--no-progress"]
+        cfg = TrainConfig.from_flat(steps=args.detector_steps, threads=1, progress=False)
+        cmd = S3K + ["train", str(insertion), "--out", str(detector), *cfg.to_argv()]
         run_jobs([("insertion detector", cmd + (["--resume"] if detector.exists() else []),
                    work / "insertion-s3k.cpu.json")], 1)
     agents: dict[str, list[Path]] = {"keypoints": [], "beta_vae": []}

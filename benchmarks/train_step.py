@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                 times.append((terms["time_step_s"], terms["time_data_s"]))
 
         peak_before = matmul_flops(seconds=1.0)
-        result = train(data, Path(tmp) / "run", cfg, callback=record)
+        result = train(data, Path(tmp) / "run", cfg, progress=record)
         peak_after = matmul_flops(seconds=1.0)
 
     step_s = statistics.median(t for t, _ in times)

@@ -55,8 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     render = ensure_box_render(work, args.render, args.unlabelled, args.test)
     coarse = work / f"coarse-{args.coarse_size}px-{args.coarse_steps}-s{args.seed}"
-    train_side_by_side({"coarse": [str(render), "--out", str(coarse), "--image-size", str(args.coarse_size),
-                           "--steps", str(args.coarse_steps), "--seed", str(args.seed)]})
+    from s3k.config import TrainConfig
+
+    train_side_by_side({"coarse": (render, coarse, TrainConfig.from_flat(
+        image_size=args.coarse_size, steps=args.coarse_steps, seed=args.seed))})
     estimates = work / f"{coarse.name}.csv"
     if not estimates.is_file():
         subprocess.run([sys.executable, "-m", "s3k.cli", "predict", str(coarse), "--data", str(render),
@@ -74,8 +76,8 @@ def main(argv: list[str] | None = None) -> int:
                            fallback=True, overwrite=True,
                            description=f"crops of {args.extent_mm:g} mm around {coarse.name}'s estimates")
     fine = {name: work / f"{view.name}-{name}-{args.steps}-s{args.seed}" for name in ("labels_only", "s3k")}
-    train_side_by_side({name: [str(view), "--out", str(run), "--steps", str(args.steps), "--seed",
-                                str(args.seed), *(["--no-unsup"] if name == "labels_only" else [])]
+    train_side_by_side({name: (view, run, TrainConfig.from_flat(steps=args.steps, seed=args.seed,
+                                                                unsup=name != "labels_only"))
                         for name, run in fine.items()})
     from s3k.inference.evaluate import evaluate_run
 

@@ -1,11 +1,11 @@
 """Typed, documented configuration for training, loaded from a TOML/JSON file and command-line overrides.
 
 :class:`TrainConfig` groups its fields in sections (``model``, ``augmentation``, ``schedule``,
-``self_supervision``, ``monitoring``, ``execution``), each a dataclass whose fields carry their documentation
-in ``metadata["help"]``; ``s3k train --help`` shows that text next to the field's default. Field names are
-unique across sections, so a configuration is also a flat table of field names: the command line
-(``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that flat form, and
-``cfg.steps`` reads ``cfg.schedule.steps``. Values are resolved in this order, later winning:
+``self_supervision``, ``monitoring``, ``execution``, ``passes``: the two-pass options), each a dataclass whose
+fields carry their documentation in ``metadata["help"]``; ``s3k train --help`` shows that text next to the
+field's default. Field names are unique across sections, so a configuration is also a flat table of field
+names: the command line (``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that
+flat form, and ``cfg.steps`` reads ``cfg.schedule.steps``. Values are resolved in this order, later winning:
 
 1. the dataclass defaults,
 2. a config file (``--config FILE``, TOML or JSON, a flat table of field names),
@@ -23,15 +23,14 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import json
-import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from s3k.budget import check_config_fits
 from s3k.choices import Device, Norm, Precision
+from s3k.config_files import coerce
 from s3k.errors import UserError
 from s3k.ranges import Range
 
@@ -50,8 +49,8 @@ def _f(default: Any, help: str, resumable: bool = False, **bounds: Any) -> Any:
     is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
     """
     metadata: dict[str, Any] = {"help": help, "resumable": resumable}
-    if isinstance(default, (int, float)) and not isinstance(default, bool):
-        metadata["range"] = Range(**bounds)
+    if bounds or (isinstance(default, (int, float)) and not isinstance(default, bool)):
+        metadata["range"] = Range(**bounds)  # an optional number (default None) is held to it when given
     return field(default=default, metadata=metadata)
 
 
@@ -179,6 +178,44 @@ class ExecutionConfig:
                          resumable=True, ge=0)
 
 
+REFERENCE_CROP = 128
+"""The default crop size (px) of a two-pass run, at which the refining pass takes its pixel-valued options as
+given (:meth:`TrainConfig.refining` scales them by ``crop_size / REFERENCE_CROP``)."""
+
+
+@dataclass
+class TwoPassConfig:
+    """Two passes (coarse-to-fine; docs/accuracy.md): a coarse detector on the whole image, crops of every
+    view around its 3D estimate (a fixed extent in world units, so the object has one size in every crop)
+    and a refining detector on the crops. The other options apply to both passes, ``--image-size`` to neither;
+    :meth:`TrainConfig.coarse` and :meth:`TrainConfig.refining` are each pass's configuration."""
+
+    two_pass: bool = _f(False, "train the coarse-to-fine detector (the options below; the others apply to "
+                               "both passes, --image-size to neither)")
+    coarse_size: int = _f(96, "the coarse pass's image size, longer side, px", ge=16)
+    coarse_steps: int | None = _f(None, "the coarse pass's steps (none: --steps)", ge=1)
+    coarse_rotation: float | None = _f(
+        None, "the coarse pass's augmentation rotation range in degrees (none: --rotation-deg), e.g. 180 "
+              "with --rotation-deg 15: a coarse pass that finds the object in any pose and a precise "
+              "refining pass",
+        ge=0)
+    coarse_stride: int | None = _f(
+        None, "the coarse pass's heatmap stride, 1, 2 or 4 (none: --stride), e.g. 2 with --stride 4: a "
+              "coarse pass that places the crops well under a cheaper refining pass", one_of=(1, 2, 4))
+    coarse_lr: float | None = _f(
+        None, "the coarse pass's learning rate (none: --lr), e.g. to train a refining pass at another --lr "
+              "on a finished coarse pass", gt=0, le=1)
+    crop_size: int = _f(REFERENCE_CROP, f"crop size in pixels, the refining pass's input; the refining pass "
+                                        f"scales --outlier-px, --shift-px and --pseudo-window by "
+                                        f"PX/{REFERENCE_CROP} so they keep their size in the scene", ge=16)
+    crop_margin: float = _f(0.3, "crop side = 2 x (largest distance of a labelled keypoint from the middle "
+                                 "of its frame's keypoints) x (1 + F)", ge=0)
+    crop_extent: float | None = _f(None, "crop side in world units at the estimate's depth (none: from the "
+                                         "labels with --crop-margin)", gt=0)
+    keep_crops: bool = _f(False, "also write the refining pass's crops as a dataset folder, RUN/crops (they "
+                                 "are cut and used in memory otherwise)", resumable=True)
+
+
 def _section(cls: type, help: str) -> Any:
     return field(default_factory=cls, metadata={"help": help})
 
@@ -199,6 +236,7 @@ class TrainConfig:
     self_supervision: SelfSupervisionConfig = _section(SelfSupervisionConfig, "self-supervision")
     monitoring: MonitoringConfig = _section(MonitoringConfig, "monitoring")
     execution: ExecutionConfig = _section(ExecutionConfig, "execution")
+    passes: TwoPassConfig = _section(TwoPassConfig, "two passes")
 
     def __getattr__(self, name: str) -> Any:
         # Only called when ordinary lookup fails: a flat field name reads its section's field.
@@ -242,6 +280,33 @@ class TrainConfig:
         scaled = steps * warmup // (warmup + ramp)
         return scaled, steps - scaled
 
+    def coarse(self) -> TrainConfig:
+        """The coarse pass's configuration: this one on the whole image at ``coarse_size`` px, with the
+        coarse pass's own steps, rotation, stride and learning rate where they are set (a one-pass
+        configuration: its two-pass section is the defaults)."""
+        p = self.passes
+        view = self.replace(image_size=p.coarse_size, steps=p.coarse_steps or self.steps,
+                            rotation_deg=(self.rotation_deg if p.coarse_rotation is None
+                                          else p.coarse_rotation),
+                            stride=self.stride if p.coarse_stride is None else p.coarse_stride,
+                            lr=self.lr if p.coarse_lr is None else p.coarse_lr)
+        return dataclasses.replace(view, passes=TwoPassConfig())
+
+    def refining(self, crop_size: int | None = None) -> TrainConfig:
+        """The refining pass's configuration: this one on ``crop_size`` px crops (default ``--crop-size``),
+        its pixel-valued tolerances scaled by ``crop_size / REFERENCE_CROP`` (a one-pass configuration).
+
+        The crop covers a fixed extent of the scene, so a crop pixel is ``extent / crop_size`` world units:
+        the same ``--outlier-px`` would leave out of the pseudo-labels views half as far off at twice the crop
+        size, and ``--shift-px`` and ``--pseudo-window`` would shrink in the scene alike. Scaled, they keep
+        their size in the scene and ``--crop-size`` changes the resolution alone. ``--sigma`` is not scaled:
+        a finer target is what a finer crop is for.
+        """
+        k = (self.crop_size if crop_size is None else crop_size) / REFERENCE_CROP
+        view = self.replace(image_size=0, outlier_px=self.outlier_px * k, shift_px=self.shift_px * k,
+                            pseudo_window=max(1, round(self.pseudo_window * k)) if self.pseudo_window else 0)
+        return dataclasses.replace(view, passes=TwoPassConfig())
+
     def alpha_at(self, step: int) -> float:
         """Weight of the self-supervised term at ``step``: 0 during the warm-up, then a linear ramp to alpha
         (the warm-up and ramp of :meth:`unsup_schedule`).
@@ -269,8 +334,9 @@ class TrainConfig:
         the fields; floats must be finite) or the fields contradict each other."""
         for _, f, _ in leaf_fields(type(self)):
             bounds = f.metadata.get("range")
-            if bounds is not None:
-                bounds.check(getattr(self, f.name), f"config field {f.name!r}")
+            value = getattr(self, f.name)
+            if bounds is not None and value is not None:
+                bounds.check(value, f"config field {f.name!r}")
         if self.unsup and self.batch_unlabelled <= 0:
             raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
         if self.precision not in ("auto", "float32", "bfloat16"):
@@ -278,11 +344,70 @@ class TrainConfig:
                             hint="pass --precision auto, float32 or bfloat16")
         if not self.channels or any(c <= 0 for c in self.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
+        if self.coarse_stride not in (None, 1, 2, 4):
+            raise UserError(f"config field 'coarse_stride': the coarse pass's heatmap stride must be 1, 2 or "
+                            f"4, got {self.coarse_stride}", hint="pass --coarse-stride 1, 2 or 4")
+        if self.two_pass:
+            if self.image_size:
+                raise UserError("--image-size does not apply to --two-pass",
+                                hint="set the coarse pass's size with --coarse-size and the crops' with "
+                                     "--crop-size")
+            self.coarse().validate()
+            self.refining().validate()
         check_config_fits(self)  # a network that cannot fit in memory, whatever the dataset
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready flat dictionary of all fields (tuples as lists)."""
         return {k: list(v) if isinstance(v, tuple) else v for k, v in flat_values(self).items()}
+
+    def with_options(self, argv: Sequence[str], where: str = "options") -> TrainConfig:
+        """A copy with the ``s3k train`` configuration options ``argv`` applied (``["--steps", "100",
+        "--no-unsup"]``, ``--field=value`` too): the inverse of :meth:`to_argv`, for options kept as text.
+
+        Raises:
+            UserError: an option that is not a field's, or one without its value, naming ``where``.
+        """
+        leaves = {f.name: tp for _, f, tp in leaf_fields(type(self))}
+        values: dict[str, Any] = {}
+        tokens = iter(argv)
+        for token in tokens:
+            name, eq, text = token.removeprefix("--").replace("-", "_").partition("=")
+            flag = token.partition("=")[0]
+            if not token.startswith("--"):
+                raise UserError(f"{where}: {token!r} is not an option (--field-name value)")
+            if name.startswith("no_") and leaves.get(name[3:]) is bool and not eq:
+                values[name[3:]] = False
+            elif leaves.get(name) is bool and not eq:
+                values[name] = True
+            elif name in leaves:
+                value = text if eq else next(tokens, None)
+                if value is None:
+                    raise UserError(f"{where}: {flag} needs a value")
+                values[name] = value
+            else:
+                raise UserError(f"{where}: unknown option {flag}", hint="give TrainConfig fields as options")
+        return self.from_flat(base=self, where=where, **values)
+
+    def to_argv(self) -> list[str]:
+        """The ``s3k train`` options that give this configuration: one per field that differs from its
+        default (``["--steps", "100", "--no-unsup"]``), for a training run in another process."""
+        out: list[str] = []
+        for _, f, _ in leaf_fields(type(self)):
+            value = getattr(self, f.name)
+            if value != field_default(f):
+                out += option_argv(f.name, value)
+        return out
+
+
+def option_argv(name: str, value: Any) -> list[str]:
+    """The command-line option that sets the field ``name`` to ``value`` (``["--layout-tol", "0.2"]``,
+    ``["--no-layout-fit"]``, ``["--coarse-steps", "none"]``)."""
+    flag = "--" + name.replace("_", "-")
+    if isinstance(value, bool):
+        return [flag if value else "--no-" + flag[2:]]
+    if value is None:
+        return [flag, "none"]
+    return [flag, ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)]
 
 
 _FIELD_SECTION: dict[str, str] = {
@@ -338,91 +463,6 @@ def default_of(name: str, cls: type = TrainConfig) -> Any:
         if f.name == name:
             return field_default(f)
     raise KeyError(f"{cls.__name__} has no field {name!r}")
-
-
-def base_type(tp: Any) -> tuple[Any, bool]:
-    """(type without Optional, is_optional); a union with ``str`` (a ``Literal`` of named values that also
-    takes other names) is ``str``."""
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return (str if str in args else args[0]), len(args) < len(typing.get_args(tp))
-    return tp, False
-
-
-def coerce(tp: Any, value: Any, where: str) -> Any:
-    """Convert ``value`` (from JSON/TOML or a command-line string) to the field type ``tp``.
-
-    Raises:
-        UserError: naming ``where`` (file and field) and the offending value.
-    """
-    base, optional = base_type(tp)
-    if value is None or (optional and isinstance(value, str) and value.lower() in ("none", "null")):
-        if optional:
-            return None
-        raise UserError(f"{where}: null is not allowed")
-    try:
-        if typing.get_origin(base) is tuple:
-            (inner, *_rest) = typing.get_args(base)
-            if isinstance(value, str):
-                value = [v for v in value.replace(" ", "").split(",") if v]
-            return tuple(inner(v) for v in value)
-        if base is bool:
-            if isinstance(value, bool):
-                return value
-            if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on"):
-                return True
-            if isinstance(value, str) and value.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ValueError("expected a boolean")
-        if base is int:
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError("expected an integer")
-            if isinstance(value, bool):
-                raise ValueError("expected an integer")
-            return int(value)
-        if base is float:
-            if isinstance(value, bool):
-                raise ValueError("expected a number")
-            return float(value)
-        if base is str:
-            if not isinstance(value, str):
-                raise ValueError("expected a string")
-            return value
-        if typing.get_origin(base) is typing.Literal:
-            if value not in typing.get_args(base):
-                raise ValueError(f"expected one of {', '.join(map(str, typing.get_args(base)))}")
-            return value
-    except (TypeError, ValueError) as exc:
-        raise UserError(f"{where}: invalid value {value!r} ({exc})") from None
-    raise ValueError(f"{where}: unsupported field type {tp!r}")
-
-
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """Read a flat table of field values from a ``.toml`` or ``.json`` file."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"config file {path} does not exist")
-    if path.suffix.lower() == ".toml":
-        try:
-            import tomllib
-        except ModuleNotFoundError:  # Python < 3.11
-            import tomli as tomllib  # type: ignore[no-redef]
-        try:
-            with open(path, "rb") as fh:
-                data = tomllib.load(fh)
-        except tomllib.TOMLDecodeError as exc:
-            raise UserError(f"config file {path}: not valid TOML ({exc})") from None
-    elif path.suffix.lower() == ".json":
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"config file {path}: not valid JSON ({exc})") from None
-    else:
-        raise UserError(f"config file {path}: expected a .toml or .json file")
-    if not isinstance(data, dict):
-        raise UserError(f"config file {path}: expected a table of field names")
-    return data
 
 
 def config_from_dict(cls: type, data: dict[str, Any], base: Any = None, where: str = "config") -> Any:

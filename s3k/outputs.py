@@ -32,6 +32,7 @@ from pathlib import Path
 
 from s3k.errors import UserError
 from s3k.messages import NOTE
+from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
 
@@ -43,16 +44,11 @@ __all__ = ["DATASET_MARKER", "DATASET_NAMES", "OUTPUT_MARKER", "RUN_NAMES", "RUN
 DATASET_MARKER = "s3k.json"
 """The file that makes a folder a dataset (``s3k.data.tables.METADATA_FILE``)."""
 
-RUN_NAMES = frozenset({
-    # s3k.detector.RUN_FILES: what s3k train writes into a run folder
-    "config.json", "checkpoint.pt", "model.pt", "train.log", "tensorboard", "progress.json",
-    # s3k.train.two_pass: a two-pass run's description, passes, crops, estimates and CPU record
-    "two_pass.json", "coarse", "fine", "crops", "estimates.csv", "cpu.json", "two_pass_options.json",
-})
+RUN_NAMES = frozenset(RunFolder.ONE_PASS_FILES + RunFolder.TWO_PASS_FILES)
 """Names a run folder's own files and folders take (``tests/test_outputs.py`` checks them against the
 modules that write them)."""
 
-RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", "cpu.json", "two_pass_options.json"})
+RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", RunFolder.CPU, RunFolder.OPTIONS})
 """Files s3k keeps in a run folder before the run is started: an experiment's lock and result
 (``s3k.experiments``), a two-pass run's options and CPU record."""
 
@@ -65,11 +61,12 @@ def is_dataset(folder: Path) -> bool:
 def is_run(folder: Path) -> bool:
     """True when ``folder`` holds a run of ``s3k train`` (its model or checkpoint, a run's ``config.json``)
     or of ``s3k train --two-pass`` (``two_pass.json``, or a coarse pass)."""
-    if any((folder / name).is_file() for name in ("model.pt", "checkpoint.pt", "two_pass.json")):
+    run = RunFolder(folder)
+    if any(p.is_file() for p in (run.model, run.checkpoint, run.two_pass_file)):
         return True
-    if (folder / "coarse").is_dir() and is_run(folder / "coarse"):
+    if run.coarse.path.is_dir() and is_run(run.coarse.path):
         return True
-    config = folder / "config.json"
+    config = run.config_file
     if not config.is_file():
         return False
     try:
@@ -204,11 +201,12 @@ def check_folder(path: str | Path, kind: str, inputs: Mapping[str, object] | Non
 def owns_run(folder: Path) -> bool:
     """True when ``folder`` holds a run s3k wrote: a run's ``config.json``, or a two-pass run's description,
     options or coarse pass (a model or checkpoint file alone may be anyone's)."""
-    if (folder / "two_pass.json").is_file() or (folder / "two_pass_options.json").is_file():
+    run = RunFolder(folder)
+    if run.two_pass_file.is_file() or run.options_file.is_file():
         return True
-    if (folder / "coarse").is_dir() and owns_run(folder / "coarse"):
+    if run.coarse.path.is_dir() and owns_run(run.coarse.path):
         return True
-    config = folder / "config.json"
+    config = run.config_file
     try:
         doc = json.loads(config.read_text()) if config.is_file() else None
     except (OSError, ValueError):

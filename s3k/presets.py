@@ -1,6 +1,6 @@
-"""Named training configurations: the ones the docs recommend, each a set of :class:`s3k.config.TrainConfig`
-fields and, for a coarse-to-fine detector, its two-pass options (``s3k train --preset NAME``; options given
-on the command line or in ``--config`` win over the preset's).
+"""Named training configurations: the ones the docs recommend, each a whole :class:`s3k.config.TrainConfig`
+(``s3k train --preset NAME``; options given on the command line or in ``--config`` win over the preset's;
+``s3k train --preset NAME --print-config`` prints it resolved).
 
 ``box-headline`` is the configuration of the box scene's headline figures (docs/results/accuracy): a coarse
 pass at 96 px for 4000 steps at a learning rate of 1e-3 with rotations up to 180 degrees, a refining pass on
@@ -17,9 +17,9 @@ hardware computes it natively. Until 2026-12-05 its refining pass ran 4000 steps
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
+from s3k.config import TrainConfig
 from s3k.errors import UserError
 
 __all__ = ["PRESETS", "Preset", "preset"]
@@ -27,45 +27,39 @@ __all__ = ["PRESETS", "Preset", "preset"]
 
 @dataclass(frozen=True)
 class Preset:
-    """A named configuration.
-
-    Attributes:
-        description: one line for ``--help``.
-        config: :class:`s3k.config.TrainConfig` fields (flat names) and their values.
-        two_pass: the two-pass options (``coarse_size``, ``coarse_steps``, ``coarse_rotation``,
-            ``crop_size``, ``margin``, ``extent``), or None for a one-pass detector.
-    """
+    """A named configuration: ``description`` (one line for ``--help``) and ``config``, the whole
+    :class:`s3k.config.TrainConfig`."""
 
     description: str
-    config: dict[str, Any] = field(default_factory=dict)
-    two_pass: dict[str, Any] | None = None
+    config: TrainConfig
 
 
-# the box's network, target, read-out and schedule: both presets train them, on crops of their own size
-_BOX = {"steps": 2500, "lr": 0.005, "outlier_px": 6.0, "pseudo_window": 5, "layout_tol": 0.1,
-        "rotation_deg": 15.0, "sigma": 1.0, "val_every": 500, "precision": "auto"}
-_BOX_COARSE = {"coarse_size": 96, "coarse_steps": 4000, "coarse_lr": 0.001, "coarse_rotation": 180.0}
+# the box's network, target, read-out and schedule, both passes: both presets train them, on crops of their
+# own size
+_BOX = TrainConfig.from_flat(
+    steps=2500, lr=0.005, outlier_px=6.0, pseudo_window=5, layout_tol=0.1, rotation_deg=15.0, sigma=1.0,
+    val_every=500, precision="auto",
+    two_pass=True, coarse_size=96, coarse_steps=4000, coarse_lr=0.001, coarse_rotation=180.0,
+    where="preset")
 
 PRESETS: dict[str, Preset] = {
     "box-headline": Preset(
         "the box headline: two passes (96 px, 192 px crops), rigid layout, narrow target",
-        config=dict(_BOX),
-        two_pass={**_BOX_COARSE, "crop_size": 192},
+        _BOX.replace(crop_size=192),
     ),
     "box-fast": Preset(
         "the box headline on 128 px crops with a 10% margin: a cheaper refining pass",
-        config=dict(_BOX),
-        two_pass={**_BOX_COARSE, "crop_size": 128, "margin": 0.1},
+        _BOX.replace(crop_size=128, crop_margin=0.1),
     ),
 }
 
 
-def preset(name: str) -> Preset:
-    """The preset ``name``.
+def preset(name: str) -> TrainConfig:
+    """A copy of the configuration of the preset ``name``.
 
     Raises:
         UserError: no such preset, naming those there are.
     """
     if name not in PRESETS:
         raise UserError(f"--preset {name!r}: no such preset (presets: {', '.join(PRESETS)})")
-    return PRESETS[name]
+    return PRESETS[name].config.replace()

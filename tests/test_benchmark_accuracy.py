@@ -125,7 +125,12 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
 
     from s3k import cli
     from s3k.presets import PRESETS
-    from s3k.train.two_pass import CPU_FILE, read_cpu
+    from s3k.run_folder import RunFolder
+
+    CPU_FILE = RunFolder.CPU
+
+    def read_cpu(run):
+        return RunFolder(run).read_cpu()
 
     data = make_dataset(tmp_path / "d", size=64, labelled=4, unlabelled=6, test=3)
     old, new = tmp_path / "old", tmp_path / "new"
@@ -147,9 +152,9 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     fine = [json.loads((run / "s3k-seed0" / "fine" / "config.json").read_text())["config"]
             for run in (old, new)]
     preset = PRESETS["box-headline"].config
-    assert preset["rotation_deg"] != PRESETS["box-headline"].two_pass["coarse_rotation"]
+    assert preset.rotation_deg != PRESETS["box-headline"].config.coarse_rotation
     # the preset's refining pass, not the coarse pass's rotation and learning rate
-    assert [(c["rotation_deg"], c["lr"]) for c in fine] == [(preset["rotation_deg"], preset["lr"])] * 2
+    assert [(c["rotation_deg"], c["lr"]) for c in fine] == [(preset.rotation_deg, preset.lr)] * 2
     spent = read_cpu(new / "s3k-seed0")
     assert spent["coarse"] >= source_cpu["coarse"] and spent["crops"] > 0 and spent["fine"] > 0
     # options that would make another coarse pass are refused; a run already begun is left alone

@@ -38,7 +38,7 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
     from s3k.experiments.views import select_frames
 
     opts = tiny_options()
-    assert opts.train_options.startswith("--preset box-headline ") and opts.passes == 2
+    assert opts.preset == "box-headline" and opts.passes == 2
     work, results = tmp_path / "work", tmp_path / "results"
     with showing_library_messages():  # its progress notes, as the command line shows them
         summary = run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)

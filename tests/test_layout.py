@@ -139,9 +139,10 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "losses", "augment", "config", "presets", "budget"],
+    ["readout", "model", "losses", "augment", "presets"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
-     "calibration", "recalibration", "rigcal"],
+     "calibration", "recalibration", "rigcal", "config", "config_files", "budget", "memory", "run_folder",
+     "metrics", "label_reference"],
 ]
 
 
@@ -288,4 +289,13 @@ def test_the_data_room_never_decides_by_a_command_line_flag():
                       and len(flags) == len(node.elts))
             if flags and (isinstance(node, ast.Compare) or listed):
                 found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert found == []
+
+
+def test_training_does_not_import_inference():
+    """Training reads frames through the detector room (``s3k.detector.detect_store``, ``evaluate_store``);
+    ``inference/`` is what is done with a trained detector, beside training, not below it."""
+    modules = _modules()
+    found = [f"{name} imports {target}" for name, path in modules.items() if name.startswith("s3k.train")
+             for target in _imported(name, path, modules) if target.startswith("s3k.inference")]
     assert found == []

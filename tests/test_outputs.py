@@ -113,7 +113,7 @@ def test_new_files_beside_a_run_and_fresh_folders_are_fine(files, tmp_path):
 
 def test_the_run_names_are_those_the_runs_write():
     from s3k import detector
-    from s3k.train import two_pass, two_pass_start
+    from s3k.run_folder import RunFolder
 
-    assert set(detector.RUN_FILES) | {detector.TWO_PASS_FILE, two_pass.ESTIMATES_FILE, two_pass.CPU_FILE,
-                                      two_pass_start.OPTIONS_FILE, "coarse", "fine", "crops"} == RUN_NAMES
+    assert set(detector.RUN_FILES) | {detector.TWO_PASS_FILE, RunFolder.ESTIMATES, RunFolder.CPU,
+                                      RunFolder.OPTIONS, "coarse", "fine", "crops"} == RUN_NAMES

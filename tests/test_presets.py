@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
@@ -14,13 +15,16 @@ from s3k.config import TrainConfig
 from s3k.presets import PRESETS
 
 
-def test_every_preset_names_only_configuration_fields():
-    from s3k.config import config_from_dict
-
+def test_every_preset_is_a_whole_valid_configuration_printed_by_the_cli(capsys):
     for name, chosen in PRESETS.items():
-        cfg = config_from_dict(TrainConfig, chosen.config, where=name)  # unknown names would be refused
-        for key, value in chosen.config.items():
-            assert getattr(cfg, key) == value
+        assert isinstance(chosen.config, TrainConfig)
+        chosen.config.validate()
+        assert TrainConfig.from_flat(**chosen.config.to_dict()) == chosen.config  # it saves and reads whole
+        capsys.readouterr()
+        argv = ["train", "data", "--out", "run", "--preset", name, "--print-config", "--seed", "3"]
+        assert cli.main(argv) == 0
+        printed = json.loads(capsys.readouterr().out)
+        assert printed == {**chosen.config.to_dict(), "seed": 3}
 
 
 def test_box_headline_preset_trains_two_passes_with_its_options_and_the_command_line_wins(tmp_path, capsys):
@@ -35,10 +39,10 @@ def test_box_headline_preset_trains_two_passes_with_its_options_and_the_command_
     coarse = json.loads((run / "coarse" / "config.json").read_text())["config"]
     fine = json.loads((run / "fine" / "config.json").read_text())["config"]
     preset = PRESETS["box-headline"].config
-    assert coarse["rotation_deg"] == PRESETS["box-headline"].two_pass["coarse_rotation"]
-    assert fine["rotation_deg"] == preset["rotation_deg"] and fine["layout_tol"] == preset["layout_tol"]
+    assert coarse["rotation_deg"] == PRESETS["box-headline"].config.coarse_rotation
+    assert fine["rotation_deg"] == preset.rotation_deg and fine["layout_tol"] == preset.layout_tol
     assert fine["steps"] == 2 and coarse["steps"] == 2  # the command line's, not the preset's 2500 / 4000
-    assert (coarse["lr"], fine["lr"]) == (PRESETS["box-headline"].two_pass["coarse_lr"], preset["lr"])
+    assert (coarse["lr"], fine["lr"]) == (PRESETS["box-headline"].config.coarse_lr, preset.lr)
     assert fine["sigma"] == 1.5  # given on the command line
     proc = subprocess.run([sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(tmp_path / "x"),
                            "--preset", "nope"], capture_output=True, text=True)
@@ -56,9 +60,31 @@ def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_
         run = tmp_path / name
         assert cli.main(["train", str(data), "--out", str(run), "--preset", "box-fast", *tiny, *extra]) == 0
         margins[name] = json.loads((run / "two_pass.json").read_text())["margin"]
-    assert margins == {"preset": PRESETS["box-fast"].two_pass["margin"], "given": 0.25}
+    assert margins == {"preset": PRESETS["box-fast"].config.crop_margin, "given": 0.25}
     # the same network, schedule and coarse pass as the headline: only the crops differ
-    assert PRESETS["box-fast"].config == PRESETS["box-headline"].config
-    crops = {"crop_size", "margin"}
-    assert {k: v for k, v in PRESETS["box-fast"].two_pass.items() if k not in crops} == \
-        {k: v for k, v in PRESETS["box-headline"].two_pass.items() if k not in crops}
+    headline = PRESETS["box-headline"].config
+    assert PRESETS["box-fast"].config.replace(crop_size=headline.crop_size,
+                                              crop_margin=headline.crop_margin) == headline
+
+
+def test_the_two_pass_options_are_the_configurations_fields_with_their_ranges(capsys):
+    """``s3k train --help`` lists the two-pass options in the configuration's own group, and a value out of a
+    field's range is refused as the command line is parsed, naming the option."""
+    import argparse
+
+    from s3k.cli.train import configure_parser
+    from s3k.config import TwoPassConfig, leaf_fields
+
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    fields = [f.name for _, f, _ in leaf_fields(TwoPassConfig)]
+    shown = {a.dest: a for a in parser._actions if a.help != argparse.SUPPRESS}
+    assert set(fields) <= set(shown)
+    assert shown["coarse_size"].type.range.ge == 16 and shown["crop_margin"].type.range.ge == 0
+    for argv, option in ((["--coarse-size", "8"], "--coarse-size"), (["--crop-extent", "0"], "--crop-extent"),
+                         (["--coarse-lr", "2"], "--coarse-lr")):
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args(["data", "--out", "run", *argv])
+        assert exc.value.code == 2 and option in capsys.readouterr().err
+    args = parser.parse_args(["data", "--out", "run", "--two-pass", "--coarse-steps", "none"])
+    assert args.two_pass is True and args.coarse_steps is None

@@ -236,7 +236,7 @@ def test_scene_pixel_size_follows_the_image_size_and_the_rendered_rigs():
     import torch
 
     from s3k.geometry import Cameras
-    from s3k.inference.metrics import pixel_sizes_mm
+    from s3k.metrics import pixel_sizes_mm
 
     at96 = scene_mm_per_px("box", 96, frames=6)
     assert scene_mm_per_px("box", 192, frames=6) == pytest.approx(at96 / 2, rel=1e-9)

@@ -100,7 +100,7 @@ def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
     full = train(tiny_dataset, tmp_path / "full", cfg)
 
     with pytest.raises(Killed):
-        train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
+        train(tiny_dataset, tmp_path / "killed", cfg, progress=kill_after_three)
     assert torch.load(tmp_path / "killed" / "checkpoint.pt", weights_only=True)["step"] == 2
     assert not (tmp_path / "killed" / "model.pt").exists()
     resumed = train(tiny_dataset, tmp_path / "killed", cfg, resume=True)
@@ -237,7 +237,7 @@ def kill(step, terms):
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-train(data, out, cfg, callback=kill)
+train(data, out, cfg, progress=kill)
 """
 
 
@@ -447,7 +447,7 @@ def test_teacher_follows_the_network_and_resumes_exactly(tiny_dataset, tmp_path)
                        teacher[next(k for k in net if "running_mean" in k)])
 
     with pytest.raises(Killed):
-        train(tiny_dataset, tmp_path / "killed", cfg, callback=kill_after_three)
+        train(tiny_dataset, tmp_path / "killed", cfg, progress=kill_after_three)
     resumed = train(tiny_dataset, tmp_path / "killed", cfg, resume=True)
     a, b = _state(full), _state(resumed)
     for k in a:

@@ -286,11 +286,12 @@ def test_a_device_the_machine_lacks_is_one_line(capsys, dataset, finished_run, t
 
 def test_two_pass_options_are_refused_before_the_coarse_pass(dataset, tmp_path):
     from s3k.config import TrainConfig
-    from s3k.train.two_pass import train_two_pass
+    from s3k.train import train
 
-    cfg = TrainConfig.from_flat(steps=2, channels=(8, 16), res_blocks=1)
-    for options, option in (({"crop_size": 0}, "--crop-size"), ({"extent": float("nan")}, "--crop-extent"),
-                            ({"margin": -1.0}, "--crop-margin")):
-        with pytest.raises(UserError, match=option):
-            train_two_pass(dataset, tmp_path / "run", cfg, **options)
+    cfg = TrainConfig.from_flat(steps=2, channels=(8, 16), res_blocks=1, two_pass=True)
+    for options in ({"crop_size": 0}, {"crop_extent": float("nan")}, {"crop_margin": -1.0},
+                    {"coarse_stride": 3}, {"image_size": 64}):
+        (name,) = options
+        with pytest.raises(UserError, match=name.replace("_", ".")):
+            train(dataset, tmp_path / "run", cfg.replace(**options))
         assert not (tmp_path / "run").exists()

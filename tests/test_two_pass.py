@@ -27,16 +27,15 @@ from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
+from s3k.run_folder import RunFolder
 from s3k.train.run_setup import _validation_frames
-from s3k.train.two_pass import (
-    CPU_FILE,
-    ESTIMATES_FILE,
-    crop_rule_from_labels,
-    estimates_and_crops,
-    read_cpu,
-    refining_config,
-    training_crops,
-)
+from s3k.train.two_pass import crop_rule_from_labels, estimates_and_crops, training_crops
+
+CPU_FILE, ESTIMATES_FILE = RunFolder.CPU, RunFolder.ESTIMATES
+
+
+def read_cpu(run) -> dict[str, float]:
+    return RunFolder(run).read_cpu()
 
 
 def _farthest_pair_radius(X: np.ndarray) -> float:
@@ -100,16 +99,16 @@ def test_crop_rule_needs_triangulated_labels(tmp_path):
         crop_rule_from_labels(ds, size=64)
 
 
-def test_refining_config_keeps_the_pixel_tolerances_their_size_in_the_scene():
+def test_the_refining_view_keeps_the_pixel_tolerances_their_size_in_the_scene():
     from s3k.config import TrainConfig
 
     cfg = TrainConfig.from_flat(outlier_px=6.0, shift_px=10.0, pseudo_window=5, sigma=1.0, image_size=96)
-    same = refining_config(cfg, 128)
+    same = cfg.refining(128)
     assert (same.outlier_px, same.shift_px, same.pseudo_window, same.image_size) == (6.0, 10.0, 5, 0)
-    finer = refining_config(cfg, 192)
+    finer = cfg.refining(192)
     assert (finer.outlier_px, finer.shift_px, finer.pseudo_window) == (9.0, 15.0, 8)
     assert finer.sigma == 1.0 and finer.rotation_deg == cfg.rotation_deg
-    off = refining_config(cfg.replace(outlier_px=0.0, pseudo_window=0), 256)
+    off = cfg.replace(outlier_px=0.0, pseudo_window=0).refining(256)
     assert (off.outlier_px, off.pseudo_window) == (0.0, 0)
 
 
@@ -216,13 +215,13 @@ def test_stage_clock_keeps_a_killed_attempts_cpu_time(tmp_path):
     from s3k.train.two_pass import _StageClock
 
     (tmp_path / CPU_FILE).write_text(json.dumps({"coarse": 5.0}))  # an earlier attempt's time
-    with pytest.raises(KeyboardInterrupt), _StageClock(tmp_path, "fine", every=10) as clock:
+    with pytest.raises(KeyboardInterrupt), _StageClock(RunFolder(tmp_path), "fine", every=10) as clock:
         clock.tick(10)  # a training step that writes
         assert read_cpu(tmp_path)["fine"] >= 0 and read_cpu(tmp_path)["coarse"] == 5.0
         raise KeyboardInterrupt  # a kill
     assert set(read_cpu(tmp_path)) == {"coarse", "fine"}
     first = read_cpu(tmp_path)["fine"]
-    with _StageClock(tmp_path, "fine") as clock:
+    with _StageClock(RunFolder(tmp_path), "fine") as clock:
         t = time.process_time()
         while time.process_time() - t < 0.05:  # some CPU work
             pass

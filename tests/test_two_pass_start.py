@@ -9,10 +9,14 @@ import shutil
 from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
+from s3k.config import REFERENCE_CROP, default_of
 from s3k.data import Dataset
 from s3k.detector import TWO_PASS_FILE
-from s3k.train.two_pass import REFERENCE_CROP, crop_rule_from_labels
-from s3k.train.two_pass_start import DEFAULTS, OPTIONS_FILE, crop_extent_warning
+from s3k.run_folder import RunFolder
+from s3k.train.two_pass import crop_rule_from_labels
+from s3k.train.two_pass_start import crop_extent_warning
+
+OPTIONS_FILE = RunFolder.OPTIONS
 
 TINY = ["--steps", "3", "--coarse-size", "32", "--crop-size", "32", "--channels", "8,8", "--res_blocks", "1",
         "--val_every", "0", "--warmup_steps", "1", "--ramp_steps", "1", "--no-progress", "--threads", "1",
@@ -66,8 +70,8 @@ def test_a_failed_start_can_be_retried_and_resumed_without_repeating_options(tmp
     assert "unsup" in capsys.readouterr().err
 
 
-def test_defaults_recorded_are_the_training_defaults():
-    assert DEFAULTS["crop_size"] == REFERENCE_CROP
+def test_the_default_crop_is_the_one_the_pixel_options_are_given_at():
+    assert default_of("crop_size") == REFERENCE_CROP
 
 
 def test_a_crop_extent_larger_than_the_images_is_warned_about(tmp_path):

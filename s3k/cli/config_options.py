@@ -11,15 +11,8 @@ import argparse
 import typing
 from typing import Any
 
-from s3k.config import (
-    TrainConfig,
-    base_type,
-    coerce,
-    config_from_dict,
-    field_default,
-    leaf_fields,
-    read_config_file,
-)
+from s3k.config import TrainConfig, config_from_dict, field_default, leaf_fields
+from s3k.config_files import base_type, coerce, read_config_file
 from s3k.errors import UserError
 
 
@@ -67,7 +60,7 @@ def _parser(f, tp: Any):
             value = coerce(tp, text, "value")
         except UserError as exc:
             raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
-        problem = bounds.problem(value) if bounds is not None else None
+        problem = bounds.problem(value) if bounds is not None and value is not None else None
         if problem is not None:
             raise argparse.ArgumentTypeError(f"{problem}, got {text!r}")
         return value

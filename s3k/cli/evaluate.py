@@ -11,8 +11,8 @@ from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run
-from s3k.inference.label_reference import format_label_reference
-from s3k.inference.metrics import format_table
+from s3k.label_reference import format_label_reference
+from s3k.metrics import format_table
 from s3k.outputs import check_folder, claim_folder
 
 

@@ -22,24 +22,6 @@ from s3k.data.protocol import DatasetLike
 from s3k.geometry import Cameras
 
 
-def model_image_size(src_size: tuple[int, int], image_size: int, stride: int) -> tuple[int, int]:
-    """The network input size (W, H) for dataset images of ``src_size``.
-
-    Args:
-        src_size: dataset image size (W, H).
-        image_size: wanted longer side in pixels; 0 keeps the dataset's size.
-        stride: heatmap stride; both sides are rounded to a multiple of it.
-
-    Returns:
-        (W, H), positive multiples of ``stride``.
-    """
-    W, H = int(src_size[0]), int(src_size[1])
-    s = 1.0 if image_size <= 0 else image_size / max(W, H)
-    w = max(stride, int(round(W * s / stride)) * stride)
-    h = max(stride, int(round(H * s / stride)) * stride)
-    return w, h
-
-
 @dataclass
 class FrameBatch:
     """One batch of frames at the network's input size.

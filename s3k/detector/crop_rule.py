@@ -25,11 +25,12 @@ from torch import Tensor
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
 from s3k.geometry import Cameras, workspace_centre
+from s3k.run_folder import RunFolder
 
 __all__ = ["TWO_PASS_FILE", "CropRule", "crop_centres", "extent_middle", "is_two_pass", "read_two_pass",
            "write_two_pass"]
 
-TWO_PASS_FILE = "two_pass.json"
+TWO_PASS_FILE = RunFolder.TWO_PASS
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,7 @@ class CropRule:
 
 def is_two_pass(run_dir: str | Path) -> bool:
     """Whether ``run_dir`` is a two-pass run folder."""
-    return (Path(run_dir) / TWO_PASS_FILE).is_file()
+    return RunFolder(run_dir).is_two_pass()
 
 
 def read_two_pass(run_dir: str | Path) -> tuple[CropRule, Path, Path]:
@@ -74,7 +75,7 @@ def read_two_pass(run_dir: str | Path) -> tuple[CropRule, Path, Path]:
 
 def write_two_pass(run_dir: Path, rule: CropRule, coarse_size: int, keypoints) -> None:
     """Write ``RUN/two_pass.json``: the rule, the passes' folders, the coarse size and the keypoints."""
-    info = {**asdict(rule), "coarse": "coarse", "fine": "fine", "coarse_size": coarse_size,
+    info = {**asdict(rule), "coarse": RunFolder.COARSE, "fine": RunFolder.FINE, "coarse_size": coarse_size,
             "keypoints": list(keypoints)}
     atomic_write_json(info, run_dir / TWO_PASS_FILE)
 

@@ -32,6 +32,7 @@ from s3k.data import Dataset
 from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 from s3k.geometry.warp import crop_resize_matrix
+from s3k.run_folder import RunFolder
 
 __all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "frame_calibration", "mismatches",
            "run_geometry", "track_crops", "training_geometry"]
@@ -98,11 +99,11 @@ def frame_calibration(ds: DatasetLike) -> dict[str, Any] | None:
 def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
     """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
     predates the record or holds none."""
-    run_dir = Path(run_dir)
-    if (run_dir / "two_pass.json").is_file():
-        run_dir = run_dir / "coarse"
+    run = RunFolder(run_dir)
+    if run.is_two_pass():
+        run = run.coarse
     try:
-        doc = json.loads((run_dir / "config.json").read_text())
+        doc = json.loads(run.config_file.read_text())
     except (OSError, ValueError):
         return None
     meta = doc.get("meta") if isinstance(doc, dict) else None

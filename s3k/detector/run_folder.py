@@ -1,12 +1,5 @@
-"""The run folder written by ``s3k train``, and :func:`load_network` to use a trained model.
-
-Layout of ``RUN/``::
-
-    config.json      the resolved TrainConfig plus "meta" (what inference needs) and the dataset path
-    checkpoint.pt    full training state (model, optimizer, scheduler, RNG states, step) for --resume
-    model.pt         final weights + meta, written at the end of training
-    train.log        the log, including non-finite-loss and collapse warnings
-    tensorboard/     TensorBoard event files (loss terms, validation metrics, images)
+"""A run's model files and :func:`load_network` to use a trained model (the run folder's files are named by
+:class:`s3k.run_folder.RunFolder`).
 
 Every file is written atomically (``s3k.fileio``), so a run killed at any moment leaves the previous complete
 checkpoint in place. The ``.pt`` files hold only tensors and plain containers (the configuration and meta as
@@ -24,20 +17,20 @@ from typing import Any
 
 import torch
 
-from s3k.detector.crop_rule import is_two_pass
 from s3k.detector.meta import DetectorMeta
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json
 from s3k.model import UNet, UNetConfig
+from s3k.run_folder import RunFolder
 
-CONFIG_FILE = "config.json"
-CHECKPOINT_FILE = "checkpoint.pt"
-MODEL_FILE = "model.pt"
-LOG_FILE = "train.log"
-TENSORBOARD_DIR = "tensorboard"
-# every file a run holds: what --overwrite may delete
-PROGRESS_FILE = "progress.json"
-RUN_FILES = (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE, LOG_FILE, TENSORBOARD_DIR, PROGRESS_FILE)
+# the names RunFolder gives a one-pass run's files, under the names s3k.detector has long exported
+CONFIG_FILE = RunFolder.CONFIG
+CHECKPOINT_FILE = RunFolder.CHECKPOINT
+MODEL_FILE = RunFolder.MODEL
+LOG_FILE = RunFolder.LOG
+TENSORBOARD_DIR = RunFolder.TENSORBOARD
+PROGRESS_FILE = RunFolder.PROGRESS
+RUN_FILES = RunFolder.ONE_PASS_FILES
 MODEL_FORMAT = "s3k-model/1"
 
 
@@ -100,29 +93,20 @@ def write_run_config(run_dir: str | Path, config: dict[str, Any], meta: Detector
 
 
 def read_run_config(run_dir: str | Path) -> dict[str, Any]:
-    """Read ``RUN/config.json``.
+    """Read ``RUN/config.json`` (:meth:`s3k.run_folder.RunFolder.read_record`).
 
     Raises:
         FileNotFoundError: naming the file when it is absent.
         UserError: naming the file when it is not an s3k run configuration.
     """
-    path = Path(run_dir) / CONFIG_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not an s3k run folder")
-    try:
-        doc = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
-        raise UserError(f"{path}: not an s3k run configuration (no 'config' table)")
-    return doc
+    return RunFolder(run_dir).read_record()
 
 
 def training_dataset(run_dir: str | Path) -> str | None:
     """The dataset folder a run (one pass, or the coarse pass of a two-pass run) was trained on, as its
     ``config.json`` records it (None when it does not)."""
-    run_dir = Path(run_dir)
-    doc = read_run_config(run_dir / "coarse" if is_two_pass(run_dir) else run_dir)
+    run = RunFolder(run_dir)
+    doc = (run.coarse if run.is_two_pass() else run).read_record()
     dataset = doc.get("dataset")
     return str(dataset) if dataset else None
 
@@ -136,7 +120,7 @@ def _older_run_meta(run_dir: Path) -> dict[str, Any]:
     """What a detector trained before its meta kept the read-out's outlier threshold takes from its run's
     ``config.json``: the ``--outlier-px`` it was trained with (nothing when that is missing)."""
     try:
-        value = json.loads((run_dir / "config.json").read_text())["config"]["outlier_px"]
+        value = json.loads(RunFolder(run_dir).config_file.read_text())["config"]["outlier_px"]
     except (OSError, ValueError, KeyError, TypeError):
         return {}
     return {"outlier_px": float(value)} if isinstance(value, (int, float)) else {}
@@ -169,9 +153,10 @@ def load_network(run_dir: str | Path, device: str | torch.device = "cpu",
             state = load_torch_file(path, "model", ("meta", "model"))
             break
     else:
-        if is_two_pass(run_dir):
-            raise UserError(f"{run_dir} is a two-pass run; this needs one network: {run_dir / 'coarse'} or "
-                            f"{run_dir / 'fine'}", hint="give one of them, or use s3k.Detector.load for both")
+        run = RunFolder(run_dir)
+        if run.is_two_pass():
+            raise UserError(f"{run_dir} is a two-pass run; this needs one network: {run.coarse.path} or "
+                            f"{run.fine.path}", hint="give one of them, or use s3k.Detector.load for both")
         raise UserError(f"{run_dir}: no {' or '.join(names)}", hint="train first, or check the path")
     try:
         older = {} if "outlier_px" in state["meta"] else _older_run_meta(run_dir)

@@ -18,11 +18,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.experiments.views import make_view, select_frames
 from s3k.inference.evaluate import evaluate_run
 from s3k.messages import NOTE
-from s3k.train.two_pass import CPU_FILE, ESTIMATES_FILE, read_cpu
+from s3k.presets import preset
+from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
 
@@ -150,44 +152,55 @@ def reuse_coarse(source: Path, runs: list[Path]) -> None:
     for run in runs:
         if run.exists():
             continue
-        src = source / run.name
-        needed = [src / "coarse" / "model.pt", src / ESTIMATES_FILE, src / CPU_FILE]
+        src = RunFolder(source / run.name)
+        needed = [src.coarse.model, src.estimates, src.cpu]
         missing = [p for p in needed if not p.is_file()]
-        if missing or "coarse" not in read_cpu(src):
-            raise SystemExit(f"{missing[0] if missing else src / CPU_FILE}: no finished coarse stage with "
-                             "its CPU time to reuse (--coarse-from takes runs that record it in cpu.json)")
-        tmp = run.with_name(run.name + ".tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        shutil.copytree(src / "coarse", tmp / "coarse")
-        if (src / "crops" / "s3k.json").is_file():
-            shutil.copytree(src / "crops", tmp / "crops", copy_function=_link_or_copy)
-        shutil.copy2(src / ESTIMATES_FILE, tmp / ESTIMATES_FILE)
-        coarse_s = read_cpu(src)["coarse"]
-        (tmp / CPU_FILE).write_text(json.dumps({"coarse": coarse_s}) + "\n")
+        if missing or "coarse" not in src.read_cpu():
+            raise SystemExit(f"{missing[0] if missing else src.cpu}: no finished coarse stage with its CPU "
+                             f"time to reuse (--coarse-from takes runs that record it in {src.cpu.name})")
+        tmp = RunFolder(run.with_name(run.name + ".tmp"))
+        shutil.rmtree(tmp.path, ignore_errors=True)
+        tmp.path.mkdir(parents=True)
+        shutil.copytree(src.coarse.path, tmp.coarse.path)
+        if (src.crops / "s3k.json").is_file():
+            shutil.copytree(src.crops, tmp.crops, copy_function=_link_or_copy)
+        shutil.copy2(src.estimates, tmp.estimates)
+        coarse_s = src.read_cpu()["coarse"]
+        tmp.write_cpu({"coarse": coarse_s})
         record = run.with_name(run.name + "-cpu.json")
         record.write_text(json.dumps({"cpu_minutes": coarse_s / 60, "wall_minutes": 0.0,
-                                      "coarse_from": str(src)}) + "\n")
-        tmp.rename(run)
+                                      "coarse_from": str(src.path)}) + "\n")
+        tmp.path.rename(run)
+
+
+def train_config(args, seed: int, model: str):
+    """The :class:`s3k.config.TrainConfig` of one of the benchmark's trainings: ``--preset`` (or the
+    defaults), the benchmark's sizes and steps, the model's own options and ``--train-options`` over it."""
+
+    cfg = (preset(args.preset) if getattr(args, "preset", None) else TrainConfig()).replace(
+        seed=seed, steps=args.steps, threads=1, progress=False, two_pass=args.passes == 2)
+    if args.passes == 2:
+        cfg = cfg.replace(coarse_size=args.coarse_size, crop_size=args.crop_size)
+        if args.coarse_steps:
+            cfg = cfg.replace(coarse_steps=args.coarse_steps)
+    else:
+        cfg = cfg.replace(image_size=args.coarse_size)
+    return cfg.with_options(MODELS[model] + args.train_options.split(), where="--train-options")
 
 
 def train_command(args, data: Path, run: Path, seed: int, model: str) -> list[str]:
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--seed", str(seed),
-           "--steps", str(args.steps), "--threads", "1", "--no-progress", *MODELS[model]]
-    if args.passes == 2:
-        cmd += ["--two-pass", "--coarse-size", str(args.coarse_size), "--crop-size", str(args.crop_size)]
-        if args.coarse_steps:
-            cmd += ["--coarse-steps", str(args.coarse_steps)]
-    else:
-        cmd += ["--image-size", str(args.coarse_size)]
-    cmd += args.train_options.split()
+    """The ``s3k train`` command of one training, built from :func:`train_config` (a process of its own, so
+    that several run at once and each one's CPU time is measured)."""
+    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run),
+           *train_config(args, seed, model).to_argv()]
     if run.exists():
         cmd.append("--resume")
     return cmd
 
 
 def finished(run: Path, passes: int) -> bool:
-    return (run / ("two_pass.json" if passes == 2 else "model.pt")).is_file()
+    folder = RunFolder(run)
+    return folder.is_two_pass() if passes == 2 else folder.model.is_file()
 
 
 def _cpu_minutes_so_far(pid: int) -> float | None:
@@ -301,6 +314,7 @@ def stage_summary(work: Path, seeds: list[int], runs: dict[tuple[int, str], Path
     (wall and CPU, per seed: :func:`timed`), each model's training stages (CPU, from its run's
     ``cpu.json``: ``coarse``, ``crops``, ``fine``) and its evaluation (wall and CPU). A stage that did not
     run in ``work`` (linked from elsewhere) is left out."""
+
     times = stage_times(work)
 
     def mean_of(keys: list[str]) -> dict[str, float] | None:
@@ -316,7 +330,7 @@ def stage_summary(work: Path, seeds: list[int], runs: dict[tuple[int, str], Path
         if got is not None:
             out[stage] = got
     for model in MODELS:
-        per_seed = [read_cpu(runs[s, model]) for s in seeds if (s, model) in runs]
+        per_seed = [RunFolder(runs[s, model]).read_cpu() for s in seeds if (s, model) in runs]
         stages = sorted({k for spent in per_seed for k in spent})
         train = {k: {"cpu_min": statistics.fmean(spent.get(k, 0.0) for spent in per_seed) / 60}
                  for k in stages}

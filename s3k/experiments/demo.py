@@ -37,15 +37,15 @@ from tqdm import tqdm
 
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
-from s3k.detector import PROGRESS_FILE, Detector
+from s3k.detector import Detector, evaluate_store
 from s3k.experiments.accuracy import labelled_view
 from s3k.experiments.demo_figure import demo_figure, frame_detections
-from s3k.inference.evaluate import evaluate_store
-from s3k.inference.metrics import mm_per_unit
 from s3k.inference.report import write_report
 from s3k.messages import say
+from s3k.metrics import mm_per_unit
 from s3k.outputs import check_folder, claim_folder, made_by_s3k, owns_run
 from s3k.presets import preset
+from s3k.run_folder import RunFolder
 
 
 @dataclass
@@ -62,18 +62,16 @@ class DemoConfig:
     options: tuple[str, ...] = field(default_factory=tuple)
     seed: int = 0
 
+    def train_config(self, own: list[str] | tuple[str, ...] = (), threads: int = 1):
+        """The :class:`s3k.config.TrainConfig` of one of the demo's models: the preset, the demo's seed,
+        ``threads``, no progress bar, the model's ``own`` options and ``options`` over it."""
+        cfg = preset(self.preset).replace(seed=self.seed, threads=threads, progress=False)
+        return cfg.with_options([*own, *self.options], where="the demo's options")
+
     def steps(self) -> tuple[int, int]:
         """``(coarse pass steps, refining pass steps)`` of the preset with ``options`` over it."""
-        chosen = preset(self.preset)
-        fine = int(chosen.config.get("steps", 0))
-        coarse = int((chosen.two_pass or {}).get("coarse_steps") or fine)
-        opts = list(self.options)
-        for i, name in enumerate(opts[:-1]):
-            if name == "--steps":
-                fine = int(opts[i + 1])
-            elif name == "--coarse-steps":
-                coarse = int(opts[i + 1])
-        return coarse, fine
+        cfg = self.train_config()
+        return (cfg.coarse_steps or cfg.steps) if cfg.two_pass else 0, cfg.steps
 
 
 QUICK = DemoConfig(size=64, label_pool=20, unlabelled=40, test=12, options=(
@@ -85,14 +83,14 @@ MODELS = {"labels only": ("baseline", ["--no-unsup"]), "S3K": ("s3k", [])}
 
 
 def train_command(demo: DemoConfig, data: Path, folder: Path, own: list[str], threads: int = 1) -> list[str]:
-    """The ``s3k train`` command of one of the demo's models."""
+    """The ``s3k train`` command of one of the demo's models, built from its configuration
+    (:meth:`DemoConfig.train_config`): each model trains in a process of its own, side by side."""
     return [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(folder), "--resume",
-            "--preset", demo.preset, "--seed", str(demo.seed), "--threads", str(threads), "--no-progress",
-            *own, *demo.options]
+            *demo.train_config(own, threads).to_argv()]
 
 
 def _finished(folder: Path) -> bool:
-    return (folder / "two_pass.json").is_file()
+    return RunFolder(folder).is_complete()
 
 
 def comparison_table(results: dict[str, dict]) -> str:
@@ -147,8 +145,9 @@ def _train_side_by_side(jobs: list[tuple[str, Path, list[str]]], log, progress: 
                     other.terminate()
                 if bars is not None:
                     bars.close()
-                raise RuntimeError(f"training {name} failed (exit {proc.returncode}); see {folder}/train.log "
-                                   f"and {folder.parent / (folder.name + '.console.txt')}")
+                raise RuntimeError(f"training {name} failed (exit {proc.returncode}); see "
+                                   f"{RunFolder(folder).log} and "
+                                   f"{folder.parent / (folder.name + '.console.txt')}")
             if bars is None:
                 log(f"[demo] {name} trained in {times[f'train_{folder.name}_s'] / 60:.1f} min")
         if bars is None and procs and time.perf_counter() - last > 60:
@@ -190,18 +189,19 @@ class _ProgressBars:
 def _current_pass(folder: Path, coarse_steps: int) -> tuple[int | None, Path]:
     """``(steps done over both passes, the folder of the pass under way)`` of a run (None before its first
     step); a one-pass run is its own pass."""
-    def step(run: Path) -> int | None:
+    def step(run: RunFolder) -> int | None:
         try:
-            return int(json.loads((run / PROGRESS_FILE).read_text())["step"])
+            return int(json.loads(run.progress.read_text())["step"])
         except (OSError, ValueError, KeyError):
             return None
 
+    run = RunFolder(folder)
     if not coarse_steps:
-        return step(folder), folder
-    fine = step(folder / "fine")
+        return step(run), folder
+    fine = step(run.fine)
     if fine is not None:
-        return coarse_steps + fine, folder / "fine"
-    return step(folder / "coarse"), folder / "coarse"
+        return coarse_steps + fine, run.fine.path
+    return step(run.coarse), run.coarse.path
 
 
 def _short_validation(folder: Path) -> str:
@@ -215,7 +215,7 @@ def _short_validation(folder: Path) -> str:
 
 def _last_validation(folder: Path) -> str:
     try:
-        lines = [x for x in (folder / "train.log").read_text().splitlines() if "validation:" in x]
+        lines = [x for x in RunFolder(folder).log.read_text().splitlines() if "validation:" in x]
     except OSError:
         return "starting"
     return lines[-1].split("INFO ", 1)[-1] if lines else "warming up"

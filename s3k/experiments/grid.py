@@ -185,10 +185,9 @@ class RunSpec:
         eval_train: also evaluate on training-instance frames (category).
         label_choice: how the labelled frames are chosen from the pool
             (:data:`LABEL_CHOICES`).
-        two_pass: None for one pass on the whole image; else the keyword arguments of
-            :func:`s3k.train.two_pass.train_two_pass` besides the configuration (``coarse_size``,
-            ``coarse_steps``, ``coarse_rotation``, ``crop_size``): a coarse pass on the whole image resized, a
-            refining pass on crops around its estimate.
+        two_pass: None for one pass on the whole image; else the two-pass fields of the configuration
+            (``coarse_size``, ``coarse_steps``, ``coarse_rotation``, ``crop_size``): a coarse pass on the
+            whole image resized, a refining pass on crops around its estimate (:meth:`train_config`).
     """
 
     experiment: str
@@ -202,6 +201,10 @@ class RunSpec:
     eval_train: bool = False
     two_pass: dict[str, Any] | None = None
     label_choice: str = "random"
+
+    def train_config(self) -> TrainConfig:
+        """The configuration the run trains with: ``cfg`` with ``two_pass`` and its fields where set."""
+        return self.cfg if self.two_pass is None else self.cfg.replace(two_pass=True, **self.two_pass)
 
     def estimated_cpu_s(self) -> float:
         c = self.cfg

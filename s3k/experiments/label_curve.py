@@ -80,6 +80,7 @@ class CurveOptions:
     train_options: str = ""
     parallel: int = 2
     reference: int = REFERENCE_LABELS
+    preset: str | None = None
 
     def __post_init__(self) -> None:
         self.labels = tuple(sorted(set(int(n) for n in self.labels)))
@@ -92,17 +93,16 @@ class CurveOptions:
     @classmethod
     def from_preset(cls, preset: str | None, **given: Any) -> CurveOptions:
         """The options with ``s3k train --preset PRESET``'s two-pass sizes and steps, unless ``given`` (None:
-        no preset, the ``given`` options and the defaults above)."""
-
+        no preset, the ``given`` options and the defaults above). The trainings' configuration is the preset's
+        (:func:`s3k.experiments.accuracy.train_config`), their commands built from it."""
         if preset is None:
             return cls(**{k: v for k, v in given.items() if v is not None})
-        chosen = PRESETS[preset]
-        two = chosen.two_pass or {}
-        defaults: dict[str, Any] = {"passes": 2 if chosen.two_pass else 1,
-                                    "steps": chosen.config.get("steps", 4000)}
-        defaults.update({k: two[k] for k in ("coarse_size", "coarse_steps", "crop_size") if k in two})
+        cfg = PRESETS[preset].config
+        defaults: dict[str, Any] = {"preset": preset, "passes": 2 if cfg.two_pass else 1, "steps": cfg.steps}
+        if cfg.two_pass:
+            defaults.update(coarse_size=cfg.coarse_size, coarse_steps=cfg.coarse_steps,
+                            crop_size=cfg.crop_size)
         defaults.update({k: v for k, v in given.items() if v is not None})
-        defaults["train_options"] = f"--preset {preset} {defaults.get('train_options', '')}".strip()
         return cls(**defaults)
 
 

@@ -37,8 +37,8 @@ from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_fra
 from s3k.fileio import atomic_write_json, file_lock
 from s3k.inference.evaluate import evaluate_run
 from s3k.messages import say
+from s3k.run_folder import RunFolder
 from s3k.train import read_checkpoint_step, train
-from s3k.train.two_pass import train_two_pass
 
 #: Config fields that do not change a run's result: a finished run is kept when only these differ.
 _NEUTRAL_FIELDS = ("progress", "device", "threads", "preload_mb", "val_every", "val_frames", "log_every",
@@ -53,6 +53,7 @@ class SettingsChanged(UserError):
 
 def _differences(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
     now = cfg.to_dict()
+    saved = {**TrainConfig().to_dict(), **saved}  # a field a run's record predates has its default
     return [f"{k}: {saved.get(k)!r} there, {v!r} now" for k, v in now.items()
             if k not in _NEUTRAL_FIELDS and saved.get(k) != v]
 
@@ -110,9 +111,8 @@ def run_one(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Options,
             return None
         if result_path.is_file():  # finished by another process meanwhile
             return json.loads(result_path.read_text())
-        if (run_dir / "config.json").is_file():
-            saved = json.loads((run_dir / "config.json").read_text())["config"]
-            _check_same(saved, spec.cfg, run_dir, "a run is there")
+        if RunFolder(run_dir).config_file.is_file():
+            _check_same(RunFolder(run_dir).read_record()["config"], spec.cfg, run_dir, "a run is there")
         result = _train_and_evaluate(spec, exp_dir, data_dir, opts, log)
         atomic_write_json(result, result_path)
     m = result["metrics"]["test"]
@@ -136,20 +136,17 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
                      {k: v for k, v in frames.items() if len(v)},
                      {"labelled": spec.labelled, "unlabelled": spec.unlabelled, "seed": spec.seed})
     t_data = time.perf_counter() - t0
-    start_step = checkpoint_step(run_dir / "fine" if spec.two_pass else run_dir)
+    start_step = checkpoint_step(RunFolder(run_dir).fine.path if spec.two_pass else run_dir)
     log(f"{spec.name}: training {spec.cfg.steps} steps "
         f"({'S3K' if spec.cfg.unsup else 'labels only'}, {spec.labelled} labelled, {spec.unlabelled} "
         f"unlabelled, seed {spec.seed}" + (", two passes" if spec.two_pass else "") + ")"
         + (f", resuming at step {start_step}" if start_step else ""))
     t1 = time.perf_counter()
-    if spec.two_pass is None:
-        trained = train(view, run_dir, spec.cfg, resume=True)
-        status, step, timing = trained.status, trained.step, trained.timing
-    else:
-        # each pass is resumed where it stopped; a pass that does not finish raises (the run fails)
-        passes = train_two_pass(view, run_dir, spec.cfg, resume=True, log=log, **spec.two_pass)
-        status, step = "done", spec.cfg.steps
-        timing = {k: p.timing for k, p in passes.items() if k in ("coarse", "fine") and p is not None}
+    # each pass of two is resumed where it stopped; a pass that does not finish raises (the run fails)
+    trained = train(view, run_dir, spec.train_config(), resume=True)
+    status, step = trained.status, trained.step
+    timing: dict[str, Any] = (trained.timing if trained.passes is None else
+                              {k: p.timing for k, p in trained.passes.items() if p is not None})
     t_train = time.perf_counter() - t1
     t2 = time.perf_counter()
     metrics = {"test": evaluate_run(run_dir, view, "test", device=opts.device)}

@@ -41,8 +41,8 @@ from torch import Tensor
 from s3k.geometry.cameras import Cameras
 from s3k.geometry.projection import project
 
-__all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "region_around",
-           "resample_regions", "resize_crop", "transform_points"]
+__all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "model_image_size",
+           "region_around", "resample_regions", "resize_crop", "transform_points"]
 
 Box = Sequence[float]
 
@@ -405,3 +405,21 @@ def resample_regions(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> 
     Ax = _area_weights(b[:, 0], sx, w, W)  # (N, w, W)
     Ay = _area_weights(b[:, 1], sy, h, H)  # (N, h, H)
     return torch.einsum("nyv,ncvu,nxu->ncyx", Ay, images, Ax)
+
+
+def model_image_size(src_size: tuple[int, int], image_size: int, stride: int) -> tuple[int, int]:
+    """The network input size (W, H) for dataset images of ``src_size``.
+
+    Args:
+        src_size: dataset image size (W, H).
+        image_size: wanted longer side in pixels; 0 keeps the dataset's size.
+        stride: heatmap stride; both sides are rounded to a multiple of it.
+
+    Returns:
+        (W, H), positive multiples of ``stride``.
+    """
+    W, H = int(src_size[0]), int(src_size[1])
+    s = 1.0 if image_size <= 0 else image_size / max(W, H)
+    w = max(stride, int(round(W * s / stride)) * stride)
+    h = max(stride, int(round(H * s / stride)) * stride)
+    return w, h

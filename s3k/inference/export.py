@@ -45,7 +45,7 @@ from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
 from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
-from s3k.inference.metrics import mm_per_unit
+from s3k.metrics import mm_per_unit
 
 log = logging.getLogger(__name__)
 

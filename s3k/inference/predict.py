@@ -8,34 +8,16 @@ are in the dataset's world units and ``error`` is in the dataset's own image pix
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from s3k.choices import Device
 from s3k.data import Dataset
-from s3k.data.frames import FrameBatch, FrameStore
-from s3k.data.protocol import DatasetLike
-from s3k.data.tables import SPLITS
+from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import check_output, csv_rows, write_csv
-from s3k.detector import Detection, Detector
+from s3k.detector import Detector, detect_store, split_frames
 
 __all__ = ["PredictSummary", "detect_store", "predict_dataset", "split_frames"]
-
-
-def detect_store(detector: Detector, store: FrameStore, batch_size: int = 16,
-                 keep_heatmaps: bool = False) -> Iterator[tuple[FrameBatch, Detection]]:
-    """Run ``detector`` over every frame of ``store`` (frames at the dataset's own size, its cameras);
-    yields ``(FrameBatch, Detection)`` on the CPU, in the dataset's pixels."""
-    for batch in store.batches(batch_size):
-        yield batch, detector(batch.images, batch.cams, keep_heatmaps=keep_heatmaps).cpu()
-
-
-def split_frames(dataset: DatasetLike, split: str) -> np.ndarray:
-    """Frame ids of a split, or of every split for 'all' (labelled, unlabelled, then test frames)."""
-    return np.asarray(dataset.frames(SPLITS if split == "all" else split))
 
 
 @dataclass

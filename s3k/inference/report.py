@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from s3k.draw import draw_views
-from s3k.inference.metrics import format_metric
+from s3k.metrics import format_metric
 
 __all__ = ["write_report"]
 

@@ -29,7 +29,8 @@ from s3k.detector import training_dataset
 from s3k.detector.geometry_record import check_dataset, frame_calibration
 from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.inference.metrics import mm_per_unit
+from s3k.metrics import mm_per_unit
+from s3k.run_folder import RunFolder
 
 __all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration", "run_record"]
 
@@ -46,11 +47,11 @@ fraction) are not reported."""
 def run_record(run_dir: str | Path) -> dict[str, Any] | None:
     """The ``meta`` a run folder's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
     cameras, units, geometry; None when there is none to read."""
-    run_dir = Path(run_dir)
-    if (run_dir / "two_pass.json").is_file():
-        run_dir = run_dir / "coarse"
+    run = RunFolder(run_dir)
+    if run.two_pass_file.is_file():
+        run = run.coarse
     try:
-        doc = json.loads((run_dir / "config.json").read_text())
+        doc = json.loads(run.config_file.read_text())
     except (OSError, ValueError):
         return None
     meta = doc.get("meta") if isinstance(doc, dict) else None

@@ -32,15 +32,15 @@ from s3k.data.formats.calibration_files import read_calibration
 from s3k.data.formats.skeleton import check_edges, read_skeleton
 from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import read_source
-from s3k.detector import Detector, DetectorMeta
+from s3k.detector import Detector, DetectorMeta, detect_store, split_frames
 from s3k.detector.crop_rule import is_two_pass
 from s3k.detector.run_folder import read_run_config, training_dataset
 from s3k.errors import UserError
 from s3k.fileio import open_text
 from s3k.geometry import triangulate_labels
-from s3k.inference.metrics import keypoint_order
-from s3k.inference.predict import detect_store, split_frames
 from s3k.inference.rerun_log import RerunLog
+from s3k.metrics import keypoint_order
+from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ def target_kind(path: str | Path) -> str:
                         hint="give the CSV of 's3k track' or 's3k predict', a dataset folder or a run folder")
     if (path / "s3k.json").is_file():
         return "dataset"
-    if (path / "config.json").is_file():
+    if RunFolder(path).config_file.is_file():
         return "run"
     if not path.exists():
         raise UserError(f"{path}: no such file or folder")
@@ -100,7 +100,7 @@ def run_skeleton(run: str | Path) -> list[tuple[str, str]]:
 
     run = Path(run)
     try:
-        doc = read_run_config(run / "coarse" if is_two_pass(run) else run)
+        doc = read_run_config(RunFolder(run).coarse.path if is_two_pass(run) else run)
         return DetectorMeta.from_dict(doc["meta"]).recorded_skeleton()
     except (OSError, UserError, KeyError, TypeError, ValueError):
         return []

@@ -58,7 +58,6 @@ from pydantic import BaseModel
 from s3k.data import Dataset
 from s3k.detector.geometry_record import check_dataset
 from s3k.errors import UserError
-from s3k.inference.metrics import mm_per_unit
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
 from s3k.label.queue import queue_ranking
 from s3k.label.skeleton import edit_skeleton
@@ -66,6 +65,7 @@ from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 from s3k.label.suggest import UP, Suggestions, Up
 from s3k.messages import say
+from s3k.metrics import mm_per_unit
 
 log = logging.getLogger(__name__)
 

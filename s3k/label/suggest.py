@@ -39,9 +39,8 @@ import numpy as np
 
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
-from s3k.detector import Detector
+from s3k.detector import Detector, detect_store
 from s3k.errors import UserError
-from s3k.inference.predict import detect_store
 
 __all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "Up", "coverage_order", "pose_distances",
            "representative_order"]

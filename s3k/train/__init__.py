@@ -26,7 +26,9 @@ Robustness:
 
 The rooms:
 
-- :mod:`s3k.train.loop`: :func:`train` and the loop (steps, logging, checkpoints, stops).
+- :mod:`s3k.train.entry`: :func:`train`, one pass or two.
+- :mod:`s3k.train.loop`: :func:`train_one_pass` and the loop (steps, logging, checkpoints, stops).
+- :mod:`s3k.train.two_pass`: the coarse-to-fine detector's training.
 - :mod:`s3k.train.step`: the loss of one step (:func:`compute_losses`) and the learning-rate schedule.
 - :mod:`s3k.train.run_setup`: the set-up of a run (the dataset and its frames, the refusals, the run's meta,
   folder and log; :func:`check_trained_as`).
@@ -40,7 +42,8 @@ The rooms:
 
 from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
 from s3k.train.distributed import DistInfo, init_distributed, shard
-from s3k.train.loop import TrainResult, train
+from s3k.train.entry import train
+from s3k.train.loop import TrainResult, train_one_pass
 from s3k.train.run_setup import check_trained_as
 from s3k.train.sampling import draw_batch, prepare
 from s3k.train.step import compute_losses
@@ -49,5 +52,5 @@ from s3k.train.validation import labelled_distances, labelled_layout, mean_pairw
 __all__ = [
     "DistInfo", "TrainResult", "check_trained_as", "compute_losses", "draw_batch", "init_distributed",
     "labelled_distances", "labelled_layout", "load_checkpoint", "mean_pairwise_distance", "prepare",
-    "read_checkpoint_step", "shard", "train", "validate",
+    "read_checkpoint_step", "shard", "train", "train_one_pass", "validate",
 ]

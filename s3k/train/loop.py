@@ -77,6 +77,9 @@ class TrainResult:
         status: "done", "nonfinite" (stopped after too many non-finite steps).
         history: per validation, a dict of step and metrics.
         timing: mean seconds per step and the fraction spent loading + augmenting data.
+        passes: of a two-pass run, ``{"coarse": ..., "fine": ...}``: each pass's result, None for a pass that
+            was complete before the call (the other fields are the refining pass's); None for one pass.
+        rule: of a two-pass run, its :class:`s3k.detector.CropRule`.
     """
 
     model: nn.Module
@@ -85,6 +88,8 @@ class TrainResult:
     status: str
     history: list[dict[str, Any]] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
+    passes: dict[str, TrainResult | None] | None = None
+    rule: Any = None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -300,10 +305,11 @@ def _initial_weights(run: str | Path, meta: DetectorMeta) -> dict[str, Any]:
     return model.state_dict()
 
 
-def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, resume: bool = False,
-          callback=None, *, overwrite: bool = False, command: str | None = None,
-          init_from: str | Path | None = None) -> TrainResult:
-    """Train a detector on the dataset folder ``data`` into the run folder ``out``.
+def train_one_pass(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, *, resume: bool = False,
+                   progress=None, overwrite: bool = False, command: str | None = None,
+                   init_from: str | Path | None = None) -> TrainResult:
+    """Train a one-pass detector on the dataset folder ``data`` into the run folder ``out`` (what
+    :func:`s3k.train.train` does for a configuration without ``two_pass``, and for each pass of one with).
 
     Args:
         data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames; or a dataset held
@@ -313,7 +319,7 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
         cfg: configuration.
         resume: continue from ``out/checkpoint.pt`` (starts afresh when there is none); the configuration and
             the dataset must match the run's except for ``s3k.config.resumable_fields``.
-        callback: optional ``f(step, terms)`` called after every completed step (``step`` counts completed
+        progress: optional ``f(step, terms)`` called after every completed step (``step`` counts completed
             steps; ``terms`` holds the loss terms, alpha, the gradient norm and the step's timings
             ``time_data_s``, ``time_step_s``); an exception it raises aborts the run like a kill would.
         overwrite: replace the run in ``out`` (only the files a run holds are deleted).
@@ -331,7 +337,7 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, res
     cfg.validate()
     info = init_distributed(cfg.device)
     try:
-        return _train(data, Path(out), cfg, resume, overwrite, callback, command, info, init_from)
+        return _train(data, Path(out), cfg, resume, overwrite, progress, command, info, init_from)
     finally:
         finish_distributed(info)
 

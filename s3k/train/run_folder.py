@@ -20,23 +20,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from s3k.config import TrainConfig, config_from_dict, resumable_fields
-from s3k.detector import (
-    CHECKPOINT_FILE,
-    CONFIG_FILE,
-    MODEL_FILE,
-    RUN_FILES,
-    DetectorMeta,
-    read_run_config,
-    write_run_config,
-)
+from s3k.config import TrainConfig, config_from_dict, option_argv, resumable_fields
+from s3k.detector import DetectorMeta, read_run_config, write_run_config
 from s3k.errors import UserError
 from s3k.outputs import check_output_folder, check_run_folder
+from s3k.run_folder import RunFolder
 
 
 def is_run_folder(out: Path) -> bool:
     """True when ``out`` holds what ``s3k train`` writes (a configuration, checkpoint or model)."""
-    return any((out / name).exists() for name in (CONFIG_FILE, CHECKPOINT_FILE, MODEL_FILE))
+    return RunFolder(out).is_one_pass_run()
 
 
 def check_out(out: Path, resume: bool, overwrite: bool, data: Path | None = None) -> None:
@@ -73,7 +66,7 @@ def clear_run(out: Path) -> None:
     """Delete the files of the run in ``out`` (``--overwrite``); other files in the folder are kept."""
     if not is_run_folder(out):
         return  # not a run: nothing of ours to delete
-    for name in RUN_FILES:
+    for name in RunFolder.ONE_PASS_FILES:
         path = out / name
         if path.is_dir():
             shutil.rmtree(path)
@@ -88,10 +81,7 @@ def _shown(value: Any) -> str:
 def _option(name: str, value: Any) -> str:
     """The command-line option that sets field ``name`` to ``value`` (``--layout-tol 0.2``,
     ``--no-layout-fit``)."""
-    flag = name.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{flag}" if value else f"--no-{flag}"
-    return f"--{flag} {_shown(value)}"
+    return " ".join(option_argv(name, value))
 
 
 def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Path) -> dict[str, list[Any]]:
@@ -101,7 +91,7 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
         UserError: naming the first field or dataset property that differs where it must not.
     """
     doc = read_run_config(out)
-    where = str(out / CONFIG_FILE)
+    where = str(RunFolder(out).config_file)
     old = config_from_dict(TrainConfig, doc["config"], where=where).to_dict()
     new = cfg.to_dict()
     free = resumable_fields()
@@ -134,7 +124,7 @@ def write_start(out: Path, cfg: TrainConfig, meta: DetectorMeta, data: Path, ide
                 resumed: bool, changed: dict[str, list[Any]], command: str | None) -> None:
     """Write ``config.json`` for this start of the run, appending to its history."""
     history: list[dict[str, Any]] = []
-    if resumed and (out / CONFIG_FILE).is_file():
+    if resumed and RunFolder(out).config_file.is_file():
         history = list(read_run_config(out).get("history", []))
     entry: dict[str, Any] = {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                              "event": "resumed" if resumed else "created", "command": command}

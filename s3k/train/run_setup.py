@@ -17,12 +17,14 @@ from tqdm import tqdm
 from s3k.budget import check_fits
 from s3k.config import TrainConfig
 from s3k.data import usable_label_count
-from s3k.data.frames import model_image_size, open_dataset
+from s3k.data.frames import open_dataset
 from s3k.data.protocol import DatasetLike
-from s3k.detector import CHECKPOINT_FILE, LOG_FILE, DetectorMeta
+from s3k.detector import CHECKPOINT_FILE, DetectorMeta
 from s3k.detector.geometry_record import dataset_identity, training_geometry
 from s3k.errors import UserError
+from s3k.geometry.warp import model_image_size
 from s3k.model import UNetConfig
+from s3k.run_folder import RunFolder
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
 from s3k.train.distributed import DistInfo
@@ -40,9 +42,10 @@ class _TqdmHandler(logging.Handler):
             tqdm.write(self.format(record))
 
 
-def setup_logging(run_dir: Path, main: bool) -> None:
+def setup_logging(run_dir: Path | None, main: bool) -> None:
     """The training room's logger (``s3k.train``, the parent of its modules' loggers) writes to the run's
-    log file and the console while the run goes, and nowhere else."""
+    log file and the console while the run goes, and nowhere else (to the console alone without
+    ``run_dir``: a two-pass run between its passes)."""
     room = logging.getLogger("s3k.train")
     room.setLevel(logging.INFO)
     room.propagate = False
@@ -52,11 +55,13 @@ def setup_logging(run_dir: Path, main: bool) -> None:
             h.close()
     handlers: list[logging.Handler] = [logging.NullHandler()]
     if main:
-        fh = logging.FileHandler(run_dir / LOG_FILE)
-        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
         th = _TqdmHandler()
         th.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
-        handlers = [fh, th]
+        handlers = [th]
+        if run_dir is not None:
+            fh = logging.FileHandler(RunFolder(run_dir).log)
+            fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+            handlers.insert(0, fh)
     for h in handlers:
         h._s3k = True  # type: ignore[attr-defined]
         room.addHandler(h)

@@ -19,11 +19,9 @@ from torch import nn
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.data.protocol import DatasetLike
-from s3k.detector import DetectorMeta, OnePassDetector
+from s3k.detector import DetectorMeta, OnePassDetector, detect_store, evaluate_store
 from s3k.draw import draw_views
 from s3k.geometry import triangulate_labels
-from s3k.inference.evaluate import evaluate_store
-from s3k.inference.predict import detect_store
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 

@@ -1,0 +1,60 @@
+"""The run folder has one owner: :class:`s3k.run_folder.RunFolder` names every file of a run, and no other
+module of s3k spells one; it reads a run's configuration (:mod:`tests.test_old_runs`: older runs too)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from s3k.config import TrainConfig
+from s3k.outputs import RUN_NAMES
+from s3k.run_folder import RunFolder
+
+PACKAGE = Path(__file__).resolve().parents[1] / "s3k"
+# a file name of a run as a string literal, or a pass's folder as a path part (``/ "coarse"``)
+NAMES = ("config.json", "checkpoint.pt", "model.pt", "train.log", "progress.json", "tensorboard",
+         "two_pass.json", "two_pass_options.json", "estimates.csv", "cpu.json")
+_ALTERNATIVES = "|".join(re.escape(n) for n in NAMES)
+PATTERN = re.compile(rf"""["'](?:[^"'\s]*/)?({_ALTERNATIVES})["']|/\s*["'](coarse|fine|crops)["']""")
+# the robot's agents keep a run folder of their own kind (s3k.robot.agents), with its own config and progress
+OWN_FOLDERS = {"robot/agents.py": {"config.json", "progress.json"}, "robot/results.py": {"progress.json"},
+               "cli/robot.py": {"config.json"}}
+
+
+def test_no_module_but_run_folder_names_a_run_file():
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE).as_posix()
+        if rel == "run_folder.py":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            for match in PATTERN.finditer(line):
+                name = match.group(1) or match.group(2)
+                if name not in OWN_FOLDERS.get(rel, set()):
+                    found.append(f"s3k/{rel}:{number}: {name}")
+    assert found == []
+
+
+def test_the_pattern_finds_names_as_the_code_would_spell_them():
+    for line in ('x = run / "model.pt"', "p = Path(out) / 'coarse' / 'config.json'", 'f"{run}/train.log"'):
+        assert PATTERN.search(line), line
+    assert not PATTERN.search('"a coarse pass"') and not PATTERN.search("RunFolder.MODEL")
+
+
+def test_run_folder_knows_every_file_and_the_output_checks_use_them():
+    assert RUN_NAMES == set(RunFolder.ONE_PASS_FILES + RunFolder.TWO_PASS_FILES)
+    assert {RunFolder.CONFIG, RunFolder.MODEL, RunFolder.TWO_PASS, RunFolder.ESTIMATES} <= RUN_NAMES
+    run = RunFolder("runs/box")
+    assert run.fine.checkpoint == Path("runs/box/fine/checkpoint.pt")
+    assert run.coarse.config_file.parent == run.coarse.path == Path("runs/box/coarse")
+
+
+def test_a_run_folder_reads_its_configuration(tmp_path):
+    run = RunFolder(tmp_path / "run")
+    assert run.config() is None and not run.is_complete() and not run.is_two_pass_run()
+    run.path.mkdir()
+    cfg = TrainConfig.from_flat(two_pass=True, crop_size=64, coarse_rotation=90.0, steps=7)
+    run.write_config(cfg)
+    assert run.config() == cfg and run.is_two_pass_run() and run.is_stub() and not run.is_complete()
+    run.write_cpu({"coarse": 1.5})
+    assert run.read_cpu() == {"coarse": 1.5} and run.is_stub()
