@@ -201,7 +201,7 @@ class TwoPassConfig:
         ge=0)
     coarse_stride: int | None = _f(
         None, "the coarse pass's heatmap stride, 1, 2 or 4 (none: --stride), e.g. 2 with --stride 4: a "
-              "coarse pass that places the crops well under a cheaper refining pass", one_of=(1, 2, 4))
+              "coarse pass that places the crops well under a cheaper refining pass", ge=1, le=4)
     coarse_lr: float | None = _f(
         None, "the coarse pass's learning rate (none: --lr), e.g. to train a refining pass at another --lr "
               "on a finished coarse pass", gt=0, le=1)

@@ -9,7 +9,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from synthetic_rig import make_dataset
+from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.detector import Detector, load_network

@@ -307,9 +307,9 @@ def test_the_dataset_names_are_those_the_datasets_hold():
 def test_the_run_neighbours_are_those_s3k_keeps_in_a_run_folder():
     from s3k.experiments import grid, runner
     from s3k.outputs import RUN_NEIGHBOURS
-    from s3k.train import two_pass, two_pass_start
+    from s3k.run_folder import RunFolder
 
-    names = {runner.LOCK_FILE, grid.RESULT_FILE, two_pass.CPU_FILE, two_pass_start.OPTIONS_FILE}
+    names = {runner.LOCK_FILE, grid.RESULT_FILE, RunFolder.CPU, RunFolder.OPTIONS}
     assert names == RUN_NEIGHBOURS
 
 
