@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 from helpers.synthetic_rig import make_dataset
@@ -54,3 +56,25 @@ def test_another_network_is_refused_before_anything_is_written(tiny_dataset, tmp
         train(tiny_dataset, tmp_path / "other", config(steps=1, channels=(8, 8)), init_from=first)
     assert "differs" in str(err.value)
     assert not (tmp_path / "other").exists()
+
+
+def test_a_two_pass_run_is_fine_tuned_pass_by_pass(tiny_dataset, tmp_path):
+    """``s3k.train(..., init_from=)`` with two passes: each pass starts from its own pass of the other run, and
+    the crops keep that run's extent; a two-pass run does not start a one-pass one, nor the reverse."""
+    two = dict(two_pass=True, coarse_size=32, crop_size=32)
+    first = tmp_path / "first"
+    train(tiny_dataset, first, config(seed=1, **two))
+    tuned = tmp_path / "tuned"
+    result = train(tiny_dataset, tuned, config(steps=1, lr=1e-12, crop_margin=2.0, **two), init_from=first)
+    assert result.status == "done" and set(result.passes) == {"coarse", "fine"}
+    for part in ("coarse", "fine"):
+        a, b = weights(first / part), weights(tuned / part)
+        for name in a:
+            torch.testing.assert_close(b[name], a[name], rtol=0, atol=1e-6)
+    extent = [json.loads((run / "two_pass.json").read_text())["extent"] for run in (first, tuned)]
+    assert extent[0] == extent[1]  # the other run's crops, not those --crop-margin 2 would cut
+    with pytest.raises(UserError, match="a two-pass run"):
+        train(tiny_dataset, tmp_path / "one", config(steps=1), init_from=first)
+    with pytest.raises(UserError, match="not a two-pass run"):
+        train(tiny_dataset, tmp_path / "other", config(steps=1, **two), init_from=tmp_path / "tuned" / "fine")
+    assert not (tmp_path / "one").exists() and not (tmp_path / "other").exists()
