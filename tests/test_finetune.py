@@ -59,7 +59,7 @@ def test_another_network_is_refused_before_anything_is_written(tiny_dataset, tmp
 
 
 def test_a_two_pass_run_is_fine_tuned_pass_by_pass(tiny_dataset, tmp_path):
-    """``s3k.train(..., init_from=)`` with two passes: each pass starts from its own pass of the other run, and
+    """``s3k.train(..., init_from=)`` with two passes: each pass starts from its pass of the other run, and
     the crops keep that run's extent; a two-pass run does not start a one-pass one, nor the reverse."""
     two = dict(two_pass=True, coarse_size=32, crop_size=32)
     first = tmp_path / "first"
