@@ -5,6 +5,7 @@ field's own name (``--rotation_deg``) still works on the command line, as an ali
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import re
 import shlex
@@ -12,6 +13,7 @@ import shlex
 import pytest
 
 from s3k.cli import COMMANDS, command_parser, main
+from s3k.config import TrainConfig, leaf_fields
 
 UNDERSCORE_OPTION = re.compile(r"--[a-z0-9][a-z0-9-]*_")  # --rotation_deg, --no-layout_fit
 FLAGS = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction,
@@ -159,3 +161,32 @@ def test_the_option_a_resume_hint_gives_is_dashed_and_parses():
     argv = ["D", "--out", "R", *shlex.split(_option("rotation_deg", 15.0)), _option("unsup", False)]
     cfg = config_from_args(_parser("train").parse_args(argv))
     assert (cfg.rotation_deg, cfg.unsup) == (15.0, False)
+
+
+
+def test_train_help_shows_every_configuration_field_with_its_range(capsys, monkeypatch):
+    """The two-pass options come from TrainConfig's passes section like every other field, and each bounded
+    field's help states its range, as the parser enforces it."""
+    text = _help(["train"], capsys, monkeypatch)
+    lines: dict[str, str] = {}  # each option's whole entry, its help wrapped onto the following lines too
+    flag = ""
+    for line in text.splitlines():
+        if line.strip().startswith("--"):
+            flag = line.split()[0].rstrip(",")
+            lines[flag] = line
+        elif flag and line.startswith("      "):
+            lines[flag] += " " + line.strip()
+        else:
+            flag = ""
+    assert "passes" in {f.name for f in dataclasses.fields(TrainConfig)}
+    shown = 0
+    for _, f, _ in leaf_fields(TrainConfig):
+        flag = f"--{f.name.replace('_', '-')}"
+        assert flag in lines, flag
+        bounds = f.metadata.get("range")
+        if bounds is not None and bounds.describe():
+            assert f"; {bounds.describe()})" in lines[flag], (flag, lines[flag])
+            shown += 1
+    assert shown > 10
+    for flag in ("--coarse-size", "--coarse-steps", "--coarse-stride", "--crop-size", "--crop-margin"):
+        assert flag in lines

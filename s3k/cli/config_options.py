@@ -33,7 +33,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
         base, _ = base_type(tp)
         default = field_default(f)
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
-        text = f"{f.metadata.get('help', '')} (default: {shown})".replace("%", "%%")
+        bounds = f.metadata.get("range")
+        allowed = f"; {bounds.describe()}" if bounds is not None and bounds.describe() else ""
+        text = f"{f.metadata.get('help', '')} (default: {shown}{allowed})".replace("%", "%%")
         flag = f"--{f.name.replace('_', '-')}"
         if base is bool:
             kwargs: dict[str, Any] = dict(action=argparse.BooleanOptionalAction)
