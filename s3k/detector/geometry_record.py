@@ -96,9 +96,9 @@ def frame_calibration(ds: DatasetLike) -> dict[str, Any] | None:
     return {"units": str(ds.units), "cameras": cameras}
 
 
-def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
-    """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
-    predates the record or holds none."""
+def run_meta(run_dir: str | Path) -> dict[str, Any] | None:
+    """The ``meta`` a run folder's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
+    cameras, units, geometry; None when there is none to read."""
     run = RunFolder(run_dir)
     if run.is_two_pass():
         run = run.coarse
@@ -107,6 +107,15 @@ def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     meta = doc.get("meta") if isinstance(doc, dict) else None
+    return meta if isinstance(meta, dict) else None
+
+
+def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
+    """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
+    predates the record or holds none."""
+    meta = run_meta(run_dir)
+    geometry = meta.get("geometry") if meta is not None else None
+    return geometry if isinstance(geometry, dict) and isinstance(geometry.get("cameras"), dict) else None
     geometry = meta.get("geometry") if isinstance(meta, dict) else None
     return geometry if isinstance(geometry, dict) and isinstance(geometry.get("cameras"), dict) else None
 

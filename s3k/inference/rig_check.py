@@ -14,7 +14,6 @@ rig and object, and that the calibration given is sound and the one the run was 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -26,13 +25,12 @@ import torch
 from s3k.calibration import identical_cameras
 from s3k.data import Dataset
 from s3k.detector import training_dataset
-from s3k.detector.geometry_record import check_dataset, frame_calibration
+from s3k.detector.geometry_record import check_dataset, frame_calibration, run_meta
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.metrics import mm_per_unit
-from s3k.run_folder import RunFolder
 
-__all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration", "run_record"]
+__all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration"]
 
 log = logging.getLogger(__name__)
 
@@ -44,20 +42,6 @@ CENTRE_MM, ANGLE_DEG, FOCAL_REL = 1.0, 0.1, 0.005
 fraction) are not reported."""
 
 
-def run_record(run_dir: str | Path) -> dict[str, Any] | None:
-    """The ``meta`` a run folder's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
-    cameras, units, geometry; None when there is none to read."""
-    run = RunFolder(run_dir)
-    if run.two_pass_file.is_file():
-        run = run.coarse
-    try:
-        doc = json.loads(run.config_file.read_text())
-    except (OSError, ValueError):
-        return None
-    meta = doc.get("meta") if isinstance(doc, dict) else None
-    return meta if isinstance(meta, dict) else None
-
-
 def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | None = None,
               what: str = "--calibration") -> None:
     """Refuse to use the run ``run_dir`` on ``cameras`` it was not trained on, or (``keypoints``, a
@@ -66,7 +50,7 @@ def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | No
     Raises:
         UserError: naming the cameras or keypoints, the run's, and :data:`OVERRIDE`.
     """
-    meta = run_record(run_dir) or {}
+    meta = run_meta(run_dir) or {}
     trained = [str(c) for c in meta.get("cameras") or []]
     unknown = [c for c in cameras if trained and c not in trained]
     hint = f"use a run trained on this rig and object, or pass {OVERRIDE} to use this one anyway"
@@ -84,7 +68,7 @@ def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | No
 def run_calibration(run_dir: str | Path) -> dict[str, Any] | None:
     """The calibration the run was trained with, in its cameras' frame pixels: recorded in the run, else
     read from its training dataset when that is still there and static; None when unknown."""
-    meta = run_record(run_dir) or {}
+    meta = run_meta(run_dir) or {}
     geometry = meta.get("geometry")
     recorded = geometry.get("calibration") if isinstance(geometry, dict) else None
     if isinstance(recorded, dict) and isinstance(recorded.get("cameras"), dict):
