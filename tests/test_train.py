@@ -178,7 +178,7 @@ def test_help_shows_every_field_with_doc_and_default():
     text = _parser().format_help()
     for _, f, _ in leaf_fields(TrainConfig):
         assert f"--{f.name.replace('_', '-')}" in text, f.name
-    assert "(default: 750)" in text and "labels-only steps before the self-supervised term" in text
+    assert "(default: 750; >= 0)" in text and "labels-only steps before the self-supervised term" in text
     assert "--no-unsup" in text
 
 
