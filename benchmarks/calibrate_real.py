@@ -9,6 +9,7 @@ from `back`, `mid`, `top` reprojected into `side` (median px, full resolution), 
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import subprocess
 import sys
@@ -18,10 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import git_revision, write_and_emit
-from s3k.data.formats.anipose import read_anipose_calibration
-from s3k.data.formats.sleap import read_sleap_analysis
-from s3k.geometry import Cameras, project, triangulate_pixels
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from s3k.data.formats.anipose import read_anipose_calibration  # noqa: E402
+from s3k.data.formats.sleap import read_sleap_analysis  # noqa: E402
+from s3k.geometry import Cameras, project, triangulate_pixels  # noqa: E402
 
 CAMS = ["back", "mid", "side", "top"]
 DEFAULT = (

@@ -15,16 +15,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import git_revision, write_and_emit
-from s3k.data import Dataset
-from s3k.data.frames import FrameStore
-from s3k.detector import Detector
-from s3k.inference.evaluate import evaluate_store
-from s3k.label_reference import bootstrap_ci
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from s3k.data import Dataset  # noqa: E402
+from s3k.data.frames import FrameStore  # noqa: E402
+from s3k.detector import Detector  # noqa: E402
+from s3k.inference.evaluate import evaluate_store  # noqa: E402
+from s3k.label_reference import bootstrap_ci  # noqa: E402
 
 
 def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
