@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar, Literal, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 from s3k.data.formats.deepfly3d import JOINTS, read_deepfly3d_pose
 from s3k.data.formats.dlc import find_lightning_pose_csvs, read_dlc_csv
@@ -192,12 +192,13 @@ class LightningPose:
                            lambda _cam, p: read_dlc_csv(p, frame_ids_from=self.frame_ids_from))
 
 
-@register("openpose")
 @dataclass
-class OpenPose:
-    """OpenPose ``--write_json`` folders, one per camera; points scored below ``min_score`` are unlabelled."""
+class _ScoredFiles:
+    """Per-camera prediction files whose points carry a score; points scored below ``min_score`` are
+    unlabelled. Subclasses name their format and their reader."""
 
-    kind: ClassVar[str] = "openpose"
+    kind: ClassVar[str]
+    reader: ClassVar[Callable[..., Any]]
     per_camera: Mapping[str, PathLike]
     min_score: float = 0.5
 
@@ -205,25 +206,26 @@ class OpenPose:
         return {cam: str(p) for cam, p in self.per_camera.items()}
 
     def read(self, cameras: list[str], sizes: dict[str, tuple[int, int]], rig: Rig) -> LabelsRead:
-        return _per_camera(self.kind, self.per_camera, cameras,
-                           lambda _cam, p: read_openpose_folder(p, self.min_score))
+        reader = type(self).reader
+        return _per_camera(self.kind, self.per_camera, cameras, lambda _cam, p: reader(p, self.min_score))
+
+
+@register("openpose")
+@dataclass
+class OpenPose(_ScoredFiles):
+    """OpenPose ``--write_json`` folders, one per camera; points scored below ``min_score`` are unlabelled."""
+
+    kind: ClassVar[str] = "openpose"
+    reader: ClassVar[Callable[..., Any]] = staticmethod(read_openpose_folder)
 
 
 @register("mmpose")
 @dataclass
-class MMPose:
+class MMPose(_ScoredFiles):
     """MMPose / RTMPose predictions JSON, one per camera; points scored below ``min_score`` are unlabelled."""
 
     kind: ClassVar[str] = "mmpose"
-    per_camera: Mapping[str, PathLike]
-    min_score: float = 0.5
-
-    def files(self, cameras: list[str]) -> dict[str, str]:
-        return {cam: str(p) for cam, p in self.per_camera.items()}
-
-    def read(self, cameras: list[str], sizes: dict[str, tuple[int, int]], rig: Rig) -> LabelsRead:
-        return _per_camera(self.kind, self.per_camera, cameras,
-                           lambda _cam, p: read_mmpose_json(p, self.min_score))
+    reader: ClassVar[Callable[..., Any]] = staticmethod(read_mmpose_json)
 
 
 @register("deepfly3d")
