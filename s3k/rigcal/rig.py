@@ -4,6 +4,7 @@ joint bundle adjustment; the world is the first camera or a chosen board view, t
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -164,33 +165,13 @@ def calibrate_detections(
         ],
         keys,
     )
-    adj = bundle_adjust(
-        intr,
-        R,
-        t,
-        _initial_views(keys, poses, R, t),
-        obs,
-        corners3d,
-        fixed=fixed,
-        free_principal_point=free_principal_point,
-        radial=radial,
-        loss_scale_px=loss_scale_px,
-    )
+    adjust = functools.partial(bundle_adjust, fixed=fixed, free_principal_point=free_principal_point,
+                               radial=radial, loss_scale_px=loss_scale_px)
+    adj = adjust(intr, R, t, _initial_views(keys, poses, R, t), obs, corners3d)
     bad = _bad_views(obs, adj)
     if bad.any():  # wrong detections (a grid read from the wrong corner): adjust again without them
         obs = _subset(obs, ~bad)
-        adj = bundle_adjust(
-            adj.intrinsics,
-            adj.R,
-            adj.t,
-            adj.views,
-            obs,
-            corners3d,
-            fixed=fixed,
-            free_principal_point=free_principal_point,
-            radial=radial,
-            loss_scale_px=loss_scale_px,
-        )
+        adj = adjust(adj.intrinsics, adj.R, adj.t, adj.views, obs, corners3d)
     origin = "first camera" if not initial else "the fixed cameras"
     if origin_view is not None:
         if origin_view not in keys:
