@@ -3,6 +3,11 @@ acceptance figures: every camera's median reprojection error; `back`, `mid`, `to
 calibration after one similarity transform (camera centres, orientations); the proofread labels triangulated
 from `back`, `mid`, `top` reprojected into `side` (median px, full resolution), with the shipped file too.
 
+Then the references themselves (``held_out``): the board views split in two folds, the rig calibrated on one
+and the other fold's corners triangulated from every camera but one and reprojected into it (median px), with
+the shipped file on the same corners for `back`, `mid`, `top`; the two folds' rigs against each other; and
+the proofread labels among `back`, `mid`, `top` alone (each from the other two), ours and the shipped file.
+
     python benchmarks/calibrate_real.py [--data DIR] [--work /tmp/calibrate-work] [--out FILE.json]
 """
 
@@ -25,6 +30,8 @@ from benchmarks.common import git_revision, write_and_emit  # noqa: E402
 from s3k.data.formats.anipose import read_anipose_calibration  # noqa: E402
 from s3k.data.formats.sleap import read_sleap_analysis  # noqa: E402
 from s3k.geometry import Cameras, project, triangulate_pixels  # noqa: E402
+from s3k.rigcal.boards import Detections, detect_board, read_board_toml  # noqa: E402
+from s3k.rigcal.rig import calibrate_detections  # noqa: E402
 
 CAMS = ["back", "mid", "side", "top"]
 DEFAULT = (
@@ -150,6 +157,72 @@ def _calibrate(data: Path, work: Path, name: str, extra: list[str]) -> dict:
     }
 
 
+def corners_into(rig, dets: list[Detections], frames: list[int], sources: list[str], target: str) -> float:
+    """Median px distance, in ``target``, between its detected board corners of ``frames`` and those of
+    ``sources`` triangulated and reprojected (corners every camera saw)."""
+    idx = [rig.index(c) for c in [*sources, target]]
+    cams = Cameras.from_numpy(
+        *(rig.cameras.numpy()[k][idx] for k in ("K", "dist", "R", "t")), dtype=torch.float64
+    )
+    err: list[np.ndarray] = []
+    for f in frames:
+        seen = [dict(zip(*dets[CAMS.index(c)].frames[f])) for c in [*sources, target]]
+        ids = sorted(set.intersection(*(set(s) for s in seen)))
+        if len(ids) < 4:
+            continue
+        uv = torch.from_numpy(np.stack([[s[i] for i in ids] for s in seen[:-1]])[None])
+        X, _ = triangulate_pixels(cams[:-1], uv, torch.ones(uv.shape[:3], dtype=torch.float64))
+        err.append(np.linalg.norm(project(cams[-1], X)[0].numpy()[0] - [seen[-1][i] for i in ids], axis=-1))
+    return float(np.median(np.concatenate(err)))
+
+
+def held_out(data: Path, ours) -> dict:
+    """The board views in two folds: each fold's corners against the rig calibrated on the other (every camera
+    from the other three; back, mid, top from the other two, ours and the shipped file), the two folds' rigs
+    against each other, and the labels among back, mid, top with ``ours`` (the whole rig) and the shipped
+    file."""
+    board = read_board_toml(data / "board.toml")
+    dets = [
+        detect_board(data / c / "calibration_images" / f"minimal_session-{c}-calibration.MOV", board)
+        for c in CAMS
+    ]
+    frames = sorted(set.intersection(*(set(d.frames) for d in dets)))
+    shipped = read_anipose_calibration(data / "calibration.toml")
+    three = ["back", "mid", "top"]
+    out: dict = {"views": len(frames), "folds": []}
+    rigs = []
+    for fold in range(2):
+        test = frames[fold::2]
+        train = [
+            Detections({f: v for f, v in d.frames.items() if f not in test}, d.size, d.images, d.marker_ids)
+            for d in dets
+        ]
+        rig = calibrate_detections(CAMS, train, board).rig()
+        rigs.append(rig)
+        out["folds"].append(
+            {
+                "held_out_views": len(test),
+                "into_each_from_other_three_px": {
+                    c: corners_into(rig, dets, test, [o for o in CAMS if o != c], c) for c in CAMS
+                },
+                "among_back_mid_top_px": {
+                    c: corners_into(rig, dets, test, [o for o in three if o != c], c) for c in three
+                },
+                "among_back_mid_top_px_shipped_file": {
+                    c: corners_into(shipped, dets, test, [o for o in three if o != c], c) for c in three
+                },
+            }
+        )
+    out["fold_rigs_against_each_other"] = compare_to_shipped(rigs[0], rigs[1], CAMS)["poses"]
+    out["labels_among_back_mid_top_px"] = {
+        c: labels_into(ours, data, [o for o in three if o != c], c) for c in three
+    }
+    out["labels_among_back_mid_top_px_shipped_file"] = {
+        c: labels_into(shipped, data, [o for o in three if o != c], c) for c in three
+    }
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=str(DEFAULT), help="the recording folder")
@@ -164,6 +237,7 @@ def main(argv: list[str] | None = None) -> None:
         "revision": git_revision(),
         "board_only": _calibrate(data, work, "calibration", []),
         "board_and_labels": _calibrate(data, work, "calibration_labels", ["--labels", *labels]),
+        "held_out": held_out(data, read_anipose_calibration(work / "calibration.toml")),
     }
     write_and_emit(result, a.out)
 
