@@ -83,12 +83,14 @@ def track(run: Path, videos: dict[str, Path], calibration: Path, out: Path, limb
 
 
 def compare(csv_path: Path, keypoints: list[str], truth: np.ndarray, splits: dict[int, str]) -> dict:
-    """Raw and filtered points of a track against ``truth``: jitter and errors per split, mm."""
+    """Raw and filtered points of a track against ``truth``: jitter and errors per split, mm, and the
+    filtered minus the raw on the test frames (paired, with bootstrap intervals). The test frames' error
+    arrays ``(T, K)`` (NaN elsewhere) are kept under ``_test_errors`` for :func:`paired`."""
     from s3k.data.tracks_csv import read_csv
-    from s3k.experiments.track_filter import errors, jitter
+    from s3k.experiments.track_filter import errors, jitter, paired_difference
     from s3k.inference.track_filter import raw_path
 
-    out = {}
+    out: dict = {"_test_errors": {}}
     raw_pts = read_csv(raw_path(csv_path), keypoints)
     filt_pts = read_csv(csv_path, keypoints)
     frames = sorted(raw_pts)
@@ -101,7 +103,27 @@ def compare(csv_path: Path, keypoints: list[str], truth: np.ndarray, splits: dic
         out[name] = {"jitter_mm_per_frame2": jitter(X), "all": errors(X, ref, 1.0, placed)}
         for s in ("test", "labelled", "unlabelled"):
             out[name][s] = errors(X, ref, 1.0, placed & (split == s)[:, None])
+        err = np.linalg.norm(X - ref, axis=-1)
+        out["_test_errors"][name] = np.where(placed & (split == "test")[:, None], err, np.nan)
+    out["filtered_minus_raw_test"] = paired_difference(out["_test_errors"]["raw"],
+                                                       out["_test_errors"]["filtered"])
     return out
+
+
+def paired(before: dict, after: dict) -> dict:
+    """``after`` minus ``before`` on the test frames, raw and filtered points (two :func:`compare` results
+    of tracks of the same frames)."""
+    from s3k.experiments.track_filter import paired_difference
+
+    return {name: paired_difference(before["_test_errors"][name], after["_test_errors"][name])
+            for name in ("raw", "filtered")}
+
+
+def public(result: dict) -> dict:
+    """``result`` without the ``_``-keys (arrays), at any depth."""
+    if isinstance(result, dict):
+        return {k: public(v) for k, v in result.items() if not k.startswith("_")}
+    return result
 
 
 def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray],
@@ -161,7 +183,7 @@ def copy_dataset(data: Path, to: Path) -> Path:
     return to
 
 
-def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv) -> dict:
+def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) -> dict:
     """One round of the way back (module docstring)."""
     from s3k import cli
     from s3k.label.queue import read_queue
@@ -181,12 +203,15 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv) -> dict:
     fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
     track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs)
     result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
+    result["after_minus_before_test"] = paired(before, result["after"])
     if a.control:
         control = copy_dataset(Path(a.data), work / "data-control")
         fine_tune(Path(a.run), control, work / "run-continued", a.steps, a.lr)
         track(work / "run-continued", videos, Path(a.calibration), work / "tracked-continued.csv", limbs)
         result["continued_without_new_labels"] = compare(work / "tracked-continued.csv", keypoints, truth,
                                                          splits)
+        result["after_minus_continued_test"] = paired(result["continued_without_new_labels"],
+                                                      result["after"])
     return result
 
 
@@ -226,7 +251,7 @@ def main(argv: list[str] | None = None) -> None:
     source = json.loads((work / "tracked.csv.s3k.json").read_text())
     result["filter"] = source.get("filter")
     if a.loop:
-        result["loop"] = loop(a, videos, sleap, keypoints, truth, splits, limbs, uv)
+        result["loop"] = loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, result["before"])
     for name in ("raw", "filtered"):
         r = result["before"][name]
         print(f"{name:8s} jitter {r['jitter_mm_per_frame2']:.3f} mm/frame2; test frames median "
@@ -237,7 +262,11 @@ def main(argv: list[str] | None = None) -> None:
             if what in result["loop"]:
                 r = result["loop"][what]["filtered"]["test"]
                 print(f"{what}: test frames median {r['median']:.2f} mm, RMS {r['rms']:.2f} mm (filtered)")
-    write_and_emit(result, a.out)
+    d = result["before"]["filtered_minus_raw_test"]
+    lo, hi = d["median_ci95"]
+    print(f"filtered - raw, test frames: median {d['median']:+.3f} mm [{lo:+.3f}, {hi:+.3f}], RMS "
+          f"{d['rms']:+.3f} mm [{d['rms_ci95'][0]:+.3f}, {d['rms_ci95'][1]:+.3f}]")
+    write_and_emit(public(result), a.out)
 
 
 if __name__ == "__main__":

@@ -150,3 +150,18 @@ def test_the_benchmarks_delay_finds_a_lag_of_one_frame():
     lagged = np.concatenate([truth[:1], truth[:-1]])  # each frame shows the one before
     assert delay(lagged, truth)[0] == 1 and delay(truth, truth)[0] == 0
     assert jitter(truth) < jitter(truth + np.random.default_rng(0).normal(0, 1, truth.shape))
+
+
+def test_paired_difference_cancels_the_frames_shared_difficulty():
+    from s3k.experiments.track_filter import paired_difference
+
+    rng = np.random.default_rng(0)
+    hard = rng.gamma(2.0, 2.0, (60, 1)) * np.ones((60, 5))  # frames of very different difficulty
+    a = hard + rng.normal(0, 0.01, hard.shape)
+    b = a + 0.05  # every point 0.05 further
+    b[3, 2] = np.nan  # a point missing in one is left out of both
+    d = paired_difference(a, b)
+    assert d["median"] == pytest.approx(0.05, abs=0.02) and d["frames"] == 60
+    assert 0 < d["median_ci95"][0] <= d["median_ci95"][1] < 0.1  # the spread of frames cancels
+    same = paired_difference(a, a + rng.normal(0, 0.01, a.shape))
+    assert same["median_ci95"][0] < 0 < same["median_ci95"][1]

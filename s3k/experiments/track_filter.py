@@ -25,7 +25,7 @@ from s3k.inference.track import track_videos
 from s3k.inference.track_filter import StreamFilter, layout_shape_of, raw_path
 from s3k.sim.trajectory import render_box_trajectory
 
-__all__ = ["delay", "errors", "filter_benchmark", "jitter"]
+__all__ = ["delay", "errors", "filter_benchmark", "jitter", "paired_difference"]
 
 
 def errors(X: np.ndarray, truth: np.ndarray, scale: float = 1.0, mask: np.ndarray | None = None
@@ -37,6 +37,29 @@ def errors(X: np.ndarray, truth: np.ndarray, scale: float = 1.0, mask: np.ndarra
     d = d[ok]
     return {"median": float(np.median(d)) if len(d) else float("nan"),
             "rms": float(np.sqrt(np.mean(d**2))) if len(d) else float("nan"), "points": int(len(d))}
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, samples: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """``median(b) - median(a)`` and ``rms(b) - rms(a)`` of two error arrays ``(T, K)`` of the same points
+    (NaN where a point is missing in either), each with a 95% percentile bootstrap interval that resamples
+    the frames (rows) jointly for both, so that the frames' shared difficulty cancels."""
+    ok = np.isfinite(a) & np.isfinite(b)
+    rows = np.flatnonzero(ok.any(1))
+    rng = np.random.default_rng(seed)
+
+    def stats(pick: np.ndarray) -> tuple[float, float]:
+        m = ok[pick]
+        x, y = a[pick][m], b[pick][m]
+        return (float(np.median(y) - np.median(x)),
+                float(np.sqrt(np.mean(y**2)) - np.sqrt(np.mean(x**2))))
+
+    if not len(rows):
+        return {"median": None, "rms": None, "frames": 0}
+    boot = np.array([stats(rng.choice(rows, len(rows))) for _ in range(samples)])
+    value = stats(rows)
+    return {"median": value[0], "median_ci95": np.percentile(boot[:, 0], [2.5, 97.5]).tolist(),
+            "rms": value[1], "rms_ci95": np.percentile(boot[:, 1], [2.5, 97.5]).tolist(),
+            "frames": int(len(rows))}
 
 
 def jitter(X: np.ndarray, scale: float = 1.0) -> float:
