@@ -102,6 +102,17 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
     assert planned[0][1][-1] == "--resume" and str(killed.run(work)) in planned[0][1]
 
 
+def test_a_curve_goes_seed_by_seed(tmp_path):
+    opts = tiny_options(seeds=2, labels=(2,))
+    work = tmp_path / "work"
+    data = prepare_data(opts, work, [1])  # the second seed alone: its pool, none of the first's
+    assert set(data) == {(2, 1)}
+    assert sorted(p.name for p in work.iterdir() if p.name.startswith("box64-L")) == sorted([
+        "box64-L4-seed1", view_name(opts, 2, 1)])
+    planned = pending_trainings(opts, work, data, "abc")
+    assert [name for name, _, _ in planned] == [Job(2, m, 1).name for m in ("s3k", "labels_only")]
+
+
 def _result(job: Job, median: float, rms: float, pck: float) -> dict:
     return {"median_mm": median, "rms_mm": rms, "pck_10mm": pck, "train_cpu_minutes": 1.0}
 

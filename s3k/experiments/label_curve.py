@@ -24,6 +24,7 @@ import json
 import logging
 import statistics
 import textwrap
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -151,10 +152,12 @@ def view_name(opts: CurveOptions, labels: int, seed: int) -> str:
     return f"{pool}-{opts.label_choice}-n{labels}-seed{seed}"
 
 
-def prepare_data(opts: CurveOptions, work: Path) -> dict[tuple[int, int], Path]:
-    """Each seed's pool rendered once and its view for every label count: ``{(labels, seed): dataset}``."""
+def prepare_data(opts: CurveOptions, work: Path, seeds: Iterable[int] | None = None
+                 ) -> dict[tuple[int, int], Path]:
+    """Each seed's pool (of ``seeds``, default all) rendered once and its view for every label count:
+    ``{(labels, seed): dataset}``."""
     data = {}
-    for s in range(opts.seeds):
+    for s in range(opts.seeds) if seeds is None else seeds:
         pool = None
         for n in opts.labels:
             out = work / view_name(opts, n, s)
@@ -174,7 +177,7 @@ def pending_trainings(opts: CurveOptions, work: Path, data: dict[tuple[int, int]
     out = []
     for job in jobs(opts):
         run = job.run(work)
-        if job.result(work).is_file() or finished(run, opts.passes):
+        if (job.labels, job.seed) not in data or job.result(work).is_file() or finished(run, opts.passes):
             continue
         run.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json([*job.trained_at(work), revision], job.revisions(work))
@@ -189,7 +192,7 @@ def write_results(opts: CurveOptions, work: Path, data: dict[tuple[int, int], Pa
     written = []
     for job in jobs(opts):
         run, path = job.run(work), job.result(work)
-        if path.is_file() or not finished(run, opts.passes):
+        if (job.labels, job.seed) not in data or path.is_file() or not finished(run, opts.passes):
             continue
         metrics = evaluate(run, data[job.labels, job.seed])
         spent = read_record(job.record(work))
@@ -349,12 +352,14 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
 def run_curve(opts: CurveOptions, work: Path, results_dir: Path, command: str, revision: str,
               machine: dict[str, Any], summary_only: bool = False,
               notes: str | None = None) -> dict[str, Any]:
-    """Render, train the jobs without a result (two at a time by ``opts.parallel``), evaluate them, and write
-    the summary and figure; with ``summary_only`` only the last step, from the results there are."""
+    """Seed by seed: render, train the jobs without a result (two at a time by ``opts.parallel``), evaluate
+    them, and write the summary and figure, so that a curve stopped part-way holds whole seeds; with
+    ``summary_only`` only the last step, from the results there are."""
     work.mkdir(parents=True, exist_ok=True)
-    if not summary_only:
-        data = prepare_data(opts, work)
+    for seed in [] if summary_only else range(opts.seeds):
+        data = prepare_data(opts, work, [seed])
         run_jobs(pending_trainings(opts, work, data, revision), opts.parallel)
         for job in write_results(opts, work, data, revision):
             log.log(NOTE, f"result {job.name}")
+        write_summary(opts, work, results_dir, command, revision, machine, notes)
     return write_summary(opts, work, results_dir, command, revision, machine, notes)
