@@ -95,6 +95,17 @@ def machine_info() -> dict[str, Any]:
 _ROOT = Path(__file__).resolve().parents[1]
 
 
+def t_interval(x: list[float]) -> list[float] | None:
+    """95% t-interval of the mean of ``x`` (None for fewer than 2 values)."""
+    if len(x) < 2:
+        return None
+    from scipy import stats
+
+    m, se = float(np.mean(x)), float(np.std(x, ddof=1) / math.sqrt(len(x)))
+    h = float(stats.t.ppf(0.975, len(x) - 1)) * se
+    return [m - h, m + h]
+
+
 def git_revision() -> str:
     """HEAD of the repository these benchmarks are in, ``+modified`` when tracked files differ from it,
     ``unknown`` without git."""

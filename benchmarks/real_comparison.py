@@ -14,7 +14,6 @@ t-interval (needs >= 2 seeds).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from benchmarks.common import git_revision, t_interval, write_and_emit  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.data.frames import FrameStore  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
@@ -57,17 +56,6 @@ def view_consistency(run: Path, ds: Dataset) -> float:
         for _, p in detect_store(detector, store, 16)
     ]
     return float(np.median(np.concatenate(d)))
-
-
-def t_interval(x: list[float]) -> list[float] | None:
-    """95% t-interval of the mean of ``x`` (None for fewer than 2 values)."""
-    if len(x) < 2:
-        return None
-    from scipy import stats
-
-    m, se = float(np.mean(x)), float(np.std(x, ddof=1) / math.sqrt(len(x)))
-    h = float(stats.t.ppf(0.975, len(x) - 1)) * se
-    return [m - h, m + h]
 
 
 def main(argv: list[str] | None = None) -> None:

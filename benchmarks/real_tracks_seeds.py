@@ -1,0 +1,82 @@
+"""The real recording's tracks over seeds: the per-seed results of ``benchmarks/real_tracks.py --loop
+--control`` (one S3K run per seed) side by side, with the mean over seeds and its 95% t-interval of:
+
+- the filtered minus the raw points' 3D error on the test frames (median and RMS, mm; each seed's own
+  bootstrap interval is in its file) and the jitter of both;
+- one round of the way back: after minus before, and after minus the control (as many steps without the
+  new labels), on the test frames, raw points.
+
+Example (after ``bash scripts/real-tracks.sh``, which writes the per-seed files)::
+
+    python benchmarks/real_tracks_seeds.py docs/results/tracks/real-seed*.json \\
+        --out docs/results/tracks/real-seeds.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import git_revision, t_interval, write_and_emit  # noqa: E402
+
+FIGURES = {
+    "filtered_minus_raw_median_mm": ("before", "filtered_minus_raw_test", "median"),
+    "filtered_minus_raw_rms_mm": ("before", "filtered_minus_raw_test", "rms"),
+    "loop_after_minus_before_median_mm": ("loop", "after_minus_before_test", "raw", "median"),
+    "loop_after_minus_before_rms_mm": ("loop", "after_minus_before_test", "raw", "rms"),
+    "loop_after_minus_control_median_mm": ("loop", "after_minus_continued_test", "raw", "median"),
+    "loop_after_minus_control_rms_mm": ("loop", "after_minus_continued_test", "raw", "rms"),
+}
+
+
+def dig(d: dict, path: tuple[str, ...]):
+    for k in path:
+        d = d[k]
+    return d
+
+
+def per_seed(result: dict) -> dict:
+    out = {name: dig(result, path) for name, path in FIGURES.items()}
+    for name, path in FIGURES.items():
+        ci = dig(result, path[:-1]).get(path[-1] + "_ci95")
+        out[name.replace("_mm", "_ci95_mm")] = ci
+    before = result["before"]
+    out["raw_test_median_mm"] = before["raw"]["test"]["median"]
+    out["raw_test_rms_mm"] = before["raw"]["test"]["rms"]
+    out["jitter_raw_mm_per_frame2"] = before["raw"]["jitter_mm_per_frame2"]
+    out["jitter_filtered_mm_per_frame2"] = before["filtered"]["jitter_mm_per_frame2"]
+    out["loop_lr"] = result["loop"]["lr"]
+    out["loop_steps"] = result["loop"]["steps"]
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("results", nargs="+",
+                   help="per-seed JSON files of benchmarks/real_tracks.py --loop --control")
+    p.add_argument("--out", default=None, help="JSON file to write")
+    a = p.parse_args(argv)
+    seeds = {}
+    for path in a.results:
+        result = json.loads(Path(path).read_text())
+        seeds[Path(path).name] = {"run": result["run"], "revision": result["revision"], **per_seed(result)}
+    over: dict = {}
+    for name in [*FIGURES, "jitter_raw_mm_per_frame2", "jitter_filtered_mm_per_frame2"]:
+        values = [s[name] for s in seeds.values()]
+        over[name] = {"mean": sum(values) / len(values), "ci95": t_interval(values),
+                      "per_seed": values}
+        print(f"{name:38s} mean {over[name]['mean']:+.3f}  per seed "
+              + " ".join(f"{v:+.3f}" for v in values))
+    given = sys.argv[1:] if argv is None else argv
+    write_and_emit({"command": "python benchmarks/real_tracks_seeds.py " + shlex.join(given),
+                    "revision": git_revision(), "seeds": seeds, "over_seeds": over}, a.out)
+
+
+if __name__ == "__main__":
+    main()
