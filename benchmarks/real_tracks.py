@@ -248,6 +248,9 @@ def main(argv: list[str] | None = None) -> None:
                     "revision": git_revision(), "run": a.run, "units": "mm",
                     "reference": "proofread labels triangulated from all four cameras",
                     "limbs": limbs, "before": compare(work / "tracked.csv", keypoints, truth, splits)}
+    from s3k.experiments.track_filter import jitter
+
+    result["reference_jitter_mm_per_frame2"] = jitter(truth)
     source = json.loads((work / "tracked.csv.s3k.json").read_text())
     result["filter"] = source.get("filter")
     if a.loop:

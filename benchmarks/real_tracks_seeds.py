@@ -51,6 +51,7 @@ def per_seed(result: dict) -> dict:
     out["raw_test_rms_mm"] = before["raw"]["test"]["rms"]
     out["jitter_raw_mm_per_frame2"] = before["raw"]["jitter_mm_per_frame2"]
     out["jitter_filtered_mm_per_frame2"] = before["filtered"]["jitter_mm_per_frame2"]
+    out["jitter_reference_mm_per_frame2"] = result.get("reference_jitter_mm_per_frame2")
     out["loop_lr"] = result["loop"]["lr"]
     out["loop_steps"] = result["loop"]["steps"]
     return out
