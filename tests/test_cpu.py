@@ -55,7 +55,8 @@ def test_a_process_limited_to_avx2_trains_auto_in_float32():
     """The real variables in a fresh process: PyTorch reports AVX2, and auto resolves to float32 whatever
     the machine's flags."""
     code = ("import torch; from s3k.detector.cpu import isa_limits; "
-            "from s3k.detector import training_precision; print(isa_limits()['aten'], training_precision('auto', torch.device('cpu')))")
+            "from s3k.detector import training_precision; "
+            "print(isa_limits()['aten'], training_precision('auto', torch.device('cpu')))")
     env = dict(os.environ, ATEN_CPU_CAPABILITY="avx2", ONEDNN_MAX_CPU_ISA="AVX2", OMP_NUM_THREADS="1",
                PYTHONPATH=str(ROOT))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)

@@ -80,7 +80,7 @@ def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch
 def native_bfloat16(device: torch.device) -> bool:
     """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU whose flags
     include AVX512-BF16 or AMX-BF16 and that PyTorch uses at that level
-    (:func:`s3k.detector.cpu.native_bfloat16_cpu`; elsewhere bfloat16 is emulated, and slower than float32)."""
+    (:func:`s3k.detector.cpu.native_bfloat16_cpu`; elsewhere bfloat16 is emulated, slower than float32)."""
     if device.type == "cuda":
         return bool(torch.cuda.is_bf16_supported())
     return device.type == "cpu" and native_bfloat16_cpu()
