@@ -12,8 +12,8 @@ steps. The settings:
 
 - ``native``: ``--precision`` of the preset (``auto``: bfloat16 where this process computes it natively);
 - ``avx512-bf16``: the same with oneDNN limited to AVX512-BF16 (``ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16``):
-  a CPU with AVX512-BF16 but no AMX, such as the AMD EPYC the headline's CPU-minutes were measured on, when this
-  CPU has AMX;
+  a CPU with AVX512-BF16 but no AMX, such as the AMD EPYC the headline's CPU-minutes were measured on,
+  when this CPU has AMX;
 - ``float32``: float32 on this CPU (an AVX-512 CPU without bfloat16 trains so);
 - ``avx2-float32``: float32 with PyTorch's kernels at AVX2 (``ATEN_CPU_CAPABILITY=avx2``), oneDNN at AVX2
   (``ONEDNN_MAX_CPU_ISA=AVX2``) and MKL at AVX2 (``MKL_ENABLE_INSTRUCTIONS=AVX2``): an AVX2-only CPU of
