@@ -24,14 +24,15 @@ and the implementation of a convolution in its arithmetic (from oneDNN's verbose
 ``--precision auto`` resolves to there. The figures are the medians over rounds of each setting's CPU
 seconds per step, and the ratios to ``native`` (and to ``avx512-bf16``) taken within each round, with the
 rounds' range. ``estimate_cpu_minutes`` scales the stage minutes of ``--headline`` (a summary.json of
-``benchmarks/accuracy.py``) by these ratios: the coarse and refining passes by their ratios to
-``avx512-bf16``, the crops (float32 inference of the coarse pass in every setting) by the coarse pass's
-``avx2-float32`` / ``float32`` ratio on AVX2 and 1 elsewhere. An estimate: the emulation has this CPU's clock,
-caches and memory, only its instruction sets are limited.
+``benchmarks/accuracy.py``) by the ratios to ``native``: the coarse and refining passes by their own, the
+crops (float32 inference of the coarse pass in every setting) by the coarse pass's ``avx2-float32`` /
+``float32`` ratio on AVX2 and 1 elsewhere; beside it, the refining pass's float32 / bfloat16 ratio measured on the
+headline's own machine (``--reference``). An estimate: the emulation has this CPU's clock, caches and memory,
+only its instruction sets are limited.
 
 Example::
 
-    python benchmarks/cpu_isa.py --rounds 3 --steps 8 --out docs/results/benchmarks/cpu-isa.json
+    python benchmarks/cpu_isa.py --out docs/results/benchmarks/cpu-isa.json   # about 7 minutes
 
 The last line printed is one JSON object.
 """
@@ -157,19 +158,29 @@ def _ratios(rounds: list[dict], to: str) -> dict:
     return out
 
 
-def _estimate(headline: Path, to_bf16: dict, to_fp32: dict) -> dict:
-    """The headline's stage minutes (S3K, per model) scaled by the ratios (module docstring)."""
+def _estimate(headline: Path, reference: Path | None, to_native: dict) -> dict:
+    """The headline's stage minutes (S3K, per model) scaled by the ratios to ``native`` (module docstring),
+    with the refining pass's float32 / bfloat16 CPU-time ratio measured on the headline's machine itself
+    (``reference``), to set beside this machine's."""
     summary = json.loads(headline.read_text())
     stages = {k: summary["stages"]["train_s3k"][k]["cpu_min"] for k in ("coarse", "crops", "fine")}
     out: dict = {"headline": str(headline), "headline_machine": summary.get("machine"),
-                 "headline_stage_cpu_min": stages}
+                 "headline_stage_cpu_min": stages, "basis": "ratio_to_native"}
     for name in ("float32", "avx2-float32"):
-        crops = to_fp32[name]["coarse"]["median"] if name == "avx2-float32" else 1.0
-        est = {"coarse": stages["coarse"] * to_bf16[name]["coarse"]["median"],
+        crops = (to_native[name]["coarse"]["median"] / to_native["float32"]["coarse"]["median"]
+                 if name == "avx2-float32" else 1.0)
+        est = {"coarse": stages["coarse"] * to_native[name]["coarse"]["median"],
                "crops": stages["crops"] * crops,
-               "fine": stages["fine"] * to_bf16[name]["fine"]["median"]}
+               "fine": stages["fine"] * to_native[name]["fine"]["median"]}
         total = sum(est.values())
         out[name] = {**est, "total": total, "times_headline": total / sum(stages.values())}
+    if reference is not None and reference.is_file():
+        seeds = json.loads(reference.read_text())["seeds"]
+        out["reference_fine_float32_ratio"] = {
+            "file": str(reference),
+            "per_seed": {s: v["float32"]["refining_cpu_minutes"] / v["bfloat16"]["refining_cpu_minutes"]
+                         for s, v in seeds.items()},
+            "this_machine": to_native["float32"]["fine"]["median"]}
     return out
 
 
@@ -190,7 +201,6 @@ def parent(args: argparse.Namespace) -> None:
     per_step = {n: {p: statistics.median(rd[n][p]["cpu_s_per_step"] for rd in rounds) for p in PASSES}
                 for n in SETTINGS}
     to_native, to_bf16 = _ratios(rounds, "native"), _ratios(rounds, "avx512-bf16")
-    to_fp32 = _ratios(rounds, "float32")
     result = {
         "benchmark": "cpu_isa",
         "command": "python benchmarks/cpu_isa.py " + " ".join(sys.argv[1:]),
@@ -209,15 +219,16 @@ def parent(args: argparse.Namespace) -> None:
                       for rd in rounds],
     }
     if args.headline:
-        result["estimate_cpu_minutes"] = _estimate(Path(args.headline), to_bf16, to_fp32)
+        reference = Path(args.reference) if args.reference else None
+        result["estimate_cpu_minutes"] = _estimate(Path(args.headline), reference, to_native)
     finish(result, started, args.out)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--preset", default="box-headline", help="the preset whose networks are timed")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of all settings (default 3)")
-    p.add_argument("--steps", type=int, default=8, help="timed steps of each pass (default 8)")
+    p.add_argument("--rounds", type=int, default=5, help="rounds of all settings (default 5)")
+    p.add_argument("--steps", type=int, default=10, help="timed steps of each pass (default 10)")
     p.add_argument("--warmup", type=int, default=3, help="untimed first steps of each pass (default 3)")
     p.add_argument("--threads", type=int, default=1, help="torch threads of each process (default 1)")
     p.add_argument("--data", default=None,
@@ -226,6 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=None, help="folder for the render (default: a temporary one)")
     p.add_argument("--headline", default="docs/results/accuracy/fast/summary.json",
                    help="summary.json whose stage minutes the ratios scale ('' for none)")
+    p.add_argument("--reference", default="docs/results/accuracy/fast/bf16-vs-fp32-4000.json",
+                   help="the refining pass's float32 and bfloat16 CPU minutes measured on the headline's "
+                        "machine ('' for none)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument("--child", choices=list(SETTINGS), help=argparse.SUPPRESS)
     p.add_argument("--child-out", help=argparse.SUPPRESS)
