@@ -7,8 +7,8 @@ Each setting runs as its own process (the instruction-set limits are read once, 
 networks of ``--preset`` (their configurations from ``TrainConfig.coarse()`` and ``TrainConfig.refining()``:
 the coarse pass on whole frames at ``coarse_size`` px, the refining pass at ``crop_size`` px) for
 ``--warmup`` + ``--steps`` steps with the self-supervised term on from the first step (as in the schedule's
-later steps) and one torch thread, and reports the process's CPU time (``time.process_time``) over the timed
-steps. The settings:
+later steps) and one torch thread, and reports the median of the timed steps' CPU times (the process's
+``time.process_time`` from one step to the next; the mean is recorded beside it). The settings:
 
 - ``native``: ``--precision`` of the preset (``auto``: bfloat16 where this process computes it natively);
 - ``avx512-bf16``: the same with oneDNN limited to AVX512-BF16 (``ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16``):
@@ -24,11 +24,11 @@ and the implementation of a convolution in its arithmetic (from oneDNN's verbose
 ``--precision auto`` resolves to there. The figures are the medians over rounds of each setting's CPU
 seconds per step, and the ratios to ``native`` (and to ``avx512-bf16``) taken within each round, with the
 rounds' range. ``estimate_cpu_minutes`` scales the stage minutes of ``--headline`` (a summary.json of
-``benchmarks/accuracy.py``) by the ratios to ``native``: the coarse and refining passes by their own, the
-crops (float32 inference of the coarse pass in every setting) by the coarse pass's ``avx2-float32`` /
-``float32`` ratio on AVX2 and 1 elsewhere; beside it, the refining pass's float32 / bfloat16 ratio measured on the
-headline's own machine (``--reference``). An estimate: the emulation has this CPU's clock, caches and memory,
-only its instruction sets are limited.
+``benchmarks/accuracy.py``) by the ratios to ``native``: the coarse and refining passes by their own,
+the crops (float32 inference of the coarse pass in every setting) by the coarse pass's ``avx2-float32`` /
+``float32`` ratio on AVX2 and 1 elsewhere; beside it, the refining pass's float32 / bfloat16 ratio measured
+on the headline's own machine (``--reference``). An estimate: the emulation has this CPU's clock, caches and
+memory, only its instruction sets are limited.
 
 Example::
 
@@ -108,12 +108,15 @@ def child(args: argparse.Namespace) -> None:
         marks: dict[int, float] = {}
 
         def mark(step: int, terms: dict, marks=marks) -> None:
-            if step in (args.warmup, args.warmup + args.steps):
+            if step >= args.warmup:
                 marks[step] = time.process_time()
 
         with tempfile.TemporaryDirectory() as tmp:
             train(args.data, Path(tmp) / "run", cfgs[name], progress=mark)
-        out[name] = {"cpu_s_per_step": (marks[args.warmup + args.steps] - marks[args.warmup]) / args.steps,
+        steps = [marks[s + 1] - marks[s] for s in range(args.warmup, args.warmup + args.steps)]
+        # the median step: a step that another process's burst on the shared core slowed is left out
+        out[name] = {"cpu_s_per_step": statistics.median(steps),
+                     "cpu_s_per_step_mean": statistics.fmean(steps),
                      "arithmetic": training_precision(cfgs[name].precision, torch.device("cpu"))}
     _onednn_probe(out["fine"]["arithmetic"])
     Path(args.child_out).write_text(json.dumps(out))
