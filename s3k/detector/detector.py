@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from s3k.choices import Arithmetic, Device, Precision
+from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
@@ -78,20 +79,11 @@ def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch
 
 def native_bfloat16(device: torch.device) -> bool:
     """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU whose flags
-    include AVX512-BF16 or AMX-BF16 (elsewhere bfloat16 is emulated, and slower than float32)."""
+    include AVX512-BF16 or AMX-BF16 and that PyTorch uses at that level
+    (:func:`s3k.detector.cpu.native_bfloat16_cpu`; elsewhere bfloat16 is emulated, slower than float32)."""
     if device.type == "cuda":
         return bool(torch.cuda.is_bf16_supported())
-    if device.type != "cpu":
-        return False
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    return bool(flags & {"avx512_bf16", "amx_bf16"})
-    except OSError:
-        pass
-    return False
+    return device.type == "cpu" and native_bfloat16_cpu()
 
 
 def training_precision(name: Precision, device: torch.device) -> Arithmetic:
