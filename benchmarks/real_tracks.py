@@ -227,7 +227,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--worst", type=int, default=10, help="frames to add and label (default 10)")
     p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
     p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
-    p.add_argument("--lr", type=float, default=3e-4, help="fine-tuning learning rate (default 3e-4)")
+    p.add_argument("--lr", type=float, default=5e-5, help="fine-tuning learning rate (default 5e-5)")
     p.add_argument("--out", default=None, help="JSON file to write")
     a = p.parse_args(argv)
     import torch
