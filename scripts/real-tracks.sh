@@ -5,9 +5,9 @@
 #   bash scripts/real-tracks.sh [RECORDING_DIR]
 #
 # $WORK (default /tmp/real-work, as scripts/real-comparison.sh), $SEEDS (5), $LR (the fine-tuning learning
-# rate, default 5e-5: the S3K runs' own last one), $OUT (default docs/results/tracks): writes $OUT/real-seedN.json, then
-# $OUT/real-seeds.json. Each seed's tracks, copies and fine-tuned runs go to $WORK/tracks/seedN; run it again
-# and a finished fine-tuning is reused.
+# rate, default 5e-5: the S3K runs' own last one), $OUT (default docs/results/tracks): writes
+# $OUT/real-seedN.json, then $OUT/real-seeds.json. Each seed's tracks, copies and fine-tuned runs go to
+# $WORK/tracks/seedN; run it again and a finished fine-tuning is reused.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 D=$(realpath "${1:-../shared/data/real/sleap-anipose-minimal_session/minimal_session}")
