@@ -64,7 +64,7 @@ def rig_sampler(train: CameraSampler, rig: str) -> CameraSampler:
 
 
 def range_problem(values: tuple[float, float] | None, limits: tuple[float, float], unit: str) -> str | None:
-    """Why ``values`` is no range ``LO,HI`` within ``limits`` (None when it is one, or when it is not given)."""
+    """Why ``values`` is no range ``LO,HI`` within ``limits`` (None when it is one or is not given)."""
     if values is None:
         return None
     if len(values) != 2 or not all(math.isfinite(v) for v in values):
