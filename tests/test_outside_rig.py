@@ -83,6 +83,18 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
     lines = table(result)
     assert len(lines) == 1 + len(RIGS) and lines[2].startswith("low ") and lines[2].split()[4].endswith("x")
 
+    # a run trained on a wider rig, read on the scene rig's sets: they are no longer outside its range
+    from s3k.sim.rigs import ranged_sampler
+
+    wider = ranged_sampler(train, elevation=(5.0, 88.0))
+    read = evaluate_rigs(run, {r: sets[r] for r in ("train", "low")}, "box", trained_on=wider,
+                          drawn_from=train)
+    assert read["training_rig"]["elevation_deg"] == [5.0, 88.0]
+    assert read["rigs_drawn_relative_to"]["elevation_deg"] == list(train.elevation_deg)
+    assert read["rigs"]["low"]["sampled"]["elevation_deg"] == [10.0, 20.0]
+    assert not any(read["rigs"]["low"]["outside_training_range"].values())
+    assert read["rigs"]["low"]["median_mm"] == pytest.approx(rows["low"]["median_mm"])
+
 
 def test_an_unknown_rig_is_a_one_line_error():
     from s3k.errors import UserError
