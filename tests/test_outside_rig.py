@@ -88,7 +88,7 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
 
     wider = ranged_sampler(train, elevation=(5.0, 88.0))
     read = evaluate_rigs(run, {r: sets[r] for r in ("train", "low")}, "box", trained_on=wider,
-                          drawn_from=train)
+                         drawn_from=train)
     assert read["training_rig"]["elevation_deg"] == [5.0, 88.0]
     assert read["rigs_drawn_relative_to"]["elevation_deg"] == list(train.elevation_deg)
     assert read["rigs"]["low"]["sampled"]["elevation_deg"] == [10.0, 20.0]
