@@ -12,6 +12,15 @@ Example::
 
     python benchmarks/outside_rig.py runs/time-to-accuracy/s3k-seed0 \\
         --out docs/results/accuracy/outside-rig/s3k-seed0.json     # 5 x 50 frames at 384 px
+    python benchmarks/outside_rig.py runs/wide-rig/s3k-seed0 --elevation 10,85 --diagnose \
+        --out docs/results/accuracy/outside-rig/s3k-el10-85-seed0.json  # trained on a wider rig: the rigs
+                                                                         # outside that one
+    python benchmarks/outside_rig.py runs/wide-rig/s3k-seed0 --elevation 10,85 --rigs-from scene  # and on
+                                                                         # the scene's rig's outside sets
+
+``--diagnose`` adds per rig where the error comes from (s3k.experiments.outside_rig.diagnose): the coarse
+and the refining pass's 2D and 3D errors, crops that miss, keypoints taken for others, and the cameras'
+triangulation floor: the 3D error their geometry alone makes of the in-range set's 2D error.
 """
 
 from __future__ import annotations
@@ -25,9 +34,10 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from s3k.cli.simulate import number_pair  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.experiments.outside_rig import evaluate_rigs, render_test_sets, table  # noqa: E402
-from s3k.sim.rigs import RIGS  # noqa: E402
+from s3k.sim.rigs import RIGS, describe_rig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,6 +53,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="sampling seed of every test set (default 1000: no training seed's)")
     p.add_argument("--rigs", default=",".join(RIGS),
                    help=f"the rigs, train (the in-range reference) first (default {','.join(RIGS)})")
+    p.add_argument("--elevation", type=number_pair, default=None, metavar="LO,HI",
+                   help="the run's training rig's elevations in degrees, when its data was rendered with "
+                        "`s3k simulate --elevation` (default the scene's)")
+    p.add_argument("--distance", type=number_pair, default=None, metavar="LO,HI",
+                   help="the run's training rig's distances in metres (`s3k simulate --distance`; default "
+                        "the scene's)")
+    p.add_argument("--rigs-from", choices=("run", "scene"), default="run",
+                   help="draw the named rigs relative to the run's training rig (run, the default) or to the "
+                        "scene's own (scene: the same test sets as for a run trained on the scene's rig)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="also per rig where the error comes from: each pass's 2D and 3D errors, crops that "
+                        "miss, keypoints taken for others, and the triangulation floor of its cameras")
     p.add_argument("--work", default=None, help="folder of the test sets (default runs/outside-rig)")
     p.add_argument("--out", default=None, help="result JSON (default: printed only)")
     p.add_argument("--device", default="cpu", help="where the run is evaluated (default cpu)")
@@ -57,13 +79,26 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--rigs: {', '.join(RIGS)}, train among them; got {args.rigs!r}")
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     work = Path(args.work or ROOT / "runs" / "outside-rig")
-    sets = render_test_sets(args.scene, args.size, args.test, args.seed, work, rigs, workers=args.workers)
+    from s3k.sim.rigs import ranged_sampler
+    from s3k.sim.scenes import SCENES
+
+    scene_rig = SCENES[args.scene].cameras_sampler
+    try:
+        trained_on = ranged_sampler(scene_rig, args.elevation, args.distance)
+    except ValueError as e:
+        p.error(str(e))
+    base = (args.elevation, args.distance) if args.rigs_from == "run" else (None, None)
+    sets = render_test_sets(args.scene, args.size, args.test, args.seed, work, rigs, workers=args.workers,
+                            elevation=base[0], distance=base[1])
     given = without_notes(sys.argv[1:] if argv is None else argv)
     result = {"command": shlex.join(["python", "benchmarks/outside_rig.py", *given]),
               "git_revision": git_revision(), "run": str(Path(args.run).resolve()),
               "scale": f"{args.scene} at {args.size} px, {args.test} test frames per rig, sampling seed "
                        f"{args.seed}",
-              **evaluate_rigs(Path(args.run), sets, args.scene, args.device)}
+              "scene_rig": describe_rig(scene_rig),
+              **evaluate_rigs(Path(args.run), sets, args.scene, args.device, trained_on=trained_on,
+                              drawn_from=trained_on if args.rigs_from == "run" else scene_rig,
+                              diagnosis=args.diagnose)}
     machine = machine_info()
     result["machine"] = machine
     result["avx512_bf16"] = "avx512_bf16" in machine["cpu_flags"]

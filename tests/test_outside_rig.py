@@ -83,6 +83,18 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
     lines = table(result)
     assert len(lines) == 1 + len(RIGS) and lines[2].startswith("low ") and lines[2].split()[4].endswith("x")
 
+    # a run trained on a wider rig, read on the scene rig's sets: they are no longer outside its range
+    from s3k.sim.rigs import ranged_sampler
+
+    wider = ranged_sampler(train, elevation=(5.0, 88.0))
+    read = evaluate_rigs(run, {r: sets[r] for r in ("train", "low")}, "box", trained_on=wider,
+                         drawn_from=train)
+    assert read["training_rig"]["elevation_deg"] == [5.0, 88.0]
+    assert read["rigs_drawn_relative_to"]["elevation_deg"] == list(train.elevation_deg)
+    assert read["rigs"]["low"]["sampled"]["elevation_deg"] == [10.0, 20.0]
+    assert not any(read["rigs"]["low"]["outside_training_range"].values())
+    assert read["rigs"]["low"]["median_mm"] == pytest.approx(rows["low"]["median_mm"])
+
 
 def test_an_unknown_rig_is_a_one_line_error():
     from s3k.errors import UserError
@@ -90,3 +102,90 @@ def test_an_unknown_rig_is_a_one_line_error():
 
     with pytest.raises(UserError, match=r"rig \(--rig\): unknown camera rig 'side'"):
         SimulateConfig("box", rig="side")
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("elevation", (30.0, 20.0),
+     r"elevation \(--elevation\): expected LO <= HI, both from 5 to 88 degrees, got 30,20"),
+    ("elevation", (2.0, 40.0), r"elevation \(--elevation\): .* got 2,40"),
+    ("elevation", (40.0, 90.0), r"elevation \(--elevation\): .* got 40,90"),
+    ("distance", (0.0, 1.0), r"distance \(--distance\): expected LO <= HI, both from 0.2 to 10 m, got 0,1"),
+    ("distance", (1.2, float("nan")), r"distance \(--distance\): expected two numbers"),
+])
+def test_a_bad_camera_range_is_a_one_line_error(option, value, message):
+    from s3k.errors import UserError
+    from s3k.sim.generate import SimulateConfig
+
+    with pytest.raises(UserError, match=message) as e:
+        SimulateConfig("box", **{option: value})
+    assert "\n" not in str(e.value)
+
+
+def test_simulate_refuses_a_range_that_is_not_two_numbers(capsys):
+    from s3k.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "box", "--out", "unused", "--elevation", "10,a"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "--elevation: expected two numbers LO,HI" in err and "'10,a'" in err and "\n" not in err
+
+
+def test_the_cameras_lie_in_the_given_ranges_and_the_rigs_outside_them(tmp_path):
+    from s3k.experiments.outside_rig import measured_cameras, render_test_sets
+
+    train = SCENES["box"].cameras_sampler
+    sets = render_test_sets("box", 32, 6, 3, tmp_path, rigs=("train", "high"), workers=1,
+                            elevation=(40.0, 50.0), distance=(1.5, 1.6))
+    assert sets["train"].name == "box32-train-el40-50-d1.5-1.6-test6-seed3"
+    measured = {rig: measured_cameras(path, train.target) for rig, path in sets.items()}
+    # within the ranges, give or take the aim point's jitter (15 mm at 1.5 m: about 0.6 degree, 15 mm)
+    assert 39 <= measured["train"]["elevation_deg"][0] and measured["train"]["elevation_deg"][1] <= 51
+    assert 1.48 <= measured["train"]["distance_m"][0] and measured["train"]["distance_m"][1] <= 1.62
+    # a named rig is drawn relative to the given ranges: high is 5 to 15 degrees above 50
+    assert 54 <= measured["high"]["elevation_deg"][0] and measured["high"]["elevation_deg"][1] <= 66
+    assert 1.48 <= measured["high"]["distance_m"][0] and measured["high"]["distance_m"][1] <= 1.62
+    source = json.loads((sets["train"] / "s3k.json").read_text())["source"]
+    assert source["cameras"]["elevation_deg"] == [40.0, 50.0]
+    assert source["cameras"]["distance_m"] == [1.5, 1.6]
+    assert "rig" not in source
+
+
+def test_the_triangulation_floor_grows_with_the_noise_and_overhead_cameras(tmp_path):
+    from s3k.experiments.outside_rig import render_test_sets, triangulation_floor
+
+    sets = render_test_sets("box", 32, 8, 5, tmp_path, rigs=("train",), workers=1)
+    overhead = render_test_sets("box", 32, 8, 5, tmp_path, rigs=("train",), workers=1, elevation=(84.0, 88.0))
+    assert triangulation_floor(sets["train"], 0.0) < 1e-6
+    one, two = triangulation_floor(sets["train"], 1.0), triangulation_floor(sets["train"], 2.0)
+    assert 0 < one < two
+    # cameras all nearly overhead meet at narrow angles: the same 2D error, a larger 3D one
+    assert triangulation_floor(overhead["train"], 1.0) > 2 * one
+
+
+def test_the_diagnosis_of_a_two_pass_run(tmp_path):
+    from helpers.tiny_detector import save_run
+
+    from s3k.detector import DetectorMeta
+    from s3k.detector.crop_rule import CropRule, write_two_pass
+    from s3k.experiments.outside_rig import diagnose, render_test_sets
+    from s3k.model import UNetConfig
+    from s3k.run_folder import RunFolder
+
+    data = render_test_sets("box", 32, 4, 7, tmp_path / "sets", rigs=("train",), workers=1)["train"]
+    keypoints, cameras = list(SCENES["box"].keypoints), [f"cam{i}" for i in range(4)]
+    run = tmp_path / "run"
+    for folder, size in ((RunFolder.COARSE, 32), (RunFolder.FINE, 16)):
+        meta = DetectorMeta(keypoints=keypoints, cameras=cameras, image_size=(size, size), stride=2,
+                            sigma=2.0, model=UNetConfig(channels=(8, 16), res_blocks=1).to_dict())
+        save_run(run / folder, meta, seed=0, head_std=0.5)
+    write_two_pass(run, CropRule(extent=0.3, size=16), 32, keypoints)
+    d = diagnose(run, data, gross_px=2.0)
+    for key in ("coarse_3d_median_mm", "fine_3d_median_mm", "coarse_2d_median_px", "fine_2d_median_px"):
+        assert np.isfinite(d[key]) and d[key] > 0, key
+    for key in ("coarse_2d_gross", "fine_2d_gross", "truth_outside_crop", "fine_2d_gross_on_another_keypoint",
+                "frames_swapped"):
+        assert 0 <= d[key] <= 1, key
+    assert d["fine_2d_gross_on_another_keypoint"] <= d["fine_2d_gross"]
+    # an untrained network is off by more than 2 px almost everywhere
+    assert d["fine_2d_gross"] > 0.5

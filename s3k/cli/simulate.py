@@ -14,12 +14,24 @@ from s3k.sim.scene import NUM_TRAIN_INSTANCES
 from s3k.sim.scenes import SCENES
 
 
+def number_pair(text: str) -> tuple[float, float]:
+    """An ``argparse`` ``type=``: ``"LO,HI"`` -> ``(LO, HI)`` (the range itself is checked by
+    :class:`s3k.sim.generate.SimulateConfig`)."""
+    parts = text.split(",")
+    try:
+        lo, hi = (float(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers LO,HI, e.g. 10,85; got {text!r}") from None
+    return lo, hi
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.epilog = examples("s3k simulate box --out data/box",
                              "s3k simulate distractors --out data/distractors --size 128 --labelled 30 "
                              "--preview distractors.png",
                              "s3k simulate box --out data/box-low --size 384 --labelled 0 --unlabelled 0 "
-                             "--test 50 --seed 1000 --rig low")
+                             "--test 50 --seed 1000 --rig low",
+                             "s3k simulate box --out data/box-wide-rig --size 384 --elevation 10,85")
     parser.add_argument("scene", choices=list(SCENES), help="which scene to render")
     parser.add_argument("--out", required=True, help="dataset folder to create")
     parser.add_argument("--size", type=number(int, ge=16, le=MAX_SIZE), default=96,
@@ -52,6 +64,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="the cameras: the scene's own rig (train, the default) or one outside its "
                              "ranges for a test set: low or high elevations, far, or a wide lens "
                              "(docs/scenes.md)")
+    parser.add_argument("--elevation", type=number_pair, default=None, metavar="LO,HI",
+                        help="draw the cameras' elevations above the table from LO to HI degrees instead of "
+                             "the scene's range (e.g. 10,85; --rig is then relative to it)")
+    parser.add_argument("--distance", type=number_pair, default=None, metavar="LO,HI",
+                        help="draw the cameras' distances from the aim point from LO to HI metres instead of "
+                             "the scene's range")
     parser.add_argument("--workers", type=number(int, ge=1), default=None,
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
@@ -82,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
         unlabelled_arrangements=args.unlabelled_arrangements, rig=args.rig,
+        elevation=args.elevation, distance=args.distance,
     )
     if args.preview:
         check_output(args.preview, args.overwrite, option="--preview")

@@ -31,7 +31,15 @@ from s3k.geometry import Cameras
 from s3k.memory import available_memory
 from s3k.metrics import pixel_sizes_mm
 from s3k.outputs import check_replaceable, replace_folder
-from s3k.sim.rigs import RIGS, describe_rig, rig_sampler
+from s3k.sim.rigs import (
+    DISTANCE_LIMITS,
+    ELEVATION_LIMITS,
+    RIGS,
+    describe_rig,
+    range_problem,
+    ranged_sampler,
+    rig_sampler,
+)
 from s3k.sim.scene import NUM_INSTANCES, NUM_TRAIN_INSTANCES, CameraSampler, FrameSpec, Scene, SimFrame
 from s3k.sim.scenes import SCENES, make_scene
 
@@ -66,6 +74,9 @@ class SimulateConfig:
             rig; from arrangement 13 on, so in no test set and no grasp trial). 0: the training ones only.
         rig: how the cameras are drawn: "train" (the scene's own rig) or a rig outside its ranges, "low",
             "high", "far" or "wide" (:mod:`s3k.sim.rigs`), for test sets of cameras never seen in training.
+        elevation: the cameras' elevations above the table (degrees, ``(lo, hi)``) instead of the scene's;
+            a named ``rig`` is drawn relative to the rig this gives.
+        distance: the cameras' distances from the aim point (metres, ``(lo, hi)``) instead of the scene's.
     """
 
     scene: str
@@ -81,12 +92,19 @@ class SimulateConfig:
     train_instances: int = NUM_TRAIN_INSTANCES
     unlabelled_arrangements: int = 0
     rig: str = "train"
+    elevation: tuple[float, float] | None = None
+    distance: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
             raise UserError(f"scene: unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
         if self.rig not in RIGS:
             raise UserError(f"rig (--rig): unknown camera rig {self.rig!r}; choose from {', '.join(RIGS)}")
+        for name, values, limits, unit in (("elevation", self.elevation, ELEVATION_LIMITS, "degrees"),
+                                           ("distance", self.distance, DISTANCE_LIMITS, "m")):
+            problem = range_problem(values, limits, unit)
+            if problem:
+                raise UserError(f"{name} (--{name}): {problem}")
         for name in ("labelled", "unlabelled", "test"):
             if getattr(self, name) < 0:
                 raise UserError(f"{name} (--{name}): frame count must be >= 0, got {getattr(self, name)}")
@@ -122,12 +140,16 @@ class SimulateConfig:
         if self.scene == "plush" and self.unlabelled_arrangements:
             d.update(unlabelled_arrangements=self.unlabelled_arrangements)
         if self.rig != "train":
-            d.update(rig=self.rig, cameras=describe_rig(self.cameras()))
+            d.update(rig=self.rig)
+        if self.rig != "train" or self.elevation is not None or self.distance is not None:
+            d.update(cameras=describe_rig(self.cameras()))
         return d
 
     def cameras(self) -> CameraSampler:
-        """How this dataset's cameras are drawn: the scene's own rig or the one ``rig`` names."""
-        return rig_sampler(SCENES[self.scene].cameras_sampler, self.rig)
+        """How this dataset's cameras are drawn: the scene's own rig (with ``elevation`` and ``distance``
+        where given) or the one ``rig`` names relative to it."""
+        train = ranged_sampler(SCENES[self.scene].cameras_sampler, self.elevation, self.distance)
+        return rig_sampler(train, self.rig)
 
 
 def _spread(n: int, parts: int) -> list[int]:

@@ -12,11 +12,15 @@ own, everything else (aim point, azimuth spread, roll, object poses, lighting) a
 
 Each frame draws the same random numbers whatever the rig, so test sets of one ``--seed`` show the same
 object poses and lighting seen from other cameras.
+
+A training rig may itself be other than the scene's (``s3k simulate --elevation LO,HI --distance LO,HI``,
+:func:`ranged_sampler`); the named rigs are then drawn relative to that one.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from s3k.sim.scene import CameraSampler
 
@@ -27,6 +31,10 @@ LOW_DEG = (15.0, 5.0)
 HIGH_DEG = (5.0, 15.0)
 FAR_FACTOR = (1.15, 1.4)
 WIDE_FACTOR = 1.5
+#: The elevations a rig may be given (degrees above the table): from nearly edge-on to nearly straight above.
+ELEVATION_LIMITS = (5.0, 88.0)
+#: The distances a rig may be given (metres from the aim point).
+DISTANCE_LIMITS = (0.2, 10.0)
 
 
 def _clip(low: float, high: float) -> tuple[float, float]:
@@ -53,6 +61,38 @@ def rig_sampler(train: CameraSampler, rig: str) -> CameraSampler:
     if rig == "wide":
         return dataclasses.replace(train, fovy_deg=train.fovy_deg * WIDE_FACTOR)
     raise ValueError(f"camera rig: unknown {rig!r}; choose from {', '.join(RIGS)}")
+
+
+def range_problem(values: tuple[float, float] | None, limits: tuple[float, float], unit: str) -> str | None:
+    """Why ``values`` is no range ``LO,HI`` within ``limits`` (None when it is one or is not given)."""
+    if values is None:
+        return None
+    if len(values) != 2 or not all(math.isfinite(v) for v in values):
+        return f"expected two numbers LO,HI, got {values!r}"
+    lo, hi = values
+    if not limits[0] <= lo <= hi <= limits[1]:
+        return (f"expected LO <= HI, both from {limits[0]:g} to {limits[1]:g} {unit}, got "
+                f"{lo:g},{hi:g}")
+    return None
+
+
+def ranged_sampler(base: CameraSampler, elevation: tuple[float, float] | None = None,
+                   distance: tuple[float, float] | None = None) -> CameraSampler:
+    """``base`` with its elevation range (degrees) and distance range (metres) replaced where given.
+
+    Raises:
+        ValueError: a range out of order or outside :data:`ELEVATION_LIMITS` / :data:`DISTANCE_LIMITS`.
+    """
+    for name, values, limits, unit in (("elevation", elevation, ELEVATION_LIMITS, "degrees"),
+                                       ("distance", distance, DISTANCE_LIMITS, "m")):
+        problem = range_problem(values, limits, unit)
+        if problem:
+            raise ValueError(f"camera {name}: {problem}")
+    if elevation is not None:
+        base = dataclasses.replace(base, elevation_deg=(float(elevation[0]), float(elevation[1])))
+    if distance is not None:
+        base = dataclasses.replace(base, distance=(float(distance[0]), float(distance[1])))
+    return base
 
 
 def describe_rig(sampler: CameraSampler) -> dict:
