@@ -52,14 +52,22 @@ def test_training_autocast_and_untraceable_networks_run_eagerly():
         frozen(x)
     assert frozen.frozen == {}
 
-    class DictOut(torch.nn.Module):  # torch.jit.trace refuses a dict output
-        def forward(self, x):
-            return {"logits": x}
+    other = FrozenNetwork(torch.nn.Conv2d(3, 3, 1), torch.device("cpu"))  # not s3k's network: as it is
+    assert other.eager
 
-    odd = FrozenNetwork(DictOut(), torch.device("cpu"))
+    class Counting(UNet):  # Python state the trace would freeze into a constant
+        calls = 0
+
+        def forward(self, images):
+            self.calls += 1
+            return super().forward(images) + self.calls
+
+    counting = Counting(3, UNetConfig(channels=(8, 8), res_blocks=0)).eval()
+    odd = FrozenNetwork(counting, torch.device("cpu"))
     with torch.no_grad():
-        out = odd(x)
-    assert isinstance(out, dict) and odd.eager  # fell back, and stays eager
+        first, second = odd(x), odd(x)
+    assert odd.eager and odd.frozen == {}  # the graph disagreed with the network: eager from then on
+    torch.testing.assert_close(second - first, torch.ones_like(first))
 
 
 def test_every_views_crop_cut_at_once_matches_the_crop_cut_per_camera():

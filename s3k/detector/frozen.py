@@ -8,9 +8,10 @@ input shape (the batch of views times the pass's fixed input size) and freezes i
 outputs equal the eager network's (the same ATen operators in the same order); tests/test_frozen_network.py
 and ``benchmarks/inference.py --check`` compare them.
 
-It is used where it is exact and cheap: on the CPU, float32 (no autocast), without gradients. Anything else,
-or a network that cannot be traced, runs the eager module unchanged; so does a detector made with
-``fast=False`` (the plain path, for comparison).
+It is used where it is exact and cheap: s3k's own :class:`s3k.model.UNet` on the CPU, float32 (no autocast),
+without gradients; each new graph is checked once against the eager network on the input that made it.
+Anything else, a network that cannot be traced or a graph that disagrees, runs the eager module unchanged; so
+does a detector made with ``fast=False`` (the plain path, for comparison).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
+
+from s3k.model import UNet
 
 __all__ = ["FrozenNetwork"]
 
@@ -41,7 +44,7 @@ class FrozenNetwork:
     def __init__(self, net: Callable[[Tensor], Tensor], device: torch.device, enabled: bool = True) -> None:
         self.net, self.device = net, device
         self.frozen: dict[tuple, torch.jit.ScriptModule] = {}
-        self.eager = not (enabled and isinstance(net, nn.Module) and device.type == "cpu")
+        self.eager = not (enabled and isinstance(net, UNet) and device.type == "cpu")
 
     def __call__(self, x: Tensor) -> Tensor:
         if (self.eager or torch.is_grad_enabled() or torch.is_autocast_enabled("cpu")
@@ -68,8 +71,11 @@ class FrozenNetwork:
                 example = example.contiguous(memory_format=torch.channels_last)
             try:
                 module = torch.jit.freeze(torch.jit.trace(self.net.eval(), (example,), check_trace=False))
+                same = torch.allclose(module(x), self.net(x), rtol=1e-4, atol=1e-4)
             except Exception:  # noqa: BLE001 - any network torch.jit cannot trace runs eagerly, as before
-                self.eager = True
-                return None
+                same = False
+        if not same:
+            self.eager = True
+            return None
         self.frozen[key] = module
         return module
