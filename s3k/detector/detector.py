@@ -318,7 +318,7 @@ class Detector:
 
     @staticmethod
     def load(run: str | Path, device: Device | torch.device = "auto", precision: Arithmetic = "float32",
-             checkpoint: str | None = None) -> Detector:
+             checkpoint: str | None = None, fast: bool = True) -> Detector:
         """The detector of a run folder of ``s3k train`` (one pass or ``--two-pass``), in eval mode, its
         BatchNorm folded into the convolutions (the same function, fewer operations).
 
@@ -327,13 +327,14 @@ class Detector:
             device: ``"auto"`` (the GPU when there is one), ``"cpu"``, ``"cuda"``, ...
             precision: the networks' precision: ``float32``, ``bfloat16`` or ``float16`` (autocast).
             checkpoint: a file in a one-pass run folder to load instead of its final model.
+            fast: the fast CPU path (:class:`OnePassDetector`); False: the plain one, for comparison.
         """
         dev = pick_device(device)
         if is_two_pass(run):
             rule, coarse, fine = read_two_pass(run)
-            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision),
-                                   OnePassDetector.from_run(fine, dev, precision), rule)
-        return OnePassDetector.from_run(run, dev, precision, checkpoint)
+            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision, fast=fast),
+                                   OnePassDetector.from_run(fine, dev, precision, fast=fast), rule)
+        return OnePassDetector.from_run(run, dev, precision, checkpoint, fast)
 
     @property
     def keypoints(self) -> list[str]:
@@ -407,11 +408,11 @@ class OnePassDetector(Detector):
 
     @classmethod
     def from_run(cls, run: str | Path, device: torch.device, precision: Arithmetic = "float32",
-                 checkpoint: str | None = None) -> OnePassDetector:
+                 checkpoint: str | None = None, fast: bool = True) -> OnePassDetector:
         model, meta = load_network(run, device, checkpoint)
         if isinstance(model, UNet):  # the fast form of the same network
             model = model.fused().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-        return cls(model, meta, device, precision)
+        return cls(model, meta, device, precision, fast)
 
     @property
     def input_size(self) -> tuple[int, int]:
