@@ -17,6 +17,9 @@ a matmul peak so a shared machine's drift hits all of them alike:
   camera), the pipeline as it ran before the fast path; the JSON's ``two_pass_check`` gives the largest
   distance between the two pipelines' 3D points on the benchmark's frames (and ``two_pass_speedup``, the
   median over rounds of plain time over fast time);
+- ``two_pass_compiled`` (with ``--compile``): the plain path with each network through ``torch.compile``
+  (inductor, static shapes); its compile seconds (the first frame) and its points against the plain path's
+  are in ``compiled``. Not the detector's default: compiling costs tens of seconds per network on 2 cores;
 - ``reference``: the earlier hand-written per-frame pipeline at ``--size`` px (network + ``read_out``), the
   baseline the one-pass detector must not be slower than.
 
@@ -120,10 +123,16 @@ def detectors(args, device: torch.device) -> dict:
     plain = TwoPassDetector(net(args.coarse, False), net(args.crop, False), rule)
     rig = look_at_rig(args.cameras, args.size)[0].to(device=device)
     native = look_at_rig(args.cameras, args.native)[0].to(device=device)
-    return {"one_pass": (net(args.size), frames(args.size), rig),
-            "one_pass_native": (coarse, frames(args.native), native),
-            "two_pass": (two, frames(args.native), native),
-            "two_pass_plain": (plain, frames(args.native), native)}
+    pipes = {"one_pass": (net(args.size), frames(args.size), rig),
+             "one_pass_native": (coarse, frames(args.native), native),
+             "two_pass": (two, frames(args.native), native),
+             "two_pass_plain": (plain, frames(args.native), native)}
+    if args.compile:
+        compiled = TwoPassDetector(net(args.coarse, False), net(args.crop, False), rule)
+        for one in (compiled.coarse, compiled.fine):
+            one.pass_.net = one.pass_.run.net = torch.compile(one.pass_.net, dynamic=False)
+        pipes["two_pass_compiled"] = (compiled, *pipes["two_pass"][1:])
+    return pipes
 
 
 def two_pass_check(pipes: dict, frames: int = 8) -> dict:
@@ -145,6 +154,23 @@ def two_pass_check(pipes: dict, frames: int = 8) -> dict:
     return {"frames": frames, "points": points, "max_3d_distance": worst, "same_validity": agree}
 
 
+def compile_check(pipes: dict) -> dict:
+    """The compiled two passes: seconds of the first frame (compiling both networks) and the largest
+    distance between their 3D points and the plain path's on that frame."""
+    import time
+
+    compiled, x, cams = pipes["two_pass_compiled"]
+    plain = pipes["two_pass_plain"][0]
+    t0 = time.perf_counter()
+    a = compiled(x[0], cams)
+    seconds = time.perf_counter() - t0
+    p = plain(x[0], cams)
+    ok = a.valid & p.valid
+    worst = float((a.X[ok] - p.X[ok]).norm(dim=-1).max()) if bool(ok.any()) else float("nan")
+    same = bool(torch.equal(a.valid, p.valid))
+    return {"compile_s": seconds, "max_3d_distance": worst, "same_validity": same}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_network_options(p, threads_help="torch threads (default: torch's default)")
@@ -158,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the read-out's outlier threshold, network pixels (default: a detector trained with "
                         "the defaults; 0: every view)")
     p.add_argument("--no-reference", action="store_true", help="leave out the earlier per-frame pipeline")
+    p.add_argument("--compile", action="store_true", help="also time the two passes through torch.compile")
     args = p.parse_args(argv)
 
     from s3k.detector import pick_device
@@ -166,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     config, model, num_params = build_network(args)
     pipes = detectors(args, device)
     check = two_pass_check(pipes)
+    compiled = compile_check(pipes) if args.compile else None
     runs = {name: (lambda _f, d=d, x=x, c=c: d(x, c)) for name, (d, x, c) in pipes.items()}
     if not args.no_reference and args.batch == 1:
         reference = model.fused().to(device=device, memory_format=torch.channels_last)
@@ -197,6 +225,10 @@ def main(argv: list[str] | None = None) -> int:
                 for a, b in zip(rounds["two_pass_plain"], rounds["two_pass"])]
     result["two_pass_speedup"] = statistics.median(speedups)
     result["two_pass_check"] = check
+    if compiled is not None:
+        result["compiled"] = compiled
+        print(f"torch.compile: {compiled['compile_s']:.1f} s to compile both networks; 3D distance to "
+              f"the plain path {compiled['max_3d_distance']:.2e} world units")
     print(f"two_pass_plain / two_pass time, median of rounds: {result['two_pass_speedup']:.3f}; largest 3D "
           f"distance between them {check['max_3d_distance']:.2e} world units over {check['points']} points")
     if "reference" in rounds:
