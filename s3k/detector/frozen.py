@@ -52,14 +52,15 @@ class FrozenNetwork:
             return self.net(x)
         key = (tuple(x.shape), x.is_contiguous(memory_format=torch.channels_last))
         module = self.frozen.get(key)
-        if module is None:
-            module = self._trace(x, key)
-            if module is None:
-                return self.net(x)
+        if module is None:  # a new shape: the eager answer, and a graph checked against it
+            out = self.net(x)
+            self._trace(x, key, out)
+            return out
         return module(x)
 
-    def _trace(self, x: Tensor, key: tuple) -> torch.jit.ScriptModule | None:
-        """The frozen trace of ``net`` on inputs like ``x``; None (eager from then on) if tracing fails."""
+    def _trace(self, x: Tensor, key: tuple, out: Tensor) -> None:
+        """Keep the frozen trace of ``net`` on inputs like ``x`` if it gives ``out`` (the eager network's
+        logits of ``x``); else, or if tracing fails, run eagerly from then on."""
         assert isinstance(self.net, nn.Module)
         if len(self.frozen) >= MAX_SHAPES:
             self.frozen.pop(next(iter(self.frozen)))
@@ -71,11 +72,10 @@ class FrozenNetwork:
                 example = example.contiguous(memory_format=torch.channels_last)
             try:
                 module = torch.jit.freeze(torch.jit.trace(self.net.eval(), (example,), check_trace=False))
-                same = torch.allclose(module(x), self.net(x), rtol=1e-4, atol=1e-4)
+                same = torch.allclose(module(x), out, rtol=1e-4, atol=1e-4)
             except Exception:  # noqa: BLE001 - any network torch.jit cannot trace runs eagerly, as before
                 same = False
-        if not same:
+        if same:
+            self.frozen[key] = module
+        else:
             self.eager = True
-            return None
-        self.frozen[key] = module
-        return module
