@@ -11,7 +11,15 @@ a matmul peak so a shared machine's drift hits all of them alike:
   folded, channels_last; the read-out in float64);
 - ``one_pass_native``: frames of ``--native`` px resampled on the device to ``--coarse`` px, then the same;
 - ``two_pass``: frames of ``--native`` px -> coarse pass at ``--coarse`` px -> crops of ``--crop`` px around
-  its estimate, cut on the device -> refining pass (``TwoPassDetector``);
+  its estimate, cut on the device -> refining pass (``TwoPassDetector``, its fast path: on the CPU each
+  network a frozen graph, every view's crop cut in one resampling);
+- ``two_pass_plain``: the same detector on the plain path (``fast=False``: module by module, crops per
+  camera), the pipeline as it ran before the fast path; the JSON's ``two_pass_check`` gives the largest
+  distance between the two pipelines' 3D points on the benchmark's frames (and ``two_pass_speedup``, the
+  median over rounds of plain time over fast time);
+- ``two_pass_compiled`` (with ``--compile``): the plain path with each network through ``torch.compile``
+  (inductor, static shapes); its compile seconds (the first frame) and its points against the plain path's
+  are in ``compiled``. Not the detector's default: compiling costs tens of seconds per network on 2 cores;
 - ``reference``: the earlier hand-written per-frame pipeline at ``--size`` px (network + ``read_out``), the
   baseline the one-pass detector must not be slower than.
 
@@ -96,12 +104,12 @@ def detectors(args, device: torch.device) -> dict:
     """``{name: (detector, frames (B, C, S, S, 3) uint8, cameras)}`` of the pipelines (module docstring)."""
 
     from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
-    def net(size: int):
+    def net(size: int, fast: bool = True):
         config, model, _ = build_network(args)
         meta = DetectorMeta([str(k) for k in range(args.keypoints)], [], (size, size), config.stride,
                             args.sigma, config.to_dict(), outlier_px=args.outlier_px)
         model = model.fused().to(device=device, memory_format=torch.channels_last)
-        return OnePassDetector(model, meta, device, args.precision)
+        return OnePassDetector(model, meta, device, args.precision, fast)
 
     gen = torch.Generator().manual_seed(0)
 
@@ -110,12 +118,57 @@ def detectors(args, device: torch.device) -> dict:
         return torch.randint(0, 256, shape, dtype=torch.uint8, generator=gen).to(device)
 
     coarse, fine = net(args.coarse), net(args.crop)
-    two = TwoPassDetector(coarse, fine, CropRule(extent=0.3, size=args.crop))
+    rule = CropRule(extent=0.3, size=args.crop)
+    two = TwoPassDetector(coarse, fine, rule)
+    plain = TwoPassDetector(net(args.coarse, False), net(args.crop, False), rule)
     rig = look_at_rig(args.cameras, args.size)[0].to(device=device)
     native = look_at_rig(args.cameras, args.native)[0].to(device=device)
-    return {"one_pass": (net(args.size), frames(args.size), rig),
-            "one_pass_native": (coarse, frames(args.native), native),
-            "two_pass": (two, frames(args.native), native)}
+    pipes = {"one_pass": (net(args.size), frames(args.size), rig),
+             "one_pass_native": (coarse, frames(args.native), native),
+             "two_pass": (two, frames(args.native), native),
+             "two_pass_plain": (plain, frames(args.native), native)}
+    if args.compile:
+        compiled = TwoPassDetector(net(args.coarse, False), net(args.crop, False), rule)
+        for one in (compiled.coarse, compiled.fine):
+            one.pass_.net = one.pass_.run.net = torch.compile(one.pass_.net, dynamic=False)
+        pipes["two_pass_compiled"] = (compiled, *pipes["two_pass"][1:])
+    return pipes
+
+
+def two_pass_check(pipes: dict, frames: int = 8) -> dict:
+    """The fast and the plain two-pass pipelines on ``frames`` frames of noise: the largest distance between
+    their 3D points (world units; the rig is in metres, so 1e-4 is 0.1 mm), over the points both find."""
+    fast, x, cams = pipes["two_pass"]
+    plain = pipes["two_pass_plain"][0]
+    gen = torch.Generator().manual_seed(1)
+    shape = (frames, *x.shape[1:])
+    batch = torch.randint(0, 256, shape, dtype=torch.uint8, generator=gen).to(x.device)
+    worst, points, agree = 0.0, 0, True
+    for b in range(frames):  # one frame at a time, as timed
+        a, p = fast(batch[b], cams), plain(batch[b], cams)
+        agree &= bool(torch.equal(a.valid, p.valid))
+        ok = a.valid & p.valid
+        points += int(ok.sum())
+        if bool(ok.any()):
+            worst = max(worst, float((a.X[ok] - p.X[ok]).norm(dim=-1).max()))
+    return {"frames": frames, "points": points, "max_3d_distance": worst, "same_validity": agree}
+
+
+def compile_check(pipes: dict) -> dict:
+    """The compiled two passes: seconds of the first frame (compiling both networks) and the largest
+    distance between their 3D points and the plain path's on that frame."""
+    import time
+
+    compiled, x, cams = pipes["two_pass_compiled"]
+    plain = pipes["two_pass_plain"][0]
+    t0 = time.perf_counter()
+    a = compiled(x[0], cams)
+    seconds = time.perf_counter() - t0
+    p = plain(x[0], cams)
+    ok = a.valid & p.valid
+    worst = float((a.X[ok] - p.X[ok]).norm(dim=-1).max()) if bool(ok.any()) else float("nan")
+    same = bool(torch.equal(a.valid, p.valid))
+    return {"compile_s": seconds, "max_3d_distance": worst, "same_validity": same}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the read-out's outlier threshold, network pixels (default: a detector trained with "
                         "the defaults; 0: every view)")
     p.add_argument("--no-reference", action="store_true", help="leave out the earlier per-frame pipeline")
+    p.add_argument("--compile", action="store_true", help="also time the two passes through torch.compile")
     args = p.parse_args(argv)
 
     from s3k.detector import pick_device
@@ -138,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     device = pick_device(args.device)
     config, model, num_params = build_network(args)
     pipes = detectors(args, device)
+    check = two_pass_check(pipes)
+    compiled = compile_check(pipes) if args.compile else None
     runs = {name: (lambda _f, d=d, x=x, c=c: d(x, c)) for name, (d, x, c) in pipes.items()}
     if not args.no_reference and args.batch == 1:
         reference = model.fused().to(device=device, memory_format=torch.channels_last)
@@ -165,6 +221,16 @@ def main(argv: list[str] | None = None) -> int:
                                      "frames_per_s_rounds": [args.batch / statistics.median(r)
                                                              for r in per_round]}
         print(f"{name}: {med * 1e3:.2f} ms per call of {args.batch} frame(s) -> {fps:.1f} frames/s")
+    speedups = [statistics.median(a) / statistics.median(b)
+                for a, b in zip(rounds["two_pass_plain"], rounds["two_pass"])]
+    result["two_pass_speedup"] = statistics.median(speedups)
+    result["two_pass_check"] = check
+    if compiled is not None:
+        result["compiled"] = compiled
+        print(f"torch.compile: {compiled['compile_s']:.1f} s to compile both networks; 3D distance to "
+              f"the plain path {compiled['max_3d_distance']:.2e} world units")
+    print(f"two_pass_plain / two_pass time, median of rounds: {result['two_pass_speedup']:.3f}; largest 3D "
+          f"distance between them {check['max_3d_distance']:.2e} world units over {check['points']} points")
     if "reference" in rounds:
         ratios = [statistics.median(a) / statistics.median(b)
                   for a, b in zip(rounds["one_pass"], rounds["reference"])]

@@ -39,6 +39,7 @@ from torch import Tensor
 from s3k.choices import Arithmetic, Device, Precision
 from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
+from s3k.detector.frozen import FrozenNetwork
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network
 from s3k.errors import UserError
@@ -48,6 +49,7 @@ from s3k.geometry.warp import (
     crop_maps,
     metric_crop_boxes,
     region_around,
+    regions_around,
     resample_regions,
     resize_crop,
 )
@@ -221,10 +223,12 @@ class _Pass:
     """One network with its meta: images of the network's input size -> logits, on ``device``."""
 
     def __init__(self, net: Network, meta: DetectorMeta, device: torch.device,
-                 precision: Arithmetic = "float32"):
+                 precision: Arithmetic = "float32", fast: bool = True):
         if precision not in PRECISIONS:
             raise UserError(f"precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
         self.net, self.meta, self.device, self.precision = net, meta, device, precision
+        self.fast = fast
+        self.run = FrozenNetwork(net, device, fast)  # the same network, frozen where that is exact
 
     @property
     def size(self) -> tuple[int, int]:
@@ -239,6 +243,8 @@ class _Pass:
         region's view resized as the dataset resizes its images (:func:`s3k.geometry.warp.resize_crop` on
         the CPU, its area-averaging equivalent :func:`s3k.geometry.warp.resample_regions` elsewhere)."""
         w, h = self.size
+        if crops and self.fast and (batched := self._cut_crops(views, boxes)) is not None:
+            return batched, False
         out = []  # per camera (B, h, w, 3): stacked, the views of one frame lie together for the network
         as_they_are = True
         for c, v in enumerate(views):
@@ -263,12 +269,26 @@ class _Pass:
         x = torch.stack([o.float() if o.dtype != torch.float32 else o for o in out], 1).div_(255.0)
         return x.permute(0, 1, 4, 2, 3), as_they_are  # (B, C, 3, h, w), channels last in memory
 
+    def _cut_crops(self, views: list[Tensor], boxes: Tensor) -> Tensor | None:
+        """:meth:`cut`'s crops of every view in one resampling, from regions of one size
+        (:func:`s3k.geometry.warp.regions_around`); None where the views cannot share one."""
+        w, h = self.size
+        cut = regions_around(views, boxes, (w, h))
+        if cut is None:
+            return None
+        regions, moved = cut
+        B, C = regions.shape[:2]
+        x = regions.to(self.device, non_blocking=True).flatten(0, 1).permute(0, 3, 1, 2).float()
+        crops = crop_images(x, moved.flatten(0, 1).to(self.device, torch.float32), (w, h))
+        x = crops.round_().clamp_(0, 255).permute(0, 2, 3, 1).contiguous().div_(255.0)  # (B C, h, w, 3)
+        return x.reshape(B, C, h, w, 3).permute(0, 1, 4, 2, 3)  # (B, C, 3, h, w), channels last in memory
+
     def logits(self, x: Tensor) -> Tensor:
         """``(B, C, 3, h, w)`` -> ``(B, C, K, h', w')`` float32."""
         B, C = x.shape[:2]
         flat = x.flatten(0, 1)  # a view of the channels-last frames
         with autocast(self.device, self.precision):
-            logits = self.net(flat.contiguous(memory_format=torch.channels_last))
+            logits = self.run(flat.contiguous(memory_format=torch.channels_last))
         return logits.float().reshape(B, C, *logits.shape[1:])
 
 
@@ -290,7 +310,7 @@ class Detector:
 
     @staticmethod
     def load(run: str | Path, device: Device | torch.device = "auto", precision: Arithmetic = "float32",
-             checkpoint: str | None = None) -> Detector:
+             checkpoint: str | None = None, fast: bool = True) -> Detector:
         """The detector of a run folder of ``s3k train`` (one pass or ``--two-pass``), in eval mode, its
         BatchNorm folded into the convolutions (the same function, fewer operations).
 
@@ -299,13 +319,14 @@ class Detector:
             device: ``"auto"`` (the GPU when there is one), ``"cpu"``, ``"cuda"``, ...
             precision: the networks' precision: ``float32``, ``bfloat16`` or ``float16`` (autocast).
             checkpoint: a file in a one-pass run folder to load instead of its final model.
+            fast: the fast CPU path (:class:`OnePassDetector`); False: the plain one, for comparison.
         """
         dev = pick_device(device)
         if is_two_pass(run):
             rule, coarse, fine = read_two_pass(run)
-            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision),
-                                   OnePassDetector.from_run(fine, dev, precision), rule)
-        return OnePassDetector.from_run(run, dev, precision, checkpoint)
+            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision, fast=fast),
+                                   OnePassDetector.from_run(fine, dev, precision, fast=fast), rule)
+        return OnePassDetector.from_run(run, dev, precision, checkpoint, fast)
 
     @property
     def keypoints(self) -> list[str]:
@@ -363,22 +384,27 @@ class Detector:
 
 
 class OnePassDetector(Detector):
-    """One network on each view's region (:class:`Detector`)."""
+    """One network on each view's region (:class:`Detector`).
+
+    ``fast`` (the default): on the CPU in float32 the network runs as a frozen graph
+    (:class:`s3k.detector.frozen.FrozenNetwork`) and a refining pass cuts every view's crop in one
+    resampling; ``fast=False`` is the plain path, per module and per camera, for comparison (the same points
+    to well under 0.1 mm: tests/test_frozen_network.py, ``benchmarks/inference.py``)."""
 
     def __init__(self, net: Network, meta: DetectorMeta, device: Device | torch.device = "cpu",
-                 precision: Arithmetic = "float32") -> None:
+                 precision: Arithmetic = "float32", fast: bool = True) -> None:
         self.device = torch.device(device)
         self.meta = meta
-        self.pass_ = _Pass(net, meta, self.device, precision)
+        self.pass_ = _Pass(net, meta, self.device, precision, fast)
         self.readout = meta.readout_config()  # built once: its layout tensor is not rebuilt for every frame
 
     @classmethod
     def from_run(cls, run: str | Path, device: torch.device, precision: Arithmetic = "float32",
-                 checkpoint: str | None = None) -> OnePassDetector:
+                 checkpoint: str | None = None, fast: bool = True) -> OnePassDetector:
         model, meta = load_network(run, device, checkpoint)
         if isinstance(model, UNet):  # the fast form of the same network
             model = model.fused().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-        return cls(model, meta, device, precision)
+        return cls(model, meta, device, precision, fast)
 
     @property
     def input_size(self) -> tuple[int, int]:

@@ -42,7 +42,7 @@ from s3k.geometry.cameras import Cameras
 from s3k.geometry.projection import project
 
 __all__ = ["Box", "crop_images", "crop_maps", "crop_resize_matrix", "metric_crop_boxes", "model_image_size",
-           "region_around", "resample_regions", "resize_crop", "transform_points"]
+           "region_around", "regions_around", "resample_regions", "resize_crop", "transform_points"]
 
 Box = Sequence[float]
 
@@ -309,6 +309,38 @@ def region_around(v: Tensor, box: Tensor, size: Sequence[int]) -> tuple[Tensor, 
     return v[:, y0:y1, x0:x1], box - box.new_tensor([x0, y0, x0, y0])
 
 
+def regions_around(views: Sequence[Tensor], boxes: Tensor,
+                   size: Sequence[int]) -> tuple[Tensor, Tensor] | None:
+    """:func:`region_around` of every camera at once, the regions of one common size: ``(regions (B, C, H',
+    W', 3), boxes (B, C, 4))``, the boxes in their region's pixels, ready for one :func:`crop_images` call
+    over all views. None where the cameras' frames differ in size or a common region cannot start on the mip
+    block (then cut each camera with :func:`region_around`).
+
+    ``views``: ``C`` frames ``(B, H, W, 3)``; ``boxes (B, C, 4)``; ``size``: the output ``(w, h)``. Each
+    camera's region starts where :func:`region_around`'s does (moved back only as far as the frame's far edge
+    needs) and every region takes the largest one's size, so each sees the pixels it would in the whole frame.
+    """
+    if len({tuple(v.shape) for v in views}) != 1:
+        return None
+    H, W = int(views[0].shape[1]), int(views[0].shape[2])
+    shrink = float(torch.maximum((boxes[..., 2] - boxes[..., 0]) / size[0],
+                                 (boxes[..., 3] - boxes[..., 1]) / size[1]).max())
+    align = 2 ** (max(0, math.floor(math.log2(max(shrink, 1.0)))) + 1)
+    lo = (torch.floor((boxes[..., :2].amin(dim=0) - align) / align) * align).clamp_min(0)  # (C, 2)
+    hi = torch.minimum(torch.ceil((boxes[..., 2:].amax(dim=0) + align) / align) * align,
+                       boxes.new_tensor([W, H]))
+    extent = (hi - lo).amax(dim=0)  # (2,) the common region's width and height
+    if bool((extent <= 0).any()):
+        return None
+    Wr, Hr = min(W, int(extent[0])), min(H, int(extent[1]))
+    starts = torch.minimum(lo, boxes.new_tensor([W - Wr, H - Hr])).to(torch.int64).tolist()
+    if any(x % align or y % align for x, y in starts):  # moved back off the mip block
+        return None
+    regions = torch.stack([v[:, y:y + Hr, x:x + Wr] for v, (x, y) in zip(views, starts)], 1)
+    origin = boxes.new_tensor(starts).repeat(1, 2)  # (C, 4)
+    return regions, boxes - origin
+
+
 def crop_images(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tensor:
     """Cut one box from each image and resample it to ``out_size`` (bilinear, zeros outside the image).
 
@@ -337,7 +369,7 @@ def crop_images(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tenso
     # no level below 2 pixels on a side
     top = max(0, int(torch.log2(torch.tensor(float(min(images.shape[-2:])))).floor()) - 1)
     levels = levels.clamp(max=top)
-    out = images.new_zeros(images.shape[0], images.shape[1], h, w)
+    out = None
     t_u = (torch.arange(w, dtype=images.dtype, device=images.device) + 0.5) / w
     t_v = (torch.arange(h, dtype=images.dtype, device=images.device) + 0.5) / h
     level_image = images
@@ -347,16 +379,22 @@ def crop_images(images: Tensor, boxes: Tensor, out_size: Sequence[int]) -> Tenso
         pick = levels == level
         if not bool(pick.any()):
             continue
-        b = boxes[pick] / 2.0**level  # edge coordinates at this level
+        whole = bool(pick.all())  # every image at this level: no masked copies
+        b = (boxes if whole else boxes[pick]) / 2.0**level  # edge coordinates at this level
         Hl, Wl = level_image.shape[-2:]
         # crop pixel centres in level edge coordinates, then grid_sample's [-1, 1] (align_corners=False:
         # edge coordinate e is normalized 2 e / W - 1)
         gx = 2 * (b[:, 0:1] + t_u[None] * (b[:, 2:3] - b[:, 0:1])) / Wl - 1  # (n, w)
         gy = 2 * (b[:, 1:2] + t_v[None] * (b[:, 3:4] - b[:, 1:2])) / Hl - 1  # (n, h)
         grid = torch.stack(torch.broadcast_tensors(gx[:, None, :], gy[:, :, None]), -1)  # (n, h, w, 2)
-        out[pick] = F.grid_sample(level_image[pick], grid, mode="bilinear", padding_mode="zeros",
-                                  align_corners=False)
-    return out
+        sampled = F.grid_sample(level_image if whole else level_image[pick], grid, mode="bilinear",
+                                padding_mode="zeros", align_corners=False)
+        if whole:
+            return sampled
+        if out is None:
+            out = images.new_zeros(images.shape[0], images.shape[1], h, w)
+        out[pick] = sampled
+    return out if out is not None else images.new_zeros(images.shape[0], images.shape[1], h, w)
 
 
 def _area_weights(start: Tensor, scale: Tensor, n_out: int, n_in: int) -> Tensor:

@@ -96,7 +96,9 @@ def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, devic
     if store is None or len(store) == 0:
         return record
     net.eval()
-    detector = OnePassDetector(net, meta, device)  # the network as it is now, on the store's frames
+    # the network as it is now, on the store's frames; the plain path: a frozen graph would be traced anew
+    # at every validation
+    detector = OnePassDetector(net, meta, device, fast=False)
     detector.check_frames = False  # a refining pass's crops: their principal points lie anywhere
     try:
         metrics, arrays = evaluate_store(detector, store, 16, meta.units, keep=1)

@@ -1,0 +1,77 @@
+"""A trained detector's 3D points on a dataset's frames, through two paths of ``s3k.Detector``: the fast CPU
+path (the default) against the plain path (``fast=False``), or float32 against another ``--precision``.
+
+Prints the distance between the two paths' points in millimetres (median, 95th percentile, largest, over
+the points both find) and whether they find the same points; the last line is one JSON object with the
+machine. The inference benchmark (``benchmarks/inference.py``) makes the same comparison on an untrained
+network and noise; this one on what a user runs.
+
+Example::
+
+    python benchmarks/same_points.py --run runs/box --data data/box384 --frames 40
+    python benchmarks/same_points.py --run runs/box --data data/box384 --precision bfloat16
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks.common import emit, git_revision  # noqa: E402
+
+MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", required=True, help="a run folder of s3k train (one pass or --two-pass)")
+    p.add_argument("--data", required=True, help="a dataset folder of frames at the run's frame size")
+    p.add_argument("--split", default="test", help="frames of this split (default test)")
+    p.add_argument("--frames", type=int, default=40, help="at most this many frames (default 40)")
+    p.add_argument("--precision", default="float32", choices=("float32", "bfloat16", "float16"),
+                   help="float32 (default): fast path against plain path; else this precision against "
+                        "float32 on the fast path")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = p.parse_args(argv)
+
+    from s3k.data import Dataset
+    from s3k.detector import Detector
+
+    torch.set_num_threads(args.threads)
+    ds = Dataset.open(args.data)
+    ids = ds.frames(args.split)[: args.frames]
+    images, cams = ds.images(ids), ds.calibration(ids, np.float64)
+    if args.precision == "float32":
+        a, b = Detector.load(args.run, "cpu"), Detector.load(args.run, "cpu", fast=False)
+        what = "fast path against plain path, float32"
+    else:
+        a, b = Detector.load(args.run, "cpu", args.precision), Detector.load(args.run, "cpu")
+        what = f"{args.precision} against float32, fast path"
+    dist, same = [], True
+    for i in range(len(ids)):  # one frame at a time, as a stream runs
+        c = cams[i] if cams.shape[0] == len(ids) else cams
+        x, y = a(images[i], c), b(images[i], c)
+        same &= bool(torch.equal(x.valid, y.valid))
+        ok = x.valid & y.valid
+        dist.append((x.X[ok] - y.X[ok]).norm(dim=-1))
+    d = torch.cat(dist).double() * MM.get(ds.units, 1.0)
+    result = {"command": shlex.join(["python", "benchmarks/same_points.py",
+                                     *(sys.argv[1:] if argv is None else argv)]),
+              "git_revision": git_revision(), "benchmark": "same_points", "what": what,
+              "frames": len(ids), "points": len(d), "same_validity": same, "units": ds.units,
+              "median_mm": float(d.median()), "p95_mm": float(d.quantile(0.95)), "max_mm": float(d.max())}
+    print(f"{what}: {len(d)} points of {len(ids)} frames, 3D distance median {result['median_mm']:.2e} mm, "
+          f"95% {result['p95_mm']:.2e}, largest {result['max_mm']:.2e}; same points found: {same}")
+    emit(result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
