@@ -275,7 +275,8 @@ def check_calibration(
             rest = active.copy()
             rest[worst] = False
             loo_rest = leave_one_out_residuals(cams, uv, mask, rest)
-            base = float(np.nanmedian([_stats(loo_rest[:, c])[1] for c in np.flatnonzero(rest)]))
+            others = [m for c in np.flatnonzero(rest) if np.isfinite(m := _stats(loo_rest[:, c])[1])]
+            base = float(np.median(others)) if others else float("nan")  # nan: judged against min_px alone
             value = judged[worst]
             what = f"LOO median {value:.2f} px vs the others' LOO without it {base:.2f} px"
         else:
