@@ -5,6 +5,7 @@ plain path gives: the same logits, the same crops up to a rounding flip, the sam
 from __future__ import annotations
 
 import torch
+from helpers.tiny_detector import trained_like_batch_norm
 from test_detector import _rig
 
 from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
@@ -17,13 +18,7 @@ def _trained_like(size: int, seed: int) -> tuple[torch.nn.Module, DetectorMeta]:
     """A fused U-Net whose BatchNorm statistics are not the identity (as after training)."""
     torch.manual_seed(seed)
     config = UNetConfig(channels=(8, 16, 16), res_blocks=1)
-    net = UNet(3, config)
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.3, 0.3)
-            m.running_var.uniform_(0.5, 2.0)
-            m.weight.data.uniform_(0.5, 1.5)
-            m.bias.data.uniform_(-0.2, 0.2)
+    net = trained_like_batch_norm(UNet(3, config), var=(0.5, 2.0))
     meta = DetectorMeta(["a", "b", "c"], [], (size, size), config.stride, 2.0, config.to_dict(), units="m",
                         outlier_px=6.0)
     return net.eval().fused().to(memory_format=torch.channels_last), meta

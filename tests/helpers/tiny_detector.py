@@ -9,6 +9,18 @@ import torch
 from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
 
 
+def trained_like_batch_norm(net: torch.nn.Module, var: tuple[float, float] = (0.3, 3.0)) -> torch.nn.Module:
+    """Give ``net``'s BatchNorm layers statistics and affine weights far from the identity (as after
+    training), so that folding them into the convolutions and eval-mode inference are exercised."""
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3)
+            m.running_var.uniform_(*var)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    return net
+
+
 def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = None,
              head_std: float | None = None) -> Path:
     """Write ``path/config.json`` and ``path/model.pt`` with the network of ``meta`` drawn from ``seed``.
@@ -18,13 +30,7 @@ def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = No
     for heatmaps peaked like a trained model's.
     """
     torch.manual_seed(seed)
-    net = build_model(meta)
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.3, 0.3)
-            m.running_var.uniform_(0.3, 3.0)
-            m.weight.data.uniform_(0.5, 1.5)
-            m.bias.data.uniform_(-0.2, 0.2)
+    net = trained_like_batch_norm(build_model(meta))
     if head_std is not None:
         net.head.weight.data.normal_(0, head_std)
     path.mkdir(parents=True)
