@@ -5,8 +5,10 @@ A :class:`s3k.model.UNet` runs some sixty modules per call; on the CPU at batch 
 their Python dispatch is a large share of a two-pass frame. :class:`FrozenNetwork` traces the network once per
 input shape (the batch of views times the pass's fixed input size) and freezes it
 (:func:`torch.jit.freeze`: weights become constants, no module attributes are looked up per call). Its
-outputs equal the eager network's (the same ATen operators in the same order); tests/test_frozen_network.py
-and ``benchmarks/inference.py --check`` compare them.
+outputs equal the eager network's to float rounding (the same ATen operators in the same order, the weights
+folded as constants: a few units in the last place of float32); every call of one input shape, the first
+included, goes through the same graph, so the same input gives the same output bit for bit.
+tests/test_frozen_network.py and ``benchmarks/inference.py --check`` compare them.
 
 It is used where it is exact and cheap: s3k's own :class:`s3k.model.UNet` on the CPU, float32 (no autocast),
 without gradients; each new graph is checked once against the eager network on the input that made it.
@@ -52,15 +54,16 @@ class FrozenNetwork:
             return self.net(x)
         key = (tuple(x.shape), x.is_contiguous(memory_format=torch.channels_last))
         module = self.frozen.get(key)
-        if module is None:  # a new shape: the eager answer, and a graph checked against it
+        if module is None:  # a new shape: a graph checked against the eager answer, then its own answer
             out = self.net(x)
-            self._trace(x, key, out)
-            return out
+            module = self._trace(x, key, out)
+            if module is None:
+                return out
         return module(x)
 
-    def _trace(self, x: Tensor, key: tuple, out: Tensor) -> None:
-        """Keep the frozen trace of ``net`` on inputs like ``x`` if it gives ``out`` (the eager network's
-        logits of ``x``); else, or if tracing fails, run eagerly from then on."""
+    def _trace(self, x: Tensor, key: tuple, out: Tensor) -> torch.jit.ScriptModule | None:
+        """Keep and return the frozen trace of ``net`` on inputs like ``x`` if it gives ``out`` (the eager
+        network's logits of ``x``); else, or if tracing fails, run eagerly from then on (None)."""
         assert isinstance(self.net, nn.Module)
         if len(self.frozen) >= MAX_SHAPES:
             self.frozen.pop(next(iter(self.frozen)))
@@ -77,5 +80,6 @@ class FrozenNetwork:
                 same = False
         if same:
             self.frozen[key] = module
-        else:
-            self.eager = True
+            return module
+        self.eager = True
+        return None
