@@ -26,9 +26,11 @@ from s3k.readout.rigid import (
 from s3k.readout.views import (
     DTYPE,
     moments,
-    reject_outliers,
+    outliers_and_points,
     select_views,
     triangulate,
+    triangulate_views,
+    view_rays,
     window_cells,
 )
 
@@ -166,9 +168,12 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
         # an affine pixel map: K' = M K
         views = _Views(cams, Cameras(maps @ cams.K, cams.dist, cams.R, cams.t), uv, _affine_inverse(maps))
     uv = views.in_cameras(views.net_uv)
-    if config.max_residual_px is not None:
-        used = reject_outliers(views.net_cams, views.net_uv, weights, used, config.max_residual_px)
-    X, valid = triangulate(cams, uv, weights, used)
+    rays = view_rays(cams, uv, used)  # cast once: the outlier rounds and the points differ in weights only
+    if config.max_residual_px is not None:  # residuals in network pixels; points in the cameras' own
+        used, X, valid = outliers_and_points(views.net_cams, views.net_uv, weights, used,
+                                             config.max_residual_px, rays=rays)
+    else:
+        X, valid = triangulate_views(rays, weights, used)
     if config.rigid:
         X, valid, uv, used = _rigid(config, views, probs, weights, used, X, valid, stride, cells, prior)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))

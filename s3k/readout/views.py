@@ -8,11 +8,11 @@ import math
 import torch
 from torch import Tensor
 
-from s3k.geometry import Cameras, project, triangulate_pixels
+from s3k.geometry import Cameras, pixel_rays, project, triangulate_rays
 from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 
-__all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "moments", "reject_outliers", "select_views",
-           "triangulate", "window_cells"]
+__all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "Rays", "moments", "outliers_and_points",
+           "reject_outliers", "select_views", "triangulate", "triangulate_views", "view_rays", "window_cells"]
 
 DTYPE = torch.float64
 """Precision of the read-out (see the module docstring)."""
@@ -83,14 +83,37 @@ def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tup
         ``(X (B, K, 3), valid (B, K))``: float64 points, zeros where invalid (fewer than two used views,
         near-parallel rays).
     """
+    return triangulate_views(view_rays(cams, uv, used), weights, used)
+
+
+Rays = tuple[Tensor, Tensor]
+"""``(origins, directions)`` ``(B, K, C, 3)`` float64 of every view's detection (:func:`view_rays`)."""
+
+
+def view_rays(cams: Cameras, uv: Tensor, used: Tensor) -> Rays:
+    """The rays of the detections ``uv (B, C, K, 2)`` in ``cams``, float64, laid out for
+    :func:`triangulate_views`; a view not ``used`` gets the ray of a harmless pixel (NaN must not reach the
+    solver: its weight is zero there). The rays do not depend on the weights, so one set serves every
+    triangulation of the same detections (:func:`reject_outliers`' rounds and the final one)."""
     if cams.dtype != DTYPE or cams.K.device != uv.device:
         cams = cams.to(device=uv.device, dtype=DTYPE)
-    uv, w = uv.to(DTYPE), weights.to(DTYPE)
+    uv = uv.to(DTYPE)
     if not bool(used.all()):  # the common case, every view used, skips the masking
-        # Unused views get a harmless pixel and zero weight: NaN must not reach the solver.
-        zero = torch.zeros((), dtype=DTYPE, device=uv.device)
-        uv, w = torch.where(used[..., None], uv, zero), torch.where(used, w, zero)
-    X, valid = triangulate_pixels(cams, uv, w)
+        uv = torch.where(used[..., None], uv, torch.zeros((), dtype=DTYPE, device=uv.device))
+    lead = torch.broadcast_shapes(uv.shape[:-2], cams.shape)
+    o, d = pixel_rays(cams, uv)
+    o, d = o.expand(lead + o.shape[-2:]), d.expand(lead + d.shape[-2:])
+    return o.transpose(-2, -3), d.transpose(-2, -3)
+
+
+def triangulate_views(rays: Rays, weights: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`triangulate` of the views' rays (:func:`view_rays`): the used views, weighted, the others
+    with weight zero; ``(X (B, K, 3), valid (B, K))``."""
+    w = weights.to(DTYPE)
+    if not bool(used.all()):
+        w = torch.where(used, w, torch.zeros((), dtype=DTYPE, device=w.device))
+    o, d = rays
+    X, valid = triangulate_rays(o, d, w.expand(used.shape).transpose(-1, -2))
     return X, valid & (used.sum(dim=1) >= 2)
 
 
@@ -112,13 +135,28 @@ def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, ma
     Returns:
         ``used (B, C, K)`` with the outlying views removed.
     """
+    cams = cams.to(device=uv.device, dtype=DTYPE)  # the read-out's precision once, not per round
+    return outliers_and_points(cams, uv, weights, used, max_residual_px, min_views)[0]
+
+
+def outliers_and_points(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, max_residual_px: float,
+                        min_views: int = 2, rays: Rays | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`reject_outliers` and the triangulation of the views it keeps: ``(used, X, valid)`` as
+    :func:`triangulate` gives them for the returned ``used``.
+
+    The rays are cast once for every round (only the weights change between rounds), and the last round's
+    points are the answer when it dropped nothing. ``rays``: the views' rays to triangulate instead of those
+    of ``uv`` in ``cams`` (:func:`view_rays`; e.g. the same detections in another image's pixels, whose
+    points are the same), ``cams``/``uv`` then serve for the residuals only.
+    """
     C = uv.shape[1]
-    used = used.clone()
-    # the read-out's precision once, not per round
-    cams = cams.to(device=uv.device, dtype=DTYPE)
+    if cams.dtype != DTYPE or cams.K.device != uv.device:
+        cams = cams.to(device=uv.device, dtype=DTYPE)
     uv, weights = uv.to(DTYPE), weights.to(DTYPE)
+    if rays is None:
+        rays = view_rays(cams, uv, used)
+    X, valid = triangulate_views(rays, weights, used)
     for _ in range(max(0, C - min_views)):
-        X, valid = triangulate(cams, uv, weights, used)
         reproj, _ = project(cams, X[:, None])
         residual = torch.linalg.vector_norm(reproj - uv, dim=-1)  # (B, C, K)
         residual = torch.where(used & valid[:, None], residual, torch.full_like(residual, -1.0))
@@ -128,4 +166,5 @@ def reject_outliers(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor, ma
             break
         hit = torch.nn.functional.one_hot(c_worst, C).permute(0, 2, 1).bool() & drop[:, None]
         used = used & ~hit
-    return used
+        X, valid = triangulate_views(rays, weights, used)
+    return used, X, valid
