@@ -260,13 +260,24 @@ def peak_window_mean(probs: Tensor, stride: int, radius: int, peak: Tensor | Non
     h, w = probs.shape[-2:]
     if peak is None:
         peak = probs.flatten(-2).argmax(dim=-1)  # (*)
-    rows = torch.arange(h, device=probs.device)
-    cols = torch.arange(w, device=probs.device)
-    in_rows = (rows - torch.div(peak, w, rounding_mode="floor")[..., None]).abs() <= radius  # (*, h)
-    in_cols = (cols - (peak % w)[..., None]).abs() <= radius  # (*, w)
-    windowed = probs * (in_rows[..., :, None] & in_cols[..., None, :])
-    windowed = windowed / windowed.sum(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(probs.dtype).tiny)
-    return heatmap_moments(windowed, stride)[0]
+    # Only the window's cells are read: gathered by index (cells past the heatmap's edge clamped onto it and
+    # given zero weight), the moments of the (2 radius + 1)^2 window instead of the whole masked heatmap.
+    lead = probs.shape[:-2]
+    flat = probs.reshape(-1, h * w)
+    peak = peak.reshape(-1)
+    offsets = torch.arange(-radius, radius + 1, device=probs.device)
+    rows = torch.div(peak, w, rounding_mode="floor")[:, None] + offsets  # (N, S)
+    cols = (peak % w)[:, None] + offsets
+    inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]  # (N, S, S)
+    rows, cols = rows.clamp(0, h - 1), cols.clamp(0, w - 1)
+    side = offsets.numel()
+    window = flat.gather(1, (rows[:, :, None] * w + cols[:, None, :]).reshape(-1, side * side))
+    window = window.reshape(-1, side, side) * inside
+    window = window / window.sum(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(probs.dtype).tiny)
+    cu, cv = cell_centres(h, w, stride, device=probs.device, dtype=probs.dtype)
+    mu = (window.sum(dim=-2) * cu[cols]).sum(dim=-1)
+    mv = (window.sum(dim=-1) * cv[rows]).sum(dim=-1)
+    return torch.stack((mu, mv), dim=-1).reshape(*lead, 2)
 
 
 def confidence_weight(var: Tensor, sigma: float) -> Tensor:

@@ -622,3 +622,19 @@ def test_triangulate_rays_fused_matches_eager():
         Xf, valid_f = triangulate_rays(*args, fused=True)
         assert torch.equal(valid, valid_f)
         torch.testing.assert_close(Xf, X, atol=1e-4 if dtype == torch.float32 else 1e-10, rtol=0)
+
+
+def test_closed_form_inverse_of_intrinsics_matches_lapack():
+    """The rays' K^-1 in closed form: LAPACK's inverse to rounding, for pinhole K, skewed and cropped ones
+    (K' = M K) and general 3x3 matrices, batched."""
+    from s3k.geometry.projection import _inverse_3x3
+
+    g = torch.Generator().manual_seed(0)
+    K = torch.tensor([[500.0, 0.0, 319.5], [0.0, 480.0, 239.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    M = torch.tensor([[0.4, 0.01, -30.0], [0.0, 0.45, 12.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64)
+    general = torch.randn(2, 3, 3, 3, generator=g, dtype=torch.float64) + 3 * eye
+    for A in (K, M @ K, general):
+        torch.testing.assert_close(_inverse_3x3(A), torch.linalg.inv(A), rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(A @ _inverse_3x3(A), torch.eye(3, dtype=torch.float64).expand_as(A),
+                                   rtol=0, atol=1e-12)

@@ -231,3 +231,29 @@ def test_peak_window_mean_removes_the_pull_of_spread_probability():
     torch.testing.assert_close(peak_window_mean(two, 2, 5), uv[1], atol=5e-3, rtol=0)
     with pytest.raises(ValueError, match="radius"):
         peak_window_mean(target, 2, 0)
+
+
+def test_peak_window_mean_reads_the_window_as_the_masked_heatmap_does():
+    """The window is gathered by index; its mean equals that of the whole heatmap with every cell outside
+    the window set to zero, at the edges (the window cut by the border) and for a window wider than the
+    heatmap, with and without a given peak."""
+    from s3k.heatmaps import peak_window_mean
+
+    def masked(probs, stride, radius, peak):
+        h, w = probs.shape[-2:]
+        rows, cols = torch.arange(h), torch.arange(w)
+        in_rows = (rows - torch.div(peak, w, rounding_mode="floor")[..., None]).abs() <= radius
+        in_cols = (cols - (peak % w)[..., None]).abs() <= radius
+        win = probs * (in_rows[..., :, None] & in_cols[..., None, :])
+        return heatmap_moments(win / win.sum(dim=(-2, -1), keepdim=True), stride)[0]
+
+    g = torch.Generator().manual_seed(3)
+    probs = spatial_softmax(torch.randn(2, 3, 12, 10, generator=g, dtype=torch.float64) * 2)
+    corner = torch.tensor([[0, 9, 119], [110, 55, 0]])  # top-left, top-right, bottom-right corners
+    for radius in (1, 3, 20):
+        for peak in (None, corner):
+            want = masked(probs, 2, radius, probs.flatten(-2).argmax(-1) if peak is None else peak)
+            got = peak_window_mean(probs, 2, radius, peak)
+            assert got.shape == (2, 3, 2)
+            torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    assert float((peak_window_mean(probs, 2, 1) - peak_window_mean(probs, 2, 20)).abs().max()) > 0.1

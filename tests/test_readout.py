@@ -466,3 +466,55 @@ def test_a_layout_prior_tells_a_keypoint_from_its_mirror_image():
     held = read_out(confused, cams, 1, sigma, config=ReadoutConfig(layout=ref, layout_tol=0.1),
                     prior=LayoutPrior(coarse, cams, 1))
     assert float((held.X - X).norm(dim=-1).max()) < 1e-3
+
+
+def test_outlier_rounds_on_rays_cast_once_match_triangulating_each_round():
+    """The outlier rounds cast the views' rays once and change only the weights: the views they keep and
+    the points of those views are those of triangulating the detections anew in every round."""
+    from s3k.readout.views import outliers_and_points, reject_outliers, view_rays
+
+    g = torch.Generator().manual_seed(4)
+    B, C, K = 3, 4, 5
+    cams = Cameras(torch.tensor([[300.0, 0, 63.5], [0, 300.0, 63.5], [0, 0, 1]], dtype=torch.float64)
+                   .expand(C, 3, 3), torch.randn(C, 5, generator=g, dtype=torch.float64) * 0.01,
+                   *_ring_rotations_and_translations(C))
+    X = torch.randn(B, K, 3, generator=g, dtype=torch.float64) * 0.1
+    uv, _ = project(cams, X[:, None])  # (B, C, K, 2)
+    uv = uv + torch.randn(uv.shape, generator=g, dtype=torch.float64) * 0.5
+    uv[0, 1, 0] += 40.0  # one view on the wrong object
+    uv[1, 2, 3] = float("nan")  # one view missing
+    weights = torch.rand(B, C, K, generator=g, dtype=torch.float64) * 0.9 + 0.05
+    used = select_views(uv, weights)
+
+    def each_round(used):  # the rounds as written before: triangulate the used detections anew each time
+        for _ in range(C - 2):
+            Xr, valid = triangulate(cams, uv, weights, used)
+            reproj, _ = project(cams, Xr[:, None])
+            res = (reproj - uv).norm(dim=-1)
+            res = torch.where(used & valid[:, None], res, torch.full_like(weights, -1.0))
+            worst, c = res.max(dim=1)
+            drop = (worst > 3.0) & (used.sum(1) > 2)
+            if not bool(drop.any()):
+                break
+            used = used & ~(torch.nn.functional.one_hot(c, C).permute(0, 2, 1).bool() & drop[:, None])
+        return used
+
+    want_used = each_round(used)
+    assert int(used.sum() - want_used.sum()) >= 1  # the wrong view is dropped
+    want_X, want_valid = triangulate(cams, uv, weights, want_used)
+    assert torch.equal(reject_outliers(cams, uv, weights, used, 3.0), want_used)
+    got_used, got_X, got_valid = outliers_and_points(cams, uv, weights, used, 3.0,
+                                                     rays=view_rays(cams, uv, used))
+    assert torch.equal(got_used, want_used) and torch.equal(got_valid, want_valid)
+    torch.testing.assert_close(got_X, want_X, rtol=0, atol=1e-12)
+
+
+def _ring_rotations_and_translations(C: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(R (C, 3, 3), t (C, 3))`` of cameras on a ring 1 unit from the origin, looking at it."""
+    az = torch.linspace(0, 2 * torch.pi, C + 1, dtype=torch.float64)[:-1]
+    pos = torch.stack([az.cos() * 0.9, az.sin() * 0.9, torch.full_like(az, 0.45)], -1)
+    z = -pos / pos.norm(dim=-1, keepdim=True)
+    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(z))
+    x = x / x.norm(dim=-1, keepdim=True)
+    R = torch.stack([x, torch.linalg.cross(z, x), z], dim=-2)
+    return R, -(R @ pos[..., None])[..., 0]

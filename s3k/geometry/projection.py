@@ -28,8 +28,17 @@ def _apply_K(K: Tensor, xy: Tensor) -> Tensor:
 
 def _apply_K_inv(K: Tensor, uv: Tensor) -> Tensor:
     """Normalized coords from pixels: ``K^-1 [u, v, 1]`` (general inverse), dehomogenized."""
-    Kinv = torch.linalg.inv(K)
-    return _apply_K(Kinv, uv)
+    return _apply_K(_inverse_3x3(K), uv)
+
+
+def _inverse_3x3(K: Tensor) -> Tensor:
+    """The inverse of ``(*, 3, 3)`` matrices in closed form (adjugate over determinant): a batched LAPACK
+    call for a few 3x3 matrices costs more than the rest of a frame's rays."""
+    r0, r1, r2 = K.unbind(-2)
+    cross = torch.linalg.cross
+    adj = torch.stack([cross(r1, r2), cross(r2, r0), cross(r0, r1)], -1)  # columns: K @ adj = det I
+    det = (r0 * adj[..., :, 0]).sum(-1)
+    return adj / det[..., None, None]
 
 
 def project(cams: Cameras, X: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
