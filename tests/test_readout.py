@@ -468,13 +468,16 @@ def test_a_layout_prior_tells_a_keypoint_from_its_mirror_image():
     assert float((held.X - X).norm(dim=-1).max()) < 1e-3
 
 
-def test_outlier_rounds_on_rays_cast_once_match_triangulating_each_round():
+@pytest.mark.parametrize("B", [3, 600])
+def test_outlier_rounds_on_rays_cast_once_match_triangulating_each_round(B):
     """The outlier rounds cast the views' rays once and change only the weights: the views they keep and
-    the points of those views are those of triangulating the detections anew in every round."""
+    the points of those views are those of triangulating the detections anew in every round (a few points,
+    solved with the rays' projectors, and thousands, solved in the large-batch layout)."""
+    from s3k.geometry import triangulate_pixels
     from s3k.readout.views import outliers_and_points, reject_outliers, view_rays
 
     g = torch.Generator().manual_seed(4)
-    B, C, K = 3, 4, 5
+    C, K = 4, 5
     cams = Cameras(torch.tensor([[300.0, 0, 63.5], [0, 300.0, 63.5], [0, 0, 1]], dtype=torch.float64)
                    .expand(C, 3, 3), torch.randn(C, 5, generator=g, dtype=torch.float64) * 0.01,
                    *_ring_rotations_and_translations(C))
@@ -486,9 +489,15 @@ def test_outlier_rounds_on_rays_cast_once_match_triangulating_each_round():
     weights = torch.rand(B, C, K, generator=g, dtype=torch.float64) * 0.9 + 0.05
     used = select_views(uv, weights)
 
+    def anew(used):  # the used detections' pixels through s3k.geometry, unused views at pixel 0, weight 0
+        zero = torch.zeros((), dtype=torch.float64)
+        X, valid = triangulate_pixels(cams, torch.where(used[..., None], uv, zero),
+                                      torch.where(used, weights, zero))
+        return X, valid & (used.sum(dim=1) >= 2)
+
     def each_round(used):  # the rounds as written before: triangulate the used detections anew each time
         for _ in range(C - 2):
-            Xr, valid = triangulate(cams, uv, weights, used)
+            Xr, valid = anew(used)
             reproj, _ = project(cams, Xr[:, None])
             res = (reproj - uv).norm(dim=-1)
             res = torch.where(used & valid[:, None], res, torch.full_like(weights, -1.0))
@@ -501,7 +510,10 @@ def test_outlier_rounds_on_rays_cast_once_match_triangulating_each_round():
 
     want_used = each_round(used)
     assert int(used.sum() - want_used.sum()) >= 1  # the wrong view is dropped
-    want_X, want_valid = triangulate(cams, uv, weights, want_used)
+    want_X, want_valid = anew(want_used)
+    X_views, valid_views = triangulate(cams, uv, weights, want_used)
+    assert torch.equal(valid_views, want_valid)
+    torch.testing.assert_close(X_views, want_X, rtol=0, atol=1e-12)
     assert torch.equal(reject_outliers(cams, uv, weights, used, 3.0), want_used)
     got_used, got_X, got_valid = outliers_and_points(cams, uv, weights, used, 3.0,
                                                      rays=view_rays(cams, uv, used))

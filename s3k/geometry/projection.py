@@ -69,8 +69,10 @@ def project(cams: Cameras, X: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor
     depth = Xc[..., 2]
     xy = Xc[..., :2] / depth.clamp(min=eps)[..., None]
     xy = xy.clamp(-_MAX_NORMALIZED, _MAX_NORMALIZED)
-    xd, yd = distort_terms(xy[..., 0], xy[..., 1], cams.dist[..., None, :])
-    uv = _apply_K(cams.K, torch.stack([xd, yd], dim=-1)).clamp(-_MAX_PIXELS, _MAX_PIXELS)
+    if cams.dist.device.type != "cpu" or _needs_undistort(cams.dist):  # zero terms leave xy as it is
+        xd, yd = distort_terms(xy[..., 0], xy[..., 1], cams.dist[..., None, :])
+        xy = torch.stack([xd, yd], dim=-1)
+    uv = _apply_K(cams.K, xy).clamp(-_MAX_PIXELS, _MAX_PIXELS)
     return uv, depth
 
 

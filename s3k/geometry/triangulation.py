@@ -205,9 +205,24 @@ def _solve_small(
 
     Few points cost per op, not per byte: this form needs about a third of the ops of the others.
     """
+    return solve_projected(o, ray_projectors(d), w, min_weight, min_rel_det)
+
+
+def ray_projectors(d: Tensor) -> Tensor:
+    """``I - d^ d^T`` (*, V, 3, 3) of directions (*, V, 3) (``d^ = d / |d|``): the part of the small-batch
+    solve that does not depend on the weights, for solving the same rays under several weightings
+    (:func:`solve_projected`)."""
     d = d * (d * d).sum(-1, keepdim=True).clamp(min=torch.finfo(d.dtype).tiny).rsqrt()
     eye = torch.eye(3, dtype=d.dtype, device=d.device)
-    wP = w[..., None, None] * (eye - d[..., :, None] * d[..., None, :])  # (*, V, 3, 3)
+    return eye - d[..., :, None] * d[..., None, :]
+
+
+def solve_projected(
+    o: Tensor, P: Tensor, w: Tensor, min_weight: float = 1e-6, min_rel_det: float = 1e-5
+) -> tuple[Tensor, Tensor]:
+    """`triangulate_rays` of origins (*, V, 3), projectors (*, V, 3, 3) (:func:`ray_projectors`) and weights
+    (*, V), for few points (the same arithmetic as its small-batch form): ``(X (*, 3), valid (*))``."""
+    wP = w[..., None, None] * P  # (*, V, 3, 3)
     A = wP.sum(-3)
     b = (wP @ o[..., None]).sum(-3)  # (*, 3, 1)
     r0, r1, r2 = A.unbind(-2)

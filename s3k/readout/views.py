@@ -4,11 +4,14 @@ views and the confidence-weighted triangulation (the package docstring tells the
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, pixel_rays, project, triangulate_rays
+from s3k.geometry.triangulation import _PLANAR_MIN as SMALL_BATCH
+from s3k.geometry.triangulation import ray_projectors, solve_projected
 from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 
 __all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "Rays", "moments", "outliers_and_points",
@@ -56,8 +59,8 @@ def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tenso
     """
     probs = spatial_softmax(logits.to(DTYPE))
     mean_uv, var = heatmap_moments(probs, stride)
-    if window:
-        mean_uv = peak_window_mean(probs, stride, window)
+    if window:  # the softmax keeps the order of the logits: their argmax is the peak, read in half the bytes
+        mean_uv = peak_window_mean(probs, stride, window, logits.flatten(-2).argmax(dim=-1))
     return probs, mean_uv, var
 
 
@@ -86,8 +89,14 @@ def triangulate(cams: Cameras, uv: Tensor, weights: Tensor, used: Tensor) -> tup
     return triangulate_views(view_rays(cams, uv, used), weights, used)
 
 
-Rays = tuple[Tensor, Tensor]
-"""``(origins, directions)`` ``(B, K, C, 3)`` float64 of every view's detection (:func:`view_rays`)."""
+class Rays(NamedTuple):
+    """The rays of every view's detection (:func:`view_rays`), float64 ``(B, K, C, ...)``: ``origins`` and
+    ``directions`` ``(..., 3)``, and for batches the small-batch solve takes, their ``projectors`` ``(..., 3,
+    3)`` (:func:`s3k.geometry.triangulation.ray_projectors`), else None."""
+
+    origins: Tensor
+    directions: Tensor
+    projectors: Tensor | None
 
 
 def view_rays(cams: Cameras, uv: Tensor, used: Tensor) -> Rays:
@@ -102,18 +111,24 @@ def view_rays(cams: Cameras, uv: Tensor, used: Tensor) -> Rays:
         uv = torch.where(used[..., None], uv, torch.zeros((), dtype=DTYPE, device=uv.device))
     lead = torch.broadcast_shapes(uv.shape[:-2], cams.shape)
     o, d = pixel_rays(cams, uv)
-    o, d = o.expand(lead + o.shape[-2:]), d.expand(lead + d.shape[-2:])
-    return o.transpose(-2, -3), d.transpose(-2, -3)
+    o = o.expand(lead + o.shape[-2:]).transpose(-2, -3)
+    d = d.expand(lead + d.shape[-2:]).transpose(-2, -3)
+    small = math.prod(o.shape[:-2]) < SMALL_BATCH  # points: triangulate_rays' matrix form
+    return Rays(o, d, ray_projectors(d) if small else None)
 
 
 def triangulate_views(rays: Rays, weights: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`triangulate` of the views' rays (:func:`view_rays`): the used views, weighted, the others
-    with weight zero; ``(X (B, K, 3), valid (B, K))``."""
+    with weight zero; ``(X (B, K, 3), valid (B, K))``, the same as :func:`s3k.geometry.triangulate_rays`
+    gives."""
     w = weights.to(DTYPE)
     if not bool(used.all()):
         w = torch.where(used, w, torch.zeros((), dtype=DTYPE, device=w.device))
-    o, d = rays
-    X, valid = triangulate_rays(o, d, w.expand(used.shape).transpose(-1, -2))
+    w = w.expand(used.shape).transpose(-1, -2)
+    if rays.projectors is not None:
+        X, valid = solve_projected(rays.origins, rays.projectors, w)
+    else:
+        X, valid = triangulate_rays(rays.origins, rays.directions, w)
     return X, valid & (used.sum(dim=1) >= 2)
 
 
