@@ -91,6 +91,8 @@ def triangulate_rays(
 _TRIANGULATE_CHUNK = 131072
 # Below this many points the planar layout does not pay for its copies.
 _PLANAR_MIN = 2048
+SMALL_BATCH = _PLANAR_MIN
+"""Batches of fewer points than this are solved in matrix form (:func:`solve_projected`)."""
 
 
 def _planar(x: Tensor, select: Tensor | None = None, out: Tensor | None = None) -> Tensor:

@@ -10,8 +10,7 @@ import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, pixel_rays, project, triangulate_rays
-from s3k.geometry.triangulation import _PLANAR_MIN as SMALL_BATCH
-from s3k.geometry.triangulation import ray_projectors, solve_projected
+from s3k.geometry.triangulation import SMALL_BATCH, ray_projectors, solve_projected
 from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 
 __all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "Rays", "moments", "outliers_and_points",
