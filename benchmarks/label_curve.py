@@ -13,8 +13,9 @@ reuses them.
 
 Writes ``--results``/summary.json (command, revision, machine and CPU flags, per model and label count the
 median, RMS and share within 10 mm per seed with mean and spread, the jobs still missing, and the answer)
-and ``--results``/label-curve.png; ``--summary-only`` writes them again from the jobs' results without
-training anything. The answer is printed last, then the summary's head as JSON.
+and ``--results``/label-curve.png; ``--summary-only`` writes them again from the jobs' results (evaluating
+runs that finished since, e.g. while their seed trains on) without rendering or training anything. The answer
+is printed last, then the summary's head as JSON.
 
 Example::
 
@@ -93,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="folder of summary.json and label-curve.png "
                         "(default docs/results/accuracy/label-curve)")
     p.add_argument("--summary-only", action="store_true",
-                   help="write the summary and figure from the jobs' results so far; train nothing")
+                   help="write the summary and figure from the jobs' results so far (finished runs "
+                        "evaluated); train nothing")
     p.add_argument("--notes", default=None,
                    help="text kept in summary.json (left out of the recorded command)")
     args = p.parse_args(argv)

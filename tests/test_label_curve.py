@@ -93,6 +93,14 @@ def test_the_curve_end_to_end_on_a_tiny_box(tmp_path, capsys):
     assert summary["labels_only_to_match_s3k"]["median_mm"]["labels_only_labels"] == 4
     assert "labels only reaches it with 4 labels" in summary["answer"] and figure.is_file()
 
+    # a finished run without a result (its seed still training on): the summary evaluates it, trains nothing
+    done = Job(2, "s3k", 0)
+    done.result(work).unlink()
+    summary = run_curve(opts, work, results, "again", "abc", MACHINE, summary_only=True)
+    assert json.loads(done.result(work).read_text())["median_mm"] == s3k_at_2
+    assert summary["curve"]["s3k"]["2"]["median_mm"]["per_seed"] == [s3k_at_2]
+    assert "training " not in capsys.readouterr().err
+
     # a job killed in training resumes: it alone is planned again, with --resume
     killed = Job(4, "s3k", 0)
     killed.result(work).unlink()

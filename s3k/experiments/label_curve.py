@@ -338,7 +338,8 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
         ax.set_xlabel("labelled frames")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # no line before the first result
+            ax.legend(fontsize=8)
     seeds = len(summary["seeds"])
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
     fig.suptitle(textwrap.fill(caption, 160), fontsize=7)
@@ -354,8 +355,12 @@ def run_curve(opts: CurveOptions, work: Path, results_dir: Path, command: str, r
               notes: str | None = None) -> dict[str, Any]:
     """Seed by seed: render, train the jobs without a result (two at a time by ``opts.parallel``), evaluate
     them, and write the summary and figure, so that a curve stopped part-way holds whole seeds; with
-    ``summary_only`` only the last step, from the results there are."""
+    ``summary_only`` only the last step, from the results there are and those of runs that have finished
+    since (evaluated, nothing trained)."""
     work.mkdir(parents=True, exist_ok=True)
+    if summary_only:  # runs finished while their seed trains on: evaluated now, nothing rendered or trained
+        views = {(n, s): work / view_name(opts, n, s) for s in range(opts.seeds) for n in opts.labels}
+        write_results(opts, work, {k: v for k, v in views.items() if (v / "s3k.json").is_file()}, revision)
     for seed in [] if summary_only else range(opts.seeds):
         data = prepare_data(opts, work, [seed])
         run_jobs(pending_trainings(opts, work, data, revision), opts.parallel)
