@@ -19,14 +19,7 @@ THREADS=${THREADS:-1}
 PY=${PYTHON:-python}
 s3k() { "$PY" -m s3k.cli "$@"; }
 mkdir -p "$WORK/runs"
-cams=(back mid side top)
-videos=() sleap=()
-for c in "${cams[@]}"; do
-  videos+=("$c=$D/$c/minimal_$c.mp4")
-  sleap+=("$c=$D/$c/minimal_${c}_proofread.analysis.h5")
-done
-crops=(back=610,350,1122,862 mid=246,374,758,886 side=328,406,840,918 top=266,330,778,842)
-split=(--labelled 10 --test 40 --seed 0)
+. scripts/real-recording.sh  # cams, videos, sleap, crops, split
 
 if [ ! -f "$WORK/crop/s3k.json" ]; then
   echo "== import $(date +%T)"

@@ -25,16 +25,7 @@ read -r -a TRAIN_OPTS <<< "${TRAIN_OPTIONS:-}"
 bash scripts/setup.sh
 . .venv/bin/activate
 mkdir -p "$OUT" "$PUB"
-cams=(back mid side top)
-videos=() sleap=()
-for c in "${cams[@]}"; do
-  videos+=("$c=$D/$c/minimal_$c.mp4")
-  sleap+=("$c=$D/$c/minimal_${c}_proofread.analysis.h5")
-done
-# 512x512 boxes (full-resolution pixels) around each camera's arena floor; x0.25 gives 128x128 images at the
-# pixel scale of a plain --scale 0.25 import
-crops=(back=610,350,1122,862 mid=246,374,758,886 side=328,406,840,918 top=266,330,778,842)
-split=(--labelled 10 --test 40 --seed 0)
+. scripts/real-recording.sh  # cams, videos, sleap, crops, split
 
 echo "== 1. import with the shipped calibration, check it, recalibrate the camera it names"
 rm -rf "$OUT/shipped"
