@@ -121,15 +121,21 @@ def reproj_centre(page, camera: str, keypoint: str) -> np.ndarray:
     return np.array([x + w / 2, y + w / 2])
 
 
+
+def open_app(browser, url: str, width: int, height: int):
+    """A page of the app at ``url`` once it is ready, and the list its script errors go to."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    page.wait_for_selector("body[data-ready='1']")
+    return page, errors
+
 def test_label_by_clicking_in_two_views(tmp_path, browser):
     truth = make_label_dataset(tmp_path / "ds", size=96)
     uv = truth.uv(4)
     with Server(truth.path) as url:
-        page = browser.new_page(viewport={"width": 1500, "height": 720})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(url)
-        page.wait_for_selector("body[data-ready='1']")
+        page, errors = open_app(browser, url, 1500, 720)
         assert page.locator(".view svg").count() == 4  # every view of the frame
         for _ in range(4):  # keyboard: to frame 4
             page.keyboard.press("ArrowRight")
@@ -715,11 +721,7 @@ def test_the_queued_frames_lead_the_list_and_n_walks_them_in_rank_order(tmp_path
     queue_frames(truth.path, [(0, 9.0), (4, 7.5), (2, 3.25), (5, 1.0)], worst=3)  # 0 is labelled: passed over
     uv = truth.uv(4)
     with Server(truth.path) as url:
-        page = browser.new_page(viewport={"width": 1500, "height": 900})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(url)
-        page.wait_for_selector("body[data-ready='1']")
+        page, errors = open_app(browser, url, 1500, 900)
         page.wait_for_selector("#ranking li")
         items = page.locator("#ranking li")
         assert [items.nth(i).get_attribute("data-frame") for i in range(items.count())] == ["4", "2", "5"]
