@@ -125,3 +125,85 @@ def test_the_apps_own_json_requests_are_taken(tmp_path, headers):
                            headers={**headers, "Content-Type": "application/json; charset=utf-8"})
         assert r.status_code == 200, (method, path, r.text)
         assert snapshot(root) != before, (method, path)  # it did change the dataset
+
+
+PUBLIC = "https://labels.example.org"
+
+
+def test_behind_a_reverse_proxy_the_public_pages_edits_are_taken_and_other_pages_still_refused(tmp_path):
+    """With ``--public-url`` the page a TLS proxy serves (its origin, its Host forwarded) may edit the labels;
+    without it the same request is refused, and pages of other origins are refused either way."""
+    truth = make_label_dataset(tmp_path / "ds")
+    path, body = f"/api/frame/{FRAME}/label", lambda c: BODIES[f"/api/frame/{FRAME}/label"](c)
+    proxied = {"Origin": PUBLIC, "Host": "labels.example.org", "Content-Type": JSON}
+
+    plain = TestClient(create_app(truth.path, allowed_hosts=["127.0.0.1", "localhost", "::1"]), base_url=OWN)
+    assert plain.post(path, json=body(plain), headers={"Origin": PUBLIC}).status_code == 403
+    assert plain.post(path, json=body(plain), headers=proxied).status_code == 400  # its Host is not allowed
+
+    app = create_app(truth.path, allowed_hosts=["127.0.0.1", "localhost", "::1"], public_url=PUBLIC + "/")
+    client = TestClient(app, base_url=OWN)
+    root = client.app.state.label.root
+    for origin in ("https://evil.example.org", "https://labels.example.org.evil.net", "https://labels.example.org:8443"):
+        before = snapshot(root)
+        r = client.post(path, json=body(client), headers={**proxied, "Origin": origin})
+        assert r.status_code == 403, (origin, r.text)
+        assert snapshot(root) == before
+    assert client.post(path, json=body(client), headers={"Host": "evil.example.org"}).status_code == 400
+    before = snapshot(root)
+    r = client.post(path, json=body(client), headers=proxied)
+    assert r.status_code == 200, r.text
+    assert snapshot(root) != before
+    r = client.post(path, json=body(client), headers={"Origin": OWN})  # the direct page still works
+    assert r.status_code == 200, r.text
+
+
+def test_behind_an_https_proxy_the_token_cookie_is_secure(tmp_path):
+    truth = make_label_dataset(tmp_path / "ds")
+    for public, secure in ((PUBLIC, True), ("http://labels.lab:8080", False)):
+        client = TestClient(create_app(truth.path, token="t0k", public_url=public), base_url=OWN)
+        cookie = client.get("/?token=t0k").headers["set-cookie"].lower()
+        assert ("; secure" in cookie) == secure, (public, cookie)
+        assert "httponly" in cookie and "samesite=strict" in cookie
+
+
+@pytest.mark.parametrize("url, origin", [
+    ("https://Labels.Example.org", "https://labels.example.org"),
+    ("http://labels.lab:8080/", "http://labels.lab:8080"),
+    ("https://[::1]:9000", "https://[::1]:9000"),
+])
+def test_public_url_is_reduced_to_its_origin(url, origin):
+    from s3k.label.server import public_origin
+    assert public_origin(url)[0] == origin
+
+
+@pytest.mark.parametrize("url", ["labels.example.org", "ftp://labels.example.org", "https://",
+                                 "https://labels.example.org/s3k", "https://labels.example.org/?a=1",
+                                 "https://user@labels.example.org", "https://labels.example.org:99999"])
+def test_a_public_url_the_app_cannot_be_served_at_is_refused_in_one_line(url):
+    from s3k.errors import UserError
+    from s3k.label.server import public_origin
+    with pytest.raises(UserError, match="--public-url") as info:
+        public_origin(url)
+    assert "\n" not in str(info.value)
+
+
+def test_serving_behind_a_proxy_always_needs_the_token_and_prints_the_public_url(tmp_path, monkeypatch):
+    """On the loopback, alone, the app needs no token; with ``--public-url`` anyone who reaches the proxy
+    reaches it, so a token guards it and the printed URL is the proxy's."""
+    import uvicorn
+
+    from s3k.label import server
+
+    truth = make_label_dataset(tmp_path / "ds")
+    apps, said = [], []
+    monkeypatch.setattr(uvicorn.Server, "run", lambda self: apps.append(self.config.app))
+    server.serve(truth.path, port=8797, announce=said.append)
+    server.serve(truth.path, port=8797, announce=said.append, public_url=PUBLIC)
+    assert "http://127.0.0.1:8797/ " in said[0]
+    url = re.search(r"(https://\S+)", said[1]).group(1)
+    assert url.startswith(PUBLIC + "/?token=")
+    guarded = TestClient(apps[1], base_url=OWN)
+    assert guarded.get("/api/frame/0").status_code == 403
+    assert guarded.get("/api/frame/0", headers={"x-s3k-token": url.split("=", 1)[1]}).status_code == 200
+    assert TestClient(apps[0], base_url=OWN).get("/api/frame/0").status_code == 200

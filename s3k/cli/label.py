@@ -22,7 +22,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "Label keypoints in the browser: click a keypoint in two views, s3k triangulates it and shows it in "
         "every view. 's3k label propagate DATASET --frames A:B [--from F]' copies frame F's 3D labels to the "
         "still frames A..B instead.")
-    parser.usage = ("s3k label DATASET [--run RUN] [--up X,Y,Z] [--port PORT] [--host HOST]\n"
+    parser.usage = ("s3k label DATASET [--run RUN] [--up X,Y,Z] [--port PORT] [--host HOST] "
+                    "[--public-url URL]\n"
                     "       s3k label propagate DATASET --frames A:B [--from F] [--max-changed PERCENT] "
                     "[--dry-run] [--overwrite] [--allow-test]\n"
                     "       s3k label propagate DATASET --undo")
@@ -41,6 +42,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to serve on (default: 127.0.0.1); any other requires the random "
                              "token in the printed URL")
+    parser.add_argument("--public-url", metavar="URL",
+                        help="the address a reverse proxy (e.g. nginx with TLS) serves the app at, such as "
+                             "https://labels.example.org: pages from there may edit the labels, and a random "
+                             "token in the printed URL guards the app (default: none)")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
     parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
 
@@ -124,5 +129,5 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"s3k label needs FastAPI and uvicorn ({exc})",
                         hint="pip install 'fastapi>=0.110' 'uvicorn>=0.29'") from None
     serve(args.dataset, args.run, args.host, args.port, args.labeller, args.device, up=up,
-          ignore_geometry=args.ignore_geometry)
+          ignore_geometry=args.ignore_geometry, public_url=args.public_url)
     return 0

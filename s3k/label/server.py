@@ -46,6 +46,7 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -172,20 +173,39 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": message, **extra}, status_code=status)
 
 
-def _cross_site(request: Request) -> JSONResponse | None:
+def public_origin(url: str) -> tuple[str, str]:
+    """``(origin, host)`` of ``--public-url``: the address a reverse proxy serves the app at, e.g.
+    ``https://labels.example.org`` (scheme http or https, a host, an optional port, no path: the app's pages
+    name their files from the root)."""
+    parts = urlsplit(url.strip())
+    try:
+        port = parts.port
+    except ValueError:
+        port = -1
+    if parts.scheme.lower() not in ("http", "https") or not parts.hostname or port == -1:
+        raise UserError(f"--public-url {url!r}: expected http(s)://HOST[:PORT], e.g. https://labels.example.org")
+    if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
+        raise UserError(f"--public-url {url!r}: the app must be served at the root of its host, with no "
+                        "path, query or user", hint="give the proxy a host name (or port) of its own")
+    host = parts.hostname.lower()
+    shown = f"[{host}]" if ":" in host else host
+    return f"{parts.scheme.lower()}://{shown}" + ("" if port is None else f":{port}"), host
+
+
+def _cross_site(request: Request, also: str | None = None) -> JSONResponse | None:
     """Why a state-changing request is refused as possibly sent by another web page (None: it is not).
 
     A page elsewhere can make the browser send a form or a ``no-cors`` fetch to this server (the Host check
     passes: the browser names 127.0.0.1). Such a request names its page's origin in ``Origin`` (or, from
     some browsers, only ``Sec-Fetch-Site``), and it cannot carry ``Content-Type: application/json`` without
     the server's consent (a CORS preflight, which this server never grants). So a request is taken only when
-    its origin is this server's own (same scheme, host and port) or unnamed (a script, not a browser page),
-    and its body is JSON.
+    its origin is this server's own (same scheme, host and port), ``also`` (the origin a reverse proxy serves
+    the page at, ``--public-url``) or unnamed (a script, not a browser page), and its body is JSON.
     """
     own = f"{request.url.scheme}://{request.headers.get('host', '')}".lower()
     origin = request.headers.get("origin")
     if origin is not None:
-        if origin.strip().lower() != own:
+        if origin.strip().lower() not in (own, also):
             return _error(403, f"cross-site request refused: origin {origin!r} is not this app's ({own}); "
                                "edit the labels from the page s3k label serves")
     else:
@@ -202,7 +222,7 @@ def _cross_site(request: Request) -> JSONResponse | None:
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
                labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
-               up: Up = UP, ignore_geometry: bool = False) -> FastAPI:
+               up: Up = UP, ignore_geometry: bool = False, public_url: str | None = None) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
     Args:
@@ -217,20 +237,27 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
             turn about it (None: not blind to it).
         ignore_geometry: accept a run trained on another part of the cameras' frames than the dataset's
             images show (:func:`s3k.detector.geometry_record.check_dataset`).
+        public_url: the address a reverse proxy serves the app at (:func:`public_origin`): its origin is the
+            page's own too, its host an allowed ``Host``, and the token cookie is ``Secure`` under https.
     """
+    public = None if public_url is None else public_origin(public_url)
+    if public is not None and allowed_hosts is not None:
+        allowed_hosts = [*allowed_hosts, public[1]]
     state = LabelApp(data, run, labeller, device, up, ignore_geometry)
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
-    _add_guard(app, allowed_hosts, token)
+    _add_guard(app, allowed_hosts, token, None if public is None else public[0])
     _add_frame_routes(app, state)
     _add_tool_routes(app, state)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
 
 
-def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None) -> None:
-    """Every request's checks: a capped body, an allowed ``Host``, the token."""
+def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None,
+               public: str | None = None) -> None:
+    """Every request's checks: a capped body, an allowed ``Host``, the origin (its own or ``public``), the
+    token."""
 
     @app.middleware("http")
     async def guard(request: Request, call_next):
@@ -245,7 +272,7 @@ def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None)
             if host not in allowed_hosts:
                 return _error(400, f"host {host!r} refused; open the URL s3k label printed")
         if request.method not in ("GET", "HEAD", "OPTIONS"):
-            refused = _cross_site(request)
+            refused = _cross_site(request, public)
             if refused is not None:
                 return refused
         given = None
@@ -256,7 +283,8 @@ def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None)
                 return _error(403, "missing or wrong token; open the URL s3k label printed (with ?token=...)")
         response = await call_next(request)
         if token is not None and request.query_params.get("token"):
-            response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+            response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict",
+                                secure=public is not None and public.startswith("https:"))
         return response
 
 
@@ -399,11 +427,13 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
           labeller: str | None = None, device: str = "cpu", announce: Callable[[str], None] | None = None,
-          up: Up = UP, ignore_geometry: bool = False) -> None:
-    """Run the app with uvicorn until interrupted. Off the loopback, a random token guards it."""
+          up: Up = UP, ignore_geometry: bool = False, public_url: str | None = None) -> None:
+    """Run the app with uvicorn until interrupted. Off the loopback, or behind a reverse proxy at
+    ``public_url``, a random token guards it."""
     import uvicorn
 
     announce = announce or say
+    public = None if public_url is None else public_origin(public_url)
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family) as probe:  # a port in use is the user's to change, said in one line
@@ -417,12 +447,13 @@ def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.
     # a request's geometry is a handful of tiny tensors: one thread each is fastest and leaves the cores free
     torch.set_num_threads(1)
     loopback = host in LOOPBACK
-    token = None if loopback else secrets.token_urlsafe(18)
+    token = None if loopback and public is None else secrets.token_urlsafe(18)
     hosts = [*LOOPBACK, host] if loopback else None
     app = create_app(data, run, token, labeller, device, allowed_hosts=hosts, up=up,
-                     ignore_geometry=ignore_geometry)
+                     ignore_geometry=ignore_geometry, public_url=public_url)
     shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{port}/" + ("" if token is None else f"?token={token}")
+    base = f"http://{shown}:{port}" if public is None else public[0]
+    url = f"{base}/" + ("" if token is None else f"?token={token}")
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
     server = uvicorn.Server(config)
     announce(f"s3k label: serving {data} at {url} (Ctrl-C to stop)")
