@@ -71,8 +71,28 @@ def skeleton_of(sleap_file: Path) -> list[str]:
         return [f"{a.decode()},{b.decode()}" for a, b in f["edge_names"][:]]
 
 
-def track(run: Path, videos: dict[str, Path], calibration: Path, out: Path, limbs: list[str]) -> None:
+def tracked_already(run: Path, out: Path) -> bool:
+    """Whether ``out`` is a track of ``run``'s present weights: its record names the same run and it is newer
+    than every file of the run (a run trained on or fine-tuned again is tracked again)."""
+    record = out.with_name(out.name + ".s3k.json")
+    if not (out.is_file() and record.is_file() and run.is_dir()):
+        return False
+    try:
+        named = Path(json.loads(record.read_text())["run"]).resolve()
+    except (ValueError, KeyError, TypeError):
+        return False
+    newest = max((f.stat().st_mtime for f in run.rglob("*") if f.is_file()), default=float("inf"))
+    return named == run.resolve() and out.stat().st_mtime > newest
+
+
+def track(run: Path, videos: dict[str, Path], calibration: Path, out: Path, limbs: list[str],
+          again: bool = False) -> None:
+    """``s3k track`` RUN into ``out``, unless ``out`` is already its track (``again``: track anyway)."""
     from s3k import cli
+
+    if not again and tracked_already(run, out):
+        print(f"{out}: already tracked with {run}'s present weights (--retrack to track again)")
+        return
 
     args = ["track", str(run), "--videos", *[f"{c}={p}" for c, p in videos.items()], "--calibration",
             str(calibration), "--min-weight", "0.5", "--out", str(out), "--overwrite", "--no-progress"]
@@ -201,13 +221,14 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
         queued, labels = [int(r["frame"]) for r in read_queue(data)], None
     result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr}
     fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
-    track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs)
+    track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs, a.retrack)
     result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
     result["after_minus_before_test"] = paired(before, result["after"])
     if a.control:
         control = copy_dataset(Path(a.data), work / "data-control")
         fine_tune(Path(a.run), control, work / "run-continued", a.steps, a.lr)
-        track(work / "run-continued", videos, Path(a.calibration), work / "tracked-continued.csv", limbs)
+        track(work / "run-continued", videos, Path(a.calibration), work / "tracked-continued.csv", limbs,
+              a.retrack)
         result["continued_without_new_labels"] = compare(work / "tracked-continued.csv", keypoints, truth,
                                                          splits)
         result["after_minus_continued_test"] = paired(result["continued_without_new_labels"],
@@ -228,6 +249,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
     p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
     p.add_argument("--lr", type=float, default=5e-5, help="fine-tuning learning rate (default 5e-5)")
+    p.add_argument("--retrack", action="store_true",
+                   help="track again even where WORK holds a track of the run's present weights (default: "
+                        "reuse it, so that a rerun costs only what changed)")
     p.add_argument("--out", default=None, help="JSON file to write")
     a = p.parse_args(argv)
     import torch
@@ -242,7 +266,7 @@ def main(argv: list[str] | None = None) -> None:
     ds = Dataset.open(a.data, cache="none")
     splits = dict(zip(ds.column("video_frame").astype(int).tolist(), ds.split_of(ds.frames()).tolist()))
     limbs = skeleton_of(sleap["back"])
-    track(Path(a.run), videos, Path(a.calibration), work / "tracked.csv", limbs)
+    track(Path(a.run), videos, Path(a.calibration), work / "tracked.csv", limbs, a.retrack)
     given = sys.argv[1:] if argv is None else argv
     result: dict = {"command": "python benchmarks/real_tracks.py " + shlex.join(given),
                     "revision": git_revision(), "run": a.run, "units": "mm",
