@@ -36,7 +36,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-
+    """``s3k add-frames``: the worst frames of a track's doubt ranking, from its videos, into the dataset's
+    labelling queue."""
     source = read_source(args.tracks) or {}
     named = source.get("doubt")
     ranking = Path(args.tracks).with_name(str(named)) if named else doubt_path(args.tracks)

@@ -113,7 +113,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _board(args):
-
+    """The board of ``--board`` (anipose's board.toml) or of ``--squares``, ``--square-length``,
+    ``--marker-length`` and ``--dict``."""
     if args.board:
         return read_board_toml(args.board)
     if not args.squares or not args.square_length:
@@ -133,8 +134,7 @@ def _board(args):
 
 
 def _with_labels(cal, args):
-
-
+    """The calibration refined with ``--labels``' SLEAP analysis files as further correspondences."""
     files = camera_pairs(args.labels, "--labels")
     unknown = [c for c in files if c not in cal.names]
     if unknown:
@@ -157,7 +157,7 @@ def _with_labels(cal, args):
 
 
 def run(args: argparse.Namespace) -> int:
-
+    """``s3k calibrate``: the rig from the board views, printed per camera, written as anipose TOML."""
     sources = camera_pairs(args.sources, "CAM=SOURCE")
     check_output(args.out, args.overwrite, inputs={"--board": args.board}, option="--out")
     if args.figure:

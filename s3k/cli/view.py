@@ -62,7 +62,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-
+    """``s3k view``: a dataset, a run's evaluation or tracks in Rerun; options that belong to another kind
+    of target are refused in one line."""
     rerun_module("s3k view")
     kind = target_kind(args.target)
     videos = camera_pairs(args.videos, "--videos") if args.videos else None

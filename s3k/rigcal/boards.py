@@ -62,7 +62,7 @@ class Board:
         return np.concatenate([xy, np.zeros((len(xy), 1))], 1).astype(np.float64)
 
     def cv2_board(self):
-
+        """OpenCV's ``CharucoBoard`` of this board; a dictionary OpenCV lacks is refused in one line."""
         name = f"DICT_{self.marker_bits}X{self.marker_bits}_{self.dict_size}"
         if not hasattr(cv2.aruco, name):
             raise UserError(f"no ArUco dictionary {name} in OpenCV", hint="check marker_bits and dict_size")
@@ -120,7 +120,8 @@ class Detections:
 
 
 def detect_image(image: np.ndarray, board: Board, detector, min_corners: int):
-
+    """One image's board corners ``(ids, corners px)`` (None with fewer than ``min_corners``), and the ArUco
+    marker ids seen (for the board-size check; empty for a checkerboard)."""
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     if board.charuco:
         corners, ids, _marker_corners, marker_ids = detector.detectBoard(gray)

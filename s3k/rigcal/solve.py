@@ -32,7 +32,7 @@ def rodrigues(rvec: np.ndarray) -> np.ndarray:
 
 
 def to_rvec(R: np.ndarray) -> np.ndarray:
-
+    """The rotation vector (axis times angle, radians) of the rotation matrix ``R``."""
     return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
 
 

@@ -36,7 +36,8 @@ class BoardRig:
 
 
 def _board_image(board: Board) -> np.ndarray:
-
+    """The printed board as a grey image with a white margin, :data:`PX_PER_SQUARE` pixels a square (the
+    texture the simulated rig films)."""
     m = int(MARGIN * PX_PER_SQUARE)
     w, h = board.squares_x * PX_PER_SQUARE, board.squares_y * PX_PER_SQUARE
     if board.charuco:

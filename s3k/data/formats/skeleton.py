@@ -62,7 +62,7 @@ def _chains(value: Any, where: str) -> list[Edge]:
 
 
 def _slp_edges(path: Path) -> list[Edge]:
-
+    """The edges of a SLEAP project's one skeleton (a project with several is refused)."""
     skeletons = list(load_slp(path).skeletons)
     if len(skeletons) != 1:
         raise UserError(f"{path}: {len(skeletons)} skeletons; s3k reads projects with one skeleton")
