@@ -71,26 +71,13 @@ def skeleton_of(sleap_file: Path) -> list[str]:
         return [f"{a.decode()},{b.decode()}" for a, b in f["edge_names"][:]]
 
 
-def tracked_already(run: Path, out: Path) -> bool:
-    """Whether ``out`` is a track of ``run``'s present weights: its record names the same run and it is newer
-    than every file of the run (a run trained on or fine-tuned again is tracked again)."""
-    record = out.with_name(out.name + ".s3k.json")
-    if not (out.is_file() and record.is_file() and run.is_dir()):
-        return False
-    try:
-        named = Path(json.loads(record.read_text())["run"]).resolve()
-    except (ValueError, KeyError, TypeError):
-        return False
-    newest = max((f.stat().st_mtime for f in run.rglob("*") if f.is_file()), default=float("inf"))
-    return named == run.resolve() and out.stat().st_mtime > newest
-
-
 def track(run: Path, videos: dict[str, Path], calibration: Path, out: Path, limbs: list[str],
           again: bool = False) -> None:
     """``s3k track`` RUN into ``out``, unless ``out`` is already its track (``again``: track anyway)."""
     from s3k import cli
+    from s3k.data.tracks_csv import tracked_with
 
-    if not again and tracked_already(run, out):
+    if not again and tracked_with(out, run):
         print(f"{out}: already tracked with {run}'s present weights (--retrack to track again)")
         return
 

@@ -620,3 +620,31 @@ def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tm
     assert cli.main([*argv, "--overwrite"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "frame rate" in err and "--fps" in err
+
+
+def test_a_track_is_of_a_run_only_while_the_run_is_unchanged_since(tmp_path):
+    """``tracked_with``: a CSV whose record names the run and that is newer than every file of the run is a
+    track of its present weights (a benchmark may reuse it); trained on since, another run, no record: not."""
+    import os
+
+    from s3k.data.tracks_csv import tracked_with, write_source
+
+    def touch(path: Path, when: float) -> Path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("x")
+        os.utime(path, (when, when))
+        return path
+
+    run, other = touch(tmp_path / "run" / "fine" / "model.pt", 1000.0).parents[1], tmp_path / "other"
+    touch(other / "model.pt", 1000.0)
+    out = tmp_path / "tracked.csv"
+    assert not tracked_with(out, run)  # no track yet
+    touch(out, 2000.0)
+    assert not tracked_with(out, run)  # no record beside it
+    write_source(out, "mm", run=str(run))
+    assert tracked_with(out, run)
+    assert not tracked_with(out, other)
+    touch(run / "fine" / "model.pt", 3000.0)  # trained on since
+    assert not tracked_with(out, run)
+    touch(out, 4000.0)
+    assert tracked_with(out, tmp_path / "run" / "fine" / "..")  # the same folder, named another way

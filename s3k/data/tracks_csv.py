@@ -151,3 +151,15 @@ def read_source(csv_path: str | Path) -> dict[str, str] | None:
     except (OSError, ValueError):
         return None
     return doc if isinstance(doc, dict) and isinstance(doc.get("units"), str) else None
+
+
+def tracked_with(csv_path: str | Path, run: str | Path) -> bool:
+    """Whether ``csv_path`` is a track of ``run``'s present weights: its record (:func:`write_source`) names
+    the same run folder and it is newer than every file of the run (a run trained on or fine-tuned again since
+    is not)."""
+    csv_path, run = Path(csv_path), Path(run)
+    source = read_source(csv_path)
+    if source is None or not isinstance(source.get("run"), str) or not (csv_path.is_file() and run.is_dir()):
+        return False
+    newest = max((f.stat().st_mtime for f in run.rglob("*") if f.is_file()), default=float("inf"))
+    return Path(source["run"]).resolve() == run.resolve() and csv_path.stat().st_mtime > newest
