@@ -3,10 +3,11 @@
 one thread each, batch = the 4 views of one frame: the coarse pass on 96 px images, the refining pass on
 192 px crops (the box headline's sizes and network, untrained weights).
 
-Rounds are interleaved (each runtime ``--repeats`` calls a round, ``--rounds`` rounds), so a shared machine's
-load falls on both alike; the figure is the median over rounds of TorchScript's time over ONNX Runtime's
-(above 1: ONNX Runtime is faster), with each runtime's median milliseconds, and the largest difference of
-their logits (the same network must give the same heatmaps). The last line is one JSON object with the
+Rounds are interleaved (each runtime ``--repeats`` calls a round after a matmul peak, ``--rounds`` rounds:
+``benchmarks.common.interleaved_rounds``), so a shared machine's load falls on both alike; the figure is the
+median over rounds of TorchScript's time over ONNX Runtime's (above 1: ONNX Runtime is faster), with each
+runtime's median milliseconds, and the largest difference of their logits (the same network must give the
+same heatmaps). The last line is one JSON object with the
 machine.
 
 Example::
@@ -17,13 +18,11 @@ Example::
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import shlex
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,12 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    git_revision,
+    interleaved_rounds,
+    machine_info,
+    write_and_emit,
+)
 from s3k.detector.frozen import FrozenNetwork  # noqa: E402
 from s3k.model import UNet, UNetConfig  # noqa: E402
 
@@ -50,17 +54,17 @@ def onnx_session(net: torch.nn.Module, x: torch.Tensor, folder: Path, name: str)
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
-def seconds_per_call(call, arg, repeats: int) -> float:
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        call(arg)
-    return (time.perf_counter() - t0) / repeats
+def feeding(session, feed: dict):
+    """ONNX Runtime as a pipeline of ``interleaved_rounds``: it runs on its own input (NCHW, numpy), whatever
+    tensor it is handed."""
+    return lambda _frames: session.run(None, feed)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--views", type=int, default=4, help="views of one frame: the batch (default 4)")
     p.add_argument("--keypoints", type=int, default=3, help="keypoints (default 3, the box's)")
+    p.add_argument("--warmup", type=int, default=5, help="untimed calls of each runtime first (default 5)")
     p.add_argument("--repeats", type=int, default=20, help="calls per runtime per round (default 20)")
     p.add_argument("--rounds", type=int, default=7, help="interleaved rounds (default 7)")
     p.add_argument("--out", default=None, help="JSON file to write")
@@ -82,10 +86,9 @@ def main(argv: list[str] | None = None) -> int:
             frozen = FrozenNetwork(net, torch.device("cpu"))
             reference = frozen(x)
             difference = float(np.abs(session.run(None, feed)[0] - reference.numpy()).max())
-            ts, ort_ = [], []
-            for _ in range(args.rounds):
-                ts.append(seconds_per_call(frozen, x, args.repeats))
-                ort_.append(seconds_per_call(functools.partial(session.run, None), feed, args.repeats))
+            _, rounds = interleaved_rounds({"torchscript": frozen, "onnxruntime": feeding(session, feed)}, x,
+                                           args, matmul_seconds=0.2)
+            ts, ort_ = ([statistics.fmean(r) for r in rounds[k]] for k in ("torchscript", "onnxruntime"))
             ratio = statistics.median(a / b for a, b in zip(ts, ort_))
             result["passes"][name] = {
                 "input": [args.views, 3, size, size], "torchscript_ms": 1e3 * statistics.median(ts),
