@@ -11,7 +11,12 @@ the same frames: what the wider rig costs in range. The test sets outside the ri
 scene`` the scene's). Each stage is skipped when its output is there, so the same command resumes a killed
 training.
 
-Writes ``--out`` (command, revision, machine and CPU flags, the rig, the training's CPU minutes, and per
+With ``--labels-only`` the headline's other model, the same network without the self-supervised term, is
+trained on the same data too (``--parallel`` trainings at a time) and read beside it, and
+``--compare-labels-only`` reads the headline's labels-only run of the same seed: whether S3K stays ahead of
+labels only on the wider rig.
+
+Writes ``--out`` (command, revision, machine and CPU flags, the rig, the trainings' CPU minutes, and per
 test set each run's median, RMS and shares within 5 and 10 mm). The table is printed, then the JSON.
 
 Example::
@@ -38,6 +43,7 @@ from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa
 from s3k.cli.simulate import number_pair  # noqa: E402
 from s3k.experiments.accuracy import (  # noqa: E402
     evaluate,
+    finished,
     labelled_view,
     read_record,
     run_jobs,
@@ -75,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--headline-data", default=None,
                    help="the headline's rendered pool of the same seed (its test frames: the scene's rig)")
     p.add_argument("--compare", default=None, help="the headline's S3K run of the same seed")
+    p.add_argument("--labels-only", action="store_true",
+                   help="also train the labels-only model on the same data (the headline's other model)")
+    p.add_argument("--compare-labels-only", default=None,
+                   help="the headline's labels-only run of the same seed (with --labels-only)")
+    p.add_argument("--parallel", type=int, default=1, help="trainings at a time, one thread each (default 1)")
     p.add_argument("--work", default=None, help="working folder (default runs/wide-rig)")
     p.add_argument("--out", default=None, help="result JSON (default: printed only)")
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: CPUs available)")
@@ -104,18 +115,27 @@ def main(argv: list[str] | None = None) -> int:
                                     passes=2 if chosen.two_pass else 1, coarse_size=chosen.coarse_size,
                                     crop_size=chosen.crop_size, coarse_steps=chosen.coarse_steps,
                                     train_options="")
+    if args.compare_labels_only and not args.labels_only:
+        p.error("--compare-labels-only needs --labels-only")
     run = work / f"s3k-{name}"
-    record = run.with_name(run.name + "-cpu.json")
-    if not (run / "two_pass.json").is_file() and not (run / "model.pt").is_file():
-        run_jobs([(run.name, train_command(options, data, run, args.seed, "s3k"), record)], 1)
-    own = {"this run": figures(evaluate(run, data))}
+    runs = {"this run": run}
+    if args.labels_only:
+        runs["labels only"] = work / f"labels_only-{name}"
+    records = {who: r.with_name(r.name + "-cpu.json") for who, r in runs.items()}
+    model = {"this run": "s3k", "labels only": "labels_only"}
+    run_jobs([(r.name, train_command(options, data, r, args.seed, model[who]), records[who])
+              for who, r in runs.items() if not finished(r, options.passes)], args.parallel)
+    own = {who: figures(evaluate(r, data)) for who, r in runs.items()}
     sets: dict[str, dict[str, Any]] = {"own test frames (the wider rig)": own}
+    compare = {"compared run": args.compare, "compared labels only": args.compare_labels_only}
     if args.headline_data:  # not evaluate(): it caches one evaluation per run, of the run's own data
         headline = Path(args.headline_data)
-        row: dict[str, Any] = {"this run": figures(evaluate_run(run, headline, split="test", device="cpu"))}
+        row: dict[str, Any] = {who: figures(evaluate_run(r, headline, split="test", device="cpu"))
+                               for who, r in runs.items()}
+        for who, other in compare.items():
+            if other:
+                row[who] = figures(evaluate_run(Path(other), headline, split="test", device="cpu"))
         if args.compare:
-            compared = evaluate_run(Path(args.compare), headline, split="test", device="cpu")
-            row["compared run"] = figures(compared)
             row["median_ratio_to_compared"] = row["this run"]["median_mm"] / row["compared run"]["median_mm"]
         sets["headline test frames (the scene's rig)"] = row
     result = {"command": shlex.join(["python", "benchmarks/wide_rig.py",
@@ -124,17 +144,22 @@ def main(argv: list[str] | None = None) -> int:
               "preset": args.preset, "seed": args.seed, "training_rig": describe_rig(rig),
               "scene_rig": describe_rig(SCENES["box"].cameras_sampler),
               "compared_run": str(Path(args.compare).resolve()) if args.compare else None,
-              "train_cpu_minutes": read_record(record)["cpu_minutes"], "test_sets": sets}
+              "train_cpu_minutes": read_record(records["this run"])["cpu_minutes"], "test_sets": sets}
+    if args.labels_only:
+        result["labels_only_run"] = str(runs["labels only"].resolve())
+        result["labels_only_train_cpu_minutes"] = read_record(records["labels only"])["cpu_minutes"]
+        if args.compare_labels_only:
+            result["compared_labels_only_run"] = str(Path(args.compare_labels_only).resolve())
     machine = machine_info()
     result["machine"] = machine
     result["avx512_bf16"] = "avx512_bf16" in machine["cpu_flags"]
     if args.notes:
         result["notes"] = args.notes
     for label, row in sets.items():
-        for who in ("this run", "compared run"):
+        for who in ("this run", "labels only", "compared run", "compared labels only"):
             if who in row:
                 f = row[who]
-                print(f"{label:40s} {who:13s} median {f['median_mm']:.2f} mm, RMS {f['rms_mm']:.2f} mm, "
+                print(f"{label:40s} {who:20s} median {f['median_mm']:.2f} mm, RMS {f['rms_mm']:.2f} mm, "
                       f"within 10 mm {100 * f['pck_10mm']:.1f}%", file=sys.stderr)
     print(f"training: {result['train_cpu_minutes']:.1f} CPU-minutes", file=sys.stderr)
     write_and_emit(result, args.out)
