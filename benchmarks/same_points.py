@@ -10,6 +10,7 @@ Example::
 
     python benchmarks/same_points.py --run runs/box --data data/box384 --frames 40
     python benchmarks/same_points.py --run runs/box --data data/box384 --precision bfloat16
+    python benchmarks/same_points.py --run runs/box --data data/box384 --threads 2 --time 5  # and its speed
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import statistics
 import sys
+import time
 
 import numpy as np
 import torch
@@ -39,7 +42,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="float32 (default): fast path against plain path; else this precision against "
                         "float32 on the fast path")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--time", type=int, default=0, metavar="ROUNDS",
+                   help="then time the first path one frame at a time over the frames, ROUNDS rounds "
+                        "(milliseconds per frame per round, and their median)")
     args = p.parse_args(argv)
+    if args.time < 0:
+        p.error(f"--time {args.time}: expected a number of rounds, 0 or more")
 
     from s3k.data import Dataset
     from s3k.detector import Detector
@@ -69,6 +77,20 @@ def main(argv: list[str] | None = None) -> int:
               "median_mm": float(d.median()), "p95_mm": float(d.quantile(0.95)), "max_mm": float(d.max())}
     print(f"{what}: {len(d)} points of {len(ids)} frames, 3D distance median {result['median_mm']:.2e} mm, "
           f"95% {result['p95_mm']:.2e}, largest {result['max_mm']:.2e}; same points found: {same}")
+    if args.time:  # the comparison above traced and warmed the first path on these frames
+        rounds = []
+        for _ in range(args.time):
+            t0 = time.perf_counter()
+            for i in range(len(ids)):
+                a(images[i], cams[i] if cams.shape[0] == len(ids) else cams)
+            rounds.append((time.perf_counter() - t0) / len(ids) * 1e3)
+        ms = statistics.median(rounds)
+        result["timing"] = {"path": what.split(" against ")[0], "threads": args.threads,
+                            "ms_per_frame_rounds": rounds, "ms_per_frame_median": ms,
+                            "frames_per_s": 1e3 / ms}
+        print(f"{result['timing']['path']}, {args.threads} thread(s), one frame at a time: {ms:.2f} ms per "
+              f"frame, {1e3 / ms:.1f} frames/s (median of {args.time} rounds: "
+              + ", ".join(f"{r:.2f}" for r in rounds) + " ms)")
     emit(result)
     return 0
 
