@@ -167,9 +167,9 @@ def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray
     return n
 
 
-def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float) -> None:
+def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int | None = None) -> None:
     """``s3k train DATA --out OUT --init-from RUN`` with RUN's configuration, ``steps`` at ``lr``, the
-    self-supervised term on from the start."""
+    self-supervised term on from the start; ``seed`` (batches, augmentation) instead of RUN's."""
     from s3k import cli
 
     config = json.loads((run / "config.json").read_text())["config"]
@@ -178,6 +178,8 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float) -> None:
     args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--config", str(cfg_file),
             "--steps", str(steps), "--lr", str(lr), "--warmup-steps", "0", "--ramp-steps", "0",
             "--val-every", "0", "--threads", "1", "--no-progress"]
+    if seed is not None:
+        args += ["--seed", str(seed)]
     if (out / "config.json").is_file():
         args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
     if cli.main(args) != 0:
@@ -220,7 +222,50 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
                                                          splits)
         result["after_minus_continued_test"] = paired(result["continued_without_new_labels"],
                                                       result["after"])
+    if a.repeats > 1:
+        result["repeats"] = repeats(a, work, data, videos, limbs, keypoints, truth, splits, before, result)
     return result
+
+
+def repeats(a, work: Path, data: Path, videos, limbs, keypoints, truth, splits, before: dict,
+            first: dict) -> dict:
+    """The loop's fine-tuning (and with ``--control`` the control's) done ``--repeats`` times, each with its
+    own seed (RUN's seed + r: batches and augmentation), on the same added frames and labels: what the new
+    labels do, told from where one fine-tuning happens to end. Per repeat the test frames' raw median and
+    RMS of each model and the paired differences; over repeats their mean and 95% t-interval."""
+    from benchmarks.common import t_interval
+
+    base = int(json.loads((Path(a.run) / "config.json").read_text())["config"]["seed"])
+    rows = []
+    for r in range(a.repeats):
+        if r == 0:
+            after, control = first["after"], first.get("continued_without_new_labels")
+        else:
+            fine_tune(Path(a.run), data, work / f"run-tuned-r{r}", a.steps, a.lr, base + r)
+            track(work / f"run-tuned-r{r}", videos, Path(a.calibration), work / f"tracked-tuned-r{r}.csv",
+                  limbs, a.retrack)
+            after = compare(work / f"tracked-tuned-r{r}.csv", keypoints, truth, splits)
+            control = None
+            if a.control:
+                fine_tune(Path(a.run), work / "data-control", work / f"run-continued-r{r}", a.steps, a.lr,
+                          base + r)
+                track(work / f"run-continued-r{r}", videos, Path(a.calibration),
+                      work / f"tracked-continued-r{r}.csv", limbs, a.retrack)
+                control = compare(work / f"tracked-continued-r{r}.csv", keypoints, truth, splits)
+        row = {"seed": base + r, "after": after["raw"]["test"],
+               "after_minus_before": {k: paired(before, after)["raw"][k] for k in ("median", "rms")}}
+        if control is not None:
+            row["control"] = control["raw"]["test"]
+            row["after_minus_control"] = {k: paired(control, after)["raw"][k] for k in ("median", "rms")}
+        rows.append(row)
+    over: dict = {}
+    for what in ("after_minus_before", "after_minus_control"):
+        for k in ("median", "rms"):
+            values = [row[what][k] for row in rows if what in row]
+            if values:
+                over[f"{what}_{k}_mm"] = {"mean": float(np.mean(values)), "ci95": t_interval(values),
+                                          "per_repeat": values}
+    return {"per_repeat": rows, "over_repeats": over}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -236,11 +281,18 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
     p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
     p.add_argument("--lr", type=float, default=5e-5, help="fine-tuning learning rate (default 5e-5)")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="fine-tune (and control) this many times, seeds RUN's + 0, 1, ..., on the same new "
+                        "labels, and report the differences over them (default 1)")
     p.add_argument("--retrack", action="store_true",
                    help="track again even where WORK holds a track of the run's present weights (default: "
                         "reuse it, so that a rerun costs only what changed)")
     p.add_argument("--out", default=None, help="JSON file to write")
     a = p.parse_args(argv)
+    if a.repeats < 1:
+        p.error(f"--repeats {a.repeats}: expected 1 or more")
+    if a.repeats > 1 and not a.loop:
+        p.error("--repeats repeats the loop's fine-tuning: give --loop")
     import torch
 
     from s3k.data import Dataset

@@ -4,7 +4,9 @@
 - the filtered minus the raw points' 3D error on the test frames (median and RMS, mm; each seed's own
   bootstrap interval is in its file) and the jitter of both;
 - one round of the way back: after minus before, and after minus the control (as many steps without the
-  new labels), on the test frames, raw points.
+  new labels), on the test frames, raw points;
+- where the per-seed files hold ``--repeats`` fine-tunings: each seed's mean over its repeats of those
+  differences, and over seeds the mean of those means with its 95% t-interval (``repeats``).
 
 Example (after ``bash scripts/real-tracks.sh``, which writes the per-seed files)::
 
@@ -74,9 +76,27 @@ def main(argv: list[str] | None = None) -> None:
                       "per_seed": values}
         print(f"{name:38s} mean {over[name]['mean']:+.3f}  per seed "
               + " ".join(f"{v:+.3f}" for v in values))
+    repeated = repeats_over_seeds([json.loads(Path(path).read_text()) for path in a.results])
     given = sys.argv[1:] if argv is None else argv
     write_and_emit({"command": "python benchmarks/real_tracks_seeds.py " + shlex.join(given),
-                    "revision": git_revision(), "seeds": seeds, "over_seeds": over}, a.out)
+                    "revision": git_revision(), "seeds": seeds, "over_seeds": over,
+                    **({"repeats": repeated} if repeated else {})}, a.out)
+
+
+def repeats_over_seeds(results: list[dict]) -> dict:
+    """Over the seeds whose loop was repeated (``real_tracks.py --repeats``): per figure the seeds' means over
+    their repeats, the mean of those and its 95% t-interval, and the repeats per seed; {} if none was."""
+    over = [r["loop"]["repeats"]["over_repeats"] for r in results if "repeats" in r.get("loop", {})]
+    if not over:
+        return {}
+    out: dict = {"seeds": len(over),
+                 "repeats_per_seed": [len(next(iter(o.values()))["per_repeat"]) for o in over]}
+    for name in over[0]:
+        means = [o[name]["mean"] for o in over if name in o]
+        out[name] = {"mean": sum(means) / len(means), "ci95": t_interval(means), "per_seed_mean": means}
+        print(f"repeated {name:34s} mean {out[name]['mean']:+.3f}  per seed "
+              + " ".join(f"{v:+.3f}" for v in means))
+    return out
 
 
 if __name__ == "__main__":
