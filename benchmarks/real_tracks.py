@@ -133,10 +133,25 @@ def public(result: dict) -> dict:
     return result
 
 
+def disagreeing_labels(calibration: Path, uv: dict[str, np.ndarray], max_px: float) -> dict[str, np.ndarray]:
+    """``{camera: (T, K) bool}``: the proofread labels that lie more than ``max_px`` (full-resolution pixels)
+    from the point the other cameras' labels triangulate to, reprojected (the labelling app's check of a
+    label against the other views)."""
+    from s3k.data.formats.anipose import read_anipose_calibration
+    from s3k.label_reference import leave_one_view_out
+
+    rig = read_anipose_calibration(calibration)
+    stacked = np.stack([uv[c] for c in rig.names], axis=1)  # (T, C, K, 2)
+    seen = np.isfinite(stacked).all(-1)
+    off = leave_one_view_out(rig.cameras.reshape(1, -1), np.nan_to_num(stacked), seen)  # NaN: cannot be told
+    return {c: np.nan_to_num(off[:, i], nan=0.0) > max_px for i, c in enumerate(rig.names)}
+
+
 def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray],
-                         keypoints: list[str]) -> int:
+                         keypoints: list[str], left_out: dict[str, np.ndarray] | None = None) -> int:
     """Label the dataset's ``frames`` with the proofread labels of their video frames, mapped onto the
-    dataset's images as its import mapped them, through the labelling app's store; returns the labels."""
+    dataset's images as its import mapped them, through the labelling app's store; returns the labels.
+    ``left_out`` (:func:`disagreeing_labels`): labels a person would have corrected, not written."""
     from s3k.data import Dataset
     from s3k.detector.geometry_record import dataset_geometry
     from s3k.geometry.warp import crop_resize_matrix
@@ -156,7 +171,7 @@ def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray
                 if kp not in ds.keypoints:
                     continue
                 p = uv[cam][video[f], k]
-                if not np.isfinite(p).all():
+                if not np.isfinite(p).all() or (left_out is not None and left_out[cam][video[f], k]):
                     continue
                 u, v = (M @ np.array([p[0], p[1], 1.0]))[:2]
                 if -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5:
@@ -205,10 +220,13 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
                      "--spacing", str(a.spacing)]) != 0:
             raise SystemExit("s3k add-frames failed")
         queued = [int(r["frame"]) for r in read_queue(data)]
-        labels = label_from_proofread(data, queued, uv, keypoints)
+        left_out = (disagreeing_labels(Path(a.calibration), uv, a.label_check)
+                    if a.label_check is not None else None)
+        labels = label_from_proofread(data, queued, uv, keypoints, left_out)
     else:
         queued, labels = [int(r["frame"]) for r in read_queue(data)], None
-    result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr}
+    result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr,
+              "label_check_px": a.label_check}
     fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
     track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs, a.retrack)
     result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
@@ -281,6 +299,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
     p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
     p.add_argument("--lr", type=float, default=5e-5, help="fine-tuning learning rate (default 5e-5)")
+    p.add_argument("--label-check", type=float, default=None, metavar="PX",
+                   help="the stand-in for a person leaves out a proofread label more than PX full-resolution "
+                        "pixels from where the other cameras' labels put it, as the labelling app's check "
+                        "would show it (default: every label written)")
     p.add_argument("--repeats", type=int, default=1,
                    help="fine-tune (and control) this many times, seeds RUN's + 0, 1, ..., on the same new "
                         "labels, and report the differences over them (default 1)")
