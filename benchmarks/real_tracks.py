@@ -112,6 +112,9 @@ def compare(csv_path: Path, keypoints: list[str], truth: np.ndarray, splits: dic
             out[name][s] = errors(X, ref, 1.0, placed & (split == s)[:, None])
         err = np.linalg.norm(X - ref, axis=-1)
         out["_test_errors"][name] = np.where(placed & (split == "test")[:, None], err, np.nan)
+        with np.errstate(all="ignore"):
+            medians = np.nanmedian(out["_test_errors"][name], axis=0)
+        out[name]["test_median_per_keypoint"] = {k: float(m) for k, m in zip(keypoints, medians)}
     out["filtered_minus_raw_test"] = paired_difference(out["_test_errors"]["raw"],
                                                        out["_test_errors"]["filtered"])
     return out
@@ -223,10 +226,18 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
         left_out = (disagreeing_labels(Path(a.calibration), uv, a.label_check)
                     if a.label_check is not None else None)
         labels = label_from_proofread(data, queued, uv, keypoints, left_out)
-    else:
-        queued, labels = [int(r["frame"]) for r in read_queue(data)], None
+    else:  # added and labelled by an earlier call: the labels its frames hold now
+        from s3k.label.store import LabelStore
+
+        queued = [int(r["frame"]) for r in read_queue(data)]
+        store = LabelStore.open(data)
+        labels = int(sum(store.arrays(f)[1].sum() for f in queued))
     result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr,
               "label_check_px": a.label_check}
+    if a.label_check is not None:  # over the whole recording: which labels the check leaves out
+        flagged = disagreeing_labels(Path(a.calibration), uv, a.label_check)
+        result["label_check_frames_left_out"] = {
+            cam: {k: int(n) for k, n in zip(keypoints, mask.sum(0)) if n} for cam, mask in flagged.items()}
     fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
     track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs, a.retrack)
     result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
@@ -275,6 +286,9 @@ def repeats(a, work: Path, data: Path, videos, limbs, keypoints, truth, splits, 
         if control is not None:
             row["control"] = control["raw"]["test"]
             row["after_minus_control"] = {k: paired(control, after)["raw"][k] for k in ("median", "rms")}
+            row["after_minus_control_median_per_keypoint"] = {
+                k: after["raw"]["test_median_per_keypoint"][k] - control["raw"]["test_median_per_keypoint"][k]
+                for k in keypoints}
         rows.append(row)
     over: dict = {}
     for what in ("after_minus_before", "after_minus_control"):
@@ -283,6 +297,11 @@ def repeats(a, work: Path, data: Path, videos, limbs, keypoints, truth, splits, 
             if values:
                 over[f"{what}_{k}_mm"] = {"mean": float(np.mean(values)), "ci95": t_interval(values),
                                           "per_repeat": values}
+    per_keypoint = [row["after_minus_control_median_per_keypoint"] for row in rows
+                    if "after_minus_control_median_per_keypoint" in row]
+    if per_keypoint:  # each keypoint's test-frame median, after minus control, mean over the repeats
+        over["after_minus_control_median_per_keypoint_mm"] = {
+            k: float(np.mean([d[k] for d in per_keypoint])) for k in keypoints}
     return {"per_repeat": rows, "over_repeats": over}
 
 

@@ -89,13 +89,22 @@ def repeats_over_seeds(results: list[dict]) -> dict:
     over = [r["loop"]["repeats"]["over_repeats"] for r in results if "repeats" in r.get("loop", {})]
     if not over:
         return {}
+    KEYPOINTS = "after_minus_control_median_per_keypoint_mm"
     out: dict = {"seeds": len(over),
-                 "repeats_per_seed": [len(next(iter(o.values()))["per_repeat"]) for o in over]}
+                 "repeats_per_seed": [len(o["after_minus_before_median_mm"]["per_repeat"]) for o in over]}
     for name in over[0]:
+        if name == KEYPOINTS:
+            continue
         means = [o[name]["mean"] for o in over if name in o]
         out[name] = {"mean": sum(means) / len(means), "ci95": t_interval(means), "per_seed_mean": means}
         print(f"repeated {name:34s} mean {out[name]['mean']:+.3f}  per seed "
               + " ".join(f"{v:+.3f}" for v in means))
+    per_keypoint = [o[KEYPOINTS] for o in over if KEYPOINTS in o]
+    if per_keypoint:  # each keypoint's mean over seeds of the seeds' means over repeats
+        out[KEYPOINTS] = {k: {"mean": sum(d[k] for d in per_keypoint) / len(per_keypoint),
+                              "per_seed_mean": [d[k] for d in per_keypoint]} for k in per_keypoint[0]}
+        print("repeated after minus control, test median per keypoint (mm): " + ", ".join(
+            f"{k} {v['mean']:+.2f}" for k, v in out[KEYPOINTS].items()))
     return out
 
 
