@@ -217,15 +217,15 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
 
     work = Path(a.work)
     data = work / "data-loop"
+    # the labels a careful person would have corrected, over the whole recording
+    flagged = None if a.label_check is None else disagreeing_labels(Path(a.calibration), uv, a.label_check)
     if not (data / "label-queue.csv").is_file():
         copy_dataset(Path(a.data), data)
         if cli.main(["add-frames", str(work / "tracked.csv"), "--data", str(data), "--worst", str(a.worst),
                      "--spacing", str(a.spacing)]) != 0:
             raise SystemExit("s3k add-frames failed")
         queued = [int(r["frame"]) for r in read_queue(data)]
-        left_out = (disagreeing_labels(Path(a.calibration), uv, a.label_check)
-                    if a.label_check is not None else None)
-        labels = label_from_proofread(data, queued, uv, keypoints, left_out)
+        labels = label_from_proofread(data, queued, uv, keypoints, flagged)
     else:  # added and labelled by an earlier call: the labels its frames hold now
         from s3k.label.store import LabelStore
 
@@ -234,58 +234,59 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
         labels = int(sum(store.arrays(f)[1].sum() for f in queued))
     result = {"worst": a.worst, "queued_frames": queued, "labels_added": labels, "steps": a.steps, "lr": a.lr,
               "label_check_px": a.label_check}
-    if a.label_check is not None:  # over the whole recording: which labels the check leaves out
-        flagged = disagreeing_labels(Path(a.calibration), uv, a.label_check)
+    if flagged is not None:
         result["label_check_frames_left_out"] = {
             cam: {k: int(n) for k, n in zip(keypoints, mask.sum(0)) if n} for cam, mask in flagged.items()}
-    fine_tune(Path(a.run), data, work / "run-tuned", a.steps, a.lr)
-    track(work / "run-tuned", videos, Path(a.calibration), work / "tracked-tuned.csv", limbs, a.retrack)
-    result["after"] = compare(work / "tracked-tuned.csv", keypoints, truth, splits)
+    reading = (videos, limbs, keypoints, truth, splits)
+    result["after"] = tune_and_compare(a, data, "tuned", None, *reading)
     result["after_minus_before_test"] = paired(before, result["after"])
     if a.control:
         control = copy_dataset(Path(a.data), work / "data-control")
-        fine_tune(Path(a.run), control, work / "run-continued", a.steps, a.lr)
-        track(work / "run-continued", videos, Path(a.calibration), work / "tracked-continued.csv", limbs,
-              a.retrack)
-        result["continued_without_new_labels"] = compare(work / "tracked-continued.csv", keypoints, truth,
-                                                         splits)
+        result["continued_without_new_labels"] = tune_and_compare(a, control, "continued", None, *reading)
         result["after_minus_continued_test"] = paired(result["continued_without_new_labels"],
                                                       result["after"])
     if a.repeats > 1:
-        result["repeats"] = repeats(a, work, data, videos, limbs, keypoints, truth, splits, before, result)
+        result["repeats"] = repeats(a, data, reading, before, result)
     return result
 
 
-def repeats(a, work: Path, data: Path, videos, limbs, keypoints, truth, splits, before: dict,
-            first: dict) -> dict:
+def tune_and_compare(a, data: Path, name: str, seed: int | None, videos, limbs, keypoints, truth,
+                     splits) -> dict:
+    """RUN fine-tuned on ``data`` into WORK/run-NAME (``seed``: None for RUN's), the recording tracked with
+    it into WORK/tracked-NAME.csv, and that track against the reference (:func:`compare`)."""
+    work = Path(a.work)
+    fine_tune(Path(a.run), data, work / f"run-{name}", a.steps, a.lr, seed)
+    track(work / f"run-{name}", videos, Path(a.calibration), work / f"tracked-{name}.csv", limbs, a.retrack)
+    return compare(work / f"tracked-{name}.csv", keypoints, truth, splits)
+
+
+def repeats(a, data: Path, reading: tuple, before: dict, first: dict) -> dict:
     """The loop's fine-tuning (and with ``--control`` the control's) done ``--repeats`` times, each with its
     own seed (RUN's seed + r: batches and augmentation), on the same added frames and labels: what the new
     labels do, told from where one fine-tuning happens to end. Per repeat the test frames' raw median and
-    RMS of each model and the paired differences; over repeats their mean and 95% t-interval."""
+    RMS of each model and the paired differences; over repeats their mean and 95% t-interval. ``reading``:
+    :func:`tune_and_compare`'s ``(videos, limbs, keypoints, truth, splits)``."""
     from benchmarks.common import t_interval
 
+    keypoints = reading[2]
     base = int(json.loads((Path(a.run) / "config.json").read_text())["config"]["seed"])
     rows = []
     for r in range(a.repeats):
         if r == 0:
             after, control = first["after"], first.get("continued_without_new_labels")
         else:
-            fine_tune(Path(a.run), data, work / f"run-tuned-r{r}", a.steps, a.lr, base + r)
-            track(work / f"run-tuned-r{r}", videos, Path(a.calibration), work / f"tracked-tuned-r{r}.csv",
-                  limbs, a.retrack)
-            after = compare(work / f"tracked-tuned-r{r}.csv", keypoints, truth, splits)
+            after = tune_and_compare(a, data, f"tuned-r{r}", base + r, *reading)
             control = None
             if a.control:
-                fine_tune(Path(a.run), work / "data-control", work / f"run-continued-r{r}", a.steps, a.lr,
-                          base + r)
-                track(work / f"run-continued-r{r}", videos, Path(a.calibration),
-                      work / f"tracked-continued-r{r}.csv", limbs, a.retrack)
-                control = compare(work / f"tracked-continued-r{r}.csv", keypoints, truth, splits)
+                control = tune_and_compare(a, Path(a.work) / "data-control", f"continued-r{r}", base + r,
+                                           *reading)
+        gain = paired(before, after)["raw"]
         row = {"seed": base + r, "after": after["raw"]["test"],
-               "after_minus_before": {k: paired(before, after)["raw"][k] for k in ("median", "rms")}}
+               "after_minus_before": {k: gain[k] for k in ("median", "rms")}}
         if control is not None:
+            gain = paired(control, after)["raw"]
             row["control"] = control["raw"]["test"]
-            row["after_minus_control"] = {k: paired(control, after)["raw"][k] for k in ("median", "rms")}
+            row["after_minus_control"] = {k: gain[k] for k in ("median", "rms")}
             row["after_minus_control_median_per_keypoint"] = {
                 k: after["raw"]["test_median_per_keypoint"][k] - control["raw"]["test_median_per_keypoint"][k]
                 for k in keypoints}
