@@ -58,13 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     images, cams = ds.images(ids), ds.calibration(ids, np.float64)
     if args.precision == "float32":
         a, b = Detector.load(args.run, "cpu"), Detector.load(args.run, "cpu", fast=False)
-        what = "fast path against plain path, float32"
+        first, what = "fast path", "fast path against plain path, float32"
     else:
         a, b = Detector.load(args.run, "cpu", args.precision), Detector.load(args.run, "cpu")
-        what = f"{args.precision} against float32, fast path"
+        first, what = args.precision, f"{args.precision} against float32, fast path"
+    frame_cams = [cams[i] if cams.shape[0] == len(ids) else cams for i in range(len(ids))]
     dist, same = [], True
-    for i in range(len(ids)):  # one frame at a time, as a stream runs
-        c = cams[i] if cams.shape[0] == len(ids) else cams
+    for i, c in enumerate(frame_cams):  # one frame at a time, as a stream runs
         x, y = a(images[i], c), b(images[i], c)
         same &= bool(torch.equal(x.valid, y.valid))
         ok = x.valid & y.valid
@@ -81,11 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         rounds = []
         for _ in range(args.time):
             t0 = time.perf_counter()
-            for i in range(len(ids)):
-                a(images[i], cams[i] if cams.shape[0] == len(ids) else cams)
+            for i, c in enumerate(frame_cams):
+                a(images[i], c)
             rounds.append((time.perf_counter() - t0) / len(ids) * 1e3)
         ms = statistics.median(rounds)
-        result["timing"] = {"path": what.split(" against ")[0], "threads": args.threads,
+        result["timing"] = {"path": first, "threads": args.threads,
                             "ms_per_frame_rounds": rounds, "ms_per_frame_median": ms,
                             "frames_per_s": 1e3 / ms}
         print(f"{result['timing']['path']}, {args.threads} thread(s), one frame at a time: {ms:.2f} ms per "
