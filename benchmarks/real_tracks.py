@@ -43,9 +43,12 @@ def recording_files(recording: Path) -> tuple[dict[str, Path], dict[str, Path]]:
     return videos, sleap
 
 
-def proofread_points(sleap: dict[str, Path], calibration: Path) -> tuple[list[str], np.ndarray, dict]:
+def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float | None = None
+                     ) -> tuple[list[str], np.ndarray, dict]:
     """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)})``: the proofread labels triangulated from every
-    camera that has them (NaN where fewer than two), and the labels themselves, full-resolution pixels."""
+    camera that has them (NaN where fewer than two), and the labels themselves, full-resolution pixels.
+    ``check_px``: leave out of the triangulation the labels more than that from the other cameras' agreement
+    (:func:`disagreeing_labels`); ``uv`` keeps them all."""
     import torch
 
     from s3k.data.formats.anipose import read_anipose_calibration
@@ -57,6 +60,9 @@ def proofread_points(sleap: dict[str, Path], calibration: Path) -> tuple[list[st
     keypoints = list(tables[rig.names[0]].keypoints)
     uv = np.stack([tables[c].uv for c in rig.names], axis=1)  # (T, C, K, 2)
     seen = np.isfinite(uv).all(-1)
+    if check_px is not None:
+        flagged = disagreeing_labels(calibration, {c: tables[c].uv for c in rig.names}, check_px)
+        seen &= ~np.stack([flagged[c] for c in rig.names], axis=1)
     X, valid = triangulate_pixels(rig.cameras, torch.from_numpy(np.nan_to_num(uv)),
                                   torch.from_numpy(seen * 1.0))
     X = np.where((valid.numpy() & (seen.sum(1) >= 2))[..., None], X.numpy(), np.nan)
@@ -263,9 +269,9 @@ def tune_and_compare(a, data: Path, name: str, seed: int | None, videos, limbs, 
 def repeats(a, data: Path, reading: tuple, before: dict, first: dict) -> dict:
     """The loop's fine-tuning (and with ``--control`` the control's) done ``--repeats`` times, each with its
     own seed (RUN's seed + r: batches and augmentation), on the same added frames and labels: what the new
-    labels do, told from where one fine-tuning happens to end. Per repeat the test frames' raw median and
-    RMS of each model and the paired differences; over repeats their mean and 95% t-interval. ``reading``:
-    :func:`tune_and_compare`'s ``(videos, limbs, keypoints, truth, splits)``."""
+    labels do, told from where one fine-tuning happens to end. Per repeat the test frames' raw median, 90th
+    percentile and RMS of each model and the paired differences; over repeats their mean and 95%
+    t-interval. ``reading``: :func:`tune_and_compare`'s ``(videos, limbs, keypoints, truth, splits)``."""
     from benchmarks.common import t_interval
 
     keypoints = reading[2]
@@ -282,18 +288,18 @@ def repeats(a, data: Path, reading: tuple, before: dict, first: dict) -> dict:
                                            *reading)
         gain = paired(before, after)["raw"]
         row = {"seed": base + r, "after": after["raw"]["test"],
-               "after_minus_before": {k: gain[k] for k in ("median", "rms")}}
+               "after_minus_before": {k: gain[k] for k in ("median", "rms", "p90")}}
         if control is not None:
             gain = paired(control, after)["raw"]
             row["control"] = control["raw"]["test"]
-            row["after_minus_control"] = {k: gain[k] for k in ("median", "rms")}
+            row["after_minus_control"] = {k: gain[k] for k in ("median", "rms", "p90")}
             row["after_minus_control_median_per_keypoint"] = {
                 k: after["raw"]["test_median_per_keypoint"][k] - control["raw"]["test_median_per_keypoint"][k]
                 for k in keypoints}
         rows.append(row)
     over: dict = {}
     for what in ("after_minus_before", "after_minus_control"):
-        for k in ("median", "rms"):
+        for k in ("median", "rms", "p90"):
             values = [row[what][k] for row in rows if what in row]
             if values:
                 over[f"{what}_{k}_mm"] = {"mean": float(np.mean(values)), "ci95": t_interval(values),
@@ -323,6 +329,10 @@ def main(argv: list[str] | None = None) -> None:
                    help="the stand-in for a person leaves out a proofread label more than PX full-resolution "
                         "pixels from where the other cameras' labels put it, as the labelling app's check "
                         "would show it (default: every label written)")
+    p.add_argument("--reference-check", type=float, default=None, metavar="PX",
+                   help="the reference leaves out the proofread labels more than PX full-resolution pixels "
+                        "from where the other cameras' labels put them (the --label-check rule) and is "
+                        "triangulated from the rest (default: from every label)")
     p.add_argument("--repeats", type=int, default=1,
                    help="fine-tune (and control) this many times, seeds RUN's + 0, 1, ..., on the same new "
                         "labels, and report the differences over them (default 1)")
@@ -343,19 +353,30 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     videos, sleap = recording_files(Path(a.recording))
-    keypoints, truth, uv = proofread_points(sleap, Path(a.calibration))
+    keypoints, truth, uv = proofread_points(sleap, Path(a.calibration), a.reference_check)
     ds = Dataset.open(a.data, cache="none")
     splits = dict(zip(ds.column("video_frame").astype(int).tolist(), ds.split_of(ds.frames()).tolist()))
     limbs = skeleton_of(sleap["back"])
     track(Path(a.run), videos, Path(a.calibration), work / "tracked.csv", limbs, a.retrack)
     given = sys.argv[1:] if argv is None else argv
+    reference = "proofread labels triangulated from all four cameras"
+    if a.reference_check is not None:
+        reference = (f"proofread labels within {a.reference_check:g} px of the other cameras' agreement, "
+                     "triangulated")
     result: dict = {"command": "python benchmarks/real_tracks.py " + shlex.join(given),
                     "revision": git_revision(), "run": a.run, "units": "mm",
-                    "reference": "proofread labels triangulated from all four cameras",
+                    "reference": reference,
                     "limbs": limbs, "before": compare(work / "tracked.csv", keypoints, truth, splits)}
     from s3k.experiments.track_filter import jitter
 
     result["reference_jitter_mm_per_frame2"] = jitter(truth)
+    if a.reference_check is not None:  # the labels the reference leaves out, on the test frames
+        test = np.array([splits.get(f) == "test" for f in range(len(truth))])
+        flagged = disagreeing_labels(Path(a.calibration), uv, a.reference_check)
+        result["reference_left_out_test"] = {
+            cam: {k: int(n) for k, n in zip(keypoints, mask[test].sum(0)) if n}
+            for cam, mask in flagged.items()}
+        result["test_points"] = int(np.isfinite(truth[test]).all(-1).sum())
     source = json.loads((work / "tracked.csv.s3k.json").read_text())
     result["filter"] = source.get("filter")
     if a.loop:

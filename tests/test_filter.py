@@ -163,5 +163,10 @@ def test_paired_difference_cancels_the_frames_shared_difficulty():
     d = paired_difference(a, b)
     assert d["median"] == pytest.approx(0.05, abs=0.02) and d["frames"] == 60
     assert 0 < d["median_ci95"][0] <= d["median_ci95"][1] < 0.1  # the spread of frames cancels
+    assert d["p90"] == pytest.approx(0.05, abs=0.02) and 0 < d["p90_ci95"][0]
     same = paired_difference(a, a + rng.normal(0, 0.01, a.shape))
     assert same["median_ci95"][0] < 0 < same["median_ci95"][1]
+    p80 = np.percentile(a, 80)
+    tail = np.where(a > p80, p80 + (a - p80) * 0.5, a)  # only the largest errors shrink
+    d = paired_difference(a, tail)
+    assert d["p90_ci95"][1] < 0 and d["rms_ci95"][1] < 0 and d["median"] == pytest.approx(0, abs=1e-9)

@@ -30,35 +30,39 @@ __all__ = ["delay", "errors", "filter_benchmark", "jitter", "paired_difference"]
 
 def errors(X: np.ndarray, truth: np.ndarray, scale: float = 1.0, mask: np.ndarray | None = None
            ) -> dict[str, float]:
-    """Median and RMS of ``|X - truth|`` (``(T, K, 3)``, times ``scale``) over the points finite in both (and
-    in ``mask (T, K)``), and how many."""
+    """Median, 90th percentile and RMS of ``|X - truth|`` (``(T, K, 3)``, times ``scale``) over the points
+    finite in both (and in ``mask (T, K)``), and how many."""
     d = np.linalg.norm(X - truth, axis=-1) * scale
     ok = np.isfinite(d) if mask is None else np.isfinite(d) & mask
     d = d[ok]
     return {"median": float(np.median(d)) if len(d) else float("nan"),
+            "p90": float(np.percentile(d, 90)) if len(d) else float("nan"),
             "rms": float(np.sqrt(np.mean(d**2))) if len(d) else float("nan"), "points": int(len(d))}
 
 
 def paired_difference(a: np.ndarray, b: np.ndarray, samples: int = 2000, seed: int = 0) -> dict[str, Any]:
-    """``median(b) - median(a)`` and ``rms(b) - rms(a)`` of two error arrays ``(T, K)`` of the same points
+    """``median(b) - median(a)``, ``rms(b) - rms(a)`` and the same of the 90th percentile (``p90``: the large
+    errors, which the RMS weighs and the median does not) of two error arrays ``(T, K)`` of the same points
     (NaN where a point is missing in either), each with a 95% percentile bootstrap interval that resamples
     the frames (rows) jointly for both, so that the frames' shared difficulty cancels."""
     ok = np.isfinite(a) & np.isfinite(b)
     rows = np.flatnonzero(ok.any(1))
     rng = np.random.default_rng(seed)
 
-    def stats(pick: np.ndarray) -> tuple[float, float]:
+    def stats(pick: np.ndarray) -> tuple[float, float, float]:
         m = ok[pick]
         x, y = a[pick][m], b[pick][m]
         return (float(np.median(y) - np.median(x)),
-                float(np.sqrt(np.mean(y**2)) - np.sqrt(np.mean(x**2))))
+                float(np.sqrt(np.mean(y**2)) - np.sqrt(np.mean(x**2))),
+                float(np.percentile(y, 90) - np.percentile(x, 90)))
 
     if not len(rows):
-        return {"median": None, "rms": None, "frames": 0}
+        return {"median": None, "rms": None, "p90": None, "frames": 0}
     boot = np.array([stats(rng.choice(rows, len(rows))) for _ in range(samples)])
     value = stats(rows)
     return {"median": value[0], "median_ci95": np.percentile(boot[:, 0], [2.5, 97.5]).tolist(),
             "rms": value[1], "rms_ci95": np.percentile(boot[:, 1], [2.5, 97.5]).tolist(),
+            "p90": value[2], "p90_ci95": np.percentile(boot[:, 2], [2.5, 97.5]).tolist(),
             "frames": int(len(rows))}
 
 
