@@ -44,10 +44,12 @@ def recording_files(recording: Path) -> tuple[dict[str, Path], dict[str, Path]]:
 
 
 def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float | None = None
-                     ) -> tuple[list[str], np.ndarray, dict]:
-    """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)})``: the proofread labels triangulated from every
-    camera that has them (NaN where fewer than two), and the labels themselves, full-resolution pixels.
-    ``check_px``: leave out of the triangulation the labels more than that from the other cameras' agreement
+                     ) -> tuple[list[str], np.ndarray, dict, dict[str, np.ndarray]]:
+    """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)}, without {camera: X'})``: the proofread labels
+    triangulated from every camera that has them (NaN where fewer than two), the labels themselves
+    (full-resolution pixels), and per camera the points triangulated without that camera's labels (how far
+    the reference moves when one view's clicks are left out: its own uncertainty). ``check_px``: leave out of
+    the triangulations the labels more than that from the other cameras' agreement
     (:func:`disagreeing_labels`); ``uv`` keeps them all."""
     import torch
 
@@ -63,10 +65,18 @@ def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float 
     if check_px is not None:
         flagged = disagreeing_labels(calibration, {c: tables[c].uv for c in rig.names}, check_px)
         seen &= ~np.stack([flagged[c] for c in rig.names], axis=1)
-    X, valid = triangulate_pixels(rig.cameras, torch.from_numpy(np.nan_to_num(uv)),
-                                  torch.from_numpy(seen * 1.0))
-    X = np.where((valid.numpy() & (seen.sum(1) >= 2))[..., None], X.numpy(), np.nan)
-    return keypoints, X, {c: tables[c].uv for c in rig.names}
+
+    def triangulated(use: np.ndarray) -> np.ndarray:
+        X, valid = triangulate_pixels(rig.cameras, torch.from_numpy(np.nan_to_num(uv)),
+                                      torch.from_numpy(use * 1.0))
+        return np.where((valid.numpy() & (use.sum(1) >= 2))[..., None], X.numpy(), np.nan)
+
+    without = {}
+    for i, c in enumerate(rig.names):
+        use = seen.copy()
+        use[:, i] = False
+        without[c] = triangulated(use)
+    return keypoints, triangulated(seen), {c: tables[c].uv for c in rig.names}, without
 
 
 def skeleton_of(sleap_file: Path) -> list[str]:
@@ -204,6 +214,11 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int
             "--val-every", "0", "--threads", "1", "--no-progress"]
     if seed is not None:
         args += ["--seed", str(seed)]
+    progress = out / "progress.json"
+    if progress.is_file():
+        done = json.loads(progress.read_text())
+        if done.get("step", 0) >= done.get("steps", steps) and (out / "model.pt").is_file():
+            return  # finished: resuming would rewrite its log and make its track look stale
     if (out / "config.json").is_file():
         args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
     if cli.main(args) != 0:
@@ -353,7 +368,7 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     videos, sleap = recording_files(Path(a.recording))
-    keypoints, truth, uv = proofread_points(sleap, Path(a.calibration), a.reference_check)
+    keypoints, truth, uv, without = proofread_points(sleap, Path(a.calibration), a.reference_check)
     ds = Dataset.open(a.data, cache="none")
     splits = dict(zip(ds.column("video_frame").astype(int).tolist(), ds.split_of(ds.frames()).tolist()))
     limbs = skeleton_of(sleap["back"])
@@ -370,8 +385,12 @@ def main(argv: list[str] | None = None) -> None:
     from s3k.experiments.track_filter import jitter
 
     result["reference_jitter_mm_per_frame2"] = jitter(truth)
+    test = np.array([splits.get(f) == "test" for f in range(len(truth))])
+    with np.errstate(all="ignore"):  # how far the reference moves on the test frames without one camera
+        result["reference_without_one_camera_test_median_mm"] = {
+            c: float(np.nanmedian(np.linalg.norm(X[test] - truth[test], axis=-1)))
+            for c, X in without.items()}
     if a.reference_check is not None:  # the labels the reference leaves out, on the test frames
-        test = np.array([splits.get(f) == "test" for f in range(len(truth))])
         flagged = disagreeing_labels(Path(a.calibration), uv, a.reference_check)
         result["reference_left_out_test"] = {
             cam: {k: int(n) for k, n in zip(keypoints, mask[test].sum(0)) if n}

@@ -57,6 +57,9 @@ def per_seed(result: dict) -> dict:
     out["jitter_raw_mm_per_frame2"] = before["raw"]["jitter_mm_per_frame2"]
     out["jitter_filtered_mm_per_frame2"] = before["filtered"]["jitter_mm_per_frame2"]
     out["jitter_reference_mm_per_frame2"] = result.get("reference_jitter_mm_per_frame2")
+    out["reference"] = result.get("reference")
+    spread = "reference_without_one_camera_test_median_mm"
+    out[spread] = result.get(spread)
     out["loop_lr"] = result["loop"]["lr"]
     out["loop_steps"] = result["loop"]["steps"]
     return out
