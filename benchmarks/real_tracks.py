@@ -206,6 +206,11 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int
     self-supervised term on from the start; ``seed`` (batches, augmentation) instead of RUN's."""
     from s3k import cli
 
+    progress = out / "progress.json"
+    if progress.is_file():
+        done = json.loads(progress.read_text())
+        if done.get("step", 0) >= done.get("steps", steps) and (out / "model.pt").is_file():
+            return  # finished: resuming would rewrite its log and make its track look stale
     config = json.loads((run / "config.json").read_text())["config"]
     cfg_file = out.with_suffix(".config.json")
     cfg_file.write_text(json.dumps(config))
@@ -214,11 +219,6 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int
             "--val-every", "0", "--threads", "1", "--no-progress"]
     if seed is not None:
         args += ["--seed", str(seed)]
-    progress = out / "progress.json"
-    if progress.is_file():
-        done = json.loads(progress.read_text())
-        if done.get("step", 0) >= done.get("steps", steps) and (out / "model.pt").is_file():
-            return  # finished: resuming would rewrite its log and make its track look stale
     if (out / "config.json").is_file():
         args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
     if cli.main(args) != 0:
