@@ -114,7 +114,9 @@ def test_expert_label_is_the_demonstrator_on_the_true_state_the_step_started_fro
     assert "expert_action" not in InsertionEnv().step(np.zeros(6, np.float32))[4]
 
 
-def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
+def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path, monkeypatch):
+    import tempfile
+
     import torch
 
     from s3k.robot.agent_checkpoint import load_checkpoint
@@ -123,6 +125,10 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     out = tmp_path / "agent"
     cfg = AgentConfig(steps=30, demos=1, checkpoint_every=15, eval_episodes=1, learning_starts=5,
                       batch_size=16, buffer_size=500, bc_pretrain=10)
+    scratch = tmp_path / "tmp"  # the temporary directory, to see that the training leaves nothing there
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
 
     def killed_after_first_checkpoint(line: str) -> None:
         if line.startswith("checkpoint at 15"):
@@ -139,6 +145,7 @@ def test_td3_agent_with_demonstrations_checkpoints_and_resumes(tmp_path):
     assert any("resumed at 15" in line for line in log)
     state = json.loads((out / "checkpoint" / "state.json").read_text())
     assert first["env_steps"] == 30 and state["env_steps"] == 30 and state["updates"] > 0
+    assert not list(scratch.glob("SB3-*"))  # no logger folder per learn() call
     demo = state["demonstration_steps"]
     assert demo > 0
     saved = torch.load(out / "checkpoint" / "agent.pt", weights_only=True)

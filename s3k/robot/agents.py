@@ -397,6 +397,11 @@ def train_agent(out: str | Path, cfg: AgentConfig, resume: bool = False,
         if cfg.bc_pretrain and n_demo:
             model.pretrain(cfg.bc_pretrain, cfg.batch_size)
         evaluate_at(0)
+    # Stable-Baselines3 makes a logger of its own on every learn() call, each with a new empty folder in the
+    # temporary directory; the run's record is progress.json, so its logger writes nowhere.
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(folder=None, output_formats=[]))
     eval_every = cfg.eval_every or cfg.checkpoint_every
     done_steps = int(model.num_timesteps)
     # A resumed run keeps the evaluations up to its checkpoint (later ones were of a policy now lost).
