@@ -152,6 +152,24 @@ def test_resume_records_allowed_changes(dataset, finished_run, tmp_path):
     assert resumed["command"].startswith("s3k train ") and "--steps 3" in resumed["command"]
 
 
+def _files(folder: Path) -> dict[str, tuple[bytes, int]]:
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_resume_of_a_finished_run_writes_nothing(capsys, dataset, finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    before = _files(run)
+    capsys.readouterr()
+    assert cli_main(["train", str(dataset), "--out", str(run), "--resume", "--threads", "2"]) == 0
+    assert "complete at step 2: nothing to train" in capsys.readouterr().out
+    assert _files(run) == before  # no history entry, log line, TensorBoard file or checkpoint
+    # it is still checked as a resume: another setting is refused, more steps continue it
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", "--lr", "0.5"], "--lr 0.001")
+    assert cli_main(["train", str(dataset), "--out", str(run), "--resume", "--steps", "3"]) == 0
+    assert read_checkpoint_step(run / "checkpoint.pt") == 3
+
+
 def test_old_flat_config_json_still_resumes(dataset, finished_run, tmp_path):
     """A run whose config.json predates the dataset identity and history is resumed (names checked)."""
     run = _copy_run(finished_run, tmp_path / "run")
@@ -210,6 +228,10 @@ def test_foreign_and_truncated_files_are_refused(capsys, dataset, finished_run, 
         load_network(run)
     data = (run / "checkpoint.pt").read_bytes()
     (run / "checkpoint.pt").write_bytes(data[: len(data) // 2])
+    # --resume reads the final model first (a finished run is left as it is), then the checkpoint
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume"], str(run / "model.pt"),
+            "not an s3k model")
+    (run / "model.pt").unlink()
     refused(capsys, ["train", str(dataset), "--out", str(run), "--resume"], str(run / "checkpoint.pt"))
     with pytest.raises(UserError, match="checkpoint"):
         read_checkpoint_step(run / "checkpoint.pt")

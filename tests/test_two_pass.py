@@ -150,11 +150,16 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     proj, _ = project(crops.calibration(ids, np.float64), torch.as_tensor(X, dtype=torch.float64)[:, None])
     np.testing.assert_allclose(proj.numpy()[mask], uv[mask], atol=1e-3)
 
-    # a complete run: --resume does nothing more; without --resume or --overwrite the folder is kept
-    before = (fine / "model.pt").stat().st_mtime_ns
-    assert cli.main([*args, "--resume"]) == 0
-    assert (fine / "model.pt").stat().st_mtime_ns == before
-    assert all(read_cpu(run)[k] >= v for k, v in spent.items())  # added to, not restarted
+    # a complete run: --resume checks it and computes and writes nothing (no estimates or crops, no CPU time,
+    # history or log line); without --resume or --overwrite the folder is kept
+    def files():
+        return {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(run.rglob("*")) if p.is_file()}
+
+    before = files()
+    capsys.readouterr()
+    assert cli.main([*args, "--resume", "--threads", "2"]) == 0
+    assert files() == before
+    assert f"refining pass: {fine} is complete" in capsys.readouterr().out
     # a complete pass trained otherwise than the call asks is refused, not silently kept
     capsys.readouterr()
     assert cli.main([*args[:-1], "90", "--resume"]) == 1

@@ -52,6 +52,7 @@ from s3k.train.distributed import (
     wrap_model,
 )
 from s3k.train.run_setup import (
+    check_trained_as,
     data_path,
     detector_meta,
     open_data,
@@ -288,6 +289,17 @@ def _log_unsup_schedule(cfg: TrainConfig) -> None:
              cfg.alpha, warmup + max(ramp, 1), scaled)
 
 
+def _finished(source, out: Path, cfg: TrainConfig, step: int, info: DistInfo) -> TrainResult:
+    """A resumed run with nothing left to train: checked as ``--resume`` checks a run, then returned as it is,
+    with nothing written (no history entry, log line or TensorBoard file)."""
+    check_trained_as(source, out, cfg)
+    model, meta = load_network(out)
+    if info.main:
+        setup_logging(None, True)
+        log.info("%s is complete at step %d: nothing to train (a larger --steps continues it)", out, step)
+    return TrainResult(model.train(), meta, step, "done")
+
+
 def _initial_weights(run: str | Path, meta: DetectorMeta) -> dict[str, Any]:
     """The network weights of the run ``run`` for a run of ``meta`` to start from.
 
@@ -352,6 +364,8 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
         torch.set_num_threads(cfg.threads)
     if info.main:
         run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
+    if resume and (done := run_folder.finished_step(out, cfg.steps)) is not None:
+        return _finished(source, out, cfg, done, info)
     d = open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
     layout = reference_layout(data, distances, cfg)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from s3k.config import TrainConfig, config_from_dict, option_argv, resumable_fields
-from s3k.detector import DetectorMeta, read_run_config, write_run_config
+from s3k.detector import DetectorMeta, load_torch_file, read_run_config, write_run_config
 from s3k.errors import UserError
 from s3k.outputs import check_output_folder, check_run_folder
 from s3k.run_folder import RunFolder
@@ -91,19 +91,7 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
         UserError: naming the first field or dataset property that differs where it must not.
     """
     doc = read_run_config(out)
-    where = str(RunFolder(out).config_file)
-    old = config_from_dict(TrainConfig, doc["config"], where=where).to_dict()
-    new = cfg.to_dict()
-    free = resumable_fields()
-    changed: dict[str, list[Any]] = {}
-    for name, value in new.items():
-        if old[name] == value:
-            continue
-        if name not in free:
-            raise UserError(f"--resume: {name} is {_shown(value)} now but {_shown(old[name])} in {where}",
-                            hint=f"pass {_option(name, old[name])} to continue the run, or choose another "
-                                 "--out")
-        changed[name] = [old[name], value]
+    changed = _compare_config(doc, str(RunFolder(out).config_file), cfg)
     saved = doc.get("dataset_identity")
     if saved is None:  # written before identities were recorded: the names are all that can be compared
         meta = DetectorMeta.from_dict(doc["meta"])
@@ -118,6 +106,37 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
                             f"{_shown(saved[key])} there", hint="resume with the run's dataset, or choose "
                                                                  "another --out")
     return changed
+
+
+def check_config(out: Path, cfg: TrainConfig) -> dict[str, list[Any]]:
+    """:func:`check_resume`'s comparison of the configuration alone (for a pass whose dataset is derived from
+    what was checked already, as a two-pass run's crops are from its coarse pass and the crop rule)."""
+    return _compare_config(read_run_config(out), str(RunFolder(out).config_file), cfg)
+
+
+def _compare_config(doc: dict[str, Any], where: str, cfg: TrainConfig) -> dict[str, list[Any]]:
+    old = config_from_dict(TrainConfig, doc["config"], where=where).to_dict()
+    free = resumable_fields()
+    changed: dict[str, list[Any]] = {}
+    for name, value in cfg.to_dict().items():
+        if old[name] == value:
+            continue
+        if name not in free:
+            raise UserError(f"--resume: {name} is {_shown(value)} now but {_shown(old[name])} in {where}",
+                            hint=f"pass {_option(name, old[name])} to continue the run, or choose another "
+                                 "--out")
+        changed[name] = [old[name], value]
+    return changed
+
+
+def finished_step(out: Path, steps: int) -> int | None:
+    """The step of the run's final model (``model.pt``) when it is at or past ``steps``: a run with nothing
+    left to train, which ``--resume`` leaves as it is; None otherwise (no model yet, or more steps asked)."""
+    model = RunFolder(out).model
+    if not model.is_file():
+        return None
+    step = int(load_torch_file(model, "model", ("step",))["step"])
+    return step if step >= steps else None
 
 
 def write_start(out: Path, cfg: TrainConfig, meta: DetectorMeta, data: Path, identity: dict[str, Any],

@@ -66,6 +66,7 @@ from s3k.memory import available_memory
 from s3k.outputs import check_run_folder
 from s3k.run_folder import RunFolder
 from s3k.train.loop import TrainResult, train_one_pass
+from s3k.train.run_folder import check_config
 from s3k.train.run_setup import check_trained_as, frames_used, setup_logging
 from s3k.train.two_pass_start import crop_extent_warning
 
@@ -210,6 +211,8 @@ def train_two_pass(data: str | Path, out: str | Path, cfg: TrainConfig, *, resum
                             hint="choose another --out")
     if run.path.exists() and not resume:
         shutil.rmtree(run.path)
+    if resume and run.is_two_pass() and run.coarse.model.is_file() and run.fine.model.is_file():
+        return _finished(data, run, cfg)  # nothing to train: checked, and left as it is
     run.path.mkdir(parents=True, exist_ok=True)
     if not run.options_file.is_file():
         run.write_config(cfg)
@@ -228,11 +231,7 @@ def _train_two_pass(data: Path, run: RunFolder, cfg: TrainConfig, command: str |
     console = functools.partial(setup_logging, None, os.environ.get("RANK", "0") == "0")
     console()  # between the passes the log goes to the console alone
     ds = Dataset.open(data, cache="none")
-    rule = (CropRule(float(cfg.crop_extent), int(cfg.crop_size), 0.0) if cfg.crop_extent is not None
-            else crop_rule_from_labels(ds, cfg.crop_size, cfg.crop_margin))
-    if cfg.crop_extent is None and (too_large := crop_extent_warning(ds, rule.extent, rule.size,
-                                                                     cfg.coarse_size)):
-        log.warning(too_large)
+    rule = _crop_rule(ds, cfg)
     passes: dict[str, Any] = {}
     coarse_data: Any = data
     # a coarse pass still to train decodes the frames; the coarse pass reads the same disk cache as from the
@@ -263,6 +262,32 @@ def _train_two_pass(data: Path, run: RunFolder, cfg: TrainConfig, command: str |
                                      "refining pass", clock, inits[1] if inits else None)
     write_two_pass(run.path, rule, cfg.coarse_size, ds.keypoints)
     return _result(run, passes, rule)
+
+
+def _crop_rule(ds: Dataset, cfg: TrainConfig) -> CropRule:
+    """The crops' rule: ``--crop-extent`` when given, else from the labels' spread (with a warning where the
+    crops would be too coarse)."""
+    rule = (CropRule(float(cfg.crop_extent), int(cfg.crop_size), 0.0) if cfg.crop_extent is not None
+            else crop_rule_from_labels(ds, cfg.crop_size, cfg.crop_margin))
+    if cfg.crop_extent is None and (too_large := crop_extent_warning(ds, rule.extent, rule.size,
+                                                                     cfg.coarse_size)):
+        log.warning(too_large)
+    return rule
+
+
+def _finished(data: Path, run: RunFolder, cfg: TrainConfig):
+    """``--resume`` of a complete run: each pass checked as the call would train it (the refining pass's
+    configuration alone: its crops follow from the coarse pass, the dataset and the crop rule, all checked),
+    nothing computed again and nothing written."""
+    setup_logging(None, os.environ.get("RANK", "0") == "0")
+    ds = Dataset.open(data, cache="none")
+    rule = _crop_rule(ds, cfg)
+    _check_complete("coarse pass", run.coarse.path,
+                    lambda: check_trained_as(data, run.coarse.path, cfg.coarse()))
+    _check_rule(run, rule)
+    _check_complete("refining pass", run.fine.path,
+                    lambda: check_config(run.fine.path, cfg.refining(rule.size)))
+    return _result(run, {"coarse": None, "fine": None}, rule)
 
 
 def _init_passes(init_from: str | Path | None, cfg: TrainConfig
@@ -369,21 +394,27 @@ class _StageClock:
         self._write()
 
 
+def _check_complete(what: str, path: Path, changes) -> None:
+    """Refuse a complete pass that ``changes()`` (the resumable fields that differ; it raises on the others)
+    says was trained otherwise than this call would train it."""
+    try:
+        changed = changes()
+        if "steps" in changed:  # a finished pass is not continued: it would be kept at its steps
+            raise UserError(f"steps is {changed['steps'][1]} now but {changed['steps'][0]} there")
+    except UserError as e:
+        raise UserError(f"{what} {path} is complete but not what this call would train "
+                        f"({e.message.removeprefix('--resume: ')})",
+                        hint="repeat the options it was trained with, or pass --overwrite to train both "
+                             "passes again") from None
+    log.info(f"{what}: {path} is complete")
+
+
 def _train_pass(train, data, run: RunFolder, cfg: TrainConfig, command, what: str, clock: _StageClock,
                 init_from: Path | None = None):
     """Train one pass unless its model exists (then None, after checking it was trained as this call would
     train it); resume a pass whose folder exists."""
     if run.model.is_file():
-        try:
-            changed = check_trained_as(data, run.path, cfg)
-            if "steps" in changed:  # a finished pass is not continued: it would be kept at its steps
-                raise UserError(f"steps is {changed['steps'][1]} now but {changed['steps'][0]} there")
-        except UserError as e:
-            raise UserError(f"{what} {run.path} is complete but not what this call would train "
-                            f"({e.message.removeprefix('--resume: ')})",
-                            hint="repeat the options it was trained with, or pass --overwrite to train both "
-                                 "passes again") from None
-        log.info(f"{what}: {run.path} is complete")
+        _check_complete(what, run.path, lambda: check_trained_as(data, run.path, cfg))
         return None
     log.info(f"{what}: training {run.path}")
     result = train(data, run.path, cfg, resume=run.path.exists(), progress=clock.tick, command=command,
