@@ -44,13 +44,14 @@ def recording_files(recording: Path) -> tuple[dict[str, Path], dict[str, Path]]:
 
 
 def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float | None = None
-                     ) -> tuple[list[str], np.ndarray, dict, dict[str, np.ndarray]]:
-    """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)}, without {camera: X'})``: the proofread labels
-    triangulated from every camera that has them (NaN where fewer than two), the labels themselves
-    (full-resolution pixels), and per camera the points triangulated without that camera's labels (how far
-    the reference moves when one view's clicks are left out: its own uncertainty). ``check_px``: leave out of
-    the triangulations the labels more than that from the other cameras' agreement
-    (:func:`disagreeing_labels`); ``uv`` keeps them all."""
+                     ) -> tuple[list[str], np.ndarray, dict, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """``(keypoints, X (T, K, 3), uv {camera: (T, K, 2)}, without {camera: X'}, offsets {camera: (T, K)})``:
+    the proofread labels triangulated from every camera that has them (NaN where fewer than two), the labels
+    themselves (full-resolution pixels), per camera the points triangulated without that camera's labels (how
+    far the reference moves when one view's clicks are left out: its own uncertainty), and each label's
+    distance from the other cameras' agreement (:func:`label_offsets`). ``check_px``: leave out of the
+    triangulations the labels more than that from the other cameras' agreement (:func:`disagreeing`); ``uv``
+    keeps them all."""
     import torch
 
     from s3k.data.formats.anipose import read_anipose_calibration
@@ -62,8 +63,9 @@ def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float 
     keypoints = list(tables[rig.names[0]].keypoints)
     uv = np.stack([tables[c].uv for c in rig.names], axis=1)  # (T, C, K, 2)
     seen = np.isfinite(uv).all(-1)
+    offsets = label_offsets(calibration, {c: tables[c].uv for c in rig.names})
     if check_px is not None:
-        flagged = disagreeing_labels(calibration, {c: tables[c].uv for c in rig.names}, check_px)
+        flagged = disagreeing(offsets, check_px)
         seen &= ~np.stack([flagged[c] for c in rig.names], axis=1)
 
     def triangulated(use: np.ndarray) -> np.ndarray:
@@ -76,7 +78,7 @@ def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float 
         use = seen.copy()
         use[:, i] = False
         without[c] = triangulated(use)
-    return keypoints, triangulated(seen), {c: tables[c].uv for c in rig.names}, without
+    return keypoints, triangulated(seen), {c: tables[c].uv for c in rig.names}, without, offsets
 
 
 def skeleton_of(sleap_file: Path) -> list[str]:
@@ -152,25 +154,30 @@ def public(result: dict) -> dict:
     return result
 
 
-def disagreeing_labels(calibration: Path, uv: dict[str, np.ndarray], max_px: float) -> dict[str, np.ndarray]:
-    """``{camera: (T, K) bool}``: the proofread labels that lie more than ``max_px`` (full-resolution pixels)
-    from the point the other cameras' labels triangulate to, reprojected (the labelling app's check of a
-    label against the other views)."""
+def label_offsets(calibration: Path, uv: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``{camera: (T, K)}``: how far (full-resolution pixels) each proofread label lies from the point the
+    other cameras' labels triangulate to, reprojected (the labelling app's check of a label against the
+    other views); NaN where that cannot be told."""
     from s3k.data.formats.anipose import read_anipose_calibration
     from s3k.label_reference import leave_one_view_out
 
     rig = read_anipose_calibration(calibration)
     stacked = np.stack([uv[c] for c in rig.names], axis=1)  # (T, C, K, 2)
     seen = np.isfinite(stacked).all(-1)
-    off = leave_one_view_out(rig.cameras.reshape(1, -1), np.nan_to_num(stacked), seen)  # NaN: cannot be told
-    return {c: np.nan_to_num(off[:, i], nan=0.0) > max_px for i, c in enumerate(rig.names)}
+    off = leave_one_view_out(rig.cameras.reshape(1, -1), np.nan_to_num(stacked), seen)
+    return {c: off[:, i] for i, c in enumerate(rig.names)}
+
+
+def disagreeing(offsets: dict[str, np.ndarray], max_px: float) -> dict[str, np.ndarray]:
+    """``{camera: (T, K) bool}``: the labels more than ``max_px`` from the other cameras' agreement."""
+    return {c: np.nan_to_num(off, nan=0.0) > max_px for c, off in offsets.items()}
 
 
 def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray],
                          keypoints: list[str], left_out: dict[str, np.ndarray] | None = None) -> int:
     """Label the dataset's ``frames`` with the proofread labels of their video frames, mapped onto the
     dataset's images as its import mapped them, through the labelling app's store; returns the labels.
-    ``left_out`` (:func:`disagreeing_labels`): labels a person would have corrected, not written."""
+    ``left_out`` (:func:`disagreeing`): labels a person would have corrected, not written."""
     from s3k.data import Dataset
     from s3k.detector.geometry_record import dataset_geometry
     from s3k.geometry.warp import crop_resize_matrix
@@ -206,21 +213,17 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int
     self-supervised term on from the start; ``seed`` (batches, augmentation) instead of RUN's."""
     from s3k import cli
 
-    progress = out / "progress.json"
-    if progress.is_file():
-        done = json.loads(progress.read_text())
-        if done.get("step", 0) >= done.get("steps", steps) and (out / "model.pt").is_file():
-            return  # finished: resuming would rewrite its log and make its track look stale
-    config = json.loads((run / "config.json").read_text())["config"]
-    cfg_file = out.with_suffix(".config.json")
-    cfg_file.write_text(json.dumps(config))
-    args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--config", str(cfg_file),
-            "--steps", str(steps), "--lr", str(lr), "--warmup-steps", "0", "--ramp-steps", "0",
-            "--val-every", "0", "--threads", "1", "--no-progress"]
-    if seed is not None:
-        args += ["--seed", str(seed)]
-    if (out / "config.json").is_file():
+    if (out / "config.json").is_file():  # started: continued, or (finished) checked and left as it is
         args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
+    else:
+        config = json.loads((run / "config.json").read_text())["config"]
+        cfg_file = out.with_suffix(".config.json")
+        cfg_file.write_text(json.dumps(config))
+        args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--config", str(cfg_file),
+                "--steps", str(steps), "--lr", str(lr), "--warmup-steps", "0", "--ramp-steps", "0",
+                "--val-every", "0", "--threads", "1", "--no-progress"]
+        if seed is not None:
+            args += ["--seed", str(seed)]
     if cli.main(args) != 0:
         raise SystemExit(f"s3k train {out} failed")
 
@@ -231,7 +234,7 @@ def copy_dataset(data: Path, to: Path) -> Path:
     return to
 
 
-def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) -> dict:
+def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, offsets, before: dict) -> dict:
     """One round of the way back (module docstring)."""
     from s3k import cli
     from s3k.label.queue import read_queue
@@ -239,7 +242,7 @@ def loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, before: dict) ->
     work = Path(a.work)
     data = work / "data-loop"
     # the labels a careful person would have corrected, over the whole recording
-    flagged = None if a.label_check is None else disagreeing_labels(Path(a.calibration), uv, a.label_check)
+    flagged = None if a.label_check is None else disagreeing(offsets, a.label_check)
     if not (data / "label-queue.csv").is_file():
         copy_dataset(Path(a.data), data)
         if cli.main(["add-frames", str(work / "tracked.csv"), "--data", str(data), "--worst", str(a.worst),
@@ -368,7 +371,7 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     videos, sleap = recording_files(Path(a.recording))
-    keypoints, truth, uv, without = proofread_points(sleap, Path(a.calibration), a.reference_check)
+    keypoints, truth, uv, without, offsets = proofread_points(sleap, Path(a.calibration), a.reference_check)
     ds = Dataset.open(a.data, cache="none")
     splits = dict(zip(ds.column("video_frame").astype(int).tolist(), ds.split_of(ds.frames()).tolist()))
     limbs = skeleton_of(sleap["back"])
@@ -391,7 +394,7 @@ def main(argv: list[str] | None = None) -> None:
             c: float(np.nanmedian(np.linalg.norm(X[test] - truth[test], axis=-1)))
             for c, X in without.items()}
     if a.reference_check is not None:  # the labels the reference leaves out, on the test frames
-        flagged = disagreeing_labels(Path(a.calibration), uv, a.reference_check)
+        flagged = disagreeing(offsets, a.reference_check)
         result["reference_left_out_test"] = {
             cam: {k: int(n) for k, n in zip(keypoints, mask[test].sum(0)) if n}
             for cam, mask in flagged.items()}
@@ -399,7 +402,8 @@ def main(argv: list[str] | None = None) -> None:
     source = json.loads((work / "tracked.csv.s3k.json").read_text())
     result["filter"] = source.get("filter")
     if a.loop:
-        result["loop"] = loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, result["before"])
+        result["loop"] = loop(a, videos, sleap, keypoints, truth, splits, limbs, uv, offsets,
+                              result["before"])
     for name in ("raw", "filtered"):
         r = result["before"][name]
         print(f"{name:8s} jitter {r['jitter_mm_per_frame2']:.3f} mm/frame2; test frames median "
