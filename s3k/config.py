@@ -80,6 +80,9 @@ class AugmentationConfig:
     scale: float = _f(0.2, "maximum relative scale change of the augmentation (0.2: x0.8 to x1.2)",
                       ge=0, lt=1)
     shift_px: float = _f(10.0, "maximum shift of the augmentation along u and v, image pixels", ge=0)
+    stretch: float = _f(0.0, "maximum relative stretch of the augmentation along a random direction (0.3: "
+                        "x0.7 to x1.3 along it), as a surface foreshortens from lower or higher cameras",
+                        ge=0, lt=1)
     brightness: float = _f(0.2, "maximum additive brightness change (images in [0, 1])", ge=0)
     contrast: float = _f(0.2, "maximum relative contrast change", ge=0)
     colour: float = _f(0.1, "maximum relative per-channel gain change", ge=0)

@@ -112,8 +112,35 @@ def test_bad_shapes_raise():
         warp_points(torch.rand(5, 3), torch.eye(3))
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_uint8_frames_path_matches_geometry_and_float_path(seed):
+def test_stretch_is_along_a_random_direction_and_zero_draws_nothing_more():
+    gen = torch.Generator().manual_seed(0)
+    plain = random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen)
+    after_plain = torch.rand(3, generator=gen)
+    gen = torch.Generator().manual_seed(0)
+    torch.testing.assert_close(random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.0), plain)
+    torch.testing.assert_close(torch.rand(3, generator=gen), after_plain)  # the same stream onwards
+    gen = torch.Generator().manual_seed(0)
+    M = random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.4)
+    # the same similarities after a stretch by a factor a in [0.6, 1.4]: the area changes by a, the
+    # singular values' ratio is max(a, 1 / a)
+    a = torch.linalg.det(M[:, :2, :2]) / torch.linalg.det(plain[:, :2, :2])
+    assert a.min() >= 0.6 - 1e-9 and a.max() <= 1.4 + 1e-9 and a.min() < 0.65 and a.max() > 1.35
+    sv = torch.linalg.svdvals(M[:, :2, :2])
+    torch.testing.assert_close(sv[:, 0] / sv[:, 1], torch.maximum(a, 1 / a))
+    torch.testing.assert_close(M[:, 2], plain[:, 2])  # still affine
+    # a stretch keeps the image centre and the line across its direction
+    from s3k.augment import stretch_matrices
+
+    S = stretch_matrices(torch.tensor([0.0, math.pi / 2]), torch.tensor([0.5, 2.0]), (64, 48))
+    c = torch.tensor([31.5, 23.5])
+    pts = torch.stack([c, c + torch.tensor([10.0, 0.0]), c + torch.tensor([0.0, 10.0])])
+    torch.testing.assert_close(warp_points(pts.expand(2, 3, 2), S),
+                               torch.stack([torch.stack([c, c + torch.tensor([5.0, 0.0]), pts[2]]),
+                                            torch.stack([c, pts[1], c + torch.tensor([0.0, 20.0])])]))
+
+
+@pytest.mark.parametrize("seed,stretch", [(0, 0.0), (1, 0.0), (2, 0.4)])
+def test_uint8_frames_path_matches_geometry_and_float_path(seed, stretch):
     """augment_frames (OpenCV on uint8) puts the dot where K' = M K projects it, like the grid_sample path."""
     from s3k.augment import augment_frames, warp_images_uint8
 
@@ -124,7 +151,8 @@ def test_uint8_frames_path_matches_geometry_and_float_path(seed):
     uv = torch.stack([_project(K, R, t, X[b]) for b in range(B)])
     dots = _dot_image(uv.reshape(B * C, 2), H, W, sigma=2.0)
     u8 = (dots * 255).round().to(torch.uint8).permute(0, 2, 3, 1).reshape(B, C, H, W, 3).contiguous()
-    aug = Augmentation(rotation_deg=180, scale=0.2, shift_px=5, brightness=0, contrast=0, colour=0, noise=0)
+    aug = Augmentation(rotation_deg=180, scale=0.2, shift_px=5, stretch=stretch, brightness=0, contrast=0,
+                       colour=0, noise=0)
     out, K_new, uv_moved, M = augment_frames(u8, K.expand(B, C, 3, 3).clone(), aug, gen, uv=uv)
     assert out.shape == (B, C, 3, H, W) and out.dtype == torch.float32
     uv_new = torch.stack([_project(K_new[b], R, t, X[b]) for b in range(B)])
