@@ -282,8 +282,8 @@ def _finished(data: Path, run: RunFolder, cfg: TrainConfig):
     setup_logging(None, os.environ.get("RANK", "0") == "0")
     ds = Dataset.open(data, cache="none")
     rule = _crop_rule(ds, cfg)
-    _check_complete("coarse pass", run.coarse.path,
-                    lambda: check_trained_as(data, run.coarse.path, cfg.coarse()))
+    _check_complete("coarse pass", run.coarse.path,  # the dataset as opened for the rule, not read again
+                    lambda: check_trained_as(ds, run.coarse.path, cfg.coarse()))
     _check_rule(run, rule)
     _check_complete("refining pass", run.fine.path,
                     lambda: check_config(run.fine.path, cfg.refining(rule.size)))
