@@ -49,21 +49,24 @@ def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float 
     the proofread labels triangulated from every camera that has them (NaN where fewer than two), the labels
     themselves (full-resolution pixels), per camera the points triangulated without that camera's labels (how
     far the reference moves when one view's clicks are left out: its own uncertainty), and each label's
-    distance from the other cameras' agreement (:func:`label_offsets`). ``check_px``: leave out of the
-    triangulations the labels more than that from the other cameras' agreement (:func:`disagreeing`); ``uv``
-    keeps them all."""
+    distance from the other cameras' agreement (full-resolution pixels; NaN where that cannot be told).
+    ``check_px``: leave out of the triangulations the labels more than that from the other cameras'
+    agreement (:func:`disagreeing`); ``uv`` keeps them all."""
     import torch
 
     from s3k.data.formats.anipose import read_anipose_calibration
     from s3k.data.formats.sleap import read_sleap_analysis
     from s3k.geometry import triangulate_pixels
+    from s3k.label_reference import leave_one_view_out
 
     rig = read_anipose_calibration(calibration)
     tables = {c: read_sleap_analysis(sleap[c]) for c in rig.names}
     keypoints = list(tables[rig.names[0]].keypoints)
     uv = np.stack([tables[c].uv for c in rig.names], axis=1)  # (T, C, K, 2)
     seen = np.isfinite(uv).all(-1)
-    offsets = label_offsets(calibration, {c: tables[c].uv for c in rig.names})
+    # each label's distance from the other cameras' agreement (the labelling app's check); NaN: cannot be told
+    off = leave_one_view_out(rig.cameras.reshape(1, -1), np.nan_to_num(uv), seen)
+    offsets = {c: off[:, i] for i, c in enumerate(rig.names)}
     if check_px is not None:
         flagged = disagreeing(offsets, check_px)
         seen &= ~np.stack([flagged[c] for c in rig.names], axis=1)
@@ -152,20 +155,6 @@ def public(result: dict) -> dict:
     if isinstance(result, dict):
         return {k: public(v) for k, v in result.items() if not k.startswith("_")}
     return result
-
-
-def label_offsets(calibration: Path, uv: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``{camera: (T, K)}``: how far (full-resolution pixels) each proofread label lies from the point the
-    other cameras' labels triangulate to, reprojected (the labelling app's check of a label against the
-    other views); NaN where that cannot be told."""
-    from s3k.data.formats.anipose import read_anipose_calibration
-    from s3k.label_reference import leave_one_view_out
-
-    rig = read_anipose_calibration(calibration)
-    stacked = np.stack([uv[c] for c in rig.names], axis=1)  # (T, C, K, 2)
-    seen = np.isfinite(stacked).all(-1)
-    off = leave_one_view_out(rig.cameras.reshape(1, -1), np.nan_to_num(stacked), seen)
-    return {c: off[:, i] for i, c in enumerate(rig.names)}
 
 
 def disagreeing(offsets: dict[str, np.ndarray], max_px: float) -> dict[str, np.ndarray]:
