@@ -98,10 +98,11 @@ def _open_at_network_size(data: str | os.PathLike | DatasetLike,
     return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
 
 
-def check_trained_as(data: str | Path, out: str | Path, cfg: TrainConfig) -> dict[str, list[Any]]:
-    """Check that the run in ``out`` was trained on ``data`` with ``cfg``, as ``--resume`` checks a run it
-    continues (every field but ``s3k.config.resumable_fields``, and the dataset's identity); returns the
-    resumable fields that differ, ``{field: [there, here]}``.
+def check_trained_as(data: str | os.PathLike | DatasetLike, out: str | Path,
+                     cfg: TrainConfig) -> dict[str, list[Any]]:
+    """Check that the run in ``out`` was trained on ``data`` (a folder, or a dataset already open) with
+    ``cfg``, as ``--resume`` checks a run it continues (every field but ``s3k.config.resumable_fields``, and
+    the dataset's identity); returns the resumable fields that differ, ``{field: [there, here]}``.
 
     Raises:
         UserError: naming the first field or dataset property that differs where it must not.
