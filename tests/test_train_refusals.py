@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.files import contents
 from helpers.synthetic_rig import make_dataset
 
 from s3k.cli import main as cli_main
@@ -152,18 +153,13 @@ def test_resume_records_allowed_changes(dataset, finished_run, tmp_path):
     assert resumed["command"].startswith("s3k train ") and "--steps 3" in resumed["command"]
 
 
-def _files(folder: Path) -> dict[str, tuple[bytes, int]]:
-    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
-            for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
 def test_resume_of_a_finished_run_writes_nothing(capsys, dataset, finished_run, tmp_path):
     run = _copy_run(finished_run, tmp_path / "run")
-    before = _files(run)
+    before = contents(run)
     capsys.readouterr()
     assert cli_main(["train", str(dataset), "--out", str(run), "--resume", "--threads", "2"]) == 0
     assert "complete at step 2: nothing to train" in capsys.readouterr().out
-    assert _files(run) == before  # no history entry, log line, TensorBoard file or checkpoint
+    assert contents(run) == before  # no history entry, log line, TensorBoard file or checkpoint
     # it is still checked as a resume: another setting is refused, more steps continue it
     refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", "--lr", "0.5"], "--lr 0.001")
     assert cli_main(["train", str(dataset), "--out", str(run), "--resume", "--steps", "3"]) == 0

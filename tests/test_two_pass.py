@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from helpers.files import contents
 from helpers.synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
 from test_track import CAMERAS as TRACK_CAMERAS
 from test_track import KEYPOINTS as TRACK_KEYPOINTS
@@ -152,13 +153,10 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
 
     # a complete run: --resume checks it and computes and writes nothing (no estimates or crops, no CPU time,
     # history or log line); without --resume or --overwrite the folder is kept
-    def files():
-        return {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(run.rglob("*")) if p.is_file()}
-
-    before = files()
+    before = contents(run)
     capsys.readouterr()
     assert cli.main([*args, "--resume", "--threads", "2"]) == 0
-    assert files() == before
+    assert contents(run) == before
     assert f"refining pass: {fine} is complete" in capsys.readouterr().out
     # a complete pass trained otherwise than the call asks is refused, not silently kept
     capsys.readouterr()

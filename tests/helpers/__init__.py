@@ -5,6 +5,8 @@
   ``project``, ``random_rotation``; ``count_decodes`` counts the images a module decodes).
 - :mod:`helpers.label_data`: coloured dots for the labelling app's tests (``make_label_dataset``).
 - :mod:`helpers.tiny_detector`: ``save_run``, a run folder holding an untrained tiny detector.
+- :mod:`helpers.files`: ``contents``, every file of a folder with its bytes and time, to tell nothing was
+  written.
 - :mod:`helpers.real_recording`: ``REAL``, the read-only real recording; ``needs_real`` skips without it.
 
 ``tests/conftest.py`` builds fixtures on them (``tiny_dataset``, ``tiny_run``, ``device``, ``dtype``).
