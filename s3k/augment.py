@@ -92,10 +92,10 @@ def stretch_matrices(direction: Tensor, factor: Tensor, size: tuple[int, int]) -
     return M
 
 
-def random_similarity(n: int, size: tuple[int, int], rotation_deg: float, scale: float, shift_px: float,
-                      generator: torch.Generator | None = None, stretch: float = 0.0) -> Tensor:
-    """Draw ``n`` random similarities (uniform angle, scale and shift in the given ranges), each after a
-    random stretch when ``stretch`` > 0.
+def random_warps(n: int, size: tuple[int, int], rotation_deg: float, scale: float, shift_px: float,
+                 generator: torch.Generator | None = None, stretch: float = 0.0) -> Tensor:
+    """Draw ``n`` random pixel warps: similarities (uniform angle, scale and shift in the given ranges), each
+    after a random stretch when ``stretch`` > 0 (then an affine map).
 
     Args:
         n: number of transforms.
@@ -317,7 +317,7 @@ def augment_frames(images: Tensor, K: Tensor, aug: Augmentation, generator: torc
                          f"{tuple(K.shape)}")
     B, C, H, W, Ch = images.shape
     device = torch.device("cpu") if device is None else torch.device(device)
-    M = random_similarity(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator, aug.stretch)
+    M = random_warps(B * C, (W, H), aug.rotation_deg, aug.scale, aug.shift_px, generator, aug.stretch)
     if device.type == "cpu":
         warped = warp_images_uint8(images.reshape(B * C, H, W, Ch), M)
         flat = warped.permute(0, 3, 1, 2).float()  # 0-255, channels-last strides

@@ -10,7 +10,7 @@ import torch
 from s3k.augment import (
     Augmentation,
     photometric,
-    random_similarity,
+    random_warps,
     similarity_matrices,
     warp_images,
     warp_points,
@@ -86,9 +86,9 @@ def test_warp_integer_shift_moves_pixels_exactly():
     assert out[0, :, :, 2].abs().max() < 1e-5
 
 
-def test_random_similarity_ranges():
+def test_random_warps_ranges():
     gen = torch.Generator().manual_seed(0)
-    M = random_similarity(2000, (96, 96), 30.0, 0.2, 10.0, gen)
+    M = random_warps(2000, (96, 96), 30.0, 0.2, 10.0, gen)
     scale = torch.linalg.det(M[:, :2, :2]).sqrt()
     angle = torch.atan2(M[:, 1, 0], M[:, 0, 0]).rad2deg()
     assert scale.min() >= 0.8 - 1e-9 and scale.max() <= 1.2 + 1e-9 and scale.max() > 1.15
@@ -114,13 +114,13 @@ def test_bad_shapes_raise():
 
 def test_stretch_is_along_a_random_direction_and_zero_draws_nothing_more():
     gen = torch.Generator().manual_seed(0)
-    plain = random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen)
+    plain = random_warps(500, (96, 96), 30.0, 0.2, 10.0, gen)
     after_plain = torch.rand(3, generator=gen)
     gen = torch.Generator().manual_seed(0)
-    torch.testing.assert_close(random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.0), plain)
+    torch.testing.assert_close(random_warps(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.0), plain)
     torch.testing.assert_close(torch.rand(3, generator=gen), after_plain)  # the same stream onwards
     gen = torch.Generator().manual_seed(0)
-    M = random_similarity(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.4)
+    M = random_warps(500, (96, 96), 30.0, 0.2, 10.0, gen, stretch=0.4)
     # the same similarities after a stretch by a factor a in [0.6, 1.4]: the area changes by a, the
     # singular values' ratio is max(a, 1 / a)
     a = torch.linalg.det(M[:, :2, :2]) / torch.linalg.det(plain[:, :2, :2])
