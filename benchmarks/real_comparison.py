@@ -9,12 +9,17 @@ unlabelled frames (what the self-supervised term reduces). Over seeds: the mean 
 t-interval (needs >= 2 seeds).
 
     python benchmarks/real_comparison.py [--work /tmp/real-work] [--out FILE.json]
+
+Runs laid out otherwise, e.g. one ``scripts/real-example.sh`` folder per seed: ``--runs
+'OUT/seed{seed}/run-{model}' --data OUT/seed0/crop --about 'how they were trained'`` (``{model}`` is ``s3k``
+or ``baseline``; the distances are in mm, so any import of the recording's test frames scores them alike).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -28,6 +33,7 @@ from s3k.data.frames import FrameStore  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
 from s3k.inference.evaluate import evaluate_store  # noqa: E402
 from s3k.label_reference import bootstrap_ci  # noqa: E402
+from s3k.run_folder import RunFolder  # noqa: E402
 
 
 def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
@@ -61,16 +67,23 @@ def view_consistency(run: Path, ds: Dataset) -> float:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", default="/tmp/real-work", help="the folder of scripts/real-comparison.sh")
+    p.add_argument("--data", default=None, help="the dataset to evaluate on (default WORK/crop)")
+    p.add_argument("--runs", default="{work}/runs/{model}-seed{seed}",
+                   help="where each run is, with {work}, {model} (s3k or baseline) and {seed} filled in")
+    p.add_argument("--about", help="how the runs were trained, for the JSON",
+                   default="bash scripts/real-comparison.sh (3000 steps, 128 px crops, 10 labelled, "
+                   "70 unlabelled, 40 test frames)")
     p.add_argument("--out", default=None, help="JSON file for the figures")
     a = p.parse_args(argv)
     work = Path(a.work)
-    ds = Dataset.open(work / "crop", cache="none")
+    ds = Dataset.open(Path(a.data) if a.data else work / "crop", cache="none")
     ids = np.asarray(ds.frames("test"))
     seeds, diffs = {}, []
     for seed in range(100):
-        runs = {m: work / "runs" / f"{m}-seed{seed}" for m in ("s3k", "baseline")}
-        if not all((r / "model.pt").is_file() for r in runs.values()):
-            if not (runs["s3k"] / "config.json").is_file():
+        runs = {m: Path(a.runs.format(work=work, model=m, seed=seed)) for m in ("s3k", "baseline")}
+        if not all(RunFolder(r).is_complete() for r in runs.values()):
+            s3k_run = RunFolder(runs["s3k"])
+            if not (s3k_run.is_one_pass_run() or s3k_run.is_two_pass_run()):
                 break
             continue
         (ms, ds_), (mb, db) = (distances(runs[m], ds, ids) for m in ("s3k", "baseline"))
@@ -104,10 +117,10 @@ def main(argv: list[str] | None = None) -> None:
             flush=True,
         )
     result = {
-        "command": "python benchmarks/real_comparison.py",
+        "command": shlex.join(["python", "benchmarks/real_comparison.py",
+                               *(sys.argv[1:] if argv is None else argv)]),
         "revision": git_revision(),
-        "runs": "bash scripts/real-comparison.sh (3000 steps, 128 px crops, 10 labelled, 70 unlabelled, "
-        "40 test frames)",
+        "runs": a.about,
         "reference": "proofread labels triangulated from every labelled view (>= 2), test frames",
         "seeds": seeds,
         "seeds_done": len(seeds),
