@@ -5,8 +5,8 @@ frames as ``s3k evaluate`` does: the recording has no 3D truth, so the 3D figure
 model's 3D points and the proofread labels triangulated from every labelled view (mm). Per seed: both models'
 mean and median distance, the paired difference of the means (S3K - labels only, over the same keypoints)
 with a 95% bootstrap interval over frames, rms_px, and how much the views of each model disagree on the
-unlabelled frames (what the self-supervised term reduces). Over seeds: the mean paired difference with a 95%
-t-interval (needs >= 2 seeds).
+unlabelled frames (what the self-supervised term reduces), and a two-pass run's CPU minutes. Over seeds: the
+mean paired difference with a 95% t-interval (needs >= 2 seeds).
 
     python benchmarks/real_comparison.py [--work /tmp/real-work] [--out FILE.json]
 
@@ -18,6 +18,7 @@ or ``baseline``; the distances are in mm, so any import of the recording's test 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shlex
 import sys
@@ -64,6 +65,15 @@ def view_consistency(run: Path, ds: Dataset) -> float:
     return float(np.median(np.concatenate(d)))
 
 
+def _cpu_minutes(run: Path) -> dict:
+    """A two-pass run's CPU minutes per stage and in all (its ``cpu.json``); nothing for a one-pass run."""
+    path = RunFolder(run).cpu
+    if not path.is_file():
+        return {}
+    stages = {k: round(v / 60, 2) for k, v in json.loads(path.read_text()).items()}
+    return {"cpu_minutes": round(sum(stages.values()), 1), "cpu_minutes_per_stage": stages}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", default="/tmp/real-work", help="the folder of scripts/real-comparison.sh")
@@ -102,6 +112,7 @@ def main(argv: list[str] | None = None) -> None:
                         "median"
                     ],
                     "unlabelled_view_disagreement_median_px": view_consistency(runs[m], ds),
+                    **_cpu_minutes(runs[m]),
                 }
                 for m, d, met in (("s3k", ds_, ms), ("baseline", db, mb))
             },
