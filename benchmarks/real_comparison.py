@@ -37,9 +37,8 @@ from s3k.label_reference import bootstrap_ci  # noqa: E402
 from s3k.run_folder import RunFolder  # noqa: E402
 
 
-def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
+def distances(detector: Detector, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
     """The metrics and the (frames, keypoints) mm distances to the triangulated labels (NaN where none)."""
-    detector = Detector.load(run, "cpu")
     metrics, arrays = evaluate_store(
         detector, FrameStore(ds, ids, preload_mb=0, labels=True), 16, ds.units, label_reference=True
     )
@@ -48,13 +47,12 @@ def distances(run: Path, ds: Dataset, ids) -> tuple[dict, np.ndarray]:
     return metrics, d
 
 
-def view_consistency(run: Path, ds: Dataset) -> float:
+def view_consistency(detector: Detector, ds: Dataset) -> float:
     """Median pixel distance, over the unlabelled frames, between each view's detection and the reprojection
     of the confidence-weighted triangulated point: the disagreement between views that S3K's self-supervised
     term reduces on those frames (a model whose views already agree leaves it little to do)."""
     from s3k.inference.predict import detect_store
 
-    detector = Detector.load(run, "cpu")
     store = FrameStore(ds, np.asarray(ds.frames("unlabelled")), preload_mb=0)
     d = [
         np.linalg.norm(p.uv.numpy() - p.reproj.numpy(), axis=-1)[
@@ -96,7 +94,8 @@ def main(argv: list[str] | None = None) -> None:
             if not (s3k_run.is_one_pass_run() or s3k_run.is_two_pass_run()):
                 break
             continue
-        (ms, ds_), (mb, db) = (distances(runs[m], ds, ids) for m in ("s3k", "baseline"))
+        detectors = {m: Detector.load(r, "cpu") for m, r in runs.items()}  # each read once
+        (ms, ds_), (mb, db) = (distances(detectors[m], ds, ids) for m in ("s3k", "baseline"))
         both = np.isfinite(ds_) & np.isfinite(db)
         paired = np.where(both, ds_ - db, np.nan)
         diff = float(np.nanmean(paired))
@@ -111,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
                     "labels_leave_one_view_out_median_px": met["labels_3d"]["labels_leave_one_view_out_px"][
                         "median"
                     ],
-                    "unlabelled_view_disagreement_median_px": view_consistency(runs[m], ds),
+                    "unlabelled_view_disagreement_median_px": view_consistency(detectors[m], ds),
                     **_cpu_minutes(runs[m]),
                 }
                 for m, d, met in (("s3k", ds_, ms), ("baseline", db, mb))
