@@ -1,0 +1,274 @@
+"""Every figure in README.md's results (the Results table and its bullets, the label curve, cameras outside
+the rig, the Speed table, the demo) equals the value in the committed JSON it comes from, to the digits shown.
+
+Each entry of ``FIGURES`` is a piece of the README with ``{}`` where a figure stands, and for each ``{}`` the
+JSON value and its rounding rule. The piece must occur exactly once in the README (a reworded sentence
+fails here until its entry is updated) and each figure must read exactly as its JSON value rounded by the
+rule: a README figure edited by hand, or a JSON file measured again, fails the test.
+
+Rounding rules: millimetres and pixels to three significant digits, at most two decimals (``sig``);
+percentages and CPU-minutes to one decimal (``d1``); frames per second to whole numbers (``d0``); ratios to
+two decimals (``d2``); signed differences with their sign (``signed``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from statistics import mean
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+NUMBER = r"([-+]?\d+(?:\.\d+)?)"
+
+Getter = Callable[[Callable[[str], dict]], float]
+
+
+def sig(v: float) -> str:
+    """Three significant digits, at most two decimals: 37.2457 -> 37.2, 0.2761 -> 0.28, 118.3 -> 118."""
+    decimals = 2 if v == 0 else max(0, min(2, 2 - math.floor(math.log10(abs(v)))))
+    return f"{v:.{decimals}f}"
+
+
+RULES: dict[str, Callable[[float], str]] = {
+    "sig": sig,
+    "d0": lambda v: f"{v:.0f}",
+    "d1": lambda v: f"{v:.1f}",
+    "d2": lambda v: f"{v:.2f}",
+    "signed": lambda v: f"{v:+.2f}",
+}
+
+
+def _at(data, path: str) -> float:
+    for part in path.split("/"):
+        data = data[int(part)] if isinstance(data, list) else data[part]
+    return float(data)
+
+
+def at(file: str, path: str, scale: float = 1.0) -> Getter:
+    """The value at ``path`` (keys joined by ``/``, list indices as numbers) of ``file``."""
+    return lambda load: scale * _at(load(file), path)
+
+
+def derived(file: str, fn: Callable[[dict], float]) -> Getter:
+    """A value computed from ``file`` (a mean over seeds the file lists, a range over counts)."""
+    return lambda load: fn(load(file))
+
+
+def pct(file: str, path: str) -> tuple[str, Getter]:
+    return "d1", at(file, path, 100.0)
+
+
+def mm(file: str, path: str) -> tuple[str, Getter]:
+    return "sig", at(file, path)
+
+
+def row(file: str, model: str) -> list[tuple[str, Getter]]:
+    """A Results-table row: median (per seed), RMS (per seed), share within 10 mm, mean CPU-minutes."""
+    out = [mm(file, f"{model}/median_mm/mean")]
+    out += [mm(file, f"{model}/median_mm/per_seed/{i}") for i in range(3)]
+    out += [mm(file, f"{model}/rms_mm/mean")]
+    out += [mm(file, f"{model}/rms_mm/per_seed/{i}") for i in range(3)]
+    out += [pct(file, f"{model}/pck_10mm/mean"), ("d1", at(file, f"{model}/train_cpu_minutes/mean"))]
+    return out
+
+
+ROW = "| {} mm ({}, {}, {}) | {} mm ({}, {}, {}) | {}% | {} CPU-min |"
+BOLD_ROW = "| **{} mm ({}, {}, {})** | **{} mm ({}, {}, {})** | **{}%** |"
+
+BOX = "docs/results/accuracy/summary.json"
+FAST = "docs/results/accuracy/fast/box-fast/summary.json"
+FIVE = "docs/results/accuracy/five-seeds/summary.json"
+PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
+MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
+INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
+DISTRACTORS = "docs/results/accuracy/distractors/summary.json"
+REAL = "docs/results/real/headline-preset/comparison.json"
+REAL_SEED = "docs/results/real/headline-preset/seed{}/results.json"
+REAL_ONE_PASS = "docs/results/real/comparison.json"
+CURVE = "docs/results/accuracy/label-curve/summary.json"
+PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
+DIAGNOSIS = "docs/results/accuracy/outside-rig/s3k-seed0-diagnosis.json"
+SPEED = "docs/results/accuracy/fast/summary.json"
+QUIET = "docs/results/benchmarks/inference-cpu-batch1-quiet.json"
+ONE_PASS = "docs/results/benchmarks/inference-cpu-batch1.json"
+DEMO = "docs/results/demo/box-fast-comparison.json"
+
+
+def _seeds_mean(model: str, key: str) -> Callable[[dict], float]:
+    return lambda d: mean(s[model][key] for s in d["seeds"].values())
+
+
+def _curve(model: str, key: str, pick: Callable) -> Callable[[dict], float]:
+    """``pick`` (min or max) over the label counts of each count's mean over seeds."""
+    return lambda d: pick(v[key]["mean"] for v in d["curve"][model].values())
+
+
+def _real_rows() -> list[tuple[str, Getter]]:
+    out = []
+    for model, name in (("baseline", "baseline"), ("s3k", "s3k")):
+        out.append(("sig", derived(REAL, _seeds_mean(model, "median_mm"))))
+        out += [mm(REAL, f"seeds/{i}/{model}/median_mm") for i in range(3)]
+        out.append(("sig", derived(REAL, _seeds_mean(model, "mean_mm"))))
+        out.append(("sig", lambda load, n=name: mean(load(REAL_SEED.format(i))[n]["rms_mm"]
+                                                     for i in range(3))))
+        out += [mm(REAL_SEED.format(i), f"{name}/rms_mm") for i in range(3)]
+        out.append(("d1", derived(REAL, _seeds_mean(model, "cpu_minutes"))))
+    return out
+
+
+FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
+    # The demo, quick start.
+    ("it takes {} minutes, set-up included, and prints S3K {} mm median and {} mm RMS against labels only's"
+     " {} and {} mm ([box-fast-comparison.json](docs/results/demo/box-fast-comparison.json))",
+     [("d1", at(DEMO, "wall_minutes_with_setup")), mm(DEMO, "S3K/median_mm"), mm(DEMO, "S3K/rms_mm"),
+      mm(DEMO, "labels only/median_mm"), mm(DEMO, "labels only/rms_mm")]),
+    # The Results table.
+    (f"([summary]({BOX})) | labels only {ROW}\n| | **S3K** {BOLD_ROW} **{{}} CPU-min** |",
+     row(BOX, "labels_only") + row(BOX, "s3k")),
+    (f"([summary]({FAST})) | labels only {ROW}\n| | S3K {ROW}", row(FAST, "labels_only") + row(FAST, "s3k")),
+    (f"([summary]({PLUSH}); earlier options: [accuracy.md](docs/accuracy.md"
+     f"#the-headline-preset-on-other-scenes)) | labels only {ROW}\n| | **S3K** {BOLD_ROW} {{}} CPU-min |",
+     row(PLUSH, "labels_only") + row(PLUSH, "s3k")),
+    (f"([summary]({MUGS})) | labels only {ROW}\n| | S3K {ROW}", row(MUGS, "labels_only") + row(MUGS, "s3k")),
+    (f"([summary]({INSERTION})) | labels only {ROW}\n| | **S3K** {BOLD_ROW} {{}} CPU-min |",
+     row(INSERTION, "labels_only") + row(INSERTION, "s3k")),
+    ("`+modified`) | labels only | {} mm | {} mm | {}% | |\n| | S3K | {} mm | {} mm | {}% | |",
+     [spec for m in ("labels_only", "s3k") for spec in
+      (mm(DISTRACTORS, f"{m}/median_mm/mean"), mm(DISTRACTORS, f"{m}/rms_mm/mean"),
+       pct(DISTRACTORS, f"{m}/pck_10mm/mean"))]),
+    ("5 seeds: S3K {}, labels only {} mm, [comparison](docs/results/real/comparison.json))",
+     [("sig", derived(REAL_ONE_PASS, _seeds_mean(m, "median_mm"))) for m in ("s3k", "baseline")]),
+    ("| labels only | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |\n"
+     "| | S3K | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows()),
+    # The bullets under it.
+    ("in {}-{} CPU-minutes per model",
+     [("d1", derived(BOX, lambda d, f=f: f(d["s3k"]["train_cpu_minutes"]["per_seed"]))) for f in (min, max)]),
+    ("labels only leaves {}% of the keypoints more than 10 mm off",
+     [("d0", derived(BOX, lambda d: 100 * (1 - d["labels_only"]["pck_10mm"]["mean"])))]),
+    ("Five seeds: {} / {} mm", [mm(FIVE, "s3k/median_mm/mean"), mm(FIVE, "s3k/rms_mm/mean")]),
+    ("CPU time for a {} mm median", [mm(FAST, "s3k/median_mm/mean")]),
+    ("on RMS in every seed ({}x) and on median in two of three (seed 1: {} against {} mm)",
+     [("d2", derived(PLUSH, lambda d: d["s3k"]["rms_mm"]["mean"] / d["labels_only"]["rms_mm"]["mean"])),
+      mm(PLUSH, "s3k/median_mm/per_seed/1"), mm(PLUSH, "labels_only/median_mm/per_seed/1")]),
+    ("(median {} mm against {}-{}), and S3K is level with labels only (paired difference {} mm over three"
+     " seeds, 95% interval {} to {}; with one pass {} mm over five, {} to {})",
+     [("sig", derived(REAL, lambda d: mean(mean(s[m]["median_mm"] for m in ("s3k", "baseline"))
+                                           for s in d["seeds"].values()))),
+      ("sig", derived(REAL_ONE_PASS, _seeds_mean("s3k", "median_mm"))),
+      ("sig", derived(REAL_ONE_PASS, _seeds_mean("baseline", "median_mm"))),
+      ("signed", at(REAL, "mean_paired_diff_mm")),
+      ("signed", at(REAL, "mean_paired_diff_ci95_mm_over_seeds/0")),
+      ("signed", at(REAL, "mean_paired_diff_ci95_mm_over_seeds/1")),
+      ("signed", at(REAL_ONE_PASS, "mean_paired_diff_mm")),
+      ("signed", at(REAL_ONE_PASS, "mean_paired_diff_ci95_mm_over_seeds/0")),
+      ("signed", at(REAL_ONE_PASS, "mean_paired_diff_ci95_mm_over_seeds/1"))]),
+    # The label curve.
+    ("to match S3K's median at 10 ({} mm; labels only at 20: {} mm) and does not reach S3K's RMS at 10"
+     " ({} mm) even with 100 ({} mm: one seed in three keeps a tail, {}-{} mm). S3K at 20 labels: {} mm"
+     " median ({}-{}).",
+     [mm(CURVE, "curve/s3k/10/median_mm/mean"), mm(CURVE, "curve/labels_only/20/median_mm/mean"),
+      mm(CURVE, "curve/s3k/10/rms_mm/mean"), mm(CURVE, "curve/labels_only/100/rms_mm/mean"),
+      mm(CURVE, "curve/labels_only/100/rms_mm/min"), mm(CURVE, "curve/labels_only/100/rms_mm/max"),
+      mm(CURVE, "curve/s3k/20/median_mm/mean"), mm(CURVE, "curve/s3k/20/median_mm/min"),
+      mm(CURVE, "curve/s3k/20/median_mm/max")]),
+    ("{}-{} CPU-minutes per S3K model, {}-{} per labels-only one",
+     [("d1", derived(CURVE, _curve(m, "train_cpu_minutes", f)))
+      for m in ("s3k", "labels_only") for f in (min, max)]),
+    ("more labels buy little: S3K {} mm median at 10 labels and {} at 100, labels only {} and {}",
+     [mm(PLUSH_CURVE, f"curve/{m}/{n}/median_mm/mean") for m in ("s3k", "labels_only") for n in (10, 100)]),
+    ("its RMS stays {}-{} mm at every count, S3K's {}-{} mm",
+     [("sig", derived(PLUSH_CURVE, _curve(m, "rms_mm", f)))
+      for m in ("labels_only", "s3k") for f in (min, max)]),
+    # Cameras outside the training rig.
+    ("their 2D error is {}x the in-range one ({} px against {}), and at equal 2D error their narrow angles"
+     " would give {}x the 3D error",
+     [("d2", derived(DIAGNOSIS, lambda d: _at(d, "rigs/high/diagnosis/fine_2d_median_px")
+                     / _at(d, "rigs/train/diagnosis/fine_2d_median_px"))),
+      mm(DIAGNOSIS, "rigs/high/diagnosis/fine_2d_median_px"),
+      mm(DIAGNOSIS, "rigs/train/diagnosis/fine_2d_median_px"),
+      ("d2", at(DIAGNOSIS, "rigs/high/diagnosis/triangulation_floor_ratio"))]),
+    # The Speed table.
+    ("| {} CPU-min (coarse pass {}, crops {}, refining pass {}); labels only {}; `--preset box-fast` {} |",
+     [("d1", at(SPEED, "s3k/train_cpu_minutes/mean"))]
+     + [("d1", at(SPEED, f"stages/train_s3k/{s}/cpu_min")) for s in ("coarse", "crops", "fine")]
+     + [("d1", at(SPEED, "labels_only/train_cpu_minutes/mean")),
+        ("d1", at(FAST, "s3k/train_cpu_minutes/mean"))]),
+    ("| {} frames/s (one thread {});",
+     [("d0", at(QUIET, "inference_benchmark/threads_2/two_pass_frames_per_s_median")),
+      ("d0", at(QUIET, "inference_benchmark/threads_1/two_pass_frames_per_s_median"))]),
+    ("`+modified`), {} frames/s |", [("d0", at(QUIET, "trained_detector/threads_2/frames_per_s_median"))]),
+    ("([inference-cpu-batch1.json](docs/results/benchmarks/inference-cpu-batch1.json)) | {} frames/s |",
+     [("d0", at(ONE_PASS, "pipelines/one_pass/frames_per_s"))]),
+]
+
+
+def _pattern(template: str) -> re.Pattern:
+    """The template as a regex: each ``{}`` a number, any run of whitespace any run of whitespace (the README
+    wraps its prose)."""
+    pieces = ["".join(r"\s+" if t.isspace() else re.escape(t) for t in re.split(r"(\s+)", piece) if t)
+              for piece in template.split("{}")]
+    return re.compile(NUMBER.join(pieces))
+
+
+def _loader() -> Callable[[str], dict]:
+    cache: dict[str, dict] = {}
+
+    def load(file: str) -> dict:
+        if file not in cache:
+            cache[file] = json.loads((ROOT / file).read_text(encoding="utf-8"))
+        return cache[file]
+    return load
+
+
+def mismatches(text: str, load: Callable[[str], dict]) -> list[str]:
+    """One line per README figure that differs from its JSON value, or per template not found exactly once."""
+    out = []
+    for template, specs in FIGURES:
+        assert template.count("{}") == len(specs), template
+        found = list(_pattern(template).finditer(text))
+        if len(found) != 1:
+            out.append(f"{len(found)} matches of {template[:70]!r}")
+            continue
+        for shown, (rule, get) in zip(found[0].groups(), specs):
+            want = RULES[rule](get(load))
+            if shown != want:
+                out.append(f"{shown} in {template[:70]!r} should read {want}")
+    return out
+
+
+def test_the_rounding_rule():
+    assert [sig(v) for v in (37.2457, 34.0487, 0.2761, 118.3, 2.5698, 13.93, 4.69)] == \
+        ["37.2", "34.0", "0.28", "118", "2.57", "13.9", "4.69"]
+
+
+def test_every_readme_figure_equals_its_json():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert mismatches(text, _loader()) == []
+
+
+def test_every_cited_json_is_linked_from_the_readme():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, CURVE, PLUSH_CURVE,
+             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, *(REAL_SEED.format(i) for i in range(3))}
+    assert [f for f in sorted(files) if f"]({f})" not in text] == []
+
+
+@pytest.mark.parametrize("old, new", [("37.2 mm (34.0, 35.5, 42.2)", "37.3 mm (34.1, 35.5, 42.2)"),
+                                      ("| 11.4 CPU-min (coarse", "| 11.5 CPU-min (coarse")])
+def test_an_edited_readme_figure_fails(old, new):
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert text.count(old) == 1
+    assert mismatches(text.replace(old, new), _loader()) != []
+
+
+def test_a_changed_json_value_fails():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    load = _loader()
+    load(MUGS)["labels_only"]["rms_mm"]["mean"] = 37.31
+    bad = mismatches(text, load)
+    assert len(bad) == 1 and "should read 37.3" in bad[0]
