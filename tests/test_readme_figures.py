@@ -6,9 +6,9 @@ JSON value and its rounding rule. The piece must occur exactly once in the READM
 fails here until its entry is updated) and each figure must read exactly as its JSON value rounded by the
 rule: a README figure edited by hand, or a JSON file measured again, fails the test.
 
-Rounding rules: millimetres and pixels to three significant digits, at most two decimals (``sig``);
-percentages and CPU-minutes to one decimal (``d1``); frames per second to whole numbers (``d0``); ratios to
-two decimals (``d2``); signed differences with their sign (``signed``).
+Rounding rules: millimetres, pixels and percentages to three significant digits, at most two decimals
+(``sig``); CPU-minutes to one decimal (``d1``); frames per second and counts to whole numbers (``d0``);
+ratios to two decimals (``d2``); signed differences with their sign (``signed``).
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def derived(file: str, fn: Callable[[dict], float]) -> Getter:
 
 
 def pct(file: str, path: str) -> tuple[str, Getter]:
-    return "d1", at(file, path, 100.0)
+    return "sig", at(file, path, 100.0)
 
 
 def mm(file: str, path: str) -> tuple[str, Getter]:
@@ -97,6 +97,7 @@ SPEED = "docs/results/accuracy/fast/summary.json"
 QUIET = "docs/results/benchmarks/inference-cpu-batch1-quiet.json"
 ONE_PASS = "docs/results/benchmarks/inference-cpu-batch1.json"
 DEMO = "docs/results/demo/box-fast-comparison.json"
+ROBOT = "docs/results/robot/summary.json"
 
 
 def _seeds_mean(model: str, key: str) -> Callable[[dict], float]:
@@ -184,6 +185,11 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
     ("its RMS stays {}-{} mm at every count, S3K's {}-{} mm",
      [("sig", derived(PLUSH_CURVE, _curve(m, "rms_mm", f)))
       for m in ("labels_only", "s3k") for f in (min, max)]),
+    ("succeeds {}/180 with either detector ({}/180 with true keypoints;",
+     [("d0", derived(ROBOT, lambda d, m=m: d["grasp_success"][m] * d["grasp_success"]["trials_in_all"]))
+      for m in ("s3k", "ground_truth")]),
+    ("ends at {}% insertions in each of 3 seeds, the beta-VAE agent on the same views at {}%",
+     [pct(ROBOT, "rl_final_success/keypoints/min"), pct(ROBOT, "rl_final_success/beta_vae/mean")]),
     # Cameras outside the training rig.
     ("their 2D error is {}x the in-range one ({} px against {}), and at equal 2D error their narrow angles"
      " would give {}x the 3D error",
@@ -254,7 +260,7 @@ def test_every_readme_figure_equals_its_json():
 def test_every_cited_json_is_linked_from_the_readme():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, CURVE, PLUSH_CURVE,
-             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, *(REAL_SEED.format(i) for i in range(3))}
+             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, ROBOT, *(REAL_SEED.format(i) for i in range(3))}
     assert [f for f in sorted(files) if f"]({f})" not in text] == []
 
 
