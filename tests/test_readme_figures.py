@@ -98,6 +98,7 @@ QUIET = "docs/results/benchmarks/inference-cpu-batch1-quiet.json"
 ONE_PASS = "docs/results/benchmarks/inference-cpu-batch1.json"
 DEMO = "docs/results/demo/box-fast-comparison.json"
 ROBOT = "docs/results/robot/summary.json"
+WIDE = "docs/results/accuracy/outside-rig/wide-rig-el10-70-seeds.json"
 
 
 def _seeds_mean(model: str, key: str) -> Callable[[dict], float]:
@@ -107,6 +108,11 @@ def _seeds_mean(model: str, key: str) -> Callable[[dict], float]:
 def _curve(model: str, key: str, pick: Callable) -> Callable[[dict], float]:
     """``pick`` (min or max) over the label counts of each count's mean over seeds."""
     return lambda d: pick(v[key]["mean"] for v in d["curve"][model].values())
+
+
+def _ratios(rig: str, sets: tuple[str, ...], pick: Callable) -> Getter:
+    """``pick`` (min or max) of the per-seed ratios to the in-range median of ``sets`` on ``rig``."""
+    return derived(WIDE, lambda d: pick(r for s in sets for r in d["outside_rigs"][rig][s]["ratio_per_seed"]))
 
 
 def _real_rows() -> list[tuple[str, Getter]]:
@@ -191,6 +197,15 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
     ("ends at {}% insertions in each of 3 seeds, the beta-VAE agent on the same views at {}%",
      [pct(ROBOT, "rl_final_success/keypoints/min"), pct(ROBOT, "rl_final_success/beta_vae/mean")]),
     # Cameras outside the training rig.
+    ("keep the in-range median ({}-{}x); cameras lower than any in training (10-20° elevation) do not"
+     " ({}-{}x)",
+     [("d2", _ratios("scene_rig", ("far", "wide"), f)) for f in (min, max)]
+     + [("d2", _ratios("scene_rig", ("low",), f)) for f in (min, max)]),
+    ("`s3k simulate --elevation 10,70`: {}-{}x, and on the usual cameras {} mm median against {};",
+     [("d2", _ratios("wider_rig", ("low",), f)) for f in (min, max)]
+     + [mm(WIDE, "models/s3k_wider_rig/median_mm/mean"), mm(WIDE, "models/s3k_scene_rig/median_mm/mean")]),
+    ("nearly overhead (75-85°) give {}-{}x:",
+     [("d2", _ratios("scene_rig", ("high",), f)) for f in (min, max)]),
     ("their 2D error is {}x the in-range one ({} px against {}), and at equal 2D error their narrow angles"
      " would give {}x the 3D error",
      [("d2", derived(DIAGNOSIS, lambda d: _at(d, "rigs/high/diagnosis/fine_2d_median_px")
@@ -260,7 +275,7 @@ def test_every_readme_figure_equals_its_json():
 def test_every_cited_json_is_linked_from_the_readme():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, CURVE, PLUSH_CURVE,
-             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, ROBOT, *(REAL_SEED.format(i) for i in range(3))}
+             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, ROBOT, WIDE, *(REAL_SEED.format(i) for i in range(3))}
     assert [f for f in sorted(files) if f"]({f})" not in text] == []
 
 
