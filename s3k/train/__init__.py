@@ -36,12 +36,13 @@ The rooms:
 - :mod:`s3k.train.run_folder`: the checks before anything is written, ``--resume`` compatibility, history.
 - :mod:`s3k.train.sampling`: random batches, augmented, on the device.
 - :mod:`s3k.train.validation`: periodic validation and the labelled layout it compares with.
-- :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc-per-node N`` each rank draws from its
-  own shard of the frames; only rank 0 writes logs and checkpoints).
+- :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc-per-node N`` the ranks train what one
+  process trains: each draws the whole global batch and passes its own part; only rank 0 writes logs and
+  checkpoints).
 """
 
 from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
-from s3k.train.distributed import DistInfo, init_distributed, shard
+from s3k.train.distributed import DistInfo, init_distributed
 from s3k.train.entry import train
 from s3k.train.loop import TrainResult, train_one_pass
 from s3k.train.run_setup import check_trained_as
@@ -52,5 +53,5 @@ from s3k.train.validation import labelled_distances, labelled_layout, mean_pairw
 __all__ = [
     "DistInfo", "TrainResult", "check_trained_as", "compute_losses", "draw_batch", "init_distributed",
     "labelled_distances", "labelled_layout", "load_checkpoint", "mean_pairwise_distance", "prepare",
-    "read_checkpoint_step", "shard", "train", "train_one_pass", "validate",
+    "read_checkpoint_step", "train", "train_one_pass", "validate",
 ]

@@ -1,8 +1,14 @@
-"""Data-parallel training helpers: joining torchrun's process group, sharding frames, agreeing across ranks.
+"""Data-parallel training helpers: joining torchrun's process group, each rank's part of a batch, agreeing
+across ranks.
 
-Under ``torchrun --nproc-per-node N`` every rank runs the same loop on its own shard of the frames, wrapped in
-DistributedDataParallel (gloo on CPU, NCCL on GPU); only rank 0 writes logs and checkpoints. Without torchrun
-(``WORLD_SIZE`` unset or 1) every helper is a no-op.
+Under ``torchrun --nproc-per-node N`` every rank runs the loop one process runs, wrapped in
+DistributedDataParallel (gloo on CPU, NCCL on GPU), so that N ranks train what one process trains: the batch
+sizes are global; every rank holds every frame, draws and augments the whole batch from the same random
+stream as one process (``seed * 1000``), then passes only its own contiguous ``batch / N`` frames
+(:func:`part`) forward and backward. Every loss is a sum over frames divided by the frames of the batch, so
+the mean of the ranks' losses, and DDP's mean of their gradients, are those of the whole batch;
+:func:`mean_terms` gives every rank the whole batch's logged terms. Only rank 0 writes logs and checkpoints.
+Without torchrun (``WORLD_SIZE`` unset or 1) every helper is a no-op.
 """
 
 from __future__ import annotations
@@ -12,10 +18,11 @@ import warnings
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
+
+from s3k.errors import UserError
 
 
 @dataclass
@@ -53,11 +60,46 @@ def finish_distributed(info: DistInfo) -> None:
         dist.destroy_process_group()
 
 
-def shard(ids: np.ndarray, info: DistInfo) -> np.ndarray:
-    """Rank's share of the frames (every rank keeps all frames when there are fewer than ranks)."""
-    if not info.enabled or len(ids) < info.world:
-        return ids
-    return ids[info.rank::info.world]
+def world_size() -> int:
+    """The number of processes torchrun started (1 without torchrun)."""
+    return max(int(os.environ.get("WORLD_SIZE", "1")), 1)
+
+
+def check_batches(batch_labelled: int, batch_unlabelled: int, unsup: bool, world: int) -> None:
+    """Refuse batch sizes that ``world`` ranks cannot split into equal parts.
+
+    Raises:
+        UserError: naming the batch size and the option that fixes it.
+    """
+    sizes = [("--batch-labelled", batch_labelled)]
+    if unsup:
+        sizes.append(("--batch-unlabelled", batch_unlabelled))
+    for option, n in sizes:
+        if n % world:
+            raise UserError(f"{option} {n} does not split over the {world} processes torchrun started (each "
+                            "takes an equal part of the global batch)",
+                            hint=f"give {option} a multiple of {world}")
+
+
+def part(batch: tuple[Any, ...], info: DistInfo) -> tuple[Any, ...]:
+    """This rank's contiguous ``1 / world`` of every field of ``batch`` (frames along the first dimension;
+    :class:`s3k.geometry.Cameras` and None fields too); ``batch`` itself without DDP."""
+    if not info.enabled:
+        return batch
+    n = len(batch[0]) // info.world
+    return tuple(None if x is None else x[info.rank * n:(info.rank + 1) * n] for x in batch)
+
+
+def mean_terms(terms: dict[str, float], device: torch.device, info: DistInfo) -> dict[str, float]:
+    """The mean over the ranks of each of ``terms`` (the same keys on every rank): for terms that are sums
+    over frames divided by the frames of a rank's equal part, or means over them, the whole batch's value."""
+    if not info.enabled:
+        return terms
+    keys = sorted(terms)
+    values = torch.tensor([terms[k] for k in keys], dtype=torch.float64, device=device)
+    dist.all_reduce(values)
+    means = dict(zip(keys, (values / info.world).tolist()))
+    return {k: means[k] for k in terms}
 
 
 def wrap_model(net: nn.Module, device: torch.device, info: DistInfo) -> nn.Module:

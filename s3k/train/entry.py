@@ -9,6 +9,7 @@ from s3k.config import TrainConfig
 from s3k.data.protocol import DatasetLike
 from s3k.detector import is_two_pass
 from s3k.errors import UserError
+from s3k.train.distributed import check_batches, world_size
 from s3k.train.loop import TrainResult, train_one_pass
 from s3k.train.two_pass import train_two_pass
 
@@ -50,6 +51,8 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, *, 
         >>> result.status, result.step  # doctest: +SKIP
         ('done', 100)
     """
+    # before anything is written
+    check_batches(cfg.batch_labelled, cfg.batch_unlabelled, cfg.unsup, world_size())
     if cfg.two_pass:
         if resume and overwrite:
             raise UserError("--resume and --overwrite exclude each other", hint="pass one of them")

@@ -45,10 +45,13 @@ from s3k.train.distributed import (
     DistInfo,
     all_ranks,
     broadcast_buffers,
+    check_batches,
     finish_distributed,
     gather,
     init_distributed,
-    shard,
+    mean_terms,
+    part,
+    world_size,
     wrap_model,
 )
 from s3k.train.run_setup import (
@@ -108,7 +111,8 @@ class _Loop:
         # NHWC is the faster convolution layout for these small channel counts on CPU (and fine on GPU).
         self.net = net.to(device=device, memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.model = wrap_model(self.net, device, info)
-        self.gen = torch.Generator().manual_seed(cfg.seed * 1000 + info.rank)
+        # one stream for every rank: each draws and augments the whole batch as one process does
+        self.gen = torch.Generator().manual_seed(cfg.seed * 1000)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lr_lambda(cfg))
         self.step, self.nonfinite_run = 0, 0
@@ -143,13 +147,9 @@ class _Loop:
             raise UserError(f"{path}: does not fit this network ({str(exc).splitlines()[0][:200]})",
                             hint="resume with the run's settings, or choose another --out") from exc
         self.step, self.nonfinite_run = int(state["step"]), int(state.get("nonfinite_run", 0))
-        rng = state["rng"]
-        if len(rng) == self.info.world:
-            ckpt.set_rng_state(self.gen, rng[self.info.rank])
-        else:
-            log.warning("checkpoint was written by %d ranks, now %d: random streams re-seeded", len(rng),
-                        self.info.world)
-            self.gen.manual_seed(self.cfg.seed * 1000 + self.info.rank + 7919 * self.step)
+        # every rank continues the one stream (the first rank's, of a checkpoint written with one per rank),
+        # whatever number of ranks wrote it
+        ckpt.set_rng_state(self.gen, state["rng"][0])
         log.info("resumed from %s at step %d", path, self.step)
 
     def start_from(self, weights: dict[str, Any], run: Any) -> None:
@@ -181,16 +181,18 @@ class _Loop:
         cfg, net = self.cfg, self.net
         ts = time.perf_counter()
         alpha = cfg.alpha_at(self.step)
-        lab = prepare(draw_batch(lab_store, cfg.batch_labelled, self.gen, True), self.device, aug, self.gen,
-                      True, noise_bank)
+        # the whole global batch is drawn and augmented on every rank; each passes its own part forward
+        lab = part(prepare(draw_batch(lab_store, cfg.batch_labelled, self.gen, True), self.device, aug,
+                           self.gen, True, noise_bank), self.info)
         unl = None
         if unl_store is not None and alpha > 0:
-            unl = prepare(draw_batch(unl_store, cfg.batch_unlabelled, self.gen, False), self.device, aug,
-                          self.gen, False, noise_bank)[:2]
+            unl = part(prepare(draw_batch(unl_store, cfg.batch_unlabelled, self.gen, False), self.device, aug,
+                               self.gen, False, noise_bank)[:2], self.info)
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
         loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.rule, self.teacher,
                                      self.precision)
+        terms = mean_terms(terms, self.device, self.info)  # the whole batch's, as one process logs them
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
@@ -347,6 +349,7 @@ def train_one_pass(data: str | Path | DatasetLike, out: str | Path, cfg: TrainCo
         UserError: before anything is written, naming what is wrong (see ``s3k.train.run_folder``).
     """
     cfg.validate()
+    check_batches(cfg.batch_labelled, cfg.batch_unlabelled, cfg.unsup, world_size())
     info = init_distributed(cfg.device)
     try:
         return _train(data, Path(out), cfg, resume, overwrite, progress, command, info, init_from)
@@ -373,8 +376,8 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     start = _initial_weights(init_from, meta) if init_from is not None else None  # refused before any write
     # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
     t0 = time.perf_counter()
-    lab_store = FrameStore(d.ds, shard(d.labelled, info), cfg.preload_mb, labels=True)
-    unl_store = FrameStore(d.ds, shard(d.unlabelled, info), cfg.preload_mb) if cfg.unsup else None
+    lab_store = FrameStore(d.ds, d.labelled, cfg.preload_mb, labels=True)  # every rank: every frame
+    unl_store = FrameStore(d.ds, d.unlabelled, cfg.preload_mb) if cfg.unsup else None
     val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
     if device.type != "cpu":  # the frames held once on the training device, batches drawn there
         for store in (lab_store, unl_store):
