@@ -10,7 +10,8 @@ loading never runs code from the file::
     optimizer      Adam's state dict
     scheduler      the learning-rate schedule's state dict
     rng            one dict per rank: {"gen": batch/augmentation generator state, "torch": global state,
-                   "cuda": [per-device states] when CUDA is available}
+                   "cuda": [per-device states] when CUDA is available}; the ranks share one stream, so a
+                   resume, with any number of ranks, continues the first
     nonfinite_run  consecutive non-finite steps before this one
     meta           ``DetectorMeta.to_dict()``
     config         ``TrainConfig.to_dict()`` (flat)
