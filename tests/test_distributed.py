@@ -113,7 +113,8 @@ def _max_abs(a: dict, b: dict) -> float:
     return max(float((a[k].double() - b[k].double()).abs().max()) for k in a if k not in UNSEEN)
 
 
-# two launches of two processes each importing torch, two trainings here: about 35 s on 2 busy cores
+# two launches of two processes each importing torch and two trainings here: 31-83 s on 2 busy cores
+@pytest.mark.slow
 def test_two_ranks_train_what_one_process_trains(runs):
     one, (r0, r1) = runs["one"], runs["two"]
     assert r0["step"] == r1["step"] == one["step"] == 20
@@ -134,7 +135,7 @@ def test_two_ranks_train_what_one_process_trains(runs):
     assert "DDP" in (run / "train.log").read_text()
 
 
-# shares the trainings above
+@pytest.mark.slow  # shares the trainings above
 def test_resume_under_torchrun_ends_where_an_uninterrupted_run_ends(runs):
     two, resumed, one_resumed = runs["two"][0], runs["resumed"], runs["one_resumed"]
     assert resumed[0]["step"] == 20 and len(resumed[0]["losses"]) == 10  # steps 11 to 20, after a new start
