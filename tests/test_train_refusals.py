@@ -313,3 +313,30 @@ def test_two_pass_options_are_refused_before_the_coarse_pass(dataset, tmp_path):
         with pytest.raises(UserError, match=name.replace("_", ".")):
             train(dataset, tmp_path / "run", cfg.replace(**options))
         assert not (tmp_path / "run").exists()
+
+
+def test_resume_refuses_a_preset_that_is_not_the_runs_configuration(capsys, dataset, finished_run, tmp_path):
+    """``--preset`` with ``--resume`` was ignored: the run went on with its own configuration. A preset that
+    differs from the run's where a resume may not change it is refused, as that field's option is."""
+    run = _copy_run(finished_run, tmp_path / "run")
+    before = contents(run)
+    refused(capsys, ["train", str(dataset), "--out", str(run), "--resume", "--preset", "box-fast"],
+            "--preset box-fast", str(run), "drop --preset")
+    assert contents(run) == before
+
+
+def test_resume_takes_the_preset_the_run_was_trained_with(capsys, dataset, tmp_path):
+    """A two-pass run started from a preset (its options recorded, more steps since) resumes with
+    ``--preset`` of that name, its own steps kept; another preset names the field that differs."""
+    from s3k.presets import preset
+    from s3k.run_folder import RunFolder
+
+    run = RunFolder(tmp_path / "run")
+    run.path.mkdir()
+    run.write_config(preset("box-fast").replace(steps=7))
+    argv = ["train", str(dataset), "--out", str(run.path), "--resume", "--print-config"]
+    capsys.readouterr()
+    assert cli_main([*argv, "--preset", "box-fast"]) == 0
+    assert json.loads(capsys.readouterr().out)["steps"] == 7
+    refused(capsys, [*argv, "--preset", "box-headline"], "crop_size to 192", "trained with 128")
+    assert cli_main([*argv, "--preset", "box-headline", "--crop-size", "128", "--crop-margin", "0.1"]) == 0

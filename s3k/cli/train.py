@@ -9,7 +9,8 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
-from s3k.config import TrainConfig
+from s3k.config import TrainConfig, resumable_fields
+from s3k.errors import UserError
 from s3k.outputs import check_output_folder
 from s3k.presets import PRESETS, preset
 from s3k.run_folder import RunFolder
@@ -33,7 +34,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint (its configuration is used; "
                              "options given here may change only steps, threads, progress, device, "
-                             "preloading and the validation, logging and checkpoint cadence)")
+                             "preloading and the validation, logging and checkpoint cadence; a --preset "
+                             "must be the run's)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
     parser.add_argument("--init-from", default=None, metavar="RUN",
@@ -53,11 +55,26 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def resolve(args: argparse.Namespace) -> TrainConfig:
     """The configuration of this call: the preset (or, with ``--resume``, the run's own), the ``--config``
-    file over it, the options given over that."""
+    file over it, the options given over that. A preset given with ``--resume`` must be the run's: one that
+    sets a field the resume may not change to another value than the run's is refused (as that field's
+    option would be), naming the field."""
     base = preset(args.preset) if args.preset else None
-    if args.resume:
-        base = RunFolder(args.out).config() or base
-    return config_from_args(args, TrainConfig, base=base)
+    saved = RunFolder(args.out).config() if args.resume else None
+    if saved is not None and base is not None:
+        mine = config_from_args(args, TrainConfig, base=base).to_dict()
+        theirs = config_from_args(args, TrainConfig, base=saved).to_dict()
+        free = resumable_fields()
+        for name, value in mine.items():
+            if name not in free and value != theirs[name]:
+                raise UserError(f"--resume: --preset {args.preset} sets {name} to {_shown(value)} but the run "
+                                f"in {args.out} was trained with {_shown(theirs[name])}",
+                                hint="drop --preset to continue the run with its own configuration, or choose "
+                                     "another --out")
+    return config_from_args(args, TrainConfig, base=saved or base)
+
+
+def _shown(value: object) -> str:
+    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
 
 
 def run(args: argparse.Namespace) -> int:
