@@ -171,6 +171,8 @@ def test_behind_an_https_proxy_the_token_cookie_is_secure(tmp_path):
     ("https://Labels.Example.org", "https://labels.example.org"),
     ("http://labels.lab:8080/", "http://labels.lab:8080"),
     ("https://[::1]:9000", "https://[::1]:9000"),
+    ("https://labels.example.org:443", "https://labels.example.org"),
+    ("http://labels.lab:80/", "http://labels.lab"),
 ])
 def test_public_url_is_reduced_to_its_origin(url, origin):
     from s3k.label.server import public_origin
@@ -179,7 +181,8 @@ def test_public_url_is_reduced_to_its_origin(url, origin):
 
 @pytest.mark.parametrize("url", ["labels.example.org", "ftp://labels.example.org", "https://",
                                  "https://labels.example.org/s3k", "https://labels.example.org/?a=1",
-                                 "https://user@labels.example.org", "https://labels.example.org:99999"])
+                                 "https://user@labels.example.org", "https://labels.example.org:99999",
+                                 "http://[::1", "https://[::1]x"])
 def test_a_public_url_the_app_cannot_be_served_at_is_refused_in_one_line(url):
     from s3k.errors import UserError
     from s3k.label.server import public_origin
@@ -207,3 +210,45 @@ def test_serving_behind_a_proxy_always_needs_the_token_and_prints_the_public_url
     assert guarded.get("/api/frame/0").status_code == 403
     assert guarded.get("/api/frame/0", headers={"x-s3k-token": url.split("=", 1)[1]}).status_code == 200
     assert TestClient(apps[0], base_url=OWN).get("/api/frame/0").status_code == 200
+
+
+def test_behind_an_https_proxy_its_plain_http_twin_is_another_page(tmp_path):
+    """The proxy forwards its Host to the app, which hears plain http: the origin allowed for that Host is
+    the public URL's (its scheme included), never one built from the request, so ``http://`` + the public
+    host is refused."""
+    truth = make_label_dataset(tmp_path / "ds")
+    client = TestClient(create_app(truth.path, public_url=PUBLIC), base_url=OWN)
+    root = client.app.state.label.root
+    path = f"/api/frame/{FRAME}/label"
+    before = snapshot(root)
+    for twin in ("http://labels.example.org", "http://labels.example.org:80"):
+        r = client.post(path, json=BODIES[path](client),
+                        headers={"Origin": twin, "Host": "labels.example.org", "Content-Type": JSON})
+        assert r.status_code == 403, (twin, r.text)
+    assert snapshot(root) == before
+    r = client.post(path, json=BODIES[path](client),
+                    headers={"Origin": PUBLIC, "Host": "labels.example.org", "Content-Type": JSON})
+    assert r.status_code == 200, r.text
+
+
+@pytest.mark.parametrize("public", ["https://labels.example.org:443", "https://labels.example.org"])
+@pytest.mark.parametrize("origin", ["https://labels.example.org", "https://labels.example.org:443"])
+def test_a_default_port_names_the_same_origin_on_either_side(tmp_path, public, origin):
+    """Browsers leave the scheme's default port out of ``Origin``; ``--public-url https://host:443`` is the
+    same origin."""
+    truth = make_label_dataset(tmp_path / "ds")
+    client = TestClient(create_app(truth.path, public_url=public), base_url=OWN)
+    path = f"/api/frame/{FRAME}/label"
+    r = client.post(path, json=BODIES[path](client),
+                    headers={"Origin": origin, "Host": "labels.example.org", "Content-Type": JSON})
+    assert r.status_code == 200, r.text
+
+
+def test_a_malformed_public_url_is_refused_in_one_line(tmp_path, capsys):
+    from s3k import cli
+
+    truth = make_label_dataset(tmp_path / "ds")
+    capsys.readouterr()
+    assert cli.main(["label", str(truth.path), "--public-url", "http://[::1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--public-url" in err and "http://[::1" in err, err

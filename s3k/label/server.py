@@ -173,39 +173,58 @@ def _error(status: int, message: str, **extra: Any) -> JSONResponse:
     return JSONResponse({"detail": message, **extra}, status_code=status)
 
 
+DEFAULT_PORTS = {"http": 80, "https": 443}
+
+
+def _origin(url: str) -> str | None:
+    """``scheme://host[:port]`` of a URL or an ``Origin``, in lower case and without the scheme's default port
+    (a browser names ``https://host``, never ``https://host:443``); None when it is no http(s) origin."""
+    try:
+        parts = urlsplit(url.strip())
+        port = parts.port
+    except ValueError:  # a port out of range, an unclosed [IPv6 address
+        return None
+    scheme, host = parts.scheme.lower(), (parts.hostname or "").lower()
+    if scheme not in DEFAULT_PORTS or not host:
+        return None
+    shown = f"[{host}]" if ":" in host else host
+    if parts.netloc.lower() != (shown if port is None else f"{shown}:{port}"):
+        return None  # more than a host and port: a user, or text after a [IPv6 address]
+    return f"{scheme}://{shown}" + ("" if port in (None, DEFAULT_PORTS[scheme]) else f":{port}")
+
+
 def public_origin(url: str) -> tuple[str, str]:
     """``(origin, host)`` of ``--public-url``: the address a reverse proxy serves the app at, e.g.
     ``https://labels.example.org`` (scheme http or https, a host, an optional port, no path: the app's pages
     name their files from the root)."""
-    parts = urlsplit(url.strip())
-    try:
-        port = parts.port
-    except ValueError:
-        port = -1
-    if parts.scheme.lower() not in ("http", "https") or not parts.hostname or port == -1:
+    origin = _origin(url)
+    if origin is None:
         raise UserError(f"--public-url {url!r}: expected http(s)://HOST[:PORT], e.g. https://labels.example.org")
+    parts = urlsplit(url.strip())
     if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
         raise UserError(f"--public-url {url!r}: the app must be served at the root of its host, with no "
                         "path, query or user", hint="give the proxy a host name (or port) of its own")
-    host = parts.hostname.lower()
-    shown = f"[{host}]" if ":" in host else host
-    return f"{parts.scheme.lower()}://{shown}" + ("" if port is None else f":{port}"), host
+    return origin, str(parts.hostname).lower()
 
 
-def _cross_site(request: Request, also: str | None = None) -> JSONResponse | None:
+def _cross_site(request: Request, public: tuple[str, str] | None = None) -> JSONResponse | None:
     """Why a state-changing request is refused as possibly sent by another web page (None: it is not).
 
     A page elsewhere can make the browser send a form or a ``no-cors`` fetch to this server (the Host check
     passes: the browser names 127.0.0.1). Such a request names its page's origin in ``Origin`` (or, from
     some browsers, only ``Sec-Fetch-Site``), and it cannot carry ``Content-Type: application/json`` without
     the server's consent (a CORS preflight, which this server never grants). So a request is taken only when
-    its origin is this server's own (same scheme, host and port), ``also`` (the origin a reverse proxy serves
-    the page at, ``--public-url``) or unnamed (a script, not a browser page), and its body is JSON.
+    its origin is this server's own (same scheme, host and port), ``public``'s (the origin a reverse proxy
+    serves the page at, ``--public-url``, :func:`public_origin`) or unnamed (a script, not a browser page),
+    and its body is JSON. A request whose ``Host`` is the public host came through the proxy: its own origin
+    is the public one alone (the proxy's plain-http twin of an https origin is another page's).
     """
-    own = f"{request.url.scheme}://{request.headers.get('host', '')}".lower()
+    own = _origin(f"{request.url.scheme}://{request.headers.get('host', '')}")
+    if public is not None and own is not None and urlsplit(own).hostname == public[1]:
+        own = public[0]
     origin = request.headers.get("origin")
     if origin is not None:
-        if origin.strip().lower() not in (own, also):
+        if _origin(origin) not in {own, None if public is None else public[0]} - {None}:
             return _error(403, f"cross-site request refused: origin {origin!r} is not this app's ({own}); "
                                "edit the labels from the page s3k label serves")
     else:
@@ -218,6 +237,8 @@ def _cross_site(request: Request, also: str | None = None) -> JSONResponse | Non
         return _error(415, f"Content-Type {kind or 'missing'!r} refused: every request that changes the "
                            "dataset must send application/json")
     return None
+
+
 
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
@@ -247,7 +268,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
     app = FastAPI(title="s3k label", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.label = state
 
-    _add_guard(app, allowed_hosts, token, None if public is None else public[0])
+    _add_guard(app, allowed_hosts, token, public)
     _add_frame_routes(app, state)
     _add_tool_routes(app, state)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
@@ -255,7 +276,7 @@ def create_app(data: str | Path, run: str | Path | None = None, token: str | Non
 
 
 def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None,
-               public: str | None = None) -> None:
+               public: tuple[str, str] | None = None) -> None:
     """Every request's checks: a capped body, an allowed ``Host``, the origin (its own or ``public``), the
     token."""
 
@@ -284,7 +305,7 @@ def _add_guard(app: FastAPI, allowed_hosts: list[str] | None, token: str | None,
         response = await call_next(request)
         if token is not None and request.query_params.get("token"):
             response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict",
-                                secure=public is not None and public.startswith("https:"))
+                                secure=public is not None and public[0].startswith("https:"))
         return response
 
 
