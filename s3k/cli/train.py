@@ -66,10 +66,10 @@ def resolve(args: argparse.Namespace) -> TrainConfig:
         free = resumable_fields()
         for name, value in mine.items():
             if name not in free and value != theirs[name]:
-                raise UserError(f"--resume: --preset {args.preset} sets {name} to {_shown(value)} but the run "
-                                f"in {args.out} was trained with {_shown(theirs[name])}",
-                                hint="drop --preset to continue the run with its own configuration, or choose "
-                                     "another --out")
+                raise UserError(f"--resume: --preset {args.preset} sets {name} to {_shown(value)} but the "
+                                f"run in {args.out} was trained with {_shown(theirs[name])}",
+                                hint="drop --preset to continue the run with its own configuration, or "
+                                     "choose another --out")
     return config_from_args(args, TrainConfig, base=saved or base)
 
 
