@@ -14,22 +14,25 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from s3k.detector.geometry_record import run_meta
 from s3k.errors import UserError
-from s3k.inference.kalman import MODELS, FilterSettings
+from s3k.inference.kalman import MODELS, RANGES, FilterSettings
 from s3k.inference.track import FIT_MODES
+from s3k.inference.track_filter import check_rigid, layout_shape_of
 from s3k.ranges import Range
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 
 def number(kind: type = float, *, ge: float | None = None, gt: float | None = None, le: float | None = None,
-           lt: float | None = None) -> Callable[[str], Any]:
-    """An ``argparse`` ``type=``: text -> ``kind`` (int or float), finite and within the bounds.
+           lt: float | None = None, within: Range | None = None) -> Callable[[str], Any]:
+    """An ``argparse`` ``type=``: text -> ``kind`` (int or float), finite and within the bounds (``within``: a
+    :class:`s3k.ranges.Range` declared beside the setting, in place of the bounds).
 
     Example:
         >>> number(int, ge=1)("3")
         3
     """
-    bounds = Range(ge=ge, gt=gt, le=le, lt=lt)
+    bounds = within if within is not None else Range(ge=ge, gt=gt, le=le, lt=lt)
 
     def parse(text: str):
         try:
@@ -157,31 +160,36 @@ def add_filter_options(parser: argparse.ArgumentParser, default: str) -> None:
     g.add_argument("--filter-model", choices=list(MODELS), default="velocity",
                    help="motion model of each keypoint: constant velocity or constant acceleration (default "
                         "velocity)")
-    g.add_argument("--filter-process-noise", type=number(gt=0), default=None, metavar="Q",
+    g.add_argument("--filter-process-noise", type=_ranged("process_noise"), default=None, metavar="Q",
                    help="standard deviation of the white noise driving the motion, world units per frame "
                         "squared (cubed for acceleration) (default: fitted per keypoint by likelihood)")
-    g.add_argument("--filter-noise-scale", type=number(gt=0), default=None, metavar="S",
+    g.add_argument("--filter-noise-scale", type=_ranged("noise_scale"), default=None, metavar="S",
                    help="scale of the measurement noise (default: fitted per keypoint by likelihood)")
-    g.add_argument("--filter-noise-px", type=number(ge=0), default=None, metavar="PX",
+    g.add_argument("--filter-noise-px", type=_ranged("noise_px"), default=None, metavar="PX",
                    help="least reprojection residual a detection counts with, pixels (default: the "
                         "keypoint's median residual)")
-    g.add_argument("--filter-gate", type=number(ge=0), default=4.0, metavar="SIGMAS",
+    g.add_argument("--filter-gate", type=_ranged("gate"), default=4.0, metavar="SIGMAS",
                    help="reject a point further than this many standard deviations from the prediction "
-                        "(default 4; 0: never)")
-    g.add_argument("--filter-max-gap", type=number(int, ge=0), default=10, metavar="FRAMES",
+                        "(default 4; 0: never; at most 100)")
+    g.add_argument("--filter-max-gap", type=_ranged("max_gap", int), default=10, metavar="FRAMES",
                    help="bridge up to this many missing or rejected frames; after a longer gap the filter "
                         "starts again (default 10)")
     g.add_argument("--filter-rigid", choices=("auto", "on", "off"), default="auto",
                    help="hold the points to the rigid layout the run was trained with (--layout-tol); auto: "
                         "when it has one (default auto)")
-    g.add_argument("--filter-layout-std", type=number(gt=0), default=None, metavar="W",
+    g.add_argument("--filter-layout-std", type=_ranged("layout_std"), default=None, metavar="W",
                    help="how far a point may stand off the rigid layout, world units (default: fitted)")
     g.add_argument("--filter-limbs", nargs="+", default=None, metavar="A,B",
                    help="limbs (pairs of keypoints) whose lengths are held near their median over the track, "
                         "or 'none' (default: the skeleton the run recorded from its dataset, if any)")
-    g.add_argument("--filter-limb-std", type=number(gt=0), default=None, metavar="W",
+    g.add_argument("--filter-limb-std", type=_ranged("limb_std"), default=None, metavar="W",
                    help="how far a limb's length may stand off its median, world units (default: its robust "
                         "spread over the track)")
+
+
+def _ranged(setting: str, kind: type = float) -> Callable[[str], Any]:
+    """The ``type=`` of a filter option: the range :data:`s3k.inference.kalman.RANGES` declares."""
+    return number(kind, within=RANGES[setting])
 
 
 def filter_settings(args: argparse.Namespace):
@@ -193,6 +201,19 @@ def filter_settings(args: argparse.Namespace):
                           noise_px=args.filter_noise_px, gate=args.filter_gate, max_gap=args.filter_max_gap,
                           rigid=rigid, layout_std=args.filter_layout_std,
                           limb_std=args.filter_limb_std).check()
+
+
+def check_filter_rigid(args: argparse.Namespace, run: str) -> None:
+    """Refuse ``--filter-rigid on`` with a run that records no rigid layout, before any frame is read
+    (:func:`s3k.inference.track_filter.check_rigid`)."""
+    meta = run_meta(run)
+    if meta is None or args.filter_rigid != "on":
+        return  # a folder that is no run is refused as the detector is loaded
+    try:
+        shape = layout_shape_of(meta.get("layout"))
+    except (TypeError, ValueError):
+        return  # a layout that cannot be read is refused as the detector is loaded
+    check_rigid(filter_settings(args), shape, f"the run {run}")
 
 
 def filter_limbs(args: argparse.Namespace) -> list[tuple[str, str]] | None:

@@ -13,6 +13,7 @@ from s3k.cli.options import (
     add_filter_options,
     add_rig_options,
     camera_pairs,
+    check_filter_rigid,
     filter_limbs,
     filter_settings,
     number,
@@ -118,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--sources: triangulation needs at least 2 cameras, got {len(specs)}")
     if not args.other_rig:
         check_rig(args.run, list(specs), what="--sources")
+    check_filter_rigid(args, args.run)
     if args.rerun and args.rerun != "spawn":  # a recording file: the output check of every command
         check_output(args.rerun, args.overwrite, option="--rerun",
                      inputs={"--calibration": args.calibration, "RUN": args.run,

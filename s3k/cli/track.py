@@ -11,6 +11,7 @@ from s3k.cli import examples
 from s3k.cli.options import (
     add_filter_options,
     add_rig_options,
+    check_filter_rigid,
     filter_limbs,
     filter_settings,
     number,
@@ -103,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
                  inputs={"--calibration": args.calibration, "--videos": list(videos.values())})
     if not args.other_rig:
         check_rig(args.run, list(videos), what="--videos")
+    check_filter_rigid(args, args.run)
     if args.overlay:
         check_folder(args.overlay, "folder of overlay videos", option="--overlay",
                      inputs={"--calibration": args.calibration, "--videos": list(videos.values())},

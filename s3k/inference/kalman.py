@@ -34,8 +34,9 @@ from typing import Any
 import numpy as np
 
 from s3k.errors import UserError
+from s3k.ranges import Range
 
-__all__ = ["MODELS", "CausalFilter", "FilterSettings", "Smoothed", "fit_noise", "forward", "smooth"]
+__all__ = ["MODELS", "RANGES", "CausalFilter", "FilterSettings", "Smoothed", "fit_noise", "forward", "smooth"]
 
 MODELS = {"velocity": 2, "acceleration": 3}
 """The motion models and the size of their state per axis."""
@@ -50,6 +51,20 @@ OUTLIER_WIDTH = 20.0
 #: Frames of history at which :class:`CausalFilter` fits its noise again (then every ``REFIT_LAST`` frames).
 REFIT_AT = (16, 32, 64, 128, 256)
 REFIT_LAST = 256
+
+#: The range of each numeric setting of :class:`FilterSettings` (the command line's ``--filter-...`` options
+#: declare the same): bounds within which the squares and products of the filter stay finite and above zero.
+#: A gate of 100 standard deviations rejects nothing a real track holds (0 turns it off); deviations in world
+#: units span a micrometre to a kilometre in millimetres or metres; the fitted noise scales lie in 1/64 to 8.
+RANGES = {
+    "gate": Range(ge=0, le=100),
+    "process_noise": Range(ge=1e-6, le=1e6),
+    "noise_scale": Range(ge=1e-3, le=1e3),
+    "noise_px": Range(ge=0, le=1e4),
+    "layout_std": Range(ge=1e-6, le=1e6),
+    "limb_std": Range(ge=1e-6, le=1e6),
+    "max_gap": Range(ge=0),
+}
 
 
 @dataclass
@@ -90,16 +105,10 @@ class FilterSettings:
             raise UserError(f"--filter must be kalman or none, got {self.method!r}")
         if self.model not in MODELS:
             raise UserError(f"--filter-model must be one of {', '.join(MODELS)}, got {self.model!r}")
-        for name, value in (("process-noise", self.process_noise), ("noise-scale", self.noise_scale),
-                            ("layout-std", self.layout_std), ("limb-std", self.limb_std)):
-            if value is not None and not (np.isfinite(value) and value > 0):
-                raise UserError(f"--filter-{name} must be a positive number, got {value}")
-        if self.noise_px is not None and not (np.isfinite(self.noise_px) and self.noise_px >= 0):
-            raise UserError(f"--filter-noise-px must be >= 0, got {self.noise_px}")
-        if not (np.isfinite(self.gate) and self.gate >= 0):
-            raise UserError(f"--filter-gate must be >= 0, got {self.gate}")
-        if self.max_gap < 0:
-            raise UserError(f"--filter-max-gap must be >= 0, got {self.max_gap}")
+        for name, bounds in RANGES.items():
+            value = getattr(self, name)
+            if value is not None:
+                bounds.check(value, f"--filter-{name.replace('_', '-')}")
         return self
 
     def to_dict(self) -> dict[str, Any]:

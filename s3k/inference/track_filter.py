@@ -31,7 +31,7 @@ from s3k.inference.constraints import hold_limbs, hold_to_layout, limb_reference
 from s3k.inference.kalman import CausalFilter, FilterSettings, Smoothed, nanmedian, smooth
 from s3k.readout.rigid import layout_shape
 
-__all__ = ["DOUBT_COLUMNS", "DOUBT_INVALID", "REJECTED", "StreamFilter", "doubt", "doubt_path",
+__all__ = ["DOUBT_COLUMNS", "DOUBT_INVALID", "REJECTED", "StreamFilter", "check_rigid", "doubt", "doubt_path",
            "filter_track", "layout_shape_of", "measurement_std", "raw_path", "read_doubt", "write_doubt"]
 
 DOUBT_INVALID = 100.0
@@ -78,6 +78,15 @@ def layout_shape_of(layout: Any) -> np.ndarray | None:
     return None if shape is None else shape.numpy()
 
 
+def check_rigid(settings: FilterSettings, shape: np.ndarray | None, run: Any = "the run") -> None:
+    """Refuse ``--filter-rigid on`` when the run has no rigid layout (``shape`` None, :func:`layout_shape_of`)
+    to hold the points to, rather than filter without it."""
+    if settings.method != "none" and settings.rigid and shape is None:
+        raise UserError(f"--filter-rigid on: {run} has no rigid layout to hold the points to",
+                        hint="train it with a rigid object's layout (--layout-tol), or pass --filter-rigid "
+                             "auto or off")
+
+
 def _median_error(error: np.ndarray) -> np.ndarray:
     med = nanmedian(error)
     return np.where(np.isfinite(med), med, 1.0)
@@ -89,6 +98,7 @@ def filter_track(X: np.ndarray, error: np.ndarray, score: np.ndarray, used: np.n
     """The offline filter of a track (module docstring): ``X (T, K, 3)`` raw points and their ``error``,
     ``score`` ``(T, K)`` and ``used (T, C, K)``; ``shape`` a rigid layout (:func:`layout_shape_of`),
     ``edges`` the skeleton's limbs as keypoint index pairs. ``info`` of the result records what was used."""
+    check_rigid(settings, shape)
     noise_px = settings.noise_px if settings.noise_px is not None else _median_error(error)
     std = measurement_std(X, cams, used, error, score, noise_px)
     out = smooth(X, std, settings)
@@ -121,6 +131,7 @@ class StreamFilter:
     edges: Sequence[tuple[int, int]] = ()
 
     def __post_init__(self) -> None:
+        check_rigid(self.settings, self.shape)
         self.kalman = CausalFilter(self.num_keypoints, self.settings)
         self.errors: list[np.ndarray] = []
         self.placed: list[np.ndarray] = []
