@@ -4,8 +4,11 @@ first for labelling (s3k.label.queue)."""
 from __future__ import annotations
 
 import csv
+import json
 
 import numpy as np
+import pytest
+from helpers.files import contents
 from test_track import CAMERAS, KEYPOINTS, _track, recording  # noqa: F401 (the fixture)
 
 from s3k import cli
@@ -72,3 +75,73 @@ def test_add_frames_refuses_when_nothing_can_be_queued(recording, tmp_path, caps
     assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "3"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(data) in err and not (data / "label-queue.csv").exists()
+
+
+def _refused(capsys, argv, *needles):
+    capsys.readouterr()
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    return err
+
+
+@pytest.mark.parametrize("column, value", [("fnum", "x"), ("fnum", "-3"), ("fnum", "2.5"), ("fnum", ""),
+                                           ("rank", "abc"), ("rank", "-1"), ("doubt", "high"),
+                                           ("doubt", "nan")])
+def test_a_ranking_whose_frame_rank_or_doubt_is_no_number_is_refused_in_one_line(recording, tmp_path,  # noqa: F811
+                                                                                  capsys, column, value):
+    data = _dataset(recording, tmp_path / "data")
+    tracks = tmp_path / "points3d.csv"
+    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    ranking = tmp_path / "points3d.doubt.csv"
+    _rank(ranking, [4, 3])
+    rows = list(csv.DictReader(open(ranking, newline="")))
+    rows[1][column] = value
+    with open(ranking, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, DOUBT_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    before = contents(data)
+    _refused(capsys, ["add-frames", str(tracks), "--data", str(data), "--worst", "2"], str(ranking), "line 3",
+             column, repr(value))
+    assert contents(data) == before
+
+
+@pytest.mark.parametrize("named", ["../points3d.doubt.csv", "/etc/passwd", "sub/points3d.doubt.csv", ".."])
+def test_a_record_naming_a_ranking_outside_its_folder_is_refused_in_one_line(recording, tmp_path, capsys,  # noqa: F811
+                                                                             named):
+    data = _dataset(recording, tmp_path / "data")
+    tracks = tmp_path / "t" / "points3d.csv"
+    tracks.parent.mkdir()
+    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    _rank(tmp_path / "points3d.doubt.csv", [4, 3])
+    sidecar = tmp_path / "t" / "points3d.csv.s3k.json"
+    record = json.loads(sidecar.read_text())
+    sidecar.write_text(json.dumps({**record, "doubt": named}))
+    before = contents(data)
+    _refused(capsys, ["add-frames", str(tracks), "--data", str(data), "--worst", "2"], str(sidecar),
+             "'doubt'", repr(named), "broken")
+    assert contents(data) == before
+
+
+@pytest.mark.parametrize("text, needle", [("{not json", "not JSON"), ("[1, 2]", "a JSON list"),
+                                          ('{"units": 3}', "'units' is 3"),
+                                          ('{"units": "mm", "videos": ["a.mp4"]}', "'videos'"),
+                                          ('{"units": "mm", "videos": {"left": 1}}', "'videos'"),
+                                          ('{"units": "mm", "fps": true}', "'fps'")])
+def test_a_broken_record_is_reported_as_broken_not_as_missing(recording, tmp_path, capsys, text,  # noqa: F811
+                                                              needle):
+    """add-frames, export-tracks and view read the record beside a CSV: a broken one is named, with what is
+    wrong in it, where before it was taken for no record at all."""
+    data = _dataset(recording, tmp_path / "data")
+    tracks = tmp_path / "points3d.csv"
+    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    sidecar = tmp_path / "points3d.csv.s3k.json"
+    sidecar.write_text(text)
+    for argv in (["add-frames", str(tracks), "--data", str(data), "--worst", "2"],
+                 ["export-tracks", str(tracks), "--format", "nwb", "--out", str(tmp_path / "t.nwb")]):
+        err = _refused(capsys, argv, str(sidecar), "broken", needle)
+        assert "no " not in err.split("broken")[0]
+    assert not (tmp_path / "t.nwb").exists()

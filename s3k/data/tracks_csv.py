@@ -144,13 +144,51 @@ def write_source(csv_path: str | Path, units: str, details: dict[str, Any] | Non
     return path
 
 
-def read_source(csv_path: str | Path) -> dict[str, str] | None:
-    """What :func:`write_source` wrote beside a CSV, or None (no file, or not one of these)."""
+#: The types of the entries of a CSV's source record (:func:`write_source`); others are kept as they are.
+_SOURCE_TYPES: dict[str, tuple[type, ...]] = {
+    "units": (str,), "run": (str,), "calibration": (str,), "dataset": (str,), "fps": (str, int, float),
+    "videos": (dict,), "start": (int,), "raw": (str, type(None)), "doubt": (str, type(None)),
+    "filter": (dict, type(None)),
+}
+
+
+def read_source(csv_path: str | Path) -> dict[str, Any] | None:
+    """What :func:`write_source` wrote beside a CSV, or None when there is no such file.
+
+    Raises:
+        UserError: the file is there but broken (not JSON, not an object, an entry of another type, a
+            ``videos`` entry that is not ``{camera: file}``, a ``raw`` or ``doubt`` file outside the CSV's
+            folder), naming the file and the entry.
+    """
+    path = source_path(csv_path)
     try:
-        doc = json.loads(source_path(csv_path).read_text())
-    except (OSError, ValueError):
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
         return None
-    return doc if isinstance(doc, dict) and isinstance(doc.get("units"), str) else None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot be read ({exc})") from None
+    hint = f"delete {path.name} (then give what it recorded as options), or track the videos again"
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise UserError(f"{path}: broken, not JSON ({exc})", hint=hint) from None
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: broken, a JSON {type(doc).__name__} where an object was expected",
+                        hint=hint)
+    for key, types in _SOURCE_TYPES.items():
+        if (key == "units" or key in doc) and (not isinstance(doc.get(key), types)
+                                               or isinstance(doc.get(key), bool)):
+            wanted = " or ".join("null" if t is type(None) else t.__name__ for t in types)
+            raise UserError(f"{path}: broken, {key!r} is {doc.get(key)!r}, expected {wanted}", hint=hint)
+    videos = doc.get("videos", {})
+    if not all(isinstance(c, str) and isinstance(v, str) and c and v for c, v in videos.items()):
+        raise UserError(f"{path}: broken, 'videos' is {videos!r}, expected {{camera: file}}", hint=hint)
+    for key in ("raw", "doubt"):
+        name = doc.get(key)
+        if name is not None and (name in ("", ".", "..") or Path(name).name != name or "\\" in name):
+            raise UserError(f"{path}: broken, {key!r} is {name!r}, expected the name of a file beside "
+                            f"{Path(csv_path).name}", hint=hint)
+    return doc
 
 
 def tracked_with(csv_path: str | Path, run: str | Path) -> bool:
@@ -158,7 +196,10 @@ def tracked_with(csv_path: str | Path, run: str | Path) -> bool:
     the same run folder and it is newer than every file of the run (a run trained on or fine-tuned again since
     is not)."""
     csv_path, run = Path(csv_path), Path(run)
-    source = read_source(csv_path)
+    try:
+        source = read_source(csv_path)
+    except UserError:
+        return False
     if source is None or not isinstance(source.get("run"), str) or not (csv_path.is_file() and run.is_dir()):
         return False
     newest = max((f.stat().st_mtime for f in run.rglob("*") if f.is_file()), default=float("inf"))

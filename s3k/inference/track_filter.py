@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import csv
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -201,21 +202,41 @@ def write_doubt(path: str | Path, fnums: Sequence[int], scores: dict[str, np.nda
     return path
 
 
+def _whole(text: str | None) -> bool:
+    """Whether ``text`` is a whole number from 0 to 2**63 - 1 in ASCII digits."""
+    return re.fullmatch(r"\s*[0-9]{1,19}\s*", text or "") is not None and int(text or "") < 2**63
+
+
 def read_doubt(path: str | Path) -> list[dict[str, str]]:
     """The rows of a ranking :func:`write_doubt` wrote, worst first.
 
     Raises:
-        UserError: the file is missing or is not such a ranking (naming the file and the column).
+        UserError: the file is missing or is not such a ranking (naming the file and the column), or a row's
+            ``fnum`` or ``rank`` is not a whole number >= 0 or its ``doubt`` not a finite number (naming the
+            line).
     """
-
-
     try:
         with open_text(path) as fh:
             reader = csv.DictReader(fh)
             missing = [c for c in ("fnum", "doubt") if c not in (reader.fieldnames or [])]
             if missing:
                 raise UserError(f"{path}: not a ranking of 's3k track' (no column {missing[0]!r})")
-            return sorted(reader, key=lambda r: int(r.get("rank") or 0))
+            rows = list(reader)
     except FileNotFoundError:
         raise UserError(f"{path}: no such ranking", hint="run 's3k track' first; it writes <stem>.doubt.csv "
                         "beside its --out") from None
+    for line, row in enumerate(rows, 2):
+        for column in ("fnum", "rank"):
+            text = row.get(column)
+            if (column == "rank" and text is None) or _whole(text):
+                continue
+            raise UserError(f"{path}: line {line}: {column} {text!r} is not a whole number >= 0",
+                            hint="run 's3k track' again to write the ranking anew")
+        try:
+            finite = np.isfinite(float(row.get("doubt") or ""))
+        except ValueError:
+            finite = False
+        if not finite:
+            raise UserError(f"{path}: line {line}: doubt {row.get('doubt')!r} is not a finite number",
+                            hint="run 's3k track' again to write the ranking anew")
+    return sorted(rows, key=lambda r: int(r.get("rank") or 0))
