@@ -46,7 +46,7 @@ def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_fi
     tracks = tmp_path / "points3d.csv"
     assert _track(recording, tracks, "--min-weight", "0") == 0
     _rank(tmp_path / "points3d.doubt.csv", [1, 0, 4, 3, 2, 5])  # a test frame and a labelled one first
-    assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "2"]) == 0
+    assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "2", "--spacing", "0"]) == 0
     assert "already test" in capsys.readouterr().out
     ds = Dataset.open(data, cache="none")
     assert ds.frames().tolist() == [0, 1, 2, 3, 4]

@@ -26,7 +26,7 @@ OPTION = r"`(?P<opt>--[a-z0-9][a-z0-9-]*)(?:[ =][^`]*)?`"
 VALUE = r"(?P<val>-?\d+(?:\.\d+)?(?:e-?\d+)?|`[^`\s]+`)"
 STATED = [
     re.compile(OPTION + r"[^`\n]{0,60}?\(default:? " + VALUE + r"[,;) ]"),
-    re.compile(OPTION + r",? default:? " + VALUE + r"[,;). ]"),
+    re.compile(OPTION + r"[^`\n(|.;]{0,40}?,? default:? " + VALUE + r"[,;). ]"),
     re.compile(OPTION + r"[^`\n|]{0,40}?,? " + VALUE + r" by default"),
 ]
 HELP_DEFAULT = re.compile(r"\(default:? ([^,;)\s]+)|(\S+) by default")
@@ -68,9 +68,10 @@ def stated_defaults(text: str) -> list[tuple[int, str, str]]:
 
 def test_the_patterns_read_the_ways_docs_state_defaults():
     text = ("`--filter-gate` standard deviations (default 4). `--spacing N`, default 2, then "
-            "`--coarse-size` px, 96 by default; `--norm` (default `batch`).")
+            "`--coarse-size` px, 96 by default; `--norm` (default `batch`); `--worst` apart, default 3.")
     assert [(o, v) for _, o, v in stated_defaults(text)] == [
-        ("--coarse-size", "96"), ("--filter-gate", "4"), ("--norm", "`batch`"), ("--spacing", "2")]
+        ("--coarse-size", "96"), ("--filter-gate", "4"), ("--norm", "`batch`"), ("--spacing", "2"),
+        ("--worst", "3")]
 
 
 @pytest.mark.parametrize("doc", [d for d in DOCS if d.name not in SKIP], ids=lambda d: d.name)

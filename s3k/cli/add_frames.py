@@ -29,8 +29,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="the dataset to add the frames to")
     parser.add_argument("--worst", type=number(int, ge=1), required=True, metavar="N",
                         help="how many frames to queue")
-    parser.add_argument("--spacing", type=number(int, ge=0), default=0, metavar="FRAMES",
-                        help="take no frame closer than this to a worse one taken (default 0: any)")
+    parser.add_argument("--spacing", type=number(int, ge=0), default=2, metavar="FRAMES",
+                        help="take no frame closer than this to a worse one taken, so that the queue holds "
+                             "no near-duplicate neighbours (default 2; 0: any)")
     parser.add_argument("--videos", nargs="+", default=None, metavar="CAM=FILE",
                         help="the videos (default: those 's3k track' recorded beside TRACKS)")
 
