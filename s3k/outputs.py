@@ -270,6 +270,8 @@ _HIDDEN = re.compile(r"\.(?P<name>.+)\.(?P<kind>writing|importing|replaced)-(?P<
 DATASET_NAMES = frozenset({
     # s3k.data.tables: the metadata, tables and cache of a dataset
     "s3k.json", "frames.csv", "calibration.json", "calibration.csv", "labels.csv", "points3d.csv", ".cache",
+    # s3k.data.sessions: the folder of each session's rig
+    "calibration",
     # s3k.label.store: the label history and its lock; s3k.data.writer: the mark of an unfinished dataset
     "labels-history.jsonl", ".labels.lock", UNFINISHED_MARKER,
 })
@@ -286,8 +288,9 @@ def _dataset_images(folder: Path) -> tuple[set[str], str]:
     except (OSError, ValueError, AttributeError):
         images = {}
     if isinstance(images, dict) and images.get("type") == "video":
-        videos = images.get("videos")
-        paths = [Path(str(v)) for v in (videos.values() if isinstance(videos, dict) else [])]
+        per = images.get("sessions")
+        groups = list(per.values()) if isinstance(per, dict) else [images.get("videos")]
+        paths = [Path(str(v)) for g in groups for v in (g.values() if isinstance(g, dict) else [])]
         return {p.parts[0] for p in paths if p.parts and not p.is_absolute()}, ""
     pattern = Path(str(images.get("pattern", "images/{camera}/{frame:06d}.png"))
                    if isinstance(images, dict) else "images/{camera}/{frame:06d}.png")

@@ -295,13 +295,14 @@ def test_experiment_refuses_a_size_no_run_can_fit_before_the_sweep(tmp_path, cap
 
 
 def test_the_dataset_names_are_those_the_datasets_hold():
-    from s3k.data import tables
+    from s3k.data import sessions, tables
     from s3k.label import store
     from s3k.outputs import DATASET_NAMES, UNFINISHED_MARKER
 
     assert {tables.METADATA_FILE, tables.FRAMES_FILE, tables.STATIC_CALIBRATION_FILE,
             tables.PER_FRAME_CALIBRATION_FILE, tables.LABELS_FILE, tables.POINTS3D_FILE, tables.CACHE_DIR,
-            store.HISTORY_FILE, store.LOCK_FILE, UNFINISHED_MARKER} == DATASET_NAMES
+            sessions.SESSION_CALIBRATION_DIR, store.HISTORY_FILE, store.LOCK_FILE,
+            UNFINISHED_MARKER} == DATASET_NAMES
 
 
 def test_the_run_neighbours_are_those_s3k_keeps_in_a_run_folder():

@@ -98,9 +98,11 @@ def camera_defects(
 
 
 
-def read_static_calibration(root: Path, meta: Meta, P: Problems) -> Cameras | None:
-    name = STATIC_CALIBRATION_FILE
-    ok, data = read_json(root, name, "file missing (s3k.json says calibration is static)", P)
+def read_static_calibration(root: Path, meta: Meta, P: Problems, name: str = STATIC_CALIBRATION_FILE,
+                            missing: str = "file missing (s3k.json says calibration is static)"
+                            ) -> Cameras | None:
+    """A rig file (``calibration.json``, or a session's under ``calibration/``) as ``Cameras (C,)``."""
+    ok, data = read_json(root, name, missing, P)
     if not ok:
         return None
     cams = data.get("cameras") if isinstance(data, dict) else None

@@ -1,16 +1,10 @@
 """The s3k dataset: a folder a person can read (``docs/dataset-format.md``) and its validating loader.
 
-A dataset folder holds::
-
-    s3k.json           format name and version, keypoint and camera names, image size, units, ...
-    frames.csv         frame, split (labelled / unlabelled / test), optional instance, segment, ... columns
-    calibration.json   static rig: K, dist, R, t per camera            (or)
-    calibration.csv    per frame: one row per (frame, camera)
-    labels.csv         frame, camera, keypoint, u, v, visible (partial: any cameras, any keypoints)
-    points3d.csv       frame, keypoint, x, y, z (optional ground truth, used only by evaluation)
-    images/<camera>/<frame:06d>.png   (or videos/<camera>.mp4 and a video_frame column in frames.csv)
-
-:meth:`Dataset.open` parses and validates everything except the image pixels, and raises a
+A dataset folder holds ``s3k.json`` (names, image size, units, sessions, ...), ``frames.csv`` (frame, split,
+optional session, video_frame, instance, ... columns), the calibration (``calibration.json`` static,
+``calibration.csv`` per frame, or ``calibration/<session>.json`` per session), ``labels.csv`` (partial 2D
+labels), optionally ``points3d.csv`` (ground truth, used only by evaluation) and the images (PNG files or
+videos). :meth:`Dataset.open` parses and validates everything except the image pixels, and raises a
 :class:`~s3k.data.problems.DatasetError` naming the first problem (its ``problems`` list them all).
 :func:`s3k.data.checks.check_dataset` runs the same checks plus decoding every image, collecting problems
 instead of raising.
@@ -33,6 +27,14 @@ from s3k.data.cache import ImageCache, cache_folders, fingerprint
 from s3k.data.cameras import cameras_of, read_per_frame_calibration, read_static_calibration
 from s3k.data.images import ImageReadError
 from s3k.data.problems import DatasetError, DatasetWarning, Problem, Problems
+from s3k.data.sessions import (
+    frame_sessions,
+    frame_times,
+    per_session_counts,
+    read_session_calibration,
+    read_session_metadata,
+    session_names,
+)
 from s3k.data.sources import IMAGE_SOURCES
 from s3k.data.tables import (
     FRAMES_FILE,
@@ -60,6 +62,9 @@ class _Contents:
     labels: Labels
     points3d: np.ndarray | None
     source: Any
+    sessions: np.ndarray  # (N,) each frame's session
+    session_meta: dict[str, dict[str, Any]]  # per session, in the order of their first frames
+    rigs: dict[str, Cameras]  # per session when calibration is per_session
     fingerprint_items: list[str] = field(default_factory=list)
     held: ImageCache | None = None  # frames at their stored size kept in memory (Dataset.hold_frames)
 
@@ -71,8 +76,13 @@ def parse_folder(root: Path, P: Problems) -> _Contents | None:
     frames = read_frames(root, P)
     if frames is None:
         return None
+    sessions = frame_sessions(frames, P)
+    session_meta = read_session_metadata(meta, session_names(sessions), P)
+    rigs: dict[str, Cameras] = {}
     if meta.calibration == "static":
         calib = read_static_calibration(root, meta, P)
+    elif meta.calibration == "per_session":
+        calib, rigs = read_session_calibration(root, meta, sessions, P)
     else:
         calib = read_per_frame_calibration(root, meta, frames, P)
     labels = read_labels(root, meta, frames, P)
@@ -85,7 +95,8 @@ def parse_folder(root: Path, P: Problems) -> _Contents | None:
         # Reported already; a NaN placeholder lets check_dataset go on to the images and the summary.
         lead = (len(meta.cameras),) if meta.calibration == "static" else (len(frames.ids), len(meta.cameras))
         calib = cameras_of(*(np.full((*lead, *s), np.nan) for s in ((3, 3), (5,), (3, 3), (3,))))
-    return _Contents(root, meta, frames, calib, ok, labels, points, source, items)
+    return _Contents(root, meta, frames, calib, ok, labels, points, source, sessions, session_meta, rigs,
+                     items)
 
 
 def _torch_dtype(dtype: Any) -> torch.dtype:
@@ -107,6 +118,8 @@ class Dataset:
         static_calibration: True when one calibration serves every frame.
         frame_ids: ``(N,)`` int64 frame ids in file order.
         skeleton: pairs of keypoint names (may be empty); ``metadata``: the raw s3k.json.
+        sessions: the recordings the dataset holds (frames.csv's ``session`` column, in the order of their
+            first frames; ``["default"]`` without it); ``session_info(name)`` their metadata.
     """
 
     def __init__(
@@ -131,6 +144,7 @@ class Dataset:
         self.source_image_size = meta.image_size
         self.frame_ids = contents.frames.ids.copy()
         self.frame_columns = dict(contents.frames.columns)
+        self.sessions = list(contents.session_meta)
         W, H = meta.image_size
         self._resample = crop_box is not None or (image_size is not None and tuple(image_size) != (W, H))
         box = (0, 0, W, H) if crop_box is None else tuple(crop_box)
@@ -221,17 +235,35 @@ class Dataset:
 
     # -- tables ------------------------------------------------------------------------------------------
 
-    def frames(self, split: str | Sequence[str] | None = None) -> np.ndarray:
+    def frames(self, split: str | Sequence[str] | None = None, session: str | None = None) -> np.ndarray:
         """Frame ids ``(N,)`` of a split (``"labelled" | "unlabelled" | "test"``), of several splits one after
-        the other (each frame is in one split), or all in file order when None."""
+        the other (each frame is in one split), or all in file order when None; of one ``session`` only
+        when given."""
+        ids = self.frame_ids
+        if session is not None:
+            if session not in self.sessions:
+                raise KeyError(f"unknown session {session!r}; {self.path} has sessions {self.sessions}")
+            ids = ids[self._c.sessions == session]
         if split is None:
-            return self.frame_ids.copy()
+            return ids.copy()
         names = [split] if isinstance(split, str) else list(split)
         for name in names:
             if name not in SPLITS:
                 raise ValueError(f"unknown split {name!r}; use one of {list(SPLITS)}")
-        splits = self._c.frames.splits
-        return np.concatenate([self.frame_ids[:0], *(self.frame_ids[splits == n] for n in names)])
+        splits = self.split_of(ids)
+        return np.concatenate([ids[:0], *(ids[splits == n] for n in names)])
+
+    def session_of(self, frame_ids) -> np.ndarray:
+        """Session name of each frame id."""
+        return self._c.sessions[self._rows(frame_ids)]
+
+    def session_info(self, session: str) -> dict[str, Any]:
+        """A session's metadata from s3k.json (``frame_rate``, ``subject``, ``source``, ...; may be empty)."""
+        return dict(self._c.session_meta[session])
+
+    def frame_times(self, frame_ids) -> np.ndarray:
+        """Each frame's place in its session's recording (``video_frame``, else the frame id), int64."""
+        return frame_times(self._c.frames)[self._rows(frame_ids)]
 
     def split_of(self, frame_ids) -> np.ndarray:
         """Split name of each frame id."""
@@ -267,10 +299,14 @@ class Dataset:
             cams = cal[rows]
         return self._mapped(cams, dtype)
 
-    def rig(self, dtype: Any = np.float32) -> Cameras:
-        """``Cameras (C,)`` of a static rig; raises ``ValueError`` when calibration is per frame."""
+    def rig(self, dtype: Any = np.float32, session: str | None = None) -> Cameras:
+        """``Cameras (C,)`` of a static rig, or of ``session``'s rig when calibration is per session; raises
+        ``ValueError`` when calibration is per frame (or per session and no session is named)."""
+        if session is not None and self._c.rigs:
+            return self._mapped(self._c.rigs[session], dtype)
         if not self.static_calibration:
-            raise ValueError(f"{self.path}: calibration is per frame; use calibration(frame_ids)")
+            raise ValueError(f"{self.path}: calibration is {self._c.meta.calibration.replace('_', ' ')}; use "
+                             "calibration(frame_ids)" + (" or rig(session=...)" if self._c.rigs else ""))
         return self._mapped(self._c.calibration, dtype)
 
     def _mapped(self, cams: Cameras, dtype: Any) -> Cameras:
@@ -452,7 +488,8 @@ class Dataset:
             "usable_labelled_frames": (int(usable_labels(self).any(axis=1).sum())
                                        if self._c.calibration_ok else 0),
             "points3d": None if X is None else int(np.isfinite(X).all(-1).sum()),
-            "calibration": "static" if self.static_calibration else "per_frame",
+            "calibration": self._c.meta.calibration,
+            "sessions": per_session_counts(self._c.sessions, self._c.frames.splits, self.sessions),
             "image_size": self.source_image_size,
             "units": self.units,
         }

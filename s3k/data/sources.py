@@ -73,56 +73,73 @@ class PngImages:
 
 
 class VideoImages:
-    """One video per camera (``spec["videos"][camera]``, relative paths); frame ``f`` is video frame
-    ``video_frame`` from frames.csv (the frame id itself when that column is absent)."""
+    """One video per camera (``spec["videos"][camera]``, relative paths), or one per camera of each session
+    (``spec["sessions"][session][camera]``, the session from frames.csv's ``session`` column); frame ``f`` is
+    video frame ``video_frame`` from frames.csv (the frame id itself when that column is absent)."""
 
     random_access = False
 
     def __init__(self, root: Path, spec: dict, cameras: list[str], frame_ids: np.ndarray, columns: dict):
         self.root = root
-        self.videos = spec.get("videos", {})
+        self.per_session = "sessions" in spec
+        self.videos = spec.get("sessions", {}) if self.per_session else {None: spec.get("videos", {})}
         self.cameras = cameras
         index = columns.get("video_frame")
+        session = columns.get("session")
         self.video_frame = {
             int(f): (int(index[i]) if index is not None and str(index[i]).lstrip("-").isdigit() else int(f))
             for i, f in enumerate(frame_ids)
         }
+        self.session = {int(f): (None if not self.per_session else "default" if session is None
+                                 else str(session[i])) for i, f in enumerate(frame_ids)}
+
+    def _field(self, session: str | None) -> str:
+        return "images.videos" if session is None else f"images.sessions.{session}"
 
     def check(self, frame_ids: np.ndarray, P: Problems) -> list[str]:
         items: list[str] = []
-        if not isinstance(self.videos, dict):
-            P.error(METADATA_FILE, "images.videos", "must map each camera name to a video file")
+        if not isinstance(self.videos, dict) or not all(isinstance(v, dict) for v in self.videos.values()):
+            where = "images.sessions" if self.per_session else "images.videos"
+            P.error(METADATA_FILE, where, "must map each camera name to a video file"
+                    + (" per session" if self.per_session else ""))
             return items
-        for cam in self.cameras:
-            rel = self.videos.get(cam)
-            if not isinstance(rel, str):
-                P.error(
-                    METADATA_FILE, f"images.videos.{cam}", "no video file given for this camera", camera=cam
-                )
-                continue
-            try:
-                st = os.stat(self.root / rel)
-            except OSError:
-                P.error(rel, "video", "video file missing", camera=cam)
-                continue
-            items.append(f"{rel}:{st.st_size}:{st.st_mtime_ns}")
-        for cam in sorted(set(self.videos) - set(self.cameras)):
-            P.error(METADATA_FILE, f"images.videos.{cam}", f"unknown camera {cam!r}", camera=cam)
+        for session in sorted({self.session[int(f)] for f in frame_ids}, key=str):
+            if session not in self.videos:
+                P.error(METADATA_FILE, self._field(session), "no videos given for this session's frames")
+        for session, videos in self.videos.items():
+            for cam in self.cameras:
+                rel = videos.get(cam)
+                if not isinstance(rel, str):
+                    P.error(METADATA_FILE, f"{self._field(session)}.{cam}", "no video file given for this "
+                            "camera", camera=cam)
+                    continue
+                try:
+                    st = os.stat(self.root / rel)
+                except OSError:
+                    P.error(rel, "video", "video file missing", camera=cam)
+                    continue
+                items.append(f"{rel}:{st.st_size}:{st.st_mtime_ns}")
+            for cam in sorted(set(videos) - set(self.cameras)):
+                P.error(METADATA_FILE, f"{self._field(session)}.{cam}", f"unknown camera {cam!r}", camera=cam)
         return items
 
     def read_rows(self, frame_ids: Sequence[int], workers: int) -> Iterator[tuple[int, int, np.ndarray]]:
         wanted = [self.video_frame[int(f)] for f in frame_ids]
-        for c, cam in enumerate(self.cameras):
-            rel = self.videos[cam]
-            images = dict(_iter_video(self.root / rel, rel, cam, sorted(set(wanted))))
-            for i, index in enumerate(wanted):
-                if index not in images:
-                    raise ImageReadError(rel, f"video frame {index} not found", frame=int(frame_ids[i]),
-                                         camera=cam)
-                yield i, c, images[index]
+        sessions = [self.session[int(f)] for f in frame_ids]
+        for session in dict.fromkeys(sessions):
+            rows = [i for i, s in enumerate(sessions) if s == session]
+            for c, cam in enumerate(self.cameras):
+                rel = self.videos[session][cam]
+                images = dict(_iter_video(self.root / rel, rel, cam, sorted({wanted[i] for i in rows})))
+                for i in rows:
+                    if wanted[i] not in images:
+                        raise ImageReadError(rel, f"video frame {wanted[i]} not found",
+                                             frame=int(frame_ids[i]), camera=cam)
+                    yield i, c, images[wanted[i]]
 
     def describe(self, frame: int, c: int) -> str:
-        return f"{self.videos.get(self.cameras[c])} frame {self.video_frame.get(int(frame))}"
+        videos = self.videos.get(self.session.get(int(frame)), {})
+        return f"{videos.get(self.cameras[c])} frame {self.video_frame.get(int(frame))}"
 
 
 def _iter_video(path: Path, rel: str, camera: str, indices: list[int]) -> Iterator[tuple[int, np.ndarray]]:

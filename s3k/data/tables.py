@@ -25,7 +25,7 @@ FORMAT_NAME = "s3k-dataset"
 FORMAT_VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 SPLITS = ("labelled", "unlabelled", "test")
-CALIBRATION_MODES = ("static", "per_frame")
+CALIBRATION_MODES = ("static", "per_frame", "per_session")
 
 METADATA_FILE = "s3k.json"
 FRAMES_FILE = "frames.csv"

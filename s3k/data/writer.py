@@ -20,6 +20,7 @@ import numpy as np
 
 from s3k.data.cameras import camera_defects, camera_tuple
 from s3k.data.problems import Problems
+from s3k.data.sessions import SESSION_CALIBRATION_DIR, SESSION_COLUMN, session_calibration_file
 from s3k.data.tables import (
     CALIBRATION_COLUMNS,
     DEFAULT_IMAGE_PATTERN,
@@ -55,6 +56,22 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
+def rig_json(cameras: Sequence[str], calibration: Calibration) -> str:
+    """The text of ``calibration.json`` (or a session's rig file) for ``(K, dist, R, t)`` of ``cameras``."""
+    K, dist, R, t = calibration
+    cams = {cam: {"K": K[c].tolist(), "dist": dist[c].tolist(), "R": R[c].tolist(), "t": t[c].tolist()}
+            for c, cam in enumerate(cameras)}
+    return _json_text({"cameras": cams})
+
+
+def calibration_rows(frame: int, cameras: Sequence[str], calibration: Calibration) -> str:
+    """``calibration.csv`` lines of one frame's ``(K, dist, R, t)``."""
+    K, dist, R, t = calibration
+    return "".join(f"{frame},{cam}," + ",".join(_fmt(x) for x in [*K[c].ravel(), *dist[c], *R[c].ravel(),
+                                                                  *t[c]]) + "\n"
+                   for c, cam in enumerate(cameras))
+
+
 class DatasetWriter:
     """Write a dataset folder frame by frame; tables and s3k.json are written by :meth:`close`.
 
@@ -69,6 +86,9 @@ class DatasetWriter:
             (unless ``per_frame_calibration=True``).
         per_frame_calibration: force per-frame (True) or static (False; frames must agree) calibration.
         skeleton, description, source: optional metadata (``source`` may be a string or a JSON object).
+        sessions: ``{session: metadata}`` (``frame_rate``, ``subject``, ...) for s3k.json's ``sessions``; a
+            frame names its session with ``extra={"session": name}``. Frames whose calibration differs
+            between sessions but not within one are written as one rig per session (``calibration/``).
         videos: ``{camera: video file}`` to copy into ``videos/``; frames then carry no images and are
             ``video_frame`` (``extra``, default the frame id) of each video.
         png_compression: 0-9, OpenCV's PNG compression level.
@@ -94,6 +114,7 @@ class DatasetWriter:
         skeleton: Sequence[Sequence[str]] | None = None,
         description: str | None = None,
         source: Any = None,
+        sessions: dict[str, dict[str, Any]] | None = None,
         videos: dict[str, str | Path] | None = None,
         png_compression: int = 3,
         overwrite: bool = False,
@@ -117,6 +138,7 @@ class DatasetWriter:
                     raise ValueError(f"skeleton: unknown keypoint {n!r}; keypoints are {self.keypoints}")
         self.skeleton = [list(e) for e in skeleton or []]
         self.description, self.source = description, source
+        self.sessions = None if sessions is None else {str(k): dict(v) for k, v in sessions.items()}
         self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
         self.tables_only = tables_only
         self.static = None if calibration is None else self._check_calibration(calibration, "calibration")
@@ -298,6 +320,19 @@ class DatasetWriter:
             )
         return label_rows
 
+    def _session_rigs(self) -> dict[str, Calibration] | None:
+        """One rig per session when every frame names its session and its session's frames share one
+        calibration; else None (the calibration is written per frame)."""
+        rigs: dict[str, Calibration] = {}
+        for (_, _, extra), cal in zip(self._frames, self._calibrations):
+            session = extra.get(SESSION_COLUMN)
+            if session is None or not NAME_RE.match(str(session)):
+                return None
+            first = rigs.setdefault(str(session), cal)
+            if not all(np.array_equal(a, b) for a, b in zip(first, cal)):
+                return None
+        return rigs
+
     def close(self) -> Path:
         """Write frames.csv, calibration, labels.csv, points3d.csv and (last) s3k.json; returns the folder."""
         if self._closed:
@@ -320,21 +355,18 @@ class DatasetWriter:
             writer.writerow([*FRAMES_COLUMNS, *columns])
             for frame, split, extra in self._frames:
                 writer.writerow([frame, split, *(extra.get(k, "") for k in columns)])
+        rigs = None if static is not None or self.per_frame_calibration else self._session_rigs()
         if static is not None:
-            K, dist, R, t = static
-            cams = {
-                cam: {"K": K[c].tolist(), "dist": dist[c].tolist(), "R": R[c].tolist(), "t": t[c].tolist()}
-                for c, cam in enumerate(self.cameras)
-            }
-            (self.path / STATIC_CALIBRATION_FILE).write_text(_json_text({"cameras": cams}))
+            (self.path / STATIC_CALIBRATION_FILE).write_text(rig_json(self.cameras, static))
+        elif rigs is not None:
+            (self.path / SESSION_CALIBRATION_DIR).mkdir(exist_ok=True)
+            for session, rig in rigs.items():
+                (self.path / session_calibration_file(session)).write_text(rig_json(self.cameras, rig))
         else:
             with open(self.path / PER_FRAME_CALIBRATION_FILE, "w") as f:
                 f.write(",".join(CALIBRATION_COLUMNS) + "\n")
                 for (frame, _, _), cal in zip(self._frames, self._calibrations):
-                    for c, cam in enumerate(self.cameras):
-                        K, dist, R, t = cal
-                        nums = [*K[c].ravel(), *dist[c], *R[c].ravel(), *t[c]]
-                        f.write(f"{frame},{cam}," + ",".join(_fmt(x) for x in nums) + "\n")
+                    f.write(calibration_rows(frame, self.cameras, cal))
         if self._labels:
             (self.path / LABELS_FILE).write_text(
                 ",".join(LABELS_COLUMNS) + "\n" + "\n".join(self._labels) + "\n"
@@ -350,7 +382,7 @@ class DatasetWriter:
             "cameras": self.cameras,
             "image_size": list(self.image_size),
             "units": self.units,
-            "calibration": "static" if static is not None else "per_frame",
+            "calibration": "static" if static is not None else "per_frame" if rigs is None else "per_session",
             "images": (
                 {"type": "png", "pattern": DEFAULT_IMAGE_PATTERN}
                 if self.videos is None
@@ -363,6 +395,8 @@ class DatasetWriter:
             meta["description"] = self.description
         if self.source is not None:
             meta["source"] = self.source
+        if self.sessions:
+            meta["sessions"] = self.sessions
         (self.path / METADATA_FILE).write_text(_json_text(meta))
         (self.path / UNFINISHED_MARKER).unlink(missing_ok=True)
         self._closed = True

@@ -18,12 +18,13 @@ COLOURS = [(255, 40, 40), (40, 255, 40), (60, 60, 255)]
 LAYOUT = np.array([[0.06, 0.0, 0.0], [-0.04, 0.05, 0.0], [-0.03, -0.05, 0.02]])
 
 
-def rig(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(K (C, 3, 3), dist (C, 5), R (C, 3, 3), t (C, 3)) of 4 cameras 1 m from the origin, looking at it."""
+def rig(size: int, turn: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(K (C, 3, 3), dist (C, 5), R (C, 3, 3), t (C, 3)) of 4 cameras 1 m from the origin, looking at it;
+    ``turn`` (radians) moves every camera around the vertical axis (another day's rig)."""
     Ks, Rs, ts = [], [], []
     f = size * 2.2
     for c in range(4):
-        a = 2 * math.pi * c / 4 + 0.3
+        a = 2 * math.pi * c / 4 + 0.3 + turn
         centre = np.array([math.cos(a), math.sin(a), 0.6])
         centre = centre / np.linalg.norm(centre)
         z = -centre
@@ -60,26 +61,53 @@ def make_dataset(path: str | Path, size: int = 32, labelled: int = 4, unlabelled
     from s3k.data import DatasetWriter
 
     rng = np.random.default_rng(seed)
-    K, dist, R, t = rig(size)
+    cal = rig(size)
     path = Path(path)
-    with DatasetWriter(path, KEYPOINTS, CAMERAS, (size, size), "m", calibration=(K, dist, R, t)) as w:
+    with DatasetWriter(path, KEYPOINTS, CAMERAS, (size, size), "m", calibration=cal) as w:
         fid = 0
         for split, n in (("labelled", labelled), ("unlabelled", unlabelled), ("test", test)):
             for _ in range(n):
-                X = LAYOUT @ random_rotation(rng).T + rng.uniform(-0.03, 0.03, size=3)
-                uv = project(K, R, t, X)
-                images = np.full((4, size, size, 3), 90, np.uint8)
-                for c in range(4):
-                    for k in range(3):
-                        centre = (int(round(uv[c, k, 0] * 4)), int(round(uv[c, k, 1] * 4)))
-                        cv2.circle(images[c], centre, 8, COLOURS[k], -1, cv2.LINE_AA, shift=2)
-                labels = None
-                if split == "labelled":
-                    labels = uv.copy()
-                    labels[label_cameras:] = np.nan
-                w.add_frame(fid, split, images, None, labels, points3d=X)
+                _add_frame(w, fid, split, cal, size, rng, label_cameras)
                 fid += 1
     return path
+
+
+def _add_frame(w, fid: int, split: str, cal, size: int, rng: np.random.Generator, label_cameras: int = 4,
+               extra: dict | None = None, calibration: bool = False, label_test: bool = False) -> None:
+    """One frame of the dots at a random pose seen by the rig ``cal``, written by ``w``."""
+    K, _, R, t = cal
+    X = LAYOUT @ random_rotation(rng).T + rng.uniform(-0.03, 0.03, size=3)
+    uv = project(K, R, t, X)
+    images = np.full((4, size, size, 3), 90, np.uint8)
+    for c in range(4):
+        for k in range(3):
+            centre = (int(round(uv[c, k, 0] * 4)), int(round(uv[c, k, 1] * 4)))
+            cv2.circle(images[c], centre, 8, COLOURS[k], -1, cv2.LINE_AA, shift=2)
+    labels = None
+    if split == "labelled" or (label_test and split == "test"):
+        labels = uv.copy()
+        labels[label_cameras:] = np.nan
+    w.add_frame(fid, split, images, cal if calibration else None, labels, points3d=X, extra=extra)
+
+
+def make_sessions_dataset(path: str | Path, sessions: dict[str, float], size: int = 32, labelled: int = 3,
+                          unlabelled: int = 4, test: int = 3, seed: int = 0) -> Path:
+    """A dataset of several sessions, ``{name: turn}``: each its own rig (:func:`rig` turned by ``turn``),
+    its frames in time order (``video_frame`` from 0: labelled, then unlabelled, then test frames), its
+    frame rate and subject in s3k.json; test frames keep their labels."""
+    from s3k.data import DatasetWriter
+
+    rng = np.random.default_rng(seed)
+    info = {name: {"frame_rate": 30.0, "subject": f"dots-{i}"} for i, name in enumerate(sessions)}
+    with DatasetWriter(Path(path), KEYPOINTS, CAMERAS, (size, size), "m", sessions=info) as w:
+        fid = 0
+        for name, turn in sessions.items():
+            splits = ["labelled"] * labelled + ["unlabelled"] * unlabelled + ["test"] * test
+            for i, split in enumerate(splits):
+                _add_frame(w, fid, split, rig(size, turn), size, rng, calibration=True, label_test=True,
+                           extra={"session": name, "video_frame": i})
+                fid += 1
+    return Path(path)
 
 
 def count_decodes(monkeypatch, module) -> list[str]:
