@@ -10,6 +10,7 @@ from typing import Any
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
 from s3k.data import import_labels as fmt
+from s3k.data.add_session import import_session, manifest_sessions
 from s3k.data.formats.sleap import sleap_tracks
 from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 from s3k.errors import UserError
@@ -30,10 +31,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "mid=session/mid.mp4 side=session/side.mp4 --sleap session/labels.slp --test 20 --out data/session",
         "s3k import --calibration calibration.toml --videos cam0=cam0.mp4 cam1=cam1.mp4 "
         "--keypoints nose,tail --stride 10 --out data/unlabelled")
-    parser.add_argument("--calibration", required=True,
+    parser.add_argument("--calibration", default=None,
                         help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml (a file "
                         "or a folder of one file per camera) or DeepFly3D .pkl; chosen by content")
-    parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
+    parser.add_argument("--videos", nargs="+", default=None, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
                         "pattern 'dir/img_%%05d.jpg'); the order sets the dataset's camera order")
     labels = parser.add_mutually_exclusive_group()
@@ -69,7 +70,21 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "person labelled the frame")
     parser.add_argument("--frame-ids-from", choices=["path", "row"], default="path",
                         help="CSV frame index from the image file name's digits (default) or the row number")
-    parser.add_argument("--out", required=True, help="dataset folder to write")
+    parser.add_argument("--out", default=None, help="dataset folder to write")
+    parser.add_argument("--into", default=None, metavar="DATASET",
+                        help="add the recording to this dataset as a new session (--session): frame ids "
+                             "continue after its own, images are resized to its size unless --size or "
+                             "--scale says otherwise; cameras and keypoints must be the dataset's "
+                             "(docs/importing.md#sessions)")
+    parser.add_argument("--session", type=name, default=None,
+                        help="the recording's session name (required with --into; with --out the new "
+                             "dataset's first session)")
+    parser.add_argument("--subject", default=None,
+                        help="the animal or object the session recorded, kept in s3k.json's sessions")
+    parser.add_argument("--manifest", default=None, metavar="FILE",
+                        help="a TOML or JSON file listing sessions, each with its import options "
+                             "(docs/importing.md#sessions); with --out they make a new dataset, with --into "
+                             "they are added to one")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     parser.add_argument("--labelled", default=None,
                         help="number of labelled frames, or 'all' (default 10, or every frame left after the "
@@ -142,6 +157,16 @@ def _sleap_project(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.manifest:
+        return import_manifest(args)
+    if (args.out is None) == (args.into is None):
+        raise UserError("give the dataset to write with --out, or the dataset to add a session to with "
+                        "--into")
+    if args.into is not None and args.session is None:
+        raise UserError(f"--into {args.into}: name the new session with --session NAME")
+    for option, value in (("--calibration", args.calibration), ("--videos", args.videos)):
+        if value is None:
+            raise UserError(f"{option} is required (or give --manifest)")
     videos = dict(camera_pairs(args.videos, "--videos"))
     common: dict[str, Any] = dict(
         split=SplitOptions(
@@ -156,6 +181,14 @@ def run(args: argparse.Namespace) -> int:
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
         skeleton=args.skeleton,
     )
+    if args.into is not None:
+        if args.sleap_track == "all":
+            raise UserError("--sleap-track all writes one dataset per track; give one track with --into")
+        del common["overwrite"]
+        import_session(args.into, args.session, args.calibration, videos, _labels(args, args.sleap_track),
+                       subject=args.subject, **common)
+        return 0
+    common.update(session=args.session, subject=args.subject)
     if args.sleap_track != "all":
         import_recording(args.calibration, videos, args.out, _labels(args, args.sleap_track), **common)
         return 0
@@ -181,3 +214,59 @@ def _count(text: str, option: str) -> int:
     if value < 0:
         raise UserError(f"{option} {text!r}: expected a number of frames (>= 0) or 'all'")
     return value
+
+
+PATH_OPTIONS = ("calibration", "videos", "sleap", "nwb", "dlc", "lightning_pose", "openpose", "mmpose",
+                "deepfly3d", "skeleton")
+"""The manifest's options that name files: relative paths are relative to the manifest's folder."""
+
+
+def _argv(entry: dict[str, Any], folder: Path) -> list[str]:
+    """A manifest session's options as ``s3k import`` arguments (``key: value`` -> ``--key value``; a table
+    of cameras -> ``CAM=VALUE`` pairs; ``true`` -> the flag)."""
+    argv: list[str] = []
+    for key, value in entry.items():
+        option = "--" + str(key).replace("_", "-")
+        here = (lambda v: str(folder / v)) if key in PATH_OPTIONS else str
+        if isinstance(value, bool):
+            argv += [option] if value else []
+        elif isinstance(value, dict):
+            argv += [option, *(f"{cam}={here(v)}" for cam, v in value.items())]
+        elif isinstance(value, list):
+            argv += [option, *(here(v) for v in value)]
+        else:
+            argv += [option, here(value)]
+    return argv
+
+
+class _ManifestParser(argparse.ArgumentParser):
+    """The options of one session of a manifest: a mistake is a one-line error, not an exit."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise UserError(message)
+
+
+def import_manifest(args: argparse.Namespace) -> int:
+    """``s3k import --manifest FILE (--out NEW | --into DATASET)``: every session of the manifest, the first
+    one making the new dataset (with ``--out``), each one after added to it."""
+    if (args.out is None) == (args.into is None):
+        raise UserError(f"--manifest {args.manifest}: give the dataset to write with --out, or the dataset "
+                        "to add the sessions to with --into")
+    sessions = manifest_sessions(args.manifest)
+    folder = Path(args.manifest).parent
+    parser = _ManifestParser(prog=f"s3k import --manifest {args.manifest}")
+    configure_parser(parser)
+    target = args.into or args.out
+    for i, entry in enumerate(sessions):
+        where = ["--into", target] if args.into or i else ["--out", target]
+        extra = ["--overwrite"] if args.overwrite and not args.into and not i else []
+        try:
+            options = parser.parse_args([*_argv(entry, folder), *where, *extra])
+        except UserError as exc:
+            raise UserError(f"--manifest {args.manifest}: session {entry['session']}: {exc}") from None
+        if options.manifest or options.out and options.into:
+            raise UserError(f"--manifest {args.manifest}: session {entry['session']}: give no out, into or "
+                            "manifest in a session")
+        run(options)
+        print(f"session {options.session} -> {target}")
+    return 0

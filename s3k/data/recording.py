@@ -42,6 +42,7 @@ from s3k.data.import_choices import (
 from s3k.data.import_labels import LabelFormat, LabelsRead
 from s3k.data.import_report import calibration_warnings, kept_labels_summary
 from s3k.data.rig import Rig
+from s3k.data.tables import NAME_RE
 from s3k.data.writer import DatasetWriter
 from s3k.errors import UserError
 from s3k.geometry import Cameras
@@ -148,7 +149,8 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
                      labels: LabelFormat | None = None, *, split: SplitOptions = SplitOptions(),
                      images: ImageOptions = ImageOptions(), keypoints: Sequence[str] | None = None,
                      units: str | None = None, overwrite: bool = False,
-                     skeleton: str | Path | None = None) -> Path:
+                     skeleton: str | Path | None = None, session: str | None = None,
+                     subject: str | None = None) -> Path:
     """Convert a recording to a dataset folder; returns the folder.
 
     Args:
@@ -166,11 +168,16 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
         overwrite: replace an existing dataset folder.
         skeleton: a file to take the skeleton from (:func:`s3k.data.formats.skeleton.read_skeleton`);
             default: the labels' own (SLEAP, a DeepLabCut project), else an anipose project's config.toml.
+        session: name the recording's session (frames.csv's ``session`` column; s3k.json's ``sessions``
+            records its frame rate and ``subject``); None: a dataset without sessions.
     """
     out = Path(out)
     check_replaceable(out, overwrite, {"--calibration": calibration, "--videos": list(videos.values())})
     if split.stride < 1:
         raise UserError(f"--stride must be >= 1, got {split.stride}")
+    if session is not None and not NAME_RE.match(session):
+        raise UserError(f"--session {session!r}: a session name must be usable as a file name (letters, "
+                        "digits, _ . + -)")
     cameras = list(videos)
     rig, sizes = _prepare_rig(calibration, videos, units, images.video_regions)
     read = labels.read(cameras, sizes, rig) if labels is not None else LabelsRead("none", {}, {})
@@ -190,8 +197,9 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
     n_labelled = (labelled_count(candidates, split.labelled, split.test, split.min_views, dropped)
                   if read.tables else 0)
     splits = split_frames(candidates, np.arange(n_frames), n_labelled, split.test, split.seed, split.stride)
+    named = None if session is None else (session, _session_info(videos, subject))
     _write_dataset(out, overwrite, calibration, videos, read, rig, names, edges, geometry, uv, mask, splits,
-                   split, images)
+                   split, images, named)
     _report(out, calibration, rig, cameras, names, geometry, uv, mask, candidates, splits, n_labelled, split)
     return out
 
@@ -312,7 +320,7 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
                    read: LabelsRead, rig: Rig, names: list[str], edges: list[tuple[str, str]],
                    geometry: _Geometry, uv: np.ndarray,
                    mask: np.ndarray, splits: dict[int, str], split: SplitOptions,
-                   images: ImageOptions) -> None:
+                   images: ImageOptions, session: tuple[str, dict[str, Any]] | None) -> None:
     """Write the dataset beside ``out`` and rename it at the end (all or nothing)."""
     cameras = list(videos)
     source: dict[str, Any] = {
@@ -333,7 +341,9 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
             tmp, names, cameras, out_size, rig.units,
             calibration=(geometry.K, arrays["dist"], arrays["R"], arrays["t"]), source=source, skeleton=edges,
             description=f"imported from {what} and {Path(calibration).name}",
+            sessions=None if session is None else {session[0]: {**session[1], "source": source}},
         )
+        extra = {} if session is None else {"session": session[0]}
         streams = [video.iter_frames(videos[cam], sorted(splits)) for cam in cameras]
         for frames in zip(*streams):
             f = frames[0][0]
@@ -343,8 +353,20 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
                     raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
                 pictures.append(resize_crop(image, None, boxes[c], out_size)[0])
             frame_labels = (np.nan_to_num(uv[f]), mask[f]) if splits[f] != "unlabelled" else None
-            writer.add_frame(f, splits[f], np.stack(pictures), labels=frame_labels, extra={"video_frame": f})
+            writer.add_frame(f, splits[f], np.stack(pictures), labels=frame_labels,
+                             extra={**extra, "video_frame": f})
         writer.close()
+
+
+def _session_info(videos: Mapping[str, str | Path], subject: str | None) -> dict[str, Any]:
+    """A session's metadata: its videos' frame rate (the first camera's) and its subject when given."""
+    first = next(iter(videos.values()))
+    try:
+        rate: float | None = video.frame_rate(first)
+    except ValueError:
+        log.warning("%s declares no frame rate; the session's frame_rate is not recorded", first)
+        rate = None
+    return {k: v for k, v in (("frame_rate", rate), ("subject", subject)) if v is not None}
 
 
 def _report(out: Path, calibration: str | Path, rig: Rig, cameras: list[str], names: list[str],

@@ -45,7 +45,7 @@ from s3k.outputs import UNFINISHED_MARKER, foreign_dataset_file, made_by_s3k
 Calibration = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # K (C, 3, 3), dist (C, 5), R, t (C, 3)
 
 
-def _json_text(data: Any) -> str:
+def json_text(data: Any) -> str:
     """Indented JSON with each list of scalars on one line, so matrices read row by row."""
     text = json.dumps(data, indent=2)
     return re.sub(r"\[\s+([^\[\]{}]+?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
@@ -61,7 +61,7 @@ def rig_json(cameras: Sequence[str], calibration: Calibration) -> str:
     K, dist, R, t = calibration
     cams = {cam: {"K": K[c].tolist(), "dist": dist[c].tolist(), "R": R[c].tolist(), "t": t[c].tolist()}
             for c, cam in enumerate(cameras)}
-    return _json_text({"cameras": cams})
+    return json_text({"cameras": cams})
 
 
 def calibration_rows(frame: int, cameras: Sequence[str], calibration: Calibration) -> str:
@@ -397,7 +397,7 @@ class DatasetWriter:
             meta["source"] = self.source
         if self.sessions:
             meta["sessions"] = self.sessions
-        (self.path / METADATA_FILE).write_text(_json_text(meta))
+        (self.path / METADATA_FILE).write_text(json_text(meta))
         (self.path / UNFINISHED_MARKER).unlink(missing_ok=True)
         self._closed = True
         return self.path

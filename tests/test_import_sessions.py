@@ -1,0 +1,104 @@
+"""``s3k import --into DATASET --session NAME`` and ``--manifest``: recordings of other days added to one
+dataset as sessions, each with its own rig, and the refusals that leave the dataset as it was."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers.recordings import CAMS, import_argv, write_recording
+
+from s3k.cli import main
+from s3k.data import Dataset
+from s3k.geometry import project
+
+
+@pytest.fixture(scope="module")
+def days(tmp_path_factory):
+    root = tmp_path_factory.mktemp("days")
+    return {"day1": write_recording(root / "day1", turn=0.0, seed=1),
+            "day2": write_recording(root / "day2", turn=0.5, seed=2, n_frames=10)}
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _first(days, tmp_path):
+    out = tmp_path / "ds"
+    assert main(import_argv(days["day1"], "--labelled", "4", "--test", "3", "--session", "day1",
+                            "--subject", "mouse-1", "--out", str(out))) == 0
+    return out
+
+
+def test_a_session_added_keeps_its_rig_labels_and_frames(days, tmp_path, capsys):
+    out = _first(days, tmp_path)
+    assert main(import_argv(days["day2"], "--labelled", "3", "--test", "2", "--into", str(out),
+                            "--session", "day2")) == 0
+    assert "added session day2" in capsys.readouterr().out
+    ds = Dataset.open(out)
+    assert ds.sessions == ["day1", "day2"]
+    assert json.loads((out / "s3k.json").read_text())["calibration"] == "per_session"
+    assert ds.session_info("day1")["subject"] == "mouse-1"
+    assert ds.session_info("day2")["frame_rate"] == 25.0
+    assert ds.session_info("day2")["source"]["calibration"].endswith("day2/calibration.toml")
+    one, two = ds.frames(session="day1"), ds.frames(session="day2")
+    assert one.tolist() == list(range(12)) and two.tolist() == list(range(12, 22))  # ids continue
+    assert ds.frame_times(two).tolist() == list(range(10))
+    assert len(ds.frames("labelled", session="day2")) == 3 and len(ds.frames("test", session="day2")) == 2
+    for name, ids in (("day1", one), ("day2", two)):
+        rec = days[name]
+        lab = np.concatenate([ds.frames("labelled", session=name), ds.frames("test", session=name)])
+        uv, mask = ds.labels(lab)
+        assert mask.all()
+        # every label is its own session's 3D point seen through its own session's cameras
+        X = torch.as_tensor(rec["X"][ds.frame_times(lab)][:, None], dtype=torch.float64)
+        reproj = project(ds.calibration(lab, np.float64), X)[0].numpy()
+        np.testing.assert_allclose(uv, reproj, atol=1e-3)
+        f = int(ids[5])
+        for c, cam in enumerate(ds.cameras):
+            np.testing.assert_array_equal(ds.images([f])[0, c], rec["frames"][cam][5])
+
+
+def test_refusals_leave_the_dataset_as_it_was(days, tmp_path, capsys):
+    out = _first(days, tmp_path)
+    before = _snapshot(out)
+    cases = [
+        (["--into", str(out), "--session", "day1"], "already holds session 'day1'"),
+        (["--into", str(out)], "--session NAME"),
+        (["--into", str(out), "--session", "day2", "--keypoints", "head,body"], "keypoints"),
+    ]
+    for extra, expected in cases:
+        assert main(import_argv(days["day2"], *extra)) != 0
+        err = capsys.readouterr().err.strip()
+        assert expected in err and len(err.splitlines()) == 1, err
+    assert main(import_argv(days["day2"], "--into", str(out), "--session", "day2",
+                            cameras=CAMS[:2])) != 0
+    err = capsys.readouterr().err.strip()
+    assert "cameras" in err and len(err.splitlines()) == 1, err
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in out.parent.iterdir()) == ["ds"]  # nothing left beside it
+
+
+def test_a_manifest_imports_every_session(days, tmp_path, capsys):
+    manifest = tmp_path / "sessions.toml"
+    lines = []
+    for name, turn_test in (("day1", 3), ("day2", 2)):
+        root = days[name]["root"]
+        lines += ["[[sessions]]", f'session = "{name}"', f'calibration = "{root}/calibration.toml"',
+                  f"test = {turn_test}", "labelled = 3", f'subject = "animal-{name}"', "[sessions.videos]",
+                  *(f'{cam} = "{root}/{cam}.mkv"' for cam in CAMS), "[sessions.dlc]",
+                  *(f'{cam} = "{root}/CollectedData_{cam}.csv"' for cam in CAMS)]
+    manifest.write_text("\n".join(lines) + "\n")
+    assert main(["import", "--manifest", str(manifest), "--out", str(tmp_path / "ds")]) == 0
+    ds = Dataset.open(tmp_path / "ds")
+    assert ds.sessions == ["day1", "day2"]
+    assert [len(ds.frames("test", session=s)) for s in ds.sessions] == [3, 2]
+    assert ds.session_info("day2")["subject"] == "animal-day2"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"sessions": [{"session": "x", "videos": {}}]}))
+    assert main(["import", "--manifest", str(bad), "--out", str(tmp_path / "other")]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "sessions[0] has no field 'calibration'" in err and len(err.splitlines()) == 1
