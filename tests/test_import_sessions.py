@@ -23,7 +23,8 @@ def days(tmp_path_factory):
 
 
 def _snapshot(folder):
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in files}
 
 
 def _first(days, tmp_path):
@@ -102,3 +103,44 @@ def test_a_manifest_imports_every_session(days, tmp_path, capsys):
     assert main(["import", "--manifest", str(bad), "--out", str(tmp_path / "other")]) != 0
     err = capsys.readouterr().err.strip()
     assert "sessions[0] has no field 'calibration'" in err and len(err.splitlines()) == 1
+
+
+def test_held_out_blocks_keep_labelled_frames_away(tmp_path, capsys):
+    from s3k.data.splits import held_out_split
+
+    candidates = np.arange(0, 200)
+    for seed in range(5):
+        splits = held_out_split(candidates, candidates, 10, 30, seed, 1, margin=15, blocks=2)
+        test = np.array([f for f, s in splits.items() if s == "test"])
+        labelled = np.array([f for f, s in splits.items() if s == "labelled"])
+        assert len(test) == 30 and len(labelled) == 10
+        assert np.abs(labelled[:, None] - test[None, :]).min() > 15
+        assert (np.diff(test) > 1).sum() <= 1  # two contiguous runs at most
+    with pytest.raises(ValueError, match=r"--labelled 10: only \d+ frames with labels lie more than 15"):
+        held_out_split(np.arange(40), np.arange(40), 10, 20, 0, 1, margin=15)
+
+
+def test_import_holds_out_blocks_or_whole_sessions(days, tmp_path, capsys):
+    long = write_recording(tmp_path / "long", n_frames=60, seed=3)
+    out = tmp_path / "blocks"
+    assert main(import_argv(long, "--labelled", "8", "--test", "10", "--margin", "6", "--out", str(out))) == 0
+    ds = Dataset.open(out)
+    test, lab = ds.frames("test"), ds.frames("labelled")
+    assert len(test) == 10 and np.all(np.diff(np.sort(test)) == 1)  # one contiguous block
+    assert np.abs(lab[:, None] - test[None, :]).min() > 6
+    out = tmp_path / "held"
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"sessions": [
+        {"session": name, "calibration": str(days[name]["root"] / "calibration.toml"), "labelled": 3,
+         "test": 2, "videos": {cam: str(days[name]["root"] / f"{cam}.mkv") for cam in CAMS},
+         "dlc": {cam: str(days[name]["root"] / f"CollectedData_{cam}.csv") for cam in CAMS}}
+        for name in ("day1", "day2")]}))
+    assert main(["import", "--manifest", str(manifest), "--test-sessions", "day2", "--out", str(out)]) == 0
+    ds = Dataset.open(out)
+    assert ds.summary()["sessions"]["day2"] == {"labelled": 0, "unlabelled": 0, "test": 10}
+    assert ds.summary()["sessions"]["day1"]["labelled"] == 3
+    capsys.readouterr()
+    assert main(["import", "--manifest", str(manifest), "--test-sessions", "day3", "--out",
+                 str(tmp_path / "x")]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "'day3' is not a session" in err and len(err.splitlines()) == 1

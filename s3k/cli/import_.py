@@ -90,6 +90,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="number of labelled frames, or 'all' (default 10, or every frame left after the "
                              "test frames when fewer)")
     parser.add_argument("--test", type=number(int, ge=0), default=0, help="number of test frames (default 0)")
+    parser.add_argument("--test-frames", choices=["blocks", "random"], default="blocks",
+                        help="how the test frames are chosen: 'blocks' (default) puts them in contiguous "
+                             "blocks (--test-blocks) with no labelled frame within --margin frames of them, "
+                             "so that evaluation says how a model does on a stretch of recording it has no "
+                             "labels of; 'random' draws them among the labelled frames (docs/importing.md"
+                             "#held-out-test-frames)")
+    parser.add_argument("--margin", type=number(int, ge=0), default=None,
+                        help="frames kept between the test blocks and the nearest labelled frame (default "
+                             "10, less on a recording too short for it, said in a note)")
+    parser.add_argument("--test-blocks", type=number(int, ge=1), default=1,
+                        help="number of contiguous test blocks (default 1)")
+    parser.add_argument("--test-sessions", default=None, metavar="A,B",
+                        help="sessions held out whole: every frame with labels is a test frame and none of "
+                             "their frames trains (with --session or --manifest)")
     parser.add_argument("--seed", type=number(int, ge=0), default=0,
                         help="seed of the random split (default 0)")
     parser.add_argument("--stride", type=number(int, ge=1), default=1,
@@ -168,10 +182,16 @@ def run(args: argparse.Namespace) -> int:
         if value is None:
             raise UserError(f"{option} is required (or give --manifest)")
     videos = dict(camera_pairs(args.videos, "--videos"))
+    held_out = _test_sessions(args.test_sessions)
+    if held_out and held_out != [args.session]:
+        raise UserError(f"--test-sessions {args.test_sessions}: this import's session is {args.session!r}",
+                        hint="name it alone, or list every session in a --manifest")
     common: dict[str, Any] = dict(
         split=SplitOptions(
             labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
-            test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views),
+            test=args.test, seed=args.seed, stride=args.stride, min_views=args.min_views,
+            test_frames="session" if held_out else args.test_frames, margin=args.margin,
+            blocks=args.test_blocks),
         images=ImageOptions(
             size=parse_size(args.size), scale=args.scale,
             crops=parse_crops(args.crop, list(videos)) if args.crop else None,
@@ -204,6 +224,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"track {track} -> {Path(args.out) / folder}")
         import_recording(args.calibration, videos, Path(args.out) / folder, _labels(args, track), **common)
     return 0
+
+
+def _test_sessions(text: str | None) -> list[str]:
+    """The names ``--test-sessions A,B`` gives."""
+    return [n.strip() for n in text.split(",") if n.strip()] if text else []
 
 
 def _count(text: str, option: str) -> int:
@@ -253,6 +278,10 @@ def import_manifest(args: argparse.Namespace) -> int:
         raise UserError(f"--manifest {args.manifest}: give the dataset to write with --out, or the dataset "
                         "to add the sessions to with --into")
     sessions = manifest_sessions(args.manifest)
+    held_out = _test_sessions(args.test_sessions)
+    unknown = [name for name in held_out if name not in [str(e["session"]) for e in sessions]]
+    if unknown:
+        raise UserError(f"--test-sessions: {unknown[0]!r} is not a session of {args.manifest}")
     folder = Path(args.manifest).parent
     parser = _ManifestParser(prog=f"s3k import --manifest {args.manifest}")
     configure_parser(parser)
@@ -260,6 +289,8 @@ def import_manifest(args: argparse.Namespace) -> int:
     for i, entry in enumerate(sessions):
         where = ["--into", target] if args.into or i else ["--out", target]
         extra = ["--overwrite"] if args.overwrite and not args.into and not i else []
+        if str(entry["session"]) in held_out:
+            extra += ["--test-sessions", str(entry["session"])]
         try:
             options = parser.parse_args([*_argv(entry, folder), *where, *extra])
         except UserError as exc:

@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -48,6 +49,11 @@ from s3k.data.writer import Calibration, calibration_rows, json_text, rig_json
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.outputs import replace_folder
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +282,7 @@ def manifest_sessions(path: str | Path) -> list[dict[str, Any]]:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
-        data = _parse_toml(text) if path.suffix.lower() == ".toml" else json.loads(text)
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
     except OSError as exc:
         raise UserError(f"--manifest {path}: cannot read: {exc.strerror or exc}") from None
     except ValueError as exc:
@@ -299,8 +305,3 @@ def manifest_sessions(path: str | Path) -> list[dict[str, Any]]:
         raise UserError(f"--manifest {path}: session {repeated[0]!r} is listed twice")
     return sessions
 
-
-def _parse_toml(text: str) -> Any:
-    import tomllib
-
-    return tomllib.loads(text)

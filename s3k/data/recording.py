@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -42,6 +42,7 @@ from s3k.data.import_choices import (
 from s3k.data.import_labels import LabelFormat, LabelsRead
 from s3k.data.import_report import calibration_warnings, kept_labels_summary
 from s3k.data.rig import Rig
+from s3k.data.splits import TestFrames, held_out_split, session_split
 from s3k.data.tables import NAME_RE
 from s3k.data.writer import DatasetWriter
 from s3k.errors import UserError
@@ -118,6 +119,12 @@ class SplitOptions:
         seed: seed of the random split.
         stride: keep every ``stride``-th video frame as unlabelled.
         min_views: a frame can be labelled/test when a keypoint is labelled in this many cameras.
+        test_frames: ``"blocks"`` (test frames in ``blocks`` contiguous runs, no labelled frame within
+            ``margin`` frames of them), ``"random"``, or ``"session"`` (every labelled frame a test frame,
+            nothing to train on: a held-out session); :mod:`s3k.data.splits`.
+        margin: frames between the test blocks and the labelled frames (None: the default, or less where
+            the recording is too short, said in a note).
+        blocks: the number of contiguous test blocks.
     """
 
     labelled: int | Literal["all"] | None = None
@@ -125,6 +132,9 @@ class SplitOptions:
     seed: int = 0
     stride: int = 1
     min_views: int = 2
+    test_frames: TestFrames = "blocks"
+    margin: int | None = None
+    blocks: int = 1
 
 
 @dataclass(frozen=True)
@@ -194,14 +204,31 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
     dropped = drop_outside(uv, image_areas(geometry.boxes, rig.size, geometry.out_size), cameras, names)
     mask = np.isfinite(uv).all(-1)
     candidates = np.flatnonzero((mask.sum(axis=1) >= split.min_views).any(axis=1))
-    n_labelled = (labelled_count(candidates, split.labelled, split.test, split.min_views, dropped)
-                  if read.tables else 0)
-    splits = split_frames(candidates, np.arange(n_frames), n_labelled, split.test, split.seed, split.stride)
+    splits, n_labelled, split = _choose_splits(candidates, n_frames, split, dropped, bool(read.tables))
     named = None if session is None else (session, _session_info(videos, subject))
     _write_dataset(out, overwrite, calibration, videos, read, rig, names, edges, geometry, uv, mask, splits,
                    split, images, named)
     _report(out, calibration, rig, cameras, names, geometry, uv, mask, candidates, splits, n_labelled, split)
     return out
+
+
+def _choose_splits(candidates: np.ndarray, n_frames: int, split: SplitOptions, dropped: str,
+                   labels: bool) -> tuple[dict[int, str], int | str, SplitOptions]:
+    """The split of every kept frame by ``split.test_frames``, the number of labelled frames asked for, and
+    the options as the report tells them (a held-out session's test count)."""
+    if split.test_frames == "session":
+        if not len(candidates):
+            raise UserError("a held-out test session needs labels: give the session's label files")
+        return session_split(candidates), 0, replace(split, labelled=0, test=len(candidates))
+    n_labelled = (labelled_count(candidates, split.labelled, split.test, split.min_views, dropped)
+                  if labels else 0)
+    frames = np.arange(n_frames)
+    if split.test_frames == "random":
+        chosen = split_frames(candidates, frames, n_labelled, split.test, split.seed, split.stride)
+        return chosen, n_labelled, split
+    splits = held_out_split(candidates, frames, n_labelled, split.test, split.seed, split.stride,
+                            split.margin, split.blocks, fewer_ok=split.labelled is None)
+    return splits, n_labelled, split
 
 
 def _skeleton(tables: Mapping[str, LabelTable], keypoints: list[str], skeleton: str | Path | None,

@@ -19,6 +19,7 @@ import torch
 
 from s3k.data.cameras import read_static_calibration
 from s3k.data.problems import Problems
+from s3k.data.splits import distances_to
 from s3k.data.tables import FRAMES_FILE, METADATA_FILE, NAME_RE, Frames, Meta
 from s3k.geometry import Cameras
 
@@ -110,14 +111,7 @@ def label_distances(times: np.ndarray, sessions: np.ndarray, labelled: np.ndarra
     out = np.full(len(times), np.inf)
     for name in set(sessions.tolist()):
         here = sessions == name
-        marks = np.sort(times[here & labelled])
-        if not len(marks):
-            continue
-        t = times[here]
-        pos = np.searchsorted(marks, t)
-        before = np.abs(t - marks[np.clip(pos - 1, 0, len(marks) - 1)])
-        after = np.abs(marks[np.clip(pos, 0, len(marks) - 1)] - t)
-        out[here] = np.minimum(before, after)
+        out[here] = distances_to(times[here], times[here & labelled])
     return out
 
 

@@ -58,8 +58,8 @@ def write_recording(root: Path, turn: float = 0.0, n_frames: int = 12, seed: int
         write_video(root / f"{cam}.mkv", images, fps=25, codec="ffv1")
         rows = ["scorer" + ",me" * 6, "bodyparts," + ",".join(f"{k},{k}" for k in KEYPOINTS),
                 "coords" + ",x,y" * 3]
-        rows += [f"labeled-data/rec_{cam}/img{f:04d}.png," + ",".join(repr(float(v)) for v in uv[f, c].ravel())
-                 for f in range(n_frames)]
+        rows += [f"labeled-data/rec_{cam}/img{f:04d}.png,"
+                 + ",".join(repr(float(v)) for v in uv[f, c].ravel()) for f in range(n_frames)]
         (root / f"CollectedData_{cam}.csv").write_text("\n".join(rows) + "\n")
     return {"root": root, "X": X, "uv": uv, "frames": frames}
 
