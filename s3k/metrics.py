@@ -210,10 +210,25 @@ def format_metric(v) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
 
 
+SUMMARY_METRICS = ("rms_px", "rms_px_reproj", "median_mm", "rms_mm", "pck_5mm", "pck_10mm", "n_2d", "n_3d")
+"""The metrics of :func:`compute_metrics` that a part of the frames (a session) is summed up by."""
+
+
+def _distance(d: dict[str, Any] | None) -> str:
+    if not d or d.get("median") is None:
+        return "no labelled frame in the same session"
+    return f"median {d['median']:g}, min {d['min']:g} frames from the nearest labelled frame"
+
+
 def format_table(metrics: dict[str, Any]) -> str:
-    """Human-readable table of a metrics dict."""
+    """Human-readable table of a metrics dict (with its sessions' rows when it has several)."""
     lines = [f"{'':<16}" + "".join(f"{m:>15}" for m in METRICS)]
     lines.append(f"{'all':<16}" + "".join(f"{format_metric(metrics[m]):>15}" for m in METRICS))
+    sessions = metrics.get("sessions") or {}
+    if len(sessions) > 1:
+        for name, d in sessions.items():
+            cells = "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS)
+            lines.append(f"{'session ' + name:<16}{cells}")
     for name, d in metrics["per_keypoint"].items():
         lines.append(f"{'kp ' + name:<16}" + "".join(f"{format_metric(d.get(m)):>15}" for m in METRICS))
     for name, d in metrics["per_camera"].items():
@@ -221,4 +236,10 @@ def format_table(metrics: dict[str, Any]) -> str:
     lines.append(f"frames {metrics['n_frames']}, 2D terms {metrics['n_2d']}, 3D terms {metrics['n_3d']}, "
                  f"triangulated {format_metric(metrics['triangulated_fraction'])}, "
                  f"mm_per_px {format_metric(metrics.get('mm_per_px'))}")
+    if "label_distance" in metrics:
+        lines.append(f"{metrics.get('split', 'evaluated')} frames lie {_distance(metrics['label_distance'])}"
+                     " of their session")
+        if len(sessions) > 1:
+            lines += [f"  session {name}: {d['n_frames']} frames, {_distance(d.get('label_distance'))}"
+                      for name, d in sessions.items()]
     return "\n".join(lines)

@@ -45,6 +45,14 @@ def _summary_lines(ds: Dataset) -> list[str]:
         f"images {W}x{H}, calibration {s['calibration']}, units {s['units']}"
     )
     out.append("frames per split: " + ", ".join(f"{name} {s['splits'][name]}" for name in SPLITS))
+    if len(ds.sessions) > 1:
+        out.append(f"{len(ds.sessions)} sessions (frames per split; calibration {s['calibration']}):")
+        for name, counts in s["sessions"].items():
+            info = ds.session_info(name)
+            about = ", ".join(f"{k.replace('_', ' ')} {info[k]}" for k in ("frame_rate", "subject")
+                              if k in info)
+            out.append(f"  {name}: " + ", ".join(f"{split} {counts[split]}" for split in SPLITS)
+                       + (f" ({about})" if about else ""))
     width = max(len(k) for k in ds.keypoints)
     cam_width = max(6, *(len(c) for c in ds.cameras))
     out.append(

@@ -17,13 +17,14 @@ import numpy as np
 from s3k.choices import Device
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
+from s3k.data.sessions import distance_summary, label_distances
 from s3k.detector import Detector, evaluate_store
 from s3k.draw import edge_indices
 from s3k.errors import UserError
 from s3k.inference.report import write_report
-from s3k.metrics import keypoint_order, mm_per_unit
+from s3k.metrics import SUMMARY_METRICS, compute_metrics, keypoint_order, mm_per_unit
 
-__all__ = ["evaluate_run", "evaluate_store"]
+__all__ = ["evaluate_run", "evaluate_store", "per_session"]
 
 
 def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", batch_size: int = 16,
@@ -41,8 +42,34 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
                                      label_reference=True)
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
+    metrics["label_distance"], metrics["sessions"] = per_session(ds, arrays, detector.keypoints)
     if report:
         edges = edge_indices(detector.meta.recorded_skeleton() or ds.skeleton, detector.keypoints)
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})",
                      edges=edges)
     return metrics
+
+
+def per_session(ds: Dataset, arrays: dict[str, Any], keypoints) -> tuple[dict, dict[str, dict[str, Any]]]:
+    """How far the evaluated frames lie from the nearest labelled frame of their session (``{"median",
+    "min"}`` in frames), and per session the metrics of :func:`s3k.metrics.compute_metrics` (the summary
+    ones), its frame count and the same distances."""
+    every = ds.frames()
+    far = label_distances(ds.frame_times(every), ds.session_of(every), ds.split_of(every) == "labelled")
+    ids = np.asarray(arrays["frame_ids"])
+    rows = np.searchsorted(every, ids, sorter=np.argsort(every))
+    distance = far[np.argsort(every)[rows]]
+    sessions = ds.session_of(ids)
+    out: dict[str, dict[str, Any]] = {}
+    for name in ds.sessions:
+        sel = sessions == name
+        if not sel.any():
+            continue
+        part = {k: (v[sel] if isinstance(v, np.ndarray) and len(v) == len(ids) else None)
+                for k, v in arrays.items()}
+        metrics = compute_metrics(part["pred_uv"], part["reproj_uv"], part["gt_uv"], part["gt_mask"],
+                                  part["X"], part["X_valid"], part["X_gt"], part["X_gt_mask"],
+                                  mm_per_unit(ds.units), keypoints, ds.cameras)
+        out[name] = {**{k: metrics[k] for k in SUMMARY_METRICS}, "n_frames": int(sel.sum()),
+                     "label_distance": distance_summary(distance[sel])}
+    return distance_summary(distance), out

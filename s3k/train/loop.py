@@ -58,6 +58,7 @@ from s3k.train.run_setup import (
     check_trained_as,
     data_path,
     detector_meta,
+    log_sessions,
     open_data,
     reference_layout,
     setup_logging,
@@ -404,6 +405,7 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
              cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
              device, info.world, loop.precision, t_load, lab_store.preloaded)
+    log_sessions(d.ds, d.labelled, d.unlabelled)
     log.info("labelled layout: mean distance between keypoints %.4g %s", ref_layout, meta.units)
     _log_unsup_schedule(cfg)
 

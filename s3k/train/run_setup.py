@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from s3k.budget import check_fits
 from s3k.config import TrainConfig
-from s3k.data import usable_label_count
+from s3k.data import Dataset, usable_label_count
 from s3k.data.frames import open_dataset
 from s3k.data.protocol import DatasetLike
 from s3k.detector import CHECKPOINT_FILE, DetectorMeta
@@ -193,3 +193,14 @@ def start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorM
         log.info("resumed with changed settings: %s",
                  ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in changed.items()))
     return state
+
+
+def log_sessions(ds: DatasetLike, labelled: np.ndarray, unlabelled: np.ndarray) -> None:
+    """Log what each session of a dataset of several gives the training (its labelled and unlabelled frames;
+    each frame is triangulated with its own session's cameras)."""
+    if not isinstance(ds, Dataset) or len(ds.sessions) < 2:
+        return
+    lab, unl = ds.session_of(labelled), ds.session_of(unlabelled)
+    log.info(f"{len(ds.sessions)} sessions, each frame with its own session's cameras: " + ", ".join(
+        f"{name} ({int((lab == name).sum())} labelled, {int((unl == name).sum())} unlabelled)"
+        for name in ds.sessions))
