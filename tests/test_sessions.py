@@ -101,3 +101,68 @@ def test_each_session_reads_its_own_videos(tmp_path):
     (path / "s3k.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="images.sessions.day2.*no videos given"):
         Dataset.open(path)
+
+
+def _per_frame_dataset(path, turn):
+    from helpers.synthetic_rig import CAMERAS, KEYPOINTS, _add_frame
+
+    from s3k.data import DatasetWriter
+
+    rng = np.random.default_rng(5)
+    with DatasetWriter(path, KEYPOINTS, CAMERAS, (32, 32), "m", per_frame_calibration=True) as w:
+        for f, split in enumerate(["labelled", "labelled", "unlabelled", "test"]):
+            _add_frame(w, f, split, rig(32, turn), 32, rng, calibration=True, label_test=True)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["same rig", "other rig", "per session", "per frame"])
+def test_a_dataset_added_as_a_session_keeps_every_frame_with_its_rig(tmp_path, kind, capsys):
+    from s3k.cli import main
+
+    into = {"same rig": lambda p: make_dataset(p, labelled=2, unlabelled=2, test=1),
+            "other rig": lambda p: make_dataset(p, labelled=2, unlabelled=2, test=1),
+            "per session": lambda p: make_sessions_dataset(p, {"a": 0.0, "b": 0.3}),
+            "per frame": lambda p: _per_frame_dataset(p, 0.1)}[kind](tmp_path / "into")
+    part = make_dataset(tmp_path / "part", labelled=2, unlabelled=3, test=2, seed=7)
+    if kind != "same rig":  # the cameras moved: the part's rig turned
+        meta = json.loads((part / "calibration.json").read_text())
+        K, dist, R, t = rig(32, 0.7)
+        for c, cam in enumerate(meta["cameras"]):
+            meta["cameras"][cam].update(R=R[c].tolist(), t=t[c].tolist())
+        (part / "calibration.json").write_text(json.dumps(meta))
+    old, new = Dataset.open(into, cache="none"), Dataset.open(part, cache="none")
+    old_images, new_images = old.images(old.frames()), new.images(new.frames())
+    old_cams, new_cams = (d.calibration(d.frames(), np.float64).numpy() for d in (old, new))
+    assert main(["import", "--into", str(into), "--session", "late", "--dataset", str(part),
+                 "--subject", "dots"]) == 0
+    ds = Dataset.open(into, cache="none")
+    mode = json.loads((into / "s3k.json").read_text())["calibration"]
+    assert mode == {"same rig": "static", "other rig": "per_session", "per session": "per_session",
+                    "per frame": "per_frame"}[kind]
+    assert ds.sessions == [*old.sessions, "late"] and ds.session_info("late")["subject"] == "dots"
+    added = ds.frames(session="late")
+    assert added.tolist() == list(range(old.frame_ids.max() + 1, old.frame_ids.max() + 8))
+    np.testing.assert_array_equal(ds.images(old.frames()), old_images)
+    np.testing.assert_array_equal(ds.images(added), new_images)
+    for ids, cams in ((old.frames(), old_cams), (added, new_cams)):
+        got = ds.calibration(ids, np.float64).numpy()
+        for f in ("K", "R", "t"):
+            np.testing.assert_array_equal(got[f], cams[f])
+    np.testing.assert_array_equal(ds.labels(added)[0], new.labels(new.frames())[0])
+    np.testing.assert_array_equal(ds.points3d(added)[0], new.points3d(new.frames())[0])
+    assert ds.split_of(added).tolist() == new.split_of(new.frames()).tolist()
+    assert (part / "s3k.json").is_file()  # the added dataset is left as it was
+
+
+def test_a_held_out_session_is_test_frames_only(tmp_path, capsys):
+    from s3k.cli import main
+
+    into = make_dataset(tmp_path / "into", labelled=2, unlabelled=2, test=1)
+    part = make_dataset(tmp_path / "part", labelled=2, unlabelled=3, test=2, seed=7)
+    assert main(["import", "--into", str(into), "--session", "held", "--dataset", str(part),
+                 "--test-sessions", "held"]) == 0
+    ds = Dataset.open(into)
+    assert ds.summary()["sessions"]["held"] == {"labelled": 0, "unlabelled": 0, "test": 4}
+    assert main(["import", "--into", str(into), "--session", "held", "--dataset", str(part)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "already holds session 'held'" in err and len(err.splitlines()) == 1

@@ -9,8 +9,9 @@ from typing import Any
 
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
+from s3k.data import Dataset
 from s3k.data import import_labels as fmt
-from s3k.data.add_session import import_session, manifest_sessions
+from s3k.data.add_session import import_session, manifest_sessions, merge_session
 from s3k.data.formats.sleap import sleap_tracks
 from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 from s3k.errors import UserError
@@ -76,6 +77,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "continue after its own, images are resized to its size unless --size or "
                              "--scale says otherwise; cameras and keypoints must be the dataset's "
                              "(docs/importing.md#sessions)")
+    parser.add_argument("--dataset", default=None, metavar="DIR",
+                        help="with --into and --session: add an s3k dataset of PNG images (e.g. one 's3k "
+                             "simulate' wrote) as the new session, instead of a recording")
     parser.add_argument("--session", type=name, default=None,
                         help="the recording's session name (required with --into; with --out the new "
                              "dataset's first session)")
@@ -178,14 +182,16 @@ def run(args: argparse.Namespace) -> int:
                         "--into")
     if args.into is not None and args.session is None:
         raise UserError(f"--into {args.into}: name the new session with --session NAME")
-    for option, value in (("--calibration", args.calibration), ("--videos", args.videos)):
-        if value is None:
-            raise UserError(f"{option} is required (or give --manifest)")
-    videos = dict(camera_pairs(args.videos, "--videos"))
     held_out = _test_sessions(args.test_sessions)
     if held_out and held_out != [args.session]:
         raise UserError(f"--test-sessions {args.test_sessions}: this import's session is {args.session!r}",
                         hint="name it alone, or list every session in a --manifest")
+    if args.dataset is not None:
+        return _add_dataset(args, bool(held_out))
+    for option, value in (("--calibration", args.calibration), ("--videos", args.videos)):
+        if value is None:
+            raise UserError(f"{option} is required (or give --dataset or --manifest)")
+    videos = dict(camera_pairs(args.videos, "--videos"))
     common: dict[str, Any] = dict(
         split=SplitOptions(
             labelled=args.labelled if args.labelled in (None, "all") else _count(args.labelled, "--labelled"),
@@ -226,6 +232,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_dataset(args: argparse.Namespace, held_out: bool) -> int:
+    """``--into DATASET --session NAME --dataset DIR``: the dataset DIR added as a session."""
+    if args.into is None:
+        raise UserError(f"--dataset {args.dataset}: give the dataset to add it to with --into")
+    if args.calibration or args.videos:
+        raise UserError(f"--dataset {args.dataset} brings its own calibration and images: give no "
+                        "--calibration or --videos")
+    part = Dataset.open(args.dataset, cache="none")
+    info = {**part.session_info(part.sessions[0]), "source": part.source or str(args.dataset)}
+    if args.subject is not None:
+        info["subject"] = args.subject
+    merge_session(args.into, args.dataset, args.session, info, hold_out=held_out)
+    print(f"added {args.dataset} to {args.into} as session {args.session}")
+    return 0
+
+
 def _test_sessions(text: str | None) -> list[str]:
     """The names ``--test-sessions A,B`` gives."""
     return [n.strip() for n in text.split(",") if n.strip()] if text else []
@@ -242,7 +264,7 @@ def _count(text: str, option: str) -> int:
 
 
 PATH_OPTIONS = ("calibration", "videos", "sleap", "nwb", "dlc", "lightning_pose", "openpose", "mmpose",
-                "deepfly3d", "skeleton")
+                "deepfly3d", "skeleton", "dataset")
 """The manifest's options that name files: relative paths are relative to the manifest's folder."""
 
 

@@ -88,10 +88,15 @@ def check_compatible(dataset: Dataset, part: Dataset, session: str) -> None:
     if part.units != dataset.units:
         raise UserError(f"{where}: units {part.units!r} differ from {dataset.path}'s {dataset.units!r}",
                         hint=f"pass --units {dataset.units} if the calibration is in {dataset.units}")
-    pattern = dataset.metadata.get("images", {}).get("pattern", DEFAULT_IMAGE_PATTERN)
-    if dataset.metadata.get("images", {}).get("type", "png") != "png" or not pattern.endswith(".png"):
-        raise UserError(f"{dataset.path}: its images are {dataset.metadata.get('images')}; a session is "
-                        "added only to a dataset of PNG images", hint="import the recordings with a manifest")
+    for ds in (dataset, part):
+        images = ds.metadata.get("images", {})
+        if images.get("type", "png") != "png" or not _pattern(ds).endswith(".png"):
+            raise UserError(f"{ds.path}: its images are {images}; a session is added only to and from a "
+                            "dataset of PNG images", hint="import the recordings with a manifest")
+
+
+def _pattern(ds: Dataset) -> str:
+    return str(ds.metadata.get("images", {}).get("pattern", DEFAULT_IMAGE_PATTERN))
 
 
 def _rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
@@ -113,8 +118,10 @@ def _write_rows(path: Path, header: list[str], rows: list[dict[str, str]]) -> No
 
 
 def _renumbered(path: Path, new_id: dict[int, int]) -> Iterator[dict[str, str]]:
+    """The rows of the frames ``new_id`` keeps, under their new ids."""
     for row in _rows(path)[1]:
-        yield {**row, "frame": str(new_id[int(row["frame"])])}
+        if int(row["frame"]) in new_id:
+            yield {**row, "frame": str(new_id[int(row["frame"])])}
 
 
 def _merge_table(out: Path, name: str, old: Path, part: Path, new_id: dict[int, int], first: list[str],
@@ -123,17 +130,19 @@ def _merge_table(out: Path, name: str, old: Path, part: Path, new_id: dict[int, 
     new_header, _ = _rows(part / name)
     if not rows and not new_header:
         return
-    columns = list(dict.fromkeys([*first, *header, *new_header]))
+    columns = list(dict.fromkeys([*first, *header, *new_header, *defaults]))
     rows = [{**defaults, **row} for row in rows] + [{**defaults, **row} for row in _renumbered(part / name,
                                                                                                 new_id)]
     _write_rows(out / name, columns, rows)
 
 
-def _link(src: Path, dst: Path) -> None:
-    """``dst`` becomes ``src``'s content (a hard link where the file system allows: the old folder is
-    removed once the merged one is in place)."""
+def _link(src: Path, dst: Path, link: bool = True) -> None:
+    """``dst`` becomes ``src``'s content: a hard link where the file system allows and ``link`` (files of a
+    folder that is removed once the merged one is in place), else a copy."""
     dst.parent.mkdir(parents=True, exist_ok=True)
     try:
+        if not link:
+            raise OSError
         os.link(src, dst)
     except OSError:
         shutil.copy2(src, dst)
@@ -152,7 +161,7 @@ def _carry_over(src: Path, out: Path) -> None:
             _link(entry, out / entry.name)
 
 
-def _calibration(out: Path, dataset: Dataset, part: Dataset, session: str,
+def _calibration(out: Path, dataset: Dataset, part: Dataset, kept: np.ndarray, session: str,
                  sessions: list[str]) -> str:
     """Write the merged calibration; returns its mode: static when the session's rig is the dataset's,
     one rig per session when each session has one, else per frame."""
@@ -174,7 +183,7 @@ def _calibration(out: Path, dataset: Dataset, part: Dataset, session: str,
     with open(out / PER_FRAME_CALIBRATION_FILE, "w") as f:
         f.write(",".join(CALIBRATION_COLUMNS) + "\n")
         for ds, ids, offset, cams in ((dataset, dataset.frames(), 0, list(range(len(dataset.cameras)))),
-                                      (part, part.frames(), _offset(dataset), order)):
+                                      (part, kept, _offset(dataset), order)):
             arrays = ds.calibration(ids, np.float64).numpy()
             for i, frame in enumerate(ids):
                 f.write(calibration_rows(int(frame) + offset, dataset.cameras,
@@ -194,34 +203,38 @@ def _offset(dataset: Dataset) -> int:
     return int(dataset.frame_ids.max()) + 1
 
 
-def merge_session(into: str | Path, part: str | Path, session: str, info: dict[str, Any]) -> Path:
+def merge_session(into: str | Path, part: str | Path, session: str, info: dict[str, Any], *,
+                  hold_out: bool = False, link: bool = False) -> Path:
     """Add the dataset ``part`` (one recording) to the dataset ``into`` as session ``session`` with metadata
-    ``info`` (``frame_rate``, ``subject``, ``source``, ...); all or nothing. Returns ``into``."""
+    ``info`` (``frame_rate``, ``subject``, ``source``, ...); all or nothing. Returns ``into``.
+
+    ``hold_out``: the session is held out whole (``--test-sessions``): its labelled and test frames become
+    test frames and its unlabelled frames are left out. ``link``: hard-link ``part``'s images rather than
+    copy them (``part`` is a temporary folder that goes away)."""
     into = Path(into)
     dataset = Dataset.open(into, cache="none")
     new = Dataset.open(part, cache="none")
     check_new_session(dataset, session)
     check_compatible(dataset, new, session)
-    offset = _offset(dataset)
-    new_id = {int(f): int(f) + offset for f in new.frame_ids}
-    pattern = dataset.metadata.get("images", {}).get("pattern", DEFAULT_IMAGE_PATTERN)
+    kept = new.frames(("labelled", "test")) if hold_out else new.frames()
+    new_id = {int(f): int(f) + _offset(dataset) for f in kept}
     sessions = [*dataset.sessions, session]
     meta = dict(dataset.metadata)
     meta["sessions"] = {name: dataset.session_info(name) for name in dataset.sessions} | {session: info}
     with replace_folder(into, overwrite=True, option="--into") as out:
         out.mkdir()
         _carry_over(into, out)
-        for frame in new.frame_ids:
+        for frame in kept:
             for cam in new.cameras:
-                _link(new.path / DEFAULT_IMAGE_PATTERN.format(camera=cam, frame=int(frame)),
-                      out / pattern.format(camera=cam, frame=new_id[int(frame)]))
+                _link(new.path / _pattern(new).format(camera=cam, frame=int(frame)),
+                      out / _pattern(dataset).format(camera=cam, frame=new_id[int(frame)]), link)
         default = {SESSION_COLUMN: DEFAULT_SESSION}
         _merge_table(out, FRAMES_FILE, into, new.path, new_id, ["frame", "split"], default)
-        _fill_frames(out / FRAMES_FILE, session, new_id)
+        _fill_frames(out / FRAMES_FILE, session, new_id, hold_out)
         _merge_table(out, LABELS_FILE, into, new.path, new_id, ["frame", "camera", "keypoint", "u", "v"],
                      {"visible": "1"})
         _merge_table(out, POINTS3D_FILE, into, new.path, new_id, ["frame", "keypoint", "x", "y", "z"], {})
-        meta["calibration"] = _calibration(out, dataset, new, session, sessions)
+        meta["calibration"] = _calibration(out, dataset, new, kept, session, sessions)
         (out / METADATA_FILE).write_text(json_text(meta))
         Dataset.open(out, cache="none")  # the merged dataset reads back, or nothing is replaced
     return into
@@ -255,7 +268,7 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
         import_recording(calibration, videos, part, labels, split=split, images=images, keypoints=keypoints,
                          units=units, skeleton=skeleton, session=session, subject=subject)
         new = Dataset.open(part, cache="none")
-        merge_session(into, part, session, new.session_info(session))
+        merge_session(into, part, session, new.session_info(session), link=True)
     finally:
         shutil.rmtree(part, ignore_errors=True)
     ids = Dataset.open(into, cache="none").frames(session=session)
@@ -263,14 +276,15 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
     return into
 
 
-def _fill_frames(path: Path, session: str, new_id: dict[int, int]) -> None:
-    """The merged frames.csv's session of the new frames, and a ``video_frame`` for every frame (a frame
-    without one is its own video frame)."""
+def _fill_frames(path: Path, session: str, new_id: dict[int, int], hold_out: bool) -> None:
+    """The merged frames.csv's session of the new frames (test frames all when it is held out), and a
+    ``video_frame`` for every frame (a frame without one is its own video frame)."""
     header, rows = _rows(path)
     added = set(new_id.values())
     for row in rows:
         if int(row["frame"]) in added:
             row[SESSION_COLUMN] = session
+            row["split"] = "test" if hold_out else row["split"]
         if "video_frame" in header and not row.get("video_frame"):
             row["video_frame"] = row["frame"]
     _write_rows(path, header, rows)
@@ -291,13 +305,13 @@ def manifest_sessions(path: str | Path) -> list[dict[str, Any]]:
     sessions = data.get("sessions") if isinstance(data, dict) else None
     if not isinstance(sessions, list) or not sessions or not all(isinstance(s, dict) for s in sessions):
         raise UserError(f"--manifest {path}: field 'sessions' must be a non-empty list of tables, each with "
-                        "'session', 'calibration' and 'videos'")
+                        "'session', and 'calibration' and 'videos' or 'dataset'")
     names = []
     for i, entry in enumerate(sessions):
-        for key in ("session", "calibration", "videos"):
+        for key in ("session", "calibration", "videos") if "dataset" not in entry else ("session",):
             if key not in entry:
                 raise UserError(f"--manifest {path}: sessions[{i}] has no field {key!r}")
-        if not isinstance(entry["videos"], dict):
+        if "videos" in entry and not isinstance(entry["videos"], dict):
             raise UserError(f"--manifest {path}: sessions[{i}].videos must map each camera to a video")
         names.append(str(entry["session"]))
     repeated = sorted({n for n in names if names.count(n) > 1})
