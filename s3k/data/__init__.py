@@ -18,7 +18,10 @@ Modules, one job each:
 - :mod:`~s3k.data.rig`: ``Rig``, a calibration file's content (names, sizes, units, ``Cameras``).
 - :mod:`~s3k.data.formats`: other tools' files, one module per format (calibrations, 2D labels, 3D tracks;
   ``label_export`` writes labels back out); :mod:`~s3k.data.recording` (``import_recording``: a recording to a
-  dataset) and :mod:`~s3k.data.import_choices` (its choices of image size and splits).
+  dataset) and :mod:`~s3k.data.import_choices` (its choices of image size and splits);
+  :mod:`~s3k.data.splits` (test frames held out in time, or whole sessions), :mod:`~s3k.data.sessions` (a
+  dataset's recordings: each frame's session, each session's rig and metadata) and
+  :mod:`~s3k.data.add_session` (``s3k import --into``: a recording or dataset added as a session).
 - :mod:`~s3k.geometry.warp` (crop/resize maps), :mod:`~s3k.data.video` (video I/O) and
   :mod:`~s3k.data.imageseq` (image sequences read in place of videos).
 """
