@@ -239,18 +239,17 @@ class Dataset:
         """Frame ids ``(N,)`` of a split (``"labelled" | "unlabelled" | "test"``), of several splits one after
         the other (each frame is in one split), or all in file order when None; of one ``session`` only
         when given."""
-        ids = self.frame_ids
+        ids, splits = self.frame_ids, self._c.frames.splits
         if session is not None:
             if session not in self.sessions:
                 raise KeyError(f"unknown session {session!r}; {self.path} has sessions {self.sessions}")
-            ids = ids[self._c.sessions == session]
+            ids, splits = ids[self._c.sessions == session], splits[self._c.sessions == session]
         if split is None:
             return ids.copy()
         names = [split] if isinstance(split, str) else list(split)
         for name in names:
             if name not in SPLITS:
                 raise ValueError(f"unknown split {name!r}; use one of {list(SPLITS)}")
-        splits = self.split_of(ids)
         return np.concatenate([ids[:0], *(ids[splits == n] for n in names)])
 
     def session_of(self, frame_ids) -> np.ndarray:
