@@ -6,7 +6,9 @@
 #   bash scripts/real-comparison.sh [RECORDING_DIR]
 #
 # $WORK (default /tmp/real-work): dataset $WORK/crop, runs $WORK/runs/{s3k,baseline}-seedN. $SEEDS (default
-# 5), $STEPS (3000), $THREADS (1). Resumable: run it again and it skips what is done and resumes a run that
+# 5), $STEPS (3000), $THREADS (1), $SCALE (the arena crops' import scale, 0.25: 128 px), $TRAIN_OPTIONS (more
+# `s3k train` options for both models, e.g. '--preset box-headline --layout-tol 0' with SCALE=0.5), $TEST_FRAMES
+# (random, as the committed figures; blocks: the test frames held out in time, scripts/real-recording.sh). Resumable: run it again and it skips what is done and resumes a run that
 # was cut short (s3k train --resume). Trainings run under `nice -n 10`. Evaluate and compare with
 # benchmarks/real_comparison.py.
 set -euo pipefail
@@ -16,6 +18,8 @@ WORK=${WORK:-/tmp/real-work}
 SEEDS=${SEEDS:-5}
 STEPS=${STEPS:-3000}
 THREADS=${THREADS:-1}
+SCALE=${SCALE:-0.25}
+read -r -a TRAIN_OPTS <<< "${TRAIN_OPTIONS:-}"
 PY=${PYTHON:-python}
 s3k() { "$PY" -m s3k.cli "$@"; }
 mkdir -p "$WORK/runs"
@@ -31,7 +35,7 @@ if [ ! -f "$WORK/crop/s3k.json" ]; then
     > "$WORK/check-calibration.txt" || status=$?
   [ "$status" -le 2 ] || exit "$status"
   s3k import --calibration "$WORK/calibration_fixed.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" \
-    "${split[@]}" --scale 0.25 --crop "${crops[@]}" --out "$WORK/crop.tmp"
+    "${split[@]}" --scale "$SCALE" --crop "${crops[@]}" --out "$WORK/crop.tmp"
   mv "$WORK/crop.tmp" "$WORK/crop"
 fi
 
@@ -42,7 +46,7 @@ train() {  # train RUN [options]: new, resumed, or (finished) returns at once
     nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --resume --threads "$THREADS" --no-progress
   else
     nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" \
-      --no-progress "$@"
+      --no-progress ${TRAIN_OPTS[@]+"${TRAIN_OPTS[@]}"} "$@"
   fi
   echo "== $(basename "$run") end $(date +%T)"
 }

@@ -10,4 +10,6 @@ for c in "${cams[@]}"; do
   sleap+=("$c=$D/$c/minimal_${c}_proofread.analysis.h5")
 done
 crops=(back=610,350,1122,862 mid=246,374,758,886 side=328,406,840,918 top=266,330,778,842)
-split=(--labelled 10 --test 40 --seed 0 --test-frames random)
+# $TEST_FRAMES=blocks holds the 40 test frames out in time instead: one contiguous block, no labelled frame within
+# --margin (10) frames of it.
+split=(--labelled 10 --test 40 --seed 0 --test-frames "${TEST_FRAMES:-random}")
