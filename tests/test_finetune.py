@@ -12,6 +12,8 @@ from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
 from s3k.detector import load_network
 from s3k.errors import UserError
+from s3k.presets import preset
+from s3k.run_folder import RunFolder
 from s3k.train import train
 
 
@@ -78,3 +80,81 @@ def test_a_two_pass_run_is_fine_tuned_pass_by_pass(tiny_dataset, tmp_path):
     with pytest.raises(UserError, match="not a two-pass run"):
         train(tiny_dataset, tmp_path / "other", config(steps=1, **two), init_from=tmp_path / "tuned" / "fine")
     assert not (tmp_path / "one").exists() and not (tmp_path / "other").exists()
+
+
+def printed_config(capsys, argv: list[str]) -> tuple[dict, str]:
+    """The configuration ``s3k train ... --print-config`` resolves to, and what it said on stderr."""
+    capsys.readouterr()
+    assert cli_main(["train", *argv, "--print-config"]) == 0
+    out = capsys.readouterr()
+    return json.loads(out.out), out.err
+
+
+def test_a_fine_tune_takes_the_runs_configuration_at_its_final_learning_rate(tiny_dataset, tmp_path, capsys):
+    """``--init-from RUN`` alone: RUN's configuration, the learning rate RUN ended at (``lr x lr_final``), the
+    self-supervised term on from the first step; an option given wins, and so does a ``--preset``."""
+    first = tmp_path / "first"
+    train(tiny_dataset, first, config(seed=4, lr=2e-3, lr_final=0.1, warmup_steps=2, ramp_steps=1, alpha=0.3))
+    own = RunFolder(first).config()
+    argv = [str(tiny_dataset), "--out", str(tmp_path / "tuned"), "--init-from", str(first)]
+    cfg, said = printed_config(capsys, argv)
+    assert cfg == own.replace(lr=2e-4, warmup_steps=0, ramp_steps=0).to_dict()
+    assert f"fine-tuning {first}: its configuration (one pass)" in said
+    assert "at the learning rate it ended at, 0.0002 (--lr 0.002 x --lr-final 0.1)" in said
+    cfg, said = printed_config(capsys, [*argv, "--lr", "5e-4", "--steps", "7", "--warmup-steps", "1"])
+    assert cfg == own.replace(lr=5e-4, steps=7, warmup_steps=1, ramp_steps=0).to_dict()
+    assert "given here: --lr, --steps, --warmup-steps" in said
+    cfg, said = printed_config(capsys, [*argv, "--preset", "box-fast"])
+    assert cfg == preset("box-fast").to_dict()
+    assert "the configuration is --preset box-fast's, not the run's" in said
+
+
+def test_a_two_pass_fine_tune_continues_each_pass_at_its_final_learning_rate(tiny_dataset, tmp_path, capsys):
+    """Of a two-pass run, the coarse pass's and the refining pass's final learning rates; ``--lr`` and
+    ``--steps`` given alone are both passes', as in a run of their own."""
+    run = RunFolder(tmp_path / "first")
+    run.path.mkdir()
+    own = preset("box-headline").replace(lr_final=0.1)  # coarse pass 1e-3 for 4000 steps, refining 5e-3
+    run.write_config(own)
+    argv = [str(tiny_dataset), "--out", str(tmp_path / "tuned"), "--init-from", str(run.path)]
+    cfg, said = printed_config(capsys, argv)
+    tuned = TrainConfig.from_flat(**cfg)
+    assert cfg == own.replace(lr=5e-4, coarse_lr=1e-4, warmup_steps=0, ramp_steps=0).to_dict()
+    assert (tuned.coarse().lr, tuned.refining().lr) == pytest.approx((1e-4, 5e-4))
+    assert "the coarse pass at 0.0001 (0.001 x 0.1)" in said
+    cfg, _ = printed_config(capsys, [*argv, "--lr", "3e-4", "--steps", "50"])
+    tuned = TrainConfig.from_flat(**cfg)
+    assert (tuned.coarse().lr, tuned.refining().lr) == (3e-4, 3e-4)
+    assert (tuned.coarse().steps, tuned.refining().steps) == (50, 50)
+    cfg, _ = printed_config(capsys, [*argv, "--coarse-lr", "2e-4", "--coarse-steps", "9"])
+    tuned = TrainConfig.from_flat(**cfg)
+    assert (tuned.coarse().lr, tuned.refining().lr, tuned.coarse().steps) == (2e-4, pytest.approx(5e-4), 9)
+
+
+def test_a_run_that_ended_at_a_learning_rate_of_zero_is_refused_in_one_line(tiny_dataset, tmp_path, capsys):
+    run = RunFolder(tmp_path / "first")
+    run.path.mkdir()
+    run.write_config(preset("box-fast").replace(lr_final=0.0))
+    argv = ["train", str(tiny_dataset), "--out", str(tmp_path / "tuned"), "--init-from", str(run.path)]
+    assert cli_main([*argv, "--print-config"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "learning rate of 0 (--lr-final 0)" in err and "give --lr" in err
+    assert cli_main(["train", str(tiny_dataset), "--out", str(tmp_path / "x"), "--init-from",
+                     str(tmp_path / "nothing"), "--print-config"]) == 1
+    assert "not a trained run" in capsys.readouterr().err
+    capsys.readouterr()
+    cfg, _ = printed_config(capsys, [*argv[1:], "--lr", "1e-4", "--coarse-lr", "1e-4"])
+    assert cfg["lr"] == cfg["coarse_lr"] == 1e-4
+
+
+def test_a_fine_tune_in_one_command_trains_from_the_runs_configuration(tiny_dataset, tmp_path, capsys):
+    first = tmp_path / "first"
+    train(tiny_dataset, first, config(seed=2, lr=2e-3, lr_final=0.5))
+    tuned = tmp_path / "tuned"
+    assert cli_main(["train", str(tiny_dataset), "--out", str(tuned), "--init-from", str(first),
+                     "--steps", "2"]) == 0
+    assert f"fine-tuning {first}: its configuration (one pass)" in capsys.readouterr().err
+    expected = RunFolder(first).config().replace(steps=2, lr=1e-3, warmup_steps=0, ramp_steps=0)
+    assert RunFolder(tuned).config().to_dict() == expected.to_dict()
+    assert f"fine-tuning: the network starts from {first}" in (tuned / "train.log").read_text()
+    assert load_network(tuned)[0] is not None

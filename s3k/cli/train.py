@@ -9,12 +9,15 @@ import sys
 
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
-from s3k.config import TrainConfig, resumable_fields
+from s3k.config import TrainConfig, leaf_fields, resumable_fields
+from s3k.config_files import read_config_file
 from s3k.errors import UserError
+from s3k.messages import note
 from s3k.outputs import check_output_folder
 from s3k.presets import PRESETS, preset
 from s3k.run_folder import RunFolder
 from s3k.train import train
+from s3k.train.fine_tune import fine_tune_config
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -24,8 +27,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--nproc-per-node N' for data-parallel training."
     )
     parser.epilog = examples("s3k train data/box --out runs/box",
-                             "s3k train data/box --out runs/box-more --init-from runs/box --steps 500 "
-                             "--lr 3e-4",
+                             "s3k train data/box --out runs/box-more --init-from runs/box --steps 500",
                              "s3k train data/box --out runs/box-2p --two-pass --rotation-deg 15 "
                              "--coarse-rotation 180 --layout-tol 0.2",
                              "s3k train data/box --out runs/box --preset box-fast --print-config")
@@ -39,9 +41,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the run in --out (deletes only the files a run holds)")
     parser.add_argument("--init-from", default=None, metavar="RUN",
-                        help="fine-tune: start from RUN's network (same keypoints and architecture; a "
-                             "two-pass RUN with --two-pass, its crops' extent kept) with this run's own "
-                             "--steps, --lr and schedule, e.g. after adding labelled frames (default: a new "
+                        help="fine-tune, e.g. after adding labelled frames: start from RUN's network and "
+                             "configuration (a two-pass RUN pass by pass, its crops' extent kept), each "
+                             "pass at the learning rate RUN ended at (--lr x --lr-final), the "
+                             "self-supervised term on from the first step; options given here or in --config "
+                             "win over it, and a --preset replaces its configuration (default: a new "
                              "network)")
     parser.add_argument("--preset", choices=list(PRESETS), default=None,
                         help="a named configuration (options given here or in --config win over it): "
@@ -54,10 +58,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve(args: argparse.Namespace) -> TrainConfig:
-    """The configuration of this call: the preset (or, with ``--resume``, the run's own), the ``--config``
-    file over it, the options given over that. A preset given with ``--resume`` must be the run's: one that
-    sets a field the resume may not change to another value than the run's is refused (as that field's
-    option would be), naming the field."""
+    """The configuration of this call: the preset (or, with ``--resume``, the run's own; or, with
+    ``--init-from RUN`` and no preset, RUN's continued where it ended: :mod:`s3k.train.fine_tune`), the
+    ``--config`` file over it, the options given over that. A preset given with ``--resume`` must be the
+    run's: one that sets a field the resume may not change to another value than the run's is refused (as
+    that field's option would be), naming the field."""
     base = preset(args.preset) if args.preset else None
     saved = RunFolder(args.out).config() if args.resume else None
     if saved is not None and base is not None:
@@ -70,11 +75,26 @@ def resolve(args: argparse.Namespace) -> TrainConfig:
                                 f"run in {args.out} was trained with {_shown(theirs[name])}",
                                 hint="drop --preset to continue the run with its own configuration, or "
                                      "choose another --out")
+    if saved is None and args.init_from is not None:
+        if base is None:
+            base, line = fine_tune_config(args.init_from, given_fields(args))
+            note(line)
+        else:
+            note(f"fine-tuning {args.init_from}: its network; the configuration is --preset {args.preset}'s, "
+                 "not the run's")
     return config_from_args(args, TrainConfig, base=saved or base)
 
 
 def _shown(value: object) -> str:
     return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+def given_fields(args: argparse.Namespace) -> set[str]:
+    """The configuration's fields this call sets: on the command line or in ``--config FILE``."""
+    given = {f.name for _, f, _ in leaf_fields(TrainConfig) if hasattr(args, f.name)}
+    if args.config:
+        given |= set(read_config_file(args.config))
+    return given
 
 
 def run(args: argparse.Namespace) -> int:

@@ -29,6 +29,8 @@ The rooms:
 - :mod:`s3k.train.entry`: :func:`train`, one pass or two.
 - :mod:`s3k.train.loop`: :func:`train_one_pass` and the loop (steps, logging, checkpoints, stops).
 - :mod:`s3k.train.two_pass`: the coarse-to-fine detector's training.
+- :mod:`s3k.train.fine_tune`: a fine-tune's configuration (``--init-from RUN``): RUN's, continued where it
+  ended.
 - :mod:`s3k.train.step`: the loss of one step (:func:`compute_losses`) and the learning-rate schedule.
 - :mod:`s3k.train.run_setup`: the set-up of a run (the dataset and its frames, the refusals, the run's meta,
   folder and log; :func:`check_trained_as`).
