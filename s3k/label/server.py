@@ -16,6 +16,10 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
   (the history keeps both), 400 when there is none. ``POST /api/frame/{frame}/redo``: the same body; reverts
   the latest undo not yet redone, 400 when there is none (or the frame was edited since).
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
+- ``GET /api/disagreements``: per camera the median residual of its labels over the frames with labels, and
+  the frames with a label more than 40 px from where the other views put it (docs/tracks.md's check), worst
+  first (:meth:`LabelApp.agreement`); a frame's state colours each residual by both
+  (:func:`s3k.label.solve.agreement_level`).
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: the frames ``s3k add-frames`` queued that are
   still unlabelled first, by rank, with the tracker's doubt (:func:`s3k.label.queue.queue_ranking`); then,
   with a run, the split's other frames ordered by the run's doubt, worst first; ``by=coverage``: by how far
@@ -62,7 +66,7 @@ from s3k.errors import UserError
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
 from s3k.label.queue import queue_ranking
 from s3k.label.skeleton import edit_skeleton
-from s3k.label.solve import frame_geometry, triangulate_labels
+from s3k.label.solve import LabelResiduals, dataset_agreement, frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 from s3k.label.suggest import UP, Suggestions, Up
 from s3k.messages import say
@@ -116,6 +120,7 @@ class LabelApp:
         self.dataset = Dataset.open(self.root)
         self.store = LabelStore.open(self.root, labeller=labeller)
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
+        self._residuals = LabelResiduals()  # each frame's, computed again when its labels change
         self.suggestions = None
         if run is not None:
             if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
@@ -128,11 +133,27 @@ class LabelApp:
         state = self.store.frame_labels(frame)
         uv, mask = self.store.arrays(frame)
         cams = self.dataset.calibration([frame], np.float64)[0]
+        agreement = self.agreement()
+        medians = {cam: v["median_px"] for cam, v in agreement["cameras"].items()}
         state["geometry"] = frame_geometry(cams, uv, mask, self.dataset.keypoints, self.dataset.cameras,
-                                           self.dataset.source_image_size)
+                                           self.dataset.source_image_size, medians)
+        state["agreement"] = {k: v for k, v in agreement.items() if k != "frames"}
         if self.suggestions is not None:
             state["suggestions"] = self.suggestions.suggestion(frame, self.dataset.cameras)
         return state
+
+    def agreement(self) -> dict[str, Any]:
+        """The labels' agreement over the frames with a keypoint in two views or more
+        (:func:`s3k.label.solve.dataset_agreement`)."""
+        self.store.refresh()
+        s = self.store
+        mask = s.present & s.visible
+        rows = np.flatnonzero((mask.sum(axis=1) >= 2).any(axis=-1))
+        ids = [int(f) for f in s.frames.ids[rows]]
+        residual, offset = self._residuals(ids, s.uv[rows], mask[rows],
+                                           lambda frames: self.dataset.calibration(frames, np.float64))
+        return dataset_agreement(residual, offset, ids, s.frames.splits[rows], self.dataset.cameras,
+                                 self.dataset.keypoints)
 
     def labelled_poses(self, keypoints: list[str]) -> list[np.ndarray]:
         """The 3D keypoints ``(K, 3)`` (in ``keypoints``' order, NaN where not triangulated) of every frame
@@ -389,8 +410,8 @@ def _add_frame_routes(app: FastAPI, state: LabelApp) -> None:
 
 
 def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
-    """The run's rankings of frames, propagation of a frame's labels over still frames (with its undo), and
-    the skeleton's edits."""
+    """The run's rankings of frames, the labels that disagree, propagation of a frame's labels over still
+    frames (with its undo), and the skeleton's edits."""
 
     @app.get("/api/ranking")
     def ranking(split: str = "unlabelled", limit: int = 100, by: str = "doubt") -> Any:
@@ -414,6 +435,10 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
             return (queued + state.suggestions.coverage(ids, poses, mm_per_unit(state.dataset.units), limit,
                                                         order=by, up=state.up))[:limit]
         return (queued + state.suggestions.ranking(ids))[:limit]
+
+    @app.get("/api/disagreements")
+    def disagreements() -> dict[str, Any]:
+        return state.agreement()
 
     @app.post("/api/propagate")
     def propagate(body: PropagateIn = Body(...)) -> Any:  # noqa: B008 - FastAPI's way

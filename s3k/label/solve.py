@@ -6,10 +6,17 @@ every camera (:func:`s3k.geometry.project`, lens distortion included), with the 
 view; a keypoint labelled in one view gets its epipolar curve in every other view: the projection of the
 view ray of the click (:func:`s3k.geometry.pixel_rays`), a straight line without distortion and a curve with
 it.
+
+The app's check of labels that disagree (:func:`label_residuals`, :func:`agreement_level`): a label more than
+:data:`DISAGREE_PX` pixels from where the other views put it (the point triangulated from the other labelled
+views, two or more, reprojected into its view: docs/tracks.md, "Labels that disagree") disagrees; a residual
+up to :data:`GREEN_FACTOR` times its camera's median residual over the dataset's labelled frames (and at least
+up to :data:`GREEN_FLOOR_PX`) is as good as the camera's labels usually are.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -19,9 +26,16 @@ from s3k.geometry import Cameras, pixel_rays, project
 from s3k.geometry import triangulate_labels as geometry_triangulate_labels
 from s3k.readout import DTYPE
 
-__all__ = ["epipolar_curves", "frame_geometry", "triangulate_labels"]
+__all__ = ["DISAGREE_PX", "GREEN_FACTOR", "GREEN_FLOOR_PX", "LabelResiduals", "agreement_level",
+           "dataset_agreement", "epipolar_curves", "frame_geometry", "label_residuals", "triangulate_labels"]
 
 EPIPOLAR_SAMPLES = 160
+DISAGREE_PX = 40.0
+"""A label farther than this (pixels of the dataset's images) from where the other views put it disagrees."""
+GREEN_FACTOR = 3.0
+"""A residual up to this many times its camera's median residual is usual for the camera (green)."""
+GREEN_FLOOR_PX = 2.0
+"""...and one up to this many pixels always is: a click's own error, where the labels agree to a fraction."""
 
 
 def triangulate_labels(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
@@ -48,6 +62,109 @@ def triangulate_labels(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> dict[
     X = np.where(valid[:, None], X, np.nan)
     residual = np.where(mask, np.linalg.norm(reproj - np.asarray(uv, dtype=np.float64), axis=-1), np.nan)
     return {"X": X, "valid": valid, "reproj": reproj, "residual": residual}
+
+
+def _reprojected(cams: Cameras, uv: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
+    """``(B, C, K, 2)``: the points triangulated from the ``mask``-ed labels reprojected into every camera
+    (NaN where not triangulated or behind the camera)."""
+    X, valid = geometry_triangulate_labels(cams, uv, mask)
+    C = cams.K.shape[-3]
+    reproj, depth = project(cams, X[..., None, :, :].expand(*X.shape[:-2], C, -1, -1))
+    ok = valid[..., None, :] & (depth > 1e-6)
+    return np.where(ok[..., None].numpy(), reproj.numpy(), np.nan)
+
+
+def label_residuals(cams: Cameras, uv: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each visible label's residual and its distance from the other views' agreement, in pixels.
+
+    Args:
+        cams: ``(B, C)`` cameras of the frames, in the labels' pixels.
+        uv: ``(B, C, K, 2)`` labels (anything where masked).
+        mask: ``(B, C, K)`` bool, the visible labels.
+
+    Returns:
+        ``residual (B, C, K)``: to the reprojection of the point triangulated from every labelled view (what
+        the app shows), and ``offset (B, C, K)``: to the reprojection of the point triangulated from the
+        other labelled views, two or more (the check of labels that disagree); NaN where not told.
+    """
+    cams = cams.to(dtype=DTYPE)
+    uv = np.asarray(uv, dtype=np.float64)
+    mask = np.asarray(mask, dtype=bool)
+    uv_t, mask_t = torch.as_tensor(np.nan_to_num(uv)), torch.as_tensor(mask)
+    residual = np.linalg.norm(_reprojected(cams, uv_t, mask_t) - uv, axis=-1)
+    offset = np.full(mask.shape, np.nan)
+    for c in range(mask.shape[1]):
+        others = mask_t.clone()
+        others[:, c] = False
+        offset[:, c] = np.linalg.norm(_reprojected(cams, uv_t, others)[:, c] - uv[:, c], axis=-1)
+    return np.where(mask, residual, np.nan), np.where(mask, offset, np.nan)
+
+
+def agreement_level(residual: float | None, offset: float | None, median: float | None) -> str | None:
+    """How a label's residual is shown: ``"disagrees"`` (red) when it lies more than :data:`DISAGREE_PX` from
+    the other views' agreement, ``"high"`` (amber) when its residual is over :data:`GREEN_FACTOR` times its
+    camera's ``median`` residual (and over :data:`GREEN_FLOOR_PX`), else ``"ok"`` (green); None without a
+    residual."""
+    if residual is None:
+        return None
+    if offset is not None and offset > DISAGREE_PX:
+        return "disagrees"
+    usual = max(GREEN_FLOOR_PX, GREEN_FACTOR * median) if median is not None else GREEN_FLOOR_PX
+    return "high" if residual > usual else "ok"
+
+
+class LabelResiduals:
+    """Each frame's :func:`label_residuals`, kept per frame and computed again only for the frames whose
+    labels changed (a dataset of thousands of labelled frames takes about a second at once)."""
+
+    def __init__(self) -> None:
+        self._frames: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}  # frame -> (labels, res., offset)
+
+    def __call__(self, frames: list[int], uv: np.ndarray, mask: np.ndarray,
+                 calibration: Callable[[list[int]], Cameras]) -> tuple[np.ndarray, np.ndarray]:
+        """``(residual, offset)``, each ``(B, C, K)``, of ``frames`` with labels ``uv (B, C, K, 2)``, ``mask
+        (B, C, K)``; ``calibration(frames)``: their ``(B', C)`` cameras."""
+        keys = [np.where(mask[i, ..., None], uv[i], 0.0).tobytes() + mask[i].tobytes()
+                for i in range(len(frames))]
+        stale = [i for i, f in enumerate(frames) if self._frames.get(f, (b"",))[0] != keys[i]]
+        if stale:
+            cams = calibration([frames[i] for i in stale])
+            residual, offset = label_residuals(cams, uv[stale], mask[stale])
+            for j, i in enumerate(stale):
+                self._frames[frames[i]] = (keys[i], residual[j], offset[j])
+        if not frames:
+            return np.full(mask.shape, np.nan), np.full(mask.shape, np.nan)
+        kept = [self._frames[f] for f in frames]
+        return np.stack([k[1] for k in kept]), np.stack([k[2] for k in kept])
+
+
+def dataset_agreement(residual: np.ndarray, offset: np.ndarray, frames: list[int], splits: np.ndarray,
+                      cameras: list[str], keypoints: list[str]) -> dict[str, Any]:
+    """The labels' agreement over a dataset's ``frames`` (their splits ``splits``), from their
+    :func:`label_residuals` ``residual`` and ``offset`` ``(B, C, K)``.
+
+    Returns:
+        ``{"threshold_px", "green_factor", "green_floor_px", "cameras": {camera: {"median_px": px | None,
+        "labels": n}}, "frames": [{"frame", "split", "worst_px", "labels": [{"camera", "keypoint",
+        "offset_px", "residual_px"}]}]}``: per camera the median residual of its labels and their count; the
+        frames with a label more than :data:`DISAGREE_PX` from where the other views put it, worst first,
+        each with those labels, worst first.
+    """
+    medians = {}
+    for c, cam in enumerate(cameras):
+        r = residual[:, c][np.isfinite(residual[:, c])]
+        medians[cam] = {"median_px": float(np.median(r)) if r.size else None, "labels": int(r.size)}
+    listed = []
+    for i in np.flatnonzero((np.nan_to_num(offset, nan=0.0) > DISAGREE_PX).any(axis=(1, 2))):
+        far = np.argwhere(np.nan_to_num(offset[i], nan=0.0) > DISAGREE_PX)
+        labels = sorted(({"camera": cameras[c], "keypoint": keypoints[k], "offset_px": float(offset[i, c, k]),
+                          "residual_px": float(residual[i, c, k])} for c, k in far),
+                        key=lambda x: -x["offset_px"])
+        listed.append({"frame": int(frames[i]), "split": str(splits[i]), "worst_px": labels[0]["offset_px"],
+                       "labels": labels})
+    listed.sort(key=lambda x: -x["worst_px"])
+    return {"threshold_px": DISAGREE_PX, "green_factor": GREEN_FACTOR, "green_floor_px": GREEN_FLOOR_PX,
+            "cameras": medians, "frames": listed}
 
 
 def epipolar_curves(cams: Cameras, source: int, uv: np.ndarray,
@@ -82,22 +199,29 @@ def _num(x: float) -> float | None:
 
 
 def frame_geometry(cams: Cameras, uv: np.ndarray, mask: np.ndarray, keypoints: list[str], cameras: list[str],
-                   image_size: tuple[int, int]) -> dict[str, Any]:
-    """What the app draws for a frame, per keypoint: the 3D point, its reprojections and residuals, or the
-    epipolar curves of a keypoint labelled in one view.
+                   image_size: tuple[int, int], medians: dict[str, float | None] | None = None
+                   ) -> dict[str, Any]:
+    """What the app draws for a frame, per keypoint: the 3D point, its reprojections and residuals (with each
+    label's distance from the other views' agreement and how its residual is shown, :func:`agreement_level`
+    by ``medians``, each camera's median residual), or the epipolar curves of a keypoint labelled in one view.
 
     Returns:
         ``{keypoint: {"point": [x, y, z] | None, "views": {camera: {"reproj": [u, v] | None,
-        "residual": px | None}}, "epipolar": {camera: [[u, v], ...]}}}``.
+        "residual": px | None, "offset": px | None, "level": "ok" | "high" | "disagrees" | None}},
+        "epipolar": {camera: [[u, v], ...]}}}``.
     """
     tri = triangulate_labels(cams, uv, mask)
+    offset = label_residuals(cams.reshape(1, -1), np.asarray(uv)[None], np.asarray(mask)[None])[1][0]
+    medians = medians or {}
     out: dict[str, Any] = {}
     for k, kp in enumerate(keypoints):
         views = {}
         for c, cam in enumerate(cameras):
             r = tri["reproj"][c, k]
+            res, off = _num(tri["residual"][c, k]), _num(offset[c, k])
             views[cam] = {"reproj": None if not np.isfinite(r).all() else [float(r[0]), float(r[1])],
-                          "residual": _num(tri["residual"][c, k])}
+                          "residual": res, "offset": off,
+                          "level": agreement_level(res, off, medians.get(cam))}
         item: dict[str, Any] = {"point": [float(x) for x in tri["X"][k]] if tri["valid"][k] else None,
                                 "views": views, "epipolar": {}}
         seen = np.flatnonzero(mask[:, k])

@@ -86,3 +86,30 @@ def make_label_dataset(path: str | Path, size: int = 96, per_frame: bool = False
             w.add_frame(i, split, None if video else images[i], calib[i] if per_frame else None,
                         points3d=poses[i])
     return Truth(path, calib, np.stack(poses), size)
+
+
+FAR_PX = 45.0  # a wrong label's distance from its true place, beyond the app's check of 40 px
+NEAR_PX = 8.0  # a careless label: within the check, above the usual residual
+
+
+def moved(uv: np.ndarray, size: int, length: float) -> np.ndarray:
+    """A point ``length`` px from ``uv``, towards the image corner farthest from it (inside the image)."""
+    corners = np.array([[4.0, 4.0], [4.0, size - 5.0], [size - 5.0, 4.0], [size - 5.0, size - 5.0]])
+    far = corners[np.argmax(np.linalg.norm(corners - uv, axis=1))]
+    return uv + length * (far - uv) / np.linalg.norm(far - uv)
+
+
+def label_true_projections(truth: Truth, wrong: dict[tuple[int, int, int], float], frames=(0, 4, 5)) -> None:
+    """``frames`` labelled in every view at the true projections, through the label store, except ``wrong``:
+    ``(frame, camera, keypoint)`` -> how many pixels off (:func:`moved`)."""
+    from s3k.label.store import Edit, LabelStore
+
+    store = LabelStore.open(truth.path)
+    for f in frames:
+        uv = truth.uv(f)
+        edits = []
+        for c, cam in enumerate(CAMERAS):
+            for k, kp in enumerate(KEYPOINTS):
+                p = uv[c, k] if (f, c, k) not in wrong else moved(uv[c, k], truth.size, wrong[f, c, k])
+                edits.append(Edit(cam, kp, float(p[0]), float(p[1])))
+        store.save(f, edits, store.version(f))
