@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.label_data import make_label_dataset
+from helpers.label_data import FAR_PX, NEAR_PX, label_true_projections, make_label_dataset
 from helpers.synthetic_rig import CAMERAS
 
 CHROMIUM = "/usr/bin/chromium"
@@ -777,3 +777,56 @@ def test_the_propagate_form_previews_copies_and_undoes_in_the_pages_words(tmp_pa
         assert errors == []
     _, mask = Dataset.open(truth.path).labels([1, 2, 3])
     assert mask.sum() == 1 and mask[1, 2, 0]  # frame 2's own label back, frames 1 and 3 empty again
+
+
+def residual_of(page, camera: str) -> tuple[str, str, str]:
+    """The residual in a view's bar: its text, its level (the class) and the colour it is drawn in."""
+    bar = page.locator(f".view[data-camera={camera}] .residual")
+    colour = bar.evaluate("e => getComputedStyle(e).color")
+    return bar.inner_text(), bar.get_attribute("data-level") or "", colour
+
+
+def test_a_label_that_disagrees_turns_its_residual_red_and_lists_its_frame(tmp_path, browser):
+    """One label 45 px from where the other three views put it (frame 5, keypoint b, cam2) and a careless one
+    8 px off (frame 4, keypoint a, cam1): the first frame is listed under *Labels that disagree*, a click on
+    it opens the frame at that keypoint with the view's residual red; the careless one is amber, the true
+    ones green; put right, the frame leaves the list."""
+    truth = make_label_dataset(tmp_path / "ds", size=96)
+    label_true_projections(truth, {(5, 2, 1): FAR_PX, (4, 1, 0): NEAR_PX})
+    red, amber, green = "rgb(255, 107, 107)", "rgb(240, 176, 64)", "rgb(159, 211, 160)"
+    with Server(truth.path) as url:
+        page, errors = open_app(browser, url, 1500, 900)
+        page.wait_for_function("document.body.dataset.disagreements === '1'")
+        entry = page.locator("#disagreements li")
+        assert entry.count() == 1 and entry.get_attribute("data-frame") == "5"
+        assert entry.inner_text().startswith("frame 5: b in cam2, 45.0 px")
+        assert page.locator("#disagree-empty").is_hidden()
+        assert "more than 40" in page.inner_text("#disagree-rule")
+        assert page.evaluate("document.body.dataset.frame") == "0"
+        for cam in CAMERAS:
+            assert residual_of(page, cam)[1:] == ("ok", green)
+
+        entry.click()
+        page.wait_for_function("document.body.dataset.frame === '5'")
+        page.wait_for_function("document.querySelector('#keypoints li.current').dataset.keypoint === 'b'")
+        text, level, colour = residual_of(page, "cam2")
+        assert (level, colour) == ("disagrees", red) and text.endswith("45.0 px from the others")
+        assert page.locator("#disagreements li.current").count() == 1
+        for cam in ("cam0", "cam1", "cam3"):
+            assert residual_of(page, cam)[1] != "disagrees"
+
+        page.evaluate("s3kLabel.gotoFrame(4)")
+        page.wait_for_function("document.body.dataset.frame === '4'")
+        page.locator("#keypoints li[data-keypoint=a]").click()
+        assert residual_of(page, "cam1")[1:] == ("high", amber)
+
+        # put right by a click at the true place: the list empties and the residual turns green
+        page.locator("#disagreements li").click()
+        page.wait_for_function("document.body.dataset.frame === '5'")
+        page.wait_for_function("document.querySelector('#keypoints li.current').dataset.keypoint === 'b'")
+        page.mouse.click(*page_xy(page, "cam2", truth.uv(5)[2, 1]))
+        wait_version(page, 2)
+        page.wait_for_function("document.body.dataset.disagreements === '0'")
+        assert page.locator("#disagreements li").count() == 0 and page.locator("#disagree-empty").is_visible()
+        assert residual_of(page, "cam2")[1:] == ("ok", green)
+        assert errors == []

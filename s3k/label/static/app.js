@@ -66,7 +66,6 @@ function buildViews() {
       `<span class="spacer"></span><button class="occlude" title="the current keypoint is not visible in this view (x)">not visible</button>` +
       `<button class="remove" title="remove the current keypoint's label in this view (Delete)">remove</button></div>`;
     div.querySelector(".name").textContent = cam;
-    div.querySelector(".residual").title = "residual: pixels between the label and the reprojection of the 3D point";
     const svg = el("svg", { viewBox: `${-0.5} ${-0.5} ${W} ${H}`, "data-camera": cam });
     const image = el("image", { x: -0.5, y: -0.5, width: W, height: H, preserveAspectRatio: "none" }, svg);
     const overlay = el("g", { class: "overlay" }, svg);
@@ -302,13 +301,39 @@ function drawView(view, preview = null) {
       void W;
     }
   }
-  const geo = geometry[current];
-  const res = geo && geo.views[view.cam] ? geo.views[view.cam].residual : null;
-  const lab = labelOf(view.cam, current);
+  showResidual(view, geometry[current], labelOf(view.cam, current));
+}
+
+// the current keypoint's residual in the view's bar, coloured as the server judged it: green (ok) up to a few
+// times the camera's median residual over the labelled frames, amber (high) above, red (disagrees) when the
+// label lies farther than the threshold from where the other views put it
+function showResidual(view, geo, lab) {
+  const out = view.div.querySelector(".residual");
+  const v = geo && geo.views[view.cam] ? geo.views[view.cam] : {};
+  const res = v.residual === undefined ? null : v.residual;
+  const rule = (app.frame && app.frame.agreement) || {};
+  const cam = (rule.cameras || {})[view.cam] || {};
+  out.className = "residual";
+  out.removeAttribute("data-level");
   let text = "";
+  let title = "residual: pixels between the label and the reprojection of the 3D point";
   if (lab && !lab.visible) text = "not visible";
-  else if (res !== null && res !== undefined) text = `${res.toFixed(2)} px`;
-  view.div.querySelector(".residual").textContent = text;
+  else if (res !== null) {
+    text = `${res.toFixed(2)} px`;
+    if (v.level) {
+      out.classList.add(v.level);
+      out.dataset.level = v.level;
+    }
+    const median = cam.median_px === null || cam.median_px === undefined ? "none yet" : `${cam.median_px.toFixed(2)} px`;
+    title += `; green up to ${rule.green_factor} x this camera's median residual over the labelled frames ` +
+      `(${median}; at least up to ${rule.green_floor_px} px), amber above`;
+    if (v.offset !== null && v.offset !== undefined) {
+      title += `; ${v.offset.toFixed(1)} px from where the other views put it (red beyond ${rule.threshold_px} px)`;
+    }
+    if (v.level === "disagrees") text += ` \u00b7 ${v.offset.toFixed(1)} px from the others`;
+  }
+  out.textContent = text;
+  out.title = title;
 }
 
 function drawAll() { for (const view of Object.values(app.views)) drawView(view); drawKeypointList(); }
@@ -357,6 +382,7 @@ function showFrame(state) {
   drawAll();
   showLock();
   markRanking();
+  markDisagreements();
   // a queued frame that has been labelled leaves the queue: the list is fetched again without it
   if (state.split !== "unlabelled" && app.ranking.some((r) => r.queue !== undefined && r.frame === f)) loadRanking();
 }
@@ -438,6 +464,7 @@ function saveEdits(edits, source, note = "") {
     }
     app.versions[frame] = r.body.version;
     if (app.frame.frame === frame) showFrame(r.body);
+    loadDisagreements();
     const entry = app.frames.find((x) => x.frame === frame);
     if (entry) { entry.split = r.body.split; entry.labels = r.body.labels.filter((l) => l.visible).length; }
     if (!app.pending) setStatus(`saved (frame ${frame}, version ${r.body.version})${note}`, "saved");
@@ -471,6 +498,7 @@ function step(kind, doing, done) {
     if (!r.ok) { setStatus(`not ${done}: ${typeof body.detail === "string" ? body.detail : r.status}`, "error"); return; }
     app.versions[frame] = body.version;
     if (app.frame.frame === frame) showFrame(body);
+    loadDisagreements();
     if (!app.pending) setStatus(`${done} (frame ${frame}, version ${body.version})`, "saved");
   });
   return app.queue;
@@ -575,6 +603,42 @@ async function loadRanking() {  // the frames s3k add-frames queued first (by ra
   markRanking();
 }
 
+// the frames with a label farther than the threshold from where the other views put it (the server's check),
+// worst first; a click opens the frame at the keypoint of its worst label
+async function loadDisagreements() {
+  const r = await api("api/disagreements");
+  if (!r.ok) return;
+  const found = r.body;
+  const list = document.getElementById("disagreements");
+  list.innerHTML = "";
+  for (const row of found.frames) {
+    const worst = row.labels[0];
+    const li = document.createElement("li");
+    li.dataset.frame = row.frame;
+    li.dataset.keypoint = worst.keypoint;
+    li.dataset.camera = worst.camera;
+    const more = row.labels.length > 1 ? `, ${row.labels.length - 1} more` : "";
+    li.textContent = `frame ${row.frame}: ${worst.keypoint} in ${worst.camera}, ${worst.offset_px.toFixed(1)} px${more}`;
+    li.title = row.labels.map((l) => `${l.keypoint} in ${l.camera}: ${l.offset_px.toFixed(1)} px from the other views`).join("\n");
+    li.addEventListener("click", async () => {
+      await gotoFrame(row.frame);
+      selectKeypoint(app.meta.keypoints.indexOf(worst.keypoint));
+    });
+    list.appendChild(li);
+  }
+  document.getElementById("disagree-count").textContent = `(${found.frames.length})`;
+  document.getElementById("disagree-rule").textContent = `frames with a label more than ${found.threshold_px} px ` +
+    "from where the other views put it (two or more of them), worst first";
+  document.getElementById("disagree-empty").hidden = found.frames.length > 0;
+  markDisagreements();
+  document.body.dataset.disagreements = found.frames.length;
+}
+
+function markDisagreements() {  // the current frame's entry highlighted
+  const f = app.frame ? app.frame.frame : null;
+  for (const li of document.querySelectorAll("#disagreements li")) li.classList.toggle("current", +li.dataset.frame === f);
+}
+
 function gotoFrame(f) {
   const i = app.frames.findIndex((x) => x.frame === +f);
   if (i >= 0) return loadFrame(i);
@@ -617,6 +681,7 @@ async function propagate(preview) {  // the form's "preview" (nothing written) a
     `${p.labels} label(s)${p.replaced ? `, ${p.replaced} of them replacing existing ones` : ""}`;
   if (preview) { setStatus(`preview: would copy ${what}; nothing was written`, "note"); return; }
   await loadFrame(app.frameIndex);  // the frame's labels, versions of the frames written
+  loadDisagreements();
   setStatus(`copied ${what}; 'undo last propagation' puts them back`, "saved");
 }
 
@@ -626,6 +691,7 @@ async function undoPropagation() {
   if (!r.ok) { setStatus(`nothing undone: ${detailOf(r)}`, "error"); return; }
   document.getElementById("prop-result").textContent = "";
   await loadFrame(app.frameIndex);
+  loadDisagreements();
   setStatus(`undid the propagation from frame ${r.body.source}: frame(s) ${r.body.frames.join(", ")}`, "saved");
 }
 
@@ -722,6 +788,7 @@ async function start() {
   }
   document.getElementById("rank-by-label").hidden = !app.run;  // without a run the list is the queue alone
   loadRanking();  // without a run and a queue: none (404), the list stays hidden
+  loadDisagreements();
   const want = new URLSearchParams(location.search).get("frame");
   const i = want === null ? 0 : Math.max(0, app.frames.findIndex((x) => x.frame === +want));
   await loadFrame(i);
