@@ -75,6 +75,15 @@ def test_a_two_pass_run_is_fine_tuned_pass_by_pass(tiny_dataset, tmp_path):
             torch.testing.assert_close(b[name], a[name], rtol=0, atol=1e-6)
     extent = [json.loads((run / "two_pass.json").read_text())["extent"] for run in (first, tuned)]
     assert extent[0] == extent[1]  # the other run's crops, not those --crop-margin 2 would cut
+    # in one command: the run's two passes, each at the learning rate it ended at
+    again = tmp_path / "again"
+    assert cli_main(["train", str(tiny_dataset), "--out", str(again), "--init-from", str(first),
+                     "--steps", "1"]) == 0
+    cfg = RunFolder(again).config()
+    assert cfg.two_pass and cfg.steps == 1 and cfg.coarse_steps is None
+    assert cfg.lr == cfg.coarse_lr == pytest.approx(RunFolder(first).config().lr * cfg.lr_final)
+    assert (again / "two_pass.json").is_file()
+    assert json.loads((again / "two_pass.json").read_text())["extent"] == extent[0]
     with pytest.raises(UserError, match="a two-pass run"):
         train(tiny_dataset, tmp_path / "one", config(steps=1), init_from=first)
     with pytest.raises(UserError, match="not a two-pass run"):
