@@ -18,7 +18,7 @@ geometry (:mod:`s3k.label.solve`), and every edit goes through the dataset's
 - ``GET /api/frame/{frame}/history``: the frame's edit log.
 - ``GET /api/disagreements``: per camera the median residual of its labels over the frames with labels, and
   the frames with a label more than 40 px from where the other views put it (docs/tracks.md's check), worst
-  first (:meth:`LabelApp.agreement`); a frame's state colours each residual by both
+  first (:mod:`s3k.label.agreement`); a frame's state colours each residual by both
   (:func:`s3k.label.solve.agreement_level`).
 - ``GET /api/ranking?split=unlabelled&limit=100&by=doubt``: the frames ``s3k add-frames`` queued that are
   still unlabelled first, by rank, with the tracker's doubt (:func:`s3k.label.queue.queue_ranking`); then,
@@ -63,10 +63,11 @@ from pydantic import BaseModel
 from s3k.data import Dataset
 from s3k.detector.geometry_record import check_dataset
 from s3k.errors import UserError
+from s3k.label.agreement import LabelAgreement
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
 from s3k.label.queue import queue_ranking
 from s3k.label.skeleton import edit_skeleton
-from s3k.label.solve import LabelResiduals, dataset_agreement, frame_geometry, triangulate_labels
+from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 from s3k.label.suggest import UP, Suggestions, Up
 from s3k.messages import say
@@ -120,7 +121,7 @@ class LabelApp:
         self.dataset = Dataset.open(self.root)
         self.store = LabelStore.open(self.root, labeller=labeller)
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
-        self._residuals = LabelResiduals()  # each frame's, computed again when its labels change
+        self.agreement = LabelAgreement(self.dataset, self.store)  # the labels that disagree
         self.suggestions = None
         if run is not None:
             if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
@@ -141,19 +142,6 @@ class LabelApp:
         if self.suggestions is not None:
             state["suggestions"] = self.suggestions.suggestion(frame, self.dataset.cameras)
         return state
-
-    def agreement(self) -> dict[str, Any]:
-        """The labels' agreement over the frames with a keypoint in two views or more
-        (:func:`s3k.label.solve.dataset_agreement`)."""
-        self.store.refresh()
-        s = self.store
-        mask = s.present & s.visible
-        rows = np.flatnonzero((mask.sum(axis=1) >= 2).any(axis=-1))
-        ids = [int(f) for f in s.frames.ids[rows]]
-        residual, offset = self._residuals(ids, s.uv[rows], mask[rows],
-                                           lambda frames: self.dataset.calibration(frames, np.float64))
-        return dataset_agreement(residual, offset, ids, s.frames.splits[rows], self.dataset.cameras,
-                                 self.dataset.keypoints)
 
     def labelled_poses(self, keypoints: list[str]) -> list[np.ndarray]:
         """The 3D keypoints ``(K, 3)`` (in ``keypoints``' order, NaN where not triangulated) of every frame

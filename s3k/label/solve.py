@@ -16,7 +16,6 @@ up to :data:`GREEN_FLOOR_PX`) is as good as the camera's labels usually are.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,8 +25,8 @@ from s3k.geometry import Cameras, pixel_rays, project
 from s3k.geometry import triangulate_labels as geometry_triangulate_labels
 from s3k.readout import DTYPE
 
-__all__ = ["DISAGREE_PX", "GREEN_FACTOR", "GREEN_FLOOR_PX", "LabelResiduals", "agreement_level",
-           "dataset_agreement", "epipolar_curves", "frame_geometry", "label_residuals", "triangulate_labels"]
+__all__ = ["DISAGREE_PX", "GREEN_FACTOR", "GREEN_FLOOR_PX", "agreement_level", "epipolar_curves",
+           "frame_geometry", "label_residuals", "triangulate_labels"]
 
 EPIPOLAR_SAMPLES = 160
 DISAGREE_PX = 40.0
@@ -111,60 +110,6 @@ def agreement_level(residual: float | None, offset: float | None, median: float 
         return "disagrees"
     usual = max(GREEN_FLOOR_PX, GREEN_FACTOR * median) if median is not None else GREEN_FLOOR_PX
     return "high" if residual > usual else "ok"
-
-
-class LabelResiduals:
-    """Each frame's :func:`label_residuals`, kept per frame and computed again only for the frames whose
-    labels changed (a dataset of thousands of labelled frames takes about a second at once)."""
-
-    def __init__(self) -> None:
-        self._frames: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}  # frame -> (labels, res., offset)
-
-    def __call__(self, frames: list[int], uv: np.ndarray, mask: np.ndarray,
-                 calibration: Callable[[list[int]], Cameras]) -> tuple[np.ndarray, np.ndarray]:
-        """``(residual, offset)``, each ``(B, C, K)``, of ``frames`` with labels ``uv (B, C, K, 2)``, ``mask
-        (B, C, K)``; ``calibration(frames)``: their ``(B', C)`` cameras."""
-        keys = [np.where(mask[i, ..., None], uv[i], 0.0).tobytes() + mask[i].tobytes()
-                for i in range(len(frames))]
-        stale = [i for i, f in enumerate(frames) if self._frames.get(f, (b"",))[0] != keys[i]]
-        if stale:
-            cams = calibration([frames[i] for i in stale])
-            residual, offset = label_residuals(cams, uv[stale], mask[stale])
-            for j, i in enumerate(stale):
-                self._frames[frames[i]] = (keys[i], residual[j], offset[j])
-        if not frames:
-            return np.full(mask.shape, np.nan), np.full(mask.shape, np.nan)
-        kept = [self._frames[f] for f in frames]
-        return np.stack([k[1] for k in kept]), np.stack([k[2] for k in kept])
-
-
-def dataset_agreement(residual: np.ndarray, offset: np.ndarray, frames: list[int], splits: np.ndarray,
-                      cameras: list[str], keypoints: list[str]) -> dict[str, Any]:
-    """The labels' agreement over a dataset's ``frames`` (their splits ``splits``), from their
-    :func:`label_residuals` ``residual`` and ``offset`` ``(B, C, K)``.
-
-    Returns:
-        ``{"threshold_px", "green_factor", "green_floor_px", "cameras": {camera: {"median_px": px | None,
-        "labels": n}}, "frames": [{"frame", "split", "worst_px", "labels": [{"camera", "keypoint",
-        "offset_px", "residual_px"}]}]}``: per camera the median residual of its labels and their count; the
-        frames with a label more than :data:`DISAGREE_PX` from where the other views put it, worst first,
-        each with those labels, worst first.
-    """
-    medians = {}
-    for c, cam in enumerate(cameras):
-        r = residual[:, c][np.isfinite(residual[:, c])]
-        medians[cam] = {"median_px": float(np.median(r)) if r.size else None, "labels": int(r.size)}
-    listed = []
-    for i in np.flatnonzero((np.nan_to_num(offset, nan=0.0) > DISAGREE_PX).any(axis=(1, 2))):
-        far = np.argwhere(np.nan_to_num(offset[i], nan=0.0) > DISAGREE_PX)
-        labels = sorted(({"camera": cameras[c], "keypoint": keypoints[k], "offset_px": float(offset[i, c, k]),
-                          "residual_px": float(residual[i, c, k])} for c, k in far),
-                        key=lambda x: -x["offset_px"])
-        listed.append({"frame": int(frames[i]), "split": str(splits[i]), "worst_px": labels[0]["offset_px"],
-                       "labels": labels})
-    listed.sort(key=lambda x: -x["worst_px"])
-    return {"threshold_px": DISAGREE_PX, "green_factor": GREEN_FACTOR, "green_floor_px": GREEN_FLOOR_PX,
-            "cameras": medians, "frames": listed}
 
 
 def epipolar_curves(cams: Cameras, source: int, uv: np.ndarray,
