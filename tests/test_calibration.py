@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers.charuco import render_charuco_rig
 from helpers.real_recording import REAL, needs_real
 
 from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
@@ -165,40 +166,7 @@ def test_cli_names_the_bad_camera(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def charuco_rig(tmp_path_factory):
     """A ChArUco board rendered in 8 poses for 3 cameras: ``(truth rig, spec, {camera: files})``."""
-    from s3k.data.rig import Rig
-    from s3k.recalibration import CharucoBoardSpec
-
-    tmp_path = tmp_path_factory.mktemp("charuco")
-    W, H = 640, 480
-    spec = CharucoBoardSpec(5, 7, 30.0, 22.0, 4, 50)
-    board = spec.cv2_board()
-    px_per_mm = 4
-    art = board.generateImage((5 * 30 * px_per_mm, 7 * 30 * px_per_mm), marginSize=0)
-    # The board image maps board (x, y) mm -> art pixels (x, y) * px_per_mm (pixel centres at +0.5).
-    A = np.array([[px_per_mm, 0, -0.5], [0, px_per_mm, -0.5], [0, 0, 1.0]])
-    poses = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), 400.0])) for a in (0.3, 2.2, 4.2)]
-    Rs, ts = np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])
-    Ks = np.array([[[600.0 + 60 * c, 0, (W - 1) / 2], [0, 600.0 + 60 * c, (H - 1) / 2], [0, 0, 1]]
-                   for c in range(3)])
-    rng = np.random.default_rng(0)
-    names = ["p", "q", "r"]
-    files = {n: [] for n in names}
-    for i in range(8):
-        # Board pose in the world: near the origin, tilted, its printed side up towards the cameras (the
-        # board's z axis points into the board, so it points down here).
-        R_wb = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0] @ np.diag([1.0, -1.0, -1.0])
-        t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
-        for c, n in enumerate(names):
-            R, t = Rs[c], ts[c]
-            # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
-            Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
-            image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
-            path = tmp_path / f"{n}-{i}.png"
-            cv2.imwrite(str(path), image)
-            files[n].append(path)
-    cams = Cameras.from_numpy(Ks, np.zeros((3, 5)), Rs, ts, dtype=torch.float64)
-    truth = Rig(names, cams, np.array([[W, H]] * 3), "mm")
-    return truth, spec, files
+    return render_charuco_rig(tmp_path_factory.mktemp("charuco"))
 
 
 def _copy_camera(rig, dst, src):

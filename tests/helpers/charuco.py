@@ -1,0 +1,112 @@
+"""A ChArUco board seen by three cameras, drawn with OpenCV (no renderer): the rig's truth, the board and its
+images, and a labelled dataset of that rig for ``s3k check-calibration --recalibrate`` (used by the tests and
+by ``scripts/loose-ends/calibration.sh``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+NAMES = ["p", "q", "r"]
+SIZE = (640, 480)
+
+
+def look_at(centre, target=(0.0, 0.0, 0.0)):
+    """World->camera R, t for a camera at ``centre`` looking at ``target`` (OpenCV axes, y roughly down)."""
+    z = np.asarray(target, float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ centre
+
+
+def render_charuco_rig(folder: str | Path, poses: int = 8):
+    """A 5 x 7 ChArUco board (30 mm squares) in ``poses`` poses seen by cameras p, q, r, written as
+    ``folder/<camera>-<pose>.png``: ``(truth Rig, Board, {camera: [files]})``."""
+    from s3k.data.rig import Rig
+    from s3k.geometry import Cameras
+    from s3k.rigcal.boards import Board
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    W, H = SIZE
+    spec = Board(5, 7, 30.0, 22.0, 4, 50)
+    px_per_mm = 4
+    art = spec.cv2_board().generateImage((5 * 30 * px_per_mm, 7 * 30 * px_per_mm), marginSize=0)
+    # The board image maps board (x, y) mm -> art pixels (x, y) * px_per_mm (pixel centres at +0.5).
+    A = np.array([[px_per_mm, 0, -0.5], [0, px_per_mm, -0.5], [0, 0, 1.0]])
+    cams = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), 400.0])) for a in (0.3, 2.2, 4.2)]
+    Rs, ts = np.stack([p[0] for p in cams]), np.stack([p[1] for p in cams])
+    Ks = np.array([[[600.0 + 60 * c, 0, (W - 1) / 2], [0, 600.0 + 60 * c, (H - 1) / 2], [0, 0, 1]]
+                   for c in range(3)])
+    rng = np.random.default_rng(0)
+    files: dict[str, list[Path]] = {n: [] for n in NAMES}
+    for i in range(poses):
+        # Board pose in the world: near the origin, tilted, its printed side up towards the cameras (the
+        # board's z axis points into the board, so it points down here).
+        R_wb = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0] @ np.diag([1.0, -1.0, -1.0])
+        t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
+        for c, n in enumerate(NAMES):
+            R, t = Rs[c], ts[c]
+            # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
+            Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
+            image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
+            path = folder / f"{n}-{i}.png"
+            cv2.imwrite(str(path), image)
+            files[n].append(path)
+    cameras = Cameras.from_numpy(Ks, np.zeros((3, 5)), Rs, ts, dtype=torch.float64)
+    truth = Rig(list(NAMES), cameras, np.array([[W, H]] * 3), "mm")
+    return truth, spec, files
+
+
+def copy_camera(rig, dst: int, src: int):
+    """``rig`` with camera ``dst`` given the parameters of camera ``src`` (its distortion kept)."""
+    a = rig.cameras.numpy()
+    return rig.replace_camera(rig.names[dst], a["K"][src], a["dist"][dst], a["R"][src], a["t"][src])
+
+
+def board_toml(spec) -> str:
+    """anipose's ``board.toml`` of the board ``spec``."""
+    return (f"board_x = {spec.squares_x}\nboard_y = {spec.squares_y}\nsquare_length = {spec.square_length}\n"
+            f"marker_length = {spec.marker_length}\nmarker_bits = {spec.marker_bits}\n"
+            f"dict_size = {spec.dict_size}\n")
+
+
+def labels(truth, frames: int = 8, keypoints: int = 4, noise: float = 0.3, seed: int = 1):
+    """Points near the origin projected by ``truth`` with ``noise`` px: ``uv (B, C, K, 2)``, ``mask``."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-100, 100, (frames * keypoints, 3))
+    a = truth.cameras.numpy()
+    uv = []
+    for K, d, R, t in zip(a["K"], a["dist"], a["R"], a["t"]):
+        p, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, d)
+        uv.append(p.reshape(frames, keypoints, 2))
+    uv = np.stack(uv, axis=1) + noise * rng.standard_normal((frames, len(truth.names), keypoints, 2))
+    return uv, np.ones(uv.shape[:-1], bool)
+
+
+def write_recalibration_case(folder: str | Path, broken: bool = True):
+    """In ``folder``: the board's images (``images/``), ``board.toml``, ``calibration.toml`` (with
+    ``broken`` the truth with camera q given r's parameters, else the truth) and the dataset ``ds`` of 8
+    labelled frames imported from it (labels projected by the truth). Returns ``(truth, spec, files)``."""
+    from s3k.data import DatasetWriter
+    from s3k.data.formats.anipose import write_anipose_calibration
+
+    folder = Path(folder)
+    truth, spec, files = render_charuco_rig(folder / "images")
+    rig = copy_camera(truth, 1, 2) if broken else truth
+    write_anipose_calibration(folder / "calibration.toml", rig)
+    (folder / "board.toml").write_text(board_toml(spec))
+    uv, mask = labels(truth)
+    W, H = SIZE
+    with DatasetWriter(folder / "ds", ["a", "b", "c", "d"], truth.names, (W, H), "mm",
+                       calibration=rig.cameras,
+                       source={"calibration": str((folder / "calibration.toml").resolve())}) as writer:
+        for b in range(len(uv)):
+            writer.add_frame(b, "labelled", np.zeros((3, H, W, 3), np.uint8), labels=(uv[b], mask[b]))
+    return truth, spec, files
