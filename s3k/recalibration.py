@@ -22,13 +22,34 @@ from s3k.errors import UserError
 from s3k.fileio import resolve_from
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
-from s3k.rigcal.boards import Board, Detections, detect_image, read_board_toml
+from s3k.rigcal.boards import Board, Detections, check_board_matches, detect_image, read_board_toml
 from s3k.rigcal.rig import calibrate_detections, intrinsics_of
 
 CharucoBoardSpec = Board  # the board of anipose's board.toml (s3k.rigcal.boards.Board)
 
 __all__ = ["CharucoBoardSpec", "DatasetRecalibration", "Recalibration", "detect_charuco", "read_board_toml",
            "recalibrate_charuco", "recalibrate_dataset"]
+
+
+def _detect(image_paths, board: Board, min_corners: int = 6) -> Detections:
+    """The board's corners in calibration images, keyed by the last run of digits in each file name, with the
+    ArUco marker ids seen (for :func:`s3k.rigcal.boards.check_board_matches`)."""
+    detector = cv2.aruco.CharucoDetector(board.cv2_board())
+    found, seen, size, images = {}, set(), (0, 0), 0
+    for path in image_paths:
+        key = frame_id_from_path(str(path))
+        if key is None:
+            raise UserError(f"{path}: no frame number in the file name to pair it with the other views",
+                            hint="name the images <camera>-<index>.jpg")
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise UserError(f"{path}: cannot read image")
+        size, images = (image.shape[1], image.shape[0]), images + 1
+        hit, markers = detect_image(image, board, detector, min_corners)
+        seen.update(markers)
+        if hit is not None:
+            found[key] = hit
+    return Detections(found, size, images, tuple(sorted(seen)))
 
 
 def detect_charuco(image_paths, board: Board, min_corners: int = 6) -> dict[int, tuple]:
@@ -43,20 +64,7 @@ def detect_charuco(image_paths, board: Board, min_corners: int = 6) -> dict[int,
     Returns:
         ``{key: (ids (n,) int, corners (n, 2) float64 pixels)}``.
     """
-
-    detector = cv2.aruco.CharucoDetector(board.cv2_board())
-    found = {}
-    for path in image_paths:
-        key = frame_id_from_path(str(path))
-        if key is None:
-            raise ValueError(f"{path}: no frame number in the file name to pair it with the other views")
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise ValueError(f"{path}: cannot read image")
-        hit, _ = detect_image(image, board, detector, min_corners)
-        if hit is not None:
-            found[key] = hit
-    return found
+    return _detect(image_paths, board, min_corners).frames
 
 
 @dataclass
@@ -91,8 +99,8 @@ def recalibrate_charuco(
     names = [*reference, camera]
     cams = rig.cameras.numpy()
     if len(detections.get(camera, {})) < 3:
-        raise ValueError(f"camera {camera!r}: {len(detections.get(camera, {}))} board detections; need >= 3 "
-                         "to calibrate")
+        raise UserError(f"camera {camera!r}: {len(detections.get(camera, {}))} board detections; need >= 3 "
+                        "to calibrate", hint="give --charuco images of the board seen by it")
     sizes = {n: (int(rig.size[rig.index(n)][0]), int(rig.size[rig.index(n)][1])) for n in names}
     dets = [Detections(detections.get(n, {}), sizes[n]) for n in names]
     initial: list = [(intrinsics_of(cams["K"][rig.index(n)], cams["dist"][rig.index(n)]),
@@ -101,8 +109,9 @@ def recalibrate_charuco(
         cal = calibrate_detections(names, dets, board, radial=1, initial=initial,
                                    fixed=list(range(len(reference))))
     except UserError as exc:
-        raise ValueError(f"camera {camera!r}: no board position seen by it and by a reference camera "
-                         f"({', '.join(reference)})") from exc
+        raise UserError(f"camera {camera!r}: no board position seen by it and by a reference camera "
+                        f"({', '.join(reference)})", hint="give --charuco images of one board position in "
+                        "both") from exc
     a, rep = cal.adjusted, cal.report[-1]
     return Recalibration(a.intrinsics[-1].K(), a.intrinsics[-1].dist(), a.R[-1], a.t[-1], rep.initial_rms_px,
                          rep.median_px, rep.views, rep.corners)
@@ -173,7 +182,9 @@ def recalibrate_dataset(
         if not files:
             raise UserError(f"no ChArUco images for camera {cam!r} at {pattern}",
                             hint="pass --charuco CAM=GLOB")
-        detections[cam] = detect_charuco(files, board_spec)
+        found = _detect(files, board_spec)
+        check_board_matches(cam, pattern, found, board_spec)
+        detections[cam] = found.frames
     arrays = ds.calibration(ids, dtype=np.float64).numpy()
     crop_boxes = source.get("crop_boxes", {})
     fixes = {}

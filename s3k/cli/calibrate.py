@@ -14,7 +14,7 @@ from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.formats.sleap import read_sleap_analysis
 from s3k.errors import UserError
 from s3k.outputs import check_output
-from s3k.rigcal.boards import Board, read_board_toml
+from s3k.rigcal.boards import board_from_fields, read_board_toml
 from s3k.rigcal.figure import draw_calibration
 from s3k.rigcal.rig import calibrate_sources, refine_with_points
 
@@ -112,25 +112,38 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _parsed(text: str) -> object:
+    """An option's part as a number when it is one (the board's check names what it is not)."""
+    try:
+        return int(text)
+    except ValueError:
+        return text
+
+
 def _board(args):
     """The board of ``--board`` (anipose's board.toml) or of ``--squares``, ``--square-length``,
-    ``--marker-length`` and ``--dict``."""
+    ``--marker-length`` and ``--dict``, checked by the one check of a board (:func:`board_from_fields`)."""
     if args.board:
         return read_board_toml(args.board)
     if not args.squares or not args.square_length:
         raise UserError(
             "no board given", hint="pass --board board.toml, or --squares XxY and --square-length"
         )
-    try:
-        sx, sy = (int(v) for v in args.squares.lower().split("x"))
-        bits_text, size_text = args.dict.lower().split("_")
-        bits = int(bits_text.split("x")[0])
-        size = int(size_text)
-    except ValueError:
+    squares = args.squares.lower().split("x")
+    bits_text, _, size_text = args.dict.lower().partition("_")
+    bits = bits_text.split("x")
+    if len(squares) != 2 or len(bits) != 2 or bits[0] != bits[1] or not size_text:
         raise UserError(
             f"--squares {args.squares!r} / --dict {args.dict!r}: expected e.g. 8x11 and 4x4_50"
-        ) from None
-    return Board(sx, sy, float(args.square_length), float(args.marker_length), bits, size)
+        )
+    fields = {"board_x": _parsed(squares[0]), "board_y": _parsed(squares[1]),
+              "square_length": args.square_length, "marker_length": args.marker_length,
+              "marker_bits": _parsed(bits[0]), "dict_size": _parsed(size_text)}
+    names = {"board_x": f"--squares {args.squares}: squares along x",
+             "board_y": f"--squares {args.squares}: squares along y", "square_length": "--square-length",
+             "marker_length": "--marker-length", "marker_bits": f"--dict {args.dict}: marker bits",
+             "dict_size": f"--dict {args.dict}: dictionary size"}
+    return board_from_fields(fields, names=names)
 
 
 def _with_labels(cal, args):

@@ -5,7 +5,9 @@ folders, one per camera.
 
 from __future__ import annotations
 
+import math
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +17,7 @@ import numpy as np
 from s3k.data import imageseq, video
 from s3k.data.formats.labels2d import frame_id_from_path
 from s3k.errors import UserError
+from s3k.fileio import read_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -81,31 +84,85 @@ class Board:
         return f"{self.squares_x}x{self.squares_y} squares of {self.square_length:g} ({kind})"
 
 
+MAX_SQUARES = 100
+"""The most squares along a side of a board (more would not be seen by a camera; 99999 exhausts memory)."""
+DICT_SIZES = (50, 100, 250, 1000)
+"""The sizes of OpenCV's predefined ArUco dictionaries (``DICT_{bits}X{bits}_{size}``, bits 4 to 7)."""
+
+BOARD_FIELDS = ("board_x", "board_y", "square_length", "marker_length", "marker_bits", "dict_size")
+
+
+def _whole(value: object, name: str, low: int, high: int, where: str) -> int:
+    """``value`` as an integer in ``[low, high]`` (an integral float such as 8.0 allowed), or a one-line
+    error naming ``where``, the field and its range."""
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+    if number is None or not math.isfinite(number) or number != int(number) or not low <= number <= high:
+        raise UserError(f"{where}{name} must be a whole number from {low} to {high}, got {value!r}")
+    return int(number)
+
+
+def _length(value: object, name: str, where: str, *, zero: bool = False, below: float = math.inf) -> float:
+    """``value`` as a finite length (> 0, or >= 0 with ``zero``; < ``below``) or a one-line error."""
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+    ok = number is not None and math.isfinite(number) and (number >= 0 if zero else number > 0)
+    if not ok or not number < below:  # type: ignore[operator]
+        allowed = (f"a length from 0 up to (not including) the square's side {below:g}" if zero
+                   else "a finite length above 0")
+        raise UserError(f"{where}{name} must be {allowed}, got {value!r}")
+    return float(number)  # type: ignore[arg-type]
+
+
+def board_from_fields(fields: Mapping[str, object], where: str = "",
+                      names: Mapping[str, str] | None = None) -> Board:
+    """The board of anipose's fields (``board_x``, ``board_y``, ``square_length``, ``marker_length`` (0 for
+    a checkerboard), ``marker_bits``, ``dict_size``), every one checked: the one check of a board, for
+    ``board.toml`` (:func:`read_board_toml`) and ``s3k calibrate``'s options alike.
+
+    Args:
+        fields: the values as read (numbers, or anything a file holds).
+        where: the message's prefix (``"board.toml: "``).
+        names: how the message names a field (``{"board_x": "--squares (x)"}``); by default its own name.
+
+    Raises:
+        UserError: naming the field, its allowed range and the value.
+    """
+    names = {k: (names or {}).get(k, k) for k in BOARD_FIELDS}
+    sx = _whole(fields["board_x"], names["board_x"], 2, MAX_SQUARES, where)
+    sy = _whole(fields["board_y"], names["board_y"], 2, MAX_SQUARES, where)
+    square = _length(fields["square_length"], names["square_length"], where)
+    marker = _length(fields.get("marker_length", 0.0), names["marker_length"], where, zero=True, below=square)
+    bits = _whole(fields.get("marker_bits", 4), names["marker_bits"], 4, 7, where)
+    size = fields.get("dict_size", 50)
+    if isinstance(size, bool) or size not in DICT_SIZES:
+        raise UserError(f"{where}{names['dict_size']} must be one of {', '.join(map(str, DICT_SIZES))} (the "
+                        f"sizes of OpenCV's ArUco dictionaries), got {size!r}")
+    board = Board(sx, sy, square, marker, bits, int(size))  # type: ignore[call-overload]
+    if board.charuco and board.n_markers > board.dict_size:
+        raise UserError(f"{where}a ChArUco board of {sx}x{sy} squares has {board.n_markers} markers, more "
+                        f"than the {board.dict_size} of its dictionary ({names['dict_size']})",
+                        hint="check the board's size and dictionary")
+    return board
+
+
 def read_board_toml(path) -> Board:
     """Read anipose's ``board.toml`` (``board_x``, ``board_y``, ``square_length``, and for ChArUco
     ``marker_length``, ``marker_bits``, ``dict_size``; ``board_type = "checkerboard"`` or no
-    ``marker_length`` gives a checkerboard)."""
+    ``marker_length`` gives a checkerboard), checked by :func:`board_from_fields`."""
     path = Path(path)
     if not path.is_file():
         raise UserError(
             f"{path}: board file not found", hint="pass --board FILE or --squares/--square-length"
         )
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(read_text(path))
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from exc
     for key in ("board_x", "board_y", "square_length"):
         if key not in data:
             raise UserError(f"{path}: no field {key!r} (a board needs board_x, board_y, square_length)")
-    checker = str(data.get("board_type", "")).lower() == "checkerboard" or "marker_length" not in data
-    return Board(
-        int(data["board_x"]),
-        int(data["board_y"]),
-        float(data["square_length"]),
-        0.0 if checker else float(data["marker_length"]),
-        int(data.get("marker_bits", 4)),
-        int(data.get("dict_size", 50)),
-    )
+    if str(data.get("board_type", "")).lower() == "checkerboard":
+        data["marker_length"] = 0.0
+    return board_from_fields(data, f"{path}: ")
 
 
 @dataclass

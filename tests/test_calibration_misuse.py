@@ -1,0 +1,109 @@
+"""What a careless or hostile user may give ``s3k calibrate`` and ``s3k check-calibration``: boards out of
+range, camera names that are paths, outputs over the command's own inputs, a repair that is worse than the
+calibration, the same images for several cameras. Each is refused in one line before any work, and nothing
+is half-written. The board is drawn with OpenCV (tests/helpers/charuco.py): a few seconds in all."""
+
+from __future__ import annotations
+
+import pathlib
+import re
+
+import pytest
+from helpers.charuco import write_recalibration_case
+
+from s3k.cli import main
+from s3k.errors import UserError
+from s3k.rigcal.boards import read_board_toml
+
+BOARD = ["--squares", "5x7", "--square-length", "30", "--marker-length", "22"]
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A good calibration of cameras p, q, r, their board images and a labelled dataset of the rig."""
+    folder = tmp_path_factory.mktemp("misuse")
+    truth, spec, files = write_recalibration_case(folder, broken=False)
+    return folder, truth, files
+
+
+def _sources(case, **given):
+    folder, truth, _ = case
+    return [f"{n}={given.get(n, folder / 'images' / f'{n}-*.png')}" for n in truth.names]
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    return err[0]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the board: one check where it is read, for both commands
+
+BAD_BOARDS = [
+    ("board_x = 0\nboard_y = 0", r"board_x must be a whole number from 2 to 100, got 0"),
+    ("board_x = 99999\nboard_y = 99999", r"board_x must be a whole number from 2 to 100, got 99999"),
+    ("board_x = nan\nboard_y = 7", r"board_x must be a whole number from 2 to 100, got nan"),
+    ('board_x = "eight"\nboard_y = 7', r"board_x must be a whole number from 2 to 100, got 'eight'"),
+    ("board_x = 5\nboard_y = 7.5", r"board_y must be a whole number from 2 to 100, got 7.5"),
+]
+BAD_LENGTHS = [
+    ("square_length = 30\nmarker_length = 40", r"marker_length must be a length from 0 up to .* 30, got 40"),
+    ("square_length = -30\nmarker_length = 22", r"square_length must be a finite length above 0, got -30"),
+    ("square_length = inf\nmarker_length = 22", r"square_length must be a finite length above 0, got inf"),
+    ("square_length = 30\nmarker_length = 22\ndict_size = 60",
+     r"dict_size must be one of 50, 100, 250, 1000"),
+]
+
+
+def _board_file(path: pathlib.Path, text: str) -> pathlib.Path:
+    fields = dict(line.split(" = ") for line in text.splitlines())
+    base = {"board_x": "5", "board_y": "7", "square_length": "30", "marker_length": "22"}
+    path.write_text("".join(f"{k} = {v}\n" for k, v in {**base, **fields}.items()))
+    return path
+
+
+@pytest.mark.parametrize("text, message", BAD_BOARDS + BAD_LENGTHS)
+def test_board_file_out_of_range_is_named(tmp_path, text, message):
+    with pytest.raises(UserError, match=message):
+        read_board_toml(_board_file(tmp_path / "board.toml", text))
+
+
+def test_board_with_more_markers_than_its_dictionary(tmp_path):
+    with pytest.raises(UserError, match=r"20x20 squares has 200 markers, more than the 50 of its dictionary"):
+        read_board_toml(_board_file(tmp_path / "board.toml", "board_x = 20\nboard_y = 20"))
+
+
+@pytest.mark.parametrize("squares, length, marker, message", [
+    ("0x0", "30", "22", r"--squares 0x0: squares along x must be a whole number from 2 to 100, got 0"),
+    ("99999x99999", "30", "22", r"--squares 99999x99999: squares along x .* got 99999"),
+    ("eightx7", "30", "22", r"--squares eightx7: squares along x .* got 'eight'"),
+    ("5x7", "30", "40", r"--marker-length must be a length from 0 up to .* 30, got 40"),
+])
+def test_calibrate_board_options_out_of_range(case, tmp_path, capsys, squares, length, marker, message):
+    args = ["calibrate", *_sources(case), "--squares", squares, "--square-length", length, "--marker-length",
+            marker, "--out", str(tmp_path / "c.toml")]
+    assert main(args) == 1
+    assert re.search(message, _one_line(capsys))
+    assert not (tmp_path / "c.toml").exists()
+
+
+@pytest.mark.parametrize("text, message", BAD_BOARDS[:4] + BAD_LENGTHS[:3])
+def test_check_calibration_board_out_of_range(case, tmp_path, capsys, text, message):
+    folder, truth, _ = case
+    board = _board_file(tmp_path / "board.toml", text)
+    charuco = [f"{n}={folder / 'images'}/{n}-*.png" for n in truth.names]
+    assert main(["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--board", str(board),
+                 "--charuco", *charuco]) == 1
+    assert re.search(message, _one_line(capsys))
+
+
+def test_board_with_x_and_y_swapped_in_recalibrate(case, tmp_path, capsys):
+    """calibrate and check-calibration --recalibrate both name the board's size as the likely mistake."""
+    folder, truth, _ = case
+    board = _board_file(tmp_path / "board.toml", "board_x = 7\nboard_y = 5")
+    charuco = [f"{n}={folder / 'images'}/{n}-*.png" for n in truth.names]
+    assert main(["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--board", str(board),
+                 "--charuco", *charuco]) == 1
+    line = _one_line(capsys)
+    assert "ArUco marker ids but no ChArUco corners" in line and "check the board's size" in line
