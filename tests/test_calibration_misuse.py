@@ -5,13 +5,16 @@ is half-written. The board is drawn with OpenCV (tests/helpers/charuco.py): a fe
 
 from __future__ import annotations
 
+import errno
 import pathlib
 import re
+import shutil
 
 import pytest
 from helpers.charuco import write_recalibration_case
 
 from s3k.cli import main
+from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
 from s3k.errors import UserError
 from s3k.rigcal.boards import read_board_toml
 
@@ -107,3 +110,98 @@ def test_board_with_x_and_y_swapped_in_recalibrate(case, tmp_path, capsys):
                  "--charuco", *charuco]) == 1
     line = _one_line(capsys)
     assert "ArUco marker ids but no ChArUco corners" in line and "check the board's size" in line
+
+
+# ------------------------------------------------------------------------------------------------------------
+# camera names
+
+
+@pytest.mark.parametrize("name", ["../escape", "a/b", "a\\b", "..", ".", "", "two\nlines", "tab\there",
+                                  "nul\0"])
+def test_camera_names_that_are_not_file_names(name):
+    from s3k.data.rig import check_camera_name
+
+    with pytest.raises(UserError, match="camera|name"):
+        check_camera_name(name, "here")
+
+
+def test_camera_names_that_are_file_names():
+    from s3k.data.rig import check_camera_name
+
+    for name in ("top", "cam 1", "Kamera-ü", "a..b", ".hidden"):
+        assert check_camera_name(name, "here") == name
+
+
+@pytest.mark.parametrize("name, shown", [("../escape", r"'/'"), ("a\nb", r"'\\n'")])
+def test_calibration_toml_with_a_path_as_camera_name(case, tmp_path, name, shown):
+    folder, truth, _ = case
+    text = (folder / "calibration.toml").read_text()
+    toml_name = name.replace("\n", "\\n")
+    (tmp_path / "c.toml").write_text(text.replace('name = "p"', f'name = "{toml_name}"'))
+    with pytest.raises(UserError, match=rf"c.toml: \[cam_0\] name: camera name .* holds {shown}"):
+        read_anipose_calibration(tmp_path / "c.toml")
+
+
+@pytest.mark.parametrize("name", ["../escape", "a\nb"])
+def test_calibrate_refuses_a_path_as_camera_name(case, tmp_path, capsys, name):
+    folder, truth, _ = case
+    args = ["calibrate", f"{name}={folder / 'images'}/p-*.png", *_sources(case)[1:], *BOARD,
+            "--out", str(tmp_path / "c.toml")]
+    assert main(args) == 1
+    assert "camera name" in _one_line(capsys)
+    assert not list(tmp_path.iterdir())
+
+
+def test_import_refuses_a_path_as_camera_name(case, tmp_path, capsys):
+    """The calibration and the videos agree on the name: still refused, nothing written."""
+    folder, _, _ = case
+    text = (folder / "calibration.toml").read_text().replace('name = "p"', 'name = "../escape"')
+    (tmp_path / "c.toml").write_text(text)
+    assert main(["import", "--calibration", str(tmp_path / "c.toml"), "--videos",
+                 f"../escape={folder / 'images'}/p-*.png", "--keypoints", "a", "--out",
+                 str(tmp_path / "ds")]) == 1
+    assert "camera name '../escape' holds '/'" in _one_line(capsys)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_overlay_files_stay_in_their_folder(tmp_path):
+    from s3k.inference.track import overlay_file
+
+    assert overlay_file(tmp_path / "o", "top") == tmp_path / "o" / "top.mp4"
+    for name in ("../escape", "..", "a/b"):
+        with pytest.raises(UserError, match="camera"):
+            overlay_file(tmp_path / "o", name)
+
+
+def test_writer_refuses_a_path_as_camera_name(case, tmp_path):
+    _, truth, _ = case
+    bad = truth.select(truth.names)
+    bad.names[0] = "../escape"
+    with pytest.raises(UserError, match="camera name '../escape'"):
+        write_anipose_calibration(tmp_path / "c.toml", bad)
+    assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the calibration's writer: atomic, never over an input
+
+
+def test_writer_stopped_midway_leaves_the_old_calibration_whole(case, tmp_path, monkeypatch):
+    folder, truth, _ = case
+    target = tmp_path / "calibration.toml"
+    shutil.copy(folder / "calibration.toml", target)
+    before = target.read_bytes()
+
+    def disk_full(self, data, *args, **kwargs):
+        with open(self, "wb" if isinstance(data, bytes) else "w") as f:
+            f.write(data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", disk_full)
+    monkeypatch.setattr(pathlib.Path, "write_text", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        write_anipose_calibration(target, truth)
+    monkeypatch.undo()
+    assert target.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["calibration.toml"]
+    assert read_anipose_calibration(target).names == truth.names

@@ -14,6 +14,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from s3k.data.rig import check_camera_name
 from s3k.detector.geometry_record import run_meta
 from s3k.errors import UserError
 from s3k.inference.kalman import MODELS, RANGES, FilterSettings
@@ -58,7 +59,8 @@ def name(text: str) -> str:
 
 
 def camera_pairs(values: list[str] | None, option: str) -> dict[str, str]:
-    """``["cam=FILE", ...]`` -> ``{cam: FILE}`` in the order given."""
+    """``["cam=FILE", ...]`` -> ``{cam: FILE}`` in the order given, each camera's name checked
+    (:func:`s3k.data.rig.check_camera_name`)."""
     out: dict[str, str] = {}
     for value in values or []:
         cam, sep, rest = value.partition("=")
@@ -66,7 +68,7 @@ def camera_pairs(values: list[str] | None, option: str) -> dict[str, str]:
             raise UserError(f"{option} {value!r}: expected CAMERA=FILE")
         if cam in out:
             raise UserError(f"{option}: camera {cam!r} given twice")
-        out[cam] = rest
+        out[check_camera_name(cam, f"{option} {value!r}")] = rest
     return out
 
 

@@ -18,11 +18,12 @@ from s3k.cli.options import (
     parse_crops,
 )
 from s3k.data import video
+from s3k.data.rig import check_camera_name
 from s3k.data.tracks_csv import write_source
 from s3k.detector.geometry_record import track_crops
 from s3k.errors import UserError
 from s3k.inference.rig_check import check_rig
-from s3k.inference.track import empty_result_hint, track_videos
+from s3k.inference.track import empty_result_hint, overlay_file, track_videos
 from s3k.outputs import check_folder, check_output, claim_folder
 
 
@@ -35,7 +36,7 @@ def parse_videos(values: Sequence[str]) -> dict[str, Path]:
             raise UserError(f"--videos {value!r}: expected CAMERA=FILE")
         if cam in out:
             raise UserError(f"--videos: camera {cam!r} is given twice")
-        out[cam] = Path(path)
+        out[check_camera_name(cam, f"--videos {value!r}")] = Path(path)
     return out
 
 
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay:
         check_folder(args.overlay, "folder of overlay videos", option="--overlay",
                      inputs={"--calibration": args.calibration, "--videos": list(videos.values())},
-                     writes={f"{c}.mp4" for c in videos})
+                     writes={overlay_file(args.overlay, c).name for c in videos})
     crops = parse_crops(args.crop, list(videos)) if args.crop else None
     sizes = {cam: video.frame_size(p) for cam, p in videos.items() if video.exists(p)}
     crops, notes = track_crops(args.run, sizes, crops, fit_given=args.fit is not None)

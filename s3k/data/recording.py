@@ -41,7 +41,7 @@ from s3k.data.import_choices import (
 )
 from s3k.data.import_labels import LabelFormat, LabelsRead
 from s3k.data.import_report import calibration_warnings, kept_labels_summary
-from s3k.data.rig import Rig
+from s3k.data.rig import Rig, check_camera_name
 from s3k.data.splits import TestFrames, held_out_split, session_split
 from s3k.data.tables import NAME_RE
 from s3k.data.writer import DatasetWriter
@@ -182,6 +182,8 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
             records its frame rate and ``subject``); None: a dataset without sessions.
     """
     out = Path(out)
+    for camera in videos:
+        check_camera_name(camera, "--videos")
     check_replaceable(out, overwrite, {"--calibration": calibration, "--videos": list(videos.values())})
     if split.stride < 1:
         raise UserError(f"--stride must be >= 1, got {split.stride}")

@@ -8,6 +8,7 @@ gives NumPy arrays for OpenCV).
 
 from __future__ import annotations
 
+import unicodedata
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +18,21 @@ from s3k.data.cameras import camera_defects
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import resize_crop
+
+
+def check_camera_name(name: object, where: str) -> str:
+    """``name`` if it is a camera name s3k accepts, else a one-line error naming ``where`` (``"--videos"``, a
+    file and its section): a camera's name becomes a file name (``s3k track --overlay DIR`` writes
+    ``DIR/<camera>.mp4``) and a line of a TOML file, so it is a non-empty text without a path separator,
+    without a control character (a newline, a tab) and other than ``.`` and ``..``."""
+    if not isinstance(name, str) or not name:
+        raise UserError(f"{where}: a camera's name must be a non-empty text, got {name!r}")
+    bad = [c for c in name if c in "/\\" or unicodedata.category(c) in ("Cc", "Zl", "Zp")]
+    if bad or name in (".", ".."):
+        what = f"holds {bad[0]!r}" if bad else "is a folder's name"
+        raise UserError(f"{where}: camera name {name!r} {what}; a camera's name is a file name (no path "
+                        "separator, no control character, not . or ..)", hint="rename the camera")
+    return name
 
 
 @dataclass
@@ -45,8 +61,11 @@ class Rig:
 
     def checked(self, source: str | object) -> Rig:
         """This rig, after refusing (:class:`s3k.errors.UserError` naming ``source``, the camera and the
-        field) a value that is not finite, a singular ``K`` or an ``R`` that is not a rotation (a Rodrigues
-        vector of 1e300, a scaled matrix)."""
+        field) a camera name that is not a file name (:func:`check_camera_name`), a value that is not
+        finite, a singular ``K`` or an ``R`` that is not a rotation (a Rodrigues vector of 1e300, a scaled
+        matrix)."""
+        for name in self.names:
+            check_camera_name(name, str(source))
         a = self.cameras.numpy()
         for name, defects in zip(self.names, camera_defects(a["K"], a["dist"], a["R"], a["t"])):
             if defects:

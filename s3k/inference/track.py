@@ -30,6 +30,7 @@ from tqdm import tqdm
 from s3k.choices import Device
 from s3k.data import imageseq, video
 from s3k.data.formats.calibration_files import read_calibration
+from s3k.data.rig import check_camera_name
 from s3k.data.tracks_csv import array_rows, check_output, csv_rows, write_csv
 from s3k.detector import Detector
 from s3k.draw import draw_overlay, edge_indices, keypoint_colours
@@ -374,14 +375,26 @@ class _Collected:
     residual: np.ndarray
 
 
+def overlay_file(folder: str | Path, camera: str) -> Path:
+    """The overlay video of ``camera`` in ``folder`` (``folder/<camera>.mp4``), refused (one line) unless it
+    lies in ``folder`` itself: a camera's name never leads the file elsewhere."""
+    check_camera_name(camera, "--overlay")
+    path = Path(folder) / f"{camera}.mp4"
+    if path.resolve().parent != Path(folder).resolve():
+        raise UserError(f"--overlay {folder}: camera {camera!r} would write its video outside the folder "
+                        f"({path})", hint="rename the camera")
+    return path
+
+
 def _track(detector, frames, cams, boxes, min_weight, out, overlay, inputs, total, progress):
     """Detect every batch of ``frames``, write the CSV of the raw points to ``out`` (and overlays); returns
     the :class:`_Collected` arrays."""
 
     writers = []
     if overlay is not None:
+        files = [overlay_file(overlay, c.name) for c in inputs]
         Path(overlay).mkdir(parents=True, exist_ok=True)
-        writers = [video.VideoWriter(Path(overlay) / f"{c.name}.mp4", c.fps) for c in inputs]
+        writers = [video.VideoWriter(f, c.fps) for f, c in zip(files, inputs)]
     colours = keypoint_colours(len(detector.keypoints))
     edges = edge_indices(detector.meta.recorded_skeleton(), detector.keypoints)
     parts: dict[str, list[np.ndarray]] = {name: [] for name in _Collected.__dataclass_fields__}

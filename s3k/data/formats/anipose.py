@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 import torch
 
-from s3k.data.rig import Rig
+from s3k.data.rig import Rig, check_camera_name
 from s3k.errors import UserError
+from s3k.fileio import atomic_write_text
 from s3k.geometry import Cameras
 from s3k.geometry.rotations import rodrigues_to_matrix
 
@@ -148,8 +149,7 @@ def read_anipose_calibration(path: str | Path, units: str | None = None) -> Rig:
     for section in sections:
         table = data[section]
         name = table.get("name", section)
-        if not isinstance(name, str) or not name:
-            raise UserError(f"{path}: [{section}] name must be a non-empty string, got {name!r}")
+        check_camera_name(name, f"{path}: [{section}] name")
         if name in names:
             raise UserError(f"{path}: [{section}] camera name {name!r} appears twice")
         if table.get("fisheye", False):
@@ -199,7 +199,11 @@ def _toml_value(value: Any) -> str:
 
 
 def write_anipose_calibration(path: str | Path, rig: Rig) -> None:
-    """Write ``rig`` as an anipose ``calibration.toml`` (read back by :func:`read_anipose_calibration`)."""
+    """Write ``rig`` as an anipose ``calibration.toml`` (read back by :func:`read_anipose_calibration`): to a
+    temporary file beside ``path``, renamed over it when complete, so that a write stopped at any moment (a
+    full disk, a killed process) leaves the old file whole."""
+    for name in rig.names:
+        check_camera_name(name, f"{path}: camera")
     cams = rig.cameras.numpy()
     lines = []
     for c, name in enumerate(rig.names):
@@ -221,4 +225,4 @@ def write_anipose_calibration(path: str | Path, rig: Rig) -> None:
     lines.append("[metadata]")
     lines += [f"{k} = {_toml_value(v)}" for k, v in metadata.items()]
     lines.append("")
-    Path(path).write_text("\n".join(lines))
+    atomic_write_text("\n".join(lines), path)
