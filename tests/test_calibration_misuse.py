@@ -205,3 +205,54 @@ def test_writer_stopped_midway_leaves_the_old_calibration_whole(case, tmp_path, 
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["calibration.toml"]
     assert read_anipose_calibration(target).names == truth.names
+
+
+def test_calibrate_out_on_its_own_inputs(case, tmp_path, capsys):
+    folder, _, files = case
+    image = tmp_path / "p-3.png"
+    shutil.copy(files["p"][3], image)
+    sources = _sources(case, p=tmp_path / "p-*.png")
+    for out, given in ((image, "CAM=SOURCE"), (folder / "board.toml", "--labels")):
+        before = out.read_bytes()
+        extra = ["--labels", f"p={out}"] if given == "--labels" else []
+        assert main(["calibrate", *sources, *BOARD, "--out", str(out), "--overwrite", *extra]) == 1
+        line = _one_line(capsys)
+        assert f"is this command's input ({given}" in line and "--out" in line
+        assert out.read_bytes() == before
+
+
+# ------------------------------------------------------------------------------------------------------------
+# weak spots: the same images for several cameras; options checked before any work
+
+
+def test_cameras_given_the_same_images(case, tmp_path, capsys):
+    folder, _, files = case
+    for n in ("a", "b"):
+        (tmp_path / n).mkdir()
+        for f in files["p"]:
+            shutil.copy(f, tmp_path / n / f.name)
+    same = f"{folder / 'images'}/p-*.png"
+    out = str(tmp_path / "c.toml")
+    assert main(["calibrate", f"w={same}", f"x={same}", f"y={same}", f"z={same}", *BOARD, "--out", out]) == 1
+    assert "cameras w, x, y, z are given the same source" in _one_line(capsys)
+    assert main(["calibrate", f"a={tmp_path / 'a'}", f"b={tmp_path / 'b'}", *_sources(case)[2:], *BOARD,
+                 "--out", out]) == 1
+    line = _one_line(capsys)
+    assert "cameras a, b show identical board views" in line and "--allow-identical-views" in line
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_labels_are_checked_before_any_work(case, tmp_path, capsys, monkeypatch):
+    import s3k.cli.calibrate as calibrate
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("calibrated before checking the options")
+
+    monkeypatch.setattr(calibrate, "calibrate_sources", no_work)
+    base = ["calibrate", *_sources(case), *BOARD, "--out", str(tmp_path / "c.toml")]
+    assert main([*base, "--labels", "z=x.h5"]) == 1
+    assert "--labels: camera 'z' is not calibrated here" in _one_line(capsys)
+    assert main([*base, "--labels", f"p={tmp_path / 'missing.h5'}"]) == 1
+    assert "missing.h5" in _one_line(capsys)
+    assert main([*base, "--labels", "../p=x.h5"]) == 1
+    assert "camera name '../p'" in _one_line(capsys)

@@ -10,6 +10,7 @@ import numpy as np
 
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
+from s3k.data import imageseq
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.formats.sleap import read_sleap_analysis
 from s3k.errors import UserError
@@ -91,6 +92,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "solution)",
     )
     solve.add_argument(
+        "--allow-identical-views",
+        action="store_true",
+        help="calibrate cameras whose sources show the same board views (the same images given twice; "
+        "refused by default)",
+    )
+    solve.add_argument(
         "--origin-view",
         type=number(int, ge=0),
         default=None,
@@ -146,15 +153,20 @@ def _board(args):
     return board_from_fields(fields, names=names)
 
 
-def _with_labels(cal, args):
-    """The calibration refined with ``--labels``' SLEAP analysis files as further correspondences."""
+def _label_tables(args, cameras: list[str]) -> dict:
+    """``--labels``' SLEAP analysis tables per camera, read and matched to the cameras before any work."""
     files = camera_pairs(args.labels, "--labels")
-    unknown = [c for c in files if c not in cal.names]
+    unknown = [c for c in files if c not in cameras]
     if unknown:
         raise UserError(
-            f"--labels: camera {unknown[0]!r} is not calibrated here (cameras: {', '.join(cal.names)})"
+            f"--labels: camera {unknown[0]!r} is not calibrated here (cameras: {', '.join(cameras)})",
+            hint="name the cameras of CAM=SOURCE",
         )
-    tables = {c: read_sleap_analysis(f) for c, f in files.items()}
+    return {c: read_sleap_analysis(f) for c, f in files.items()}
+
+
+def _with_labels(cal, args, tables: dict):
+    """The calibration refined with ``--labels``' SLEAP analysis tables as further correspondences."""
     T = max(t.uv.shape[0] for t in tables.values())
     K = max(t.uv.shape[1] for t in tables.values())
     uv = np.full((T, len(cal.names), K, 2), np.nan)
@@ -169,13 +181,24 @@ def _with_labels(cal, args):
     )
 
 
+def _source_files(source: str) -> list[str]:
+    """The files a camera's source names: its video, or every image of its folder or pattern."""
+    if imageseq.is_sequence(source):
+        return [str(f) for f in imageseq.sequence_files(source)]
+    return [source]
+
+
 def run(args: argparse.Namespace) -> int:
     """``s3k calibrate``: the rig from the board views, printed per camera, written as anipose TOML."""
     sources = camera_pairs(args.sources, "CAM=SOURCE")
-    check_output(args.out, args.overwrite, inputs={"--board": args.board}, option="--out")
+    labels = camera_pairs(args.labels, "--labels") if args.labels else {}
+    inputs = {"--board": args.board, "--labels": list(labels.values()),
+              "CAM=SOURCE": [f for source in sources.values() for f in _source_files(source)]}
+    check_output(args.out, args.overwrite, inputs=inputs, option="--out")
     if args.figure:
-        check_output(args.figure, args.overwrite, option="--figure")
+        check_output(args.figure, args.overwrite, inputs={**inputs, "--out": args.out}, option="--figure")
     board = _board(args)
+    tables = _label_tables(args, list(sources)) if args.labels else {}
     start = time.perf_counter()
     cal = calibrate_sources(
         sources,
@@ -185,9 +208,10 @@ def run(args: argparse.Namespace) -> int:
         radial=args.radial,
         origin_view=args.origin_view,
         loss_scale_px=args.loss_scale,
+        identical=args.allow_identical_views,
     )
-    if args.labels:
-        cal = _with_labels(cal, args)
+    if tables:
+        cal = _with_labels(cal, args, tables)
     seconds = time.perf_counter() - start
     print(
         f"calibrated {len(cal.names)} cameras from {len(cal.view_keys)} board views ({board.describe()}) in "

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
 from s3k.data.formats.anipose import units_from_board
-from s3k.data.rig import Rig
+from s3k.data.rig import Rig, check_camera_name
 from s3k.errors import UserError
 from s3k.geometry import Cameras, triangulate_pixels
 from s3k.rigcal.boards import Board, Detections, check_board_matches, detect_board
@@ -274,15 +275,50 @@ def _move_world(adj: Adjusted, v: int) -> None:
         adj.points = (adj.points - tv) @ Rv
 
 
-def calibrate_sources(sources: dict[str, str], board: Board, *, every: int = 1, **options) -> RigCalibration:
+def _same_views(names: list[str], detections: list[Detections]) -> list[list[str]]:
+    """Groups of two or more cameras whose board detections are identical (the same images given for each)."""
+    groups: list[list[int]] = []
+    for c, det in enumerate(detections):
+        for group in groups:
+            other = detections[group[0]].frames
+            if other.keys() == det.frames.keys() and all(
+                np.array_equal(other[k][0], v[0]) and np.array_equal(other[k][1], v[1])
+                for k, v in det.frames.items()
+            ):
+                group.append(c)
+                break
+        else:
+            groups.append([c])
+    return [[names[c] for c in g] for g in groups if len(g) > 1]
+
+
+def _refuse_same_views(groups: list[list[str]], what: str) -> None:
+    if groups:
+        raise UserError(
+            f"cameras {', '.join(groups[0])} {what}: they would be calibrated as one camera "
+            "in the same place" + (f" (and {len(groups) - 1} more such group(s))" if len(groups) > 1 else ""),
+            hint="give each camera its own recording, or pass --allow-identical-views",
+        )
+
+
+def calibrate_sources(sources: dict[str, str], board: Board, *, every: int = 1, identical: bool = False,
+                      **options) -> RigCalibration:
     """Detect the board in each camera's video or image folder (frames synchronized by index or by the number
-    in the file names), then :func:`calibrate_detections`."""
-    names = list(sources)
+    in the file names), then :func:`calibrate_detections`. Cameras given the same source, or whose
+    detections are identical, are refused unless ``identical``."""
+    names = [check_camera_name(name, "CAM=SOURCE") for name in sources]
+    if not identical:
+        same: dict[str, list[str]] = {}
+        for name in names:
+            same.setdefault(str(Path(sources[name]).resolve()), []).append(name)
+        _refuse_same_views([g for g in same.values() if len(g) > 1], "are given the same source")
     detections = []
     for name in names:
         det = detect_board(sources[name], board, every=every)
         check_board_matches(name, sources[name], det, board)
         detections.append(det)
+    if not identical:
+        _refuse_same_views(_same_views(names, detections), "show identical board views")
     return calibrate_detections(names, detections, board, **options)
 
 
