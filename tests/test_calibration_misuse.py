@@ -10,6 +10,7 @@ import pathlib
 import re
 import shutil
 
+import numpy as np
 import pytest
 from helpers.charuco import write_recalibration_case
 
@@ -219,6 +220,56 @@ def test_calibrate_out_on_its_own_inputs(case, tmp_path, capsys):
         line = _one_line(capsys)
         assert f"is this command's input ({given}" in line and "--out" in line
         assert out.read_bytes() == before
+
+
+def test_write_calibration_on_the_board_or_its_images(case, tmp_path, capsys):
+    folder, truth, files = case
+    board = tmp_path / "board.toml"
+    shutil.copy(folder / "board.toml", board)
+    charuco = [f"{n}={folder / 'images'}/{n}-*.png" for n in truth.names]
+    base = ["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--board", str(board), "--charuco",
+            *charuco, "--overwrite"]
+    for out, given in ((board, "--board"), (files["q"][2], "--charuco")):
+        before = out.read_bytes()
+        assert main([*base, "--write-calibration", str(out)]) == 1
+        assert f"is this command's input ({given}" in _one_line(capsys)
+        assert out.read_bytes() == before
+
+
+# ------------------------------------------------------------------------------------------------------------
+# a repair that is worse than the calibration
+
+
+def test_recalibration_from_another_cameras_images_is_refused(case, tmp_path, capsys):
+    """q recalibrated from p's images: every label's residual rises; refused in one line naming q and the
+    residuals before and after, nothing written; --force keeps it."""
+    folder, truth, _ = case
+    images = folder / "images"
+    charuco = [f"p={images}/p-*.png", f"q={images}/p-*.png", f"r={images}/r-*.png"]
+    out = tmp_path / "fixed.toml"
+    args = ["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--charuco", *charuco,
+            "--write-calibration", str(out)]
+    assert main(args) == 1
+    line = _one_line(capsys)
+    match = re.search(r"recalibrating q raised the labels' median residual from ([0-9.]+) px to ([0-9.]+) px "
+                      r"\(camera q: [0-9.]+ -> [0-9.]+ px\).*nothing written.*--force", line)
+    assert match, line
+    assert float(match[2]) > 10 * float(match[1])
+    assert not out.exists()
+    assert main([*args, "--force"]) in (0, 2)
+    assert "warning: recalibrating q raised" in capsys.readouterr().err
+    assert out.exists()
+
+
+def test_recalibration_from_the_cameras_own_images_is_kept(case, tmp_path, capsys):
+    folder, truth, _ = case
+    charuco = [f"{n}={folder / 'images'}/{n}-*.png" for n in truth.names]
+    out = tmp_path / "fixed.toml"
+    assert main(["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--charuco", *charuco,
+                 "--write-calibration", str(out)]) == 0
+    assert "raised" not in capsys.readouterr().err
+    K = read_anipose_calibration(out).cameras.numpy()["K"]
+    np.testing.assert_allclose(K[1], truth.cameras.numpy()["K"][1], rtol=0.005, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -5,10 +5,12 @@ inconsistent with the others (:mod:`s3k.calibration`), and their recalibration f
 from __future__ import annotations
 
 import argparse
+import glob
+import logging
 
 import numpy as np
 
-from s3k.calibration import check_calibration
+from s3k.calibration import CalibrationCheck, check_calibration, reprojection_residuals
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.data import Dataset
@@ -16,6 +18,8 @@ from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.errors import UserError
 from s3k.outputs import check_output
 from s3k.recalibration import recalibrate_dataset
+
+log = logging.getLogger(__name__)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -53,29 +57,65 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      "resolution); never over the calibration read or a dataset's file (default: not "
                      "written)")
     fix.add_argument("--overwrite", action="store_true", help="replace --write-calibration if it exists")
+    fix.add_argument("--force", action="store_true",
+                     help="keep (and write) a recalibration that raises the labels' median residual by more "
+                     "than 20%% and 0.5 px (refused by default)")
 
 
-def _recalibrate(args, ds, ids, uv, mask, flagged: list[str]) -> int:
-    targets = flagged if args.recalibrate == ["flagged"] else list(args.recalibrate)
+WORSE_FACTOR, WORSE_PX = 1.2, 0.5
+"""A recalibration is worse than the calibration when it raises the labels' median residual above both
+``WORSE_FACTOR`` times and ``WORSE_PX`` pixels more than before (a repair from good board images moves it by
+hundredths of a pixel; one from another camera's images by tens of pixels)."""
+
+
+def _median_residual(cams, uv, mask) -> float:
+    """The median pixel residual of every label against the point triangulated from all its views."""
+    res = reprojection_residuals(cams, uv, mask)
+    return float(np.nanmedian(res)) if np.isfinite(res).any() else float("nan")
+
+
+def _worse(before: CalibrationCheck, after: CalibrationCheck, old: float, new: float, targets: list[str],
+           writing: bool) -> str:
+    """The refusal of a repair that raised the labels' residuals: the cameras recalibrated, the residual
+    before and after, and the camera whose own residual rose the most."""
+    rise = {a.name: (b.median_px, a.median_px) for b, a in zip(before.cameras, after.cameras)
+            if np.isfinite(b.median_px) and np.isfinite(a.median_px)}
+    worst = max(rise, key=lambda c: rise[c][1] / max(rise[c][0], 1e-9)) if rise else None
+    camera = f" (camera {worst}: {rise[worst][0]:.2f} -> {rise[worst][1]:.2f} px)" if worst else ""
+    return (f"recalibrating {', '.join(targets)} raised the labels' median residual from {old:.2f} px to "
+            f"{new:.2f} px{camera}: the repair is worse than the calibration"
+            + ("; nothing written" if writing else ""))
+
+
+def _recalibrate(args, ds, ids, uv, mask, before: CalibrationCheck) -> int:
+    targets = before.inconsistent if args.recalibrate == ["flagged"] else list(args.recalibrate)
     if not targets:
         print("recalibration: no camera to recalibrate")
         return 0
     patterns = camera_pairs(args.charuco, "--charuco") if args.charuco else None
-    fixed = recalibrate_dataset(ds, ids, targets, flagged, calibration=args.calibration, board=args.board,
-                                charuco=patterns)
+    fixed = recalibrate_dataset(ds, ids, targets, before.inconsistent, calibration=args.calibration,
+                                board=args.board, charuco=patterns)
     for cam, fix in fixed.fixes.items():
         print(f"recalibrated {cam} from {fixed.frames[cam]} ChArUco frames: intrinsics rms "
               f"{fix.intrinsics_rms_px:.2f} px; bundle-adjusted with {', '.join(fixed.reference)} held "
               "fixed: "
               f"f {fix.K[0, 0]:.1f} px, k1 {fix.dist[0]:.3f}, {fix.corners} board corners in {fix.frames} "
               f"frames, median {fix.pose_median_px:.2f} px")
-    if args.write_calibration:
-        write_anipose_calibration(args.write_calibration, fixed.rig)
-        print(f"wrote {args.write_calibration}")
     check = check_calibration(fixed.cameras, uv, mask, list(ds.cameras), factor=args.factor,
                               min_px=args.min_px, image_size=ds.image_size)
     print(f"after recalibrating {', '.join(targets)}:")
     print(check.format())
+    old = _median_residual(ds.calibration(ids, dtype=np.float64), uv, mask)
+    new = _median_residual(fixed.cameras, uv, mask)
+    if new > max(WORSE_FACTOR * old, old + WORSE_PX):  # NaN (no label triangulates): nothing to judge by
+        message = _worse(before, check, old, new, targets, bool(args.write_calibration))
+        if not args.force:
+            raise UserError(message, hint="check the --charuco images of "
+                            f"{', '.join(targets)}, or pass --force to keep the repair anyway")
+        log.warning("%s (kept: --force)", message.removesuffix("; nothing written"))
+    if args.write_calibration:
+        write_anipose_calibration(args.write_calibration, fixed.rig)
+        print(f"wrote {args.write_calibration}")
     return 2 if check.inconsistent else 0
 
 
@@ -97,8 +137,11 @@ def _no_labels(ds, path: str, splits: list[str], n_frames: int) -> tuple[str, st
 
 def run(args: argparse.Namespace) -> int:
     if args.write_calibration:
-        check_output(args.write_calibration, args.overwrite, inputs={"--calibration": args.calibration},
-                     option="--write-calibration")
+        charuco = camera_pairs(args.charuco, "--charuco") if args.charuco else {}
+        check_output(args.write_calibration, args.overwrite, inputs={
+            "--calibration": args.calibration, "--board": args.board,
+            "--charuco": [f for pattern in charuco.values() for f in glob.glob(pattern)]},
+            option="--write-calibration")
     ds = Dataset.open(args.dataset)
     splits = [s.strip() for s in args.splits.split(",") if s.strip()]
     unknown = [s for s in splits if s not in ("labelled", "unlabelled", "test")]
@@ -116,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print(check.format())
     if args.recalibrate:
-        return _recalibrate(args, ds, ids, uv, mask, check.inconsistent)
+        return _recalibrate(args, ds, ids, uv, mask, check)
     if check.inconsistent or check.notes:
         which = "flagged" if check.inconsistent else "CAM"
         print(f"repair: s3k check-calibration {args.dataset} --recalibrate {which} (recalibrates "
