@@ -113,7 +113,7 @@ def test_training_records_the_calibration_in_frame_pixels(datasets, tmp_path):
                      "--no-progress", "--threads", "1"]) == 0
     _, meta = load_network(run)
     recorded = meta.geometry["calibration"]
-    assert run_calibration(run) == recorded and recorded["units"] == "m"
+    assert run_calibration(meta, run) == recorded and recorded["units"] == "m"
     ds = Dataset.open(datasets["cropped"])
     K = ds.rig(np.float64).numpy()["K"][2]
     entry = recorded["cameras"]["cam2"]

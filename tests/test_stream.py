@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers.rig_inputs import rig_inputs
 from test_track import (
     CAMERAS,
     FRAMES,
@@ -25,7 +26,6 @@ from s3k.data.video import write_video
 from s3k.detector import DetectorMeta, OnePassDetector
 from s3k.geometry import project
 from s3k.inference.stream import Source, stream
-from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
 
 
@@ -42,7 +42,7 @@ def rig_videos(tmp_path):
         videos[name] = tmp_path / f"{name}.mkv"
         write_video(videos[name], [np.full((H, W, 3), 20 + 10 * f + 3 * c, np.uint8) for f in range(FRAMES)],
                     fps=25, codec="ffv1")
-    inputs, cams = prepare_cameras(videos, rig, NET_SIZE, "pad")
+    inputs, cams = rig_inputs(videos, rig, NET_SIZE, "pad")
     X = torch.as_tensor(moving_points(FRAMES))  # (F, K, 3) mm
     uv, _ = project(cams, X[:, None])
     M = torch.as_tensor(np.stack([c.M for c in inputs]))

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers.rig_inputs import rig_inputs
 from helpers.tiny_detector import save_run
 
 from s3k import cli
@@ -36,7 +37,7 @@ from s3k.heatmaps import (
     peak_window_mean,
     spatial_softmax,
 )
-from s3k.inference.track import fit_box, prepare_cameras
+from s3k.inference.session import RigOptions, RigSession, fit_box
 from s3k.model import UNetConfig
 from s3k.readout import ReadoutConfig, read_out, window_cells
 
@@ -155,22 +156,26 @@ def test_fit_box_rejects_unknown_mode():
         fit_box((64, 48), (32, 32), "squash")
 
 
-def test_prepare_cameras_maps_projections_like_resize_crop(recording):
-    """Network-input intrinsics K' = M K: projecting with them equals mapping the video projection by M."""
+def test_rig_session_places_the_cameras_and_maps_projections_like_resize_crop(recording):
+    """A detector placed on the rig: the calibration's cameras in the frames' order, each camera's box by
+    --fit; network-input intrinsics K' = M K project as the video projection mapped by M."""
+    from s3k.detector import Detector
+
     rig = recording["rig"]
     order = ["right", "left"]
-    inputs, cams = prepare_cameras({c: recording["videos"][c] for c in order}, rig, NET_SIZE, "pad")
-    assert [c.name for c in inputs] == order
-    sel = rig.select(order)
-    np.testing.assert_allclose(cams.numpy()["K"], sel.cameras.numpy()["K"])
+    session = RigSession.place(Detector.load(recording["run"], "cpu"), {c: VIDEO_SIZE for c in order},
+                               RigOptions(recording["calibration"]))
+    assert session.names == order and session.units == "mm"
+    cams = session.cameras
+    np.testing.assert_allclose(cams.numpy()["K"], rig.select(order).cameras.numpy()["K"], atol=1e-9)
     X = torch.as_tensor(moving_points(1)[0])
-    for c, inp in enumerate(inputs):
-        assert inp.video_size == VIDEO_SIZE and inp.fps == pytest.approx(25)
-        np.testing.assert_allclose(inp.M, crop_resize_matrix(fit_box(VIDEO_SIZE, NET_SIZE), NET_SIZE))
+    for c in range(len(order)):
+        M = crop_resize_matrix(tuple(session.boxes[c]), NET_SIZE)
+        np.testing.assert_allclose(M, crop_resize_matrix(fit_box(VIDEO_SIZE, NET_SIZE), NET_SIZE))
         uv, _ = project(cams[c], X)
-        K_net = torch.as_tensor(inp.M) @ cams.K[c]
+        K_net = torch.as_tensor(M) @ cams.K[c]
         uv_net, _ = project(Cameras(K_net, cams.dist[c], cams.R[c], cams.t[c]), X)
-        mapped = uv.numpy() @ inp.M[:2, :2].T + inp.M[:2, 2]
+        mapped = uv.numpy() @ M[:2, :2].T + M[:2, 2]
         np.testing.assert_allclose(uv_net.numpy(), mapped, atol=1e-9)
 
 
@@ -206,7 +211,7 @@ def _peaked_logits(uv_net: torch.Tensor, stride: int, sigma: float) -> torch.Ten
 def test_points_from_heatmaps_at_known_projections(recording, stride):
     """Heatmaps peaked where the known 3D points project give those points back, with zero error."""
     rig = recording["rig"]
-    inputs, cams = prepare_cameras(recording["videos"], rig, NET_SIZE, "pad")
+    inputs, cams = rig_inputs(recording["videos"], rig, NET_SIZE, "pad")
     maps = np.stack([c.M for c in inputs])
     X = torch.as_tensor(moving_points(4))  # (B, K, 3)
     uv, depth = project(cams, X[:, None])  # (B, C, K, 2) video pixels, distorted
@@ -248,7 +253,7 @@ def test_points_from_heatmaps_at_known_projections(recording, stride):
 def test_points_from_logits_matches_geometry(recording):
     """Same 2D means and weights -> the same 3D points as s3k.geometry.triangulate_pixels."""
     rig = recording["rig"]
-    inputs, cams = prepare_cameras(recording["videos"], rig, NET_SIZE, "crop")
+    inputs, cams = rig_inputs(recording["videos"], rig, NET_SIZE, "crop")
     maps = np.stack([c.M for c in inputs])
     g = torch.Generator().manual_seed(3)
     h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], 2)
@@ -436,7 +441,7 @@ def _oracle_track(recording, tmp_path, monkeypatch):
         frames = [np.full((H, W, 3), 20 + 10 * f + 3 * c, np.uint8) for f in range(FRAMES)]
         videos[name] = tmp_path / f"{name}.mkv"
         write_video(videos[name], frames, fps=25, codec="ffv1")
-    inputs, cams = prepare_cameras(videos, rig, NET_SIZE, "pad")
+    inputs, cams = rig_inputs(videos, rig, NET_SIZE, "pad")
     X = torch.as_tensor(moving_points(FRAMES))  # (F, K, 3) mm
     uv, _ = project(cams, X[:, None])  # (F, C, K, 2) video pixels, with the lens distortion
     M = torch.as_tensor(np.stack([c.M for c in inputs]))
@@ -551,8 +556,7 @@ def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
 
 
 def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_path, capsys):
-    from s3k.cli.track import keypoint_line
-    from s3k.inference.track import TrackSummary
+    from s3k.inference.track import keypoint_line
 
     assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
     out = capsys.readouterr().out
@@ -561,13 +565,12 @@ def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_
                 "weight above --min-weight 0.99 (lower --min-weight") in out
     assert "nan px" not in out
     # frames with enough views but no point have a reason of their own; a fully valid keypoint needs none
-    summary = TrackSummary(10, ["a", "b"], [0.6, 1.0], [1.5, 2.0], [0.8, 1.0], 0.5, "mm", tmp_path / "x.csv")
-    assert keypoint_line(summary, 0) == (
+    assert keypoint_line(0.6, 1.5, 0.8, 0.5, 10) == (
         "60% valid, median error 1.50 px; no point: 20% of frames have fewer than 2 views with a confidence "
         "weight above --min-weight 0.5 (lower --min-weight (0 uses every view, weighted)); in 20% of frames "
         "its views triangulate to no valid point (rays near parallel or the point behind a camera: check "
         "--calibration, --video-region and --crop)")
-    assert keypoint_line(summary, 1) == "100% valid, median error 2.00 px"
+    assert keypoint_line(1.0, 2.0, 1.0, 0.5, 10) == "100% valid, median error 2.00 px"
 
 
 def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_doubt(recording, tmp_path):

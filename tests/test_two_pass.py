@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.files import contents
+from helpers.rig_inputs import rig_inputs
 from helpers.synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
 from test_track import CAMERAS as TRACK_CAMERAS
 from test_track import KEYPOINTS as TRACK_KEYPOINTS
@@ -26,7 +27,6 @@ from s3k.errors import UserError
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
-from s3k.inference.track import prepare_cameras
 from s3k.model import UNetConfig
 from s3k.run_folder import RunFolder
 from s3k.train.run_setup import _validation_frames
@@ -270,7 +270,7 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
         write_video(videos[name], [np.full((H, W, 3), 20 + 10 * f + 3 * c, np.uint8) for f in range(F)],
                     fps=25, codec="ffv1")
     X = torch.as_tensor(moving_points(F))  # (F, K, 3) mm
-    inputs, cams = prepare_cameras(videos, rig, NET_SIZE, "pad")
+    inputs, cams = rig_inputs(videos, rig, NET_SIZE, "pad")
     M = torch.as_tensor(np.stack([c.M for c in inputs]))
     X_coarse = X + torch.tensor([8.0, 0.0, 0.0])
     uv, _ = project(cams, X_coarse[:, None])

@@ -7,8 +7,7 @@ import argparse
 from pathlib import Path
 
 from s3k.cli import examples
-from s3k.cli.options import number
-from s3k.cli.track import parse_videos
+from s3k.cli.options import camera_pairs, number
 from s3k.data.tracks_csv import read_source
 from s3k.errors import UserError
 from s3k.inference.track_filter import doubt_path, read_doubt
@@ -44,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     ranking = Path(args.tracks).with_name(str(named)) if named else doubt_path(args.tracks)
     rows = read_doubt(ranking)
     if args.videos:
-        videos = parse_videos(args.videos)
+        videos = {c: Path(p) for c, p in camera_pairs(args.videos, "--videos").items()}
     else:
         recorded = source.get("videos")
         videos = {c: Path(p) for c, p in recorded.items()} if isinstance(recorded, dict) else {}

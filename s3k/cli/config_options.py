@@ -11,27 +11,36 @@ import argparse
 import typing
 from typing import Any
 
-from s3k.config import TrainConfig, config_from_dict, field_default, leaf_fields
+from s3k.config import TrainConfig, config_from_dict, field_default, flat_values, leaf_fields
 from s3k.config_files import base_type, coerce, read_config_file
 from s3k.errors import UserError
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig) -> None:
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig, base: Any = None,
+                         sections: tuple[str, ...] | None = None) -> None:
     """Add ``--config FILE`` and one ``--field-name value`` option per field of ``cls`` to ``parser``, one
     argument group per section; each option's help shows the field's documentation and its default.
 
     An option is spelled with dashes (``--rotation-deg``; a boolean ``--layout-fit/--no-layout-fit``). The
     field's own name (``--rotation_deg``, ``--no-layout_fit``) is accepted too, as a second option with the
-    same ``dest`` that ``--help`` does not show (its action's ``alias_of`` names the shown spelling)."""
+    same ``dest`` that ``--help`` does not show (its action's ``alias_of`` names the shown spelling).
+
+    ``base`` (a ``cls``) gives the defaults shown, where a command starts from other values than the
+    class's (``config_from_args(args, cls, base)`` resolves them); ``sections`` limits the options to those
+    sections. A field's ``metadata`` may name its ``metavar`` and ``nargs`` (values given as several
+    words)."""
     group = parser.add_argument_group("configuration (defaults < --config file < command line)")
     group.add_argument("--config", metavar="FILE", default=None,
                        help="TOML or JSON file with a flat table of the fields below (default: none)")
     groups: dict[str | None, Any] = {None: group}
+    shown_defaults = flat_values(base) if base is not None else None
     for section, f, tp in leaf_fields(cls):
+        if sections is not None and section not in sections:
+            continue
         if section is not None and section not in groups:
             groups[section] = parser.add_argument_group(f"configuration: {section.replace('_', '-')}")
         base, _ = base_type(tp)
-        default = field_default(f)
+        default = field_default(f) if shown_defaults is None else shown_defaults[f.name]
         shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
         bounds = f.metadata.get("range")
         allowed = f"; {bounds.describe()}" if bounds is not None and bounds.describe() else ""
@@ -44,7 +53,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
             named = typing.get_origin(base) is typing.Literal
             metavar = ("N,N,..." if is_tuple else "{" + ",".join(typing.get_args(base)) + "}" if named
                        else getattr(base, "__name__", "V").upper())
-            kwargs = dict(metavar=metavar, type=_parser(f, tp))
+            kwargs = dict(metavar=f.metadata.get("metavar", metavar), type=_parser(f, tp))
+            if "nargs" in f.metadata:  # several words, each one value of the tuple
+                kwargs.update(nargs=f.metadata["nargs"], type=str)
         groups[section].add_argument(flag, dest=f.name, default=argparse.SUPPRESS, help=text, **kwargs)
         if "_" in f.name:  # the field's own spelling is accepted too, not shown
             alias = groups[section].add_argument(f"--{f.name}", dest=f.name, default=argparse.SUPPRESS,

@@ -9,8 +9,9 @@ from s3k.cli import examples
 from s3k.cli.options import add_other_rig_option, number
 from s3k.data import Dataset
 from s3k.data.tracks_csv import write_source
+from s3k.detector import Detector
 from s3k.inference.predict import predict_dataset
-from s3k.inference.rig_check import check_dataset_rig
+from s3k.inference.session import RigSession
 from s3k.outputs import check_output
 
 
@@ -33,11 +34,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, args.overwrite, inputs={"--data": args.data})
-    check_dataset_rig(args.run, args.data, refuse=not args.other_rig)
-    summary = predict_dataset(args.run, args.data, args.out, args.split, args.batch_size, args.device,
-                              args.overwrite)
-
-    write_source(summary.path, Dataset.open(args.data, cache="none").units, run=args.run, dataset=args.data)
+    dataset = Dataset.open(args.data, cache="none")
+    session = RigSession.on_dataset(Detector.load(args.run, args.device), dataset, args.other_rig)
+    summary = predict_dataset(session, args.data, args.out, args.split, args.batch_size,
+                              overwrite=args.overwrite)
+    write_source(summary.path, session.units, run=args.run, dataset=args.data)
     for text in summary.warnings:
         print(f"warning: {text}", file=sys.stderr)
     print(f"wrote {summary.frames} frames x {len(summary.keypoints)} keypoints to {summary.path}")

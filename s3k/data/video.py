@@ -235,6 +235,22 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
             container.close()
 
 
+def synchronized_batches(paths: Sequence[str | Path], batch: int, start: int = 0,
+                         stop: int | None = None) -> Iterator[tuple[list[int], list[list[np.ndarray]]]]:
+    """:func:`synchronized_frames` in batches: yields ``(indices, frames)``, ``frames`` a list of up to
+    ``batch`` lists of one image per video (the last batch may be shorter)."""
+    fnums: list[int] = []
+    frames: list[list[np.ndarray]] = []
+    for i, views in synchronized_frames(paths, start, stop):
+        fnums.append(i)
+        frames.append(views)
+        if len(fnums) == batch:
+            yield fnums, frames
+            fnums, frames = [], []
+    if fnums:
+        yield fnums, frames
+
+
 class VideoWriter:
     """Incremental encoder of ``(H, W, 3) uint8`` RGB frames of one size (use as a context manager).
 

@@ -304,6 +304,8 @@ class Detector:
 
     meta: DetectorMeta
     device: torch.device
+    run: Path | None = None
+    """The run folder it was loaded from (None: built in memory), for messages."""
     check_frames: bool = True
     """Refuse whole frames whose size disagrees with the cameras' intrinsics (:func:`_check_sizes`); off for
     crops, whose principal point may lie anywhere."""
@@ -322,11 +324,15 @@ class Detector:
             fast: the fast CPU path (:class:`OnePassDetector`); False: the plain one, for comparison.
         """
         dev = pick_device(device)
+        detector: Detector
         if is_two_pass(run):
             rule, coarse, fine = read_two_pass(run)
-            return TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision, fast=fast),
-                                   OnePassDetector.from_run(fine, dev, precision, fast=fast), rule)
-        return OnePassDetector.from_run(run, dev, precision, checkpoint, fast)
+            detector = TwoPassDetector(OnePassDetector.from_run(coarse, dev, precision, fast=fast),
+                                       OnePassDetector.from_run(fine, dev, precision, fast=fast), rule)
+        else:
+            detector = OnePassDetector.from_run(run, dev, precision, checkpoint, fast)
+        detector.run = Path(run)
+        return detector
 
     @property
     def keypoints(self) -> list[str]:
@@ -335,6 +341,12 @@ class Detector:
     @property
     def units(self) -> str:
         return self.meta.units
+
+    @property
+    def frame_meta(self) -> DetectorMeta:
+        """The meta of the network that sees whole frames (a two-pass detector's coarse pass): its
+        ``geometry`` is the part of each camera's frame the detector was trained on."""
+        return self.meta
 
     @property
     def input_size(self) -> tuple[int, int]:
@@ -435,6 +447,10 @@ class TwoPassDetector(Detector):
                             f"{rule.size} px", hint="retrain the refining pass on the rule's crops")
         self.coarse, self.fine, self.rule = coarse, fine, rule
         self.meta, self.device = fine.meta, fine.device
+
+    @property
+    def frame_meta(self) -> DetectorMeta:
+        return self.coarse.meta
 
     @property
     def input_size(self) -> tuple[int, int]:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -34,8 +34,9 @@ from s3k.errors import UserError
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.run_folder import RunFolder
 
-__all__ = ["TOLERANCE", "check_dataset", "dataset_geometry", "frame_calibration", "mismatches",
-           "run_geometry", "track_crops", "training_geometry"]
+__all__ = ["FIT_MODES", "TOLERANCE", "Box", "Fit", "check_dataset", "check_images", "dataset_geometry",
+           "fit_box", "frame_calibration", "input_boxes", "mismatches", "recorded_geometry", "run_geometry",
+           "track_crops", "training_geometry"]
 
 TOLERANCE = 2e-3
 """Largest difference between two boxes, as a fraction of the frame's width or height, that still matches."""
@@ -114,9 +115,12 @@ def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
     """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
     predates the record or holds none."""
     meta = run_meta(run_dir)
-    geometry = meta.get("geometry") if meta is not None else None
-    return geometry if isinstance(geometry, dict) and isinstance(geometry.get("cameras"), dict) else None
-    geometry = meta.get("geometry") if isinstance(meta, dict) else None
+    return recorded_geometry(meta.get("geometry") if meta is not None else None)
+
+
+def recorded_geometry(geometry: Any) -> dict[str, Any] | None:
+    """A run's recorded ``geometry`` (:attr:`s3k.detector.DetectorMeta.geometry`) when it holds the cameras'
+    boxes, else None (a run trained before the record)."""
     return geometry if isinstance(geometry, dict) and isinstance(geometry.get("cameras"), dict) else None
 
 
@@ -146,10 +150,17 @@ def check_dataset(run_dir: str | Path, data: str | Path, option: str = "--ignore
         UserError: naming the first camera, both boxes, the import options that give a matching dataset and
             ``option``.
     """
-    recorded = run_geometry(run_dir)
+    check_images(run_geometry(run_dir), run_dir, Dataset.open(data, cache="none"), option)
+
+
+def check_images(recorded: dict[str, Any] | None, run_dir: str | Path, ds: DatasetLike,
+                 option: str = "--ignore-geometry") -> None:
+    """:func:`check_dataset` of an opened dataset ``ds`` against the geometry ``recorded`` in the run
+    ``run_dir`` (:func:`recorded_geometry`; None: nothing to check)."""
     if recorded is None:
         return
-    actual = dataset_geometry(Dataset.open(data, cache="none"))
+    data = ds.path
+    actual = dataset_geometry(ds)
     bad = mismatches(recorded, actual)
     if not bad:
         return
@@ -167,16 +178,61 @@ def check_dataset(run_dir: str | Path, data: str | Path, option: str = "--ignore
         f"{option} to use these images as they are")
 
 
+Fit = Literal["pad", "crop", "stretch"]
+"""How a frame maps onto the detector's input when the aspect ratios differ (:func:`fit_box`)."""
+FIT_MODES: tuple[str, ...] = ("pad", "crop", "stretch")
 Box = tuple[float, ...]
+"""A box ``(x0, y0, x1, y1)`` in pixel edge coordinates."""
 
 
-def track_crops(run_dir: str | Path, frame_sizes: dict[str, tuple[int, int]], crops: dict[str, Box] | None,
-                fit_given: bool) -> tuple[dict[str, Box], list[str]]:
+def fit_box(video_size: tuple[int, int], net_size: tuple[int, int], mode: Fit = "pad") -> Box:
+    """The crop box (pixel edge coordinates) of a video frame that is mapped onto the network input.
+
+    Args:
+        video_size: ``(W, H)`` of the video.
+        net_size: ``(w, h)`` of the network input.
+        mode: ``"pad"`` keeps the whole frame and the aspect ratio, padding with black (a box larger than the
+            frame, centred); ``"crop"`` keeps the aspect ratio and cuts the frame's excess, centred;
+            ``"stretch"`` maps the whole frame onto the input (scales differ per axis when the aspect ratios
+            do). All three are the same when the aspect ratios agree.
+
+    Returns:
+        ``(x0, y0, x1, y1)``.
+    """
+    W, H = float(video_size[0]), float(video_size[1])
+    w, h = float(net_size[0]), float(net_size[1])
+    if mode not in FIT_MODES:
+        raise UserError(f"--fit must be one of {', '.join(FIT_MODES)}, got {mode!r}")
+    if mode == "stretch" or W * h == H * w:
+        return 0.0, 0.0, W, H
+    # Box of the network's aspect ratio, as wide as the frame or as tall as it.
+    wide = W * h > H * w  # the frame is wider than the network input
+    if (mode == "pad") == wide:
+        bw, bh = W, W * h / w
+    else:
+        bw, bh = H * w / h, H
+    x0, y0 = (W - bw) / 2, (H - bh) / 2
+    return x0, y0, x0 + bw, y0 + bh
+
+
+def input_boxes(recorded: dict[str, Any] | None, frame_sizes: dict[str, tuple[int, int]],
+                crops: dict[str, Box] | None, fit: Fit | None,
+                net_size: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
+    """``(C, 4)`` each camera's box onto a detector's input of ``net_size``, in the order of
+    ``frame_sizes``: :func:`track_crops`' boxes, and :func:`fit_box` by ``fit`` (None: ``"pad"``) where
+    there is none; and the lines that say so."""
+    chosen, notes = track_crops(recorded, frame_sizes, crops, fit_given=fit is not None)
+    boxes = [chosen.get(n, fit_box(size, net_size, fit or "pad")) for n, size in frame_sizes.items()]
+    return np.array(boxes, dtype=np.float64), notes
+
+
+def track_crops(recorded: dict[str, Any] | None, frame_sizes: dict[str, tuple[int, int]],
+                crops: dict[str, Box] | None, fit_given: bool) -> tuple[dict[str, Box], list[str]]:
     """The crop box of each video for ``s3k track``: ``--crop`` where given, else the box the run was trained
     on (scaled to the video's size), unless ``--fit`` was given; and the lines that say so.
 
     Args:
-        run_dir: the run folder.
+        recorded: the geometry the run recorded (:func:`recorded_geometry`), or None.
         frame_sizes: ``{camera: (W, H)}`` of the videos.
         crops: the ``--crop`` boxes, or None.
         fit_given: ``--fit`` was given: cameras without ``--crop`` follow it, not the record.
@@ -186,7 +242,6 @@ def track_crops(run_dir: str | Path, frame_sizes: dict[str, tuple[int, int]], cr
         from what the run was trained on).
     """
     crops = dict(crops or {})
-    recorded = run_geometry(run_dir)
     if recorded is None:
         return crops, []
     notes, applied = [], []

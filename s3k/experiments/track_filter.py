@@ -20,8 +20,10 @@ from s3k.data.formats.calibration_files import read_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.detector import Detector
 from s3k.inference.kalman import FilterSettings
+from s3k.inference.session import RigOptions
 from s3k.inference.stream import open_source, stream
-from s3k.inference.track import track_videos
+from s3k.inference.track import track
+from s3k.inference.track_config import TrackConfig
 from s3k.inference.track_filter import StreamFilter, layout_shape_of, raw_path
 from s3k.sim.trajectory import render_box_trajectory
 
@@ -114,8 +116,8 @@ def filter_benchmark(run: str | Path, work: str | Path, frames: int = 300, size:
     work = Path(work)
     traj = render_box_trajectory(work / "videos", frames=frames, size=size, seed=seed)
     out = work / "points3d.csv"
-    summary = track_videos(run, traj.videos, traj.calibration, out, device=device, progress=False,
-                           overwrite=True, filter_settings=FilterSettings())
+    result = track(run, traj.videos, RigOptions(traj.calibration, device=device), out,
+          TrackConfig.from_flat(progress=False), overwrite=True)
 
     def load(path: Path) -> np.ndarray:
         got = read_csv(path, traj.keypoints)
@@ -135,5 +137,5 @@ def filter_benchmark(run: str | Path, work: str | Path, frames: int = 300, size:
         "causal_delay_frames": best, "causal_rms_by_lag": {str(k): v * mm for k, v in by_lag.items()},
         "jitter_mm_per_frame2": {"truth": jitter(truth, mm), "raw": jitter(raw, mm),
                                  "offline": jitter(offline, mm), "causal": jitter(causal, mm)},
-        "filter": summary.filter,
+        "filter": result.filter_record,
     }

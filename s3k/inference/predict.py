@@ -16,6 +16,7 @@ from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import check_output, csv_rows, write_csv
 from s3k.detector import Detector, detect_store, split_frames
+from s3k.inference.session import RigSession
 
 __all__ = ["PredictSummary", "detect_store", "predict_dataset", "split_frames"]
 
@@ -30,24 +31,25 @@ class PredictSummary:
     warnings: list[str]
 
 
-def predict_dataset(run_dir: str | Path, data: str | Path, out: str | Path, split: str = "test",
+def predict_dataset(run: str | Path | RigSession, data: str | Path, out: str | Path, split: str = "test",
                     batch_size: int = 16, device: Device = "auto", overwrite: bool = False) -> PredictSummary:
     """Predict the frames of a dataset split and write the 3D CSV (:mod:`s3k.data.tracks_csv`).
 
     Args:
-        run_dir: run folder of ``s3k train`` (one pass or two).
+        run: run folder of ``s3k train`` (one pass or two), or a detector placed on the dataset
+            (:meth:`s3k.inference.session.RigSession.on_dataset`, whose checks ``s3k predict`` runs).
         data: dataset folder.
         out: CSV file to write; never a file of the dataset.
         split: ``labelled``, ``unlabelled``, ``test`` or ``all``.
         batch_size: frames per forward pass.
-        device: ``"auto"``, ``"cpu"``, ``"cuda"``...
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``... (for a run folder).
         overwrite: replace an existing ``out``.
 
     Raises:
         UserError: ``out`` is a file of the dataset, or exists without ``overwrite``.
     """
     out = check_output(out, overwrite, dataset=data)
-    detector = Detector.load(run_dir, device)
+    detector = run.detector if isinstance(run, RigSession) else Detector.load(run, device)
     ds = Dataset.open(data, cache="none")
     warnings = []
     if list(ds.keypoints) != list(detector.keypoints):

@@ -24,8 +24,8 @@ import torch
 
 from s3k.calibration import identical_cameras
 from s3k.data import Dataset
-from s3k.detector import training_dataset
-from s3k.detector.geometry_record import check_dataset, frame_calibration, run_meta
+from s3k.detector import DetectorMeta, training_dataset
+from s3k.detector.geometry_record import check_images, frame_calibration, recorded_geometry
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.metrics import mm_per_unit
@@ -42,39 +42,39 @@ CENTRE_MM, ANGLE_DEG, FOCAL_REL = 1.0, 0.1, 0.005
 fraction) are not reported."""
 
 
-def check_rig(run_dir: str | Path, cameras: list[str], keypoints: list[str] | None = None,
-              what: str = "--calibration") -> None:
-    """Refuse to use the run ``run_dir`` on ``cameras`` it was not trained on, or (``keypoints``, a
-    dataset's) on other keypoints; nothing to check for a run that records neither.
+def check_rig(meta: DetectorMeta, run: str | Path | None, cameras: list[str],
+              keypoints: list[str] | None = None, what: str = "--calibration") -> None:
+    """Refuse to use the detector of ``meta`` (of the run folder ``run``) on ``cameras`` it was not trained
+    on, or (``keypoints``, a dataset's) on other keypoints.
 
     Raises:
         UserError: naming the cameras or keypoints, the run's, and :data:`OVERRIDE`.
     """
-    meta = run_meta(run_dir) or {}
-    trained = [str(c) for c in meta.get("cameras") or []]
+    trained = [str(c) for c in meta.cameras]
     unknown = [c for c in cameras if trained and c not in trained]
     hint = f"use a run trained on this rig and object, or pass {OVERRIDE} to use this one anyway"
     if unknown:
         raise UserError(f"{what}: camera(s) {', '.join(map(repr, unknown))} are not among the cameras "
-                        f"{', '.join(trained)} the run {run_dir} was trained on: another rig, where its "
+                        f"{', '.join(trained)} the run {run} was trained on: another rig, where its "
                         "results would be wrong", hint=hint)
-    model = [str(k) for k in meta.get("keypoints") or []]
+    model = [str(k) for k in meta.keypoints]
     if keypoints is not None and model and set(keypoints) != set(model):  # matched by name, in any order
         raise UserError(f"{what}: the dataset's keypoints {', '.join(keypoints)} are not the run's "
-                        f"{', '.join(model)} ({run_dir}): another object, whose points would be named after "
+                        f"{', '.join(model)} ({run}): another object, whose points would be named after "
                         "the run's keypoints", hint=hint)
 
 
-def run_calibration(run_dir: str | Path) -> dict[str, Any] | None:
-    """The calibration the run was trained with, in its cameras' frame pixels: recorded in the run, else
-    read from its training dataset when that is still there and static; None when unknown."""
-    meta = run_meta(run_dir) or {}
-    geometry = meta.get("geometry")
-    recorded = geometry.get("calibration") if isinstance(geometry, dict) else None
+def run_calibration(meta: DetectorMeta, run: str | Path | None = None) -> dict[str, Any] | None:
+    """The calibration the detector of ``meta`` was trained with, in its cameras' frame pixels: recorded in
+    the meta, else read from its training dataset (named in the meta's geometry, or for a run trained before
+    that record in the run folder ``run``) when that is still there and static; None when unknown."""
+    geometry = meta.geometry if isinstance(meta.geometry, dict) else {}
+    recorded = geometry.get("calibration")
     if isinstance(recorded, dict) and isinstance(recorded.get("cameras"), dict):
         return recorded
+    path = (geometry.get("dataset") or {}).get("path")
     try:
-        path = training_dataset(run_dir)
+        path = path or (training_dataset(run) if run is not None else None)
     except (FileNotFoundError, UserError, ValueError, OSError):
         return None
     if not path or not (Path(path) / "s3k.json").is_file():
@@ -112,13 +112,14 @@ def _difference(name: str, want: dict[str, Any], K, R, t, size, scale: float) ->
     return f"{name} ({', '.join(parts)})" if parts else None
 
 
-def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], units: str,
+def calibration_notes(meta: DetectorMeta, run: str | Path | None, cams: Cameras, names: list[str], units: str,
                       sizes: dict[str, tuple[int, int]], source: str | Path) -> list[str]:
     """Warnings (``warning: ...`` lines) on the calibration ``source`` given to a run: cameras with identical
     parameters, and how it differs from the run's own calibration (module docstring).
 
     Args:
-        run_dir: the run folder.
+        meta: the detector's meta (:attr:`s3k.detector.Detector.frame_meta`).
+        run: its run folder, for the message (and a run trained before its calibration was recorded).
         cams: the cameras ``(C,)`` in the pixels of the frames they see, float64.
         names: their names.
         units: their world unit.
@@ -126,7 +127,7 @@ def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], unit
         source: the calibration's file or dataset, for the message.
     """
     notes = _identical(cams, names)
-    want = run_calibration(run_dir)
+    want = run_calibration(meta, run)
     if want is None:
         return [f"warning: {source}: {n}" for n in notes]
     scale, want_scale = mm_per_unit(units), mm_per_unit(want.get("units", "unknown"))
@@ -143,25 +144,27 @@ def calibration_notes(run_dir: str | Path, cams: Cameras, names: list[str], unit
         if d:
             diffs.append(d)
     if diffs:
-        notes.append(f"calibration differs from the one the run {run_dir} was trained with: "
+        notes.append(f"calibration differs from the one the run {run} was trained with: "
                      f"{'; '.join(diffs)}; the 3D points move with it (and the reprojection error does not "
                      "show it)")
     return [f"warning: {source}: {n}" for n in notes]
 
 
-def check_dataset_rig(run_dir: str | Path, data: str | Path, refuse: bool = True) -> None:
-    """``s3k predict``'s checks of a dataset for a run: with ``refuse``, the images' part of the frames
-    (:func:`s3k.detector.geometry_record.check_dataset`), the cameras and the keypoints (:func:`check_rig`);
-    then the dataset's static calibration (:func:`calibration_notes`), logged as warnings.
+def check_dataset_rig(meta: DetectorMeta, run: str | Path | None, ds: Dataset, refuse: bool = True,
+                      option: str = OVERRIDE, rig: bool = True) -> None:
+    """The checks of a dataset ``ds`` for the detector of ``meta`` (of the run folder ``run``; ``s3k
+    predict``, the labelling app's suggestions): with ``refuse``, the images' part of the frames
+    (:func:`s3k.detector.geometry_record.check_images`), the cameras and the keypoints (:func:`check_rig`);
+    then the dataset's static calibration (:func:`calibration_notes`), logged as warnings. ``rig=False``
+    checks the images alone (the labelling app: a run's suggestions on another rig's frames).
 
     Raises:
-        UserError: another rig or object, naming :data:`OVERRIDE`.
+        UserError: another rig or object, naming ``option``.
     """
     if refuse:
-        check_dataset(run_dir, data, option=OVERRIDE)
-    ds = Dataset.open(data, cache="none")
-    if refuse:
-        check_rig(run_dir, list(ds.cameras), list(ds.keypoints), what=f"--data {data}")
+        check_images(recorded_geometry(meta.geometry), run or "", ds, option=option)
+    if refuse and rig:
+        check_rig(meta, run, list(ds.cameras), list(ds.keypoints), what=f"--data {ds.path}")
     frames = frame_calibration(ds)
     if frames is None:
         return
@@ -169,5 +172,5 @@ def check_dataset_rig(run_dir: str | Path, data: str | Path, refuse: bool = True
     K, dist, R, t = (np.stack([e[k] for e in entries]) for k in ("K", "dist", "R", "t"))
     cams = Cameras.from_numpy(K, dist, R, t, dtype=torch.float64)
     sizes = {c: tuple(e["frame_size"]) for c, e in zip(ds.cameras, entries)}
-    for line in calibration_notes(run_dir, cams, list(ds.cameras), frames["units"], sizes, data):
+    for line in calibration_notes(meta, run, cams, list(ds.cameras), frames["units"], sizes, ds.path):
         log.warning(line.removeprefix("warning: "))

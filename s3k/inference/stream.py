@@ -37,13 +37,18 @@ import numpy as np
 from s3k.data import imageseq, video
 from s3k.data.video import prefetch
 from s3k.errors import UserError
-from s3k.inference.rerun_log import RerunLog
+from s3k.inference.rerun_log import RerunLog, recording_summary
+from s3k.inference.session import RigSession
+from s3k.inference.track import limb_indices
+from s3k.inference.track_config import TrackConfig
+from s3k.inference.track_filter import StreamFilter, layout_shape_of
 from s3k.messages import note
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Source", "StreamSummary", "open_source", "stream"]
+__all__ = ["Source", "StreamSummary", "open_source", "open_sources", "pace_line", "rerun_logger", "stream",
+           "stream_filter", "stream_session"]
 
 
 class Source:
@@ -108,6 +113,15 @@ class CameraSource(Source):
 
     def close(self) -> None:
         self._cap.release()
+
+
+def open_sources(specs: dict[str, str], fps: float | None = None) -> dict[str, Source]:
+    """``{camera: Source}`` of ``{camera: spec}`` (:func:`open_source`); ``fps`` is the rate of those that
+    record none (image sequences)."""
+    sources = {name: open_source(spec) for name, spec in specs.items()}
+    for source in sources.values():
+        source.fps = source.fps or float(fps or 0.0)
+    return sources
 
 
 def open_source(spec: str) -> Source:
@@ -225,18 +239,59 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
     return StreamSummary(i, seconds, i / seconds if seconds > 0 else 0.0, rate, behind, interrupted)
 
 
-def rerun_logger(detector, cameras: list[str], cams, sizes: list[tuple[int, int]], target: str,
-                 image_scale: float = 0.5, jpeg_quality: int = 75) -> tuple[Callable, Callable[[bool], None]]:
+def stream_filter(session: RigSession, config: TrackConfig) -> StreamFilter | None:
+    """The causal filter of ``config`` on the session's rig, or None (``filter="none"``)."""
+    if not config.filtering_on:
+        return None
+    detector = session.detector
+    limbs = config.limb_pairs()
+    limbs = detector.meta.recorded_skeleton() if limbs is None else limbs
+    assert session.cameras is not None
+    return StreamFilter(config.filter_settings(), len(detector.keypoints), session.cameras.numpy(),
+                        layout_shape_of(detector.meta.layout), limb_indices(limbs, detector.keypoints))
+
+
+def stream_session(session: RigSession, sources: dict[str, Source], config: TrackConfig,
+                   out: IO[str] = sys.stdout, max_frames: int | None = None,
+                   log: Callable[[int, list[np.ndarray], Any], None] | None = None) -> StreamSummary:
+    """:func:`stream` of the session's detector on its rig, with the read-out and the filter of
+    ``config``."""
+    return stream(session.detector, sources, session.cameras, session.boxes, out, config.min_weight,
+                  max_frames, log, filter=stream_filter(session, config))
+
+
+def pace_line(summary: StreamSummary, sources: dict[str, Source]) -> str:
+    """The line that says how fast the stream went, and how fast its sources run."""
+    unknown = [name for name, s in sources.items() if not s.fps]
+    pace = (f"; the sources run at {summary.source_fps:g} frames/s" if summary.source_fps else
+            f"; the frame rate of {', '.join(unknown)} is unknown (--fps gives it)")
+    if summary.behind > 1:
+        pace += f", up to {summary.behind} frames behind"
+    return (f"s3k stream: {summary.frames} frames in {summary.seconds:.2f} s, {summary.fps:.1f} "
+            f"frames/s{pace}" + (" (stopped by Ctrl-C)" if summary.interrupted else ""))
+
+
+def rerun_logger(session: RigSession, sources: dict[str, Source], target: str, image_scale: float = 0.5,
+                 jpeg_quality: int = 75) -> tuple[Callable, Callable[[bool], None]]:
     """A ``log`` for :func:`stream` that sends the rig's cameras, the views (downscaled by ``image_scale``,
     JPEG), the detections, the 3D points with their skeleton and confidence, and their reprojections to Rerun
     (:class:`s3k.inference.rerun_log.RerunLog`): ``target`` "spawn" (a viewer), or a ``.rrd`` file to write.
-    Returns ``(log, close)``; ``close(keep)`` completes the file (or, ``keep=False``, removes it)."""
+    Returns ``(log, close)``; ``close(keep)`` completes the file and says what it holds (or, ``keep=False``,
+    removes it)."""
 
-    rec = RerunLog("s3k stream", target, detector.keypoints, cameras, detector.meta.recorded_skeleton(),
+    detector = session.detector
+    rec = RerunLog("s3k stream", target, detector.keypoints, session.names, detector.meta.recorded_skeleton(),
                    image_scale=image_scale, jpeg_quality=jpeg_quality, units=detector.units)
-    rec.cameras_at(cams, sizes)
+    rec.cameras_at(session.cameras, [s.size for s in sources.values()])
 
     def log(i: int, views: list[np.ndarray], det) -> None:
         rec.detection(i, views, det.cpu())
 
-    return log, rec.close
+    def close(keep: bool) -> None:
+        rec.close(keep)
+        if keep and target != "spawn":
+            saved = recording_summary(target)
+            note(f"s3k stream: wrote {target}: {len(saved['frames'])} frames, {saved['bytes'] / 1e6:.2f} MB "
+                 f"({saved['bytes_per_frame'] / 1e6:.3f} MB a frame)")
+
+    return log, close

@@ -61,8 +61,9 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
 from s3k.data import Dataset
-from s3k.detector.geometry_record import check_dataset
+from s3k.detector import Detector
 from s3k.errors import UserError
+from s3k.inference.session import RigSession
 from s3k.label.agreement import LabelAgreement
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
 from s3k.label.queue import queue_ranking
@@ -123,11 +124,10 @@ class LabelApp:
         self._label_points: dict[int, tuple[bytes, np.ndarray]] = {}  # frame -> (its labels, their 3D points)
         self.agreement = LabelAgreement(self.dataset, self.store)  # the labels that disagree
         self.suggestions = None
-        if run is not None:
-            if not ignore_geometry:  # a run shown other parts of the frames than it learnt suggests nonsense
-                check_dataset(run, self.root)
-
-            self.suggestions = Suggestions(run, self.root, device)
+        if run is not None:  # a run shown other parts of the frames than it learnt suggests nonsense
+            session = RigSession.on_dataset(Detector.load(run, device), self.dataset, ignore_geometry,
+                                            "--ignore-geometry", rig=False)
+            self.suggestions = Suggestions(session, self.root)
 
     def frame_state(self, frame: int) -> dict[str, Any]:
         self.store.refresh()

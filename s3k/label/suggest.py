@@ -39,8 +39,9 @@ import numpy as np
 
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
-from s3k.detector import Detector, detect_store
+from s3k.detector import detect_store
 from s3k.errors import UserError
+from s3k.inference.session import RigSession
 
 __all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "Up", "coverage_order", "pose_distances",
            "representative_order"]
@@ -184,16 +185,16 @@ POSE_ORDERS = {"coverage": coverage_order, "representative": representative_orde
 
 
 class Suggestions:
-    """Predictions of the run ``run_dir`` on the frames of the dataset ``data``, computed when first asked
-    for and kept.
+    """Predictions of the session's detector (:meth:`s3k.inference.session.RigSession.on_dataset`) on the
+    frames of the dataset ``data``, computed when first asked for and kept.
 
     Raises:
         UserError: the run's keypoints are not all among the dataset's (names listed).
     """
 
-    def __init__(self, run_dir: str | Path, data: str | Path, device: str = "cpu",
-                 batch_size: int = 16) -> None:
-        self.detector = Detector.load(run_dir, device)
+    def __init__(self, session: RigSession, data: str | Path, batch_size: int = 16) -> None:
+        self.detector = session.detector
+        run_dir = self.detector.run
         self.batch_size = batch_size
         self.dataset = Dataset.open(data, cache="memory")
         missing = [k for k in self.detector.keypoints if k not in self.dataset.keypoints]
