@@ -651,3 +651,56 @@ def test_a_track_is_of_a_run_only_while_the_run_is_unchanged_since(tmp_path):
     assert not tracked_with(out, run)
     touch(out, 4000.0)
     assert tracked_with(out, tmp_path / "run" / "fine" / "..")  # the same folder, named another way
+
+
+def test_python_track_writes_the_files_the_command_writes(recording, tmp_path, capsys):
+    """``s3k.track(...)`` with a loaded detector writes what ``s3k track`` writes with the same settings: the
+    filtered and raw CSVs, the doubt ranking and the JSON companions byte for byte, and the overlays; the
+    detector is reused for a second track without loading it again."""
+    import s3k
+
+    cli_dir, py_dir = tmp_path / "cli", tmp_path / "py"
+    assert _track(recording, cli_dir / "points3d.csv", "--min-weight", "0", "--batch", "4",
+                  "--filter-gate", "3", "--overlay", str(cli_dir / "ov")) == 0
+    said = capsys.readouterr().out
+    detector = s3k.Detector.load(recording["run"], "cpu")
+    config = s3k.TrackConfig.from_flat(min_weight=0.0, batch=4, filter_gate=3.0, overlay=str(py_dir / "ov"),
+                                       progress=False)
+    out = py_dir / "points3d.csv"
+    result = s3k.track(detector, recording["videos"], recording["calibration"], out, config)
+    names = ["points3d.csv", "points3d.raw.csv", "points3d.doubt.csv", "points3d.csv.s3k.json",
+             "points3d.raw.csv.s3k.json"]
+    for name in names:
+        assert (py_dir / name).read_bytes() == (cli_dir / name).read_bytes(), name
+    overlays = [sorted(p.name for p in (d / "ov").iterdir()) for d in (py_dir, cli_dir)]
+    assert overlays[0] == overlays[1]
+    assert {p.name for p in result.files} == {*names, *(f"{c}.mp4" for c in CAMERAS)}
+    assert "wrote 6 filtered frames" in said and result.frames == FRAMES
+    # the same detector again, another setting: no second load, the same files but unfiltered
+    again = s3k.track(detector, recording["videos"], recording["calibration"], py_dir / "plain.csv",
+                      s3k.TrackConfig.from_flat(min_weight=0.0, filter="none", progress=False))
+    assert again.session.detector is detector
+    assert (py_dir / "plain.csv").read_bytes() == (py_dir / "points3d.raw.csv").read_bytes()
+
+
+def test_track_settings_are_the_track_config_with_ranges_and_print_config(recording, tmp_path, capsys):
+    """s3k track's settings are TrackConfig's fields: --help states each one's default and range, a value out
+    of range is refused as it is parsed, --print-config prints the resolved settings and tracks nothing;
+    s3k stream offers the same filter settings with the filter off by default."""
+    with pytest.raises(SystemExit):
+        cli.main(["track", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--filter-gate SIGMAS" in text and "(default: 4.0; >= 0)" in text
+    assert "--min-weight FLOAT" in text and "in [0, 1)" in text and "--no-progress" in text
+    out = tmp_path / "x.csv"
+    assert _track(recording, out, "--filter-gate", "5", "--filter-limbs", "nose,ear", "--print-config") == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["filter_gate"] == 5.0 and printed["filter_limbs"] == ["nose,ear"] and printed["batch"] == 8
+    assert not out.exists()
+    with pytest.raises(SystemExit):
+        _track(recording, out, "--filter-gate", "-1")
+    assert "--filter-gate" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["stream", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "filter the 3D points over time" in text and "(default: none)" in text and "--batch" not in text
