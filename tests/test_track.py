@@ -704,3 +704,40 @@ def test_track_settings_are_the_track_config_with_ranges_and_print_config(record
         cli.main(["stream", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "filter the 3D points over time" in text and "(default: none)" in text and "--batch" not in text
+
+
+def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypatch, capsys):
+    """One s3k track or s3k stream call of a run that records its geometry (as s3k train does) opens the
+    run's model file once and no other file of the run: the rig's checks, crop boxes and calibration notes
+    read the loaded detector's meta."""
+    import builtins
+    import io
+
+    whole = {c: {"box": [0.0, 0.0, *map(float, VIDEO_SIZE)], "frame_size": list(VIDEO_SIZE)} for c in CAMERAS}
+    meta = DetectorMeta(
+        keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=2, sigma=2.0,
+        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(), units="mm",
+        geometry={"cameras": whole, "image_size": list(NET_SIZE),
+                  "dataset": {"path": str(tmp_path / "gone")}})
+    run = save_run(tmp_path / "run", meta, seed=0).resolve()
+    recording = dict(recording, run=run)
+    opened: list[str] = []
+    real_open, real_io_open = builtins.open, io.open
+
+    def spy(opener):
+        def open_(file, *args, **kwargs):
+            if isinstance(file, (str, Path)) and Path(file).resolve().parent == run:
+                opened.append(Path(file).name)
+            return opener(file, *args, **kwargs)
+        return open_
+
+    monkeypatch.setattr(builtins, "open", spy(real_open))
+    monkeypatch.setattr(io, "open", spy(real_io_open))
+    assert _track(recording, tmp_path / "x.csv") == 0
+    assert opened == ["model.pt"]
+    opened.clear()
+    sources = [f"{c}={recording['videos'][c]}" for c in CAMERAS]
+    assert cli.main(["stream", str(recording["run"]), "--calibration", str(recording["calibration"]),
+                     "--sources", *sources, "--max-frames", "2"]) == 0
+    assert opened == ["model.pt"]
+    capsys.readouterr()
