@@ -336,11 +336,14 @@ class Track:
         try:
             start = int(got.fnums[0]) if len(got.fnums) else 0
             stop = int(got.fnums[-1]) + 1 if len(got.fnums) else 0
-            frames = video.synchronized_frames(list(self.videos.values()), start, stop)
-            for t, (_, views) in enumerate(frames):
-                for c, w in enumerate(writers):
-                    w.write(draw_overlay(views[c], got.reproj[t, c], got.uv[t, c], got.used[t, c], colours,
-                                         edges))
+            batches = video.synchronized_batches(list(self.videos.values()), self.config.batch, start, stop)
+            t = 0
+            for _, frames in video.prefetch(batches):  # decoded as the detection decoded them
+                for views in frames:
+                    for c, w in enumerate(writers):
+                        w.write(draw_overlay(views[c], got.reproj[t, c], got.uv[t, c], got.used[t, c],
+                                             colours, edges))
+                    t += 1
         finally:
             for w in writers:
                 w.close()
