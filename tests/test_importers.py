@@ -653,3 +653,19 @@ def test_split_frames():
     assert list(every.values()).count("test") == 1
     with pytest.raises(ValueError, match="--test 6: only 5 frames"):
         rec.split_frames(np.array([1, 3, 5, 7, 9]), np.arange(12), "2", 6, 0, 1)
+
+
+def test_every_label_format_has_its_option_and_is_built_from_the_options_it_takes():
+    """s3k import builds a label format from the registry: every registered format has the option that names
+    its files, and build() passes a format the options it takes and no other."""
+    from s3k.cli.import_ import LABEL_OPTIONS
+    from s3k.data import import_labels as fmt
+
+    assert set(LABEL_OPTIONS) == set(fmt.LABEL_FORMATS)
+    options = dict(track="a", accept_predictions=True, frame_ids_from="row", min_score=0.2, camera_map=None)
+    assert fmt.build("deeplabcut", {"c": "c.csv"}, **options) == fmt.DeepLabCut({"c": "c.csv"}, "row")
+    assert fmt.build("openpose", {"c": "d"}, **options) == fmt.OpenPose({"c": "d"}, 0.2)
+    assert fmt.build("sleap-project", "p.slp", **options) == fmt.SleapProject("p.slp", "a", None, True)
+    assert fmt.build("deepfly3d", "x.pkl", **options) == fmt.DeepFly3D("x.pkl")
+    with pytest.raises(UserError, match="no label format 'nope'"):
+        fmt.build("nope", "x")

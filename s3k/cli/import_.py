@@ -142,27 +142,27 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "the CSVs lie in, else an anipose config.toml beside or above --calibration)")
 
 
+LABEL_OPTIONS = {"sleap": "--sleap", "sleap-project": "--sleap", "nwb": "--nwb", "deeplabcut": "--dlc",
+                 "lightning-pose": "--lightning-pose", "openpose": "--openpose", "mmpose": "--mmpose",
+                 "deepfly3d": "--deepfly3d"}
+"""The option that names each label format's files (:data:`s3k.data.import_labels.LABEL_FORMATS`): CAM=FILE
+pairs where it takes several values, else one path; ``--sleap`` with one ``FILE.slp`` is a project."""
+
+
 def _labels(args: argparse.Namespace, track: str | None) -> Any:
-    """The label format the options name (:mod:`s3k.data.import_labels`), or None."""
-    camera_map = camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None
-    sleap = dict(track=track, camera_map=camera_map, accept_predictions=args.accept_predictions)
+    """The label format the options name (:func:`s3k.data.import_labels.build`), or None."""
+    options = dict(track=track, accept_predictions=args.accept_predictions,
+                   frame_ids_from=args.frame_ids_from, min_score=args.min_score,
+                   camera_map=camera_pairs(args.camera_map, "--camera-map") if args.camera_map else None)
     project = _sleap_project(args)
-    if project is not None:
-        return fmt.SleapProject(project, **sleap)
-    if args.sleap:
-        return fmt.SleapFiles(camera_pairs(args.sleap, "--sleap"), **sleap)
-    if args.nwb:
-        return fmt.Nwb(args.nwb, camera_map=camera_map, accept_predictions=args.accept_predictions)
-    if args.dlc:
-        return fmt.DeepLabCut(camera_pairs(args.dlc, "--dlc"), frame_ids_from=args.frame_ids_from)
-    if args.lightning_pose:
-        return fmt.LightningPose(args.lightning_pose, frame_ids_from=args.frame_ids_from)
-    if args.openpose:
-        return fmt.OpenPose(camera_pairs(args.openpose, "--openpose"), min_score=args.min_score)
-    if args.mmpose:
-        return fmt.MMPose(camera_pairs(args.mmpose, "--mmpose"), min_score=args.min_score)
-    if args.deepfly3d:
-        return fmt.DeepFly3D(args.deepfly3d)
+    for kind in fmt.LABEL_FORMATS:
+        option = LABEL_OPTIONS[kind]
+        given = getattr(args, option[2:].replace("-", "_"))
+        if not given or (option == "--sleap" and (kind == "sleap-project") != (project is not None)):
+            continue
+        files = project if kind == "sleap-project" else (
+            camera_pairs(given, option) if isinstance(given, list) else given)
+        return fmt.build(kind, files, **options)
     return None
 
 

@@ -8,8 +8,9 @@ A format's dataclass holds its options (the files it reads and how to read them)
 
 :func:`s3k.data.recording.import_recording` takes one of them (or none) and does the rest: it never asks
 which format it has. Adding a format is a reader in :mod:`s3k.data.formats`, a dataclass here registered
-with :func:`register`, and a command-line option in :mod:`s3k.cli.import_` that builds it
-(docs/importing.md, "Adding a label format").
+with :func:`register`, and a command-line option in :mod:`s3k.cli.import_` named for it (:func:`build`
+makes the dataclass from the option's files and the options it takes; docs/importing.md, "Adding a label
+format").
 
 Example:
     >>> fmt = DeepLabCut({"cam0": "cam0.csv"}, frame_ids_from="row")
@@ -19,6 +20,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +72,17 @@ def register(name: str) -> Callable[[type], type]:
         return cls
 
     return add
+
+
+def build(name: str, files: Any, **options: Any) -> Any:
+    """The format ``name``'s dataclass (:data:`LABEL_FORMATS`) of its ``files`` (its first field: ``{camera:
+    file}`` or one path) and of those ``options`` it takes; the others are left out, so that a caller offering
+    every format's options (the command line) builds any format the same way."""
+    if name not in LABEL_FORMATS:
+        raise UserError(f"no label format {name!r}; the formats are {', '.join(LABEL_FORMATS)}")
+    cls = LABEL_FORMATS[name]
+    _, *rest = dataclasses.fields(cls)
+    return cls(files, **{f.name: options[f.name] for f in rest if f.name in options})
 
 
 def _per_camera(kind: str, files: Mapping[str, PathLike], cameras: list[str],
