@@ -11,7 +11,8 @@ from __future__ import annotations
 import typing
 from typing import Literal
 
-__all__ = ["NORMS", "Arithmetic", "Device", "Norm", "Precision"]
+__all__ = ["FIT_MODES", "LAYOUT_FITS", "NORMS", "Arithmetic", "Device", "Fit", "LayoutFit", "Norm",
+           "Precision"]
 
 Precision = Literal["auto", "float32", "bfloat16"]
 """A training's arithmetic (``--precision``): float32, bfloat16 autocast, or ``"auto"`` (bfloat16 where the
@@ -24,4 +25,12 @@ Device = Literal["auto", "cpu", "cuda"] | str
 """Where the network runs: ``"auto"`` (a GPU when there is one), ``"cpu"``, ``"cuda"``, or a device name torch
 takes, such as ``"cuda:1"``."""
 
+Fit = Literal["pad", "crop", "stretch"]
+"""How a frame maps onto a detector's input when the aspect ratios differ (``--fit``;
+:func:`s3k.detector.geometry_record.fit_box`)."""
+LayoutFit = Literal["all", "kept", "off"]
+"""Which keypoints a rigid read-out's fitted layout places (:class:`s3k.readout.ReadoutConfig`)."""
+
 NORMS: tuple[str, ...] = typing.get_args(Norm)
+FIT_MODES: tuple[str, ...] = typing.get_args(Fit)
+LAYOUT_FITS: tuple[str, ...] = typing.get_args(LayoutFit)

@@ -14,9 +14,10 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from s3k.choices import FIT_MODES
 from s3k.data.rig import check_camera_name
 from s3k.errors import UserError
-from s3k.inference.session import FIT_MODES, RigOptions
+from s3k.inference.session import RigOptions
 from s3k.ranges import Range
 
 

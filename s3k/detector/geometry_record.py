@@ -24,17 +24,18 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
+from s3k.choices import FIT_MODES, Fit
 from s3k.data import Dataset
 from s3k.data.protocol import DatasetLike
 from s3k.errors import UserError
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.run_folder import RunFolder
 
-__all__ = ["FIT_MODES", "TOLERANCE", "Box", "Fit", "check_dataset", "check_images", "dataset_geometry",
+__all__ = ["TOLERANCE", "Box", "check_dataset", "check_images", "dataset_geometry",
            "fit_box", "frame_calibration", "input_boxes", "mismatches", "recorded_geometry", "run_geometry",
            "track_crops", "training_geometry"]
 
@@ -178,9 +179,6 @@ def check_images(recorded: dict[str, Any] | None, run_dir: str | Path, ds: Datas
         f"{option} to use these images as they are")
 
 
-Fit = Literal["pad", "crop", "stretch"]
-"""How a frame maps onto the detector's input when the aspect ratios differ (:func:`fit_box`)."""
-FIT_MODES: tuple[str, ...] = ("pad", "crop", "stretch")
 Box = tuple[float, ...]
 """A box ``(x0, y0, x1, y1)`` in pixel edge coordinates."""
 

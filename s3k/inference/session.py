@@ -20,16 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.choices import Device
+from s3k.choices import Device, Fit
 from s3k.data import Dataset
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.detector import Detector
-from s3k.detector.geometry_record import FIT_MODES, Box, Fit, fit_box, input_boxes, recorded_geometry
+from s3k.detector.geometry_record import Box, fit_box, input_boxes, recorded_geometry
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.inference.rig_check import calibration_notes, check_dataset_rig, check_rig
 
-__all__ = ["FIT_MODES", "Box", "Fit", "RigOptions", "RigSession", "fit_box"]
+__all__ = ["Box", "RigOptions", "RigSession", "fit_box"]
 
 log = logging.getLogger(__name__)
 

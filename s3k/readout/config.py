@@ -17,11 +17,11 @@ from typing import Any
 
 from torch import Tensor
 
+from s3k.choices import LAYOUT_FITS, LayoutFit
 from s3k.readout.views import DEFAULT_MIN_WEIGHT
 
 __all__ = ["LAYOUT_FITS", "ReadoutConfig"]
 
-LAYOUT_FITS = ("all", "kept", "off")
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,7 +56,7 @@ class ReadoutConfig:
     layout_ties: bool = True
     layout_prior: bool = True
     layout_drop: bool = False
-    layout_fit: str = "all"
+    layout_fit: LayoutFit = "all"
 
     def __post_init__(self) -> None:
         if self.layout_fit not in LAYOUT_FITS:
