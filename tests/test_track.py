@@ -741,3 +741,17 @@ def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypa
                      "--sources", *sources, "--max-frames", "2"]) == 0
     assert opened == ["model.pt"]
     capsys.readouterr()
+
+
+def test_track_config_validate_names_the_option_of_a_value_out_of_range_or_choice():
+    """TrackConfig.validate: one line naming the option, for a range and for a choice set directly."""
+    from s3k.errors import UserError
+    from s3k.inference.track_config import FilteringConfig, TrackConfig
+
+    with pytest.raises(UserError, match="--filter-gate"):
+        TrackConfig.from_flat(filter_gate=-1.0).validate()
+    with pytest.raises(UserError, match="--filter must be one of kalman, none, got 'kalmn'"):
+        TrackConfig(filtering=FilteringConfig(filter="kalmn")).validate()  # type: ignore[arg-type]
+    with pytest.raises(UserError, match="--filter-limbs 'nose'"):
+        TrackConfig.from_flat(filter_limbs=["nose"]).validate()
+    assert TrackConfig.from_flat(filter_limbs=["none"]).validate().limb_pairs() == []

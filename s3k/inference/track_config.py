@@ -14,10 +14,12 @@ Example:
 
 from __future__ import annotations
 
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from s3k.config import config_from_dict, flat_values, leaf_fields
+from s3k.config_files import base_type
 from s3k.errors import UserError
 from s3k.inference.kalman import RANGES, FilterSettings
 from s3k.ranges import Range
@@ -153,15 +155,18 @@ class TrackConfig:
     def validate(self) -> TrackConfig:
         """Raise ``UserError`` naming the option of a value out of its range (the ranges declared with the
         fields; floats must be finite) or of a choice it does not offer; returns ``self``."""
-        for _, f, _ in leaf_fields(type(self)):
-            bounds = f.metadata.get("range")
-            value = getattr(self, f.name)
+        for _, f, tp in leaf_fields(type(self)):
+            bounds, value = f.metadata.get("range"), getattr(self, f.name)
+            option = f"--{f.name.replace('_', '-')}"
             if bounds is not None and value is not None:
-                bounds.check(value, f"--{f.name.replace('_', '-')}")
+                bounds.check(value, option)
+            base = base_type(tp)[0]
+            choices = typing.get_args(base) if typing.get_origin(base) is Literal else ()
+            if choices and value not in choices:
+                raise UserError(f"{option} must be one of {', '.join(choices)}, got {value!r}")
         if self.stop is not None and self.stop <= self.start:
             raise UserError(f"--start/--stop: need 0 <= start < stop, got start={self.start}, "
                             f"stop={self.stop}")
-        self.filter_settings().check()
         self.limb_pairs()
         return self
 
