@@ -690,7 +690,7 @@ def test_track_settings_are_the_track_config_with_ranges_and_print_config(record
     with pytest.raises(SystemExit):
         cli.main(["track", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "--filter-gate SIGMAS" in text and "(default: 4.0; >= 0)" in text
+    assert "--filter-gate SIGMAS" in text and "(default: 4.0; in [0, 100])" in text
     assert "--min-weight FLOAT" in text and "in [0, 1)" in text and "--no-progress" in text
     out = tmp_path / "x.csv"
     assert _track(recording, out, "--filter-gate", "5", "--filter-limbs", "nose,ear", "--print-config") == 0

@@ -112,6 +112,25 @@ def _difference(name: str, want: dict[str, Any], K, R, t, size, scale: float) ->
     return f"{name} ({', '.join(parts)})" if parts else None
 
 
+def _differences(want: dict[str, Any], cams: Cameras, names: list[str], units: str,
+                 sizes: dict[str, tuple[int, int]]) -> list[str]:
+    """How each camera differs from its entry of the run's calibration ``want`` (:func:`_difference`)."""
+    scale, want_scale = mm_per_unit(units), mm_per_unit(want.get("units", "unknown"))
+    if not (math.isfinite(scale) and math.isfinite(want_scale)):  # one unit unknown: compare as they are
+        scale = want_scale = 1.0
+    a = cams.numpy()
+    diffs = []
+    for c, name in enumerate(names):
+        entry = want["cameras"].get(name)
+        if entry is None:
+            continue
+        d = _difference(name, {**entry, "_scale": want_scale}, a["K"][c], a["R"][c], a["t"][c],
+                        tuple(sizes.get(name, entry.get("frame_size") or (0, 0))), scale)
+        if d:
+            diffs.append(d)
+    return diffs
+
+
 def calibration_notes(meta: DetectorMeta, run: str | Path | None, cams: Cameras, names: list[str], units: str,
                       sizes: dict[str, tuple[int, int]], source: str | Path) -> list[str]:
     """Warnings (``warning: ...`` lines) on the calibration ``source`` given to a run: cameras with identical
@@ -126,23 +145,9 @@ def calibration_notes(meta: DetectorMeta, run: str | Path | None, cams: Cameras,
         sizes: ``{camera: (W, H)}`` of those frames.
         source: the calibration's file or dataset, for the message.
     """
-    notes = _identical(cams, names)
     want = run_calibration(meta, run)
-    if want is None:
-        return [f"warning: {source}: {n}" for n in notes]
-    scale, want_scale = mm_per_unit(units), mm_per_unit(want.get("units", "unknown"))
-    if not (math.isfinite(scale) and math.isfinite(want_scale)):  # one unit unknown: compare as they are
-        scale = want_scale = 1.0
-    a = cams.numpy()
-    diffs = []
-    for c, name in enumerate(names):
-        entry = want["cameras"].get(name)
-        if entry is None:
-            continue
-        d = _difference(name, {**entry, "_scale": want_scale}, a["K"][c], a["R"][c], a["t"][c],
-                        tuple(sizes.get(name, entry.get("frame_size") or (0, 0))), scale)
-        if d:
-            diffs.append(d)
+    diffs = [] if want is None else _differences(want, cams, names, units, sizes)
+    notes = _identical(cams, names)
     if diffs:
         notes.append(f"calibration differs from the one the run {run} was trained with: "
                      f"{'; '.join(diffs)}; the 3D points move with it (and the reprojection error does not "

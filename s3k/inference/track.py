@@ -88,11 +88,11 @@ def track(run: str | Path | Detector, videos: Mapping[str, str | Path], rig: Rig
 def _check_files(out: str | Path, overwrite: bool, config: TrackConfig, cameras: list[str],
                  inputs: dict[str, object]) -> None:
     """Refuse, before any work, an output :meth:`Track.write` would refuse (:mod:`s3k.outputs`)."""
+    overlays = {overlay_file(config.overlay, c).name for c in cameras} if config.overlay else set()
     for path in (out, raw_path(out), doubt_path(out)) if config.filtering_on else (out, doubt_path(out)):
         check_output(path, overwrite, inputs=inputs)
     if config.overlay:
-        check_folder(config.overlay, OVERLAYS, option="--overlay", inputs=inputs,
-                     writes={overlay_file(config.overlay, c).name for c in cameras})
+        check_folder(config.overlay, OVERLAYS, option="--overlay", inputs=inputs, writes=overlays)
 
 
 def overlay_file(folder: str | Path, camera: str) -> Path:
@@ -144,10 +144,11 @@ def detect_videos(session: RigSession, videos: dict[str, Path], config: TrackCon
     """Track the synchronized ``videos`` (``{camera: path}`` in the session's camera order) with the
     session's detector: every frame's read-out, then the filter over time; nothing is written."""
     config = (config or TrackConfig()).validate()
+    settings, limbs = config.filter_settings(), config.limb_pairs()
     detector = session.detector
     shape = layout_shape_of(detector.meta.layout)
     if config.filtering_on:  # before any frame is read
-        check_rigid(config.filter_settings(), shape, f"the run {detector.run}")
+        check_rigid(settings, shape, f"the run {detector.run}")
     paths = [Path(videos[name]) for name in session.names]
     rates = [video.frame_rate(p) for p in paths]
     end = _frame_range(session.names, paths, rates, config.start, config.stop)
@@ -156,9 +157,8 @@ def detect_videos(session: RigSession, videos: dict[str, Path], config: TrackCon
     rate = None if any(imageseq.is_sequence(p) for p in paths) else _common_rate(rates)
     result = Track(session, {n: p for n, p in zip(session.names, paths)}, config, got, rate)
     if config.filtering_on:
-        settings, limbs = config.filter_settings(), config.limb_pairs()
-        limbs = session.detector.meta.recorded_skeleton() if limbs is None else limbs
-        edges = limb_indices(limbs, session.detector.keypoints)
+        limbs = detector.meta.recorded_skeleton() if limbs is None else limbs
+        edges = limb_indices(limbs, detector.keypoints)
         assert session.cameras is not None
         result.filtered = filter_track(got.X, got.error, got.score, got.used.astype(bool),
                                        session.cameras.numpy(), settings, shape, edges)
