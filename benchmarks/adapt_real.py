@@ -22,10 +22,8 @@ Resumable: a finished fine-tune is kept (``s3k train --resume`` leaves a finishe
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -38,33 +36,9 @@ from benchmarks.common import git_revision, machine_info, t_interval, write_and_
 from benchmarks.real_comparison import distances  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
+from s3k.experiments.adapt import held_out_as_unlabelled  # noqa: E402
 from s3k.label_reference import bootstrap_ci  # noqa: E402
 from s3k.run_folder import RunFolder  # noqa: E402
-
-
-def held_out_as_unlabelled(data: Path, out: Path) -> Path:
-    """A copy of the dataset ``data`` whose ``test`` frames are ``unlabelled`` (images linked, not copied)."""
-    if (out / "s3k.json").is_file():
-        return out
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for item in data.iterdir():
-        if item.name in ("frames.csv", ".cache"):
-            continue
-        if item.is_dir():
-            (tmp / item.name).symlink_to(item.resolve())
-        else:
-            shutil.copy2(item, tmp / item.name)
-    with open(data / "frames.csv", newline="") as src, open(tmp / "frames.csv", "w", newline="") as dst:
-        lines = [line for line in src if not line.startswith("#")]
-        rows = list(csv.DictReader(lines))
-        writer = csv.DictWriter(dst, fieldnames=list(rows[0]))
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({**row, "split": "unlabelled" if row["split"] == "test" else row["split"]})
-    tmp.rename(out)
-    return out
 
 
 def fine_tune(data: Path, run: Path, out: Path, steps: int, threads: int) -> None:

@@ -1,4 +1,5 @@
-"""benchmarks/adapt_real.py: the adapting copy of a dataset, and one round of fine-tunes scored end to end."""
+"""benchmarks/adapt_real.py and s3k.experiments.adapt: the adapting copy of a dataset, and one round of
+fine-tunes scored end to end."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import numpy as np
 import pytest
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS, _add_frame, make_dataset, rig
 
-from benchmarks.adapt_real import held_out_as_unlabelled
 from s3k.data import Dataset
+from s3k.experiments.adapt import held_out_as_unlabelled
 
 ROOT = Path(__file__).resolve().parents[1]
 
