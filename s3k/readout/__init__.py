@@ -8,7 +8,8 @@ benchmarks, so what is trained, scored and shipped is the same maths (docs/metho
 1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` within a window around
    its most probable cell (the 2D detection, in the network-input pixels, pixel (0, 0) the centre of the
    top-left pixel) and its variance ``var_ck`` over the whole heatmap.
-2. :func:`s3k.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread.
+2. :func:`s3k.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread, and the run's
+   calibration of it (:class:`ConfidenceMap`), the confidence ``c_ck``.
 3. :func:`select_views`: which views enter the triangulation.
 4. :func:`triangulate`: the confidence-weighted triangulation of the selected views (lens distortion
    included), valid where at least two views are used and the rays are not near-parallel.
@@ -27,15 +28,19 @@ and the triangulation solves normal equations whose conditioning degrades with n
 makes both independent of summation order and of the runtime (PyTorch, ONNX Runtime, TorchScript give the
 same points up to their logits), and its cost is negligible next to the network. Results are float64.
 
-View selection: a view is used when its mean and weight are finite and its weight is above ``min_weight``;
-used views are weighted by their confidence ``w``. The default ``min_weight = 0`` uses every view, weighted:
-the paper's rule and the one training's self-supervised target uses, so that ``s3k evaluate`` scores exactly
-the points ``s3k predict`` and ``s3k track`` write. A higher threshold (``s3k track --min-weight``) drops
-uncertain views outright instead of down-weighting them (the weight is 0.5 at a spread of 2 sigma).
+View selection: a view is used when its mean and weight are finite and its calibrated confidence
+(:mod:`s3k.readout.confidence`: the run's map of the weight to the share of views within two target widths of
+the truth, fitted on its validation frames; the weight itself for a run without one) is above
+``min_weight``; used views are weighted by their confidence weight ``w``. The default ``min_weight = 0`` uses
+every view, weighted: the paper's rule and the one training's self-supervised target uses, so that ``s3k
+evaluate`` scores exactly the points ``s3k predict`` and ``s3k track`` write. A higher threshold (``s3k track
+--min-weight``) drops uncertain views outright instead of down-weighting them: 0.5 keeps the views of which
+at least half are right, whatever the run's weights.
 :func:`reject_outliers` (``max_residual_px``) also drops views that miss the other views' consensus;
 :func:`reject_layout` drops 3D keypoints whose distances to the others break a rigid object's layout.
 """
 
+from s3k.readout.confidence import CALIBRATION_SIGMAS, ConfidenceMap, fit_confidence, reliability
 from s3k.readout.config import LAYOUT_FITS, ReadoutConfig
 from s3k.readout.pipeline import ReadOut, read_out
 from s3k.readout.rigid import (
@@ -60,6 +65,7 @@ from s3k.readout.views import (
 )
 
 __all__ = [
+    "CALIBRATION_SIGMAS", "ConfidenceMap", "fit_confidence", "reliability",
     "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_FITS", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "LayoutPrior", "ReadOut",
     "ReadoutConfig", "fit_layout", "layout_locus", "layout_shape", "moments", "read_out", "reject_layout",
     "reject_outliers",

@@ -18,6 +18,7 @@ from typing import Any
 from torch import Tensor
 
 from s3k.choices import LAYOUT_FITS, LayoutFit
+from s3k.readout.confidence import ConfidenceMap
 from s3k.readout.views import DEFAULT_MIN_WEIGHT
 
 __all__ = ["LAYOUT_FITS", "ReadoutConfig"]
@@ -31,7 +32,11 @@ class ReadoutConfig:
     Attributes:
         window: each detection is its heatmap's mean within this many cells of the peak; None:
             :func:`s3k.readout.window_cells` of the target width; 0: the whole heatmap's mean (the paper's).
-        min_weight: views with a confidence weight at or below this are not used (0: every view, weighted).
+        min_weight: views whose calibrated confidence is at or below this are not used (0: every view,
+            weighted by its raw weight).
+        confidence: the run's calibration, raw weight -> calibrated confidence
+            (:class:`s3k.readout.confidence.ConfidenceMap`); None: the raw weight is the confidence (a run
+            trained before runs were calibrated, and the pseudo-labels).
         max_residual_px: views whose reprojection residual exceeds this many network-input pixels are left
             out one at a time (:func:`s3k.readout.reject_outliers`); None: every view.
         layout, layout_tol: a rigid object's ``(K, K)`` reference distances and the relative tolerance
@@ -49,6 +54,7 @@ class ReadoutConfig:
 
     window: int | None = None
     min_weight: float = DEFAULT_MIN_WEIGHT
+    confidence: ConfidenceMap | None = None
     max_residual_px: float | None = None
     layout: Tensor | None = None
     layout_tol: float = 0.0

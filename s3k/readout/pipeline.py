@@ -44,12 +44,15 @@ class ReadOut:
     Attributes:
         uv: ``(B, C, K, 2)`` per-view 2D detections (softmax means) in the cameras' pixels.
         var: ``(B, C, K)`` heatmap variances, squared network-input pixels.
-        weights: ``(B, C, K)`` confidence weights.
+        weights: ``(B, C, K)`` confidence weights (the paper's: the triangulation's weights).
         used: ``(B, C, K)`` bool, the view entered the triangulation (:func:`select_views`).
         X: ``(B, K, 3)`` triangulated points in world units, NaN where invalid.
         valid: ``(B, K)`` bool, the triangulation is defined.
         cams: the cameras ``(B, C)`` or ``(C,)`` of ``uv``, float64.
         probs: ``(B, C, K, h, w)`` heatmaps (softmax), or None.
+        confidence: ``(B, C, K)`` calibrated confidences (:mod:`s3k.readout.confidence`): about this share of
+            views with it lie within the run's calibration distance of the truth; ``weights`` where the
+            detector has no calibration (and when not given).
 
     The reprojections and residuals are computed when first asked for: a caller that wants only the points
     (the per-frame inference benchmark) does not pay for them.
@@ -63,6 +66,11 @@ class ReadOut:
     valid: Tensor
     cams: Cameras
     probs: Tensor | None = None
+    confidence: Tensor = None  # type: ignore[assignment]  # filled from weights in __post_init__
+
+    def __post_init__(self) -> None:
+        if self.confidence is None:
+            self.confidence = self.weights
 
     @cached_property
     def reproj(self) -> Tensor:
@@ -96,7 +104,7 @@ class ReadOut:
         """The same read-out with every tensor on the CPU."""
         return ReadOut(self.uv.cpu(), self.var.cpu(), self.weights.cpu(), self.used.cpu(), self.X.cpu(),
                        self.valid.cpu(), self.cams.to(device="cpu"),
-                       None if self.probs is None else self.probs.cpu())
+                       None if self.probs is None else self.probs.cpu(), self.confidence.cpu())
 
 
 def _affine_inverse(M: Tensor) -> Tensor:
@@ -139,7 +147,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
             :meth:`s3k.detector.DetectorMeta.readout_config`, or the pseudo-labels',
             :meth:`ReadoutConfig.for_pseudo_labels`); default: the plain inference read-out.
         keep_heatmaps: also return the softmax heatmaps.
-        weights: ``(B, C, K)`` triangulation weights instead of the confidence weights.
+        weights: ``(B, C, K)`` triangulation weights instead of the confidence weights (the calibration maps
+            them to the confidences the selection compares).
         prior: another network's heatmaps of the same frames, whose evidence joins the views' in the rigid
             read-out's search (:class:`s3k.readout.LayoutPrior`).
 
@@ -156,7 +165,8 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     cells = window_cells(sigma, stride, config.window)
     probs, uv, var = moments(logits, stride, cells)
     weights = confidence_weight(var, sigma) if weights is None else weights.to(DTYPE)
-    used = select_views(uv, weights, config.min_weight)
+    confidence = weights if config.confidence is None else config.confidence(weights)
+    used = select_views(uv, confidence, config.min_weight)
     if cams.dtype != DTYPE or cams.K.device != logits.device:
         cams = cams.to(device=logits.device, dtype=DTYPE)
     views = _Views(cams, cams, uv, None)  # the cameras of the network-input pixels and the detections in them
@@ -175,9 +185,10 @@ def read_out(logits: Tensor, cams: Cameras, stride: int, sigma: float,
     else:
         X, valid = triangulate_views(rays, weights, used)
     if config.rigid:
-        X, valid, uv, used = _rigid(config, views, probs, weights, used, X, valid, stride, cells, prior)
+        X, valid, uv, used = _rigid(config, views, probs, (weights, confidence), used, X, valid, stride,
+                                    cells, prior)
     X = torch.where(valid[..., None], X, torch.full_like(X, float("nan")))
-    return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None)
+    return ReadOut(uv, var, weights, used, X, valid, cams, probs if keep_heatmaps else None, confidence)
 
 
 @dataclass
@@ -194,10 +205,12 @@ class _Views:
         return net_uv if self.Minv is None else _to_camera_pixels(net_uv, self.Minv)
 
 
-def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor, used: Tensor, X: Tensor,
-           valid: Tensor, stride: int, cells: int,
+def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weighing: tuple[Tensor, Tensor], used: Tensor,
+           X: Tensor, valid: Tensor, stride: int, cells: int,
            prior: LayoutPrior | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The rigid read-out (:class:`ReadoutConfig`'s layout fields): ``(X, valid, uv, used)``."""
+    """The rigid read-out (:class:`ReadoutConfig`'s layout fields): ``(X, valid, uv, used)``;
+    ``weighing``: the views' triangulation weights and the confidences their selection compares."""
+    weights, confidence = weighing
     layout, tol = config.layout, config.layout_tol
     assert layout is not None
     uv = views.in_cameras(views.net_uv)
@@ -214,9 +227,9 @@ def _rigid(config: ReadoutConfig, views: _Views, probs: Tensor, weights: Tensor,
     if found:
         net_uv, used = views.net_uv.clone(), used.clone()
         for b, k, found_uv, found_used, _, _ in found:
-            w_k = weights[b, :, k]
+            c_k = confidence[b, :, k]
             net_uv[b, :, k] = found_uv
-            used[b, :, k] = found_used & torch.isfinite(w_k) & (w_k > config.min_weight)
+            used[b, :, k] = found_used & torch.isfinite(c_k) & (c_k > config.min_weight)
         uv = views.in_cameras(net_uv)
         X, valid = triangulate(views.cams, uv, weights, used)
         # a detection read next to a stronger wrong peak can still break the layout: then the best place on

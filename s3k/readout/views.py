@@ -20,7 +20,7 @@ DTYPE = torch.float64
 """Precision of the read-out (see the module docstring)."""
 
 DEFAULT_MIN_WEIGHT = 0.0
-"""Views with a confidence weight at or below this are not used; 0 uses every view, weighted."""
+"""Views with a (calibrated) confidence at or below this are not used; 0 uses every view, weighted."""
 
 WINDOW_SIGMAS = 6.0
 """Half-side of the window around each heatmap's peak whose mean is the detection, in target widths (see the
@@ -64,7 +64,8 @@ def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tenso
 
 
 def select_views(uv: Tensor, weights: Tensor, min_weight: float = DEFAULT_MIN_WEIGHT) -> Tensor:
-    """The views that enter the triangulation: finite ``uv (*, 2)`` and ``weights (*)`` above ``min_weight``.
+    """The views that enter the triangulation: finite ``uv (*, 2)`` and ``weights (*)`` above ``min_weight``
+    (:func:`s3k.readout.read_out` passes the calibrated confidences, :mod:`s3k.readout.confidence`).
 
     Returns:
         ``(*)`` bool.
