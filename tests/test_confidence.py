@@ -1,18 +1,26 @@
-"""The calibrated confidence (s3k.readout.confidence, docs/method.md#confidence): the monotone fit, the map
-and the read-out's view selection on it."""
+"""The calibrated confidence (s3k.readout.confidence, docs/method.md#confidence): the monotone fit, the map,
+the read-out's view selection on it, and a short run whose raw weights are far below the documented 0.5 while
+its detections are right."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import logging
 import math
 
 import numpy as np
 import pytest
 import torch
+from helpers.synthetic_rig import make_dataset
 
+from s3k.config import TrainConfig
+from s3k.data import Dataset
+from s3k.detector import Detector, OnePassDetector
 from s3k.geometry import Cameras
 from s3k.readout import ConfidenceMap, ReadoutConfig, fit_confidence, read_out, reliability
 from s3k.readout.confidence import pool_adjacent_violators
+from s3k.train import train
 
 # ---------------------------------------------------------------------------------------------------------
 # the monotone fit
@@ -143,3 +151,59 @@ def test_the_selection_compares_the_calibrated_confidence_and_the_points_keep_th
     # threshold 0 keeps every view, as without a calibration
     every = read_out(logits, cams, 2, 2.0, config=ReadoutConfig(confidence=m), weights=weights)
     assert every.used.all() and torch.allclose(every.X, plain.X)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# a short run: raw weights far below 0.5, detections right
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """150 labels-only steps on 64 px views of the dots (fixed seeds): the detections are mostly within two
+    target widths, the heatmaps still wide (raw weights near 0.05); and 12 other frames of the same rig."""
+    tmp = tmp_path_factory.mktemp("short")
+    data = make_dataset(tmp / "ds", size=64, labelled=6, unlabelled=0, test=8, seed=3)
+    other = make_dataset(tmp / "other", size=64, labelled=0, unlabelled=0, test=12, seed=5)
+    cfg = TrainConfig.from_flat(steps=150, batch_labelled=4, channels=(8, 16, 16), res_blocks=1, unsup=False,
+                                augment=False, val_every=0, val_frames=8, checkpoint_every=150,
+                                progress=False, threads=1)
+    result = train(data, tmp / "run", cfg)
+    return tmp / "run", other, result
+
+
+def test_a_short_run_is_calibrated_so_the_documented_threshold_keeps_its_right_views(short_run):
+    run, other, result = short_run
+    assert result.meta.calibration is not None and result.meta.calibration["views"] == 8 * 4 * 3
+    assert result.meta.calibration["within_px"] == pytest.approx(2 * result.meta.sigma)
+    detector = Detector.load(run, "cpu")
+    assert detector.meta.calibration == result.meta.calibration  # recorded in model.pt
+    ds = Dataset.open(other)
+    ids = ds.frames("test")
+    images, cams = ds.images(ids), ds.calibration(ids)
+    out = detector(images, cams)
+    assert float(out.weights.median()) < 0.15  # far below the documented 0.5
+    # the same detector without its calibration (today's behaviour for runs trained before it)
+    raw = OnePassDetector.from_run(run, torch.device("cpu"))
+    raw.readout = dataclasses.replace(raw.readout, confidence=None)
+    assert float(raw(images, cams, min_weight=0.5).valid.float().mean()) < 0.2
+    kept = detector(images, cams, min_weight=0.5)
+    assert float(kept.valid.float().mean()) > 0.6  # most points valid with calibration
+    assert float(kept.used.float().mean()) > 0.6
+    torch.testing.assert_close(kept.weights, out.weights)
+
+
+def test_a_run_without_truth_on_its_validation_frames_is_not_calibrated(tmp_path, caplog):
+    data = make_dataset(tmp_path / "ds", size=32, labelled=4, unlabelled=2, test=0)
+    cfg = TrainConfig.from_flat(steps=1, batch_labelled=2, batch_unlabelled=2, channels=(8, 8), res_blocks=1,
+                                val_every=0, val_frames=2, val_split="unlabelled", progress=False, threads=1)
+    # the unlabelled frames carry 3D points: strip them so that nothing tells the truth
+    (data / "points3d.csv").unlink()
+    with caplog.at_level(logging.INFO):
+        result = train(data, tmp_path / "run", cfg)
+    assert result.meta.calibration is None
+    assert "not calibrate" in caplog.text or "too few views" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="s3k"):
+        Detector.load(tmp_path / "run", "cpu")
+        Detector.load(tmp_path / "run", "cpu")
+    assert caplog.text.count("has no confidence calibration") == 1  # said once

@@ -227,3 +227,31 @@ def test_a_failed_3d_check_is_named(run_dir, tmp_path, capsys, monkeypatch):
     assert ("3D points differ from PyTorch's detector's by 10.6 mm on 8 frames (3D tolerance 0.1 mm)"
             in err), err
     assert "0.0001" not in err and "output logits" not in err
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_an_exported_detector_applies_the_runs_confidence_calibration(tmp_path):
+    """The calibration travels in the export's metadata and its read-out applies it, as the run's does."""
+    from helpers.synthetic_rig import rig
+
+    from s3k.detector import Detector
+    from s3k.geometry import Cameras
+    from s3k.inference.export import load_exported
+    from s3k.readout import ConfidenceMap
+
+    calibration = ConfidenceMap((0.1, 0.5, 0.9), (0.55, 0.7, 0.95), 4.0, 60)
+    meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"], image_size=SIZE,
+                        stride=2, sigma=2.0, model=UNetConfig(channels=(8, 16, 16), res_blocks=1).to_dict(),
+                        calibration=calibration.to_dict())
+    run = save_run(tmp_path / "run", meta, seed=1, head_std=0.5)
+    path = export_detector(run, "onnx", tmp_path / "d.onnx").path
+    exported = load_exported(path)
+    assert exported.meta.calibration == calibration.to_dict()
+    K, dist, R, t = rig(32)
+    K[:, 0, 2] = (SIZE[0] - 1) / 2
+    cams = Cameras.from_numpy(K, dist, R, t)
+    frames = (_inputs(8).reshape(2, 4, 3, SIZE[1], SIZE[0]).transpose(0, 1, 3, 4, 2) * 255).astype(np.uint8)
+    got, want = exported(frames, cams), Detector.load(run, "cpu")(frames, cams)
+    torch.testing.assert_close(got.confidence, calibration(got.weights))
+    assert not torch.allclose(got.confidence, got.weights)
+    np.testing.assert_allclose(got.confidence.numpy(), want.confidence.numpy(), atol=1e-4)

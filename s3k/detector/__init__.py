@@ -28,7 +28,7 @@ from s3k.detector.detector import (
     training_precision,
 )
 from s3k.detector.meta import DetectorMeta
-from s3k.detector.over_frames import detect_store, evaluate_store, split_frames
+from s3k.detector.over_frames import detect_store, evaluate_store, scored_views, split_frames
 from s3k.detector.run_folder import (
     CHECKPOINT_FILE,
     CONFIG_FILE,
@@ -54,6 +54,6 @@ __all__ = [
     "DetectorMeta", "OnePassDetector", "TwoPassDetector", "atomic_save", "autocast", "build_model",
     "crop_centres", "detect_store", "evaluate_store", "extent_middle", "is_two_pass", "load_network",
     "load_torch_file", "native_bfloat16", "pick_device", "read_run_config", "read_two_pass",
-    "save_model_file", "split_frames", "training_dataset", "training_precision", "write_run_config",
-    "write_two_pass",
+    "save_model_file", "scored_views", "split_frames", "training_dataset", "training_precision",
+    "write_run_config", "write_two_pass",
 ]

@@ -107,6 +107,10 @@ def autocast(device: torch.device, precision: Arithmetic):
 class Detection(ReadOut):
     """A :class:`s3k.readout.ReadOut` in the frames' own pixels, plus how the detector saw them.
 
+    ``confidence`` (beside ``weights``, the paper's weights the points are triangulated with) is the run's
+    calibrated confidence: about that share of views lie within two target widths of the truth
+    (docs/method.md#confidence); what thresholds compare.
+
     Attributes:
         pixel_maps: ``(B, C, 3, 3)`` maps from each frame's pixels to the (last) network's input pixels.
         inputs: ``(B, C, 3, h, w)`` the (last) network's inputs in [0, 1], kept with ``keep_heatmaps``.
@@ -367,7 +371,8 @@ class Detector:
                 the intrinsics describe are refused (:attr:`check_frames`).
             boxes: ``(C, 4)`` or ``(B, C, 4)`` region of each view (pixel edge coordinates) that the
                 (first) network sees, resampled to its input; default the whole image.
-            min_weight: views with a confidence weight at or below this are not triangulated.
+            min_weight: views whose calibrated confidence (:attr:`Detection.confidence`) is at or below this
+                are not triangulated.
             keep_heatmaps: also keep the (last) network's heatmaps and inputs.
 
         Returns:

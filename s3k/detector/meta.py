@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from s3k.readout import DEFAULT_MIN_WEIGHT, ReadoutConfig
+from s3k.readout import DEFAULT_MIN_WEIGHT, ConfidenceMap, ReadoutConfig
 
 __all__ = ["DetectorMeta"]
 
@@ -44,6 +44,10 @@ class DetectorMeta:
         skeleton: the training dataset's skeleton, edges as keypoint name pairs (drawn by ``s3k track
             --overlay``, ``s3k view`` and ``s3k stream --rerun``; empty for none, or a run trained before it
             was recorded).
+        calibration: the map of the confidence weight to the calibrated confidence, fitted on the
+            validation frames at the end of training (:meth:`s3k.readout.ConfidenceMap.to_dict`); None: the
+            raw weight is the confidence (a run trained before runs were calibrated, one whose validation
+            frames had no truth, or a checkpoint of an unfinished run).
     """
 
     keypoints: list[str]
@@ -59,6 +63,7 @@ class DetectorMeta:
     layout_tol: float = 0.0
     geometry: dict[str, Any] | None = None
     skeleton: list[tuple[str, str]] = field(default_factory=list)
+    calibration: dict[str, Any] | None = None
 
     @property
     def max_residual_px(self) -> float | None:
@@ -67,9 +72,15 @@ class DetectorMeta:
 
     def readout_config(self, min_weight: float = DEFAULT_MIN_WEIGHT) -> ReadoutConfig:
         """The read-out settings this detector was trained with (:class:`s3k.readout.ReadoutConfig`: its
-        outlier threshold and rigid layout; the window of its target width)."""
-        return ReadoutConfig(min_weight=min_weight, max_residual_px=self.max_residual_px,
-                             layout=self.layout_distances, layout_tol=self.layout_tol)
+        confidence calibration, outlier threshold and rigid layout; the window of its target width)."""
+        return ReadoutConfig(min_weight=min_weight, confidence=self.confidence_map,
+                             max_residual_px=self.max_residual_px, layout=self.layout_distances,
+                             layout_tol=self.layout_tol)
+
+    @property
+    def confidence_map(self) -> ConfidenceMap | None:
+        """``calibration`` as :class:`s3k.readout.ConfidenceMap` (None: none recorded)."""
+        return None if self.calibration is None else ConfidenceMap.from_dict(self.calibration)
 
     def recorded_skeleton(self) -> list[tuple[str, str]]:
         """``skeleton``; for a run trained before it was recorded, the skeleton of the training dataset's
@@ -111,5 +122,7 @@ class DetectorMeta:
             d["layout"] = [[math.nan if v is None else float(v) for v in row] for row in d["layout"]]
         d["skeleton"] = [(str(a), str(b)) for a, b in d.get("skeleton") or []
                          if a in d.get("keypoints", ()) and b in d.get("keypoints", ())]
+        if d.get("calibration") is not None:
+            ConfidenceMap.from_dict(d["calibration"])  # a damaged one is refused when read, not at first use
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})

@@ -18,7 +18,7 @@ from s3k.detector.detector import Detection, Detector, TwoPassDetector
 from s3k.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
 from s3k.metrics import compute_metrics, ground_truth_2d, keypoint_order, mm_per_unit, pixel_sizes_mm
 
-__all__ = ["detect_store", "evaluate_store", "split_frames"]
+__all__ = ["detect_store", "evaluate_store", "scored_views", "split_frames"]
 
 
 def detect_store(detector: Detector, store: FrameStore, batch_size: int = 16,
@@ -35,7 +35,7 @@ def split_frames(dataset: DatasetLike, split: str) -> np.ndarray:
 
 
 COLUMNS = ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid", "X_gt", "X_gt_mask", "weight",
-           "frame_ids", "mm_per_px", "image_err", "placed", "lab_X", "lab_valid", "loo_px")
+           "confidence", "frame_ids", "mm_per_px", "image_err", "placed", "lab_X", "lab_valid", "loo_px")
 
 
 def _to_network(uv: np.ndarray, maps: np.ndarray) -> np.ndarray:
@@ -55,7 +55,8 @@ def _columns(batch, pred: Detection, order: np.ndarray, units: str) -> dict[str,
     uv = pred.uv.numpy()
     row = {"pred_uv": _to_network(uv, maps), "reproj_uv": _to_network(pred.reproj.numpy(), maps),
            "gt_uv": gt_uv, "gt_mask": gt_mask & inside, "X": pred.X.numpy(), "X_valid": pred.valid.numpy(),
-           "weight": pred.weights.numpy(), "frame_ids": np.asarray(batch.frame_ids),
+           "weight": pred.weights.numpy(), "confidence": pred.confidence.numpy(),
+           "frame_ids": np.asarray(batch.frame_ids),
            "mm_per_px": pixel_sizes_mm(pred.network_cameras(), mm_per_unit(units)),
            "placed": np.ones(len(uv), bool) if pred.placed is None else pred.placed.numpy(),
            "image_err": np.where(gt_mask & inside, np.linalg.norm(uv - gt_img, axis=-1), np.nan)}
@@ -65,6 +66,16 @@ def _columns(batch, pred: Detection, order: np.ndarray, units: str) -> dict[str,
         row["lab_X"], row["lab_valid"] = triangulate_labels(batch.cams, gt_img, gt_mask)
         row["loo_px"] = leave_one_view_out(batch.cams, gt_img, gt_mask)
     return row
+
+
+def scored_views(arrays: dict[str, Any], within_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The views of :func:`evaluate_store`'s ``arrays`` that have a truth: ``(weight (n,), confidence (n,),
+    right (n,))``, ``right`` where the detection lies within ``within_px`` network-input pixels of the truth
+    (what the confidence is calibrated against, :mod:`s3k.readout.confidence`)."""
+    mask = arrays["gt_mask"] & np.isfinite(arrays["weight"])
+    err = np.linalg.norm(arrays["pred_uv"] - arrays["gt_uv"], axis=-1)
+    right = np.isfinite(err) & (err <= within_px)
+    return arrays["weight"][mask], arrays["confidence"][mask], right[mask]
 
 
 def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, units: str = "m",

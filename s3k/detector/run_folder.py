@@ -10,6 +10,7 @@ never runs code from the file.
 from __future__ import annotations
 
 import json
+import logging
 import pickle
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,6 +21,7 @@ import torch
 from s3k.detector.meta import DetectorMeta
 from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json
+from s3k.messages import NOTE
 from s3k.model import UNet, UNetConfig
 from s3k.run_folder import RunFolder
 
@@ -32,6 +34,11 @@ TENSORBOARD_DIR = RunFolder.TENSORBOARD
 PROGRESS_FILE = RunFolder.PROGRESS
 RUN_FILES = RunFolder.ONE_PASS_FILES
 MODEL_FORMAT = "s3k-model/1"
+
+log = logging.getLogger(__name__)
+
+_UNCALIBRATED_NOTED: set[str] = set()
+"""The model files this process said once have no confidence calibration."""
 
 
 def atomic_save(obj: Any, path: str | Path) -> None:
@@ -167,4 +174,17 @@ def load_network(run_dir: str | Path, device: str | torch.device = "cpu",
         reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
         raise UserError(f"{path}: not an s3k model or written by an older s3k (its content does not fit: "
                         f"{reason})", hint="retrain") from exc
+    if meta.calibration is None:
+        _note_uncalibrated(path)
     return model.to(device).eval(), meta
+
+
+def _note_uncalibrated(path: Path) -> None:
+    """Say once per model file that its thresholds compare the raw confidence weight."""
+    key = str(path.resolve())
+    if key in _UNCALIBRATED_NOTED:
+        return
+    _UNCALIBRATED_NOTED.add(key)
+    log.log(NOTE, "%s has no confidence calibration (trained before runs were calibrated, without truth on "
+            "its validation frames, or not finished): --min-weight and the labelling app's accept compare "
+            "the raw confidence weight", path)

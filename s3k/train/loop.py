@@ -66,7 +66,7 @@ from s3k.train.run_setup import (
 )
 from s3k.train.sampling import draw_batch, prepare
 from s3k.train.step import all_finite, compute_losses, lr_lambda
-from s3k.train.validation import labelled_distances, layout_size, validate
+from s3k.train.validation import calibrate, labelled_distances, layout_size, validate
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
@@ -160,14 +160,19 @@ class _Loop:
             self.teacher.load_state_dict(weights)
         log.info("fine-tuning: the network starts from %s", run)
 
-    def save(self, final: bool = False) -> None:
-        """Write the checkpoint (and at the end ``model.pt``) from rank 0, unless the model is not finite."""
+    def save(self, final: bool = False, val_store: FrameStore | None = None) -> None:
+        """Write the checkpoint (and at the end ``model.pt``) from rank 0, unless the model is not finite; at
+        the end the confidence is calibrated on ``val_store`` first (:func:`calibrate`), and the model's meta
+        holds the map."""
         rngs = gather(ckpt.rng_state(self.gen), self.info)
         if not self.info.main:
             return
         if not all_finite(self.net):
             log.error("step %d: model holds non-finite values; checkpoint not written", self.step)
             return
+        if final:
+            self.meta.calibration = calibrate(self.net, self.meta, val_store, self.device)
+            self.net.train()
         ckpt.save_checkpoint(self.out / CHECKPOINT_FILE, step=self.step, model=self.net.state_dict(),
                              optimizer=self.opt.state_dict(), scheduler=self.sched.state_dict(), rng=rngs,
                              nonfinite_run=self.nonfinite_run, meta=self.meta.to_dict(),
@@ -428,7 +433,7 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
             history.append(validate(loop.net, meta, val_store, device, ref_layout, cfg, step, monitor.writer))
             loop.net.train()
         if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            loop.save(final=step == cfg.steps)
+            loop.save(final=step == cfg.steps, val_store=val_store)
         if callback is not None:
             callback(step, terms)
     broadcast_buffers(loop.net, info)

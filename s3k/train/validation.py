@@ -1,13 +1,16 @@
-"""Periodic validation during training and the reference quantities it compares against.
+"""Periodic validation during training, the reference quantities it compares against, and the calibration of
+the confidence at the end.
 
 Every ``val_every`` steps the validation frames are predicted: the metrics (``s3k.inference.evaluate``),
 an image of predicted vs true keypoints with heatmaps (TensorBoard), and a collapse check: a warning when the
 mean pairwise distance between the triangulated keypoints falls below ``collapse_fraction`` of the labelled
-layout's (:func:`labelled_layout`).
+layout's (:func:`labelled_layout`). At the last step the same frames calibrate the confidence
+(:func:`calibrate`, :mod:`s3k.readout.confidence`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from typing import Any
@@ -19,9 +22,11 @@ from torch import nn
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.data.protocol import DatasetLike
-from s3k.detector import DetectorMeta, OnePassDetector, detect_store, evaluate_store
+from s3k.detector import DetectorMeta, OnePassDetector, detect_store, evaluate_store, scored_views
 from s3k.draw import draw_views
 from s3k.geometry import triangulate_labels
+from s3k.messages import NOTE
+from s3k.readout import CALIBRATION_SIGMAS, fit_confidence
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
 
@@ -134,3 +139,35 @@ def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, devic
         writer.add_image("val/keypoints", img, step, dataformats="HWC")
         writer.flush()
     return record
+
+
+def calibrate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None,
+              device: torch.device) -> dict[str, Any] | None:
+    """The confidence map (:func:`s3k.readout.fit_confidence`, as a dict for ``meta.calibration``) of the
+    network as it is on the validation frames ``store``: each view with a truth is right when its detection
+    lies within ``CALIBRATION_SIGMAS`` target widths of it, in the network's input pixels. None, with a
+    note, where the frames have no truth or too few views: the run's thresholds then compare the raw
+    weight."""
+    if store is None or len(store) == 0:
+        log.log(NOTE, "no validation frames: the confidence is not calibrated (thresholds compare the raw "
+                "weight)")
+        return None
+    net.eval()
+    detector = OnePassDetector(net, dataclasses.replace(meta, calibration=None), device, fast=False)
+    detector.check_frames = False  # a refining pass's crops: their principal points lie anywhere
+    within = CALIBRATION_SIGMAS * meta.sigma
+    try:
+        _, arrays = evaluate_store(detector, store, 16, meta.units)
+    except ValueError:  # no labels or 3D points on the validation split
+        fitted = None
+    else:
+        weights, _, right = scored_views(arrays, within)
+        fitted = fit_confidence(weights, right, within)
+    if fitted is None:
+        log.log(NOTE, "the validation frames have too few views with a truth to calibrate the confidence "
+                "(thresholds compare the raw weight); label them or give --val-split test frames with labels")
+        return None
+    steps = ", ".join(f"{w:.3g}->{c:.2f}" for w, c in zip(fitted.weights, fitted.confidence))
+    log.info("confidence calibrated on %d views of %d validation frames (right: within %.3g px): weight->"
+             "confidence %s", fitted.views, len(store), within, steps)
+    return fitted.to_dict()
