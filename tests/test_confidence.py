@@ -14,10 +14,12 @@ import pytest
 import torch
 from helpers.synthetic_rig import make_dataset
 
+from s3k import cli
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.detector import Detector, OnePassDetector
 from s3k.geometry import Cameras
+from s3k.inference.evaluate import evaluate_run
 from s3k.readout import ConfidenceMap, ReadoutConfig, fit_confidence, read_out, reliability
 from s3k.readout.confidence import pool_adjacent_violators
 from s3k.train import train
@@ -190,6 +192,27 @@ def test_a_short_run_is_calibrated_so_the_documented_threshold_keeps_its_right_v
     assert float(kept.valid.float().mean()) > 0.6  # most points valid with calibration
     assert float(kept.used.float().mean()) > 0.6
     torch.testing.assert_close(kept.weights, out.weights)
+
+
+def test_the_calibrated_confidence_tracks_the_share_within_the_distance(short_run):
+    run, other, _ = short_run
+    report = evaluate_run(run, other, "test", "cpu")["confidence"]
+    assert report["calibrated"] and report["within_px"] == pytest.approx(2 * 3.0)  # 2 sigma, sigma 3 px
+    assert report["views"] == 12 * 4 * 3 and report["within"] > 0.5  # the detections are mostly right
+    bins = [b for b in report["bins"] if b["views"] >= 20]
+    assert sum(b["views"] for b in bins) > 0.8 * report["views"]
+    for b in bins:
+        assert abs(b["confidence"] - b["within"]) < 0.2, report["bins"]
+    mean = sum(b["confidence"] * b["views"] for b in report["bins"] if b["views"]) / report["views"]
+    assert abs(mean - report["within"]) < 0.1
+
+
+def test_evaluate_prints_the_reliability_table(short_run, capsys):
+    run, other, _ = short_run
+    assert cli.main(["evaluate", str(run), "--data", str(other)]) == 0
+    out = capsys.readouterr().out
+    assert "confidence calibrated on 96 validation views; right: within 6 network-input px" in out
+    assert "share within" in out and out.count("\n0.") >= 5
 
 
 def test_a_run_without_truth_on_its_validation_frames_is_not_calibrated(tmp_path, caplog):

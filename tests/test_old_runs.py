@@ -55,7 +55,9 @@ def test_old_runs_load_and_evaluate(dataset, tmp_path, capsys):
         assert RunFolder(run).is_complete() and RunFolder(run).is_two_pass() == (passes == 2)
         capsys.readouterr()
         assert cli.main(["evaluate", str(run), "--data", str(dataset), "--json"]) == 0
-        assert json.loads(capsys.readouterr().out)["n_frames"] == 2
+        metrics = json.loads(capsys.readouterr().out)
+        assert metrics["n_frames"] == 2
+        assert metrics["confidence"]["calibrated"] is False  # trained before runs were calibrated
 
 
 def test_an_old_run_thresholds_its_raw_weights_and_says_so_once(dataset, tmp_path, caplog):

@@ -10,7 +10,7 @@ import sys
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.detector.geometry_record import check_dataset
-from s3k.inference.evaluate import evaluate_run
+from s3k.inference.evaluate import evaluate_run, format_confidence
 from s3k.label_reference import format_label_reference
 from s3k.metrics import format_table
 from s3k.outputs import check_folder, claim_folder
@@ -21,7 +21,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "rms_mm; keypoints are matched to the dataset's by name. Without 3D truth (a real "
                           "recording), the 3D figures are against the labels triangulated from every "
                           "labelled view, with bootstrap 95%% intervals, and the labels' leave-one-view-out "
-                          "reprojection error is reported.")
+                          "reprojection error is reported. The confidence follows: the distance its "
+                          "calibration counts as right and a reliability table (confidence bins against the "
+                          "share of views within it).")
     parser.epilog = examples("s3k evaluate runs/box --data data/box",
                              "s3k evaluate runs/box --data data/box --split labelled --json")
     parser.add_argument("run", help="run folder written by 's3k train'")
@@ -84,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
             print(format_label_reference(metrics["labels_3d"]))
         if units:
             print(units)
+        print(format_confidence(metrics["confidence"]))
         if args.report:
             print(f"report written to {args.report}", file=sys.stderr)
     return 0

@@ -5,6 +5,10 @@ with its cameras, as ``s3k predict`` and ``s3k track`` do. The 3D metrics compar
 dataset's ground truth; the pixel metrics are in pixels of the image the (last) network saw: the resized
 image of a one-pass detector, each frame's crop of a two-pass one (``rms_px_image`` gives the same error in
 the dataset's own pixels).
+
+The confidence is reported beside them (:func:`confidence_report`): the run's calibration distance and, on
+the evaluated frames, a reliability table (bins of calibrated confidence against the share of their views
+that lie within that distance of the truth; docs/method.md#confidence).
 """
 
 from __future__ import annotations
@@ -18,13 +22,14 @@ from s3k.choices import Device
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.data.sessions import distance_summary, label_distances
-from s3k.detector import Detector, evaluate_store
+from s3k.detector import Detector, DetectorMeta, evaluate_store, scored_views
 from s3k.draw import edge_indices
 from s3k.errors import UserError
 from s3k.inference.report import write_report
 from s3k.metrics import SUMMARY_METRICS, compute_metrics, keypoint_order, mm_per_unit
+from s3k.readout import CALIBRATION_SIGMAS, reliability
 
-__all__ = ["evaluate_run", "evaluate_store", "per_session"]
+__all__ = ["confidence_report", "evaluate_run", "evaluate_store", "format_confidence", "per_session"]
 
 
 def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", batch_size: int = 16,
@@ -43,6 +48,7 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     metrics["label_distance"], metrics["sessions"] = per_session(ds, arrays, detector.keypoints)
+    metrics["confidence"] = confidence_report(detector.meta, arrays)
     if report:
         edges = edge_indices(detector.meta.recorded_skeleton() or ds.skeleton, detector.keypoints)
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})",
@@ -73,3 +79,30 @@ def per_session(ds: Dataset, arrays: dict[str, Any], keypoints) -> tuple[dict, d
         out[name] = {**{k: metrics[k] for k in SUMMARY_METRICS}, "n_frames": int(sel.sum()),
                      "label_distance": distance_summary(distance[sel])}
     return distance_summary(distance), out
+
+
+def confidence_report(meta: DetectorMeta, arrays: dict[str, Any]) -> dict[str, Any]:
+    """The confidence of :func:`s3k.detector.evaluate_store`'s ``arrays`` against their truth:
+    ``{"calibrated", "within_px", "fitted_views", "views", "within", "bins"}``: whether the run holds a
+    calibration, the distance that counts as right (network-input pixels: the calibration's, else
+    ``CALIBRATION_SIGMAS`` target widths), the views it was fitted on, the views evaluated and the share of
+    them right, and :func:`s3k.readout.reliability`'s table of calibrated confidence against that share."""
+    fitted = meta.confidence_map
+    within = fitted.within_px if fitted is not None else CALIBRATION_SIGMAS * meta.sigma
+    _, confidence, right = scored_views(arrays, within)
+    return {"calibrated": fitted is not None, "within_px": within,
+            "fitted_views": fitted.views if fitted is not None else 0, "views": int(len(right)),
+            "within": float(right.mean()) if len(right) else None, "bins": reliability(confidence, right)}
+
+
+def format_confidence(report: dict[str, Any]) -> str:
+    """:func:`confidence_report` as lines of text: the distance and the reliability table."""
+    head = (f"confidence calibrated on {report['fitted_views']} validation views" if report["calibrated"] else
+            "confidence not calibrated (a run trained before runs were calibrated): the raw weight")
+    lines = [f"{head}; right: within {report['within_px']:.3g} network-input px of the truth",
+             "confidence   views  mean confidence  share within"]
+    for row in report["bins"]:
+        mean = "-" if row["confidence"] is None else f"{row['confidence']:.2f}"
+        share = "-" if row["within"] is None else f"{row['within']:.2f}"
+        lines.append(f"{row['from']:.1f}-{row['to']:.1f}  {row['views']:>8d}  {mean:>15}  {share:>12}")
+    return "\n".join(lines)
