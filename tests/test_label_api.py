@@ -302,6 +302,7 @@ def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
             want = ro.reproj[0, c, k] if ro.valid[0, k] else ro.uv[0, c, k]
             np.testing.assert_allclose([sug[kp][cam]["u"], sug[kp][cam]["v"]], want.numpy(), atol=1e-6)
             assert sug[kp][cam]["weight"] == pytest.approx(float(ro.weights[0, c, k]))
+            assert sug[kp][cam]["confidence"] == pytest.approx(float(ro.confidence[0, c, k]))
     # the ranking: every unlabelled frame once, worst first, scored by the documented formula
     ranking = client.get("/api/ranking").json()
     assert sorted(r["frame"] for r in ranking) == sorted(ids.tolist())

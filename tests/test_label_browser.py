@@ -265,16 +265,18 @@ def test_a_click_labels_the_selected_keypoint_beside_another_marker_undo_and_loc
 
 
 def test_accept_all_takes_only_the_views_where_the_run_is_confident(tmp_path, browser):
-    """A run's suggestion in a view where its confidence weight is low (a hidden part) is not accepted."""
+    """A run's suggestion in a view where its calibrated confidence is low (a hidden part) is not accepted,
+    whatever its raw weight: a run trained shorter has weights far below 0.5 on views that are right."""
     import json
 
     truth = make_label_dataset(tmp_path / "ds", size=64)
 
     def with_suggestions(route):
         state = route.fetch().json()
-        state["suggestions"] = {"a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.9, "residual": 0.5},
-                                      "cam1": {"u": 20.0, "v": 22.0, "weight": 0.2, "residual": 0.0}},
-                                "b": {"cam2": {"u": 30.0, "v": 32.0, "weight": 0.6, "residual": 0.3}}}
+        state["suggestions"] = {
+            "a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.05, "confidence": 0.9, "residual": 0.5},
+                  "cam1": {"u": 20.0, "v": 22.0, "weight": 0.9, "confidence": 0.2, "residual": 0.0}},
+            "b": {"cam2": {"u": 30.0, "v": 32.0, "weight": 0.06, "confidence": 0.6, "residual": 0.3}}}
         route.fulfill(status=200, content_type="application/json", body=json.dumps(state))
 
     with Server(truth.path) as url:
@@ -285,7 +287,7 @@ def test_accept_all_takes_only_the_views_where_the_run_is_confident(tmp_path, br
         page.keyboard.press("Shift+A")
         wait_version(page, 1)
     uv, mask = Dataset.open(truth.path).labels([4])
-    assert mask[0].sum() == 2 and mask[0, 0, 0] and mask[0, 2, 1]  # cam1 (weight 0.2) left unlabelled
+    assert mask[0].sum() == 2 and mask[0, 0, 0] and mask[0, 2, 1]  # cam1 (confidence 0.2) left unlabelled
     np.testing.assert_allclose(uv[0, 0, 0], (10.0, 12.0))
 
 
@@ -579,7 +581,8 @@ def test_redo_relocking_test_frames_and_accept_says_why_nothing_was_taken(tmp_pa
 
     def unsure(route):  # a run's suggestions, none confident
         state = route.fetch().json()
-        state["suggestions"] = {"a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.3, "residual": 0.5}}}
+        state["suggestions"] = {"a": {"cam0": {"u": 10.0, "v": 12.0, "weight": 0.9, "confidence": 0.3,
+                                               "residual": 0.5}}}
         route.fulfill(status=200, content_type="application/json", body=json.dumps(state))
 
     with Server(truth.path) as url:

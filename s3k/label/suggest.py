@@ -220,6 +220,7 @@ class Suggestions:
                     for b, f in enumerate(batch.frame_ids.tolist()):
                         self._cache[int(f)] = {
                             "uv": ro.uv[b].numpy(), "weights": ro.weights[b].numpy(), "X": ro.X[b].numpy(),
+                            "confidence": ro.confidence[b].numpy(),
                             "valid": ro.valid[b].numpy(), "reproj": ro.reproj[b].numpy(),
                             "residual": ro.residual[b].numpy(),
                             "sigma_px": float(self.detector.meta.sigma) / float(scale[b]),
@@ -227,7 +228,8 @@ class Suggestions:
             return {int(f): self._cache[int(f)] for f in frame_ids}
 
     def suggestion(self, frame: int, cameras: list[str]) -> dict[str, Any]:
-        """``{keypoint: {camera: {"u", "v", "weight", "residual"}}}`` for the app (JSON-ready)."""
+        """``{keypoint: {camera: {"u", "v", "weight", "confidence", "residual"}}}`` for the app (JSON-ready;
+        ``confidence`` the calibrated one its accept compares)."""
         p = self.predict([frame])[frame]
         out: dict[str, Any] = {}
         for k, kp in enumerate(self.keypoints):
@@ -238,6 +240,7 @@ class Suggestions:
                     continue
                 res = p["residual"][c, k]
                 views[cam] = {"u": float(at[0]), "v": float(at[1]), "weight": float(p["weights"][c, k]),
+                              "confidence": float(p["confidence"][c, k]),
                               "residual": float(res) if np.isfinite(res) else None}
             out[kp] = views
         return out

@@ -3,8 +3,8 @@
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
-// a suggestion is accepted only in views where the run is confident: a confidence weight of 0.5 is a heatmap
-// spread of 2 sigma (docs/method.md); a part hidden in a view gets a wide heatmap and a low weight there
+// a suggestion is accepted only in views where the run is confident: a calibrated confidence of 0.5 means about
+// half such views lie within 2 sigma of the truth (docs/method.md); a part hidden in a view gets a low one there
 const CONFIDENT = 0.5;
 const TOKEN = new URLSearchParams(location.search).get("token");
 const app = {
@@ -269,7 +269,7 @@ function drawView(view, preview = null) {
       el("circle", { class: "suggestion-halo", cx: sug.u, cy: sug.v, r: 7 * s }, layer);
       titled(el("circle", { class: "suggestion", cx: sug.u, cy: sug.v, r: 7 * s, stroke: col, "data-keypoint": kp,
                             "data-kind": "suggestion", "data-draggable": "1" }, layer),
-             `${kp}: the run's suggestion (confidence ${(+sug.weight).toFixed(2)})`);
+             `${kp}: the run's suggestion (confidence ${(+sug.confidence).toFixed(2)})`);
     }
     let at = lab && lab.visible && lab.u !== null ? [lab.u, lab.v] : null;
     if (preview && preview.kp === kp) at = preview.uv;
@@ -549,8 +549,8 @@ function acceptSuggestions(all) {
       const [W, H] = app.meta.image_size;
       if (labelOf(cam, kp) || s.u < -0.5 || s.v < -0.5 || s.u > W - 0.5 || s.v > H - 0.5) continue;
       offered += 1;
-      if (!(s.weight >= CONFIDENT)) {  // not confident in this view: the part may be hidden there
-        unsure.push(`${kp} in ${cam}: ${(+s.weight).toFixed(2)}`);
+      if (!(s.confidence >= CONFIDENT)) {  // not confident in this view: the part may be hidden there
+        unsure.push(`${kp} in ${cam}: ${(+s.confidence).toFixed(2)}`);
         continue;
       }
       edits.push({ camera: cam, keypoint: kp, u: s.u, v: s.v, visible: true });
