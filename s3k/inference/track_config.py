@@ -94,10 +94,12 @@ class LimbsConfig:
 class ReadoutSettings:
     """Which views enter the triangulation."""
 
-    min_weight: float = _s(DEFAULT_MIN_WEIGHT, "confidence weight a view needs to be used (0: every view, "
-                                               "weighted by its confidence, as in training and 's3k "
-                                               "evaluate'; 0.5 drops views whose heatmap spread exceeds 2 "
-                                               "sigma)",
+    min_weight: float = _s(DEFAULT_MIN_WEIGHT, "calibrated confidence a view needs to be used (0: every "
+                                               "view, weighted by its confidence weight, as in training and "
+                                               "'s3k evaluate'; 0.5 keeps the views of which about half or "
+                                               "more lie within 2 sigma of the truth on the run's validation "
+                                               "frames; a run trained before runs were calibrated compares "
+                                               "its raw weight)",
                            ge=0, lt=1)
 
 
