@@ -132,9 +132,10 @@ def _three_views():
     return logits[None, :, None], cams
 
 
-def test_the_selection_compares_the_calibrated_confidence_and_the_points_keep_the_raw_weights():
+def test_the_selection_compares_the_calibrated_confidence_and_the_points_keep_the_raw_weights(device):
     logits, cams = _three_views()
-    weights = torch.tensor([0.06, 0.05, 0.03], dtype=torch.float64)[None, :, None]  # a short run's
+    logits, cams = logits.to(device), cams.to(device=device)
+    weights = torch.tensor([0.06, 0.05, 0.03], dtype=torch.float64, device=device)[None, :, None]
     plain = read_out(logits, cams, 2, 2.0, weights=weights)
     assert torch.equal(plain.confidence, plain.weights)  # no calibration: the raw weight
     raw = read_out(logits, cams, 2, 2.0, config=ReadoutConfig(min_weight=0.5), weights=weights)
@@ -142,7 +143,7 @@ def test_the_selection_compares_the_calibrated_confidence_and_the_points_keep_th
     m = ConfidenceMap((0.03, 0.06), (0.3, 0.9), 4.0, 100)
     config = ReadoutConfig(min_weight=0.5, confidence=m)
     calibrated = read_out(logits, cams, 2, 2.0, config=config, weights=weights)
-    np.testing.assert_allclose(calibrated.confidence[0, :, 0].numpy(), [0.9, 0.7, 0.3])
+    np.testing.assert_allclose(calibrated.confidence[0, :, 0].cpu().numpy(), [0.9, 0.7, 0.3])
     torch.testing.assert_close(calibrated.weights, weights)  # the paper's weights, unchanged
     assert calibrated.used[0, :, 0].tolist() == [True, True, False] and calibrated.valid.all()
     # the point is the raw-weighted triangulation of the two views used, not a confidence-weighted one
