@@ -21,7 +21,16 @@ from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.data.video import write_video
-from s3k.detector import TWO_PASS_FILE, CropRule, DetectorMeta, crop_centres, extent_middle, read_two_pass
+from s3k.detector import (
+    TWO_PASS_FILE,
+    CropRule,
+    Detector,
+    DetectorMeta,
+    TwoPassDetector,
+    crop_centres,
+    extent_middle,
+    read_two_pass,
+)
 from s3k.detector.geometry_record import dataset_identity
 from s3k.errors import UserError
 from s3k.geometry import Cameras, project
@@ -132,6 +141,12 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert rule.size == 32 and rule.extent == pytest.approx(2 * _farthest_pair_radius(LAYOUT) * 1.3, rel=1e-6)
     assert (coarse / "model.pt").is_file() and (fine / "model.pt").is_file()
     assert coarse_cfg["image_size"] == 32
+    # each pass calibrated its confidence on its own validation frames, the refining pass on their crops:
+    # the two-pass detector's thresholds compare the refining pass's
+    detector = Detector.load(run, "cpu")
+    assert isinstance(detector, TwoPassDetector) and detector.coarse.meta.calibration is not None
+    assert detector.fine.readout.confidence is not None
+    assert detector.fine.readout.confidence.within_px == pytest.approx(2 * detector.fine.meta.sigma)
     spent = read_cpu(run)  # CPU seconds per stage
     assert set(spent) == {"coarse", "crops", "fine"} and min(spent.values()) > 0
     # the crops were cut in memory; the estimates give the same crops again
@@ -178,7 +193,6 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert metrics["two_pass"]["size"] == 32 and metrics["two_pass"]["coarse_frames_placed"] == 3
     assert metrics["n_frames"] == 3 and metrics["image_size"] == [32, 32]
     # its pixel metrics are in crop pixels; rms_px_image is the same error in the dataset's own pixels
-    from s3k.detector import Detector
 
     test_ids = source.frames("test")
     cams = source.calibration(test_ids, np.float64)
@@ -201,7 +215,6 @@ def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
     assert "max 3D difference" in printed
     for name in ("m.coarse.onnx", "m.fine.onnx", "m.json"):
         assert (tmp_path / name).is_file()
-    from s3k.detector import Detector
     from s3k.inference.export import load_exported
 
     ids = source.frames("test")
