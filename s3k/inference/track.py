@@ -400,7 +400,7 @@ def empty_result_hint(valid: list[float], passing: list[float], min_weight: floa
     if not frames or any(valid):
         return None
     if not any(passing):
-        why = ("no keypoint has two views with a confidence weight above --min-weight "
+        why = ("no keypoint has two views with a confidence above --min-weight "
                f"{min_weight:g} in any frame")
     else:
         why = "the views of every keypoint triangulate to no valid point"
