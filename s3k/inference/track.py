@@ -384,7 +384,7 @@ def keypoint_line(valid: float, median_px: float, passing: float, min_weight: fl
     if few > 0:
         change = ("lower --min-weight (0 uses every view, weighted)" if min_weight > 0 else
                   "the detector is not confident there: train on more labelled frames like these")
-        reasons.append(f"{100 * few:.0f}% of frames have fewer than 2 views with a confidence weight above "
+        reasons.append(f"{100 * few:.0f}% of frames have fewer than 2 views with a confidence above "
                        f"--min-weight {min_weight:g} ({change})")
     rest = passing - valid  # enough views, but no point
     if rest > 1e-9:
