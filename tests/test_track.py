@@ -562,12 +562,12 @@ def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_
     out = capsys.readouterr().out
     for kp in KEYPOINTS:
         assert (f"  {kp}: 0% valid; no point: 100% of frames have fewer than 2 views with a confidence "
-                "weight above --min-weight 0.99 (lower --min-weight") in out
+                "above --min-weight 0.99 (lower --min-weight") in out
     assert "nan px" not in out
     # frames with enough views but no point have a reason of their own; a fully valid keypoint needs none
     assert keypoint_line(0.6, 1.5, 0.8, 0.5, 10) == (
         "60% valid, median error 1.50 px; no point: 20% of frames have fewer than 2 views with a confidence "
-        "weight above --min-weight 0.5 (lower --min-weight (0 uses every view, weighted)); in 20% of frames "
+        "above --min-weight 0.5 (lower --min-weight (0 uses every view, weighted)); in 20% of frames "
         "its views triangulate to no valid point (rays near parallel or the point behind a camera: check "
         "--calibration, --video-region and --crop)")
     assert keypoint_line(1.0, 2.0, 1.0, 0.5, 10) == "100% valid, median error 2.00 px"
