@@ -211,3 +211,38 @@ def test_no_usable_label_is_unusable(tmp_path: Path, capsys, case: str):
     copied = case == "degenerate"
     assert ("WARNING calibration: left and right have identical calibration parameters" in out) == copied
     assert out.splitlines()[-1].startswith(f"UNUSABLE: 1 error(s), {3 + copied} warning(s)")
+
+
+def _offset_dataset(root: Path, offsets: list[int]) -> Path:
+    """Four cameras, 60 consecutive labelled frames of points moving smoothly; camera ``c``'s frame ``i``
+    shows the first camera's frame ``i + offsets[c]`` (the recordings of ``test_sync``)."""
+    from test_sync import H as SH
+    from test_sync import W as SW
+    from test_sync import recording, rig
+
+    cams = rig()
+    uv = recording(cams, offsets, n_frames=60, seed=2)  # (C, T, K, 2)
+    arrays = cams.numpy()
+    names = [f"cam{c}" for c in range(len(offsets))]
+    keypoints = [f"kp{k}" for k in range(uv.shape[2])]
+    with DatasetWriter(root, keypoints, names, (SW, SH),
+                       calibration=(arrays["K"], arrays["dist"], arrays["R"], arrays["t"])) as writer:
+        for f in range(uv.shape[1]):
+            writer.add_frame(f, "labelled", np.zeros((len(names), SH, SW, 3), np.uint8), labels=uv[:, f])
+    return root
+
+
+def test_frame_offsets_are_reported_and_warned(tmp_path: Path, capsys):
+    code, out = validate(capsys, _offset_dataset(tmp_path / "late", [0, 0, 4, 0]), "--no-images")
+    assert "  cam0: 0 (the reference)" in out and "  cam1: +0 (epipolar residual" in out
+    assert "  cam2: +4 (epipolar residual" in out
+    assert "WARNING camera cam2: its frame i shows cam0's frame i+4" in out
+    assert "--frame-offsets cam2=4" in out
+    assert code == 1 and "camera(s) cam2 disagree with the others' labels" in out  # the late camera's labels
+    code, out = validate(capsys, _offset_dataset(tmp_path / "sync", [0, 0, 0, 0]), "--no-images", "--strict")
+    assert code == 0 and "  cam2: +0 (epipolar residual" in out and "--frame-offsets" not in out
+
+
+def test_sparse_labels_cannot_tell_frame_offsets(tmp_path: Path, capsys):
+    code, out = validate(capsys, make_dataset(tmp_path / "ds"))
+    assert code == 0 and "frame offsets: the labels cannot tell" in out

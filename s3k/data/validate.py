@@ -17,7 +17,10 @@ from s3k.data.checks import check_dataset
 from s3k.data.dataset import Dataset
 from s3k.data.import_report import calibration_findings
 from s3k.data.problems import Problem
+from s3k.data.sync import estimate_frame_offsets
 from s3k.data.tables import SPLITS
+
+MAX_OFFSET = 10  # frames searched either way by the frame-offset check
 
 
 def _problem_lines(problems: list[Problem], limit: int) -> list[str]:
@@ -89,6 +92,49 @@ def _calibration_check(ds: Dataset, path: str | Path) -> list[tuple[str, str]]:
                                 path)
 
 
+def _frame_offsets(ds: Dataset) -> list[tuple[str, str]]:
+    """Each camera's frame offset against the first camera from the motion of the labelled and test frames'
+    labels (:func:`s3k.data.sync.estimate_frame_offsets`), per session, as ``(severity, line)``: a line per
+    camera, and a warning naming ``s3k import --frame-offsets`` for an offset that is not 0."""
+    out: list[tuple[str, str]] = []
+    sessions = ds.sessions if len(ds.sessions) > 1 else [None]
+    for session in sessions:
+        ids = ds.frames(["labelled", "test"], session=session)
+        times = ds.frame_times(ids) if len(ids) else ids
+        if len(ids) < 2 or times.max() - times.min() > 1_000_000:
+            continue
+        uv, mask = ds.labels(ids, dtype=np.float64)
+        dense = np.full((len(ds.cameras), int(times.max() - times.min()) + 1, len(ds.keypoints), 2), np.nan)
+        dense[:, times - times.min()] = np.where(mask[..., None], uv, np.nan).transpose(1, 0, 2, 3)
+        cams = ds.calibration(ids[:1], dtype=np.float64)[0]
+        est = estimate_frame_offsets(dense, cams, MAX_OFFSET)
+        where = f"session {session}: " if session is not None else ""
+        first = ds.cameras[0]
+        if not est.decided[1:].any():
+            out.append(("info", f"{where}frame offsets: the labels cannot tell (too few labelled frames "
+                                f"within {MAX_OFFSET} frames of each other, or too little motion)"))
+            continue
+        out.append(("info", f"{where}frame offsets from the labels' motion (N: the camera's frame i shows "
+                            f"{first}'s frame i+N; searched within +-{MAX_OFFSET}):"))
+        for c, cam in enumerate(ds.cameras):
+            if c == 0:
+                out.append(("info", f"  {cam}: 0 (the reference)"))
+            elif est.decided[c]:
+                out.append(("info", f"  {cam}: {int(est.offsets[c]):+d} (epipolar residual "
+                                    f"{est.residual_px[c]:.2f} px)"))
+            else:
+                other = (f"; the best offset, {int(est.best[c]):+d}, lowers the residual by only "
+                         f"{100 * est.gain[c]:.0f}%" if est.best[c] else "")
+                out.append(("info", f"  {cam}: 0, not decided (its labels' motion cannot tell{other})"))
+        for c, cam in enumerate(ds.cameras):
+            if est.offsets[c]:
+                n = int(est.offsets[c])
+                out.append(("warning", f"{where}camera {cam}: its frame i shows {first}'s frame i{n:+d} "
+                                       f"(unsynchronized clocks); import the recording again with "
+                                       f"--frame-offsets {cam}={n}"))
+    return out
+
+
 def validate_dataset(
     path: str | Path,
     *,
@@ -119,6 +165,12 @@ def validate_dataset(
         for severity, line in _calibration_check(dataset, path):
             lines.append(f"{severity.upper():7} {line}")
             (errors if severity == "error" else warnings).append(Problem(severity, "calibration", None, line))
+        for severity, line in _frame_offsets(dataset):
+            if severity == "info":
+                lines.append(line)
+            else:
+                lines.append(f"{severity.upper():7} {line}")
+                warnings.append(Problem(severity, "frames", None, line))
     if errors:
         return False, [*lines, f"UNUSABLE: {len(errors)} error(s), {len(warnings)} warning(s) in {path}"]
     if warnings and strict:
