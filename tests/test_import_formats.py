@@ -536,3 +536,41 @@ def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_
     source = json.loads((root.parent / "abs/s3k.json").read_text())["source"]
     assert source["calibration"] == str(root / "calibration.toml")
     assert source["videos"] == {c: str(root / f"{c}.mkv") for c in CAMS}
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Unsynchronized cameras: --frame-offsets
+
+
+def test_frame_offsets_align_a_late_camera(recording, tmp_path, capsys):  # noqa: F811
+    """Camera east's clock is 2 frames off: its frame i shows the others' frame i + 2 (its video and labels
+    start 2 frames later). With --frame-offsets east=2 every dataset frame holds the same instant in every
+    camera: the images and labels of the synchronized recording; frames 0-1, which east did not film, are
+    left out."""
+    from test_importers import _write_sleap
+
+    from s3k.data.video import write_video
+
+    root, late = recording["root"], tmp_path / "late"
+    late.mkdir()
+    n = 2
+    write_video(late / "east.mkv", recording["frames"]["east"][n:], fps=30, codec="ffv1")
+    _write_sleap(late / "east.analysis.h5", recording["uv"][n:, 1, :, :, None], nodes=KEYPOINTS)
+    videos = {cam: (late if cam == "east" else root) / f"{cam}.mkv" for cam in CAMS}
+    labels = ["--sleap", *[f"{cam}={(late if cam == 'east' else root) / cam}.analysis.h5" for cam in CAMS]]
+    args = [*labels, "--labelled", "all", "--frame-offsets", f"east={n}"]
+    assert _run(recording, root / "calibration.toml", tmp_path / "ds", *args, videos=videos) == 0
+    ds = _validated(tmp_path / "ds")
+    ids = ds.frames()
+    assert ids.min() == n and ids.max() == N_FRAMES - 1
+    _assert_labels(ds, recording)
+    images = ds.images(ids)
+    for c, cam in enumerate(CAMS):
+        want = np.stack([recording["frames"][cam][f] for f in ids])
+        np.testing.assert_array_equal(images[:, c], want, err_msg=cam)
+    assert "frame_offsets" in (tmp_path / "ds" / "s3k.json").read_text()
+    capsys.readouterr()
+    assert _run(recording, root / "calibration.toml", tmp_path / "bad", *labels, "--frame-offsets",
+                "west=2", videos=videos) == 1
+    assert "--frame-offsets 'west=2': unknown camera 'west' (cameras: north, east, south)" in \
+        capsys.readouterr().err

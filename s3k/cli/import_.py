@@ -129,6 +129,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
                         "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
                         "size are padded to the largest; default: the whole calibrated image)")
+    parser.add_argument("--frame-offsets", nargs="+", default=None, metavar="CAM=N",
+                        help="cameras whose clocks are off (unsynchronized webcams): CAM=N says that the "
+                        "camera's frame i shows the other cameras' frame i+N (s3k validate estimates N from "
+                        "the labels' motion); several as CAM=N,CAM2=M or CAM=N CAM2=M (default: 0 for every "
+                        "camera)")
     parser.add_argument("--units", type=name, default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
@@ -205,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             if args.video_region else None),
         units=args.units, overwrite=args.overwrite,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
-        skeleton=args.skeleton,
+        skeleton=args.skeleton, frame_offsets=_frame_offsets(args.frame_offsets, list(videos)),
     )
     if args.into is not None:
         if args.sleap_track == "all":
@@ -246,6 +251,25 @@ def _add_dataset(args: argparse.Namespace, held_out: bool) -> int:
     merge_session(args.into, args.dataset, args.session, info, hold_out=held_out)
     print(f"added {args.dataset} to {args.into} as session {args.session}")
     return 0
+
+
+def _frame_offsets(values: list[str] | None, cameras: list[str]) -> dict[str, int] | None:
+    """``--frame-offsets`` ``["cam=N,cam2=M", ...]`` -> ``{cam: N}``."""
+    if not values:
+        return None
+    out: dict[str, int] = {}
+    for item in (part for value in values for part in value.split(",") if part.strip()):
+        cam, sep, text = item.strip().partition("=")
+        try:
+            n = int(text)
+        except ValueError:
+            sep = ""
+        if not sep or cam not in cameras or cam in out:
+            why = ("a camera given twice" if cam in out else f"unknown camera {cam!r}" if sep
+                   else "expected CAMERA=N with N a whole number of frames")
+            raise UserError(f"--frame-offsets {item.strip()!r}: {why} (cameras: {', '.join(cameras)})")
+        out[cam] = n
+    return out
 
 
 def _test_sessions(text: str | None) -> list[str]:

@@ -244,7 +244,7 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
                    labels: LabelFormat | None = None, *, split: SplitOptions | None = None,
                    images: ImageOptions | None = None, keypoints: Sequence[str] | None = None,
                    units: str | None = None, skeleton: str | Path | None = None,
-                   subject: str | None = None) -> Path:
+                   subject: str | None = None, frame_offsets: Mapping[str, int] | None = None) -> Path:
     """Import a recording (the arguments of :func:`s3k.data.recording.import_recording`) and add it to the
     dataset ``into`` as session ``session``; returns ``into``. Its images are resized to the dataset's size
     unless ``images`` gives one; without labels its keypoints are the dataset's. All or nothing."""
@@ -266,7 +266,8 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
     shutil.rmtree(part, ignore_errors=True)
     try:
         import_recording(calibration, videos, part, labels, split=split, images=images, keypoints=keypoints,
-                         units=units, skeleton=skeleton, session=session, subject=subject)
+                         units=units, skeleton=skeleton, session=session, subject=subject,
+                         frame_offsets=frame_offsets)
         new = Dataset.open(part, cache="none")
         merge_session(into, part, session, new.session_info(session), link=True)
     finally:

@@ -95,6 +95,42 @@ def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], unit
     return rig, sizes
 
 
+def _frame_offsets(given: Mapping[str, int] | None, cameras: list[str]) -> list[int]:
+    """Each camera's frame offset (``--frame-offsets``), 0 where not given."""
+    unknown = sorted(set(given or {}) - set(cameras))
+    if unknown:
+        raise UserError(f"--frame-offsets {unknown[0]}={(given or {})[unknown[0]]}: no camera {unknown[0]!r} "
+                        f"(cameras: {', '.join(cameras)})")
+    return [int((given or {}).get(cam, 0)) for cam in cameras]
+
+
+def _shifted(read: LabelsRead, cameras: list[str], offsets: list[int]) -> LabelsRead:
+    """The labels of each camera at the frames of the cameras of offset 0: frame ``i`` becomes ``i + N``."""
+    if not any(offsets):
+        return read
+    tables = {}
+    for cam, table in read.tables.items():
+        ids = table.frame_ids + offsets[cameras.index(cam)]
+        keep = ids >= 0
+        tables[cam] = replace(table, frame_ids=ids[keep], uv=table.uv[keep])
+    return replace(read, tables=tables)
+
+
+def _frame_range(videos: Mapping[str, str | Path], offsets: list[int]) -> tuple[int, int]:
+    """The frames ``first .. end - 1`` that every camera filmed (camera ``c``: its frames ``f - N_c``)."""
+    counts = _frame_counts(videos)
+    ends = [counts[cam] + n for cam, n in zip(videos, offsets)]
+    first, end = max(0, *offsets), min(ends)
+    if len(set(ends)) > 1 or first:
+        shifted = f" with --frame-offsets {dict(zip(videos, offsets))}" if any(offsets) else ""
+        log.warning("videos have different frame counts %s%s; using frames %d to %d", counts, shifted, first,
+                    end - 1)
+    if end - first < 1:
+        raise UserError(f"--frame-offsets {dict(zip(videos, offsets))}: no frame is filmed by every camera "
+                        f"(frame counts {counts})")
+    return first, end
+
+
 def _frame_counts(videos: Mapping[str, str | Path]) -> dict[str, int]:
     """Frames each video decodes to; a warning when the container header says otherwise."""
     counts = {}
@@ -160,7 +196,7 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
                      images: ImageOptions = ImageOptions(), keypoints: Sequence[str] | None = None,
                      units: str | None = None, overwrite: bool = False,
                      skeleton: str | Path | None = None, session: str | None = None,
-                     subject: str | None = None) -> Path:
+                     subject: str | None = None, frame_offsets: Mapping[str, int] | None = None) -> Path:
     """Convert a recording to a dataset folder; returns the folder.
 
     Args:
@@ -180,6 +216,10 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
             default: the labels' own (SLEAP, a DeepLabCut project), else an anipose project's config.toml.
         session: name the recording's session (frames.csv's ``session`` column; s3k.json's ``sessions``
             records its frame rate and ``subject``); None: a dataset without sessions.
+        frame_offsets: ``{camera: N}`` for cameras whose clock is off (default 0): the camera's frame ``i``
+            shows the others' frame ``i + N`` (:mod:`s3k.data.sync` estimates it, ``s3k validate`` reports
+            it). A dataset frame ``f`` holds each camera's frame ``f - N`` and its labels; frame ids follow
+            the cameras of offset 0, and only the frames every camera filmed are kept.
     """
     out = Path(out)
     for camera in videos:
@@ -195,36 +235,36 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
     read = labels.read(cameras, sizes, rig) if labels is not None else LabelsRead("none", {}, {})
     for note in read.notes:
         log.info(note)
+    offsets = _frame_offsets(frame_offsets, cameras)
+    read = _shifted(read, cameras, offsets)
     names = _keypoint_names(read.tables, keypoints, split.test)
     edges = _skeleton(read.tables, names, skeleton, calibration)
-    counts = _frame_counts(videos)
-    n_frames = min(counts.values())
-    if len(set(counts.values())) > 1:
-        log.warning("videos have different frame counts %s; using the first %d frames", counts, n_frames)
+    first, n_frames = _frame_range(videos, offsets)
     geometry = _image_geometry(rig, cameras, images)
     uv = _dense_labels(read, cameras, names, n_frames, geometry.maps)
+    uv[:first] = np.nan  # a frame some camera did not film
     dropped = drop_outside(uv, image_areas(geometry.boxes, rig.size, geometry.out_size), cameras, names)
     mask = np.isfinite(uv).all(-1)
     candidates = np.flatnonzero((mask.sum(axis=1) >= split.min_views).any(axis=1))
-    splits, n_labelled, split = _choose_splits(candidates, n_frames, split, dropped, bool(read.tables))
+    splits, n_labelled, split = _choose_splits(candidates, np.arange(first, n_frames), split, dropped,
+                                               bool(read.tables))
     named = None if session is None else (session, _session_info(videos, subject))
     _write_dataset(out, overwrite, calibration, videos, read, rig, names, edges, geometry, uv, mask, splits,
-                   split, images, named)
+                   split, images, named, offsets)
     _report(out, calibration, rig, cameras, names, geometry, uv, mask, candidates, splits, n_labelled, split)
     return out
 
 
-def _choose_splits(candidates: np.ndarray, n_frames: int, split: SplitOptions, dropped: str,
+def _choose_splits(candidates: np.ndarray, frames: np.ndarray, split: SplitOptions, dropped: str,
                    labels: bool) -> tuple[dict[int, str], int | str, SplitOptions]:
-    """The split of every kept frame by ``split.test_frames``, the number of labelled frames asked for, and
-    the options as the report tells them (a held-out session's test count)."""
+    """The split of every kept frame (of ``frames``) by ``split.test_frames``, the number of labelled frames
+    asked for, and the options as the report tells them (a held-out session's test count)."""
     if split.test_frames == "session":
         if not len(candidates):
             raise UserError("a held-out test session needs labels: give the session's label files")
         return session_split(candidates), 0, replace(split, labelled=0, test=len(candidates))
     n_labelled = (labelled_count(candidates, split.labelled, split.test, split.min_views, dropped)
                   if labels else 0)
-    frames = np.arange(n_frames)
     if split.test_frames == "random":
         chosen = split_frames(candidates, frames, n_labelled, split.test, split.seed, split.stride)
         return chosen, n_labelled, split
@@ -349,7 +389,8 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
                    read: LabelsRead, rig: Rig, names: list[str], edges: list[tuple[str, str]],
                    geometry: _Geometry, uv: np.ndarray,
                    mask: np.ndarray, splits: dict[int, str], split: SplitOptions,
-                   images: ImageOptions, session: tuple[str, dict[str, Any]] | None) -> None:
+                   images: ImageOptions, session: tuple[str, dict[str, Any]] | None,
+                   offsets: list[int]) -> None:
     """Write the dataset beside ``out`` and rename it at the end (all or nothing)."""
     cameras = list(videos)
     source: dict[str, Any] = {
@@ -363,6 +404,8 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
     }
     if images.video_regions:
         source["video_regions"] = {cam: [float(v) for v in box] for cam, box in images.video_regions.items()}
+    if any(offsets):
+        source["frame_offsets"] = dict(zip(cameras, offsets))
     what = f"{read.kind} labels" if read.tables else "no labels"
     boxes, out_size, arrays = geometry.boxes, geometry.out_size, geometry.arrays
     with replace_folder(out, overwrite) as tmp:
@@ -373,13 +416,13 @@ def _write_dataset(out: Path, overwrite: bool, calibration: str | Path, videos: 
             sessions=None if session is None else {session[0]: {**session[1], "source": source}},
         )
         extra = {} if session is None else {"session": session[0]}
-        streams = [video.iter_frames(videos[cam], sorted(splits)) for cam in cameras]
-        for frames in zip(*streams):
-            f = frames[0][0]
+        kept = sorted(splits)
+        streams = [video.iter_frames(videos[cam], [f - n for f in kept]) for cam, n in zip(cameras, offsets)]
+        for f, frames in zip(kept, zip(*streams)):
             pictures = []
             for c, (i, image) in enumerate(frames):
-                if i != f:  # pragma: no cover - iter_frames yields the same ids for every camera
-                    raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f}")
+                if i != f - offsets[c]:  # pragma: no cover - iter_frames yields the frames asked for
+                    raise RuntimeError(f"{videos[cameras[c]]}: decoded frame {i}, expected {f - offsets[c]}")
                 pictures.append(resize_crop(image, None, boxes[c], out_size)[0])
             frame_labels = (np.nan_to_num(uv[f]), mask[f]) if splits[f] != "unlabelled" else None
             writer.add_frame(f, splits[f], np.stack(pictures), labels=frame_labels,
