@@ -369,7 +369,7 @@ def test_import_openpose_json(recording, tmp_path):  # noqa: F811
             if f == 7:
                 scores[2] = 0.2  # below --min-score: unlabelled
             decoy = _person(rng.uniform(0, 40, (3, 2)), [0.3, 0.3, 0.3])  # a less confident person
-            real = _person(uv[f, c], scores)
+            real = _person(uv[f, c] + 0.5, scores)  # OpenPose's pixels: the top-left pixel's centre at 0.5
             data = {"version": 1.3, "people": [{"person_id": [-1], "pose_keypoints_2d": decoy},
                                                {"person_id": [-1], "pose_keypoints_2d": real}]}
             (folder / f"rec_{f:012d}_keypoints.json").write_text(json.dumps(data))
@@ -382,7 +382,7 @@ def test_import_openpose_json(recording, tmp_path):  # noqa: F811
     ids = ds.frames("labelled")
     got, mask = ds.labels(ids)
     np.testing.assert_array_equal(mask, np.isfinite(expected[ids]).all(-1))
-    np.testing.assert_allclose(got[mask], expected[ids][mask].astype(np.float32), atol=0)
+    np.testing.assert_allclose(got[mask], expected[ids][mask].astype(np.float32), atol=1e-5)
 
 
 def test_import_mmpose_json(recording, tmp_path):  # noqa: F811

@@ -134,6 +134,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "camera's frame i shows the other cameras' frame i+N (s3k validate estimates N from "
                         "the labels' motion); several as CAM=N,CAM2=M or CAM=N CAM2=M (default: 0 for every "
                         "camera)")
+    parser.add_argument("--label-pixels", choices=["centre", "corner"], default=None,
+                        help="the label files' pixel convention, where it is not their format's: centre "
+                        "(0,0 is the centre of the top-left pixel, s3k's and OpenCV's) or corner (0,0 is the "
+                        "image's top-left corner) (default: the format's, docs/dataset-format.md#pixels)")
+    parser.add_argument("--calibration-pixels", choices=["centre", "corner"], default=None,
+                        help="the pixel convention the calibration projects into, where it is not its "
+                        "format's (e.g. corner for a calibration fitted to corners found 0.5 px right and "
+                        "down of OpenCV's) (default: the format's, centre for every calibration s3k reads)")
     parser.add_argument("--units", type=name, default=None,
                         help="world length unit of the calibration (default: from the file or its board, "
                         "e.g. mm)")
@@ -211,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
         units=args.units, overwrite=args.overwrite,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
         skeleton=args.skeleton, frame_offsets=_frame_offsets(args.frame_offsets, list(videos)),
+        label_pixels=args.label_pixels, calibration_pixels=args.calibration_pixels,
     )
     if args.into is not None:
         if args.sleap_track == "all":

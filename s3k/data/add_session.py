@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from s3k.data.dataset import Dataset
+from s3k.data.formats.pixels import Convention
 from s3k.data.import_labels import LabelFormat
 from s3k.data.recording import ImageOptions, SplitOptions, import_recording
 from s3k.data.sessions import (
@@ -244,7 +245,9 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
                    labels: LabelFormat | None = None, *, split: SplitOptions | None = None,
                    images: ImageOptions | None = None, keypoints: Sequence[str] | None = None,
                    units: str | None = None, skeleton: str | Path | None = None,
-                   subject: str | None = None, frame_offsets: Mapping[str, int] | None = None) -> Path:
+                   subject: str | None = None, frame_offsets: Mapping[str, int] | None = None,
+                   label_pixels: Convention | None = None,
+                   calibration_pixels: Convention | None = None) -> Path:
     """Import a recording (the arguments of :func:`s3k.data.recording.import_recording`) and add it to the
     dataset ``into`` as session ``session``; returns ``into``. Its images are resized to the dataset's size
     unless ``images`` gives one; without labels its keypoints are the dataset's. All or nothing."""
@@ -267,7 +270,8 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
     try:
         import_recording(calibration, videos, part, labels, split=split, images=images, keypoints=keypoints,
                          units=units, skeleton=skeleton, session=session, subject=subject,
-                         frame_offsets=frame_offsets)
+                         frame_offsets=frame_offsets, label_pixels=label_pixels,
+                         calibration_pixels=calibration_pixels)
         new = Dataset.open(part, cache="none")
         merge_session(into, part, session, new.session_info(session), link=True)
     finally:

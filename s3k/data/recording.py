@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from s3k.data import video
+from s3k.data.formats import pixels
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.data.formats.labels2d import LabelTable, coverage_warnings, unique_edges
 from s3k.data.formats.skeleton import anipose_project_config, check_edges, read_skeleton
@@ -54,10 +55,12 @@ log = logging.getLogger(__name__)
 
 
 def _prepare_rig(calibration: str | Path, videos: Mapping[str, str | Path], units: str | None,
-                 regions: Mapping[str, Sequence[float]] | None) -> tuple[Rig, dict[str, tuple[int, int]]]:
-    """The calibration's cameras of ``videos`` at the videos' sizes (after ``regions``); the video sizes."""
+                 regions: Mapping[str, Sequence[float]] | None,
+                 convention: pixels.Convention | None) -> tuple[Rig, dict[str, tuple[int, int]]]:
+    """The calibration's cameras of ``videos`` in s3k's pixels (its file's in ``convention``) at the videos'
+    sizes (after ``regions``); the video sizes."""
     cameras = list(videos)
-    rig = read_calibration(calibration, units=units)
+    rig = pixels.rig_to_s3k(read_calibration(calibration, units=units), convention)
     try:
         rig = rig.select(cameras)
     except KeyError as exc:
@@ -196,7 +199,9 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
                      images: ImageOptions = ImageOptions(), keypoints: Sequence[str] | None = None,
                      units: str | None = None, overwrite: bool = False,
                      skeleton: str | Path | None = None, session: str | None = None,
-                     subject: str | None = None, frame_offsets: Mapping[str, int] | None = None) -> Path:
+                     subject: str | None = None, frame_offsets: Mapping[str, int] | None = None,
+                     label_pixels: pixels.Convention | None = None,
+                     calibration_pixels: pixels.Convention | None = None) -> Path:
     """Convert a recording to a dataset folder; returns the folder.
 
     Args:
@@ -220,6 +225,8 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
             shows the others' frame ``i + N`` (:mod:`s3k.data.sync` estimates it, ``s3k validate`` reports
             it). A dataset frame ``f`` holds each camera's frame ``f - N`` and its labels; frame ids follow
             the cameras of offset 0, and only the frames every camera filmed are kept.
+        label_pixels, calibration_pixels: the pixel convention (:mod:`s3k.data.formats.pixels`) of the
+            label files and of the calibration where it is not their format's (None: the format's).
     """
     out = Path(out)
     for camera in videos:
@@ -231,8 +238,12 @@ def import_recording(calibration: str | Path, videos: Mapping[str, str | Path], 
         raise UserError(f"--session {session!r}: a session name must be usable as a file name (letters, "
                         "digits, _ . + -)")
     cameras = list(videos)
-    rig, sizes = _prepare_rig(calibration, videos, units, images.video_regions)
+    rig, sizes = _prepare_rig(calibration, videos, units, images.video_regions, calibration_pixels)
     read = labels.read(cameras, sizes, rig) if labels is not None else LabelsRead("none", {}, {})
+    if label_pixels is not None and read.tables:
+        own = pixels.FORMATS[read.kind][0]
+        read = replace(read, tables={cam: replace(t, uv=pixels.relabel(t.uv, own, label_pixels))
+                                     for cam, t in read.tables.items()})
     for note in read.notes:
         log.info(note)
     offsets = _frame_offsets(frame_offsets, cameras)

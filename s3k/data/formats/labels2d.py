@@ -1,7 +1,8 @@
 """2D labels of one camera as the importers return them: :class:`LabelTable`, and frame numbers from image
 file names (:func:`frame_id_from_path`).
 
-Pixel (0, 0) is the centre of the top-left pixel in DeepLabCut, Lightning Pose and SLEAP, as in s3k.
+Pixels are s3k's (0, 0 the centre of the top-left pixel): each reader converts its format's convention
+(:mod:`s3k.data.formats.pixels`).
 """
 
 from __future__ import annotations

@@ -253,7 +253,8 @@ def write_nwb_labels(
     index = {k: i for i, k in enumerate(keypoints)}
     edges = np.array([[index[a], index[b]] for a, b in skeleton], dtype=np.uint8).reshape(-1, 2)
     sk = ndx_pose.Skeleton(name="s3k", nodes=keypoints, edges=edges)
-    behavior = nwb.create_processing_module(name="behavior", description="keypoint labels")
+    behavior = nwb.create_processing_module(
+        name="behavior", description="keypoint labels in pixels; (0, 0) is the centre of the top-left pixel")
     behavior.add(ndx_pose.Skeletons(skeletons=[sk]))
     series = {}
     n_frames = 1 + max(int(t.frame_ids.max()) for t in tables.values() if len(t.frame_ids))

@@ -12,6 +12,10 @@
 
 These are detections, not labels: a point counts only when its score is at least ``min_score``. s3k imports
 one animal per recording, so each frame keeps its most confident person (highest mean score).
+
+Pixels (:mod:`s3k.data.formats.pixels`): OpenPose's peak finder adds half a pixel to every peak, so that its
+coordinates put the top-left pixel's centre at ``(0.5, 0.5)``; they are moved by -0.5 px into s3k's. MMPose
+does not state a convention; its coordinates are kept.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from s3k.data.formats.labels2d import LabelTable
+from s3k.data.formats.pixels import Convention, to_s3k
 from s3k.errors import UserError
 
 COCO17 = ["nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
@@ -48,14 +53,15 @@ def _best(points: list[np.ndarray]) -> np.ndarray | None:
     return max(points, key=lambda p: float(np.nanmean(p[:, 2]))) if points else None
 
 
-def _table(frames: dict[int, np.ndarray], names: list[str], min_score: float, source: str) -> LabelTable:
+def _table(frames: dict[int, np.ndarray], names: list[str], min_score: float, source: str,
+           convention: Convention) -> LabelTable:
     ids = np.array(sorted(frames), dtype=np.int64)
     uv = np.full((len(ids), len(names), 2), np.nan)
     for i, f in enumerate(ids):
         p = frames[int(f)]
         ok = (p[:, 2] >= min_score) & np.isfinite(p[:, :2]).all(-1)
         uv[i, ok] = p[ok, :2]
-    return LabelTable(names, ids, uv, source)
+    return LabelTable(names, ids, to_s3k(uv, convention), source)
 
 
 def _load_json(path: Path):
@@ -95,7 +101,8 @@ def read_openpose_folder(folder: str | Path, min_score: float = 0.5) -> LabelTab
             frames[frame] = best
     if n_points is None:
         raise UserError(f"{folder}: no person detected in any file")
-    return _table(frames, _names(n_points, [OPENPOSE_BODY25, OPENPOSE_COCO18]), min_score, str(folder))
+    return _table(frames, _names(n_points, [OPENPOSE_BODY25, OPENPOSE_COCO18]), min_score, str(folder),
+                  "corner")
 
 
 def read_mmpose_json(path: str | Path, min_score: float = 0.5) -> LabelTable:
@@ -139,4 +146,4 @@ def read_mmpose_json(path: str | Path, min_score: float = 0.5) -> LabelTable:
         names = [str(id2name.get(str(k), id2name.get(k, f"kp{k}"))) for k in range(n_points)]  # type: ignore[call-overload]
     else:
         names = _names(n_points, [COCO17])
-    return _table(frames, names, min_score, str(path))
+    return _table(frames, names, min_score, str(path), "centre")
