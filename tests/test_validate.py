@@ -246,3 +246,12 @@ def test_frame_offsets_are_reported_and_warned(tmp_path: Path, capsys):
 def test_sparse_labels_cannot_tell_frame_offsets(tmp_path: Path, capsys):
     code, out = validate(capsys, make_dataset(tmp_path / "ds"))
     assert code == 0 and "frame offsets: the labels cannot tell" in out
+
+
+def test_frame_offset_check_cuts_long_stretches_without_labels():
+    """Labelled frames far apart in a long recording are laid on a short time axis: the stretch between them
+    cut to the lag window, the frames within it kept apart as recorded (in any order)."""
+    from s3k.data.validate import _time_rows
+
+    times = np.array([10**9 + 1, 0, 2, 1, 10**9])
+    np.testing.assert_array_equal(_time_rows(times, 21), [24, 0, 2, 1, 23])

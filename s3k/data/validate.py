@@ -92,6 +92,17 @@ def _calibration_check(ds: Dataset, path: str | Path) -> list[tuple[str, str]]:
                                 path)
 
 
+def _time_rows(times: np.ndarray, gap: int) -> np.ndarray:
+    """Each frame's row in a time axis whose stretches without frames are cut to ``gap`` frames (lags up to
+    ``gap - 1`` pair the same frames as in the recording; a long recording sparsely labelled stays small)."""
+    order = np.argsort(times, kind="stable")
+    t = times[order].astype(np.int64)
+    steps = np.minimum(np.diff(t, prepend=t[0]), gap)
+    rows = np.empty_like(t)
+    rows[order] = np.cumsum(steps)
+    return rows
+
+
 def _frame_offsets(ds: Dataset) -> list[tuple[str, str]]:
     """Each camera's frame offset against the first camera from the motion of the labelled and test frames'
     labels (:func:`s3k.data.sync.estimate_frame_offsets`), per session, as ``(severity, line)``: a line per
@@ -100,12 +111,12 @@ def _frame_offsets(ds: Dataset) -> list[tuple[str, str]]:
     sessions = ds.sessions if len(ds.sessions) > 1 else [None]
     for session in sessions:
         ids = ds.frames(["labelled", "test"], session=session)
-        times = ds.frame_times(ids) if len(ids) else ids
-        if len(ids) < 2 or times.max() - times.min() > 1_000_000:
+        if len(ids) < 2:
             continue
+        rows = _time_rows(ds.frame_times(ids), 2 * MAX_OFFSET + 1)
         uv, mask = ds.labels(ids, dtype=np.float64)
-        dense = np.full((len(ds.cameras), int(times.max() - times.min()) + 1, len(ds.keypoints), 2), np.nan)
-        dense[:, times - times.min()] = np.where(mask[..., None], uv, np.nan).transpose(1, 0, 2, 3)
+        dense = np.full((len(ds.cameras), int(rows.max()) + 1, len(ds.keypoints), 2), np.nan)
+        dense[:, rows] = np.where(mask[..., None], uv, np.nan).transpose(1, 0, 2, 3)
         cams = ds.calibration(ids[:1], dtype=np.float64)[0]
         est = estimate_frame_offsets(dense, cams, MAX_OFFSET)
         where = f"session {session}: " if session is not None else ""
