@@ -39,6 +39,10 @@ def run(args: argparse.Namespace) -> int:
     """``s3k add-frames``: the worst frames of a track's doubt ranking, from its videos, into the dataset's
     labelling queue."""
     source = read_source(args.tracks) or {}
+    if any(source.get("frame_offsets", {}).values()):
+        raise UserError(f"{args.tracks}: tracked with --frame-offsets {source['frame_offsets']}; add-frames "
+                        "cuts every camera at the same video frame, so it cannot queue this track's frames",
+                        hint="import the recording with s3k import --frame-offsets instead")
     named = source.get("doubt")
     ranking = Path(args.tracks).with_name(str(named)) if named else doubt_path(args.tracks)
     rows = read_doubt(ranking)

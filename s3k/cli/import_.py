@@ -8,7 +8,15 @@ from pathlib import Path
 from typing import Any
 
 from s3k.cli import examples
-from s3k.cli.options import camera_pairs, name, number, parse_crops, parse_size
+from s3k.cli.options import (
+    add_frame_offsets_option,
+    camera_pairs,
+    frame_offsets,
+    name,
+    number,
+    parse_crops,
+    parse_size,
+)
 from s3k.data import Dataset
 from s3k.data import import_labels as fmt
 from s3k.data.add_session import import_session, manifest_sessions, merge_session
@@ -129,11 +137,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "coordinates of the calibrated image: e.g. cam0=0,0,1920,1080 for a 1920x1080 video "
                         "calibrated at 1920x1088 (the intrinsics follow; cameras then a few pixels apart in "
                         "size are padded to the largest; default: the whole calibrated image)")
-    parser.add_argument("--frame-offsets", nargs="+", default=None, metavar="CAM=N",
-                        help="cameras whose clocks are off (unsynchronized webcams): CAM=N says that the "
-                        "camera's frame i shows the other cameras' frame i+N (s3k validate estimates N from "
-                        "the labels' motion); several as CAM=N,CAM2=M or CAM=N CAM2=M (default: 0 for every "
-                        "camera)")
+    add_frame_offsets_option(parser)
     parser.add_argument("--label-pixels", choices=["centre", "corner"], default=None,
                         help="the label files' pixel convention, where it is not their format's: centre "
                         "(0,0 is the centre of the top-left pixel, s3k's and OpenCV's) or corner (0,0 is the "
@@ -218,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
             if args.video_region else None),
         units=args.units, overwrite=args.overwrite,
         keypoints=[k.strip() for k in args.keypoints.split(",") if k.strip()] if args.keypoints else None,
-        skeleton=args.skeleton, frame_offsets=_frame_offsets(args.frame_offsets, list(videos)),
+        skeleton=args.skeleton, frame_offsets=frame_offsets(args.frame_offsets, list(videos)),
         label_pixels=args.label_pixels, calibration_pixels=args.calibration_pixels,
     )
     if args.into is not None:
@@ -260,25 +264,6 @@ def _add_dataset(args: argparse.Namespace, held_out: bool) -> int:
     merge_session(args.into, args.dataset, args.session, info, hold_out=held_out)
     print(f"added {args.dataset} to {args.into} as session {args.session}")
     return 0
-
-
-def _frame_offsets(values: list[str] | None, cameras: list[str]) -> dict[str, int] | None:
-    """``--frame-offsets`` ``["cam=N,cam2=M", ...]`` -> ``{cam: N}``."""
-    if not values:
-        return None
-    out: dict[str, int] = {}
-    for item in (part for value in values for part in value.split(",") if part.strip()):
-        cam, sep, text = item.strip().partition("=")
-        try:
-            n = int(text)
-        except ValueError:
-            sep = ""
-        if not sep or cam not in cameras or cam in out:
-            why = ("a camera given twice" if cam in out else f"unknown camera {cam!r}" if sep
-                   else "expected CAMERA=N with N a whole number of frames")
-            raise UserError(f"--frame-offsets {item.strip()!r}: {why} (cameras: {', '.join(cameras)})")
-        out[cam] = n
-    return out
 
 
 def _test_sessions(text: str | None) -> list[str]:

@@ -141,6 +141,35 @@ def add_other_rig_option(parser: argparse.ArgumentParser) -> None:
                         "(refused by default: its results there are wrong)")
 
 
+def add_frame_offsets_option(parser: argparse.ArgumentParser) -> None:
+    """``--frame-offsets CAM=N``: cameras whose clocks are off (``s3k import`` and ``s3k track``)."""
+    parser.add_argument("--frame-offsets", nargs="+", default=None, metavar="CAM=N",
+                        help="cameras whose clocks are off (unsynchronized webcams): CAM=N says that the "
+                        "camera's frame i shows the other cameras' frame i+N (s3k validate estimates N from "
+                        "the labels' motion); several as CAM=N,CAM2=M or CAM=N CAM2=M (default: 0 for every "
+                        "camera)")
+
+
+def frame_offsets(values: list[str] | None, cameras: list[str]) -> dict[str, int] | None:
+    """``--frame-offsets`` ``["cam=N,cam2=M", ...]`` -> ``{cam: N}``."""
+    if not values:
+        return None
+    out: dict[str, int] = {}
+    for item in (part for value in values for part in value.split(",") if part.strip()):
+        cam, sep, text = item.strip().partition("=")
+        try:
+            n = int(text)
+        except ValueError:
+            sep = ""
+        if not sep or cam not in cameras or cam in out:
+            why = ("a camera given twice" if cam in out else f"unknown camera {cam!r}" if sep
+                   else "expected CAMERA=N with N a whole number of frames")
+            raise UserError(f"--frame-offsets {item.strip()!r}: {why} (cameras: {', '.join(cameras)})")
+        out[cam] = n
+    return out
+
+
+
 def rig_options(args: argparse.Namespace, cameras: list[str]) -> RigOptions:
     """The :class:`s3k.inference.session.RigOptions` of :func:`add_rig_options`' options for ``cameras``."""
     return RigOptions(
@@ -148,4 +177,5 @@ def rig_options(args: argparse.Namespace, cameras: list[str]) -> RigOptions:
         video_regions=parse_crops(args.video_region, cameras, "--video-region", every=False)
         if args.video_region else None,
         crops=parse_crops(args.crop, cameras) if args.crop else None, fit=args.fit, device=args.device,
-        other_rig=args.other_rig)
+        other_rig=args.other_rig,
+        frame_offsets=frame_offsets(getattr(args, "frame_offsets", None), cameras))

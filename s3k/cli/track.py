@@ -8,7 +8,7 @@ import json
 
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
-from s3k.cli.options import add_rig_options, camera_pairs, rig_options
+from s3k.cli.options import add_frame_offsets_option, add_rig_options, camera_pairs, rig_options
 from s3k.inference.track import track
 from s3k.inference.track_config import TrackConfig
 
@@ -40,6 +40,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--print-config", action="store_true",
                         help="print the resolved settings as JSON (the flat fields) and track nothing")
     add_rig_options(parser)
+    add_frame_offsets_option(parser)
     add_config_arguments(parser, TrackConfig)
 
 

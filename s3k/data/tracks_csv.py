@@ -148,7 +148,7 @@ def write_source(csv_path: str | Path, units: str, details: dict[str, Any] | Non
 _SOURCE_TYPES: dict[str, tuple[type, ...]] = {
     "units": (str,), "run": (str,), "calibration": (str,), "dataset": (str,), "fps": (str, int, float),
     "videos": (dict,), "start": (int,), "raw": (str, type(None)), "doubt": (str, type(None)),
-    "filter": (dict, type(None)),
+    "filter": (dict, type(None)), "frame_offsets": (dict,),
 }
 
 

@@ -12,6 +12,7 @@ image, and its frame rate is :data:`SEQUENCE_FPS`.
 
 from __future__ import annotations
 
+import itertools
 import queue
 import threading
 from collections.abc import Iterable, Iterator, Sequence
@@ -206,13 +207,17 @@ def extract_frames(
     return written
 
 
-def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
-                        stop: int | None = None) -> Iterator[tuple[int, list[np.ndarray]]]:
+def synchronized_frames(paths: Sequence[str | Path], start: int = 0, stop: int | None = None,
+                        offsets: Sequence[int] | None = None) -> Iterator[tuple[int, list[np.ndarray]]]:
     """Decode several videos in lockstep: yields ``(i, [image (H, W, 3) uint8 RGB per video])``.
 
-    Frame ``i`` of every video is one instant (a synchronized rig). Frames before ``start`` are decoded but
-    not converted. Stops at ``stop`` (exclusive) or when the shortest video ends.
+    Frame ``i`` of every video is one instant (a synchronized rig); with ``offsets`` (one per video, frames)
+    instant ``i`` is frame ``i - offsets[c]`` of video ``c`` (its clock runs ``offsets[c]`` frames behind),
+    and the instants begin at the first that every video filmed (``max(0, *offsets)``). Frames before
+    ``start`` are decoded but not converted. Stops at ``stop`` (exclusive) or when the shortest video ends.
     """
+    offsets = list(offsets) if offsets is not None else [0] * len(paths)
+    first = max(0, *offsets)
     containers = []
     try:
         decoders: list[Iterator[Any]] = []
@@ -224,7 +229,9 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
             containers.append(container)
             stream.thread_type = "AUTO"
             decoders.append(container.decode(stream))
-        for i, frames in enumerate(zip(*decoders)):
+        for c, n in enumerate(offsets):  # each video's first frame at instant ``first``
+            decoders[c] = itertools.islice(decoders[c], first - n, None)
+        for i, frames in enumerate(zip(*decoders), start=first):
             if stop is not None and i >= stop:
                 return
             if i >= start:
@@ -235,13 +242,14 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0,
             container.close()
 
 
-def synchronized_batches(paths: Sequence[str | Path], batch: int, start: int = 0,
-                         stop: int | None = None) -> Iterator[tuple[list[int], list[list[np.ndarray]]]]:
+def synchronized_batches(paths: Sequence[str | Path], batch: int, start: int = 0, stop: int | None = None,
+                         offsets: Sequence[int] | None = None
+                         ) -> Iterator[tuple[list[int], list[list[np.ndarray]]]]:
     """:func:`synchronized_frames` in batches: yields ``(indices, frames)``, ``frames`` a list of up to
     ``batch`` lists of one image per video (the last batch may be shorter)."""
     fnums: list[int] = []
     frames: list[list[np.ndarray]] = []
-    for i, views in synchronized_frames(paths, start, stop):
+    for i, views in synchronized_frames(paths, start, stop, offsets):
         fnums.append(i)
         frames.append(views)
         if len(fnums) == batch:

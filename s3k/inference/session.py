@@ -49,6 +49,8 @@ class RigOptions:
             recorded boxes apply).
         device: where the detector runs (``"auto"``, ``"cpu"``, ``"cuda"``...).
         other_rig: use the run on cameras it was not trained on.
+        frame_offsets: ``{camera: N}`` for cameras whose clocks are off: the camera's frame ``i`` shows the
+            others' frame ``i + N`` (``--frame-offsets``; default 0 for every camera).
     """
 
     calibration: str | Path
@@ -58,6 +60,7 @@ class RigOptions:
     fit: Fit | None = None
     device: Device = "auto"
     other_rig: bool = False
+    frame_offsets: dict[str, int] | None = None
 
 
 @dataclass
@@ -71,6 +74,7 @@ class RigSession:
         boxes: ``(C, 4)`` each camera's box onto the detector's input (None: the whole frame).
         units: the calibration's world unit.
         notes: what the user should hear (``warning: ...`` lines among them), logged when placed.
+        offsets: each camera's frame offset (:attr:`RigOptions.frame_offsets`), 0 for a synchronized one.
     """
 
     detector: Detector
@@ -79,6 +83,7 @@ class RigSession:
     boxes: np.ndarray | None
     units: str
     notes: list[str] = field(default_factory=list)
+    offsets: list[int] = field(default_factory=list)
 
     @classmethod
     def place(cls, detector: Detector, sizes: dict[str, tuple[int, int]], rig: RigOptions,
@@ -126,7 +131,13 @@ class RigSession:
                          f"it with --video-region {name}=X0,Y0,X1,Y1")
         boxes, crop_notes = input_boxes(recorded_geometry(meta.geometry), sizes, rig.crops, rig.fit,
                                         detector.input_size)
-        return cls(detector, names, calib.cameras, boxes, calib.units, crop_notes + notes).said(level)
+        offsets = [int((rig.frame_offsets or {}).get(n, 0)) for n in names]
+        unknown = sorted(set(rig.frame_offsets or {}) - set(names))
+        if unknown:
+            raise UserError(f"--frame-offsets {unknown[0]}: no camera {unknown[0]!r} in {what} "
+                            f"(cameras: {', '.join(names)})")
+        return cls(detector, names, calib.cameras, boxes, calib.units, crop_notes + notes,
+                   offsets).said(level)
 
     @classmethod
     def on_dataset(cls, detector: Detector, ds: Dataset, other_rig: bool = False,

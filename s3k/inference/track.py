@@ -4,7 +4,8 @@ anipose's CSV layout.
 Pipeline, per frame (the same read-out as training, ``s3k predict`` and ``s3k evaluate``):
 
 1. The C videos are decoded in lockstep (:func:`s3k.data.video.synchronized_frames`): frame ``i`` of every
-   video is one instant (anipose's assumption for a synchronized rig).
+   video is one instant (anipose's assumption for a synchronized rig), or, for cameras whose clocks are off
+   (``--frame-offsets CAM=N``, estimated by ``s3k validate``), instant ``i`` is frame ``i - N`` of the camera.
 2. A :class:`s3k.inference.session.RigSession` (the detector placed on the rig) maps each image onto the
    detector's input through its camera's box (the ``--crop`` given, the box the run was trained on, or
    ``--fit``).
@@ -151,9 +152,10 @@ def detect_videos(session: RigSession, videos: dict[str, Path], config: TrackCon
         check_rigid(settings, shape, f"the run {detector.run}")
     paths = [Path(videos[name]) for name in session.names]
     rates = [video.frame_rate(p) for p in paths]
-    end = _frame_range(session.names, paths, rates, config.start, config.stop)
-    frames = video.prefetch(video.synchronized_batches(paths, config.batch, config.start, end))
-    got = _detect(session, frames, config.min_weight, end - config.start, config.progress)
+    offsets = session.offsets or [0] * len(paths)
+    start, end = _frame_range(session.names, paths, rates, config.start, config.stop, offsets)
+    frames = video.prefetch(video.synchronized_batches(paths, config.batch, start, end, offsets))
+    got = _detect(session, frames, config.min_weight, end - start, config.progress)
     rate = None if any(imageseq.is_sequence(p) for p in paths) else _common_rate(rates)
     result = Track(session, {n: p for n, p in zip(session.names, paths)}, config, got, rate)
     if config.filtering_on:
@@ -174,20 +176,25 @@ def _stack_views(frames: list[list[np.ndarray]]) -> np.ndarray | list[np.ndarray
 
 
 def _frame_range(names: list[str], paths: list[Path], rates: list[float], start: int,
-                 stop: int | None) -> int:
-    """The frame index to stop before; warns about videos of different lengths or frame rates."""
+                 stop: int | None, offsets: list[int]) -> tuple[int, int]:
+    """The instants ``start .. end - 1`` to track (camera ``c`` films instant ``i`` as its frame
+    ``i - offsets[c]``); warns about videos of different lengths or frame rates."""
     counts = {name: video.frame_count(p) for name, p in zip(names, paths)}
-    n_video = min(counts.values())
-    if len(set(counts.values())) > 1:
-        lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
-        log.warning(f"the videos have different lengths ({lengths}); tracking the first {n_video} frames "
-                    "of each")
+    first, n_video = max(0, *offsets), min(counts[n] + k for n, k in zip(names, offsets))
+    shifted = f" with --frame-offsets {dict(zip(names, offsets))}" if any(offsets) else ""
+    lengths = ", ".join(f"{k}: {v}" for k, v in counts.items())
+    if n_video <= first:
+        raise UserError(f"--frame-offsets {dict(zip(names, offsets))}: no instant is filmed by every camera "
+                        f"(frames: {lengths})")
+    if len(set(counts.values())) > 1 or any(offsets):
+        log.warning(f"the videos have {lengths} frames{shifted}; tracking the instants {first} to "
+                    f"{n_video - 1}, which every camera filmed")
     if max(rates) - min(rates) > 1e-3 * max(rates):
         log.warning(f"the videos have different frame rates ({dict(zip(names, rates))}); frames are paired "
                     "by index")
     if start >= n_video:
-        raise UserError(f"--start {start}: the videos have {n_video} frames")
-    return n_video if stop is None else min(stop, n_video)
+        raise UserError(f"--start {start}: the videos have {n_video} frames{shifted}")
+    return max(start, first), n_video if stop is None else min(stop, n_video)
 
 
 def _common_rate(rates: list[float]) -> float | None:
@@ -316,6 +323,8 @@ class Track:
         """The JSON companions of the CSVs (:func:`s3k.data.tracks_csv.write_source`)."""
         details = {"videos": {c: str(p) for c, p in self.videos.items()}, "start": self.config.start,
                    "doubt": ranked.name}
+        if any(self.session.offsets):
+            details["frame_offsets"] = dict(zip(self.session.names, self.session.offsets))
         source = {"run": self.session.detector.run, "calibration": calibration, "fps": self.fps}
         files = []
         if self.filtered is not None:
@@ -336,7 +345,8 @@ class Track:
         try:
             start = int(got.fnums[0]) if len(got.fnums) else 0
             stop = int(got.fnums[-1]) + 1 if len(got.fnums) else 0
-            batches = video.synchronized_batches(list(self.videos.values()), self.config.batch, start, stop)
+            batches = video.synchronized_batches(list(self.videos.values()), self.config.batch, start, stop,
+                                                 self.session.offsets or None)
             t = 0
             for _, frames in video.prefetch(batches):  # decoded as the detection decoded them
                 for views in frames:
