@@ -228,6 +228,11 @@ def test_a_run_without_truth_on_its_validation_frames_is_not_calibrated(tmp_path
     assert "too few views with a truth to calibrate the confidence" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="s3k"):
-        Detector.load(tmp_path / "run", "cpu")
-        Detector.load(tmp_path / "run", "cpu")
+        detector = Detector.load(tmp_path / "run", "cpu")
+        ds = Dataset.open(data)
+        ids = ds.frames("labelled")[:1]
+        detector(ds.images(ids), ds.calibration(ids))
+        assert "has no confidence calibration" not in caplog.text  # no threshold asked for: nothing to say
+        for _ in range(2):
+            detector(ds.images(ids), ds.calibration(ids), min_weight=0.5)
     assert caplog.text.count("has no confidence calibration") == 1  # said once

@@ -62,20 +62,20 @@ def test_old_runs_load_and_evaluate(dataset, tmp_path, capsys):
 
 def test_an_old_run_thresholds_its_raw_weights_and_says_so_once(dataset, tmp_path, caplog):
     """A run trained before confidences were calibrated: the confidence is the raw weight (the identity map),
-    so --min-weight selects the views it selected before, and loading it notes that once."""
+    so --min-weight selects the views it selected before, and a threshold asked of it notes that once."""
     import logging
 
     from s3k.data import Dataset
     from s3k.readout import select_views
 
     run = _copy("one", tmp_path)
-    with caplog.at_level(logging.INFO, logger="s3k"):
-        detector = Detector.load(run, "cpu")
-        Detector.load(run, "cpu")
-    assert caplog.text.count("has no confidence calibration") == 1
     ds = Dataset.open(dataset)
     ids = ds.frames("test")
-    out = detector(ds.images(ids), ds.calibration(ids), min_weight=0.5)
+    with caplog.at_level(logging.INFO, logger="s3k"):
+        detector = Detector.load(run, "cpu")
+        out = detector(ds.images(ids), ds.calibration(ids), min_weight=0.5)
+        Detector.load(run, "cpu")(ds.images(ids), ds.calibration(ids), min_weight=0.5)
+    assert caplog.text.count("has no confidence calibration") == 1
     assert detector.meta.calibration is None and out.confidence is out.weights
     assert out.used.equal(select_views(out.uv, out.weights, 0.5))
 

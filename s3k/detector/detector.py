@@ -41,7 +41,7 @@ from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.frozen import FrozenNetwork
 from s3k.detector.meta import DetectorMeta
-from s3k.detector.run_folder import load_network
+from s3k.detector.run_folder import load_network, note_uncalibrated
 from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import (
@@ -379,6 +379,8 @@ class Detector:
             A :class:`Detection` (float64) in the frames' pixels and the cameras' world frame, on the device
             the frames are on (a single frame keeps a batch of one).
         """
+        if min_weight > 0 and self.meta.calibration is None and self.run is not None:
+            note_uncalibrated(Path(self.run))
         views, _ = _views(images, int(cams.shape[-1]))
         if self.check_frames and boxes is None:
             _check_sizes(views, cams)

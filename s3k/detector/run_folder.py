@@ -174,13 +174,12 @@ def load_network(run_dir: str | Path, device: str | torch.device = "cpu",
         reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
         raise UserError(f"{path}: not an s3k model or written by an older s3k (its content does not fit: "
                         f"{reason})", hint="retrain") from exc
-    if meta.calibration is None:
-        _note_uncalibrated(path)
     return model.to(device).eval(), meta
 
 
-def _note_uncalibrated(path: Path) -> None:
-    """Say once per model file that its thresholds compare the raw confidence weight."""
+def note_uncalibrated(path: Path) -> None:
+    """Say once per run that its thresholds compare the raw confidence weight (a detector without a
+    confidence map, asked for a ``min_weight`` above 0)."""
     key = str(path.resolve())
     if key in _UNCALIBRATED_NOTED:
         return
