@@ -22,7 +22,14 @@ from s3k.errors import UserError
 from s3k.fileio import resolve_from
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
-from s3k.rigcal.boards import Board, Detections, check_board_matches, detect_image, read_board_toml
+from s3k.rigcal.boards import (
+    Board,
+    BoardDetector,
+    Detections,
+    check_board_matches,
+    detect_images,
+    read_board_toml,
+)
 from s3k.rigcal.rig import calibrate_detections, intrinsics_of
 
 CharucoBoardSpec = Board  # the board of anipose's board.toml (s3k.rigcal.boards.Board)
@@ -32,24 +39,24 @@ __all__ = ["CharucoBoardSpec", "DatasetRecalibration", "Recalibration", "detect_
 
 
 def _detect(image_paths, board: Board, min_corners: int = 6) -> Detections:
-    """The board's corners in calibration images, keyed by the last run of digits in each file name, with the
-    ArUco marker ids seen (for :func:`s3k.rigcal.boards.check_board_matches`)."""
-    detector = cv2.aruco.CharucoDetector(board.cv2_board())
-    found, seen, size, images = {}, set(), (0, 0), 0
+    """The board's corners in calibration images, keyed by the last run of digits in each file name, with what
+    detection took and dropped (for :func:`s3k.rigcal.boards.check_board_matches`)."""
+    keys = []
     for path in image_paths:
         key = frame_id_from_path(str(path))
         if key is None:
             raise UserError(f"{path}: no frame number in the file name to pair it with the other views",
                             hint="name the images <camera>-<index>.jpg")
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise UserError(f"{path}: cannot read image")
-        size, images = (image.shape[1], image.shape[0]), images + 1
-        hit, markers = detect_image(image, board, detector, min_corners)
-        seen.update(markers)
-        if hit is not None:
-            found[key] = hit
-    return Detections(found, size, images, tuple(sorted(seen)))
+        keys.append(key)
+
+    def images():
+        for key, path in zip(keys, image_paths):
+            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise UserError(f"{path}: cannot read image")
+            yield key, image
+
+    return detect_images(images(), BoardDetector(board, min_corners=min_corners))
 
 
 def detect_charuco(image_paths, board: Board, min_corners: int = 6) -> dict[int, tuple]:

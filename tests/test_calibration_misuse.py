@@ -110,7 +110,7 @@ def test_board_with_x_and_y_swapped_in_recalibrate(case, tmp_path, capsys):
     assert main(["check-calibration", str(folder / "ds"), "--recalibrate", "q", "--board", str(board),
                  "--charuco", *charuco]) == 1
     line = _one_line(capsys)
-    assert "ArUco marker ids but no ChArUco corners" in line and "check the board's size" in line
+    assert "ArUco markers 0-16 but no ChArUco corners" in line and "check the board's size" in line
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.formats.sleap import read_sleap_analysis
 from s3k.errors import UserError
 from s3k.outputs import check_output
-from s3k.rigcal.boards import board_from_fields, read_board_toml
+from s3k.rigcal.boards import Faces, board_from_fields, read_board_toml
 from s3k.rigcal.figure import draw_calibration
 from s3k.rigcal.rig import calibrate_sources, refine_with_points
 
@@ -68,6 +68,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         default="4x4_50",
         metavar="BITSxBITS_SIZE",
         help="ArUco dictionary of a ChArUco board (default 4x4_50)",
+    )
+    board.add_argument(
+        "--inverted",
+        action="store_true",
+        help="the board is printed inverted (white squares and markers on black); tried anyway when the "
+        "board as printed is not found in an image",
+    )
+    board.add_argument(
+        "--one-sided",
+        action="store_true",
+        help="do not look for a two-sided board's back face (by default an image where the board is not "
+        "found is flipped left-right and searched again: a camera behind the board sees its front mirrored)",
     )
     solve = parser.add_argument_group("solver")
     solve.add_argument("--every", type=number(int, ge=1), default=1, help="use every N-th frame (default 1)")
@@ -209,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
         origin_view=args.origin_view,
         loss_scale_px=args.loss_scale,
         identical=args.allow_identical_views,
+        faces=Faces(normal=not args.inverted, back=not args.one_sided),
     )
     if tables:
         cal = _with_labels(cal, args, tables)

@@ -168,29 +168,114 @@ def read_board_toml(path) -> Board:
 @dataclass
 class Detections:
     """One camera's board detections: ``{frame: (ids (n,) int, corners (n, 2) float64 px)}`` and its image
-    size ``(W, H)``; ``markers_seen`` counts ArUco markers found (for the board-size check)."""
+    size ``(W, H)``; what detection took and left: ``marker_ids`` the board's ArUco ids seen, ``inverted``
+    and ``back`` the frames found on an inverted print or on a two-sided board's back face, ``stray`` the
+    markers whose ids the board does not have (dropped) in ``stray_frames`` of the ``marker_frames`` images
+    that showed markers, with ``stray_ids`` their ids."""
 
     frames: dict[int, tuple[np.ndarray, np.ndarray]]
     size: tuple[int, int]
     images: int = 0
     marker_ids: tuple[int, ...] = ()
+    inverted: int = 0
+    back: int = 0
+    stray: int = 0
+    stray_frames: int = 0
+    marker_frames: int = 0
+    stray_ids: tuple[int, ...] = ()
+    faces: Faces | None = None
+
+
+@dataclass(frozen=True)
+class Faces:
+    """Which prints of the board detection tries, in order, when the one before finds nothing: the board as
+    printed, the board printed inverted (white squares and markers on black: the image is inverted before
+    detection), and a two-sided board's back face (the front printed through, so the camera behind it sees it
+    mirrored: the image is flipped left-right, detected, and the corners flipped back; the corners are the
+    front's, the board's thickness neglected)."""
+
+    normal: bool = True
+    inverted: bool = True
+    back: bool = True
+
+    def tries(self, charuco: bool) -> list[tuple[bool, bool]]:
+        """``[(inverted, back)]`` in the order tried; a checkerboard's back face is not told from its front
+        (its corner order is read from the image's handedness), so it is not tried for one."""
+        prints = [p for p, on in ((False, self.normal), (True, self.inverted)) if on]
+        sides = [False, True] if self.back and charuco else [False]
+        return [(p, s) for s in sides for p in prints]
+
+
+@dataclass
+class ImageHit:
+    """One image's detection: ``(ids, corners px)`` or None, the board's marker ids seen, the stray ids (not
+    the board's; dropped) and how the board was found."""
+
+    hit: tuple[np.ndarray, np.ndarray] | None
+    markers: tuple[int, ...] = ()
+    stray: tuple[int, ...] = ()
+    inverted: bool = False
+    back: bool = False
+
+
+class BoardDetector:
+    """Finds a board in images, trying the prints of ``faces`` in turn (see :class:`Faces`)."""
+
+    def __init__(self, board: Board, faces: Faces | None = None, min_corners: int = 6):
+        self.board, self.faces, self.min_corners = board, faces or Faces(), min_corners
+        if board.charuco:
+            cv2_board = board.cv2_board()
+            self.markers = cv2.aruco.ArucoDetector(cv2_board.getDictionary(), cv2.aruco.DetectorParameters())
+            self.charuco = cv2.aruco.CharucoDetector(cv2_board)
+
+    def _charuco(self, gray: np.ndarray) -> ImageHit:
+        corners, ids, _ = self.markers.detectMarkers(gray)
+        ids_ = [] if ids is None else [int(i) for i in ids.reshape(-1)]
+        keep = [i for i, m in enumerate(ids_) if m < self.board.n_markers]
+        stray = tuple(m for m in ids_ if m >= self.board.n_markers)
+        markers = tuple(ids_[i] for i in keep)
+        if len(keep) < 2:
+            return ImageHit(None, markers, stray)
+        kept_corners = tuple(corners[i] for i in keep)
+        kept_ids = np.array([[ids_[i]] for i in keep], np.int32)
+        cc, cids, _, _ = self.charuco.detectBoard(gray, markerCorners=kept_corners, markerIds=kept_ids)
+        if cids is None or len(cids) < self.min_corners:
+            return ImageHit(None, markers, stray)
+        return ImageHit((cids.reshape(-1).astype(int), cc.reshape(-1, 2).astype(np.float64)), markers, stray)
+
+    def _checkerboard(self, gray: np.ndarray) -> ImageHit:
+        nx, ny = self.board.squares_x - 1, self.board.squares_y - 1
+        ok, corners = cv2.findChessboardCornersSB(gray, (nx, ny), flags=cv2.CALIB_CB_NORMALIZE_IMAGE)  # type: ignore[call-overload]
+        if not ok:
+            return ImageHit(None)
+        uv = _first_square_dark(gray, corners.reshape(-1, 2).astype(np.float64), nx)
+        return ImageHit((np.arange(nx * ny), uv))
+
+    def detect(self, image: np.ndarray) -> ImageHit:
+        """The board in one image (grey or RGB): the first print of :attr:`faces` that gives ``min_corners``
+        corners; when none does, the first try's markers (for the messages)."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        first: ImageHit | None = None
+        for inverted, back in self.faces.tries(self.board.charuco):
+            view = 255 - gray if inverted else gray
+            view = np.ascontiguousarray(view[:, ::-1]) if back else view
+            found = self._charuco(view) if self.board.charuco else self._checkerboard(view)
+            first = first or found
+            if found.hit is not None:
+                ids, uv = found.hit
+                if back:  # the flipped image's column u is the image's W - 1 - u (pixel centres at integers)
+                    uv = np.column_stack([gray.shape[1] - 1 - uv[:, 0], uv[:, 1]])
+                return ImageHit((ids, uv), found.markers, found.stray, inverted, back)
+        return first or ImageHit(None)
 
 
 def detect_image(image: np.ndarray, board: Board, detector, min_corners: int):
     """One image's board corners ``(ids, corners px)`` (None with fewer than ``min_corners``), and the ArUco
-    marker ids seen (for the board-size check; empty for a checkerboard)."""
-    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    if board.charuco:
-        corners, ids, _marker_corners, marker_ids = detector.detectBoard(gray)
-        seen = () if marker_ids is None else tuple(int(i) for i in marker_ids.reshape(-1))
-        if ids is None or len(ids) < min_corners:
-            return None, seen
-        return (ids.reshape(-1).astype(int), corners.reshape(-1, 2).astype(np.float64)), seen
-    nx, ny = board.squares_x - 1, board.squares_y - 1
-    ok, corners = cv2.findChessboardCornersSB(gray, (nx, ny), flags=cv2.CALIB_CB_NORMALIZE_IMAGE)  # type: ignore[call-overload]
-    if not ok:
-        return None, ()
-    return (np.arange(nx * ny), _first_square_dark(gray, corners.reshape(-1, 2).astype(np.float64), nx)), ()
+    marker ids seen; ``detector`` a :class:`BoardDetector` (made here when None)."""
+    if not isinstance(detector, BoardDetector):
+        detector = BoardDetector(board, min_corners=min_corners)
+    found = detector.detect(image)
+    return found.hit, found.markers
 
 
 def _first_square_dark(gray: np.ndarray, uv: np.ndarray, nx: int) -> np.ndarray:
@@ -230,63 +315,112 @@ def frames_of(source: str | Path) -> tuple[list[int], list[Path] | None]:
     return [], None
 
 
-def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corners: int = 6) -> Detections:
-    """Detect the board in every ``every``-th frame of a video or image sequence."""
-
-
-    detector = cv2.aruco.CharucoDetector(board.cv2_board()) if board.charuco else None
-    keys, files = frames_of(source)
-    found: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+def detect_images(items, detector: BoardDetector) -> Detections:
+    """The board in ``(frame key, image)`` pairs: one camera's :class:`Detections` with what detection
+    took (inverted prints, back faces) and dropped (stray marker ids)."""
+    det = Detections({}, (0, 0), faces=detector.faces)
     seen: set[int] = set()
-    size = (0, 0)
-    images = 0
-    if files is not None:
-        items = ((k, f) for i, (k, f) in enumerate(zip(keys, files)) if i % every == 0)
-        for key, file in items:
-            image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise UserError(f"{file}: cannot read image")
-            size, images = (image.shape[1], image.shape[0]), images + 1
-            hit, markers = detect_image(image, board, detector, min_corners)
-            seen.update(markers)
-            if hit is not None:
-                found[key] = hit
-    else:
-        for i, image in video.iter_frames(source):
-            if i % every:
-                continue
-            size, images = (image.shape[1], image.shape[0]), images + 1
-            hit, markers = detect_image(image, board, detector, min_corners)
-            seen.update(markers)
-            if hit is not None:
-                found[i] = hit
-    return Detections(found, size, images, tuple(sorted(seen)))
+    stray: set[int] = set()
+    for key, image in items:
+        det.size, det.images = (image.shape[1], image.shape[0]), det.images + 1
+        found = detector.detect(image)
+        seen.update(found.markers)
+        if found.markers or found.stray:
+            det.marker_frames += 1
+        if found.stray:
+            det.stray += len(found.stray)
+            det.stray_frames += 1
+            stray.update(found.stray)
+        if found.hit is not None:
+            det.frames[key] = found.hit
+            det.inverted += found.inverted
+            det.back += found.back
+    det.marker_ids, det.stray_ids = tuple(sorted(seen)), tuple(sorted(stray))
+    return det
+
+
+def detect_board(source: str | Path, board: Board, *, every: int = 1, min_corners: int = 6,
+                 faces: Faces | None = None) -> Detections:
+    """Detect the board in every ``every``-th frame of a video or image sequence, trying the prints of
+    ``faces`` (default: as printed, inverted, the back face)."""
+    detector = BoardDetector(board, faces, min_corners)
+    keys, files = frames_of(source)
+
+    def images():
+        if files is not None:
+            for i, (key, file) in enumerate(zip(keys, files)):
+                if i % every == 0:
+                    image = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)
+                    if image is None:
+                        raise UserError(f"{file}: cannot read image")
+                    yield key, image
+        else:
+            for i, image in video.iter_frames(source):
+                if i % every == 0:
+                    yield i, image
+
+    return detect_images(images(), detector)
+
+
+STRAY_SHARE = 0.5
+"""Ids beyond the board's in more than this share of the images showing markers mean a board of another size
+(refused); in fewer, they are stray detections (dropped and counted)."""
 
 
 def check_board_matches(name: str, source, det: Detections, board: Board) -> None:
-    """A one-line error when the board seen does not match ``board``: ArUco markers whose ids the board does
-    not have, or no detection at all."""
+    """A one-line error naming the cause when the board seen does not match ``board``: ArUco ids beyond the
+    board's in most images (its size), markers but no corners, or no board at all. Ids beyond the board's in
+    a few images are stray detections, dropped (:attr:`Detections.stray`)."""
     if not board.charuco and (board.squares_x + board.squares_y) % 2 == 0:
         raise UserError(
             f"checkerboard {board.describe()}: with an even number of squares in all it looks the same "
             "turned by 180 degrees, so the cameras cannot agree on its corners",
             hint="use a board with an odd squares_x + squares_y (e.g. 8x11 or 7x6)",
         )
-    if board.charuco and det.marker_ids and max(det.marker_ids) >= board.n_markers:
+    where = f"camera {name} ({source})"
+    faces = det.faces or Faces()
+    untried = "".join([
+        "" if faces.back or not board.charuco else "; if it sees a two-sided board's back face (mirrored), "
+        "leave out --one-sided, which skips it",
+        "" if faces.inverted else "; a board printed inverted (white on black) is not looked for "
+        "(pass --inverted)",
+        "" if faces.normal else "; the board is looked for printed inverted only (--inverted): leave it out "
+        "for "        "a board printed black on white"])
+    if board.charuco and det.stray_frames > STRAY_SHARE * max(det.marker_frames, 1):
         raise UserError(
-            f"camera {name} ({source}): the images show ArUco markers with ids up to "
-            f"{max(det.marker_ids)}, but "
-            f"the board {board.describe()} has markers 0-{board.n_markers - 1}: the board's size does not "
-            "match the detections",
-            hint="check board_x, board_y in board.toml (or --squares)",
+            f"{where}: {det.stray_frames} of the {det.marker_frames} images showing ArUco markers show ids "
+            f"beyond the board's 0-{board.n_markers - 1} (up to {max(det.stray_ids)}): the board "
+            f"{board.describe()} is smaller than the one filmed",
+            hint="check board_x, board_y in board.toml (or --squares)" + untried,
         )
     if not det.frames:
-        what = (
-            f"{len(det.marker_ids)} ArUco marker ids but no ChArUco corners" if det.marker_ids else "no board"
-        )
-        raise UserError(
-            f"camera {name} ({source}): {what} found in {det.images} image(s) for the board "
-            f"{board.describe()}",
-            hint="check the board's size and dictionary (board.toml, --squares, "
-            "--dict) and that the board is in view",
-        )
+        if not board.charuco:
+            what = "no checkerboard"
+            hint = ("check board_x, board_y (--squares: squares, not inner corners) and that the board is in "
+                    "view; pass --inverted for a board printed white on black")
+        elif det.marker_ids:
+            what = (f"ArUco markers {_ranges(det.marker_ids)} but no ChArUco corners (fewer than 6 in every "
+                    "image)")
+            hint = ("check the board's size and marker length (board_x, board_y, marker_length; --squares, "
+                    "--marker-length) against the printed board, and that more of it is in view")
+        else:
+            what = "no ArUco marker of the board's dictionary" + (
+                f" (only stray ids {_ranges(det.stray_ids)})" if det.stray_ids else "")
+            tried = [w for w, on in (("inverted prints", faces.inverted), ("a two-sided board's back face",
+                                                                        faces.back)) if on]
+            hint = ("check the dictionary (dict_size, marker_bits; --dict) and that the board is in view and "
+                    "in focus" + (f"; also tried: {', '.join(tried)}" if tried else ""))
+        raise UserError(f"{where}: {what} in {det.images} image(s) for the board {board.describe()}",
+                        hint=hint + untried)
+
+
+def _ranges(ids) -> str:
+    """``0-4, 7, 9-10``: sorted ids as runs."""
+    runs: list[list[int]] = []
+    ids = sorted(ids)
+    for i in ids:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)

@@ -5,7 +5,7 @@ joint bundle adjustment; the world is the first camera or a chosen board view, t
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -16,7 +16,7 @@ from s3k.data.formats.anipose import units_from_board
 from s3k.data.rig import Rig, check_camera_name
 from s3k.errors import UserError
 from s3k.geometry import Cameras, triangulate_pixels
-from s3k.rigcal.boards import Board, Detections, check_board_matches, detect_board
+from s3k.rigcal.boards import Board, Detections, Faces, check_board_matches, detect_board
 from s3k.rigcal.bundle import Adjusted, bundle_adjust
 from s3k.rigcal.solve import Intrinsics, Observations, chain_extrinsics, initial_intrinsics, relative_pose
 
@@ -34,6 +34,7 @@ class CameraReport:
     rms_px: float
     coverage: float
     initial_rms_px: float
+    dropped_views: int = 0
 
 
 @dataclass
@@ -49,6 +50,7 @@ class RigCalibration:
     view_keys: list[int]
     report: list[CameraReport]
     origin: str
+    options: dict = field(default_factory=dict)
 
     def rig(self, units: str | None = None):
         """The result as a :class:`s3k.data.rig.Rig` (full resolution)."""
@@ -170,6 +172,10 @@ def calibrate_detections(
                                radial=radial, loss_scale_px=loss_scale_px)
     adj = adjust(intr, R, t, _initial_views(keys, poses, R, t), obs, corners3d)
     bad = _bad_views(obs, adj)
+    # views left out per camera: by its own intrinsics' fit, then as wrong reads after the adjustment
+    dropped = [sum(len(ids) >= 6 for ids, _ in d.frames.values()) - len(p)
+               + len(set(obs.view[bad & (obs.cam == c)].tolist()))
+               for c, (d, p) in enumerate(zip(detections, poses))]
     if bad.any():  # wrong detections (a grid read from the wrong corner): adjust again without them
         obs = _subset(obs, ~bad)
         adj = adjust(adj.intrinsics, adj.R, adj.t, adj.views, obs, corners3d)
@@ -195,10 +201,13 @@ def calibrate_detections(
                 float(np.sqrt(np.mean(err**2))),
                 coverage(obs.uv[sel], detections[c].size),
                 rms[c],
+                dropped[c],
             )
         )
+    options = {"free_principal_point": free_principal_point, "radial": radial, "loss_scale_px": loss_scale_px,
+               "fixed": fixed}
     return RigCalibration(
-        list(names), [d.size for d in detections], board, detections, adj, obs, keys, report, origin
+        list(names), [d.size for d in detections], board, detections, adj, obs, keys, report, origin, options
     )
 
 
@@ -302,7 +311,7 @@ def _refuse_same_views(groups: list[list[str]], what: str) -> None:
 
 
 def calibrate_sources(sources: dict[str, str], board: Board, *, every: int = 1, identical: bool = False,
-                      **options) -> RigCalibration:
+                      faces: Faces | None = None, **options) -> RigCalibration:
     """Detect the board in each camera's video or image folder (frames synchronized by index or by the number
     in the file names), then :func:`calibrate_detections`. Cameras given the same source, or whose
     detections are identical, are refused unless ``identical``."""
@@ -314,7 +323,7 @@ def calibrate_sources(sources: dict[str, str], board: Board, *, every: int = 1, 
         _refuse_same_views([g for g in same.values() if len(g) > 1], "are given the same source")
     detections = []
     for name in names:
-        det = detect_board(sources[name], board, every=every)
+        det = detect_board(sources[name], board, every=every, faces=faces)
         check_board_matches(name, sources[name], det, board)
         detections.append(det)
     if not identical:
@@ -386,6 +395,7 @@ def refine_with_points(
                 float(np.sqrt(np.mean(err**2))),
                 r.coverage,
                 r.initial_rms_px,
+                r.dropped_views,
             )
         )
     return RigCalibration(
@@ -398,4 +408,5 @@ def refine_with_points(
         cal.view_keys,
         report,
         cal.origin + f", with {len(points)} labelled points",
+        cal.options,
     )

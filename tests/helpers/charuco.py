@@ -25,9 +25,19 @@ def look_at(centre, target=(0.0, 0.0, 0.0)):
     return R, -R @ centre
 
 
-def render_charuco_rig(folder: str | Path, poses: int = 8):
+def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = False, back: str | None = None,
+                       stray: dict[str, list[int]] | None = None, seen: dict[str, list[int]] | None = None):
     """A 5 x 7 ChArUco board (30 mm squares) in ``poses`` poses seen by cameras p, q, r, written as
-    ``folder/<camera>-<pose>.png``: ``(truth Rig, Board, {camera: [files]})``."""
+    ``folder/<camera>-<pose>.png``: ``(truth Rig, Board, {camera: [files]})``.
+
+    Args:
+        inverted: the board printed inverted (white squares and markers on black).
+        back: a camera placed below the board, which sees its back face (a two-sided board printed through:
+            the front's pattern seen from behind, mirrored).
+        stray: per camera the poses whose image also shows a marker the board does not have (id 40 of the
+            board's dictionary) in a corner of the background.
+        seen: per camera the poses it sees the board in (an empty grey image in the others).
+    """
     from s3k.data.rig import Rig
     from s3k.geometry import Cameras
     from s3k.rigcal.boards import Board
@@ -38,12 +48,17 @@ def render_charuco_rig(folder: str | Path, poses: int = 8):
     spec = Board(5, 7, 30.0, 22.0, 4, 50)
     px_per_mm = 4
     art = spec.cv2_board().generateImage((5 * 30 * px_per_mm, 7 * 30 * px_per_mm), marginSize=0)
+    if inverted:
+        art = 255 - art
     # The board image maps board (x, y) mm -> art pixels (x, y) * px_per_mm (pixel centres at +0.5).
     A = np.array([[px_per_mm, 0, -0.5], [0, px_per_mm, -0.5], [0, 0, 1.0]])
-    cams = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), 400.0])) for a in (0.3, 2.2, 4.2)]
+    angles = (0.3, 2.2, 4.2)
+    cams = [look_at(np.array([250 * np.cos(a), 250 * np.sin(a), -400.0 if NAMES[c] == back else 400.0]))
+            for c, a in enumerate(angles)]
     Rs, ts = np.stack([p[0] for p in cams]), np.stack([p[1] for p in cams])
     Ks = np.array([[[600.0 + 60 * c, 0, (W - 1) / 2], [0, 600.0 + 60 * c, (H - 1) / 2], [0, 0, 1]]
                    for c in range(3)])
+    marker = cv2.aruco.generateImageMarker(spec.cv2_board().getDictionary(), 40, 48)
     rng = np.random.default_rng(0)
     files: dict[str, list[Path]] = {n: [] for n in NAMES}
     for i in range(poses):
@@ -56,6 +71,11 @@ def render_charuco_rig(folder: str | Path, poses: int = 8):
             # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
             Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
             image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
+            if seen is not None and i not in seen.get(n, range(poses)):
+                image = np.full((H, W), 200, np.uint8)
+            if i in (stray or {}).get(n, []):
+                image[8:80, 8:80] = 255
+                image[20:68, 20:68] = marker
             path = folder / f"{n}-{i}.png"
             cv2.imwrite(str(path), image)
             files[n].append(path)

@@ -1,0 +1,109 @@
+"""``s3k calibrate`` on the boards people have, drawn with OpenCV for three cameras p, q, r
+(tests/helpers/charuco.py): a board printed inverted, a stray marker id in the background, a two-sided board
+with its back face to one camera, a camera that sees the board in only a third of the frames. Each calibrates
+in one command with every camera where it is, what detection took or dropped counted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers.charuco import render_charuco_rig
+
+from s3k.cli import main
+from s3k.data.formats.anipose import read_anipose_calibration
+from s3k.errors import UserError
+from s3k.rigcal.boards import Board, Faces, check_board_matches, detect_board
+
+BOARD = ["--squares", "5x7", "--square-length", "30", "--marker-length", "22"]
+CASES = {
+    "inverted": {"inverted": True},
+    "stray": {"stray": {"p": [3]}},
+    "back": {"back": "r"},
+    "third": {"seen": {"r": [0, 1, 2, 3]}},
+}
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def case(request, tmp_path_factory):
+    folder = tmp_path_factory.mktemp(request.param)
+    truth, spec, _ = render_charuco_rig(folder / "images", poses=12, **CASES[request.param])
+    return request.param, folder, truth, spec
+
+
+def _calibrate(folder, *extra):
+    out = folder / "calibration.toml"
+    args = [
+        "calibrate",
+        *[f"{n}={folder / 'images' / f'{n}-*.png'}" for n in "pqr"],
+        *BOARD,
+        "--out",
+        str(out),
+        "--overwrite",
+        *extra,
+    ]
+    return main(args), out
+
+
+def _centres(rig):
+    a = rig.cameras.numpy()
+    C = np.stack([-R.T @ t for R, t in zip(a["R"], a["t"])])
+    R0 = a["R"][0]
+    return (C - C[0]) @ R0.T, a["R"] @ R0.T  # in the first camera's frame
+
+
+def test_calibrates_in_one_command(case, capsys):
+    """Every camera calibrated to its true place (the first camera's frame; 2 mm, 0.2 degree), and what
+    detection took or dropped counted in the printed table and the saved report."""
+    name, folder, truth, _ = case
+    code, out = _calibrate(folder)
+    assert code == 0, capsys.readouterr()
+    got = read_anipose_calibration(out)
+    assert got.names == ["p", "q", "r"]
+    (c_got, r_got), (c_true, r_true) = _centres(got), _centres(truth)
+    assert np.linalg.norm(c_got - c_true, axis=1).max() < 2.0
+    for a, b in zip(r_got, r_true):
+        assert np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1) / 2, -1, 1))) < 0.2
+    det = {n: detect_board(folder / "images" / f"{n}-*.png", _spec()) for n in "pqr"}
+    expected = {
+        "inverted": ("inverted", {"p": 12, "q": 12, "r": 12}),
+        "stray": ("stray", {"p": 1, "q": 0, "r": 0}),
+        "back": ("back", {"p": 0, "q": 0, "r": 12}),
+        "third": ("frames", {"p": 12, "q": 12, "r": 4}),
+    }[name]
+    got = {n: getattr(d, expected[0]) for n, d in det.items()}
+    assert {n: len(v) if isinstance(v, dict) else v for n, v in got.items()} == expected[1]
+
+
+def _spec():
+    return Board(5, 7, 30.0, 22.0, 4, 50)
+
+
+def test_inverted_only_and_one_sided(case, capsys):
+    """--inverted looks for the inverted print alone; --one-sided leaves out the back face, and a camera that
+    sees only the back is then refused naming the option that finds it."""
+    name, folder, _, spec = case
+    if name == "inverted":
+        det = detect_board(folder / "images" / "p-*.png", spec, faces=Faces(normal=False))
+        assert len(det.frames) == 12 and det.inverted == 12
+        det = detect_board(folder / "images" / "p-*.png", spec, faces=Faces(inverted=False))
+        with pytest.raises(UserError, match="no ArUco marker of the board's dictionary.*inverted"):
+            check_board_matches("p", "x", det, spec)
+    if name == "back":
+        code, _ = _calibrate(folder, "--one-sided")
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code != 0 and len(err) == 1
+        assert "camera r" in err[0] and "back face" in err[0] and "--one-sided" in err[0]
+
+
+def test_a_board_of_another_size_is_still_refused(tmp_path):
+    """Ids beyond the board's in most images are a board of another size, not stray detections."""
+    _, spec, _ = render_charuco_rig(tmp_path, poses=4)
+    small = Board(5, 5, 30.0, 22.0, 4, 50)  # 12 markers; the 5 x 7 board has 17
+    det = detect_board(tmp_path / "p-*.png", small)
+    assert det.stray_frames == 4
+    with pytest.raises(
+        UserError,
+        match=r"4 of the 4 images showing ArUco markers show ids beyond the board's "
+        r"0-11 \(up to 16\).*smaller than the one filmed.*--squares",
+    ):
+        check_board_matches("p", "x", det, small)
