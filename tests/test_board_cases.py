@@ -1,9 +1,12 @@
 """``s3k calibrate`` on the boards people have, drawn with OpenCV for three cameras p, q, r
 (tests/helpers/charuco.py): a board printed inverted, a stray marker id in the background, a two-sided board
 with its back face to one camera, a camera that sees the board in only a third of the frames. Each calibrates
-in one command with every camera where it is, what detection took or dropped counted."""
+in one command with every camera where it is, what detection took or dropped counted in the report; and the
+report's held-out figures and warnings."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
@@ -39,6 +42,8 @@ def _calibrate(folder, *extra):
         "--out",
         str(out),
         "--overwrite",
+        "--bootstrap",
+        "2",
         *extra,
     ]
     return main(args), out
@@ -56,26 +61,36 @@ def test_calibrates_in_one_command(case, capsys):
     detection took or dropped counted in the printed table and the saved report."""
     name, folder, truth, _ = case
     code, out = _calibrate(folder)
-    assert code == 0, capsys.readouterr()
+    text = capsys.readouterr().out
+    assert code == 0, text
     got = read_anipose_calibration(out)
     assert got.names == ["p", "q", "r"]
     (c_got, r_got), (c_true, r_true) = _centres(got), _centres(truth)
     assert np.linalg.norm(c_got - c_true, axis=1).max() < 2.0
     for a, b in zip(r_got, r_true):
         assert np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1) / 2, -1, 1))) < 0.2
-    det = {n: detect_board(folder / "images" / f"{n}-*.png", _spec()) for n in "pqr"}
+    report = json.loads((folder / "calibration.report.json").read_text())
+    det = report["detections"]
     expected = {
         "inverted": ("inverted", {"p": 12, "q": 12, "r": 12}),
-        "stray": ("stray", {"p": 1, "q": 0, "r": 0}),
-        "back": ("back", {"p": 0, "q": 0, "r": 12}),
-        "third": ("frames", {"p": 12, "q": 12, "r": 4}),
+        "stray": ("stray_markers", {"p": 1, "q": 0, "r": 0}),
+        "back": ("back_face", {"p": 0, "q": 0, "r": 12}),
+        "third": ("board_frames", {"p": 12, "q": 12, "r": 4}),
     }[name]
-    got = {n: getattr(d, expected[0]) for n, d in det.items()}
-    assert {n: len(v) if isinstance(v, dict) else v for n, v in got.items()} == expected[1]
-
-
-def _spec():
-    return Board(5, 7, 30.0, 22.0, 4, 50)
+    assert {n: det[n][expected[0]] for n in "pqr"} == expected[1]
+    assert "stray ids" in text and "held out" in text and "square 30" in text
+    if name == "stray":
+        assert det["p"]["stray_ids"] == [40] and det["p"]["board_frames"] == 12
+    if name == "third":  # r has no frame in the second half: not checked there, and said so
+        assert report["halves"]["first_on_second_px"]["r"] is None
+        assert any(
+            "camera r saw the board in fewer than 3 frames of one half" in w for w in report["warnings"]
+        )
+    else:
+        assert report["warnings"] == []
+        held = report["halves"]["first_on_second_px"]
+        assert all(0 < held[n] < 0.5 for n in "pqr")
+    assert abs(report["square"]["all_frames_error"]) < 0.002
 
 
 def test_inverted_only_and_one_sided(case, capsys):
@@ -107,3 +122,43 @@ def test_a_board_of_another_size_is_still_refused(tmp_path):
         r"0-11 \(up to 16\).*smaller than the one filmed.*--squares",
     ):
         check_board_matches("p", "x", det, small)
+
+
+def test_a_camera_knocked_halfway_is_warned_of(tmp_path, capsys):
+    """A camera turned by 1 degree halfway through the board frames: each half fits on its own, but the rig of
+    one half puts the other half's corners pixels off in that camera and the halves' rigs disagree on it; the
+    report warns, naming it."""
+    render_charuco_rig(tmp_path / "images", poses=12, turned="q")
+    code, _ = _calibrate(tmp_path)
+    text = capsys.readouterr().out
+    assert code == 0
+    report = json.loads((tmp_path / "calibration.report.json").read_text())
+    held = report["halves"]["first_on_second_px"]
+    assert held["q"] > 1.0 and held["p"] < held["q"] and held["r"] < held["q"]
+    assert report["halves"]["rigs_apart"]["q"]["orientation_deg"] > 0.5
+    assert "warning: camera q: the rig fitted on one half of the board frames puts the other half" in text
+
+
+def test_low_coverage_and_a_wrong_square_are_warned_of():
+    """The warnings' thresholds: coverage below 25%, a triangulated square 0.5% off its known side."""
+    from s3k.rigcal.report import _warnings
+
+    figures = {
+        "detections": {"p": {}},
+        "halves": {
+            "first_on_second_px": {"p": 0.2},
+            "second_on_first_px": {"p": 0.3},
+            "rigs_apart": {"p": {"centre_mm": 0.0}},
+            "scale_difference": 0.001,
+            "first": "0-5",
+            "second": "6-11",
+        },
+        "square": {"known": 24.0, "all_frames_error": 0.001, "held_out_error": -0.02},
+        "coverage": {"p": 0.2},
+    }
+    warnings = _warnings(figures, "mm")
+    assert len(warnings) == 2
+    assert "square measures 0.98 times its known 24 mm (held out; -2.00%" in warnings[0]
+    assert "camera p: the board covered 20% of its image" in warnings[1]
+    figures["coverage"]["p"], figures["square"]["held_out_error"] = 0.3, 0.004
+    assert _warnings(figures, "mm") == []

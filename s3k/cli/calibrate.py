@@ -17,6 +17,7 @@ from s3k.errors import UserError
 from s3k.outputs import check_output
 from s3k.rigcal.boards import Faces, board_from_fields, read_board_toml
 from s3k.rigcal.figure import draw_calibration
+from s3k.rigcal.report import calibration_report, report_path
 from s3k.rigcal.rig import calibrate_sources, refine_with_points
 
 
@@ -124,6 +125,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="Huber loss scale: residuals beyond it weigh linearly (default 1 px)",
     )
     parser.add_argument(
+        "--report",
+        default=None,
+        metavar="JSON",
+        help="write the calibration report here (default: beside --out, calibration.report.json)",
+    )
+    parser.add_argument(
+        "--bootstrap",
+        type=number(int, ge=0),
+        default=8,
+        metavar="N",
+        help="bootstrap resamples of the board frames for the cameras' centre and orientation spread "
+        "(default 8, seed 0; 0 skips them)",
+    )
+    parser.add_argument(
         "--figure",
         default=None,
         metavar="PNG",
@@ -207,6 +222,8 @@ def run(args: argparse.Namespace) -> int:
     inputs = {"--board": args.board, "--labels": list(labels.values()),
               "CAM=SOURCE": [f for source in sources.values() for f in _source_files(source)]}
     check_output(args.out, args.overwrite, inputs=inputs, option="--out")
+    report_file = args.report or report_path(args.out)
+    check_output(report_file, args.overwrite, inputs={**inputs, "--out": args.out}, option="--report")
     if args.figure:
         check_output(args.figure, args.overwrite, inputs={**inputs, "--out": args.out}, option="--figure")
     board = _board(args)
@@ -231,8 +248,12 @@ def run(args: argparse.Namespace) -> int:
         f"{seconds:.1f} s; world: {cal.origin}, unit {cal.rig().units}"
     )
     print(cal.format())
+    report = calibration_report(cal, resamples=args.bootstrap)
+    print(report.format())
     write_anipose_calibration(args.out, cal.rig())
     print(f"wrote {args.out}")
+    report.write(report_file)
+    print(f"wrote {report_file}")
     if args.figure:
 
         draw_calibration(cal, args.figure)

@@ -26,7 +26,8 @@ def look_at(centre, target=(0.0, 0.0, 0.0)):
 
 
 def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = False, back: str | None = None,
-                       stray: dict[str, list[int]] | None = None, seen: dict[str, list[int]] | None = None):
+                       stray: dict[str, list[int]] | None = None, seen: dict[str, list[int]] | None = None,
+                       turned: str | None = None):
     """A 5 x 7 ChArUco board (30 mm squares) in ``poses`` poses seen by cameras p, q, r, written as
     ``folder/<camera>-<pose>.png``: ``(truth Rig, Board, {camera: [files]})``.
 
@@ -37,6 +38,8 @@ def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = F
         stray: per camera the poses whose image also shows a marker the board does not have (id 40 of the
             board's dictionary) in a corner of the background.
         seen: per camera the poses it sees the board in (an empty grey image in the others).
+        turned: a camera knocked halfway through: from pose ``poses // 2`` on it is turned by 1 degree about
+            its vertical axis (the truth returned is its first pose).
     """
     from s3k.data.rig import Rig
     from s3k.geometry import Cameras
@@ -68,6 +71,9 @@ def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = F
         t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
         for c, n in enumerate(NAMES):
             R, t = Rs[c], ts[c]
+            if n == turned and i >= poses // 2:
+                R = cv2.Rodrigues(np.array([0.0, np.radians(1.0), 0.0]))[0] @ R
+                t = R @ (-Rs[c].T @ ts[c]) * -1
             # Homography board plane (z = 0) -> image: K [R R_wb[:, :2] | R t_wb + t].
             Hb = Ks[c] @ np.column_stack([R @ R_wb[:, 0], R @ R_wb[:, 1], R @ t_wb + t])
             image = cv2.warpPerspective(art, Hb @ np.linalg.inv(A), (W, H), borderValue=255)
