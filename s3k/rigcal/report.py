@@ -19,6 +19,7 @@ import torch
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
 from s3k.geometry import Cameras, triangulate_pixels
+from s3k.rigcal.board_sync import frame_offsets
 from s3k.rigcal.boards import Detections
 from s3k.rigcal.bundle import Adjusted, bundle_adjust
 from s3k.rigcal.rig import RigCalibration, calibrate_detections
@@ -33,6 +34,8 @@ COVERAGE_MIN = 0.25
 unconstrained (warned)."""
 DROPPED_MAX = 0.2
 """Share of a camera's board views left out as wrong reads above which it is warned of."""
+OFFSET_GAIN = 0.5
+"""A frame offset is warned of when the board fits the camera at most this share of its unshifted error."""
 MIN_HALF_VIEWS = 3
 """Board views a camera needs in a half for that half to fit it."""
 
@@ -48,12 +51,14 @@ class Report:
         f = self.figures
         lines = [
             f"{'camera':<12}{'images':>7}{'board':>7}{'inverted':>9}{'back':>6}{'stray ids':>10}"
-            f"{'dropped':>9}"
+            f"{'dropped':>9}{'frame offset':>13}"
         ]
         for name, d in f["detections"].items():
+            offset = f["frame_offsets"][name]["offset"]
+            shift = "-" if offset is None else f"{offset:+d}" if offset else "0"
             lines.append(
                 f"{name:<12}{d['images']:>7}{d['board_frames']:>7}{d['inverted']:>9}{d['back_face']:>6}"
-                f"{d['stray_markers']:>10}{d['views_dropped']:>9}"
+                f"{d['stray_markers']:>10}{d['views_dropped']:>9}{shift:>13}"
             )
         h = f["halves"]
         lines.append(
@@ -366,12 +371,22 @@ def calibration_report(cal: RigCalibration, *, resamples: int = 8, seed: int = 0
         "square": square,
         "coverage": {r.name: r.coverage for r in cal.report},
         "bootstrap": _bootstrap(cal, resamples, seed),
+        "frame_offsets": frame_offsets(cal),
     }
     return Report(figures, _warnings(figures, unit))
 
 
 def _warnings(f: dict, unit: str) -> list[str]:
     out = []
+    for name, o in f.get("frame_offsets", {}).items():
+        if o["offset"] and o["px_at_0"] is not None and o["px"] < OFFSET_GAIN * o["px_at_0"]:
+            out.append(
+                f"camera {name}: its frames pair up with the first camera's {o['offset']:+d} frame(s) "
+                f"off (the board fits it at {o['px']:.2f} px there, {o['px_at_0']:.2f} px as given): its "
+                f"video is not synchronized; cut {abs(o['offset'])} frame(s) from the start of "
+                + (f"camera {name}'s video" if o["offset"] > 0 else "the other cameras' videos")
+                + " and calibrate again"
+            )
     h = f["halves"]
     for name in f["detections"]:
         errs = [e for e in (h["first_on_second_px"][name], h["second_on_first_px"][name]) if e is not None]

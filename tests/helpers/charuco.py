@@ -27,7 +27,7 @@ def look_at(centre, target=(0.0, 0.0, 0.0)):
 
 def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = False, back: str | None = None,
                        stray: dict[str, list[int]] | None = None, seen: dict[str, list[int]] | None = None,
-                       turned: str | None = None):
+                       turned: str | None = None, lag: dict[str, int] | None = None):
     """A 5 x 7 ChArUco board (30 mm squares) in ``poses`` poses seen by cameras p, q, r, written as
     ``folder/<camera>-<pose>.png``: ``(truth Rig, Board, {camera: [files]})``.
 
@@ -40,6 +40,8 @@ def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = F
         seen: per camera the poses it sees the board in (an empty grey image in the others).
         turned: a camera knocked halfway through: from pose ``poses // 2`` on it is turned by 1 degree about
             its vertical axis (the truth returned is its first pose).
+        lag: cameras whose clock lags: the board moves smoothly (a pose a frame, each close to the last), and
+            a camera with lag ``d`` shows in its image ``i`` the board of the others' image ``i - d``.
     """
     from s3k.data.rig import Rig
     from s3k.geometry import Cameras
@@ -64,12 +66,21 @@ def render_charuco_rig(folder: str | Path, poses: int = 8, *, inverted: bool = F
     marker = cv2.aruco.generateImageMarker(spec.cv2_board().getDictionary(), 40, 48)
     rng = np.random.default_rng(0)
     files: dict[str, list[Path]] = {n: [] for n in NAMES}
-    for i in range(poses):
+    def board_pose(j: int):
         # Board pose in the world: near the origin, tilted, its printed side up towards the cameras (the
         # board's z axis points into the board, so it points down here).
-        R_wb = cv2.Rodrigues(rng.uniform(-0.35, 0.35, 3))[0] @ np.diag([1.0, -1.0, -1.0])
-        t_wb = rng.uniform(-30, 30, 3) - R_wb @ np.array([75.0, 105.0, 0.0])
+        if lag is None:
+            rvec, shift = rng.uniform(-0.35, 0.35, 3), rng.uniform(-30, 30, 3)
+        else:  # a smooth motion
+            rvec = 0.3 * np.sin(np.array([0.4, 0.3, 0.5]) * j + np.array([0.0, 1.0, 2.0]))
+            shift = 30 * np.sin(np.array([0.35, 0.25, 0.2]) * j + np.array([0.5, 1.5, 0.0]))
+        R_wb = cv2.Rodrigues(rvec)[0] @ np.diag([1.0, -1.0, -1.0])
+        return R_wb, shift - R_wb @ np.array([75.0, 105.0, 0.0])
+
+    for i in range(poses):
+        pose = board_pose(i)
         for c, n in enumerate(NAMES):
+            R_wb, t_wb = board_pose(i - lag[n]) if lag and lag.get(n) else pose
             R, t = Rs[c], ts[c]
             if n == turned and i >= poses // 2:
                 R = cv2.Rodrigues(np.array([0.0, np.radians(1.0), 0.0]))[0] @ R
