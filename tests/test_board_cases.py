@@ -165,19 +165,20 @@ def test_low_coverage_and_a_wrong_square_are_warned_of():
 
 
 def test_a_camera_out_of_sync_is_found_and_its_offset_reported(tmp_path, capsys):
-    """The board moving smoothly, camera q's clock one frame ahead and r's two behind: the report gives each
-    camera's offset against p from the board's motion (0 for all when in sync) and says what to cut."""
+    """The board moving smoothly, camera q's images one frame ahead of p's and r's two behind: the report
+    gives each camera's offset against p from the board's motion (0 for all when in sync) and what to cut."""
     render_charuco_rig(tmp_path / "images", poses=16, lag={"q": -1, "r": 2})
     code, _ = _calibrate(tmp_path)
     text = capsys.readouterr().out
     assert code == 0
     offsets = json.loads((tmp_path / "calibration.report.json").read_text())["frame_offsets"]
-    assert {n: o["offset"] for n, o in offsets.items()} == {"p": 0, "q": -1, "r": 2}
+    # the convention of s3k import --frame-offsets: the camera's frame i shows p's frame i + N
+    assert {n: o["offset"] for n, o in offsets.items()} == {"p": 0, "q": 1, "r": -2}
     assert offsets["r"]["px"] < 2.0 < 10.0 < offsets["r"]["px_at_0"]
-    assert "camera r: its frames pair up with the first camera's +2 frame(s) off" in text
+    assert "camera r: its frame i shows the first camera's frame i-2 " in text
     assert "cut 2 frame(s) from the start of camera r's video" in text
     render_charuco_rig(tmp_path / "synced" / "images", poses=16, lag={})
     code, _ = _calibrate(tmp_path / "synced", "--report", str(tmp_path / "synced.json"))
-    assert code == 0 and "frame(s) off" not in capsys.readouterr().out
+    assert code == 0 and "its frame i shows" not in capsys.readouterr().out
     offsets = json.loads((tmp_path / "synced.json").read_text())["frame_offsets"]
     assert {n: o["offset"] for n, o in offsets.items()} == {"p": 0, "q": 0, "r": 0}

@@ -2,8 +2,9 @@
 board's pose in each camera's frames (PnP with the calibrated intrinsics), and for each shift of a few
 frames the relative pose of the two cameras averaged over the frames they pair up (as :func:`relative_pose`
 does for the rig) and the camera's corners predicted from the first camera's board poses through it; the
-shift with the smallest median error is the camera's offset (its frame ``k + offset`` shows the instant of
-the first camera's frame ``k``). Needs no synchronized rig, so a camera out of sync does not bias the
+shift with the smallest median error gives the camera's offset ``N``, in the convention of
+:mod:`s3k.data.sync` and ``s3k import --frame-offsets CAM=N``: its frame ``i`` shows the instant of the first
+camera's frame ``i + N``. Needs no synchronized rig, so a camera out of sync does not bias the
 others. Meaningful for videos filmed continuously while the board moved; in image folders of separate board
 positions a shift jumps to another position, and the offset found is 0 whatever the clocks did.
 """
@@ -51,5 +52,6 @@ def frame_offsets(cal: RigCalibration, max_offset: int = MAX_OFFSET) -> dict[str
                 err.append(np.linalg.norm(project(Xc, i.f, i.cx, i.cy, i.k1, i.k2) - uv, axis=1))
             errors[d] = float(np.median(np.concatenate(err)))
         best = min(errors, key=lambda d: (errors[d], abs(d))) if errors else None
-        out[name] = {"offset": best, "px": None if best is None else errors[best], "px_at_0": errors.get(0)}
+        out[name] = {"offset": None if best is None else -best, "px": None if best is None else errors[best],
+                     "px_at_0": errors.get(0)}
     return out

@@ -381,10 +381,10 @@ def _warnings(f: dict, unit: str) -> list[str]:
     for name, o in f.get("frame_offsets", {}).items():
         if o["offset"] and o["px_at_0"] is not None and o["px"] < OFFSET_GAIN * o["px_at_0"]:
             out.append(
-                f"camera {name}: its frames pair up with the first camera's {o['offset']:+d} frame(s) "
-                f"off (the board fits it at {o['px']:.2f} px there, {o['px_at_0']:.2f} px as given): its "
+                f"camera {name}: its frame i shows the first camera's frame i{o['offset']:+d} "
+                f"(the board fits it at {o['px']:.2f} px there, {o['px_at_0']:.2f} px as given): its "
                 f"video is not synchronized; cut {abs(o['offset'])} frame(s) from the start of "
-                + (f"camera {name}'s video" if o["offset"] > 0 else "the other cameras' videos")
+                + ("the other cameras' videos" if o["offset"] > 0 else f"camera {name}'s video")
                 + " and calibrate again"
             )
     h = f["halves"]
