@@ -397,7 +397,7 @@ def check_board_matches(name: str, source, det: Detections, board: Board) -> Non
         if not board.charuco:
             what = "no checkerboard"
             hint = ("check board_x, board_y (--squares: squares, not inner corners) and that the board is in "
-                    "view; pass --inverted for a board printed white on black")
+                    "view and in focus")
         elif det.marker_ids:
             what = (f"ArUco markers {_ranges(det.marker_ids)} but no ChArUco corners (fewer than 6 in every "
                     "image)")
