@@ -255,3 +255,18 @@ def test_frame_offset_check_cuts_long_stretches_without_labels():
 
     times = np.array([10**9 + 1, 0, 2, 1, 10**9])
     np.testing.assert_array_equal(_time_rows(times, 21), [24, 0, 2, 1, 23])
+
+
+def test_check_calibration_reports_frame_offsets_too(tmp_path: Path, capsys):
+    """A camera out of step shows in check-calibration as a camera whose labels disagree: the offset the
+    labels' motion gives is printed beside it, with the option to import with."""
+    from s3k import cli
+
+    assert cli.main(["check-calibration", str(_offset_dataset(tmp_path / "late", [0, 0, 4, 0]))]) in (0, 2)
+    out, err = capsys.readouterr()
+    assert "  cam2: +4 (epipolar residual" in out
+    assert "warning: camera cam2: its frame i shows cam0's frame i+4" in err
+    assert "--frame-offsets cam2=4" in err
+    assert cli.main(["check-calibration", str(_offset_dataset(tmp_path / "sync", [0, 0, 0, 0]))]) == 0
+    out, err = capsys.readouterr()
+    assert "  cam2: +0 (epipolar residual" in out and "--frame-offsets" not in out + err

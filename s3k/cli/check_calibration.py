@@ -15,6 +15,7 @@ from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
+from s3k.data.validate import frame_offset_lines
 from s3k.errors import UserError
 from s3k.outputs import check_output
 from s3k.recalibration import recalibrate_dataset
@@ -158,6 +159,11 @@ def run(args: argparse.Namespace) -> int:
         cams, uv, mask, list(ds.cameras), factor=args.factor, min_px=args.min_px, image_size=ds.image_size
     )
     print(check.format())
+    for severity, line in frame_offset_lines(ds):  # a camera out of step looks like a miscalibrated one
+        if severity == "warning":
+            log.warning(line)
+        else:
+            print(line)
     if args.recalibrate:
         return _recalibrate(args, ds, ids, uv, mask, check)
     if check.inconsistent or check.notes:

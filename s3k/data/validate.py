@@ -103,7 +103,7 @@ def _time_rows(times: np.ndarray, gap: int) -> np.ndarray:
     return rows
 
 
-def _frame_offsets(ds: Dataset) -> list[tuple[str, str]]:
+def frame_offset_lines(ds: Dataset) -> list[tuple[str, str]]:
     """Each camera's frame offset against the first camera from the motion of the labelled and test frames'
     labels (:func:`s3k.data.sync.estimate_frame_offsets`), per session, as ``(severity, line)``: a line per
     camera, and a warning naming ``s3k import --frame-offsets`` for an offset that is not 0."""
@@ -176,7 +176,7 @@ def validate_dataset(
         for severity, line in _calibration_check(dataset, path):
             lines.append(f"{severity.upper():7} {line}")
             (errors if severity == "error" else warnings).append(Problem(severity, "calibration", None, line))
-        for severity, line in _frame_offsets(dataset):
+        for severity, line in frame_offset_lines(dataset):
             if severity == "info":
                 lines.append(line)
             else:
