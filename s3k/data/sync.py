@@ -68,29 +68,51 @@ def _rays(cams: Cameras, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d, origins[:, 0].numpy()
 
 
+def _epipolar(A: np.ndarray, B: np.ndarray, k: np.ndarray, e: np.ndarray, f_a: float,
+              f_b: float) -> np.ndarray:
+    """Absolute symmetric epipolar residuals (px) of rays ``A``, ``B`` ``(n, 3)`` of keypoints ``k``, less each
+    keypoint's median over the samples (a lasting disagreement between the views is not motion)."""
+    n_a, n_b = np.cross(e, A), np.cross(e, B)
+    n_a /= np.maximum(np.linalg.norm(n_a, axis=1, keepdims=True), 1e-12)
+    n_b /= np.maximum(np.linalg.norm(n_b, axis=1, keepdims=True), 1e-12)
+    err = 0.5 * (f_b * (n_a * B).sum(1) - f_a * (n_b * A).sum(1))  # signed: both terms share a sign
+    for kp in np.unique(k):
+        err[k == kp] -= np.median(err[k == kp])
+    return np.abs(err)
+
+
 def _pair_residuals(d_a: np.ndarray, d_b: np.ndarray, base: np.ndarray, f_a: float, f_b: float,
                     lags: np.ndarray, min_samples: int) -> tuple[np.ndarray, np.ndarray]:
     """Median symmetric epipolar residual (px) and sample count of cameras ``a, b`` at each lag ``d``
-    (``a``'s frame ``i`` against ``b``'s frame ``i + d``); NaN where fewer than ``min_samples``."""
-    T = d_a.shape[0]
+    (``a``'s frame ``i`` against ``b``'s frame ``i + d``); NaN where fewer than ``min_samples``.
+
+    The frames a lag can pair differ from lag to lag (frames labelled far apart pair only at lag 0), and
+    their residuals differ for reasons other than time (another pose, another labelling session): each lag's
+    residual is scaled by the lag-0 residual of the same frames over that of all frames, so that lags are
+    compared on what their frames show, not on which frames they happen to hold."""
+    T, K = d_a.shape[:2]
     e = base / max(np.linalg.norm(base), 1e-12)
+    keypoint = np.broadcast_to(np.arange(K), (T, K))
+    same = np.isfinite(d_a).all(-1) & np.isfinite(d_b).all(-1)  # (T, K): lag 0 pairs
+    all_zero = (_epipolar(d_a[same], d_b[same], keypoint[same], e, f_a, f_b)
+                if same.sum() >= min_samples else None)
     out, count = np.full(len(lags), np.nan), np.zeros(len(lags), dtype=np.int64)
     for j, lag in enumerate(lags):
         lo, hi = max(0, -lag), min(T, T - lag)
         if hi <= lo:
             continue
-        A, B = d_a[lo:hi].reshape(-1, 3), d_b[lo + lag:hi + lag].reshape(-1, 3)
-        ok = np.isfinite(A).all(1) & np.isfinite(B).all(1)
+        ok = np.zeros((T, K), dtype=bool)
+        ok[lo:hi] = np.isfinite(d_a[lo:hi]).all(-1) & np.isfinite(d_b[lo + lag:hi + lag]).all(-1)
         if ok.sum() < min_samples:
             continue
-        A, B, k = A[ok], B[ok], np.tile(np.arange(d_a.shape[1]), hi - lo)[ok]
-        n_a, n_b = np.cross(e, A), np.cross(e, B)
-        n_a /= np.maximum(np.linalg.norm(n_a, axis=1, keepdims=True), 1e-12)
-        n_b /= np.maximum(np.linalg.norm(n_b, axis=1, keepdims=True), 1e-12)
-        err = 0.5 * (f_b * (n_a * B).sum(1) - f_a * (n_b * A).sum(1))  # signed: both terms share a sign
-        for kp in np.unique(k):  # each keypoint's lasting disagreement between the views is not motion
-            err[k == kp] -= np.median(err[k == kp])
-        out[j], count[j] = float(np.median(np.abs(err))), int(ok.sum())
+        rows, kps = np.nonzero(ok)
+        err = _epipolar(d_a[rows, kps], d_b[rows + lag, kps], kps, e, f_a, f_b)
+        value = float(np.median(err))
+        both = ok & same
+        if lag != 0 and all_zero is not None and both.sum() >= min_samples:
+            zero_here = float(np.median(_epipolar(d_a[both], d_b[both], keypoint[both], e, f_a, f_b)))
+            value *= float(np.median(all_zero)) / max(zero_here, 1e-12)
+        out[j], count[j] = value, int(ok.sum())
     return out, count
 
 
