@@ -70,8 +70,8 @@ def _rays(cams: Cameras, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _epipolar(A: np.ndarray, B: np.ndarray, k: np.ndarray, e: np.ndarray, f_a: float,
               f_b: float) -> np.ndarray:
-    """Absolute symmetric epipolar residuals (px) of rays ``A``, ``B`` ``(n, 3)`` of keypoints ``k``, less each
-    keypoint's median over the samples (a lasting disagreement between the views is not motion)."""
+    """Absolute symmetric epipolar residuals (px) of rays ``A``, ``B`` ``(n, 3)`` of keypoints ``k``, less
+    each keypoint's median over the samples (a lasting disagreement between the views is not motion)."""
     n_a, n_b = np.cross(e, A), np.cross(e, B)
     n_a /= np.maximum(np.linalg.norm(n_a, axis=1, keepdims=True), 1e-12)
     n_b /= np.maximum(np.linalg.norm(n_b, axis=1, keepdims=True), 1e-12)
