@@ -133,8 +133,9 @@ def test_real_recording_is_synchronized():
 @needs_real
 def test_frames_labelled_apart_do_not_pull_the_offsets():
     """The real recording labelled as its held-out import is: a block of 40 consecutive frames and ten
-    frames far apart. Only lag 0 pairs the scattered frames, whose residuals are of other poses: compared as they
-    are, they made lag 0 look worse than a lag of 10 for mid; compared on the same frames, every camera is 0."""
+    frames far apart. Only lag 0 pairs the scattered frames, whose residuals are of other poses: compared as
+    they are, they made lag 0 look worse than a lag of 10 for mid; compared on the same frames, every camera
+    is 0."""
     from s3k.data.formats.anipose import read_anipose_calibration
     from s3k.data.formats.sleap import read_sleap_analysis
 
