@@ -49,7 +49,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-calibration": ("check_calibration", "reprojection residual per camera from the labels"),
     "track": ("track", "3D keypoints from synchronized videos, anipose CSV out"),
     "stream": ("stream", "live 3D keypoints from synchronized cameras or videos, one JSON line per frame"),
-    "crops": ("crops", "each camera's crop box around the object, found by a run on whole frames, for --crop"),
+    "crops": ("crops", "each camera's crop box around the object, found by a run, for import --crop"),
     "add-frames": ("add_frames", "queue the frames a track was most in doubt about for labelling"),
     "view": ("view", "a dataset, a run's detections or tracks in 3D with the cameras, in Rerun"),
     "export": ("export", "export a trained detector to ONNX or TorchScript"),
