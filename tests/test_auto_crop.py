@@ -48,7 +48,7 @@ def test_the_box_holds_the_keypoints_with_the_margin_and_no_more():
     points = _cluster()
     found = find_boxes(points, [FRAME] * 2, ["a", "b"], opts=_plain(margin=0.25))
     for c, cam in enumerate(found.cameras):
-        lo, hi = points[:, c].reshape(-1, 2).min(0) - 0.5, points[:, c].reshape(-1, 2).max(0) + 0.5
+        lo, hi = points[:, c].reshape(-1, 2).min(0) + 0.5, points[:, c].reshape(-1, 2).max(0) + 0.5
         np.testing.assert_allclose(cam.extent, [*lo, *hi])
         size = hi - lo
         want = np.concatenate([lo - 0.25 * size, hi + 0.25 * size])
@@ -56,6 +56,14 @@ def test_the_box_holds_the_keypoints_with_the_margin_and_no_more():
         assert (box[:2] <= want[:2]).all() and (box[2:] >= want[2:]).all()  # the margin is kept
         assert (box[:2] > want[:2] - 1).all() and (box[2:] < want[2:] + 1).all()  # integer edges, no more
         assert cam.frames == 100 and not cam.outside
+
+
+def test_one_point_gives_the_pixel_that_holds_it():
+    """Pixel centres are integers and box edges lie half a pixel from them: the point at x 10, y 20 is in
+    the pixel of edges 10..11 and 20..21, the box s3k import --crop cuts it out with."""
+    points = np.array([10.0, 20.0]).reshape(1, 1, 1, 2)
+    found = find_boxes(points, [FRAME], ["a"], opts=_plain())
+    assert found.cameras[0].extent == (10.5, 20.5, 10.5, 20.5) and found.cameras[0].box == (10, 20, 11, 21)
 
 
 def test_a_few_wrong_frames_do_not_stretch_the_box_but_the_largest_extent_would():
@@ -169,7 +177,7 @@ def test_boxes_map_back_to_the_video_pixels_through_the_import_crop_and_scale(cr
                                batch_size=5)
     truth = rec["uv"][ids]  # (N, C, K, 2) video pixels, projected by OpenCV
     for c, cam in enumerate(found.cameras):
-        lo, hi = truth[:, c].reshape(-1, 2).min(0) - 0.5, truth[:, c].reshape(-1, 2).max(0) + 0.5
+        lo, hi = truth[:, c].reshape(-1, 2).min(0) + 0.5, truth[:, c].reshape(-1, 2).max(0) + 0.5
         np.testing.assert_allclose(cam.extent, [*lo, *hi], atol=1e-4)
         assert _contains(cam.box, truth[:, c]) and cam.frame_size == (64, 48)
     label_ids, labels = label_points(ds)

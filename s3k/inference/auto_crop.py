@@ -189,7 +189,8 @@ def _extent(points: np.ndarray, opts: CropOptions) -> tuple[np.ndarray, int]:
         return np.full(4, np.nan), 0
     lo, hi = np.nanmin(counted, axis=1), np.nanmax(counted, axis=1)  # (n, 2)
     q = opts.quantile
-    box = np.concatenate([np.quantile(lo, 1 - q, axis=0) - 0.5, np.quantile(hi, q, axis=0) + 0.5])
+    # a pixel centre u lies at edge coordinate u + 0.5 (the pixel of centre 0 spans edges 0 to 1)
+    box = np.concatenate([np.quantile(lo, 1 - q, axis=0), np.quantile(hi, q, axis=0)]) + 0.5
     return box, len(counted)
 
 
