@@ -19,6 +19,7 @@ from s3k.cli.options import parse_crops
 from s3k.data import Dataset
 from s3k.detector import DetectorMeta
 from s3k.errors import UserError
+from s3k.geometry import project
 from s3k.inference.auto_crop import CropOptions, dataset_crop_boxes, find_boxes, frame_pixels, label_points
 from s3k.model import UNetConfig
 
@@ -80,7 +81,7 @@ def test_low_confidence_frames_do_not_count_and_a_camera_without_any_is_refused(
     found = find_boxes(points, [FRAME] * 2, ["a", "b"], opts=_plain(min_keypoints=0.5))
     assert found.cameras[0].frames == 6
     points[:, 1] = np.nan
-    with pytest.raises(UserError, match="camera b: .* none of the 10 frames.*--min-confidence"):
+    with pytest.raises(UserError, match="camera b: .* none of its 10 views.*--min-confidence"):
         find_boxes(points, [FRAME] * 2, ["a", "b"])
 
 
@@ -136,22 +137,29 @@ def test_the_aspect_option_reads_ratios_numbers_and_free():
 
 
 class TruthDetector:
-    """A detector stand-in that places every keypoint where it is (the recording's 3D points), frame after
-    frame in the order the frames are read."""
+    """A detector stand-in that detects every keypoint where it projects (the recording's 3D points through
+    the cameras it is given), frame after frame in the order the frames are read."""
 
-    def __init__(self, X: np.ndarray, ids: np.ndarray) -> None:
+    def __init__(self, X: np.ndarray, ids: np.ndarray, doubtful: int | None = None) -> None:
         self.X, self.ids, self.next = torch.as_tensor(X), list(ids), 0
         self.keypoints = list(KEYPOINTS)
+        self.doubtful = doubtful  # this frame's detections are far off in every view, at confidence 0.3
 
-    def __call__(self, images, cams, min_weight=0.0):
+    def __call__(self, images, cams):
         B = len(images)
         rows = self.ids[self.next:self.next + B]
         self.next += B
-        return _Read(X=self.X[rows], valid=torch.ones(B, self.X.shape[1], dtype=torch.bool))
+        uv, _ = project(cams.to(dtype=torch.float64), self.X[rows][:, None])
+        confidence = torch.ones(uv.shape[:-1], dtype=torch.float64)
+        for b, row in enumerate(rows):
+            if row == self.doubtful:
+                uv[b] += 15.0
+                confidence[b] = 0.3
+        return _Read(uv=uv, confidence=confidence)
 
 
 class _Read(SimpleNamespace):
-    """What the boxes read of a detection: the 3D points and where they are valid."""
+    """What the boxes read of a detection: each view's points and their confidence."""
 
     def cpu(self) -> _Read:
         return self
@@ -173,9 +181,10 @@ def test_boxes_map_back_to_the_video_pixels_through_the_import_crop_and_scale(cr
     ds = Dataset.open(data, cache="none")
     assert ds.image_size == (24, 20)
     ids = ds.frames()
-    found = dataset_crop_boxes(TruthDetector(rec["X"], ids), ds, _plain(margin=0.1, min_margin_px=1.0),
-                               batch_size=5)
-    truth = rec["uv"][ids]  # (N, C, K, 2) video pixels, projected by OpenCV
+    detector = TruthDetector(rec["X"], ids, doubtful=int(ids[3]))
+    found = dataset_crop_boxes(detector, ds, _plain(margin=0.1, min_margin_px=1.0), batch_size=5)
+    assert [cam.frames for cam in found.cameras] == [len(ids) - 1] * 3  # the doubtful views left out
+    truth = rec["uv"][np.delete(ids, 3)]  # (N, C, K, 2) video pixels, projected by OpenCV
     for c, cam in enumerate(found.cameras):
         lo, hi = truth[:, c].reshape(-1, 2).min(0) + 0.5, truth[:, c].reshape(-1, 2).max(0) + 0.5
         np.testing.assert_allclose(cam.extent, [*lo, *hi], atol=1e-4)

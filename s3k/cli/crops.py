@@ -58,10 +58,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="share of the frames whose keypoints lie inside the box before the margin "
                              f"(1: every frame; default {DEFAULTS.quantile:g})")
     parser.add_argument("--min-confidence", type=number(float, ge=0, lt=1), default=DEFAULTS.min_confidence,
-                        help="views at or below this calibrated confidence are not triangulated "
+                        help="detections at or below this calibrated confidence are left out "
                              f"(default {DEFAULTS.min_confidence:g})")
     parser.add_argument("--min-keypoints", type=number(float, ge=0, le=1), default=DEFAULTS.min_keypoints,
-                        help="a frame counts when at least this share of the keypoints is triangulated "
+                        help="a frame's view counts when it keeps at least this share of the keypoints "
                              f"(default {DEFAULTS.min_keypoints:g})")
     parser.add_argument("--aspect", type=aspect, default=DEFAULTS.aspect, metavar="W:H",
                         help="the boxes' width:height, a number, or 'free' for the detections' own shape "

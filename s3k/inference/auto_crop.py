@@ -2,16 +2,15 @@
 crops``).
 
 A rig films the object in a part of each camera's frame. A detector trained briefly on whole frames (one pass,
-or the coarse pass of a two-pass run) finds that part: it runs over a dataset's frames, each frame's keypoints
-are triangulated from the views it is confident of (calibrated confidence above ``min_confidence``) and
-reprojected into every camera, and per camera the box holding them is taken over the frames that placed at
-least ``min_keypoints`` of the keypoints. The box's edges are quantiles of the frames' extents (``quantile``
-of them lie inside, so that a few wrong frames do not stretch it), grown by a margin (``margin`` of its side
-and at least ``min_margin_px``), made of one aspect (``aspect``: W/H, square by default), of one size for
-every camera (so that ``s3k import --scale`` applies to all), rounded to ``multiple`` pixels and moved into
-the frame. Every label of the dataset must fall inside its camera's box: a label outside the box the
-detections give grows it (``outside="grow"``, said in a note naming the labels) or is refused
-(``outside="refuse"``).
+or the coarse pass of a two-pass run) finds that part: it runs over a dataset's frames, each view keeps the
+keypoints it detects with a calibrated confidence above ``min_confidence``, and per camera the box holding
+them is taken over the frames whose view kept at least ``min_keypoints`` of the keypoints. The box's edges
+are quantiles of the frames' extents (``quantile`` of them lie inside, so that a few wrong frames do not
+stretch it), grown by a margin (``margin`` of its side and at least ``min_margin_px``), made of one aspect
+(``aspect``: W/H, square by default), of one size for every camera (so that ``s3k import --scale`` applies to
+all), rounded to ``multiple`` pixels and moved into the frame. Every label of the dataset must fall inside
+its camera's box: a label outside the box the detections give grows it (``outside="grow"``, said in a note
+naming the labels) or is refused (``outside="refuse"``).
 
 Boxes are in each camera's full-resolution frame, pixel edge coordinates, as ``--crop`` takes them: the
 dataset's own pixels are mapped back through its import's crop box and size
@@ -33,7 +32,6 @@ from s3k.data.frames import FrameStore
 from s3k.detector import Detector
 from s3k.detector.geometry_record import dataset_geometry
 from s3k.errors import UserError
-from s3k.geometry import project
 from s3k.geometry.warp import crop_resize_matrix, transform_points
 from s3k.messages import NOTE
 
@@ -56,9 +54,9 @@ class CropOptions:
     quantile: float = 0.98
     """Share of the frames whose keypoints lie inside the box before the margin (1: every frame)."""
     min_confidence: float = 0.5
-    """Views at or below this calibrated confidence are not triangulated."""
+    """A view's detections at or below this calibrated confidence are left out."""
     min_keypoints: float = 0.5
-    """A frame counts when at least this share of the keypoints (and one) is triangulated."""
+    """A frame's view counts when it keeps at least this share of the keypoints (and one)."""
     aspect: float | None = 1.0
     """Width / height of every box (None: the detections' own shape)."""
     same_size: bool = True
@@ -140,16 +138,15 @@ def pick_frames(ds: Dataset, split: str | list[str] | None = None, max_frames: i
 
 def detected_points(detector: Detector, ds: Dataset, frame_ids: np.ndarray, min_confidence: float = 0.5,
                     batch_size: int = 16) -> np.ndarray:
-    """``(N, C, K, 2)``: each frame's keypoints, triangulated from the views above ``min_confidence`` and
-    reprojected into every camera, in the dataset's pixels; NaN where not triangulated or behind a camera.
-    The keypoints are the detector's, the cameras the dataset's."""
+    """``(N, C, K, 2)``: each view's detected keypoints whose calibrated confidence is above
+    ``min_confidence``, in the dataset's pixels; NaN elsewhere. The keypoints are the detector's, the cameras
+    the dataset's. A view's detections need no calibration: a camera calibrated wrongly still gets its box."""
     out = []
     store = FrameStore(ds, frame_ids, preload_mb=0)
     for batch in store.batches(batch_size):
-        pred = detector(batch.images, batch.cams, min_weight=min_confidence).cpu()
-        X = pred.X.to(torch.float64).nan_to_num(0.0)
-        uv, depth = project(batch.cams.to(dtype=torch.float64), X[:, None])  # (B, C, K, 2)
-        keep = pred.valid[:, None].expand_as(depth) & (depth > 1e-6)
+        pred = detector(batch.images, batch.cams).cpu()
+        uv = pred.uv.to(torch.float64)
+        keep = (pred.confidence > min_confidence) & torch.isfinite(uv).all(-1)
         out.append(np.where(keep.numpy()[..., None], uv.numpy(), np.nan))
     C, K = len(ds.cameras), len(detector.keypoints)
     return np.concatenate(out) if out else np.zeros((0, C, K, 2))
@@ -284,7 +281,7 @@ def find_boxes(points: np.ndarray, frame_sizes: list[tuple[int, int]], cameras: 
         extent, n = _extent(points[:, c], opts)
         if n == 0:
             raise UserError(f"camera {cam}: the detector placed {opts.min_keypoints:g} of the keypoints with "
-                            f"confidence above {opts.min_confidence:g} in none of the {len(points)} frames",
+                            f"confidence above {opts.min_confidence:g} in none of its {len(points)} views",
                             hint="train the run longer, or lower --min-confidence or --min-keypoints")
         box = _grown(extent, opts)
         out = _outside(box, labels[:, c])
