@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from types import SimpleNamespace
 
 import numpy as np
@@ -107,7 +108,7 @@ def test_a_box_larger_than_the_frame_is_cut_to_it():
     assert found.cameras[0].box == (0, 0, 120, 80) and found.cameras[0].clamped
 
 
-def test_a_label_outside_the_box_is_named_and_refused_or_grows_the_box():
+def test_a_label_outside_the_box_is_named_and_refused_or_grows_the_box(caplog):
     points = _cluster(n=20, k=3)
     labels = np.full((2, 2, 3, 2), np.nan)
     labels[0, 1] = [510.0, 400.0]  # inside
@@ -115,8 +116,15 @@ def test_a_label_outside_the_box_is_named_and_refused_or_grows_the_box():
     args = dict(labels=labels, label_ids=np.array([30, 31]), keypoints=["head", "body", "tail"])
     with pytest.raises(UserError, match=r"1 label\(s\) .*b frame 31 tail at 900,420.*--outside grow"):
         find_boxes(points, [FRAME] * 2, ["a", "b"], opts=CropOptions(outside="refuse"), **args)
-    found = find_boxes(points, [FRAME] * 2, ["a", "b"], opts=CropOptions(min_margin_px=16), **args)
+    with caplog.at_level(logging.INFO, logger="s3k"):
+        found = find_boxes(points, [FRAME] * 2, ["a", "b"], opts=CropOptions(min_margin_px=16), **args)
     b = found.cameras[1]
+    assert b.labels == 4 and found.cameras[0].labels == 0
+    assert "b: grown to hold 1 label(s) outside the detections' box: b frame 31 tail at 900,420" \
+        in caplog.text
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warned == ["b: 1 of its 4 labels lie outside the box of the detections, which miss much of the "
+                      "object: train the run longer (the box holds the labels, not the frames without them)"]
     assert [(o.frame, o.keypoint) for o in b.outside] == [(31, "tail")] and not found.cameras[0].outside
     assert b.box[2] >= 900 + 0.5 + 16 and _contains(b.box, labels[:, 1])
     assert found.to_dict()["cameras"]["b"]["labels_outside"][0]["u"] == 900.0

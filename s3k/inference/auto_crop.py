@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 
 Outside = Literal["grow", "refuse"]
 
+MANY_OUTSIDE = 0.1
+"""Share of a camera's labels outside the detections' box above which the detector is said to miss the
+object (a warning: the run needs more training)."""
+
 
 @dataclass(frozen=True)
 class CropOptions:
@@ -94,6 +98,8 @@ class CameraBox:
     extent: tuple[float, float, float, float]
     """The detections' box (the quantiles, before the margin), pixel edge coordinates."""
     outside: list[OutsideLabel] = field(default_factory=list)
+    labels: int = 0
+    """The dataset's labels in this camera (checked against the box)."""
     clamped: bool = False
     """The box was cut to the frame (larger than the frame along a side)."""
 
@@ -122,7 +128,8 @@ class CropBoxes:
                 "frames": self.frames, "options": asdict(self.options),
                 "cameras": {c.camera: {"box": list(c.box), "frame_size": list(c.frame_size),
                                        "frames": c.frames, "extent": [round(v, 2) for v in c.extent],
-                                       "clamped": c.clamped, "labels_outside": [asdict(o) for o in c.outside]}
+                                       "clamped": c.clamped, "labels": c.labels,
+                                       "labels_outside": [asdict(o) for o in c.outside]}
                             for c in self.cameras}}
 
 
@@ -291,7 +298,8 @@ def find_boxes(points: np.ndarray, frame_sizes: list[tuple[int, int]], cameras: 
             box = _with_labels(box, labels[:, c], out, opts)
         needed.append(box)
         x0, y0, x1, y1 = (float(v) for v in extent)
-        found.append(CameraBox(cam, (0, 0, 0, 0), frame_sizes[c], n, (x0, y0, x1, y1), outside))
+        labelled = int(np.isfinite(labels[:, c]).all(-1).sum())
+        found.append(CameraBox(cam, (0, 0, 0, 0), frame_sizes[c], n, (x0, y0, x1, y1), outside, labelled))
     missed = [o for f in found for o in f.outside]
     if missed and opts.outside == "refuse":
         raise UserError(f"{len(missed)} label(s) of the dataset fall outside the crop boxes the detections "
@@ -304,7 +312,9 @@ def find_boxes(points: np.ndarray, frame_sizes: list[tuple[int, int]], cameras: 
         sizes = [common] * C
     for c, f in enumerate(found):
         f.box, f.clamped = _sized(needed[c], _round_up(sizes[c], opts), f.frame_size)
-    return CropBoxes(found, len(points), opts)
+    boxes = CropBoxes(found, len(points), opts)
+    _say(boxes)
+    return boxes
 
 
 def dataset_crop_boxes(detector: Detector, ds: Dataset, opts: CropOptions | None = None,
@@ -320,9 +330,7 @@ def dataset_crop_boxes(detector: Detector, ds: Dataset, opts: CropOptions | None
     points, sizes = frame_pixels(ds, detected_points(detector, ds, ids, opts.min_confidence, batch_size))
     label_ids, labels = label_points(ds)
     labels, _ = frame_pixels(ds, labels)
-    found = find_boxes(points, sizes, list(ds.cameras), labels, label_ids, list(ds.keypoints), opts)
-    _say(found)
-    return found
+    return find_boxes(points, sizes, list(ds.cameras), labels, label_ids, list(ds.keypoints), opts)
 
 
 def _say(found: CropBoxes) -> None:
@@ -335,6 +343,10 @@ def _say(found: CropBoxes) -> None:
         if c.outside:
             log.log(NOTE, f"{c.camera}: grown to hold {len(c.outside)} label(s) outside the detections' box: "
                           + "; ".join(map(str, c.outside[:5])) + (" ..." if len(c.outside) > 5 else ""))
+        if len(c.outside) > MANY_OUTSIDE * c.labels:
+            log.warning(f"{c.camera}: {len(c.outside)} of its {c.labels} labels lie outside the box of the "
+                        "detections, which miss much of the object: train the run longer (the box holds the "
+                        "labels, not the frames without them)")
         if c.clamped:
             log.warning(f"{c.camera}: the box is larger than the {c.frame_size[0]}x{c.frame_size[1]} frame "
                         "and is cut to it; import with --size W,H rather than --scale if the boxes' sizes "
