@@ -4,22 +4,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers.charuco import render_charuco_rig
+from helpers.charuco import look_at, render_charuco_rig
 from helpers.real_recording import REAL, needs_real
 
 from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
 from s3k.geometry import Cameras
-
-
-def look_at(centre, target=(0.0, 0.0, 0.0)):
-    """World->camera R, t for a camera at ``centre`` looking at ``target`` (OpenCV axes, y roughly down)."""
-    z = np.asarray(target, float) - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ centre
 
 
 def make_rig(C=4, seed=0):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from helpers.charuco import look_at
 from helpers.real_recording import REAL, needs_real
 
 from s3k.data.sync import estimate_frame_offsets
@@ -15,17 +16,9 @@ from s3k.geometry import Cameras, project
 W, H = 640, 480
 
 
-def _look_at(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    z = -centre / np.linalg.norm(centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
 def rig(n: int = 4, dist: float = 0.0) -> Cameras:
     """``n`` cameras around the origin at 600 mm, looking at it, from different heights."""
-    Rs, ts = zip(*(_look_at(np.array([np.cos(a), np.sin(a), 0.3 + 0.2 * i]) * 600.0)
+    Rs, ts = zip(*(look_at(np.array([np.cos(a), np.sin(a), 0.3 + 0.2 * i]) * 600.0)
                    for i, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.3)))
     K = np.array([[500.0, 0, (W - 1) / 2], [0, 500.0, (H - 1) / 2], [0, 0, 1]])
     d = np.array([dist, dist / 4, 0, 0, 0])
