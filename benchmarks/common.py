@@ -107,8 +107,11 @@ def t_interval(x: list[float]) -> list[float] | None:
 
 
 def git_revision() -> str:
-    """HEAD of the repository these benchmarks are in, ``+modified`` when tracked files differ from it,
-    ``unknown`` without git."""
+    """HEAD of the repository these benchmarks are in, ``+modified`` when tracked files differ from it; run
+    from a ``git archive`` of a commit (no repository), the environment's ``S3K_GIT_REVISION``, else
+    ``unknown``."""
+    if not (_ROOT / ".git").exists() and os.environ.get("S3K_GIT_REVISION"):
+        return os.environ["S3K_GIT_REVISION"]
     try:
         rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=_ROOT, capture_output=True, text=True,
                              check=True)
