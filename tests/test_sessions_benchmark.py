@@ -1,0 +1,69 @@
+"""benchmarks/sessions.py on a tiny box: the four rendered sessions, dataset A (three sessions) and B (one,
+as many labels and frames) each with the fourth held out, a few training steps, and a summary per session
+written again from the runs' results."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from benchmarks import sessions as bench
+from s3k.data import Dataset
+
+TINY = ["--size", "64", "--labelled", "2,1,1", "--unlabelled", "3", "--test", "2", "--steps", "2",
+        "--coarse-steps", "2", "--train-options",
+        "--coarse-size 32 --crop-size 32 --channels 8,8 --res-blocks 1 --val-every 0 --warmup-steps 1 "
+        "--ramp-steps 1"]
+
+
+def split_counts(ds: Dataset) -> dict[tuple[str, str], int]:
+    ids = ds.frames()
+    pairs = zip(ds.session_of(ids).tolist(), ds.split_of(ids).tolist())
+    out: dict[tuple[str, str], int] = {}
+    for pair in pairs:
+        out[pair] = out.get(pair, 0) + 1
+    return out
+
+
+def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
+    work, results = tmp_path / "work", tmp_path / "results"
+    args = [*TINY, "--work", str(work), "--results", str(results)]
+    assert bench.main(["--summary-only", *args]) == 0  # nothing trained yet: every run missing
+    assert json.loads((results / "summary.json").read_text())["missing_runs"] == ["A-seed0", "B-seed0"]
+
+    assert bench.main(args) == 0
+    a, b = Dataset.open(work / "A"), Dataset.open(work / "B")
+    assert a.sessions == ["s1", "s2", "s3", "s4"] and b.sessions == ["s1", "s4"]
+    assert split_counts(a) == {("s1", "labelled"): 2, ("s2", "labelled"): 1, ("s3", "labelled"): 1,
+                               ("s1", "unlabelled"): 3, ("s2", "unlabelled"): 3, ("s3", "unlabelled"): 3,
+                               ("s1", "test"): 2, ("s2", "test"): 2, ("s3", "test"): 2, ("s4", "test"): 2}
+    # B: s1 alone with A's labels and frames in all; the held-out session's test frames, as in A
+    assert split_counts(b) == {("s1", "labelled"): 4, ("s1", "unlabelled"): 9, ("s1", "test"): 2,
+                               ("s4", "test"): 2}
+    # A's labels of s1 are among B's (the same frames of the same render, the labelling app's order)
+    assert set(a.frames("labelled", session="s1")) < set(b.frames("labelled", session="s1"))
+    # the moved session's cameras stand lower than the others' (--rig low): their mean height above the aim
+    heights = {s: float(np.mean(np.asarray(a.calibration(a.frames(session=s)).centres())[..., 2]))
+               for s in a.sessions}
+    assert heights["s3"] < min(heights["s1"], heights["s2"], heights["s4"])
+    held = a.frames("test", session="s4")
+    assert np.array_equal(a.images(held[:1]), b.images(b.frames("test", session="s4")[:1]))
+
+    summary = json.loads((results / "summary.json").read_text())
+    assert summary["missing_runs"] == [] and set(summary["held_out"]) == {"A", "B"}
+    for model in ("A", "B"):
+        per_session = summary["per_seed"][model]["0"]["sessions"]
+        assert set(per_session) == {"s1", "s2", "s3", "s4"}
+        assert all(per_session[s]["n_frames"] == 2 for s in per_session)
+        assert summary["held_out"][model] == {k: per_session["s4"][k] for k in ("median_mm", "rms_mm",
+                                                                                  "pck_10mm")}
+    assert summary["setup"]["sessions"] == {"A": {"s1": 2, "s2": 1, "s3": 1}, "B": {"s1": 4}}
+    assert summary["command"].startswith("python benchmarks/sessions.py --size 64")
+    assert "cpu_flags" in summary["machine"]
+
+    # the same command again trains nothing and evaluates nothing: the runs' results are read back
+    stamp = {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()}
+    assert bench.main(["--summary-only", *args]) == 0
+    assert {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()} == stamp
+    assert json.loads((results / "summary.json").read_text())["held_out"] == summary["held_out"]
