@@ -5,11 +5,23 @@ written again from the runs' results."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks import sessions as bench
 from s3k.data import Dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def bench(args: list[str]) -> int:
+    """``python benchmarks/sessions.py ARGS`` from the repository root (tests do not import benchmarks/)."""
+    proc = subprocess.run([sys.executable, "benchmarks/sessions.py", *args], cwd=ROOT, capture_output=True,
+                          text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.returncode
 
 TINY = ["--size", "64", "--labelled", "2,1,1", "--unlabelled", "3", "--test", "2", "--steps", "2",
         "--coarse-steps", "2", "--train-options",
@@ -29,10 +41,10 @@ def split_counts(ds: Dataset) -> dict[tuple[str, str], int]:
 def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
     work, results = tmp_path / "work", tmp_path / "results"
     args = [*TINY, "--work", str(work), "--results", str(results)]
-    assert bench.main(["--summary-only", *args]) == 0  # nothing trained yet: every run missing
+    assert bench(["--summary-only", *args]) == 0  # nothing trained yet: every run missing
     assert json.loads((results / "summary.json").read_text())["missing_runs"] == ["A-seed0", "B-seed0"]
 
-    assert bench.main(args) == 0
+    assert bench(args) == 0
     a, b = Dataset.open(work / "A"), Dataset.open(work / "B")
     assert a.sessions == ["s1", "s2", "s3", "s4"] and b.sessions == ["s1", "s4"]
     assert split_counts(a) == {("s1", "labelled"): 2, ("s2", "labelled"): 1, ("s3", "labelled"): 1,
@@ -64,6 +76,6 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
 
     # the same command again trains nothing and evaluates nothing: the runs' results are read back
     stamp = {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()}
-    assert bench.main(["--summary-only", *args]) == 0
+    assert bench(["--summary-only", *args]) == 0
     assert {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()} == stamp
     assert json.loads((results / "summary.json").read_text())["held_out"] == summary["held_out"]
