@@ -90,6 +90,7 @@ DISTRACTORS = "docs/results/accuracy/distractors/summary.json"
 REAL = "docs/results/real/headline-preset/comparison.json"
 REAL_SEED = "docs/results/real/headline-preset/seed{}/results.json"
 REAL_ONE_PASS = "docs/results/real/comparison.json"
+REAL_HELD_OUT = "docs/results/real/held-out/comparison.json"
 CURVE = "docs/results/accuracy/label-curve/summary.json"
 PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
 DIAGNOSIS = "docs/results/accuracy/outside-rig/s3k-seed0-diagnosis.json"
@@ -150,6 +151,9 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
        pct(DISTRACTORS, f"{m}/pck_10mm/mean"))]),
     ("5 seeds: S3K {}, labels only {} mm, [comparison](docs/results/real/comparison.json))",
      [("sig", derived(REAL_ONE_PASS, _seeds_mean(m, "median_mm"))) for m in ("s3k", "baseline")]),
+    ("seed 0 so far: S3K {}, labels only {} mm mean, [held-out comparison]"
+     "(docs/results/real/held-out/comparison.json)",
+     [mm(REAL_HELD_OUT, f"seeds/0/{m}/mean_mm") for m in ("s3k", "baseline")]),
     ("| labels only | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |\n"
      "| | S3K | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows()),
     # The bullets under it.
