@@ -11,8 +11,8 @@ from __future__ import annotations
 import typing
 from typing import Literal
 
-__all__ = ["FIT_MODES", "LAYOUT_FITS", "NORMS", "Arithmetic", "Device", "Fit", "LayoutFit", "Norm",
-           "Precision"]
+__all__ = ["ENCODERS", "FIT_MODES", "LAYOUT_FITS", "NORMS", "Arithmetic", "Device", "Encoder", "Fit",
+           "LayoutFit", "Norm", "Precision"]
 
 Precision = Literal["auto", "float32", "bfloat16"]
 """A training's arithmetic (``--precision``): float32, bfloat16 autocast, or ``"auto"`` (bfloat16 where the
@@ -21,6 +21,9 @@ Arithmetic = Literal["float32", "bfloat16", "float16"]
 """A network's arithmetic as it runs (a training's :data:`Precision` resolved, or a detector's)."""
 Norm = Literal["batch", "group", "none"]
 """The U-Net's normalization after each convolution."""
+Encoder = Literal["unet", "efficientnet-lite0"]
+"""The detector's encoder: the small U-Net's own, trained from scratch, or an ImageNet EfficientNet-Lite0
+under a U-Net decoder (``s3k.networks``)."""
 Device = Literal["auto", "cpu", "cuda"] | str
 """Where the network runs: ``"auto"`` (a GPU when there is one), ``"cpu"``, ``"cuda"``, or a device name torch
 takes, such as ``"cuda:1"``."""
@@ -34,3 +37,4 @@ LayoutFit = Literal["all", "kept", "off"]
 NORMS: tuple[str, ...] = typing.get_args(Norm)
 FIT_MODES: tuple[str, ...] = typing.get_args(Fit)
 LAYOUT_FITS: tuple[str, ...] = typing.get_args(LayoutFit)
+ENCODERS: tuple[str, ...] = typing.get_args(Encoder)

@@ -1,7 +1,8 @@
 """Typed, documented configuration for training, loaded from a TOML/JSON file and command-line overrides.
 
 :class:`TrainConfig` groups its fields in sections (``model``, ``augmentation``, ``schedule``,
-``self_supervision``, ``monitoring``, ``execution``, ``passes``: the two-pass options), each a dataclass whose
+``self_supervision``, ``monitoring``, ``execution``, ``passes``: the two-pass options, ``backbone``: the
+encoder), each a dataclass whose
 fields carry their documentation in ``metadata["help"]``; ``s3k train --help`` shows that text next to the
 field's default. Field names are unique across sections, so a configuration is also a flat table of field
 names: the command line (``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that
@@ -30,28 +31,15 @@ from typing import Any
 
 from s3k.budget import check_config_fits
 from s3k.choices import Device, Norm, Precision
+from s3k.config_fields import EncoderConfig
+from s3k.config_fields import documented as _f
 from s3k.config_files import coerce
 from s3k.errors import UserError
-from s3k.ranges import Range
 
 MAX_STEPS = 100_000_000
 """The most steps a training takes: the paper trained 150k; 1e8 steps are days at a millisecond a step."""
 MAX_RES_BLOCKS = 100
 """The most residual blocks at the U-Net's lowest resolution (the paper: a few)."""
-
-
-def _f(default: Any, help: str, resumable: bool = False, **bounds: Any) -> Any:
-    """A dataclass field with a default, its documentation and, for a number, its range.
-
-    ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
-    not what it learns from); every other field must match the run being resumed. ``bounds`` (``ge``, ``gt``,
-    ``le``, ``lt``, ``one_of``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it
-    is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
-    """
-    metadata: dict[str, Any] = {"help": help, "resumable": resumable}
-    if bounds or (isinstance(default, (int, float)) and not isinstance(default, bool)):
-        metadata["range"] = Range(**bounds)  # an optional number (default None) is held to it when given
-    return field(default=default, metadata=metadata)
 
 
 @dataclass
@@ -240,6 +228,7 @@ class TrainConfig:
     monitoring: MonitoringConfig = _section(MonitoringConfig, "monitoring")
     execution: ExecutionConfig = _section(ExecutionConfig, "execution")
     passes: TwoPassConfig = _section(TwoPassConfig, "two passes")
+    backbone: EncoderConfig = _section(EncoderConfig, "encoder")
 
     def __getattr__(self, name: str) -> Any:
         # Only called when ordinary lookup fails: a flat field name reads its section's field.

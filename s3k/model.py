@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from s3k import readout
-from s3k.choices import NORMS, Norm
+from s3k.choices import ENCODERS, NORMS, Encoder, Norm
 from s3k.heatmaps import heatmap_size
 
 __all__ = ["UNetConfig", "UNet", "detect", "conv_layers", "count_conv_flops"]
@@ -59,6 +59,11 @@ class UNetConfig:
     """Normalization after each convolution: ``"batch"`` (BatchNorm, folded away at inference by
     :meth:`UNet.fused`), ``"group"`` (GroupNorm with groups of 8 channels; independent of batch composition)
     or ``"none"``."""
+    encoder: Encoder = "unet"
+    """The encoder: ``"unet"`` (the layout above) or ``"efficientnet-lite0"`` (:mod:`s3k.networks`: an
+    EfficientNet-Lite0 cut at ``encoder_stride`` under a decoder of ``channels``)."""
+    encoder_stride: int = 16
+    """A pretrained encoder's deepest stride (8, 16 or 32: where it is cut); unused by ``"unet"``."""
 
     def __post_init__(self) -> None:
         self.channels = tuple(int(c) for c in self.channels)
@@ -70,6 +75,9 @@ class UNetConfig:
             raise ValueError(f"UNetConfig.norm must be one of {NORMS}, got {self.norm!r}")
         if self.norm == "group" and any(c % min(8, c) for c in self.channels):
             raise ValueError(f"UNetConfig.norm='group' needs channels divisible by 8, got {self.channels}")
+        if self.encoder not in ENCODERS or self.encoder_stride not in (8, 16, 32):
+            raise ValueError(f"UNetConfig: encoder must be one of {ENCODERS} and encoder_stride 8, 16 or 32, "
+                             f"got {self.encoder!r}, {self.encoder_stride!r}")
         if self.res_blocks < 0 or self.encoder_convs < 0 or self.in_channels < 1:
             raise ValueError(
                 "UNetConfig: res_blocks and encoder_convs must be >= 0 and in_channels >= 1, got "
@@ -83,9 +91,12 @@ class UNetConfig:
         return len(self.channels) - 1
 
     def to_dict(self) -> dict:
-        """Plain-python form (for checkpoints and JSON)."""
+        """Plain-python form (for checkpoints and JSON); the U-Net's leaves the encoder's fields out, as every
+        run before them was written."""
         d = dataclasses.asdict(self)
         d["channels"] = list(self.channels)
+        if self.encoder == "unet":
+            del d["encoder"], d["encoder_stride"]
         return d
 
     @classmethod

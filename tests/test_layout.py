@@ -139,9 +139,10 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "losses", "augment", "presets"],
+    ["readout", "model", "networks", "losses", "augment", "presets"],
     ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
-     "calibration", "recalibration", "rigcal", "config", "config_files", "budget", "memory", "run_folder",
+     "calibration", "recalibration", "rigcal", "config", "config_fields", "config_files", "budget", "memory",
+     "run_folder",
      "metrics", "label_reference"],
 ]
 

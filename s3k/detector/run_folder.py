@@ -23,6 +23,7 @@ from s3k.errors import UserError
 from s3k.fileio import atomic_path, atomic_write_json
 from s3k.messages import NOTE
 from s3k.model import UNet, UNetConfig
+from s3k.networks import build_network
 from s3k.run_folder import RunFolder
 
 # the names RunFolder gives a one-pass run's files, under the names s3k.detector has long exported
@@ -120,7 +121,7 @@ def training_dataset(run_dir: str | Path) -> str | None:
 
 def build_model(meta: DetectorMeta) -> UNet:
     """A fresh (untrained) network for ``meta``."""
-    return UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+    return build_network(len(meta.keypoints), UNetConfig.from_dict(meta.model))
 
 
 def _older_run_meta(run_dir: Path) -> dict[str, Any]:

@@ -37,7 +37,8 @@ from s3k.detector import (
 )
 from s3k.errors import UserError
 from s3k.fileio import atomic_write_json
-from s3k.model import UNet, UNetConfig
+from s3k.model import UNetConfig
+from s3k.networks import EncoderUNet, build_network, load_imagenet_weights
 from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
@@ -65,7 +66,7 @@ from s3k.train.run_setup import (
     start_run,
 )
 from s3k.train.sampling import draw_batch, prepare
-from s3k.train.step import all_finite, compute_losses, lr_lambda
+from s3k.train.step import all_finite, compute_losses, optimizer
 from s3k.train.validation import calibrate, labelled_distances, layout_size, validate
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)
@@ -108,14 +109,15 @@ class _Loop:
                  out: Path, layout: torch.Tensor | None = None) -> None:
         self.cfg, self.meta, self.device, self.info, self.out = cfg, meta, device, info, out
         torch.manual_seed(cfg.seed)
-        net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+        net = build_network(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+        if isinstance(net, EncoderUNet) and cfg.pretrained:
+            load_imagenet_weights(net)
         # NHWC is the faster convolution layout for these small channel counts on CPU (and fine on GPU).
         self.net = net.to(device=device, memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.model = wrap_model(self.net, device, info)
         # one stream for every rank: each draws and augments the whole batch as one process does
         self.gen = torch.Generator().manual_seed(cfg.seed * 1000)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
-        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lr_lambda(cfg))
+        self.opt, self.sched = optimizer(self.net, cfg)
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout-tol holds the pseudo-labels to

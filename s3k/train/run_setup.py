@@ -167,7 +167,7 @@ def detector_meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> Detect
         keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=d.ds.image_size,
         stride=cfg.stride, sigma=cfg.sigma_px(),
         model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
-                         norm=cfg.norm).to_dict(),
+                         norm=cfg.norm, encoder=cfg.encoder, encoder_stride=cfg.encoder_stride).to_dict(),
         units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
         layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
         geometry=training_geometry(d.ds), skeleton=list(getattr(d.ds, "skeleton", [])),

@@ -81,6 +81,26 @@ def lr_lambda(cfg: TrainConfig):
     return f
 
 
+def optimizer(net: nn.Module, cfg: TrainConfig
+              ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam and its schedule (:func:`lr_lambda`). A pretrained encoder (``encoder_parameters``) is a group of
+    its own: ``--encoder-lr`` times the rate, and none during the first ``--freeze-encoder-steps``."""
+    encoder = getattr(net, "encoder_parameters", None)
+    if encoder is None:  # the U-Net: one group, as every run before the encoder option
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+        return opt, torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(cfg))
+    mine = {id(p) for p in encoder()}
+    rest = [p for p in net.parameters() if id(p) not in mine]
+    groups = [{"params": rest}, {"params": encoder(), "lr": cfg.lr * cfg.encoder_lr}]
+    opt = torch.optim.Adam(groups, lr=cfg.lr)
+    rate, freeze = lr_lambda(cfg), int(cfg.freeze_encoder_steps)
+
+    def encoder_rate(step: int) -> float:
+        return 0.0 if step < freeze else rate(step)
+
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, [rate, encoder_rate])
+
+
 def all_finite(module: nn.Module) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in list(module.parameters()) + list(module.buffers())
                if t.is_floating_point())
