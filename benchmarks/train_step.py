@@ -16,9 +16,15 @@ network on this machine, reached only if nothing but the convolutions took time.
 convolutions' forward FLOPs over the time of plain matrix products of their im2col shapes. Per-layer figures
 are printed above the JSON line (``--no-layers`` skips them).
 
+``--train-options`` sets more of ``s3k train``'s options (``'--encoder efficientnet-lite0 --encoder-stride 8
+--precision auto'``); ``cpu_s_per_step`` is the process's CPU seconds over the timed steps, ``peak_rss_mb``
+its peak resident memory (the data, the network and a step's activations).
+
 Example::
 
     python benchmarks/train_step.py --size 128
+    python benchmarks/train_step.py --size 192 --threads 1 --data DATA --no-layers \
+        --train-options '--encoder efficientnet-lite0 --encoder-stride 8 --precision auto'
 
 The last line printed is one JSON object.
 """
@@ -27,9 +33,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import torch
@@ -39,7 +47,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.common import conv_ceiling, emit, matmul_flops  # noqa: E402
 from s3k.cli import showing_library_messages  # noqa: E402
 from s3k.config import TrainConfig, default_of  # noqa: E402
-from s3k.model import UNet, UNetConfig, count_conv_flops  # noqa: E402
+from s3k.model import UNetConfig, count_conv_flops  # noqa: E402
+from s3k.networks import build_network  # noqa: E402
 from s3k.train import train  # noqa: E402
 
 
@@ -53,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"labelled and unlabelled frames per step (default {batch})")
     parser.add_argument("--data", default=None, help="dataset folder (default: render a small box dataset)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    parser.add_argument("--train-options", default="",
+                        help="more `s3k train` options, e.g. '--encoder efficientnet-lite0 --precision auto'")
     parser.add_argument("--no-layers", action="store_true",
                         help="skip timing the convolutions one by one (conv_only_fraction, gemm_fraction)")
     args = parser.parse_args(argv)
@@ -71,12 +82,16 @@ def main(argv: list[str] | None = None) -> int:
         cfg = TrainConfig.from_flat(steps=args.warmup + args.steps, batch_labelled=args.batch,
                                     batch_unlabelled=args.batch, warmup_steps=0, ramp_steps=0, val_every=0,
                                     checkpoint_every=10**9, progress=False, threads=args.threads, seed=0,
-                                    image_size=args.size)
+                                    image_size=args.size).with_options(args.train_options.split(),
+                                                                       where="--train-options")
         times: list[tuple[float, float]] = []
+        cpu: dict[int, float] = {}
 
         def record(step: int, terms: dict) -> None:
             if step > args.warmup:
                 times.append((terms["time_step_s"], terms["time_data_s"]))
+            if step in (args.warmup, args.warmup + args.steps):
+                cpu[step] = time.process_time()
 
         peak_before = matmul_flops(seconds=1.0)
         result = train(data, Path(tmp) / "run", cfg, progress=record)
@@ -88,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     W, H = meta.image_size
     C = len(meta.cameras)
     n_images = 2 * args.batch * C
-    net = UNet(len(meta.keypoints), UNetConfig.from_dict(meta.model))
+    net = build_network(len(meta.keypoints), UNetConfig.from_dict(meta.model))
     fwd = count_conv_flops(net, torch.rand(n_images, 3, H, W))
     peak = max(peak_before, peak_after)
     flops_per_step = 3 * fwd
@@ -109,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         "steps_timed": len(times),
         "step_s": step_s,
         "step_s_mean": statistics.fmean(t for t, _ in times),
+        "train_options": args.train_options,
+        "cpu_s_per_step": (cpu[args.warmup + args.steps] - cpu[args.warmup]) / args.steps
+        if len(cpu) == 2 else None,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "loader_fraction": loader_fraction,
         "train_flops_per_step": flops_per_step,
         "achieved_flops": flops_per_step / step_s,
