@@ -232,6 +232,10 @@ def add_network_options(p: argparse.ArgumentParser, threads_help: str) -> None:
     p.add_argument("--res-blocks", type=int, default=None, help="residual blocks at the bottom")
     p.add_argument("--encoder-convs", type=int, default=None, help="extra convs per encoder level")
     p.add_argument("--norm", type=str, default=None, choices=["batch", "group", "none"])
+    p.add_argument("--encoder", default=None, choices=["unet", "efficientnet-lite0"],
+                   help="the encoder (default: UNetConfig's, the U-Net)")
+    p.add_argument("--encoder-stride", type=int, default=None, choices=[8, 16, 32],
+                   help="where a pretrained encoder is cut (default: UNetConfig's)")
     sigma = TrainConfig().sigma_px()
     p.add_argument("--sigma", type=float, default=sigma,
                    help=f"target width in image pixels (confidence scale; default {sigma:g}, training's)")
@@ -243,12 +247,13 @@ def add_network_options(p: argparse.ArgumentParser, threads_help: str) -> None:
 
 
 def build_network(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, int]:
-    """Set ``--threads``, seed torch with 0 and build the untrained U-Net of the options, in eval mode.
+    """Set ``--threads``, seed torch with 0 and build the untrained network of the options, in eval mode.
 
     Returns:
         ``(config, model, parameter count)``; ``config`` is the ``UNetConfig`` with the options' overrides.
     """
-    from s3k.model import UNet, UNetConfig
+    from s3k.model import UNetConfig
+    from s3k.networks import build_network as network
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -261,11 +266,13 @@ def build_network(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, int]:
             "res_blocks": args.res_blocks,
             "encoder_convs": args.encoder_convs,
             "norm": args.norm,
+            "encoder": getattr(args, "encoder", None),
+            "encoder_stride": getattr(args, "encoder_stride", None),
         }.items()
         if v is not None
     }
     config = UNetConfig(**overrides)
-    model = UNet(args.keypoints, config).eval()
+    model = network(args.keypoints, config).eval()
     return config, model, sum(q.numel() for q in model.parameters())
 
 

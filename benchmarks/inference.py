@@ -20,6 +20,9 @@ a matmul peak so a shared machine's drift hits all of them alike:
 - ``two_pass_compiled`` (with ``--compile``): the plain path with each network through ``torch.compile``
   (inductor, static shapes); its compile seconds (the first frame) and its points against the plain path's
   are in ``compiled``. Not the detector's default: compiling costs tens of seconds per network on 2 cores;
+- ``two_pass@ENCODER``, ``one_pass_native@ENCODER`` (with ``--compare-encoder ENCODER``): those two with
+  the network of that encoder (``--compare-encoder-stride``) in place of the options', timed in the same
+  rounds;
 - ``reference``: the earlier hand-written per-frame pipeline at ``--size`` px (network + ``read_out``), the
   baseline the one-pass detector must not be slower than.
 
@@ -29,6 +32,8 @@ at the origin, the crop 0.3 world units wide. The last line is one JSON object n
 Example::
 
     python benchmarks/inference.py --size 128 --native 384 --coarse 96 --crop 192 --batch 1
+    python benchmarks/inference.py --batch 1 --threads 1 --compare-encoder efficientnet-lite0 \
+        --compare-encoder-stride 8
 """
 
 from __future__ import annotations
@@ -104,8 +109,8 @@ def detectors(args, device: torch.device) -> dict:
     """``{name: (detector, frames (B, C, S, S, 3) uint8, cameras)}`` of the pipelines (module docstring)."""
 
     from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
-    def net(size: int, fast: bool = True):
-        config, model, _ = build_network(args)
+    def net(size: int, fast: bool = True, options=args):
+        config, model, _ = build_network(options)
         meta = DetectorMeta([str(k) for k in range(args.keypoints)], [], (size, size), config.stride,
                             args.sigma, config.to_dict(), outlier_px=args.outlier_px)
         model = model.fused().to(device=device, memory_format=torch.channels_last)
@@ -127,6 +132,13 @@ def detectors(args, device: torch.device) -> dict:
              "one_pass_native": (coarse, frames(args.native), native),
              "two_pass": (two, frames(args.native), native),
              "two_pass_plain": (plain, frames(args.native), native)}
+    if args.compare_encoder:
+        other = argparse.Namespace(**{**vars(args), "encoder": args.compare_encoder,
+                                      "encoder_stride": args.compare_encoder_stride})
+        coarse_other = net(args.coarse, options=other)
+        two_other = TwoPassDetector(coarse_other, net(args.crop, options=other), rule)
+        pipes[f"one_pass_native@{args.compare_encoder}"] = (coarse_other, frames(args.native), native)
+        pipes[f"two_pass@{args.compare_encoder}"] = (two_other, frames(args.native), native)
     if args.compile:
         compiled = TwoPassDetector(net(args.coarse, False), net(args.crop, False), rule)
         for one in (compiled.coarse, compiled.fine):
@@ -185,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
                         "the defaults; 0: every view)")
     p.add_argument("--no-reference", action="store_true", help="leave out the earlier per-frame pipeline")
     p.add_argument("--compile", action="store_true", help="also time the two passes through torch.compile")
+    p.add_argument("--compare-encoder", default=None, choices=["unet", "efficientnet-lite0"],
+                   help="also time the one- and two-pass pipelines with this encoder's network")
+    p.add_argument("--compare-encoder-stride", type=int, default=16, choices=[8, 16, 32],
+                   help="where --compare-encoder's network is cut (default 16)")
     args = p.parse_args(argv)
 
     from s3k.detector import pick_device
@@ -236,6 +252,13 @@ def main(argv: list[str] | None = None) -> int:
                   for a, b in zip(rounds["one_pass"], rounds["reference"])]
         result["one_pass_over_reference_time"] = statistics.median(ratios)
         print(f"one_pass / reference time, median of rounds: {statistics.median(ratios):.3f}")
+    if args.compare_encoder:
+        other = argparse.Namespace(**{**vars(args), "encoder": args.compare_encoder,
+                                      "encoder_stride": args.compare_encoder_stride})
+        other_config, other_model, other_params = build_network(other)
+        images = torch.rand(args.cameras, 3, args.size, args.size)
+        result["compared"] = {"config": other_config.to_dict(), "params": other_params,
+                              "flops_per_frame": count_conv_flops(other_model, images)}
     result.update({**network_fields(args, config, num_params, flops, statistics.median(peaks)),
                    "repeats": args.repeats, "rounds": args.rounds, "matmul_flops_rounds": peaks})
     emit(result)

@@ -13,6 +13,7 @@ from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.detector import Detector, load_network
+from s3k.model import UNet
 from s3k.run_folder import RunFolder
 
 OLD = Path(__file__).parent / "data" / "old_runs"
@@ -52,6 +53,10 @@ def test_old_runs_load_and_evaluate(dataset, tmp_path, capsys):
         run = _copy(name, tmp_path)
         detector = Detector.load(run)
         assert detector.keypoints == ["a", "b", "c"]
+        # written before the encoder option: the U-Net, in the network and in the configuration
+        net, _ = load_network(run / "coarse" if passes == 2 else run)
+        assert type(net) is UNet and net.config.encoder == "unet"
+        assert RunFolder(run).config().encoder == "unet"  # type: ignore[union-attr]
         assert RunFolder(run).is_complete() and RunFolder(run).is_two_pass() == (passes == 2)
         capsys.readouterr()
         assert cli.main(["evaluate", str(run), "--data", str(dataset), "--json"]) == 0
