@@ -165,3 +165,14 @@ def test_a_run_with_the_encoder_exports_and_passes_the_3d_check(lite_run, tmp_pa
     _, run = lite_run
     report = export_detector(run, fmt, tmp_path / f"d{suffix}")
     assert report.ok, report
+
+
+def test_strided_and_wide_depthwise_convolutions_compute_in_float32_under_autocast():
+    torch.manual_seed(0)
+    x = torch.rand(2, 8, 16, 16)
+    for kernel, stride, dtype in ((3, 2, torch.float32), (5, 1, torch.float32), (3, 1, torch.bfloat16)):
+        conv = networks.DepthwiseConvBN(8, kernel, stride).eval()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            y = conv(x)
+        assert y.dtype == dtype
+        torch.testing.assert_close(y.float(), conv(x), atol=0.05, rtol=0.05)
