@@ -18,6 +18,7 @@ from s3k import cli, networks
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.detector import Detector, load_network
+from s3k.detector.frozen import FrozenNetwork
 from s3k.errors import UserError
 from s3k.model import UNet, UNetConfig
 from s3k.networks import EfficientNetLite0, EncoderUNet, build_network
@@ -41,6 +42,9 @@ def test_the_encoder_gives_the_unets_heatmap_grid_at_any_size_and_folds_exactly(
             fused = net.fused()
             assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
             torch.testing.assert_close(fused(x), logits, atol=1e-4, rtol=1e-4)
+            frozen = FrozenNetwork(fused, torch.device("cpu"))  # the detector's CPU path: a frozen trace
+            torch.testing.assert_close(frozen(x), logits, atol=1e-4, rtol=1e-4)
+            assert not frozen.eager and len(frozen.frozen) == 1
 
 
 def test_the_unet_stays_the_default_and_its_record_unchanged():
