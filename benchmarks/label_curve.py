@@ -126,6 +126,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"(seeds {e['seeds']})", file=sys.stderr)
     if summary["missing_jobs"]:
         print(f"{len(summary['missing_jobs'])} jobs without a result yet", file=sys.stderr)
+    for job in summary["unfinished_jobs"]:
+        done = ", ".join(f"{name} {step}/{steps} steps" for name, (step, steps) in job["steps"].items())
+        print(f"unfinished: {job['job']}: {done}; {job['cpu_minutes']:.1f} CPU-minutes so far",
+              file=sys.stderr)
     print(summary["answer"], file=sys.stderr)
     print(json.dumps({k: summary[k] for k in ("command", "git_revision", "avx512_bf16", "labels", "seeds",
                                               "jobs_with_results", "reference_labels",

@@ -1,7 +1,7 @@
-"""The pretrained encoder (``--encoder efficientnet-lite0``, s3k/networks.py): the same heatmaps as the U-Net's,
-folded and exported alike, trained in both passes with its own learning rate and freeze, recorded in the run so
-that ``Detector.load`` rebuilds it; the ImageNet weights checked against their hash. The tests use the
-encoder's random weights (``--no-pretrained``) except the one that loads the installed package's."""
+"""The pretrained encoder (``--encoder efficientnet-lite0``, s3k/networks.py): the same heatmaps as the
+U-Net's, folded and exported alike, trained in both passes with its own learning rate and freeze, recorded in
+the run so that ``Detector.load`` rebuilds it; the ImageNet weights checked against their hash. The tests use
+the encoder's random weights (``--no-pretrained``) except the one that loads the installed package's."""
 
 from __future__ import annotations
 
@@ -106,7 +106,8 @@ def test_the_packages_imagenet_weights_load_key_for_key():
     net = build_network(3, LITE)
     networks.load_imagenet_weights(net)  # type: ignore[arg-type]
     torch.testing.assert_close(net.encoder.stem[0].weight, raw["_conv_stem.weight"])
-    torch.testing.assert_close(net.encoder.blocks[4].project[1].running_var, raw["_blocks.4._bn2.running_var"])
+    torch.testing.assert_close(net.encoder.blocks[4].project[1].running_var,
+                               raw["_blocks.4._bn2.running_var"])
 
 
 @pytest.fixture(scope="module")
@@ -116,10 +117,10 @@ def lite_run(tmp_path_factory):
     data = make_dataset(root / "ds", size=48, labelled=3, unlabelled=3, test=2)
     run = root / "run"
     assert cli.main(["train", str(data), "--out", str(run), "--two-pass", "--coarse-size", "32",
-                     "--crop-size", "32", "--steps", "4", "--coarse-steps", "4", "--encoder", "efficientnet-lite0",
-                     "--encoder-stride", "8", "--no-pretrained", "--freeze-encoder-steps", "2",
-                     "--encoder-lr", "0.5", "--channels", "8,16,16", "--val-every", "0", "--no-progress",
-                     "--threads", "1"]) == 0
+                     "--crop-size", "32", "--steps", "4", "--coarse-steps", "4",
+                     "--encoder", "efficientnet-lite0", "--encoder-stride", "8", "--no-pretrained",
+                     "--freeze-encoder-steps", "2", "--encoder-lr", "0.5", "--channels", "8,16,16",
+                     "--val-every", "0", "--no-progress", "--threads", "1"]) == 0
     return data, run
 
 
@@ -141,11 +142,12 @@ def test_both_passes_train_with_the_encoder_and_load_as_trained(lite_run, capsys
 def test_a_run_with_the_encoder_resumes_and_refuses_another_encoder(lite_run, tmp_path, capsys):
     data, _ = lite_run
     run = tmp_path / "one"
-    options = ["--image-size", "32", "--encoder", "efficientnet-lite0", "--encoder-stride", "8", "--no-pretrained",
-               "--freeze-encoder-steps", "3", "--channels", "8,16,16", "--val-every", "0", "--no-progress",
-               "--threads", "1"]
+    options = ["--image-size", "32", "--encoder", "efficientnet-lite0", "--encoder-stride", "8",
+               "--no-pretrained", "--freeze-encoder-steps", "3", "--channels", "8,16,16", "--val-every", "0",
+               "--no-progress", "--threads", "1"]
     assert cli.main(["train", str(data), "--out", str(run), "--steps", "2", *options]) == 0
-    frozen = {k: v.clone() for k, v in load_network(run)[0].encoder.state_dict().items() if "running" not in k}
+    encoder = load_network(run)[0].encoder.state_dict()
+    frozen = {k: v.clone() for k, v in encoder.items() if "running" not in k}
     assert cli.main(["train", str(data), "--out", str(run), "--resume", "--steps", "5", *options]) == 0
     net, _ = load_network(run)
     assert json.loads((run / "progress.json").read_text())["step"] == 5
@@ -154,7 +156,8 @@ def test_a_run_with_the_encoder_resumes_and_refuses_another_encoder(lite_run, tm
     capsys.readouterr()  # resumed without the options: the run's own encoder (its recorded configuration)
     assert cli.main(["train", str(data), "--out", str(run), "--resume", "--steps", "6", "--no-progress"]) == 0
     assert isinstance(load_network(run)[0], EncoderUNet)
-    assert cli.main(["train", str(data), "--out", str(run), "--resume", "--steps", "7", "--encoder", "unet"]) != 0
+    other = ["train", str(data), "--out", str(run), "--resume", "--steps", "7", "--encoder", "unet"]
+    assert cli.main(other) != 0
     err = capsys.readouterr().err
     assert "encoder" in err and len(err.strip().splitlines()) == 1
 

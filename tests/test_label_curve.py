@@ -18,6 +18,7 @@ from s3k.experiments.label_curve import (
     prepare_data,
     read_results,
     run_curve,
+    unfinished,
     view_name,
 )
 
@@ -154,3 +155,16 @@ def test_label_counts_beyond_the_pool_are_refused():
         CurveOptions(labels=(5, 100), label_pool=50)
     opts = CurveOptions(labels=(10, 5, 10))
     assert opts.labels == (5, 10) and view_name(opts, 5, 2) == "box384-L100-representative-n5-seed2"
+
+
+def test_the_summary_names_the_steps_and_minutes_of_a_training_begun(tmp_path):
+    opts = CurveOptions(labels=(10,), seeds=1)
+    begun, waiting = Job(10, "s3k", 0), Job(10, "labels_only", 0)
+    (begun.run(tmp_path) / "coarse").mkdir(parents=True)
+    (begun.run(tmp_path) / "coarse" / "progress.json").write_text('{"step": 975, "steps": 4000}')
+    begun.record(tmp_path).write_text(json.dumps({"cpu_minutes": 1.0, "wall_minutes": 2.0,
+                                                  "unfinished_cpu_minutes": 2.5,
+                                                  "unfinished_wall_minutes": 4.0}))
+    assert unfinished(opts, tmp_path, [begun, waiting]) == [
+        {"job": "s3k 10 labels seed 0", "steps": {"coarse": [975, 4000]}, "cpu_minutes": 3.5,
+         "wall_minutes": 6.0}]

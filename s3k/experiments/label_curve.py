@@ -43,6 +43,7 @@ from s3k.experiments.accuracy import (
 from s3k.fileio import atomic_write_json
 from s3k.messages import NOTE
 from s3k.presets import PRESETS
+from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
 
@@ -218,6 +219,26 @@ def read_results(opts: CurveOptions, work: Path) -> tuple[dict[Job, dict], list[
     return found, missing
 
 
+def unfinished(opts: CurveOptions, work: Path, missing: list[Job]) -> list[dict[str, Any]]:
+    """The jobs without a result whose training has begun: the steps each pass has done (``[step, steps]``
+    from its ``progress.json``) and the CPU and wall minutes spent so far, killed attempts included."""
+    out = []
+    for job in missing:
+        run = RunFolder(job.run(work))
+        if not run.path.is_dir():
+            continue
+        parts = {"coarse": run.coarse, "fine": run.fine} if opts.passes == 2 else {"one": run}
+        steps = {}
+        for name, part in parts.items():
+            if part.progress.is_file():
+                doc = json.loads(part.progress.read_text())
+                steps[name] = [int(doc["step"]), int(doc["steps"])]
+        spent = read_record(job.record(work))
+        out.append({"job": job.name, "steps": steps, "cpu_minutes": spent["cpu_minutes"],
+                    "wall_minutes": spent["wall_minutes"]})
+    return out
+
+
 def _stats(values: list[float]) -> dict[str, Any]:
     return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
             "min": min(values), "max": max(values), "per_seed": values}
@@ -287,6 +308,7 @@ def write_summary(opts: CurveOptions, work: Path, results_dir: Path, command: st
         "labels": list(opts.labels), "seeds": list(range(opts.seeds)),
         "jobs_with_results": len(results),
         "missing_jobs": [job.name for job in missing],
+        "unfinished_jobs": unfinished(opts, work, missing),
         "trained_at_revisions": sorted({v for r in results.values()
                                         for v in r.get("trained_at_revisions", [])}),
         "evaluated_at_revisions": sorted({r.get("evaluated_at_revision", "unknown")
