@@ -119,7 +119,7 @@ def git_revision() -> str:
                                capture_output=True, text=True).stdout.strip()
         return rev.stdout.strip() + ("+modified" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return os.environ.get("S3K_GIT_REVISION", "unknown")
 
 
 def matmul_flops(seconds: float = 2.0, sizes: tuple[int, ...] = (256, 512, 1024, 2048)) -> float:
