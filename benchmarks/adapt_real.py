@@ -34,10 +34,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info, t_interval, write_and_emit  # noqa: E402
 from benchmarks.real_comparison import distances  # noqa: E402
+from s3k.base.label_reference import bootstrap_ci  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
 from s3k.experiments.adapt import held_out_as_unlabelled  # noqa: E402
-from s3k.label_reference import bootstrap_ci  # noqa: E402
 from s3k.run_folder import RunFolder  # noqa: E402
 
 

@@ -441,7 +441,7 @@ def finish(result: dict[str, Any], started: float, out: str | None) -> None:
     """Add the call's minutes, write ``result`` to ``out`` (atomically, if given) and print it last."""
     result["minutes_this_call"] = (time.perf_counter() - started) / 60
     if out:
-        from s3k.fileio import atomic_write_json
+        from s3k.base.fileio import atomic_write_json
 
         atomic_write_json(result, out)
     emit(result)

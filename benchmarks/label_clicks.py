@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result["seconds"] = time.perf_counter() - started
     result["machine"] = machine_info()
     if args.out:
-        from s3k.fileio import atomic_write_json
+        from s3k.base.fileio import atomic_write_json
 
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(result, args.out)

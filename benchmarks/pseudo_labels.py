@@ -63,11 +63,11 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     """``(pseudo (B, K, 3), kept (B, K), truth (B, K, 3), mm per world unit)`` of ``data``'s ``split``."""
     import torch
 
+    from s3k.base.metrics import mm_per_unit
     from s3k.config import TrainConfig
     from s3k.data.frames import FrameStore, images_to_float, open_dataset
     from s3k.detector import load_network
     from s3k.losses import pseudo_labels as make_pseudo_labels
-    from s3k.metrics import mm_per_unit
     from s3k.readout import ReadoutConfig
     from s3k.train.validation import labelled_distances
 

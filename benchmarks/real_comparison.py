@@ -29,11 +29,11 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, t_interval, write_and_emit  # noqa: E402
+from s3k.base.label_reference import bootstrap_ci  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.data.frames import FrameStore  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
 from s3k.inference.evaluate import evaluate_store  # noqa: E402
-from s3k.label_reference import bootstrap_ci  # noqa: E402
 from s3k.run_folder import RunFolder  # noqa: E402
 
 

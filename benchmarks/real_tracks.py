@@ -54,10 +54,10 @@ def proofread_points(sleap: dict[str, Path], calibration: Path, check_px: float 
     agreement (:func:`disagreeing`); ``uv`` keeps them all."""
     import torch
 
+    from s3k.base.label_reference import leave_one_view_out
     from s3k.data.formats.anipose import read_anipose_calibration
     from s3k.data.formats.sleap import read_sleap_analysis
     from s3k.geometry import triangulate_pixels
-    from s3k.label_reference import leave_one_view_out
 
     rig = read_anipose_calibration(calibration)
     tables = {c: read_sleap_analysis(sleap[c]) for c in rig.names}

@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         **({"notes": args.notes} if args.notes else {}),
     }
     results_dir.mkdir(parents=True, exist_ok=True)
-    from s3k.fileio import atomic_write_json
+    from s3k.base.fileio import atomic_write_json
 
     atomic_write_json(summary, results_dir / "summary.json")
     for model, per_session in mean.items():

@@ -32,8 +32,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from s3k.choices import Norm
-from s3k.errors import UserError
+from s3k.base.choices import Norm
+from s3k.base.errors import UserError
 from s3k.geometry.warp import model_image_size
 from s3k.memory import available_memory
 

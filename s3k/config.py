@@ -29,12 +29,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from s3k.base.choices import Device, Norm, Precision
+from s3k.base.errors import UserError
 from s3k.budget import check_config_fits
-from s3k.choices import Device, Norm, Precision
 from s3k.config_fields import EncoderConfig
 from s3k.config_fields import documented as _f
 from s3k.config_files import coerce
-from s3k.errors import UserError
 
 MAX_STEPS = 100_000_000
 """The most steps a training takes: the paper trained 150k; 1e8 steps are days at a millisecond a step."""

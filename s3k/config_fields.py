@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from s3k.choices import Encoder
-from s3k.ranges import Range
+from s3k.base.choices import Encoder
+from s3k.base.ranges import Range
 
 __all__ = ["EncoderConfig", "documented"]
 
@@ -17,8 +17,8 @@ def documented(default: Any, help: str, resumable: bool = False, **bounds: Any) 
 
     ``resumable`` marks a field that ``--resume`` may change (it changes how long or how visibly a run goes,
     not what it learns from); every other field must match the run being resumed. ``bounds`` (``ge``, ``gt``,
-    ``le``, ``lt``, ``one_of``) are the field's :class:`s3k.ranges.Range`, checked on the command line as it
-    is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
+    ``le``, ``lt``, ``one_of``) are the field's :class:`s3k.base.ranges.Range`, checked on the command line as
+    it is parsed and by :meth:`TrainConfig.validate`; a float field must also be finite.
     """
     metadata: dict[str, Any] = {"help": help, "resumable": resumable}
     if bounds or (isinstance(default, (int, float)) and not isinstance(default, bool)):

@@ -10,7 +10,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 __all__ = ["base_type", "coerce", "read_config_file"]
 

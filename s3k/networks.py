@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 from s3k.heatmaps import heatmap_size
 from s3k.model import ConvNormAct, HeatmapHead, UNet, UNetConfig, Up
 

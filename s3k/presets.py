@@ -19,8 +19,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
-from s3k.errors import UserError
 
 __all__ = ["PRESETS", "Preset", "preset"]
 

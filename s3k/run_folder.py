@@ -34,9 +34,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
 from s3k.config import TrainConfig, config_from_dict
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
 
 __all__ = ["RunFolder"]
 

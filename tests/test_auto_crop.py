@@ -15,11 +15,11 @@ from helpers.recordings import CAMS, KEYPOINTS, import_argv, write_recording
 from helpers.tiny_detector import save_run
 
 from s3k import cli
+from s3k.base.errors import UserError
 from s3k.cli.crops import aspect
 from s3k.cli.options import parse_crops
 from s3k.data import Dataset
 from s3k.detector import DetectorMeta
-from s3k.errors import UserError
 from s3k.geometry import project
 from s3k.inference.auto_crop import CropOptions, dataset_crop_boxes, find_boxes, frame_pixels, label_points
 from s3k.model import UNetConfig

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from helpers.charuco import render_charuco_rig
 
+from s3k.base.errors import UserError
 from s3k.cli import main
 from s3k.data.formats.anipose import read_anipose_calibration
-from s3k.errors import UserError
 from s3k.rigcal.boards import Board, Faces, check_board_matches, detect_board
 
 BOARD = ["--squares", "5x7", "--square-length", "30", "--marker-length", "22"]

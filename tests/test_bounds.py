@@ -134,8 +134,8 @@ def test_import_refuses_a_sleap_file_with_external_storage(recording, tmp_path, 
     ([b"head", b"tail"], True, "links to"),
 ])
 def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, link, match):
+    from s3k.base.errors import UserError
     from s3k.data.formats.sleap import read_sleap_analysis
-    from s3k.errors import UserError
 
     path = _sleap_file(tmp_path / "a.h5", np.zeros((1, 2, 2, 3)), names=names,
                        link=tmp_path / "other.h5" if link else None)
@@ -151,8 +151,8 @@ def test_sleap_files_with_foreign_or_broken_names_are_one_line(tmp_path, names, 
 def test_a_tiny_pickle_cannot_ask_for_gigabytes(tmp_path, call):
     import pickle
 
+    from s3k.base.errors import UserError
     from s3k.data.formats.safe_pickle import load_pickle
-    from s3k.errors import UserError
 
     shape = pickle.dumps((2**36,), protocol=2)[2:-1]  # (68719476736,): 64 GiB of int8
     if call == "_reconstruct":

@@ -7,8 +7,8 @@ import torch
 from helpers.charuco import look_at, render_charuco_rig
 from helpers.real_recording import REAL, needs_real
 
-from s3k.calibration import check_calibration, leave_one_out_residuals, reprojection_residuals
 from s3k.geometry import Cameras
+from s3k.rigcal.consistency import check_calibration, leave_one_out_residuals, reprojection_residuals
 
 
 def make_rig(C=4, seed=0):
@@ -166,7 +166,7 @@ def _copy_camera(rig, dst, src):
 
 def test_recalibrate_from_synthetic_charuco(charuco_rig):
     """A camera given another's parameters is recovered from rendered ChArUco views."""
-    from s3k.recalibration import detect_charuco, recalibrate_charuco
+    from s3k.rigcal.recalibration import detect_charuco, recalibrate_charuco
 
     truth, spec, files = charuco_rig
     names = truth.names

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from helpers.charuco import write_recalibration_case
 
+from s3k.base.errors import UserError
 from s3k.cli import main
 from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
-from s3k.errors import UserError
 from s3k.rigcal.boards import read_board_toml
 
 BOARD = ["--squares", "5x7", "--square-length", "30", "--marker-length", "22"]

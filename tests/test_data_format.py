@@ -653,7 +653,7 @@ def test_video_dataset_reads_frames_by_video_index(tmp_path: Path):
 
 
 def test_dataset_error_is_one_line_user_error_with_every_problem(tiny):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
 
     root, _ = tiny
     CORRUPTIONS["bad split"][0](root)

@@ -148,7 +148,7 @@ def test_a_rigid_two_pass_detector_lends_its_coarse_heatmaps_to_the_layout_searc
 def test_frames_the_detector_would_misread_are_refused_in_one_line():
     """Float frames in [0, 1], frames twice (or half) the size the intrinsics describe, and a list that reads
     as cameras and as frames alike are refused; the same frames given right are read."""
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
 
     net, meta = _net(32)
     detector = OnePassDetector(net, meta)

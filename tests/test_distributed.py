@@ -16,8 +16,8 @@ import pytest
 import torch
 from helpers.synthetic_rig import make_dataset
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
-from s3k.errors import UserError
 from s3k.train import train
 from s3k.train.distributed import DistInfo, check_batches, part
 

@@ -1,4 +1,4 @@
-"""The skeleton in s3k's pictures: drawn by :mod:`s3k.draw` in ``s3k track --overlay`` and ``s3k evaluate
+"""The skeleton in s3k's pictures: drawn by :mod:`s3k.base.draw` in ``s3k track --overlay`` and ``s3k evaluate
 --report``, recorded in a trained run's meta."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import numpy as np
 from helpers.synthetic_rig import make_dataset
 
+from s3k.base.draw import draw_overlay, draw_views, edge_indices, keypoint_colours
 from s3k.detector import DetectorMeta
-from s3k.draw import draw_overlay, draw_views, edge_indices, keypoint_colours
 
 
 def test_edge_indices_name_keypoints_by_index_and_skip_others():

@@ -15,11 +15,11 @@ from helpers.synthetic_rig import make_dataset
 from helpers.tiny_detector import trained_like_batch_norm
 
 from s3k import cli, networks
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.detector import Detector, load_network
 from s3k.detector.frozen import FrozenNetwork
-from s3k.errors import UserError
 from s3k.model import UNet, UNetConfig
 from s3k.networks import EfficientNetLite0, EncoderUNet, build_network
 from s3k.train.step import optimizer

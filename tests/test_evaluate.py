@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS, make_dataset, project, rig
 
+from s3k.base.draw import draw_views
+from s3k.base.metrics import compute_metrics, mm_per_unit
 from s3k.cli import main as cli_main
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore, open_dataset
 from s3k.data.tracks_csv import csv_header, read_csv
 from s3k.detector import Detector, OnePassDetector, load_network
-from s3k.draw import draw_views
 from s3k.inference.predict import detect_store
-from s3k.metrics import compute_metrics, mm_per_unit
 from s3k.train import train
 
 
@@ -291,7 +291,7 @@ def test_demo_quick(tmp_path, capsys):
 
 
 def test_pck_counts_misses_and_failed_triangulations():
-    from s3k.metrics import compute_metrics
+    from s3k.base.metrics import compute_metrics
 
     B, C, K = 4, 2, 2
     uv = np.zeros((B, C, K, 2))
@@ -316,8 +316,8 @@ def test_pck_counts_misses_and_failed_triangulations():
 def test_mm_per_px_at_the_workspace_centre(distance, f):
     import torch
 
+    from s3k.base.metrics import pixel_sizes_mm
     from s3k.geometry import Cameras
-    from s3k.metrics import pixel_sizes_mm
 
     # four cameras on a circle, all looking at (0.1, -0.2, 0.3): the point their optical axes meet
     target = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)

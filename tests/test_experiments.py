@@ -17,15 +17,15 @@ from helpers.synthetic_rig import make_dataset
 
 import s3k
 import s3k.experiments as ex
+from s3k.base.errors import UserError
+from s3k.base.fileio import file_lock
 from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
 from s3k.data import Dataset
-from s3k.errors import UserError
 from s3k.experiments.findings import lower
 from s3k.experiments.report import readme
 from s3k.experiments.runner import LOCK_FILE, run_one
 from s3k.experiments.views import make_view, select_frames
-from s3k.fileio import file_lock
 from s3k.sim.generate import scene_mm_per_px
 
 pytest.importorskip("mujoco")
@@ -187,7 +187,7 @@ def test_run_held_by_a_live_process_is_skipped_and_a_killed_holder_leaves_no_cla
         assert attempt() is None
     assert messages == [f"{spec.name}: being trained by another process; skipped"]
     assert not (tmp_path / "data").exists()  # skipped before touching any data
-    code = ("import sys, time\nfrom s3k.fileio import file_lock\nwith file_lock(sys.argv[1]):\n"
+    code = ("import sys, time\nfrom s3k.base.fileio import file_lock\nwith file_lock(sys.argv[1]):\n"
             "    print('held', flush=True)\n    time.sleep(600)\n")
     env = {**os.environ, "PYTHONPATH": str(Path(s3k.__file__).parents[1])}
     holder = subprocess.Popen([sys.executable, "-c", code, str(run_dir / LOCK_FILE)], stdout=subprocess.PIPE,

@@ -141,7 +141,7 @@ def test_export_errors(run_dir, tmp_path, capsys):
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_load_exported_runs_torchscript_only_when_asked(run_dir, tmp_path):
     """A TorchScript file is a program: load_exported refuses it unless the caller asks for TorchScript."""
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.inference.export import load_exported
 
     ts = export_detector(run_dir, "torchscript", tmp_path / "d.pt").path
@@ -176,7 +176,7 @@ def test_load_exported_runs_torchscript_only_when_asked(run_dir, tmp_path):
     (lambda d: {**d, "fine": "absent.onnx"}, "field 'fine' names absent.onnx, which is not in"),
 ])
 def test_load_exported_checks_the_two_pass_json(run_dir, tmp_path, edit, match):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.inference.export import load_exported
 
     folder = tmp_path / "export"

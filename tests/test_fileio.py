@@ -2,7 +2,7 @@ import multiprocessing as mp
 
 import pytest
 
-from s3k.fileio import atomic_path, atomic_write_json, file_lock
+from s3k.base.fileio import atomic_path, atomic_write_json, file_lock
 
 
 def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path):

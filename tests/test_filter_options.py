@@ -12,8 +12,8 @@ from helpers.tiny_detector import save_run
 from test_track import CAMERAS, FRAMES, KEYPOINTS, NET_SIZE, _track, moving_points, recording  # noqa: F401
 
 from s3k import cli
+from s3k.base.errors import UserError
 from s3k.detector import DetectorMeta
-from s3k.errors import UserError
 from s3k.inference.kalman import RANGES, FilterSettings
 from s3k.inference.track_filter import StreamFilter
 from s3k.model import UNetConfig

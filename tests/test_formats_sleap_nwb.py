@@ -10,12 +10,12 @@ import torch
 from helpers.real_recording import REAL, needs_real
 from helpers.synthetic_rig import LAYOUT, project, random_rotation, rig
 
+from s3k.base.errors import UserError
 from s3k.cli import main
 from s3k.data import Dataset, DatasetWriter, check_dataset
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.formats.dlc import read_dlc_csv
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 
 sio = pytest.importorskip("sleap_io")

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from test_importers import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
 
+from s3k.base.errors import UserError
 from s3k.cli import main, showing_library_messages
 from s3k.data import check_dataset
 from s3k.data.formats import anipose
 from s3k.data.formats.calibration_files import calibration_format, read_calibration
 from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d_pose
 from s3k.data.formats.safe_pickle import load_pickle
-from s3k.errors import UserError
 
 
 def _rig(recording):  # noqa: F811
@@ -505,8 +505,8 @@ def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_
     recording still finds its calibration, videos and labels; absolute paths stay absolute."""
     import shutil
 
+    from s3k.base.fileio import resolve_from
     from s3k.data import Dataset
-    from s3k.fileio import resolve_from
 
     root = recording["root"]
     monkeypatch.chdir(root.parent)

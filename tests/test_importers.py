@@ -8,12 +8,12 @@ import pytest
 import torch
 from helpers.real_recording import REAL, needs_real
 
+from s3k.base.errors import UserError
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
 from s3k.data import recording as rec
 from s3k.data.formats import anipose, dlc, labels2d, sleap
 from s3k.data.import_labels import LABEL_FORMATS, SleapFiles
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 
 # ------------------------------------------------------------------------------------------------------------

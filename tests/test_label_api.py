@@ -617,8 +617,8 @@ def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
 
 
 def test_label_up_option_takes_a_direction_or_none():
+    from s3k.base.errors import UserError
     from s3k.cli.label import _up
-    from s3k.errors import UserError
 
     assert _up("0,0,1") == (0.0, 0.0, 1.0) and _up(" 0, -1 ,0") == (0.0, -1.0, 0.0) and _up("None") is None
     for bad in ("0,1", "a,b,c", "0,0,0", "0,0,nan"):

@@ -184,7 +184,7 @@ def test_public_url_is_reduced_to_its_origin(url, origin):
                                  "https://user@labels.example.org", "https://labels.example.org:99999",
                                  "http://[::1", "https://[::1]x"])
 def test_a_public_url_the_app_cannot_be_served_at_is_refused_in_one_line(url):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.label.server import public_origin
     with pytest.raises(UserError, match="--public-url") as info:
         public_origin(url)

@@ -102,7 +102,7 @@ def test_propagate_overwrite_then_undo_restores_labels_and_splits(truth, capsys)
 
 
 def test_propagation_undo_refuses_when_a_frame_was_edited_since(truth):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.label.propagate import propagate_labels, undo_propagation
 
     store = LabelStore.open(truth.path)
@@ -144,7 +144,7 @@ def test_app_undo_steps_back_through_the_history_and_test_frames_are_locked(trut
 
 def test_redo_reverts_undos_in_turn_and_a_new_edit_ends_them(truth):
     """Ctrl+Shift+Z / Ctrl+Y: undos stack up and each redo takes the latest off; an edit empties the stack."""
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
 
     client = TestClient(create_app(truth.path))
 

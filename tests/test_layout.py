@@ -140,10 +140,8 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["inference", "train"],
     ["detector"],
     ["readout", "model", "networks", "losses", "augment", "presets"],
-    ["data", "geometry", "heatmaps", "errors", "fileio", "outputs", "ranges", "choices", "messages", "draw",
-     "calibration", "recalibration", "rigcal", "config", "config_fields", "config_files", "budget", "memory",
-     "run_folder",
-     "metrics", "label_reference"],
+    ["data", "geometry", "heatmaps", "base", "rigcal", "config", "config_fields", "config_files", "budget",
+     "memory", "run_folder"],
 ]
 
 
@@ -250,7 +248,7 @@ LOGGERS_CONFIGURED = {"s3k/cli/__init__.py", "s3k/train/run_setup.py"}  # they s
 
 def test_the_library_logs_and_never_prints():
     """Outside s3k/cli/ no module calls or passes ``print`` (the library logs to
-    ``logging.getLogger(__name__)``; the command line shows the records, s3k.messages), and a logger is
+    ``logging.getLogger(__name__)``; the command line shows the records, s3k.base.messages), and a logger is
     named by its module everywhere but where logging is configured."""
     printing, named = [], []
     for path in sorted(PACKAGE.rglob("*.py")):

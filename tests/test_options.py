@@ -78,8 +78,8 @@ def test_bad_values_are_refused_in_one_line(argv, option, capsys, tmp_path, monk
 
 
 def test_the_configuration_checks_its_fields_with_the_same_ranges():
+    from s3k.base.errors import UserError
     from s3k.config import TrainConfig
-    from s3k.errors import UserError
 
     for field, value in (("lr", float("inf")), ("rotation_deg", float("nan")), ("steps", 0), ("seed", -1),
                          ("scale", 1.0)):

@@ -1,5 +1,5 @@
-"""Every command's output goes through one check (``s3k.outputs``): a dataset's files, a run's own files and
-the call's own inputs are never written over, with or without --overwrite; an existing file needs it."""
+"""Every command's output goes through one check (``s3k.base.outputs``): a dataset's files, a run's own files
+and the call's own inputs are never written over, with or without --overwrite; an existing file needs it."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from helpers.tiny_detector import save_run
 
 from s3k import cli
+from s3k.base.outputs import RUN_NAMES, check_output, check_output_folder
 from s3k.detector import DetectorMeta
 from s3k.model import UNetConfig
-from s3k.outputs import RUN_NAMES, check_output, check_output_folder
 
 
 @pytest.fixture

@@ -97,7 +97,7 @@ def test_test_sets_outside_the_rig_and_the_table(tmp_path):
 
 
 def test_an_unknown_rig_is_a_one_line_error():
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.sim.generate import SimulateConfig
 
     with pytest.raises(UserError, match=r"rig \(--rig\): unknown camera rig 'side'"):
@@ -113,7 +113,7 @@ def test_an_unknown_rig_is_a_one_line_error():
     ("distance", (1.2, float("nan")), r"distance \(--distance\): expected two numbers"),
 ])
 def test_a_bad_camera_range_is_a_one_line_error(option, value, message):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.sim.generate import SimulateConfig
 
     with pytest.raises(UserError, match=message) as e:

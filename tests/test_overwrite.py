@@ -15,7 +15,7 @@ import pytest
 from test_importers import _import, recording  # noqa: F401 - the fixture
 
 from s3k import cli
-from s3k.outputs import UNFINISHED_MARKER, check_replaceable
+from s3k.base.outputs import UNFINISHED_MARKER, check_replaceable
 
 
 def _dead_pid() -> int:
@@ -117,8 +117,8 @@ def test_a_killed_simulation_leaves_its_out_alone_and_the_rerun_works(tmp_path):
 
 
 def test_the_dataset_writer_refuses_to_delete_a_foreign_folder(tmp_path):
+    from s3k.base.errors import UserError
     from s3k.data import DatasetWriter
-    from s3k.errors import UserError
 
     before = _thesis(tmp_path / "mine")
     with pytest.raises(UserError, match="not a dataset"):

@@ -159,8 +159,8 @@ def test_demo_never_writes_into_a_folder_of_other_files(user, capsys, monkeypatc
 
 
 def test_an_earlier_demo_folder_is_continued(tmp_path):
+    from s3k.base.outputs import check_folder
     from s3k.experiments.demo import DEMO_NAMES, is_demo_folder
-    from s3k.outputs import check_folder
 
     folder = tmp_path / "s3k-demo"
     (folder / "pool").mkdir(parents=True)
@@ -295,9 +295,9 @@ def test_experiment_refuses_a_size_no_run_can_fit_before_the_sweep(tmp_path, cap
 
 
 def test_the_dataset_names_are_those_the_datasets_hold():
+    from s3k.base.outputs import DATASET_NAMES, UNFINISHED_MARKER
     from s3k.data import sessions, tables
     from s3k.label import store
-    from s3k.outputs import DATASET_NAMES, UNFINISHED_MARKER
 
     assert {tables.METADATA_FILE, tables.FRAMES_FILE, tables.STATIC_CALIBRATION_FILE,
             tables.PER_FRAME_CALIBRATION_FILE, tables.LABELS_FILE, tables.POINTS3D_FILE, tables.CACHE_DIR,
@@ -306,8 +306,8 @@ def test_the_dataset_names_are_those_the_datasets_hold():
 
 
 def test_the_run_neighbours_are_those_s3k_keeps_in_a_run_folder():
+    from s3k.base.outputs import RUN_NEIGHBOURS
     from s3k.experiments import grid, runner
-    from s3k.outputs import RUN_NEIGHBOURS
     from s3k.run_folder import RunFolder
 
     names = {runner.LOCK_FILE, grid.RESULT_FILE, RunFolder.CPU, RunFolder.OPTIONS}
@@ -348,8 +348,8 @@ def test_experiment_workspace_and_agent_runs_are_never_inside_a_dataset(dataset,
 
 
 def test_an_earlier_report_is_written_again_and_a_folder_of_metrics_not(tmp_path, user):
+    from s3k.base.outputs import check_folder
     from s3k.cli.evaluate import _earlier_report
-    from s3k.outputs import check_folder
 
     report = tmp_path / "rep"
     report.mkdir()

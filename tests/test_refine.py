@@ -3,9 +3,9 @@ import pytest
 import torch
 from helpers.synthetic_rig import make_dataset
 
+from s3k.base.errors import UserError
 from s3k.data import Dataset
 from s3k.data.crops import object_centres, write_crop_dataset
-from s3k.errors import UserError
 from s3k.geometry import project, workspace_centre
 
 

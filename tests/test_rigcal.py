@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from s3k.base.errors import UserError
 from s3k.cli import main as cli_main
-from s3k.errors import UserError
 
 pytest.importorskip("mujoco")
 pytest.importorskip("scipy")

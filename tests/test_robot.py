@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 from s3k.sim.generate import SimulateConfig, frame_plan, frame_rng
 from s3k.sim.plush import NUM_ARRANGEMENTS, TRAIN_ARRANGEMENTS, PlushScene
 from s3k.sim.scene import FrameSpec

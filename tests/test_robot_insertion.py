@@ -13,7 +13,7 @@ pytest.importorskip("stable_baselines3")
 
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
-from s3k.errors import UserError  # noqa: E402
+from s3k.base.errors import UserError  # noqa: E402
 from s3k.robot.insertion_env import (  # noqa: E402
     SUCCESS_DISTANCE,
     InsertionEnv,

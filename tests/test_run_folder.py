@@ -6,8 +6,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from s3k.base.outputs import RUN_NAMES
 from s3k.config import TrainConfig
-from s3k.outputs import RUN_NAMES
 from s3k.run_folder import RunFolder
 
 PACKAGE = Path(__file__).resolve().parents[1] / "s3k"

@@ -12,10 +12,10 @@ from helpers.synthetic_rig import CAMERAS, KEYPOINTS, make_dataset
 from helpers.tiny_detector import save_run
 
 from s3k import cli
+from s3k.base.errors import UserError
 from s3k.data import Dataset
 from s3k.detector import DetectorMeta, load_network
 from s3k.detector.geometry_record import dataset_geometry, run_geometry
-from s3k.errors import UserError
 from s3k.model import UNetConfig
 
 CROPPED = [16.0, 8.0, 48.0, 40.0]  # a 32x32 box of a 64x48 frame, shown at 32x32

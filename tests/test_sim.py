@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 from s3k.sim import textures
 from s3k.sim.camera import look_at_xmat, mujoco_to_opencv, project_points
 from s3k.sim.generate import (
@@ -235,8 +235,8 @@ def test_worker_processes_give_the_same_frames():
 def test_scene_pixel_size_follows_the_image_size_and_the_rendered_rigs():
     import torch
 
+    from s3k.base.metrics import pixel_sizes_mm
     from s3k.geometry import Cameras
-    from s3k.metrics import pixel_sizes_mm
 
     at96 = scene_mm_per_px("box", 96, frames=6)
     assert scene_mm_per_px("box", 192, frames=6) == pytest.approx(at96 / 2, rel=1e-9)

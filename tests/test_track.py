@@ -745,7 +745,7 @@ def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypa
 
 def test_track_config_validate_names_the_option_of_a_value_out_of_range_or_choice():
     """TrackConfig.validate: one line naming the option, for a range and for a choice set directly."""
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
     from s3k.inference.track_config import FilteringConfig, TrackConfig
 
     with pytest.raises(UserError, match="--filter-gate"):

@@ -14,12 +14,12 @@ import torch
 from helpers.synthetic_rig import KEYPOINTS, make_dataset
 
 import s3k.train.loop as loop_module
+from s3k.base.errors import UserError
 from s3k.cli import main as cli_main
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, config_from_dict, leaf_fields
 from s3k.data.frames import FrameStore, open_dataset
 from s3k.detector import load_network
-from s3k.errors import UserError
 from s3k.model import UNet, UNetConfig
 from s3k.train import draw_batch, train
 

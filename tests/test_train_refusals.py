@@ -14,9 +14,9 @@ import torch
 from helpers.files import contents
 from helpers.synthetic_rig import make_dataset
 
+from s3k.base.errors import UserError
 from s3k.cli import main as cli_main
 from s3k.detector import load_network
-from s3k.errors import UserError
 from s3k.train import read_checkpoint_step
 
 TINY = ["--steps", "2", "--batch_labelled", "2", "--batch_unlabelled", "2", "--channels", "8,16",

@@ -16,6 +16,7 @@ from test_track import KEYPOINTS as TRACK_KEYPOINTS
 from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
 
 from s3k import cli
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
@@ -32,7 +33,6 @@ from s3k.detector import (
     read_two_pass,
 )
 from s3k.detector.geometry_record import dataset_identity
-from s3k.errors import UserError
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_maps, metric_crop_boxes
 from s3k.heatmaps import gaussian_targets, heatmap_size
@@ -102,7 +102,7 @@ def test_crop_rule_from_labels_covers_every_keypoint_with_the_margin(tmp_path):
 
 
 def test_crop_rule_needs_triangulated_labels(tmp_path):
-    from s3k.errors import UserError
+    from s3k.base.errors import UserError
 
     ds = Dataset.open(make_dataset(tmp_path / "d", size=32, labelled=3, label_cameras=1), cache="none")
     with pytest.raises(UserError, match="--crop-extent"):

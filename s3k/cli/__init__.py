@@ -9,7 +9,7 @@ Options are spelled with dashes (``--rotation-deg``, booleans ``--flag/--no-flag
 name (``--rotation_deg``) is a hidden alias (:func:`s3k.cli.config_options.add_config_arguments`). Every
 command's ``--help`` states the options' defaults and ends with examples (:func:`examples`).
 
-Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.errors.UserError`, a
+Every command runs under one error handler (:func:`main`): a user error (:class:`s3k.base.errors.UserError`, a
 missing or unreadable file, a corrupt archive) prints ``s3k COMMAND: error: ...`` in one line and exits with
 status 1; ``--debug`` or ``S3K_DEBUG=1`` shows the traceback instead.
 
@@ -30,7 +30,7 @@ import sys
 from typing import Any
 
 from s3k import __version__
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 # name -> (module in s3k.cli, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -129,7 +129,7 @@ def command_parser(name: str, module: Any = None) -> _Parser:
 def describe_error(exc: BaseException) -> str | None:
     """The one-line message for an error a user can fix, or None for a bug (which keeps its traceback).
 
-    User errors are :class:`s3k.errors.UserError` (and the data layer's ``DatasetError``, a subclass) and
+    User errors are :class:`s3k.base.errors.UserError` (and the data layer's ``DatasetError``, a subclass) and
     the operating system's refusals (missing file, permission, full disk), which are reported with the path
     they name.
     """
@@ -146,7 +146,7 @@ def describe_error(exc: BaseException) -> str | None:
 
 
 class _Messages(logging.Handler):
-    """The library's log records as a command's output (:mod:`s3k.messages`): INFO and below on stdout as
+    """The library's log records as a command's output (:mod:`s3k.base.messages`): INFO and below on stdout as
     written, NOTE on stderr as written, WARNING and above on stderr prefixed ``warning: ``. The streams are
     looked up at each record, so a redirected ``sys.stdout`` (a test's capture) receives them."""
 

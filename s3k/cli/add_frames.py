@@ -6,10 +6,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from s3k.base.errors import UserError
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.data.tracks_csv import read_source
-from s3k.errors import UserError
 from s3k.inference.track_filter import doubt_path, read_doubt
 from s3k.label.queue import queue_frames
 

@@ -8,13 +8,13 @@ import time
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.data import imageseq
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.formats.sleap import read_sleap_analysis
-from s3k.errors import UserError
-from s3k.outputs import check_output
 from s3k.rigcal.boards import Faces, board_from_fields, read_board_toml
 from s3k.rigcal.figure import draw_calibration
 from s3k.rigcal.report import calibration_report, report_path

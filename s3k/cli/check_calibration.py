@@ -1,6 +1,6 @@
 """``s3k check-calibration DATASET``: per-camera reprojection residuals from the labels, the cameras
-inconsistent with the others (:mod:`s3k.calibration`), and their recalibration from ChArUco frames
-(:mod:`s3k.recalibration`)."""
+inconsistent with the others (:mod:`s3k.rigcal.consistency`), and their recalibration from ChArUco frames
+(:mod:`s3k.rigcal.recalibration`)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,15 @@ import logging
 
 import numpy as np
 
-from s3k.calibration import CalibrationCheck, check_calibration, reprojection_residuals
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
 from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.validate import frame_offset_lines
-from s3k.errors import UserError
-from s3k.outputs import check_output
-from s3k.recalibration import recalibrate_dataset
+from s3k.rigcal.consistency import CalibrationCheck, check_calibration, reprojection_residuals
+from s3k.rigcal.recalibration import recalibrate_dataset
 
 log = logging.getLogger(__name__)
 

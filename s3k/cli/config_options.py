@@ -11,9 +11,9 @@ import argparse
 import typing
 from typing import Any
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig, config_from_dict, field_default, flat_values, leaf_fields
 from s3k.config_files import base_type, coerce, read_config_file
-from s3k.errors import UserError
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig, base: Any = None,

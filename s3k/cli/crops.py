@@ -7,14 +7,14 @@ import argparse
 import json
 import math
 
+from s3k.base.fileio import atomic_write_json
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import add_other_rig_option, number
 from s3k.data import Dataset
 from s3k.detector import Detector
-from s3k.fileio import atomic_write_json
 from s3k.inference.auto_crop import CropOptions, dataset_crop_boxes
 from s3k.inference.session import RigSession
-from s3k.outputs import check_output
 
 DEFAULTS = CropOptions()
 

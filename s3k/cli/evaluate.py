@@ -7,13 +7,13 @@ import argparse
 import json
 import sys
 
+from s3k.base.label_reference import format_label_reference
+from s3k.base.metrics import format_table
+from s3k.base.outputs import check_folder, claim_folder
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run, format_confidence
-from s3k.label_reference import format_label_reference
-from s3k.metrics import format_table
-from s3k.outputs import check_folder, claim_folder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -6,9 +6,10 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_folder
 from s3k.cli import examples
 from s3k.cli.options import number
-from s3k.errors import UserError
 from s3k.experiments import (
     DESCRIPTIONS,
     EXPERIMENTS,
@@ -25,7 +26,6 @@ from s3k.experiments import (
     summarize,
     verdict,
 )
-from s3k.outputs import check_folder
 
 
 def _int_list(text: str) -> list[int]:

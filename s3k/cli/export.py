@@ -9,9 +9,10 @@ import sys
 import zipfile
 from pathlib import Path
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_companion, check_output, staging_folder
 from s3k.cli import examples
 from s3k.cli.options import number
-from s3k.errors import UserError
 from s3k.inference.export import (
     DEFAULT_TOLERANCE,
     EXPORTED_TWO_PASS,
@@ -20,7 +21,6 @@ from s3k.inference.export import (
     export_detector,
     written_files,
 )
-from s3k.outputs import check_companion, check_output, staging_folder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

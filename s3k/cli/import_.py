@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
 from s3k.cli import examples
 from s3k.cli.options import (
     add_frame_offsets_option,
@@ -22,7 +23,6 @@ from s3k.data import import_labels as fmt
 from s3k.data.add_session import import_session, manifest_sessions, merge_session
 from s3k.data.formats.sleap import sleap_tracks
 from s3k.data.recording import ImageOptions, SplitOptions, import_recording
-from s3k.errors import UserError
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

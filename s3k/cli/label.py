@@ -10,9 +10,9 @@ import argparse
 import math
 from pathlib import Path
 
+from s3k.base.errors import UserError
 from s3k.cli import examples
 from s3k.cli.options import number
-from s3k.errors import UserError
 from s3k.label.propagate import DEFAULT_MAX_CHANGED, describe, propagate_labels, undo_propagation
 from s3k.label.suggest import UP
 

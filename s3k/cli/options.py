@@ -4,7 +4,7 @@
 :func:`number` and :func:`name` are ``type=`` functions of ``argparse``: a value out of range is refused when
 the command line is parsed, before any work, as ``s3k CMD: error: argument --opt: must be > 0, got '0'``.
 Every numeric option of every command is declared with one (``tests/test_options.py`` checks it). The others
-raise :class:`s3k.errors.UserError` naming the option and the value.
+raise :class:`s3k.base.errors.UserError` naming the option and the value.
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from s3k.choices import FIT_MODES
+from s3k.base.choices import FIT_MODES
+from s3k.base.errors import UserError
+from s3k.base.ranges import Range
 from s3k.data.rig import check_camera_name
-from s3k.errors import UserError
 from s3k.inference.session import RigOptions
-from s3k.ranges import Range
 
 
 def number(kind: type = float, *, ge: float | None = None, gt: float | None = None, le: float | None = None,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import add_other_rig_option, number
 from s3k.data import Dataset
@@ -12,7 +13,6 @@ from s3k.data.tracks_csv import write_source
 from s3k.detector import Detector
 from s3k.inference.predict import predict_dataset
 from s3k.inference.session import RigSession
-from s3k.outputs import check_output
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -17,12 +17,12 @@ import json
 import sys
 from pathlib import Path
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
+from s3k.base.outputs import check_output, check_output_folder, check_replaceable
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.detector import training_dataset
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
-from s3k.outputs import check_output, check_output_folder, check_replaceable
 from s3k.robot.detect import RunDetector
 from s3k.robot.results import write_summary
 

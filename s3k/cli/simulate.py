@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import number
-from s3k.outputs import check_output
 from s3k.sim.generate import MAX_SIZE
 from s3k.sim.rigs import RIGS
 from s3k.sim.scene import NUM_TRAIN_INSTANCES

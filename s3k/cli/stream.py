@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from s3k.base.messages import NOTE, note
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import add_rig_options, camera_pairs, number, rig_options
@@ -14,8 +16,6 @@ from s3k.detector import Detector
 from s3k.inference.session import RigSession
 from s3k.inference.stream import open_sources, pace_line, rerun_logger, stream_session
 from s3k.inference.track_config import TrackConfig
-from s3k.messages import NOTE, note
-from s3k.outputs import check_output
 
 STREAM = TrackConfig.from_flat(filter="none")
 """The settings ``s3k stream`` starts from: live points are not filtered unless asked."""

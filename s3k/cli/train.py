@@ -7,13 +7,13 @@ import argparse
 import json
 import sys
 
+from s3k.base.errors import UserError
+from s3k.base.messages import note
+from s3k.base.outputs import check_output_folder
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, leaf_fields, resumable_fields
 from s3k.config_files import read_config_file
-from s3k.errors import UserError
-from s3k.messages import note
-from s3k.outputs import check_output_folder
 from s3k.presets import PRESETS, preset
 from s3k.run_folder import RunFolder
 from s3k.train import train

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import argparse
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_output
 from s3k.cli import examples
 from s3k.cli.options import camera_pairs, number
-from s3k.errors import UserError
 from s3k.inference.rerun_log import recording_summary, rerun_module
 from s3k.inference.view import ViewOptions, target_kind, view_dataset, view_run, view_tracks
-from s3k.outputs import check_output
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

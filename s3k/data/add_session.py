@@ -5,7 +5,7 @@ import_recording`), then merged: its frame ids continue after the dataset's, its
 its labels and 3D points follow their frames, its images take the dataset's names, its rig becomes the
 session's (``calibration/<session>.json`` when the rigs differ) and its metadata goes to ``s3k.json``'s
 ``sessions``. The merged dataset is written beside ``DATASET``, checked by opening it, and renamed over it
-(:func:`s3k.outputs.replace_folder`): a refused or failed merge leaves ``DATASET`` as it was.
+(:func:`s3k.base.outputs.replace_folder`): a refused or failed merge leaves ``DATASET`` as it was.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import replace_folder
 from s3k.data.dataset import Dataset
 from s3k.data.formats.pixels import Convention
 from s3k.data.import_labels import LabelFormat
@@ -47,9 +49,7 @@ from s3k.data.tables import (
     STATIC_CALIBRATION_FILE,
 )
 from s3k.data.writer import Calibration, calibration_rows, json_text, rig_json
-from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.outputs import replace_folder
 
 if sys.version_info >= (3, 11):
     import tomllib

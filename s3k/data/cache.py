@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.fileio import file_lock
 from s3k.data.problems import DatasetWarning
 from s3k.data.tables import CACHE_DIR, FORMAT_VERSION
-from s3k.fileio import file_lock
 
 CACHE_MODES = ("disk", "memory", "none")
 

@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.dataset import Dataset
 from s3k.data.protocol import DatasetLike
 from s3k.data.writer import DatasetWriter
-from s3k.errors import UserError
 from s3k.geometry import Cameras, workspace_centre
 from s3k.geometry.warp import crop_images, crop_maps, metric_crop_boxes, region_around
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import h5py
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 __all__ = ["check_self_contained", "open_hdf5"]
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data.problems import Problem
-from s3k.errors import UserError
 
 # OpenCV's decoders print their own WARN/ERROR lines (and libpng's) for a corrupt file; s3k reports each
 # unreadable image once, naming the file, so the decoder's lines would only repeat it without the name.

@@ -14,7 +14,7 @@ import glob
 import re
 from pathlib import Path
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 _PRINTF = re.compile(r"%0?(\d*)d")

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 log = logging.getLogger(__name__)
 

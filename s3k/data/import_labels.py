@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Protocol
 
+from s3k.base.errors import UserError
 from s3k.data.formats.deepfly3d import JOINTS, read_deepfly3d_pose
 from s3k.data.formats.dlc import find_lightning_pose_csvs, read_dlc_csv
 from s3k.data.formats.labels2d import LabelTable
@@ -34,7 +35,6 @@ from s3k.data.formats.pose_json import read_mmpose_json, read_openpose_folder
 from s3k.data.formats.sleap import default_track, read_sleap_file
 from s3k.data.formats.slp import read_slp
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 
 PathLike = str | Path
 

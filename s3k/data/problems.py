@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_replaceable, replace_folder
 from s3k.data import video
 from s3k.data.formats import pixels
 from s3k.data.formats.calibration_files import read_calibration
@@ -46,10 +48,8 @@ from s3k.data.rig import Rig, check_camera_name
 from s3k.data.splits import TestFrames, held_out_split, session_split
 from s3k.data.tables import NAME_RE
 from s3k.data.writer import DatasetWriter
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix, resize_crop, transform_points
-from s3k.outputs import check_replaceable, replace_folder
 
 log = logging.getLogger(__name__)
 
@@ -317,8 +317,8 @@ def _skeleton(tables: Mapping[str, LabelTable], keypoints: list[str], skeleton: 
 
 def _recorded(path: str | Path, out: str | Path) -> str:
     """How ``s3k.json`` records a source file: absolute when given absolute, else relative to the dataset
-    folder ``out`` (read back with :func:`s3k.fileio.resolve_from`), so that a dataset moved together with
-    its recording keeps finding it."""
+    folder ``out`` (read back with :func:`s3k.base.fileio.resolve_from`), so that a dataset moved together
+    with its recording keeps finding it."""
     path = Path(path)
     if path.is_absolute():
         return str(path)

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.cameras import camera_defects
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import resize_crop
 
@@ -60,7 +60,7 @@ class Rig:
         self.size = np.asarray(self.size, dtype=np.int64).reshape(len(self.names), 2)
 
     def checked(self, source: str | object) -> Rig:
-        """This rig, after refusing (:class:`s3k.errors.UserError` naming ``source``, the camera and the
+        """This rig, after refusing (:class:`s3k.base.errors.UserError` naming ``source``, the camera and the
         field) a camera name that is not a file name (:func:`check_camera_name`), a value that is not
         finite, a singular ``K`` or an ``R`` that is not a rotation (a Rodrigues vector of 1e300, a scaled
         matrix)."""

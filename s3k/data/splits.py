@@ -15,8 +15,8 @@ from typing import Literal
 
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data.import_choices import DEFAULT_LABELLED
-from s3k.errors import UserError
 
 log = logging.getLogger(__name__)
 

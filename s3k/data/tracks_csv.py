@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from s3k import outputs
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, atomic_write_json, open_text
+from s3k.base import outputs
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, atomic_write_json, open_text
 
 __all__ = ["array_rows", "check_output", "csv_header", "csv_rows", "read_csv", "read_source", "rows_points",
            "source_path", "write_csv", "write_source"]
@@ -76,7 +76,7 @@ def rows_points(rows: Sequence[Sequence[str]], num_keypoints: int) -> dict[int, 
 
 def check_output(path: str | Path, overwrite: bool, dataset: str | Path | None = None) -> Path:
     """Refuse an output file inside a dataset (``dataset`` or any other), a run's own file, a folder, or an
-    existing file without overwrite (:func:`s3k.outputs.check_output`).
+    existing file without overwrite (:func:`s3k.base.outputs.check_output`).
 
     Raises:
         UserError: naming the file (and ``--overwrite`` where it helps).

@@ -23,9 +23,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data import imageseq
 from s3k.data.images import decode_image
-from s3k.errors import UserError
 
 SEQUENCE_FPS = 30.0  # an image sequence records no frame rate; this one is used for overlay videos
 

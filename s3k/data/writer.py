@@ -18,6 +18,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import UNFINISHED_MARKER, foreign_dataset_file, made_by_s3k
 from s3k.data.cameras import camera_defects, camera_tuple
 from s3k.data.problems import Problems
 from s3k.data.sessions import SESSION_CALIBRATION_DIR, SESSION_COLUMN, session_calibration_file
@@ -39,8 +41,6 @@ from s3k.data.tables import (
     STATIC_CALIBRATION_FILE,
     check_names,
 )
-from s3k.errors import UserError
-from s3k.outputs import UNFINISHED_MARKER, foreign_dataset_file, made_by_s3k
 
 Calibration = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # K (C, 3, 3), dist (C, 5), R, t (C, 3)
 

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
 from s3k.geometry import Cameras, workspace_centre
 from s3k.run_folder import RunFolder
 

@@ -36,13 +36,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from s3k.choices import Arithmetic, Device, Precision
+from s3k.base.choices import Arithmetic, Device, Precision
+from s3k.base.errors import UserError
 from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.frozen import FrozenNetwork
 from s3k.detector.meta import DetectorMeta
 from s3k.detector.run_folder import load_network, note_uncalibrated
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.geometry.warp import (
     crop_images,

@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from s3k.choices import FIT_MODES, Fit
+from s3k.base.choices import FIT_MODES, Fit
+from s3k.base.errors import UserError
 from s3k.data import Dataset
 from s3k.data.protocol import DatasetLike
-from s3k.errors import UserError
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.run_folder import RunFolder
 

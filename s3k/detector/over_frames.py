@@ -1,6 +1,6 @@
 """A detector over a dataset's frames: :func:`detect_store` (every frame of a
 :class:`s3k.data.frames.FrameStore` through a :class:`s3k.detector.Detector`), :func:`evaluate_store` (the
-metrics of :mod:`s3k.metrics` on them) and :func:`split_frames`; what ``s3k predict``, ``s3k evaluate``,
+metrics of :mod:`s3k.base.metrics` on them) and :func:`split_frames`; what ``s3k predict``, ``s3k evaluate``,
 validation in training and a two-pass training's coarse estimates read frames with."""
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
+from s3k.base.metrics import compute_metrics, ground_truth_2d, keypoint_order, mm_per_unit, pixel_sizes_mm
 from s3k.data.frames import FrameBatch, FrameStore
 from s3k.data.protocol import DatasetLike
 from s3k.data.tables import SPLITS
 from s3k.detector.detector import Detection, Detector, TwoPassDetector
-from s3k.label_reference import label_reference_metrics, leave_one_view_out, triangulate_labels
-from s3k.metrics import compute_metrics, ground_truth_2d, keypoint_order, mm_per_unit, pixel_sizes_mm
 
 __all__ = ["detect_store", "evaluate_store", "scored_views", "split_frames"]
 
@@ -80,7 +80,7 @@ def scored_views(arrays: dict[str, Any], within_px: float) -> tuple[np.ndarray, 
 
 def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, units: str = "m",
                    keep: int = 0, label_reference: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Detect every frame of ``store`` and compute :func:`s3k.metrics.compute_metrics`.
+    """Detect every frame of ``store`` and compute :func:`s3k.base.metrics.compute_metrics`.
 
     Args:
         detector: the detector.
@@ -90,7 +90,7 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
         keep: keep the network inputs and heatmaps of the first ``keep`` frames (for overlays).
         label_reference: without 3D truth, add ``labels_3d``: the 3D distance to the triangulated labels and
             the labels' leave-one-view-out error, per keypoint, with bootstrap intervals
-            (:func:`s3k.label_reference.label_reference_metrics`).
+            (:func:`s3k.base.label_reference.label_reference_metrics`).
 
     The ground truth's keypoints are matched to the detector's by name (:func:`keypoint_order`).
 

@@ -1,10 +1,10 @@
 """A run's model files and :func:`load_network` to use a trained model (the run folder's files are named by
 :class:`s3k.run_folder.RunFolder`).
 
-Every file is written atomically (``s3k.fileio``), so a run killed at any moment leaves the previous complete
-checkpoint in place. The ``.pt`` files hold only tensors and plain containers (the configuration and meta as
-dicts) and are read with ``torch.load(..., weights_only=True)`` (:func:`load_torch_file`), so loading a run
-never runs code from the file.
+Every file is written atomically (``s3k.base.fileio``), so a run killed at any moment leaves the previous
+complete checkpoint in place. The ``.pt`` files hold only tensors and plain containers (the configuration and
+meta as dicts) and are read with ``torch.load(..., weights_only=True)`` (:func:`load_torch_file`), so loading
+a run never runs code from the file.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from typing import Any
 
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, atomic_write_json
+from s3k.base.messages import NOTE
 from s3k.detector.meta import DetectorMeta
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, atomic_write_json
-from s3k.messages import NOTE
 from s3k.model import UNet, UNetConfig
 from s3k.networks import build_network
 from s3k.run_folder import RunFolder

@@ -18,11 +18,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from s3k.base.messages import NOTE
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.experiments.views import make_view, select_frames
 from s3k.inference.evaluate import evaluate_run
-from s3k.messages import NOTE
 from s3k.presets import preset
 from s3k.run_folder import RunFolder
 

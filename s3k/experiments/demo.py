@@ -35,15 +35,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from s3k.base.messages import say
+from s3k.base.metrics import mm_per_unit
+from s3k.base.outputs import check_folder, claim_folder, made_by_s3k, owns_run
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detector, evaluate_store
 from s3k.experiments.accuracy import labelled_view
 from s3k.experiments.demo_figure import demo_figure, frame_detections
 from s3k.inference.report import write_report
-from s3k.messages import say
-from s3k.metrics import mm_per_unit
-from s3k.outputs import check_folder, claim_folder, made_by_s3k, owns_run
 from s3k.presets import preset
 from s3k.run_folder import RunFolder
 

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.draw import keypoint_colours
 from s3k.detector import Detector
-from s3k.draw import keypoint_colours
 from s3k.geometry import project
 
 __all__ = ["MARKERS", "demo_figure", "frame_detections"]

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
-from s3k.errors import UserError
 
 #: The paper's image size (pixels) and training length (batches).
 PAPER_SIZE = 400

@@ -28,6 +28,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from s3k.base.fileio import atomic_write_json
+from s3k.base.messages import NOTE
 from s3k.experiments.accuracy import (
     MODELS,
     data_names,
@@ -40,8 +42,6 @@ from s3k.experiments.accuracy import (
     timed,
     train_command,
 )
-from s3k.fileio import atomic_write_json
-from s3k.messages import NOTE
 from s3k.presets import PRESETS
 from s3k.run_folder import RunFolder
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.metrics import ground_truth_2d, keypoint_order, mm_per_unit
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detector
@@ -26,7 +27,6 @@ from s3k.detector.over_frames import detect_store
 from s3k.geometry import project
 from s3k.geometry.triangulation import triangulate_labels
 from s3k.inference.evaluate import evaluate_run
-from s3k.metrics import ground_truth_2d, keypoint_order, mm_per_unit
 from s3k.sim.rigs import RIGS, describe_rig, rig_sampler
 from s3k.sim.scene import CameraSampler
 

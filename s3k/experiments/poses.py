@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.metrics import mm_per_unit
 from s3k.data import Dataset
 from s3k.data.tracks_csv import read_csv
 from s3k.experiments.views import select_frames
 from s3k.inference.predict import predict_dataset
-from s3k.metrics import mm_per_unit
 
 COLLAPSE_RATIO = 0.5
 POSES = ("normal up", "normal down", "on a side")  # the classes of pose_classes

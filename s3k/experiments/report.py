@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 
 import s3k
-from s3k.errors import UserError
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json, atomic_write_text
 from s3k.experiments.findings import (
     add_mm,
     aggregate,
@@ -41,7 +42,6 @@ from s3k.experiments.grid import (
     RESULT_FILE,
     SUMMARY_FILE,
 )
-from s3k.fileio import atomic_write_json, atomic_write_text
 
 #: What a summary says about the runs it summarizes (kept as they are when it is re-summarized).
 _RUN_FIELDS = ("runs", "scales", "image_sizes", "steps", "two_pass", "commands", "code_revisions",

@@ -19,10 +19,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json, file_lock
+from s3k.base.messages import say
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.detector import CHECKPOINT_FILE
-from s3k.errors import UserError
 from s3k.experiments.findings import fmt
 from s3k.experiments.grid import (
     DESCRIPTIONS,
@@ -34,9 +36,7 @@ from s3k.experiments.grid import (
 )
 from s3k.experiments.report import source_revision, summarize
 from s3k.experiments.views import drop_cache, ensure_pool, make_view, select_frames
-from s3k.fileio import atomic_write_json, file_lock
 from s3k.inference.evaluate import evaluate_run
-from s3k.messages import say
 from s3k.run_folder import RunFolder
 from s3k.train import read_checkpoint_step, train
 

@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import file_lock
+from s3k.base.messages import say
 from s3k.data import Dataset, DatasetWriter
-from s3k.errors import UserError
 from s3k.experiments.grid import LABEL_CHOICES, PoolSpec
-from s3k.fileio import file_lock
 from s3k.label.suggest import POSE_ORDERS
-from s3k.messages import say
 
 #: frames.csv columns that group frames for a stratified pick, in order of preference.
 GROUP_COLUMNS = ("segment", "instance")

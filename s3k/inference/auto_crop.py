@@ -27,13 +27,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.messages import NOTE
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detector
 from s3k.detector.geometry_record import dataset_geometry
-from s3k.errors import UserError
 from s3k.geometry.warp import crop_resize_matrix, transform_points
-from s3k.messages import NOTE
 
 __all__ = ["CameraBox", "CropBoxes", "CropOptions", "OutsideLabel", "dataset_crop_boxes", "detected_points",
            "find_boxes", "frame_pixels", "label_points", "pick_frames"]

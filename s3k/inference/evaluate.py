@@ -1,4 +1,4 @@
-"""``s3k evaluate``: a trained detector's metrics (:mod:`s3k.metrics`) on a dataset split.
+"""``s3k evaluate``: a trained detector's metrics (:mod:`s3k.base.metrics`) on a dataset split.
 
 The run's :class:`s3k.detector.Detector` (one pass or two) reads every frame at the dataset's own resolution
 with its cameras, as ``s3k predict`` and ``s3k track`` do. The 3D metrics compare its points with the
@@ -18,15 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from s3k.choices import Device
+from s3k.base.choices import Device
+from s3k.base.draw import edge_indices
+from s3k.base.errors import UserError
+from s3k.base.metrics import SUMMARY_METRICS, compute_metrics, keypoint_order, mm_per_unit
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.data.sessions import distance_summary, label_distances
 from s3k.detector import Detector, DetectorMeta, evaluate_store, scored_views
-from s3k.draw import edge_indices
-from s3k.errors import UserError
 from s3k.inference.report import write_report
-from s3k.metrics import SUMMARY_METRICS, compute_metrics, keypoint_order, mm_per_unit
 from s3k.readout import CALIBRATION_SIGMAS, reliability
 
 __all__ = ["confidence_report", "evaluate_run", "evaluate_store", "format_confidence", "per_session"]
@@ -58,7 +58,7 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
 
 def per_session(ds: Dataset, arrays: dict[str, Any], keypoints) -> tuple[dict, dict[str, dict[str, Any]]]:
     """How far the evaluated frames lie from the nearest labelled frame of their session (``{"median",
-    "min"}`` in frames), and per session the metrics of :func:`s3k.metrics.compute_metrics` (the summary
+    "min"}`` in frames), and per session the metrics of :func:`s3k.base.metrics.compute_metrics` (the summary
     ones), its frame count and the same distances."""
     every = ds.frames()
     far = label_distances(ds.frame_times(every), ds.session_of(every), ds.split_of(every) == "labelled")

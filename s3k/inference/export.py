@@ -31,6 +31,8 @@ import torch
 from torch import Tensor, nn
 
 from s3k import readout
+from s3k.base.errors import UserError
+from s3k.base.metrics import mm_per_unit
 from s3k.data import Dataset
 from s3k.detector import (
     CropRule,
@@ -42,10 +44,8 @@ from s3k.detector import (
     training_dataset,
 )
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
-from s3k.errors import UserError
 from s3k.heatmaps import confidence_weight
 from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
-from s3k.metrics import mm_per_unit
 
 log = logging.getLogger(__name__)
 

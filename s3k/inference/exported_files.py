@@ -8,7 +8,7 @@ import json
 import math
 from pathlib import Path
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 __all__ = ["EXPORTED_TWO_PASS", "FORMATS", "runtime_of", "two_pass_doc"]
 

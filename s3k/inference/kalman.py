@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from s3k.errors import UserError
-from s3k.ranges import Range
+from s3k.base.errors import UserError
+from s3k.base.ranges import Range
 
 __all__ = ["MODELS", "RANGES", "CausalFilter", "FilterSettings", "Smoothed", "fit_noise", "forward", "smooth"]
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from s3k.choices import Device
+from s3k.base.choices import Device
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import check_output, csv_rows, write_csv

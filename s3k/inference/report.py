@@ -10,8 +10,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from s3k.draw import draw_views
-from s3k.metrics import format_metric
+from s3k.base.draw import draw_views
+from s3k.base.metrics import format_metric
 
 __all__ = ["write_report"]
 

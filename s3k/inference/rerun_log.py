@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 import torch
 
-from s3k.draw import edge_indices, keypoint_colours
-from s3k.errors import UserError
+from s3k.base.draw import edge_indices, keypoint_colours
+from s3k.base.errors import UserError
 from s3k.geometry import project
 from s3k.geometry.warp import crop_resize_matrix
 

@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from s3k.calibration import identical_cameras
+from s3k.base.errors import UserError
+from s3k.base.metrics import mm_per_unit
 from s3k.data import Dataset
 from s3k.detector import DetectorMeta, training_dataset
 from s3k.detector.geometry_record import check_images, frame_calibration, recorded_geometry
-from s3k.errors import UserError
 from s3k.geometry import Cameras
-from s3k.metrics import mm_per_unit
+from s3k.rigcal.consistency import identical_cameras
 
 __all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration"]
 

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.choices import Device, Fit
+from s3k.base.choices import Device, Fit
+from s3k.base.errors import UserError
 from s3k.data import Dataset
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.detector import Detector
 from s3k.detector.geometry_record import Box, fit_box, input_boxes, recorded_geometry
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.inference.rig_check import calibration_notes, check_dataset_rig, check_rig
 
@@ -91,7 +91,7 @@ class RigSession:
               level: int = logging.INFO) -> RigSession:
         """Place ``detector`` on the cameras of ``sizes`` (``{camera: (W, H)}`` of their frames, in the order
         of the frames) calibrated by ``rig``; the notes are logged, warnings as warnings and the others at
-        ``level`` (:data:`s3k.messages.NOTE` where standard output is the command's data).
+        ``level`` (:data:`s3k.base.messages.NOTE` where standard output is the command's data).
 
         Raises:
             UserError: fewer than two cameras, one the run was not trained on (unless ``rig.other_rig``) or

@@ -34,15 +34,15 @@ from typing import IO, Any
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.messages import note
 from s3k.data import imageseq, video
 from s3k.data.video import prefetch
-from s3k.errors import UserError
 from s3k.inference.rerun_log import RerunLog, recording_summary
 from s3k.inference.session import RigSession
 from s3k.inference.track import limb_indices
 from s3k.inference.track_config import TrackConfig
 from s3k.inference.track_filter import StreamFilter, layout_shape_of
-from s3k.messages import note
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 log = logging.getLogger(__name__)
@@ -194,7 +194,7 @@ def stream(detector, sources: dict[str, Source], cams, boxes: np.ndarray | None 
         min_weight: as for :func:`s3k.readout.read_out`.
         max_frames: stop after this many frames (default: at the end of the shortest source).
         log: called with ``(frame, views, detection)`` after each frame (the Rerun logger).
-        say: where the notes on keeping up go (default: logged at ``s3k.messages.NOTE``).
+        say: where the notes on keeping up go (default: logged at ``s3k.base.messages.NOTE``).
         filter: the causal filter over time (:class:`s3k.inference.track_filter.StreamFilter`), or None: the
             lines hold its points, from this frame and the ones before it only.
     """

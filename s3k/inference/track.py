@@ -19,7 +19,7 @@ Pipeline, per frame (the same read-out as training, ``s3k predict`` and ``s3k ev
 raw points in ``<stem>.raw.csv`` when filtered, the frames ranked by doubt in ``<stem>.doubt.csv``, each
 CSV's JSON companion (its units, run, calibration, videos and filter) and, with ``overlay``, one MP4 per
 camera (``DIR/<camera>.mp4``) that shows, on the original frames, the reprojected 3D keypoints (filled
-discs) and the per-view detections (crosses), one colour per keypoint (:func:`s3k.draw.draw_overlay`).
+discs) and the per-view detections (crosses), one colour per keypoint (:func:`s3k.base.draw.draw_overlay`).
 """
 
 from __future__ import annotations
@@ -32,12 +32,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from s3k.base.draw import draw_overlay, edge_indices, keypoint_colours
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_folder, check_output, claim_folder
 from s3k.data import imageseq, video
 from s3k.data.rig import check_camera_name
 from s3k.data.tracks_csv import array_rows, write_csv, write_source
 from s3k.detector import Detector
-from s3k.draw import draw_overlay, edge_indices, keypoint_colours
-from s3k.errors import UserError
 from s3k.inference.kalman import Smoothed
 from s3k.inference.session import RigOptions, RigSession
 from s3k.inference.track_config import TrackConfig
@@ -50,7 +51,6 @@ from s3k.inference.track_filter import (
     raw_path,
     write_doubt,
 )
-from s3k.outputs import check_folder, check_output, claim_folder
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ def track(run: str | Path | Detector, videos: Mapping[str, str | Path], rig: Rig
 
 def _check_files(out: str | Path, overwrite: bool, config: TrackConfig, cameras: list[str],
                  inputs: dict[str, object]) -> None:
-    """Refuse, before any work, an output :meth:`Track.write` would refuse (:mod:`s3k.outputs`)."""
+    """Refuse, before any work, an output :meth:`Track.write` would refuse (:mod:`s3k.base.outputs`)."""
     overlays = {overlay_file(config.overlay, c).name for c in cameras} if config.overlay else set()
     for path in (out, raw_path(out), doubt_path(out)) if config.filtering_on else (out, doubt_path(out)):
         check_output(path, overwrite, inputs=inputs)

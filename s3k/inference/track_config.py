@@ -18,11 +18,11 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from s3k.base.errors import UserError
+from s3k.base.ranges import Range
 from s3k.config import config_from_dict, flat_values, leaf_fields
 from s3k.config_files import base_type
-from s3k.errors import UserError
 from s3k.inference.kalman import RANGES, FilterSettings
-from s3k.ranges import Range
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
 __all__ = ["TrackConfig"]
@@ -30,7 +30,7 @@ __all__ = ["TrackConfig"]
 
 def _s(default: Any, help: str, metavar: str | None = None, nargs: str | None = None,
        within: Range | None = None, **bounds: Any) -> Any:
-    """A field with a default, its documentation, for a number its :class:`s3k.ranges.Range` (as
+    """A field with a default, its documentation, for a number its :class:`s3k.base.ranges.Range` (as
     :mod:`s3k.config`'s fields carry them), and the option's ``metavar`` and ``nargs`` on the command
     line; ``within``: a range declared elsewhere (:data:`s3k.inference.kalman.RANGES`), in place of
     ``bounds``."""

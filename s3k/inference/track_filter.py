@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, open_text
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, open_text
 from s3k.inference.constraints import hold_limbs, hold_to_layout, limb_reference
 from s3k.inference.kalman import CausalFilter, FilterSettings, Smoothed, nanmedian, smooth
 from s3k.readout.rigid import layout_shape

@@ -27,6 +27,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import open_text
+from s3k.base.metrics import keypoint_order
 from s3k.data import Dataset, video
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.data.formats.skeleton import check_edges, read_skeleton
@@ -35,11 +38,8 @@ from s3k.data.tracks_csv import read_source
 from s3k.detector import Detector, DetectorMeta, detect_store, split_frames
 from s3k.detector.crop_rule import is_two_pass
 from s3k.detector.run_folder import read_run_config, training_dataset
-from s3k.errors import UserError
-from s3k.fileio import open_text
 from s3k.geometry import triangulate_labels
 from s3k.inference.rerun_log import RerunLog
-from s3k.metrics import keypoint_order
 from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)

@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.ranges import Range
 from s3k.data import Dataset
-from s3k.errors import UserError
 from s3k.label.solve import triangulate_labels
 from s3k.label.store import Edit, LabelStore
-from s3k.ranges import Range
 
 __all__ = ["APP_WORDS", "CHANGE_LEVEL", "CLI_WORDS", "DEFAULT_MAX_CHANGED", "PropagateResult",
            "changed_pixels", "describe", "propagate_labels", "undo_propagation"]

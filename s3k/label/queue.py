@@ -34,10 +34,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, file_lock, open_text
 from s3k.data import Dataset, video
 from s3k.detector.geometry_record import dataset_geometry
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, file_lock, open_text
 from s3k.geometry.warp import resize_crop
 from s3k.label.store import LOCK_FILE
 

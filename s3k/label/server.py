@@ -60,9 +60,11 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
+from s3k.base.errors import UserError
+from s3k.base.messages import say
+from s3k.base.metrics import mm_per_unit
 from s3k.data import Dataset
 from s3k.detector import Detector
-from s3k.errors import UserError
 from s3k.inference.session import RigSession
 from s3k.label.agreement import LabelAgreement
 from s3k.label.propagate import APP_WORDS, DEFAULT_MAX_CHANGED, propagate_labels, undo_propagation
@@ -71,8 +73,6 @@ from s3k.label.skeleton import edit_skeleton
 from s3k.label.solve import frame_geometry, triangulate_labels
 from s3k.label.store import Edit, LabelStore, StaleVersion
 from s3k.label.suggest import UP, Suggestions, Up
-from s3k.messages import say
-from s3k.metrics import mm_per_unit
 
 log = logging.getLogger(__name__)
 

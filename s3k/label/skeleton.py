@@ -1,9 +1,9 @@
 """The dataset's skeleton as the labelling app edits it: edges between keypoints, kept in ``s3k.json``.
 
 An edge is a pair of keypoint names, without direction (``[a, b]`` and ``[b, a]`` are the same edge). Each
-change rewrites ``s3k.json`` atomically (:func:`s3k.fileio.atomic_write_text`: a crash leaves the old file or
-the new one) under the dataset's label lock, from the file as it is on disk, so every other field of it is
-kept as it was.
+change rewrites ``s3k.json`` atomically (:func:`s3k.base.fileio.atomic_write_text`: a crash leaves the old
+file or the new one) under the dataset's label lock, from the file as it is on disk, so every other field of
+it is kept as it was.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_text, file_lock, read_text
 from s3k.data.tables import METADATA_FILE
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_text, file_lock, read_text
 from s3k.label.store import LOCK_FILE
 
 __all__ = ["edit_skeleton"]

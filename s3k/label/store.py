@@ -3,13 +3,13 @@
 :class:`LabelStore` holds the dataset's ``labels.csv`` as arrays (every row, occluded marks included) and
 applies edits to it. Each save
 
-1. takes the dataset's label lock (:func:`s3k.fileio.file_lock` on ``.labels.lock``), so that two processes
-   (the app and ``s3k label propagate``) never interleave,
+1. takes the dataset's label lock (:func:`s3k.base.fileio.file_lock` on ``.labels.lock``), so that two
+   processes (the app and ``s3k label propagate``) never interleave,
 2. reloads the table if another process changed it since it was last read,
 3. refuses an edit made against an older version of the frame (:class:`StaleVersion`, the app's HTTP 409):
    each frame has a version, the number of saves it has had, and every save says which version it edited,
-4. rewrites ``labels.csv`` atomically (:func:`s3k.fileio.atomic_path`: a process killed at any moment leaves
-   the old table or the new one), then appends the edit to the history log ``labels-history.jsonl`` and
+4. rewrites ``labels.csv`` atomically (:func:`s3k.base.fileio.atomic_path`: a process killed at any moment
+   leaves the old table or the new one), then appends the edit to the history log ``labels-history.jsonl`` and
    flushes it to disk, and only then returns, so an acknowledged edit is on disk.
 
 The history log is append-only JSON lines, one per save: time, labeller, frame, the version the save made,
@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, file_lock
 from s3k.data.problems import DatasetError, Problems
 from s3k.data.sources import IMAGE_SOURCES
 from s3k.data.tables import (
@@ -47,8 +49,6 @@ from s3k.data.tables import (
     read_labels,
     read_metadata,
 )
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, file_lock
 
 __all__ = ["HISTORY_FILE", "LOCK_FILE", "Edit", "LabelStore", "StaleVersion"]
 

@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import detect_store
-from s3k.errors import UserError
 from s3k.inference.session import RigSession
 
 __all__ = ["DOUBT_INVALID", "POSE_ORDERS", "UP", "Suggestions", "Up", "coverage_order", "pose_distances",

@@ -17,7 +17,7 @@ from typing import Any
 
 from torch import Tensor
 
-from s3k.choices import LAYOUT_FITS, LayoutFit
+from s3k.base.choices import LAYOUT_FITS, LayoutFit
 from s3k.readout.confidence import ConfidenceMap
 from s3k.readout.views import DEFAULT_MIN_WEIGHT
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import read_text
 from s3k.data import imageseq, video
 from s3k.data.formats.labels2d import frame_id_from_path
-from s3k.errors import UserError
-from s3k.fileio import read_text
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import torch
 
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
 from s3k.geometry import Cameras, triangulate_pixels
 from s3k.rigcal.board_sync import frame_offsets
 from s3k.rigcal.boards import Detections

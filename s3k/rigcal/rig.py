@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.formats.anipose import units_from_board
 from s3k.data.rig import Rig, check_camera_name
-from s3k.errors import UserError
 from s3k.geometry import Cameras, triangulate_pixels
 from s3k.rigcal.boards import Board, Detections, Faces, check_board_matches, detect_board
 from s3k.rigcal.bundle import Adjusted, bundle_adjust

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 def rodrigues(rvec: np.ndarray) -> np.ndarray:

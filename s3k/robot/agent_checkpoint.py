@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_bytes, atomic_write_json
 from s3k.detector import atomic_save, load_torch_file
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_bytes, atomic_write_json
 
 __all__ = ["BUFFER_FIELDS", "checkpoint_folder", "load_checkpoint", "save_checkpoint"]
 

@@ -23,9 +23,9 @@ import torch
 import torch as th
 import torch.nn.functional as F
 
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
-from s3k.messages import say
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
+from s3k.base.messages import say
 from s3k.robot.agent_checkpoint import checkpoint_folder, load_checkpoint, save_checkpoint
 from s3k.robot.detect import RunDetector
 from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action

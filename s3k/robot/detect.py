@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.detector import Detector, TwoPassDetector
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 
 

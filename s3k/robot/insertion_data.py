@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from s3k.base.errors import UserError
 from s3k.data import DatasetWriter
-from s3k.errors import UserError
 from s3k.robot.insertion_env import KEYPOINTS, InsertionEnv, scripted_action
 from s3k.sim.camera import project_points
 from s3k.sim.scene import in_image

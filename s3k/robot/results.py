@@ -19,8 +19,8 @@ import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
 
 
 def _read_json(path: str | Path, what: str) -> dict:

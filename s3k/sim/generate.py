@@ -25,12 +25,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from s3k.base.errors import UserError
+from s3k.base.metrics import pixel_sizes_mm
+from s3k.base.outputs import check_replaceable, replace_folder
 from s3k.data import DatasetWriter
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 from s3k.memory import available_memory
-from s3k.metrics import pixel_sizes_mm
-from s3k.outputs import check_replaceable, replace_folder
 from s3k.sim.rigs import (
     DISTANCE_LIMITS,
     ELEVATION_LIMITS,
@@ -217,7 +217,7 @@ def scene_mm_per_px(scene: str, size: int, frames: int = 200, seed: int = 0, obj
 
     The camera rigs are those of the ``frames`` test frames of ``s3k simulate SCENE --size SIZE --test FRAMES
     --seed SEED`` (no labelled or unlabelled frames): each frame's state is drawn as rendering draws it, so
-    the same rigs, but nothing is rendered. A rig's pixel size is :func:`s3k.metrics.pixel_sizes_mm`
+    the same rigs, but nothing is rendered. A rig's pixel size is :func:`s3k.base.metrics.pixel_sizes_mm`
     (the point nearest to the cameras' optical axes, its depth over the focal length), per camera; this is
     their
     median over frames and cameras: what turns a pixel error of this scene at this size into millimetres on

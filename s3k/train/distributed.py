@@ -22,7 +22,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 @dataclass

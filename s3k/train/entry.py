@@ -5,10 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
 from s3k.data.protocol import DatasetLike
 from s3k.detector import is_two_pass
-from s3k.errors import UserError
 from s3k.train.distributed import check_batches, world_size
 from s3k.train.loop import TrainResult, train_one_pass
 from s3k.train.two_pass import train_two_pass

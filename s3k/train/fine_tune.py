@@ -16,8 +16,8 @@ from __future__ import annotations
 from collections.abc import Collection
 from pathlib import Path
 
+from s3k.base.errors import UserError
 from s3k.config import TrainConfig
-from s3k.errors import UserError
 from s3k.run_folder import RunFolder
 
 __all__ = ["continued", "fine_tune_config"]

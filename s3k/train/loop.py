@@ -21,6 +21,8 @@ from torch import nn
 from tqdm import tqdm
 
 from s3k.augment import NoiseBank
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_json
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.data.protocol import DatasetLike
@@ -35,8 +37,6 @@ from s3k.detector import (
     save_model_file,
     training_precision,
 )
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_json
 from s3k.model import UNetConfig
 from s3k.networks import EncoderUNet, build_network, load_imagenet_weights
 from s3k.readout import ReadoutConfig

@@ -20,10 +20,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
+from s3k.base.outputs import check_output_folder, check_run_folder
 from s3k.config import TrainConfig, config_from_dict, option_argv, resumable_fields
 from s3k.detector import DetectorMeta, load_torch_file, read_run_config, write_run_config
-from s3k.errors import UserError
-from s3k.outputs import check_output_folder, check_run_folder
 from s3k.run_folder import RunFolder
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from s3k.base.errors import UserError
 from s3k.budget import check_fits
 from s3k.config import TrainConfig
 from s3k.data import Dataset, usable_label_count
@@ -21,7 +22,6 @@ from s3k.data.frames import open_dataset
 from s3k.data.protocol import DatasetLike
 from s3k.detector import CHECKPOINT_FILE, DetectorMeta
 from s3k.detector.geometry_record import dataset_identity, training_geometry
-from s3k.errors import UserError
 from s3k.geometry.warp import model_image_size
 from s3k.model import UNetConfig
 from s3k.run_folder import RunFolder

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import nn
 
-from s3k.choices import Arithmetic
+from s3k.base.choices import Arithmetic
 from s3k.config import TrainConfig
 from s3k.detector import autocast
 from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss

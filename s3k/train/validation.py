@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from s3k.base.draw import draw_views
+from s3k.base.messages import NOTE
 from s3k.config import TrainConfig
 from s3k.data.frames import FrameStore
 from s3k.data.protocol import DatasetLike
 from s3k.detector import DetectorMeta, OnePassDetector, detect_store, evaluate_store, scored_views
-from s3k.draw import draw_views
 from s3k.geometry import triangulate_labels
-from s3k.messages import NOTE
 from s3k.readout import CALIBRATION_SIGMAS, fit_confidence
 
 log = logging.getLogger(__name__)  # under "s3k.train", which a run logs to (run_setup)

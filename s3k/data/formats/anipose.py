@@ -3,7 +3,7 @@
 Each camera section (``[cam_0]``, ``[cam_1]``...) has ``name``, ``size = [W, H]``, ``matrix`` (3x3),
 ``distortions`` (5; fewer are zero-padded), ``rotation`` (Rodrigues, world->camera) and ``translation``. A
 ``[metadata]`` table, when present, describes the board. Every problem is a one-line
-:class:`s3k.errors.UserError` naming the file, the section and the field.
+:class:`s3k.base.errors.UserError` naming the file, the section and the field.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_write_text
 from s3k.data.rig import Rig, check_camera_name
-from s3k.errors import UserError
-from s3k.fileio import atomic_write_text
 from s3k.geometry import Cameras
 from s3k.geometry.rotations import rodrigues_to_matrix
 

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.safe_pickle import load_pickle
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 from s3k.geometry import Cameras, project
 
 log = logging.getLogger(__name__)

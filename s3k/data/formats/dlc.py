@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path, open_text
 from s3k.data.formats.labels2d import LabelTable, frame_id_from_path
 from s3k.data.formats.skeleton import dlc_project_config, read_skeleton
-from s3k.errors import UserError
-from s3k.fileio import atomic_path, open_text
 
 
 def _bodypart_columns(path: Path, coords_row: list[str], parts_row: list[str], n_index: int

@@ -28,6 +28,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import open_text, resolve_from
+from s3k.base.outputs import check_output, check_output_folder
 from s3k.data.dataset import Dataset
 from s3k.data.formats.anipose import read_anipose_calibration
 from s3k.data.formats.dlc import write_dlc_csv
@@ -37,10 +40,7 @@ from s3k.data.formats.skeleton import write_dlc_config
 from s3k.data.formats.slp import write_slp
 from s3k.data.tables import DEFAULT_IMAGE_PATTERN
 from s3k.data.tracks_csv import read_csv, read_source, source_path
-from s3k.errors import UserError
-from s3k.fileio import open_text, resolve_from
 from s3k.geometry.warp import crop_resize_matrix, transform_points
-from s3k.outputs import check_output, check_output_folder
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 @dataclass

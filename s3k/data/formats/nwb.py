@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import atomic_path
 from s3k.data.formats.labels2d import LabelTable, unique_edges
 from s3k.data.hdf5 import open_hdf5
-from s3k.errors import UserError
-from s3k.fileio import atomic_path
 
 
 def _modules() -> tuple[Any, Any]:

@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 
 SUFFIXES = (".yaml", ".yml", ".xml")

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.pixels import Convention, to_s3k
-from s3k.errors import UserError
 
 COCO17 = ["nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
           "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hip", "right_hip", "left_knee",

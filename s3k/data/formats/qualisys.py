@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
 from s3k.data.rig import Rig
-from s3k.errors import UserError
 from s3k.geometry import Cameras
 
 

@@ -2,9 +2,9 @@
 
 ``pickle.load`` may call any importable function named in the file. :class:`RestrictedUnpickler` resolves
 only what plain data needs (NumPy arrays, dtypes and scalars; dicts, lists, tuples, strings and numbers are
-pickle opcodes and need no lookup) and refuses anything else with a one-line :class:`s3k.errors.UserError`
-naming the file and the object it asked for. No array larger than the file itself is allocated (its
-contents must come from the file), so a few bytes cannot ask for gigabytes.
+pickle opcodes and need no lookup) and refuses anything else with a one-line
+:class:`s3k.base.errors.UserError` naming the file and the object it asked for. No array larger than the file
+itself is allocated (its contents must come from the file), so a few bytes cannot ask for gigabytes.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 _ALLOWED = {
     ("numpy", "ndarray"),

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from s3k.base.errors import UserError
 from s3k.data.formats.labels2d import LabelTable
 from s3k.data.formats.skeleton import analysis_edges, check_edges
 from s3k.data.formats.slp import TRACK_HINT, read_slp, slp_track_frames, slp_tracks
 from s3k.data.hdf5 import open_hdf5
-from s3k.errors import UserError
 
 log = logging.getLogger(__name__)
 

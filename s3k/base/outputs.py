@@ -30,8 +30,8 @@ import shutil
 from collections.abc import Callable, Collection, Iterator, Mapping
 from pathlib import Path
 
-from s3k.errors import UserError
-from s3k.messages import NOTE
+from s3k.base.errors import UserError
+from s3k.base.messages import NOTE
 from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
@@ -278,7 +278,7 @@ DATASET_NAMES = frozenset({
 """Names a dataset folder's own files take besides its images (``tests/test_outputs.py`` checks them against
 the modules that write them)."""
 
-_ATOMIC_TMP = re.compile(r"\..+\.\d+\.tmp")  # s3k.fileio.atomic_path's temporary files
+_ATOMIC_TMP = re.compile(r"\..+\.\d+\.tmp")  # s3k.base.fileio.atomic_path's temporary files
 
 
 def _dataset_images(folder: Path) -> tuple[set[str], str]:

@@ -2,7 +2,7 @@
 ``s3k calibrate`` (:mod:`s3k.rigcal`): a camera's intrinsics from its own board views, its pose from the views
 it shares with trusted cameras, refined by bundle adjustment with the trusted cameras held fixed
 (:func:`recalibrate_charuco`), and a dataset's cameras with some of them recalibrated
-(:func:`recalibrate_dataset`). Which cameras to distrust is :mod:`s3k.calibration`'s check.
+(:func:`recalibrate_dataset`). Which cameras to distrust is :mod:`s3k.rigcal.consistency`'s check.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import torch
 
+from s3k.base.errors import UserError
+from s3k.base.fileio import resolve_from
 from s3k.data.formats.anipose import read_anipose_calibration
 from s3k.data.formats.labels2d import frame_id_from_path
-from s3k.errors import UserError
-from s3k.fileio import resolve_from
 from s3k.geometry import Cameras
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.rigcal.boards import (

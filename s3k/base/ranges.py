@@ -22,7 +22,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 from s3k.geometry import project, workspace_centre
 
 __all__ = ["METRICS", "UNIT_TO_MM", "compute_metrics", "format_table", "ground_truth_2d", "keypoint_order",

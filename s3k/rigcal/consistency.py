@@ -1,5 +1,5 @@
 """Calibration check from 2D labels (the ``s3k check-calibration`` command; recalibrating a camera from
-ChArUco frames: :mod:`s3k.recalibration`).
+ChArUco frames: :mod:`s3k.rigcal.recalibration`).
 
 Labels seen by >= 2 cameras are triangulated (unit weights, the solver of docs/method.md#triangulation) and
 reprojected:

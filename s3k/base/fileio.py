@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from s3k.errors import UserError
+from s3k.base.errors import UserError
 
 
 @contextlib.contextmanager
