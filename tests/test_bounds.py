@@ -66,8 +66,8 @@ def test_validate_of_a_huge_image_stays_small_in_memory(huge_image_dataset):
     script = ("import resource, sys\nfrom s3k import cli\nrc = cli.main(sys.argv[1:])\n"
               "print('peak_kib', max(resource.getrusage(w).ru_maxrss for w in "
               "(resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)))\nsys.exit(rc)")
-    proc = subprocess.run([sys.executable, "-c", script, "validate", str(huge_image_dataset), "--workers", "1"],
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", script, "validate", str(huge_image_dataset), "--workers",
+                           "1"], capture_output=True, text=True)
     assert proc.returncode == 1 and "30000x30000" in proc.stdout
     peak_kib = int(proc.stdout.split("peak_kib")[-1].split()[0])
     assert peak_kib < 1024 * 1024

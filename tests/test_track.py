@@ -476,7 +476,7 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
     err = capsys.readouterr().err.strip()
     warnings = [line for line in err.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and "--min-weight" in warnings[0]
-    assert "no confidence calibration" in err  # a threshold asked of a run without a map says what it compares
+    assert "no confidence calibration" in err  # a threshold asked of a run without a map: what it compares
     assert np.isnan(np.stack(list(read_csv(out, KEYPOINTS).values()))).all()
 
     # An existing output is kept without --overwrite.
