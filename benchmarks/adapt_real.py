@@ -53,9 +53,10 @@ def fine_tune(data: Path, run: Path, out: Path, steps: int, threads: int) -> Non
     subprocess.run(cmd, check=True)
 
 
-def scores(run: Path, ds: Dataset, ids: np.ndarray) -> np.ndarray:
-    """(frames, keypoints) mm distances of ``run``'s 3D points to the triangulated labels (NaN where none)."""
-    return distances(Detector.load(run, "cpu"), ds, ids)[1]
+def scores(detector: Detector, ds: Dataset, ids: np.ndarray) -> np.ndarray:
+    """(frames, keypoints) mm distances of ``detector``'s 3D points to the triangulated labels (NaN where
+    none)."""
+    return distances(detector, ds, ids)[1]
 
 
 def paired(a: np.ndarray, b: np.ndarray) -> dict:
@@ -89,8 +90,9 @@ def main(argv: list[str] | None = None) -> None:
                 "control": work / "runs" / f"s3k-seed{seed}-control{a.steps}"}
         fine_tune(adapt_data, base, runs["adapted"], a.steps, a.threads)
         fine_tune(data, base, runs["control"], a.steps, a.threads)
-        on_test = {k: scores(r, ds, test) for k, r in runs.items()}
-        on_lab = {k: scores(r, ds, labelled) for k, r in runs.items()}
+        detectors = {k: Detector.load(r, "cpu") for k, r in runs.items()}  # each run read once
+        on_test = {k: scores(d, ds, test) for k, d in detectors.items()}
+        on_lab = {k: scores(d, ds, labelled) for k, d in detectors.items()}
         seeds[seed] = {
             "test_block": {"adapted_minus_run": paired(on_test["adapted"], on_test["run"]),
                            "adapted_minus_control": paired(on_test["adapted"], on_test["control"]),
