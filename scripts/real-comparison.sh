@@ -42,7 +42,7 @@ fi
 train() {  # train RUN [options]: new, resumed, or (finished) returns at once
   local run=$1; shift
   echo "== $(basename "$run") start $(date +%T)"
-  if [ -f "$run/config.json" ]; then
+  if [ -f "$run/config.json" ] || [ -f "$run/two_pass_options.json" ]; then
     nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --resume --threads "$THREADS" --no-progress
   else
     nice -n 10 "$PY" -m s3k.cli train "$WORK/crop" --out "$run" --steps "$STEPS" --threads "$THREADS" \
