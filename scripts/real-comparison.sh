@@ -8,7 +8,9 @@
 # $WORK (default /tmp/real-work): dataset $WORK/crop, runs $WORK/runs/{s3k,baseline}-seedN. $SEEDS (default
 # 5), $STEPS (3000), $THREADS (1), $SCALE (the arena crops' import scale, 0.25: 128 px), $TRAIN_OPTIONS (more
 # `s3k train` options for both models, e.g. '--preset box-headline --layout-tol 0' with SCALE=0.5), $TEST_FRAMES
-# (random, as the committed figures; blocks: the test frames held out in time, scripts/real-recording.sh). Resumable: run it again and it skips what is done and resumes a run that
+# (random, as the committed figures; blocks: the test frames held out in time, scripts/real-recording.sh), $CROPS
+# (hand: the boxes of scripts/real-recording.sh; auto: found by `s3k crops` after a brief labels-only pass on
+# whole frames, as docs/real-example.md shows), $MODELS (default 's3k baseline': which of the two to train). Resumable: run it again and it skips what is done and resumes a run that
 # was cut short (s3k train --resume). Trainings run under `nice -n 10`. Evaluate and compare with
 # benchmarks/real_comparison.py.
 set -euo pipefail
@@ -34,6 +36,15 @@ if [ ! -f "$WORK/crop/s3k.json" ]; then
   s3k check-calibration "$WORK/shipped" --recalibrate flagged --write-calibration "$WORK/calibration_fixed.toml" \
     > "$WORK/check-calibration.txt" || status=$?
   [ "$status" -le 2 ] || exit "$status"
+  if [ "${CROPS:-hand}" = auto ]; then  # the boxes from a brief labels-only pass over whole frames
+    rm -rf "$WORK/whole" "$WORK/run-whole"
+    s3k import --calibration "$WORK/calibration_fixed.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" \
+      "${split[@]}" --scale 0.25 --out "$WORK/whole"
+    nice -n 10 "$PY" -m s3k.cli train "$WORK/whole" --out "$WORK/run-whole" --image-size 96 --steps 1000 \
+      --no-unsup --threads "$THREADS" --no-progress
+    read -r -a crops <<< "$(s3k crops "$WORK/run-whole" --data "$WORK/whole" --out "$WORK/crops.json")"
+    crops=("${crops[@]:1}")  # the boxes, without the leading --crop
+  fi
   s3k import --calibration "$WORK/calibration_fixed.toml" --videos "${videos[@]}" --sleap "${sleap[@]}" \
     "${split[@]}" --scale "$SCALE" --crop "${crops[@]}" --out "$WORK/crop.tmp"
   mv "$WORK/crop.tmp" "$WORK/crop"
@@ -50,8 +61,14 @@ train() {  # train RUN [options]: new, resumed, or (finished) returns at once
   fi
   echo "== $(basename "$run") end $(date +%T)"
 }
+read -r -a MODELS <<< "${MODELS:-s3k baseline}"
 for ((s = 0; s < SEEDS; s++)); do
-  train "$WORK/runs/s3k-seed$s" --seed "$s"
-  train "$WORK/runs/baseline-seed$s" --seed "$s" --no-unsup
+  for m in "${MODELS[@]}"; do
+    case $m in
+      s3k) train "$WORK/runs/s3k-seed$s" --seed "$s" ;;
+      baseline) train "$WORK/runs/baseline-seed$s" --seed "$s" --no-unsup ;;
+      *) echo "MODELS: '$m' is neither s3k nor baseline" >&2; exit 2 ;;
+    esac
+  done
 done
 echo "== all done $(date +%T)"
