@@ -153,6 +153,13 @@ def test_stream_logs_to_a_rerun_recording(rig_videos, monkeypatch, tmp_path, cap
             assert f"/world/cameras/{cam}{entity}" in summary["entities"]
         assert "EncodedImage:blob" in summary["entities"][f"/world/cameras/{cam}/image"]
     assert {"/world/keypoints", "/world/skeleton", "/confidence/nose"} <= set(summary["entities"])
+    # it opens on the layout of 's3k view': the views in a grid, the 3D view, one plot of confidence
+    from helpers.rerun_layout import file_views
+
+    views = file_views(rrd)
+    origins = sorted(v["origin"] for v in views if v["kind"] == "2D")
+    assert origins == sorted(f"/world/cameras/{c}" for c in CAMERAS)
+    assert sorted(v["kind"] for v in views if v["kind"] != "2D") == ["3D", "TimeSeries"]
 
 
 def test_ctrl_c_in_the_logger_counts_every_line_written(rig_videos):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.real_recording import REAL, needs_real
+from helpers.rerun_layout import blueprint_views, file_views
 from helpers.synthetic_rig import make_dataset
 from helpers.tiny_detector import save_run
 from test_track import CAMERAS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points
@@ -27,7 +28,8 @@ from s3k.model import UNetConfig
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from s3k.inference.rerun_log import recording_summary  # noqa: E402
+from s3k.geometry.framing import DEFAULT_FOV_Y, camera_centres, frame  # noqa: E402
+from s3k.inference.rerun_log import layout, recording_summary  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -121,6 +123,64 @@ def test_view_tracks_logs_cameras_images_points_skeleton_confidence_reprojection
     assert len(_column(rrd, "/world/keypoints", "Points3D:positions")[2]) == 2
     # each keypoint's confidence is the CSV's score
     np.testing.assert_allclose(_column(rrd, "/confidence/tail", "Scalars:scalars")[4], [0.34], rtol=1e-6)
+
+
+def _matrix(rrd: Path, entity: str) -> np.ndarray:
+    return np.array(_column(rrd, entity, "Transform3D:mat3x3")[-1]).reshape(3, 3).T  # stored by columns
+
+
+def test_view_opens_on_the_cameras_beside_a_3d_view_framed_on_the_work(tracks, tmp_path):
+    rrd = tmp_path / "layout.rrd"
+    argv = ["view", str(tracks["csv"]), "--videos", *[f"{c}={p}" for c, p in tracks["videos"].items()],
+            "--save", str(rrd)]
+    assert cli.main(argv) == 0
+    views = file_views(rrd)
+    kinds = [v["kind"] for v in views]
+    assert len(views) == len(CAMERAS) + 2 and kinds.count("3D") == 1 and kinds.count("TimeSeries") == 1
+    # one 2D view per camera, on its image and 2D points
+    origins = sorted(v["origin"] for v in views if v["kind"] == "2D")
+    assert origins == sorted(f"/world/cameras/{c}" for c in CAMERAS)
+    assert all(v["query"] == ["$origin/**"] for v in views if v["kind"] == "2D")
+    # one plot holds every keypoint's confidence, each series named as its keypoint
+    series = next(v for v in views if v["kind"] == "TimeSeries")
+    logged = [e for e in recording_summary(rrd)["entities"] if e.startswith("/confidence/")]
+    assert sorted(logged) == sorted(f"/confidence/{k}" for k in KEYPOINTS)
+    assert series["query"] == ["$origin/**"] and all(e.startswith(series["origin"] + "/") for e in logged)
+    assert {_column(rrd, f"/confidence/{k}", "SeriesLines:names")[-1][0] for k in KEYPOINTS} == set(KEYPOINTS)
+    # the 3D view: the world placed under the root with the table's normal along the root's +Z (this rig's
+    # table is the world's z = 0) and the points' centre at the origin; its eye sees every point
+    assert _column(rrd, "/", "ViewCoordinates:xyz")[-1] == rr.ViewCoordinates.RIGHT_HAND_Z_UP.as_arrow_array(
+    ).to_pylist()
+    M = _matrix(rrd, "/world")
+    T = np.array(_column(rrd, "/world", "Transform3D:translation")[-1])
+    X = tracks["X"].reshape(-1, 3)
+    X = X[np.isfinite(X).all(-1)]
+    display = X @ M.T + T
+    np.testing.assert_allclose(np.median(X, axis=0) @ M.T + T, 0, atol=1e-3)
+    assert np.degrees(np.arccos(M[2] @ [0, 0, 1])) < 15
+    arrays = tracks["rig"].cameras.numpy()
+    assert (camera_centres(arrays["R"], arrays["t"]) @ M.T + T)[:, 2].min() > display[:, 2].max()
+    (view3d,) = [v for v in views if v["kind"] == "3D"]
+    assert view3d["origin"] == "/" and view3d["query"] == ["/world/**"]
+    eye = np.array(view3d["eye"]["position"])
+    assert view3d["eye"]["look_target"] == [0, 0, 0] and view3d["eye"]["eye_up"] == [0, 0, 1] and eye[2] > 0
+    sight = (display - eye) @ -eye / np.linalg.norm(display - eye, axis=-1) / np.linalg.norm(eye)
+    assert (sight >= np.cos(np.radians(DEFAULT_FOV_Y / 2))).all()
+    # the names are drawn once: beside the 3D keypoints, not on every view's points
+    assert _column(rrd, "/world/keypoints", "Points3D:show_labels")[3] == [True]
+    assert _column(rrd, "/world/cameras/top/reprojections", "Points2D:show_labels")[3] == [False]
+
+
+def test_the_layout_object_has_a_2d_view_per_camera_one_3d_view_and_one_plot_of_confidence():
+    arrays = make_rig().cameras.numpy()
+    framing = frame(arrays["R"], arrays["t"], moving_points(4))
+    views = blueprint_views(layout(["a", "b", "c"], framing))
+    assert [v.class_identifier for v in views] == ["2D", "2D", "2D", "3D", "TimeSeries"]
+    assert [str(v.origin) for v in views[:3]] == ["/world/cameras/a", "/world/cameras/b", "/world/cameras/c"]
+    assert str(views[4].origin) == "/confidence"
+    # a dataset logs no confidence: no plot
+    assert [v.class_identifier for v in blueprint_views(layout(["a"], framing, confidence=False))] == [
+        "2D", "3D"]
 
 
 def test_view_tracks_without_videos_shows_cameras_and_points(tracks, tmp_path):

@@ -15,11 +15,19 @@ Entities (the timeline is ``frame``: video frame index, or dataset frame id):
 - ``world/keypoints`` (``Points3D``, named and coloured, radius by confidence), ``world/skeleton``
   (``LineStrips3D``, the edges whose two ends are triangulated); ``world/truth`` and ``world/truth_skeleton``
   for the ground truth (a dataset's 3D points or triangulated labels);
-- ``confidence/<keypoint>``: each keypoint's confidence as a scalar series.
+- ``confidence/<keypoint>``: each keypoint's confidence as a scalar series, named and coloured as the
+  keypoint (``SeriesLines``, static).
+
+The recording opens on its own layout (:func:`layout`, sent once the rig is known): the camera views in a
+grid, each with its 2D points, beside the 3D view and one plot of every keypoint's confidence. The 3D view
+stands on the work: ``world`` is placed under the root (``Transform3D``) so that the table's normal,
+estimated from the cameras and the 3D points (:mod:`s3k.geometry.framing`), is the root's +Z
+(``ViewCoordinates``, Z up) and the object's centre its origin, and the eye starts where it sees every point.
+The keypoints' names are drawn once, on the 3D keypoints; the 2D points and the ground truth carry them for
+hovering only.
 
 Rerun puts pixel (0, 0)'s centre at (0.5, 0.5) (rerun-io/rerun#3896), s3k (and OpenCV) at (0, 0): the logged
-2D points and principal points are shifted by half a pixel so that they sit on the logged images exactly. The
-world's up axis (``world``'s ``ViewCoordinates``) is the one nearest the cameras' mean up direction.
+2D points and principal points are shifted by half a pixel so that they sit on the logged images exactly.
 """
 
 from __future__ import annotations
@@ -34,10 +42,12 @@ import torch
 
 from s3k.base.draw import edge_indices, keypoint_colours
 from s3k.base.errors import UserError
+from s3k.geometry import framing as framing_geometry
 from s3k.geometry import project
+from s3k.geometry.framing import Framing
 from s3k.geometry.warp import crop_resize_matrix
 
-__all__ = ["RerunLog", "recording_summary", "rerun_module"]
+__all__ = ["RerunLog", "layout", "recording_summary", "rerun_module"]
 
 DEFAULT_JPEG_QUALITY = 75
 
@@ -63,13 +73,18 @@ def _display_map(size: Sequence[int], scale: float) -> tuple[np.ndarray, tuple[i
     return M, out
 
 
-def _world_up(rr: Any, R: np.ndarray) -> Any:
-    """The world's ``ViewCoordinates`` whose up is the world axis nearest the cameras' mean up direction
-    (a camera's up is its -y axis, ``-R[1]`` in world coordinates), so that the 3D view opens upright."""
-    up = -np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)[:, 1].mean(axis=0)
-    axis = int(np.argmax(np.abs(up)))
-    name = f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if up[axis] > 0 else 'DOWN'}"
-    return getattr(rr.ViewCoordinates, name)
+def layout(cameras: Sequence[str], framing: Framing, confidence: bool = True) -> Any:
+    """The recording's ``rerun.blueprint.Blueprint``: a grid of one 2D view per camera (its image and 2D
+    points) beside the 3D view of ``world``, its eye on ``framing``'s, and (``confidence``) under it one
+    time series of every keypoint's confidence."""
+    import rerun.blueprint as rrb
+
+    cams = rrb.Grid(*[rrb.Spatial2DView(origin=f"/world/cameras/{c}", name=c) for c in cameras])
+    eye = rrb.EyeControls3D(position=framing.eye, look_target=[0.0, 0.0, 0.0], eye_up=[0.0, 0.0, 1.0])
+    view3d = rrb.Spatial3DView(origin="/", contents="/world/**", name="3D", eye_controls=eye)
+    right = (rrb.Vertical(view3d, rrb.TimeSeriesView(origin="/confidence", name="confidence"),
+                          row_shares=[3, 1]) if confidence else view3d)
+    return rrb.Blueprint(rrb.Horizontal(cams, right, column_shares=[1, 1]))
 
 
 def _apply(M: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -87,11 +102,12 @@ class RerunLog:
         image_scale: the logged images' size relative to the views (in (0, 1]).
         jpeg_quality: JPEG quality of the logged images (1-100).
         units: the world unit (the keypoints' radius is set in it).
+        confidence: whether the keypoints' confidence is logged (the layout's time series).
     """
 
     def __init__(self, app: str, target: str | Path, keypoints: Sequence[str], cameras: Sequence[str],
                  skeleton: Sequence[Sequence[str]] = (), image_scale: float = 1.0,
-                 jpeg_quality: int = DEFAULT_JPEG_QUALITY, units: str = "m") -> None:
+                 jpeg_quality: int = DEFAULT_JPEG_QUALITY, units: str = "m", confidence: bool = True) -> None:
         if not 0 < image_scale <= 1:
             raise UserError(f"--image-scale {image_scale:g}: give a scale in (0, 1]")
         if not 1 <= jpeg_quality <= 100:
@@ -117,7 +133,8 @@ class RerunLog:
         self.image_scale, self.jpeg_quality = float(image_scale), int(jpeg_quality)
         self.radius = {"mm": 2.0, "cm": 0.2, "m": 0.002}.get(units, 0.002)
         self._maps: dict[str, np.ndarray] = {}
-        self._up_logged = False
+        self.confidence = bool(confidence)
+        self.framing: Framing | None = None
 
     @property
     def _partial(self) -> Path:
@@ -141,7 +158,27 @@ class RerunLog:
     def __exit__(self, exc_type: object, *exc: object) -> None:
         self.close(keep=exc_type is None)
 
-    # -- cameras and images ---------------------------------------------------------------------------------
+    # -- the layout and the cameras ------------------------------------------------------------------------
+
+    def frame(self, cams: Any, points: np.ndarray | None = None) -> Framing:
+        """Stand the 3D view on the work, once (the module docstring): the table's normal and the object's
+        centre from the cameras ``cams`` (a :class:`s3k.geometry.Cameras` or its ``numpy()`` arrays) and the
+        object's ``points (..., 3)`` (NaN where unknown; without them, from the cameras alone); then send the
+        layout. Later calls return the first framing."""
+        if self.framing is not None:
+            return self.framing
+        rr = self.rr
+        arrays = cams.numpy() if hasattr(cams, "numpy") else cams
+        framing = self.framing = framing_geometry.frame(arrays["R"], arrays["t"], points)
+        self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log("world", rr.Transform3D(translation=framing.translation, mat3x3=framing.rotation,
+                                             relation=rr.TransformRelation.ParentFromChild), static=True)
+        if self.confidence:
+            for k, kp in enumerate(self.keypoints):
+                self.rec.log(f"confidence/{kp}", rr.SeriesLines(colors=self.colours[k], names=kp),
+                             static=True)
+        self.rec.send_blueprint(layout(self.cameras, framing, self.confidence))
+        return framing
 
     def cameras_at(self, cams: Any, sizes: Sequence[Sequence[int]], static: bool = True) -> None:
         """Log each camera's pose and intrinsics: ``cams`` a :class:`s3k.geometry.Cameras` ``(C,)`` (or its
@@ -149,9 +186,7 @@ class RerunLog:
         frame."""
         rr = self.rr
         arrays = cams.numpy() if hasattr(cams, "numpy") else cams
-        if not self._up_logged:
-            self.rec.log("world", _world_up(rr, arrays["R"]), static=True)
-            self._up_logged = True
+        self.frame(arrays)
         for c, cam in enumerate(self.cameras):
             M, out = _display_map(sizes[c], self.image_scale)
             self._maps[cam] = M
@@ -198,17 +233,19 @@ class RerunLog:
                 labels=[self.keypoints[k] for k in where], show_labels=False))
 
     def points3d(self, X: np.ndarray, valid: np.ndarray, confidence: np.ndarray | None = None,
-                 name: str = "keypoints", skeleton: str = "skeleton") -> None:
+                 name: str = "keypoints", skeleton: str = "skeleton", show_names: bool = True) -> None:
         """Log the keypoints ``X (K, 3)`` where ``valid (K,)`` as ``world/<name>`` and the skeleton's edges
         between them as ``world/<skeleton>``; ``confidence (K,)`` in [0, 1] sets the points' radius and is
-        logged as ``confidence/<keypoint>``."""
+        logged as ``confidence/<keypoint>``; ``show_names``: the names drawn beside the points (else shown on
+        hovering only)."""
         rr = self.rr
         valid = np.asarray(valid, dtype=bool) & np.isfinite(X).all(-1)
         where = np.flatnonzero(valid)
         radii = (self.radius * (0.5 + np.clip(confidence[where], 0, 1)) if confidence is not None
                  else self.radius)
         self.rec.log(f"world/{name}", rr.Points3D(X[where], colors=self.colours[where], radii=radii,
-                                                  labels=[self.keypoints[k] for k in where]))
+                                                  labels=[self.keypoints[k] for k in where],
+                                                  show_labels=show_names))
         edges = [e for e in self.edges if valid[e[0]] and valid[e[1]]]
         self.rec.log(f"world/{skeleton}", rr.LineStrips3D([X[list(e)] for e in edges],
                                                           radii=self.radius / 3))

@@ -70,12 +70,12 @@ class ViewOptions:
         return chosen[:self.max_frames] if self.max_frames is not None else chosen
 
     def recorder(self, keypoints: Sequence[str], cameras: Sequence[str], skeleton: Sequence[Sequence[str]],
-                 units: str) -> RerunLog:
+                 units: str, confidence: bool = True) -> RerunLog:
         if self.skeleton is not None:
 
             skeleton = check_edges(read_skeleton(self.skeleton), keypoints, f"--skeleton {self.skeleton}")
         return RerunLog("s3k view", self.target, keypoints, cameras, skeleton, self.image_scale,
-                        self.jpeg_quality, units)
+                        self.jpeg_quality, units, confidence)
 
 
 def target_kind(path: str | Path) -> str:
@@ -181,7 +181,8 @@ def view_tracks(csv_path: str | Path, opts: ViewOptions, calibration: str | Path
         if frames[-1] >= count:
             raise UserError(f"{csv_path}: frame {frames[-1]} is beyond the {count} frames of --videos "
                             f"{name}={path}", hint=f"give the videos the tracks came from, or --stop {count}")
-    with opts.recorder(keypoints, names, skeleton, rig.units) as rec:
+    with opts.recorder(keypoints, names, skeleton, rig.units, bool(np.isfinite(score).any())) as rec:
+        rec.frame(rig.cameras, X[[rows[f] for f in frames]])
         rec.cameras_at(rig.cameras, [tuple(int(v) for v in s) for s in rig.size])
         streams = [video.iter_frames(videos[c], frames) for c in names] if videos and opts.images else None
         for f in frames:
@@ -211,6 +212,15 @@ def _truth(ds: Any, ids: np.ndarray, cams: Any, uv: np.ndarray, mask: np.ndarray
     return X.numpy(), valid.numpy()
 
 
+def _framed(rec: RerunLog, ds: Any, ids: np.ndarray) -> None:
+    """Frame the recording's 3D view on the dataset's 3D points of the frames ``ids`` (its ground truth, or
+    its labels triangulated) and its first frame's cameras."""
+    cams = ds.calibration(ids, np.float64)
+    uv, mask = ds.labels(ids, np.float64)
+    X, valid = _truth(ds, ids, cams, uv, mask)
+    rec.frame(cams[0], np.where(valid[..., None], X, np.nan))
+
+
 def view_dataset(data: str | Path, opts: ViewOptions, split: str = "all") -> int:
     """Log a dataset's frames of ``split``: cameras, images, 2D labels and 3D keypoints; returns the number of
     frames logged."""
@@ -221,7 +231,8 @@ def view_dataset(data: str | Path, opts: ViewOptions, split: str = "all") -> int
         raise UserError(f"{data}: no frames of split {split!r} between --start {opts.start} and --stop "
                         f"{opts.stop}", hint="choose another --split, --start or --stop")
     sizes = [tuple(ds.image_size)] * len(ds.cameras)
-    with opts.recorder(ds.keypoints, ds.cameras, ds.skeleton, ds.units) as rec:
+    with opts.recorder(ds.keypoints, ds.cameras, ds.skeleton, ds.units, confidence=False) as rec:
+        _framed(rec, ds, ids)
         if ds.static_calibration:
             rec.cameras_at(ds.rig(np.float64), sizes)
         for start in range(0, len(ids), 16):
@@ -261,6 +272,7 @@ def view_run(run: str | Path, opts: ViewOptions, data: str | Path | None = None,
     sizes = [tuple(ds.image_size)] * len(ds.cameras)
     store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
     with opts.recorder(detector.keypoints, ds.cameras, skeleton, ds.units) as rec:
+        _framed(rec, ds, ids)
         if ds.static_calibration:
             rec.cameras_at(ds.rig(np.float64), sizes)
         for batch, det in detect_store(detector, store, batch_size):
@@ -274,5 +286,6 @@ def view_run(run: str | Path, opts: ViewOptions, data: str | Path | None = None,
                 views = list(batch.images[b].numpy()) if opts.images else None
                 rec.detection(int(f), views, det, b)
                 rec.points2d("labels", uv[b][:, order], mask[b][:, order])
-                rec.points3d(X[b][order], valid[b][order], name="truth", skeleton="truth_skeleton")
+                rec.points3d(X[b][order], valid[b][order], name="truth", skeleton="truth_skeleton",
+                             show_names=False)
     return len(ids)
