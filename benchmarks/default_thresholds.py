@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> None:
         name, _, path = item.partition("=")
         runs[name] = {"run": path, **shares(Detector.load(path, "cpu"), ds)}
         r = runs[name]
-        print(f"{name}: raw weight median {r['median_raw_weight']:.3f}, calibrated {r['median_confidence']:.3f}; "
+        print(f"{name}: raw weight median {r['median_raw_weight']:.3f}, "
+              f"calibrated {r['median_confidence']:.3f}; "
               f"--min-weight 0.5 keeps {100 * r['track_min_weight_valid_share']:.1f}% of points, the app "
               f"accepts {100 * r['app_accept_share_of_views']:.1f}% of views (raw weight >= 0.5: "
               f"{100 * r['raw_weight_above_threshold_share']:.1f}%); accepted test views within two widths: "
