@@ -70,6 +70,8 @@ def test_refusals_leave_the_dataset_as_it_was(days, tmp_path, capsys):
         (["--into", str(out), "--session", "day1"], "already holds session 'day1'"),
         (["--into", str(out)], "--session NAME"),
         (["--into", str(out), "--session", "day2", "--keypoints", "head,body"], "keypoints"),
+        # a box of another shape than the dataset's images would be stretched to them
+        (["--into", str(out), "--session", "day2", "--crop", "0,0,20,20"], "would be stretched"),
     ]
     for extra, expected in cases:
         assert main(import_argv(days["day2"], *extra)) != 0

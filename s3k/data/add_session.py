@@ -262,6 +262,7 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
                         f"{dataset.keypoints}", hint=f"pass --keypoints {','.join(dataset.keypoints)}")
     split, images = split or SplitOptions(), images or ImageOptions()
     if images.size is None and images.scale is None:
+        _check_aspect(images.crops or {}, dataset.source_image_size, into)
         images = replace(images, size=dataset.source_image_size)
     if labels is None and keypoints is None:
         keypoints = dataset.keypoints
@@ -279,6 +280,19 @@ def import_session(into: str | Path, session: str, calibration: str | Path, vide
     ids = Dataset.open(into, cache="none").frames(session=session)
     log.info(f"added session {session} to {into}: {len(ids)} frames (ids {ids.min()}..{ids.max()})")
     return into
+
+
+def _check_aspect(crops: Mapping[str, Sequence[float]], size: tuple[int, int], into: Path) -> None:
+    """Refuse crop boxes that the dataset's image size would stretch (another aspect ratio, beyond 1%)."""
+    W, H = size
+    for cam, (x0, y0, x1, y1) in crops.items():
+        w, h = x1 - x0, y1 - y0
+        if abs((w / h) / (W / H) - 1) > 0.01:
+            side = max(w, h)
+            raise UserError(f"--crop {cam}={x0:g},{y0:g},{x1:g},{y1:g}: a {w:g}x{h:g} box would be stretched "
+                            f"to {into}'s {W}x{H} images",
+                            hint=f"give boxes of {W}:{H} (e.g. {side:g}x{round(side * H / W):g}), or --size "
+                                 f"{W},{H} to stretch them")
 
 
 def _fill_frames(path: Path, session: str, new_id: dict[int, int], hold_out: bool) -> None:
