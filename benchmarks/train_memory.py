@@ -5,7 +5,7 @@ small synthetic dataset through ``s3k.train.train`` and records two measurements
 for the backward pass (each storage once, ``torch.autograd.graph.saved_tensors_hooks``) and the rise of the
 process's peak resident memory during the step (its peak reset as training starts, Linux's
 ``/proc/self/clear_refs``). The estimate must bound both from above, within a factor of 2 of the peak
-(``tests/test_budget.py`` holds one size of it).
+(``tests/train/test_budget.py`` holds one size of it).
 
 Example::
 

@@ -17,7 +17,7 @@ configuration and the dataset's shape (cameras, keypoints, image size, frames):
 The budget is the host's memory: on a GPU the weights and activations live in the device's memory, which
 this check does not read (a training there that exceeds it fails at its first step), and ranks of a
 data-parallel run on one machine each check the whole machine's memory. The estimate is checked against a
-measurement of a real step in ``tests/test_budget.py`` (the tensors autograd
+measurement of a real step in ``tests/train/test_budget.py`` (the tensors autograd
 saves, and the peak resident memory of a process that runs the step). :func:`check_fits` compares it with
 :func:`s3k.memory.available_memory`, which honours a control group's limit and ``ulimit -v``.
 

@@ -1,6 +1,15 @@
 """Fixtures shared by the tests: a tiny dataset and a tiny run folder (built once per session), and the
 devices and float types a tensor function is checked on. The helpers they are built from are in
-``tests/helpers`` (``from helpers.synthetic_rig import make_dataset``)."""
+``tests/helpers`` (``from helpers.synthetic_rig import make_dataset``; ``helpers.paths`` for the repository's
+root and the tests' data, whatever folder a test sits in).
+
+The test modules sit in folders that mirror s3k's rooms (``tests/cli``, ``tests/data``, ``tests/detector``,
+..., ``tests/model`` for ``s3k/model.py`` and ``s3k/networks.py``) and ``tests/repo`` for the repository-wide
+checks (layout, docs, README figures, setup script, benchmark scripts); ``tests/data/old_runs`` holds run
+folders of an older s3k. The folders have no ``__init__.py``: pytest's default import mode imports each test
+module by its file name alone, so every ``test_*.py`` name is unique across ``tests/`` (pytest stops at
+collection on a second one). A test module imports no other test module: what several share is a helper or a
+fixture here."""
 
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ DATASET_MARKER = "s3k.json"
 """The file that makes a folder a dataset (``s3k.data.tables.METADATA_FILE``)."""
 
 RUN_NAMES = frozenset(RunFolder.ONE_PASS_FILES + RunFolder.TWO_PASS_FILES)
-"""Names a run folder's own files and folders take (``tests/test_outputs.py`` checks them against the
+"""Names a run folder's own files and folders take (``tests/base/test_outputs.py`` checks them against the
 modules that write them)."""
 
 RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", RunFolder.CPU, RunFolder.OPTIONS})
@@ -275,8 +275,8 @@ DATASET_NAMES = frozenset({
     # s3k.label.store: the label history and its lock; s3k.data.writer: the mark of an unfinished dataset
     "labels-history.jsonl", ".labels.lock", UNFINISHED_MARKER,
 })
-"""Names a dataset folder's own files take besides its images (``tests/test_outputs.py`` checks them against
-the modules that write them)."""
+"""Names a dataset folder's own files take besides its images (``tests/base/test_outputs.py`` checks them
+against the modules that write them)."""
 
 _ATOMIC_TMP = re.compile(r"\..+\.\d+\.tmp")  # s3k.base.fileio.atomic_path's temporary files
 

@@ -3,8 +3,8 @@
 
 :func:`number` and :func:`name` are ``type=`` functions of ``argparse``: a value out of range is refused when
 the command line is parsed, before any work, as ``s3k CMD: error: argument --opt: must be > 0, got '0'``.
-Every numeric option of every command is declared with one (``tests/test_options.py`` checks it). The others
-raise :class:`s3k.base.errors.UserError` naming the option and the value.
+Every numeric option of every command is declared with one (``tests/cli/test_options.py`` checks it). The
+others raise :class:`s3k.base.errors.UserError` naming the option and the value.
 """
 
 from __future__ import annotations

@@ -408,7 +408,7 @@ class OnePassDetector(Detector):
     ``fast`` (the default): on the CPU in float32 the network runs as a frozen graph
     (:class:`s3k.detector.frozen.FrozenNetwork`) and a refining pass cuts every view's crop in one
     resampling; ``fast=False`` is the plain path, per module and per camera, for comparison (the same points
-    to well under 0.1 mm: tests/test_frozen_network.py, ``benchmarks/inference.py``)."""
+    to well under 0.1 mm: tests/detector/test_frozen_network.py, ``benchmarks/inference.py``)."""
 
     def __init__(self, net: Network, meta: DetectorMeta, device: Device | torch.device = "cpu",
                  precision: Arithmetic = "float32", fast: bool = True) -> None:

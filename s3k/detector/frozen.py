@@ -8,7 +8,7 @@ input shape (the batch of views times the pass's fixed input size) and freezes i
 outputs equal the eager network's to float rounding (the same ATen operators in the same order, the weights
 folded as constants: a few units in the last place of float32); every call of one input shape, the first
 included, goes through the same graph, so the same input gives the same output bit for bit.
-tests/test_frozen_network.py and ``benchmarks/inference.py --check`` compare them.
+tests/detector/test_frozen_network.py and ``benchmarks/inference.py --check`` compare them.
 
 It is used where it is exact and cheap: s3k's own :class:`s3k.model.UNet` on the CPU, float32 (no autocast),
 without gradients; each new graph is checked once against the eager network on the input that made it.

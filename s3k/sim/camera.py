@@ -12,7 +12,7 @@ the image centre, and the rendered image's row 0 is the top (after the flip :mod
     f = (H / 2) / tan(fovy / 2),    cx = (W - 1) / 2,    cy = (H - 1) / 2
 
 with pixel (0, 0) at the centre of the top-left pixel. :func:`mujoco_to_opencv` is the only place in s3k
-that does this conversion; ``tests/test_sim.py`` checks it against segmentation renders.
+that does this conversion; ``tests/sim/test_sim.py`` checks it against segmentation renders.
 """
 
 from __future__ import annotations

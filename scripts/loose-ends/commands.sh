@@ -1,7 +1,7 @@
 # The newer commands' loose ends: track's and stream's filter options, add-frames' ranking and the record
 # beside a track, label --public-url and train --resume --preset. Sourced by scripts/loose-ends.sh.
 
-# Once per run: the tiny rig of tests/test_track.py (three cameras, 64 x 48 px videos of three moving dots, an
+# Once per run: the tiny rig of tests/inference/test_track.py (three cameras, 64 x 48 px videos of three moving dots, an
 # anipose calibration), an untrained tiny detector saved as a run folder (no rigid layout), its track with the
 # ranking and record beside it, and a dataset of three of the videos' frames to add frames to (a few seconds).
 commands_setup() {

@@ -9,14 +9,13 @@ import shutil
 from pathlib import Path
 
 import pytest
+from helpers.paths import OLD_RUNS as OLD
 from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.detector import Detector, load_network
 from s3k.model import UNet
 from s3k.run_folder import RunFolder
-
-OLD = Path(__file__).parent / "data" / "old_runs"
 
 
 @pytest.fixture(scope="module")

@@ -1,16 +1,19 @@
 """The run folder has one owner: :class:`s3k.run_folder.RunFolder` names every file of a run, and no other
-module of s3k spells one; it reads a run's configuration (:mod:`tests.test_old_runs`: older runs too)."""
+module of s3k spells one; it reads a run's configuration (``tests/detector/test_old_runs.py``: older runs
+too)."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
+from helpers.paths import REPO
+
 from s3k.base.outputs import RUN_NAMES
 from s3k.config import TrainConfig
 from s3k.run_folder import RunFolder
 
-PACKAGE = Path(__file__).resolve().parents[1] / "s3k"
+PACKAGE = REPO / "s3k"
 # a file name of a run as a string literal, or a pass's folder as a path part (``/ "coarse"``)
 NAMES = ("config.json", "checkpoint.pt", "model.pt", "train.log", "progress.json", "tensorboard",
          "two_pass.json", "two_pass_options.json", "estimates.csv", "cpu.json")

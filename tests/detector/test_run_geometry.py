@@ -1,7 +1,7 @@
 """A run knows the images it was trained on: the part of each camera's frame (the import's crop boxes) and
 their size, with its dataset's identity; ``s3k evaluate`` and ``s3k label --run`` refuse a dataset whose
 images show another part of the frames, and ``s3k track`` crops videos as the training images were
-(``tests/test_track.py`` for the videos)."""
+(``tests/inference/test_track.py`` for the videos)."""
 
 from __future__ import annotations
 

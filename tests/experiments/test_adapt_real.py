@@ -10,12 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.paths import REPO as ROOT
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS, _add_frame, make_dataset, rig
 
 from s3k.data import Dataset
 from s3k.experiments.adapt import held_out_as_unlabelled
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _labelled_test_frames(path: Path, size: int = 32) -> Path:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.paths import REPO
 from helpers.synthetic_rig import make_dataset
 
 import s3k
@@ -314,7 +315,7 @@ def test_lower_margin_is_two_standard_errors_or_two_percent():
 
 
 # the experiments' summaries (docs/results holds benchmarks' summaries too, in other layouts)
-PUBLISHED = sorted(p for p in (Path(__file__).parents[1] / "docs" / "results").glob("*/summary.json")
+PUBLISHED = sorted(p for p in (REPO / "docs" / "results").glob("*/summary.json")
                    if "points" in json.loads(p.read_text()))
 
 

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers.paths import REPO
 from helpers.rig_inputs import rig_inputs
 from helpers.tiny_detector import save_run
 
@@ -609,7 +610,7 @@ def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tm
     pytest.importorskip("pynwb")
     from s3k.data.formats.nwb import read_nwb_tracks
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (REPO / "README.md").read_text()
     command = re.search(r"`(s3k export-tracks [^`]*)`", readme)
     assert command is not None, "the README shows no s3k export-tracks command"
     argv = shlex.split(command.group(1))[1:]

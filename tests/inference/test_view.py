@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.paths import REPO
 from helpers.real_recording import REAL, needs_real
 from helpers.rerun_layout import blueprint_views, file_views
 from helpers.synthetic_rig import make_dataset
@@ -30,8 +31,6 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from s3k.geometry.framing import DEFAULT_FOV_Y, camera_centres, frame  # noqa: E402
 from s3k.inference.rerun_log import layout, recording_summary  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _column(path: Path, entity: str, component: str) -> dict[int, list]:

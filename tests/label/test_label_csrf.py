@@ -1,8 +1,8 @@
 """The labelling server takes state-changing requests only from its own page (or a script), never from another
 web page: every POST/PUT/PATCH/DELETE route, enumerated from the app so that a route added later is covered,
 refuses a foreign ``Origin``, a cross-site ``Sec-Fetch-Site`` and any body that is not ``application/json``,
-and changes nothing on disk when it refuses. (``tests/test_label_browser.py`` makes the same attempts from a
-real page of another origin in Chromium.)"""
+and changes nothing on disk when it refuses. (``tests/label/test_label_browser.py`` makes the same attempts
+from a real page of another origin in Chromium.)"""
 
 from __future__ import annotations
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers.label_data import make_label_dataset
+from helpers.paths import REPO as ROOT
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 httpx = pytest.importorskip("httpx")
@@ -23,8 +24,6 @@ pytest.importorskip("uvicorn")
 
 from s3k.data import Dataset  # noqa: E402
 from s3k.label.store import HISTORY_FILE, LabelStore  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:

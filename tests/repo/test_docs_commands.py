@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from helpers.paths import REPO as ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 MARK = "<!-- cheap -->"
 FENCE = re.compile(r"^(?P<fence>`{3,}|~{3,})\s*(?P<lang>[A-Za-z0-9_+-]*)")
 SHELLS = ("bash", "sh", "shell", "console")

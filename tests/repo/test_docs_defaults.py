@@ -15,10 +15,10 @@ import re
 from pathlib import Path
 
 import pytest
+from helpers.paths import REPO as ROOT
 
 from s3k.cli import COMMANDS, command_parser
 
-ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = {"accuracy-log.md"}  # the dated log quotes the defaults of its day
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers.paths import REPO as ROOT
+
 PACKAGE = ROOT / "s3k"
 MAX_LINES = 500
 

@@ -17,12 +17,11 @@ import json
 import math
 import re
 from collections.abc import Callable
-from pathlib import Path
 from statistics import mean
 
 import pytest
+from helpers.paths import REPO as ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 NUMBER = r"([-+]?\d+(?:\.\d+)?)"
 
 Getter = Callable[[Callable[[str], dict]], float]

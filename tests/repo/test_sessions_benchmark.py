@@ -7,13 +7,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
+from helpers.paths import REPO as ROOT
 
 from s3k.data import Dataset
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def bench(args: list[str]) -> int:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.paths import REPO as ROOT
 
 import s3k.budget as budget
 from s3k.budget import activation_elements, footprint, unet_parameters
@@ -22,7 +23,6 @@ from s3k.memory import available_memory
 from s3k.model import UNet, UNetConfig
 from s3k.train import train
 
-ROOT = Path(__file__).resolve().parents[1]
 GIB = 2**30
 QUICK = ["--no-progress", "--threads", "1", "--val-every", "0"]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.paths import REPO
 from helpers.synthetic_rig import make_dataset
 
 from s3k.base.errors import UserError
@@ -76,7 +77,7 @@ def _free_port() -> int:
 def _torchrun(data: Path, work: Path, plan: list[dict]) -> None:
     script = work / "ddp_train.py"
     script.write_text(SCRIPT)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr",
            "127.0.0.1", "--master_port", str(_free_port()), str(script), str(data), str(work),
            json.dumps(plan)]

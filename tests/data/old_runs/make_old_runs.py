@@ -6,7 +6,7 @@ joined TrainConfig): a one-pass run ``one`` and a two-pass run ``two`` trained o
     PYTHONPATH=$PWD python /path/to/make_old_runs.py /tmp/old-runs
     (cd /tmp/old-runs && tar --exclude=tensorboard -cf - one two) | (cd tests/data/old_runs && tar xf -)
 
-``tests/test_old_runs.py`` loads, evaluates and resumes them with the code of today.
+``tests/detector/test_old_runs.py`` loads, evaluates and resumes them with the code of today.
 """
 import shutil
 import sys
