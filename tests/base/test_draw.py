@@ -58,7 +58,7 @@ def test_a_run_records_its_datasets_skeleton(tmp_path):
 
 def test_track_overlay_draws_the_runs_skeleton(tmp_path, monkeypatch):
     from helpers.tiny_detector import save_run
-    from test_track import CAMERAS, KEYPOINTS, NET_SIZE, VIDEO_SIZE, make_rig
+    from helpers.track_rig import CAMERAS, KEYPOINTS, NET_SIZE, VIDEO_SIZE, make_rig
 
     import s3k.inference.track
     from s3k import cli

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_importers import _import, recording  # noqa: F401 - the fixture
+from helpers.recordings import run_import
 
 from s3k import cli
 from s3k.base.outputs import UNFINISHED_MARKER, check_replaceable
@@ -39,10 +39,10 @@ def _hidden(parent: Path) -> list[str]:
     return sorted(p.name for p in parent.iterdir() if p.name.startswith("."))
 
 
-def test_import_overwrite_refuses_a_folder_s3k_did_not_make(recording, tmp_path, capsys):  # noqa: F811
+def test_import_overwrite_refuses_a_folder_s3k_did_not_make(import_recording, tmp_path, capsys):
     out = tmp_path / "mine"
     before = _thesis(out)
-    assert _import(recording, out, "--overwrite") == 1
+    assert run_import(import_recording, out, "--overwrite") == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not a dataset" in err and str(out) in err
     assert _tree(out) == before and _hidden(tmp_path) == []
@@ -58,36 +58,37 @@ def test_simulate_overwrite_refuses_a_folder_s3k_did_not_make(tmp_path, capsys):
     assert _tree(out) == before and _hidden(tmp_path) == []
 
 
-def test_import_overwrite_replaces_a_dataset_whole(recording, tmp_path):  # noqa: F811
+def test_import_overwrite_replaces_a_dataset_whole(import_recording, tmp_path):
     out = tmp_path / "ds"
-    assert _import(recording, out, "--labelled", "2") == 0
-    assert _import(recording, out, "--labelled", "3", "--overwrite") == 0
+    assert run_import(import_recording, out, "--labelled", "2") == 0
+    assert run_import(import_recording, out, "--labelled", "3", "--overwrite") == 0
     assert (out / "s3k.json").is_file() and not (out / UNFINISHED_MARKER).exists()
     assert _hidden(tmp_path) == []
 
 
-def test_an_import_killed_between_its_renames_is_restored(recording, tmp_path, capsys):  # noqa: F811
+def test_an_import_killed_between_its_renames_is_restored(import_recording, tmp_path, capsys):
     out = tmp_path / "ds"
-    assert _import(recording, out) == 0
+    assert run_import(import_recording, out) == 0
     before = sorted(p.relative_to(out) for p in out.rglob("*"))
     # What a kill between "dataset -> aside" and "new -> dataset" leaves: no --out, both datasets hidden.
     pid = _dead_pid()
     os.replace(out, tmp_path / f".ds.replaced-{pid}")
     (tmp_path / f".ds.writing-{pid}" / "images").mkdir(parents=True)
-    assert _import(recording, out) == 1  # the old dataset is back, and --overwrite is needed to replace it
+    # the old dataset is back, and --overwrite is needed to replace it
+    assert run_import(import_recording, out) == 1
     err = capsys.readouterr().err
     assert "restored" in err and "pass --overwrite" in err
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
     assert _hidden(tmp_path) == []
 
 
-def test_folders_left_by_killed_imports_are_removed(recording, tmp_path):  # noqa: F811
+def test_folders_left_by_killed_imports_are_removed(import_recording, tmp_path):
     out = tmp_path / "ds"
     pid = _dead_pid()
     for name in (f".ds.importing-{pid}", f".ds.writing-{pid}"):  # an earlier version's name and this one's
         (tmp_path / name / "images" / "north").mkdir(parents=True)
     (tmp_path / f".ds.writing-{os.getpid()}x").mkdir()  # not one of ours: kept
-    assert _import(recording, out) == 0
+    assert run_import(import_recording, out) == 0
     assert _hidden(tmp_path) == [f".ds.writing-{os.getpid()}x"]
 
 

@@ -80,7 +80,7 @@ def test_grasp_never_replaces_a_file_without_overwrite_nor_writes_into_a_dataset
 # ---------------------------------------------------------------------------------- experiment --publish
 @pytest.fixture
 def summarized(tmp_path) -> Path:
-    from test_experiments import fake_result, old_summary
+    from helpers.experiment_results import fake_result, old_summary
 
     import s3k.experiments as ex
 
@@ -214,8 +214,8 @@ def test_an_export_that_fails_its_check_leaves_nothing(tmp_path, capsys, monkeyp
     pytest.importorskip("onnxruntime")
     import numpy as np
     import onnx
+    from helpers.tiny_detector import make_run
     from onnx import numpy_helper
-    from test_export import make_run
 
     import s3k.inference.export as export
 

@@ -9,8 +9,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+from helpers.recordings import CAMS
 from helpers.synthetic_rig import make_dataset
-from test_importers import CAMS, recording  # noqa: F401 - the fixture
 
 from s3k import cli
 
@@ -27,21 +27,21 @@ def one_line(capsys, argv: list[str], *needles: str) -> str:
     return err
 
 
-def _import_argv(recording, calibration: Path, out: Path, *extra: str) -> list[str]:  # noqa: F811
-    root = recording["root"]
+def _import_argv(import_recording, calibration: Path, out: Path, *extra: str) -> list[str]:
+    root = import_recording["root"]
     return ["import", "--calibration", str(calibration), "--videos",
             *[f"{cam}={root / cam}.mkv" for cam in CAMS], "--out", str(out), *extra]
 
 
-def test_a_latin1_dlc_csv(recording, tmp_path, capsys):  # noqa: F811
-    root = recording["root"]
+def test_a_latin1_dlc_csv(import_recording, tmp_path, capsys):
+    root = import_recording["root"]
     files = []
     for cam in CAMS:
         text = (root / f"CollectedData_{cam}.csv").read_text().replace("scorer,me", "scorer,Jos\u00e9", 1)
         (tmp_path / f"{cam}.csv").write_bytes(text.encode("latin-1"))
         files.append(f"{cam}={tmp_path / cam}.csv")
-    one_line(capsys, _import_argv(recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files),
-             "north.csv, line 1", "not UTF-8", "save the file as UTF-8")
+    argv = _import_argv(import_recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files)
+    one_line(capsys, argv, "north.csv, line 1", "not UTF-8", "save the file as UTF-8")
     assert not (tmp_path / "ds").exists()
 
 
@@ -58,8 +58,8 @@ def test_a_truncated_or_non_utf8_tracks_csv(tmp_path, capsys, content, needle):
     assert not (tmp_path / "t.nwb").exists()
 
 
-def _rotated(recording, tmp_path: Path, rotation: str) -> Path:  # noqa: F811
-    lines = (recording["root"] / "calibration.toml").read_text().splitlines()
+def _rotated(import_recording, tmp_path: Path, rotation: str) -> Path:
+    lines = (import_recording["root"] / "calibration.toml").read_text().splitlines()
     i = next(i for i, line in enumerate(lines) if line.startswith("rotation"))
     lines[i] = rotation
     path = tmp_path / "calibration.toml"
@@ -67,9 +67,9 @@ def _rotated(recording, tmp_path: Path, rotation: str) -> Path:  # noqa: F811
     return path
 
 
-def test_a_rotation_of_1e300_in_a_toml_calibration(recording, tmp_path, capsys):  # noqa: F811
-    calibration = _rotated(recording, tmp_path, ROTATION_1E300)
-    one_line(capsys, _import_argv(recording, calibration, tmp_path / "ds", "--keypoints", "a"),
+def test_a_rotation_of_1e300_in_a_toml_calibration(import_recording, tmp_path, capsys):
+    calibration = _rotated(import_recording, tmp_path, ROTATION_1E300)
+    one_line(capsys, _import_argv(import_recording, calibration, tmp_path / "ds", "--keypoints", "a"),
              str(calibration), "camera north", "rotation")
 
 
@@ -107,7 +107,7 @@ XML_WITH_ENTITIES = """<?xml version="1.0"?>
     ("rodrigues", "rotation"),  # a Rodrigues vector of 1e300
     ("entities", "DOCTYPE or entities"),
 ])
-def test_opencv_calibrations_that_are_not(recording, tmp_path, capsys, kind, needle):  # noqa: F811
+def test_opencv_calibrations_that_are_not(import_recording, tmp_path, capsys, kind, needle):
     folder = tmp_path / "calibration"
     folder.mkdir()
     for cam in CAMS:
@@ -118,7 +118,7 @@ def test_opencv_calibrations_that_are_not(recording, tmp_path, capsys, kind, nee
         text = OPENCV.replace("{r}", r).replace("cols: 3\n   dt: d\n   data: [ 1e300",
                                                 "cols: 1\n   dt: d\n   data: [ 1e300")
         (folder / f"{cam}.yaml").write_text(text)
-    one_line(capsys, _import_argv(recording, folder, tmp_path / "ds", "--keypoints", "a"), needle)
+    one_line(capsys, _import_argv(import_recording, folder, tmp_path / "ds", "--keypoints", "a"), needle)
     assert not (tmp_path / "ds").exists()
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers.recordings import CAMS
 from helpers.synthetic_rig import count_decodes, make_dataset
-from test_importers import recording  # noqa: F401 - the fixture
 
 from s3k import cli
 from s3k.data.images import header_size
@@ -108,13 +108,12 @@ def _sleap_file(path: Path, tracks: np.ndarray, names=None, external: Path | Non
     return path
 
 
-def test_import_refuses_a_sleap_file_with_external_storage(recording, tmp_path, capsys):  # noqa: F811
+def test_import_refuses_a_sleap_file_with_external_storage(import_recording, tmp_path, capsys):
     import h5py
-    from test_importers import CAMS
 
     secret = tmp_path / "secret.txt"
     secret.write_text("private text")
-    root = recording["root"]
+    root = import_recording["root"]
     files = []
     for cam in CAMS:
         with h5py.File(root / f"{cam}.analysis.h5") as h5:

@@ -13,7 +13,7 @@ import pickle
 import cv2
 import numpy as np
 import pytest
-from test_importers import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, recording  # noqa: F401 (fixture)
+from helpers.recordings import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, write_sleap
 
 from s3k.base.errors import UserError
 from s3k.cli import main, showing_library_messages
@@ -24,20 +24,20 @@ from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d
 from s3k.data.formats.safe_pickle import load_pickle
 
 
-def _rig(recording):  # noqa: F811
-    return anipose.read_anipose_calibration(recording["root"] / "calibration.toml")
+def _rig(import_recording):
+    return anipose.read_anipose_calibration(import_recording["root"] / "calibration.toml")
 
 
-def _run(recording, calibration, out, *extra, videos=None):  # noqa: F811
-    root = recording["root"]
+def _run(import_recording, calibration, out, *extra, videos=None):
+    root = import_recording["root"]
     videos = videos or {cam: root / f"{cam}.mkv" for cam in CAMS}
     argv = ["import", "--calibration", str(calibration), "--videos", *[f"{c}={p}" for c, p in videos.items()],
             "--out", str(out), *extra]
     return main(argv)
 
 
-def _sleap(recording, names=CAMS):  # noqa: F811
-    return ["--sleap", *[f"{n}={recording['root'] / cam}.analysis.h5" for n, cam in zip(names, CAMS)]]
+def _sleap(import_recording, names=CAMS):
+    return ["--sleap", *[f"{n}={import_recording['root'] / cam}.analysis.h5" for n, cam in zip(names, CAMS)]]
 
 
 def _validated(path):
@@ -53,11 +53,11 @@ def _assert_same_cameras(ds, rig, atol=1e-9):
         np.testing.assert_allclose(got[key], ref[key], atol=atol, err_msg=key)
 
 
-def _assert_labels(ds, recording, camera_order=None, atol=0.0):  # noqa: F811
+def _assert_labels(ds, import_recording, camera_order=None, atol=0.0):
     """The dataset's labels on its labelled frames are the recording's projected points."""
     ids = ds.frames("labelled")
     uv, mask = ds.labels(ids)
-    ref = recording["uv"][ids]
+    ref = import_recording["uv"][ids]
     np.testing.assert_array_equal(mask, np.isfinite(ref).all(-1))
     np.testing.assert_allclose(uv[mask], ref[mask].astype(np.float32), atol=atol)
 
@@ -93,24 +93,24 @@ def write_qca(path, rig):
     path.write_text("\n".join(lines) + "\n")
 
 
-def test_import_qualisys_calibration(recording, tmp_path):  # noqa: F811
-    rig = _rig(recording)
+def test_import_qualisys_calibration(import_recording, tmp_path):
+    rig = _rig(import_recording)
     qca = tmp_path / "rig.qca.txt"
     write_qca(qca, rig)
     assert calibration_format(qca) == "qualisys"
     read = read_calibration(qca)
     assert read.names == CAMS and read.units == "mm"
     np.testing.assert_array_equal(read.size, rig.size)
-    assert _run(recording, qca, tmp_path / "ds", *_sleap(recording), "--labelled", "all") == 0
+    assert _run(import_recording, qca, tmp_path / "ds", *_sleap(import_recording), "--labelled", "all") == 0
     ds = _validated(tmp_path / "ds")
     assert ds.cameras == CAMS and ds.keypoints == KEYPOINTS and ds.units == "mm"
     assert len(ds.frames("labelled")) == N_FRAMES
     _assert_same_cameras(ds, rig)
-    _assert_labels(ds, recording)
+    _assert_labels(ds, import_recording)
 
 
-def test_import_jarvis_yaml_folder_and_opencv_xml(recording, tmp_path):  # noqa: F811
-    rig = _rig(recording)
+def test_import_jarvis_yaml_folder_and_opencv_xml(import_recording, tmp_path):
+    rig = _rig(import_recording)
     cams = rig.cameras.numpy()
     folder = tmp_path / "jarvis"
     folder.mkdir()
@@ -124,12 +124,12 @@ def test_import_jarvis_yaml_folder_and_opencv_xml(recording, tmp_path):  # noqa:
     read = read_calibration(folder)
     assert read.names == sorted(CAMS) and read.units == "unknown"
     np.testing.assert_array_equal(read.size, 0)  # the videos give it
-    assert _run(recording, folder, tmp_path / "ds", *_sleap(recording), "--labelled", "all", "--units",
-                "mm") == 0
+    assert _run(import_recording, folder, tmp_path / "ds", *_sleap(import_recording), "--labelled", "all",
+                "--units", "mm") == 0
     ds = _validated(tmp_path / "ds")
     assert ds.cameras == CAMS and ds.units == "mm" and ds.image_size == (W_IMG, H_IMG)
     _assert_same_cameras(ds, rig)
-    _assert_labels(ds, recording)
+    _assert_labels(ds, import_recording)
     # A plain OpenCV XML file: one camera, named by the file, not transposed, with its image size.
     xml = tmp_path / "north.xml"
     fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_WRITE)
@@ -155,9 +155,9 @@ def _df3d_calib(rig):
             for c in range(len(rig.names))}
 
 
-def test_import_deepfly3d_pickles(recording, tmp_path):  # noqa: F811
-    rig = _rig(recording)
-    uv = recording["uv"]  # (F, C, K, 2)
+def test_import_deepfly3d_pickles(import_recording, tmp_path):
+    rig = _rig(import_recording)
+    uv = import_recording["uv"]  # (F, C, K, 2)
     points2d = np.stack([uv[..., 1] / H_IMG, uv[..., 0] / W_IMG], axis=-1).transpose(1, 0, 2, 3)
     result = {**_df3d_calib(rig), "points2d": np.nan_to_num(points2d), "camera_ordering": np.arange(3)}
     with open(tmp_path / "df3d_result.pkl", "wb") as f:
@@ -166,14 +166,14 @@ def test_import_deepfly3d_pickles(recording, tmp_path):  # noqa: F811
         pickle.dump(_df3d_calib(rig), f)
     read = read_calibration(tmp_path / "calib.pkl")
     assert read.names == ["camera_0", "camera_1", "camera_2"]
-    videos = {f"camera_{c}": recording["root"] / f"{cam}.mkv" for c, cam in enumerate(CAMS)}
-    code = _run(recording, tmp_path / "df3d_result.pkl", tmp_path / "ds", "--deepfly3d",
+    videos = {f"camera_{c}": import_recording["root"] / f"{cam}.mkv" for c, cam in enumerate(CAMS)}
+    code = _run(import_recording, tmp_path / "df3d_result.pkl", tmp_path / "ds", "--deepfly3d",
                 str(tmp_path / "df3d_result.pkl"), "--labelled", "all", "--units", "mm", videos=videos)
     assert code == 0
     ds = _validated(tmp_path / "ds")
     assert ds.cameras == list(videos) and ds.keypoints == ["joint_0", "joint_1", "joint_2"]
     _assert_same_cameras(ds, rig)
-    _assert_labels(ds, recording, atol=1e-4)
+    _assert_labels(ds, import_recording, atol=1e-4)
 
 
 def test_deepfly3d_visibility_rule(tmp_path):
@@ -234,10 +234,10 @@ def test_pose2sim_config_is_not_an_anipose_calibration(tmp_path, capsys):
     assert f"{config}: not an anipose calibration" in err and "Pose2Sim Config.toml" in err
 
 
-def test_units_from_the_anipose_project_config(recording, tmp_path):  # noqa: F811
+def test_units_from_the_anipose_project_config(import_recording, tmp_path):
     session = tmp_path / "project" / "session1" / "calibration"
     session.mkdir(parents=True)
-    text = (recording["root"] / "calibration.toml").read_text()
+    text = (import_recording["root"] / "calibration.toml").read_text()
     text = text[: text.index("[metadata]")]  # no units, no board in the file
     (session / "calibration.toml").write_text(text)
     assert anipose.read_anipose_calibration(session / "calibration.toml").units == "unknown"
@@ -251,22 +251,22 @@ def test_units_from_the_anipose_project_config(recording, tmp_path):  # noqa: F8
 # Videos: image sequences, decoded frame counts, regions of the calibrated image
 
 
-def _sequences(recording, root):  # noqa: F811
+def _sequences(import_recording, root):
     """The recording's frames as PNG folders, given as a folder, a glob and a printf pattern."""
     from s3k.data.video import extract_frames
 
     for cam in CAMS:
-        extract_frames(recording["root"] / f"{cam}.mkv", root / cam, pattern="img_{:04d}.png")
+        extract_frames(import_recording["root"] / f"{cam}.mkv", root / cam, pattern="img_{:04d}.png")
     return {"north": root / "north", "east": root / "east" / "*.png",
             "south": root / "south" / "img_%04d.png"}
 
 
-def test_import_image_sequences_like_videos(recording, tmp_path):  # noqa: F811
-    seqs = _sequences(recording, tmp_path / "seq")
-    calib = recording["root"] / "calibration.toml"
-    args = (*_sleap(recording), "--labelled", "3", "--test", "2", "--seed", "4", "--scale", "0.5")
-    assert _run(recording, calib, tmp_path / "from_seq", *args, videos=seqs) == 0
-    assert _run(recording, calib, tmp_path / "from_video", *args) == 0
+def test_import_image_sequences_like_videos(import_recording, tmp_path):
+    seqs = _sequences(import_recording, tmp_path / "seq")
+    calib = import_recording["root"] / "calibration.toml"
+    args = (*_sleap(import_recording), "--labelled", "3", "--test", "2", "--seed", "4", "--scale", "0.5")
+    assert _run(import_recording, calib, tmp_path / "from_seq", *args, videos=seqs) == 0
+    assert _run(import_recording, calib, tmp_path / "from_video", *args) == 0
     a, b = _validated(tmp_path / "from_seq"), _validated(tmp_path / "from_video")
     for split in ("labelled", "test", "unlabelled"):
         np.testing.assert_array_equal(a.frames(split), b.frames(split))
@@ -305,15 +305,15 @@ def _truncated_video(path, frames):
     path.write_bytes(data[: len(data) - sizes[-1]])  # the media data comes last: drop the last frame's
 
 
-def test_frame_counts_come_from_decoding(recording, tmp_path, capsys):  # noqa: F811
+def test_frame_counts_come_from_decoding(import_recording, tmp_path, capsys):
     from s3k.data import video
 
     short = tmp_path / "north.mp4"
-    _truncated_video(short, recording["frames"]["north"][:3])
+    _truncated_video(short, import_recording["frames"]["north"][:3])
     assert video.frame_count(short) == 3 and video.frame_count(short, exact=True) == 2
-    videos = {"north": short, "east": recording["root"] / "east.mkv"}
-    code = _run(recording, recording["root"] / "calibration.toml", tmp_path / "ds", "--keypoints",
-                "head,body", videos=videos)
+    videos = {"north": short, "east": import_recording["root"] / "east.mkv"}
+    code = _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
+                "--keypoints", "head,body", videos=videos)
     err = capsys.readouterr().err
     assert code == 0, err
     assert f"{short}: the header says 3 frames but 2 decode; using 2" in err
@@ -321,21 +321,21 @@ def test_frame_counts_come_from_decoding(recording, tmp_path, capsys):  # noqa: 
     np.testing.assert_array_equal(ds.frames("unlabelled"), [0, 1])
 
 
-def test_video_region_declares_a_cropped_video(recording, tmp_path, capsys):  # noqa: F811
+def test_video_region_declares_a_cropped_video(import_recording, tmp_path, capsys):
     from s3k.data.video import write_video
 
-    rig = _rig(recording)
+    rig = _rig(import_recording)
     videos = {}
     for cam in CAMS:  # videos 4 rows shorter: 2 rows of the calibrated image cut at the top and bottom
         videos[cam] = tmp_path / f"{cam}.mkv"
-        write_video(videos[cam], [f[2:-2] for f in recording["frames"][cam]], codec="ffv1")
-    calib = recording["root"] / "calibration.toml"
-    assert _run(recording, calib, tmp_path / "x", "--keypoints", "head", videos=videos) == 1
+        write_video(videos[cam], [f[2:-2] for f in import_recording["frames"][cam]], codec="ffv1")
+    calib = import_recording["root"] / "calibration.toml"
+    assert _run(import_recording, calib, tmp_path / "x", "--keypoints", "head", videos=videos) == 1
     err = capsys.readouterr().err
     assert f"video is {W_IMG}x{H_IMG - 4}" in err and "(3 cameras differ)" in err
     assert f"--video-region north=0,0,{W_IMG},{H_IMG - 4} east=0,0,{W_IMG},{H_IMG - 4} south=" in err
     regions = [f"{cam}=0,2,{W_IMG},{H_IMG - 2}" for cam in CAMS]
-    assert _run(recording, calib, tmp_path / "ds", "--keypoints", "head", "--video-region", *regions,
+    assert _run(import_recording, calib, tmp_path / "ds", "--keypoints", "head", "--video-region", *regions,
                 videos=videos) == 0
     ds = _validated(tmp_path / "ds")
     assert ds.image_size == (W_IMG, H_IMG - 4)
@@ -343,7 +343,7 @@ def test_video_region_declares_a_cropped_video(recording, tmp_path, capsys):  # 
     ref = rig.cameras.numpy()["K"]
     np.testing.assert_allclose(K[:, 1, 2], ref[:, 1, 2] - 2)  # the principal point moves with the rows cut
     np.testing.assert_allclose(K[:, 0], ref[:, 0])
-    np.testing.assert_array_equal(ds.images([5])[0, 1], recording["frames"]["east"][5][2:-2])
+    np.testing.assert_array_equal(ds.images([5])[0, 1], import_recording["frames"]["east"][5][2:-2])
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -358,8 +358,8 @@ def _person(uv, scores):
     return flat
 
 
-def test_import_openpose_json(recording, tmp_path):  # noqa: F811
-    uv = recording["uv"]
+def test_import_openpose_json(import_recording, tmp_path):
+    uv = import_recording["uv"]
     rng = np.random.default_rng(3)
     for c, cam in enumerate(CAMS):
         folder = tmp_path / "op" / cam
@@ -374,7 +374,7 @@ def test_import_openpose_json(recording, tmp_path):  # noqa: F811
                                                {"person_id": [-1], "pose_keypoints_2d": real}]}
             (folder / f"rec_{f:012d}_keypoints.json").write_text(json.dumps(data))
     args = ["--openpose", *[f"{cam}={tmp_path / 'op' / cam}" for cam in CAMS], "--labelled", "all"]
-    assert _run(recording, recording["root"] / "calibration.toml", tmp_path / "ds", *args) == 0
+    assert _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds", *args) == 0
     ds = _validated(tmp_path / "ds")
     assert ds.keypoints == ["kp0", "kp1", "kp2"] and ds.units == "mm"
     expected = uv.copy()
@@ -385,8 +385,8 @@ def test_import_openpose_json(recording, tmp_path):  # noqa: F811
     np.testing.assert_allclose(got[mask], expected[ids][mask].astype(np.float32), atol=1e-5)
 
 
-def test_import_mmpose_json(recording, tmp_path):  # noqa: F811
-    uv = recording["uv"]
+def test_import_mmpose_json(import_recording, tmp_path):
+    uv = import_recording["uv"]
     args = ["--mmpose"]
     for c, cam in enumerate(CAMS):
         frames = []
@@ -400,22 +400,23 @@ def test_import_mmpose_json(recording, tmp_path):  # noqa: F811
         meta = {"dataset_name": "test", "keypoint_id2name": {str(k): n for k, n in enumerate(KEYPOINTS)}}
         path.write_text(json.dumps({"meta_info": meta, "instance_info": frames}))
         args.append(f"{cam}={path}")
-    assert _run(recording, recording["root"] / "calibration.toml", tmp_path / "ds", *args, "--labelled",
-                "all", "--min-score", "0.5") == 0
+    assert _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds", *args,
+                "--labelled", "all", "--min-score", "0.5") == 0
     ds = _validated(tmp_path / "ds")
     assert ds.keypoints == KEYPOINTS and ds.cameras == CAMS
-    _assert_labels(ds, recording)
+    _assert_labels(ds, import_recording)
 
 
 # ------------------------------------------------------------------------------------------------------------
 # Without labels; all or nothing; keypoint sets that differ
 
 
-def test_import_without_labels(recording, tmp_path, capsys):  # noqa: F811
-    calib = recording["root"] / "calibration.toml"
-    assert _run(recording, calib, tmp_path / "x") == 1
+def test_import_without_labels(import_recording, tmp_path, capsys):
+    calib = import_recording["root"] / "calibration.toml"
+    assert _run(import_recording, calib, tmp_path / "x") == 1
     assert "no labels given: name the keypoints with --keypoints" in capsys.readouterr().err
-    assert _run(recording, calib, tmp_path / "ds", "--keypoints", "head,body,tail", "--stride", "3") == 0
+    assert _run(import_recording, calib, tmp_path / "ds", "--keypoints", "head,body,tail", "--stride",
+                "3") == 0
     problems, ds = check_dataset(tmp_path / "ds")
     assert [(p.severity, p.file) for p in problems] == [("warning", "frames.csv")]
     assert "no labelled frames" in problems[0].message
@@ -424,33 +425,33 @@ def test_import_without_labels(recording, tmp_path, capsys):  # noqa: F811
     assert len(ds.frames("labelled")) == 0 and not (tmp_path / "ds" / "labels.csv").exists()
 
 
-def test_failed_import_leaves_nothing_and_names_overwrite(recording, tmp_path, capsys):  # noqa: F811
-    seqs = _sequences(recording, tmp_path / "seq")
+def test_failed_import_leaves_nothing_and_names_overwrite(import_recording, tmp_path, capsys):
+    seqs = _sequences(import_recording, tmp_path / "seq")
     bad = tmp_path / "seq" / "east" / "img_0007.png"
     good = bad.read_bytes()
     bad.write_bytes(b"not a png")
-    calib = recording["root"] / "calibration.toml"
+    calib = import_recording["root"] / "calibration.toml"
     out = tmp_path / "ds"
-    assert _run(recording, calib, out, "--keypoints", "head", videos=seqs) == 1
+    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
     err = capsys.readouterr().err
     assert "img_0007.png" in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no partial dataset, no temporary folder
     bad.write_bytes(good)
-    assert _run(recording, calib, out, "--keypoints", "head", videos=seqs) == 0
+    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 0
     before = sorted(p.relative_to(out) for p in out.rglob("*"))
-    assert _run(recording, calib, out, "--keypoints", "head", videos=seqs) == 1
+    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
     err = capsys.readouterr().err
     assert f"--out {out}: folder exists and is not empty; pass --overwrite to replace it" in err
     # A failing --overwrite keeps the old dataset whole.
     bad.write_bytes(b"not a png")
-    assert _run(recording, calib, out, "--keypoints", "head", "--overwrite", videos=seqs) == 1
+    assert _run(import_recording, calib, out, "--keypoints", "head", "--overwrite", videos=seqs) == 1
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
     _validated(out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "seq"]
 
 
-def test_dlc_keypoint_sets_that_differ_are_reported(recording, tmp_path, capsys):  # noqa: F811
-    root = recording["root"]
+def test_dlc_keypoint_sets_that_differ_are_reported(import_recording, tmp_path, capsys):
+    root = import_recording["root"]
     files = []
     for cam in CAMS:
         rows = (root / f"CollectedData_{cam}.csv").read_text().splitlines()
@@ -458,7 +459,7 @@ def test_dlc_keypoint_sets_that_differ_are_reported(recording, tmp_path, capsys)
             rows = [",".join(r.split(",")[:-2]) for r in rows]
         (tmp_path / f"{cam}.csv").write_text("\n".join(rows) + "\n")
         files.append(f"{cam}={tmp_path / cam}.csv")
-    assert _run(recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files, "--labelled",
+    assert _run(import_recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files, "--labelled",
                 "all") == 0
     out = capsys.readouterr().out
     assert f"warning: camera east: keypoints tail have no labels in {tmp_path / 'east.csv'}" in out
@@ -469,8 +470,8 @@ def test_dlc_keypoint_sets_that_differ_are_reported(recording, tmp_path, capsys)
     assert not ds.labels(ds.frames("labelled"))[1][:, 1, 2].any()
 
 
-def test_video_region_with_padding_moves_the_principal_point_out(recording):  # noqa: F811
-    rig = _rig(recording)
+def test_video_region_with_padding_moves_the_principal_point_out(import_recording):
+    rig = _rig(import_recording)
     padded = rig.with_video_regions({"east": (0, -4, W_IMG, H_IMG + 4)})
     assert padded.size.tolist() == [[W_IMG, H_IMG], [W_IMG, H_IMG + 8], [W_IMG, H_IMG]]
     K, ref = padded.cameras.numpy()["K"], rig.cameras.numpy()["K"]
@@ -500,7 +501,7 @@ def test_deepfly3d_no_estimate_marks_are_unlabelled_and_named(tmp_path, capsys):
             "joint without an estimate: read as unlabelled") in out
 
 
-def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_path, monkeypatch):  # noqa: F811
+def test_import_records_relative_sources_relative_to_the_dataset(import_recording, tmp_path, monkeypatch):
     """Paths given relative are written relative to the dataset folder: a dataset moved together with its
     recording still finds its calibration, videos and labels; absolute paths stay absolute."""
     import shutil
@@ -508,7 +509,7 @@ def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_
     from s3k.base.fileio import resolve_from
     from s3k.data import Dataset
 
-    root = recording["root"]
+    root = import_recording["root"]
     monkeypatch.chdir(root.parent)
     rel = root.name
 
@@ -542,35 +543,34 @@ def test_import_records_relative_sources_relative_to_the_dataset(recording, tmp_
 # Unsynchronized cameras: --frame-offsets
 
 
-def test_frame_offsets_align_a_late_camera(recording, tmp_path, capsys):  # noqa: F811
+def test_frame_offsets_align_a_late_camera(import_recording, tmp_path, capsys):
     """Camera east's clock is 2 frames off: its frame i shows the others' frame i + 2 (its video and labels
     start 2 frames later). With --frame-offsets east=2 every dataset frame holds the same instant in every
     camera: the images and labels of the synchronized recording; frames 0-1, which east did not film, are
     left out."""
-    from test_importers import _write_sleap
 
     from s3k.data.video import write_video
 
-    root, late = recording["root"], tmp_path / "late"
+    root, late = import_recording["root"], tmp_path / "late"
     late.mkdir()
     n = 2
-    write_video(late / "east.mkv", recording["frames"]["east"][n:], fps=30, codec="ffv1")
-    _write_sleap(late / "east.analysis.h5", recording["uv"][n:, 1, :, :, None], nodes=KEYPOINTS)
+    write_video(late / "east.mkv", import_recording["frames"]["east"][n:], fps=30, codec="ffv1")
+    write_sleap(late / "east.analysis.h5", import_recording["uv"][n:, 1, :, :, None], nodes=KEYPOINTS)
     videos = {cam: (late if cam == "east" else root) / f"{cam}.mkv" for cam in CAMS}
     labels = ["--sleap", *[f"{cam}={(late if cam == 'east' else root) / cam}.analysis.h5" for cam in CAMS]]
     args = [*labels, "--labelled", "all", "--frame-offsets", f"east={n}"]
-    assert _run(recording, root / "calibration.toml", tmp_path / "ds", *args, videos=videos) == 0
+    assert _run(import_recording, root / "calibration.toml", tmp_path / "ds", *args, videos=videos) == 0
     ds = _validated(tmp_path / "ds")
     ids = ds.frames()
     assert ids.min() == n and ids.max() == N_FRAMES - 1
-    _assert_labels(ds, recording)
+    _assert_labels(ds, import_recording)
     images = ds.images(ids)
     for c, cam in enumerate(CAMS):
-        want = np.stack([recording["frames"][cam][f] for f in ids])
+        want = np.stack([import_recording["frames"][cam][f] for f in ids])
         np.testing.assert_array_equal(images[:, c], want, err_msg=cam)
     assert "frame_offsets" in (tmp_path / "ds" / "s3k.json").read_text()
     capsys.readouterr()
-    assert _run(recording, root / "calibration.toml", tmp_path / "bad", *labels, "--frame-offsets",
+    assert _run(import_recording, root / "calibration.toml", tmp_path / "bad", *labels, "--frame-offsets",
                 "west=2", videos=videos) == 1
     assert "--frame-offsets 'west=2': unknown camera 'west' (cameras: north, east, south)" in \
         capsys.readouterr().err

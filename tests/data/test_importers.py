@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.real_recording import REAL, needs_real
+from helpers.recordings import CAMS, KEYPOINTS, N_FRAMES, run_import, write_sleap
 
 from s3k.base.errors import UserError
 from s3k.cli.options import camera_pairs, parse_crops, parse_size
@@ -267,23 +268,6 @@ def test_frame_id_from_path():
 # SLEAP analysis HDF5
 
 
-def _write_sleap(path, locations, occupancy=None, nodes=("head", "body", "tail"), transpose=True, names=None):
-    """SLEAP's writer: ``locations (F, K, 2, T)``, stored transposed (MATLAB order) by default."""
-    import h5py
-
-    F, K, _, T = locations.shape
-    if occupancy is None:
-        occupancy = np.ones((T, F), dtype=np.uint8)  # SLEAP builds (tracks, frames) then transposes
-    names = names or [f"track_{i}" for i in range(T)]
-    with h5py.File(path, "w") as f:
-        f["tracks"] = locations.T if transpose else locations
-        f["track_occupancy"] = occupancy.T if transpose else occupancy
-        f["node_names"] = np.array([n.encode() for n in nodes], dtype="S")
-        f["track_names"] = np.array([n.encode() for n in names], dtype="S")
-        f["point_scores"] = np.ones((F, K, T)).T
-        f["video_path"] = "cam.mp4"
-
-
 def _locations(F=5, K=3, T=1, seed=0):
     loc = np.random.default_rng(seed).uniform(0, 60, (F, K, 2, T))
     loc[1, 2, :, 0] = np.nan  # a missing node
@@ -293,7 +277,7 @@ def _locations(F=5, K=3, T=1, seed=0):
 def test_read_sleap_analysis(tmp_path):
     loc = _locations()
     path = tmp_path / "cam.analysis.h5"
-    _write_sleap(path, loc)
+    write_sleap(path, loc)
     table = sleap.read_sleap_analysis(path)
     assert table.keypoints == ["head", "body", "tail"]
     np.testing.assert_array_equal(table.frame_ids, np.arange(5))
@@ -306,7 +290,7 @@ def test_read_sleap_untransposed_and_tracks(tmp_path):
     occupancy = np.ones((2, 5), dtype=np.uint8)
     occupancy[1, 3] = 0
     path = tmp_path / "cam.h5"
-    _write_sleap(path, loc, occupancy, transpose=False, names=["mouse_a", "mouse_b"])
+    write_sleap(path, loc, occupancy, transpose=False, names=["mouse_a", "mouse_b"])
     with pytest.raises(ValueError, match="2 tracks \\(mouse_a, mouse_b\\)"):
         sleap.read_sleap_analysis(path)
     table = sleap.read_sleap_analysis(path, track="mouse_b")
@@ -340,81 +324,6 @@ def test_sleap_malformed(tmp_path):
 # s3k import, end to end on a tiny synthetic recording
 
 
-def _look_at(centre):
-    z = -np.asarray(centre, float) / np.linalg.norm(centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
-W_IMG, H_IMG, N_FRAMES = 64, 48, 12
-CAMS = ["north", "east", "south"]
-KEYPOINTS = ["head", "body", "tail"]
-
-
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    """A 3-camera rig in mm, ffv1 videos, SLEAP files and DLC CSVs of the same projected 3D points."""
-    from s3k.data.video import write_video
-
-    root = tmp_path_factory.mktemp("recording")
-    Rs, ts = [], []
-    for c in range(3):
-        angle = 2 * np.pi * c / 3
-        R, t = _look_at(np.array([np.cos(angle), np.sin(angle), 0.5]) * 400.0)
-        Rs.append(R)
-        ts.append(t)
-    K = np.array([[70.0, 0, (W_IMG - 1) / 2], [0, 70.0, (H_IMG - 1) / 2], [0, 0, 1]])
-    cams = Cameras.from_numpy(np.stack([K] * 3), np.zeros((3, 5)), np.stack(Rs), np.stack(ts),
-                              dtype=torch.float64)
-    calib = Rig(list(CAMS), cams, np.array([[W_IMG, H_IMG]] * 3), "mm", {"square_length": 20.0})
-    anipose.write_anipose_calibration(root / "calibration.toml", calib)
-    rng = np.random.default_rng(0)
-    X = rng.uniform(-40, 40, (N_FRAMES, len(KEYPOINTS), 3))
-    uv = np.stack(
-        [cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(R)[0], t, K, None)[0].reshape(N_FRAMES, -1, 2)
-         for R, t in zip(Rs, ts)],
-        axis=1,
-    )  # (F, C, K, 2)
-    uv[3, 0, 1] = np.nan  # missing labels
-    uv[5, :, 2] = np.nan
-    frames = {}
-    for c, cam in enumerate(CAMS):
-        # Each frame a distinct pattern so that a frame mix-up is visible.
-        images = [
-            (rng.integers(0, 40, (H_IMG, W_IMG, 3)) + np.array([20 * f, 60 * c, 100])).clip(0, 255)
-            .astype(np.uint8)
-            for f in range(N_FRAMES)
-        ]
-        frames[cam] = images
-        write_video(root / f"{cam}.mkv", images, fps=30, codec="ffv1")
-        loc = uv[:, c, :, :, None]  # (F, K, 2, 1 track)
-        _write_sleap(root / f"{cam}.analysis.h5", loc, nodes=KEYPOINTS)
-        rows = ["scorer" + ",me" * 6, "bodyparts," + ",".join(f"{k},{k}" for k in KEYPOINTS)]
-        rows.append("coords" + ",x,y" * 3)
-        for f in range(0, N_FRAMES, 2):  # DLC: every other frame labelled, written in shuffled order
-            cells = ["" if np.isnan(v) else repr(float(v)) for v in uv[f, c].ravel()]
-            rows.insert(3, f"labeled-data/rec_{cam}/img{f:04d}.png," + ",".join(cells))
-        (root / f"CollectedData_{cam}.csv").write_text("\n".join(rows) + "\n")
-    return {"root": root, "X": X, "uv": uv, "frames": frames, "K": K}
-
-
-def _import(recording, out, *extra, labels="sleap"):
-    from s3k.cli import main
-
-    root = recording["root"]
-    argv = ["import", "--calibration", str(root / "calibration.toml"), "--videos"]
-    argv += [f"{cam}={root / cam}.mkv" for cam in CAMS]
-    if labels == "sleap":
-        argv += ["--sleap"] + [f"{cam}={root / cam}.analysis.h5" for cam in CAMS]
-    elif labels == "dlc":
-        argv += ["--dlc"] + [f"{cam}={root}/CollectedData_{cam}.csv" for cam in CAMS]
-    else:
-        argv += ["--lightning-pose", str(root)]
-    return main(argv + ["--out", str(out), *extra])
-
-
 def _reprojected(ds, frame_ids, X):
     """Project ground-truth points with the dataset's calibration: must land on its labels."""
     import torch
@@ -426,12 +335,13 @@ def _reprojected(ds, frame_ids, X):
     return uv.numpy()
 
 
-def test_import_sleap(recording, tmp_path, capsys):
+def test_import_sleap(import_recording, tmp_path, capsys):
     from s3k.data import Dataset
     from s3k.geometry.warp import resize_crop
 
     out = tmp_path / "ds"
-    assert _import(recording, out, "--labelled", "3", "--test", "4", "--seed", "1", "--scale", "0.5") == 0
+    assert run_import(import_recording, out, "--labelled", "3", "--test", "4", "--seed", "1", "--scale",
+                      "0.5") == 0
     assert "labelled 3, test 4, unlabelled 5" in capsys.readouterr().out
     ds = Dataset.open(out)
     assert ds.cameras == CAMS and ds.keypoints == KEYPOINTS
@@ -442,30 +352,30 @@ def test_import_sleap(recording, tmp_path, capsys):
     # Labels are kept on labelled and test frames only, and follow the resize exactly (K' = M K).
     ids = np.sort(np.concatenate([lab, test]))
     uv, mask = ds.labels(ids)
-    ref = recording["uv"][ids]
+    ref = import_recording["uv"][ids]
     np.testing.assert_array_equal(mask, np.isfinite(ref).all(-1))
-    np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, recording["X"])[mask], atol=1e-3)
+    np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, import_recording["X"])[mask], atol=1e-3)
     np.testing.assert_allclose(uv[mask], (0.5 * (ref + 0.5) - 0.5)[mask], atol=1e-3)
     assert not ds.labels(unl)[1].any()
     # Images: the right video frame of the right camera, resized by resize_crop.
     f = int(test[0])
     images = ds.images([f])[0]
     for c, cam in enumerate(CAMS):
-        expected = resize_crop(recording["frames"][cam][f], None, None, (32, 24))[0]
+        expected = resize_crop(import_recording["frames"][cam][f], None, None, (32, 24))[0]
         np.testing.assert_array_equal(images[c], expected)
     # The same seed gives the same split.
-    assert _import(recording, tmp_path / "again", "--labelled", "3", "--test", "4", "--seed", "1",
-                   "--stride", "4") == 0
+    assert run_import(import_recording, tmp_path / "again", "--labelled", "3", "--test", "4", "--seed", "1",
+                      "--stride", "4") == 0
     again = Dataset.open(tmp_path / "again")
     np.testing.assert_array_equal(again.frames("test"), test)
     np.testing.assert_array_equal(again.frames("unlabelled"), [f for f in unl if f % 4 == 0])
 
 
-def test_import_recording_takes_typed_arguments(recording, tmp_path):
+def test_import_recording_takes_typed_arguments(import_recording, tmp_path):
     """The library call gives the dataset the command line gives for the same options."""
     from s3k.data import Dataset
 
-    root = recording["root"]
+    root = import_recording["root"]
     path = rec.import_recording(
         root / "calibration.toml", {cam: root / f"{cam}.mkv" for cam in CAMS}, tmp_path / "lib",
         SleapFiles({cam: root / f"{cam}.analysis.h5" for cam in CAMS}),
@@ -474,8 +384,8 @@ def test_import_recording_takes_typed_arguments(recording, tmp_path):
         keypoints=["tail", "head"],
     )
     assert path == tmp_path / "lib"
-    assert _import(recording, tmp_path / "cli", "--labelled", "3", "--test", "2", "--seed", "1", "--size",
-                   "32,24", "--crop", "north=8,4,56,40", "--keypoints", "tail,head") == 0
+    assert run_import(import_recording, tmp_path / "cli", "--labelled", "3", "--test", "2", "--seed", "1",
+                      "--size", "32,24", "--crop", "north=8,4,56,40", "--keypoints", "tail,head") == 0
     lib, cli = Dataset.open(path, cache="none"), Dataset.open(tmp_path / "cli", cache="none")
     assert lib.keypoints == ["tail", "head"] and lib.cameras == CAMS
     for split in ("labelled", "test", "unlabelled"):
@@ -492,39 +402,39 @@ def test_import_recording_takes_typed_arguments(recording, tmp_path):
                                   "mmpose", "deepfly3d"}
 
 
-def test_import_dlc_and_lightning_pose_with_crop(recording, tmp_path):
+def test_import_dlc_and_lightning_pose_with_crop(import_recording, tmp_path):
     from s3k.data import Dataset
 
     crop = ["north=8,4,56,40", "east=0,0,48,36"]  # two crop sizes (48x36 each), one camera uncropped
     for labels in ("dlc", "lightning-pose"):
         out = tmp_path / labels
-        code = _import(recording, out, "--labelled", "all", "--test", "2", "--crop", *crop, "--size", "32,24",
-                       labels=labels)
+        code = run_import(import_recording, out, "--labelled", "all", "--test", "2", "--crop", *crop,
+                          "--size", "32,24", labels=labels)
         assert code == 0
         ds = Dataset.open(out)
         assert ds.image_size == (32, 24)
         ids = np.sort(np.concatenate([ds.frames("labelled"), ds.frames("test")]))
         np.testing.assert_array_equal(ids, np.arange(0, N_FRAMES, 2))  # only labelled frames can be chosen
         uv, mask = ds.labels(ids)
-        np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, recording["X"])[mask], atol=1e-3)
+        np.testing.assert_allclose(uv[mask], _reprojected(ds, ids, import_recording["X"])[mask], atol=1e-3)
         # Labels outside a crop are dropped, the others kept.
-        ref = recording["uv"][ids]
+        ref = import_recording["uv"][ids]
         u, v = ref[:, 0, :, 0], ref[:, 0, :, 1]
         inside = (u >= 8) & (u < 56) & (v >= 4) & (v < 40)
         np.testing.assert_array_equal(mask[:, 0], inside & np.isfinite(ref[:, 0]).all(-1))
 
 
-def test_import_says_how_many_labels_it_kept_and_why(recording, tmp_path, capsys):
+def test_import_says_how_many_labels_it_kept_and_why(import_recording, tmp_path, capsys):
     """The default split keeps 10 labelled frames and no test frame: the import says how many labels that is
     of the recording's, and which options keep more."""
     from s3k.data import Dataset
 
     out = tmp_path / "ds"
-    assert _import(recording, out) == 0
+    assert run_import(import_recording, out) == 0
     captured = capsys.readouterr()
     ds = Dataset.open(out)
     kept = int(ds.labels(ds.frames("labelled"))[1].sum())
-    total = int(np.isfinite(recording["uv"]).all(-1).sum())
+    total = int(np.isfinite(import_recording["uv"]).all(-1).sum())
     assert kept < total
     assert (f"kept {kept} of the recording's {total} 2D labels: those of 10 labelled frame(s) (--labelled "
             f"10) and 0 test frame(s) (--test 0), chosen among the {N_FRAMES} frames with a keypoint "
@@ -535,12 +445,12 @@ def test_import_says_how_many_labels_it_kept_and_why(recording, tmp_path, capsys
     assert "calibration" not in captured.err  # a consistent rig: no calibration warning
 
 
-def test_import_and_validate_warn_of_an_inconsistent_camera(recording, tmp_path, capsys):
+def test_import_and_validate_warn_of_an_inconsistent_camera(import_recording, tmp_path, capsys):
     """A camera turned by 3 degrees in the calibration disagrees with the labels: import and validate run
     check-calibration's test and name the command that repairs it (validate fails the dataset)."""
     from s3k.cli import main
 
-    root = recording["root"]
+    root = import_recording["root"]
     rig = anipose.read_anipose_calibration(root / "calibration.toml")
     arrays = rig.cameras.numpy()
     a = np.radians(3.0)
@@ -565,8 +475,8 @@ def test_import_and_validate_warn_of_an_inconsistent_camera(recording, tmp_path,
     assert f"repair: s3k check-calibration {out} --recalibrate flagged" in capsys.readouterr().out
 
 
-def test_import_errors(recording, tmp_path, capsys):
-    root = recording["root"]
+def test_import_errors(import_recording, tmp_path, capsys):
+    root = import_recording["root"]
     # A camera missing from the calibration.
     from s3k.cli import main
 
@@ -576,7 +486,7 @@ def test_import_errors(recording, tmp_path, capsys):
     assert code == 1
     assert "camera 'west' is not in the calibration" in capsys.readouterr().err
     # Not enough labelled frames for the split.
-    assert _import(recording, tmp_path / "y", "--labelled", "20", labels="dlc") == 1
+    assert run_import(import_recording, tmp_path / "y", "--labelled", "20", labels="dlc") == 1
     assert "--labelled 20" in capsys.readouterr().err
     # A malformed CSV names the file and the line.
     bad = tmp_path / "bad"

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from test_importers import CAMS, KEYPOINTS, _write_sleap, recording  # noqa: F401 (fixture)
+from helpers.recordings import CAMS, KEYPOINTS, write_sleap
 
 from s3k.data.formats import pixels
 from s3k.data.formats.anipose import read_anipose_calibration
@@ -102,7 +102,7 @@ def test_sleap_project_of_the_old_corner_format(tmp_path):
 
 def test_sleap_analysis_file(tmp_path):
     """SLEAP writes an analysis file from its projects' points as they are (its own convention)."""
-    _write_sleap(tmp_path / "cam0.analysis.h5", s3k_uv()[..., None], nodes=NODES)
+    write_sleap(tmp_path / "cam0.analysis.h5", s3k_uv()[..., None], nodes=NODES)
     _close(read_sleap_analysis(tmp_path / "cam0.analysis.h5"))
 
 
@@ -232,7 +232,7 @@ def test_every_format_states_its_convention():
 # s3k import --label-pixels / --calibration-pixels
 
 
-def test_import_declares_files_of_the_corner_convention(recording, tmp_path):  # noqa: F811
+def test_import_declares_files_of_the_corner_convention(import_recording, tmp_path):
     """DeepLabCut CSVs and a calibration both written with (0, 0) at the image corner: declared with
     --label-pixels corner and --calibration-pixels corner, the dataset holds the recording's own labels and
     cameras (in s3k's pixels)."""
@@ -240,7 +240,7 @@ def test_import_declares_files_of_the_corner_convention(recording, tmp_path):  #
     from s3k.data import Dataset
     from s3k.data.formats import anipose
 
-    root = recording["root"]
+    root = import_recording["root"]
     rig = anipose.read_anipose_calibration(root / "calibration.toml")
     a = rig.cameras.numpy()
     K_corner = a["K"].copy()
@@ -248,7 +248,7 @@ def test_import_declares_files_of_the_corner_convention(recording, tmp_path):  #
     shifted = pixels.replace(rig, cameras=Cameras.from_numpy(K_corner, a["dist"], a["R"], a["t"],
                                                             dtype=torch.float64))
     anipose.write_anipose_calibration(tmp_path / "calibration.toml", shifted)
-    uv = recording["uv"]
+    uv = import_recording["uv"]
     csvs = []
     for c, cam in enumerate(CAMS):
         rows = ["scorer" + ",me" * 6, "bodyparts," + ",".join(f"{k},{k}" for k in KEYPOINTS),

@@ -43,12 +43,12 @@ def test_noisy_clicks_are_corrected_until_every_view_is_close(truth):
 
 
 def test_suggestions_are_accepted_only_where_right(truth, tmp_path, monkeypatch):
-    from test_label_api import tiny_run
+    from helpers.label_data import save_label_run
 
     from s3k.label.suggest import Suggestions
 
     data, frames, t = truth
-    run = tiny_run(tmp_path / "run")
+    run = save_label_run(tmp_path / "run")
     # an untrained run's suggestions are nowhere near: every keypoint is labelled by reprojection instead
     untrained = run_way("suggestions", data, t, frames, run, noise=0.0, tol=1.5, seed=0)
     assert untrained["keypoints_accepted"] == 0 and untrained["clicks_total"] == 3 * 3 * 2

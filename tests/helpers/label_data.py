@@ -15,7 +15,10 @@ import numpy as np
 import torch
 
 from helpers.synthetic_rig import CAMERAS, COLOURS, KEYPOINTS, LAYOUT, random_rotation, rig
+from helpers.tiny_detector import save_run
+from s3k.detector import DetectorMeta
 from s3k.geometry import Cameras, project
+from s3k.model import UNetConfig
 
 SPLITS = ["labelled", "unlabelled", "unlabelled", "unlabelled", "unlabelled", "unlabelled", "test"]
 
@@ -113,3 +116,12 @@ def label_true_projections(truth: Truth, wrong: dict[tuple[int, int, int], float
                 p = uv[c, k] if (f, c, k) not in wrong else moved(uv[c, k], truth.size, wrong[f, c, k])
                 edits.append(Edit(cam, kp, float(p[0]), float(p[1])))
         store.save(f, edits, store.version(f))
+
+
+def save_label_run(path: Path, size: int = 32) -> Path:
+    """A run folder of an untrained tiny detector of the rig's keypoints and cameras (``size`` px input,
+    peaked heatmaps), for the app's suggestions."""
+    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(size, size), stride=2,
+                        sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(),
+                        units="m", source_image_size=(96, 96))
+    return save_run(path, meta, seed=0, head_std=0.5)

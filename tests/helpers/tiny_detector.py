@@ -1,4 +1,5 @@
-"""A run folder holding an untrained tiny detector, for the tests of the commands that load one."""
+"""A run folder holding an untrained tiny detector, for the tests of the commands that load one: ``save_run``
+of any meta, and ``make_run`` (the export tests' run, ``RUN_SIZE``)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from pathlib import Path
 import torch
 
 from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+from s3k.model import UNetConfig
 
 
 def trained_like_batch_norm(net: torch.nn.Module, var: tuple[float, float] = (0.3, 3.0)) -> torch.nn.Module:
@@ -37,3 +39,15 @@ def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = No
     write_run_config(path, {}, meta, dataset)
     atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
     return path
+
+
+RUN_SIZE = (40, 32)  # (W, H): not square, heatmap grid not a multiple of 2^depth (padding path of the UNet)
+
+
+def make_run(path: Path, dataset: str | None = None, norm: str = "batch") -> Path:
+    """A run folder with a tiny detector whose BatchNorm statistics are far from the identity."""
+    meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"],
+                        image_size=RUN_SIZE, stride=2, sigma=2.0,
+                        model=UNetConfig(channels=(8, 16, 16), res_blocks=1, norm=norm).to_dict())
+    # Larger head weights than at initialization, so that heatmaps are peaked like a trained model's.
+    return save_run(path, meta, seed=1, dataset=dataset, head_std=0.5)

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers.tiny_detector import save_run
+from helpers.tiny_detector import RUN_SIZE as SIZE
+from helpers.tiny_detector import make_run, save_run
 
 from s3k import cli
 from s3k.detector import DetectorMeta, load_network
@@ -20,16 +21,7 @@ from s3k.readout import window_cells
 pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
-SIZE = (40, 32)  # (W, H): not square, heatmap grid not a multiple of 2^depth (padding path of the UNet)
 
-
-def make_run(path: Path, dataset: str | None = None, norm: str = "batch") -> Path:
-    """A run folder with a tiny detector whose BatchNorm statistics are far from the identity."""
-    meta = DetectorMeta(keypoints=["a", "b", "c"], cameras=["cam0", "cam1", "cam2", "cam3"], image_size=SIZE,
-                        stride=2, sigma=2.0,
-                        model=UNetConfig(channels=(8, 16, 16), res_blocks=1, norm=norm).to_dict())
-    # Larger head weights than at initialization, so that heatmaps are peaked like a trained model's.
-    return save_run(path, meta, seed=1, dataset=dataset, head_std=0.5)
 
 
 @pytest.fixture(scope="module")

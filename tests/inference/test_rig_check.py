@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from helpers.real_recording import REAL, needs_real
 from helpers.tiny_detector import save_run
-from test_track import CAMERAS, KEYPOINTS, recording, tiny_run  # noqa: F401 (fixture)
+from helpers.track_rig import CAMERAS, KEYPOINTS
 
 from s3k import cli
 from s3k.data.formats.anipose import read_anipose_calibration, write_anipose_calibration
@@ -20,12 +20,12 @@ from s3k.geometry import Cameras
 from s3k.model import UNetConfig
 
 
-def _track(recording, run, calibration, out, *extra, cameras=CAMERAS):  # noqa: F811
+def _track(recording, run, calibration, out, *extra, cameras=CAMERAS):
     return cli.main(["track", str(run), "--calibration", str(calibration), "--out", str(out), "--no-progress",
                      "--stop", "2", "--videos", *[f"{c}={recording['videos'][c]}" for c in cameras], *extra])
 
 
-def test_track_and_stream_refuse_a_run_of_another_rig(recording, tmp_path, capsys):  # noqa: F811
+def test_track_and_stream_refuse_a_run_of_another_rig(track_recording, tmp_path, capsys):
     """A run trained on cameras a, b, c used on cameras left, top, right: refused, naming --other-rig."""
     run = tmp_path / "other-rig"
     meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=["a", "b", "c"], image_size=(32, 24), stride=2,
@@ -33,23 +33,24 @@ def test_track_and_stream_refuse_a_run_of_another_rig(recording, tmp_path, capsy
                         units="mm")
     save_run(run, meta, seed=0)
     out = tmp_path / "p.csv"
-    assert _track(recording, run, recording["calibration"], out) == 1
+    assert _track(track_recording, run, track_recording["calibration"], out) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     assert "camera(s) 'left', 'top', 'right' are not among the cameras a, b, c the run" in err
     assert "--other-rig" in err and not out.exists()
-    assert _track(recording, run, recording["calibration"], out, "--other-rig") == 0
+    assert _track(track_recording, run, track_recording["calibration"], out, "--other-rig") == 0
     capsys.readouterr()
-    assert cli.main(["stream", str(run), "--calibration", str(recording["calibration"]), "--max-frames", "1",
-                     "--sources", *[f"{c}={recording['videos'][c]}" for c in CAMERAS]]) == 1
+    assert cli.main(["stream", str(run), "--calibration", str(track_recording["calibration"]),
+                     "--max-frames", "1",
+                     "--sources", *[f"{c}={track_recording['videos'][c]}" for c in CAMERAS]]) == 1
     err = capsys.readouterr().err
     assert "--sources: camera(s) 'left', 'top', 'right' are not among" in err and "--other-rig" in err
 
 
-def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(recording, tmp_path, capsys):  # noqa: F811
+def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(track_recording, tmp_path, capsys):
     """A camera that carries another's parameters is named, as s3k import names it; a calibration that
     differs from the one the run recorded is described camera by camera (mm, degrees, px of focal)."""
-    rig = recording["rig"]
+    rig = track_recording["rig"]
     run = tmp_path / "run"
     meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(32, 24), stride=2,
                         sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(),
@@ -64,7 +65,7 @@ def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(record
     geometry = {"cameras": whole, "image_size": [int(v) for v in rig.size[0]], "calibration": record}
     save_run(run, dataclasses.replace(meta, geometry=geometry), seed=0)
     out = tmp_path / "p.csv"
-    assert _track(recording, run, recording["calibration"], out) == 0
+    assert _track(track_recording, run, track_recording["calibration"], out) == 0
     assert "warning" not in capsys.readouterr().err  # the run's own calibration: nothing to say
 
     # "right" carries "top"'s parameters
@@ -75,7 +76,7 @@ def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(record
     path = tmp_path / "copied.toml"
     write_anipose_calibration(path, Rig(rig.names, Cameras.from_numpy(
         copied["K"], copied["dist"], copied["R"], copied["t"], dtype=torch.float64), rig.size, rig.units))
-    assert _track(recording, run, path, out, "--overwrite") == 0
+    assert _track(track_recording, run, path, out, "--overwrite") == 0
     err = capsys.readouterr().err
     assert "top and right have identical calibration parameters (usually a copy error" in err
     assert "calibration differs from the one the run" in err and "right (centre" in err
@@ -88,7 +89,7 @@ def test_track_warns_of_a_copied_camera_and_of_a_calibration_not_the_runs(record
     path = tmp_path / "moved.toml"
     write_anipose_calibration(path, Rig(rig.names, Cameras.from_numpy(
         moved["K"], moved["dist"], moved["R"], moved["t"], dtype=torch.float64), rig.size, rig.units))
-    assert _track(recording, run, path, out, "--overwrite") == 0
+    assert _track(track_recording, run, path, out, "--overwrite") == 0
     err = capsys.readouterr().err
     f = a["K"][left][0, 0]
     assert f"left (centre 5 mm away, focal {1.1 * f:.1f} px vs {f:.1f} px)" in err, err

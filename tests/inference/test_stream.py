@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.rig_inputs import rig_inputs
-from test_track import (
+from helpers.track_rig import (
     CAMERAS,
     FRAMES,
     KEYPOINTS,

@@ -10,21 +10,29 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 from pathlib import Path
 from types import SimpleNamespace
 
-import cv2
 import numpy as np
 import pytest
 import torch
 from helpers.paths import REPO
 from helpers.rig_inputs import rig_inputs
 from helpers.tiny_detector import save_run
+from helpers.track_rig import (
+    CAMERAS,
+    FRAMES,
+    KEYPOINTS,
+    NET_SIZE,
+    VIDEO_SIZE,
+    OracleDetector,
+    moving_points,
+    peaked_logits,
+    read_track_csv,
+    run_track,
+)
 
 from s3k import cli
-from s3k.data.formats.anipose import write_anipose_calibration
-from s3k.data.rig import Rig
 from s3k.data.tracks_csv import csv_header, read_csv
 from s3k.data.video import frame_count, frame_size, synchronized_frames, write_video
 from s3k.detector import DetectorMeta
@@ -32,7 +40,6 @@ from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.geometry.warp import crop_resize_matrix
 from s3k.heatmaps import (
     confidence_weight,
-    gaussian_targets,
     heatmap_moments,
     heatmap_size,
     peak_window_mean,
@@ -41,92 +48,6 @@ from s3k.heatmaps import (
 from s3k.inference.session import RigOptions, RigSession, fit_box
 from s3k.model import UNetConfig
 from s3k.readout import ReadoutConfig, read_out, window_cells
-
-CAMERAS = ["left", "top", "right"]
-KEYPOINTS = ["nose", "ear", "tail"]
-VIDEO_SIZE = (64, 48)
-NET_SIZE = (32, 32)
-FRAMES = 6
-COLOURS = [(255, 40, 40), (40, 255, 40), (60, 60, 255)]
-
-
-def _look_at(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    z = -centre / np.linalg.norm(centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
-def make_rig() -> Rig:
-    W, H = VIDEO_SIZE
-    Rs, ts, Ks = [], [], []
-    for c in range(3):
-        a = 2 * math.pi * c / 3 + 0.4
-        R, t = _look_at(1000.0 * np.array([math.cos(a), math.sin(a), 0.7]) / math.hypot(1, 0.7))
-        Rs.append(R)
-        ts.append(t)
-        Ks.append(np.array([[70.0 + 5 * c, 0, (W - 1) / 2 + c], [0, 72.0, (H - 1) / 2 - c], [0, 0, 1]]))
-    dist = np.zeros((3, 5))
-    dist[1] = [-0.08, 0.01, 0.001, -0.001, 0.0]
-    sizes = np.tile(np.array(VIDEO_SIZE), (3, 1))
-    cams = Cameras.from_numpy(np.stack(Ks), dist, np.stack(Rs), np.stack(ts), dtype=torch.float64)
-    return Rig(list(CAMERAS), cams, sizes, "mm")
-
-
-def moving_points(n: int) -> np.ndarray:
-    """(n, 3, 3) keypoints in mm near the origin."""
-    base = np.array([[60.0, 0.0, 0.0], [-40.0, 50.0, 10.0], [-30.0, -50.0, 20.0]])
-    s = np.arange(n, dtype=np.float64)[:, None, None]
-    return base + np.concatenate([10 * np.sin(0.5 * s), 8 * np.cos(0.3 * s), 5 * s], axis=-1)
-
-
-def tiny_run(path: Path, stride: int = 2) -> Path:
-    """A run folder holding an untrained tiny detector with non-trivial BatchNorm statistics."""
-    meta = DetectorMeta(
-        keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=NET_SIZE, stride=stride, sigma=2.0,
-        model=UNetConfig(channels=(8, 8), res_blocks=1, stride=stride).to_dict(), units="mm",
-        source_image_size=NET_SIZE,
-    )
-    return save_run(path, meta, seed=0)
-
-
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory) -> dict:
-    """Videos (mp4) of the dots, calibration.toml and a run folder."""
-    root = tmp_path_factory.mktemp("track")
-    rig = make_rig()
-    calib = root / "calibration.toml"
-    write_anipose_calibration(calib, rig)
-    X = torch.as_tensor(moving_points(FRAMES))
-    uv, _ = project(rig.cameras[None], X[:, None])  # (F, C, K, 2)
-    videos = {}
-    W, H = VIDEO_SIZE
-    for c, name in enumerate(CAMERAS):
-        frames = []
-        for f in range(FRAMES):
-            img = np.full((H, W, 3), 80, np.uint8)
-            for k in range(3):
-                centre = tuple(int(round(float(v) * 4)) for v in uv[f, c, k])
-                cv2.circle(img, centre, 10, COLOURS[k], -1, cv2.LINE_AA, shift=2)
-            frames.append(img)
-        videos[name] = root / f"{name}.mp4"
-        write_video(videos[name], frames, fps=25)
-    return {"root": root, "rig": rig, "calibration": calib, "videos": videos, "run": tiny_run(root / "run")}
-
-
-def _track(recording, out: Path, *extra: str, order=None) -> int:
-    order = order or CAMERAS
-    args = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out", str(out),
-            "--no-progress", "--videos", *[f"{c}={recording['videos'][c]}" for c in order], *extra]
-    return cli.main(args)
-
-
-def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    return rows[0], np.array([[float(v) for v in r] for r in rows[1:]], dtype=np.float64)
-
 
 # ------------------------------------------------------------------------------------------------------------
 # Input geometry
@@ -157,15 +78,15 @@ def test_fit_box_rejects_unknown_mode():
         fit_box((64, 48), (32, 32), "squash")
 
 
-def test_rig_session_places_the_cameras_and_maps_projections_like_resize_crop(recording):
+def test_rig_session_places_the_cameras_and_maps_projections_like_resize_crop(track_recording):
     """A detector placed on the rig: the calibration's cameras in the frames' order, each camera's box by
     --fit; network-input intrinsics K' = M K project as the video projection mapped by M."""
     from s3k.detector import Detector
 
-    rig = recording["rig"]
+    rig = track_recording["rig"]
     order = ["right", "left"]
-    session = RigSession.place(Detector.load(recording["run"], "cpu"), {c: VIDEO_SIZE for c in order},
-                               RigOptions(recording["calibration"]))
+    session = RigSession.place(Detector.load(track_recording["run"], "cpu"), {c: VIDEO_SIZE for c in order},
+                               RigOptions(track_recording["calibration"]))
     assert session.names == order and session.units == "mm"
     cams = session.cameras
     np.testing.assert_allclose(cams.numpy()["K"], rig.select(order).cameras.numpy()["K"], atol=1e-9)
@@ -180,8 +101,8 @@ def test_rig_session_places_the_cameras_and_maps_projections_like_resize_crop(re
         np.testing.assert_allclose(uv_net.numpy(), mapped, atol=1e-9)
 
 
-def test_synchronized_frames_pairs_by_index(recording):
-    paths = [recording["videos"][c] for c in CAMERAS]
+def test_synchronized_frames_pairs_by_index(track_recording):
+    paths = [track_recording["videos"][c] for c in CAMERAS]
     got = list(synchronized_frames(paths, start=2, stop=5))
     assert [i for i, _ in got] == [2, 3, 4]
     assert all(len(imgs) == 3 and imgs[0].shape == (48, 64, 3) for _, imgs in got)
@@ -200,19 +121,11 @@ def points_from_logits(logits, cams, maps, stride, sigma, min_weight=0.5) -> Sim
                            used=r.used.numpy(), reproj=r.reproj.numpy())
 
 
-def _peaked_logits(uv_net: torch.Tensor, stride: int, sigma: float) -> torch.Tensor:
-    """Logits whose softmax is the normalized Gaussian target at ``uv_net (B, C, K, 2)``."""
-    h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], stride)
-    target, mask = gaussian_targets(uv_net, None, h, w, stride, sigma)
-    assert bool(mask.all())
-    return target.clamp_min(1e-300).log()
-
-
 @pytest.mark.parametrize("stride", [1, 2])
-def test_points_from_heatmaps_at_known_projections(recording, stride):
+def test_points_from_heatmaps_at_known_projections(track_recording, stride):
     """Heatmaps peaked where the known 3D points project give those points back, with zero error."""
-    rig = recording["rig"]
-    inputs, cams = rig_inputs(recording["videos"], rig, NET_SIZE, "pad")
+    rig = track_recording["rig"]
+    inputs, cams = rig_inputs(track_recording["videos"], rig, NET_SIZE, "pad")
     maps = np.stack([c.M for c in inputs])
     X = torch.as_tensor(moving_points(4))  # (B, K, 3)
     uv, depth = project(cams, X[:, None])  # (B, C, K, 2) video pixels, distorted
@@ -220,7 +133,7 @@ def test_points_from_heatmaps_at_known_projections(recording, stride):
     M = torch.as_tensor(maps)
     uv_net = uv @ M[:, :2, :2].transpose(-1, -2) + M[:, None, :2, 2]
     sigma = 2.0
-    logits = _peaked_logits(uv_net, stride, sigma)
+    logits = peaked_logits(uv_net, stride, sigma)
 
     out = points_from_logits(logits, cams, maps, stride, sigma)
     assert out.valid.all()
@@ -251,10 +164,10 @@ def test_points_from_heatmaps_at_known_projections(recording, stride):
     assert np.isfinite(out.score).all()
 
 
-def test_points_from_logits_matches_geometry(recording):
+def test_points_from_logits_matches_geometry(track_recording):
     """Same 2D means and weights -> the same 3D points as s3k.geometry.triangulate_pixels."""
-    rig = recording["rig"]
-    inputs, cams = rig_inputs(recording["videos"], rig, NET_SIZE, "crop")
+    rig = track_recording["rig"]
+    inputs, cams = rig_inputs(track_recording["videos"], rig, NET_SIZE, "crop")
     maps = np.stack([c.M for c in inputs])
     g = torch.Generator().manual_seed(3)
     h, w = heatmap_size(NET_SIZE[1], NET_SIZE[0], 2)
@@ -290,10 +203,11 @@ def test_points_from_logits_matches_geometry(recording):
 # The command
 
 
-def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
+def test_track_writes_anipose_csv_and_overlays(track_recording, tmp_path):
     out = tmp_path / "points3d.csv"
-    assert _track(recording, out, "--min-weight", "0", "--batch", "4", "--overlay", str(tmp_path / "ov")) == 0
-    header, values = _read_csv(out)
+    assert run_track(track_recording, out, "--min-weight", "0", "--batch", "4",
+                     "--overlay", str(tmp_path / "ov")) == 0
+    header, values = read_track_csv(out)
     from s3k.data.tracks_csv import read_source
 
     assert read_source(out)["units"] == "mm"  # beside the CSV, for s3k export-tracks
@@ -314,10 +228,10 @@ def test_track_writes_anipose_csv_and_overlays(recording, tmp_path):
         assert frame_size(path) == VIDEO_SIZE
 
 
-def test_track_threshold_nan_where_invalid(recording, tmp_path):
+def test_track_threshold_nan_where_invalid(track_recording, tmp_path):
     out = tmp_path / "points3d.csv"
-    assert _track(recording, out, "--min-weight", "0.5") == 0
-    _, values = _read_csv(out)
+    assert run_track(track_recording, out, "--min-weight", "0.5") == 0
+    _, values = read_track_csv(out)
     per_kp = values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)
     invalid = np.isnan(per_kp[..., 0])
     # Coordinates and error are NaN together, and exactly where fewer than 2 cameras pass the threshold
@@ -359,24 +273,24 @@ def test_rows_points_are_what_read_csv_reads_back_from_the_same_rows(tmp_path):
     assert from_rows[11][0, 0] != X[0, 0, 0]  # the value as written, not the float it came from
 
 
-def test_track_range_batch_and_camera_order_do_not_change_results(recording, tmp_path):
+def test_track_range_batch_and_camera_order_do_not_change_results(track_recording, tmp_path):
     full, part = tmp_path / "full.csv", tmp_path / "part.csv"
-    assert _track(recording, full, "--min-weight", "0", "--batch", "8") == 0
-    assert _track(recording, part, "--min-weight", "0", "--batch", "2", "--start", "2", "--stop", "5",
-                  order=["right", "left", "top"]) == 0
+    assert run_track(track_recording, full, "--min-weight", "0", "--batch", "8") == 0
+    assert run_track(track_recording, part, "--min-weight", "0", "--batch", "2", "--start", "2", "--stop",
+                     "5", order=["right", "left", "top"]) == 0
     # the detections (the filter sees the range it is given)
-    h1, v1 = _read_csv(full.with_name("full.raw.csv"))
-    h2, v2 = _read_csv(part.with_name("part.raw.csv"))
+    h1, v1 = read_track_csv(full.with_name("full.raw.csv"))
+    h2, v2 = read_track_csv(part.with_name("part.raw.csv"))
     assert h1 == h2
     np.testing.assert_array_equal(v2[:, -1], [2, 3, 4])
     np.testing.assert_allclose(v2, v1[2:5], rtol=1e-4, atol=1e-4)
 
 
-def test_track_errors_name_camera_and_file(recording, tmp_path, capsys):
+def test_track_errors_name_camera_and_file(track_recording, tmp_path, capsys):
     out = tmp_path / "x.csv"
-    v = recording["videos"]
-    base = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out", str(out),
-            "--no-progress", "--videos"]
+    v = track_recording["videos"]
+    base = ["track", str(track_recording["run"]), "--calibration", str(track_recording["calibration"]),
+            "--out", str(out), "--no-progress", "--videos"]
 
     assert cli.main(base + [f"left={v['left']}", f"bottom={v['top']}"]) == 1
     err = capsys.readouterr().err
@@ -407,35 +321,12 @@ def test_track_errors_name_camera_and_file(recording, tmp_path, capsys):
 # End to end through an oracle detector
 
 
-class OracleDetector(torch.nn.Module):
-    """A network stand-in: a Gaussian at the known projection of every keypoint, in the view it is shown.
-
-    Each video frame is one grey level, ``20 + 10 f + 3 c`` for frame ``f`` of camera ``c``, which the oracle
-    reads back from the image centre after the pipeline's decoding, cropping and resizing.
-    """
-
-    def __init__(self, uv_net: torch.Tensor, stride: int, sigma: float) -> None:
-        super().__init__()
-        self.logits = _peaked_logits(uv_net, stride, sigma).float()  # (F, C, K, h, w)
-        self.calls = 0
-
-    def fused(self) -> OracleDetector:
-        return self
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        H, W = images.shape[-2:]
-        level = (images[:, 0, H // 2, W // 2] * 255).round().long() - 20
-        f, c = level // 10, (level % 10) // 3
-        self.calls += 1
-        return self.logits[f, c]
-
-
-def _oracle_track(recording, tmp_path, monkeypatch):
-    """Lossless videos of ``recording``'s rig (25 frames/s) and an oracle detector loaded for any run:
+def _oracle_track(track_recording, tmp_path, monkeypatch):
+    """Lossless videos of ``track_recording``'s rig (25 frames/s) and an oracle detector loaded for any run:
     ``(oracle, track arguments, CSV, true points)``."""
     import s3k.detector.detector
 
-    rig = recording["rig"]
+    rig = track_recording["rig"]
     W, H = VIDEO_SIZE
     videos = {}
     for c, name in enumerate(CAMERAS):  # lossless: the grey levels survive exactly
@@ -454,21 +345,22 @@ def _oracle_track(recording, tmp_path, monkeypatch):
     monkeypatch.setattr(s3k.detector.detector, "load_network", lambda *args, **kwargs: (oracle, meta))
 
     out = tmp_path / "points3d.csv"
-    args = ["track", "run", "--calibration", str(recording["calibration"]), "--out", str(out),
+    args = ["track", "run", "--calibration", str(track_recording["calibration"]), "--out", str(out),
             "--no-progress", "--batch", "4", "--filter", "none",
             "--videos", *[f"{c}={videos[c]}" for c in CAMERAS]]
     return oracle, args, out, X
 
 
-def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_path, monkeypatch, capsys):
-    oracle, args, out, X = _oracle_track(recording, tmp_path, monkeypatch)
+def test_track_recovers_known_points_through_an_oracle_detector(track_recording, tmp_path, monkeypatch,
+                                                                 capsys):
+    oracle, args, out, X = _oracle_track(track_recording, tmp_path, monkeypatch)
     assert cli.main(args) == 0
     assert oracle.calls == 2 and "warning" not in capsys.readouterr().err
     points = read_csv(out, KEYPOINTS)
     assert sorted(points) == list(range(FRAMES))
     got = np.stack([points[f] for f in range(FRAMES)])
     np.testing.assert_allclose(got, X.numpy(), rtol=0, atol=1e-3)  # mm, at 1 m
-    _, values = _read_csv(out)
+    _, values = read_track_csv(out)
     per_kp = values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)
     assert np.all(per_kp[..., 3] < 1e-3) and np.all(per_kp[..., 4] == 3)  # error px, ncams
 
@@ -488,49 +380,49 @@ def test_track_recovers_known_points_through_an_oracle_detector(recording, tmp_p
     assert out.read_bytes() == before
 
 
-def test_track_reads_image_sequences_like_videos(recording, tmp_path):
+def test_track_reads_image_sequences_like_videos(track_recording, tmp_path):
     from s3k.data.video import extract_frames
 
     videos = {}
     for c in CAMERAS:
         pattern = "frame{:03d}.jpg" if c == CAMERAS[0] else "frame{:03d}.png"
-        extract_frames(recording["videos"][c], tmp_path / "seq" / c, pattern=pattern)
+        extract_frames(track_recording["videos"][c], tmp_path / "seq" / c, pattern=pattern)
         videos[c] = tmp_path / "seq" / c
     videos[CAMERAS[1]] = tmp_path / "seq" / CAMERAS[1] / "frame%03d.png"  # a printf pattern
-    assert _track(recording, tmp_path / "video.csv", "--min-weight", "0") == 0
-    args = ["track", str(recording["run"]), "--calibration", str(recording["calibration"]), "--out",
-            str(tmp_path / "seq.csv"), "--no-progress", "--min-weight", "0",
+    assert run_track(track_recording, tmp_path / "video.csv", "--min-weight", "0") == 0
+    args = ["track", str(track_recording["run"]), "--calibration", str(track_recording["calibration"]),
+            "--out", str(tmp_path / "seq.csv"), "--no-progress", "--min-weight", "0",
             "--videos", *[f"{c}={p}" for c, p in videos.items()]]
     # The first camera's frames went through JPEG: compare the cameras whose PNGs are exact.
     assert cli.main(args) == 0
-    _, from_video = _read_csv(tmp_path / "video.csv")
-    _, from_seq = _read_csv(tmp_path / "seq.csv")
+    _, from_video = read_track_csv(tmp_path / "video.csv")
+    _, from_seq = read_track_csv(tmp_path / "seq.csv")
     assert from_seq.shape == from_video.shape
     np.testing.assert_array_equal(from_seq[:, -1], np.arange(FRAMES))
     assert np.isfinite(from_seq[:, :-1]).all()
     exact = {c: tmp_path / "seq" / c for c in CAMERAS}
     for c in CAMERAS:
-        extract_frames(recording["videos"][c], tmp_path / "png" / c)
+        extract_frames(track_recording["videos"][c], tmp_path / "png" / c)
         exact[c] = tmp_path / "png" / c
     args[5] = str(tmp_path / "png.csv")
     args[args.index("--videos") + 1:] = [f"{c}={p}" for c, p in exact.items()]
     assert cli.main(args) == 0
-    _, from_png = _read_csv(tmp_path / "png.csv")
+    _, from_png = read_track_csv(tmp_path / "png.csv")
     np.testing.assert_array_equal(from_png, from_video)
 
 
-def test_track_says_why_every_point_is_nan(recording, tmp_path, capsys):
+def test_track_says_why_every_point_is_nan(track_recording, tmp_path, capsys):
     # The untrained detector's confidence weights never reach 0.99: no view is used, the CSV is all nan.
-    assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
-    _, values = _read_csv(tmp_path / "empty.csv")
+    assert run_track(track_recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
+    _, values = read_track_csv(tmp_path / "empty.csv")
     assert np.isnan(values[:, :-1].reshape(FRAMES, len(KEYPOINTS), 6)[..., 0]).all()
     err = capsys.readouterr().err
     assert "every keypoint is 0% valid" in err and "train longer" in err and "lower --min-weight" in err
-    assert _track(recording, tmp_path / "full.csv", "--min-weight", "0", "--overwrite") == 0
+    assert run_track(track_recording, tmp_path / "full.csv", "--min-weight", "0", "--overwrite") == 0
     assert "0% valid" not in capsys.readouterr().err
 
 
-def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
+def test_track_crops_videos_as_the_run_was_trained(track_recording, tmp_path, capsys):
     """Without --crop, each video is cropped to the box the run's training images showed (its record, here
     made by hand), exactly as with that --crop; --fit or another --crop overrides, the latter with a
     warning."""
@@ -541,27 +433,27 @@ def test_track_crops_videos_as_the_run_was_trained(recording, tmp_path, capsys):
         geometry={"cameras": {c: {"box": b, "frame_size": list(VIDEO_SIZE)} for c, b in boxes.items()},
                   "image_size": list(NET_SIZE)})
     run = save_run(tmp_path / "run", meta, seed=0)
-    rec = dict(recording, run=run)
+    rec = dict(track_recording, run=run)
     crop = [f"{c}={','.join(f'{v:g}' for v in b)}" for c, b in boxes.items()]
-    assert _track(rec, tmp_path / "recorded.csv", "--min-weight", "0") == 0
+    assert run_track(rec, tmp_path / "recorded.csv", "--min-weight", "0") == 0
     assert "crop boxes the run was trained on (--crop or --fit overrides): left=8,0,56,48 top=16,8,48,40 " \
            "right=0,0,64,48" in capsys.readouterr().out
-    assert _track(rec, tmp_path / "given.csv", "--min-weight", "0", "--crop", *crop) == 0
+    assert run_track(rec, tmp_path / "given.csv", "--min-weight", "0", "--crop", *crop) == 0
     assert capsys.readouterr().err == ""
-    assert _track(rec, tmp_path / "fit.csv", "--min-weight", "0", "--fit", "pad") == 0
-    recorded, given, fit = (_read_csv(tmp_path / f"{n}.csv")[1] for n in ("recorded", "given", "fit"))
+    assert run_track(rec, tmp_path / "fit.csv", "--min-weight", "0", "--fit", "pad") == 0
+    recorded, given, fit = (read_track_csv(tmp_path / f"{n}.csv")[1] for n in ("recorded", "given", "fit"))
     np.testing.assert_array_equal(recorded, given)
     assert not np.allclose(recorded, fit, equal_nan=True)
     capsys.readouterr()
-    assert _track(rec, tmp_path / "other.csv", "--min-weight", "0", "--crop", "top=0,0,64,48") == 0
+    assert run_track(rec, tmp_path / "other.csv", "--min-weight", "0", "--crop", "top=0,0,64,48") == 0
     assert "warning: --crop top=0,0,64,48 differs from the box the run was trained on, top=16,8,48,40" in \
         capsys.readouterr().err
 
 
-def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_path, capsys):
+def test_track_summary_gives_a_reason_for_every_invalid_keypoint(track_recording, tmp_path, capsys):
     from s3k.inference.track import keypoint_line
 
-    assert _track(recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
+    assert run_track(track_recording, tmp_path / "empty.csv", "--min-weight", "0.99") == 0
     out = capsys.readouterr().out
     for kp in KEYPOINTS:
         assert (f"  {kp}: 0% valid; no point: 100% of frames have fewer than 2 views with a confidence "
@@ -576,23 +468,23 @@ def test_track_summary_gives_a_reason_for_every_invalid_keypoint(recording, tmp_
     assert keypoint_line(1.0, 2.0, 1.0, 0.5, 10) == "100% valid, median error 2.00 px"
 
 
-def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_doubt(recording, tmp_path):
+def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_doubt(track_recording, tmp_path):
     out, plain = tmp_path / "points3d.csv", tmp_path / "plain.csv"
-    assert _track(recording, out, "--min-weight", "0", "--filter-gate", "3",
+    assert run_track(track_recording, out, "--min-weight", "0", "--filter-gate", "3",
                   "--filter-model", "acceleration") == 0
-    assert _track(recording, plain, "--min-weight", "0", "--filter", "none") == 0
+    assert run_track(track_recording, plain, "--min-weight", "0", "--filter", "none") == 0
     assert not (tmp_path / "plain.raw.csv").exists()
     # the raw points are what an unfiltered track writes; the filtered CSV has the same layout
     assert (tmp_path / "points3d.raw.csv").read_text() == plain.read_text()
-    h1, filtered = _read_csv(out)
-    h2, raw = _read_csv(plain)
+    h1, filtered = read_track_csv(out)
+    h2, raw = read_track_csv(plain)
     assert h1 == h2 and np.array_equal(filtered[:, -1], raw[:, -1])
     source = json.loads((tmp_path / "points3d.csv.s3k.json").read_text())
     assert source["raw"] == "points3d.raw.csv" and source["doubt"] == "points3d.doubt.csv"
     settings = source["filter"]["settings"]
     assert settings["model"] == "acceleration" and settings["gate"] == 3
     assert len(source["filter"]["process_noise"]) == len(KEYPOINTS)
-    assert source["videos"] == {c: str(recording["videos"][c]) for c in CAMERAS}
+    assert source["videos"] == {c: str(track_recording["videos"][c]) for c in CAMERAS}
     with open(tmp_path / "points3d.doubt.csv") as f:
         rows = list(csv.DictReader(f))
     assert sorted(int(r["fnum"]) for r in rows) == list(range(FRAMES))
@@ -601,7 +493,8 @@ def test_track_filters_the_points_keeps_the_raw_ones_and_ranks_the_frames_by_dou
     assert doubts == sorted(doubts, reverse=True)
 
 
-def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tmp_path, monkeypatch, capsys):
+def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(track_recording, tmp_path, monkeypatch,
+                                                                   capsys):
     """The README's ``s3k export-tracks points3d.csv --format nwb --out tracks.nwb`` runs as written on what
     ``s3k track`` wrote: the frame rate (25 frames/s) comes from the CSV's ``.s3k.json``."""
     import re
@@ -615,7 +508,7 @@ def test_readme_export_tracks_takes_the_frame_rate_from_the_tracks(recording, tm
     assert command is not None, "the README shows no s3k export-tracks command"
     argv = shlex.split(command.group(1))[1:]
     assert "--fps" not in argv
-    _, args, out, _ = _oracle_track(recording, tmp_path, monkeypatch)
+    _, args, out, _ = _oracle_track(track_recording, tmp_path, monkeypatch)
     assert out.name == "points3d.csv" and cli.main(args) == 0
     monkeypatch.chdir(tmp_path)
     assert cli.main(argv) == 0, capsys.readouterr().err
@@ -656,21 +549,21 @@ def test_a_track_is_of_a_run_only_while_the_run_is_unchanged_since(tmp_path):
     assert tracked_with(out, tmp_path / "run" / "fine" / "..")  # the same folder, named another way
 
 
-def test_python_track_writes_the_files_the_command_writes(recording, tmp_path, capsys):
+def test_python_track_writes_the_files_the_command_writes(track_recording, tmp_path, capsys):
     """``s3k.track(...)`` with a loaded detector writes what ``s3k track`` writes with the same settings: the
     filtered and raw CSVs, the doubt ranking and the JSON companions byte for byte, and the overlays; the
     detector is reused for a second track without loading it again."""
     import s3k
 
     cli_dir, py_dir = tmp_path / "cli", tmp_path / "py"
-    assert _track(recording, cli_dir / "points3d.csv", "--min-weight", "0", "--batch", "4",
+    assert run_track(track_recording, cli_dir / "points3d.csv", "--min-weight", "0", "--batch", "4",
                   "--filter-gate", "3", "--overlay", str(cli_dir / "ov")) == 0
     said = capsys.readouterr().out
-    detector = s3k.Detector.load(recording["run"], "cpu")
+    detector = s3k.Detector.load(track_recording["run"], "cpu")
     config = s3k.TrackConfig.from_flat(min_weight=0.0, batch=4, filter_gate=3.0, overlay=str(py_dir / "ov"),
                                        progress=False)
     out = py_dir / "points3d.csv"
-    result = s3k.track(detector, recording["videos"], recording["calibration"], out, config)
+    result = s3k.track(detector, track_recording["videos"], track_recording["calibration"], out, config)
     names = ["points3d.csv", "points3d.raw.csv", "points3d.doubt.csv", "points3d.csv.s3k.json",
              "points3d.raw.csv.s3k.json"]
     for name in names:
@@ -680,13 +573,14 @@ def test_python_track_writes_the_files_the_command_writes(recording, tmp_path, c
     assert {p.name for p in result.files} == {*names, *(f"{c}.mp4" for c in CAMERAS)}
     assert "wrote 6 filtered frames" in said and result.frames == FRAMES
     # the same detector again, another setting: no second load, the same files but unfiltered
-    again = s3k.track(detector, recording["videos"], recording["calibration"], py_dir / "plain.csv",
+    again = s3k.track(detector, track_recording["videos"], track_recording["calibration"],
+                      py_dir / "plain.csv",
                       s3k.TrackConfig.from_flat(min_weight=0.0, filter="none", progress=False))
     assert again.session.detector is detector
     assert (py_dir / "plain.csv").read_bytes() == (py_dir / "points3d.raw.csv").read_bytes()
 
 
-def test_track_settings_are_the_track_config_with_ranges_and_print_config(recording, tmp_path, capsys):
+def test_track_settings_are_the_track_config_with_ranges_and_print_config(track_recording, tmp_path, capsys):
     """s3k track's settings are TrackConfig's fields: --help states each one's default and range, a value out
     of range is refused as it is parsed, --print-config prints the resolved settings and tracks nothing;
     s3k stream offers the same filter settings with the filter off by default."""
@@ -696,12 +590,13 @@ def test_track_settings_are_the_track_config_with_ranges_and_print_config(record
     assert "--filter-gate SIGMAS" in text and "(default: 4.0; in [0, 100])" in text
     assert "--min-weight FLOAT" in text and "in [0, 1)" in text and "--no-progress" in text
     out = tmp_path / "x.csv"
-    assert _track(recording, out, "--filter-gate", "5", "--filter-limbs", "nose,ear", "--print-config") == 0
+    assert run_track(track_recording, out, "--filter-gate", "5", "--filter-limbs", "nose,ear",
+                     "--print-config") == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["filter_gate"] == 5.0 and printed["filter_limbs"] == ["nose,ear"] and printed["batch"] == 8
     assert not out.exists()
     with pytest.raises(SystemExit):
-        _track(recording, out, "--filter-gate", "-1")
+        run_track(track_recording, out, "--filter-gate", "-1")
     assert "--filter-gate" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli.main(["stream", "--help"])
@@ -709,7 +604,7 @@ def test_track_settings_are_the_track_config_with_ranges_and_print_config(record
     assert "filter the 3D points over time" in text and "(default: none)" in text and "--batch" not in text
 
 
-def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypatch, capsys):
+def test_track_and_stream_read_the_run_folder_once(track_recording, tmp_path, monkeypatch, capsys):
     """One s3k track or s3k stream call of a run that records its geometry (as s3k train does) opens the
     run's model file once and no other file of the run: the rig's checks, crop boxes and calibration notes
     read the loaded detector's meta."""
@@ -723,7 +618,7 @@ def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypa
         geometry={"cameras": whole, "image_size": list(NET_SIZE),
                   "dataset": {"path": str(tmp_path / "gone")}})
     run = save_run(tmp_path / "run", meta, seed=0).resolve()
-    recording = dict(recording, run=run)
+    recording = dict(track_recording, run=run)
     opened: list[str] = []
     real_open, real_io_open = builtins.open, io.open
 
@@ -736,7 +631,7 @@ def test_track_and_stream_read_the_run_folder_once(recording, tmp_path, monkeypa
 
     monkeypatch.setattr(builtins, "open", spy(real_open))
     monkeypatch.setattr(io, "open", spy(real_io_open))
-    assert _track(recording, tmp_path / "x.csv") == 0
+    assert run_track(recording, tmp_path / "x.csv") == 0
     assert opened == ["model.pt"]
     opened.clear()
     sources = [f"{c}={recording['videos'][c]}" for c in CAMERAS]

@@ -16,7 +16,7 @@ from helpers.real_recording import REAL, needs_real
 from helpers.rerun_layout import blueprint_views, file_views
 from helpers.synthetic_rig import make_dataset
 from helpers.tiny_detector import save_run
-from test_track import CAMERAS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points
+from helpers.track_rig import CAMERAS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points
 
 from s3k import cli
 from s3k.data.formats.anipose import write_anipose_calibration

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from helpers.files import contents
-from test_track import CAMERAS, KEYPOINTS, _track, recording  # noqa: F401 (the fixture)
+from helpers.track_rig import CAMERAS, KEYPOINTS, run_track
 
 from s3k import cli
 from s3k.data import Dataset, DatasetWriter
@@ -18,10 +18,10 @@ from s3k.inference.track_filter import DOUBT_COLUMNS
 from s3k.label.queue import read_queue
 
 
-def _dataset(recording, path):  # noqa: F811
+def _dataset(track_recording, path):
     """Frames 0 (labelled), 1 (test) and 2 (unlabelled) of the recording's videos, ids 0-2, video_frame."""
-    rig = recording["rig"]
-    views = {c: dict(iter_frames(recording["videos"][c], [0, 1, 2])) for c in CAMERAS}
+    rig = track_recording["rig"]
+    views = {c: dict(iter_frames(track_recording["videos"][c], [0, 1, 2])) for c in CAMERAS}
     with DatasetWriter(path, KEYPOINTS, CAMERAS, tuple(int(v) for v in rig.size[0]), units="mm",
                        calibration=rig.cameras) as w:
         uv = np.full((len(CAMERAS), len(KEYPOINTS), 2), 20.0)
@@ -40,11 +40,11 @@ def _rank(path, fnums):
             out.writerow([rank, f, 10.0 - rank, 0.5, 1.0, 2.0, 0, 0, KEYPOINTS[0], ""])
 
 
-def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_first(recording, tmp_path,  # noqa: F811
+def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_first(track_recording, tmp_path,
                                                                                     capsys):
-    data = _dataset(recording, tmp_path / "data")
+    data = _dataset(track_recording, tmp_path / "data")
     tracks = tmp_path / "points3d.csv"
-    assert _track(recording, tracks, "--min-weight", "0") == 0
+    assert run_track(track_recording, tracks, "--min-weight", "0") == 0
     _rank(tmp_path / "points3d.doubt.csv", [1, 0, 4, 3, 2, 5])  # a test frame and a labelled one first
     assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "2", "--spacing", "0"]) == 0
     assert "already test" in capsys.readouterr().out
@@ -55,7 +55,7 @@ def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_fi
     # the new frames' views are the videos' frames (the dataset's images are whole frames)
     images = ds.images([3, 4])
     for c, cam in enumerate(CAMERAS):
-        video = dict(iter_frames(recording["videos"][cam], [3, 4]))
+        video = dict(iter_frames(track_recording["videos"][cam], [3, 4]))
         assert np.array_equal(images[0, c], video[4]) and np.array_equal(images[1, c], video[3])
     queue = read_queue(data)
     assert [(int(r["frame"]), int(r["video_frame"]), int(r["rank"])) for r in queue] == [(3, 4, 1), (4, 3, 2)]
@@ -66,10 +66,10 @@ def test_add_frames_adds_the_worst_new_frames_from_the_videos_and_queues_them_fi
     assert [int(r["frame"]) for r in read_queue(data)] == [2, 3, 4]
 
 
-def test_add_frames_refuses_when_nothing_can_be_queued(recording, tmp_path, capsys):  # noqa: F811
-    data = _dataset(recording, tmp_path / "data")
+def test_add_frames_refuses_when_nothing_can_be_queued(track_recording, tmp_path, capsys):
+    data = _dataset(track_recording, tmp_path / "data")
     tracks = tmp_path / "points3d.csv"
-    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    assert run_track(track_recording, tracks, "--min-weight", "0", "--filter", "none") == 0
     _rank(tmp_path / "points3d.doubt.csv", [0, 1])
     capsys.readouterr()
     assert cli.main(["add-frames", str(tracks), "--data", str(data), "--worst", "3"]) == 1
@@ -90,11 +90,11 @@ def _refused(capsys, argv, *needles):
 @pytest.mark.parametrize("column, value", [("fnum", "x"), ("fnum", "-3"), ("fnum", "2.5"), ("fnum", ""),
                                            ("rank", "abc"), ("rank", "-1"), ("doubt", "high"),
                                            ("doubt", "nan")])
-def test_a_ranking_whose_frame_rank_or_doubt_is_no_number_is_refused_in_one_line(recording, tmp_path,  # noqa: F811
+def test_a_ranking_whose_frame_rank_or_doubt_is_no_number_is_refused_in_one_line(track_recording, tmp_path,
                                                                                   capsys, column, value):
-    data = _dataset(recording, tmp_path / "data")
+    data = _dataset(track_recording, tmp_path / "data")
     tracks = tmp_path / "points3d.csv"
-    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    assert run_track(track_recording, tracks, "--min-weight", "0", "--filter", "none") == 0
     ranking = tmp_path / "points3d.doubt.csv"
     _rank(ranking, [4, 3])
     rows = list(csv.DictReader(open(ranking, newline="")))
@@ -110,12 +110,12 @@ def test_a_ranking_whose_frame_rank_or_doubt_is_no_number_is_refused_in_one_line
 
 
 @pytest.mark.parametrize("named", ["../points3d.doubt.csv", "/etc/passwd", "sub/points3d.doubt.csv", ".."])
-def test_a_record_naming_a_ranking_outside_its_folder_is_refused_in_one_line(recording, tmp_path, capsys,  # noqa: F811
-                                                                             named):
-    data = _dataset(recording, tmp_path / "data")
+def test_a_record_naming_a_ranking_outside_its_folder_is_refused_in_one_line(track_recording, tmp_path,
+                                                                              capsys, named):
+    data = _dataset(track_recording, tmp_path / "data")
     tracks = tmp_path / "t" / "points3d.csv"
     tracks.parent.mkdir()
-    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    assert run_track(track_recording, tracks, "--min-weight", "0", "--filter", "none") == 0
     _rank(tmp_path / "points3d.doubt.csv", [4, 3])
     sidecar = tmp_path / "t" / "points3d.csv.s3k.json"
     record = json.loads(sidecar.read_text())
@@ -131,13 +131,13 @@ def test_a_record_naming_a_ranking_outside_its_folder_is_refused_in_one_line(rec
                                           ('{"units": "mm", "videos": ["a.mp4"]}', "'videos'"),
                                           ('{"units": "mm", "videos": {"left": 1}}', "'videos'"),
                                           ('{"units": "mm", "fps": true}', "'fps'")])
-def test_a_broken_record_is_reported_as_broken_not_as_missing(recording, tmp_path, capsys, text,  # noqa: F811
+def test_a_broken_record_is_reported_as_broken_not_as_missing(track_recording, tmp_path, capsys, text,
                                                               needle):
     """add-frames, export-tracks and view read the record beside a CSV: a broken one is named, with what is
     wrong in it, where before it was taken for no record at all."""
-    data = _dataset(recording, tmp_path / "data")
+    data = _dataset(track_recording, tmp_path / "data")
     tracks = tmp_path / "points3d.csv"
-    assert _track(recording, tracks, "--min-weight", "0", "--filter", "none") == 0
+    assert run_track(track_recording, tracks, "--min-weight", "0", "--filter", "none") == 0
     sidecar = tmp_path / "points3d.csv.s3k.json"
     sidecar.write_text(text)
     for argv in (["add-frames", str(tracks), "--data", str(data), "--worst", "2"],

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers.label_data import make_label_dataset
+from helpers.label_data import make_label_dataset, save_label_run
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 from helpers.tiny_detector import save_run
 
@@ -275,18 +275,11 @@ def test_propagate_refuses_a_moving_camera_and_from_the_command_line(tmp_path, c
     assert "no frame there has a keypoint labelled in 2 or more views" in capsys.readouterr().err
 
 
-def tiny_run(path, size=32):
-    meta = DetectorMeta(keypoints=list(KEYPOINTS), cameras=list(CAMERAS), image_size=(size, size), stride=2,
-                        sigma=2.0, model=UNetConfig(channels=(8, 8), res_blocks=1, stride=2).to_dict(),
-                        units="m", source_image_size=(96, 96))
-    return save_run(path, meta, seed=0, head_std=0.5)
-
-
 def test_suggestions_and_ranking_from_a_run(truth, tmp_path):
     from s3k.data import Dataset
     from s3k.detector import Detector
 
-    run = tiny_run(tmp_path / "run")
+    run = save_label_run(tmp_path / "run")
     assert TestClient(create_app(truth.path)).get("/api/ranking").status_code == 404
     client = TestClient(create_app(truth.path, run=run))
     assert client.get("/api/meta").json()["run"] is True
@@ -338,7 +331,7 @@ def test_the_queued_frames_come_first_by_rank_and_labelled_ones_drop_out(truth, 
     assert plain.get("/api/ranking?limit=2").json() == listed[:2]
     assert plain.get("/api/ranking?split=test").status_code == 404  # no queue there, no run
 
-    client = TestClient(create_app(truth.path, run=tiny_run(tmp_path / "run")))
+    client = TestClient(create_app(truth.path, run=save_label_run(tmp_path / "run")))
     ranking = client.get("/api/ranking").json()
     assert [r["frame"] for r in ranking[:3]] == [4, 2, 5] and [r["queue"] for r in ranking[:3]] == [1, 2, 3]
     rest = ranking[3:]  # the run's ranking of the other unlabelled frames, worst first, each once
@@ -571,7 +564,7 @@ def test_coverage_ranking_from_a_run_and_the_labels(truth, tmp_path):
     from s3k.label.server import LabelApp
     from s3k.label.suggest import coverage_order, representative_order
 
-    run = tiny_run(tmp_path / "run")
+    run = save_label_run(tmp_path / "run")
     client = TestClient(create_app(truth.path, run=run))
     assert client.get("/api/ranking?by=nope").status_code == 400
     uv = truth.uv(0)

@@ -11,9 +11,9 @@ import torch
 from helpers.files import contents
 from helpers.rig_inputs import rig_inputs
 from helpers.synthetic_rig import KEYPOINTS, LAYOUT, count_decodes, make_dataset, random_rotation
-from test_track import CAMERAS as TRACK_CAMERAS
-from test_track import KEYPOINTS as TRACK_KEYPOINTS
-from test_track import NET_SIZE, VIDEO_SIZE, _peaked_logits, make_rig, moving_points
+from helpers.track_rig import CAMERAS as TRACK_CAMERAS
+from helpers.track_rig import KEYPOINTS as TRACK_KEYPOINTS
+from helpers.track_rig import NET_SIZE, VIDEO_SIZE, make_rig, moving_points, peaked_logits
 
 from s3k import cli
 from s3k.base.errors import UserError
@@ -287,7 +287,7 @@ def test_track_through_both_passes_recovers_the_points(tmp_path, monkeypatch):
     M = torch.as_tensor(np.stack([c.M for c in inputs]))
     X_coarse = X + torch.tensor([8.0, 0.0, 0.0])
     uv, _ = project(cams, X_coarse[:, None])
-    coarse = _GreyOracle(_peaked_logits(uv @ M[:, :2, :2].transpose(-1, -2) + M[:, None, :2, 2], 2, 2.0))
+    coarse = _GreyOracle(peaked_logits(uv @ M[:, :2, :2].transpose(-1, -2) + M[:, None, :2, 2], 2, 2.0))
     # the refining oracle's answer: the true points in the crops the run's rule cuts around the coarse points
     rule = CropRule(extent=400.0, size=40)
     centres = torch.as_tensor(np.stack([extent_middle(x) for x in X_coarse.numpy()]))[:, None]
