@@ -78,7 +78,7 @@ from s3k.experiments.accuracy import (  # noqa: E402
     without_notes,
 )
 from s3k.experiments.grid import LABEL_CHOICES  # noqa: E402
-from s3k.presets import PRESETS  # noqa: E402
+from s3k.train.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

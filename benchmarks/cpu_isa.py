@@ -66,7 +66,7 @@ _ISA_VARS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "M
 
 # ------------------------------------------------------------------------------------------ one setting
 def _pass_configs(preset_name: str, precision: str | None, steps: int, threads: int) -> dict:
-    from s3k.presets import preset
+    from s3k.train.presets import preset
 
     cfg = preset(preset_name)
     if precision is not None:
@@ -191,7 +191,7 @@ def parent(args: argparse.Namespace) -> None:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
-        from s3k.presets import preset
+        from s3k.train.presets import preset
 
         crop = int(preset(args.preset).crop_size)
         data = Path(args.data) if args.data else ensure_box_render(work, crop, unlabelled=40, test=0)

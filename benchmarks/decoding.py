@@ -40,8 +40,8 @@ def log_parabola(probs: torch.Tensor, stride: int, radius: int,
                  peak: torch.Tensor | None = None) -> torch.Tensor:
     """Each heatmap's peak cell moved by the vertex of the parabola through its log-probabilities and its two
     neighbours', per axis, at most half a cell (``radius`` is not used: the fit reads three cells per axis);
-    image pixels ``(*, 2)``, as :func:`s3k.heatmaps.peak_window_mean` returns."""
-    from s3k.heatmaps import cell_centres
+    image pixels ``(*, 2)``, as :func:`s3k.readout.heatmaps.peak_window_mean` returns."""
+    from s3k.readout.heatmaps import cell_centres
 
     h, w = probs.shape[-2:]
     lead = probs.shape[:-2]

@@ -45,7 +45,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks.common import git_revision, machine_info  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.experiments.label_curve import LABEL_COUNTS, CurveOptions, run_curve  # noqa: E402
-from s3k.presets import PRESETS  # noqa: E402
+from s3k.train.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -67,8 +67,8 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     from s3k.config import TrainConfig
     from s3k.data.frames import FrameStore, images_to_float, open_dataset
     from s3k.detector import load_network
-    from s3k.losses import pseudo_labels as make_pseudo_labels
     from s3k.readout import ReadoutConfig
+    from s3k.train.losses import pseudo_labels as make_pseudo_labels
     from s3k.train.validation import labelled_distances
 
     config = run / "config.json"

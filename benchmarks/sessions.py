@@ -50,7 +50,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
-from s3k.presets import PRESETS  # noqa: E402
+from s3k.train.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SESSIONS = ("s1", "s2", "s3", "s4")
@@ -200,7 +200,7 @@ def build_datasets(work: Path, renders: dict[str, Path], args: argparse.Namespac
 
 
 def train_config(args: argparse.Namespace, seed: int):
-    from s3k.presets import preset
+    from s3k.train.presets import preset
 
     cfg = preset(args.preset).replace(seed=seed, threads=1, progress=False)
     if args.steps is not None:

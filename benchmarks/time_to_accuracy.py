@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 ROOT = Path(__file__).resolve().parents[1]
 
 from s3k.cli import showing_library_messages  # noqa: E402
-from s3k.presets import PRESETS  # noqa: E402
+from s3k.train.presets import PRESETS  # noqa: E402
 
 
 def device_name(device: str) -> str:

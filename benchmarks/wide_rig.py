@@ -53,9 +53,9 @@ from s3k.experiments.accuracy import (  # noqa: E402
 )
 from s3k.experiments.outside_rig import FIGURES, test_set_name  # noqa: E402
 from s3k.inference.evaluate import evaluate_run  # noqa: E402
-from s3k.presets import PRESETS  # noqa: E402
 from s3k.sim.rigs import describe_rig, ranged_sampler  # noqa: E402
 from s3k.sim.scenes import SCENES  # noqa: E402
+from s3k.train.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The headline's data: a pool of 100 labelled frames, 10 of them chosen as the labelling app would.

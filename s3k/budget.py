@@ -19,7 +19,7 @@ this check does not read (a training there that exceeds it fails at its first st
 data-parallel run on one machine each check the whole machine's memory. The estimate is checked against a
 measurement of a real step in ``tests/train/test_budget.py`` (the tensors autograd
 saves, and the peak resident memory of a process that runs the step). :func:`check_fits` compares it with
-:func:`s3k.memory.available_memory`, which honours a control group's limit and ``ulimit -v``.
+:func:`s3k.base.memory.available_memory`, which honours a control group's limit and ``ulimit -v``.
 
 Example:
     >>> unet_parameters((16, 32, 32, 32), res_blocks=2, stride=2, keypoints=3)
@@ -34,8 +34,8 @@ from typing import Protocol
 
 from s3k.base.choices import Norm
 from s3k.base.errors import UserError
+from s3k.base.memory import available_memory
 from s3k.geometry.warp import model_image_size
-from s3k.memory import available_memory
 
 BYTES_PER_PARAMETER = 16
 """float32 weight, gradient and Adam's first and second moments."""
@@ -153,7 +153,7 @@ def check_fits(cfg: SizedConfig, *, cameras: int, keypoints: int, source_size: t
         cameras, keypoints, source_size, frames: the dataset's shape (see :func:`footprint`).
         where: the dataset folder, named in the message (its ``s3k.json`` gives the image size); None: the
             configuration alone, with the smallest dataset it could train on (:func:`check_config_fits`).
-        available: bytes available; default :func:`s3k.memory.available_memory`.
+        available: bytes available; default :func:`s3k.base.memory.available_memory`.
 
     Raises:
         UserError: one line with the estimate, the memory available and the option to lower.

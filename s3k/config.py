@@ -61,7 +61,7 @@ class ModelConfig:
 
 @dataclass
 class AugmentationConfig:
-    """Random per-image augmentation; the geometry stays exact (``K <- M K``, ``s3k.augment``)."""
+    """Random per-image augmentation; the geometry stays exact (``K <- M K``, ``s3k.train.augment``)."""
 
     augment: bool = _f(True, "augment every image with a random similarity and photometric changes")
     rotation_deg: float = _f(180.0, "maximum in-plane rotation of the augmentation, degrees", ge=0)

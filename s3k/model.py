@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from s3k import readout
 from s3k.base.choices import ENCODERS, NORMS, Encoder, Norm
-from s3k.heatmaps import heatmap_size
+from s3k.readout.heatmaps import heatmap_size
 
 __all__ = ["UNetConfig", "UNet", "detect", "conv_layers", "count_conv_flops"]
 

@@ -36,8 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from s3k.base.errors import UserError
-from s3k.heatmaps import heatmap_size
 from s3k.model import ConvNormAct, HeatmapHead, UNet, UNetConfig, Up
+from s3k.readout.heatmaps import heatmap_size
 
 __all__ = ["EncoderUNet", "EfficientNetLite0", "build_network", "load_imagenet_weights", "lite0_state_dict",
            "imagenet_weights_file", "WEIGHTS_SHA256", "WEIGHTS_PACKAGE"]

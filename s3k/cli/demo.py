@@ -9,7 +9,7 @@ from pathlib import Path
 from s3k.cli import examples
 from s3k.cli.options import number
 from s3k.experiments.demo import QUICK, DemoConfig, comparison_table, run_demo
-from s3k.presets import PRESETS
+from s3k.train.presets import PRESETS
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -14,10 +14,10 @@ from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.config import TrainConfig, leaf_fields, resumable_fields
 from s3k.config_files import read_config_file
-from s3k.presets import PRESETS, preset
 from s3k.run_folder import RunFolder
 from s3k.train import train
 from s3k.train.fine_tune import fine_tune_config
+from s3k.train.presets import PRESETS, preset
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -23,8 +23,8 @@ from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.experiments.views import make_view, select_frames
 from s3k.inference.evaluate import evaluate_run
-from s3k.presets import preset
 from s3k.run_folder import RunFolder
+from s3k.train.presets import preset
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ Steps (each skipped when its output already exists, so an interrupted demo conti
    labelling app's *poses in proportion* ranking would pick them, all unlabelled and test frames
    (:func:`s3k.experiments.accuracy.labelled_view`).
 2. ``DIR/s3k`` and ``DIR/baseline``: ``s3k train --preset box-fast`` (the README's headline configuration
-   on smaller crops, two thirds of its CPU time, :mod:`s3k.presets`; ``--preset box-headline`` for the
+   on smaller crops, two thirds of its CPU time, :mod:`s3k.train.presets`; ``--preset box-headline`` for the
    headline's own)
    with and without the self-supervised term (``--no-unsup``): same
    labels, same seed, same steps. On a machine with at least two cores they train at the same time as two
@@ -44,8 +44,8 @@ from s3k.detector import Detector, evaluate_store
 from s3k.experiments.accuracy import labelled_view
 from s3k.experiments.demo_figure import demo_figure, frame_detections
 from s3k.inference.report import write_report
-from s3k.presets import preset
 from s3k.run_folder import RunFolder
+from s3k.train.presets import preset
 
 
 @dataclass

@@ -42,8 +42,8 @@ from s3k.experiments.accuracy import (
     timed,
     train_command,
 )
-from s3k.presets import PRESETS
 from s3k.run_folder import RunFolder
+from s3k.train.presets import PRESETS
 
 log = logging.getLogger(__name__)
 

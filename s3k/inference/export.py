@@ -44,8 +44,8 @@ from s3k.detector import (
     training_dataset,
 )
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
-from s3k.heatmaps import confidence_weight
 from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
+from s3k.readout.heatmaps import confidence_weight
 
 log = logging.getLogger(__name__)
 

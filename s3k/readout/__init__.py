@@ -1,15 +1,15 @@
 """The read-out: heatmap logits -> 2D detections, confidences and 3D keypoints (everything after the network).
 
 Every caller uses these functions: ``s3k predict``, ``s3k evaluate``, ``s3k track``, ``s3k export
---with-moments``, :func:`s3k.model.detect`, the self-supervised loss (:mod:`s3k.losses`) and the inference
-benchmarks, so what is trained, scored and shipped is the same maths (docs/method.md, "Heatmaps",
+--with-moments``, :func:`s3k.model.detect`, the self-supervised loss (:mod:`s3k.train.losses`) and the
+inference benchmarks, so what is trained, scored and shipped is the same maths (docs/method.md, "Heatmaps",
 "Confidence", "Triangulation"). Per view ``c`` and keypoint ``k``:
 
 1. :func:`moments`: the spatial softmax ``P_ck`` of the logits, its mean ``m_ck`` within a window around
    its most probable cell (the 2D detection, in the network-input pixels, pixel (0, 0) the centre of the
    top-left pixel) and its variance ``var_ck`` over the whole heatmap.
-2. :func:`s3k.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread, and the run's
-   calibration of it (:class:`ConfidenceMap`), the confidence ``c_ck``.
+2. :func:`s3k.readout.heatmaps.confidence_weight`: the confidence weight ``w_ck`` from the spread, and the
+   run's calibration of it (:class:`ConfidenceMap`), the confidence ``c_ck``.
 3. :func:`select_views`: which views enter the triangulation.
 4. :func:`triangulate`: the confidence-weighted triangulation of the selected views (lens distortion
    included), valid where at least two views are used and the rays are not near-parallel.

@@ -1,13 +1,13 @@
 """The calibrated confidence: a monotone map from the paper's confidence weight to the share of views whose
 detection lies near the truth (docs/method.md#confidence).
 
-The weight ``w`` (:func:`s3k.heatmaps.confidence_weight`) measures a heatmap's spread against the target
-width; how right a view with a given weight is depends on the run (a run trained shorter has wider heatmaps:
-weights near 0.05 on detections that are right). So each run's weights are calibrated on its own validation
-frames at the end of training: :func:`fit_confidence` fits the non-decreasing map ``c(w)`` such that about a
-fraction ``c`` of the views given confidence ``c`` lie within ``CALIBRATION_SIGMAS`` target widths of the
-truth, in the network's input pixels. Triangulation keeps weighting views by ``w``; thresholds (the
-read-out's view selection, the labelling app's accept) compare ``c``.
+The weight ``w`` (:func:`s3k.readout.heatmaps.confidence_weight`) measures a heatmap's spread against the
+target width; how right a view with a given weight is depends on the run (a run trained shorter has wider
+heatmaps: weights near 0.05 on detections that are right). So each run's weights are calibrated on its own
+validation frames at the end of training: :func:`fit_confidence` fits the non-decreasing map ``c(w)`` such
+that about a fraction ``c`` of the views given confidence ``c`` lie within ``CALIBRATION_SIGMAS`` target
+widths of the truth, in the network's input pixels. Triangulation keeps weighting views by ``w``; thresholds
+(the read-out's view selection, the labelling app's accept) compare ``c``.
 
 The fit is an isotonic regression (pool-adjacent-violators) on blocks of at least ``MIN_COUNT`` views of
 neighbouring weights, each block's share counted with one pseudo-view within the distance and one beyond, so

@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, project
-from s3k.heatmaps import confidence_weight
 from s3k.readout.config import ReadoutConfig
+from s3k.readout.heatmaps import confidence_weight
 from s3k.readout.rigid import (
     Found,
     LayoutPrior,

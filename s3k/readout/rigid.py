@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from s3k.geometry import Cameras, project
-from s3k.heatmaps import peak_window_mean
+from s3k.readout.heatmaps import peak_window_mean
 from s3k.readout.views import DTYPE
 
 __all__ = ["LAYOUT_SAMPLES", "LayoutPrior", "fit_layout", "layout_locus", "layout_shape", "reject_layout",

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from s3k.geometry import Cameras, pixel_rays, project, triangulate_rays
 from s3k.geometry.triangulation import SMALL_BATCH, ray_projectors, solve_projected
-from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
+from s3k.readout.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 
 __all__ = ["DEFAULT_MIN_WEIGHT", "DTYPE", "WINDOW_SIGMAS", "Rays", "moments", "outliers_and_points",
            "reject_outliers", "select_views", "triangulate", "triangulate_views", "view_rays", "window_cells"]
@@ -50,11 +50,11 @@ def moments(logits: Tensor, stride: int, window: int = 0) -> tuple[Tensor, Tenso
         logits: ``(*, h, w)``.
         stride: heatmap stride.
         window: 0 for the whole heatmap's mean; else the mean within this many cells of the peak
-            (:func:`s3k.heatmaps.peak_window_mean`). The variance is always the whole heatmap's.
+            (:func:`s3k.readout.heatmaps.peak_window_mean`). The variance is always the whole heatmap's.
 
     Returns:
         ``(probs (*, h, w), mean_uv (*, 2), var (*))``: the heatmaps, their means in network-input pixels and
-        their variances in squared pixels (:func:`s3k.heatmaps.heatmap_moments`).
+        their variances in squared pixels (:func:`s3k.readout.heatmaps.heatmap_moments`).
     """
     probs = spatial_softmax(logits.to(DTYPE))
     mean_uv, var = heatmap_moments(probs, stride)

@@ -26,11 +26,11 @@ import torch
 from tqdm import tqdm
 
 from s3k.base.errors import UserError
+from s3k.base.memory import available_memory
 from s3k.base.metrics import pixel_sizes_mm
 from s3k.base.outputs import check_replaceable, replace_folder
 from s3k.data import DatasetWriter
 from s3k.geometry import Cameras
-from s3k.memory import available_memory
 from s3k.sim.rigs import (
     DISTANCE_LIMITS,
     ELEVATION_LIMITS,

@@ -3,8 +3,8 @@
 The losses: docs/method.md#losses.
 
 Each step draws a labelled batch and, once the self-supervised term is on, an unlabelled batch; both are
-augmented per image with a random similarity that updates the intrinsics (``s3k.augment``), go through the
-network in one forward pass, and give
+augmented per image with a random similarity that updates the intrinsics (``s3k.train.augment``), go through
+the network in one forward pass, and give
 
     L = L_sup + alpha(step) * L_unsup + weight_decay * ||theta_non-bias||^2.
 

@@ -27,7 +27,7 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, *, 
         data: dataset folder (``s3k.data``), with labelled and (for S3K) unlabelled frames; or, for one pass,
             a dataset held in memory (:class:`s3k.data.crops.CropDataset`).
         out: run folder (created).
-        cfg: the configuration, e.g. ``s3k.presets.preset("box-fast").replace(seed=1)``.
+        cfg: the configuration, e.g. ``preset("box-fast").replace(seed=1)`` (:mod:`s3k.train.presets`).
         resume: continue the run in ``out`` where it stopped; the configuration and the dataset must match
             the run's except for ``s3k.config.resumable_fields``.
         progress: optional ``f(step, terms)`` called after every completed step of each pass (``terms``: the

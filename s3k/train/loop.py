@@ -20,7 +20,6 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from s3k.augment import NoiseBank
 from s3k.base.errors import UserError
 from s3k.base.fileio import atomic_write_json
 from s3k.config import TrainConfig
@@ -42,6 +41,7 @@ from s3k.networks import EncoderUNet, build_network, load_imagenet_weights
 from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
 from s3k.train import run_folder
+from s3k.train.augment import NoiseBank
 from s3k.train.distributed import (
     DistInfo,
     all_ranks,

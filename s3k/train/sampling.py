@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from s3k.augment import Augmentation, NoiseBank, augment_frames
 from s3k.data.frames import FrameBatch, FrameStore, images_to_float
 from s3k.geometry import Cameras
+from s3k.train.augment import Augmentation, NoiseBank, augment_frames
 
 
 def draw_batch(store: FrameStore, n: int, gen: torch.Generator, distinct: bool) -> FrameBatch:

@@ -10,8 +10,8 @@ from torch import nn
 from s3k.base.choices import Arithmetic
 from s3k.config import TrainConfig
 from s3k.detector import autocast
-from s3k.losses import l2_non_bias, self_supervised_loss, supervised_loss
 from s3k.readout import ReadoutConfig
+from s3k.train.losses import l2_non_bias, self_supervised_loss, supervised_loss
 
 
 def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainConfig, alpha: float,

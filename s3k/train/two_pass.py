@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from s3k.base.errors import UserError
+from s3k.base.memory import available_memory
 from s3k.base.outputs import check_run_folder
 from s3k.config import TrainConfig
 from s3k.data import Dataset
@@ -63,7 +64,6 @@ from s3k.detector import (
 )
 from s3k.detector.crop_rule import CropRule, extent_middle, write_two_pass
 from s3k.geometry import triangulate_labels
-from s3k.memory import available_memory
 from s3k.run_folder import RunFolder
 from s3k.train.loop import TrainResult, train_one_pass
 from s3k.train.run_folder import check_config

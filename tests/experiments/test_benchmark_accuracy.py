@@ -124,8 +124,8 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     from helpers.synthetic_rig import make_dataset
 
     from s3k import cli
-    from s3k.presets import PRESETS
     from s3k.run_folder import RunFolder
+    from s3k.train.presets import PRESETS
 
     CPU_FILE = RunFolder.CPU
 

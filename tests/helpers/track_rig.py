@@ -20,8 +20,8 @@ from s3k.data.rig import Rig
 from s3k.data.video import write_video
 from s3k.detector import DetectorMeta
 from s3k.geometry import Cameras, project
-from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.model import UNetConfig
+from s3k.readout.heatmaps import gaussian_targets, heatmap_size
 
 CAMERAS = ["left", "top", "right"]
 KEYPOINTS = ["nose", "ear", "tail"]

@@ -13,10 +13,10 @@ from helpers.tiny_detector import make_run, save_run
 
 from s3k import cli
 from s3k.detector import DetectorMeta, load_network
-from s3k.heatmaps import confidence_weight
 from s3k.inference.export import META_KEY, TRACE_BATCH, export_detector, run_exported, verification_images
 from s3k.model import UNetConfig, detect
 from s3k.readout import window_cells
+from s3k.readout.heatmaps import confidence_weight
 
 pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")

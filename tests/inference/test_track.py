@@ -38,16 +38,16 @@ from s3k.data.video import frame_count, frame_size, synchronized_frames, write_v
 from s3k.detector import DetectorMeta
 from s3k.geometry import Cameras, project, triangulate_pixels
 from s3k.geometry.warp import crop_resize_matrix
-from s3k.heatmaps import (
+from s3k.inference.session import RigOptions, RigSession, fit_box
+from s3k.model import UNetConfig
+from s3k.readout import ReadoutConfig, read_out, window_cells
+from s3k.readout.heatmaps import (
     confidence_weight,
     heatmap_moments,
     heatmap_size,
     peak_window_mean,
     spatial_softmax,
 )
-from s3k.inference.session import RigOptions, RigSession, fit_box
-from s3k.model import UNetConfig
-from s3k.readout import ReadoutConfig, read_out, window_cells
 
 # ------------------------------------------------------------------------------------------------------------
 # Input geometry

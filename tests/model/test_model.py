@@ -6,8 +6,8 @@ import pytest
 import torch
 from torch import nn
 
-from s3k.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 from s3k.model import HeatmapHead, UNet, UNetConfig, conv_layers, count_conv_flops, detect
+from s3k.readout.heatmaps import heatmap_moments, peak_window_mean, spatial_softmax
 
 
 def _randomize_norm_stats(net: nn.Module, seed: int = 0) -> None:

@@ -1,4 +1,4 @@
-"""Tests for s3k.heatmaps: cell map, Gaussian targets, spatial softmax, moments, confidence weight."""
+"""Tests for s3k.readout.heatmaps: cell map, Gaussian targets, spatial softmax, moments, confidence weight."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from s3k.heatmaps import (
+from s3k.readout.heatmaps import (
     cell_centres,
     confidence_weight,
     gaussian_targets,
@@ -213,7 +213,7 @@ def test_confidence_weight_through_moments_gradcheck():
 def test_peak_window_mean_removes_the_pull_of_spread_probability():
     """Probability spread evenly over the heatmap pulls the whole mean towards the centre in proportion to the
     spread and the distance; the mean within a window around the peak stays on the Gaussian's centre."""
-    from s3k.heatmaps import peak_window_mean
+    from s3k.readout.heatmaps import peak_window_mean
 
     uv = torch.tensor([[14.3, 48.6], [40.0, 31.5], [48.8, 16.2]], dtype=torch.float64)
     target, _ = gaussian_targets(uv, None, 32, 32, 2, 3.0)
@@ -237,7 +237,7 @@ def test_peak_window_mean_reads_the_window_as_the_masked_heatmap_does():
     """The window is gathered by index; its mean equals that of the whole heatmap with every cell outside
     the window set to zero, at the edges (the window cut by the border) and for a window wider than the
     heatmap, with and without a given peak."""
-    from s3k.heatmaps import peak_window_mean
+    from s3k.readout.heatmaps import peak_window_mean
 
     def masked(probs, stride, radius, peak):
         h, w = probs.shape[-2:]

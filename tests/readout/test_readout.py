@@ -21,19 +21,19 @@ from s3k.data.frames import FrameStore, images_to_float, open_dataset
 from s3k.detector import DetectorMeta, OnePassDetector
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_resize_matrix
-from s3k.heatmaps import (
+from s3k.inference.evaluate import evaluate_store
+from s3k.inference.export import DetectorWithMoments
+from s3k.inference.predict import detect_store
+from s3k.model import detect
+from s3k.readout import ReadoutConfig, read_out, select_views, triangulate, window_cells
+from s3k.readout.heatmaps import (
     confidence_weight,
     gaussian_targets,
     heatmap_moments,
     peak_window_mean,
     spatial_softmax,
 )
-from s3k.inference.evaluate import evaluate_store
-from s3k.inference.export import DetectorWithMoments
-from s3k.inference.predict import detect_store
-from s3k.losses import self_supervised_loss
-from s3k.model import detect
-from s3k.readout import ReadoutConfig, read_out, select_views, triangulate, window_cells
+from s3k.train.losses import self_supervised_loss
 
 SIZE, STRIDE, SIGMA = 32, 2, 2.0
 #: A detector's description with this module's read-out settings (no outlier threshold).

@@ -140,9 +140,8 @@ LAYERS = [  # highest first: a room imports from its own layer and the layers be
     ["label", "sim", "robot", "experiments"],
     ["inference", "train"],
     ["detector"],
-    ["readout", "model", "networks", "losses", "augment", "presets"],
-    ["data", "geometry", "heatmaps", "base", "rigcal", "config", "config_fields", "config_files", "budget",
-     "memory", "run_folder"],
+    ["readout", "model", "networks"],
+    ["data", "geometry", "base", "rigcal", "config", "config_fields", "config_files", "budget", "run_folder"],
 ]
 
 

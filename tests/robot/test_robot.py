@@ -167,7 +167,7 @@ def test_grasp_on_ground_truth_lifts_the_paw_and_a_bad_aim_does_not():
 
 def _oracle_logits(uv: np.ndarray, h: int, w: int, stride: int, sigma: float) -> torch.Tensor:
     """Logits ``(C, K, h, w)`` of a Gaussian of width ``sigma`` image pixels at ``uv (C, K, 2)``."""
-    from s3k.heatmaps import cell_centres
+    from s3k.readout.heatmaps import cell_centres
 
     u, v = cell_centres(h, w, stride)
     uv_t = torch.as_tensor(uv, dtype=torch.float32)

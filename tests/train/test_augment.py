@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from s3k.augment import (
+from s3k.train.augment import (
     Augmentation,
     photometric,
     random_warps,
@@ -129,7 +129,7 @@ def test_stretch_is_along_a_random_direction_and_zero_draws_nothing_more():
     torch.testing.assert_close(sv[:, 0] / sv[:, 1], torch.maximum(a, 1 / a))
     torch.testing.assert_close(M[:, 2], plain[:, 2])  # still affine
     # a stretch keeps the image centre and the line across its direction
-    from s3k.augment import stretch_matrices
+    from s3k.train.augment import stretch_matrices
 
     S = stretch_matrices(torch.tensor([0.0, math.pi / 2]), torch.tensor([0.5, 2.0]), (64, 48))
     c = torch.tensor([31.5, 23.5])
@@ -142,7 +142,7 @@ def test_stretch_is_along_a_random_direction_and_zero_draws_nothing_more():
 @pytest.mark.parametrize("seed,stretch", [(0, 0.0), (1, 0.0), (2, 0.4)])
 def test_uint8_frames_path_matches_geometry_and_float_path(seed, stretch):
     """augment_frames (OpenCV on uint8) puts the dot where K' = M K projects it, like the grid_sample path."""
-    from s3k.augment import augment_frames, warp_images_uint8
+    from s3k.train.augment import augment_frames, warp_images_uint8
 
     gen = torch.Generator().manual_seed(seed)
     H, W, C, B = 48, 64, 4, 2
@@ -170,7 +170,7 @@ def test_uint8_frames_path_matches_geometry_and_float_path(seed, stretch):
 
 
 def test_noise_bank_is_reproducible_and_scaled():
-    from s3k.augment import NoiseBank
+    from s3k.train.augment import NoiseBank
 
     img = torch.full((6, 3, 8, 8), 0.5)
     aug = Augmentation(brightness=0, contrast=0, colour=0, noise=0.1)

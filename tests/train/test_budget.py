@@ -16,10 +16,10 @@ import torch
 from helpers.paths import REPO as ROOT
 
 import s3k.budget as budget
+from s3k.base.memory import available_memory
 from s3k.budget import activation_elements, footprint, unet_parameters
 from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
-from s3k.memory import available_memory
 from s3k.model import UNet, UNetConfig
 from s3k.train import train
 
@@ -105,7 +105,7 @@ def test_available_memory_honours_an_address_space_limit():
     def limited() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
-    done = subprocess.run([sys.executable, "-c", "from s3k.memory import available_memory; "
+    done = subprocess.run([sys.executable, "-c", "from s3k.base.memory import available_memory; "
                            "print(available_memory())"], env={**os.environ, "PYTHONPATH": str(ROOT)},
                           capture_output=True, text=True, check=True, preexec_fn=limited)
     assert 0 < int(done.stdout) < limit

@@ -12,9 +12,9 @@ from s3k.base.errors import UserError
 from s3k.cli import main as cli_main
 from s3k.config import TrainConfig
 from s3k.detector import load_network
-from s3k.presets import preset
 from s3k.run_folder import RunFolder
 from s3k.train import train
+from s3k.train.presets import preset
 
 
 @pytest.fixture(scope="module")

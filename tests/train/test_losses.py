@@ -1,4 +1,4 @@
-"""Tests for s3k.losses: KL, supervised and self-supervised multi-view terms, weight decay."""
+"""Tests for s3k.train.losses: KL, supervised and self-supervised multi-view terms, weight decay."""
 
 from __future__ import annotations
 
@@ -7,22 +7,22 @@ import torch
 from torch import nn
 
 from s3k.geometry import Cameras, project, triangulate_pixels
-from s3k.heatmaps import (
+from s3k.model import UNet
+from s3k.readout import ReadoutConfig, window_cells
+from s3k.readout.heatmaps import (
     confidence_weight,
     gaussian_targets,
     heatmap_moments,
     peak_window_mean,
     spatial_softmax,
 )
-from s3k.losses import (
+from s3k.train.losses import (
     kl_divergence,
     kl_loss,
     l2_non_bias,
     self_supervised_loss,
     supervised_loss,
 )
-from s3k.model import UNet
-from s3k.readout import ReadoutConfig, window_cells
 
 H = W = 64
 STRIDE = 2
@@ -434,7 +434,7 @@ def test_coord_loss_is_the_mean_distance_in_target_widths_and_pulls_the_mean_in(
     """A heatmap whose mean sits on the target costs nothing; one whose mass leans 2 pixels off costs its
     distance over sigma (smoothed near zero); a gradient step moves the mean towards the target; masked terms
     cost nothing."""
-    from s3k.losses import coord_loss
+    from s3k.train.losses import coord_loss
 
     stride, sigma = 2, 3.0
     target_uv = torch.tensor([[[20.3, 30.7], [10.0, 12.0]]])  # (B=1, K=2, 2)
@@ -457,7 +457,7 @@ def test_coord_loss_is_the_mean_distance_in_target_widths_and_pulls_the_mean_in(
 def test_coord_weight_adds_the_coordinate_term_to_both_losses():
     """With ``coord_weight`` the supervised and self-supervised losses grow by that times ``coord_loss`` of
     their own targets, which ``info`` reports."""
-    from s3k.losses import coord_loss
+    from s3k.train.losses import coord_loss
 
     cams = _rig()
     uv, _ = project(cams, _points()[:, None])

@@ -12,7 +12,7 @@ from helpers.synthetic_rig import make_dataset
 
 from s3k import cli
 from s3k.config import TrainConfig
-from s3k.presets import PRESETS
+from s3k.train.presets import PRESETS
 
 
 def test_every_preset_is_a_whole_valid_configuration_printed_by_the_cli(capsys):

@@ -328,8 +328,8 @@ def test_resume_refuses_a_preset_that_is_not_the_runs_configuration(capsys, data
 def test_resume_takes_the_preset_the_run_was_trained_with(capsys, dataset, tmp_path):
     """A two-pass run started from a preset (its options recorded, more steps since) resumes with
     ``--preset`` of that name, its own steps kept; another preset names the field that differs."""
-    from s3k.presets import preset
     from s3k.run_folder import RunFolder
+    from s3k.train.presets import preset
 
     run = RunFolder(tmp_path / "run")
     run.path.mkdir()

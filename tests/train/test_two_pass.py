@@ -35,8 +35,8 @@ from s3k.detector import (
 from s3k.detector.geometry_record import dataset_identity
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_maps, metric_crop_boxes
-from s3k.heatmaps import gaussian_targets, heatmap_size
 from s3k.model import UNetConfig
+from s3k.readout.heatmaps import gaussian_targets, heatmap_size
 from s3k.run_folder import RunFolder
 from s3k.train.run_setup import _validation_frames
 from s3k.train.two_pass import crop_rule_from_labels, estimates_and_crops, training_crops

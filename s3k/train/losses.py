@@ -25,13 +25,13 @@ from torch import Tensor, nn
 
 from s3k import readout
 from s3k.geometry import Cameras, project, triangulate_labels
-from s3k.heatmaps import (
+from s3k.readout import ReadoutConfig
+from s3k.readout.heatmaps import (
     gaussian_targets,
     heatmap_moments,
     spatial_log_softmax,
     spatial_softmax,
 )
-from s3k.readout import ReadoutConfig
 
 __all__ = ["coord_loss", "kl_divergence", "kl_loss", "l2_non_bias", "pseudo_labels",
            "self_supervised_loss", "supervised_loss"]
