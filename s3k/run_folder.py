@@ -5,7 +5,7 @@ A one-pass run (``s3k train``)::
 
     RUN/config.json      the resolved TrainConfig (flat), "meta" (what inference needs), the dataset, history
     RUN/checkpoint.pt    full training state for --resume          (s3k.train.loop, s3k.train.checkpoint)
-    RUN/model.pt         final weights + meta                       (s3k.train.loop, s3k.detector.run_folder)
+    RUN/model.pt         final weights + meta                       (s3k.train.loop, s3k.detector.model_file)
     RUN/train.log        the log                                    (s3k.train.run_setup)
     RUN/progress.json    step, steps, seconds: a live progress view (s3k.train.loop)
     RUN/tensorboard/     TensorBoard event files                    (s3k.train.loop)

@@ -1,7 +1,7 @@
 """A trained detector: the run folder it lives in, what it needs at inference, and :class:`Detector`, the one
 object every part of s3k (and a user's program) goes through to use it.
 
-- :mod:`s3k.detector.run_folder`: the files of ``RUN/`` and the one safe reader of s3k's ``.pt`` files;
+- :mod:`s3k.detector.model_file`: a run's model files and the one safe reader of s3k's ``.pt`` files;
 - :mod:`s3k.detector.meta`: :class:`DetectorMeta`, the settings it was trained with;
 - :mod:`s3k.detector.crop_rule`: the crop rule of a two-pass run and the one crop-centre rule;
 - :mod:`s3k.detector.detector`: :class:`Detector` (one pass or two) on frames of any size, on any device.
@@ -28,8 +28,7 @@ from s3k.detector.detector import (
     training_precision,
 )
 from s3k.detector.meta import DetectorMeta
-from s3k.detector.over_frames import detect_store, evaluate_store, scored_views, split_frames
-from s3k.detector.run_folder import (
+from s3k.detector.model_file import (
     CHECKPOINT_FILE,
     CONFIG_FILE,
     LOG_FILE,
@@ -47,6 +46,7 @@ from s3k.detector.run_folder import (
     training_dataset,
     write_run_config,
 )
+from s3k.detector.over_frames import detect_store, evaluate_store, scored_views, split_frames
 
 __all__ = [
     "CHECKPOINT_FILE", "CONFIG_FILE", "LOG_FILE", "MODEL_FILE", "MODEL_FORMAT", "PRECISIONS",

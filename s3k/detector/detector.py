@@ -42,7 +42,7 @@ from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
 from s3k.detector.frozen import FrozenNetwork
 from s3k.detector.meta import DetectorMeta
-from s3k.detector.run_folder import load_network, note_uncalibrated
+from s3k.detector.model_file import load_network, note_uncalibrated
 from s3k.geometry import Cameras
 from s3k.geometry.warp import (
     crop_images,

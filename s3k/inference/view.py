@@ -37,7 +37,7 @@ from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import read_source
 from s3k.detector import Detector, DetectorMeta, detect_store, split_frames
 from s3k.detector.crop_rule import is_two_pass
-from s3k.detector.run_folder import read_run_config, training_dataset
+from s3k.detector.model_file import read_run_config, training_dataset
 from s3k.geometry import triangulate_labels
 from s3k.inference.rerun_log import RerunLog
 from s3k.run_folder import RunFolder

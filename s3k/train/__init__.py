@@ -35,7 +35,8 @@ The rooms:
 - :mod:`s3k.train.run_setup`: the set-up of a run (the dataset and its frames, the refusals, the run's meta,
   folder and log; :func:`check_trained_as`).
 - :mod:`s3k.train.checkpoint`: the checkpoint format, its one writer and one reader.
-- :mod:`s3k.train.run_folder`: the checks before anything is written, ``--resume`` compatibility, history.
+- :mod:`s3k.train.out_folder`: the checks of ``--out`` before anything is written, ``--resume`` compatibility,
+  history.
 - :mod:`s3k.train.sampling`: random batches, augmented, on the device.
 - :mod:`s3k.train.validation`: periodic validation and the labelled layout it compares with.
 - :mod:`s3k.train.distributed`: DDP helpers (under ``torchrun --nproc-per-node N`` the ranks train what one

@@ -2,7 +2,7 @@
 :mod:`s3k.train.run_setup`; the loss of one step: :mod:`s3k.train.step`).
 
 :func:`train` opens the dataset once, makes every check that can refuse the run before anything is written
-(``run_folder``; no labelled frame with a usable target; S3K without unlabelled frames), builds or restores
+(``out_folder``; no labelled frame with a usable target; S3K without unlabelled frames), builds or restores
 the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.steps``.
 """
 
@@ -40,7 +40,7 @@ from s3k.model import UNetConfig
 from s3k.networks import EncoderUNet, build_network, load_imagenet_weights
 from s3k.readout import ReadoutConfig
 from s3k.train import checkpoint as ckpt
-from s3k.train import run_folder
+from s3k.train import out_folder
 from s3k.train.augment import NoiseBank
 from s3k.train.distributed import (
     DistInfo,
@@ -354,7 +354,7 @@ def train_one_pass(data: str | Path | DatasetLike, out: str | Path, cfg: TrainCo
         A :class:`TrainResult`.
 
     Raises:
-        UserError: before anything is written, naming what is wrong (see ``s3k.train.run_folder``).
+        UserError: before anything is written, naming what is wrong (see ``s3k.train.out_folder``).
     """
     cfg.validate()
     check_batches(cfg.batch_labelled, cfg.batch_unlabelled, cfg.unsup, world_size())
@@ -374,8 +374,8 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     if info.main:
-        run_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
-    if resume and (done := run_folder.finished_step(out, cfg.steps)) is not None:
+        out_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
+    if resume and (done := out_folder.finished_step(out, cfg.steps)) is not None:
         return _finished(source, out, cfg, done, info)
     d = open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size

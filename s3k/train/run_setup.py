@@ -26,7 +26,7 @@ from s3k.geometry.warp import model_image_size
 from s3k.model import UNetConfig
 from s3k.run_folder import RunFolder
 from s3k.train import checkpoint as ckpt
-from s3k.train import run_folder
+from s3k.train import out_folder
 from s3k.train.distributed import DistInfo
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ def check_trained_as(data: str | os.PathLike | DatasetLike, out: str | Path,
         UserError: naming the first field or dataset property that differs where it must not.
     """
     ds, _ = _open_at_network_size(data, cfg)
-    return run_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
+    return out_folder.check_resume(Path(out), cfg, dataset_identity(ds), data_path(data))
 
 
 def open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
@@ -183,12 +183,12 @@ def start_run(data: Path, out: Path, cfg: TrainConfig, d: _Data, meta: DetectorM
     if not info.main:
         return state
     identity = dataset_identity(d.ds)
-    changed = run_folder.check_resume(out, cfg, identity, data) if state is not None else {}
+    changed = out_folder.check_resume(out, cfg, identity, data) if state is not None else {}
     if overwrite:
-        run_folder.clear_run(out)
+        out_folder.clear_run(out)
     out.mkdir(parents=True, exist_ok=True)
     setup_logging(out, info.main)
-    run_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
+    out_folder.write_start(out, cfg, meta, data, identity, state is not None, changed, command)
     if changed:
         log.info("resumed with changed settings: %s",
                  ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in changed.items()))

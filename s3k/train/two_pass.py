@@ -66,7 +66,7 @@ from s3k.detector.crop_rule import CropRule, extent_middle, write_two_pass
 from s3k.geometry import triangulate_labels
 from s3k.run_folder import RunFolder
 from s3k.train.loop import TrainResult, train_one_pass
-from s3k.train.run_folder import check_config
+from s3k.train.out_folder import check_config
 from s3k.train.run_setup import check_trained_as, frames_used, setup_logging
 from s3k.train.two_pass_start import crop_extent_warning
 

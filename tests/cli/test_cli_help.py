@@ -153,7 +153,7 @@ def test_a_value_refused_names_the_spelling_given(capsys):
 
 def test_the_option_a_resume_hint_gives_is_dashed_and_parses():
     from s3k.cli.config_options import config_from_args
-    from s3k.train.run_folder import _option
+    from s3k.train.out_folder import _option
 
     assert _option("layout_tol", 0.2) == "--layout-tol 0.2"
     assert _option("layout_fit", False) == "--no-layout-fit"
