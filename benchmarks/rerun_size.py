@@ -37,8 +37,9 @@ def _tiny_run(path: Path, real: Path) -> Path:
     import sleap_io as sio
     import torch
 
-    from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+    from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model
     from s3k.model import UNetConfig
+    from s3k.run_folder import RunFolder
 
     skeleton = sio.load_slp(str(real / "back" / "minimal_back_proofread.slp"), open_videos=False).skeletons[0]
     meta = DetectorMeta(keypoints=list(skeleton.node_names), cameras=list(CAMERAS), image_size=(64, 52),
@@ -46,7 +47,7 @@ def _tiny_run(path: Path, real: Path) -> Path:
                         model=UNetConfig(channels=(8, 8), res_blocks=1).to_dict())
     torch.manual_seed(0)
     path.mkdir(parents=True)
-    write_run_config(path, {}, meta)
+    RunFolder(path).write_record({}, meta.to_dict())
     atomic_save({"model": build_model(meta).state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
     return path
 

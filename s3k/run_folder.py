@@ -1,5 +1,6 @@
-"""The run folder: :class:`RunFolder` alone names the files a training writes, reads a run's configuration and
-brings older runs' records up to date.
+"""The run folder: :class:`RunFolder` alone names the files a training writes, reads and writes a run's
+``config.json`` (the one place it is parsed), reads a run's configuration and brings older runs' records up to
+date.
 
 A one-pass run (``s3k train``)::
 
@@ -123,7 +124,7 @@ class RunFolder:
         """Whether the folder holds nothing but what a failed two-pass start wrote: no pass trained."""
         return self.path.is_dir() and all(p.name in self.STUB_FILES for p in self.path.iterdir())
 
-    # -- the configuration ----------------------------------------------------------------------------------
+    # -- config.json ----------------------------------------------------------------------------------------
     def read_record(self) -> dict[str, Any]:
         """``config.json`` of a one-pass run: ``{"config", "meta", "dataset", ...}``.
 
@@ -141,6 +142,48 @@ class RunFolder:
         if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
             raise UserError(f"{path}: not an s3k run configuration (no 'config' table)")
         return doc
+
+    def record(self) -> dict[str, Any] | None:
+        """:meth:`read_record`, or None where ``config.json`` is missing, unreadable or not an s3k run
+        configuration (a folder asked whether it holds a run)."""
+        try:
+            return self.read_record()
+        except (OSError, UserError):
+            return None
+
+    def holds_record(self) -> bool:
+        """Whether ``config.json`` is a run's record: its configuration and its detector's meta."""
+        doc = self.record()
+        return doc is not None and "meta" in doc
+
+    def write_record(self, config: dict[str, Any], meta: dict[str, Any], dataset: str | None = None,
+                     **extra: Any) -> None:
+        """Write ``config.json``: ``{"config": config, "meta": meta, "dataset": dataset, **extra}``."""
+        atomic_write_json({"config": config, "meta": meta, "dataset": dataset, **extra}, self.config_file)
+
+    def first_pass(self) -> RunFolder:
+        """The folder whose ``config.json`` describes the run's detector: the coarse pass of a complete
+        two-pass run, else the folder itself."""
+        return self.coarse if self.is_two_pass() else self
+
+    def meta(self) -> dict[str, Any] | None:
+        """The ``meta`` the run's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
+        cameras, units, geometry; None when there is none to read."""
+        doc = self.first_pass().record()
+        meta = doc.get("meta") if doc is not None else None
+        return meta if isinstance(meta, dict) else None
+
+    def dataset(self) -> str | None:
+        """The dataset folder the run (of a two-pass run, its coarse pass) was trained on, as its
+        ``config.json`` records it; None when it does not.
+
+        Raises:
+            FileNotFoundError, UserError: as :meth:`read_record`.
+        """
+        dataset = self.first_pass().read_record().get("dataset")
+        return str(dataset) if dataset else None
+
+    # -- the configuration ----------------------------------------------------------------------------------
 
     def config(self) -> TrainConfig | None:
         """The configuration the run was trained with (of a two-pass run: both passes and the two-pass
@@ -195,22 +238,13 @@ def _migrate(flat: dict[str, Any], doc: dict[str, Any]) -> dict[str, Any]:
     return {**flat, **options, "two_pass": True}
 
 
-def _run_doc(path: Path) -> dict[str, Any] | None:
-    """A pass's ``config.json`` (its ``config`` and ``meta``), or None where it is missing or unreadable."""
-    try:
-        doc = json.loads(path.read_text())
-        return doc if isinstance(doc, dict) and isinstance(doc.get("config"), dict) else None
-    except (OSError, ValueError):
-        return None
-
-
 def _from_passes(run: RunFolder) -> dict[str, Any] | None:
     """The configuration of a two-pass run started before it was recorded: the coarse pass's configuration
     with the refining pass's own steps, rotation, stride and learning rate, and the crops' size and extent
     where they were cut. None until the refining pass has started: a coarse pass alone does not say what the
     refining pass's options are (its rotation, stride, learning rate and steps may be the coarse pass's own),
     so they are the call's, and the coarse pass is checked against them."""
-    coarse_doc, fine_doc = _run_doc(run.coarse.config_file), _run_doc(run.fine.config_file)
+    coarse_doc, fine_doc = run.coarse.record(), run.fine.record()
     if coarse_doc is None or fine_doc is None:
         return None
     coarse, fine = dict(coarse_doc["config"]), dict(fine_doc["config"])

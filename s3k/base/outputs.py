@@ -66,14 +66,7 @@ def is_run(folder: Path) -> bool:
         return True
     if run.coarse.path.is_dir() and is_run(run.coarse.path):
         return True
-    config = run.config_file
-    if not config.is_file():
-        return False
-    try:
-        doc = json.loads(config.read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "config" in doc and "meta" in doc
+    return run.holds_record()
 
 
 def _inside(target: Path, option: str, shown: Path, runs: bool) -> None:
@@ -206,12 +199,7 @@ def owns_run(folder: Path) -> bool:
         return True
     if run.coarse.path.is_dir() and owns_run(run.coarse.path):
         return True
-    config = run.config_file
-    try:
-        doc = json.loads(config.read_text()) if config.is_file() else None
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "config" in doc and "meta" in doc
+    return run.holds_record()
 
 
 def check_run_folder(out: str | Path, resume: bool, overwrite: bool, whole: bool = False,

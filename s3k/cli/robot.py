@@ -22,9 +22,9 @@ from s3k.base.fileio import atomic_write_json
 from s3k.base.outputs import check_output, check_output_folder, check_replaceable
 from s3k.cli import examples
 from s3k.cli.options import number
-from s3k.detector import training_dataset
 from s3k.robot.detect import RunDetector
 from s3k.robot.results import write_summary
+from s3k.run_folder import RunFolder
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -104,7 +104,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def _dataset_object_seed(run: str) -> int | None:
     """The ``object_seed`` of the plush dataset run ``run`` was trained on, when its metadata says so."""
 
-    dataset = training_dataset(run)
+    dataset = RunFolder(run).dataset()
     try:
         source = json.loads((Path(str(dataset)) / "s3k.json").read_text()).get("source") or {}
     except (OSError, ValueError, AttributeError):

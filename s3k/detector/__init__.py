@@ -41,10 +41,7 @@ from s3k.detector.model_file import (
     build_model,
     load_network,
     load_torch_file,
-    read_run_config,
     save_model_file,
-    training_dataset,
-    write_run_config,
 )
 from s3k.detector.over_frames import detect_store, evaluate_store, scored_views, split_frames
 
@@ -53,7 +50,6 @@ __all__ = [
     "PROGRESS_FILE", "RUN_FILES", "TENSORBOARD_DIR", "TWO_PASS_FILE", "CropRule", "Detection", "Detector",
     "DetectorMeta", "OnePassDetector", "TwoPassDetector", "atomic_save", "autocast", "build_model",
     "crop_centres", "detect_store", "evaluate_store", "extent_middle", "is_two_pass", "load_network",
-    "load_torch_file", "native_bfloat16", "pick_device", "read_run_config", "read_two_pass",
-    "save_model_file", "scored_views", "split_frames", "training_dataset", "training_precision",
-    "write_run_config", "write_two_pass",
+    "load_torch_file", "native_bfloat16", "pick_device", "read_two_pass",
+    "save_model_file", "scored_views", "split_frames", "training_precision", "write_two_pass",
 ]

@@ -98,24 +98,10 @@ def frame_calibration(ds: DatasetLike) -> dict[str, Any] | None:
     return {"units": str(ds.units), "cameras": cameras}
 
 
-def run_meta(run_dir: str | Path) -> dict[str, Any] | None:
-    """The ``meta`` a run folder's ``config.json`` holds (its coarse pass's for a two-pass run): keypoints,
-    cameras, units, geometry; None when there is none to read."""
-    run = RunFolder(run_dir)
-    if run.is_two_pass():
-        run = run.coarse
-    try:
-        doc = json.loads(run.config_file.read_text())
-    except (OSError, ValueError):
-        return None
-    meta = doc.get("meta") if isinstance(doc, dict) else None
-    return meta if isinstance(meta, dict) else None
-
-
 def run_geometry(run_dir: str | Path) -> dict[str, Any] | None:
     """The geometry recorded in a run folder (of its coarse detector for a two-pass run); None when the run
     predates the record or holds none."""
-    meta = run_meta(run_dir)
+    meta = RunFolder(run_dir).meta()
     return recorded_geometry(meta.get("geometry") if meta is not None else None)
 
 

@@ -1,5 +1,5 @@
-"""A run's model files and :func:`load_network` to use a trained model (the run folder's files are named by
-:class:`s3k.run_folder.RunFolder`).
+"""A run's model files and :func:`load_network` to use a trained model (the run folder's files are named, and
+its ``config.json`` read and written, by :class:`s3k.run_folder.RunFolder`).
 
 Every file is written atomically (``s3k.base.fileio``), so a run killed at any moment leaves the previous
 complete checkpoint in place. The ``.pt`` files hold only tensors and plain containers (the configuration and
@@ -9,7 +9,6 @@ a run never runs code from the file.
 
 from __future__ import annotations
 
-import json
 import logging
 import pickle
 from collections.abc import Sequence
@@ -19,7 +18,7 @@ from typing import Any
 import torch
 
 from s3k.base.errors import UserError
-from s3k.base.fileio import atomic_path, atomic_write_json
+from s3k.base.fileio import atomic_path
 from s3k.base.messages import NOTE
 from s3k.detector.meta import DetectorMeta
 from s3k.model import UNet, UNetConfig
@@ -93,32 +92,6 @@ def save_model_file(path: str | Path, model: dict[str, Any], meta: DetectorMeta,
     atomic_save({"format": MODEL_FORMAT, "model": model, "meta": meta.to_dict(), "step": step}, path)
 
 
-def write_run_config(run_dir: str | Path, config: dict[str, Any], meta: DetectorMeta,
-                     dataset: str | None = None, **extra: Any) -> None:
-    """Write ``RUN/config.json``: {"config": ..., "meta": ..., "dataset": ..., **extra}."""
-    doc = {"config": config, "meta": meta.to_dict(), "dataset": dataset, **extra}
-    atomic_write_json(doc, Path(run_dir) / CONFIG_FILE)
-
-
-def read_run_config(run_dir: str | Path) -> dict[str, Any]:
-    """Read ``RUN/config.json`` (:meth:`s3k.run_folder.RunFolder.read_record`).
-
-    Raises:
-        FileNotFoundError: naming the file when it is absent.
-        UserError: naming the file when it is not an s3k run configuration.
-    """
-    return RunFolder(run_dir).read_record()
-
-
-def training_dataset(run_dir: str | Path) -> str | None:
-    """The dataset folder a run (one pass, or the coarse pass of a two-pass run) was trained on, as its
-    ``config.json`` records it (None when it does not)."""
-    run = RunFolder(run_dir)
-    doc = (run.coarse if run.is_two_pass() else run).read_record()
-    dataset = doc.get("dataset")
-    return str(dataset) if dataset else None
-
-
 def build_model(meta: DetectorMeta) -> UNet:
     """A fresh (untrained) network for ``meta``."""
     return build_network(len(meta.keypoints), UNetConfig.from_dict(meta.model))
@@ -127,10 +100,8 @@ def build_model(meta: DetectorMeta) -> UNet:
 def _older_run_meta(run_dir: Path) -> dict[str, Any]:
     """What a detector trained before its meta kept the read-out's outlier threshold takes from its run's
     ``config.json``: the ``--outlier-px`` it was trained with (nothing when that is missing)."""
-    try:
-        value = json.loads(RunFolder(run_dir).config_file.read_text())["config"]["outlier_px"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
+    doc = RunFolder(run_dir).record()
+    value = doc["config"].get("outlier_px") if doc is not None else None
     return {"outlier_px": float(value)} if isinstance(value, (int, float)) else {}
 
 

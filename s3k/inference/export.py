@@ -41,11 +41,11 @@ from s3k.detector import (
     OnePassDetector,
     TwoPassDetector,
     load_network,
-    training_dataset,
 )
 from s3k.detector.crop_rule import is_two_pass, read_two_pass
 from s3k.inference.exported_files import EXPORTED_TWO_PASS, FORMATS, runtime_of, two_pass_doc
 from s3k.readout.heatmaps import confidence_weight
+from s3k.run_folder import RunFolder
 
 log = logging.getLogger(__name__)
 
@@ -327,7 +327,7 @@ def export_detector(run_dir: str | Path, fmt: str, out: str | Path, with_moments
     run_dir, out = Path(run_dir), Path(out)
     if verify_data is None:
         try:
-            verify_data = training_dataset(run_dir)
+            verify_data = RunFolder(run_dir).dataset()
         except FileNotFoundError:
             verify_data = None
     names = output_names(with_moments)

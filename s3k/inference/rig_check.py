@@ -25,10 +25,11 @@ import torch
 from s3k.base.errors import UserError
 from s3k.base.metrics import mm_per_unit
 from s3k.data import Dataset
-from s3k.detector import DetectorMeta, training_dataset
+from s3k.detector import DetectorMeta
 from s3k.detector.geometry_record import check_images, frame_calibration, recorded_geometry
 from s3k.geometry import Cameras
 from s3k.rigcal.consistency import identical_cameras
+from s3k.run_folder import RunFolder
 
 __all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration"]
 
@@ -74,7 +75,7 @@ def run_calibration(meta: DetectorMeta, run: str | Path | None = None) -> dict[s
         return recorded
     path = (geometry.get("dataset") or {}).get("path")
     try:
-        path = path or (training_dataset(run) if run is not None else None)
+        path = path or (RunFolder(run).dataset() if run is not None else None)
     except (FileNotFoundError, UserError, ValueError, OSError):
         return None
     if not path or not (Path(path) / "s3k.json").is_file():

@@ -36,8 +36,6 @@ from s3k.data.formats.skeleton import check_edges, read_skeleton
 from s3k.data.frames import FrameStore
 from s3k.data.tracks_csv import read_source
 from s3k.detector import Detector, DetectorMeta, detect_store, split_frames
-from s3k.detector.crop_rule import is_two_pass
-from s3k.detector.model_file import read_run_config, training_dataset
 from s3k.geometry import triangulate_labels
 from s3k.inference.rerun_log import RerunLog
 from s3k.run_folder import RunFolder
@@ -100,7 +98,7 @@ def run_skeleton(run: str | Path) -> list[tuple[str, str]]:
 
     run = Path(run)
     try:
-        doc = read_run_config(RunFolder(run).coarse.path if is_two_pass(run) else run)
+        doc = RunFolder(run).first_pass().read_record()
         return DetectorMeta.from_dict(doc["meta"]).recorded_skeleton()
     except (OSError, UserError, KeyError, TypeError, ValueError):
         return []
@@ -258,7 +256,7 @@ def view_run(run: str | Path, opts: ViewOptions, data: str | Path | None = None,
     """Log a run's detections on a dataset split (as ``s3k evaluate`` detects them) beside the ground truth;
     returns the number of frames logged."""
 
-    data = data or training_dataset(run)
+    data = data or RunFolder(run).dataset()
     if not data:
         raise UserError(f"{run}: the run does not record its dataset", hint="give one with --data")
     detector = Detector.load(run, device)

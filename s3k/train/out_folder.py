@@ -23,7 +23,7 @@ from typing import Any
 from s3k.base.errors import UserError
 from s3k.base.outputs import check_output_folder, check_run_folder
 from s3k.config import TrainConfig, config_from_dict, option_argv, resumable_fields
-from s3k.detector import DetectorMeta, load_torch_file, read_run_config, write_run_config
+from s3k.detector import DetectorMeta, load_torch_file
 from s3k.run_folder import RunFolder
 
 
@@ -90,7 +90,7 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
     Raises:
         UserError: naming the first field or dataset property that differs where it must not.
     """
-    doc = read_run_config(out)
+    doc = RunFolder(out).read_record()
     changed = _compare_config(doc, str(RunFolder(out).config_file), cfg)
     saved = doc.get("dataset_identity")
     if saved is None:  # written before identities were recorded: the names are all that can be compared
@@ -111,7 +111,7 @@ def check_resume(out: Path, cfg: TrainConfig, identity: dict[str, Any], data: Pa
 def check_config(out: Path, cfg: TrainConfig) -> dict[str, list[Any]]:
     """:func:`check_resume`'s comparison of the configuration alone (for a pass whose dataset is derived from
     what was checked already, as a two-pass run's crops are from its coarse pass and the crop rule)."""
-    return _compare_config(read_run_config(out), str(RunFolder(out).config_file), cfg)
+    return _compare_config(RunFolder(out).read_record(), str(RunFolder(out).config_file), cfg)
 
 
 def _compare_config(doc: dict[str, Any], where: str, cfg: TrainConfig) -> dict[str, list[Any]]:
@@ -144,10 +144,10 @@ def write_start(out: Path, cfg: TrainConfig, meta: DetectorMeta, data: Path, ide
     """Write ``config.json`` for this start of the run, appending to its history."""
     history: list[dict[str, Any]] = []
     if resumed and RunFolder(out).config_file.is_file():
-        history = list(read_run_config(out).get("history", []))
+        history = list(RunFolder(out).read_record().get("history", []))
     entry: dict[str, Any] = {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                              "event": "resumed" if resumed else "created", "command": command}
     if changed:
         entry["changed"] = changed
-    write_run_config(out, cfg.to_dict(), meta, str(data), dataset_identity=identity,
-                     history=[*history, entry])
+    RunFolder(out).write_record(cfg.to_dict(), meta.to_dict(), str(data), dataset_identity=identity,
+                                history=[*history, entry])

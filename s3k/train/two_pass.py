@@ -58,7 +58,6 @@ from s3k.detector import (
     is_two_pass,
     load_network,
     load_torch_file,
-    read_run_config,
     read_two_pass,
     split_frames,
 )
@@ -110,7 +109,7 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     """The coarse pass's 3D keypoints of every frame of ``data`` (:class:`s3k.detector.Detector` on the
     frames at the dataset's resolution, on ``device``), written once to ``out_csv`` and read back."""
     if out_csv.is_file():  # written by an earlier attempt: the networks need not be loaded
-        return read_csv(out_csv, read_run_config(run_dir)["meta"]["keypoints"])
+        return read_csv(out_csv, RunFolder(run_dir).read_record()["meta"]["keypoints"])
     detector = Detector.load(run_dir, device)
     ds = Dataset.open(data, cache="none")
     store = FrameStore(ds, split_frames(ds, "all"), preload_mb=0)

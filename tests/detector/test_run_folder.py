@@ -1,9 +1,10 @@
 """The run folder has one owner: :class:`s3k.run_folder.RunFolder` names every file of a run, and no other
-module of s3k spells one; it reads a run's configuration (``tests/detector/test_old_runs.py``: older runs
-too)."""
+module of s3k spells one or parses a run's ``config.json``; it reads a run's configuration
+(``tests/detector/test_old_runs.py``: older runs too)."""
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -24,8 +25,30 @@ OWN_FOLDERS = {"robot/agents.py": {"config.json", "progress.json"}, "robot/resul
                "cli/robot.py": {"config.json"}}
 
 
-def test_no_module_but_run_folder_names_a_run_file():
-    found = []
+# what a module holds the path of a run's config.json by: RunFolder's attributes, s3k.detector's name (the
+# robot's agents name their own config.json ``config_file``, a plain name)
+RECORD_ATTRIBUTES = {"config_file", "CONFIG", "CONFIG_FILE"}
+
+
+def _names_a_record(node: ast.AST, aliases: set[str]) -> bool:
+    return any(isinstance(n, ast.Attribute) and n.attr in RECORD_ATTRIBUTES
+               or isinstance(n, ast.Name) and (n.id in aliases or n.id == "CONFIG_FILE")
+               for n in ast.walk(node))
+
+
+def record_parsers(tree: ast.AST) -> list[int]:
+    """The lines where ``json.load``/``json.loads`` reads a run's ``config.json``: its path given directly, or
+    through a name assigned from it."""
+    aliases = {t.id for n in ast.walk(tree) if isinstance(n, ast.Assign) and _names_a_record(n.value, set())
+               for t in n.targets if isinstance(t, ast.Name)}
+    return sorted({n.lineno for n in ast.walk(tree)
+                   if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)
+                   and n.func.attr in ("load", "loads") and isinstance(n.func.value, ast.Name)
+                   and n.func.value.id == "json" and any(_names_a_record(a, aliases) for a in n.args)})
+
+
+def test_no_module_but_run_folder_names_a_run_file_or_parses_its_record():
+    found, parsed = [], []
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).as_posix()
         if rel == "run_folder.py":
@@ -35,13 +58,19 @@ def test_no_module_but_run_folder_names_a_run_file():
                 name = match.group(1) or match.group(2)
                 if name not in OWN_FOLDERS.get(rel, set()):
                     found.append(f"s3k/{rel}:{number}: {name}")
+        parsed += [f"s3k/{rel}:{n}" for n in record_parsers(ast.parse(path.read_text(), str(path)))]
     assert found == []
+    assert parsed == [], "config.json is parsed by RunFolder alone (read_record, record, meta, dataset)"
 
 
 def test_the_pattern_finds_names_as_the_code_would_spell_them():
     for line in ('x = run / "model.pt"', "p = Path(out) / 'coarse' / 'config.json'", 'f"{run}/train.log"'):
         assert PATTERN.search(line), line
     assert not PATTERN.search('"a coarse pass"') and not PATTERN.search("RunFolder.MODEL")
+    parsing = ("json.loads(run.config_file.read_text())\n"
+               "config = RunFolder(out).config_file\ndoc = json.loads(config.read_text())\n"
+               "json.load(open(path / CONFIG_FILE))\njson.loads(cpu.read_text())\n")
+    assert record_parsers(ast.parse(parsing)) == [1, 3, 4]
 
 
 def test_run_folder_knows_every_file_and_the_output_checks_use_them():

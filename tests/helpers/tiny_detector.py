@@ -7,8 +7,9 @@ from pathlib import Path
 
 import torch
 
-from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config
+from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model
 from s3k.model import UNetConfig
+from s3k.run_folder import RunFolder
 
 
 def trained_like_batch_norm(net: torch.nn.Module, var: tuple[float, float] = (0.3, 3.0)) -> torch.nn.Module:
@@ -36,7 +37,7 @@ def save_run(path: Path, meta: DetectorMeta, seed: int, dataset: str | None = No
     if head_std is not None:
         net.head.weight.data.normal_(0, head_std)
     path.mkdir(parents=True)
-    write_run_config(path, {}, meta, dataset)
+    RunFolder(path).write_record({}, meta.to_dict(), dataset)
     atomic_save({"model": net.state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
     return path
 
