@@ -9,8 +9,8 @@ The test modules sit in folders that mirror s3k's rooms (``tests/cli``, ``tests/
 checks (layout, docs, README figures, setup script, benchmark scripts); ``tests/data/old_runs`` holds run
 folders of an older s3k. The folders have no ``__init__.py``: pytest's default import mode imports each test
 module by its file name alone, so every ``test_*.py`` name is unique across ``tests/`` (pytest stops at
-collection on a second one). A test module imports no test module of another folder: what tests of several
-folders share is a helper or a fixture here."""
+collection on a second one). A test module imports no other test module: what several share is a helper
+(``tests/helpers``) or a fixture here."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ sequences, 2D poses (OpenPose, MMPose, DeepFly3D), recordings without labels, vi
 a user met (truncated videos, partial imports, keypoint sets that differ, the wrong TOML file).
 
 Every file is written here from the format's published layout, for the 3-camera recording of
-``test_importers``."""
+``helpers.recordings`` (the ``import_recording`` fixture)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,20 @@ import pickle
 import cv2
 import numpy as np
 import pytest
-from helpers.recordings import CAMS, H_IMG, KEYPOINTS, N_FRAMES, W_IMG, write_sleap
+from helpers.recordings import (
+    CAMS,
+    H_IMG,
+    KEYPOINTS,
+    N_FRAMES,
+    W_IMG,
+    assert_labels,
+    assert_same_cameras,
+    df3d_calib,
+    import_videos,
+    recording_rig,
+    validated,
+    write_sleap,
+)
 
 from s3k.base.errors import UserError
 from s3k.cli import main, showing_library_messages
@@ -24,42 +37,8 @@ from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint, read_deepfly3d
 from s3k.data.formats.safe_pickle import load_pickle
 
 
-def _rig(import_recording):
-    return anipose.read_anipose_calibration(import_recording["root"] / "calibration.toml")
-
-
-def _run(import_recording, calibration, out, *extra, videos=None):
-    root = import_recording["root"]
-    videos = videos or {cam: root / f"{cam}.mkv" for cam in CAMS}
-    argv = ["import", "--calibration", str(calibration), "--videos", *[f"{c}={p}" for c, p in videos.items()],
-            "--out", str(out), *extra]
-    return main(argv)
-
-
 def _sleap(import_recording, names=CAMS):
     return ["--sleap", *[f"{n}={import_recording['root'] / cam}.analysis.h5" for n, cam in zip(names, CAMS)]]
-
-
-def _validated(path):
-    problems, ds = check_dataset(path)
-    assert not [p for p in problems if p.severity == "error"], [str(p) for p in problems]
-    return ds
-
-
-def _assert_same_cameras(ds, rig, atol=1e-9):
-    got = ds.rig(np.float64).numpy()
-    ref = rig.cameras.numpy()
-    for key in ("K", "dist", "R", "t"):
-        np.testing.assert_allclose(got[key], ref[key], atol=atol, err_msg=key)
-
-
-def _assert_labels(ds, import_recording, camera_order=None, atol=0.0):
-    """The dataset's labels on its labelled frames are the recording's projected points."""
-    ids = ds.frames("labelled")
-    uv, mask = ds.labels(ids)
-    ref = import_recording["uv"][ids]
-    np.testing.assert_array_equal(mask, np.isfinite(ref).all(-1))
-    np.testing.assert_allclose(uv[mask], ref[mask].astype(np.float32), atol=atol)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -94,23 +73,24 @@ def write_qca(path, rig):
 
 
 def test_import_qualisys_calibration(import_recording, tmp_path):
-    rig = _rig(import_recording)
+    rig = recording_rig(import_recording)
     qca = tmp_path / "rig.qca.txt"
     write_qca(qca, rig)
     assert calibration_format(qca) == "qualisys"
     read = read_calibration(qca)
     assert read.names == CAMS and read.units == "mm"
     np.testing.assert_array_equal(read.size, rig.size)
-    assert _run(import_recording, qca, tmp_path / "ds", *_sleap(import_recording), "--labelled", "all") == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, qca, tmp_path / "ds", *_sleap(import_recording), "--labelled",
+                         "all") == 0
+    ds = validated(tmp_path / "ds")
     assert ds.cameras == CAMS and ds.keypoints == KEYPOINTS and ds.units == "mm"
     assert len(ds.frames("labelled")) == N_FRAMES
-    _assert_same_cameras(ds, rig)
-    _assert_labels(ds, import_recording)
+    assert_same_cameras(ds, rig)
+    assert_labels(ds, import_recording)
 
 
 def test_import_jarvis_yaml_folder_and_opencv_xml(import_recording, tmp_path):
-    rig = _rig(import_recording)
+    rig = recording_rig(import_recording)
     cams = rig.cameras.numpy()
     folder = tmp_path / "jarvis"
     folder.mkdir()
@@ -124,12 +104,12 @@ def test_import_jarvis_yaml_folder_and_opencv_xml(import_recording, tmp_path):
     read = read_calibration(folder)
     assert read.names == sorted(CAMS) and read.units == "unknown"
     np.testing.assert_array_equal(read.size, 0)  # the videos give it
-    assert _run(import_recording, folder, tmp_path / "ds", *_sleap(import_recording), "--labelled", "all",
-                "--units", "mm") == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, folder, tmp_path / "ds", *_sleap(import_recording), "--labelled",
+                         "all", "--units", "mm") == 0
+    ds = validated(tmp_path / "ds")
     assert ds.cameras == CAMS and ds.units == "mm" and ds.image_size == (W_IMG, H_IMG)
-    _assert_same_cameras(ds, rig)
-    _assert_labels(ds, import_recording)
+    assert_same_cameras(ds, rig)
+    assert_labels(ds, import_recording)
     # A plain OpenCV XML file: one camera, named by the file, not transposed, with its image size.
     xml = tmp_path / "north.xml"
     fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_WRITE)
@@ -149,31 +129,26 @@ def test_import_jarvis_yaml_folder_and_opencv_xml(import_recording, tmp_path):
         read_calibration(bad)
 
 
-def _df3d_calib(rig):
-    cams = rig.cameras.numpy()
-    return {c: {"R": cams["R"][c], "tvec": cams["t"][c], "intr": cams["K"][c], "distort": cams["dist"][c]}
-            for c in range(len(rig.names))}
-
-
 def test_import_deepfly3d_pickles(import_recording, tmp_path):
-    rig = _rig(import_recording)
+    rig = recording_rig(import_recording)
     uv = import_recording["uv"]  # (F, C, K, 2)
     points2d = np.stack([uv[..., 1] / H_IMG, uv[..., 0] / W_IMG], axis=-1).transpose(1, 0, 2, 3)
-    result = {**_df3d_calib(rig), "points2d": np.nan_to_num(points2d), "camera_ordering": np.arange(3)}
+    result = {**df3d_calib(rig), "points2d": np.nan_to_num(points2d), "camera_ordering": np.arange(3)}
     with open(tmp_path / "df3d_result.pkl", "wb") as f:
         pickle.dump(result, f)
     with open(tmp_path / "calib.pkl", "wb") as f:
-        pickle.dump(_df3d_calib(rig), f)
+        pickle.dump(df3d_calib(rig), f)
     read = read_calibration(tmp_path / "calib.pkl")
     assert read.names == ["camera_0", "camera_1", "camera_2"]
     videos = {f"camera_{c}": import_recording["root"] / f"{cam}.mkv" for c, cam in enumerate(CAMS)}
-    code = _run(import_recording, tmp_path / "df3d_result.pkl", tmp_path / "ds", "--deepfly3d",
-                str(tmp_path / "df3d_result.pkl"), "--labelled", "all", "--units", "mm", videos=videos)
+    code = import_videos(import_recording, tmp_path / "df3d_result.pkl", tmp_path / "ds", "--deepfly3d",
+                         str(tmp_path / "df3d_result.pkl"), "--labelled", "all", "--units", "mm",
+                         videos=videos)
     assert code == 0
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     assert ds.cameras == list(videos) and ds.keypoints == ["joint_0", "joint_1", "joint_2"]
-    _assert_same_cameras(ds, rig)
-    _assert_labels(ds, import_recording, atol=1e-4)
+    assert_same_cameras(ds, rig)
+    assert_labels(ds, import_recording, atol=1e-4)
 
 
 def test_deepfly3d_visibility_rule(tmp_path):
@@ -265,9 +240,9 @@ def test_import_image_sequences_like_videos(import_recording, tmp_path):
     seqs = _sequences(import_recording, tmp_path / "seq")
     calib = import_recording["root"] / "calibration.toml"
     args = (*_sleap(import_recording), "--labelled", "3", "--test", "2", "--seed", "4", "--scale", "0.5")
-    assert _run(import_recording, calib, tmp_path / "from_seq", *args, videos=seqs) == 0
-    assert _run(import_recording, calib, tmp_path / "from_video", *args) == 0
-    a, b = _validated(tmp_path / "from_seq"), _validated(tmp_path / "from_video")
+    assert import_videos(import_recording, calib, tmp_path / "from_seq", *args, videos=seqs) == 0
+    assert import_videos(import_recording, calib, tmp_path / "from_video", *args) == 0
+    a, b = validated(tmp_path / "from_seq"), validated(tmp_path / "from_video")
     for split in ("labelled", "test", "unlabelled"):
         np.testing.assert_array_equal(a.frames(split), b.frames(split))
     ids = a.frames()
@@ -312,32 +287,32 @@ def test_frame_counts_come_from_decoding(import_recording, tmp_path, capsys):
     _truncated_video(short, import_recording["frames"]["north"][:3])
     assert video.frame_count(short) == 3 and video.frame_count(short, exact=True) == 2
     videos = {"north": short, "east": import_recording["root"] / "east.mkv"}
-    code = _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
-                "--keypoints", "head,body", videos=videos)
+    code = import_videos(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
+                         "--keypoints", "head,body", videos=videos)
     err = capsys.readouterr().err
     assert code == 0, err
     assert f"{short}: the header says 3 frames but 2 decode; using 2" in err
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     np.testing.assert_array_equal(ds.frames("unlabelled"), [0, 1])
 
 
 def test_video_region_declares_a_cropped_video(import_recording, tmp_path, capsys):
     from s3k.data.video import write_video
 
-    rig = _rig(import_recording)
+    rig = recording_rig(import_recording)
     videos = {}
     for cam in CAMS:  # videos 4 rows shorter: 2 rows of the calibrated image cut at the top and bottom
         videos[cam] = tmp_path / f"{cam}.mkv"
         write_video(videos[cam], [f[2:-2] for f in import_recording["frames"][cam]], codec="ffv1")
     calib = import_recording["root"] / "calibration.toml"
-    assert _run(import_recording, calib, tmp_path / "x", "--keypoints", "head", videos=videos) == 1
+    assert import_videos(import_recording, calib, tmp_path / "x", "--keypoints", "head", videos=videos) == 1
     err = capsys.readouterr().err
     assert f"video is {W_IMG}x{H_IMG - 4}" in err and "(3 cameras differ)" in err
     assert f"--video-region north=0,0,{W_IMG},{H_IMG - 4} east=0,0,{W_IMG},{H_IMG - 4} south=" in err
     regions = [f"{cam}=0,2,{W_IMG},{H_IMG - 2}" for cam in CAMS]
-    assert _run(import_recording, calib, tmp_path / "ds", "--keypoints", "head", "--video-region", *regions,
-                videos=videos) == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, calib, tmp_path / "ds", "--keypoints", "head", "--video-region",
+                         *regions, videos=videos) == 0
+    ds = validated(tmp_path / "ds")
     assert ds.image_size == (W_IMG, H_IMG - 4)
     K = ds.rig(np.float64).numpy()["K"]
     ref = rig.cameras.numpy()["K"]
@@ -374,8 +349,9 @@ def test_import_openpose_json(import_recording, tmp_path):
                                                {"person_id": [-1], "pose_keypoints_2d": real}]}
             (folder / f"rec_{f:012d}_keypoints.json").write_text(json.dumps(data))
     args = ["--openpose", *[f"{cam}={tmp_path / 'op' / cam}" for cam in CAMS], "--labelled", "all"]
-    assert _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds", *args) == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
+                         *args) == 0
+    ds = validated(tmp_path / "ds")
     assert ds.keypoints == ["kp0", "kp1", "kp2"] and ds.units == "mm"
     expected = uv.copy()
     expected[7, :, 2] = np.nan
@@ -400,11 +376,11 @@ def test_import_mmpose_json(import_recording, tmp_path):
         meta = {"dataset_name": "test", "keypoint_id2name": {str(k): n for k, n in enumerate(KEYPOINTS)}}
         path.write_text(json.dumps({"meta_info": meta, "instance_info": frames}))
         args.append(f"{cam}={path}")
-    assert _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds", *args,
-                "--labelled", "all", "--min-score", "0.5") == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
+                         *args, "--labelled", "all", "--min-score", "0.5") == 0
+    ds = validated(tmp_path / "ds")
     assert ds.keypoints == KEYPOINTS and ds.cameras == CAMS
-    _assert_labels(ds, import_recording)
+    assert_labels(ds, import_recording)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -413,10 +389,10 @@ def test_import_mmpose_json(import_recording, tmp_path):
 
 def test_import_without_labels(import_recording, tmp_path, capsys):
     calib = import_recording["root"] / "calibration.toml"
-    assert _run(import_recording, calib, tmp_path / "x") == 1
+    assert import_videos(import_recording, calib, tmp_path / "x") == 1
     assert "no labels given: name the keypoints with --keypoints" in capsys.readouterr().err
-    assert _run(import_recording, calib, tmp_path / "ds", "--keypoints", "head,body,tail", "--stride",
-                "3") == 0
+    assert import_videos(import_recording, calib, tmp_path / "ds", "--keypoints", "head,body,tail",
+                         "--stride", "3") == 0
     problems, ds = check_dataset(tmp_path / "ds")
     assert [(p.severity, p.file) for p in problems] == [("warning", "frames.csv")]
     assert "no labelled frames" in problems[0].message
@@ -432,21 +408,21 @@ def test_failed_import_leaves_nothing_and_names_overwrite(import_recording, tmp_
     bad.write_bytes(b"not a png")
     calib = import_recording["root"] / "calibration.toml"
     out = tmp_path / "ds"
-    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
+    assert import_videos(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
     err = capsys.readouterr().err
     assert "img_0007.png" in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no partial dataset, no temporary folder
     bad.write_bytes(good)
-    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 0
+    assert import_videos(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 0
     before = sorted(p.relative_to(out) for p in out.rglob("*"))
-    assert _run(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
+    assert import_videos(import_recording, calib, out, "--keypoints", "head", videos=seqs) == 1
     err = capsys.readouterr().err
     assert f"--out {out}: folder exists and is not empty; pass --overwrite to replace it" in err
     # A failing --overwrite keeps the old dataset whole.
     bad.write_bytes(b"not a png")
-    assert _run(import_recording, calib, out, "--keypoints", "head", "--overwrite", videos=seqs) == 1
+    assert import_videos(import_recording, calib, out, "--keypoints", "head", "--overwrite", videos=seqs) == 1
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
-    _validated(out)
+    validated(out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "seq"]
 
 
@@ -459,8 +435,8 @@ def test_dlc_keypoint_sets_that_differ_are_reported(import_recording, tmp_path, 
             rows = [",".join(r.split(",")[:-2]) for r in rows]
         (tmp_path / f"{cam}.csv").write_text("\n".join(rows) + "\n")
         files.append(f"{cam}={tmp_path / cam}.csv")
-    assert _run(import_recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files, "--labelled",
-                "all") == 0
+    assert import_videos(import_recording, root / "calibration.toml", tmp_path / "ds", "--dlc", *files,
+                         "--labelled", "all") == 0
     out = capsys.readouterr().out
     assert f"warning: camera east: keypoints tail have no labels in {tmp_path / 'east.csv'}" in out
     problems, ds = check_dataset(tmp_path / "ds")
@@ -471,7 +447,7 @@ def test_dlc_keypoint_sets_that_differ_are_reported(import_recording, tmp_path, 
 
 
 def test_video_region_with_padding_moves_the_principal_point_out(import_recording):
-    rig = _rig(import_recording)
+    rig = recording_rig(import_recording)
     padded = rig.with_video_regions({"east": (0, -4, W_IMG, H_IMG + 4)})
     assert padded.size.tolist() == [[W_IMG, H_IMG], [W_IMG, H_IMG + 8], [W_IMG, H_IMG]]
     K, ref = padded.cameras.numpy()["K"], rig.cameras.numpy()["K"]
@@ -559,18 +535,19 @@ def test_frame_offsets_align_a_late_camera(import_recording, tmp_path, capsys):
     videos = {cam: (late if cam == "east" else root) / f"{cam}.mkv" for cam in CAMS}
     labels = ["--sleap", *[f"{cam}={(late if cam == 'east' else root) / cam}.analysis.h5" for cam in CAMS]]
     args = [*labels, "--labelled", "all", "--frame-offsets", f"east={n}"]
-    assert _run(import_recording, root / "calibration.toml", tmp_path / "ds", *args, videos=videos) == 0
-    ds = _validated(tmp_path / "ds")
+    assert import_videos(import_recording, root / "calibration.toml", tmp_path / "ds", *args,
+                         videos=videos) == 0
+    ds = validated(tmp_path / "ds")
     ids = ds.frames()
     assert ids.min() == n and ids.max() == N_FRAMES - 1
-    _assert_labels(ds, import_recording)
+    assert_labels(ds, import_recording)
     images = ds.images(ids)
     for c, cam in enumerate(CAMS):
         want = np.stack([import_recording["frames"][cam][f] for f in ids])
         np.testing.assert_array_equal(images[:, c], want, err_msg=cam)
     assert "frame_offsets" in (tmp_path / "ds" / "s3k.json").read_text()
     capsys.readouterr()
-    assert _run(import_recording, root / "calibration.toml", tmp_path / "bad", *labels, "--frame-offsets",
-                "west=2", videos=videos) == 1
+    assert import_videos(import_recording, root / "calibration.toml", tmp_path / "bad", *labels,
+                         "--frame-offsets", "west=2", videos=videos) == 1
     assert "--frame-offsets 'west=2': unknown camera 'west' (cameras: north, east, south)" in \
         capsys.readouterr().err

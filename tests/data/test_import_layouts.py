@@ -2,7 +2,7 @@
 results in pixels, videos padded by their encoder, a format's visibility rule, small SLEAP projects.
 
 Every file is written here in the format's published layout, for the 3-camera recording of
-``test_importers``."""
+``helpers.recordings`` (the ``import_recording`` fixture)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,19 @@ import pickle
 
 import numpy as np
 import pytest
-from helpers.recordings import CAMS, H_IMG, N_FRAMES, W_IMG, write_sleap
-from test_import_formats import _assert_labels, _assert_same_cameras, _df3d_calib, _rig, _run, _validated
+from helpers.recordings import (
+    CAMS,
+    H_IMG,
+    N_FRAMES,
+    W_IMG,
+    assert_labels,
+    assert_same_cameras,
+    df3d_calib,
+    import_videos,
+    recording_rig,
+    validated,
+    write_sleap,
+)
 
 from s3k.data.formats.deepfly3d import points2d_layout
 
@@ -20,8 +31,8 @@ from s3k.data.formats.deepfly3d import points2d_layout
 
 
 def _df3d_result(import_recording, tmp_path, points2d, **extra):
-    result = {**_df3d_calib(_rig(import_recording)), "points2d": np.nan_to_num(points2d), "camera_ordering":
-              np.arange(3), **extra}
+    result = {**df3d_calib(recording_rig(import_recording)), "points2d": np.nan_to_num(points2d),
+              "camera_ordering": np.arange(3), **extra}
     path = tmp_path / "df3d_result.pkl"
     with open(path, "wb") as f:
         pickle.dump(result, f)
@@ -30,8 +41,8 @@ def _df3d_result(import_recording, tmp_path, points2d, **extra):
 
 def _df3d_import(import_recording, tmp_path, path, *extra):
     videos = {f"camera_{c}": import_recording["root"] / f"{cam}.mkv" for c, cam in enumerate(CAMS)}
-    return _run(import_recording, path, tmp_path / "ds", "--deepfly3d", str(path), "--units", "mm", *extra,
-                videos=videos)
+    return import_videos(import_recording, path, tmp_path / "ds", "--deepfly3d", str(path), "--units", "mm",
+                         *extra, videos=videos)
 
 
 def test_deepfly3d_pixel_points_land_on_their_image_points(import_recording, tmp_path, capsys):
@@ -41,9 +52,9 @@ def test_deepfly3d_pixel_points_land_on_their_image_points(import_recording, tmp
     assert _df3d_import(import_recording, tmp_path, path, "--labelled", "all") == 0
     out = capsys.readouterr().out
     assert "points2d read as (x, y) pixels" in out and "fall outside" not in out
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     assert len(ds.frames("labelled")) == N_FRAMES
-    _assert_labels(ds, import_recording, atol=1e-4)
+    assert_labels(ds, import_recording, atol=1e-4)
 
 
 def test_deepfly3d_layout_from_the_reprojection_of_its_3d_points(import_recording, tmp_path, capsys):
@@ -55,7 +66,7 @@ def test_deepfly3d_layout_from_the_reprojection_of_its_3d_points(import_recordin
     assert _df3d_import(import_recording, tmp_path, path, "--labelled", "all") == 0
     out = capsys.readouterr().out
     assert "points2d read as (row, column) pixels: they lie 0.0 px (median) from the reprojection" in out
-    _assert_labels(_validated(tmp_path / "ds"), import_recording, atol=1e-4)
+    assert_labels(validated(tmp_path / "ds"), import_recording, atol=1e-4)
 
 
 def test_deepfly3d_layout_from_the_values():
@@ -89,7 +100,7 @@ def test_deepfly3d_visibility_rule_is_one_line_not_pages(import_recording, tmp_p
 
     from s3k.data.formats.deepfly3d import JOINTS, camera_sees_joint
 
-    calib = _df3d_calib(_rig(import_recording))
+    calib = df3d_calib(recording_rig(import_recording))
     seven = {c: calib[c % 3] for c in range(7)}
     X = np.random.default_rng(1).uniform(-40, 40, (N_FRAMES, len(JOINTS), 3))
     points2d = np.stack([cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(cam["R"])[0], cam["tvec"],
@@ -99,8 +110,8 @@ def test_deepfly3d_visibility_rule_is_one_line_not_pages(import_recording, tmp_p
     with open(path, "wb") as f:
         pickle.dump({**seven, "points2d": points2d}, f)
     videos = {f"camera_{c}": import_recording["root"] / f"{CAMS[c % 3]}.mkv" for c in range(7)}
-    assert _run(import_recording, path, tmp_path / "ds", "--deepfly3d", str(path), "--units", "mm",
-                "--labelled", "all", videos=videos) == 0
+    assert import_videos(import_recording, path, tmp_path / "ds", "--deepfly3d", str(path), "--units", "mm",
+                         "--labelled", "all", videos=videos) == 0
     captured = capsys.readouterr()
     lines = (captured.out + captured.err).splitlines()
     assert [line for line in lines if "visibility rule" in line] == [
@@ -108,7 +119,7 @@ def test_deepfly3d_visibility_rule_is_one_line_not_pages(import_recording, tmp_p
         "those of the fly's far side (docs/importing.md#what-happens-to-each-format)"]
     # no warning per camera for the joints the rule leaves out (other warnings, e.g. no test frames, may come)
     assert not [line for line in lines if line.startswith("warning:") and "have no labels" in line], lines
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     uv, mask = ds.labels(ds.frames("labelled"))
     for c in range(7):
         seen = [camera_sees_joint(c, j) for j in range(len(JOINTS))]
@@ -131,15 +142,15 @@ def test_small_sleap_project_imports_with_the_defaults(import_recording, tmp_pat
         loc[6, :, :, 1] = uv[6, c] + 1  # "shadow": frame 6
         write_sleap(tmp_path / f"{cam}.analysis.h5", loc, names=["mouse", "shadow"])
         files.append(f"{cam}={tmp_path / cam}.analysis.h5")
-    assert _run(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds", "--sleap",
-                *files) == 0
+    assert import_videos(import_recording, import_recording["root"] / "calibration.toml", tmp_path / "ds",
+                         "--sleap", *files) == 0
     out = capsys.readouterr().out
     assert "note: 2 tracks are labelled (frames: mouse 12, shadow 3); importing mouse, the most" in out
     assert ("note: 4 frames have a keypoint labelled in >= 2 cameras: 4 labelled, 0 test (--labelled N and "
             "--test N choose)") in out
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     np.testing.assert_array_equal(ds.frames("labelled"), [0, 1, 2, 3])
-    _assert_labels(ds, import_recording)
+    assert_labels(ds, import_recording)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -167,21 +178,22 @@ def test_padded_videos_import_with_the_option_the_error_names(import_recording, 
         write_video(videos[cam], frames, codec="ffv1")
     calib = import_recording["root"] / "calibration.toml"
     sleap = ["--sleap", *[f"{cam}={import_recording['root'] / cam}.analysis.h5" for cam in CAMS]]
-    assert _run(import_recording, calib, tmp_path / "x", *sleap, videos=videos) == 1
+    assert import_videos(import_recording, calib, tmp_path / "x", *sleap, videos=videos) == 1
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
     option = re.search(r"pass (--video-region [^(]*) \(other placements", err)
     assert option, err
-    assert _run(import_recording, calib, tmp_path / "ds", *sleap, *option.group(1).split(), "--labelled",
-                "all", videos=videos) == 0
+    assert import_videos(import_recording, calib, tmp_path / "ds", *sleap, *option.group(1).split(),
+                         "--labelled", "all", videos=videos) == 0
     out = capsys.readouterr().out
     W, H = (W_IMG, H_IMG) if change == "narrower" else (W_IMG, H_IMG + 4)
     padded = ", ".join(cam for cam in CAMS if (cam in changed) == (change == "narrower"))
     assert f"note: the images of {padded} are padded with black at the right and bottom to {W}x{H}" in out
-    ds = _validated(tmp_path / "ds")
+    ds = validated(tmp_path / "ds")
     assert ds.image_size == (W, H) and len(ds.frames("labelled")) == N_FRAMES
-    _assert_same_cameras(ds, _rig(import_recording))  # cut or added at the right and bottom: K is unchanged
-    _assert_labels(ds, import_recording)
+    # cut or added at the right and bottom: K is unchanged
+    assert_same_cameras(ds, recording_rig(import_recording))
+    assert_labels(ds, import_recording)
     images = ds.images([3])[0]
     for c, cam in enumerate(CAMS):
         original = import_recording["frames"][cam][3]

@@ -216,9 +216,9 @@ def test_no_usable_label_is_unusable(tmp_path: Path, capsys, case: str):
 def _offset_dataset(root: Path, offsets: list[int]) -> Path:
     """Four cameras, 60 consecutive labelled frames of points moving smoothly; camera ``c``'s frame ``i``
     shows the first camera's frame ``i + offsets[c]`` (the recordings of ``test_sync``)."""
-    from test_sync import H as SH
-    from test_sync import W as SW
-    from test_sync import recording, rig
+    from helpers.offset_recording import H as SH
+    from helpers.offset_recording import W as SW
+    from helpers.offset_recording import recording, rig
 
     cams = rig()
     uv = recording(cams, offsets, n_frames=60, seed=2)  # (C, T, K, 2)

@@ -8,27 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from helpers.synthetic_rig import ring_cameras
 
 from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
 from s3k.geometry import Cameras, project
 from s3k.geometry.warp import crop_images, region_around, resample_regions
 from s3k.model import UNet, UNetConfig
-
-
-def _rig(size: int) -> Cameras:
-    """Four cameras 1 m from the origin on a ring, looking at it."""
-    R, t = [], []
-    for a in np.linspace(0, 2 * np.pi, 5)[:-1]:
-        pos = np.array([np.cos(a), np.sin(a), 0.5]) / np.linalg.norm([1, 0.5])
-        z = -pos
-        x = np.cross(z, [0, 0, 1.0])
-        x /= np.linalg.norm(x)
-        Rc = np.stack([x, np.cross(z, x), z])
-        R.append(Rc)
-        t.append(-Rc @ pos)
-    f = size * 1.2
-    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
-    return Cameras.from_numpy(np.stack([K] * 4), None, np.stack(R), np.stack(t), dtype=torch.float64)
 
 
 def _net(size: int, keypoints: int = 3) -> tuple[UNet, DetectorMeta]:
@@ -45,10 +30,10 @@ def test_a_detector_reads_frames_on_any_device_and_gives_results_there(device, p
     detector = OnePassDetector(net.to(device), meta, device, precision)
     gen = torch.Generator().manual_seed(1)
     frames = torch.randint(0, 256, (2, 4, 64, 64, 3), dtype=torch.uint8, generator=gen).to(device)
-    out = detector(frames, _rig(64))
+    out = detector(frames, ring_cameras(64))
     assert out.X.device.type == torch.device(device).type and out.X.dtype == torch.float64
     assert out.X.shape == (2, 3, 3) and out.uv.shape == (2, 4, 3, 2)
-    ref = OnePassDetector(net.cpu(), meta)(frames.cpu(), _rig(64))  # float32 on the CPU
+    ref = OnePassDetector(net.cpu(), meta)(frames.cpu(), ring_cameras(64))  # float32 on the CPU
     tol = 1e-4 if precision == "float32" else 2.0  # bf16 moves an untrained network's peaks by pixels
     assert float((out.uv.cpu() - ref.uv).abs().max()) < tol
 
@@ -58,9 +43,9 @@ def test_frames_at_the_network_size_need_no_resampling_and_resized_frames_map_ba
     detector = OnePassDetector(net, meta)
     gen = torch.Generator().manual_seed(2)
     frames = torch.randint(0, 256, (1, 4, 32, 32, 3), dtype=torch.uint8, generator=gen)
-    small = detector(frames, _rig(32))
+    small = detector(frames, ring_cameras(32))
     assert torch.equal(small.pixel_maps[0, 0], torch.eye(3, dtype=torch.float64))
-    big = detector(frames.repeat_interleave(2, 2).repeat_interleave(2, 3), _rig(64))  # each pixel 2x2
+    big = detector(frames.repeat_interleave(2, 2).repeat_interleave(2, 3), ring_cameras(64))  # each pixel 2x2
     # the same network inputs (area averaging of the doubled pixels), detections in the big frames' pixels
     np.testing.assert_allclose(big.uv.numpy(), (small.uv.numpy() + 0.5) * 2 - 0.5, atol=1e-6)
 
@@ -91,7 +76,7 @@ def test_two_pass_detector_cuts_its_crops_around_the_coarse_points():
                                rule)
     gen = torch.Generator().manual_seed(4)
     frames = torch.randint(0, 256, (2, 4, 96, 96, 3), dtype=torch.uint8, generator=gen)
-    cams = _rig(96)
+    cams = ring_cameras(96)
     out = detector(frames, cams, keep_heatmaps=True)
     assert out.coarse is not None and out.placed is not None and out.input_size == (48, 48)
     # the crop maps: the crop centre is the reprojection of each frame's crop centre
@@ -127,7 +112,7 @@ def test_a_rigid_two_pass_detector_lends_its_coarse_heatmaps_to_the_layout_searc
     rigid_meta = dataclasses.replace(fine_meta, layout=layout, layout_tol=0.1)
     frames = torch.randint(0, 256, (2, 4, 96, 96, 3), dtype=torch.uint8,
                            generator=torch.Generator().manual_seed(4))
-    cams = _rig(96)
+    cams = ring_cameras(96)
     for meta in (rigid_meta, fine_meta):
         detector = TwoPassDetector(OnePassDetector(coarse_net, coarse_meta), OnePassDetector(fine_net, meta),
                                    CropRule(extent=0.3, size=48))
@@ -154,7 +139,7 @@ def test_frames_the_detector_would_misread_are_refused_in_one_line():
     detector = OnePassDetector(net, meta)
     gen = torch.Generator().manual_seed(2)
     frames = torch.randint(0, 256, (4, 4, 64, 64, 3), dtype=torch.uint8, generator=gen)
-    cams = _rig(64)
+    cams = ring_cameras(64)
     ref = detector(frames, cams)
     with pytest.raises(UserError, match="float32 frames; the detector reads uint8") as err:
         detector(frames.float() / 255, cams)

@@ -5,8 +5,8 @@ plain path gives: the same logits, the same crops up to a rounding flip, the sam
 from __future__ import annotations
 
 import torch
+from helpers.synthetic_rig import ring_cameras
 from helpers.tiny_detector import trained_like_batch_norm
-from test_detector import _rig
 
 from s3k.detector import CropRule, DetectorMeta, OnePassDetector, TwoPassDetector
 from s3k.detector.frozen import FrozenNetwork
@@ -91,7 +91,7 @@ def test_every_views_crop_cut_at_once_matches_the_crop_cut_per_camera():
 
 
 def test_the_fast_two_pass_detector_gives_the_plain_paths_points():
-    rig = _rig(192)
+    rig = ring_cameras(192)
     rule = CropRule(extent=0.3, size=64)
     (coarse, coarse_meta), (fine, fine_meta) = _trained_like(48, 4), _trained_like(64, 5)
 

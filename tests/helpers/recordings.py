@@ -6,10 +6,14 @@ writes it once per session: the ``import_recording`` fixture)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from s3k.data.rig import Rig
 
 CAMS = ["north", "east", "south"]
 KEYPOINTS = ["head", "body", "tail"]
@@ -156,3 +160,56 @@ def run_import(recording: dict, out: Path, *extra: str, labels: str = "sleap") -
     else:
         argv += ["--lightning-pose", str(root)]
     return main(argv + ["--out", str(out), *extra])
+
+
+def recording_rig(recording: dict) -> Rig:
+    """The rig of a recording's ``calibration.toml``."""
+    from s3k.data.formats import anipose
+
+    return anipose.read_anipose_calibration(recording["root"] / "calibration.toml")
+
+
+def import_videos(recording: dict, calibration: Path, out: Path, *extra: str,
+                  videos: dict | None = None) -> int:
+    """``s3k import`` of the recording's videos (or ``videos``) with ``calibration`` into ``out``; the exit
+    code."""
+    from s3k.cli import main
+
+    root = recording["root"]
+    videos = videos or {cam: root / f"{cam}.mkv" for cam in CAMS}
+    argv = ["import", "--calibration", str(calibration), "--videos", *[f"{c}={p}" for c, p in videos.items()],
+            "--out", str(out), *extra]
+    return main(argv)
+
+
+def validated(path: Path):
+    """The dataset at ``path``, checked to hold no error."""
+    from s3k.data import check_dataset
+
+    problems, ds = check_dataset(path)
+    assert not [p for p in problems if p.severity == "error"], [str(p) for p in problems]
+    return ds
+
+
+def assert_same_cameras(ds, rig: Rig, atol: float = 1e-9) -> None:
+    """The dataset's cameras are ``rig``'s."""
+    got = ds.rig(np.float64).numpy()
+    ref = rig.cameras.numpy()
+    for key in ("K", "dist", "R", "t"):
+        np.testing.assert_allclose(got[key], ref[key], atol=atol, err_msg=key)
+
+
+def assert_labels(ds, recording: dict, camera_order=None, atol: float = 0.0) -> None:
+    """The dataset's labels on its labelled frames are the recording's projected points."""
+    ids = ds.frames("labelled")
+    uv, mask = ds.labels(ids)
+    ref = recording["uv"][ids]
+    np.testing.assert_array_equal(mask, np.isfinite(ref).all(-1))
+    np.testing.assert_allclose(uv[mask], ref[mask].astype(np.float32), atol=atol)
+
+
+def df3d_calib(rig: Rig) -> dict:
+    """DeepFly3D's calibration entries of ``rig``, camera by camera."""
+    cams = rig.cameras.numpy()
+    return {c: {"R": cams["R"][c], "tvec": cams["t"][c], "intr": cams["K"][c], "distort": cams["dist"][c]}
+            for c in range(len(rig.names))}

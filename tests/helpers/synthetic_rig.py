@@ -8,9 +8,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from s3k.geometry import Cameras
 
 KEYPOINTS = ["a", "b", "c"]
 CAMERAS = ["cam0", "cam1", "cam2", "cam3"]
@@ -122,3 +126,23 @@ def count_decodes(monkeypatch, module) -> list[str]:
 
     monkeypatch.setattr(module, "decode_image", decode)
     return decoded
+
+
+def ring_cameras(size: int) -> Cameras:
+    """Four cameras 1 m from the origin on a ring, looking at it (the detector's tests)."""
+    import torch
+
+    from s3k.geometry import Cameras
+
+    R, t = [], []
+    for a in np.linspace(0, 2 * np.pi, 5)[:-1]:
+        pos = np.array([np.cos(a), np.sin(a), 0.5]) / np.linalg.norm([1, 0.5])
+        z = -pos
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        Rc = np.stack([x, np.cross(z, x), z])
+        R.append(Rc)
+        t.append(-Rc @ pos)
+    f = size * 1.2
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    return Cameras.from_numpy(np.stack([K] * 4), None, np.stack(R), np.stack(t), dtype=torch.float64)
