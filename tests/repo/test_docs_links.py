@@ -4,6 +4,7 @@ or never committed shows up here, not as a dead link on a reader's screen)."""
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 from helpers.paths import REPO as ROOT
 
