@@ -18,6 +18,8 @@ _PUBLIC = {"Detector": "s3k.detector", "Cameras": "s3k.geometry", "Dataset": "s3
 
 
 def __getattr__(name: str) -> Any:
+    if name == "train":  # the package, callable as its train(): importing it binds it here anyway
+        return importlib.import_module("s3k.train")
     if name in _PUBLIC:
         return getattr(importlib.import_module(_PUBLIC[name]), name)
     raise AttributeError(f"module 's3k' has no attribute {name!r}")

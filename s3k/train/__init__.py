@@ -44,6 +44,10 @@ The rooms:
   checkpoints).
 """
 
+import sys
+import types
+from typing import Any
+
 from s3k.train.checkpoint import load_checkpoint, read_checkpoint_step
 from s3k.train.distributed import DistInfo, init_distributed
 from s3k.train.entry import train
@@ -58,3 +62,14 @@ __all__ = [
     "labelled_distances", "labelled_layout", "load_checkpoint", "mean_pairwise_distance", "prepare",
     "read_checkpoint_step", "train", "train_one_pass", "validate",
 ]
+
+
+class _CallablePackage(types.ModuleType):
+    """``s3k.train`` is both this package and :func:`train`: importing any of its modules binds the package to
+    ``s3k.train``, so the package calls :func:`train` and ``s3k.train(...)`` trains whichever it is."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> TrainResult:
+        return train(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallablePackage
