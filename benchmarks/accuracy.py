@@ -129,8 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.preset:  # the preset's sizes and steps, unless given here
         chosen = PRESETS[args.preset].config
-        p.set_defaults(passes=2 if chosen.two_pass else 1, steps=chosen.steps, coarse_size=chosen.coarse_size,
-                       coarse_steps=chosen.coarse_steps, crop_size=chosen.crop_size)
+        two = chosen.passes
+        p.set_defaults(passes=2 if two.two_pass else 1, steps=chosen.schedule.steps,
+                       coarse_size=two.coarse_size, coarse_steps=two.coarse_steps, crop_size=two.crop_size)
         args = p.parse_args(argv)
     if args.unlabelled_arrangements and args.scene != "plush":
         p.error("--unlabelled-arrangements: the plush scene only")

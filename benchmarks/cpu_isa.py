@@ -73,7 +73,7 @@ def _pass_configs(preset_name: str, precision: str | None, steps: int, threads: 
         cfg = cfg.replace(precision=precision)
     cfg = cfg.replace(steps=steps, coarse_steps=steps, val_every=0, warmup_steps=0, ramp_steps=0,
                       checkpoint_every=10**9, progress=False, threads=threads, seed=0)
-    crop = int(cfg.crop_size)
+    crop = int(cfg.passes.crop_size)
     return {"coarse": cfg.coarse(), "fine": cfg.refining(crop).replace(image_size=crop)}
 
 
@@ -193,7 +193,7 @@ def parent(args: argparse.Namespace) -> None:
         work = Path(args.work or tmp)
         from s3k.train.presets import preset
 
-        crop = int(preset(args.preset).crop_size)
+        crop = int(preset(args.preset).passes.crop_size)
         data = Path(args.data) if args.data else ensure_box_render(work, crop, unlabelled=40, test=0)
         rounds = []
         for r in range(args.rounds):

@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch", type=int, default=1, help="frames per call (default 1)")
     p.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
     p.add_argument("--precision", default="float32", choices=("float32", "bfloat16", "float16"))
-    p.add_argument("--outlier-px", type=float, default=TrainConfig().outlier_px,
+    p.add_argument("--outlier-px", type=float, default=TrainConfig().self_supervision.outlier_px,
                    help="the read-out's outlier threshold, network pixels (default: a detector trained with "
                         "the defaults; 0: every view)")
     p.add_argument("--no-reference", action="store_true", help="leave out the earlier per-frame pipeline")

@@ -75,7 +75,8 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
     cfg = TrainConfig.from_flat(where=str(config), **json.loads(config.read_text())["config"])
     model, meta = load_network(run, "cpu")
     ds = open_dataset(data, meta.image_size)
-    layout = labelled_distances(ds, np.asarray(ds.frames("labelled"))) if cfg.layout_tol > 0 else None
+    rigid = cfg.self_supervision.layout_tol > 0
+    layout = labelled_distances(ds, np.asarray(ds.frames("labelled"))) if rigid else None
     store = FrameStore(ds, np.asarray(ds.frames(split)), preload_mb=0)
     pseudo, kept, truth = [], [], []
     with torch.no_grad():
@@ -87,8 +88,8 @@ def pseudo_labels(run: Path, data: Path, split: str, batch_size: int = 16):
             B, C = images.shape[:2]
             logits = model(images.reshape(B * C, *images.shape[2:])).float()
             logits = logits.reshape(B, C, *logits.shape[1:])
-            X, valid, *_views = make_pseudo_labels(logits, batch.cams, meta.stride, meta.sigma,
-                                                   rule=ReadoutConfig.of_training(cfg, layout))
+            rule = ReadoutConfig.of_training(cfg.self_supervision, layout)
+            X, valid, *_views = make_pseudo_labels(logits, batch.cams, meta.stride, meta.sigma, rule=rule)
             pseudo.append(X.double().numpy())
             kept.append(valid.numpy())
             truth.append(np.where(got[1][..., None], got[0], np.nan))

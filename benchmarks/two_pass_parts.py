@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, default in (("--native", 384), ("--coarse", 96), ("--crop", 192), ("--batch", 1)):
         q.add_argument(name, type=int, default=default)
     q.add_argument("--precision", default="float32")
-    q.add_argument("--outlier-px", type=float, default=inference.TrainConfig().outlier_px)
+    q.add_argument("--outlier-px", type=float, default=inference.TrainConfig().self_supervision.outlier_px)
     q.add_argument("--compile", action="store_true")
     detector, frames, cams = inference.detectors(q.parse_args(bench), torch.device("cpu"))["two_pass"]
 

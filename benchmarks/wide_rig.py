@@ -111,9 +111,10 @@ def main(argv: list[str] | None = None) -> int:
                      overwrite=True)
     data = labelled_view(pool, work / f"{name}-{CHOICE}", CHOICE, args.seed)
     chosen = PRESETS[args.preset].config
-    options = types.SimpleNamespace(preset=args.preset, steps=chosen.steps,
-                                    passes=2 if chosen.two_pass else 1, coarse_size=chosen.coarse_size,
-                                    crop_size=chosen.crop_size, coarse_steps=chosen.coarse_steps,
+    two = chosen.passes
+    options = types.SimpleNamespace(preset=args.preset, steps=chosen.schedule.steps,
+                                    passes=2 if two.two_pass else 1, coarse_size=two.coarse_size,
+                                    crop_size=two.crop_size, coarse_steps=two.coarse_steps,
                                     train_options="")
     if args.compare_labels_only and not args.labels_only:
         p.error("--compare-labels-only needs --labels-only")

@@ -48,19 +48,39 @@ SLACK = 1.25
 augmentation's resampling of the batch) on top of what autograd holds."""
 
 
-class SizedConfig(Protocol):
-    """The fields of :class:`s3k.config.TrainConfig` that size a training."""
-
+class _Network(Protocol):
     image_size: int
     channels: tuple[int, ...]
     res_blocks: int
     stride: int
     norm: Norm
+
+
+class _Batches(Protocol):
     batch_labelled: int
     batch_unlabelled: int
+
+
+class _SelfSupervision(Protocol):
     unsup: bool
     teacher_ema: float
+
+
+class _Execution(Protocol):
     preload_mb: int
+
+
+class SizedConfig(Protocol):
+    """The sections of :class:`s3k.config.TrainConfig` whose fields size a training."""
+
+    @property
+    def model(self) -> _Network: ...
+    @property
+    def schedule(self) -> _Batches: ...
+    @property
+    def self_supervision(self) -> _SelfSupervision: ...
+    @property
+    def execution(self) -> _Execution: ...
 
 
 @dataclass(frozen=True)
@@ -132,13 +152,14 @@ def footprint(cfg: SizedConfig, *, cameras: int, keypoints: int, source_size: tu
     """The memory a training of ``cfg`` needs on a dataset of ``cameras`` and ``keypoints`` whose images are
     ``source_size`` (W, H); ``frames`` are the frame counts of the stores a training may preload
     (labelled, unlabelled, validation)."""
-    size = model_image_size(source_size, cfg.image_size, cfg.stride)
-    parameters = unet_parameters(cfg.channels, cfg.res_blocks, cfg.stride, keypoints, cfg.norm)
-    copies = BYTES_PER_PARAMETER + (4 if cfg.unsup and cfg.teacher_ema > 0 else 0)
-    images_per_step = (cfg.batch_labelled + (cfg.batch_unlabelled if cfg.unsup else 0)) * cameras
-    per_image = activation_elements(cfg.channels, cfg.res_blocks, cfg.stride, keypoints, size)
+    m, b, unsup = cfg.model, cfg.schedule, cfg.self_supervision.unsup
+    size = model_image_size(source_size, m.image_size, m.stride)
+    parameters = unet_parameters(m.channels, m.res_blocks, m.stride, keypoints, m.norm)
+    copies = BYTES_PER_PARAMETER + (4 if unsup and cfg.self_supervision.teacher_ema > 0 else 0)
+    images_per_step = (b.batch_labelled + (b.batch_unlabelled if unsup else 0)) * cameras
+    per_image = activation_elements(m.channels, m.res_blocks, m.stride, keypoints, size)
     frame = cameras * size[0] * size[1] * 3
-    preloaded = sum(n * frame for n in frames if n * frame <= cfg.preload_mb * 2**20)
+    preloaded = sum(n * frame for n in frames if n * frame <= cfg.execution.preload_mb * 2**20)
     decoded = cameras * int(source_size[0]) * int(source_size[1]) * 3
     return Footprint(parameters, parameters * copies, int(SLACK * 4 * per_image * images_per_step),
                      preloaded + decoded + images_per_step * size[0] * size[1] * 3 * 5)
@@ -166,22 +187,23 @@ def check_fits(cfg: SizedConfig, *, cameras: int, keypoints: int, source_size: t
         return
     parts = {"weights": need.weights, "activations": need.activations, "images": need.images}
     largest = max(parts, key=parts.__getitem__)
+    m, b = cfg.model, cfg.schedule
     W, H = int(source_size[0]), int(source_size[1])
-    size = model_image_size(source_size, cfg.image_size, cfg.stride)
+    size = model_image_size(source_size, m.image_size, m.stride)
     if largest == "weights":
-        hint = (f"lower --channels (now {_listed(cfg.channels)}) or --res-blocks (now {cfg.res_blocks}): the "
+        hint = (f"lower --channels (now {_listed(m.channels)}) or --res-blocks (now {m.res_blocks}): the "
                 f"network has {need.parameters:.3g} parameters")
     elif largest == "images" and cameras * W * H * 3 > have / 2 and where is not None:
         hint = (f"the images of {where} are {W}x{H} px (image_size in {where}/s3k.json): one frame of its "
                 f"{cameras} cameras does not fit in memory decoded")
     elif largest == "images":
-        hint = f"lower --preload-mb (now {cfg.preload_mb}) or --image-size (now {cfg.image_size})"
+        hint = f"lower --preload-mb (now {cfg.execution.preload_mb}) or --image-size (now {m.image_size})"
     else:
-        shown = (f"now {cfg.image_size}" if cfg.image_size or where is None
+        shown = (f"now {m.image_size}" if m.image_size or where is None
                  else f"now 0: the dataset's {W}x{H} px")
-        hint = (f"lower --image-size ({shown}), --batch-labelled (now {cfg.batch_labelled})"
-                + (f", --batch-unlabelled (now {cfg.batch_unlabelled})" if cfg.unsup else "")
-                + f" or --channels (now {_listed(cfg.channels)})")
+        hint = (f"lower --image-size ({shown}), --batch-labelled (now {b.batch_labelled})"
+                + (f", --batch-unlabelled (now {b.batch_unlabelled})" if cfg.self_supervision.unsup else "")
+                + f" or --channels (now {_listed(m.channels)})")
         if where is not None:
             hint += f": {cameras} cameras x {size[0]}x{size[1]} px per frame"
     what = f"training on {where}" if where is not None else "this configuration, on the smallest dataset,"
@@ -196,5 +218,6 @@ def check_config_fits(cfg: SizedConfig, available: int | None = None) -> None:
     """What the configuration alone refuses: a training that would not fit in memory even on the smallest
     dataset it could train on (two cameras, one keypoint, images of ``image_size x stride`` pixels); the
     dataset's own shape is checked as training starts (:func:`check_fits`)."""
-    thin = (max(int(cfg.image_size), cfg.stride), cfg.stride)
+    m = cfg.model
+    thin = (max(int(m.image_size), m.stride), m.stride)
     check_fits(cfg, cameras=2, keypoints=1, source_size=thin, available=available)

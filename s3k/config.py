@@ -4,9 +4,11 @@
 ``self_supervision``, ``monitoring``, ``execution``, ``passes``: the two-pass options, ``backbone``: the
 encoder), each a dataclass whose
 fields carry their documentation in ``metadata["help"]``; ``s3k train --help`` shows that text next to the
-field's default. Field names are unique across sections, so a configuration is also a flat table of field
-names: the command line (``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that
-flat form, and ``cfg.steps`` reads ``cfg.schedule.steps``. Values are resolved in this order, later winning:
+field's default. Code reads a field through its section (``cfg.schedule.steps``), which a type checker
+follows. Field names are unique across sections, so a configuration is also a flat table of field names: the
+command line (``--steps``, ``--rotation-deg``), config files and ``RUN/config.json`` use that flat form
+(:meth:`TrainConfig.from_flat`, :meth:`TrainConfig.replace`, :meth:`TrainConfig.to_dict`). Values are
+resolved in this order, later winning:
 
 1. the dataclass defaults,
 2. a config file (``--config FILE``, TOML or JSON, a flat table of field names),
@@ -15,9 +17,10 @@ flat form, and ``cfg.steps`` reads ``cfg.schedule.steps``. Values are resolved i
 
 Example:
     >>> cfg = TrainConfig.from_flat(steps=100, unsup=False)
-    >>> cfg.schedule.steps, cfg.steps, cfg.alpha_at(10_000)
-    (100, 100, 0.0)
-    >>> TrainConfig().alpha_at(TrainConfig().warmup_steps + TrainConfig().ramp_steps)
+    >>> cfg.schedule.steps, cfg.self_supervision.unsup, cfg.alpha_at(10_000)
+    (100, False, 0.0)
+    >>> s = TrainConfig().self_supervision
+    >>> TrainConfig().alpha_at(s.warmup_steps + s.ramp_steps)
     0.5
 """
 
@@ -27,7 +30,7 @@ import dataclasses
 import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from s3k.base.choices import Device, Norm, Precision
 from s3k.base.errors import UserError
@@ -35,6 +38,8 @@ from s3k.budget import check_config_fits
 from s3k.config_fields import EncoderConfig
 from s3k.config_fields import documented as _f
 from s3k.config_files import coerce
+
+C = TypeVar("C")
 
 MAX_STEPS = 100_000_000
 """The most steps a training takes: the paper trained 150k; 1e8 steps are days at a millisecond a step."""
@@ -211,14 +216,14 @@ def _section(cls: type, help: str) -> Any:
     return field(default_factory=cls, metadata={"help": help})
 
 
-@dataclass
+@dataclass(slots=True)
 class TrainConfig:
     """Everything that defines a training run; written (flat) to ``RUN/config.json``.
 
     Defaults are sized for a 2-core CPU: 96-128 px images, a U-Net of about 100k parameters, heatmaps at
-    stride 2 and a few thousand steps. Read a field as ``cfg.schedule.steps`` or, since field names are unique
-    across sections, ``cfg.steps``; build one from flat values with :meth:`from_flat` and change fields with
-    :meth:`replace`.
+    stride 2 and a few thousand steps. Read a field through its section, ``cfg.schedule.steps``; since field
+    names are unique across sections, build one from flat values with :meth:`from_flat` and change fields
+    with :meth:`replace`.
     """
 
     model: ModelConfig = _section(ModelConfig, "network and targets")
@@ -229,20 +234,6 @@ class TrainConfig:
     execution: ExecutionConfig = _section(ExecutionConfig, "execution")
     passes: TwoPassConfig = _section(TwoPassConfig, "two passes")
     backbone: EncoderConfig = _section(EncoderConfig, "encoder")
-
-    def __getattr__(self, name: str) -> Any:
-        # Only called when ordinary lookup fails: a flat field name reads its section's field.
-        section = _FIELD_SECTION.get(name)
-        if section is None:
-            raise AttributeError(f"{type(self).__name__} has no field {name!r}")
-        return getattr(self.__dict__[section], name)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        section = _FIELD_SECTION.get(name)
-        if section is not None:  # a flat name sets the section's field (never a stray attribute)
-            setattr(self.__dict__[section], name, value)
-        else:
-            object.__setattr__(self, name, value)
 
     @classmethod
     def from_flat(cls, base: TrainConfig | None = None, where: str = "config", **values: Any) -> TrainConfig:
@@ -277,11 +268,11 @@ class TrainConfig:
         coarse pass's own steps, rotation, stride and learning rate where they are set (a one-pass
         configuration: its two-pass section is the defaults)."""
         p = self.passes
-        view = self.replace(image_size=p.coarse_size, steps=p.coarse_steps or self.steps,
-                            rotation_deg=(self.rotation_deg if p.coarse_rotation is None
+        view = self.replace(image_size=p.coarse_size, steps=p.coarse_steps or self.schedule.steps,
+                            rotation_deg=(self.augmentation.rotation_deg if p.coarse_rotation is None
                                           else p.coarse_rotation),
-                            stride=self.stride if p.coarse_stride is None else p.coarse_stride,
-                            lr=self.lr if p.coarse_lr is None else p.coarse_lr)
+                            stride=self.model.stride if p.coarse_stride is None else p.coarse_stride,
+                            lr=self.schedule.lr if p.coarse_lr is None else p.coarse_lr)
         return dataclasses.replace(view, passes=TwoPassConfig())
 
     def refining(self, crop_size: int | None = None) -> TrainConfig:
@@ -294,9 +285,10 @@ class TrainConfig:
         their size in the scene and ``--crop-size`` changes the resolution alone. ``--sigma`` is not scaled:
         a finer target is what a finer crop is for.
         """
-        k = (self.crop_size if crop_size is None else crop_size) / REFERENCE_CROP
-        view = self.replace(image_size=0, outlier_px=self.outlier_px * k, shift_px=self.shift_px * k,
-                            pseudo_window=max(1, round(self.pseudo_window * k)) if self.pseudo_window else 0)
+        k = (self.passes.crop_size if crop_size is None else crop_size) / REFERENCE_CROP
+        s, shift = self.self_supervision, self.augmentation.shift_px
+        view = self.replace(image_size=0, outlier_px=s.outlier_px * k, shift_px=shift * k,
+                            pseudo_window=max(1, round(s.pseudo_window * k)) if s.pseudo_window else 0)
         return dataclasses.replace(view, passes=TwoPassConfig())
 
     def alpha_at(self, step: int) -> float:
@@ -324,23 +316,23 @@ class TrainConfig:
     def validate(self) -> None:
         """Raise ``UserError`` naming the field when a value is out of its range (the ranges declared with
         the fields; floats must be finite) or the fields contradict each other."""
+        values = flat_values(self)
         for _, f, _ in leaf_fields(type(self)):
-            bounds = f.metadata.get("range")
-            value = getattr(self, f.name)
+            bounds, value = f.metadata.get("range"), values[f.name]
             if bounds is not None and value is not None:
                 bounds.check(value, f"config field {f.name!r}")
-        if self.unsup and self.batch_unlabelled <= 0:
+        if self.self_supervision.unsup and self.schedule.batch_unlabelled <= 0:
             raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
-        if self.precision not in ("auto", "float32", "bfloat16"):
-            raise UserError(f"config field 'precision' is {self.precision!r}",
+        if self.execution.precision not in ("auto", "float32", "bfloat16"):
+            raise UserError(f"config field 'precision' is {self.execution.precision!r}",
                             hint="pass --precision auto, float32 or bfloat16")
-        if not self.channels or any(c <= 0 for c in self.channels):
-            raise UserError(f"config field 'channels' must be positive integers, got {self.channels!r}")
-        if self.coarse_stride not in (None, 1, 2, 4):
+        if not self.model.channels or any(c <= 0 for c in self.model.channels):
+            raise UserError(f"config field 'channels' must be positive integers, got {self.model.channels!r}")
+        if self.passes.coarse_stride not in (None, 1, 2, 4):
             raise UserError(f"config field 'coarse_stride': the coarse pass's heatmap stride must be 1, 2 or "
-                            f"4, got {self.coarse_stride}", hint="pass --coarse-stride 1, 2 or 4")
-        if self.two_pass:
-            if self.image_size:
+                            f"4, got {self.passes.coarse_stride}", hint="pass --coarse-stride 1, 2 or 4")
+        if self.passes.two_pass:
+            if self.model.image_size:
                 raise UserError("--image-size does not apply to --two-pass",
                                 hint="set the coarse pass's size with --coarse-size and the crops' with "
                                      "--crop-size")
@@ -384,8 +376,9 @@ class TrainConfig:
         """The ``s3k train`` options that give this configuration: one per field that differs from its
         default (``["--steps", "100", "--no-unsup"]``), for a training run in another process."""
         out: list[str] = []
+        values = flat_values(self)
         for _, f, _ in leaf_fields(type(self)):
-            value = getattr(self, f.name)
+            value = values[f.name]
             if value != field_default(f):
                 out += option_argv(f.name, value)
         return out
@@ -400,13 +393,6 @@ def option_argv(name: str, value: Any) -> list[str]:
     if value is None:
         return [flag, "none"]
     return [flag, ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)]
-
-
-_FIELD_SECTION: dict[str, str] = {
-    leaf.name: section.name
-    for section in dataclasses.fields(TrainConfig)
-    for leaf in dataclasses.fields(section.default_factory)  # type: ignore[arg-type]
-}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -457,7 +443,7 @@ def default_of(name: str, cls: type = TrainConfig) -> Any:
     raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 
-def config_from_dict(cls: type, data: dict[str, Any], base: Any = None, where: str = "config") -> Any:
+def config_from_dict(cls: type[C], data: dict[str, Any], base: C | None = None, where: str = "config") -> C:
     """Build a ``cls`` instance from the flat table ``data`` over ``base`` (or the defaults).
 
     A value may also be given inside its section (``{"schedule": {"steps": 10}}``). Unknown names raise
@@ -478,7 +464,7 @@ def config_from_dict(cls: type, data: dict[str, Any], base: Any = None, where: s
         values[key] = coerce(leaves[key][1], value, f"{where}: field {key!r}")
     hints = typing.get_type_hints(cls)
     kwargs: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
+    for f in dataclasses.fields(typing.cast(Any, cls)):
         if _is_section(hints[f.name]):
             inner = {g.name: values[g.name] for g in dataclasses.fields(hints[f.name]) if g.name in values}
             kwargs[f.name] = hints[f.name](**inner)

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import typing
-from typing import Any
+from typing import Any, TypeVar
 
 from s3k.base.errors import UserError
 from s3k.config import TrainConfig, config_from_dict, field_default, flat_values, leaf_fields
 from s3k.config_files import base_type, coerce, read_config_file
+
+C = TypeVar("C")
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfig, base: Any = None,
@@ -84,7 +86,7 @@ def _parser(f, tp: Any):
     return parse
 
 
-def config_from_args(args: argparse.Namespace, cls: type = TrainConfig, base: Any = None) -> Any:
+def config_from_args(args: argparse.Namespace, cls: type[C], base: C | None = None) -> C:
     """Resolve defaults (or ``base``) < ``args.config`` file < explicit command-line options."""
     cfg = base if base is not None else cls()
     if getattr(args, "config", None):

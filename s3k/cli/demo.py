@@ -28,7 +28,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help=f"unlabelled frames (default {d.unlabelled})")
     parser.add_argument("--test", type=number(int, ge=1), default=None,
                         help=f"test frames (default {d.test})")
-    parser.add_argument("--preset", choices=[n for n in PRESETS if PRESETS[n].config.two_pass],
+    parser.add_argument("--preset", choices=[n for n in PRESETS if PRESETS[n].config.passes.two_pass],
                         default=d.preset,
                         help=f"the configuration both models train with (default {d.preset}; box-headline: "
                              "the headline's, about 1.5x the CPU time per model)")

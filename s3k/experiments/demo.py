@@ -38,6 +38,7 @@ from tqdm import tqdm
 from s3k.base.messages import say
 from s3k.base.metrics import mm_per_unit
 from s3k.base.outputs import check_folder, claim_folder, made_by_s3k, owns_run
+from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
 from s3k.detector import Detector, evaluate_store
@@ -62,7 +63,7 @@ class DemoConfig:
     options: tuple[str, ...] = field(default_factory=tuple)
     seed: int = 0
 
-    def train_config(self, own: list[str] | tuple[str, ...] = (), threads: int = 1):
+    def train_config(self, own: list[str] | tuple[str, ...] = (), threads: int = 1) -> TrainConfig:
         """The :class:`s3k.config.TrainConfig` of one of the demo's models: the preset, the demo's seed,
         ``threads``, no progress bar, the model's ``own`` options and ``options`` over it."""
         cfg = preset(self.preset).replace(seed=self.seed, threads=threads, progress=False)
@@ -71,7 +72,8 @@ class DemoConfig:
     def steps(self) -> tuple[int, int]:
         """``(coarse pass steps, refining pass steps)`` of the preset with ``options`` over it."""
         cfg = self.train_config()
-        return (cfg.coarse_steps or cfg.steps) if cfg.two_pass else 0, cfg.steps
+        steps, passes = cfg.schedule.steps, cfg.passes
+        return (passes.coarse_steps or steps) if passes.two_pass else 0, steps
 
 
 QUICK = DemoConfig(size=64, label_pool=20, unlabelled=40, test=12, options=(

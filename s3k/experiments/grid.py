@@ -210,13 +210,13 @@ class RunSpec:
         c = self.cfg
 
         def one_pass(steps: int, size: int) -> float:
-            warm = min(steps, c.warmup_steps) if c.unsup else steps
+            warm = min(steps, c.self_supervision.warmup_steps) if c.self_supervision.unsup else steps
             return warm * step_seconds(size, False) + (steps - warm) * step_seconds(size, True)
 
         if self.two_pass is None:
-            return one_pass(c.steps, self.pool.size)
+            return one_pass(c.schedule.steps, self.pool.size)
         return (one_pass(self.two_pass["coarse_steps"], self.two_pass["coarse_size"])
-                + one_pass(c.steps, self.two_pass["crop_size"]))
+                + one_pass(c.schedule.steps, self.two_pass["crop_size"]))
 
 
 @dataclass
@@ -284,10 +284,12 @@ def train_config(opts: Options, scale: Scale, steps: int, seed: int, unsup: bool
     """
     # warm-up and ramp keep the default schedule's proportions (750 + 750 of 3000 steps)
     base = TrainConfig()
-    frac = base.warmup_steps / base.steps, base.ramp_steps / base.steps
-    values = dict(steps=steps, warmup_steps=int(steps * frac[0]), ramp_steps=int(steps * frac[1]),
-                  checkpoint_every=max(1, min(base.checkpoint_every, steps // 6)), device=opts.device,
-                  threads=opts.threads, progress=opts.progress)
+    s, every = base.self_supervision, base.monitoring.checkpoint_every
+    frac = s.warmup_steps / base.schedule.steps, s.ramp_steps / base.schedule.steps
+    values: dict[str, Any] = dict(steps=steps, warmup_steps=int(steps * frac[0]),
+                                  ramp_steps=int(steps * frac[1]),
+                                  checkpoint_every=max(1, min(every, steps // 6)),
+                                  device=opts.device, threads=opts.threads, progress=opts.progress)
     values.update(scale.train)
     values.update(opts.train_overrides)
     values.update(seed=seed, unsup=unsup, alpha=alpha)
@@ -351,7 +353,7 @@ def plan(opts: Options) -> list[RunSpec]:
             eval_train: bool = False) -> None:
         for s in range(_seed_count(opts, scale, claim)):
             cfg = train_config(opts, scale, steps, s, U > 0, alpha)
-            if two_pass is not None and cfg.image_size:
+            if two_pass is not None and cfg.model.image_size:
                 raise UserError("--set image_size does not apply to two-pass runs",
                                 hint="set the coarse pass's size with --size and the crops' with --crop-size")
             p = dict(params, labelled=L, unlabelled=U, seed=s, method="s3k" if U > 0 else "no_unsup")

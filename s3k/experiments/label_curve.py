@@ -100,10 +100,11 @@ class CurveOptions:
         if preset is None:
             return cls(**{k: v for k, v in given.items() if v is not None})
         cfg = PRESETS[preset].config
-        defaults: dict[str, Any] = {"preset": preset, "passes": 2 if cfg.two_pass else 1, "steps": cfg.steps}
-        if cfg.two_pass:
-            defaults.update(coarse_size=cfg.coarse_size, coarse_steps=cfg.coarse_steps,
-                            crop_size=cfg.crop_size)
+        defaults: dict[str, Any] = {"preset": preset, "passes": 2 if cfg.passes.two_pass else 1,
+                                    "steps": cfg.schedule.steps}
+        if cfg.passes.two_pass:
+            defaults.update(coarse_size=cfg.passes.coarse_size, coarse_steps=cfg.passes.coarse_steps,
+                            crop_size=cfg.passes.crop_size)
         defaults.update({k: v for k, v in given.items() if v is not None})
         return cls(**defaults)
 

@@ -137,9 +137,9 @@ def _train_and_evaluate(spec: RunSpec, exp_dir: Path, data_dir: Path, opts: Opti
                      {"labelled": spec.labelled, "unlabelled": spec.unlabelled, "seed": spec.seed})
     t_data = time.perf_counter() - t0
     start_step = checkpoint_step(RunFolder(run_dir).fine.path if spec.two_pass else run_dir)
-    log(f"{spec.name}: training {spec.cfg.steps} steps "
-        f"({'S3K' if spec.cfg.unsup else 'labels only'}, {spec.labelled} labelled, {spec.unlabelled} "
-        f"unlabelled, seed {spec.seed}" + (", two passes" if spec.two_pass else "") + ")"
+    log(f"{spec.name}: training {spec.cfg.schedule.steps} steps "
+        f"({'S3K' if spec.cfg.self_supervision.unsup else 'labels only'}, {spec.labelled} labelled, "
+        f"{spec.unlabelled} unlabelled, seed {spec.seed}" + (", two passes" if spec.two_pass else "") + ")"
         + (f", resuming at step {start_step}" if start_step else ""))
     t1 = time.perf_counter()
     # each pass of two is resumed where it stopped; a pass that does not finish raises (the run fails)
@@ -186,9 +186,9 @@ def describe_plan(runs: Sequence[RunSpec], exp_dir: Path, data_dir: Path, scale:
     done = len(runs) - len(todo)
     missing = [p for n, p in pools.items() if not (data_dir / n / "s3k.json").is_file()]
     cpu = sum(r.estimated_cpu_s() for r in todo) + sum(p.images() for p in missing) / RENDER_IMAGES_PER_S
-    n_base = sum(not r.cfg.unsup for r in runs)
+    n_base = sum(not r.cfg.self_supervision.unsup for r in runs)
     sizes = sorted({r.pool.size for r in runs})
-    steps = sorted({r.cfg.steps for r in runs})
+    steps = sorted({r.cfg.schedule.steps for r in runs})
     t = runs[0].two_pass
     passes = "" if t is None else (f" rendered, two passes (coarse {t['coarse_size']} px for "
                                    f"{t['coarse_steps']} steps, then {t['crop_size']} px crops)")

@@ -256,7 +256,7 @@ def stream_session(session: RigSession, sources: dict[str, Source], config: Trac
                    log: Callable[[int, list[np.ndarray], Any], None] | None = None) -> StreamSummary:
     """:func:`stream` of the session's detector on its rig, with the read-out and the filter of
     ``config``."""
-    return stream(session.detector, sources, session.cameras, session.boxes, out, config.min_weight,
+    return stream(session.detector, sources, session.cameras, session.boxes, out, config.readout.min_weight,
                   max_frames, log, filter=stream_filter(session, config))
 
 

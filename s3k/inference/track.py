@@ -89,11 +89,12 @@ def track(run: str | Path | Detector, videos: Mapping[str, str | Path], rig: Rig
 def _check_files(out: str | Path, overwrite: bool, config: TrackConfig, cameras: list[str],
                  inputs: dict[str, object]) -> None:
     """Refuse, before any work, an output :meth:`Track.write` would refuse (:mod:`s3k.base.outputs`)."""
-    overlays = {overlay_file(config.overlay, c).name for c in cameras} if config.overlay else set()
+    overlay = config.outputs.overlay
+    overlays = {overlay_file(overlay, c).name for c in cameras} if overlay else set()
     for path in (out, raw_path(out), doubt_path(out)) if config.filtering_on else (out, doubt_path(out)):
         check_output(path, overwrite, inputs=inputs)
-    if config.overlay:
-        check_folder(config.overlay, OVERLAYS, option="--overlay", inputs=inputs, writes=overlays)
+    if config.outputs.overlay:
+        check_folder(config.outputs.overlay, OVERLAYS, option="--overlay", inputs=inputs, writes=overlays)
 
 
 def overlay_file(folder: str | Path, camera: str) -> Path:
@@ -153,9 +154,9 @@ def detect_videos(session: RigSession, videos: dict[str, Path], config: TrackCon
     paths = [Path(videos[name]) for name in session.names]
     rates = [video.frame_rate(p) for p in paths]
     offsets = session.offsets or [0] * len(paths)
-    start, end = _frame_range(session.names, paths, rates, config.start, config.stop, offsets)
-    frames = video.prefetch(video.synchronized_batches(paths, config.batch, start, end, offsets))
-    got = _detect(session, frames, config.min_weight, end - start, config.progress)
+    start, end = _frame_range(session.names, paths, rates, config.chunks.start, config.chunks.stop, offsets)
+    frames = video.prefetch(video.synchronized_batches(paths, config.chunks.batch, start, end, offsets))
+    got = _detect(session, frames, config.readout.min_weight, end - start, config.outputs.progress)
     rate = None if any(imageseq.is_sequence(p) for p in paths) else _common_rate(rates)
     result = Track(session, {n: p for n, p in zip(session.names, paths)}, config, got, rate)
     if config.filtering_on:
@@ -302,7 +303,7 @@ class Track:
         _check_files(out, overwrite, self.config, list(self.videos),
                      {k: v for k, v in inputs.items() if v is not None})
         out, raw = Path(out), raw_path(out) if self.filtered is not None else Path(out)
-        files = self._write_overlays(Path(self.config.overlay)) if self.config.overlay else []
+        files = self._write_overlays(Path(self.config.outputs.overlay)) if self.config.outputs.overlay else []
         rejected = None if self.filtered is None else self.filtered.rejected
         keypoints, got = self.keypoints, self.raw
         with write_csv(raw, keypoints) as writer:
@@ -321,7 +322,7 @@ class Track:
 
     def _write_sources(self, out: Path, raw: Path, ranked: Path, calibration) -> list[Path]:
         """The JSON companions of the CSVs (:func:`s3k.data.tracks_csv.write_source`)."""
-        details = {"videos": {c: str(p) for c, p in self.videos.items()}, "start": self.config.start,
+        details = {"videos": {c: str(p) for c, p in self.videos.items()}, "start": self.config.chunks.start,
                    "doubt": ranked.name}
         if any(self.session.offsets):
             details["frame_offsets"] = dict(zip(self.session.names, self.session.offsets))
@@ -345,8 +346,8 @@ class Track:
         try:
             start = int(got.fnums[0]) if len(got.fnums) else 0
             stop = int(got.fnums[-1]) + 1 if len(got.fnums) else 0
-            batches = video.synchronized_batches(list(self.videos.values()), self.config.batch, start, stop,
-                                                 self.session.offsets or None)
+            batches = video.synchronized_batches(list(self.videos.values()), self.config.chunks.batch, start,
+                                                 stop, self.session.offsets or None)
             t = 0
             for _, frames in video.prefetch(batches):  # decoded as the detection decoded them
                 for views in frames:
@@ -364,10 +365,10 @@ class Track:
         valid, median, passing = self.fractions()
         what = "filtered " if self.filtered is not None else ""
         lines = [f"wrote {self.frames} {what}frames to {out} (units: {self.session.units})"]
-        weight = self.config.min_weight
+        weight = self.config.readout.min_weight
         lines += [f"  {kp}: {keypoint_line(valid[k], median[k], passing[k], weight, self.frames)}"
                   for k, kp in enumerate(self.keypoints)]
-        hint = empty_result_hint(valid, passing, self.config.min_weight, self.frames, out)
+        hint = empty_result_hint(valid, passing, self.config.readout.min_weight, self.frames, out)
         if hint:
             lines.append(f"warning: {hint}")
         if self.filtered is not None:
@@ -375,8 +376,8 @@ class Track:
             lines.append(f"raw points in {raw}; the filter rejected {info['rejected']} jump(s) and bridged "
                          f"{info['bridged']} point(s) (ncams 0 in {out.name})")
         lines.append(f"frames ranked by doubt in {ranked}")
-        if self.config.overlay:
-            lines.append(f"overlay videos in {self.config.overlay}")
+        if self.config.outputs.overlay:
+            lines.append(f"overlay videos in {self.config.outputs.overlay}")
         return lines
 
 

@@ -2,13 +2,13 @@
 
 :class:`TrackConfig` groups its fields in sections as :class:`s3k.config.TrainConfig` does (``filtering``,
 ``gates``, ``limbs``, ``readout``, ``chunks``, ``outputs``), each field with its help and range in its
-metadata; field names are unique, so ``cfg.batch`` reads ``cfg.chunks.batch`` and the flat table of names is
-the configuration's form on the command line (``--filter-gate 5``: ``s3k.cli.config_options``), in a
-``--config FILE`` and in ``--print-config``.
+metadata; code reads a field through its section (``cfg.chunks.batch``), and since field names are unique
+the flat table of names is the configuration's form on the command line (``--filter-gate 5``:
+``s3k.cli.config_options``), in a ``--config FILE`` and in ``--print-config``.
 
 Example:
     >>> cfg = TrackConfig.from_flat(filter="none", batch=4)
-    >>> cfg.batch, cfg.filter_settings().method
+    >>> cfg.chunks.batch, cfg.filter_settings().method
     (4, 'none')
 """
 
@@ -121,7 +121,7 @@ class OutputsConfig:
     progress: bool = _s(True, "show a progress bar")
 
 
-@dataclass
+@dataclass(slots=True)
 class TrackConfig:
     """Everything that defines how a recording is tracked, past the run, the rig and the files
     (module docstring)."""
@@ -132,13 +132,6 @@ class TrackConfig:
     readout: ReadoutSettings = field(default_factory=ReadoutSettings)
     chunks: ChunksConfig = field(default_factory=ChunksConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
-
-    def __getattr__(self, name: str) -> Any:
-        # Only called when ordinary lookup fails: a flat field name reads its section's field.
-        for section, f, _ in leaf_fields(type(self)):
-            if f.name == name and section is not None:
-                return getattr(object.__getattribute__(self, section), name)
-        raise AttributeError(f"{type(self).__name__} has no field {name!r}")
 
     @classmethod
     def from_flat(cls, base: TrackConfig | None = None, where: str = "config", **values: Any) -> TrackConfig:
@@ -157,8 +150,9 @@ class TrackConfig:
     def validate(self) -> TrackConfig:
         """Raise ``UserError`` naming the option of a value out of its range (the ranges declared with the
         fields; floats must be finite) or of a choice it does not offer; returns ``self``."""
+        values = flat_values(self)
         for _, f, tp in leaf_fields(type(self)):
-            bounds, value = f.metadata.get("range"), getattr(self, f.name)
+            bounds, value = f.metadata.get("range"), values[f.name]
             option = f"--{f.name.replace('_', '-')}"
             if bounds is not None and value is not None:
                 bounds.check(value, option)
@@ -166,35 +160,35 @@ class TrackConfig:
             choices = typing.get_args(base) if typing.get_origin(base) is Literal else ()
             if choices and value not in choices:
                 raise UserError(f"{option} must be one of {', '.join(choices)}, got {value!r}")
-        if self.stop is not None and self.stop <= self.start:
-            raise UserError(f"--start/--stop: need 0 <= start < stop, got start={self.start}, "
-                            f"stop={self.stop}")
+        if self.chunks.stop is not None and self.chunks.stop <= self.chunks.start:
+            raise UserError(f"--start/--stop: need 0 <= start < stop, got start={self.chunks.start}, "
+                            f"stop={self.chunks.stop}")
         self.limb_pairs()
         return self
 
     def filter_settings(self) -> FilterSettings:
         """The :class:`s3k.inference.kalman.FilterSettings` of the ``filtering``, ``gates`` and ``limbs``
         sections (``method="none"``: no filter)."""
-        rigid = {"auto": None, "on": True, "off": False}.get(self.filter_rigid, self.filter_rigid)
-        return FilterSettings(method=self.filter, model=self.filter_model,
-                              process_noise=self.filter_process_noise, noise_scale=self.filter_noise_scale,
-                              noise_px=self.filter_noise_px, gate=self.filter_gate,
-                              max_gap=self.filter_max_gap, rigid=rigid, layout_std=self.filter_layout_std,
-                              limb_std=self.filter_limb_std)
+        rigid = {"auto": None, "on": True, "off": False}[self.limbs.filter_rigid]
+        f, g, limbs = self.filtering, self.gates, self.limbs
+        return FilterSettings(method=f.filter, model=f.filter_model, process_noise=f.filter_process_noise,
+                              noise_scale=f.filter_noise_scale, noise_px=f.filter_noise_px,
+                              gate=g.filter_gate, max_gap=g.filter_max_gap, rigid=rigid,
+                              layout_std=limbs.filter_layout_std, limb_std=limbs.filter_limb_std)
 
     @property
     def filtering_on(self) -> bool:
         """Whether the points are filtered over time."""
-        return self.filter != "none"
+        return self.filtering.filter != "none"
 
     def limb_pairs(self) -> list[tuple[str, str]] | None:
         """The pairs of ``filter_limbs`` (``[]`` for ``none``), or None: the skeleton the run recorded."""
-        if self.filter_limbs is None:
+        if self.limbs.filter_limbs is None:
             return None
-        if list(self.filter_limbs) == ["none"]:
+        if list(self.limbs.filter_limbs) == ["none"]:
             return []
         pairs = []
-        for text in self.filter_limbs:
+        for text in self.limbs.filter_limbs:
             a, sep, b = text.partition(",")
             if not sep or not a or not b or "," in b:
                 raise UserError(f"--filter-limbs {text!r}: expected two keypoint names A,B")

@@ -13,11 +13,11 @@ term instead (``layout_drop``) and the layout moves only the kept keypoints (``l
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from torch import Tensor
 
 from s3k.base.choices import LAYOUT_FITS, LayoutFit
+from s3k.config import SelfSupervisionConfig
 from s3k.readout.confidence import ConfidenceMap
 from s3k.readout.views import DEFAULT_MIN_WEIGHT
 
@@ -83,9 +83,10 @@ class ReadoutConfig:
                    layout_search=False, layout_drop=True, layout_fit="kept" if layout_fit else "off")
 
     @classmethod
-    def of_training(cls, cfg: Any, layout: Tensor | None = None) -> ReadoutConfig:
-        """The pseudo-labels' read-out of a training configuration (``--outlier-px``, ``--pseudo-window``,
-        ``--layout-tol``, ``--layout-fit``) with the labelled layout ``layout``."""
-        return cls.for_pseudo_labels(max_residual_px=cfg.outlier_px or None, window=cfg.pseudo_window,
-                                     layout=layout if cfg.layout_tol > 0 else None, layout_tol=cfg.layout_tol,
-                                     layout_fit=cfg.layout_fit)
+    def of_training(cls, s: SelfSupervisionConfig, layout: Tensor | None = None) -> ReadoutConfig:
+        """The pseudo-labels' read-out of a training configuration's self-supervision section
+        (``--outlier-px``, ``--pseudo-window``, ``--layout-tol``, ``--layout-fit``) with the labelled layout
+        ``layout``."""
+        return cls.for_pseudo_labels(max_residual_px=s.outlier_px or None, window=s.pseudo_window,
+                                     layout=layout if s.layout_tol > 0 else None, layout_tol=s.layout_tol,
+                                     layout_fit=s.layout_fit)

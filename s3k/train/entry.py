@@ -20,7 +20,7 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, *, 
           progress=None, overwrite: bool = False, command: str | None = None,
           init_from: str | Path | None = None) -> TrainResult:
     """Train a detector on the dataset ``data`` into the run folder ``out`` by ``cfg``: the coarse-to-fine
-    detector when ``cfg.two_pass`` (:mod:`s3k.train.two_pass`), else one network on the whole image
+    detector when ``cfg.passes.two_pass`` (:mod:`s3k.train.two_pass`), else one network on the whole image
     (:mod:`s3k.train.loop`). The run folder's files: :class:`s3k.run_folder.RunFolder`.
 
     Args:
@@ -52,8 +52,9 @@ def train(data: str | Path | DatasetLike, out: str | Path, cfg: TrainConfig, *, 
         ('done', 100)
     """
     # before anything is written
-    check_batches(cfg.batch_labelled, cfg.batch_unlabelled, cfg.unsup, world_size())
-    if cfg.two_pass:
+    check_batches(cfg.schedule.batch_labelled, cfg.schedule.batch_unlabelled, cfg.self_supervision.unsup,
+                  world_size())
+    if cfg.passes.two_pass:
         if resume and overwrite:
             raise UserError("--resume and --overwrite exclude each other", hint="pass one of them")
         if not isinstance(data, (str, os.PathLike)):

@@ -33,18 +33,19 @@ def continued(cfg: TrainConfig, given: Collection[str] = (), run: str | Path = "
     """
     changes: dict[str, object] = {}
     said = []
+    lr, final, two_pass = cfg.schedule.lr, cfg.schedule.lr_final, cfg.passes.two_pass
     if "lr" not in given:
-        changes["lr"] = cfg.lr * cfg.lr_final
-        said.append(f"{'the refining pass at' if cfg.two_pass else 'at'} the learning rate it ended at, "
-                    f"{changes['lr']:.3g} (--lr {cfg.lr:g} x --lr-final {cfg.lr_final:g})")
-    if cfg.two_pass and "coarse_lr" not in given:
+        changes["lr"] = lr * final
+        said.append(f"{'the refining pass at' if two_pass else 'at'} the learning rate it ended at, "
+                    f"{changes['lr']:.3g} (--lr {lr:g} x --lr-final {final:g})")
+    if two_pass and "coarse_lr" not in given:
         if "lr" in given:  # the learning rate given is both passes', as in a run of its own
             changes["coarse_lr"] = None
         else:
-            first = cfg.lr if cfg.coarse_lr is None else cfg.coarse_lr
-            changes["coarse_lr"] = first * cfg.lr_final
-            said.append(f"the coarse pass at {changes['coarse_lr']:.3g} ({first:g} x {cfg.lr_final:g})")
-    if cfg.two_pass and "steps" in given and "coarse_steps" not in given:
+            first = lr if cfg.passes.coarse_lr is None else cfg.passes.coarse_lr
+            changes["coarse_lr"] = first * final
+            said.append(f"the coarse pass at {changes['coarse_lr']:.3g} ({first:g} x {final:g})")
+    if two_pass and "steps" in given and "coarse_steps" not in given:
         changes["coarse_steps"] = None  # the steps given are both passes'
     for name in ("warmup_steps", "ramp_steps"):
         if name not in given:
@@ -54,7 +55,7 @@ def continued(cfg: TrainConfig, given: Collection[str] = (), run: str | Path = "
     for name, value in changes.items():
         if name in ("lr", "coarse_lr") and value == 0:
             raise UserError(f"--init-from {run}: it ended at a learning rate of 0 "
-                            f"(--lr-final {cfg.lr_final:g}), at which a fine-tune trains nothing",
+                            f"(--lr-final {final:g}), at which a fine-tune trains nothing",
                             hint=f"give --{name.replace('_', '-')}")
     return cfg.replace(**changes), said
 
@@ -67,7 +68,7 @@ def fine_tune_config(run: str | Path, given: Collection[str] = ()) -> tuple[Trai
         raise UserError(f"--init-from {run}: not a trained run (no configuration recorded in it)",
                         hint="give the folder 's3k train --out' wrote")
     cfg, said = continued(cfg, given, run)
-    line = f"fine-tuning {run}: its configuration ({'two passes' if cfg.two_pass else 'one pass'})"
+    line = f"fine-tuning {run}: its configuration ({'two passes' if cfg.passes.two_pass else 'one pass'})"
     if said:
         line += ", " + ", ".join(said)
     if given:

@@ -3,7 +3,7 @@
 
 :func:`train` opens the dataset once, makes every check that can refuse the run before anything is written
 (``out_folder``; no labelled frame with a usable target; S3K without unlabelled frames), builds or restores
-the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.steps``.
+the network, optimizer and schedule, then runs :class:`_Loop` until ``cfg.schedule.steps``.
 """
 
 from __future__ import annotations
@@ -108,22 +108,22 @@ class _Loop:
     def __init__(self, cfg: TrainConfig, meta: DetectorMeta, device: torch.device, info: DistInfo,
                  out: Path, layout: torch.Tensor | None = None) -> None:
         self.cfg, self.meta, self.device, self.info, self.out = cfg, meta, device, info, out
-        torch.manual_seed(cfg.seed)
+        torch.manual_seed(cfg.execution.seed)
         net = build_network(len(meta.keypoints), UNetConfig.from_dict(meta.model))
-        if isinstance(net, EncoderUNet) and cfg.pretrained:
+        if isinstance(net, EncoderUNet) and cfg.backbone.pretrained:
             load_imagenet_weights(net)
         # NHWC is the faster convolution layout for these small channel counts on CPU (and fine on GPU).
         self.net = net.to(device=device, memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.model = wrap_model(self.net, device, info)
         # one stream for every rank: each draws and augments the whole batch as one process does
-        self.gen = torch.Generator().manual_seed(cfg.seed * 1000)
+        self.gen = torch.Generator().manual_seed(cfg.execution.seed * 1000)
         self.opt, self.sched = optimizer(self.net, cfg)
         self.step, self.nonfinite_run = 0, 0
         self.teacher: nn.Module | None = None
         # the pseudo-label rule, with the rigid layout that --layout-tol holds the pseudo-labels to
-        self.rule = ReadoutConfig.of_training(cfg, layout)
-        self.precision = training_precision(cfg.precision, device)
-        if cfg.unsup and cfg.teacher_ema > 0:
+        self.rule = ReadoutConfig.of_training(cfg.self_supervision, layout)
+        self.precision = training_precision(cfg.execution.precision, device)
+        if cfg.self_supervision.unsup and cfg.self_supervision.teacher_ema > 0:
             # in eval mode (running normalization statistics, copied from the network at every update)
             self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
 
@@ -134,7 +134,7 @@ class _Loop:
             return
         with torch.no_grad():
             for tp, p in zip(self.teacher.parameters(), self.net.parameters()):
-                tp.lerp_(p, 1.0 - self.cfg.teacher_ema)
+                tp.lerp_(p, 1.0 - self.cfg.self_supervision.teacher_ema)
             for tb, b in zip(self.teacher.buffers(), self.net.buffers()):
                 tb.copy_(b)
 
@@ -190,12 +190,13 @@ class _Loop:
         ts = time.perf_counter()
         alpha = cfg.alpha_at(self.step)
         # the whole global batch is drawn and augmented on every rank; each passes its own part forward
-        lab = part(prepare(draw_batch(lab_store, cfg.batch_labelled, self.gen, True), self.device, aug,
+        batches = cfg.schedule
+        lab = part(prepare(draw_batch(lab_store, batches.batch_labelled, self.gen, True), self.device, aug,
                            self.gen, True, noise_bank), self.info)
         unl = None
         if unl_store is not None and alpha > 0:
-            unl = part(prepare(draw_batch(unl_store, cfg.batch_unlabelled, self.gen, False), self.device, aug,
-                               self.gen, False, noise_bank)[:2], self.info)
+            unl = part(prepare(draw_batch(unl_store, batches.batch_unlabelled, self.gen, False), self.device,
+                               aug, self.gen, False, noise_bank)[:2], self.info)
         td = time.perf_counter()
         buffers = [b.detach().clone() for b in net.buffers()]
         loss, terms = compute_losses(self.model, lab, unl, cfg, alpha, net, self.rule, self.teacher,
@@ -203,7 +204,7 @@ class _Loop:
         terms = mean_terms(terms, self.device, self.info)  # the whole batch's, as one process logs them
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
+        clip = cfg.schedule.grad_clip if cfg.schedule.grad_clip > 0 else float("inf")
         gnorm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
         if all_ranks(bool(torch.isfinite(loss) and torch.isfinite(gnorm)), self.device, self.info):
             self.opt.step()
@@ -245,8 +246,9 @@ class _Monitor:
             from torch.utils.tensorboard import SummaryWriter
 
             self.writer = SummaryWriter(str(out / TENSORBOARD_DIR))
-            if cfg.progress:
-                self.bar = tqdm(total=cfg.steps, initial=step, desc="S3K" if cfg.unsup else "labels only",
+            if cfg.monitoring.progress:
+                self.bar = tqdm(total=cfg.schedule.steps, initial=step,
+                                desc="S3K" if cfg.self_supervision.unsup else "labels only",
                                 dynamic_ncols=True, smoothing=0.05)
         self.t_data = self.t_total = 0.0
         self.n_timed = 0
@@ -255,7 +257,7 @@ class _Monitor:
         self.t_data += terms["time_data_s"]
         self.t_total += terms["time_step_s"]
         self.n_timed += 1
-        if self.writer is not None and (step % self.cfg.log_every == 0 or step == 1):
+        if self.writer is not None and (step % self.cfg.monitoring.log_every == 0 or step == 1):
             for k, v in terms.items():
                 if not k.startswith("time_"):
                     group = "loss" if k in ("loss", "sup", "unsup", "l2") else "train"
@@ -263,12 +265,13 @@ class _Monitor:
             self.writer.add_scalar("train/lr", lr, step)
             self.writer.add_scalar("time/step_s", self.t_total / self.n_timed, step)
             self.writer.add_scalar("time/data_fraction", self.t_data / max(self.t_total, 1e-12), step)
-        if self.progress_file is not None and (step % self.cfg.log_every == 0 or step == self.cfg.steps):
-            atomic_write_json({"step": step, "steps": self.cfg.steps,
+        steps = self.cfg.schedule.steps
+        if self.progress_file is not None and (step % self.cfg.monitoring.log_every == 0 or step == steps):
+            atomic_write_json({"step": step, "steps": steps,
                                "seconds": time.perf_counter() - self.started}, self.progress_file)
         if self.bar is not None:
             self.bar.update(1)
-            if step % 5 == 0 or step == self.cfg.steps:
+            if step % 5 == 0 or step == steps:
                 shown = ("loss", "sup", "unsup", "alpha")
                 self.bar.set_postfix({k: f"{terms[k]:.3g}" for k in shown if k in terms})
 
@@ -288,15 +291,16 @@ class _Monitor:
 
 def _log_unsup_schedule(cfg: TrainConfig) -> None:
     """Say at which step the self-supervised term switches on and when it reaches its weight."""
-    if not cfg.unsup:
+    s = cfg.self_supervision
+    if not s.unsup:
         return
     warmup, ramp = cfg.unsup_schedule()
-    scaled = ("" if (warmup, ramp) == (cfg.warmup_steps, cfg.ramp_steps) else
-              f" (--warmup-steps {cfg.warmup_steps} and --ramp-steps {cfg.ramp_steps} shrunk in proportion "
-              f"to fit the {cfg.steps} steps)")
+    scaled = ("" if (warmup, ramp) == (s.warmup_steps, s.ramp_steps) else
+              f" (--warmup-steps {s.warmup_steps} and --ramp-steps {s.ramp_steps} shrunk in proportion "
+              f"to fit the {cfg.schedule.steps} steps)")
     # steps counted from 1, as the progress and TensorBoard count them
     log.info("self-supervised term: switches on at step %d, alpha reaches %g at step %d%s", warmup + 1,
-             cfg.alpha, warmup + max(ramp, 1), scaled)
+             s.alpha, warmup + max(ramp, 1), scaled)
 
 
 def _finished(source, out: Path, cfg: TrainConfig, step: int, info: DistInfo) -> TrainResult:
@@ -357,8 +361,9 @@ def train_one_pass(data: str | Path | DatasetLike, out: str | Path, cfg: TrainCo
         UserError: before anything is written, naming what is wrong (see ``s3k.train.out_folder``).
     """
     cfg.validate()
-    check_batches(cfg.batch_labelled, cfg.batch_unlabelled, cfg.unsup, world_size())
-    info = init_distributed(cfg.device)
+    check_batches(cfg.schedule.batch_labelled, cfg.schedule.batch_unlabelled, cfg.self_supervision.unsup,
+                  world_size())
+    info = init_distributed(cfg.execution.device)
     try:
         return _train(data, Path(out), cfg, resume, overwrite, progress, command, info, init_from)
     finally:
@@ -368,14 +373,14 @@ def train_one_pass(data: str | Path | DatasetLike, out: str | Path, cfg: TrainCo
 def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume: bool, overwrite: bool,
            callback, command: str | None, info: DistInfo, init_from: str | Path | None = None) -> TrainResult:
     data = data_path(source)
-    device = pick_device(cfg.device, info.local_rank)
+    device = pick_device(cfg.execution.device, info.local_rank)
     if device.type == "cuda":
         torch.cuda.set_device(device)
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
+    if cfg.execution.threads > 0:
+        torch.set_num_threads(cfg.execution.threads)
     if info.main:
         out_folder.check_out(out, resume, overwrite, data)  # before the dataset is read: cheap refusals first
-    if resume and (done := out_folder.finished_step(out, cfg.steps)) is not None:
+    if resume and (done := out_folder.finished_step(out, cfg.schedule.steps)) is not None:
         return _finished(source, out, cfg, done, info)
     d = open_data(source, cfg)
     distances = labelled_distances(d.ds, d.labelled)  # triangulated once: the rigid layout and its size
@@ -383,10 +388,10 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     meta = detector_meta(d, cfg, distances)
     start = _initial_weights(init_from, meta) if init_from is not None else None  # refused before any write
     # the images are read (preloaded) before the run is written: a corrupt one leaves no run behind
-    t0 = time.perf_counter()
-    lab_store = FrameStore(d.ds, d.labelled, cfg.preload_mb, labels=True)  # every rank: every frame
-    unl_store = FrameStore(d.ds, d.unlabelled, cfg.preload_mb) if cfg.unsup else None
-    val_store = FrameStore(d.ds, d.val, cfg.preload_mb, labels=True, points=True) if info.main else None
+    t0, preload = time.perf_counter(), cfg.execution.preload_mb
+    lab_store = FrameStore(d.ds, d.labelled, preload, labels=True)  # every rank: every frame
+    unl_store = FrameStore(d.ds, d.unlabelled, preload) if cfg.self_supervision.unsup else None
+    val_store = FrameStore(d.ds, d.val, preload, labels=True, points=True) if info.main else None
     if device.type != "cpu":  # the frames held once on the training device, batches drawn there
         for store in (lab_store, unl_store):
             if store is not None:
@@ -409,7 +414,7 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
              "(stored %dx%d), heatmaps stride %d, sigma %.2f px; %s, %d parameters; %s on %s x%d (%s); "
              "frames loaded in %.1f s (preloaded: %s)", data, len(d.labelled), len(d.unlabelled),
              len(meta.cameras), meta.keypoints, size[0], size[1], d.source_size[0], d.source_size[1],
-             cfg.stride, meta.sigma, "S3K" if cfg.unsup else "labels only",
+             cfg.model.stride, meta.sigma, "S3K" if cfg.self_supervision.unsup else "labels only",
              sum(p.numel() for p in loop.net.parameters()), "DDP" if info.enabled else "single process",
              device, info.world, loop.precision, t_load, lab_store.preloaded)
     log_sessions(d.ds, d.labelled, d.unlabelled)
@@ -417,25 +422,26 @@ def _train(source: str | Path | DatasetLike, out: Path, cfg: TrainConfig, resume
     _log_unsup_schedule(cfg)
 
     monitor = _Monitor(cfg, out, info, loop.step)
-    aug = cfg.augmentation if cfg.augment else None
-    noise_bank = NoiseBank(seed=cfg.seed)
+    aug = cfg.augmentation if cfg.augmentation.augment else None
+    noise_bank = NoiseBank(seed=cfg.execution.seed)
     history: list[dict[str, Any]] = []
     status = "done"
     loop.net.train()
-    while loop.step < cfg.steps:
+    mon, steps = cfg.monitoring, cfg.schedule.steps
+    while loop.step < steps:
         terms = loop.train_step(lab_store, unl_store, aug, noise_bank)
         step = loop.step
         monitor.record(step, terms, float(loop.sched.get_last_lr()[0]))
-        if loop.nonfinite_run >= cfg.max_nonfinite:
+        if loop.nonfinite_run >= mon.max_nonfinite:
             log.error("stopping at step %d after %d consecutive non-finite steps; the last checkpoint is "
                       "the last good state", step, loop.nonfinite_run)
             status = "nonfinite"
             break
-        if info.main and cfg.val_every > 0 and (step % cfg.val_every == 0 or step == cfg.steps):
+        if info.main and mon.val_every > 0 and (step % mon.val_every == 0 or step == steps):
             history.append(validate(loop.net, meta, val_store, device, ref_layout, cfg, step, monitor.writer))
             loop.net.train()
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            loop.save(final=step == cfg.steps, val_store=val_store)
+        if step % mon.checkpoint_every == 0 or step == steps:
+            loop.save(final=step == steps, val_store=val_store)
         if callback is not None:
             callback(step, terms)
     broadcast_buffers(loop.net, info)

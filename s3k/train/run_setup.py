@@ -95,7 +95,7 @@ def _open_at_network_size(data: str | os.PathLike | DatasetLike,
     check_fits(cfg, cameras=len(ds.cameras), keypoints=len(ds.keypoints), source_size=source_size,
                frames=[len(ds.frames(split)) for split in ("labelled", "unlabelled", "test")],
                where=str(data_path(data)))  # before any frame is decoded or file written
-    return ds.resized(model_image_size(source_size, cfg.image_size, cfg.stride)), source_size
+    return ds.resized(model_image_size(source_size, cfg.model.image_size, cfg.model.stride)), source_size
 
 
 def check_trained_as(data: str | os.PathLike | DatasetLike, out: str | Path,
@@ -122,7 +122,7 @@ def open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
                         "keypoint labelled in >= 2 cameras, triangulated, projecting inside an image)",
                         hint="check the labels and the calibration with 's3k validate'")
     unlabelled = np.asarray(ds.frames("unlabelled"))
-    if cfg.unsup and len(unlabelled) == 0:
+    if cfg.self_supervision.unsup and len(unlabelled) == 0:
         raise UserError(f"{data}: the 'unlabelled' split is empty, S3K needs unlabelled frames",
                         hint="add unlabelled frames or pass --no-unsup for the labels-only baseline")
     return _Data(ds, source_size, labelled, unlabelled, _validation_frames(ds, cfg, labelled, unlabelled))
@@ -132,18 +132,20 @@ def _validation_frames(ds: DatasetLike, cfg: TrainConfig, labelled: np.ndarray,
                        unlabelled: np.ndarray) -> np.ndarray:
     """``--val-frames`` frames spread evenly over ``--val-split`` (over the unlabelled frames, else the
     labelled ones, when that split is empty)."""
-    val = np.asarray(ds.frames(cfg.val_split)) if cfg.val_split in ("labelled", "unlabelled", "test") \
-        else np.zeros(0, np.int64)
+    split, count = cfg.monitoring.val_split, cfg.monitoring.val_frames
+    known = split in ("labelled", "unlabelled", "test")
+    val = np.asarray(ds.frames(split)) if known else np.zeros(0, np.int64)
     if len(val) == 0:
         val = unlabelled if len(unlabelled) else labelled
-    return val[np.linspace(0, len(val) - 1, min(cfg.val_frames, len(val))).astype(int)]
+    return val[np.linspace(0, len(val) - 1, min(count, len(val))).astype(int)]
 
 
 def frames_used(ds: DatasetLike, cfg: TrainConfig) -> np.ndarray:
     """The frames a training of ``cfg`` on ``ds`` reads, in ``ds``'s order: the labelled ones, the unlabelled
     ones when the self-supervised term is on, and the validation frames."""
     labelled, unlabelled = np.asarray(ds.frames("labelled")), np.asarray(ds.frames("unlabelled"))
-    used = [labelled, _validation_frames(ds, cfg, labelled, unlabelled)] + ([unlabelled] if cfg.unsup else [])
+    used = [labelled, _validation_frames(ds, cfg, labelled, unlabelled)]
+    used += [unlabelled] if cfg.self_supervision.unsup else []
     everything = ds.frames()
     return everything[np.isin(everything, np.concatenate(used))]
 
@@ -151,7 +153,7 @@ def frames_used(ds: DatasetLike, cfg: TrainConfig) -> np.ndarray:
 def reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torch.Tensor | None:
     """The labelled keypoints' distances ``layout`` (:func:`labelled_distances`) when ``--layout-tol``
     holds pseudo-labels to them (None when off)."""
-    if not (cfg.unsup and cfg.layout_tol > 0):
+    if not (cfg.self_supervision.unsup and cfg.self_supervision.layout_tol > 0):
         return None
     if not bool(torch.isfinite(layout).any()):
         raise UserError(f"{data}: no labelled frame has two keypoints triangulated from its labels, so "
@@ -162,14 +164,15 @@ def reference_layout(data: Path, layout: torch.Tensor, cfg: TrainConfig) -> torc
 
 def detector_meta(d: _Data, cfg: TrainConfig, distances: torch.Tensor) -> DetectorMeta:
     """What inference needs; a rigid object's labelled layout (``--layout-tol``) goes into the read-out."""
-    rigid = cfg.layout_tol > 0 and bool(torch.isfinite(distances).any())
+    m, s = cfg.model, cfg.self_supervision
+    rigid = s.layout_tol > 0 and bool(torch.isfinite(distances).any())
     return DetectorMeta(
         keypoints=list(d.ds.keypoints), cameras=list(d.ds.cameras), image_size=d.ds.image_size,
-        stride=cfg.stride, sigma=cfg.sigma_px(),
-        model=UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks, stride=cfg.stride,
-                         norm=cfg.norm, encoder=cfg.encoder, encoder_stride=cfg.encoder_stride).to_dict(),
-        units=d.ds.units, source_image_size=d.source_size, outlier_px=cfg.outlier_px,
-        layout=distances.tolist() if rigid else None, layout_tol=cfg.layout_tol if rigid else 0.0,
+        stride=m.stride, sigma=cfg.sigma_px(),
+        model=UNetConfig(channels=m.channels, res_blocks=m.res_blocks, stride=m.stride, norm=m.norm,
+                         encoder=cfg.backbone.encoder, encoder_stride=cfg.backbone.encoder_stride).to_dict(),
+        units=d.ds.units, source_image_size=d.source_size, outlier_px=s.outlier_px,
+        layout=distances.tolist() if rigid else None, layout_tol=s.layout_tol if rigid else 0.0,
         geometry=training_geometry(d.ds), skeleton=list(getattr(d.ds, "skeleton", [])),
     )
 

@@ -47,8 +47,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
         logits = model(flat)
     logits = logits.float().reshape(images.shape[0], C, *logits.shape[1:])
     sigma = cfg.sigma_px()
-    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.stride, sigma,
-                                   coord_weight=cfg.coord_weight)
+    l_sup, info = supervised_loss(logits[:Bl], cams_l, uv_l, mask_l, cfg.model.stride, sigma,
+                                   coord_weight=cfg.self_supervision.coord_weight)
     loss = l_sup
     terms = {"sup": float(l_sup.detach())}
     if unl is not None:
@@ -58,16 +58,16 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
                 flat_u = unl[0].reshape(-1, *unl[0].shape[2:]).contiguous(memory_format=torch.channels_last)
                 with autocast(device, precision):
                     target_logits = teacher(flat_u).float().reshape(logits[Bl:].shape)
-        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.stride, sigma,
-                                             rule=rule,
-                                             target_logits=target_logits, coord_weight=cfg.coord_weight)
+        l_uns, info_u = self_supervised_loss(logits[Bl:], unl[1], cfg.model.stride, sigma,
+                                             rule=rule, target_logits=target_logits,
+                                             coord_weight=cfg.self_supervision.coord_weight)
         loss = loss + alpha * l_uns
         terms["unsup"] = float(l_uns.detach())
         terms["unsup_valid"] = float(info_u["points_valid"].float().mean())
         terms["unsup_weight"] = float(info_u["weights"].mean())
-    if cfg.weight_decay > 0:
+    if cfg.schedule.weight_decay > 0:
         l2 = l2_non_bias(weight_decay_model)
-        loss = loss + cfg.weight_decay * l2
+        loss = loss + cfg.schedule.weight_decay * l2
         terms["l2"] = float(l2.detach())
     terms["loss"] = float(loss.detach())
     return loss, terms
@@ -75,8 +75,8 @@ def compute_losses(model: nn.Module, lab: tuple, unl: tuple | None, cfg: TrainCo
 
 def lr_lambda(cfg: TrainConfig):
     def f(step: int) -> float:
-        frac = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
-        return cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
+        frac = min(max(step / max(cfg.schedule.steps, 1), 0.0), 1.0)
+        return cfg.schedule.lr_final + (1.0 - cfg.schedule.lr_final) * 0.5 * (1.0 + math.cos(math.pi * frac))
 
     return f
 
@@ -87,13 +87,13 @@ def optimizer(net: nn.Module, cfg: TrainConfig
     its own: ``--encoder-lr`` times the rate, and none during the first ``--freeze-encoder-steps``."""
     encoder = getattr(net, "encoder_parameters", None)
     if encoder is None:  # the U-Net: one group, as every run before the encoder option
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.schedule.lr)
         return opt, torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(cfg))
     mine = {id(p) for p in encoder()}
     rest = [p for p in net.parameters() if id(p) not in mine]
-    groups = [{"params": rest}, {"params": encoder(), "lr": cfg.lr * cfg.encoder_lr}]
-    opt = torch.optim.Adam(groups, lr=cfg.lr)
-    rate, freeze = lr_lambda(cfg), int(cfg.freeze_encoder_steps)
+    groups = [{"params": rest}, {"params": encoder(), "lr": cfg.schedule.lr * cfg.backbone.encoder_lr}]
+    opt = torch.optim.Adam(groups, lr=cfg.schedule.lr)
+    rate, freeze = lr_lambda(cfg), int(cfg.backbone.freeze_encoder_steps)
 
     def encoder_rate(step: int) -> float:
         return 0.0 if step < freeze else rate(step)

@@ -195,7 +195,7 @@ def train_two_pass(data: str | Path, out: str | Path, cfg: TrainConfig, *, resum
         and ``rule``, the :class:`CropRule`.
 
     ``init_from`` is a two-pass run whose passes start this run's (fine-tuning; :func:`s3k.train.train`), its
-    crops' extent kept unless ``cfg.crop_extent`` is given.
+    crops' extent kept unless ``cfg.passes.crop_extent`` is given.
     """
     data, run = Path(data), RunFolder(out)
     cfg.validate()  # every option of both passes is checked before the coarse pass trains
@@ -248,28 +248,30 @@ def _train_two_pass(data: Path, run: RunFolder, cfg: TrainConfig, command: str |
         else:
             _check_rule(run, rule)
             # the frames the refining pass reads, or every frame for a crop dataset written to keep
-            used = ds.frames() if cfg.keep_crops else frames_used(ds, cfg.refining(rule.size))
+            used = ds.frames() if cfg.passes.keep_crops else frames_used(ds, cfg.refining(rule.size))
             log.info(f"coarse pass: estimating the {len(used)} frames of {data} the refining pass reads and "
                      f"cropping them in memory ({rule.extent:g} {ds.units} -> {rule.size} px)")
-            crops = estimates_and_crops(run.coarse.path, ds, run.estimates, rule, cfg.device, frames=used)
-            if cfg.keep_crops:
+            crops = estimates_and_crops(run.coarse.path, ds, run.estimates, rule, cfg.execution.device,
+                                        frames=used)
+            if cfg.passes.keep_crops:
                 crops.write(run.crops, overwrite=True)
                 log.info(f"crops written to {run.crops}")
     ds.release_frames()
     with _StageClock(run, "fine", progress) as clock:
         passes["fine"] = _train_pass(train_one_pass, crops, run.fine, cfg.refining(rule.size), command,
                                      "refining pass", clock, inits[1] if inits else None)
-    write_two_pass(run.path, rule, cfg.coarse_size, ds.keypoints)
+    write_two_pass(run.path, rule, cfg.passes.coarse_size, ds.keypoints)
     return _result(run, passes, rule)
 
 
 def _crop_rule(ds: Dataset, cfg: TrainConfig) -> CropRule:
     """The crops' rule: ``--crop-extent`` when given, else from the labels' spread (with a warning where the
     crops would be too coarse)."""
-    rule = (CropRule(float(cfg.crop_extent), int(cfg.crop_size), 0.0) if cfg.crop_extent is not None
-            else crop_rule_from_labels(ds, cfg.crop_size, cfg.crop_margin))
-    if cfg.crop_extent is None and (too_large := crop_extent_warning(ds, rule.extent, rule.size,
-                                                                     cfg.coarse_size)):
+    p = cfg.passes
+    rule = (CropRule(float(p.crop_extent), int(p.crop_size), 0.0) if p.crop_extent is not None
+            else crop_rule_from_labels(ds, p.crop_size, p.crop_margin))
+    if p.crop_extent is None and (too_large := crop_extent_warning(ds, rule.extent, rule.size,
+                                                                   p.coarse_size)):
         log.warning(too_large)
     return rule
 
@@ -299,7 +301,7 @@ def _init_passes(init_from: str | Path | None, cfg: TrainConfig
         raise UserError(f"--init-from {init_from}: not a two-pass run", hint="fine-tune a --two-pass run "
                         "with --two-pass, a one-pass run without it")
     rule, coarse, fine = read_two_pass(init_from)
-    return (coarse, fine), cfg if cfg.crop_extent is not None else cfg.replace(crop_extent=rule.extent)
+    return (coarse, fine), cfg if cfg.passes.crop_extent is not None else cfg.replace(crop_extent=rule.extent)
 
 
 def _result(run: RunFolder, passes: dict[str, Any], rule: CropRule):
@@ -320,10 +322,10 @@ def _hold_frames(ds: Dataset, cfg: TrainConfig) -> bool:
     when they take at most half the memory available now and ``--preload-mb`` is not 0; otherwise the crops
     decode them again."""
     have = available_memory()
-    if cfg.preload_mb == 0 or have is None or ds.stored_mib > have / 2**20 / 2:
+    if cfg.execution.preload_mb == 0 or have is None or ds.stored_mib > have / 2**20 / 2:
         log.info(f"the crops will decode the frames again: the {ds.stored_mib:.0f} MiB of full-resolution "
                  f"frames are not kept in memory "
-                 f"({'--preload-mb 0' if cfg.preload_mb == 0 else 'too little memory'})")
+                 f"({'--preload-mb 0' if cfg.execution.preload_mb == 0 else 'too little memory'})")
         return False
     ds.hold_frames()
     log.info(f"keeping the coarse pass's frames at full resolution in memory for the crops (up to "

@@ -126,9 +126,10 @@ def validate(net: nn.Module, meta: DetectorMeta, store: FrameStore | None, devic
     log.info("step %d validation: %s", step, shown)
     # A network that has not learnt yet also puts every keypoint at the image centre; warn only once the
     # self-supervised term, which can lock such a state in, is on.
-    if math.isfinite(ratio) and ratio < cfg.collapse_fraction and cfg.alpha_at(step - 1) > 0:
+    threshold = cfg.monitoring.collapse_fraction
+    if math.isfinite(ratio) and ratio < threshold and cfg.alpha_at(step - 1) > 0:
         log.warning("step %d: possible collapse: triangulated keypoints are %.0f%% as far apart as in the "
-                    "labelled layout (threshold %.0f%%)", step, 100 * ratio, 100 * cfg.collapse_fraction)
+                    "labelled layout (threshold %.0f%%)", step, 100 * ratio, 100 * threshold)
     if writer is not None:
         for k, v in record.items():
             if k != "step" and v is not None and math.isfinite(v):

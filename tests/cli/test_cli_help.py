@@ -132,12 +132,15 @@ def test_a_field_has_one_option_shown_and_its_own_name_as_hidden_alias(capsys, m
     base = ["D", "--out", "R"]
     dashed = parser.parse_args(base + ["--rotation-deg", "15", "--no-layout-fit", "--batch-labelled", "2"])
     aliases = parser.parse_args(base + ["--rotation_deg", "15", "--no-layout_fit", "--batch_labelled", "2"])
-    assert config_from_args(dashed) == config_from_args(aliases)
-    cfg = config_from_args(aliases)
-    assert (cfg.rotation_deg, cfg.layout_fit, cfg.batch_labelled) == (15.0, False, 2)
-    assert config_from_args(parser.parse_args(base + ["--layout_fit"])).layout_fit is True
+    assert config_from_args(dashed, TrainConfig) == config_from_args(aliases, TrainConfig)
+    cfg = config_from_args(aliases, TrainConfig)
+    assert cfg.augmentation.rotation_deg == 15.0 and cfg.schedule.batch_labelled == 2
+    assert cfg.self_supervision.layout_fit is False
+    flag = config_from_args(parser.parse_args(base + ["--layout_fit"]), TrainConfig)
+    assert flag.self_supervision.layout_fit is True
     # an abbreviation of a field matches the option, not two spellings of it
-    assert config_from_args(parser.parse_args(base + ["--rot", "20"])).rotation_deg == 20.0
+    abbreviated = config_from_args(parser.parse_args(base + ["--rot", "20"]), TrainConfig)
+    assert abbreviated.augmentation.rotation_deg == 20.0
     text = _help(["train"], capsys, monkeypatch)
     assert "--rotation-deg FLOAT" in text and "--layout-fit | --no-layout-fit" in text
     assert "--rotation_deg" not in text and "--no-layout_fit" not in text
@@ -159,8 +162,8 @@ def test_the_option_a_resume_hint_gives_is_dashed_and_parses():
     assert _option("layout_fit", False) == "--no-layout-fit"
     assert _option("channels", [8, 16]) == "--channels 8,16"
     argv = ["D", "--out", "R", *shlex.split(_option("rotation_deg", 15.0)), _option("unsup", False)]
-    cfg = config_from_args(_parser("train").parse_args(argv))
-    assert (cfg.rotation_deg, cfg.unsup) == (15.0, False)
+    cfg = config_from_args(_parser("train").parse_args(argv), TrainConfig)
+    assert (cfg.augmentation.rotation_deg, cfg.self_supervision.unsup) == (15.0, False)
 
 
 

@@ -32,10 +32,12 @@ def test_an_old_two_pass_run_reads_as_a_configuration_of_today(tmp_path):
     run = RunFolder(_copy("two", tmp_path))
     assert "coarse_size" in json.loads(run.options_file.read_text())  # the options kept beside the config
     cfg = run.config()
-    assert cfg is not None and cfg.two_pass
-    assert (cfg.coarse_size, cfg.coarse_steps, cfg.coarse_rotation, cfg.coarse_lr, cfg.coarse_stride) == \
+    assert cfg is not None and cfg.passes.two_pass
+    p = cfg.passes
+    assert (p.coarse_size, p.coarse_steps, p.coarse_rotation, p.coarse_lr, p.coarse_stride) == \
         (32, 3, 90.0, 0.001, None)
-    assert (cfg.crop_size, cfg.crop_margin, cfg.crop_extent, cfg.lr, cfg.steps) == (32, 0.2, None, 0.002, 4)
+    assert (p.crop_size, p.crop_margin, p.crop_extent, cfg.schedule.lr, cfg.schedule.steps) == \
+        (32, 0.2, None, 0.002, 4)
     # each pass's configuration is the one the pass recorded
     for view, folder in ((cfg.coarse(), run.coarse), (cfg.refining(), run.fine)):
         assert view.to_dict() == {**view.to_dict(), **folder.read_record()["config"]}
@@ -44,7 +46,7 @@ def test_an_old_two_pass_run_reads_as_a_configuration_of_today(tmp_path):
     older = run.config()
     assert older is not None and older.coarse().to_dict() == cfg.coarse().to_dict()
     assert older.refining().to_dict() == cfg.refining().to_dict()
-    assert older.crop_extent == pytest.approx(json.loads(run.two_pass_file.read_text())["extent"])
+    assert older.passes.crop_extent == pytest.approx(json.loads(run.two_pass_file.read_text())["extent"])
 
 
 def test_old_runs_load_and_evaluate(dataset, tmp_path, capsys):
@@ -55,7 +57,7 @@ def test_old_runs_load_and_evaluate(dataset, tmp_path, capsys):
         # written before the encoder option: the U-Net, in the network and in the configuration
         net, _ = load_network(run / "coarse" if passes == 2 else run)
         assert type(net) is UNet and net.config.encoder == "unet"
-        assert RunFolder(run).config().encoder == "unet"  # type: ignore[union-attr]
+        assert RunFolder(run).config().backbone.encoder == "unet"  # type: ignore[union-attr]
         assert RunFolder(run).is_complete() and RunFolder(run).is_two_pass() == (passes == 2)
         capsys.readouterr()
         assert cli.main(["evaluate", str(run), "--data", str(dataset), "--json"]) == 0
@@ -107,4 +109,4 @@ def test_an_old_two_pass_run_resumes_its_refining_pass(dataset, tmp_path):
     assert run.estimates.read_text() == estimates
     fine = run.fine.read_record()
     assert fine["config"]["steps"] == 6 and fine["history"][-1]["changed"] == {"steps": [4, 6]}
-    assert RunFolder(run.path).config().coarse_rotation == 90.0  # recorded as today's
+    assert RunFolder(run.path).config().passes.coarse_rotation == 90.0  # recorded as today's

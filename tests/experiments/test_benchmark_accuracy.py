@@ -152,9 +152,10 @@ def test_a_run_starts_from_an_earlier_runs_coarse_stage(tmp_path, capsys):
     fine = [json.loads((run / "s3k-seed0" / "fine" / "config.json").read_text())["config"]
             for run in (old, new)]
     preset = PRESETS["box-headline"].config
-    assert preset.rotation_deg != PRESETS["box-headline"].config.coarse_rotation
+    assert preset.augmentation.rotation_deg != PRESETS["box-headline"].config.passes.coarse_rotation
     # the preset's refining pass, not the coarse pass's rotation and learning rate
-    assert [(c["rotation_deg"], c["lr"]) for c in fine] == [(preset.rotation_deg, preset.lr)] * 2
+    own = (preset.augmentation.rotation_deg, preset.schedule.lr)
+    assert [(c["rotation_deg"], c["lr"]) for c in fine] == [own] * 2
     spent = read_cpu(new / "s3k-seed0")
     assert spent["coarse"] >= source_cpu["coarse"] and spent["crops"] > 0 and spent["fine"] > 0
     # options that would make another coarse pass are refused; a run already begun is left alone

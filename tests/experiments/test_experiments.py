@@ -56,8 +56,8 @@ def test_toy_plan_has_two_runs_on_tiny_data(name, tmp_path):
     assert len(runs) == 2
     assert len({r.name for r in runs}) == 2
     for r in runs:
-        assert r.pool.size <= 48 and r.cfg.steps == 2
-        assert r.cfg.unsup == (r.unlabelled > 0)
+        assert r.pool.size <= 48 and r.cfg.schedule.steps == 2
+        assert r.cfg.self_supervision.unsup == (r.unlabelled > 0)
         assert r.params["method"] == ("s3k" if r.unlabelled > 0 else "no_unsup")
 
 
@@ -70,7 +70,7 @@ def test_small_and_full_grids_follow_the_paper(tmp_path):
         seeds.setdefault((r.labelled, r.unlabelled), set()).add(r.seed)
     for (L, _), s in seeds.items():
         assert len(s) == (3 if L in (3, 10) else 1)  # seeds where the claims are made
-    assert {r.cfg.steps for r in full} == {TrainConfig().steps}
+    assert {r.cfg.schedule.steps for r in full} == {TrainConfig().schedule.steps}
     assert {r.pool.size for r in full} == {96}
     cat = ex.plan(ex.Options("category", tmp_path, scale="full"))
     assert sorted({r.params["instances"] for r in cat}) == sorted(ex.PAPER_CATEGORY_TEST_PX)
@@ -80,21 +80,23 @@ def test_small_and_full_grids_follow_the_paper(tmp_path):
     assert {r.pool.mode for r in shift} == {"start", "full"}
     alpha = ex.plan(ex.Options("alpha", tmp_path, scale="small"))
     assert sorted({r.params["alpha"] for r in alpha}) == [0.1, 0.25, 0.5, 1.0]
-    assert all(r.cfg.alpha == r.params["alpha"] and r.cfg.unsup for r in alpha)
+    assert all(r.cfg.self_supervision.alpha == r.params["alpha"] for r in alpha)
+    assert all(r.cfg.self_supervision.unsup for r in alpha)
     # the alpha sweep reuses the label-efficiency dataset of the same scale
     small = ex.plan(ex.Options("label-efficiency", tmp_path, scale="small"))
     assert {r.pool.name for r in alpha} == {r.pool.name for r in small}
     # warm-up and ramp keep the default proportions of the schedule
     cfg = small[0].cfg
     default = TrainConfig()
-    assert cfg.warmup_steps / cfg.steps == pytest.approx(default.warmup_steps / default.steps)
+    assert cfg.self_supervision.warmup_steps / cfg.schedule.steps == \
+        pytest.approx(default.self_supervision.warmup_steps / default.schedule.steps)
 
 
 def test_plan_overrides_and_errors(tmp_path):
     runs = ex.plan(ex.Options("label-efficiency", tmp_path, scale="small", labelled=[5], unlabelled=[0, 7],
                               steps=11, size=40, seeds=2, seeds_other=2))
     assert {(r.labelled, r.unlabelled) for r in runs} == {(5, 0), (5, 7)}
-    assert {r.cfg.steps for r in runs} == {11} and {r.pool.size for r in runs} == {40}
+    assert {r.cfg.schedule.steps for r in runs} == {11} and {r.pool.size for r in runs} == {40}
     assert len(runs) == 4
     with pytest.raises(ValueError, match="--alphas"):
         ex.plan(ex.Options("label-efficiency", tmp_path, alphas=[0.5]))

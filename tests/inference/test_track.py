@@ -653,3 +653,16 @@ def test_track_config_validate_names_the_option_of_a_value_out_of_range_or_choic
     with pytest.raises(UserError, match="--filter-limbs 'nose'"):
         TrackConfig.from_flat(filter_limbs=["nose"]).validate()
     assert TrackConfig.from_flat(filter_limbs=["none"]).validate().limb_pairs() == []
+
+
+def test_track_config_is_read_and_set_only_through_its_sections():
+    """TrackConfig's fields are its sections' attributes; a flat name is not one (nor can it be set)."""
+    from s3k.config import leaf_fields
+    from s3k.inference.track_config import TrackConfig
+
+    config = TrackConfig.from_flat(batch=4, filter="none")
+    for _, f, _ in leaf_fields(TrackConfig):
+        assert not hasattr(config, f.name), f.name
+    with pytest.raises(AttributeError):
+        config.batch = 2  # type: ignore[attr-defined]
+    assert (config.chunks.batch, config.filtering.filter, config.filtering_on) == (4, "none", False)

@@ -48,7 +48,7 @@ def test_the_encoder_gives_the_unets_heatmap_grid_at_any_size_and_folds_exactly(
 
 
 def test_the_unet_stays_the_default_and_its_record_unchanged():
-    assert TrainConfig().encoder == "unet" and UNetConfig().encoder == "unet"
+    assert TrainConfig().backbone.encoder == "unet" and UNetConfig().encoder == "unet"
     assert "encoder" not in UNetConfig().to_dict()  # a U-Net run's meta as before the option
     assert UNetConfig.from_dict(UNetConfig().to_dict()) == UNetConfig()
     assert UNetConfig.from_dict(LITE.to_dict()) == LITE

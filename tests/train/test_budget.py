@@ -172,7 +172,7 @@ def test_a_dataset_declaring_huge_images_is_refused_naming_its_image_size(capsys
 def test_the_messages_estimate_is_the_footprint():
     cfg = TrainConfig.from_flat(image_size=96)
     need = footprint(cfg, cameras=4, keypoints=3, source_size=(1280, 1024), frames=(10, 2000, 100))
-    per_image = activation_elements(cfg.channels, cfg.res_blocks, cfg.stride, 3, (96, 76))
+    per_image = activation_elements(cfg.model.channels, cfg.model.res_blocks, cfg.model.stride, 3, (96, 76))
     assert need.activations == int(budget.SLACK * 4 * per_image * 8 * 4)
     with pytest.raises(ValueError, match="available; lower --preload-mb"):
         budget.check_fits(cfg, cameras=4, keypoints=3, source_size=(1280, 1024), frames=(10, 2000, 100),

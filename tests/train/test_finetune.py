@@ -80,8 +80,11 @@ def test_a_two_pass_run_is_fine_tuned_pass_by_pass(tiny_dataset, tmp_path):
     assert cli_main(["train", str(tiny_dataset), "--out", str(again), "--init-from", str(first),
                      "--steps", "1"]) == 0
     cfg = RunFolder(again).config()
-    assert cfg.two_pass and cfg.steps == 1 and cfg.coarse_steps is None
-    assert cfg.lr == cfg.coarse_lr == pytest.approx(RunFolder(first).config().lr * cfg.lr_final)
+    assert cfg.passes.two_pass and cfg.schedule.steps == 1 and cfg.passes.coarse_steps is None
+    before = RunFolder(first).config()
+    assert before is not None
+    ended = pytest.approx(before.schedule.lr * cfg.schedule.lr_final)
+    assert cfg.schedule.lr == cfg.passes.coarse_lr == ended
     assert (again / "two_pass.json").is_file()
     assert json.loads((again / "two_pass.json").read_text())["extent"] == extent[0]
     with pytest.raises(UserError, match="a two-pass run"):
@@ -129,15 +132,16 @@ def test_a_two_pass_fine_tune_continues_each_pass_at_its_final_learning_rate(tin
     cfg, said = printed_config(capsys, argv)
     tuned = TrainConfig.from_flat(**cfg)
     assert cfg == own.replace(lr=5e-4, coarse_lr=1e-4, warmup_steps=0, ramp_steps=0).to_dict()
-    assert (tuned.coarse().lr, tuned.refining().lr) == pytest.approx((1e-4, 5e-4))
+    assert (tuned.coarse().schedule.lr, tuned.refining().schedule.lr) == pytest.approx((1e-4, 5e-4))
     assert "the coarse pass at 0.0001 (0.001 x 0.1)" in said
     cfg, _ = printed_config(capsys, [*argv, "--lr", "3e-4", "--steps", "50"])
     tuned = TrainConfig.from_flat(**cfg)
-    assert (tuned.coarse().lr, tuned.refining().lr) == (3e-4, 3e-4)
-    assert (tuned.coarse().steps, tuned.refining().steps) == (50, 50)
+    assert (tuned.coarse().schedule.lr, tuned.refining().schedule.lr) == (3e-4, 3e-4)
+    assert (tuned.coarse().schedule.steps, tuned.refining().schedule.steps) == (50, 50)
     cfg, _ = printed_config(capsys, [*argv, "--coarse-lr", "2e-4", "--coarse-steps", "9"])
     tuned = TrainConfig.from_flat(**cfg)
-    assert (tuned.coarse().lr, tuned.refining().lr, tuned.coarse().steps) == (2e-4, pytest.approx(5e-4), 9)
+    assert (tuned.coarse().schedule.lr, tuned.refining().schedule.lr) == (2e-4, pytest.approx(5e-4))
+    assert tuned.coarse().schedule.steps == 9
 
 
 def test_a_run_that_ended_at_a_learning_rate_of_zero_is_refused_in_one_line(tiny_dataset, tmp_path, capsys):

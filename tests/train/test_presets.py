@@ -39,10 +39,11 @@ def test_box_headline_preset_trains_two_passes_with_its_options_and_the_command_
     coarse = json.loads((run / "coarse" / "config.json").read_text())["config"]
     fine = json.loads((run / "fine" / "config.json").read_text())["config"]
     preset = PRESETS["box-headline"].config
-    assert coarse["rotation_deg"] == PRESETS["box-headline"].config.coarse_rotation
-    assert fine["rotation_deg"] == preset.rotation_deg and fine["layout_tol"] == preset.layout_tol
+    assert coarse["rotation_deg"] == PRESETS["box-headline"].config.passes.coarse_rotation
+    assert fine["rotation_deg"] == preset.augmentation.rotation_deg
+    assert fine["layout_tol"] == preset.self_supervision.layout_tol
     assert fine["steps"] == 2 and coarse["steps"] == 2  # the command line's, not the preset's 2500 / 4000
-    assert (coarse["lr"], fine["lr"]) == (PRESETS["box-headline"].config.coarse_lr, preset.lr)
+    assert (coarse["lr"], fine["lr"]) == (PRESETS["box-headline"].config.passes.coarse_lr, preset.schedule.lr)
     assert fine["sigma"] == 1.5  # given on the command line
     proc = subprocess.run([sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(tmp_path / "x"),
                            "--preset", "nope"], capture_output=True, text=True)
@@ -60,11 +61,11 @@ def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_
         run = tmp_path / name
         assert cli.main(["train", str(data), "--out", str(run), "--preset", "box-fast", *tiny, *extra]) == 0
         margins[name] = json.loads((run / "two_pass.json").read_text())["margin"]
-    assert margins == {"preset": PRESETS["box-fast"].config.crop_margin, "given": 0.25}
+    assert margins == {"preset": PRESETS["box-fast"].config.passes.crop_margin, "given": 0.25}
     # the same network, schedule and coarse pass as the headline: only the crops differ
     headline = PRESETS["box-headline"].config
-    assert PRESETS["box-fast"].config.replace(crop_size=headline.crop_size,
-                                              crop_margin=headline.crop_margin) == headline
+    assert PRESETS["box-fast"].config.replace(crop_size=headline.passes.crop_size,
+                                              crop_margin=headline.passes.crop_margin) == headline
 
 
 def test_the_two_pass_options_are_the_configurations_fields_with_their_ranges(capsys):

@@ -50,7 +50,7 @@ def test_two_step_cli_run(tiny_dataset, tmp_path, capsys):
     assert saved["config"]["steps"] == 2 and saved["config"]["channels"] == [8, 16, 16]
     model, meta = load_network(run)
     assert meta.keypoints == KEYPOINTS and meta.image_size == (32, 32) and meta.stride == 2
-    assert meta.sigma == pytest.approx(TrainConfig().sigma * 2)
+    assert meta.sigma == pytest.approx(TrainConfig().model.sigma * 2)
     logits = model(torch.rand(4, 3, 32, 32))
     assert logits.shape == (4, 3, 16, 16) and torch.isfinite(logits).all()
     assert json.loads((run / "progress.json").read_text())["step"] == 2  # for monitors such as s3k demo
@@ -149,8 +149,8 @@ def test_skipped_step_leaves_model_unchanged(tiny_dataset, tmp_path, monkeypatch
     cfg = tiny_config(steps=10, val_every=0, checkpoint_every=100, max_nonfinite=3)
     result = train(tiny_dataset, tmp_path / "run", cfg)
     assert result.status == "nonfinite" and result.step == 3
-    torch.manual_seed(cfg.seed)
-    fresh = UNet(len(KEYPOINTS), UNetConfig(channels=cfg.channels, res_blocks=cfg.res_blocks))
+    torch.manual_seed(cfg.execution.seed)
+    fresh = UNet(len(KEYPOINTS), UNetConfig(channels=cfg.model.channels, res_blocks=cfg.model.res_blocks))
     for (k, a), b in zip(fresh.state_dict().items(), result.model.state_dict().values()):
         assert torch.equal(a, b), k
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
@@ -185,33 +185,46 @@ def test_help_shows_every_field_with_doc_and_default():
 def test_config_file_then_command_line(tmp_path):
     toml = tmp_path / "c.toml"
     toml.write_text('steps = 123\nalpha = 0.8\nchannels = [8, 16]\nunsup = false\n')
-    cfg = config_from_args(_parser().parse_args(["--config", str(toml), "--alpha", "0.3"]))
-    assert (cfg.steps, cfg.alpha, cfg.channels, cfg.unsup) == (123, 0.3, (8, 16), False)
+    cfg = config_from_args(_parser().parse_args(["--config", str(toml), "--alpha", "0.3"]), TrainConfig)
+    s = cfg.self_supervision
+    assert (cfg.schedule.steps, s.alpha, cfg.model.channels, s.unsup) == (123, 0.3, (8, 16), False)
     js = tmp_path / "c.json"
     js.write_text(json.dumps({"stepz": 3}))
     with pytest.raises(ValueError, match=r"c\.json.*stepz"):
-        config_from_args(_parser().parse_args(["--config", str(js)]))
+        config_from_args(_parser().parse_args(["--config", str(js)]), TrainConfig)
     with pytest.raises(SystemExit):  # refused as the command line is parsed
         _parser().parse_args(["--steps", "abc"])
     with pytest.raises(ValueError, match="'steps'.*abc"):  # and from a file
         js.write_text(json.dumps({"steps": "abc"}))
-        config_from_args(_parser().parse_args(["--config", str(js)]))
+        config_from_args(_parser().parse_args(["--config", str(js)]), TrainConfig)
 
 
 def test_flat_and_nested_configuration():
     cfg = TrainConfig.from_flat(steps=12, channels=[8, 16], unsup=False)
     assert (cfg.schedule.steps, cfg.model.channels, cfg.self_supervision.unsup) == (12, (8, 16), False)
-    assert (cfg.steps, cfg.channels, cfg.unsup) == (12, (8, 16), False)
     flat = cfg.to_dict()
     assert flat["channels"] == [8, 16] and len(flat) == len(leaf_fields(TrainConfig))
     assert config_from_dict(TrainConfig, flat) == cfg  # what config.json holds reads back
-    assert config_from_dict(TrainConfig, {"schedule": {"steps": 12}, "unsup": False}).steps == 12
-    assert cfg.replace(lr=0.1).lr == 0.1 and cfg.lr == TrainConfig().lr
+    assert config_from_dict(TrainConfig, {"schedule": {"steps": 12}, "unsup": False}).schedule.steps == 12
+    assert cfg.replace(lr=0.1).schedule.lr == 0.1 and cfg.schedule.lr == TrainConfig().schedule.lr
     with pytest.raises(UserError, match="stepz"):
         TrainConfig.from_flat(stepz=3)
     names = [f.name for _, f, _ in leaf_fields(TrainConfig)]
     assert len(names) == len(set(names))  # unique across sections: the flat form is unambiguous
 
+
+
+def test_a_configuration_is_read_and_set_only_through_its_sections():
+    """A field is an attribute of its section alone: a flat name neither reads nor sets one, so that a type
+    checker sees every read, and a stray write fails at once instead of being lost."""
+    cfg = TrainConfig.from_flat(steps=12)
+    for _, f, _ in leaf_fields(TrainConfig):
+        assert not hasattr(cfg, f.name), f.name
+    with pytest.raises(AttributeError):
+        cfg.steps = 3  # type: ignore[attr-defined]
+    assert cfg.schedule.steps == 12
+    cfg.schedule.steps = 3
+    assert cfg.replace(lr=0.5).schedule.steps == 3 and cfg.to_dict()["steps"] == 3
 
 def test_alpha_schedule_and_validation():
     cfg = TrainConfig.from_flat(warmup_steps=10, ramp_steps=4, alpha=0.8)
@@ -288,7 +301,7 @@ def test_a_few_dozen_steps_lower_the_error(tmp_path):
     cfg = tiny_config(steps=40, unsup=False, augment=False, val_every=0, checkpoint_every=40, lr=3e-2,
                       lr_final=1.0, batch_labelled=4)
     result = train(data, tmp_path / "run", cfg)
-    torch.manual_seed(cfg.seed)  # the network train() starts from
+    torch.manual_seed(cfg.execution.seed)  # the network train() starts from
     untrained = UNet(len(KEYPOINTS), UNetConfig.from_dict(result.meta.model))
     before = _labelled_error(untrained, result.meta, data)
     after = _labelled_error(result.model, result.meta, data)

@@ -114,12 +114,15 @@ def test_the_refining_view_keeps_the_pixel_tolerances_their_size_in_the_scene():
 
     cfg = TrainConfig.from_flat(outlier_px=6.0, shift_px=10.0, pseudo_window=5, sigma=1.0, image_size=96)
     same = cfg.refining(128)
-    assert (same.outlier_px, same.shift_px, same.pseudo_window, same.image_size) == (6.0, 10.0, 5, 0)
+    s = same.self_supervision
+    assert (s.outlier_px, same.augmentation.shift_px, s.pseudo_window) == (6.0, 10.0, 5)
+    assert same.model.image_size == 0
     finer = cfg.refining(192)
-    assert (finer.outlier_px, finer.shift_px, finer.pseudo_window) == (9.0, 15.0, 8)
-    assert finer.sigma == 1.0 and finer.rotation_deg == cfg.rotation_deg
+    s = finer.self_supervision
+    assert (s.outlier_px, finer.augmentation.shift_px, s.pseudo_window) == (9.0, 15.0, 8)
+    assert finer.model.sigma == 1.0 and finer.augmentation.rotation_deg == cfg.augmentation.rotation_deg
     off = cfg.replace(outlier_px=0.0, pseudo_window=0).refining(256)
-    assert (off.outlier_px, off.pseudo_window) == (0.0, 0)
+    assert (off.self_supervision.outlier_px, off.self_supervision.pseudo_window) == (0.0, 0)
 
 
 def test_two_pass_train_evaluate_predict_and_refusals(tmp_path, capsys):
