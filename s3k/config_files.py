@@ -10,6 +10,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from s3k.base.choices import Device, parse_device
 from s3k.base.errors import UserError
 
 __all__ = ["base_type", "coerce", "read_config_file"]
@@ -17,7 +18,9 @@ __all__ = ["base_type", "coerce", "read_config_file"]
 
 def base_type(tp: Any) -> tuple[Any, bool]:
     """(type without Optional, is_optional); a union with ``str`` (a ``Literal`` of named values that also
-    takes other names) is ``str``."""
+    takes other names) is ``str``; :data:`s3k.base.choices.Device` stays itself."""
+    if tp == Device:
+        return tp, False
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -32,6 +35,8 @@ def coerce(tp: Any, value: Any, where: str) -> Any:
         UserError: naming ``where`` (file and field) and the offending value.
     """
     base, optional = base_type(tp)
+    if base == Device and value is not None:
+        return parse_device(value, where)
     if value is None or (optional and isinstance(value, str) and value.lower() in ("none", "null")):
         if optional:
             return None

@@ -11,6 +11,7 @@ import argparse
 import typing
 from typing import Any, TypeVar
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.config import TrainConfig, config_from_dict, field_default, flat_values, leaf_fields
 from s3k.config_files import base_type, coerce, read_config_file
@@ -54,7 +55,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = TrainConfi
             is_tuple = typing.get_origin(base) is tuple
             named = typing.get_origin(base) is typing.Literal
             metavar = ("N,N,..." if is_tuple else "{" + ",".join(typing.get_args(base)) + "}" if named
-                       else getattr(base, "__name__", "V").upper())
+                       else "DEVICE" if base == Device else getattr(base, "__name__", "V").upper())
             kwargs = dict(metavar=f.metadata.get("metavar", metavar), type=_parser(f, tp))
             if "nargs" in f.metadata:  # several words, each one value of the tuple
                 kwargs.update(nargs=f.metadata["nargs"], type=str)

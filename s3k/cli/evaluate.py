@@ -11,7 +11,7 @@ from s3k.base.label_reference import format_label_reference
 from s3k.base.metrics import format_table
 from s3k.base.outputs import check_folder, claim_folder
 from s3k.cli import examples
-from s3k.cli.options import number
+from s3k.cli.options import device, number
 from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run, format_confidence
 
@@ -38,7 +38,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="frames drawn in the report (default: 6)")
     parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
                         help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
     parser.add_argument("--ignore-geometry", action="store_true",
                         help="evaluate a dataset whose images show another part of the cameras' frames than "
                              "the run was trained on (refused by default)")

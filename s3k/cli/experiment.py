@@ -9,7 +9,7 @@ from typing import Any
 from s3k.base.errors import UserError
 from s3k.base.outputs import check_folder
 from s3k.cli import examples
-from s3k.cli.options import number
+from s3k.cli.options import device, number
 from s3k.experiments import (
     DESCRIPTIONS,
     EXPERIMENTS,
@@ -101,7 +101,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="any TrainConfig field for every run (repeatable), e.g. --set lr=0.002 "
                              "(default: none)")
-    parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', 'auto' (default: cpu)")
+    parser.add_argument("--device", type=device, default="cpu",
+                        help="'cpu', 'cuda', 'cuda:N' or 'auto' (default: cpu)")
     parser.add_argument("--threads", type=number(int, ge=0), default=0,
                         help="torch threads per run (0: torch's default; 1 when running two sweeps at once)")
     parser.add_argument("--workers", type=number(int, ge=1), default=None,

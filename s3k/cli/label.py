@@ -12,7 +12,7 @@ from pathlib import Path
 
 from s3k.base.errors import UserError
 from s3k.cli import examples
-from s3k.cli.options import number
+from s3k.cli.options import device, number
 from s3k.label.propagate import DEFAULT_MAX_CHANGED, describe, propagate_labels, undo_propagation
 from s3k.label.suggest import UP
 
@@ -47,7 +47,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "https://labels.example.org: pages from there may edit the labels, and a random "
                              "token in the printed URL guards the app (default: none)")
     parser.add_argument("--labeller", help="your name, written into the edit history (default: $USER)")
-    parser.add_argument("--device", default="cpu", help="where --run's detector runs (default: cpu)")
+    parser.add_argument("--device", type=device, default="cpu",
+                        help="where --run's detector runs: auto, cpu, cuda or cuda:N (default: cpu)")
 
     parser.add_argument("--up", default=",".join(f"{c:g}" for c in UP or ()) or "none", metavar="X,Y,Z",
                         help="the table's normal in the calibration's world frame: the pose rankings count a "

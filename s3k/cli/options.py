@@ -14,7 +14,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from s3k.base.choices import FIT_MODES
+from s3k.base.choices import FIT_MODES, Device, parse_device
 from s3k.base.errors import UserError
 from s3k.base.ranges import Range
 from s3k.data.rig import check_camera_name
@@ -45,6 +45,15 @@ def number(kind: type = float, *, ge: float | None = None, gt: float | None = No
     parse.__name__ = kind.__name__
     parse.range = bounds  # type: ignore[attr-defined]
     return parse
+
+
+def device(text: str) -> Device:
+    """An ``argparse`` ``type=`` for ``--device``: :func:`s3k.base.choices.parse_device`, refused as the
+    command line is parsed."""
+    try:
+        return parse_device(text, "value")
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
 
 
 def name(text: str) -> str:
@@ -129,7 +138,8 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
                         help="when a frame's aspect ratio differs from the detector's input: pad "
                         "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
                         "on")
-    parser.add_argument("--device", default="auto", help="'auto', 'cpu', 'cuda' (default: auto)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
     add_other_rig_option(parser)
 
 

@@ -21,7 +21,7 @@ from s3k.base.errors import UserError
 from s3k.base.fileio import atomic_write_json
 from s3k.base.outputs import check_output, check_output_folder, check_replaceable
 from s3k.cli import examples
-from s3k.cli.options import number
+from s3k.cli.options import device, number
 from s3k.robot.detect import RunDetector
 from s3k.robot.results import write_summary
 from s3k.run_folder import RunFolder
@@ -55,7 +55,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                    help="rendered image size (default: the run's network input; 96 with --ground-truth)")
     g.add_argument("--paw", default="front_left_paw", choices=["front_left_paw", "front_right_paw"],
                    help="which front paw to grasp (default front_left_paw)")
-    g.add_argument("--device", default="cpu", help="torch device of the detector (default cpu)")
+    g.add_argument("--device", type=device, default="cpu", help="torch device of the detector (default cpu)")
 
     t = sub.add_parser("train-agent", help="train a TD3 agent on cable insertion (resumable)",
                        epilog=examples("s3k robot train-agent --out runs/rl/kp-0 --agent keypoints "

@@ -8,7 +8,7 @@ import argparse
 from s3k.base.errors import UserError
 from s3k.base.outputs import check_output
 from s3k.cli import examples
-from s3k.cli.options import camera_pairs, number
+from s3k.cli.options import camera_pairs, device, number
 from s3k.inference.rerun_log import recording_summary, rerun_module
 from s3k.inference.view import ViewOptions, target_kind, view_dataset, view_run, view_tracks
 
@@ -58,7 +58,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-images", action="store_true", help="cameras and keypoints only")
     parser.add_argument("--batch-size", type=number(int, ge=1), default=8,
                         help="run: frames per forward pass (default 8)")
-    parser.add_argument("--device", default="auto", help="run: 'auto', 'cpu', 'cuda' (default: auto)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="run: 'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
 
 
 def run(args: argparse.Namespace) -> int:

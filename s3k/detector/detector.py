@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from s3k.base.choices import Arithmetic, Device, Precision
+from s3k.base.choices import Arithmetic, Device, Precision, parse_device
 from s3k.base.errors import UserError
 from s3k.detector.cpu import native_bfloat16_cpu
 from s3k.detector.crop_rule import CropRule, crop_centres, is_two_pass, read_two_pass
@@ -66,14 +66,14 @@ Network = Callable[[Tensor], Tensor]
 """Images ``(N, 3, H, W)`` float32 in [0, 1] -> logits ``(N, K, h, w)``."""
 
 
-def pick_device(name: str | torch.device = "auto", local_rank: int = 0) -> torch.device:
-    """``"auto"`` -> the GPU when available, else the CPU; a CUDA device without a GPU is refused."""
-    if str(name) == "auto":
+def pick_device(name: Device | torch.device = "auto", local_rank: int = 0) -> torch.device:
+    """``"auto"`` -> the GPU when available, else the CPU; a CUDA device without a GPU is refused. A name
+    is checked here (:func:`s3k.base.choices.parse_device`): the library's entry points pass theirs on."""
+    if not isinstance(name, torch.device):
+        name = parse_device(name)
+    if name == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise UserError(f"--device {name!r}: not a device", hint="pass auto, cpu, cuda or cuda:N") from None
+    device = torch.device(name)
     if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():  # 0 without CUDA
         raise UserError(f"--device {name}: this machine has no such CUDA GPU", hint="pass --device cpu")
     return device

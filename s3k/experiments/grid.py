@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.config import TrainConfig
 
@@ -266,7 +267,7 @@ class Options:
     crop_size: int | None = None
     label_choice: str = "random"
     command: str | None = None
-    device: str = "cpu"
+    device: Device = "cpu"
     threads: int = 0
     workers: int | None = None
     progress: bool = True

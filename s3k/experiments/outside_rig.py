@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.choices import Device
 from s3k.base.metrics import ground_truth_2d, keypoint_order, mm_per_unit
 from s3k.data import Dataset
 from s3k.data.frames import FrameStore
@@ -91,7 +92,7 @@ def outside(measured: dict[str, list[float]], train: dict[str, Any]) -> dict[str
     return out
 
 
-def evaluate_rigs(run: Path, sets: dict[str, Path], scene: str, device: str = "cpu",
+def evaluate_rigs(run: Path, sets: dict[str, Path], scene: str, device: Device = "cpu",
                   trained_on: CameraSampler | None = None, drawn_from: CameraSampler | None = None,
                   diagnosis: bool = False) -> dict[str, Any]:
     """The run's figures on every test set, the measured cameras, and each median's ratio to the in-range
@@ -152,7 +153,7 @@ def table(result: dict[str, Any]) -> list[str]:
     return lines
 
 
-def diagnose(run: Path, data: Path, device: str = "cpu", gross_px: float = 10.0) -> dict[str, float]:
+def diagnose(run: Path, data: Path, device: Device = "cpu", gross_px: float = 10.0) -> dict[str, float]:
     """Where a two-pass run's error on a test set comes from, pass by pass (medians over the visible
     (view, keypoint) pairs or the frames' keypoints):
 

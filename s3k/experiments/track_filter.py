@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from s3k.base.choices import Device
 from s3k.data.formats.calibration_files import read_calibration
 from s3k.data.tracks_csv import read_csv
 from s3k.detector import Detector
@@ -89,7 +90,7 @@ def delay(X: np.ndarray, truth: np.ndarray, lags: range = range(-3, 4)) -> tuple
 
 
 def _stream_points(run: str | Path, videos: dict[str, Path], calibration: Path, keypoints: list[str],
-                   device: str) -> tuple[np.ndarray, np.ndarray]:
+                   device: Device) -> tuple[np.ndarray, np.ndarray]:
     """``(filtered, raw)`` ``(T, K, 3)``: ``s3k stream --filter kalman`` on the videos, from its lines."""
 
     detector = Detector.load(run, device)
@@ -109,7 +110,7 @@ def _stream_points(run: str | Path, videos: dict[str, Path], calibration: Path, 
 
 
 def filter_benchmark(run: str | Path, work: str | Path, frames: int = 300, size: int = 96, seed: int = 0,
-                     device: str = "cpu") -> dict[str, Any]:
+                     device: Device = "cpu") -> dict[str, Any]:
     """Render the trajectory into ``work``, track it with ``run`` offline (raw, filtered) and causally, and
     return the figures (module docstring) in millimetres."""
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.base.fileio import open_text
 from s3k.base.metrics import keypoint_order
@@ -252,7 +253,7 @@ def view_dataset(data: str | Path, opts: ViewOptions, split: str = "all") -> int
 
 
 def view_run(run: str | Path, opts: ViewOptions, data: str | Path | None = None, split: str = "test",
-             device: str = "auto", batch_size: int = 8) -> int:
+             device: Device = "auto", batch_size: int = 8) -> int:
     """Log a run's detections on a dataset split (as ``s3k evaluate`` detects them) beside the ground truth;
     returns the number of frames logged."""
 

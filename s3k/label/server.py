@@ -60,6 +60,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.base.messages import say
 from s3k.base.metrics import mm_per_unit
@@ -116,7 +117,7 @@ class LabelApp:
     """The state behind the API: the dataset, its label store and the optional run's suggestions."""
 
     def __init__(self, data: str | Path, run: str | Path | None = None, labeller: str | None = None,
-                 device: str = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
+                 device: Device = "cpu", up: Up = UP, ignore_geometry: bool = False) -> None:
         self.root = Path(data)
         self.up = up  # the table's normal in world coordinates: the pose rankings ignore the turn about it
         self.dataset = Dataset.open(self.root)
@@ -251,7 +252,7 @@ def _cross_site(request: Request, public: tuple[str, str] | None = None) -> JSON
 
 
 def create_app(data: str | Path, run: str | Path | None = None, token: str | None = None,
-               labeller: str | None = None, device: str = "cpu", allowed_hosts: list[str] | None = None,
+               labeller: str | None = None, device: Device = "cpu", allowed_hosts: list[str] | None = None,
                up: Up = UP, ignore_geometry: bool = False, public_url: str | None = None) -> FastAPI:
     """The labelling app for the dataset ``data``.
 
@@ -460,7 +461,7 @@ def _add_tool_routes(app: FastAPI, state: LabelApp) -> None:
 
 
 def serve(data: str | Path, run: str | Path | None = None, host: str = "127.0.0.1", port: int = 8765,
-          labeller: str | None = None, device: str = "cpu", announce: Callable[[str], None] | None = None,
+          labeller: str | None = None, device: Device = "cpu", announce: Callable[[str], None] | None = None,
           up: Up = UP, ignore_geometry: bool = False, public_url: str | None = None) -> None:
     """Run the app with uvicorn until interrupted. Off the loopback, or behind a reverse proxy at
     ``public_url``, a random token guards it."""

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.detector import Detector, TwoPassDetector
 from s3k.geometry import Cameras
@@ -28,7 +29,7 @@ class RunDetector:
         device: torch device.
     """
 
-    def __init__(self, run_dir: str | Path, keypoints: Sequence[str], device: str = "cpu"):
+    def __init__(self, run_dir: str | Path, keypoints: Sequence[str], device: Device = "cpu"):
         self.detector = Detector.load(run_dir, device)
         have = self.detector.keypoints
         missing = [k for k in keypoints if k not in have]

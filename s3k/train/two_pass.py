@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from s3k.base.choices import Device
 from s3k.base.errors import UserError
 from s3k.base.memory import available_memory
 from s3k.base.outputs import check_run_folder
@@ -104,7 +105,7 @@ def crop_rule_from_labels(dataset: DatasetLike, size: int, margin: float = 0.3) 
     return CropRule(extent=2 * radius * (1 + margin), size=int(size), margin=float(margin))
 
 
-def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | torch.device = "cpu",
+def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: Device | torch.device = "cpu",
                      batch_size: int = 32) -> dict[int, np.ndarray]:
     """The coarse pass's 3D keypoints of every frame of ``data`` (:class:`s3k.detector.Detector` on the
     frames at the dataset's resolution, on ``device``), written once to ``out_csv`` and read back."""
@@ -121,8 +122,9 @@ def coarse_estimates(run_dir: Path, data: Path, out_csv: Path, device: str | tor
     return read_csv(out_csv, detector.keypoints)
 
 
-def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule, device: str | torch.device = "cpu",
-                        batch_size: int = 32, frames: np.ndarray | None = None):
+def estimates_and_crops(run_dir: Path, ds, out_csv: Path, rule: CropRule,
+                        device: Device | torch.device = "cpu", batch_size: int = 32,
+                        frames: np.ndarray | None = None):
     """The coarse pass's estimates of every frame of ``ds``, or of ``frames`` (written to ``out_csv``), and
     the crops around them (:func:`training_crops`), each frame decoded once for both. The crops are cut
     around the estimates as the file holds them, so that a resumed run, which cuts them again from the file,

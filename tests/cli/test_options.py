@@ -66,6 +66,10 @@ def test_every_numeric_option_refuses_nan_and_inf():
     (["export", "R", "--format", "onnx", "--out", "d.onnx", "--opset", "1"], "--opset"),
     (["label", "D", "--port", "99999"], "--port"),
     (["robot", "train-agent", "--out", "A", "--learning-rate", "nan"], "--learning-rate"),
+    (["train", "D", "--out", "R", "--device", "gpu"], "--device"),
+    (["evaluate", "R", "--data", "D", "--device", "cuda:x"], "--device"),
+    (["track", "R", "--calibration", "c.toml", "--videos", "a=a.mp4", "--out", "t.csv", "--device", "cuda1"],
+     "--device"),
 ])
 def test_bad_values_are_refused_in_one_line(argv, option, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -85,3 +89,4 @@ def test_the_configuration_checks_its_fields_with_the_same_ranges():
                          ("scale", 1.0)):
         with pytest.raises(UserError, match=f"'{field}'"):
             TrainConfig.from_flat(**{field: value}).validate()
+
