@@ -32,12 +32,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from s3k.base.choices import Device, Norm, Precision
+from s3k.base.choices import Device, Norm, Precision, parse_device
 from s3k.base.errors import UserError
 from s3k.budget import check_config_fits
 from s3k.config_fields import EncoderConfig
 from s3k.config_fields import documented as _f
-from s3k.config_files import coerce
+from s3k.config_files import base_type, coerce
 
 C = TypeVar("C")
 
@@ -317,15 +317,13 @@ class TrainConfig:
         """Raise ``UserError`` naming the field when a value is out of its range (the ranges declared with
         the fields; floats must be finite) or the fields contradict each other."""
         values = flat_values(self)
-        for _, f, _ in leaf_fields(type(self)):
+        for _, f, tp in leaf_fields(type(self)):
             bounds, value = f.metadata.get("range"), values[f.name]
             if bounds is not None and value is not None:
                 bounds.check(value, f"config field {f.name!r}")
+            check_choice(tp, value, f"config field {f.name!r}")
         if self.self_supervision.unsup and self.schedule.batch_unlabelled <= 0:
             raise UserError("config field 'batch_unlabelled' must be > 0 unless --no-unsup is given")
-        if self.execution.precision not in ("auto", "float32", "bfloat16"):
-            raise UserError(f"config field 'precision' is {self.execution.precision!r}",
-                            hint="pass --precision auto, float32 or bfloat16")
         if not self.model.channels or any(c <= 0 for c in self.model.channels):
             raise UserError(f"config field 'channels' must be positive integers, got {self.model.channels!r}")
         if self.passes.coarse_stride not in (None, 1, 2, 4):
@@ -382,6 +380,16 @@ class TrainConfig:
             if value != field_default(f):
                 out += option_argv(f.name, value)
         return out
+
+
+def check_choice(tp: Any, value: Any, where: str) -> None:
+    """Refuse a value of a ``Literal`` field that is not one of its choices, or a device that is not one, in
+    one line naming ``where``: the check of a configuration built in Python, whose values no parser saw."""
+    base = base_type(tp)[0]
+    if base == Device:
+        parse_device(value, where)
+    elif typing.get_origin(base) is typing.Literal and value not in typing.get_args(base):
+        raise UserError(f"{where} must be one of {', '.join(map(str, typing.get_args(base)))}, got {value!r}")
 
 
 def option_argv(name: str, value: Any) -> list[str]:

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from s3k.base.errors import UserError
+from s3k.base.choices import FilterMethod, MotionModel
 from s3k.base.ranges import Range
 
 __all__ = ["MODELS", "RANGES", "CausalFilter", "FilterSettings", "Smoothed", "fit_noise", "forward", "smooth"]
@@ -88,8 +88,8 @@ class FilterSettings:
             limb from the track).
     """
 
-    method: str = "kalman"
-    model: str = "velocity"
+    method: FilterMethod = "kalman"
+    model: MotionModel = "velocity"
     process_noise: float | None = None
     noise_scale: float | None = None
     noise_px: float | None = None
@@ -100,11 +100,9 @@ class FilterSettings:
     limb_std: float | None = None
 
     def check(self) -> FilterSettings:
-        """Raise a :class:`UserError` naming the option of a bad value; returns ``self``."""
-        if self.method not in ("kalman", "none"):
-            raise UserError(f"--filter must be kalman or none, got {self.method!r}")
-        if self.model not in MODELS:
-            raise UserError(f"--filter-model must be one of {', '.join(MODELS)}, got {self.model!r}")
+        """Raise a :class:`UserError` naming the option of a value out of its range; returns ``self`` (the
+        method and model are :data:`s3k.base.choices.FilterMethod` and ``MotionModel``, checked where text
+        becomes them: :class:`s3k.inference.track_config.TrackConfig`)."""
         for name, bounds in RANGES.items():
             value = getattr(self, name)
             if value is not None:
@@ -123,7 +121,7 @@ def nanmedian(a: np.ndarray) -> np.ndarray:
         return np.nanmedian(a, axis=0)
 
 
-def _matrices(model: str) -> tuple[np.ndarray, np.ndarray]:
+def _matrices(model: MotionModel) -> tuple[np.ndarray, np.ndarray]:
     """``(F, Q1)``: the transition over one frame and the process noise for ``q = 1`` (continuous white noise
     integrated over the frame)."""
     if model == "velocity":

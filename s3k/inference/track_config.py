@@ -14,14 +14,13 @@ Example:
 
 from __future__ import annotations
 
-import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from s3k.base.choices import FilterMethod, MotionModel
 from s3k.base.errors import UserError
 from s3k.base.ranges import Range
-from s3k.config import config_from_dict, flat_values, leaf_fields
-from s3k.config_files import base_type
+from s3k.config import check_choice, config_from_dict, flat_values, leaf_fields
 from s3k.inference.kalman import RANGES, FilterSettings
 from s3k.readout import DEFAULT_MIN_WEIGHT
 
@@ -48,9 +47,9 @@ class FilteringConfig:
     """A Kalman filter in 3D per keypoint whose measurement noise comes from each detection's confidence and
     reprojection residual (docs/tracks.md)."""
 
-    filter: Literal["kalman", "none"] = _s("kalman", "filter the 3D points over time (the raw points in "
+    filter: FilterMethod = _s("kalman", "filter the 3D points over time (the raw points in "
                                                      "<stem>.raw.csv)")
-    filter_model: Literal["velocity", "acceleration"] = _s(
+    filter_model: MotionModel = _s(
         "velocity", "motion model of each keypoint: constant velocity or constant acceleration")
     filter_process_noise: float | None = _s(
         None, "standard deviation of the white noise driving the motion, world units per frame squared "
@@ -156,10 +155,7 @@ class TrackConfig:
             option = f"--{f.name.replace('_', '-')}"
             if bounds is not None and value is not None:
                 bounds.check(value, option)
-            base = base_type(tp)[0]
-            choices = typing.get_args(base) if typing.get_origin(base) is Literal else ()
-            if choices and value not in choices:
-                raise UserError(f"{option} must be one of {', '.join(choices)}, got {value!r}")
+            check_choice(tp, value, option)
         if self.chunks.stop is not None and self.chunks.stop <= self.chunks.start:
             raise UserError(f"--start/--stop: need 0 <= start < stop, got start={self.chunks.start}, "
                             f"stop={self.chunks.stop}")

@@ -64,10 +64,6 @@ class ReadoutConfig:
     layout_drop: bool = False
     layout_fit: LayoutFit = "all"
 
-    def __post_init__(self) -> None:
-        if self.layout_fit not in LAYOUT_FITS:
-            raise ValueError(f"layout_fit: one of {', '.join(LAYOUT_FITS)}, got {self.layout_fit!r}")
-
     @property
     def rigid(self) -> bool:
         """Whether the rigid read-out is on."""

@@ -90,3 +90,30 @@ def test_the_configuration_checks_its_fields_with_the_same_ranges():
         with pytest.raises(UserError, match=f"'{field}'"):
             TrainConfig.from_flat(**{field: value}).validate()
 
+
+def test_a_device_is_one_type_read_by_one_function_wherever_it_is_given(tmp_path):
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:N``: a config file and a configuration built in Python are held
+    to the names the command line takes, each refusal one line naming the field or option."""
+    from s3k.base.choices import parse_device
+    from s3k.base.errors import UserError
+    from s3k.config import ExecutionConfig, ModelConfig, TrainConfig, config_from_dict
+    from s3k.config_files import read_config_file
+    from s3k.detector import pick_device
+
+    assert [parse_device(t) for t in ("auto", "cpu", "cuda", "cuda:12")] == ["auto", "cpu", "cuda", "cuda:12"]
+    for text in ("gpu", "cuda:", "cuda:-1", "cuda:1 ", "CPU", 0):
+        with pytest.raises(UserError, match="is not a device; pass auto, cpu, cuda or cuda:N"):
+            parse_device(text)
+    config = tmp_path / "c.json"
+    config.write_text('{"device": "gpu"}')
+    with pytest.raises(UserError, match=f"config file {config}: field 'device': 'gpu' is not a device"):
+        config_from_dict(TrainConfig, read_config_file(config), where=f"config file {config}")
+    assert TrainConfig.from_flat(device="cuda:1").execution.device == "cuda:1"
+    with pytest.raises(UserError, match="--device: 'gpu' is not a device"):
+        pick_device("gpu")  # type: ignore[arg-type]
+    # a configuration built in Python: its choices checked as it is validated, like its ranges
+    for cfg, name in ((TrainConfig(execution=ExecutionConfig(device="gpu")), "device"),  # type: ignore[arg-type]
+                      (TrainConfig(execution=ExecutionConfig(precision="half")), "precision"),  # type: ignore
+                      (TrainConfig(model=ModelConfig(norm="layer")), "norm")):  # type: ignore[arg-type]
+        with pytest.raises(UserError, match=f"config field '{name}'"):
+            cfg.validate()
