@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything s3k needs on a fresh Debian/Ubuntu machine into ./.venv:
 # system libraries (OSMesa for MuJoCo's CPU rendering, Chromium for the labelling app's browser test),
-# PyTorch, then s3k with its dev, formats, robot, label and stream extras.
+# PyTorch, then s3k with its dev, formats, robot, label, stream and cluster extras.
 # `setup.sh --demo` installs what `s3k demo` needs only: OSMesa, PyTorch and s3k itself (scripts/demo.sh).
 # What is already there is skipped: system packages that are present, and the pip installs when .venv holds
 # a stamp of this pyproject.toml from an earlier install of the same extras and s3k imports from here (a
@@ -26,13 +26,13 @@ fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 . .venv/bin/activate
-extras="dev,formats,robot,label,stream"
+extras="dev,formats,robot,label,stream,cluster"
 [ $demo = 1 ] && extras=""
 stamp_of() { printf '%s\n' "$(sha256sum pyproject.toml | cut -d' ' -f1)" "$1"; }
 installed_here() {  # s3k imports from this checkout
     python -c 'import pathlib, sys, s3k; sys.exit(pathlib.Path(s3k.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())' 2>/dev/null
 }
-for have in "$extras" "dev,formats,robot,label,stream"; do  # a full install serves the demo too
+for have in "$extras" "dev,formats,robot,label,stream,cluster"; do  # a full install serves the demo too
     if [ -f .venv/.s3k-setup-stamp ] && [ "$(cat .venv/.s3k-setup-stamp)" = "$(stamp_of "$have")" ] \
         && installed_here; then
         exit 0

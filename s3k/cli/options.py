@@ -117,12 +117,12 @@ def parse_size(text: str | None) -> int | tuple[int, int] | None:
     raise UserError(f"--size {text!r}: expected PX (longer side) or W,H")
 
 
-def add_rig_options(parser: argparse.ArgumentParser) -> None:
+def add_rig_options(parser: argparse.ArgumentParser, calibration_required: bool = True) -> None:
     """The options of a command that reads the synchronized frames of a calibrated rig through a run's
     detector (``s3k track``, ``s3k stream``): the calibration and its unit, the part of the calibrated image
     each camera shows, each camera's box onto the detector's input and the device
     (:class:`s3k.inference.session.RigOptions`, :func:`rig_options`)."""
-    parser.add_argument("--calibration", required=True,
+    parser.add_argument("--calibration", required=calibration_required,
                         help="anipose calibration.toml, Qualisys .qca.txt, OpenCV/JARVIS .yaml/.xml or "
                         "DeepFly3D .pkl (as for 's3k import')")
     parser.add_argument("--video-region", nargs="+", default=None, metavar="CAM=X0,Y0,X1,Y1",

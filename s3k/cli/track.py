@@ -6,9 +6,11 @@ from __future__ import annotations
 import argparse
 import json
 
+from s3k.base.errors import UserError
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import add_frame_offsets_option, add_rig_options, camera_pairs, rig_options
+from s3k.cli.track_batch import add_batch_options, run_batch
 from s3k.inference.track import track
 from s3k.inference.track_config import TrackConfig
 
@@ -30,17 +32,21 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 --calibration calibration.toml --filter none "
         "--out points3d.csv",
         "s3k track runs/box --videos back=back.mp4 mid=mid.mp4 --calibration calibration.toml --out x.csv "
-        "--filter-gate 5 --print-config")
+        "--filter-gate 5 --print-config",
+        "s3k track runs/box --manifest sessions.toml --out tracks --workers 4",
+        "s3k track runs/box --manifest sessions.toml --out tracks --address head:6379 --chunk-frames 2000")
     parser.add_argument("run", help="run folder written by 's3k train'")
-    parser.add_argument("--videos", nargs="+", required=True, metavar="CAM=FILE",
+    parser.add_argument("--videos", nargs="+", default=None, metavar="CAM=FILE",
                         help="one video per camera, or an image sequence (a folder, a glob 'dir/*.png' or a "
                         "pattern 'dir/img_%%05d.jpg'), camera names as in the calibration")
-    parser.add_argument("--out", required=True, help="CSV file to write")
+    parser.add_argument("--out", required=True, help="CSV file to write (with --manifest: the folder of the "
+                        "sessions' CSVs)")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--print-config", action="store_true",
                         help="print the resolved settings as JSON (the flat fields) and track nothing")
-    add_rig_options(parser)
+    add_rig_options(parser, calibration_required=False)
     add_frame_offsets_option(parser)
+    add_batch_options(parser)
     add_config_arguments(parser, TrackConfig)
 
 
@@ -49,6 +55,11 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(json.dumps(config.to_dict(), indent=2))
         return 0
+    if args.manifest:
+        return run_batch(args, config)
+    for option, given in (("--videos", args.videos), ("--calibration", args.calibration)):
+        if not given:
+            raise UserError(f"{option} is required (or give --manifest)")
     videos = camera_pairs(args.videos, "--videos")
     rig = rig_options(args, list(videos))
     track(args.run, videos, rig, args.out, config, args.overwrite)

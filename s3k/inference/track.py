@@ -54,8 +54,8 @@ from s3k.inference.track_filter import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Track", "detect_videos", "empty_result_hint", "keypoint_line", "limb_indices", "overlay_file",
-           "track", "video_sizes"]
+__all__ = ["Track", "assemble_track", "detect_frames", "detect_videos", "empty_result_hint", "frame_range",
+           "join_frames", "keypoint_line", "limb_indices", "overlay_file", "track", "video_sizes"]
 
 OVERLAYS = "folder of overlay videos"
 
@@ -146,19 +146,55 @@ def detect_videos(session: RigSession, videos: dict[str, Path], config: TrackCon
     """Track the synchronized ``videos`` (``{camera: path}`` in the session's camera order) with the
     session's detector: every frame's read-out, then the filter over time; nothing is written."""
     config = (config or TrackConfig()).validate()
+    if config.filtering_on:  # before any frame is read
+        check_rigid(config.filter_settings(), layout_shape_of(session.detector.meta.layout),
+                    f"the run {session.detector.run}")
+    start, end = frame_range(_session_paths(session, videos), session.offsets, config)
+    return assemble_track(session, videos, config, detect_frames(session, videos, config, start, end))
+
+
+def _session_paths(session: RigSession, videos: Mapping[str, str | Path]) -> dict[str, Path]:
+    return {name: Path(videos[name]) for name in session.names}
+
+
+def frame_range(videos: Mapping[str, Path], offsets: list[int] | None,
+                config: TrackConfig) -> tuple[int, int]:
+    """The instants ``start .. end - 1`` that ``config`` tracks of ``videos`` (``{camera: path}``, cameras
+    with ``offsets``, :attr:`s3k.inference.session.RigSession.offsets`)."""
+    paths = list(videos.values())
+    rates = [video.frame_rate(p) for p in paths]
+    return _frame_range(list(videos), paths, rates, config.chunks.start, config.chunks.stop,
+                        offsets or [0] * len(paths))
+
+
+def detect_frames(session: RigSession, videos: Mapping[str, str | Path], config: TrackConfig, start: int,
+                  end: int) -> _Collected:
+    """The read-out of the instants ``start .. end - 1`` (:func:`frame_range`): each frame's alone, so any
+    split of a range into parts gives, joined (:func:`join_frames`), what the whole range gives."""
+    paths = list(_session_paths(session, videos).values())
+    offsets = session.offsets or [0] * len(paths)
+    frames = video.prefetch(video.synchronized_batches(paths, config.chunks.batch, start, end, offsets))
+    return _detect(session, frames, config.readout.min_weight, end - start, config.outputs.progress)
+
+
+def join_frames(parts: list[_Collected]) -> _Collected:
+    """Consecutive ranges' read-outs (:func:`detect_frames`) as one."""
+    return _Collected(**{name: np.concatenate([getattr(p, name) for p in parts])
+                         for name in _Collected.__dataclass_fields__})
+
+
+def assemble_track(session: RigSession, videos: Mapping[str, str | Path], config: TrackConfig,
+                   got: _Collected) -> Track:
+    """The :class:`Track` of the read-outs ``got`` of ``videos``, filtered over time as ``config`` says."""
     settings, limbs = config.filter_settings(), config.limb_pairs()
     detector = session.detector
     shape = layout_shape_of(detector.meta.layout)
-    if config.filtering_on:  # before any frame is read
+    if config.filtering_on:
         check_rigid(settings, shape, f"the run {detector.run}")
-    paths = [Path(videos[name]) for name in session.names]
-    rates = [video.frame_rate(p) for p in paths]
-    offsets = session.offsets or [0] * len(paths)
-    start, end = _frame_range(session.names, paths, rates, config.chunks.start, config.chunks.stop, offsets)
-    frames = video.prefetch(video.synchronized_batches(paths, config.chunks.batch, start, end, offsets))
-    got = _detect(session, frames, config.readout.min_weight, end - start, config.outputs.progress)
-    rate = None if any(imageseq.is_sequence(p) for p in paths) else _common_rate(rates)
-    result = Track(session, {n: p for n, p in zip(session.names, paths)}, config, got, rate)
+    paths = _session_paths(session, videos)
+    rates = [video.frame_rate(p) for p in paths.values()]
+    rate = None if any(imageseq.is_sequence(p) for p in paths.values()) else _common_rate(rates)
+    result = Track(session, paths, config, got, rate)
     if config.filtering_on:
         limbs = detector.meta.recorded_skeleton() if limbs is None else limbs
         edges = limb_indices(limbs, detector.keypoints)

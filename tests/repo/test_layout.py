@@ -178,6 +178,7 @@ HEAVY_OPTIONAL = {  # imported where used, so that a command that does not need 
     "rerun",  # the stream extra
     "mujoco",  # the simulator: an OpenGL context on import
     "matplotlib", "tensorboard", "torch.utils.tensorboard",  # seconds to import, for figures and logs only
+    "ray",  # the cluster extra: s3k track --manifest, sweeps on a cluster
 }
 
 

@@ -53,13 +53,13 @@ def _setup(repo: Path, calls: Path, env: dict, *args: str) -> list[str]:
 def test_setup_installs_once_then_skips_until_pyproject_changes(checkout):
     repo, calls, env = checkout
     first = _setup(repo, calls, env)
-    assert any("install -q -e .[dev,formats,robot,label,stream]" in c for c in first), first
+    assert any("install -q -e .[dev,formats,robot,label,stream,cluster]" in c for c in first), first
     assert _setup(repo, calls, env) == []  # installed: nothing to do
     assert _setup(repo, calls, env, "--demo") == []  # the full install serves the demo
     with (repo / "pyproject.toml").open("a") as f:
         f.write("\n# changed\n")
     again = _setup(repo, calls, env)
-    assert any("install -q -e .[dev,formats,robot,label,stream]" in c for c in again), again
+    assert any("install -q -e .[dev,formats,robot,label,stream,cluster]" in c for c in again), again
 
 
 def test_setup_for_the_demo_then_everything(checkout):
@@ -68,4 +68,4 @@ def test_setup_for_the_demo_then_everything(checkout):
     assert any(c.endswith("install -q -e .") for c in demo), demo
     assert _setup(repo, calls, env, "--demo") == []
     full = _setup(repo, calls, env)  # the demo's install lacks the extras
-    assert any("[dev,formats,robot,label,stream]" in c for c in full), full
+    assert any("[dev,formats,robot,label,stream,cluster]" in c for c in full), full
