@@ -43,7 +43,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info  # noqa: E402
-from s3k.experiments.accuracy import without_notes  # noqa: E402
+from s3k.experiments.accuracy import BACKENDS, without_notes  # noqa: E402
 from s3k.experiments.label_curve import LABEL_COUNTS, CurveOptions, run_curve  # noqa: E402
 from s3k.train.presets import PRESETS  # noqa: E402
 
@@ -89,6 +89,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the label count of S3K that labels only is measured against (default 10)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")
     p.add_argument("--parallel", type=int, default=2, help="trainings at once, one thread each (default 2)")
+    p.add_argument("--backend", choices=BACKENDS, default="local",
+                   help="where the trainings run: this machine's processes, or tasks on a Ray cluster, as "
+                        "many at once as it has CPUs and --parallel allows (default local)")
+    p.add_argument("--address", default=None,
+                   help="with --backend ray: the cluster to join (default: RAY_ADDRESS, else a local one)")
     p.add_argument("--work", default=None, help="working folder (default runs/label-curve)")
     p.add_argument("--results", default=None,
                    help="folder of summary.json and label-curve.png "
@@ -110,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             label_choice=args.label_choice, unlabelled_arrangements=args.unlabelled_arrangements,
             steps=args.steps, coarse_steps=args.coarse_steps, coarse_size=args.coarse_size,
             crop_size=args.crop_size, train_options=args.train_options, parallel=args.parallel,
+            backend=args.backend, address=args.address,
             reference=args.reference)
     except ValueError as e:
         p.error(str(e))

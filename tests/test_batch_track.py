@@ -1,15 +1,18 @@
 """``s3k track RUN --manifest FILE --out FOLDER`` on a local Ray cluster of two workers: each session's files
 are those of one ``s3k track``, byte for byte; a worker killed mid-session is retried and leaves nothing
 half-written; a rerun skips the finished sessions; a session split into chunks is the whole session's track;
-a session that fails does not stop the others.
+a session that fails does not stop the others. Trainings sent to the cluster (a sweep's jobs,
+``run_jobs(..., backend="ray")``) train what they train one after the other on this machine.
 
 The rig is three cameras of 64 x 48 px videos of three coloured dots, the detector a tiny untrained U-Net
 (its accuracy is not under test: the files are compared with ``s3k track``'s own)."""
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import sys
 from pathlib import Path
 
 import cv2
@@ -23,8 +26,10 @@ from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.rig import Rig
 from s3k.data.video import write_video
 from s3k.detector import DetectorMeta
+from s3k.experiments.accuracy import run_jobs
 from s3k.geometry import Cameras, project
 from s3k.inference.batch import EXIT_ONCE, plan_chunks, session_files
+from s3k.inference.evaluate import evaluate_run
 from s3k.inference.track_config import TrackConfig
 from s3k.model import UNetConfig
 
@@ -186,3 +191,30 @@ def test_manifest_mistakes_are_one_line(sessions, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "give no --videos or --calibration with --manifest" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "t").exists()
+
+
+def _trainings(data: Path, work: Path) -> list[tuple[str, list[str], Path]]:
+    work.mkdir()
+    return [(f"seed {seed}", [sys.executable, "-m", "s3k.cli", "train", str(data), "--out",
+                              str(work / f"r{seed}"), "--steps", "2", "--seed", str(seed), "--channels",
+                              "8,16", "--res-blocks", "1", "--batch-labelled", "2", "--batch-unlabelled", "2",
+                              "--warmup-steps", "0", "--ramp-steps", "1", "--no-progress"],
+              work / f"r{seed}-cpu.json")
+            for seed in (0, 1)]
+
+
+def test_a_sweep_on_ray_trains_what_the_local_sweep_trains(cluster, tiny_dataset, tmp_path):
+    serial, on_ray = _trainings(tiny_dataset, tmp_path / "serial"), _trainings(tiny_dataset, tmp_path / "ray")
+    run_jobs(serial, parallel=1, poll_s=0.2)
+    run_jobs(on_ray, parallel=2, backend="ray")
+    for (_, a, record_a), (_, b, record_b) in zip(serial, on_ray):
+        run_a, run_b = Path(a[a.index("--out") + 1]), Path(b[b.index("--out") + 1])
+        weights_a = torch.load(run_a / "model.pt", weights_only=False)["model"]
+        weights_b = torch.load(run_b / "model.pt", weights_only=False)["model"]
+        assert weights_a.keys() == weights_b.keys()
+        assert all(torch.equal(weights_a[k], weights_b[k]) for k in weights_a)
+        metrics = [evaluate_run(r, tiny_dataset, split="test", device="cpu") for r in (run_a, run_b)]
+        assert json.dumps(metrics[0], sort_keys=True) == json.dumps(metrics[1], sort_keys=True)
+        records = [json.loads(r.read_text()) for r in (record_a, record_b)]
+        assert records[0].keys() == records[1].keys() == {"cpu_minutes", "wall_minutes"}  # timings only
+        assert records[1]["cpu_minutes"] > 0

@@ -6,11 +6,13 @@ CPU time recorded, runs reused from an earlier working folder, and the cached te
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import logging
 import os
 import resource
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -22,6 +24,7 @@ from s3k.base.messages import NOTE
 from s3k.config import TrainConfig
 from s3k.data import Dataset
 from s3k.experiments.views import make_view, select_frames
+from s3k.inference.batch import RETRIES, connect_ray
 from s3k.inference.evaluate import evaluate_run
 from s3k.run_folder import RunFolder
 from s3k.train.presets import preset
@@ -223,12 +226,21 @@ def read_record(record: Path) -> dict:
     return spent
 
 
-def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: float = 10.0) -> None:
+BACKENDS = ("local", "ray")
+"""Where :func:`run_jobs` runs the trainings: this machine's processes, or tasks on a Ray cluster."""
+
+
+def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: float = 10.0,
+             backend: str = "local", address: str | None = None) -> None:
     """Run the training commands ``parallel`` at a time; each one's CPU minutes are added to its record.
 
     A running job's minutes so far are written to its record every ``poll_s`` seconds as
     ``unfinished_cpu_minutes``, so a run interrupted with this process (a closed session) still counts the
-    time it spent when the same command resumes it."""
+    time it spent when the same command resumes it. ``backend="ray"`` runs each command as a task of one CPU
+    on a Ray cluster (:func:`run_jobs_on_ray`)."""
+    if backend == "ray":
+        run_jobs_on_ray(jobs, parallel, address)
+        return
     env = dict(os.environ, OMP_NUM_THREADS="1")
     pending = list(jobs)
     # each job's Popen is kept: a dropped one is reaped by the next Popen's clean-up, and os.wait4 below
@@ -267,6 +279,63 @@ def run_jobs(jobs: list[tuple[str, list[str], Path]], parallel: int, poll_s: flo
         spent["wall_minutes"] += (time.time() - started) / 60
         record.write_text(json.dumps(spent) + "\n")
         log.log(NOTE, f"finished {name}: {spent['cpu_minutes']:.1f} CPU-minutes")
+
+
+def _die_with_parent() -> None:
+    """In a training's process, before it runs: the kernel kills it when the task's worker dies (Linux), so
+    that the task's retry is the only training of its run."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def _train_job(name: str, cmd: list[str], record: Path) -> float:
+    """A Ray task: one training command, one thread; its CPU and wall minutes added to its record."""
+    spent = read_record(record)
+    record.write_text(json.dumps(spent) + "\n")
+    if "--resume" not in cmd and Path(cmd[cmd.index("--out") + 1]).exists():  # an attempt whose worker died
+        cmd = [*cmd, "--resume"]
+    started = time.time()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=dict(os.environ, OMP_NUM_THREADS="1"),
+                            preexec_fn=_die_with_parent)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = code = os.waitstatus_to_exitcode(status)  # reaped here, not by the Popen
+    if code != 0:
+        raise RuntimeError(f"training {name} failed (exit {code})")
+    spent["cpu_minutes"] += (usage.ru_utime + usage.ru_stime) / 60
+    spent["wall_minutes"] += (time.time() - started) / 60
+    record.write_text(json.dumps(spent) + "\n")
+    return spent["cpu_minutes"]
+
+
+def run_jobs_on_ray(jobs: list[tuple[str, list[str], Path]], parallel: int,
+                    address: str | None = None) -> None:
+    """:func:`run_jobs` on a Ray cluster: each training command a task of one CPU, at most ``parallel`` and
+    the cluster's CPUs at once; a task whose worker dies is run again (its ``s3k train`` resumes the run).
+    The cluster is the one at ``address`` (or ``RAY_ADDRESS``), else a local one started here. Every node
+    must see the data and run folders at the same paths."""
+    import ray
+
+    started = connect_ray(parallel, address)
+    try:
+        limit = max(1, min(parallel, int(ray.cluster_resources().get("CPU", 1))))
+        task = ray.remote(num_cpus=1, max_retries=RETRIES)(_train_job)
+        pending, running = list(jobs), {}
+        while pending or running:
+            while pending and len(running) < limit:
+                name, cmd, record = pending.pop(0)
+                log.log(NOTE, f"training {name}")
+                running[task.remote(name, cmd, record)] = name
+            ready, _ = ray.wait(list(running), num_returns=1)
+            name = running.pop(ready[0])
+            try:
+                minutes = ray.get(ready[0])
+            except Exception as exc:  # the command failed, or its worker died RETRIES + 1 times
+                raise SystemExit(f"training {name} failed ({str(getattr(exc, 'cause', None) or exc)});"
+                                 " run the same command again to resume it") from None
+            log.log(NOTE, f"finished {name}: {minutes:.1f} CPU-minutes")
+    finally:
+        if started:
+            ray.shutdown()
 
 
 #: The read-out a cached test evaluation was made with; an evaluation cached by an older read-out (another

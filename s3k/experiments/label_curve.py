@@ -81,6 +81,8 @@ class CurveOptions:
     coarse_steps: int | None = None
     train_options: str = ""
     parallel: int = 2
+    backend: str = "local"
+    address: str | None = None
     reference: int = REFERENCE_LABELS
     preset: str | None = None
 
@@ -386,7 +388,8 @@ def run_curve(opts: CurveOptions, work: Path, results_dir: Path, command: str, r
         write_results(opts, work, {k: v for k, v in views.items() if (v / "s3k.json").is_file()}, revision)
     for seed in [] if summary_only else range(opts.seeds):
         data = prepare_data(opts, work, [seed])
-        run_jobs(pending_trainings(opts, work, data, revision), opts.parallel)
+        run_jobs(pending_trainings(opts, work, data, revision), opts.parallel, backend=opts.backend,
+                 address=opts.address)
         for job in write_results(opts, work, data, revision):
             log.log(NOTE, f"result {job.name}")
         write_summary(opts, work, results_dir, command, revision, machine, notes)

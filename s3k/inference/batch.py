@@ -58,7 +58,8 @@ from s3k.inference.track_filter import doubt_path, raw_path
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KIND", "BatchSession", "SessionResult", "plan_chunks", "session_files", "table", "track_batch"]
+__all__ = ["KIND", "RETRIES", "BatchSession", "SessionResult", "connect_ray", "plan_chunks", "session_files",
+           "table", "track_batch"]
 
 KIND = "folder of tracks"
 """The kind of output ``FOLDER`` is marked as (:func:`s3k.base.outputs.claim_folder`)."""
@@ -207,9 +208,10 @@ def track_batch(run: str | Path, sessions: Sequence[BatchSession], folder: str |
     return [results[s.name] for s in sessions]
 
 
-def _connect(workers: int | None, address: str | None) -> bool:
-    """Join the cluster at ``address`` (or ``RAY_ADDRESS``), or start a local one; True when started here.
-    A cluster this process already joined is used as it is."""
+def connect_ray(workers: int | None, address: str | None) -> bool:
+    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), or start a local one of ``workers`` CPUs
+    (default: this machine's); True when started here. A cluster this process already joined is used as it
+    is."""
     import ray
 
     if ray.is_initialized():
@@ -240,7 +242,7 @@ def _on_ray(run: str, todo: list[BatchSession], config: TrackConfig, workers: in
     """The sessions ``todo`` as Ray tasks, at most ``workers`` at once."""
     import ray
 
-    started = _connect(workers, address)
+    started = connect_ray(workers, address)
     try:
         cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         limit = min(workers or cpus, cpus)
