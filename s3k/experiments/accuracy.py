@@ -319,7 +319,7 @@ def run_jobs_on_ray(jobs: list[tuple[str, list[str], Path]], parallel: int,
     try:
         limit = max(1, min(parallel, int(ray.cluster_resources().get("CPU", 1))))
         task = ray.remote(num_cpus=1, max_retries=RETRIES)(_train_job)
-        pending, running = list(jobs), {}
+        pending, running = list(jobs), dict[Any, str]()
         while pending or running:
             while pending and len(running) < limit:
                 name, cmd, record = pending.pop(0)
