@@ -10,7 +10,7 @@ from s3k.base.errors import UserError
 from s3k.cli import examples
 from s3k.cli.config_options import add_config_arguments, config_from_args
 from s3k.cli.options import add_frame_offsets_option, add_rig_options, camera_pairs, rig_options
-from s3k.cli.track_batch import add_batch_options, run_batch
+from s3k.cli.track_batch import add_batch_options, check_no_batch_options, run_batch
 from s3k.inference.track import track
 from s3k.inference.track_config import TrackConfig
 
@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.manifest:
         return run_batch(args, config)
+    check_no_batch_options(args)
     for option, given in (("--videos", args.videos), ("--calibration", args.calibration)):
         if not given:
             raise UserError(f"{option} is required (or give --manifest)")

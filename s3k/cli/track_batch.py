@@ -37,6 +37,14 @@ def add_batch_options(parser: argparse.ArgumentParser) -> None:
                         "whole sessions)")
 
 
+def check_no_batch_options(args: argparse.Namespace) -> None:
+    """Refuse the options of a batch given without ``--manifest``."""
+    for option in ("workers", "address", "chunk_frames"):
+        if getattr(args, option) is not None:
+            raise UserError(f"--{option.replace('_', '-')} applies to --manifest only",
+                            hint="give --manifest FILE, or leave it out")
+
+
 def _import_options() -> set[str]:
     """The options of ``s3k import`` (a manifest's entries for it, which tracking leaves alone)."""
     parser = argparse.ArgumentParser()

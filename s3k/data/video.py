@@ -30,6 +30,23 @@ from s3k.data.images import decode_image
 SEQUENCE_FPS = 30.0  # an image sequence records no frame rate; this one is used for overlay videos
 
 
+_DECODE_THREADS = 0
+
+
+def decode_threads(count: int) -> None:
+    """Decode each video of this process with ``count`` threads (0, the default: as many as FFmpeg picks
+    for the machine's cores); a task of one CPU among many (``s3k track --manifest``) decodes with one. The
+    frames are the same whatever the count."""
+    global _DECODE_THREADS
+    _DECODE_THREADS = int(count)
+
+
+def _threads(stream) -> None:
+    stream.thread_type = "AUTO"
+    if _DECODE_THREADS:
+        stream.codec_context.thread_count = _DECODE_THREADS
+
+
 def _read_image(path: Path) -> np.ndarray:
     return decode_image(path)
 
@@ -129,7 +146,7 @@ def iter_frames(path: str | Path, frame_ids: Iterable[int] | None = None) -> Ite
         return
     container, stream = _open(path)
     with container:
-        stream.thread_type = "AUTO"
+        _threads(stream)
         if wanted is not None and not wanted:
             return
         last = None if wanted is None else wanted[-1]
@@ -227,7 +244,7 @@ def synchronized_frames(paths: Sequence[str | Path], start: int = 0, stop: int |
                 continue
             container, stream = _open(path)
             containers.append(container)
-            stream.thread_type = "AUTO"
+            _threads(stream)
             decoders.append(container.decode(stream))
         for c, n in enumerate(offsets):  # each video's first frame at instant ``first``
             decoders[c] = itertools.islice(decoders[c], first - n, None)

@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from s3k.base.errors import UserError
 from s3k.base.outputs import check_folder, check_output, claim_folder
+from s3k.data import video
 from s3k.data.rig import check_camera_name
 from s3k.data.tracks_csv import read_source, source_path
 from s3k.detector import Detector
@@ -201,8 +202,9 @@ def track_batch(run: str | Path, sessions: Sequence[BatchSession], folder: str |
     results = _check(run, sessions, folder, config, overwrite)
     claim_folder(folder, KIND)
     todo = [s for s in sessions if s.name not in results]
-    if todo:
-        results.update(_on_ray(run, todo, config, workers, address, chunk_frames, progress))
+    if todo:  # the bar is over the sessions, none in the tasks
+        results.update(_on_ray(run, todo, config.replace(progress=False), workers, address, chunk_frames,
+                               progress))
     for s in sessions:
         shutil.rmtree(_stage(s), ignore_errors=True)  # a session that failed for good leaves nothing
     return [results[s.name] for s in sessions]
@@ -308,8 +310,10 @@ def _drive(ray, task: dict, queue: list, run: str, config: TrackConfig, hook: st
 
 
 def _place(run: str, s: BatchSession) -> RigSession:
-    """The run's detector on the session's rig, in a task of one torch thread."""
+    """The run's detector on the session's rig, in a task of one CPU: one torch thread, one decoding
+    thread per video."""
     torch.set_num_threads(1)
+    video.decode_threads(1)
     detector = Detector.load(run, s.rig.device)
     return RigSession.place(detector, video_sizes(s.videos), s.rig, "--videos", s.videos, level=logging.DEBUG)
 
