@@ -36,8 +36,9 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
-from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model, write_run_config  # noqa: E402
+from s3k.detector import MODEL_FILE, DetectorMeta, atomic_save, build_model  # noqa: E402
 from s3k.model import UNetConfig  # noqa: E402
+from s3k.run_folder import RunFolder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDING = ROOT.parent / "shared" / "data" / "real" / "sleap-anipose-minimal_session" / "minimal_session"
@@ -54,7 +55,7 @@ def make_run(path: Path) -> Path:
                         sigma=2.0, model=UNetConfig().to_dict(), units="mm", source_image_size=(128, 128))
     torch.manual_seed(0)
     path.mkdir(parents=True)
-    write_run_config(path, {}, meta, None)
+    RunFolder(path).write_record({}, meta.to_dict(), None)
     atomic_save({"model": build_model(meta).state_dict(), "meta": meta.to_dict()}, path / MODEL_FILE)
     return path
 
