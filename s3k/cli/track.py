@@ -57,6 +57,11 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.manifest:
         return run_batch(args, config)
+    return track_recording(args, config)
+
+
+def track_recording(args: argparse.Namespace, config: TrackConfig) -> int:
+    """One recording: ``--videos`` with ``--calibration`` to ``--out``."""
     check_no_batch_options(args)
     for option, given in (("--videos", args.videos), ("--calibration", args.calibration)):
         if not given:
