@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Does `s3k train` train the same weights as at an earlier revision? Renders a tiny box dataset once, trains it
-# with the same seed at REVISION (a `git archive` of it in a temporary folder) and at this checkout, one pass
-# and two, and compares the sha256 of every model.pt's tensors; exits 1 when one differs.
+# with the same seed at REVISION (a `git archive` of it in a temporary folder) and at this checkout, one pass,
+# two, and the box headline's preset (--preset box-headline, its passes cut to STEPS), and compares the sha256 of every model.pt's tensors; exits 1 when one differs.
 #
 #   bash scripts/same-weights.sh REVISION [STEPS]
 set -euo pipefail
@@ -28,16 +28,17 @@ for path in sorted(Path(sys.argv[1]).rglob("model.pt")):
 PY
 }
 status=0
-for kind in one two; do
+for kind in one two preset; do
   opts=(--steps "$STEPS" --seed 0 --threads 1 --val-every 10 --no-progress)
   [ "$kind" = two ] && opts+=(--two-pass --coarse-size 48 --crop-size 48)
+  [ "$kind" = preset ] && opts+=(--preset box-headline --coarse-steps "$STEPS")
   for side in then now; do
     src=$PWD; [ "$side" = then ] && src=$work/src
     (cd "$src" && PYTHONPATH=$src python -m s3k.cli train "$work/box" --out "$work/$kind-$side" "${opts[@]}" \
       > "$work/$kind-$side.log" 2>&1) || { cat "$work/$kind-$side.log"; exit 2; }
   done
   a=$(hash "$work/$kind-then") b=$(hash "$work/$kind-now")
-  echo "$kind pass(es), $STEPS steps, seed 0: $REV against $(git rev-parse --short HEAD)$(git diff --quiet || echo +modified)"
+  echo "$kind ($STEPS steps a pass), seed 0: $REV against $(git rev-parse --short HEAD)$(git diff --quiet || echo +modified)"
   echo "$b" | sed 's/^/  /'
   if [ "$a" = "$b" ]; then echo "  identical"; else echo "  DIFFERENT; $REV gave:"; echo "$a" | sed 's/^/  /'; status=1; fi
 done
