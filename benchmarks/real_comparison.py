@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> None:
                 m: {
                     "mean_mm": float(np.nanmean(d[both])),
                     "median_mm": float(np.nanmedian(d[both])),
+                    "rms_mm": float(np.sqrt(np.nanmean(d[both] ** 2))),
                     "ci95_mean_mm": bootstrap_ci(np.where(both, d, np.nan)),
                     "rms_px": met["rms_px"],
                     "labels_leave_one_view_out_median_px": met["labels_3d"]["labels_leave_one_view_out_px"][
