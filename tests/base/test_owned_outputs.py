@@ -212,27 +212,11 @@ def test_two_pass_export_never_replaces_a_companion_file_s3k_did_not_write(tmp_p
 def test_an_export_that_fails_its_check_leaves_nothing(tmp_path, capsys, monkeypatch):
     pytest.importorskip("onnx")
     pytest.importorskip("onnxruntime")
-    import numpy as np
-    import onnx
+    from helpers.onnx_files import corrupt_exports
     from helpers.tiny_detector import make_run
-    from onnx import numpy_helper
-
-    import s3k.inference.export as export
 
     run = make_run(tmp_path / "run")
-    original = export.export_module
-
-    def export_then_corrupt(*args, **kwargs):
-        path = original(*args, **kwargs)
-        model = onnx.load(str(path))
-        init = max(model.graph.initializer, key=lambda t: int(np.prod(t.dims)))
-        arr = numpy_helper.to_array(init).copy()
-        arr.flat[0] += 1.0
-        init.CopyFrom(numpy_helper.from_array(arr, init.name))
-        onnx.save(model, str(path))
-        return path
-
-    monkeypatch.setattr(export, "export_module", export_then_corrupt)
+    corrupt_exports(monkeypatch)
     out = tmp_path / "out" / "d.onnx"
     assert cli.main(["export", str(run), "--format", "onnx", "--out", str(out)]) == 1
     assert "nothing was written" in capsys.readouterr().err

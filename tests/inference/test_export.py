@@ -99,24 +99,9 @@ def test_cli_prints_difference_and_fails_on_a_wrong_file(run_dir, tmp_path, caps
     assert "max |difference| from PyTorch" in text and "logits" in text
 
     # A file that does not reproduce the model (one weight changed after export) must be rejected.
-    import onnx
-    from onnx import numpy_helper
+    from helpers.onnx_files import corrupt_exports
 
-    import s3k.inference.export as export
-
-    original = export.export_module
-
-    def export_then_corrupt(*args, **kwargs):
-        path = original(*args, **kwargs)
-        model = onnx.load(str(path))
-        init = max(model.graph.initializer, key=lambda t: int(np.prod(t.dims)))
-        arr = numpy_helper.to_array(init).copy()
-        arr.flat[0] += 1.0
-        init.CopyFrom(numpy_helper.from_array(arr, init.name))
-        onnx.save(model, str(path))
-        return path
-
-    monkeypatch.setattr(export, "export_module", export_then_corrupt)
+    corrupt_exports(monkeypatch)
     assert cli.main(["export", str(run_dir), "--format", "onnx", "--out", str(out), "--overwrite"]) == 1
     captured = capsys.readouterr()
     assert "does not reproduce" in captured.err and "max |difference|" in captured.out
