@@ -1,7 +1,7 @@
 # The newer commands' loose ends: track's and stream's filter options, add-frames' ranking and the record
 # beside a track, label --public-url and train --resume --preset. Sourced by scripts/loose-ends.sh.
 
-# Once per run: the tiny rig of tests/inference/test_track.py (three cameras, 64 x 48 px videos of three moving dots, an
+# Once per run: the tiny rig of tests/helpers/track_rig.py (three cameras, 64 x 48 px videos of three moving dots, an
 # anipose calibration), an untrained tiny detector saved as a run folder (no rigid layout), its track with the
 # ranking and record beside it, and a dataset of three of the videos' frames to add frames to (a few seconds).
 commands_setup() {
@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from test_track import CAMERAS, COLOURS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points, tiny_run
+from helpers.track_rig import CAMERAS, COLOURS, FRAMES, KEYPOINTS, VIDEO_SIZE, make_rig, moving_points, track_run
 
 from s3k.data import DatasetWriter
 from s3k.data.formats.anipose import write_anipose_calibration
@@ -37,7 +37,7 @@ for c, cam in enumerate(CAMERAS):
             cv2.circle(img, centre, 10, COLOURS[k], -1, cv2.LINE_AA, shift=2)
         frames[cam].append(img)
     write_video(root / f"{cam}.mp4", frames[cam], fps=25)
-tiny_run(root / "run")
+track_run(root / "run")
 with DatasetWriter(root / "data", KEYPOINTS, CAMERAS, (W, H), units="mm", calibration=rig.cameras) as w:
     for f, split in enumerate(["labelled", "test", "unlabelled"]):
         images = np.stack([frames[cam][f] for cam in CAMERAS])
