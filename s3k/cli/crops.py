@@ -10,7 +10,7 @@ import math
 from s3k.base.fileio import atomic_write_json
 from s3k.base.outputs import check_output
 from s3k.cli import examples
-from s3k.cli.options import add_other_rig_option, device, number
+from s3k.cli.options import add_detector_options, add_other_rig_option, number
 from s3k.data import Dataset
 from s3k.detector import Detector
 from s3k.inference.auto_crop import CropOptions, dataset_crop_boxes
@@ -83,10 +83,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="also write the boxes and how they were found as JSON (default: none)")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--json", action="store_true", help="print the JSON instead of the --crop arguments")
-    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
-                        help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
+    add_detector_options(parser)
     add_other_rig_option(parser)
 
 

@@ -11,7 +11,7 @@ from s3k.base.label_reference import format_label_reference
 from s3k.base.metrics import format_table
 from s3k.base.outputs import check_folder, claim_folder
 from s3k.cli import examples
-from s3k.cli.options import device, number
+from s3k.cli.options import add_detector_options, number
 from s3k.detector.geometry_record import check_dataset
 from s3k.inference.evaluate import evaluate_run, format_confidence
 
@@ -36,10 +36,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "an earlier report (default: no report)")
     parser.add_argument("--overlays", type=number(int, ge=0), default=6,
                         help="frames drawn in the report (default: 6)")
-    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
-                        help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
+    add_detector_options(parser)
     parser.add_argument("--ignore-geometry", action="store_true",
                         help="evaluate a dataset whose images show another part of the cameras' frames than "
                              "the run was trained on (refused by default)")

@@ -138,9 +138,21 @@ def add_rig_options(parser: argparse.ArgumentParser, calibration_required: bool 
                         help="when a frame's aspect ratio differs from the detector's input: pad "
                         "(default), crop or stretch; given, it replaces the crop boxes the run was trained "
                         "on")
+    add_device_option(parser)
+    add_other_rig_option(parser)
+
+
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device`` of the commands that run a detector (default auto)."""
     parser.add_argument("--device", type=device, default="auto",
                         help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
-    add_other_rig_option(parser)
+
+
+def add_detector_options(parser: argparse.ArgumentParser, batch_size: int = 16) -> None:
+    """``--batch-size`` and ``--device`` of the commands that run a detector over a dataset's frames."""
+    parser.add_argument("--batch-size", type=number(int, ge=1), default=batch_size,
+                        help=f"frames per forward pass (default: {batch_size})")
+    add_device_option(parser)
 
 
 def add_other_rig_option(parser: argparse.ArgumentParser) -> None:

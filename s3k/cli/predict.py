@@ -7,7 +7,7 @@ import sys
 
 from s3k.base.outputs import check_output
 from s3k.cli import examples
-from s3k.cli.options import add_other_rig_option, device, number
+from s3k.cli.options import add_detector_options, add_other_rig_option
 from s3k.data import Dataset
 from s3k.data.tracks_csv import write_source
 from s3k.detector import Detector
@@ -26,10 +26,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--split", default="test", choices=["labelled", "unlabelled", "test", "all"],
                         help="split to predict: labelled, unlabelled, test, or 'all' (default: test)")
-    parser.add_argument("--batch-size", type=number(int, ge=1), default=16,
-                        help="frames per forward pass (default: 16)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="'auto', 'cpu', 'cuda' or 'cuda:N' (default: auto)")
+    add_detector_options(parser)
     add_other_rig_option(parser)
 
 
