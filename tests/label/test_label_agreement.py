@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers.label_data import FAR_PX, NEAR_PX, label_true_projections, make_label_dataset
+from helpers.label_data import FAR_PX, NEAR_PX, label_true_projections
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 pytest.importorskip("fastapi")
@@ -19,11 +19,6 @@ with warnings.catch_warnings():
 from s3k.label.server import create_app
 from s3k.label.solve import DISAGREE_PX, agreement_level
 from s3k.label.store import Edit, LabelStore
-
-
-@pytest.fixture
-def truth(tmp_path):
-    return make_label_dataset(tmp_path / "ds")
 
 
 def test_a_label_far_from_the_other_views_lists_its_frame_and_turns_its_residual_red(truth):

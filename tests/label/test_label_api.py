@@ -49,11 +49,6 @@ def polyline_distance(points, p):
     return float(np.linalg.norm(a + t[:, None] * ab - p, axis=-1).min())
 
 
-@pytest.fixture
-def truth(tmp_path):
-    return make_label_dataset(tmp_path / "ds")
-
-
 def test_click_epipolar_triangulate_reproject_and_store(truth):
     client = TestClient(create_app(truth.path, labeller="ann"))
     uv = truth.uv(1)

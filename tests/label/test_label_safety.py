@@ -9,7 +9,6 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers.label_data import make_label_dataset
 from helpers.synthetic_rig import CAMERAS, KEYPOINTS
 
 pytest.importorskip("fastapi")
@@ -21,11 +20,6 @@ from s3k import cli
 from s3k.data import Dataset
 from s3k.label.server import create_app
 from s3k.label.store import HISTORY_FILE, Edit, LabelStore
-
-
-@pytest.fixture
-def truth(tmp_path):
-    return make_label_dataset(tmp_path / "ds")
 
 
 def label_views(store, truth, frame, views=(0, 1), shift=(0.0, 0.0)):
