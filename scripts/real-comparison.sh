@@ -8,9 +8,11 @@
 # $WORK (default /tmp/real-work): dataset $WORK/crop, runs $WORK/runs/{s3k,baseline}-seedN. $SEEDS (default
 # 5), $STEPS (3000), $THREADS (1), $SCALE (the arena crops' import scale, 0.25: 128 px), $TRAIN_OPTIONS (more
 # `s3k train` options for both models, e.g. '--preset box-headline --layout-tol 0' with SCALE=0.5), $TEST_FRAMES
-# (random, as the committed figures; blocks: the test frames held out in time, scripts/real-recording.sh), $CROPS
+# (random, as the committed figures; blocks: the test frames held out in time; last: the recording's end held
+# out, $MARGIN frames after the last labelled one; scripts/real-recording.sh), $CROPS
 # (hand: the boxes of scripts/real-recording.sh; auto: found by `s3k crops` after a brief labels-only pass on
-# whole frames, as docs/real-example.md shows), $MODELS (default 's3k baseline': which of the two to train). Resumable: run it again and it skips what is done and resumes a run that
+# whole frames, as docs/real-example.md shows), $MODELS (default 's3k baseline': which of the two to train).
+# Resumable: run it again and it skips what is done and resumes a run that
 # was cut short (s3k train --resume). Trainings run under `nice -n 10`. Evaluate and compare with
 # benchmarks/real_comparison.py.
 set -euo pipefail

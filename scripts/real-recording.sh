@@ -12,4 +12,5 @@ done
 crops=(back=610,350,1122,862 mid=246,374,758,886 side=328,406,840,918 top=266,330,778,842)
 # $TEST_FRAMES=blocks holds the 40 test frames out in time instead: one contiguous block, no labelled frame within
 # --margin (10) frames of it.
-split=(--labelled 10 --test 40 --seed 0 --test-frames "${TEST_FRAMES:-random}")
+# $TEST_FRAMES=last holds out the last 40 (frames 80-119), the labelled frames before them ($MARGIN frames away).
+split=(--labelled 10 --test 40 --seed 0 --test-frames "${TEST_FRAMES:-random}" ${MARGIN:+--margin "$MARGIN"})

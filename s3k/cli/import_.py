@@ -102,12 +102,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="number of labelled frames, or 'all' (default 10, or every frame left after the "
                              "test frames when fewer)")
     parser.add_argument("--test", type=number(int, ge=0), default=0, help="number of test frames (default 0)")
-    parser.add_argument("--test-frames", choices=["blocks", "random"], default="blocks",
+    parser.add_argument("--test-frames", choices=["blocks", "last", "random"], default="blocks",
                         help="how the test frames are chosen: 'blocks' (default) puts them in contiguous "
                              "blocks (--test-blocks) with no labelled frame within --margin frames of them, "
                              "so that evaluation says how a model does on a stretch of recording it has no "
-                             "labels of; 'random' draws them among the labelled frames (docs/importing.md"
-                             "#held-out-test-frames)")
+                             "labels of; 'last' holds out the recording's last frames with labels as one "
+                             "block (train on its start, test on what follows); 'random' draws them among "
+                             "the labelled frames (docs/importing.md#held-out-test-frames)")
     parser.add_argument("--margin", type=number(int, ge=0), default=None,
                         help="frames kept between the test blocks and the nearest labelled frame (default "
                              "10, less on a recording too short for it, said in a note)")

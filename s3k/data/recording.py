@@ -159,8 +159,9 @@ class SplitOptions:
         stride: keep every ``stride``-th video frame as unlabelled.
         min_views: a frame can be labelled/test when a keypoint is labelled in this many cameras.
         test_frames: ``"blocks"`` (test frames in ``blocks`` contiguous runs, no labelled frame within
-            ``margin`` frames of them), ``"random"``, or ``"session"`` (every labelled frame a test frame,
-            nothing to train on: a held-out session); :mod:`s3k.data.splits`.
+            ``margin`` frames of them), ``"last"`` (one block, the last frames with labels), ``"random"``,
+            or ``"session"`` (every labelled frame a test frame, nothing to train on: a held-out session);
+            :mod:`s3k.data.splits`.
         margin: frames between the test blocks and the labelled frames (None: the default, or less where
             the recording is too short, said in a note).
         blocks: the number of contiguous test blocks.
@@ -280,7 +281,8 @@ def _choose_splits(candidates: np.ndarray, frames: np.ndarray, split: SplitOptio
         chosen = split_frames(candidates, frames, n_labelled, split.test, split.seed, split.stride)
         return chosen, n_labelled, split
     splits = held_out_split(candidates, frames, n_labelled, split.test, split.seed, split.stride,
-                            split.margin, split.blocks, fewer_ok=split.labelled is None)
+                            split.margin, split.blocks, fewer_ok=split.labelled is None,
+                            last=split.test_frames == "last")
     return splits, n_labelled, split
 
 

@@ -4,7 +4,9 @@ on a stretch of recording it has not seen labels of (``s3k import --test-frames`
 ``blocks`` (the default): the test frames are ``blocks`` contiguous runs of the frames that have labels, at
 random places, and no labelled frame lies within ``margin`` frames of a test frame. ``random``: test and
 labelled frames drawn at random from the same frames (a test frame is then often a few frames from a labelled
-one: the figure says how well a model fills in between its labels). ``session``: the whole recording is held
+one: the figure says how well a model fills in between its labels). ``last``: one block, the last frames
+that have labels, with the labelled frames before it (train on the start of a recording, test on what
+follows). ``session``: the whole recording is held
 out, every frame with labels a test frame and no frame used for training (``--test-sessions``).
 """
 
@@ -20,8 +22,8 @@ from s3k.data.import_choices import DEFAULT_LABELLED
 
 log = logging.getLogger(__name__)
 
-TestFrames = Literal["blocks", "random", "session"]
-TEST_FRAMES: tuple[TestFrames, ...] = ("blocks", "random", "session")
+TestFrames = Literal["blocks", "last", "random", "session"]
+TEST_FRAMES: tuple[TestFrames, ...] = ("blocks", "last", "random", "session")
 DEFAULT_MARGIN = 10
 """Frames kept between the test blocks and the nearest labelled frame when ``--margin`` is not given (less,
 said in a note, where the recording is too short for it)."""
@@ -57,8 +59,9 @@ def distances_to(frames: np.ndarray, marks: np.ndarray) -> np.ndarray:
 
 def held_out_split(candidates: np.ndarray, all_frames: np.ndarray, n_labelled: int | str, n_test: int,
                    seed: int, stride: int, margin: int | None = None, blocks: int = 1,
-                   fewer_ok: bool = False) -> dict[int, str]:
-    """Test frames in ``blocks`` contiguous runs of ``candidates`` (the frames that have labels); labelled
+                   fewer_ok: bool = False, last: bool = False) -> dict[int, str]:
+    """Test frames in ``blocks`` contiguous runs of ``candidates`` (the frames that have labels), or with
+    ``last`` in one run at their end; labelled
     frames (a count, or ``"all"``) at random among the candidates more than ``margin`` frames from every test
     frame; every ``stride``-th other frame unlabelled.
 
@@ -73,7 +76,7 @@ def held_out_split(candidates: np.ndarray, all_frames: np.ndarray, n_labelled: i
         raise UserError(f"--test {n_test}: only {len(candidates)} frames have a keypoint labelled in >= 2 "
                         "views")
     rng = np.random.default_rng(seed)
-    test = test_blocks(candidates, n_test, blocks, rng)
+    test = candidates[len(candidates) - n_test:] if last else test_blocks(candidates, n_test, blocks, rng)
     rest = np.setdiff1d(candidates, test)
     far = distances_to(rest, test)
     every = str(n_labelled) == "all"

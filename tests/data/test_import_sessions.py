@@ -122,6 +122,19 @@ def test_held_out_blocks_keep_labelled_frames_away(tmp_path, capsys):
         held_out_split(np.arange(40), np.arange(40), 10, 20, 0, 1, margin=15)
 
 
+def test_held_out_last_frames_follow_every_labelled_frame():
+    from s3k.data.splits import held_out_split
+
+    candidates = np.arange(3, 120, 2)  # frames with labels: every other frame, not from 0
+    for margin in (0, 7):
+        splits = held_out_split(candidates, np.arange(120), 10, 20, 1, 1, margin=margin, last=True)
+        test = np.array([f for f, s in splits.items() if s == "test"])
+        labelled = np.array([f for f, s in splits.items() if s == "labelled"])
+        assert list(test) == list(candidates[-20:])
+        assert len(labelled) == 10 and labelled.max() < test.min() - margin
+        assert {s for f, s in splits.items() if f < test.min() and f not in labelled} == {"unlabelled"}
+
+
 def test_import_holds_out_blocks_or_whole_sessions(days, tmp_path, capsys):
     long = write_recording(tmp_path / "long", n_frames=60, seed=3)
     out = tmp_path / "blocks"
