@@ -197,20 +197,20 @@ def label_from_proofread(data: Path, frames: list[int], uv: dict[str, np.ndarray
     return n
 
 
-def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float, seed: int | None = None) -> None:
-    """``s3k train DATA --out OUT --init-from RUN`` with RUN's configuration, ``steps`` at ``lr``, the
-    self-supervised term on from the start; ``seed`` (batches, augmentation) instead of RUN's."""
+def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float | None,
+              seed: int | None = None) -> None:
+    """``s3k train DATA --out OUT --init-from RUN --steps STEPS``: RUN's configuration continued where it
+    ended (each pass at its final learning rate, the self-supervised term on from the start), at ``lr``
+    instead where given; ``seed`` (batches, augmentation) instead of RUN's."""
     from s3k import cli
 
-    if (out / "config.json").is_file():  # started: continued, or (finished) checked and left as it is
-        args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]
+    if (out / "config.json").is_file() or (out / "two_pass_options.json").is_file():  # started: continued,
+        args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]  # or (finished) kept
     else:
-        config = json.loads((run / "config.json").read_text())["config"]
-        cfg_file = out.with_suffix(".config.json")
-        cfg_file.write_text(json.dumps(config))
-        args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--config", str(cfg_file),
-                "--steps", str(steps), "--lr", str(lr), "--warmup-steps", "0", "--ramp-steps", "0",
+        args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--steps", str(steps),
                 "--val-every", "0", "--threads", "1", "--no-progress"]
+        if lr is not None:
+            args += ["--lr", str(lr)]
         if seed is not None:
             args += ["--seed", str(seed)]
     if cli.main(args) != 0:
@@ -282,7 +282,11 @@ def repeats(a, data: Path, reading: tuple, before: dict, first: dict) -> dict:
     from benchmarks.common import t_interval
 
     keypoints = reading[2]
-    base = int(json.loads((Path(a.run) / "config.json").read_text())["config"]["seed"])
+    from s3k.run_folder import RunFolder
+
+    cfg = RunFolder(a.run).config()
+    assert cfg is not None, f"{a.run}: no configuration recorded"
+    base = cfg.execution.seed
     rows = []
     for r in range(a.repeats):
         if r == 0:
@@ -331,7 +335,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--worst", type=int, default=10, help="frames to add and label (default 10)")
     p.add_argument("--spacing", type=int, default=2, help="s3k add-frames --spacing (default 2)")
     p.add_argument("--steps", type=int, default=300, help="fine-tuning steps (default 300)")
-    p.add_argument("--lr", type=float, default=5e-5, help="fine-tuning learning rate (default 5e-5)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="fine-tuning learning rate (default: each pass's final one, as s3k train "
+                        "--init-from takes it)")
     p.add_argument("--label-check", type=float, default=None, metavar="PX",
                    help="the stand-in for a person leaves out a proofread label more than PX full-resolution "
                         "pixels from where the other cameras' labels put it, as the labelling app's check "
