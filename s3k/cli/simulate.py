@@ -70,6 +70,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distance", type=number_pair, default=None, metavar="LO,HI",
                         help="draw the cameras' distances from the aim point from LO to HI metres instead of "
                              "the scene's range")
+    parser.add_argument("--fixed-rig", action="store_true",
+                        help="draw the cameras once for the whole dataset, as a lab's rig stays put through "
+                             "a recording (default: new cameras every frame)")
     parser.add_argument("--workers", type=number(int, ge=1), default=None,
                         help="rendering processes, one MuJoCo renderer each (default: CPUs available)")
     parser.add_argument("--overwrite", action="store_true", help="replace DIR if it exists and is not empty")
@@ -100,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         segments=args.segments, test_segments=args.test_segments,
         train_instances=NUM_TRAIN_INSTANCES if args.train_instances is None else args.train_instances,
         unlabelled_arrangements=args.unlabelled_arrangements, rig=args.rig,
-        elevation=args.elevation, distance=args.distance,
+        elevation=args.elevation, distance=args.distance, fixed_rig=args.fixed_rig,
     )
     if args.preview:
         check_output(args.preview, args.overwrite, option="--preview")

@@ -77,6 +77,9 @@ class SimulateConfig:
         elevation: the cameras' elevations above the table (degrees, ``(lo, hi)``) instead of the scene's;
             a named ``rig`` is drawn relative to the rig this gives.
         distance: the cameras' distances from the aim point (metres, ``(lo, hi)``) instead of the scene's.
+        fixed_rig: draw the cameras once for the whole dataset (from ``seed``), as a lab's rig stays put
+            through a recording, instead of anew for every frame; the frames' poses and lighting are the
+            same either way.
     """
 
     scene: str
@@ -94,6 +97,7 @@ class SimulateConfig:
     rig: str = "train"
     elevation: tuple[float, float] | None = None
     distance: tuple[float, float] | None = None
+    fixed_rig: bool = False
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -143,13 +147,16 @@ class SimulateConfig:
             d.update(rig=self.rig)
         if self.rig != "train" or self.elevation is not None or self.distance is not None:
             d.update(cameras=describe_rig(self.cameras()))
+        if self.fixed_rig:
+            d.update(fixed_rig=True)
         return d
 
     def cameras(self) -> CameraSampler:
         """How this dataset's cameras are drawn: the scene's own rig (with ``elevation`` and ``distance``
         where given) or the one ``rig`` names relative to it."""
         train = ranged_sampler(SCENES[self.scene].cameras_sampler, self.elevation, self.distance)
-        return rig_sampler(train, self.rig)
+        sampler = rig_sampler(train, self.rig)
+        return dataclasses.replace(sampler, fixed=self.seed) if self.fixed_rig else sampler
 
 
 def _spread(n: int, parts: int) -> list[int]:

@@ -92,6 +92,9 @@ class CameraSampler:
         roll_deg: maximum absolute roll about the viewing axis, in degrees.
         azimuth_jitter_deg: cameras are spread evenly in azimuth from a random start, each then moved by up to
             this many degrees (so no two cameras coincide).
+        fixed: None: every frame draws its own cameras (from the frame's generator). A number: the cameras
+            are drawn once, from this seed, and every frame shows them (a rig that stays put, as a lab's
+            does through a recording); the frame's generator is then left untouched by them.
     """
 
     distance: tuple[float, float] = (0.85, 1.15)
@@ -101,9 +104,12 @@ class CameraSampler:
     target_jitter: float = 0.015
     roll_deg: float = 10.0
     azimuth_jitter_deg: float = 35.0
+    fixed: int | None = None
 
     def sample(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Returns camera positions (n, 3) and MuJoCo orientations (n, 3, 3)."""
+        if self.fixed is not None:
+            rng = np.random.default_rng([int(self.fixed), 0xF1CED])
         start = rng.uniform(0, 2 * np.pi)
         eyes, mats = [], []
         for i in range(n):

@@ -231,6 +231,23 @@ def test_worker_processes_give_the_same_frames():
     _assert_same(one, two)
 
 
+def test_a_fixed_rig_keeps_its_cameras_and_the_frames_poses():
+    moving = SimulateConfig("box", size=32, labelled=2, unlabelled=3, test=1, seed=5)
+    fixed = SimulateConfig("box", size=32, labelled=2, unlabelled=3, test=1, seed=5, fixed_rig=True)
+    specs = frame_plan(moving)
+    a, b = list(render_frames(moving, specs, workers=1)), list(render_frames(fixed, specs, workers=1))
+    for name in ("K", "R", "t"):
+        assert all(np.array_equal(getattr(f, name), getattr(b[0], name)) for f in b)  # one rig throughout
+    for name in ("R", "t"):
+        assert not all(np.array_equal(getattr(f, name), getattr(a[0], name)) for f in a)
+    for fa, fb in zip(a, b):  # the same object poses whatever the cameras
+        np.testing.assert_array_equal(fa.points3d, fb.points3d)
+    other = list(render_frames(SimulateConfig("box", size=32, labelled=1, unlabelled=0, test=0, seed=6,
+                                              fixed_rig=True), specs[:1], workers=1))
+    assert not np.array_equal(other[0].t, b[0].t)  # another recording's seed, another rig
+    assert fixed.describe()["fixed_rig"] is True and "fixed_rig" not in moving.describe()
+
+
 # ------------------------------------------------------------------------------------------ pixel size
 def test_scene_pixel_size_follows_the_image_size_and_the_rendered_rigs():
     import torch
