@@ -32,9 +32,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, t_interval, write_and_emit  # noqa: E402
+from benchmarks.common import git_revision, machine_info, paired, t_interval, write_and_emit  # noqa: E402
 from benchmarks.real_comparison import distances  # noqa: E402
-from s3k.base.label_reference import bootstrap_ci  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
 from s3k.experiments.adapt import held_out_as_unlabelled  # noqa: E402
@@ -57,14 +56,6 @@ def scores(detector: Detector, ds: Dataset, ids: np.ndarray) -> np.ndarray:
     """(frames, keypoints) mm distances of ``detector``'s 3D points to the triangulated labels (NaN where
     none)."""
     return distances(detector, ds, ids)[1]
-
-
-def paired(a: np.ndarray, b: np.ndarray) -> dict:
-    """``a - b`` over the points both have: mean, its 95% bootstrap interval over frames, the medians."""
-    both = np.isfinite(a) & np.isfinite(b)
-    diff = np.where(both, a - b, np.nan)
-    return {"mean_diff_mm": float(np.nanmean(diff)), "ci95_mm": bootstrap_ci(diff),
-            "median_mm": [float(np.median(a[both])), float(np.median(b[both]))], "points": int(both.sum())}
 
 
 def main(argv: list[str] | None = None) -> None:

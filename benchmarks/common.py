@@ -106,6 +106,19 @@ def t_interval(x: list[float]) -> list[float] | None:
     return [m - h, m + h]
 
 
+def paired(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
+    """``a - b`` (two ``(frames, points)`` error arrays, NaN where none) over the points both have: the mean,
+    its 95% bootstrap interval over frames, the two medians and the count (None figures without one)."""
+    from s3k.base.label_reference import bootstrap_ci
+
+    both = np.isfinite(a) & np.isfinite(b)
+    if not both.any():
+        return {"mean_diff_mm": None, "ci95_mm": None, "median_mm": None, "points": 0}
+    diff = np.where(both, a - b, np.nan)
+    return {"mean_diff_mm": float(np.nanmean(diff)), "ci95_mm": bootstrap_ci(diff),
+            "median_mm": [float(np.median(a[both])), float(np.median(b[both]))], "points": int(both.sum())}
+
+
 def git_revision() -> str:
     """HEAD of the repository these benchmarks are in, ``+modified`` when tracked files differ from it; run
     from a ``git archive`` of a commit (no repository), the environment's ``S3K_GIT_REVISION``, else

@@ -1,4 +1,4 @@
-"""Several recording sessions against one, on a session neither model saw: does the spread of poses, light
+"""Several recording sessions against one, on sessions neither model saw: does the spread of poses, light
 and camera placements of three sessions beat one session with the same number of labels?
 
 Four sessions of the box scene are rendered (``s3k simulate box``, ``--size``), each with its own ``--seed``
@@ -11,23 +11,39 @@ sessions (``s3k import --into DATASET --session NAME --dataset DIR``):
 - B: session s1 alone with as many labels (10) and as many unlabelled frames (``--unlabelled`` x 3) as A
   holds in all, so that only where the frames come from differs;
 
-both with session s4 added as a held-out session (``--test-sessions s4``: its test frames only). The labelled
-frames of a session are its rendered pool's in the labelling app's *poses in proportion* order (nested: A's 4
-of s1 are among B's 10). S3K trains on A and on B with one configuration (``--preset``, default box-fast, with
+both with held-out sessions (``--test-sessions``: their test frames only): s4, on the training rig, and one
+session per rig no training session used (``--new-rigs``, default high,far,wide: s5, s6, s7, seeds
+``--new-rig-seeds``, default 4,5,6). A dataset built before these sessions existed gets them added in place
+(``s3k import --into``, all or nothing) once no run on it is unfinished. The labelled frames of a session are
+its rendered pool's in the labelling app's *poses in proportion* order (nested: A's 4 of s1 are among B's
+10). S3K trains on A and on B with one configuration (``--preset``, default box-fast, with
 ``--steps``/``--coarse-steps`` over it), one training at a time, one thread, for every ``--seeds``; both
 models are then evaluated (``s3k evaluate``'s figures, per session) on A's test frames: s1's, s2's and s3's
-(which B never saw) and the held-out s4's.
+(which B never saw) and the held-out sessions'. Per seed and held-out session (and the new-rig sessions
+pooled) the paired difference of A's and B's 3D errors on the same points, with a 95% bootstrap interval
+over frames; over seeds its mean with a t-interval.
 
-Everything lives in ``--work``: renders ``render/sN``, datasets ``A`` and ``B``, runs ``runs/{A,B}-seedN``
-(a killed training resumes, a finished one is skipped) and their evaluations ``runs/{A,B}-seedN-test.json``,
-so the same command continues. Writes ``--results``/summary.json (command, revision, machine with CPU flags,
-the configuration, per model and seed the held-out session's median, RMS and share within 10 mm and every
-session's, the mean over seeds, training CPU minutes, the runs still missing) and prints the table.
+With ``--adapt-steps N``, B (which never saw s3, whose cameras moved) is fine-tuned from its final state for
+N steps (``s3k train --init-from``: the run's configuration at its final learning rates, each pass of a
+two-pass run), twice: *adapted* on ``B+s3`` (B plus s3's unlabelled frames, no label of s3, so that the
+self-supervised term sees the moved cameras) and, as a *control*, on B itself (what training longer alone
+does). Per session: B's, adapted's and control's figures and the paired differences adapted - B and
+adapted - control. Adaptation should improve s3 and must not make s1 worse.
+
+Everything lives in ``--work``: renders ``render/sN``, datasets ``A``, ``B`` and ``B+s3``, runs
+``runs/{A,B}-seedN`` and ``runs/B-seedN-{adapted,control}N`` (a killed training resumes, a finished one is
+skipped) and their evaluations ``runs/RUN-test.json`` with the per-point 3D errors ``runs/RUN-test.npz``
+(evaluated again only when the dataset has a session they lack), so the same command continues. Writes
+``--results``/summary.json (command, revision, machine with CPU flags, the configuration, per model and seed
+every session's median, RMS and share within 10 mm, the held-out sessions' (``held_out``: s4's,
+``held_out_new_rigs``: per session its rig and both models'), the mean over seeds, the paired differences,
+the adaptation, training CPU minutes, the runs still missing) and prints the tables.
 
 Example::
 
     python benchmarks/sessions.py --work /tmp/sess-bench/work      # 2 trainings of box-fast, 8 CPU-min each
     python benchmarks/sessions.py --seeds 0,1                       # the same with seed 1 too
+    python benchmarks/sessions.py --seeds 0,1 --adapt-steps 500 --work /tmp/sess-bench/work   # B adapted
     python benchmarks/sessions.py --summary-only                    # summary from the runs finished so far
 """
 
@@ -48,7 +64,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info  # noqa: E402
+from benchmarks.common import git_revision, machine_info, paired, t_interval  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.train.presets import PRESETS  # noqa: E402
 
@@ -56,7 +72,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SESSIONS = ("s1", "s2", "s3", "s4")
 HELD_OUT = "s4"
 FIGURES = ("median_mm", "rms_mm", "pck_10mm", "pck_5mm", "rms_px", "n_3d")
+SHOWN = ("median_mm", "rms_mm", "pck_10mm")
 RIGS = ("train", "low", "high", "far", "wide")
+POOLED = "new_rigs"
 
 
 def counts(text: str) -> tuple[int, ...]:
@@ -66,6 +84,15 @@ def counts(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"numbers separated by commas, got {text!r}") from None
     if min(out) < 0:
         raise argparse.ArgumentTypeError(f"numbers must be >= 0, got {text!r}")
+    return out
+
+
+def rigs(text: str) -> tuple[str, ...]:
+    out = tuple(r for r in text.split(",") if r)
+    wrong = [r for r in out if r not in RIGS]
+    if wrong or len(set(out)) != len(out):
+        raise argparse.ArgumentTypeError(f"distinct rigs of {', '.join(RIGS)} separated by commas, got "
+                                         f"{text!r}")
     return out
 
 
@@ -82,12 +109,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--moved-session", choices=SESSIONS, default="s3",
                    help="the session whose cameras moved (default s3)")
     p.add_argument("--moved-rig", choices=RIGS, default="low", help="its --rig (default low)")
+    p.add_argument("--new-rigs", type=rigs, default=("high", "far", "wide"),
+                   help="rigs of the held-out sessions s5, s6, ... beside s4 (default high,far,wide; "
+                        "'': none)")
+    p.add_argument("--new-rig-seeds", type=counts, default=(4, 5, 6),
+                   help="s3k simulate --seed of those sessions, in order (default 4,5,6)")
     p.add_argument("--seeds", type=counts, default=(0,), help="training seeds (default 0)")
     p.add_argument("--preset", default="box-fast", choices=list(PRESETS), help="training preset (default "
                                                                                 "box-fast)")
     p.add_argument("--steps", type=int, default=None, help="refining pass steps (default: the preset's)")
     p.add_argument("--coarse-steps", type=int, default=None, help="coarse pass steps (default: the preset's)")
     p.add_argument("--train-options", default="", help="more `s3k train` options for both models")
+    p.add_argument("--adapt-steps", type=int, default=0,
+                   help="fine-tune B this many steps (each pass) on B+s3 (adapted) and on B (control); "
+                        "default 0: none")
     p.add_argument("--work", default=None, help="working folder (default runs/sessions)")
     p.add_argument("--results", default=None, help="folder of summary.json (default docs/results/sessions)")
     p.add_argument("--summary-only", action="store_true",
@@ -100,40 +135,61 @@ def log(msg: str) -> None:
     print(f"[sessions {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
+def new_sessions(args: argparse.Namespace) -> dict[str, tuple[str, int]]:
+    """The held-out sessions on rigs no training session used: ``{s5: (rig, seed), ...}``."""
+    return {f"s{len(SESSIONS) + 1 + i}": (rig, seed)
+            for i, (rig, seed) in enumerate(zip(args.new_rigs, args.new_rig_seeds))}
+
+
+def held_out_sessions(args: argparse.Namespace) -> list[str]:
+    """s4 and the new-rig sessions."""
+    return [HELD_OUT, *new_sessions(args)]
+
+
 def render(work: Path, args: argparse.Namespace) -> dict[str, Path]:
-    """``work/render/sN`` of every session, rendered once (s4: test frames only; s1: B's labels and
-    unlabelled frames, a pool A's are chosen from)."""
+    """``work/render/sN`` of every session, rendered once (held-out sessions: test frames only; s1: B's
+    labels and unlabelled frames, a pool A's are chosen from)."""
     from s3k.sim.generate import SimulateConfig, simulate
 
+    plans = {name: (args.moved_rig if name == args.moved_session else "train", args.session_seeds[i])
+             for i, name in enumerate(SESSIONS)} | new_sessions(args)
     out = {}
-    for i, name in enumerate(SESSIONS):
+    for name, (rig, seed) in plans.items():
         folder = work / "render" / name
         out[name] = folder
         if (folder / "s3k.json").is_file():
+            source = json.loads((folder / "s3k.json").read_text()).get("source", {})
+            if (source.get("rig", rig), source.get("seed", seed)) != (rig, seed):
+                raise SystemExit(f"{folder} was rendered with rig {source.get('rig')} and seed "
+                                 f"{source.get('seed')}, not {rig} and {seed}: give the options it was made "
+                                 "with, or another --work")
             continue
-        if name == HELD_OUT:
+        if name in held_out_sessions(args):
             labelled, unlabelled = 0, 0
         else:
             labelled = max(sum(args.labelled), 1)
             unlabelled = 3 * args.unlabelled if name == "s1" else args.unlabelled
-        rig = args.moved_rig if name == args.moved_session else "train"
-        log(f"rendering {name}: seed {args.session_seeds[i]}, rig {rig}, {labelled} labelled, {unlabelled} "
-            f"unlabelled, {args.test} test")
+        log(f"rendering {name}: seed {seed}, rig {rig}, {labelled} labelled, {unlabelled} unlabelled, "
+            f"{args.test} test")
         config = SimulateConfig("box", size=args.size, labelled=labelled, unlabelled=unlabelled,
-                                test=args.test, seed=args.session_seeds[i], rig=rig)
+                                test=args.test, seed=seed, rig=rig)
         simulate(config, folder, workers=1, progress=False, overwrite=True)
     return out
 
 
-def session_frames(pool_dir: Path, labelled: int, unlabelled: int) -> dict[str, np.ndarray]:
+def session_frames(pool_dir: Path, labelled: int, unlabelled: int,
+                   test: bool = True) -> dict[str, np.ndarray]:
     """The frames of one session in a dataset: ``labelled`` of the pool's in the labelling app's poses in
-    proportion order, the first ``unlabelled`` of its unlabelled frames, every test frame."""
+    proportion order, the first ``unlabelled`` of its unlabelled frames, every test frame (none without
+    ``test``)."""
     from s3k.data import Dataset
     from s3k.experiments.views import select_frames
 
     pool = Dataset.open(pool_dir, cache="none")
     frames = select_frames(pool, labelled, 0, 0, choice="representative")
     frames["unlabelled"] = pool.frames("unlabelled")[:unlabelled]
+    if not test:
+        frames["test"] = frames["test"][:0]
     return frames
 
 
@@ -170,33 +226,73 @@ def add_session(into: Path, session: str, part: Path, held_out: bool = False) ->
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
 
 
+def plans(args: argparse.Namespace) -> dict[str, dict[str, tuple[int, int, bool]]]:
+    """Per dataset, its training sessions' ``(labelled, unlabelled, with test frames)``."""
+    b = {"s1": (sum(args.labelled), 3 * args.unlabelled, True)}
+    out = {"A": {name: (n, args.unlabelled, True) for name, n in zip(SESSIONS[:3], args.labelled)}, "B": b}
+    if args.adapt_steps:
+        out[adapted_name(args)] = {**b, args.moved_session: (0, args.unlabelled, False)}
+    return out
+
+
+def adapted_name(args: argparse.Namespace) -> str:
+    return f"B+{args.moved_session}"
+
+
+def runs_on(work: Path, name: str) -> list[Path]:
+    """The run folders trained on dataset ``name`` (B's: its fine-tunes too, to be safe)."""
+    pattern = {"A": "A-seed*", "B": "B-seed*"}.get(name, "B-seed*-adapted*")
+    return sorted(p for p in (work / "runs").glob(pattern) if p.is_dir())
+
+
 def build_datasets(work: Path, renders: dict[str, Path], args: argparse.Namespace) -> dict[str, Path]:
-    """``work/A`` (s1..s3, ``--labelled`` each) and ``work/B`` (s1, their sum), each with s4 held out; built
-    in a temporary folder and renamed, so each is complete or absent."""
-    plans = {"A": {name: (n, args.unlabelled) for name, n in zip(SESSIONS[:3], args.labelled)},
-             "B": {"s1": (sum(args.labelled), 3 * args.unlabelled)}}
+    """``work/A`` (s1..s3, ``--labelled`` each) and ``work/B`` (s1, their sum), each with the held-out
+    sessions, and with ``--adapt-steps`` ``work/B+s3`` (B's s1 and s3's unlabelled frames); built in a
+    temporary folder and renamed, so each is complete or absent. A and B built before the new-rig sessions
+    existed get them added (:func:`extend`)."""
     out = {}
-    for name, plan in plans.items():
+    for name, plan in plans(args).items():
         final = work / name
         out[name] = final
+        extra = held_out_sessions(args) if name in ("A", "B") else []
         if (final / "s3k.json").is_file():
+            extend(final, extra, renders, runs_on(work, name))
             continue
         tmp = work / f"{name}.building"
         shutil.rmtree(tmp, ignore_errors=True)
         parts = work / f"{name}.parts"
         shutil.rmtree(parts, ignore_errors=True)
-        for i, (session, (labelled, unlabelled)) in enumerate(plan.items()):
-            frames = session_frames(renders[session], labelled, unlabelled)
+        for i, (session, (labelled, unlabelled, test)) in enumerate(plan.items()):
+            frames = session_frames(renders[session], labelled, unlabelled, test)
             if i == 0:
                 write_session(renders[session], tmp, frames, session)
             else:
                 write_session(renders[session], parts / session, frames, session)
                 add_session(tmp, session, parts / session)
-        add_session(tmp, HELD_OUT, renders[HELD_OUT], held_out=True)
+        for session in extra:
+            add_session(tmp, session, renders[session], held_out=True)
         shutil.rmtree(parts, ignore_errors=True)
         os.rename(tmp, final)
         log(f"built {final}")
     return out
+
+
+def extend(dataset: Path, sessions: list[str], renders: dict[str, Path], runs: list[Path]) -> None:
+    """Add to ``dataset`` in place the held-out ``sessions`` it lacks, one ``s3k import --into`` each (all or
+    nothing: the merged dataset is written beside it and takes its place when it reads back). Not while a run
+    on it is unfinished: a changed dataset would refuse its ``--resume``."""
+    from s3k.data import Dataset
+    from s3k.run_folder import RunFolder
+
+    have = Dataset.open(dataset, cache="none").sessions
+    todo = [s for s in sessions if s not in have]
+    busy = [r.name for r in runs if not RunFolder(r).is_complete()]
+    if todo and busy:
+        log(f"{dataset.name}: held-out sessions {', '.join(todo)} are added once {', '.join(busy)} finished")
+        return
+    for session in todo:
+        log(f"adding the held-out session {session} to {dataset}")
+        add_session(dataset, session, renders[session], held_out=True)
 
 
 def train_config(args: argparse.Namespace, seed: int):
@@ -210,14 +306,9 @@ def train_config(args: argparse.Namespace, seed: int):
     return cfg.with_options(shlex.split(args.train_options), where="--train-options")
 
 
-def train(data: Path, run: Path, cfg) -> None:
-    """``s3k train DATA --out RUN --resume`` with ``cfg``'s options, one thread; skipped when finished."""
-    from s3k.run_folder import RunFolder
-
-    if RunFolder(run).is_complete():
-        return
+def run_training(cmd: list[str], run: Path) -> None:
+    """``cmd`` (an ``s3k train`` into ``run``), one thread, its output in ``RUN.console.txt``."""
     run.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--resume", *cfg.to_argv()]
     log(f"training {run.name}: {shlex.join(cmd)}")
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     with open(run.parent / f"{run.name}.console.txt", "a") as console:
@@ -226,37 +317,204 @@ def train(data: Path, run: Path, cfg) -> None:
         raise SystemExit(f"training {run.name} failed (exit {code}); see {run.parent / run.name}.console.txt")
 
 
-def evaluate(run: Path, data: Path) -> dict[str, Any] | None:
-    """The run's test figures on ``data`` per session (kept in ``RUN-test.json``); None for an unfinished
-    run."""
-    from s3k.inference.evaluate import evaluate_run
+def train(data: Path, run: Path, cfg) -> None:
+    """``s3k train DATA --out RUN --resume`` with ``cfg``'s options, one thread; skipped when finished."""
     from s3k.run_folder import RunFolder
 
-    cache = run.parent / f"{run.name}-test.json"
+    if not RunFolder(run).is_complete():
+        run_training([sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--resume",
+                      *cfg.to_argv()], run)
+
+
+def fine_tune(data: Path, base: Path, run: Path, steps: int) -> None:
+    """``s3k train DATA --out RUN --init-from BASE --steps STEPS`` (BASE's configuration at its final learning
+    rates, each pass STEPS), validated on labelled frames; resumed when begun, skipped when finished."""
+    from s3k.run_folder import RunFolder
+
+    if RunFolder(run).is_complete():
+        return
+    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--threads", "1",
+           "--no-progress"]
+    if (run / "config.json").is_file() or (run / "two_pass_options.json").is_file():
+        cmd += ["--resume"]
+    else:
+        cmd += ["--init-from", str(base), "--steps", str(steps), "--val-split", "labelled"]
+    run_training(cmd, run)
+
+
+def test_sessions(data: Path) -> set[str]:
+    """The sessions of ``data`` with test frames (none when it does not exist yet)."""
+    from s3k.data import Dataset
+
+    if not (data / "s3k.json").is_file():
+        return set()
+    ds = Dataset.open(data, cache="none")
+    return set(ds.session_of(ds.frames("test")).tolist())
+
+
+def detect(run: Path, data: Path) -> tuple[dict[str, Any], dict[str, Any], dict[str, np.ndarray]]:
+    """``s3k evaluate``'s figures of ``run`` on ``data``'s test frames (as :func:`evaluate_run` computes
+    them), per session, and the per-point 3D errors: ``{"frames" (F,), "sessions" (F,), "err_mm" (F, K)}``,
+    NaN where a point has no truth or no triangulation."""
+    from s3k.base.metrics import mm_per_unit
+    from s3k.data import Dataset
+    from s3k.data.frames import FrameStore
+    from s3k.detector import Detector, evaluate_store
+    from s3k.inference.evaluate import per_session
+
+    detector = Detector.load(run, "cpu")
+    ds = Dataset.open(data, cache="none")
+    store = FrameStore(ds, np.asarray(ds.frames("test")), preload_mb=0, labels=True, points=True)
+    metrics, arrays = evaluate_store(detector, store, 16, ds.units, label_reference=True)
+    _, sessions = per_session(ds, arrays, detector.keypoints)
+    if arrays["X_gt"] is None:
+        raise SystemExit(f"{data}: its test frames have no 3D points")
+    err = np.linalg.norm(arrays["X"] - np.asarray(arrays["X_gt"], np.float64), axis=-1)
+    err = err * mm_per_unit(ds.units)
+    known = np.asarray(arrays["X_valid"], bool)
+    if arrays["X_gt_mask"] is not None:
+        known &= np.asarray(arrays["X_gt_mask"], bool)
+    frames = np.asarray(arrays["frame_ids"], np.int64)
+    points = {"frames": frames, "sessions": np.asarray(ds.session_of(frames)).astype(str),
+              "err_mm": np.where(known & np.isfinite(err), err, np.nan)}
+    return metrics, sessions, points
+
+
+def evaluate(run: Path, data: Path, wanted: set[str]) -> dict[str, Any] | None:
+    """The run's test figures on ``data`` per session, kept in ``RUN-test.json`` with the per-point 3D errors
+    in ``RUN-test.npz`` (evaluated again when a session of ``wanted`` is not there); None for an unfinished
+    run."""
+    from s3k.run_folder import RunFolder
+
+    cache, points = run.parent / f"{run.name}-test.json", run.parent / f"{run.name}-test.npz"
     if cache.is_file():
-        return json.loads(cache.read_text())
+        result = json.loads(cache.read_text())
+        if points.is_file() and wanted <= set(result["sessions"]):
+            return result
     if not RunFolder(run).is_complete():
         return None
-    metrics = evaluate_run(run, data, device="cpu")
+    log(f"evaluating {run.name} on {data}")
+    metrics, sessions, errors = detect(run, data)
     cpu = RunFolder(run).read_cpu()
     result = {"all_sessions": {k: metrics[k] for k in FIGURES},
-              "sessions": {s: {k: m[k] for k in (*FIGURES, "n_frames")}
-                           for s, m in metrics["sessions"].items()},
+              "sessions": {s: {k: m[k] for k in (*FIGURES, "n_frames")} for s, m in sessions.items()},
               "train_cpu_minutes": sum(cpu.values()) / 60 if cpu else None}
-    cache.write_text(json.dumps(result, indent=2) + "\n")
+    tmp = points.parent / f".{points.name}.writing"
+    with open(tmp, "wb") as f:
+        np.savez(f, **errors)
+    os.replace(tmp, points)
+    from s3k.base.fileio import atomic_write_json
+
+    atomic_write_json(result, cache)
     return result
 
 
+def point_errors(run: Path) -> dict[str, np.ndarray] | None:
+    path = run.parent / f"{run.name}-test.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def paired_on(a: dict[str, np.ndarray], b: dict[str, np.ndarray], sessions: list[str]) -> dict[str, Any]:
+    """:func:`paired` differences ``a - b`` on the frames of ``sessions`` both were evaluated on."""
+    def part(e):
+        sel = np.isin(e["sessions"], sessions)
+        return e["frames"][sel], e["err_mm"][sel]
+
+    (fa, ea), (fb, eb) = part(a), part(b)
+    _, ia, ib = np.intersect1d(fa, fb, return_indices=True)
+    return paired(ea[ia], eb[ib])
+
+
+def differences(first: dict[int, Path], second: dict[int, Path], groups: dict[str, list[str]]) -> dict:
+    """Per seed and group of sessions the paired difference of ``first``'s and ``second``'s 3D errors; over
+    seeds the mean of those with a 95% t-interval."""
+    per_seed: dict[int, dict[str, Any]] = {}
+    for seed in first:
+        a, b = point_errors(first[seed]), point_errors(second[seed])
+        if a is not None and b is not None:
+            per_seed[seed] = {g: paired_on(a, b, sessions) for g, sessions in groups.items()}
+    over = {}
+    for g in groups:
+        x = [d[g]["mean_diff_mm"] for d in per_seed.values() if d[g]["mean_diff_mm"] is not None]
+        over[g] = {"mean_mm": float(np.mean(x)) if x else None, "ci95_mm": t_interval(x), "seeds": len(x)}
+    return {"per_seed": per_seed, "over_seeds": over}
+
+
 def summarise(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
-    """Per model: the mean over seeds of each session's figures, the held-out session's first."""
+    """Per model: the mean over seeds of the figures of each session every seed has."""
     out: dict[str, Any] = {}
     for model, per_seed in results.items():
         if not per_seed:
             continue
-        sessions = next(iter(per_seed.values()))["sessions"]
-        out[model] = {s: {k: float(np.mean([r["sessions"][s][k] for r in per_seed.values()]))
-                          for k in ("median_mm", "rms_mm", "pck_10mm")} for s in sessions}
+        sessions = [s for s in next(iter(per_seed.values()))["sessions"]
+                    if all(s in r["sessions"] for r in per_seed.values())]
+        out[model] = {s: {k: float(np.mean([r["sessions"][s][k] for r in per_seed.values()])) for k in SHOWN}
+                      for s in sessions}
     return out
+
+
+def adaptation_section(args, results, runs: dict[str, dict[int, Path]], sessions: list[str]) -> dict:
+    """Per seed and session B's, adapted's and control's figures with the paired differences adapted - B and
+    adapted - control (and the differences on the new-rig sessions pooled); over seeds the mean figures and
+    the differences' means with t-intervals."""
+    models = ("B", "adapted", "control")
+    seeds = [seed for seed in args.seeds if all(seed in results[m] for m in models)]
+    first = [args.moved_session, "s1"]
+    order = [s for s in [*first, *(s for s in sessions if s not in first)]
+             if all(s in results[m][seed]["sessions"] for m in models for seed in seeds)]
+    new = [s for s in new_sessions(args) if s in order]
+    groups = {s: [s] for s in order} | ({POOLED: new} if new else {})
+    pick = {m: {seed: runs[m][seed] for seed in seeds} for m in models}
+    diffs = {"adapted_minus_B": differences(pick["adapted"], pick["B"], groups),
+             "adapted_minus_control": differences(pick["adapted"], pick["control"], groups)}
+
+    def figures(group: str, seeds: list[int]) -> dict[str, Any]:
+        if group == POOLED or not seeds:
+            return {}
+        return {m: {k: float(np.mean([results[m][seed]["sessions"][group][k] for seed in seeds]))
+                    for k in SHOWN} for m in models}
+
+    per_seed = {seed: {g: {**figures(g, [seed]),
+                           **{d: diffs[d]["per_seed"].get(seed, {}).get(g) for d in diffs}}
+                       for g in groups} for seed in seeds}
+    over = {g: {**figures(g, seeds), **{d: diffs[d]["over_seeds"][g] for d in diffs}} for g in groups}
+    return {"steps": args.adapt_steps, "dataset": adapted_name(args), "adapted_to": args.moved_session,
+            "pooled": {POOLED: new}, "seeds": seeds, "per_seed": per_seed, "over_seeds": over}
+
+
+def interval(d: dict[str, Any], mean: str = "mean_diff_mm", ci: str = "ci95_mm") -> str:
+    if d.get(mean) is None:
+        return "n/a"
+    lo_hi = f" [{d[ci][0]:+.2f}, {d[ci][1]:+.2f}]" if d.get(ci) else ""
+    return f"{d[mean]:+.2f}{lo_hi}"
+
+
+def print_tables(summary: dict[str, Any], results, args) -> None:
+    rigs_of = {s: rig for s, (rig, _) in new_sessions(args).items()}
+    for model, per_session in summary["mean_over_seeds"].items():
+        for s, m in per_session.items():
+            note = (" (held out)" if s == HELD_OUT else f" (held out, rig {rigs_of[s]})" if s in rigs_of
+                    else "")
+            print(f"{model} ({len(results[model])} seeds) {s}{note}: median {m['median_mm']:.2f} mm, RMS "
+                  f"{m['rms_mm']:.2f} mm, within 10 mm {100 * m['pck_10mm']:.1f}%", file=sys.stderr)
+    for g, d in summary["paired"]["over_seeds"].items():
+        seeds = "; ".join(f"seed {seed} {interval(p[g])}"
+                          for seed, p in summary["paired"]["per_seed"].items())
+        print(f"A - B, 3D error on the same points, {g}: {seeds}; mean over seeds "
+              f"{interval(d, 'mean_mm')} mm", file=sys.stderr)
+    adaptation = summary.get("adaptation")
+    if adaptation:
+        print(f"adaptation ({adaptation['steps']} steps, {len(adaptation['seeds'])} seeds), median mm B / "
+              "adapted / control, mean differences (mm, t-interval over seeds):", file=sys.stderr)
+        for s, d in adaptation["over_seeds"].items():
+            figures = " / ".join(f"{d[m]['median_mm']:.2f}" for m in ("B", "adapted", "control") if m in d)
+            to = " (adapted to)" if s == adaptation["adapted_to"] else ""
+            print(f"  {s}{to}: {figures or '-'}; adapted - B {interval(d['adapted_minus_B'], 'mean_mm')}, "
+                  "adapted - control "
+                  f"{interval(d['adapted_minus_control'], 'mean_mm')}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -264,28 +522,48 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if len(args.labelled) != 3 or len(args.session_seeds) != 4:
         p.error("--labelled takes three counts (s1,s2,s3), --session-seeds four (s1..s4)")
+    if len(args.new_rig_seeds) < len(args.new_rigs):
+        p.error(f"--new-rig-seeds: {len(args.new_rigs)} seeds needed, one per --new-rigs")
+    if args.adapt_steps and args.moved_session not in ("s2", "s3"):
+        p.error("--adapt-steps adapts B to the moved session, which must be s2 or s3 (B holds s1)")
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     started = time.perf_counter()
     work = Path(args.work or ROOT / "runs" / "sessions")
     results_dir = Path(args.results or ROOT / "docs" / "results" / "sessions")
+    runs_dir = work / "runs"
+    runs = {m: {seed: runs_dir / f"{m}-seed{seed}" for seed in args.seeds} for m in ("A", "B")}
+    if args.adapt_steps:
+        for kind in ("adapted", "control"):
+            runs[kind] = {seed: runs_dir / f"B-seed{seed}-{kind}{args.adapt_steps}" for seed in args.seeds}
+    datasets = {name: work / name for name in ("A", "B", adapted_name(args))}
     if not args.summary_only:
+        from s3k.run_folder import RunFolder
+
         renders = render(work, args)
         datasets = build_datasets(work, renders, args)
-    else:
-        datasets = {"A": work / "A", "B": work / "B"}
-    results: dict[str, dict[int, dict[str, Any]]] = {"A": {}, "B": {}}
+        for seed in args.seeds:
+            for model in ("A", "B"):
+                train(datasets[model], runs[model][seed], train_config(args, seed))
+            if args.adapt_steps and RunFolder(runs["B"][seed]).is_complete():
+                fine_tune(datasets[adapted_name(args)], runs["B"][seed], runs["adapted"][seed],
+                          args.adapt_steps)
+                fine_tune(datasets["B"], runs["B"][seed], runs["control"][seed], args.adapt_steps)
+        for name in ("A", "B"):  # those a run still training held back
+            extend(datasets[name], held_out_sessions(args), renders, runs_on(work, name))
+    wanted = test_sessions(datasets["A"])
+    results: dict[str, dict[int, dict[str, Any]]] = {m: {} for m in runs}
     missing = []
-    for seed in args.seeds:
-        for model in ("A", "B"):
-            run = work / "runs" / f"{model}-seed{seed}"
-            if not args.summary_only:
-                train(datasets[model], run, train_config(args, seed))
-            r = evaluate(run, datasets["A"])
+    for model, per_seed in runs.items():
+        for seed, run in per_seed.items():
+            r = evaluate(run, datasets["A"], wanted)
             if r is None:
                 missing.append(run.name)
             else:
                 results[model][seed] = r
     mean = summarise(results)
+    new = {s: s for s in new_sessions(args)}
+    held = [s for s in held_out_sessions(args) if s in wanted]
+    groups = {s: [s] for s in held} | ({POOLED: [s for s in new if s in wanted]} if set(new) & wanted else {})
     given = sys.argv[1:] if argv is None else argv
     summary = {
         "command": shlex.join(["python", "benchmarks/sessions.py", *without_notes(given)]),
@@ -295,23 +573,29 @@ def main(argv: list[str] | None = None) -> int:
             "unlabelled": {"A": {s: args.unlabelled for s in SESSIONS[:3]}, "B": {"s1": 3 * args.unlabelled}},
             "test_per_session": args.test, "session_seeds": dict(zip(SESSIONS, args.session_seeds)),
             "moved": {"session": args.moved_session, "rig": args.moved_rig}, "held_out": HELD_OUT,
+            "new_rigs": {s: {"rig": rig, "seed": seed} for s, (rig, seed) in new_sessions(args).items()},
+            "adapt_steps": args.adapt_steps,
             "train": train_config(args, 0).to_argv(), "preset": args.preset},
-        "held_out": {m: mean[m][HELD_OUT] for m in mean if HELD_OUT in mean[m]},
+        "held_out": {m: mean[m][HELD_OUT] for m in ("A", "B") if HELD_OUT in mean.get(m, {})},
+        "held_out_new_rigs": {s: {"rig": rig, **{m: mean[m][s] for m in ("A", "B") if s in mean.get(m, {})}}
+                              for s, (rig, _) in new_sessions(args).items() if s in wanted},
+        "paired": {"what": "A's minus B's 3D error (mm) on the same test points; 95% bootstrap interval over "
+                           "frames per seed, t-interval over seeds",
+                   "pooled": {POOLED: groups.get(POOLED, [])},
+                   **differences(runs["A"], runs["B"], groups)},
         "mean_over_seeds": mean,
         "per_seed": results,
         "missing_runs": missing,
         "minutes_this_call": (time.perf_counter() - started) / 60,
         **({"notes": args.notes} if args.notes else {}),
     }
+    if args.adapt_steps:
+        summary["adaptation"] = adaptation_section(args, results, runs, sorted(wanted))
     results_dir.mkdir(parents=True, exist_ok=True)
     from s3k.base.fileio import atomic_write_json
 
     atomic_write_json(summary, results_dir / "summary.json")
-    for model, per_session in mean.items():
-        for s, m in per_session.items():
-            print(f"{model} ({len(results[model])} seeds) {s}{' (held out)' if s == HELD_OUT else ''}: "
-                  f"median {m['median_mm']:.2f} mm, RMS {m['rms_mm']:.2f} mm, within 10 mm "
-                  f"{100 * m['pck_10mm']:.1f}%", file=sys.stderr)
+    print_tables(summary, results, args)
     if missing:
         print(f"runs without a result yet: {', '.join(missing)}", file=sys.stderr)
     print(json.dumps({k: summary[k] for k in ("command", "git_revision", "held_out", "missing_runs")}))
