@@ -1,6 +1,7 @@
-"""benchmarks/sessions.py on a tiny box: the four rendered sessions, dataset A (three sessions) and B (one,
-as many labels and frames) each with the fourth held out, a few training steps, and a summary per session
-written again from the runs' results."""
+"""benchmarks/sessions.py on a tiny box: the rendered sessions, dataset A (three sessions) and B (one, as many
+labels and frames) each with the fourth held out, a few training steps, and a summary per session written
+again from the runs' results; then the held-out sessions on new rigs added to those datasets in place
+(nothing retrained), the paired A - B differences, and B adapted to the moved session beside a control."""
 
 from __future__ import annotations
 
@@ -39,10 +40,11 @@ def split_counts(ds: Dataset) -> dict[tuple[str, str], int]:
 def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
     work, results = tmp_path / "work", tmp_path / "results"
     args = [*TINY, "--work", str(work), "--results", str(results)]
-    assert bench(["--summary-only", *args]) == 0  # nothing trained yet: every run missing
+    old = [*args, "--new-rigs", ""]  # as the benchmark was before the new-rig sessions: s4 held out alone
+    assert bench(["--summary-only", *old]) == 0  # nothing trained yet: every run missing
     assert json.loads((results / "summary.json").read_text())["missing_runs"] == ["A-seed0", "B-seed0"]
 
-    assert bench(args) == 0
+    assert bench(old) == 0
     a, b = Dataset.open(work / "A"), Dataset.open(work / "B")
     assert a.sessions == ["s1", "s2", "s3", "s4"] and b.sessions == ["s1", "s4"]
     assert split_counts(a) == {("s1", "labelled"): 2, ("s2", "labelled"): 1, ("s3", "labelled"): 1,
@@ -53,10 +55,6 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
                                ("s4", "test"): 2}
     # A's labels of s1 are among B's (the same frames of the same render, the labelling app's order)
     assert set(a.frames("labelled", session="s1")) < set(b.frames("labelled", session="s1"))
-    # the moved session's cameras stand lower than the others' (--rig low): their mean height above the aim
-    heights = {s: float(np.mean(np.asarray(a.calibration(a.frames(session=s)).centres())[..., 2]))
-               for s in a.sessions}
-    assert heights["s3"] < min(heights["s1"], heights["s2"], heights["s4"])
     held = a.frames("test", session="s4")
     assert np.array_equal(a.images(held[:1]), b.images(b.frames("test", session="s4")[:1]))
 
@@ -71,9 +69,63 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
     assert summary["setup"]["sessions"] == {"A": {"s1": 2, "s2": 1, "s3": 1}, "B": {"s1": 4}}
     assert summary["command"].startswith("python benchmarks/sessions.py --size 64")
     assert "cpu_flags" in summary["machine"]
+    assert summary["held_out_new_rigs"] == {} and set(summary["paired"]["over_seeds"]) == {"s4"}
 
     # the same command again trains nothing and evaluates nothing: the runs' results are read back
     stamp = {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()}
-    assert bench(["--summary-only", *args]) == 0
+    assert bench(["--summary-only", *old]) == 0
     assert {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()} == stamp
     assert json.loads((results / "summary.json").read_text())["held_out"] == summary["held_out"]
+
+    # the default command: s5..s7 (rigs high, far, wide) rendered and added to A and B in place, the runs
+    # evaluated again on them but not trained again; B fine-tuned on B+s3 and on B
+    weights = {p: p.stat().st_mtime_ns for p in (work / "runs").rglob("*.pt")}
+    assert weights
+    assert bench([*args, "--adapt-steps", "2"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in weights} == weights
+    a, b, adapt = Dataset.open(work / "A"), Dataset.open(work / "B"), Dataset.open(work / "B+s3")
+    new = {"s5": "high", "s6": "far", "s7": "wide"}
+    assert a.sessions == ["s1", "s2", "s3", "s4", *new] and b.sessions == ["s1", "s4", *new]
+    for ds in (a, b):
+        assert all(split_counts(ds)[(s, "test")] == 2 for s in new)
+        assert {s for s, _ in split_counts(ds)} - {"s1", "s2", "s3"} == {"s4", *new}
+        assert not any(s in new and split != "test" for s, split in split_counts(ds))
+    # B+s3: B's s1 and s3's unlabelled frames (A's), no label and no test frame of s3
+    assert split_counts(adapt) == {("s1", "labelled"): 4, ("s1", "unlabelled"): 9, ("s1", "test"): 2,
+                                   ("s3", "unlabelled"): 3}
+    # the cameras stand where the rigs say: s3 (low) lower, s5 (high) higher than the training rig's
+    heights = {s: float(np.mean(np.asarray(a.calibration(a.frames(session=s)).centres())[..., 2]))
+               for s in a.sessions}
+    assert heights["s3"] < min(heights["s1"], heights["s2"], heights["s4"]) < heights["s5"]
+    assert max(heights["s1"], heights["s2"], heights["s4"]) < heights["s5"]
+
+    summary = json.loads((results / "summary.json").read_text())
+    assert summary["missing_runs"] == []
+    assert set(summary["per_seed"]["A"]["0"]["sessions"]) == {"s1", "s2", "s3", "s4", *new}
+    assert {s: d["rig"] for s, d in summary["held_out_new_rigs"].items()} == new
+    assert all(set(d) == {"rig", "A", "B"} for d in summary["held_out_new_rigs"].values())
+    paired = summary["paired"]
+    assert set(paired["per_seed"]["0"]) == {"s4", *new, "new_rigs"} and paired["pooled"]["new_rigs"] == [*new]
+    for d in paired["per_seed"]["0"].values():
+        assert np.isfinite(d["mean_diff_mm"]) and d["points"] > 0 and len(d["ci95_mm"]) == 2
+    pooled = paired["per_seed"]["0"]["new_rigs"]["points"]
+    assert pooled == sum(paired["per_seed"]["0"][s]["points"] for s in new)
+    adaptation = summary["adaptation"]
+    assert adaptation["steps"] == 2 and adaptation["adapted_to"] == "s3" and adaptation["seeds"] == [0]
+    sessions = adaptation["per_seed"]["0"]
+    assert list(sessions)[:2] == ["s3", "s1"] and {"s4", *new, "new_rigs"} <= set(sessions)
+    for s in ("s3", "s1", "s5"):
+        assert set(sessions[s]) == {"B", "adapted", "control", "adapted_minus_B", "adapted_minus_control"}
+        assert sessions[s]["B"] == summary["mean_over_seeds"]["B"][s]
+        assert np.isfinite(sessions[s]["adapted_minus_control"]["mean_diff_mm"])
+    assert adaptation["over_seeds"]["s3"]["adapted_minus_B"]["mean_mm"] == \
+        sessions["s3"]["adapted_minus_B"]["mean_diff_mm"]
+    for kind in ("adapted2", "control2"):
+        assert (work / "runs" / f"B-seed0-{kind}-test.npz").is_file()
+
+    # and once more: nothing trained, nothing evaluated, nothing added
+    stamp = {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()}
+    assert bench(["--summary-only", *args, "--adapt-steps", "2"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()} == stamp
+    again = json.loads((results / "summary.json").read_text())
+    assert again["paired"] == summary["paired"] and again["adaptation"] == summary["adaptation"]
