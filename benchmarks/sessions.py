@@ -3,8 +3,11 @@ and camera placements of three sessions beat one session with the same number of
 
 Four sessions of the box scene are rendered (``s3k simulate box``, ``--size``), each with its own ``--seed``
 (object poses, cameras, lighting); one of them (``--moved-session``, default s3) with its cameras drawn from
-another rig (``--moved-rig``, default low: "the cameras moved"). Two datasets are built, each a dataset of
-sessions (``s3k import --into DATASET --session NAME --dataset DIR``):
+another rig (``--moved-rig``, default low: "the cameras moved"). By default every frame draws its own cameras
+from its session's rig, so sessions of one rig differ only in their frames' draws; ``--fixed-rigs`` draws
+each session's cameras once (``s3k simulate --fixed-rig``), as a lab's rig stays put through a recording:
+B then sees one placement of four cameras, A three, and each held-out session another. Two datasets are
+built, each a dataset of sessions (``s3k import --into DATASET --session NAME --dataset DIR``):
 
 - A: sessions s1, s2 and s3 with ``--labelled`` frames each (default 4,3,3: 10 labels in all) and
   ``--unlabelled`` frames each;
@@ -45,6 +48,7 @@ Example::
     python benchmarks/sessions.py --seeds 0,1                       # the same with seed 1 too
     python benchmarks/sessions.py --seeds 0,1 --adapt-steps 500 --work /tmp/sess-bench/work   # B adapted
     python benchmarks/sessions.py --summary-only                    # summary from the runs finished so far
+    python benchmarks/sessions.py --fixed-rigs --seeds 0,1 --adapt-steps 500 --work /tmp/sess-fixed/work
 """
 
 from __future__ import annotations
@@ -114,6 +118,10 @@ def parser() -> argparse.ArgumentParser:
                         "'': none)")
     p.add_argument("--new-rig-seeds", type=counts, default=(4, 5, 6),
                    help="s3k simulate --seed of those sessions, in order (default 4,5,6)")
+    p.add_argument("--fixed-rigs", action="store_true",
+                   help="each session's cameras drawn once (s3k simulate --fixed-rig), as a lab's rig stays "
+                        "put through a recording (default: new cameras every frame, so that sessions of one "
+                        "rig differ only in their frames' draws)")
     p.add_argument("--seeds", type=counts, default=(0,), help="training seeds (default 0)")
     p.add_argument("--preset", default="box-fast", choices=list(PRESETS), help="training preset (default "
                                                                                 "box-fast)")
@@ -159,10 +167,12 @@ def render(work: Path, args: argparse.Namespace) -> dict[str, Path]:
         out[name] = folder
         if (folder / "s3k.json").is_file():
             source = json.loads((folder / "s3k.json").read_text()).get("source", {})
-            if (source.get("rig", rig), source.get("seed", seed)) != (rig, seed):
-                raise SystemExit(f"{folder} was rendered with rig {source.get('rig')} and seed "
-                                 f"{source.get('seed')}, not {rig} and {seed}: give the options it was made "
-                                 "with, or another --work")
+            made = (source.get("rig", rig), source.get("seed", seed), source.get("fixed_rig", False))
+            if made != (rig, seed, args.fixed_rigs):
+                fixed = {True: ", a fixed rig", False: ""}
+                raise SystemExit(f"{folder} was rendered with rig {made[0]} and seed {made[1]}"
+                                 f"{fixed[made[2]]}, not {rig} and {seed}{fixed[args.fixed_rigs]}: give the "
+                                 "options it was made with, or another --work")
             continue
         if name in held_out_sessions(args):
             labelled, unlabelled = 0, 0
@@ -172,7 +182,7 @@ def render(work: Path, args: argparse.Namespace) -> dict[str, Path]:
         log(f"rendering {name}: seed {seed}, rig {rig}, {labelled} labelled, {unlabelled} unlabelled, "
             f"{args.test} test")
         config = SimulateConfig("box", size=args.size, labelled=labelled, unlabelled=unlabelled,
-                                test=args.test, seed=seed, rig=rig)
+                                test=args.test, seed=seed, rig=rig, fixed_rig=args.fixed_rigs)
         simulate(config, folder, workers=1, progress=False, overwrite=True)
     return out
 
@@ -574,7 +584,7 @@ def main(argv: list[str] | None = None) -> int:
             "test_per_session": args.test, "session_seeds": dict(zip(SESSIONS, args.session_seeds)),
             "moved": {"session": args.moved_session, "rig": args.moved_rig}, "held_out": HELD_OUT,
             "new_rigs": {s: {"rig": rig, "seed": seed} for s, (rig, seed) in new_sessions(args).items()},
-            "adapt_steps": args.adapt_steps,
+            "adapt_steps": args.adapt_steps, "fixed_rigs": args.fixed_rigs,
             "train": train_config(args, 0).to_argv(), "preset": args.preset},
         "held_out": {m: mean[m][HELD_OUT] for m in ("A", "B") if HELD_OUT in mean.get(m, {})},
         "held_out_new_rigs": {s: {"rig": rig, **{m: mean[m][s] for m in ("A", "B") if s in mean.get(m, {})}}

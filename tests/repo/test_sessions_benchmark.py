@@ -22,8 +22,8 @@ def bench(args: list[str]) -> int:
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.returncode
 
-TINY = ["--size", "64", "--labelled", "2,1,1", "--unlabelled", "3", "--test", "2", "--steps", "2",
-        "--coarse-steps", "2", "--train-options",
+TINY = ["--size", "64", "--fixed-rigs", "--labelled", "2,1,1", "--unlabelled", "3", "--test", "2",
+        "--steps", "2", "--coarse-steps", "2", "--train-options",
         "--coarse-size 32 --crop-size 32 --channels 8,8 --res-blocks 1 --val-every 0 --warmup-steps 1 "
         "--ramp-steps 1"]
 
@@ -57,6 +57,10 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
     assert set(a.frames("labelled", session="s1")) < set(b.frames("labelled", session="s1"))
     held = a.frames("test", session="s4")
     assert np.array_equal(a.images(held[:1]), b.images(b.frames("test", session="s4")[:1]))
+    # --fixed-rigs: every session's frames share its cameras, and the sessions' rigs differ
+    centres = {s: np.asarray(a.calibration(a.frames(session=s)).centres()) for s in a.sessions}
+    assert all(np.allclose(c, c[:1]) for c in centres.values())
+    assert not np.allclose(centres["s1"][0], centres["s2"][0])
 
     summary = json.loads((results / "summary.json").read_text())
     assert summary["missing_runs"] == [] and set(summary["held_out"]) == {"A", "B"}
@@ -67,6 +71,7 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
         assert summary["held_out"][model] == {k: per_session["s4"][k] for k in ("median_mm", "rms_mm",
                                                                                   "pck_10mm")}
     assert summary["setup"]["sessions"] == {"A": {"s1": 2, "s2": 1, "s3": 1}, "B": {"s1": 4}}
+    assert summary["setup"]["fixed_rigs"] is True
     assert summary["command"].startswith("python benchmarks/sessions.py --size 64")
     assert "cpu_flags" in summary["machine"]
     assert summary["held_out_new_rigs"] == {} and set(summary["paired"]["over_seeds"]) == {"s4"}
