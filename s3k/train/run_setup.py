@@ -131,10 +131,15 @@ def open_data(data: str | os.PathLike | DatasetLike, cfg: TrainConfig) -> _Data:
 def _validation_frames(ds: DatasetLike, cfg: TrainConfig, labelled: np.ndarray,
                        unlabelled: np.ndarray) -> np.ndarray:
     """``--val-frames`` frames spread evenly over ``--val-split`` (over the unlabelled frames, else the
-    labelled ones, when that split is empty)."""
+    labelled ones, when that split is empty). Never a frame of a held-out session (one with no labelled or
+    unlabelled frame, ``s3k import --test-sessions``): the run's confidence is calibrated on its validation
+    frames, and a held-out session stays unseen by everything a training does."""
     split, count = cfg.monitoring.val_split, cfg.monitoring.val_frames
     known = split in ("labelled", "unlabelled", "test")
     val = np.asarray(ds.frames(split)) if known else np.zeros(0, np.int64)
+    if len(val) and isinstance(ds, Dataset) and len(ds.sessions) > 1:
+        trained = np.unique(ds.session_of(np.concatenate([labelled, unlabelled])))
+        val = val[np.isin(ds.session_of(val), trained)]
     if len(val) == 0:
         val = unlabelled if len(unlabelled) else labelled
     return val[np.linspace(0, len(val) - 1, min(count, len(val))).astype(int)]

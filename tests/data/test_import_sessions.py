@@ -154,6 +154,13 @@ def test_import_holds_out_blocks_or_whole_sessions(days, tmp_path, capsys):
     ds = Dataset.open(out)
     assert ds.summary()["sessions"]["day2"] == {"labelled": 0, "unlabelled": 0, "test": 10}
     assert ds.summary()["sessions"]["day1"]["labelled"] == 3
+    # a training's validation frames (on which its confidence is calibrated) keep out of the held-out session
+    from s3k.config import TrainConfig
+    from s3k.train.run_setup import frames_used
+
+    used = frames_used(ds, TrainConfig())
+    assert len(used) and set(ds.session_of(used)) == {"day1"}
+    assert set(ds.frames("test", session="day1")) <= set(used)
     capsys.readouterr()
     assert main(["import", "--manifest", str(manifest), "--test-sessions", "day3", "--out",
                  str(tmp_path / "x")]) != 0
