@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, write_and_emit  # noqa: E402
+from benchmarks.common import git_revision, machine_info, t_interval, write_and_emit  # noqa: E402
 from benchmarks.real_comparison import distances  # noqa: E402
 from s3k.base.label_reference import bootstrap_ci  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
@@ -93,13 +93,15 @@ def main(argv: list[str] | None = None) -> None:
             flush=True,
         )
     crops = json.loads((work["auto"] / "crops.json").read_text())
+    gains = [s["auto_minus_hand"]["mean_mm"] for s in seeds.values()]
     result = {
         "command": shlex.join(
             ["python", "benchmarks/auto_crops_real.py", *(sys.argv[1:] if argv is None else argv)]
         ),
         "revision": git_revision(),
         "machine": machine_info(),
-        "runs": "WORK=W SEEDS=1 MODELS=s3k STEPS=2500 THREADS=1 SCALE=0.5 TEST_FRAMES=blocks "
+        "runs": f"WORK=W SEEDS={max(a.seeds) + 1} MODELS=s3k STEPS=2500 THREADS=1 SCALE=0.5 "
+        "TEST_FRAMES=blocks "
         "TRAIN_OPTIONS='--preset box-headline --layout-tol 0' bash scripts/real-comparison.sh, with "
         "CROPS=auto for the automatic boxes",
         "boxes": {
@@ -115,6 +117,12 @@ def main(argv: list[str] | None = None) -> None:
         "calibrations_differ": calibration_difference(work["hand"] / "calibration_fixed.toml",
                                                       work["auto"] / "calibration_fixed.toml"),
         "seeds": seeds,
+        "over_seeds": {
+            "auto_minus_hand_mean_mm": float(np.mean(gains)),
+            "ci95_mm": t_interval(gains),
+            **{f"{k}_{f}": float(np.mean([s[k][f] for s in seeds.values()]))
+               for k in ("hand", "auto") for f in ("median_mm", "mean_mm")},
+        },
     }
     write_and_emit(result, a.out)
 
