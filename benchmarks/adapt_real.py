@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=500, help="fine-tuning steps (each pass of a two-pass run)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None, help="JSON file for the figures")
+    p.add_argument("--about", default="WORK=... SEEDS=3 STEPS=2500 THREADS=1 SCALE=0.5 TEST_FRAMES=blocks "
+                   "TRAIN_OPTIONS='--preset box-headline --layout-tol 0' bash scripts/real-comparison.sh",
+                   help="how the runs were trained, for the JSON (default: the held-out block's command)")
     a = p.parse_args(argv)
     work = Path(a.work)
     data = work / "crop"
@@ -106,8 +109,7 @@ def main(argv: list[str] | None = None) -> None:
                                *(sys.argv[1:] if argv is None else argv)]),
         "revision": git_revision(),
         "machine": machine_info(),
-        "runs": "WORK=... SEEDS=3 STEPS=2500 THREADS=1 SCALE=0.5 TEST_FRAMES=blocks TRAIN_OPTIONS='--preset "
-                "box-headline --layout-tol 0' bash scripts/real-comparison.sh",
+        "runs": a.about,
         "reference": "proofread labels triangulated from every labelled view (>= 2)",
         "test_frames": [int(test.min()), int(test.max())] if len(test) else None,
         "labelled_frames": labelled.tolist(),
