@@ -90,6 +90,8 @@ REAL = "docs/results/real/headline-preset/comparison.json"
 REAL_ONE_PASS = "docs/results/real/comparison.json"
 REAL_HELD_OUT = "docs/results/real/held-out/comparison.json"
 AUTO_CROPS = "docs/results/real/held-out/auto-crops.json"
+REAL_END = "docs/results/real/held-out-end/comparison.json"
+REAL_END_ADAPT = "docs/results/real/held-out-end/adaptation.json"
 CURVE = "docs/results/accuracy/label-curve/summary.json"
 PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
 DIAGNOSIS = "docs/results/accuracy/outside-rig/s3k-seed0-diagnosis.json"
@@ -179,6 +181,12 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
                                            for s in d["seeds"].values()))),
       ("sig", derived(REAL_ONE_PASS, _seeds_mean("s3k", "median_mm"))),
       ("sig", derived(REAL_ONE_PASS, _seeds_mean("baseline", "median_mm")))]),
+    ("it is farther in every seed:\n  {} mm over three seeds, {} to {} ([held-out-end]",
+     [("signed", at(REAL_END, "mean_paired_diff_mm")),
+      ("signed", at(REAL_END, "mean_paired_diff_ci95_mm_over_seeds/0")),
+      ("signed", at(REAL_END, "mean_paired_diff_ci95_mm_over_seeds/1"))]),
+    ("on the recording's end neither ({} mm, [held-out-end]",
+     [("signed", at(REAL_END_ADAPT, "over_seeds/test_block/adapted_minus_control/mean_mm"))]),
     ("score within a tenth of a millimetre of the hand-drawn ones (three seeds: {} against {} mm mean, one\n"
      "  seed {} mm worse,",
      [mm(AUTO_CROPS, f"over_seeds/{m}_mean_mm") for m in ("auto", "hand")]
@@ -284,7 +292,8 @@ def test_every_readme_figure_equals_its_json():
 def test_every_cited_json_is_linked_from_the_readme():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, REAL_HELD_OUT,
-             AUTO_CROPS, CURVE, PLUSH_CURVE, DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, ROBOT, WIDE}
+             AUTO_CROPS, REAL_END, REAL_END_ADAPT, CURVE, PLUSH_CURVE, DIAGNOSIS, SPEED, QUIET, ONE_PASS,
+             DEMO, ROBOT, WIDE}
     assert [f for f in sorted(files) if f"]({f})" not in text] == []
 
 
