@@ -366,27 +366,18 @@ def detect(run: Path, data: Path) -> tuple[dict[str, Any], dict[str, Any], dict[
     """``s3k evaluate``'s figures of ``run`` on ``data``'s test frames (as :func:`evaluate_run` computes
     them), per session, and the per-point 3D errors: ``{"frames" (F,), "sessions" (F,), "err_mm" (F, K)}``,
     NaN where a point has no truth or no triangulation."""
-    from s3k.base.metrics import mm_per_unit
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
-    from s3k.detector import Detector, evaluate_store
-    from s3k.inference.evaluate import per_session
+    from s3k.base.metrics import mm_per_unit, point_errors_mm
+    from s3k.inference.evaluate import detect_split, per_session
 
-    detector = Detector.load(run, "cpu")
-    ds = Dataset.open(data, cache="none")
-    store = FrameStore(ds, np.asarray(ds.frames("test")), preload_mb=0, labels=True, points=True)
-    metrics, arrays = evaluate_store(detector, store, 16, ds.units, label_reference=True)
+    detector, ds, metrics, arrays = detect_split(run, data, "test", "cpu")
     _, sessions = per_session(ds, arrays, detector.keypoints)
     if arrays["X_gt"] is None:
         raise SystemExit(f"{data}: its test frames have no 3D points")
-    err = np.linalg.norm(arrays["X"] - np.asarray(arrays["X_gt"], np.float64), axis=-1)
-    err = err * mm_per_unit(ds.units)
-    known = np.asarray(arrays["X_valid"], bool)
-    if arrays["X_gt_mask"] is not None:
-        known &= np.asarray(arrays["X_gt_mask"], bool)
+    err = point_errors_mm(arrays["X"], arrays["X_valid"], arrays["X_gt"], arrays["X_gt_mask"],
+                          mm_per_unit(ds.units))
     frames = np.asarray(arrays["frame_ids"], np.int64)
     points = {"frames": frames, "sessions": np.asarray(ds.session_of(frames)).astype(str),
-              "err_mm": np.where(known & np.isfinite(err), err, np.nan)}
+              "err_mm": err}
     return metrics, sessions, points
 
 

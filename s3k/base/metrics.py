@@ -62,6 +62,12 @@ def _errors_3d(X: np.ndarray, X_valid: np.ndarray, X_gt, X_gt_mask, unit_mm: flo
     return err3d, known & X_valid & np.isfinite(err3d), known
 
 
+def point_errors_mm(X: np.ndarray, X_valid: np.ndarray, X_gt, X_gt_mask, unit_mm: float) -> np.ndarray:
+    """(B, K) 3D errors in mm of the points the metrics count, NaN elsewhere (no truth, not triangulated)."""
+    err3d, counted, _ = _errors_3d(X, np.asarray(X_valid, bool), X_gt, X_gt_mask, unit_mm)
+    return np.where(counted, err3d, np.nan)
+
+
 def compute_metrics(pred_uv, reproj_uv, gt_uv, gt_mask, X, X_valid, X_gt=None, X_gt_mask=None,
                     unit_mm: float = 1000.0, keypoints=None, cameras=None) -> dict[str, Any]:
     """The evaluation metrics of a set of predictions (pure function of arrays).

@@ -36,15 +36,8 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
                  report: str | Path | None = None, overlays: int = 6) -> dict[str, Any]:
     """Load a run's detector (one pass or two), evaluate it on ``data``'s ``split`` and optionally write a
     report (:mod:`s3k.inference.report`); returns the metrics."""
-    detector = Detector.load(run_dir, device)
-    ds = Dataset.open(data, cache="none")
-    keypoint_order(detector.keypoints, ds.keypoints)  # refuse a mismatch before detecting anything
-    ids = np.asarray(ds.frames(split))
-    if len(ids) == 0:
-        raise UserError(f"{data}: split {split!r} has no frames", hint="choose another --split")
-    store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
-    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=overlays if report else 0,
-                                     label_reference=True)
+    detector, ds, metrics, arrays = detect_split(run_dir, data, split, device, batch_size,
+                                                 keep=overlays if report else 0)
     metrics["split"] = split
     metrics["image_size"] = list(detector.meta.image_size)
     metrics["label_distance"], metrics["sessions"] = per_session(ds, arrays, detector.keypoints)
@@ -54,6 +47,21 @@ def evaluate_run(run_dir, data, split: str = "test", device: Device = "auto", ba
         write_report(report, metrics, arrays, mm_per_unit(ds.units), title=f"{Path(run_dir).name} ({split})",
                      edges=edges)
     return metrics
+
+
+def detect_split(run_dir, data, split: str = "test", device: Device = "auto", batch_size: int = 16,
+                 keep: int = 0) -> tuple[Detector, Dataset, dict[str, Any], dict[str, Any]]:
+    """A run's detector read over ``data``'s ``split``: ``(detector, dataset, metrics, arrays)`` as
+    :func:`s3k.detector.evaluate_store` gives them (``keep`` frames' images kept for a report)."""
+    detector = Detector.load(run_dir, device)
+    ds = Dataset.open(data, cache="none")
+    keypoint_order(detector.keypoints, ds.keypoints)  # refuse a mismatch before detecting anything
+    ids = np.asarray(ds.frames(split))
+    if len(ids) == 0:
+        raise UserError(f"{data}: split {split!r} has no frames", hint="choose another --split")
+    store = FrameStore(ds, ids, preload_mb=0, labels=True, points=True)
+    metrics, arrays = evaluate_store(detector, store, batch_size, ds.units, keep=keep, label_reference=True)
+    return detector, ds, metrics, arrays
 
 
 def per_session(ds: Dataset, arrays: dict[str, Any], keypoints) -> tuple[dict, dict[str, dict[str, Any]]]:
