@@ -6,8 +6,8 @@ random places, and no labelled frame lies within ``margin`` frames of a test fra
 labelled frames drawn at random from the same frames (a test frame is then often a few frames from a labelled
 one: the figure says how well a model fills in between its labels). ``last``: one block, the last frames
 that have labels, with the labelled frames before it (train on the start of a recording, test on what
-follows). ``session``: the whole recording is held
-out, every frame with labels a test frame and no frame used for training (``--test-sessions``).
+follows). ``session``: the whole recording is held out, every frame with labels a test frame and no frame
+used for training (``--test-sessions``).
 """
 
 from __future__ import annotations
@@ -61,9 +61,8 @@ def held_out_split(candidates: np.ndarray, all_frames: np.ndarray, n_labelled: i
                    seed: int, stride: int, margin: int | None = None, blocks: int = 1,
                    fewer_ok: bool = False, last: bool = False) -> dict[int, str]:
     """Test frames in ``blocks`` contiguous runs of ``candidates`` (the frames that have labels), or with
-    ``last`` in one run at their end; labelled
-    frames (a count, or ``"all"``) at random among the candidates more than ``margin`` frames from every test
-    frame; every ``stride``-th other frame unlabelled.
+    ``last`` in one run at their end; labelled frames (a count, or ``"all"``) at random among the candidates
+    more than ``margin`` frames from every test frame; every ``stride``-th other frame unlabelled.
 
     ``margin`` None: :data:`DEFAULT_MARGIN`, or the largest smaller margin that leaves ``n_labelled`` frames
     (with ``"all"``: :data:`~s3k.data.import_choices.DEFAULT_LABELLED` of them), said in a note.
