@@ -32,7 +32,14 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, paired, t_interval, write_and_emit  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    fine_tune_argv,
+    git_revision,
+    machine_info,
+    paired,
+    t_interval,
+    write_and_emit,
+)
 from benchmarks.real_comparison import distances  # noqa: E402
 from s3k.data import Dataset  # noqa: E402
 from s3k.detector import Detector  # noqa: E402
@@ -42,12 +49,7 @@ from s3k.run_folder import RunFolder  # noqa: E402
 
 def fine_tune(data: Path, run: Path, out: Path, steps: int, threads: int) -> None:
     """``s3k train DATA --init-from RUN --steps STEPS`` into ``out`` (resumed when begun, kept when done)."""
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(out), "--threads", str(threads),
-           "--no-progress"]
-    if (out / "config.json").is_file() or (out / "two_pass_options.json").is_file():
-        cmd += ["--resume"]
-    else:
-        cmd += ["--init-from", str(run), "--steps", str(steps), "--val-split", "labelled"]
+    cmd = fine_tune_argv(data, run, out, steps, threads)
     print("$", shlex.join(cmd), flush=True)
     subprocess.run(cmd, check=True)
 

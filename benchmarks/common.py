@@ -458,3 +458,17 @@ def finish(result: dict[str, Any], started: float, out: str | None) -> None:
 
         atomic_write_json(result, out)
     emit(result)
+
+
+def fine_tune_argv(data, base, out, steps: int, threads: int = 1) -> list[str]:
+    """``s3k train DATA --out OUT --init-from BASE --steps STEPS`` (BASE's configuration at its final learning
+    rates, each pass STEPS, validated on labelled frames), or ``--resume`` once OUT is begun."""
+    import sys
+    from pathlib import Path
+
+    out = Path(out)
+    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(out), "--threads", str(threads),
+           "--no-progress"]
+    if (out / "config.json").is_file() or (out / "two_pass_options.json").is_file():
+        return cmd + ["--resume"]
+    return cmd + ["--init-from", str(base), "--steps", str(steps), "--val-split", "labelled"]

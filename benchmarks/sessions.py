@@ -68,7 +68,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, machine_info, paired, t_interval  # noqa: E402
+from benchmarks.common import fine_tune_argv, git_revision, machine_info, paired, t_interval  # noqa: E402
 from s3k.experiments.accuracy import without_notes  # noqa: E402
 from s3k.train.presets import PRESETS  # noqa: E402
 
@@ -343,13 +343,7 @@ def fine_tune(data: Path, base: Path, run: Path, steps: int) -> None:
 
     if RunFolder(run).is_complete():
         return
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(run), "--threads", "1",
-           "--no-progress"]
-    if (run / "config.json").is_file() or (run / "two_pass_options.json").is_file():
-        cmd += ["--resume"]
-    else:
-        cmd += ["--init-from", str(base), "--steps", str(steps), "--val-split", "labelled"]
-    run_training(cmd, run)
+    run_training(fine_tune_argv(data, base, run, steps), run)
 
 
 def test_sessions(data: Path) -> set[str]:
