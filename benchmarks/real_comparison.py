@@ -13,6 +13,9 @@ mean paired difference with a 95% t-interval (needs >= 2 seeds).
 Runs laid out otherwise, e.g. one ``scripts/real-example.sh`` folder per seed: ``--runs
 'OUT/seed{seed}/run-{model}' --data OUT/seed0/crop --about 'how they were trained'`` (``{model}`` is ``s3k``
 or ``baseline``; the distances are in mm, so any import of the recording's test frames scores them alike).
+Two other families of runs on the same split, e.g. S3K with the pretrained encoder against S3K from scratch:
+``--models pretrained scratch --runs 'DIR/{model}/s3k-seed{seed}'``, each ``DIR/NAME`` a ``runs`` folder
+(the difference is then pretrained - scratch).
 """
 
 from __future__ import annotations
@@ -77,7 +80,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--work", default="/tmp/real-work", help="the folder of scripts/real-comparison.sh")
     p.add_argument("--data", default=None, help="the dataset to evaluate on (default WORK/crop)")
     p.add_argument("--runs", default="{work}/runs/{model}-seed{seed}",
-                   help="where each run is, with {work}, {model} (s3k or baseline) and {seed} filled in")
+                   help="where each run is, with {work}, {model} (one of --models) and {seed} filled in")
+    p.add_argument("--models", nargs=2, default=["s3k", "baseline"], metavar=("FIRST", "SECOND"),
+                   help="the two models compared, the paired difference being FIRST - SECOND (default: s3k "
+                   "baseline, the runs of scripts/real-comparison.sh); e.g. pretrained scratch with --runs "
+                   "'DIR/{model}/s3k-seed{seed}'")
     p.add_argument("--about", help="how the runs were trained, for the JSON",
                    default="bash scripts/real-comparison.sh (3000 steps, 128 px crops, 10 labelled, "
                    "70 unlabelled, 40 test frames)")
@@ -86,16 +93,19 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(a.work)
     ds = Dataset.open(Path(a.data) if a.data else work / "crop", cache="none")
     ids = np.asarray(ds.frames("test"))
+    first, second = a.models
+    if first == second:
+        p.error(f"--models {first} {second}: give two different models")
     seeds, diffs = {}, []
     for seed in range(100):
-        runs = {m: Path(a.runs.format(work=work, model=m, seed=seed)) for m in ("s3k", "baseline")}
+        runs = {m: Path(a.runs.format(work=work, model=m, seed=seed)) for m in a.models}
         if not all(RunFolder(r).is_complete() for r in runs.values()):
-            s3k_run = RunFolder(runs["s3k"])
-            if not (s3k_run.is_one_pass_run() or s3k_run.is_two_pass_run()):
+            first_run = RunFolder(runs[first])
+            if not (first_run.is_one_pass_run() or first_run.is_two_pass_run()):
                 break
             continue
         detectors = {m: Detector.load(r, "cpu") for m, r in runs.items()}  # each read once
-        (ms, ds_), (mb, db) = (distances(detectors[m], ds, ids) for m in ("s3k", "baseline"))
+        (ms, ds_), (mb, db) = (distances(detectors[m], ds, ids) for m in a.models)
         both = np.isfinite(ds_) & np.isfinite(db)
         paired = np.where(both, ds_ - db, np.nan)
         diff = float(np.nanmean(paired))
@@ -114,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
                     "unlabelled_view_disagreement_median_px": view_consistency(detectors[m], ds),
                     **_cpu_minutes(runs[m]),
                 }
-                for m, d, met in (("s3k", ds_, ms), ("baseline", db, mb))
+                for m, d, met in ((first, ds_, ms), (second, db, mb))
             },
             "paired_diff_mean_mm": diff,
             "paired_diff_ci95_mm": bootstrap_ci(paired),
@@ -122,8 +132,8 @@ def main(argv: list[str] | None = None) -> None:
             "frames": int(len(ids)),
         }
         print(
-            f"seed {seed}: S3K {seeds[seed]['s3k']['mean_mm']:.3f} mm, labels only "
-            f"{seeds[seed]['baseline']['mean_mm']:.3f} mm, S3K - labels only {diff:+.3f} mm "
+            f"seed {seed}: {first} {seeds[seed][first]['mean_mm']:.3f} mm, {second} "
+            f"{seeds[seed][second]['mean_mm']:.3f} mm, {first} - {second} {diff:+.3f} mm "
             f"(95% CI {seeds[seed]['paired_diff_ci95_mm']})",
             flush=True,
         )
