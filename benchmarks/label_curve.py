@@ -29,6 +29,9 @@ Example::
         '--rotation-deg 15 --coarse-rotation 180 --sigma 1.0 --outlier-px 6 --pseudo-window 5 \\
         --val-every 500 --precision auto' --work runs/label-curve-plush \\
         --results docs/results/accuracy/label-curve/plush   # the plush headline's configuration
+    python benchmarks/label_curve.py --add-curve \
+        efficientnet-lite0=docs/results/accuracy/pretrained/label-curve-10.json  # another encoder's
+                                                         # points, in the same summary and figure
 """
 
 from __future__ import annotations
@@ -43,8 +46,9 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, machine_info  # noqa: E402
+from s3k.base.errors import UserError  # noqa: E402
 from s3k.experiments.accuracy import BACKENDS, without_notes  # noqa: E402
-from s3k.experiments.label_curve import LABEL_COUNTS, CurveOptions, run_curve  # noqa: E402
+from s3k.experiments.label_curve import LABEL_COUNTS, CurveOptions, add_curve, run_curve  # noqa: E402
 from s3k.train.presets import PRESETS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--summary-only", action="store_true",
                    help="write the summary and figure from the jobs' results so far (finished runs "
                         "evaluated); train nothing")
+    p.add_argument("--add-curve", metavar="NAME=SUMMARY", default=None,
+                   help="put another configuration's curve (its summary.json, e.g. the same command with "
+                        "--train-options '--encoder ...' and other --work/--results) beside the one in "
+                        "--results, in its summary (added_curves) and figure, named NAME; trains nothing")
     p.add_argument("--notes", default=None,
                    help="text kept in summary.json (left out of the recorded command)")
     args = p.parse_args(argv)
@@ -123,6 +131,19 @@ def main(argv: list[str] | None = None) -> int:
     results = Path(args.results or ROOT / "docs" / "results" / "accuracy" / "label-curve")
     command = shlex.join(["python", "benchmarks/label_curve.py",
                           *without_notes(sys.argv[1:] if argv is None else argv)])
+    if args.add_curve:
+        name, sep, other = args.add_curve.partition("=")
+        if not (sep and name and other):
+            p.error(f"--add-curve {args.add_curve!r}: give NAME=SUMMARY, e.g. "
+                    "efficientnet-lite0=docs/results/accuracy/pretrained/label-curve-10.json")
+        try:
+            added = add_curve(results, name, Path(other), command)
+        except UserError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print(f"{results / 'summary.json'}: curves beside its own: {', '.join(added['added_curves'])}",
+              file=sys.stderr)
+        return 0
     summary = run_curve(opts, work, results, command, git_revision(), machine_info(),
                         summary_only=args.summary_only, notes=args.notes)
     for m, per_count in summary["curve"].items():

@@ -28,6 +28,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from s3k.base.errors import UserError
 from s3k.base.fileio import atomic_write_json
 from s3k.base.messages import NOTE
 from s3k.experiments.accuracy import (
@@ -58,6 +59,8 @@ REFERENCE_LABELS = 10
 SUMMARY = "summary.json"
 FIGURE = "label-curve.png"
 MODEL_NAMES = {"s3k": "S3K", "labels_only": "labels only"}
+#: The summary's key of the curves of other configurations drawn beside this one (:func:`add_curve`).
+ADDED = "added_curves"
 
 
 @dataclasses.dataclass
@@ -321,8 +324,42 @@ def write_summary(opts: CurveOptions, work: Path, results_dir: Path, command: st
     summary["answer"] = answer(summary)
     if notes:
         summary["notes"] = notes
+    if (results_dir / SUMMARY).is_file():  # curves added beside this one (add_curve) stay
+        added = json.loads((results_dir / SUMMARY).read_text()).get(ADDED)
+        if added:
+            summary[ADDED] = added
     results_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(summary, results_dir / SUMMARY)
+    plot_curve(summary, results_dir / FIGURE)
+    return summary
+
+
+def add_curve(results_dir: Path, name: str, other: Path, command: str) -> dict[str, Any]:
+    """Put the curve of another configuration's summary (``other``, e.g. the same benchmark with another
+    encoder, at some of the counts) beside this one's, in ``results_dir``'s summary under ``added_curves``
+    (named ``name``, with where it came from: its command, revision, scale and seeds), and draw it in the
+    same figure. An added curve of that name is replaced; a later summary of this curve keeps it.
+
+    Raises:
+        UserError: ``results_dir`` holds no summary, or ``other`` is no label-curve summary.
+    """
+    path = results_dir / SUMMARY
+    if not path.is_file():
+        raise UserError(f"{path}: no label-curve summary to add a curve to",
+                        hint="give --results the folder of a label curve's summary.json")
+    try:
+        theirs = json.loads(Path(other).read_text())
+        curve = theirs["curve"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise UserError(f"{other}: not a label-curve summary ({type(e).__name__}: {e})",
+                        hint="give the summary.json that benchmarks/label_curve.py wrote") from None
+    summary = json.loads(path.read_text())
+    summary.setdefault(ADDED, {})[name] = {
+        "from": str(other), "added_by": command,
+        **{k: theirs.get(k) for k in ("command", "git_revision", "scale", "seeds", "trained_at_revisions")},
+        "curve": curve,
+    }
+    atomic_write_json(summary, path)
     plot_curve(summary, results_dir / FIGURE)
     return summary
 
@@ -338,16 +375,19 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     colours = {"s3k": "tab:blue", "labels_only": "tab:orange"}
+    curves = [(summary["curve"], "", "o", "-")]
+    curves += [(c["curve"], f", {name}", "s", ":") for name, c in summary.get(ADDED, {}).items()]
     for ax, (k, label) in zip(axes, (("median_mm", "median 3D error (mm)"), ("rms_mm", "RMS 3D error (mm)"))):
-        for m, per_count in summary["curve"].items():
-            if not per_count:
-                continue
-            xs = [int(n) for n in per_count]
-            mean = [e[k]["mean"] for e in per_count.values()]
-            low = [e[k]["mean"] - e[k]["min"] for e in per_count.values()]
-            high = [e[k]["max"] - e[k]["mean"] for e in per_count.values()]
-            ax.errorbar(xs, mean, yerr=[low, high], marker="o", capsize=3, color=colours.get(m),
-                        label=MODEL_NAMES.get(m, m))
+        for curve, suffix, marker, ls in curves:
+            for m, per_count in curve.items():
+                if not per_count:
+                    continue
+                xs = [int(n) for n in per_count]
+                mean = [e[k]["mean"] for e in per_count.values()]
+                low = [e[k]["mean"] - e[k]["min"] for e in per_count.values()]
+                high = [e[k]["max"] - e[k]["mean"] for e in per_count.values()]
+                ax.errorbar(xs, mean, yerr=[low, high], marker=marker, ls=ls, capsize=3, color=colours.get(m),
+                            label=MODEL_NAMES.get(m, m) + suffix)
         at = summary["reference_labels"]
         reference = summary["curve"].get("s3k", {}).get(str(at))
         if reference is not None:
@@ -367,6 +407,8 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
             ax.legend(fontsize=8)
     seeds = len(summary["seeds"])
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
+    for name, c in summary.get(ADDED, {}).items():
+        caption += f"; dotted, {name}: {c.get('scale')}, seeds {c.get('seeds')}"
     fig.suptitle(textwrap.fill(caption, 160), fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -168,3 +168,40 @@ def test_the_summary_names_the_steps_and_minutes_of_a_training_begun(tmp_path):
     assert unfinished(opts, tmp_path, [begun, waiting]) == [
         {"job": "s3k 10 labels seed 0", "steps": {"coarse": [975, 4000]}, "cpu_minutes": 3.5,
          "wall_minutes": 6.0}]
+
+
+def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
+    from s3k.base.errors import UserError
+    from s3k.experiments.label_curve import add_curve
+
+    def point(median):
+        stats = {"mean": median, "sd": 0.0, "min": median, "max": median, "per_seed": [median]}
+        return {"seeds": [0], "median_mm": stats, "rms_mm": stats, "pck_10mm": stats}
+
+    opts = tiny_options(labels=(2,))
+    work, results = tmp_path / "work", tmp_path / "results"
+    with pytest.raises(UserError, match="no label-curve summary"):
+        add_curve(results, "other", tmp_path / "x.json", "cmd")
+    run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
+    figure = results / "label-curve.png"
+    alone = figure.read_bytes()
+    not_a_summary = tmp_path / "not.json"
+    not_a_summary.write_text('{"median_mm": 1}')
+    with pytest.raises(UserError, match="not a label-curve summary"):
+        add_curve(results, "other", not_a_summary, "cmd")
+
+    other = tmp_path / "other.json"
+    theirs = {"command": "their command", "git_revision": "def", "scale": "their scale", "seeds": [0],
+              "curve": {"s3k": {"2": point(7.5)}, "labels_only": {}}}
+    other.write_text(json.dumps(theirs))
+    summary = add_curve(results, "encoder", other, "the adding command")
+    added = summary["added_curves"]["encoder"]
+    assert added["curve"] == theirs["curve"] and added["git_revision"] == "def"
+    assert added["added_by"] == "the adding command" and added["from"] == str(other)
+    assert json.loads((results / "summary.json").read_text())["added_curves"] == summary["added_curves"]
+    assert figure.read_bytes() != alone  # drawn in the same figure
+
+    # this curve's own summary written again keeps the added one, and its own figures are its own
+    again = run_curve(opts, work, results, "again", "abc", MACHINE, summary_only=True)
+    assert again["added_curves"]["encoder"]["curve"]["s3k"]["2"]["median_mm"]["mean"] == 7.5
+    assert again["curve"]["s3k"]["2"]["median_mm"]["mean"] != 7.5
