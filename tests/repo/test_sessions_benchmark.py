@@ -134,3 +134,41 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
     assert {p: p.stat().st_mtime_ns for p in (work / "runs").iterdir()} == stamp
     again = json.loads((results / "summary.json").read_text())
     assert again["paired"] == summary["paired"] and again["adaptation"] == summary["adaptation"]
+
+
+def test_draws_of_the_sessions_pool_each_draws_difference(tmp_path):
+    """benchmarks/sessions_draws.py: per held-out session (by role: s4, or a new rig by its name) each draw's
+    A - B, the mean of its training seeds; the mean over draws with a t-interval; how many draws A wins."""
+
+    def summary(name: str, seeds: list[int], per_seed: dict[str, dict[str, float]], rig_session: str) -> str:
+        def entry(diff: float) -> dict:
+            return {"mean_diff_mm": diff, "ci95_mm": [diff - 1, diff + 1], "median_mm": [2.0 + diff, 2.0],
+                    "points": 30}
+        path = tmp_path / name / "summary.json"
+        path.parent.mkdir()
+        path.write_text(json.dumps({
+            "git_revision": "abc",
+            "setup": {"session_seeds": dict(zip(["s1", "s2", "s3", "s4"], seeds)),
+                      "new_rigs": {rig_session: {"rig": "low", "seed": seeds[0] + 4}}},
+            "paired": {"per_seed": {seed: {s: entry(d) for s, d in diffs.items()}
+                                    for seed, diffs in per_seed.items()}},
+        }))
+        return str(path)
+
+    one = summary("d1", [10, 11, 12, 13], {"0": {"s4": 1.0, "s5": -3.0}, "1": {"s4": 0.0, "s5": -1.0}}, "s5")
+    two = summary("d2", [20, 21, 22, 23], {"0": {"s4": -2.0, "s8": -4.0}}, "s8")  # the low rig named s8 here
+    out = tmp_path / "pooled.json"
+    proc = subprocess.run([sys.executable, "benchmarks/sessions_draws.py", one, two, "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    pooled = json.loads(out.read_text())["pooled"]
+    assert set(pooled) == {"training rig (s4)", "rig low"}
+    s4, low = pooled["training rig (s4)"], pooled["rig low"]
+    assert s4["per_draw_mm"] == [0.5, -2.0] and s4["mean_diff_mm"] == -0.75 and s4["draws_A_lower"] == 1
+    assert s4["ci95_mm_over_draws"][0] < -0.75 < s4["ci95_mm_over_draws"][1]
+    assert low["per_draw_mm"] == [-2.0, -4.0] and low["draws_A_lower"] == 2
+
+    # the same draw twice is refused, in one line naming the option
+    proc = subprocess.run([sys.executable, "benchmarks/sessions_draws.py", one, one], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "--session-seeds" in proc.stderr
