@@ -135,7 +135,8 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
      [("d1", at(DEMO, "wall_minutes_with_setup")), mm(DEMO, "S3K/median_mm"), mm(DEMO, "S3K/rms_mm"),
       mm(DEMO, "labels only/median_mm"), mm(DEMO, "labels only/rms_mm")]),
     # The pretrained encoder's points in the label curve.
-    ("[pretrained](docs/results/accuracy/pretrained/README.md)): S3K {} mm median and {} mm\n  RMS, worse than",
+    ("[pretrained](docs/results/accuracy/pretrained/README.md)): S3K {} mm median and {} mm\n  RMS, "
+     "worse than",
      [mm(CURVE, "added_curves/efficientnet-lite0/curve/s3k/10/median_mm/mean"),
       mm(CURVE, "added_curves/efficientnet-lite0/curve/s3k/10/rms_mm/mean")]),
     # The Results table.
