@@ -7,7 +7,10 @@ same placement of the training rig, so a placement that happens to suit training
 Pooled over draws, per held-out session (``s4``: a new placement of the training rig; a new-rig session by its
 rig, e.g. ``rig low``): each draw's A - B (its training seeds' mean of the paired difference on the same
 points, with the draw's 95% bootstrap interval over frames when it has one seed), the mean over draws with a
-95% t-interval, and in how many draws A is lower; both models' medians per draw.
+95% t-interval, and in how many draws A is lower, with the sign test's two-sided p (exact binomial, one half
+per draw under no difference; a draw's difference can dwarf the others', which widens the t-interval but not
+the count), and in how many draws each model's lead is clear of zero over that draw's frames; both models'
+medians per draw.
 
     python benchmarks/sessions_draws.py D1/summary.json D2/summary.json D3/summary.json [--out FILE.json]
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import sys
@@ -67,6 +71,14 @@ def draw_figures(path: Path) -> dict[str, Any]:
     return out
 
 
+def sign_test_p(lower: int, draws: int) -> float:
+    """Two-sided exact sign test: the chance of a count at least as far from ``draws / 2`` as ``lower`` when
+    either model is as likely to win each draw."""
+    far = abs(lower - draws / 2)
+    return float(min(1.0, sum(math.comb(draws, k) for k in range(draws + 1) if abs(k - draws / 2) >= far)
+                     / 2 ** draws))
+
+
 def pool(draws: list[dict[str, Any]]) -> dict[str, Any]:
     """Per role held out in every draw: the draws' A - B, their mean with a t-interval, the count A wins."""
     roles = [r for r in draws[0]["held_out"] if all(r in d["held_out"] for d in draws)]
@@ -79,6 +91,11 @@ def pool(draws: list[dict[str, Any]]) -> dict[str, Any]:
             "ci95_mm_over_draws": t_interval(diffs),
             "draws_A_lower": int(sum(x < 0 for x in diffs)),
             "draws": len(diffs),
+            "sign_test_p": sign_test_p(int(sum(x < 0 for x in diffs)), len(diffs)),
+            "draws_A_lower_clear_of_zero": int(sum(
+                (d["held_out"][role]["ci95_mm_over_frames"] or [0.0, 0.0])[1] < 0 for d in draws)),
+            "draws_B_lower_clear_of_zero": int(sum(
+                (d["held_out"][role]["ci95_mm_over_frames"] or [0.0, 0.0])[0] > 0 for d in draws)),
             "median_mm_A": float(np.mean([d["held_out"][role]["median_mm_A"] for d in draws])),
             "median_mm_B": float(np.mean([d["held_out"][role]["median_mm_B"] for d in draws])),
         }
@@ -100,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{role}: A - B {f['mean_diff_mm']:+.2f} mm over {f['draws']} draws"
               + (f" [{ci[0]:+.2f}, {ci[1]:+.2f}]" if ci else "")
               + f"; per draw {', '.join(f'{x:+.2f}' for x in f['per_draw_mm'])}; A lower in "
-              f"{f['draws_A_lower']} of {f['draws']}; median A {f['median_mm_A']:.2f}, "
+              f"{f['draws_A_lower']} of {f['draws']} (sign test p {f['sign_test_p']:.3f}); clear of zero "
+              f"over the draw's frames: A in {f['draws_A_lower_clear_of_zero']}, B in "
+              f"{f['draws_B_lower_clear_of_zero']}; median A {f['median_mm_A']:.2f}, "
               f"B {f['median_mm_B']:.2f}",
               file=sys.stderr)
     result = {
@@ -108,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
                                *(sys.argv[1:] if argv is None else argv)]),
         "revision": git_revision(), "machine": machine_info(),
         "what": "A's minus B's 3D error (mm) on the same test points of each held-out session, per draw of "
-                "the sessions (the mean over its training seeds), pooled over draws with a 95% t-interval",
+                "the sessions (the mean over its training seeds), pooled over draws with a 95% t-interval "
+                "and a two-sided sign test on the draws A wins",
         "pooled": pooled, "draws": draws,
     }
     write_and_emit(result, a.out)

@@ -138,7 +138,8 @@ def test_the_benchmark_end_to_end_on_a_tiny_box(tmp_path, capsys):
 
 def test_draws_of_the_sessions_pool_each_draws_difference(tmp_path):
     """benchmarks/sessions_draws.py: per held-out session (by role: s4, or a new rig by its name) each draw's
-    A - B, the mean of its training seeds; the mean over draws with a t-interval; how many draws A wins."""
+    A - B, the mean of its training seeds; the mean over draws with a t-interval; how many draws A wins, the
+    sign test's two-sided p, and how many draws (of one seed, with an interval over frames) A wins clearly."""
 
     def summary(name: str, seeds: list[int], per_seed: dict[str, dict[str, float]], rig_session: str) -> str:
         def entry(diff: float) -> dict:
@@ -167,6 +168,10 @@ def test_draws_of_the_sessions_pool_each_draws_difference(tmp_path):
     assert s4["per_draw_mm"] == [0.5, -2.0] and s4["mean_diff_mm"] == -0.75 and s4["draws_A_lower"] == 1
     assert s4["ci95_mm_over_draws"][0] < -0.75 < s4["ci95_mm_over_draws"][1]
     assert low["per_draw_mm"] == [-2.0, -4.0] and low["draws_A_lower"] == 2
+    assert s4["sign_test_p"] == 1.0 and low["sign_test_p"] == 0.5  # 1 of 2: no lean; 2 of 2: 2 in 4
+    # d1 has two seeds (no interval over frames); d2's one seed is clear of zero on both sessions
+    assert s4["draws_A_lower_clear_of_zero"] == 1 and low["draws_A_lower_clear_of_zero"] == 1
+    assert s4["draws_B_lower_clear_of_zero"] == 0 and low["draws_B_lower_clear_of_zero"] == 0
 
     # the same draw twice is refused, in one line naming the option
     proc = subprocess.run([sys.executable, "benchmarks/sessions_draws.py", one, one], cwd=ROOT,
