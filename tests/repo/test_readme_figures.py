@@ -91,6 +91,7 @@ REAL_ONE_PASS = "docs/results/real/comparison.json"
 REAL_HELD_OUT = "docs/results/real/held-out/comparison.json"
 AUTO_CROPS = "docs/results/real/held-out/auto-crops.json"
 REAL_END = "docs/results/real/held-out-end/comparison.json"
+REAL_PRETRAINED = "docs/results/accuracy/pretrained/real-held-out.json"
 REAL_END_ADAPT = "docs/results/real/held-out-end/adaptation.json"
 CURVE = "docs/results/accuracy/label-curve/summary.json"
 PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
@@ -117,14 +118,15 @@ def _ratios(rig: str, sets: tuple[str, ...], pick: Callable) -> Getter:
     return derived(WIDE, lambda d: pick(r for s in sets for r in d["outside_rigs"][rig][s]["ratio_per_seed"]))
 
 
-def _real_rows() -> list[tuple[str, Getter]]:
+def _real_rows(file: str = REAL_HELD_OUT, models: tuple[str, ...] = ("baseline", "s3k")
+               ) -> list[tuple[str, Getter]]:
     out = []
-    for model in ("baseline", "s3k"):
+    for model in models:
         for key in ("median_mm", "mean_mm", "rms_mm"):
-            out.append(("sig", derived(REAL_HELD_OUT, _seeds_mean(model, key))))
+            out.append(("sig", derived(file, _seeds_mean(model, key))))
             if key != "mean_mm":
-                out += [mm(REAL_HELD_OUT, f"seeds/{i}/{model}/{key}") for i in range(3)]
-        out.append(("d1", derived(REAL_HELD_OUT, _seeds_mean(model, "cpu_minutes"))))
+                out += [mm(file, f"seeds/{i}/{model}/{key}") for i in range(3)]
+        out.append(("d1", derived(file, _seeds_mean(model, "cpu_minutes"))))
     return out
 
 
@@ -159,6 +161,12 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
      [("sig", derived(REAL_ONE_PASS, _seeds_mean(m, "median_mm"))) for m in ("s3k", "baseline")]),
     ("| labels only | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |\n"
      "| | S3K | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows()),
+    (f"encoder, [real-held-out.json]({REAL_PRETRAINED})) | {{}} mm ({{}}, {{}}, {{}}); mean {{}} "
+     "| {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows(REAL_PRETRAINED, ("pretrained",))),
+    ("lies nearer still in every seed: {} mm of mean, 95% interval {} to {},",
+     [("signed", at(REAL_PRETRAINED, "mean_paired_diff_mm")),
+      ("signed", at(REAL_PRETRAINED, "mean_paired_diff_ci95_mm_over_seeds/0")),
+      ("signed", at(REAL_PRETRAINED, "mean_paired_diff_ci95_mm_over_seeds/1"))]),
     # The bullets under it.
     ("in {}-{} CPU-minutes per model",
      [("d1", derived(BOX, lambda d, f=f: f(d["s3k"]["train_cpu_minutes"]["per_seed"]))) for f in (min, max)]),
@@ -297,8 +305,8 @@ def test_every_readme_figure_equals_its_json():
 def test_every_cited_json_is_linked_from_the_readme():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, REAL_HELD_OUT,
-             AUTO_CROPS, REAL_END, REAL_END_ADAPT, CURVE, PLUSH_CURVE, DIAGNOSIS, SPEED, QUIET, ONE_PASS,
-             DEMO, ROBOT, WIDE}
+             AUTO_CROPS, REAL_END, REAL_END_ADAPT, REAL_PRETRAINED, CURVE, PLUSH_CURVE, DIAGNOSIS, SPEED,
+             QUIET, ONE_PASS, DEMO, ROBOT, WIDE}
     assert [f for f in sorted(files) if f"]({f})" not in text] == []
 
 

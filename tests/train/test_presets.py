@@ -68,6 +68,17 @@ def test_box_fast_preset_cuts_its_crops_with_its_margin_unless_the_command_line_
                                               crop_margin=headline.passes.crop_margin) == headline
 
 
+def test_real_pretrained_preset_is_the_headline_without_its_layout_on_the_pretrained_encoder():
+    """The configuration measured on the real recording (docs/results/accuracy/pretrained): the headline's,
+    with ``--layout-tol 0`` and the encoder cut at 8, at a tenth of each pass's learning rate."""
+    chosen, headline = PRESETS["real-pretrained"].config, PRESETS["box-headline"].config
+    assert (chosen.backbone.encoder, chosen.backbone.encoder_stride, chosen.backbone.encoder_lr,
+            chosen.backbone.pretrained) == ("efficientnet-lite0", 8, 0.1, True)
+    assert chosen.self_supervision.layout_tol == 0
+    assert chosen.replace(encoder="unet", encoder_stride=headline.backbone.encoder_stride, encoder_lr=1.0,
+                          layout_tol=headline.self_supervision.layout_tol) == headline
+
+
 def test_the_two_pass_options_are_the_configurations_fields_with_their_ranges(capsys):
     """``s3k train --help`` lists the two-pass options in the configuration's own group, and a value out of a
     field's range is refused as the command line is parsed, naming the option."""
