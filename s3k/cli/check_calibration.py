@@ -1,5 +1,5 @@
 """``s3k check-calibration DATASET``: per-camera reprojection residuals from the labels, the cameras
-inconsistent with the others (:mod:`s3k.rigcal.consistency`), and their recalibration from ChArUco frames
+inconsistent with the others (:mod:`s3k.geometry.consistency`), and their recalibration from ChArUco frames
 (:mod:`s3k.rigcal.recalibration`)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from s3k.cli.options import camera_pairs, number
 from s3k.data import Dataset
 from s3k.data.formats.anipose import write_anipose_calibration
 from s3k.data.validate import frame_offset_lines
-from s3k.rigcal.consistency import CalibrationCheck, check_calibration, reprojection_residuals
+from s3k.geometry.consistency import CalibrationCheck, check_calibration, reprojection_residuals
 from s3k.rigcal.recalibration import recalibrate_dataset
 
 log = logging.getLogger(__name__)

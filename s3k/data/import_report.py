@@ -3,7 +3,7 @@ agrees with the labels, and how many of the recording's labels the import kept.
 
 A broken calibration trains without error (a camera that carries another camera's parameters gives wrong
 targets in that camera, quietly), so both commands run the consistency check of ``s3k check-calibration``
-(:func:`s3k.rigcal.consistency.check_calibration`) on the labels they have and warn, naming the command that
+(:func:`s3k.geometry.consistency.check_calibration`) on the labels they have and warn, naming the command that
 repairs it. And an import keeps only the labels of the frames it puts in the labelled and test splits: the
 summary says how many that is, of how many, and which option keeps more.
 """
@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from s3k.rigcal.consistency import check_calibration
+from s3k.geometry.consistency import check_calibration
 
 __all__ = ["calibration_findings", "calibration_warnings", "kept_labels_summary"]
 
 
 def calibration_warnings(cams, uv: np.ndarray, mask: np.ndarray, cameras: Sequence[str],
                          image_size: tuple[int, int], dataset: str | Path) -> list[str]:
-    """The findings of :func:`s3k.rigcal.consistency.check_calibration` on labels ``uv (B, C, K, 2)``, ``mask
-    (B, C, K)`` seen by ``cams`` (``Cameras`` ``(C,)`` or ``(B, C)``), as warnings that name the repair
+    """The findings of :func:`s3k.geometry.consistency.check_calibration` on labels ``uv (B, C, K, 2)``,
+    ``mask (B, C, K)`` seen by ``cams`` (``Cameras`` ``(C,)`` or ``(B, C)``), as warnings that name the repair
     (``s3k check-calibration DATASET --recalibrate``); empty when the cameras agree or cannot be judged."""
     return [line for _, line in calibration_findings(cams, uv, mask, cameras, image_size, dataset)]
 

@@ -9,7 +9,8 @@ top-left pixel, u right, v down; ``K`` is a general 3x3 (skew allowed, so warps 
 :mod:`s3k.geometry.cameras` holds the camera model, :mod:`s3k.geometry.projection` projection and rays,
 :mod:`s3k.geometry.distortion` the lens model, :mod:`s3k.geometry.rotations` Rodrigues conversions,
 :mod:`s3k.geometry.triangulation` the solver (:mod:`s3k.geometry.shapes`: their argument checks).
-:mod:`s3k.geometry.framing` (numpy, not imported here) frames a 3D view on a rig's work.
+:mod:`s3k.geometry.framing` (numpy, not imported here) frames a 3D view on a rig's work;
+:mod:`s3k.geometry.consistency` (not imported here) checks a calibration against 2D labels.
 """
 
 from s3k.geometry.cameras import Cameras, camera_centres

@@ -28,7 +28,7 @@ from s3k.data import Dataset
 from s3k.detector import DetectorMeta
 from s3k.detector.geometry_record import check_images, frame_calibration, recorded_geometry
 from s3k.geometry import Cameras
-from s3k.rigcal.consistency import identical_cameras
+from s3k.geometry.consistency import identical_cameras
 from s3k.run_folder import RunFolder
 
 __all__ = ["OVERRIDE", "calibration_notes", "check_dataset_rig", "check_rig", "run_calibration"]

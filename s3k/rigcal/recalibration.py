@@ -2,7 +2,7 @@
 ``s3k calibrate`` (:mod:`s3k.rigcal`): a camera's intrinsics from its own board views, its pose from the views
 it shares with trusted cameras, refined by bundle adjustment with the trusted cameras held fixed
 (:func:`recalibrate_charuco`), and a dataset's cameras with some of them recalibrated
-(:func:`recalibrate_dataset`). Which cameras to distrust is :mod:`s3k.rigcal.consistency`'s check.
+(:func:`recalibrate_dataset`). Which cameras to distrust is :mod:`s3k.geometry.consistency`'s check.
 """
 
 from __future__ import annotations

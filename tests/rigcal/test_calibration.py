@@ -8,7 +8,7 @@ from helpers.charuco import look_at, render_charuco_rig
 from helpers.real_recording import REAL, needs_real
 
 from s3k.geometry import Cameras
-from s3k.rigcal.consistency import check_calibration, leave_one_out_residuals, reprojection_residuals
+from s3k.geometry.consistency import check_calibration, leave_one_out_residuals, reprojection_residuals
 
 
 def make_rig(C=4, seed=0):
