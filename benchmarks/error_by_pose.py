@@ -2,8 +2,9 @@
 plane of the first three keypoints faces (its normal up, down, or on a side: more than 45 degrees from the
 world's vertical); the frames where the keypoints are detected drawn together (their mean pairwise distance
 below half the true one: a collapse, whatever the confidence says), and the frames where a keypoint is
-detected nearer another keypoint's true place than its own (swapped: a symmetric confusion). Within each
-pose, the error's constant part: each keypoint's mean error in the frame of the true keypoints (x from
+detected nearer another keypoint's true place than its own (swapped: a symmetric confusion;
+``nearest_true`` counts, per keypoint, which true keypoint its detections lie nearest). Within each pose,
+the error's constant part: each keypoint's mean error in the frame of the true keypoints (x from
 keypoint 0 to 1, y from keypoint 2 to 1, z their normal), ``bias_mm``, and the median once it is taken away,
 ``median_mm_without_bias`` - what better precision alone could reach, and what a systematic lean costs. The
 poses on a side are split once more, ``by_edge``, by whether the edge from keypoint 0 to 1 is level or

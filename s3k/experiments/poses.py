@@ -97,6 +97,17 @@ def swapped_frames(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return (np.isfinite(own) & (d.min(axis=-1) < own)).any(axis=-1)
 
 
+def nearest_true(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``(K, K)`` counts: row ``k`` is keypoint ``k``'s detections, column ``j`` how many of them lie nearest
+    keypoint ``j``'s true place (the diagonal: their own); which keypoint a swap takes another for. Frames
+    where ``k`` is not detected or not known are left out."""
+    d = np.linalg.norm(pred[:, :, None] - truth[:, None], axis=-1)  # (B, K detected, K true)
+    own = np.isfinite(np.diagonal(d, axis1=1, axis2=2))
+    nearest = np.argmin(np.where(np.isfinite(d), d, np.inf), axis=-1)  # (B, K)
+    k = pred.shape[1]
+    return np.stack([np.bincount(nearest[own[:, i], i], minlength=k) for i in range(k)])
+
+
 def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
     """The error table of predictions ``pred`` against ``truth`` (both ``(B, K, 3)`` in world units, ``mm``
     millimetres each)."""
@@ -107,7 +118,8 @@ def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
     total = float(np.nansum(err ** 2))
     out: dict[str, Any] = {"all": error_stats(err.ravel(), total), "by_pose": {},
                            "collapsed_frames": int(collapsed.sum()), "swapped_frames": int(swapped.sum()),
-                           "frames": int(len(err))}
+                           "frames": int(len(err)),
+                           "nearest_true": nearest_true(pred[~collapsed], truth[~collapsed]).tolist()}
     for name in POSES:
         sel = classes == name
         out["by_pose"][name] = {"frames": int(sel.sum()), **error_stats(err[sel].ravel(), total),

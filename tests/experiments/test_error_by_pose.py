@@ -70,6 +70,9 @@ def test_swapped_frames_count_symmetric_confusions():
     assert out["by_pose"]["normal up"]["swapped_frames"] == 1
     assert out["swapped"]["n"] == 3 and out["swapped"]["median_mm"] == pytest.approx(100.0)
     assert out["neither"]["n"] == 3
+    # which keypoint each detection was taken for, the collapsed frame left out: frame 1's first two swap,
+    # frame 3 has no detection
+    assert out["nearest_true"] == [[1, 1, 0], [1, 1, 0], [0, 0, 2]]
     assert out["neither"]["median_mm"] == pytest.approx(1000 * np.sqrt(3) * 0.002)
 
 
