@@ -88,24 +88,28 @@ def error_stats(err: np.ndarray, total: float | None = None) -> dict:
     return out
 
 
+def _to_every_truth(pred: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(d, known)``: ``d (B, K detected, K true)`` each detection's distance to every true keypoint (inf
+    where either is missing), ``known (B, K)`` whether a detection's distance to its own is finite."""
+    d = np.linalg.norm(pred[:, :, None] - truth[:, None], axis=-1)
+    d = np.where(np.isfinite(d), d, np.inf)
+    return d, np.isfinite(np.diagonal(d, axis1=1, axis2=2))
+
+
 def swapped_frames(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """``(B,)`` bool: some keypoint is detected nearer another keypoint's true place than its own (a symmetric
     confusion, e.g. a box standing on its end taken upside down)."""
-    d = np.linalg.norm(pred[:, :, None] - truth[:, None], axis=-1)  # (B, K detected, K true)
-    d = np.where(np.isfinite(d), d, np.inf)
-    own = np.diagonal(d, axis1=1, axis2=2)
-    return (np.isfinite(own) & (d.min(axis=-1) < own)).any(axis=-1)
+    d, known = _to_every_truth(pred, truth)
+    return (known & (d.min(axis=-1) < np.diagonal(d, axis1=1, axis2=2))).any(axis=-1)
 
 
 def nearest_true(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """``(K, K)`` counts: row ``k`` is keypoint ``k``'s detections, column ``j`` how many of them lie nearest
     keypoint ``j``'s true place (the diagonal: their own); which keypoint a swap takes another for. Frames
     where ``k`` is not detected or not known are left out."""
-    d = np.linalg.norm(pred[:, :, None] - truth[:, None], axis=-1)  # (B, K detected, K true)
-    own = np.isfinite(np.diagonal(d, axis1=1, axis2=2))
-    nearest = np.argmin(np.where(np.isfinite(d), d, np.inf), axis=-1)  # (B, K)
-    k = pred.shape[1]
-    return np.stack([np.bincount(nearest[own[:, i], i], minlength=k) for i in range(k)])
+    d, known = _to_every_truth(pred, truth)
+    nearest, k = np.argmin(d, axis=-1), pred.shape[1]  # (B, K)
+    return np.stack([np.bincount(nearest[known[:, i], i], minlength=k) for i in range(k)])
 
 
 def by_pose(pred: np.ndarray, truth: np.ndarray, mm: float) -> dict:
