@@ -2,68 +2,19 @@
 the rig, the Speed table, the demo) equals the value in the committed JSON it comes from, to the digits shown.
 
 Each entry of ``FIGURES`` is a piece of the README with ``{}`` where a figure stands, and for each ``{}`` the
-JSON value and its rounding rule. The piece must occur exactly once in the README (a reworded sentence
-fails here until its entry is updated) and each figure must read exactly as its JSON value rounded by the
-rule: a README figure edited by hand, or a JSON file measured again, fails the test.
-
-Rounding rules: millimetres, pixels and percentages to three significant digits, at most two decimals
-(``sig``); CPU-minutes to one decimal (``d1``); frames per second and counts to whole numbers (``d0``);
-ratios to two decimals (``d2``); signed differences with their sign (``signed``).
+JSON value and its rounding rule (``helpers.figures``). The piece must occur exactly once in the README (a
+reworded sentence fails here until its entry is updated) and each figure must read exactly as its JSON value
+rounded by the rule: a README figure edited by hand, or a JSON file measured again, fails the test.
 """
 
 from __future__ import annotations
 
-import json
-import math
-import re
 from collections.abc import Callable
 from statistics import mean
 
 import pytest
+from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct, sig, value_at
 from helpers.paths import REPO as ROOT
-
-NUMBER = r"([-+]?\d+(?:\.\d+)?)"
-
-Getter = Callable[[Callable[[str], dict]], float]
-
-
-def sig(v: float) -> str:
-    """Three significant digits, at most two decimals: 37.2457 -> 37.2, 0.2761 -> 0.28, 118.3 -> 118."""
-    decimals = 2 if v == 0 else max(0, min(2, 2 - math.floor(math.log10(abs(v)))))
-    return f"{v:.{decimals}f}"
-
-
-RULES: dict[str, Callable[[float], str]] = {
-    "sig": sig,
-    "d0": lambda v: f"{v:.0f}",
-    "d1": lambda v: f"{v:.1f}",
-    "d2": lambda v: f"{v:.2f}",
-    "signed": lambda v: f"{v:+.2f}",
-}
-
-
-def _at(data, path: str) -> float:
-    for part in path.split("/"):
-        data = data[int(part)] if isinstance(data, list) else data[part]
-    return float(data)
-
-
-def at(file: str, path: str, scale: float = 1.0) -> Getter:
-    """The value at ``path`` (keys joined by ``/``, list indices as numbers) of ``file``."""
-    return lambda load: scale * _at(load(file), path)
-
-
-def derived(file: str, fn: Callable[[dict], float]) -> Getter:
-    """A value computed from ``file`` (a mean over seeds the file lists, a range over counts)."""
-    return lambda load: fn(load(file))
-
-
-def pct(file: str, path: str) -> tuple[str, Getter]:
-    return "sig", at(file, path, 100.0)
-
-
-def mm(file: str, path: str) -> tuple[str, Getter]:
-    return "sig", at(file, path)
 
 
 def row(file: str, model: str) -> list[tuple[str, Getter]]:
@@ -130,7 +81,7 @@ def _real_rows(file: str = REAL_HELD_OUT, models: tuple[str, ...] = ("baseline",
     return out
 
 
-FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
+FIGURES: Figures = [
     # The demo, quick start.
     ("it takes {} minutes, set-up included, and prints S3K {} mm median and {} mm RMS against labels only's"
      " {} and {} mm ([box-fast-comparison.json](docs/results/demo/box-fast-comparison.json))",
@@ -238,8 +189,8 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
      [("d2", _ratios("scene_rig", ("high",), f)) for f in (min, max)]),
     ("their 2D error is {}x the in-range one ({} px against {}), and at equal 2D error their narrow angles"
      " would give {}x the 3D error",
-     [("d2", derived(DIAGNOSIS, lambda d: _at(d, "rigs/high/diagnosis/fine_2d_median_px")
-                     / _at(d, "rigs/train/diagnosis/fine_2d_median_px"))),
+     [("d2", derived(DIAGNOSIS, lambda d: value_at(d, "rigs/high/diagnosis/fine_2d_median_px")
+                     / value_at(d, "rigs/train/diagnosis/fine_2d_median_px"))),
       mm(DIAGNOSIS, "rigs/high/diagnosis/fine_2d_median_px"),
       mm(DIAGNOSIS, "rigs/train/diagnosis/fine_2d_median_px"),
       ("d2", at(DIAGNOSIS, "rigs/high/diagnosis/triangulation_floor_ratio"))]),
@@ -258,39 +209,6 @@ FIGURES: list[tuple[str, list[tuple[str, Getter]]]] = [
 ]
 
 
-def _pattern(template: str) -> re.Pattern:
-    """The template as a regex: each ``{}`` a number, any run of whitespace any run of whitespace (the README
-    wraps its prose)."""
-    pieces = ["".join(r"\s+" if t.isspace() else re.escape(t) for t in re.split(r"(\s+)", piece) if t)
-              for piece in template.split("{}")]
-    return re.compile(NUMBER.join(pieces))
-
-
-def _loader() -> Callable[[str], dict]:
-    cache: dict[str, dict] = {}
-
-    def load(file: str) -> dict:
-        if file not in cache:
-            cache[file] = json.loads((ROOT / file).read_text(encoding="utf-8"))
-        return cache[file]
-    return load
-
-
-def mismatches(text: str, load: Callable[[str], dict]) -> list[str]:
-    """One line per README figure that differs from its JSON value, or per template not found exactly once."""
-    out = []
-    for template, specs in FIGURES:
-        assert template.count("{}") == len(specs), template
-        found = list(_pattern(template).finditer(text))
-        if len(found) != 1:
-            out.append(f"{len(found)} matches of {template[:70]!r}")
-            continue
-        for shown, (rule, get) in zip(found[0].groups(), specs):
-            want = RULES[rule](get(load))
-            if shown != want:
-                out.append(f"{shown} in {template[:70]!r} should read {want}")
-    return out
-
 
 def test_the_rounding_rule():
     assert [sig(v) for v in (37.2457, 34.0487, 0.2761, 118.3, 2.5698, 13.93, 4.69)] == \
@@ -299,7 +217,7 @@ def test_the_rounding_rule():
 
 def test_every_readme_figure_equals_its_json():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    assert mismatches(text, _loader()) == []
+    assert mismatches(text, loader(), FIGURES) == []
 
 
 def test_every_cited_json_is_linked_from_the_readme():
@@ -315,12 +233,12 @@ def test_every_cited_json_is_linked_from_the_readme():
 def test_an_edited_readme_figure_fails(old, new):
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     assert text.count(old) == 1
-    assert mismatches(text.replace(old, new), _loader()) != []
+    assert mismatches(text.replace(old, new), loader(), FIGURES) != []
 
 
 def test_a_changed_json_value_fails():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    load = _loader()
+    load = loader()
     load(MUGS)["labels_only"]["rms_mm"]["mean"] = 37.31
-    bad = mismatches(text, load)
+    bad = mismatches(text, load, FIGURES)
     assert len(bad) == 1 and "should read 37.3" in bad[0]

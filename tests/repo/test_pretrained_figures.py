@@ -1,0 +1,81 @@
+"""The tables of docs/results/accuracy/pretrained/README.md (the encoder against the scratch U-Net: the box's
+label-curve point, the real recording, the unseen mugs) read as the committed JSON they come from, to the
+digits shown (the rules of ``helpers.figures``)."""
+
+from __future__ import annotations
+
+from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct
+from helpers.paths import REPO as ROOT
+
+PAGE = "docs/results/accuracy/pretrained/README.md"
+HERE = "docs/results/accuracy/pretrained/"
+CURVE = HERE + "label-curve-10.json"
+SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
+REAL = HERE + "real-held-out.json"
+MUGS = HERE + "mugs.json"
+SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
+MUG_POINTS = ("handle", "body_centre", "lip")
+
+
+def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
+    """A mean over seeds, then each seed's value."""
+    return [mm(file, f"{path}/mean")] + [mm(file, f"{path}/per_seed/{i}") for i in range(3)]
+
+
+def _curve_row(file: str, model: str) -> list[tuple[str, Getter]]:
+    base = f"curve/{model}/10"
+    return (_spread(file, f"{base}/median_mm") + _spread(file, f"{base}/rms_mm")
+            + [pct(file, f"{base}/pck_10mm/mean")]
+            + [("d1", at(file, f"{base}/train_cpu_minutes/{k}")) for k in ("mean", "min", "max")])
+
+
+def _mugs_row(file: str, model: str, cpu_range: bool) -> list[tuple[str, Getter]]:
+    out = _spread(file, f"{model}/median_mm") + [mm(file, f"{model}/rms_mm/mean")]
+    out += [pct(file, f"{model}/pck_10mm/mean")]
+    out += [("d1", at(file, f"{model}/median_mm_per_keypoint/{k}/mean")) for k in MUG_POINTS]
+    out.append(("d1", at(file, f"{model}/train_cpu_minutes/mean")))
+    if cpu_range:
+        out += [("d1", derived(file, lambda d, f=f: f(d[model]["train_cpu_minutes"]["per_seed"])))
+                for f in (min, max)]
+    return out
+
+
+def _real_row(seed: int) -> list[tuple[str, Getter]]:
+    s = f"seeds/{seed}"
+    out = [mm(REAL, f"{s}/{m}/{k}") for m in ("pretrained", "scratch") for k in ("mean_mm", "median_mm")]
+    out += [("d3", at(REAL, f"{s}/paired_diff_mean_mm"))]
+    out += [("d3", at(REAL, f"{s}/paired_diff_ci95_mm/{i}")) for i in range(2)]
+    return out + [("d1", at(REAL, f"{s}/{m}/cpu_minutes")) for m in ("pretrained", "scratch")]
+
+
+CURVE_ROW = "| {} ({}, {}, {}) | {} ({}, {}, {}) | {}% | {} ({}-{})"
+MUGS_ROW = "| {} ({}, {}, {}) | {} | {}% | {} / {} / {} | {}"
+
+FIGURES: Figures = [
+    ("| S3K, encoder " + CURVE_ROW + " |", _curve_row(CURVE, "s3k")),
+    ("| S3K, scratch " + CURVE_ROW + ", the Xeon |", _curve_row(SCRATCH_CURVE, "s3k")),
+    ("| labels only, encoder " + CURVE_ROW + " |", _curve_row(CURVE, "labels_only")),
+    ("| labels only, scratch " + CURVE_ROW + ", the Xeon |", _curve_row(SCRATCH_CURVE, "labels_only")),
+    *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} against {{}} |", _real_row(seed))
+      for seed in range(3)],
+    ("Over seeds: {} mm, 95% t-interval {} to {};",
+     [("d3", at(REAL, "mean_paired_diff_mm"))]
+     + [("d3", at(REAL, f"mean_paired_diff_ci95_mm_over_seeds/{i}")) for i in range(2)]),
+    ("| S3K, encoder " + MUGS_ROW + " ({}-{}) |", _mugs_row(MUGS, "s3k", True)),
+    ("| S3K, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "s3k", False)),
+    ("| labels only, encoder " + MUGS_ROW + " ({}-{}) |", _mugs_row(MUGS, "labels_only", True)),
+    ("| labels only, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "labels_only", False)),
+]
+
+
+def test_every_pretrained_figure_equals_its_json():
+    text = (ROOT / PAGE).read_text(encoding="utf-8")
+    assert mismatches(text, loader(), FIGURES) == []
+
+
+def test_a_changed_pretrained_json_value_fails():
+    text = (ROOT / PAGE).read_text(encoding="utf-8")
+    load = loader()
+    load(MUGS)["s3k"]["median_mm_per_keypoint"]["body_centre"]["mean"] = 11.0
+    bad = mismatches(text, load, FIGURES)
+    assert len(bad) == 1 and "should read 11.0" in bad[0]
