@@ -15,6 +15,9 @@ REAL = HERE + "real-held-out.json"
 MUGS = HERE + "mugs.json"
 SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
 MUG_POINTS = ("handle", "body_centre", "lip")
+PLUSH = HERE + "plush.json"
+SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
+PLUSH_CONTROL = HERE + "plush-scratch-seed0.json"
 
 
 def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
@@ -40,6 +43,29 @@ def _mugs_row(file: str, model: str, cpu_range: bool) -> list[tuple[str, Getter]
     return out
 
 
+def _scene_row(file: str, model: str) -> list[tuple[str, Getter]]:
+    """A scene's row: median and RMS (mean, per seed), share within 10 mm, CPU-minutes (mean, range)."""
+    out = _spread(file, f"{model}/median_mm") + _spread(file, f"{model}/rms_mm")
+    out += [pct(file, f"{model}/pck_10mm/mean"), ("d1", at(file, f"{model}/train_cpu_minutes/mean"))]
+    return out + [("d1", derived(file, lambda d: min(d[model]["train_cpu_minutes"]["per_seed"]))),
+                  ("d1", derived(file, lambda d: max(d[model]["train_cpu_minutes"]["per_seed"])))]
+
+
+def _paired(model: str, key: str, pick) -> Getter:
+    """``pick`` (min or max) over seeds of the encoder's ``key`` less the scratch model's, on the plush."""
+    return lambda load: pick(a - b for a, b in zip(load(PLUSH)[model][key]["per_seed"],
+                                                  load(SCRATCH_PLUSH)[model][key]["per_seed"]))
+
+
+def _below_control(key: str) -> Getter:
+    """The same-machine scratch model of seed 0 less the encoder's model of seed 0, on the plush."""
+    return lambda load: load(PLUSH_CONTROL)["metrics"][key] - load(PLUSH)["s3k"][key]["per_seed"][0]
+
+
+def _keypoint(file: str, point: str) -> tuple[str, Getter]:
+    return "d1", at(file, f"s3k/median_mm_per_keypoint/{point}/mean")
+
+
 def _real_row(seed: int) -> list[tuple[str, Getter]]:
     s = f"seeds/{seed}"
     out = [mm(REAL, f"{s}/{m}/{k}") for m in ("pretrained", "scratch") for k in ("mean_mm", "median_mm")]
@@ -49,13 +75,22 @@ def _real_row(seed: int) -> list[tuple[str, Getter]]:
 
 
 CURVE_ROW = "| {} ({}, {}, {}) | {} ({}, {}, {}) | {}% | {} ({}-{})"
+
+
+def _table(rms_header: str, row: str) -> str:
+    """A four-row table of the encoder against scratch, S3K then labels only; the scratch rows' CPU figures
+    are the Xeon's."""
+    head = (f"| model | median mm (seeds 0, 1, 2) {rms_header} within 10 mm | CPU-minutes |\n"
+            "|---|---|---|---|---|\n")
+    rows = [f"| {m}, {e} {row}{' |' if e == 'encoder' else ', the Xeon |'}"
+            for m in ("S3K", "labels only") for e in ("encoder", "scratch")]
+    return head + "\n".join(rows)
 MUGS_ROW = "| {} ({}, {}, {}) | {} | {}% | {} / {} / {} | {}"
 
 FIGURES: Figures = [
-    ("| S3K, encoder " + CURVE_ROW + " |", _curve_row(CURVE, "s3k")),
-    ("| S3K, scratch " + CURVE_ROW + ", the Xeon |", _curve_row(SCRATCH_CURVE, "s3k")),
-    ("| labels only, encoder " + CURVE_ROW + " |", _curve_row(CURVE, "labels_only")),
-    ("| labels only, scratch " + CURVE_ROW + ", the Xeon |", _curve_row(SCRATCH_CURVE, "labels_only")),
+    (_table("| RMS mm |", CURVE_ROW),
+     _curve_row(CURVE, "s3k") + _curve_row(SCRATCH_CURVE, "s3k") + _curve_row(CURVE, "labels_only")
+     + _curve_row(SCRATCH_CURVE, "labels_only")),
     *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} against {{}} |", _real_row(seed))
       for seed in range(3)],
     ("Over seeds: {} mm, 95% t-interval {} to {};",
@@ -65,6 +100,24 @@ FIGURES: Figures = [
     ("| S3K, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "s3k", False)),
     ("| labels only, encoder " + MUGS_ROW + " ({}-{}) |", _mugs_row(MUGS, "labels_only", True)),
     ("| labels only, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "labels_only", False)),
+    (_table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
+     _scene_row(PLUSH, "s3k") + _scene_row(SCRATCH_PLUSH, "s3k") + _scene_row(PLUSH, "labels_only")
+     + _scene_row(SCRATCH_PLUSH, "labels_only")),
+    ("S3K's is lower in every seed, by {} to {} mm.",
+     [("d2", lambda load: -_paired("s3k", "median_mm", max)(load)),
+      ("d2", lambda load: -_paired("s3k", "median_mm", min)(load))]),
+    ("higher in the third ({} mm against {}), where the front right paw keeps a tail of errors (RMS {}",
+     [mm(PLUSH, "s3k/rms_mm/per_seed/2"), mm(SCRATCH_PLUSH, "s3k/rms_mm/per_seed/2"),
+      ("sig", at(PLUSH, "s3k/rms_mm_per_keypoint/front_right_paw/per_seed/2"))]),
+    ("gives {} mm median, {} mm RMS, in {} CPU-minutes: the encoder's model of that seed is {} mm lower in"
+     " median and {} mm in RMS",
+     [mm(PLUSH_CONTROL, "metrics/median_mm"), mm(PLUSH_CONTROL, "metrics/rms_mm"),
+      ("d1", at(PLUSH_CONTROL, "cpu_minutes")),
+      ("d2", _below_control("median_mm")), ("d2", _below_control("rms_mm"))]),
+    ("head {} against {} mm, tail {} against {}, front left paw {} against {}, front right paw {} against {},"
+     " body {} against {}.",
+     [_keypoint(f, p) for p in ("head", "tail", "front_left_paw", "front_right_paw", "body")
+      for f in (PLUSH, SCRATCH_PLUSH)]),
 ]
 
 

@@ -43,6 +43,8 @@ REAL_HELD_OUT = "docs/results/real/held-out/comparison.json"
 AUTO_CROPS = "docs/results/real/held-out/auto-crops.json"
 REAL_END = "docs/results/real/held-out-end/comparison.json"
 REAL_PRETRAINED = "docs/results/accuracy/pretrained/real-held-out.json"
+PLUSH_PRETRAINED = "docs/results/accuracy/pretrained/plush.json"
+MUGS_PRETRAINED = "docs/results/accuracy/pretrained/mugs.json"
 REAL_END_ADAPT = "docs/results/real/held-out-end/adaptation.json"
 CURVE = "docs/results/accuracy/label-curve/summary.json"
 PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
@@ -99,6 +101,7 @@ FIGURES: Figures = [
     (f"([summary]({PLUSH}); earlier options: [accuracy.md](docs/accuracy.md"
      f"#the-headline-preset-on-other-scenes)) | labels only {ROW}\n| | **S3K** {BOLD_ROW} {{}} CPU-min |",
      row(PLUSH, "labels_only") + row(PLUSH, "s3k")),
+    (f"[plush.json]({PLUSH_PRETRAINED})) {ROW}", row(PLUSH_PRETRAINED, "s3k")),
     (f"([summary]({MUGS})) | labels only {ROW}\n| | S3K {ROW}", row(MUGS, "labels_only") + row(MUGS, "s3k")),
     (f"([summary]({INSERTION})) | labels only {ROW}\n| | **S3K** {BOLD_ROW} {{}} CPU-min |",
      row(INSERTION, "labels_only") + row(INSERTION, "s3k")),
@@ -128,6 +131,11 @@ FIGURES: Figures = [
     ("on RMS in every seed ({}x) and on median in two of three (seed 1: {} against {} mm)",
      [("d2", derived(PLUSH, lambda d: d["s3k"]["rms_mm"]["mean"] / d["labels_only"]["rms_mm"]["mean"])),
       mm(PLUSH, "s3k/median_mm/per_seed/1"), mm(PLUSH, "labels_only/median_mm/per_seed/1")]),
+    ("in {} CPU-minutes against {} for a scratch model on the same machine; on the mugs it is worse, {} mm"
+     " median",
+     [("d1", at(PLUSH_PRETRAINED, "s3k/train_cpu_minutes/mean")),
+      ("d1", at("docs/results/accuracy/pretrained/plush-scratch-seed0.json", "cpu_minutes")),
+      mm(MUGS_PRETRAINED, "s3k/median_mm/mean")]),
     ("S3K is closer to them than labels only in every seed: paired difference {} mm of mean over three seeds,"
      " 95% interval {} to {}.",
      [("signed", at(REAL_HELD_OUT, "mean_paired_diff_mm")),
@@ -223,8 +231,8 @@ def test_every_readme_figure_equals_its_json():
 def test_every_cited_json_is_linked_from_the_readme():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     files = {BOX, FAST, FIVE, PLUSH, MUGS, INSERTION, DISTRACTORS, REAL, REAL_ONE_PASS, REAL_HELD_OUT,
-             AUTO_CROPS, REAL_END, REAL_END_ADAPT, REAL_PRETRAINED, CURVE, PLUSH_CURVE, DIAGNOSIS, SPEED,
-             QUIET, ONE_PASS, DEMO, ROBOT, WIDE}
+             AUTO_CROPS, REAL_END, REAL_END_ADAPT, REAL_PRETRAINED, PLUSH_PRETRAINED, CURVE, PLUSH_CURVE,
+             DIAGNOSIS, SPEED, QUIET, ONE_PASS, DEMO, ROBOT, WIDE}
     assert [f for f in sorted(files) if f"]({f})" not in text] == []
 
 
