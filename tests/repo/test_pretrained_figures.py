@@ -1,6 +1,6 @@
 """The tables of docs/results/accuracy/pretrained/README.md (the encoder against the scratch U-Net: the box's
-label-curve point, the real recording, the unseen mugs) read as the committed JSON they come from, to the
-digits shown (the rules of ``helpers.figures``)."""
+label-curve point, the real recording, the unseen mugs, the plush toy) read as the committed JSON they come
+from, to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
@@ -25,6 +25,12 @@ def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
     return [mm(file, f"{path}/mean")] + [mm(file, f"{path}/per_seed/{i}") for i in range(3)]
 
 
+def _cpu_range(file: str, model: str) -> list[tuple[str, Getter]]:
+    """The least and the most CPU-minutes over seeds, for files that list them per seed only."""
+    return [("d1", derived(file, lambda d: min(d[model]["train_cpu_minutes"]["per_seed"]))),
+            ("d1", derived(file, lambda d: max(d[model]["train_cpu_minutes"]["per_seed"])))]
+
+
 def _curve_row(file: str, model: str) -> list[tuple[str, Getter]]:
     base = f"curve/{model}/10"
     return (_spread(file, f"{base}/median_mm") + _spread(file, f"{base}/rms_mm")
@@ -37,18 +43,14 @@ def _mugs_row(file: str, model: str, cpu_range: bool) -> list[tuple[str, Getter]
     out += [pct(file, f"{model}/pck_10mm/mean")]
     out += [("d1", at(file, f"{model}/median_mm_per_keypoint/{k}/mean")) for k in MUG_POINTS]
     out.append(("d1", at(file, f"{model}/train_cpu_minutes/mean")))
-    if cpu_range:
-        out += [("d1", derived(file, lambda d: min(d[model]["train_cpu_minutes"]["per_seed"]))),
-                ("d1", derived(file, lambda d: max(d[model]["train_cpu_minutes"]["per_seed"])))]
-    return out
+    return out + (_cpu_range(file, model) if cpu_range else [])
 
 
 def _scene_row(file: str, model: str) -> list[tuple[str, Getter]]:
     """A scene's row: median and RMS (mean, per seed), share within 10 mm, CPU-minutes (mean, range)."""
     out = _spread(file, f"{model}/median_mm") + _spread(file, f"{model}/rms_mm")
     out += [pct(file, f"{model}/pck_10mm/mean"), ("d1", at(file, f"{model}/train_cpu_minutes/mean"))]
-    return out + [("d1", derived(file, lambda d: min(d[model]["train_cpu_minutes"]["per_seed"]))),
-                  ("d1", derived(file, lambda d: max(d[model]["train_cpu_minutes"]["per_seed"])))]
+    return out + _cpu_range(file, model)
 
 
 def _paired(model: str, key: str, pick) -> Getter:
@@ -85,6 +87,8 @@ def _table(rms_header: str, row: str) -> str:
     rows = [f"| {m}, {e} {row}{' |' if e == 'encoder' else ', the Xeon |'}"
             for m in ("S3K", "labels only") for e in ("encoder", "scratch")]
     return head + "\n".join(rows)
+
+
 MUGS_ROW = "| {} ({}, {}, {}) | {} | {}% | {} / {} / {} | {}"
 
 FIGURES: Figures = [
