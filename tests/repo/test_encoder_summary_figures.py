@@ -1,0 +1,78 @@
+"""The encoder's summary in docs/training.md and in the ``real-pretrained`` preset's docstring (what a step
+costs, what the encoder buys per scene against the scratch U-Net) reads as the committed JSON it comes from,
+to the digits shown (the rules of ``helpers.figures``)."""
+
+from __future__ import annotations
+
+from helpers.figures import Figures, Getter, loader, mismatches
+from helpers.paths import REPO as ROOT
+
+HERE = "docs/results/accuracy/pretrained/"
+STEP = HERE + "train-step.json"
+CURVE = HERE + "label-curve-10.json"
+SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
+REAL = HERE + "real-held-out.json"
+MUGS = HERE + "mugs.json"
+SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
+PLUSH = HERE + "plush.json"
+SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
+
+
+def _step_ratio(size: int, stride: int) -> Getter:
+    """The encoder's CPU per training step over the U-Net's, at ``size`` px, cut at ``stride``."""
+    def get(load) -> float:
+        rows = [r for r in load(STEP)["rows"] if r["size"] == size
+                and r["train_options"].endswith(f"--encoder-stride {stride}")]
+        assert len(rows) == 1, (size, stride)
+        return rows[0]["cpu_over_unet"]
+    return get
+
+
+def _median_gap(encoder: str, scratch: str, path: str) -> Getter:
+    """The encoder's mean S3K median over seeds less the scratch model's (positive: the encoder is worse)."""
+    def mean(data: dict) -> float:
+        node = data
+        for part in path.split("/"):
+            node = node[part]
+        return node["mean"]
+    return lambda load: mean(load(encoder)) - mean(load(scratch))
+
+
+BOX_WORSE = ("d1", _median_gap(CURVE, SCRATCH_CURVE, "curve/s3k/10/median_mm"))
+MUGS_WORSE = ("d1", _median_gap(MUGS, SCRATCH_MUGS, "s3k/median_mm"))
+PLUSH_BETTER = ("d1", lambda load: -_median_gap(PLUSH, SCRATCH_PLUSH, "s3k/median_mm")(load))
+REAL_NEARER = ("d2", lambda load: -load(REAL)["mean_paired_diff_mm"])
+
+TRAINING: Figures = [
+    ("cut at stride 8 costs about {} times the U-Net's CPU time at 192 px and {} times at 96 px, cut at 16 {}"
+     " times", [("d0", _step_ratio(192, 8)), ("d1", _step_ratio(96, 8)), ("d0", _step_ratio(192, 16))]),
+    ("on the simulated box at ten labels S3K with it is {} mm worse in median than from scratch",
+     [BOX_WORSE]),
+    ("on unseen mugs {} mm worse", [MUGS_WORSE]),
+    ("on the plush toy {} mm better in median in every seed", [PLUSH_BETTER]),
+    ("it lies {} mm nearer the proofread labels, in every seed", [REAL_NEARER]),
+]
+
+PRESET: Figures = [
+    ("it lies {} mm nearer the proofread labels than the same configuration from scratch", [REAL_NEARER]),
+    ("on the simulated box at ten labels it is {} mm worse in median, on unseen mugs {} mm;",
+     [BOX_WORSE, MUGS_WORSE]),
+    ("on the plush toy {} mm better in median", [PLUSH_BETTER]),
+]
+
+PAGES = {"docs/training.md": TRAINING, "s3k/train/presets.py": PRESET}
+
+
+def test_every_encoder_summary_figure_equals_its_json():
+    load = loader()
+    for page, figures in PAGES.items():
+        text = (ROOT / page).read_text(encoding="utf-8")
+        assert mismatches(text, load, figures) == [], page
+
+
+def test_a_changed_mugs_median_fails_in_both_places():
+    load = loader()
+    load(MUGS)["s3k"]["median_mm"]["mean"] += 1.0
+    for page, figures in PAGES.items():
+        bad = mismatches((ROOT / page).read_text(encoding="utf-8"), load, figures)
+        assert len(bad) == 1 and "should read 5.2" in bad[0], (page, bad)
