@@ -16,6 +16,8 @@ MUGS = HERE + "mugs.json"
 SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
 PLUSH = HERE + "plush.json"
 SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
+INSERTION = HERE + "insertion.json"
+SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
 
 
 def _step_ratio(size: int, stride: int) -> Getter:
@@ -41,6 +43,7 @@ def _median_gap(encoder: str, scratch: str, path: str) -> Getter:
 BOX_WORSE = ("d1", _median_gap(CURVE, SCRATCH_CURVE, "curve/s3k/10/median_mm"))
 MUGS_WORSE = ("d1", _median_gap(MUGS, SCRATCH_MUGS, "s3k/median_mm"))
 PLUSH_BETTER = ("d1", lambda load: -_median_gap(PLUSH, SCRATCH_PLUSH, "s3k/median_mm")(load))
+INSERTION_WORSE = ("d2", _median_gap(INSERTION, SCRATCH_INSERTION, "s3k/median_mm"))
 REAL_NEARER = ("d2", lambda load: -load(REAL)["mean_paired_diff_mm"])
 
 TRAINING: Figures = [
@@ -50,6 +53,8 @@ TRAINING: Figures = [
      [BOX_WORSE]),
     ("on unseen mugs {} mm worse", [MUGS_WORSE]),
     ("on the plush toy {} mm better in median in every seed", [PLUSH_BETTER]),
+    ("cable insertion {} mm worse in median in every seed, at about {} mm",
+     [INSERTION_WORSE, ("d2", lambda load: load(SCRATCH_INSERTION)["s3k"]["median_mm"]["mean"])]),
     ("it lies {} mm nearer the proofread labels, in every seed", [REAL_NEARER]),
 ]
 
@@ -58,6 +63,7 @@ PRESET: Figures = [
     ("on the simulated box at ten labels it is {} mm worse in median, on unseen mugs {} mm;",
      [BOX_WORSE, MUGS_WORSE]),
     ("on the plush toy {} mm better in median", [PLUSH_BETTER]),
+    ("on cable insertion {} mm worse in median", [INSERTION_WORSE]),
 ]
 
 PAGES = {"docs/training.md": TRAINING, "s3k/train/presets.py": PRESET}

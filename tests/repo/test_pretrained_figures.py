@@ -1,6 +1,6 @@
 """The tables of docs/results/accuracy/pretrained/README.md (the encoder against the scratch U-Net: the box's
-label-curve point, the real recording, the unseen mugs, the plush toy) read as the committed JSON they come
-from, to the digits shown (the rules of ``helpers.figures``)."""
+label-curve point, the real recording, the unseen mugs, the plush toy, cable insertion) read as the committed
+JSON they come from, to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,10 @@ MUG_POINTS = ("handle", "body_centre", "lip")
 PLUSH = HERE + "plush.json"
 SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
 PLUSH_CONTROL = HERE + "plush-scratch-seed0.json"
+INSERTION = HERE + "insertion.json"
+SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
+INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
+INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
 
 
 def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
@@ -53,10 +57,26 @@ def _scene_row(file: str, model: str) -> list[tuple[str, Getter]]:
     return out + _cpu_range(file, model)
 
 
-def _paired(model: str, key: str, pick) -> Getter:
-    """``pick`` (min or max) over seeds of the encoder's ``key`` less the scratch model's, on the plush."""
-    return lambda load: pick(a - b for a, b in zip(load(PLUSH)[model][key]["per_seed"],
-                                                  load(SCRATCH_PLUSH)[model][key]["per_seed"]))
+def _insertion_row(file: str, model: str) -> list[tuple[str, Getter]]:
+    """A scene's row with the medians to three decimals (insertion's points are found to tenths of a mm)."""
+    return [("d3", g) for _, g in _spread(file, f"{model}/median_mm")] + _scene_row(file, model)[4:]
+
+
+def _paired(model: str, key: str, pick, encoder: str = PLUSH, scratch: str = SCRATCH_PLUSH) -> Getter:
+    """``pick`` (min or max) over seeds of the encoder's ``key`` less the scratch model's (the plush's unless
+    named)."""
+    return lambda load: pick(a - b for a, b in zip(load(encoder)[model][key]["per_seed"],
+                                                  load(scratch)[model][key]["per_seed"]))
+
+
+def _pose_run(seed: int, key: str) -> Getter:
+    """``key`` (keys joined by ``/``) of the insertion S3K model of ``seed`` (1 or 2) in the by-pose file."""
+    def get(load) -> float:
+        node = list(load(INSERTION_POSES)["runs"].values())[seed - 1]
+        for part in key.split("/"):
+            node = node[part]
+        return float(node)
+    return get
 
 
 def _below_control(key: str) -> Getter:
@@ -89,6 +109,16 @@ def _table(rms_header: str, row: str) -> str:
     return head + "\n".join(rows)
 
 
+def _share(seed: int, frames: str) -> tuple[str, Getter]:
+    """The percentage of the squared error carried by the ``frames`` (swapped, collapsed) of ``seed``."""
+    return "d0", lambda load: 100 * _pose_run(seed, f"{frames}/share_of_squared_error")(load)
+
+
+def _after_link(scene: str) -> str:
+    """The end of the sentence that introduces a scene's table (the two scenes' tables read alike)."""
+    return f"(../headline-preset/{scene}/summary.json), the same seeds, trained on the Intel Xeon):\n\n"
+
+
 MUGS_ROW = "| {} ({}, {}, {}) | {} | {}% | {} / {} / {} | {}"
 
 FIGURES: Figures = [
@@ -104,7 +134,7 @@ FIGURES: Figures = [
     ("| S3K, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "s3k", False)),
     ("| labels only, encoder " + MUGS_ROW + " ({}-{}) |", _mugs_row(MUGS, "labels_only", True)),
     ("| labels only, scratch " + MUGS_ROW + ", the Xeon |", _mugs_row(SCRATCH_MUGS, "labels_only", False)),
-    (_table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
+    (_after_link("plush") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
      _scene_row(PLUSH, "s3k") + _scene_row(SCRATCH_PLUSH, "s3k") + _scene_row(PLUSH, "labels_only")
      + _scene_row(SCRATCH_PLUSH, "labels_only")),
     ("S3K's is lower in every seed, by {} to {} mm.",
@@ -125,9 +155,36 @@ FIGURES: Figures = [
 ]
 
 
+INSERTION_FIGURES: Figures = [
+    (_after_link("insertion") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
+     _insertion_row(INSERTION, "s3k") + _insertion_row(SCRATCH_INSERTION, "s3k")
+     + _insertion_row(INSERTION, "labels_only") + _insertion_row(SCRATCH_INSERTION, "labels_only")),
+    ("S3K's median is higher in every seed, by {} to {} mm",
+     [("d3", _paired("s3k", "median_mm", min, INSERTION, SCRATCH_INSERTION)),
+      ("d3", _paired("s3k", "median_mm", max, INSERTION, SCRATCH_INSERTION))]),
+    ("in seed 1, {} frames where keypoints swap carry {}% of the squared error and {} collapsed frame {}%; in"
+     " seed 2, {} collapsed frames carry {}%. Without those frames the RMS is {} and {} mm",
+     [("d0", _pose_run(1, "swapped_frames")), _share(1, "swapped"),
+      ("d0", _pose_run(1, "collapsed_frames")), _share(1, "collapsed"),
+      ("d0", _pose_run(2, "collapsed_frames")), _share(2, "collapsed"),
+      ("sig", _pose_run(1, "neither/rms_mm")), ("sig", _pose_run(2, "neither/rms_mm"))]),
+    ("gives {} mm median,\n{} mm RMS, in {} CPU-minutes: the encoder's model of that seed is {} mm higher in"
+     " median, at {} times the\nCPU",
+     [("d3", at(INSERTION_CONTROL, "metrics/median_mm")), mm(INSERTION_CONTROL, "metrics/rms_mm"),
+      ("d1", at(INSERTION_CONTROL, "cpu_minutes")),
+      ("d3", lambda load: load(INSERTION)["s3k"]["median_mm"]["per_seed"][0]
+       - load(INSERTION_CONTROL)["metrics"]["median_mm"]),
+      ("d1", lambda load: load(INSERTION)["s3k"]["train_cpu_minutes"]["per_seed"][0]
+       / load(INSERTION_CONTROL)["cpu_minutes"])]),
+    ("plug tip {} against {} mm, plug base\n{} against {}, socket {} against {}.",
+     [("d3", at(f, f"s3k/median_mm_per_keypoint/{p}/mean")) for p in ("plug_tip", "plug_base", "socket")
+      for f in (INSERTION, SCRATCH_INSERTION)]),
+]
+
+
 def test_every_pretrained_figure_equals_its_json():
     text = (ROOT / PAGE).read_text(encoding="utf-8")
-    assert mismatches(text, loader(), FIGURES) == []
+    assert mismatches(text, loader(), FIGURES + INSERTION_FIGURES) == []
 
 
 def test_a_changed_pretrained_json_value_fails():
@@ -136,3 +193,11 @@ def test_a_changed_pretrained_json_value_fails():
     load(MUGS)["s3k"]["median_mm_per_keypoint"]["body_centre"]["mean"] = 11.0
     bad = mismatches(text, load, FIGURES)
     assert len(bad) == 1 and "should read 11.0" in bad[0]
+
+
+def test_labels_only_with_the_encoder_is_lower_on_insertion_in_every_seed_as_the_page_says():
+    load = loader()
+    enc, scratch = (load(f)["labels_only"]["median_mm"]["per_seed"] for f in (INSERTION, SCRATCH_INSERTION))
+    assert all(a < b for a, b in zip(enc, scratch))
+    assert "Labels only with the encoder has a lower median than from\nscratch in every seed" in (
+        ROOT / PAGE).read_text(encoding="utf-8")
