@@ -6,18 +6,18 @@ from __future__ import annotations
 
 from helpers.figures import Figures, Getter, loader, mismatches
 from helpers.paths import REPO as ROOT
-
-HERE = "docs/results/accuracy/pretrained/"
-STEP = HERE + "train-step.json"
-CURVE = HERE + "label-curve-10.json"
-SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
-REAL = HERE + "real-held-out.json"
-MUGS = HERE + "mugs.json"
-SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
-PLUSH = HERE + "plush.json"
-SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
-INSERTION = HERE + "insertion.json"
-SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
+from helpers.pretrained_files import (
+    CURVE,
+    INSERTION,
+    MUGS,
+    PLUSH,
+    REAL,
+    SCRATCH_CURVE,
+    SCRATCH_INSERTION,
+    SCRATCH_MUGS,
+    SCRATCH_PLUSH,
+    STEP,
+)
 
 
 def _step_ratio(size: int, stride: int) -> Getter:

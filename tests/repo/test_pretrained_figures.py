@@ -6,22 +6,23 @@ from __future__ import annotations
 
 from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct
 from helpers.paths import REPO as ROOT
+from helpers.pretrained_files import (
+    CURVE,
+    INSERTION,
+    INSERTION_CONTROL,
+    INSERTION_POSES,
+    MUGS,
+    PLUSH,
+    PLUSH_CONTROL,
+    REAL,
+    SCRATCH_CURVE,
+    SCRATCH_INSERTION,
+    SCRATCH_MUGS,
+    SCRATCH_PLUSH,
+)
 
 PAGE = "docs/results/accuracy/pretrained/README.md"
-HERE = "docs/results/accuracy/pretrained/"
-CURVE = HERE + "label-curve-10.json"
-SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
-REAL = HERE + "real-held-out.json"
-MUGS = HERE + "mugs.json"
-SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
 MUG_POINTS = ("handle", "body_centre", "lip")
-PLUSH = HERE + "plush.json"
-SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
-PLUSH_CONTROL = HERE + "plush-scratch-seed0.json"
-INSERTION = HERE + "insertion.json"
-SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
-INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
-INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
 
 
 def _spread(file: str, path: str) -> list[tuple[str, Getter]]:

@@ -1,0 +1,17 @@
+"""The committed JSON of the pretrained encoder (docs/results/accuracy/pretrained) and the scratch U-Net's
+figures each is set against, for the tests that tie pages' figures to them."""
+
+HERE = "docs/results/accuracy/pretrained/"
+STEP = HERE + "train-step.json"
+CURVE = HERE + "label-curve-10.json"
+SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
+REAL = HERE + "real-held-out.json"
+MUGS = HERE + "mugs.json"
+SCRATCH_MUGS = "docs/results/accuracy/headline-preset/category/summary.json"
+PLUSH = HERE + "plush.json"
+SCRATCH_PLUSH = "docs/results/accuracy/headline-preset/plush/summary.json"
+PLUSH_CONTROL = HERE + "plush-scratch-seed0.json"
+INSERTION = HERE + "insertion.json"
+SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
+INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
+INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
