@@ -4,7 +4,7 @@ to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
-from helpers.figures import Figures, Getter, loader, mismatches
+from helpers.figures import Figures, Getter, loader, mismatches, value_at
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
     CURVE,
@@ -32,12 +32,7 @@ def _step_ratio(size: int, stride: int) -> Getter:
 
 def _median_gap(encoder: str, scratch: str, path: str) -> Getter:
     """The encoder's mean S3K median over seeds less the scratch model's (positive: the encoder is worse)."""
-    def mean(data: dict) -> float:
-        node = data
-        for part in path.split("/"):
-            node = node[part]
-        return node["mean"]
-    return lambda load: mean(load(encoder)) - mean(load(scratch))
+    return lambda load: value_at(load(encoder), f"{path}/mean") - value_at(load(scratch), f"{path}/mean")
 
 
 BOX_WORSE = ("d1", _median_gap(CURVE, SCRATCH_CURVE, "curve/s3k/10/median_mm"))

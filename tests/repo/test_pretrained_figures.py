@@ -4,7 +4,7 @@ JSON they come from, to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
-from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct
+from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct, value_at
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
     CURVE,
@@ -52,16 +52,13 @@ def _mugs_row(file: str, model: str, cpu_range: bool) -> list[tuple[str, Getter]
     return out + (_cpu_range(file, model) if cpu_range else [])
 
 
-def _scene_row(file: str, model: str) -> list[tuple[str, Getter]]:
-    """A scene's row: median and RMS (mean, per seed), share within 10 mm, CPU-minutes (mean, range)."""
-    out = _spread(file, f"{model}/median_mm") + _spread(file, f"{model}/rms_mm")
+def _scene_row(file: str, model: str, median_rule: str = "sig") -> list[tuple[str, Getter]]:
+    """A scene's row: median and RMS (mean, per seed), share within 10 mm, CPU-minutes (mean, range); the
+    medians rounded by ``median_rule`` (insertion's points are found to tenths of a mm: ``d3``)."""
+    out = [(median_rule, get) for _, get in _spread(file, f"{model}/median_mm")]
+    out += _spread(file, f"{model}/rms_mm")
     out += [pct(file, f"{model}/pck_10mm/mean"), ("d1", at(file, f"{model}/train_cpu_minutes/mean"))]
     return out + _cpu_range(file, model)
-
-
-def _insertion_row(file: str, model: str) -> list[tuple[str, Getter]]:
-    """A scene's row with the medians to three decimals (insertion's points are found to tenths of a mm)."""
-    return [("d3", g) for _, g in _spread(file, f"{model}/median_mm")] + _scene_row(file, model)[4:]
 
 
 def _paired(model: str, key: str, pick, encoder: str = PLUSH, scratch: str = SCRATCH_PLUSH) -> Getter:
@@ -73,12 +70,7 @@ def _paired(model: str, key: str, pick, encoder: str = PLUSH, scratch: str = SCR
 
 def _pose_run(seed: int, key: str) -> Getter:
     """``key`` (keys joined by ``/``) of the insertion S3K model of ``seed`` (1 or 2) in the by-pose file."""
-    def get(load) -> float:
-        node = list(load(INSERTION_POSES)["runs"].values())[seed - 1]
-        for part in key.split("/"):
-            node = node[part]
-        return float(node)
-    return get
+    return lambda load: value_at(list(load(INSERTION_POSES)["runs"].values())[seed - 1], key)
 
 
 def _below_control(key: str) -> Getter:
@@ -169,8 +161,9 @@ FIGURES: Figures = [
 
 INSERTION_FIGURES: Figures = [
     (_after_link("insertion") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
-     _insertion_row(INSERTION, "s3k") + _insertion_row(SCRATCH_INSERTION, "s3k")
-     + _insertion_row(INSERTION, "labels_only") + _insertion_row(SCRATCH_INSERTION, "labels_only")),
+     [cell for file, model in ((INSERTION, "s3k"), (SCRATCH_INSERTION, "s3k"), (INSERTION, "labels_only"),
+                               (SCRATCH_INSERTION, "labels_only"))
+      for cell in _scene_row(file, model, "d3")]),
     ("S3K's median is higher in every seed, by {} to {} mm",
      [("d3", _paired("s3k", "median_mm", min, INSERTION, SCRATCH_INSERTION)),
       ("d3", _paired("s3k", "median_mm", max, INSERTION, SCRATCH_INSERTION))]),

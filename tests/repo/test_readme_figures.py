@@ -13,6 +13,7 @@ from collections.abc import Callable
 from statistics import mean
 
 import pytest
+from helpers import pretrained_files as pretrained
 from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct, sig, value_at
 from helpers.paths import REPO as ROOT
 
@@ -42,9 +43,7 @@ REAL_ONE_PASS = "docs/results/real/comparison.json"
 REAL_HELD_OUT = "docs/results/real/held-out/comparison.json"
 AUTO_CROPS = "docs/results/real/held-out/auto-crops.json"
 REAL_END = "docs/results/real/held-out-end/comparison.json"
-REAL_PRETRAINED = "docs/results/accuracy/pretrained/real-held-out.json"
-PLUSH_PRETRAINED = "docs/results/accuracy/pretrained/plush.json"
-MUGS_PRETRAINED = "docs/results/accuracy/pretrained/mugs.json"
+REAL_PRETRAINED, PLUSH_PRETRAINED, MUGS_PRETRAINED = pretrained.REAL, pretrained.PLUSH, pretrained.MUGS
 REAL_END_ADAPT = "docs/results/real/held-out-end/adaptation.json"
 CURVE = "docs/results/accuracy/label-curve/summary.json"
 PLUSH_CURVE = "docs/results/accuracy/label-curve/plush/summary.json"
@@ -134,9 +133,9 @@ FIGURES: Figures = [
     ("in {} CPU-minutes against {} for a scratch model on the same machine; on the mugs it is worse, {} mm"
      " median, and on insertion slightly worse in every seed, {} mm against {}",
      [("d1", at(PLUSH_PRETRAINED, "s3k/train_cpu_minutes/mean")),
-      ("d1", at("docs/results/accuracy/pretrained/plush-scratch-seed0.json", "cpu_minutes")),
+      ("d1", at(pretrained.PLUSH_CONTROL, "cpu_minutes")),
       mm(MUGS_PRETRAINED, "s3k/median_mm/mean"),
-      ("d3", at("docs/results/accuracy/pretrained/insertion.json", "s3k/median_mm/mean")),
+      ("d3", at(pretrained.INSERTION, "s3k/median_mm/mean")),
       ("d3", at(INSERTION, "s3k/median_mm/mean"))]),
     ("S3K is closer to them than labels only in every seed: paired difference {} mm of mean over three seeds,"
      " 95% interval {} to {}.",
