@@ -7,7 +7,8 @@ chosen from the pool as the labelling app's *poses in proportion* ranking would 
 5); both models train with ``s3k train --preset PRESET`` (``--parallel`` at a time, one thread each, CPU time
 recorded) and are evaluated on the seed's test frames. Each (labels, model, seed) is a job of its own in
 ``--work``: a job with a result is skipped, a killed training resumes, so the same command continues the
-curve (s3k/experiments/label_curve.py has the folder's layout). Seed by seed: seed 0's whole curve first.
+curve (s3k/experiments/label_curve.py has the folder's layout). Every seed is rendered first;
+the trainings then run in seed order (seed 0's whole curve first), each free slot taking the next job.
 The seeds' pools are named as ``time_to_accuracy.py`` names its renders, so ``--work`` its working folder
 reuses them.
 
@@ -29,9 +30,8 @@ Example::
         '--rotation-deg 15 --coarse-rotation 180 --sigma 1.0 --outlier-px 6 --pseudo-window 5 \\
         --val-every 500 --precision auto' --work runs/label-curve-plush \\
         --results docs/results/accuracy/label-curve/plush   # the plush headline's configuration
-    python benchmarks/label_curve.py --add-curve \
-        efficientnet-lite0=docs/results/accuracy/pretrained/label-curve-10.json  # another encoder's
-                                                         # points, in the same summary and figure
+    python benchmarks/label_curve.py --add-curve enc=$P/label-curve-5.json,$P/label-curve-10.json
+        # P=docs/results/accuracy/pretrained: another encoder's points, named enc, in the same figure
 """
 
 from __future__ import annotations
@@ -105,10 +105,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--summary-only", action="store_true",
                    help="write the summary and figure from the jobs' results so far (finished runs "
                         "evaluated); train nothing")
-    p.add_argument("--add-curve", metavar="NAME=SUMMARY", default=None,
+    p.add_argument("--add-curve", metavar="NAME=SUMMARY[,SUMMARY...]", default=None,
                    help="put another configuration's curve (its summary.json, e.g. the same command with "
-                        "--train-options '--encoder ...' and other --work/--results) beside the one in "
-                        "--results, in its summary (added_curves) and figure, named NAME; trains nothing")
+                        "--train-options '--encoder ...' and other --work/--results; several, at different "
+                        "label counts, joined into one curve) beside the one in --results, in its summary "
+                        "(added_curves) and figure, named NAME; trains nothing")
     p.add_argument("--notes", default=None,
                    help="text kept in summary.json (left out of the recorded command)")
     args = p.parse_args(argv)
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--add-curve {args.add_curve!r}: give NAME=SUMMARY, e.g. "
                     "efficientnet-lite0=docs/results/accuracy/pretrained/label-curve-10.json")
         try:
-            added = add_curve(results, name, Path(other), command)
+            added = add_curve(results, name, [Path(x) for x in other.split(",") if x], command)
         except UserError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2

@@ -334,31 +334,43 @@ def write_summary(opts: CurveOptions, work: Path, results_dir: Path, command: st
     return summary
 
 
-def add_curve(results_dir: Path, name: str, other: Path, command: str) -> dict[str, Any]:
-    """Put the curve of another configuration's summary (``other``, e.g. the same benchmark with another
-    encoder, at some of the counts) beside this one's, in ``results_dir``'s summary under ``added_curves``
-    (named ``name``, with where it came from: its command, revision, scale and seeds), and draw it in the
-    same figure. An added curve of that name is replaced; a later summary of this curve keeps it.
+def add_curve(results_dir: Path, name: str, others: list[Path], command: str) -> dict[str, Any]:
+    """Put the curve of another configuration (``others``: the summaries of the same benchmark with, e.g.,
+    another encoder, each at some of the counts, joined into one curve) beside this one's, in
+    ``results_dir``'s summary under ``added_curves`` (named ``name``, with where each count came from: its
+    summary's command, revision, scale and seeds), and draw it in the same figure. An added curve of that
+    name is replaced; a later summary of this curve keeps it.
 
     Raises:
-        UserError: ``results_dir`` holds no summary, or ``other`` is no label-curve summary.
+        UserError: ``results_dir`` holds no summary, one of ``others`` is no label-curve summary, or two of
+            them hold the same model at the same count.
     """
     path = results_dir / SUMMARY
     if not path.is_file():
         raise UserError(f"{path}: no label-curve summary to add a curve to",
                         hint="give --results the folder of a label curve's summary.json")
-    try:
-        theirs = json.loads(Path(other).read_text())
-        curve = theirs["curve"]
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise UserError(f"{other}: not a label-curve summary ({type(e).__name__}: {e})",
-                        hint="give the summary.json that benchmarks/label_curve.py wrote") from None
+    curve: dict[str, dict[str, Any]] = {}
+    sources, where = [], {}
+    for other in others:
+        try:
+            theirs = json.loads(Path(other).read_text())
+            items = [(m, str(n), e) for m, per_count in theirs["curve"].items() for n, e in per_count.items()]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+            raise UserError(f"{other}: not a label-curve summary ({type(e).__name__}: {e})",
+                            hint="give the summary.json that benchmarks/label_curve.py wrote") from None
+        for m, n, e in items:
+            if (m, n) in where:
+                raise UserError(f"{other}: {MODEL_NAMES.get(m, m)} at {n} labels is in {where[m, n]} too",
+                                hint="give each label count's summary once")
+            where[m, n] = other
+            curve.setdefault(m, {})[n] = e
+        sources.append({"from": str(other), "counts": sorted({int(n) for _, n, _ in items}),
+                        **{k: theirs.get(k) for k in ("command", "git_revision", "scale", "seeds",
+                                                      "trained_at_revisions")}})
+    for m in curve:
+        curve[m] = dict(sorted(curve[m].items(), key=lambda kv: int(kv[0])))
     summary = json.loads(path.read_text())
-    summary.setdefault(ADDED, {})[name] = {
-        "from": str(other), "added_by": command,
-        **{k: theirs.get(k) for k in ("command", "git_revision", "scale", "seeds", "trained_at_revisions")},
-        "curve": curve,
-    }
+    summary.setdefault(ADDED, {})[name] = {"added_by": command, "sources": sources, "curve": curve}
     atomic_write_json(summary, path)
     plot_curve(summary, results_dir / FIGURE)
     return summary
@@ -408,7 +420,8 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     seeds = len(summary["seeds"])
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
     for name, c in summary.get(ADDED, {}).items():
-        caption += f"; dotted, {name}: {c.get('scale')}, seeds {c.get('seeds')}"
+        for source in c.get("sources", [c]):  # one source per summary joined (older summaries: the entry)
+            caption += f"; dotted, {name}: {source.get('scale')}, seeds {source.get('seeds')}"
     fig.suptitle(textwrap.fill(caption, 160), fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -420,19 +433,19 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
 def run_curve(opts: CurveOptions, work: Path, results_dir: Path, command: str, revision: str,
               machine: dict[str, Any], summary_only: bool = False,
               notes: str | None = None) -> dict[str, Any]:
-    """Seed by seed: render, train the jobs without a result (two at a time by ``opts.parallel``), evaluate
-    them, and write the summary and figure, so that a curve stopped part-way holds whole seeds; with
-    ``summary_only`` only the last step, from the results there are and those of runs that have finished
-    since (evaluated, nothing trained)."""
+    """Render every seed, train the jobs without a result (``opts.parallel`` at a time, in :func:`jobs`
+    order: seed 0's first, and a seed's next job starts as soon as a slot is free, so no core waits for a
+    seed's longest training), evaluate them, and write the summary and figure; with ``summary_only`` only
+    the last step, from the results there are and those of runs that have finished since (evaluated,
+    nothing trained)."""
     work.mkdir(parents=True, exist_ok=True)
-    if summary_only:  # runs finished while their seed trains on: evaluated now, nothing rendered or trained
+    if summary_only:  # runs finished while others train on: evaluated now, nothing rendered or trained
         views = {(n, s): work / view_name(opts, n, s) for s in range(opts.seeds) for n in opts.labels}
         write_results(opts, work, {k: v for k, v in views.items() if (v / "s3k.json").is_file()}, revision)
-    for seed in [] if summary_only else range(opts.seeds):
-        data = prepare_data(opts, work, [seed])
+    else:
+        data = prepare_data(opts, work)
         run_jobs(pending_trainings(opts, work, data, revision), opts.parallel, backend=opts.backend,
                  address=opts.address)
         for job in write_results(opts, work, data, revision):
             log.log(NOTE, f"result {job.name}")
-        write_summary(opts, work, results_dir, command, revision, machine, notes)
     return write_summary(opts, work, results_dir, command, revision, machine, notes)

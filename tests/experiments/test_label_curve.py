@@ -181,24 +181,30 @@ def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     opts = tiny_options(labels=(2,))
     work, results = tmp_path / "work", tmp_path / "results"
     with pytest.raises(UserError, match="no label-curve summary"):
-        add_curve(results, "other", tmp_path / "x.json", "cmd")
+        add_curve(results, "other", [tmp_path / "x.json"], "cmd")
     run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
     figure = results / "label-curve.png"
     alone = figure.read_bytes()
     not_a_summary = tmp_path / "not.json"
     not_a_summary.write_text('{"median_mm": 1}')
     with pytest.raises(UserError, match="not a label-curve summary"):
-        add_curve(results, "other", not_a_summary, "cmd")
+        add_curve(results, "other", [not_a_summary], "cmd")
 
-    other = tmp_path / "other.json"
+    other, more = tmp_path / "other.json", tmp_path / "more.json"
     theirs = {"command": "their command", "git_revision": "def", "scale": "their scale", "seeds": [0],
               "curve": {"s3k": {"2": point(7.5)}, "labels_only": {}}}
     other.write_text(json.dumps(theirs))
-    summary = add_curve(results, "encoder", other, "the adding command")
+    more.write_text(json.dumps({**theirs, "git_revision": "fed",
+                                "curve": {"s3k": {"1": point(9.0)}, "labels_only": {"1": point(20.0)}}}))
+    summary = add_curve(results, "encoder", [other, more], "the adding command")
     added = summary["added_curves"]["encoder"]
-    assert added["curve"] == theirs["curve"] and added["git_revision"] == "def"
-    assert added["added_by"] == "the adding command" and added["from"] == str(other)
+    assert added["curve"] == {"s3k": {"1": point(9.0), "2": point(7.5)}, "labels_only": {"1": point(20.0)}}
+    assert [(s["from"], s["git_revision"], s["counts"]) for s in added["sources"]] == [
+        (str(other), "def", [2]), (str(more), "fed", [1])]
+    assert added["added_by"] == "the adding command"
     assert json.loads((results / "summary.json").read_text())["added_curves"] == summary["added_curves"]
+    with pytest.raises(UserError, match=r"S3K at 2 labels is in .*other.json too"):
+        add_curve(results, "encoder", [other, other], "cmd")
     assert figure.read_bytes() != alone  # drawn in the same figure
 
     # this curve's own summary written again keeps the added one, and its own figures are its own
