@@ -1,6 +1,6 @@
 """The tables of docs/results/accuracy/pretrained/README.md (the encoder against the scratch U-Net: the box's
-label-curve point, the real recording, the unseen mugs, the plush toy, cable insertion) read as the committed
-JSON they come from, to the digits shown (the rules of ``helpers.figures``)."""
+label-curve points at 10 and 5 labels, the real recording, the unseen mugs, the plush toy, cable insertion)
+read as the committed JSON they come from, to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,9 @@ from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
     CURVE,
+    CURVE_5,
+    CURVE_5_CONTROL,
+    CURVE_5_POSES,
     INSERTION,
     INSERTION_CONTROL,
     INSERTION_POSES,
@@ -37,8 +40,8 @@ def _cpu_range(file: str, model: str) -> list[tuple[str, Getter]]:
             ("d1", derived(file, lambda d: max(d[model]["train_cpu_minutes"]["per_seed"])))]
 
 
-def _curve_row(file: str, model: str) -> list[tuple[str, Getter]]:
-    base = f"curve/{model}/10"
+def _curve_row(file: str, model: str, labels: int = 10) -> list[tuple[str, Getter]]:
+    base = f"curve/{model}/{labels}"
     return (_spread(file, f"{base}/median_mm") + _spread(file, f"{base}/rms_mm")
             + [pct(file, f"{base}/pck_10mm/mean")]
             + [("d1", at(file, f"{base}/train_cpu_minutes/{k}")) for k in ("mean", "min", "max")])
@@ -159,6 +162,57 @@ FIGURES: Figures = [
 ]
 
 
+def _curve_5_seeds(model: str, key: str, pick) -> Getter:
+    """``pick`` (min or max) over seeds of the encoder's 5-label ``key`` less the scratch curve's."""
+    def get(load):
+        mine, theirs = (load(f)["curve"][model]["5"][key]["per_seed"] for f in (CURVE_5, SCRATCH_CURVE))
+        return pick(a - b for a, b in zip(mine, theirs))
+    return get
+
+
+def _pose_5(run: int, pose: str, fn) -> tuple[str, Getter]:
+    """``fn`` of ``pose``'s group of seed 0's 5-label model ``run`` (0: the encoder's, 1: the scratch
+    control) in ``by-pose-5-seed0.json``, to tenths (the leans) or hundredths (the medians without them)."""
+    return "d1" if fn is _normal_lean else "d2", lambda load: fn(
+        list(load(CURVE_5_POSES)["runs"].values())[run]["by_pose"][pose])
+
+
+def _normal_lean(group: dict) -> float:
+    """The three corners' mean error along the face's normal (the by-pose frame's z)."""
+    return sum(b[2] for b in group["bias_mm"]) / len(group["bias_mm"])
+
+
+def _without_lean(group: dict) -> float:
+    return group["median_mm_without_bias"]
+
+
+POSES = ("normal up", "normal down", "on a side")
+
+FIVE_LABEL_FIGURES: Figures = [
+    ("(../label-curve/summary.json), trained on the Intel Xeon):\n\n"
+     + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
+     _curve_row(CURVE_5, "s3k", 5) + _curve_row(SCRATCH_CURVE, "s3k", 5)
+     + _curve_row(CURVE_5, "labels_only", 5) + _curve_row(SCRATCH_CURVE, "labels_only", 5)),
+    ("S3K's median is higher with the encoder in every seed, by {} to {} mm.",
+     [("d2", _curve_5_seeds("s3k", "median_mm", min)), ("d2", _curve_5_seeds("s3k", "median_mm", max))]),
+    ("(seed 2's tail is {} mm against\n{})",
+     [mm(CURVE_5, "curve/s3k/5/rms_mm/per_seed/2"), mm(SCRATCH_CURVE, "curve/s3k/5/rms_mm/per_seed/2")]),
+    ("(`label-curve-5-scratch-seed0.json`) gives {} mm median, {} mm RMS, in {}\nCPU-minutes: the encoder's"
+     " model of that seed is {} mm higher in"
+     " median, at {} times the CPU.",
+     [mm(CURVE_5_CONTROL, "metrics/median_mm"), mm(CURVE_5_CONTROL, "metrics/rms_mm"),
+      ("d1", at(CURVE_5_CONTROL, "cpu_minutes")),
+      ("d2", lambda load: load(CURVE_5)["curve"]["s3k"]["5"]["median_mm"]["per_seed"][0]
+       - load(CURVE_5_CONTROL)["metrics"]["median_mm"]),
+      ("d1", lambda load: load(CURVE_5)["curve"]["s3k"]["5"]["train_cpu_minutes"]["per_seed"][0]
+       / load(CURVE_5_CONTROL)["cpu_minutes"])]),
+    ("face up {} mm against {}, face\ndown {} against {}, on a side {} against {}",
+     [_pose_5(r, pose, _without_lean) for pose in POSES for r in (0, 1)]),
+    ("{} mm with the encoder against {} face up, {} against {} face down, {} against {} on a side.",
+     [_pose_5(r, pose, _normal_lean) for pose in POSES for r in (0, 1)]),
+]
+
+
 INSERTION_FIGURES: Figures = [
     (_after_link("insertion") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
      [cell for file, model in ((INSERTION, "s3k"), (SCRATCH_INSERTION, "s3k"), (INSERTION, "labels_only"),
@@ -173,7 +227,8 @@ INSERTION_FIGURES: Figures = [
       ("d0", _pose_run(1, "collapsed_frames")), _share(1, "collapsed"),
       ("d0", _pose_run(2, "collapsed_frames")), _share(2, "collapsed"),
       ("sig", _pose_run(1, "neither/rms_mm")), ("sig", _pose_run(2, "neither/rms_mm"))]),
-    ("gives {} mm median,\n{} mm RMS, in {} CPU-minutes: the encoder's model of that seed is {} mm higher in"
+    ("(`insertion-scratch-seed0.json`) gives {} mm median,\n{} mm RMS, in {} CPU-minutes: the encoder's model"
+     " of that seed is {} mm higher in"
      " median, at {} times the\nCPU",
      [("d3", at(INSERTION_CONTROL, "metrics/median_mm")), mm(INSERTION_CONTROL, "metrics/rms_mm"),
       ("d1", at(INSERTION_CONTROL, "cpu_minutes")),
@@ -194,7 +249,7 @@ INSERTION_FIGURES: Figures = [
 
 def test_every_pretrained_figure_equals_its_json():
     text = (ROOT / PAGE).read_text(encoding="utf-8")
-    assert mismatches(text, loader(), FIGURES + INSERTION_FIGURES) == []
+    assert mismatches(text, loader(), FIGURES + FIVE_LABEL_FIGURES + INSERTION_FIGURES) == []
 
 
 def test_a_changed_pretrained_json_value_fails():
@@ -211,3 +266,23 @@ def test_labels_only_with_the_encoder_is_lower_on_insertion_in_every_seed_as_the
     assert all(a < b for a, b in zip(enc, scratch))
     page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
     assert "Labels only with the encoder has a lower median than from scratch in every seed" in page
+
+
+def test_the_five_label_claims_of_every_seed_and_pose_hold():
+    """The sentences of the 5-label section that say "in every seed" or "in every pose", from the JSON."""
+    load = loader()
+
+    def seeds(model: str, key: str) -> list[tuple[float, float]]:
+        return list(zip(*(load(f)["curve"][model]["5"][key]["per_seed"] for f in (CURVE_5, SCRATCH_CURVE))))
+
+    assert all(enc > scratch for enc, scratch in seeds("s3k", "median_mm"))
+    assert all(enc > scratch for enc, scratch in seeds("s3k", "pck_10mm"))
+    assert all(enc < scratch for enc, scratch in seeds("labels_only", "median_mm"))
+    runs = list(load(CURVE_5_POSES)["runs"].values())
+    assert all(_without_lean(runs[0]["by_pose"][p]) < _without_lean(runs[1]["by_pose"][p]) for p in POSES)
+    assert all(_normal_lean(runs[0]["by_pose"][p]) < _normal_lean(runs[1]["by_pose"][p]) for p in POSES)
+    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    for claim in ("S3K's median is higher with the encoder in every seed",
+                  "share within 10 mm is higher in every seed", "labels only's median is lower in every seed",
+                  "the medians are lower with the encoder in every pose", "leans as far or further"):
+        assert claim in page
