@@ -350,7 +350,8 @@ def add_curve(results_dir: Path, name: str, others: list[Path], command: str) ->
         raise UserError(f"{path}: no label-curve summary to add a curve to",
                         hint="give --results the folder of a label curve's summary.json")
     curve: dict[str, dict[str, Any]] = {}
-    sources, where = [], {}
+    sources: list[dict[str, Any]] = []
+    where: dict[tuple[str, str], Path] = {}
     for other in others:
         try:
             theirs = json.loads(Path(other).read_text())
@@ -358,12 +359,12 @@ def add_curve(results_dir: Path, name: str, others: list[Path], command: str) ->
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
             raise UserError(f"{other}: not a label-curve summary ({type(e).__name__}: {e})",
                             hint="give the summary.json that benchmarks/label_curve.py wrote") from None
-        for m, n, e in items:
+        for m, n, point in items:
             if (m, n) in where:
                 raise UserError(f"{other}: {MODEL_NAMES.get(m, m)} at {n} labels is in {where[m, n]} too",
                                 hint="give each label count's summary once")
             where[m, n] = other
-            curve.setdefault(m, {})[n] = e
+            curve.setdefault(m, {})[n] = point
         sources.append({"from": str(other), "counts": sorted({int(n) for _, n, _ in items}),
                         **{k: theirs.get(k) for k in ("command", "git_revision", "scale", "seeds",
                                                       "trained_at_revisions")}})
