@@ -421,8 +421,11 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     seeds = len(summary["seeds"])
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
     for name, c in summary.get(ADDED, {}).items():
-        for source in c.get("sources", [c]):  # one source per summary joined (older summaries: the entry)
-            caption += f"; dotted, {name}: {source.get('scale')}, seeds {source.get('seeds')}"
+        sources = c.get("sources", [c])  # one per summary joined (an older summary's entry is its own)
+        options = sorted({str(x.get("scale")).split("; train options ")[-1] for x in sources})
+        seeds_at = ", ".join(f"seeds {x.get('seeds')} at {'/'.join(map(str, x.get('counts', [])))} labels"
+                             for x in sources)
+        caption += f"; dotted, {name}: train options {' / '.join(options)}, {seeds_at}"
     fig.suptitle(textwrap.fill(caption, 160), fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

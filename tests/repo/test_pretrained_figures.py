@@ -1,6 +1,7 @@
 """The tables of docs/results/accuracy/pretrained/README.md (the encoder against the scratch U-Net: the box's
-label-curve points at 10 and 5 labels, the real recording, the unseen mugs, the plush toy, cable insertion)
-read as the committed JSON they come from, to the digits shown (the rules of ``helpers.figures``)."""
+label-curve points at 10, 5 and 20 labels, the real recording, the unseen mugs, the plush toy, cable
+insertion) read as the committed JSON they come from, to the digits shown (the rules of
+``helpers.figures``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ from helpers.pretrained_files import (
     CURVE_5,
     CURVE_5_CONTROL,
     CURVE_5_POSES,
+    CURVE_20,
+    CURVE_20_CONTROL,
+    CURVE_20_POSES,
     INSERTION,
     INSERTION_CONTROL,
     INSERTION_POSES,
@@ -170,11 +174,12 @@ def _curve_5_seeds(model: str, key: str, pick) -> Getter:
     return get
 
 
-def _pose_5(run: int, pose: str, fn) -> tuple[str, Getter]:
-    """``fn`` of ``pose``'s group of seed 0's 5-label model ``run`` (0: the encoder's, 1: the scratch
-    control) in ``by-pose-5-seed0.json``, to tenths (the leans) or hundredths (the medians without them)."""
+def _pose_5(run: int, pose: str, fn, file: str = CURVE_5_POSES) -> tuple[str, Getter]:
+    """``fn`` of ``pose``'s group of seed 0's model ``run`` (0: the encoder's, 1: the scratch control) in
+    ``file`` (the 5-label one unless named), to tenths (the leans) or hundredths (the medians without
+    them)."""
     return "d1" if fn is _normal_lean else "d2", lambda load: fn(
-        list(load(CURVE_5_POSES)["runs"].values())[run]["by_pose"][pose])
+        list(load(file)["runs"].values())[run]["by_pose"][pose])
 
 
 def _normal_lean(group: dict) -> float:
@@ -206,10 +211,46 @@ FIVE_LABEL_FIGURES: Figures = [
        - load(CURVE_5_CONTROL)["metrics"]["median_mm"]),
       ("d1", lambda load: load(CURVE_5)["curve"]["s3k"]["5"]["train_cpu_minutes"]["per_seed"][0]
        / load(CURVE_5_CONTROL)["cpu_minutes"])]),
-    ("face up {} mm against {}, face\ndown {} against {}, on a side {} against {}",
+    ("flat with the marked face up {} mm against {}, face down {} against {}, on a side {} against {}",
      [_pose_5(r, pose, _without_lean) for pose in POSES for r in (0, 1)]),
     ("{} mm with the encoder against {} face up, {} against {} face down, {} against {} on a side.",
      [_pose_5(r, pose, _normal_lean) for pose in POSES for r in (0, 1)]),
+]
+
+
+
+def _seed0(file: str, model: str, key: str, count: int = 20) -> Getter:
+    return at(file, f"curve/{model}/{count}/{key}/per_seed/0")
+
+
+def _swapped_share(run: int) -> tuple[str, Getter]:
+    return "d0", lambda load: 100 * list(load(CURVE_20_POSES)["runs"].values())[run]["swapped"][
+        "share_of_squared_error"]
+
+
+TWENTY_LABEL_FIGURES: Figures = [
+    ("S3K with the encoder: {} mm median, {} mm RMS, {}% within 10 mm,\n{} CPU-minutes.",
+     [("sig", _seed0(CURVE_20, "s3k", "median_mm")), ("sig", _seed0(CURVE_20, "s3k", "rms_mm")),
+      ("d1", lambda load: 100 * _seed0(CURVE_20, "s3k", "pck_10mm")(load)),
+      ("d1", _seed0(CURVE_20, "s3k", "train_cpu_minutes"))]),
+    ("(`label-curve-20-scratch-seed0.json`): {} mm median, {} mm RMS, {} CPU-minutes; the committed scratch"
+     " model of seed 0, trained on the Xeon, {} mm and {} mm, so the same options on another CPU move this"
+     " point by about {} mm of median. Labels only with the encoder: {} mm, RMS {}, against the Xeon's {} mm"
+     " and {}.",
+     [mm(CURVE_20_CONTROL, "metrics/median_mm"), mm(CURVE_20_CONTROL, "metrics/rms_mm"),
+      ("d1", at(CURVE_20_CONTROL, "cpu_minutes")),
+      ("sig", _seed0(SCRATCH_CURVE, "s3k", "median_mm")), ("sig", _seed0(SCRATCH_CURVE, "s3k", "rms_mm")),
+      ("d1", lambda load: load(CURVE_20_CONTROL)["metrics"]["median_mm"]
+       - _seed0(SCRATCH_CURVE, "s3k", "median_mm")(load)),
+      ("sig", _seed0(CURVE_20, "labels_only", "median_mm")),
+      ("sig", _seed0(CURVE_20, "labels_only", "rms_mm")),
+      ("sig", _seed0(SCRATCH_CURVE, "labels_only", "median_mm")),
+      ("sig", _seed0(SCRATCH_CURVE, "labels_only", "rms_mm"))]),
+    ("(face up {} mm against {}, face down\n{} against {}, on a side {} against {})",
+     [_pose_5(r, pose, _without_lean, CURVE_20_POSES) for pose in POSES for r in (0, 1)]),
+    ("(face up {} mm against {}, on a side {} against {})",
+     [_pose_5(r, pose, _normal_lean, CURVE_20_POSES) for pose in ("normal up", "on a side") for r in (0, 1)]),
+    ("({}% and {}% of the squared error)", [_swapped_share(0), _swapped_share(1)]),
 ]
 
 
@@ -249,7 +290,8 @@ INSERTION_FIGURES: Figures = [
 
 def test_every_pretrained_figure_equals_its_json():
     text = (ROOT / PAGE).read_text(encoding="utf-8")
-    assert mismatches(text, loader(), FIGURES + FIVE_LABEL_FIGURES + INSERTION_FIGURES) == []
+    box = FIVE_LABEL_FIGURES + TWENTY_LABEL_FIGURES
+    assert mismatches(text, loader(), FIGURES + box + INSERTION_FIGURES) == []
 
 
 def test_a_changed_pretrained_json_value_fails():
