@@ -90,9 +90,9 @@ FIGURES: Figures = [
      [("d1", at(DEMO, "wall_minutes_with_setup")), mm(DEMO, "S3K/median_mm"), mm(DEMO, "S3K/rms_mm"),
       mm(DEMO, "labels only/median_mm"), mm(DEMO, "labels only/rms_mm")]),
     # The pretrained encoder's points in the label curve.
-    ("[pretrained](docs/results/accuracy/pretrained/README.md)): S3K {}, {} and {} mm median, higher than from"
-     " scratch in every seed, at {} times the CPU side by side on one machine. At 5 labels its RMS is lower"
-     " ({} mm against {}: fewer far misses), at 10 higher ({} against {})",
+    ("[pretrained](docs/results/accuracy/pretrained/README.md)): S3K {}, {} and {} mm median, higher than"
+     " from scratch in every seed, at {} times the CPU side by side on one machine. At 5 labels its RMS is"
+     " lower ({} mm against {}: fewer far misses), at 10 higher ({} against {})",
      [mm(CURVE, f"{ENCODER}curve/s3k/{n}/median_mm/mean") for n in (5, 10, 20)]
      + [("d1", lambda load: load(pretrained.CURVE_5)["curve"]["s3k"]["5"]["train_cpu_minutes"]["per_seed"][0]
          / load(pretrained.CURVE_5_CONTROL)["cpu_minutes"])]
