@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.add_curve:
         name, sep, other = args.add_curve.partition("=")
         if not (sep and name and other):
-            p.error(f"--add-curve {args.add_curve!r}: give NAME=SUMMARY, e.g. "
+            p.error(f"--add-curve {args.add_curve!r}: give NAME=SUMMARY[,SUMMARY...], e.g. "
                     "efficientnet-lite0=docs/results/accuracy/pretrained/label-curve-10.json")
         try:
             added = add_curve(results, name, [Path(x) for x in other.split(",") if x], command)
