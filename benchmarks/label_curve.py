@@ -7,10 +7,9 @@ chosen from the pool as the labelling app's *poses in proportion* ranking would 
 5); both models train with ``s3k train --preset PRESET`` (``--parallel`` at a time, one thread each, CPU time
 recorded) and are evaluated on the seed's test frames. Each (labels, model, seed) is a job of its own in
 ``--work``: a job with a result is skipped, a killed training resumes, so the same command continues the
-curve (s3k/experiments/label_curve.py has the folder's layout). Every seed is rendered first;
-the trainings then run in seed order (seed 0's whole curve first), each free slot taking the next job.
-The seeds' pools are named as ``time_to_accuracy.py`` names its renders, so ``--work`` its working folder
-reuses them.
+curve (s3k/experiments/label_curve.py has the folder's layout). Every seed is rendered first; the trainings
+then run in seed order (seed 0's whole curve first), each free slot taking the next job. The seeds' pools are
+named as ``time_to_accuracy.py`` names its renders, so ``--work`` its working folder reuses them.
 
 Writes ``--results``/summary.json (command, revision, machine and CPU flags, per model and label count the
 median, RMS and share within 10 mm per seed with mean and spread, the jobs still missing, and the answer)

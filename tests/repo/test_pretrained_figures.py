@@ -68,21 +68,44 @@ def _scene_row(file: str, model: str, median_rule: str = "sig") -> list[tuple[st
     return out + _cpu_range(file, model)
 
 
-def _paired(model: str, key: str, pick, encoder: str = PLUSH, scratch: str = SCRATCH_PLUSH) -> Getter:
-    """``pick`` (min or max) over seeds of the encoder's ``key`` less the scratch model's (the plush's unless
-    named)."""
-    return lambda load: pick(a - b for a, b in zip(load(encoder)[model][key]["per_seed"],
-                                                  load(scratch)[model][key]["per_seed"]))
+def _paired(path: str, pick, encoder: str = PLUSH, scratch: str = SCRATCH_PLUSH) -> Getter:
+    """``pick`` (min or max) over seeds 0-2 of the encoder's figure at ``path`` (e.g. ``s3k/median_mm``) less
+    the scratch model's (the plush's unless named)."""
+    return lambda load: pick(value_at(load(encoder), f"{path}/per_seed/{i}")
+                             - value_at(load(scratch), f"{path}/per_seed/{i}") for i in range(3))
+
+
+def _run(file: str, index: int) -> Getter:
+    """The ``index``-th run (in the order given) of a by-pose file."""
+    return lambda load: list(load(file)["runs"].values())[index]
+
+
+def _pose_group(file: str, index: int, pose: str, fn) -> Getter:
+    """``fn`` of ``pose``'s group of the ``index``-th run of a by-pose file."""
+    return lambda load: fn(_run(file, index)(load)["by_pose"][pose])
 
 
 def _pose_run(seed: int, key: str) -> Getter:
     """``key`` (keys joined by ``/``) of the insertion S3K model of ``seed`` (1 or 2) in the by-pose file."""
-    return lambda load: value_at(list(load(INSERTION_POSES)["runs"].values())[seed - 1], key)
+    return lambda load: value_at(_run(INSERTION_POSES, seed - 1)(load), key)
+
+
+def _control_gap(encoder: str, path: str, control: str, key: str = "median_mm") -> Getter:
+    """Seed 0's encoder model (``path``: its model in ``encoder``, e.g. ``s3k``) less the same-machine scratch
+    control of that seed, in ``key``."""
+    return lambda load: (value_at(load(encoder), f"{path}/{key}/per_seed/0")
+                         - load(control)["metrics"][key])
+
+
+def _control_cpu_ratio(encoder: str, path: str, control: str) -> Getter:
+    """Seed 0's encoder model's CPU-minutes over the same-machine scratch control's."""
+    return lambda load: (value_at(load(encoder), f"{path}/train_cpu_minutes/per_seed/0")
+                         / load(control)["cpu_minutes"])
 
 
 def _below_control(key: str) -> Getter:
     """The same-machine scratch model of seed 0 less the encoder's model of seed 0, on the plush."""
-    return lambda load: load(PLUSH_CONTROL)["metrics"][key] - load(PLUSH)["s3k"][key]["per_seed"][0]
+    return lambda load: -_control_gap(PLUSH, "s3k", PLUSH_CONTROL, key)(load)
 
 
 def _keypoint(file: str, point: str) -> tuple[str, Getter]:
@@ -113,7 +136,7 @@ def _table(rms_header: str, row: str) -> str:
 def _seed0_side(run: int, fn) -> Getter:
     """``fn`` of the "on a side" group (insertion's only pose) of seed 0's model ``run`` (0: the encoder's, 1:
     the scratch control) in ``insertion-by-pose-seed0.json``."""
-    return lambda load: fn(list(load(INSERTION_SEED0_POSES)["runs"].values())[run]["by_pose"]["on a side"])
+    return _pose_group(INSERTION_SEED0_POSES, run, "on a side", fn)
 
 
 def _tip_lean(side: dict) -> float:
@@ -149,8 +172,8 @@ FIGURES: Figures = [
      _scene_row(PLUSH, "s3k") + _scene_row(SCRATCH_PLUSH, "s3k") + _scene_row(PLUSH, "labels_only")
      + _scene_row(SCRATCH_PLUSH, "labels_only")),
     ("S3K's is lower in every seed, by {} to {} mm.",
-     [("d2", lambda load: -_paired("s3k", "median_mm", max)(load)),
-      ("d2", lambda load: -_paired("s3k", "median_mm", min)(load))]),
+     [("d2", lambda load: -_paired("s3k/median_mm", max)(load)),
+      ("d2", lambda load: -_paired("s3k/median_mm", min)(load))]),
     ("higher in the third ({} mm against {}), where the front right paw keeps a tail of errors (RMS {}",
      [mm(PLUSH, "s3k/rms_mm/per_seed/2"), mm(SCRATCH_PLUSH, "s3k/rms_mm/per_seed/2"),
       ("sig", at(PLUSH, "s3k/rms_mm_per_keypoint/front_right_paw/per_seed/2"))]),
@@ -166,20 +189,10 @@ FIGURES: Figures = [
 ]
 
 
-def _curve_5_seeds(model: str, key: str, pick) -> Getter:
-    """``pick`` (min or max) over seeds of the encoder's 5-label ``key`` less the scratch curve's."""
-    def get(load):
-        mine, theirs = (load(f)["curve"][model]["5"][key]["per_seed"] for f in (CURVE_5, SCRATCH_CURVE))
-        return pick(a - b for a, b in zip(mine, theirs))
-    return get
-
-
-def _pose_5(run: int, pose: str, fn, file: str = CURVE_5_POSES) -> tuple[str, Getter]:
-    """``fn`` of ``pose``'s group of seed 0's model ``run`` (0: the encoder's, 1: the scratch control) in
-    ``file`` (the 5-label one unless named), to tenths (the leans) or hundredths (the medians without
-    them)."""
-    return "d1" if fn is _normal_lean else "d2", lambda load: fn(
-        list(load(file)["runs"].values())[run]["by_pose"][pose])
+def _box_pose(file: str, run: int, pose: str, fn) -> tuple[str, Getter]:
+    """``fn`` of ``pose``'s group of seed 0's box model ``run`` (0: the encoder's, 1: the scratch control) in
+    the by-pose ``file``, to tenths (the leans) or hundredths (the medians without them)."""
+    return "d1" if fn is _normal_lean else "d2", _pose_group(file, run, pose, fn)
 
 
 def _normal_lean(group: dict) -> float:
@@ -199,7 +212,7 @@ FIVE_LABEL_FIGURES: Figures = [
      _curve_row(CURVE_5, "s3k", 5) + _curve_row(SCRATCH_CURVE, "s3k", 5)
      + _curve_row(CURVE_5, "labels_only", 5) + _curve_row(SCRATCH_CURVE, "labels_only", 5)),
     ("S3K's median is higher with the encoder in every seed, by {} to {} mm.",
-     [("d2", _curve_5_seeds("s3k", "median_mm", min)), ("d2", _curve_5_seeds("s3k", "median_mm", max))]),
+     [("d2", _paired("curve/s3k/5/median_mm", pick, CURVE_5, SCRATCH_CURVE)) for pick in (min, max)]),
     ("(seed 2's tail is {} mm against\n{})",
      [mm(CURVE_5, "curve/s3k/5/rms_mm/per_seed/2"), mm(SCRATCH_CURVE, "curve/s3k/5/rms_mm/per_seed/2")]),
     ("(`label-curve-5-scratch-seed0.json`) gives {} mm median, {} mm RMS, in {}\nCPU-minutes: the encoder's"
@@ -207,16 +220,13 @@ FIVE_LABEL_FIGURES: Figures = [
      " median, at {} times the CPU.",
      [mm(CURVE_5_CONTROL, "metrics/median_mm"), mm(CURVE_5_CONTROL, "metrics/rms_mm"),
       ("d1", at(CURVE_5_CONTROL, "cpu_minutes")),
-      ("d2", lambda load: load(CURVE_5)["curve"]["s3k"]["5"]["median_mm"]["per_seed"][0]
-       - load(CURVE_5_CONTROL)["metrics"]["median_mm"]),
-      ("d1", lambda load: load(CURVE_5)["curve"]["s3k"]["5"]["train_cpu_minutes"]["per_seed"][0]
-       / load(CURVE_5_CONTROL)["cpu_minutes"])]),
+      ("d2", _control_gap(CURVE_5, "curve/s3k/5", CURVE_5_CONTROL)),
+      ("d1", _control_cpu_ratio(CURVE_5, "curve/s3k/5", CURVE_5_CONTROL))]),
     ("flat with the marked face up {} mm against {}, face down {} against {}, on a side {} against {}",
-     [_pose_5(r, pose, _without_lean) for pose in POSES for r in (0, 1)]),
+     [_box_pose(CURVE_5_POSES, r, pose, _without_lean) for pose in POSES for r in (0, 1)]),
     ("{} mm with the encoder against {} face up, {} against {} face down, {} against {} on a side.",
-     [_pose_5(r, pose, _normal_lean) for pose in POSES for r in (0, 1)]),
+     [_box_pose(CURVE_5_POSES, r, pose, _normal_lean) for pose in POSES for r in (0, 1)]),
 ]
-
 
 
 def _seed0(file: str, model: str, key: str, count: int = 20) -> Getter:
@@ -224,8 +234,7 @@ def _seed0(file: str, model: str, key: str, count: int = 20) -> Getter:
 
 
 def _swapped_share(run: int) -> tuple[str, Getter]:
-    return "d0", lambda load: 100 * list(load(CURVE_20_POSES)["runs"].values())[run]["swapped"][
-        "share_of_squared_error"]
+    return "d0", lambda load: 100 * _run(CURVE_20_POSES, run)(load)["swapped"]["share_of_squared_error"]
 
 
 TWENTY_LABEL_FIGURES: Figures = [
@@ -247,9 +256,10 @@ TWENTY_LABEL_FIGURES: Figures = [
       ("sig", _seed0(SCRATCH_CURVE, "labels_only", "median_mm")),
       ("sig", _seed0(SCRATCH_CURVE, "labels_only", "rms_mm"))]),
     ("(face up {} mm against {}, face down\n{} against {}, on a side {} against {})",
-     [_pose_5(r, pose, _without_lean, CURVE_20_POSES) for pose in POSES for r in (0, 1)]),
+     [_box_pose(CURVE_20_POSES, r, pose, _without_lean) for pose in POSES for r in (0, 1)]),
     ("(face up {} mm against {}, on a side {} against {})",
-     [_pose_5(r, pose, _normal_lean, CURVE_20_POSES) for pose in ("normal up", "on a side") for r in (0, 1)]),
+     [_box_pose(CURVE_20_POSES, r, pose, _normal_lean) for pose in ("normal up", "on a side")
+      for r in (0, 1)]),
     ("({}% and {}% of the squared error)", [_swapped_share(0), _swapped_share(1)]),
 ]
 
@@ -260,8 +270,7 @@ INSERTION_FIGURES: Figures = [
                                (SCRATCH_INSERTION, "labels_only"))
       for cell in _scene_row(file, model, "d3")]),
     ("S3K's median is higher in every seed, by {} to {} mm",
-     [("d3", _paired("s3k", "median_mm", min, INSERTION, SCRATCH_INSERTION)),
-      ("d3", _paired("s3k", "median_mm", max, INSERTION, SCRATCH_INSERTION))]),
+     [("d3", _paired("s3k/median_mm", pick, INSERTION, SCRATCH_INSERTION)) for pick in (min, max)]),
     ("in seed 1, {} frames where keypoints swap carry {}% of the squared error and {} collapsed frame {}%; in"
      " seed 2, {} collapsed frames carry {}%. Without those frames the RMS is {} and {} mm",
      [("d0", _pose_run(1, "swapped_frames")), _share(1, "swapped"),
@@ -273,10 +282,8 @@ INSERTION_FIGURES: Figures = [
      " median, at {} times the\nCPU",
      [("d3", at(INSERTION_CONTROL, "metrics/median_mm")), mm(INSERTION_CONTROL, "metrics/rms_mm"),
       ("d1", at(INSERTION_CONTROL, "cpu_minutes")),
-      ("d3", lambda load: load(INSERTION)["s3k"]["median_mm"]["per_seed"][0]
-       - load(INSERTION_CONTROL)["metrics"]["median_mm"]),
-      ("d1", lambda load: load(INSERTION)["s3k"]["train_cpu_minutes"]["per_seed"][0]
-       / load(INSERTION_CONTROL)["cpu_minutes"])]),
+      ("d3", _control_gap(INSERTION, "s3k", INSERTION_CONTROL)),
+      ("d1", _control_cpu_ratio(INSERTION, "s3k", INSERTION_CONTROL))]),
     ("the plug tip's lean, the length of its mean error, is {} mm with the encoder\nagainst {}, and with each"
      " keypoint's lean taken away the medians are {} and {} mm.",
      [("d2", _seed0_side(0, _tip_lean)), ("d2", _seed0_side(1, _tip_lean)),
@@ -320,7 +327,7 @@ def test_the_five_label_claims_of_every_seed_and_pose_hold():
     assert all(enc > scratch for enc, scratch in seeds("s3k", "median_mm"))
     assert all(enc > scratch for enc, scratch in seeds("s3k", "pck_10mm"))
     assert all(enc < scratch for enc, scratch in seeds("labels_only", "median_mm"))
-    runs = list(load(CURVE_5_POSES)["runs"].values())
+    runs = [_run(CURVE_5_POSES, i)(load) for i in (0, 1)]
     assert all(_without_lean(runs[0]["by_pose"][p]) < _without_lean(runs[1]["by_pose"][p]) for p in POSES)
     assert all(_normal_lean(runs[0]["by_pose"][p]) < _normal_lean(runs[1]["by_pose"][p]) for p in POSES)
     page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
