@@ -10,6 +10,9 @@ CURVE_5_POSES = HERE + "by-pose-5-seed0.json"
 CURVE_20 = HERE + "label-curve-20.json"
 CURVE_20_CONTROL = HERE + "label-curve-20-scratch-seed0.json"
 CURVE_20_POSES = HERE + "by-pose-20-seed0.json"
+CURVE_5_POSES_12 = HERE + "by-pose-5-seeds-1-2.json"
+CURVE_20_POSES_12 = HERE + "by-pose-20-seeds-1-2.json"
+SCRATCH_HERE = HERE + "scratch-curve/summary.json"
 SCRATCH_CURVE = "docs/results/accuracy/label-curve/summary.json"
 REAL = HERE + "real-held-out.json"
 MUGS = HERE + "mugs.json"
@@ -22,3 +25,12 @@ SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.jso
 INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
 INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
 INSERTION_SEED0_POSES = HERE + "insertion-by-pose-seed0.json"
+
+
+def side_by_side_cpu_ratio(load, model: str) -> float:
+    """The encoder's CPU-minutes over the scratch model's for ``model`` (``s3k``, ``labels_only``) at 5 and
+    20 labels, both trained on one machine: the sum of the two counts' means over seeds, each side."""
+    encoder = sum(load(f)["curve"][model][n]["train_cpu_minutes"]["mean"] for f, n in ((CURVE_5, "5"),
+                                                                                          (CURVE_20, "20")))
+    scratch = sum(load(SCRATCH_HERE)["curve"][model][n]["train_cpu_minutes"]["mean"] for n in ("5", "20"))
+    return encoder / scratch

@@ -12,9 +12,11 @@ from helpers.pretrained_files import (
     CURVE_5,
     CURVE_5_CONTROL,
     CURVE_5_POSES,
+    CURVE_5_POSES_12,
     CURVE_20,
     CURVE_20_CONTROL,
     CURVE_20_POSES,
+    CURVE_20_POSES_12,
     INSERTION,
     INSERTION_CONTROL,
     INSERTION_POSES,
@@ -24,9 +26,11 @@ from helpers.pretrained_files import (
     PLUSH_CONTROL,
     REAL,
     SCRATCH_CURVE,
+    SCRATCH_HERE,
     SCRATCH_INSERTION,
     SCRATCH_MUGS,
     SCRATCH_PLUSH,
+    side_by_side_cpu_ratio,
 )
 
 PAGE = "docs/results/accuracy/pretrained/README.md"
@@ -279,6 +283,83 @@ def test_the_twenty_label_claims_of_every_seed_hold():
                   "S3K's share within 10 mm is lower in every seed"):
         assert claim in page
 
+
+ENCODER_CURVES = {5: CURVE_5, 10: CURVE, 20: CURVE_20}
+
+
+def _same_machine_row(n: int) -> list[tuple[str, Getter]]:
+    """A row of the one-machine table: S3K's median (mean, per seed) with the encoder and from scratch, then
+    RMS, share within 10 mm and CPU-minutes, encoder / scratch."""
+    files = (ENCODER_CURVES[n], SCRATCH_HERE)
+    base = f"curve/s3k/{n}"
+    out = [cell for f in files for cell in _spread(f, f"{base}/median_mm")]
+    out += [mm(f, f"{base}/rms_mm/mean") for f in files] + [pct(f, f"{base}/pck_10mm/mean") for f in files]
+    return out + [("d1", at(f, f"{base}/train_cpu_minutes/mean")) for f in files]
+
+
+def _gaps_here(model: str, key: str = "median_mm") -> list[list[float]]:
+    """Per label count (5, 10, 20), per seed: the encoder's ``key`` less the scratch model's trained here."""
+    load = loader()
+    return [[a - b for a, b in zip(*(load(f)["curve"][model][str(n)][key]["per_seed"]
+                                     for f in (ENCODER_CURVES[n], SCRATCH_HERE)))] for n in (5, 10, 20)]
+
+
+def _lean_gaps() -> list[float]:
+    """In every pose of every seed at 5 and 20 labels, the encoder's lean along the face's normal less the
+    scratch model's (negative: the encoder's is longer, into the box)."""
+    load = loader()
+    out = []
+    for file, pairs in ((CURVE_5_POSES, [(0, 1)]), (CURVE_20_POSES, [(0, 1)]),
+                        (CURVE_5_POSES_12, [(0, 1), (2, 3)]), (CURVE_20_POSES_12, [(0, 1), (2, 3)])):
+        for enc, scratch in pairs:
+            runs = [_run(file, i)(load)["by_pose"] for i in (enc, scratch)]
+            out += [_normal_lean(runs[0][p]) - _normal_lean(runs[1][p]) for p in POSES]
+    return out
+
+
+def _scratch_spread(load) -> float:
+    """The largest difference of a scratch S3K median (any count and seed) between this machine and the
+    Xeon."""
+    return max(abs(a - b) for n in ("5", "10", "20") for a, b in zip(
+        *(load(f)["curve"]["s3k"][n]["median_mm"]["per_seed"] for f in (SCRATCH_HERE, SCRATCH_CURVE))))
+
+
+SAME_MACHINE_FIGURES: Figures = [
+    *[(f"| {n} | {{}} ({{}}, {{}}, {{}}) | {{}} ({{}}, {{}}, {{}}) | {{}} / {{}} | {{}}% / {{}}% |"
+       " {} / {} |", _same_machine_row(n)) for n in (5, 10, 20)],
+    ("S3K's median is higher with the encoder in every seed at every count, by {}\nto {} mm.",
+     [("d2", lambda load: min(min(g) for g in _gaps_here("s3k"))),
+      ("d2", lambda load: max(max(g) for g in _gaps_here("s3k")))]),
+    ("(seed 2: {} mm on the Xeon, {} here)",
+     [mm(SCRATCH_CURVE, "curve/s3k/5/rms_mm/per_seed/2"), mm(SCRATCH_HERE, "curve/s3k/5/rms_mm/per_seed/2")]),
+    ("It costs {} times the CPU of a\nscratch model at 5 and 20 labels for S3K, {} for labels only",
+     [("d1", lambda load: side_by_side_cpu_ratio(load, "s3k")),
+      ("d1", lambda load: side_by_side_cpu_ratio(load, "labels_only"))]),
+    ("differ by up to {} mm (seed 2 at five labels)", [("d2", _scratch_spread)]),
+    ("is longer with the encoder, by {} to {} mm.",
+     [("d2", lambda load: -max(_lean_gaps())), ("d2", lambda load: -min(_lean_gaps()))]),
+]
+
+
+def test_the_one_machine_claims_of_every_seed_hold():
+    """The one-machine section's "in every seed" and "in every pose" sentences, from the JSON."""
+    s3k = _gaps_here("s3k")
+    assert all(g > 0 for per_count in s3k for g in per_count)
+    assert all(g > 0 for g in _gaps_here("s3k", "pck_10mm")[0])
+    labels_only = _gaps_here("labels_only")
+    assert sorted(g < 0 for g in labels_only[0]) == [False, True, True] and all(g > 0 for g in labels_only[2])
+    assert all(g < 0 for g in _lean_gaps()) and len(_lean_gaps()) == 18
+    load = loader()
+    spread = [abs(a - b) for a, b in zip(*(load(f)["curve"]["s3k"]["5"]["median_mm"]["per_seed"]
+                                          for f in (SCRATCH_HERE, SCRATCH_CURVE)))]
+    assert max(spread) == _scratch_spread(load) == spread[2]
+    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    for claim in ("higher with the encoder in every seed at every count",
+                  "a higher share within 10 mm, in every seed",
+                  "lower at five labels in two seeds of three and higher at twenty in every seed",
+                  "In every pose of every seed, at five labels and at twenty"):
+        assert claim in page
+
 INSERTION_FIGURES: Figures = [
     (_after_link("insertion") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
      [cell for file, model in ((INSERTION, "s3k"), (SCRATCH_INSERTION, "s3k"), (INSERTION, "labels_only"),
@@ -312,7 +393,7 @@ INSERTION_FIGURES: Figures = [
 
 def test_every_pretrained_figure_equals_its_json():
     text = (ROOT / PAGE).read_text(encoding="utf-8")
-    box = FIVE_LABEL_FIGURES + TWENTY_LABEL_FIGURES
+    box = FIVE_LABEL_FIGURES + TWENTY_LABEL_FIGURES + SAME_MACHINE_FIGURES
     assert mismatches(text, loader(), FIGURES + box + INSERTION_FIGURES) == []
 
 

@@ -91,12 +91,15 @@ FIGURES: Figures = [
       mm(DEMO, "labels only/median_mm"), mm(DEMO, "labels only/rms_mm")]),
     # The pretrained encoder's points in the label curve.
     ("[pretrained](docs/results/accuracy/pretrained/README.md)): S3K {}, {} and {} mm median, higher than"
-     " from scratch in every seed, at {} times the CPU side by side on one machine. At 5 labels its RMS is"
-     " lower ({} mm against {}: fewer far misses), at 10 higher ({} against {})",
+     " from scratch in every seed, on this figure and beside scratch models trained on the same machine"
+     " ([scratch-curve](docs/results/accuracy/pretrained/scratch-curve/summary.json)), where it takes {}"
+     " times the CPU. Its RMS is level with those at 5 labels ({} mm against {}; the figure's scratch seeds"
+     " give {}) and higher at 10 and 20 ({} against {}, {} against {})",
      [mm(CURVE, f"{ENCODER}curve/s3k/{n}/median_mm/mean") for n in (5, 10, 20)]
-     + [("d1", lambda load: load(pretrained.CURVE_5)["curve"]["s3k"]["5"]["train_cpu_minutes"]["per_seed"][0]
-         / load(pretrained.CURVE_5_CONTROL)["cpu_minutes"])]
-     + [mm(CURVE, f"{side}curve/s3k/{n}/rms_mm/mean") for n in (5, 10) for side in (ENCODER, "")]),
+     + [("d1", lambda load: pretrained.side_by_side_cpu_ratio(load, "s3k"))]
+     + [mm(f, "curve/s3k/5/rms_mm/mean") for f in (pretrained.CURVE_5, pretrained.SCRATCH_HERE, CURVE)]
+     + [mm(f, f"curve/s3k/{n}/rms_mm/mean") for n in (10, 20)
+        for f in ({10: pretrained.CURVE, 20: pretrained.CURVE_20}[n], pretrained.SCRATCH_HERE)]),
     # The Results table.
     (f"([summary]({BOX})) | labels only {ROW}\n| | **S3K** {BOLD_ROW} **{{}} CPU-min** |",
      row(BOX, "labels_only") + row(BOX, "s3k")),
