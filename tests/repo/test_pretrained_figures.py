@@ -264,13 +264,15 @@ TWENTY_LABEL_FIGURES: Figures = [
 ]
 
 
+ENCODER_CURVES = {5: CURVE_5, 10: CURVE, 20: CURVE_20}
 
-def _seed_pairs(count: int, model: str, key: str) -> list[tuple[float, float]]:
-    """Per seed, the encoder's ``key`` of ``model`` at ``count`` labels beside the committed scratch
-    curve's."""
+
+def _seed_pairs(count: int, model: str, key: str, scratch: str = SCRATCH_CURVE) -> list[tuple[float, float]]:
+    """Per seed, the encoder's ``key`` of ``model`` at ``count`` labels beside the scratch curve's (the
+    committed one, trained on the Xeon, unless named)."""
     load = loader()
-    curve = CURVE_5 if count == 5 else CURVE_20
-    return list(zip(*(load(f)["curve"][model][str(count)][key]["per_seed"] for f in (curve, SCRATCH_CURVE))))
+    return list(zip(*(load(f)["curve"][model][str(count)][key]["per_seed"]
+                      for f in (ENCODER_CURVES[count], scratch))))
 
 
 def test_the_twenty_label_claims_of_every_seed_hold():
@@ -282,9 +284,6 @@ def test_the_twenty_label_claims_of_every_seed_hold():
     for claim in ("S3K's is higher in every seed, by", "and so is labels only's;",
                   "S3K's share within 10 mm is lower in every seed"):
         assert claim in page
-
-
-ENCODER_CURVES = {5: CURVE_5, 10: CURVE, 20: CURVE_20}
 
 
 def _same_machine_row(n: int) -> list[tuple[str, Getter]]:
@@ -299,9 +298,7 @@ def _same_machine_row(n: int) -> list[tuple[str, Getter]]:
 
 def _gaps_here(model: str, key: str = "median_mm") -> list[list[float]]:
     """Per label count (5, 10, 20), per seed: the encoder's ``key`` less the scratch model's trained here."""
-    load = loader()
-    return [[a - b for a, b in zip(*(load(f)["curve"][model][str(n)][key]["per_seed"]
-                                     for f in (ENCODER_CURVES[n], SCRATCH_HERE)))] for n in (5, 10, 20)]
+    return [[a - b for a, b in _seed_pairs(n, model, key, SCRATCH_HERE)] for n in (5, 10, 20)]
 
 
 def _lean_gaps() -> list[float]:
@@ -359,6 +356,7 @@ def test_the_one_machine_claims_of_every_seed_hold():
                   "lower at five labels in two seeds of three and higher at twenty in every seed",
                   "In every pose of every seed, at five labels and at twenty"):
         assert claim in page
+
 
 INSERTION_FIGURES: Figures = [
     (_after_link("insertion") + _table("| RMS mm (seeds 0, 1, 2) |", CURVE_ROW),
