@@ -23,6 +23,7 @@ PLUSH_CONTROL = HERE + "plush-scratch-seed0.json"
 INSERTION = HERE + "insertion.json"
 SCRATCH_INSERTION = "docs/results/accuracy/headline-preset/insertion/summary.json"
 INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
+INSERTION_HERE = HERE + "insertion-scratch.json"
 INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
 INSERTION_SEED0_POSES = HERE + "insertion-by-pose-seed0.json"
 
