@@ -26,12 +26,12 @@ INSERTION_CONTROL = HERE + "insertion-scratch-seed0.json"
 INSERTION_HERE = HERE + "insertion-scratch.json"
 INSERTION_POSES = HERE + "insertion-by-pose-s3k.json"
 INSERTION_SEED0_POSES = HERE + "insertion-by-pose-seed0.json"
+ENCODER_CURVES = {5: CURVE_5, 10: CURVE, 20: CURVE_20}  # the encoder's box point at each label count
 
 
 def side_by_side_cpu_ratio(load, model: str) -> float:
     """The encoder's CPU-minutes over the scratch model's for ``model`` (``s3k``, ``labels_only``) at 5 and
     20 labels, both trained on one machine: the sum of the two counts' means over seeds, each side."""
-    encoder = sum(load(f)["curve"][model][n]["train_cpu_minutes"]["mean"] for f, n in ((CURVE_5, "5"),
-                                                                                          (CURVE_20, "20")))
-    scratch = sum(load(SCRATCH_HERE)["curve"][model][n]["train_cpu_minutes"]["mean"] for n in ("5", "20"))
-    return encoder / scratch
+    def cpu(file: str, n: int) -> float:
+        return load(file)["curve"][model][str(n)]["train_cpu_minutes"]["mean"]
+    return sum(cpu(ENCODER_CURVES[n], n) for n in (5, 20)) / sum(cpu(SCRATCH_HERE, n) for n in (5, 20))

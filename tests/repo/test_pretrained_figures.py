@@ -17,6 +17,7 @@ from helpers.pretrained_files import (
     CURVE_20_CONTROL,
     CURVE_20_POSES,
     CURVE_20_POSES_12,
+    ENCODER_CURVES,
     INSERTION,
     INSERTION_CONTROL,
     INSERTION_HERE,
@@ -36,6 +37,11 @@ from helpers.pretrained_files import (
 
 PAGE = "docs/results/accuracy/pretrained/README.md"
 MUG_POINTS = ("handle", "body_centre", "lip")
+
+
+def _page_words() -> str:
+    """The page's text with every run of whitespace one space, for the tests of its sentences."""
+    return " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
 
 
 def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
@@ -265,23 +271,21 @@ TWENTY_LABEL_FIGURES: Figures = [
 ]
 
 
-ENCODER_CURVES = {5: CURVE_5, 10: CURVE, 20: CURVE_20}
-
-
-def _seed_pairs(count: int, model: str, key: str, scratch: str = SCRATCH_CURVE) -> list[tuple[float, float]]:
+def _seed_pairs(load, count: int, model: str, key: str, scratch: str = SCRATCH_CURVE
+                ) -> list[tuple[float, float]]:
     """Per seed, the encoder's ``key`` of ``model`` at ``count`` labels beside the scratch curve's (the
     committed one, trained on the Xeon, unless named)."""
-    load = loader()
     return list(zip(*(load(f)["curve"][model][str(count)][key]["per_seed"]
                       for f in (ENCODER_CURVES[count], scratch))))
 
 
 def test_the_twenty_label_claims_of_every_seed_hold():
     """The 20-label section's "in every seed" sentences, from the JSON."""
-    assert all(enc > scratch for enc, scratch in _seed_pairs(20, "s3k", "median_mm"))
-    assert all(enc > scratch for enc, scratch in _seed_pairs(20, "labels_only", "median_mm"))
-    assert all(enc < scratch for enc, scratch in _seed_pairs(20, "s3k", "pck_10mm"))
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    load = loader()
+    assert all(enc > scratch for enc, scratch in _seed_pairs(load, 20, "s3k", "median_mm"))
+    assert all(enc > scratch for enc, scratch in _seed_pairs(load, 20, "labels_only", "median_mm"))
+    assert all(enc < scratch for enc, scratch in _seed_pairs(load, 20, "s3k", "pck_10mm"))
+    page = _page_words()
     for claim in ("S3K's is higher in every seed, by", "and so is labels only's;",
                   "S3K's share within 10 mm is lower in every seed"):
         assert claim in page
@@ -297,15 +301,14 @@ def _same_machine_row(n: int) -> list[tuple[str, Getter]]:
     return out + [("d1", at(f, f"{base}/train_cpu_minutes/mean")) for f in files]
 
 
-def _gaps_here(model: str, key: str = "median_mm") -> list[list[float]]:
+def _gaps_here(load, model: str, key: str = "median_mm") -> list[list[float]]:
     """Per label count (5, 10, 20), per seed: the encoder's ``key`` less the scratch model's trained here."""
-    return [[a - b for a, b in _seed_pairs(n, model, key, SCRATCH_HERE)] for n in (5, 10, 20)]
+    return [[a - b for a, b in _seed_pairs(load, n, model, key, SCRATCH_HERE)] for n in (5, 10, 20)]
 
 
-def _lean_gaps() -> list[float]:
+def _lean_gaps(load) -> list[float]:
     """In every pose of every seed at 5 and 20 labels, the encoder's lean along the face's normal less the
     scratch model's (negative: the encoder's is longer, into the box)."""
-    load = loader()
     out = []
     for file, pairs in ((CURVE_5_POSES, [(0, 1)]), (CURVE_20_POSES, [(0, 1)]),
                         (CURVE_5_POSES_12, [(0, 1), (2, 3)]), (CURVE_20_POSES_12, [(0, 1), (2, 3)])):
@@ -326,8 +329,8 @@ SAME_MACHINE_FIGURES: Figures = [
     *[(f"| {n} | {{}} ({{}}, {{}}, {{}}) | {{}} ({{}}, {{}}, {{}}) | {{}} / {{}} | {{}}% / {{}}% |"
        " {} / {} |", _same_machine_row(n)) for n in (5, 10, 20)],
     ("S3K's median is higher with the encoder in every seed at every count, by {}\nto {} mm.",
-     [("d2", lambda load: min(min(g) for g in _gaps_here("s3k"))),
-      ("d2", lambda load: max(max(g) for g in _gaps_here("s3k")))]),
+     [("d2", lambda load: min(min(g) for g in _gaps_here(load, "s3k"))),
+      ("d2", lambda load: max(max(g) for g in _gaps_here(load, "s3k")))]),
     ("(seed 2: {} mm on the Xeon, {} here)",
      [mm(SCRATCH_CURVE, "curve/s3k/5/rms_mm/per_seed/2"), mm(SCRATCH_HERE, "curve/s3k/5/rms_mm/per_seed/2")]),
     ("It costs {} times the CPU of a\nscratch model at 5 and 20 labels for S3K, {} for labels only",
@@ -335,23 +338,24 @@ SAME_MACHINE_FIGURES: Figures = [
       ("d1", lambda load: side_by_side_cpu_ratio(load, "labels_only"))]),
     ("differ by up to {} mm (seed 2 at five labels)", [("d2", _scratch_spread)]),
     ("is longer with the encoder, by {} to {} mm.",
-     [("d2", lambda load: -max(_lean_gaps())), ("d2", lambda load: -min(_lean_gaps()))]),
+     [("d2", lambda load: -max(_lean_gaps(load))), ("d2", lambda load: -min(_lean_gaps(load)))]),
 ]
 
 
 def test_the_one_machine_claims_of_every_seed_hold():
     """The one-machine section's "in every seed" and "in every pose" sentences, from the JSON."""
-    s3k = _gaps_here("s3k")
-    assert all(g > 0 for per_count in s3k for g in per_count)
-    assert all(g > 0 for g in _gaps_here("s3k", "pck_10mm")[0])
-    labels_only = _gaps_here("labels_only")
-    assert sorted(g < 0 for g in labels_only[0]) == [False, True, True] and all(g > 0 for g in labels_only[2])
-    assert all(g < 0 for g in _lean_gaps()) and len(_lean_gaps()) == 18
     load = loader()
+    s3k = _gaps_here(load, "s3k")
+    assert all(g > 0 for per_count in s3k for g in per_count)
+    assert all(g > 0 for g in _gaps_here(load, "s3k", "pck_10mm")[0])
+    labels_only = _gaps_here(load, "labels_only")
+    assert sorted(g < 0 for g in labels_only[0]) == [False, True, True] and all(g > 0 for g in labels_only[2])
+    leans = _lean_gaps(load)
+    assert all(g < 0 for g in leans) and len(leans) == 18
     spread = [abs(a - b) for a, b in zip(*(load(f)["curve"]["s3k"]["5"]["median_mm"]["per_seed"]
                                           for f in (SCRATCH_HERE, SCRATCH_CURVE)))]
     assert max(spread) == _scratch_spread(load) == spread[2]
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    page = _page_words()
     for claim in ("higher with the encoder in every seed at every count",
                   "a higher share within 10 mm, in every seed",
                   "lower at five labels in two seeds of three and higher at twenty in every seed",
@@ -422,20 +426,20 @@ def test_labels_only_with_the_encoder_is_lower_on_insertion_in_every_seed_as_the
         assert all(a < b for a, b in zip(enc, scratch))
     enc, scratch = (load(f)["s3k"]["median_mm"]["per_seed"] for f in (INSERTION, INSERTION_HERE))
     assert all(a > b for a, b in zip(enc, scratch))
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    page = _page_words()
     assert "Labels only with the encoder has a lower median than from scratch in every seed" in page
 
 
 def test_the_five_label_claims_of_every_seed_and_pose_hold():
     """The sentences of the 5-label section that say "in every seed" or "in every pose", from the JSON."""
     load = loader()
-    assert all(enc > scratch for enc, scratch in _seed_pairs(5, "s3k", "median_mm"))
-    assert all(enc > scratch for enc, scratch in _seed_pairs(5, "s3k", "pck_10mm"))
-    assert all(enc < scratch for enc, scratch in _seed_pairs(5, "labels_only", "median_mm"))
+    assert all(enc > scratch for enc, scratch in _seed_pairs(load, 5, "s3k", "median_mm"))
+    assert all(enc > scratch for enc, scratch in _seed_pairs(load, 5, "s3k", "pck_10mm"))
+    assert all(enc < scratch for enc, scratch in _seed_pairs(load, 5, "labels_only", "median_mm"))
     runs = [_run(CURVE_5_POSES, i)(load) for i in (0, 1)]
     assert all(_without_lean(runs[0]["by_pose"][p]) < _without_lean(runs[1]["by_pose"][p]) for p in POSES)
     assert all(_normal_lean(runs[0]["by_pose"][p]) < _normal_lean(runs[1]["by_pose"][p]) for p in POSES)
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    page = _page_words()
     for claim in ("S3K's median is higher with the encoder in every seed",
                   "share within 10 mm is higher in every seed", "labels only's median is lower in every seed",
                   "the medians are lower with the encoder in every pose", "leans as far or further"):

@@ -99,7 +99,7 @@ FIGURES: Figures = [
      + [("d1", lambda load: pretrained.side_by_side_cpu_ratio(load, "s3k"))]
      + [mm(f, "curve/s3k/5/rms_mm/mean") for f in (pretrained.CURVE_5, pretrained.SCRATCH_HERE, CURVE)]
      + [mm(f, f"curve/s3k/{n}/rms_mm/mean") for n in (10, 20)
-        for f in ({10: pretrained.CURVE, 20: pretrained.CURVE_20}[n], pretrained.SCRATCH_HERE)]),
+        for f in (pretrained.ENCODER_CURVES[n], pretrained.SCRATCH_HERE)]),
     # The Results table.
     (f"([summary]({BOX})) | labels only {ROW}\n| | **S3K** {BOLD_ROW} **{{}} CPU-min** |",
      row(BOX, "labels_only") + row(BOX, "s3k")),
