@@ -19,6 +19,7 @@ result files only, so they can be written again from a working folder at any tim
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import json
 import logging
@@ -311,6 +312,7 @@ def write_summary(opts: CurveOptions, work: Path, results_dir: Path, command: st
                      f"crops {opts.crop_size} px, {opts.steps} steps" if opts.passes == 2
                      else f"one pass at {opts.coarse_size} px, {opts.steps} steps")
                   + (f"; train options {opts.train_options!r}" if opts.train_options else "")),
+        "train_options": opts.train_options,
         "labels": list(opts.labels), "seeds": list(range(opts.seeds)),
         "jobs_with_results": len(results),
         "missing_jobs": [job.name for job in missing],
@@ -367,7 +369,8 @@ def add_curve(results_dir: Path, name: str, others: list[Path], command: str) ->
             curve.setdefault(m, {})[n] = point
         sources.append({"from": str(other), "counts": sorted({int(n) for _, n, _ in items}),
                         **{k: theirs.get(k) for k in ("command", "git_revision", "scale", "seeds",
-                                                      "trained_at_revisions")}})
+                                                      "trained_at_revisions")},
+                        "train_options": train_options_of(theirs)})
     for m in curve:
         curve[m] = dict(sorted(curve[m].items(), key=lambda kv: int(kv[0])))
     summary = json.loads(path.read_text())
@@ -375,6 +378,22 @@ def add_curve(results_dir: Path, name: str, others: list[Path], command: str) ->
     atomic_write_json(summary, path)
     plot_curve(summary, results_dir / FIGURE)
     return summary
+
+
+def train_options_of(summary: dict[str, Any]) -> str:
+    """The training options a curve's summary (or an added curve's source) was trained with: its
+    ``train_options`` field, or for a summary written before that field, what its ``scale`` names after
+    "; train options "; "" where neither names any."""
+    if isinstance(summary.get("train_options"), str):
+        return str(summary["train_options"])
+    _, marker, named = str(summary.get("scale", "")).partition("; train options ")
+    if not marker:
+        return ""
+    try:
+        value = ast.literal_eval(named)
+    except (ValueError, SyntaxError):
+        return named
+    return value if isinstance(value, str) else named
 
 
 def plot_curve(summary: dict[str, Any], path: Path) -> Path:
@@ -422,7 +441,7 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
     for name, c in summary.get(ADDED, {}).items():
         sources = c.get("sources", [c])  # one per summary joined (an older summary's entry is its own)
-        options = sorted({str(x.get("scale")).split("; train options ")[-1] for x in sources})
+        options = sorted({repr(train_options_of(x)) if train_options_of(x) else "none" for x in sources})
         seeds_at = ", ".join(f"seeds {x.get('seeds')} at {'/'.join(map(str, x.get('counts', [])))} labels"
                              for x in sources)
         caption += f"; dotted, {name}: train options {' / '.join(options)}, {seeds_at}"

@@ -182,7 +182,8 @@ def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     work, results = tmp_path / "work", tmp_path / "results"
     with pytest.raises(UserError, match="no label-curve summary"):
         add_curve(results, "other", [tmp_path / "x.json"], "cmd")
-    run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
+    own = run_curve(opts, work, results, "python benchmarks/label_curve.py ...", "abc", MACHINE)
+    assert own["train_options"] == opts.train_options == TINY_TRAIN
     figure = results / "label-curve.png"
     alone = figure.read_bytes()
     not_a_summary = tmp_path / "not.json"
@@ -194,13 +195,14 @@ def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     theirs = {"command": "their command", "git_revision": "def", "scale": "their scale", "seeds": [0],
               "curve": {"s3k": {"2": point(7.5)}, "labels_only": {}}}
     other.write_text(json.dumps(theirs))
-    more.write_text(json.dumps({**theirs, "git_revision": "fed",
+    more.write_text(json.dumps({**theirs, "git_revision": "fed", "train_options": "--encoder-lr 0.1",
                                 "curve": {"s3k": {"1": point(9.0)}, "labels_only": {"1": point(20.0)}}}))
     summary = add_curve(results, "encoder", [other, more], "the adding command")
     added = summary["added_curves"]["encoder"]
     assert added["curve"] == {"s3k": {"1": point(9.0), "2": point(7.5)}, "labels_only": {"1": point(20.0)}}
     assert [(s["from"], s["git_revision"], s["counts"]) for s in added["sources"]] == [
         (str(other), "def", [2]), (str(more), "fed", [1])]
+    assert [s["train_options"] for s in added["sources"]] == ["", "--encoder-lr 0.1"]
     assert added["added_by"] == "the adding command"
     assert json.loads((results / "summary.json").read_text())["added_curves"] == summary["added_curves"]
     with pytest.raises(UserError, match=r"S3K at 2 labels is in .*other.json too"):
@@ -211,3 +213,15 @@ def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     again = run_curve(opts, work, results, "again", "abc", MACHINE, summary_only=True)
     assert again["added_curves"]["encoder"]["curve"]["s3k"]["2"]["median_mm"]["mean"] == 7.5
     assert again["curve"]["s3k"]["2"]["median_mm"]["mean"] != 7.5
+
+
+def test_a_curves_train_options_come_from_its_field_or_an_older_summarys_scale():
+    from s3k.experiments.label_curve import train_options_of
+
+    options = "--encoder efficientnet-lite0 --encoder-lr 0.1"
+    scale = "box rendered at 384 px; two passes"
+    assert train_options_of({"scale": scale, "train_options": options}) == options
+    # a summary written before the field names its options at the end of its scale
+    assert train_options_of({"scale": f"{scale}; train options {options!r}"}) == options
+    assert train_options_of({"scale": scale}) == ""
+    assert train_options_of({"scale": f"{scale}; train options {options!r}", "train_options": ""}) == ""
