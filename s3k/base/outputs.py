@@ -32,7 +32,7 @@ from pathlib import Path
 
 from s3k.base.errors import UserError
 from s3k.base.messages import NOTE
-from s3k.run_folder import RunFolder
+from s3k.base.run_files import RunFiles
 
 log = logging.getLogger(__name__)
 
@@ -44,11 +44,11 @@ __all__ = ["DATASET_MARKER", "DATASET_NAMES", "OUTPUT_MARKER", "RUN_NAMES", "RUN
 DATASET_MARKER = "s3k.json"
 """The file that makes a folder a dataset (``s3k.data.tables.METADATA_FILE``)."""
 
-RUN_NAMES = frozenset(RunFolder.ONE_PASS_FILES + RunFolder.TWO_PASS_FILES)
+RUN_NAMES = frozenset(RunFiles.ONE_PASS_FILES + RunFiles.TWO_PASS_FILES)
 """Names a run folder's own files and folders take (``tests/base/test_outputs.py`` checks them against the
 modules that write them)."""
 
-RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", RunFolder.CPU, RunFolder.OPTIONS})
+RUN_NEIGHBOURS = frozenset({"run.lock", "result.json", RunFiles.CPU, RunFiles.OPTIONS})
 """Files s3k keeps in a run folder before the run is started: an experiment's lock and result
 (``s3k.experiments``), a two-pass run's options and CPU record."""
 
@@ -61,7 +61,7 @@ def is_dataset(folder: Path) -> bool:
 def is_run(folder: Path) -> bool:
     """True when ``folder`` holds a run of ``s3k train`` (its model or checkpoint, a run's ``config.json``)
     or of ``s3k train --two-pass`` (``two_pass.json``, or a coarse pass)."""
-    run = RunFolder(folder)
+    run = RunFiles(folder)
     if any(p.is_file() for p in (run.model, run.checkpoint, run.two_pass_file)):
         return True
     if run.coarse.path.is_dir() and is_run(run.coarse.path):
@@ -194,7 +194,7 @@ def check_folder(path: str | Path, kind: str, inputs: Mapping[str, object] | Non
 def owns_run(folder: Path) -> bool:
     """True when ``folder`` holds a run s3k wrote: a run's ``config.json``, or a two-pass run's description,
     options or coarse pass (a model or checkpoint file alone may be anyone's)."""
-    run = RunFolder(folder)
+    run = RunFiles(folder)
     if run.two_pass_file.is_file() or run.options_file.is_file():
         return True
     if run.coarse.path.is_dir() and owns_run(run.coarse.path):
