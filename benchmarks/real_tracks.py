@@ -203,8 +203,10 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float | None,
     ended (each pass at its final learning rate, the self-supervised term on from the start), at ``lr``
     instead where given; ``seed`` (batches, augmentation) instead of RUN's."""
     from s3k import cli
+    from s3k.run_folder import RunFolder
 
-    if (out / "config.json").is_file() or (out / "two_pass_options.json").is_file():  # started: continued,
+    started = RunFolder(out)
+    if started.config_file.is_file() or started.options_file.is_file():  # started: continued,
         args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]  # or (finished) kept
     else:
         args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--steps", str(steps),
