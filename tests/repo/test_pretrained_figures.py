@@ -193,8 +193,8 @@ FIGURES: Figures = [
      [mm(PLUSH_CONTROL, "metrics/median_mm"), mm(PLUSH_CONTROL, "metrics/rms_mm"),
       ("d1", at(PLUSH_CONTROL, "cpu_minutes")),
       ("d2", _below_control("median_mm")), ("d2", _below_control("rms_mm"))]),
-    ("head {} against {} mm, tail {} against {}, front left paw {} against {}, front right paw {} against {},"
-     " body {} against {}.",
+    ("scratch): head {} against {} mm, tail {} against {}, front left paw {} against {}, front right paw {}"
+     " against {}, body {} against {}.",
      [_keypoint(f, p) for p in ("head", "tail", "front_left_paw", "front_right_paw", "body")
       for f in (PLUSH, SCRATCH_PLUSH)]),
 ]
