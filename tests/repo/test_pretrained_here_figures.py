@@ -8,6 +8,7 @@ from __future__ import annotations
 from helpers.figures import Figures, Getter, at, loader, mismatches, mm, value_at
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
+    OUTSIDE_20,
     PLUSH,
     PLUSH_CONTROL,
     PLUSH_CONTROL_AGAIN,
@@ -101,9 +102,73 @@ REAL_FIGURES: Figures = [
 ]
 
 
+OUTSIDE_SEED0 = "docs/results/accuracy/pretrained/outside-rig-s3k-seed0.json"
+OUTSIDE_SCRATCH_SEED0 = "docs/results/accuracy/outside-rig/s3k-seed0-diagnosis.json"
+RIGS = ("train", "low", "high", "far", "wide")
+
+
+def _outside_seed0_cells(file: str, rig: str) -> list[tuple[str, Getter]]:
+    """One model's 3D and refining 2D medians on ``rig`` in an outside_rig.py file (to hundredths), with their
+    ratios to the in-range set's outside it."""
+    def px(r: str) -> Getter:
+        return at(file, f"rigs/{r}/diagnosis/fine_2d_median_px")
+    cells: list[tuple[str, Getter]] = [("d2", at(file, f"rigs/{rig}/median_mm"))]
+    if rig != "train":
+        cells.append(("d2", at(file, f"rigs/{rig}/median_ratio_to_in_range")))
+    cells.append(("d2", px(rig)))
+    if rig != "train":
+        cells.append(("d2", lambda load: px(rig)(load) / px("train")(load)))
+    return cells
+
+
+def _outside_20_cells(model: str, rig: str) -> list[tuple[str, Getter]]:
+    base = f"models/{model}/rigs/{rig}"
+    cells: list[tuple[str, Getter]] = [mm(OUTSIDE_20, f"{base}/median_mm/mean")]
+    if rig != "train":
+        cells.append(("d2", at(OUTSIDE_20, f"{base}/median_ratio/mean")))
+    cells.append(("sig", at(OUTSIDE_20, f"{base}/fine_2d_median_px/mean")))
+    if rig != "train":
+        cells.append(("d2", at(OUTSIDE_20, f"{base}/fine_2d_ratio/mean")))
+    return cells
+
+
+def _outside_table(header: str, cells) -> tuple[str, list[tuple[str, Getter]]]:
+    rows = ["| train | {} | {} | {} | {} |"]
+    rows += [f"| {r} | {{}} ({{}}) | {{}} ({{}}) | {{}} ({{}}) | {{}} ({{}}) |" for r in RIGS[1:]]
+    return header + "\n|---|---|---|---|---|\n" + "\n".join(rows), [c for r in RIGS for c in cells(r)]
+
+
+def _outside_gaps(key: str, rigs=RIGS) -> list[float]:
+    """Encoder less scratch, every seed of ``rigs``, in ``key`` (``median_mm_diff``, ``fine_2d_px_diff``)."""
+    load = loader()
+    return [x for r in rigs for x in load(OUTSIDE_20)["first_minus_second"]["rigs"][r][key]["per_seed"]]
+
+
+OUTSIDE_FIGURES: Figures = [
+    _outside_table("| rig | encoder: 3D mm (x) | encoder: 2D px (x) | scratch: 3D mm (x) | scratch: 2D px"
+                   " (x) |", lambda r: (_outside_seed0_cells(OUTSIDE_SEED0, r)
+                                        + _outside_seed0_cells(OUTSIDE_SCRATCH_SEED0, r))),
+    _outside_table("| rig | encoder, seeds 0-2: 3D mm (x) | encoder: 2D px (x) | scratch, seeds 0-2: 3D mm"
+                   " (x) | scratch: 2D px (x) |",
+                   lambda r: _outside_20_cells("encoder", r) + _outside_20_cells("scratch", r)),
+    ("further off in 2D on every rig in every seed, by {} to {} px, and its 3D median is higher on every"
+     " rig in every seed (by {} to {} mm) but the high one",
+     [("d2", lambda load: min(_outside_gaps("fine_2d_px_diff"))),
+      ("d2", lambda load: max(_outside_gaps("fine_2d_px_diff"))),
+      ("d2", lambda load: min(_outside_gaps("median_mm_diff", ("train", "low", "far", "wide")))),
+      ("d2", lambda load: max(_outside_gaps("median_mm_diff", ("train", "low", "far", "wide"))))]),
+]
+
+
 def test_every_one_machine_scene_figure_equals_its_json():
     text = (ROOT / PAGE).read_text(encoding="utf-8")
-    assert mismatches(text, loader(), PLUSH_FIGURES + REAL_FIGURES) == []
+    assert mismatches(text, loader(), PLUSH_FIGURES + REAL_FIGURES + OUTSIDE_FIGURES) == []
+
+
+def test_the_outside_rig_claims_of_every_seed_hold():
+    assert all(g > 0 for g in _outside_gaps("fine_2d_px_diff"))
+    assert all(g > 0 for g in _outside_gaps("median_mm_diff", ("train", "low", "far", "wide")))
+    assert sum(g < 0 for g in _outside_gaps("median_mm_diff", ("high",))) == 2
 
 
 def test_the_plush_claims_of_every_seed_hold():
