@@ -18,7 +18,7 @@ hardware computes it natively. Until 2026-12-05 its refining pass ran 4000 steps
 give a real rig) on an ImageNet-pretrained EfficientNet-Lite0 encoder cut at stride 8, trained at a tenth of
 each pass's learning rate (s3k's extra ``pretrained``). On the real recording's held-out stretch it lies
 0.07 mm nearer the proofread labels than the same configuration from scratch, in each of three seeds, at about
-three times the CPU; on the simulated box at ten labels it is 1.2 mm worse in median, on unseen mugs 4.2 mm;
+three times the CPU; on the simulated box at ten labels it is 1.2 mm worse in median, on unseen mugs 3.2 mm;
 on the plush toy 0.5 mm better in median and worse in RMS over seeds; on cable insertion 0.02 mm worse in
 median (docs/results/accuracy/pretrained).
 """
