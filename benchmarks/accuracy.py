@@ -65,7 +65,6 @@ from s3k.experiments.accuracy import (  # noqa: E402
     LABELLED,
     MODELS,
     TARGETS,
-    _stats,
     evaluate,
     finished,
     read_record,
@@ -73,6 +72,7 @@ from s3k.experiments.accuracy import (  # noqa: E402
     reuse_coarse,
     reuse_labels_only,
     run_jobs,
+    seed_stats,
     stage_summary,
     train_command,
     without_notes,
@@ -184,12 +184,12 @@ def main(argv: list[str] | None = None) -> int:
         "train_wall_minutes_per_model": max(c["wall_minutes"] for c in cpu.values()),
     }
     for m in MODELS:
-        summary[m] = {k: _stats([float(metrics[s, m][k]) for s in seeds]) for k in FIGURES}
+        summary[m] = {k: seed_stats([float(metrics[s, m][k]) for s in seeds]) for k in FIGURES}
         for figure in ("median_mm", "rms_mm"):  # a keypoint the others hide (the mugs' rim) read on its own
             summary[m][f"{figure}_per_keypoint"] = {
-                kp: _stats([float(metrics[s, m]["per_keypoint"][kp][figure]) for s in seeds])
+                kp: seed_stats([float(metrics[s, m]["per_keypoint"][kp][figure]) for s in seeds])
                 for kp in metrics[seeds[0], m]["per_keypoint"]}
-        summary[m]["train_cpu_minutes"] = _stats([cpu[s, m]["cpu_minutes"] for s in seeds])
+        summary[m]["train_cpu_minutes"] = seed_stats([cpu[s, m]["cpu_minutes"] for s in seeds])
     s3k, lo = summary["s3k"], summary["labels_only"]
     summary["checks"] = {
         "s3k_median_mm_mean_at_most_3": s3k["median_mm"]["mean"] <= 3.0,

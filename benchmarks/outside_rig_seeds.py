@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import shlex
-import statistics
 import sys
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from typing import Any
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from s3k.experiments.accuracy import seed_stats  # noqa: E402
 
 IN_RANGE = "train"
 
@@ -60,11 +60,6 @@ def test_sets(doc: dict[str, Any]) -> tuple:
     return doc.get("scale"), tuple(doc["rigs"])
 
 
-def mean_sd(values: list[float]) -> dict[str, Any]:
-    return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
-            "per_seed": values}
-
-
 def _px(doc: dict[str, Any], rig: str) -> float:
     return float(doc["rigs"][rig]["diagnosis"]["fine_2d_median_px"])
 
@@ -75,11 +70,12 @@ def model_rows(results: list[dict[str, Any]]) -> dict[str, Any]:
     for rig in results[0]["rigs"]:
         mm = [r["rigs"][rig]["median_mm"] for r in results]
         px = [_px(r, rig) for r in results]
-        row = {"median_mm": mean_sd(mm), "fine_2d_median_px": mean_sd(px),
-               "rms_mm": mean_sd([r["rigs"][rig]["rms_mm"] for r in results])}
+        row = {"median_mm": seed_stats(mm), "fine_2d_median_px": seed_stats(px),
+               "rms_mm": seed_stats([r["rigs"][rig]["rms_mm"] for r in results])}
         if rig != IN_RANGE:
-            row["median_ratio"] = mean_sd([x / r["rigs"][IN_RANGE]["median_mm"] for x, r in zip(mm, results)])
-            row["fine_2d_ratio"] = mean_sd([x / _px(r, IN_RANGE) for x, r in zip(px, results)])
+            row["median_ratio"] = seed_stats([x / r["rigs"][IN_RANGE]["median_mm"]
+                                              for x, r in zip(mm, results)])
+            row["fine_2d_ratio"] = seed_stats([x / _px(r, IN_RANGE) for x, r in zip(px, results)])
         out[rig] = row
     return out
 
@@ -90,7 +86,7 @@ def compare(first: list[dict[str, Any]], second: list[dict[str, Any]]) -> dict[s
     for rig in first[0]["rigs"]:
         d3 = [a["rigs"][rig]["median_mm"] - b["rigs"][rig]["median_mm"] for a, b in zip(first, second)]
         d2 = [_px(a, rig) - _px(b, rig) for a, b in zip(first, second)]
-        out[rig] = {"median_mm_diff": mean_sd(d3), "fine_2d_px_diff": mean_sd(d2),
+        out[rig] = {"median_mm_diff": seed_stats(d3), "fine_2d_px_diff": seed_stats(d2),
                     "seeds_first_lower_3d": sum(x < 0 for x in d3),
                     "seeds_first_lower_2d": sum(x < 0 for x in d2)}
     return out

@@ -31,17 +31,13 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from s3k.experiments.accuracy import seed_stats  # noqa: E402
 
 HEADLINE = "headline test frames (the scene's rig)"
 #: the four models read on the headline's test frames, by their names in wide_rig.py's results
 MODELS = {"this run": "s3k_wider_rig", "labels only": "labels_only_wider_rig",
           "compared run": "s3k_scene_rig", "compared labels only": "labels_only_scene_rig"}
 FIGURES = ("median_mm", "rms_mm", "pck_10mm")
-
-
-def stats(values: list[float]) -> dict:
-    return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
-            "per_seed": values}
 
 
 def summarise(results: list[dict]) -> dict:
@@ -60,7 +56,7 @@ def summarise(results: list[dict]) -> dict:
     rigs = {json.dumps(r["training_rig"], sort_keys=True) for r in results}
     if len(rigs) > 1:
         raise ValueError("the results were trained on different rigs: " + "; ".join(sorted(rigs)))
-    models = {name: {f: stats([row[who][f] for row in rows]) for f in FIGURES}
+    models = {name: {f: seed_stats([row[who][f] for row in rows]) for f in FIGURES}
               for who, name in MODELS.items()}
     ahead = [row["this run"]["median_mm"] < row["labels only"]["median_mm"]
              and row["this run"]["rms_mm"] < row["labels only"]["rms_mm"] for row in rows]
@@ -68,13 +64,13 @@ def summarise(results: list[dict]) -> dict:
     return {"seeds": [r["seed"] for r in results], "training_rig": results[0]["training_rig"],
             "scene_rig": results[0]["scene_rig"], "test_frames": rows[0]["this run"]["frames"],
             "models": models,
-            "train_cpu_minutes": {"s3k_wider_rig": stats([r["train_cpu_minutes"] for r in results]),
-                                  "labels_only_wider_rig": stats([r["labels_only_train_cpu_minutes"]
+            "train_cpu_minutes": {"s3k_wider_rig": seed_stats([r["train_cpu_minutes"] for r in results]),
+                                  "labels_only_wider_rig": seed_stats([r["labels_only_train_cpu_minutes"]
                                                                   for r in results])},
             "checks": {"s3k_ahead_of_labels_only_every_seed": all(ahead),
                        "s3k_ahead_of_labels_only_per_seed": ahead,
                        "wider_rig_median_below_scene_rig_per_seed": below_scene,
-                       "median_minus_scene_rig_mm": stats([row["this run"]["median_mm"]
+                       "median_minus_scene_rig_mm": seed_stats([row["this run"]["median_mm"]
                                                            - row["compared run"]["median_mm"]
                                                            for row in rows])},
             "runs": {str(r["seed"]): {"s3k": r["run"], "labels_only": r.get("labels_only_run"),

@@ -359,7 +359,9 @@ def evaluate(run: Path, data: Path) -> dict:
     return metrics
 
 
-def _stats(values: list[float]) -> dict:
+def seed_stats(values: list[float]) -> dict:
+    """A figure over seeds as the benchmarks' summaries keep it: its mean, sample standard deviation (0 for
+    one seed) and the values seed by seed."""
     return {"mean": statistics.fmean(values), "sd": statistics.stdev(values) if len(values) > 1 else 0.0,
             "per_seed": values}
 
