@@ -384,8 +384,9 @@ def train_options_of(summary: dict[str, Any]) -> str:
     """The training options a curve's summary (or an added curve's source) was trained with: its
     ``train_options`` field, or for a summary written before that field, what its ``scale`` names after
     "; train options "; "" where neither names any."""
-    if isinstance(summary.get("train_options"), str):
-        return str(summary["train_options"])
+    given = summary.get("train_options")
+    if isinstance(given, str):
+        return given
     _, marker, named = str(summary.get("scale", "")).partition("; train options ")
     if not marker:
         return ""
@@ -441,7 +442,7 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     caption = f"{summary['scale']}; means over {seeds} seed{'s' if seeds > 1 else ''}, bars: the seeds' range"
     for name, c in summary.get(ADDED, {}).items():
         sources = c.get("sources", [c])  # one per summary joined (an older summary's entry is its own)
-        options = sorted({repr(train_options_of(x)) if train_options_of(x) else "none" for x in sources})
+        options = sorted({repr(o) if o else "none" for o in map(train_options_of, sources)})
         seeds_at = ", ".join(f"seeds {x.get('seeds')} at {'/'.join(map(str, x.get('counts', [])))} labels"
                              for x in sources)
         caption += f"; dotted, {name}: train options {' / '.join(options)}, {seeds_at}"
