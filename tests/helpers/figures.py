@@ -58,6 +58,12 @@ def derived(file: str, fn: Callable[[dict], float]) -> Getter:
     return lambda load: fn(load(file))
 
 
+def seeds_mean(model: str, key: str) -> Callable[[dict], float]:
+    """The mean over its seeds of ``model``'s ``key`` in a real-recording comparison (``{"seeds": {seed:
+    {model: {key: value}}}}``), for :func:`derived`."""
+    return lambda d: sum(s[model][key] for s in d["seeds"].values()) / len(d["seeds"])
+
+
 def pct(file: str, path: str) -> tuple[str, Getter]:
     return "sig", at(file, path, 100.0)
 

@@ -24,6 +24,7 @@ from helpers.pretrained_files import (
     INSERTION_POSES,
     INSERTION_SEED0_POSES,
     MUGS,
+    PAGE,
     PLUSH,
     PLUSH_CONTROL,
     REAL,
@@ -32,16 +33,14 @@ from helpers.pretrained_files import (
     SCRATCH_INSERTION,
     SCRATCH_MUGS,
     SCRATCH_PLUSH,
+    cpu_ratio,
+    page_words,
+    real_row,
+    seed_gaps,
     side_by_side_cpu_ratio,
 )
 
-PAGE = "docs/results/accuracy/pretrained/README.md"
 MUG_POINTS = ("handle", "body_centre", "lip")
-
-
-def _page_words() -> str:
-    """The page's text with every run of whitespace one space, for the tests of its sentences."""
-    return " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
 
 
 def _spread(file: str, path: str) -> list[tuple[str, Getter]]:
@@ -82,8 +81,7 @@ def _scene_row(file: str, model: str, median_rule: str = "sig") -> list[tuple[st
 def _paired(path: str, pick, encoder: str = PLUSH, scratch: str = SCRATCH_PLUSH) -> Getter:
     """``pick`` (min or max) over seeds 0-2 of the encoder's figure at ``path`` (e.g. ``s3k/median_mm``) less
     the scratch model's (the plush's unless named)."""
-    return lambda load: pick(value_at(load(encoder), f"{path}/per_seed/{i}")
-                             - value_at(load(scratch), f"{path}/per_seed/{i}") for i in range(3))
+    return lambda load: pick(seed_gaps(encoder, scratch, path)(load))
 
 
 def _run(file: str, index: int) -> Getter:
@@ -121,14 +119,6 @@ def _below_control(key: str) -> Getter:
 
 def _keypoint(file: str, point: str) -> tuple[str, Getter]:
     return "d1", at(file, f"s3k/median_mm_per_keypoint/{point}/mean")
-
-
-def _real_row(seed: int) -> list[tuple[str, Getter]]:
-    s = f"seeds/{seed}"
-    out = [mm(REAL, f"{s}/{m}/{k}") for m in ("pretrained", "scratch") for k in ("mean_mm", "median_mm")]
-    out += [("d3", at(REAL, f"{s}/paired_diff_mean_mm"))]
-    out += [("d3", at(REAL, f"{s}/paired_diff_ci95_mm/{i}")) for i in range(2)]
-    return out + [("d1", at(REAL, f"{s}/{m}/cpu_minutes")) for m in ("pretrained", "scratch")]
 
 
 CURVE_ROW = "| {} ({}, {}, {}) | {} ({}, {}, {}) | {}% | {} ({}-{})"
@@ -170,8 +160,8 @@ FIGURES: Figures = [
     (_table("| RMS mm |", CURVE_ROW),
      _curve_row(CURVE, "s3k") + _curve_row(SCRATCH_CURVE, "s3k") + _curve_row(CURVE, "labels_only")
      + _curve_row(SCRATCH_CURVE, "labels_only")),
-    *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} against {{}} |", _real_row(seed))
-      for seed in range(3)],
+    *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} against {{}} |",
+       real_row(REAL, seed)) for seed in range(3)],
     ("Over seeds: {} mm, 95% t-interval {} to {};",
      [("d3", at(REAL, "mean_paired_diff_mm"))]
      + [("d3", at(REAL, f"mean_paired_diff_ci95_mm_over_seeds/{i}")) for i in range(2)]),
@@ -285,7 +275,7 @@ def test_the_twenty_label_claims_of_every_seed_hold():
     assert all(enc > scratch for enc, scratch in _seed_pairs(load, 20, "s3k", "median_mm"))
     assert all(enc > scratch for enc, scratch in _seed_pairs(load, 20, "labels_only", "median_mm"))
     assert all(enc < scratch for enc, scratch in _seed_pairs(load, 20, "s3k", "pck_10mm"))
-    page = _page_words()
+    page = page_words()
     for claim in ("S3K's is higher in every seed, by", "and so is labels only's;",
                   "S3K's share within 10 mm is lower in every seed"):
         assert claim in page
@@ -355,7 +345,7 @@ def test_the_one_machine_claims_of_every_seed_hold():
     spread = [abs(a - b) for a, b in zip(*(load(f)["curve"]["s3k"]["5"]["median_mm"]["per_seed"]
                                           for f in (SCRATCH_HERE, SCRATCH_CURVE)))]
     assert max(spread) == _scratch_spread(load) == spread[2]
-    page = _page_words()
+    page = page_words()
     for claim in ("higher with the encoder in every seed at every count",
                   "a higher share within 10 mm, in every seed",
                   "lower at five labels in two seeds of three and higher at twenty in every seed",
@@ -394,8 +384,7 @@ INSERTION_FIGURES: Figures = [
      [("d3", get) for _, get in _spread(INSERTION_HERE, "s3k/median_mm")]
      + [mm(INSERTION_HERE, "s3k/rms_mm/mean"), ("d1", at(INSERTION_HERE, "s3k/train_cpu_minutes/mean"))]
      + [("d3", _paired("s3k/median_mm", pick, INSERTION, INSERTION_HERE)) for pick in (min, max)]
-     + [("d1", lambda load: load(INSERTION)["s3k"]["train_cpu_minutes"]["mean"]
-         / load(INSERTION_HERE)["s3k"]["train_cpu_minutes"]["mean"])]
+     + [("d1", cpu_ratio(INSERTION, INSERTION_HERE, "s3k"))]
      + [("d3", at(f, "labels_only/median_mm/mean")) for f in (INSERTION, INSERTION_HERE)]),
     ("plug tip {} against {} mm, plug base\n{} against {}, socket {} against {}.",
      [("d3", at(f, f"s3k/median_mm_per_keypoint/{p}/mean")) for p in ("plug_tip", "plug_base", "socket")
@@ -426,7 +415,7 @@ def test_labels_only_with_the_encoder_is_lower_on_insertion_in_every_seed_as_the
         assert all(a < b for a, b in zip(enc, scratch))
     enc, scratch = (load(f)["s3k"]["median_mm"]["per_seed"] for f in (INSERTION, INSERTION_HERE))
     assert all(a > b for a, b in zip(enc, scratch))
-    page = _page_words()
+    page = page_words()
     assert "Labels only with the encoder has a lower median than from scratch in every seed" in page
 
 
@@ -439,7 +428,7 @@ def test_the_five_label_claims_of_every_seed_and_pose_hold():
     runs = [_run(CURVE_5_POSES, i)(load) for i in (0, 1)]
     assert all(_without_lean(runs[0]["by_pose"][p]) < _without_lean(runs[1]["by_pose"][p]) for p in POSES)
     assert all(_normal_lean(runs[0]["by_pose"][p]) < _normal_lean(runs[1]["by_pose"][p]) for p in POSES)
-    page = _page_words()
+    page = page_words()
     for claim in ("S3K's median is higher with the encoder in every seed",
                   "share within 10 mm is higher in every seed", "labels only's median is lower in every seed",
                   "the medians are lower with the encoder in every pose", "leans as far or further"):

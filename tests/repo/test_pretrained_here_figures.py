@@ -5,13 +5,17 @@ seed."""
 
 from __future__ import annotations
 
-from helpers.figures import Figures, Getter, at, loader, mismatches, mm, value_at
+from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, seeds_mean
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
     MUGS,
     MUGS_HERE,
+    MUGS_POSES,
     OUTSIDE_20,
     OUTSIDE_20_LABELS_ONLY,
+    OUTSIDE_SCRATCH_SEED0,
+    OUTSIDE_SEED0,
+    PAGE,
     PLUSH,
     PLUSH_CONTROL,
     PLUSH_CONTROL_AGAIN,
@@ -19,22 +23,13 @@ from helpers.pretrained_files import (
     REAL,
     REAL_LABELS_ONLY,
     REAL_SCRATCH,
+    cpu_ratio,
+    page_words,
+    real_row,
+    seed_gaps,
 )
 
-PAGE = "docs/results/accuracy/pretrained/README.md"
-MUGS_POSES = "docs/results/accuracy/pretrained/mugs-by-pose.json"  # its first run: the scratch seed-0 control
 PLUSH_POINTS = ("head", "tail", "front_left_paw", "front_right_paw", "body")
-
-
-def _gaps(encoder: str, scratch: str, path: str) -> Getter:
-    """Per seed, the encoder's value at ``path`` (e.g. ``s3k/median_mm``) less the scratch model's."""
-    return lambda load: [value_at(load(encoder), f"{path}/per_seed/{i}")
-                         - value_at(load(scratch), f"{path}/per_seed/{i}") for i in range(3)]
-
-
-def _cpu_ratio(encoder: str, scratch: str, model: str) -> Getter:
-    return lambda load: (load(encoder)[model]["train_cpu_minutes"]["mean"]
-                         / load(scratch)[model]["train_cpu_minutes"]["mean"])
 
 
 PLUSH_FIGURES: Figures = [
@@ -44,9 +39,9 @@ PLUSH_FIGURES: Figures = [
      [mm(PLUSH_HERE, "s3k/median_mm/mean")]
      + [mm(PLUSH_HERE, f"s3k/median_mm/per_seed/{i}") for i in range(3)]
      + [mm(PLUSH_HERE, "s3k/rms_mm/mean"), ("d1", at(PLUSH_HERE, "s3k/train_cpu_minutes/mean"))]
-     + [("d2", lambda load: -max(_gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load))),
-        ("d2", lambda load: -min(_gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load))),
-        ("d1", _cpu_ratio(PLUSH, PLUSH_HERE, "s3k")),
+     + [("d2", lambda load: -max(seed_gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load))),
+        ("d2", lambda load: -min(seed_gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load))),
+        ("d1", cpu_ratio(PLUSH, PLUSH_HERE, "s3k")),
         mm(PLUSH, "s3k/rms_mm/per_seed/2"), mm(PLUSH_HERE, "s3k/rms_mm/per_seed/2")]),
     ("Labels only with the encoder has a lower median in every seed ({} against {} mm) and a higher RMS in"
      " every seed ({} against {} mm).",
@@ -71,9 +66,9 @@ MUGS_FIGURES: Figures = [
      + [mm(MUGS_HERE, f"s3k/median_mm/per_seed/{i}") for i in range(3)]
      + [mm(MUGS_HERE, "s3k/rms_mm/mean"), ("sig", at(MUGS_HERE, "s3k/pck_10mm/mean", 100.0)),
         ("d1", at(MUGS_HERE, "s3k/train_cpu_minutes/mean"))]
-     + [("d2", lambda load: min(_gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))),
-        ("d2", lambda load: max(_gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))),
-        ("d1", _cpu_ratio(MUGS, MUGS_HERE, "s3k"))]),
+     + [("d2", lambda load: min(seed_gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))),
+        ("d2", lambda load: max(seed_gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))),
+        ("d1", cpu_ratio(MUGS, MUGS_HERE, "s3k"))]),
     ("(medians over seeds, encoder against scratch here): handle {} against {} mm, body centre {} against {},"
      " rim {} against {}.",
      [("d1", at(f, f"s3k/median_mm_per_keypoint/{p}/mean"))
@@ -86,20 +81,6 @@ MUGS_FIGURES: Figures = [
 ]
 
 
-def _real_row(seed: int) -> list[tuple[str, Getter]]:
-    s = f"seeds/{seed}"
-    out = [mm(REAL_LABELS_ONLY, f"{s}/{m}/{k}")
-           for m in ("pretrained", "scratch") for k in ("mean_mm", "median_mm")]
-    out += [("d3", at(REAL_LABELS_ONLY, f"{s}/paired_diff_mean_mm"))]
-    out += [("d3", at(REAL_LABELS_ONLY, f"{s}/paired_diff_ci95_mm/{i}")) for i in range(2)]
-    return out + [("d1", at(REAL_LABELS_ONLY, f"{s}/{m}/cpu_minutes")) for m in ("pretrained", "scratch")]
-
-
-def _over_seeds(file: str, model: str, key: str) -> Getter:
-    """The mean over seeds 0-2 of a real-comparison file's ``key`` of ``model``."""
-    return lambda load: sum(load(file)["seeds"][str(i)][model][key] for i in range(3)) / 3
-
-
 def _committed_gap(load) -> float:
     """The largest difference, over seeds, of the scratch labels-only models trained here from the committed
     scratch baseline's, in mean distance."""
@@ -108,28 +89,26 @@ def _committed_gap(load) -> float:
 
 
 REAL_FIGURES: Figures = [
-    *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} / {{}} |", _real_row(seed))
-      for seed in range(3)],
+    *[(f"| {seed} | {{}} ({{}}) | {{}} ({{}}) | {{}} [{{}}, {{}}] | {{}} / {{}} |",
+       real_row(REAL_LABELS_ONLY, seed)) for seed in range(3)],
     ("by more than its S3K model gains: {} mm over seeds, 95% t-interval {} to {} (three seeds, one far"
      " ahead); RMS {} against {} mm; {} CPU-minutes against {} ({} times).",
      [("d3", at(REAL_LABELS_ONLY, "mean_paired_diff_mm"))]
      + [("d3", at(REAL_LABELS_ONLY, f"mean_paired_diff_ci95_mm_over_seeds/{i}")) for i in range(2)]
-     + [("sig", _over_seeds(REAL_LABELS_ONLY, m, "rms_mm"))
+     + [("sig", derived(REAL_LABELS_ONLY, seeds_mean(m, "rms_mm")))
         for m in ("pretrained", "scratch")]
-     + [("d1", _over_seeds(REAL_LABELS_ONLY, m, "cpu_minutes")) for m in ("pretrained", "scratch")]
-     + [("d1", lambda load: _over_seeds(REAL_LABELS_ONLY, "pretrained", "cpu_minutes")(load)
-         / _over_seeds(REAL_LABELS_ONLY, "scratch", "cpu_minutes")(load))]),
+     + [("d1", derived(REAL_LABELS_ONLY, seeds_mean(m, "cpu_minutes"))) for m in ("pretrained", "scratch")]
+     + [("d1", lambda load: derived(REAL_LABELS_ONLY, seeds_mean("pretrained", "cpu_minutes"))(load)
+         / derived(REAL_LABELS_ONLY, seeds_mean("scratch", "cpu_minutes"))(load))]),
     ("the labels-only models' mean distance is {} mm over seeds, the S3K models' {}",
-     [("sig", _over_seeds(REAL_LABELS_ONLY, "pretrained", "mean_mm")),
-      ("sig", _over_seeds(REAL, "pretrained", "mean_mm"))]),
+     [("sig", derived(REAL_LABELS_ONLY, seeds_mean("pretrained", "mean_mm"))),
+      ("sig", derived(REAL, seeds_mean("pretrained", "mean_mm")))]),
     ("lie within {} mm of the committed scratch baseline's per seed", [("d2", _committed_gap)]),
     ("comparison.json), {}, {}, {} mm)",
      [mm(REAL_SCRATCH, f"seeds/{i}/baseline/mean_mm") for i in range(3)]),
 ]
 
 
-OUTSIDE_SEED0 = "docs/results/accuracy/pretrained/outside-rig-s3k-seed0.json"
-OUTSIDE_SCRATCH_SEED0 = "docs/results/accuracy/outside-rig/s3k-seed0-diagnosis.json"
 RIGS = ("train", "low", "high", "far", "wide")
 
 
@@ -217,13 +196,13 @@ def test_the_outside_rig_claims_of_every_seed_hold():
 
 def test_the_plush_claims_of_every_seed_hold():
     load = loader()
-    s3k = _gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load)
+    s3k = seed_gaps(PLUSH, PLUSH_HERE, "s3k/median_mm")(load)
     assert all(g < 0 for g in s3k)
-    rms = _gaps(PLUSH, PLUSH_HERE, "s3k/rms_mm")(load)
+    rms = seed_gaps(PLUSH, PLUSH_HERE, "s3k/rms_mm")(load)
     assert [g < 0 for g in rms] == [True, True, False]
-    assert all(g < 0 for g in _gaps(PLUSH, PLUSH_HERE, "labels_only/median_mm")(load))
-    assert all(g > 0 for g in _gaps(PLUSH, PLUSH_HERE, "labels_only/rms_mm")(load))
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    assert all(g < 0 for g in seed_gaps(PLUSH, PLUSH_HERE, "labels_only/median_mm")(load))
+    assert all(g > 0 for g in seed_gaps(PLUSH, PLUSH_HERE, "labels_only/rms_mm")(load))
+    page = page_words()
     assert "the encoder's S3K median is lower in every seed, by" in page
     assert "has a lower median in every seed" in page and "a higher RMS in every seed" in page
     again, job = load(PLUSH_CONTROL_AGAIN)["metrics"], load(PLUSH_HERE)["s3k"]
@@ -238,14 +217,14 @@ def test_the_real_labels_only_claims_hold():
     seeds = [load(REAL_LABELS_ONLY)["seeds"][str(i)]["paired_diff_mean_mm"] for i in range(3)]
     assert all(d < 0 for d in seeds)
     assert load(REAL_LABELS_ONLY)["mean_paired_diff_mm"] < load(REAL)["mean_paired_diff_mm"] < 0
-    assert (_over_seeds(REAL_LABELS_ONLY, "pretrained", "mean_mm")(load)
-            < _over_seeds(REAL, "pretrained", "mean_mm")(load))
-    page = " ".join((ROOT / PAGE).read_text(encoding="utf-8").split())
+    assert (derived(REAL_LABELS_ONLY, seeds_mean("pretrained", "mean_mm"))(load)
+            < derived(REAL, seeds_mean("pretrained", "mean_mm"))(load))
+    page = page_words()
     assert "The encoder's labels-only model lies nearer the proofread labels in every seed too" in page
 
 
 def test_the_mugs_claims_of_every_seed_hold():
     load = loader()
-    assert all(g > 0 for g in _gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))
-    assert sum(g < 0 for g in _gaps(MUGS, MUGS_HERE, "labels_only/median_mm")(load)) == 1
+    assert all(g > 0 for g in seed_gaps(MUGS, MUGS_HERE, "s3k/median_mm")(load))
+    assert sum(g < 0 for g in seed_gaps(MUGS, MUGS_HERE, "labels_only/median_mm")(load)) == 1
     assert "scratch" in next(iter(load(MUGS_POSES)["runs"]))  # the control is the first run

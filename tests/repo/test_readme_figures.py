@@ -14,7 +14,19 @@ from statistics import mean
 
 import pytest
 from helpers import pretrained_files as pretrained
-from helpers.figures import Figures, Getter, at, derived, loader, mismatches, mm, pct, sig, value_at
+from helpers.figures import (
+    Figures,
+    Getter,
+    at,
+    derived,
+    loader,
+    mismatches,
+    mm,
+    pct,
+    seeds_mean,
+    sig,
+    value_at,
+)
 from helpers.paths import REPO as ROOT
 
 
@@ -58,10 +70,6 @@ ROBOT = "docs/results/robot/summary.json"
 WIDE = "docs/results/accuracy/outside-rig/wide-rig-el10-70-seeds.json"
 
 
-def _seeds_mean(model: str, key: str) -> Callable[[dict], float]:
-    return lambda d: mean(s[model][key] for s in d["seeds"].values())
-
-
 def _curve(model: str, key: str, pick: Callable) -> Callable[[dict], float]:
     """``pick`` (min or max) over the label counts of each count's mean over seeds."""
     return lambda d: pick(v[key]["mean"] for v in d["curve"][model].values())
@@ -77,10 +85,10 @@ def _real_rows(file: str = REAL_HELD_OUT, models: tuple[str, ...] = ("baseline",
     out = []
     for model in models:
         for key in ("median_mm", "mean_mm", "rms_mm"):
-            out.append(("sig", derived(file, _seeds_mean(model, key))))
+            out.append(("sig", derived(file, seeds_mean(model, key))))
             if key != "mean_mm":
                 out += [mm(file, f"seeds/{i}/{model}/{key}") for i in range(3)]
-        out.append(("d1", derived(file, _seeds_mean(model, "cpu_minutes"))))
+        out.append(("d1", derived(file, seeds_mean(model, "cpu_minutes"))))
     return out
 
 
@@ -117,9 +125,9 @@ FIGURES: Figures = [
       (mm(DISTRACTORS, f"{m}/median_mm/mean"), mm(DISTRACTORS, f"{m}/rms_mm/mean"),
        pct(DISTRACTORS, f"{m}/pck_10mm/mean"))]),
     ("S3K {}, labels only {} mm mean ([comparison](docs/results/real/headline-preset/comparison.json))",
-     [("sig", derived(REAL, _seeds_mean(m, "mean_mm"))) for m in ("s3k", "baseline")]),
+     [("sig", derived(REAL, seeds_mean(m, "mean_mm"))) for m in ("s3k", "baseline")]),
     ("5 seeds: S3K {}, labels only {} mm median, [comparison](docs/results/real/comparison.json))",
-     [("sig", derived(REAL_ONE_PASS, _seeds_mean(m, "median_mm"))) for m in ("s3k", "baseline")]),
+     [("sig", derived(REAL_ONE_PASS, seeds_mean(m, "median_mm"))) for m in ("s3k", "baseline")]),
     ("| labels only | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |\n"
      "| | S3K | {} mm ({}, {}, {}); mean {} | {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows()),
     (f"encoder, [real-held-out.json]({REAL_PRETRAINED})) | {{}} mm ({{}}, {{}}, {{}}); mean {{}} "
@@ -127,8 +135,8 @@ FIGURES: Figures = [
     (f"[real-held-out-labels-only.json]({REAL_PRETRAINED_LABELS_ONLY})) | {{}} mm ({{}}, {{}}, {{}}); mean"
      " {} | {} mm ({}, {}, {}) | | {} CPU-min |", _real_rows(REAL_PRETRAINED_LABELS_ONLY, ("pretrained",))),
     ("with it, labels only lies as near ({} mm mean against S3K's {}).",
-     [("sig", derived(REAL_PRETRAINED_LABELS_ONLY, _seeds_mean("pretrained", "mean_mm"))),
-      ("sig", derived(REAL_PRETRAINED, _seeds_mean("pretrained", "mean_mm")))]),
+     [("sig", derived(REAL_PRETRAINED_LABELS_ONLY, seeds_mean("pretrained", "mean_mm"))),
+      ("sig", derived(REAL_PRETRAINED, seeds_mean("pretrained", "mean_mm")))]),
     ("lies nearer still in every seed: {} mm of mean, 95% interval {} to {},",
      [("signed", at(REAL_PRETRAINED, "mean_paired_diff_mm")),
       ("signed", at(REAL_PRETRAINED, "mean_paired_diff_ci95_mm_over_seeds/0")),
@@ -167,8 +175,8 @@ FIGURES: Figures = [
     ("than one pass on 128 px crops (median {} mm against {}-{})",
      [("sig", derived(REAL, lambda d: mean(mean(s[m]["median_mm"] for m in ("s3k", "baseline"))
                                            for s in d["seeds"].values()))),
-      ("sig", derived(REAL_ONE_PASS, _seeds_mean("s3k", "median_mm"))),
-      ("sig", derived(REAL_ONE_PASS, _seeds_mean("baseline", "median_mm")))]),
+      ("sig", derived(REAL_ONE_PASS, seeds_mean("s3k", "median_mm"))),
+      ("sig", derived(REAL_ONE_PASS, seeds_mean("baseline", "median_mm")))]),
     ("it is farther in every seed:\n  {} mm over three seeds, {} to {} ([held-out-end]",
      [("signed", at(REAL_END, "mean_paired_diff_mm")),
       ("signed", at(REAL_END, "mean_paired_diff_ci95_mm_over_seeds/0")),
