@@ -460,15 +460,25 @@ def finish(result: dict[str, Any], started: float, out: str | None) -> None:
     emit(result)
 
 
-def fine_tune_argv(data, base, out, steps: int, threads: int = 1) -> list[str]:
-    """``s3k train DATA --out OUT --init-from BASE --steps STEPS`` (BASE's configuration at its final learning
-    rates, each pass STEPS, validated on labelled frames), or ``--resume`` once OUT is begun."""
-    import sys
-    from pathlib import Path
+def fine_tune_args(data, base, out, steps: int, threads: int = 1, lr: float | None = None,
+                   seed: int | None = None, validate: bool = True) -> list[str]:
+    """``train DATA --out OUT --init-from BASE --steps STEPS --resume``: BASE's configuration at its final
+    learning rates, each pass STEPS (at ``lr`` and ``seed`` instead where given), validated on labelled frames
+    (not at all without ``validate``). ``--resume`` makes the same command start OUT, continue it from its
+    own checkpoint once begun (the checkpoint, not BASE's network: tests/train/test_finetune.py) or keep it
+    once finished."""
+    args = ["train", str(data), "--out", str(out), "--init-from", str(base), "--steps", str(steps),
+            "--threads", str(threads), "--no-progress", "--resume"]
+    args += ["--val-split", "labelled"] if validate else ["--val-every", "0"]
+    if lr is not None:
+        args += ["--lr", str(lr)]
+    if seed is not None:
+        args += ["--seed", str(seed)]
+    return args
 
-    out = Path(out)
-    cmd = [sys.executable, "-m", "s3k.cli", "train", str(data), "--out", str(out), "--threads", str(threads),
-           "--no-progress"]
-    if (out / "config.json").is_file() or (out / "two_pass_options.json").is_file():
-        return cmd + ["--resume"]
-    return cmd + ["--init-from", str(base), "--steps", str(steps), "--val-split", "labelled"]
+
+def fine_tune_argv(data, base, out, steps: int, threads: int = 1) -> list[str]:
+    """:func:`fine_tune_args` as a command line of this Python."""
+    import sys
+
+    return [sys.executable, "-m", "s3k.cli", *fine_tune_args(data, base, out, steps, threads)]

@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import git_revision, write_and_emit  # noqa: E402
+from benchmarks.common import fine_tune_args, git_revision, write_and_emit  # noqa: E402
 
 CAMERAS = ("back", "mid", "side", "top")
 
@@ -201,20 +201,11 @@ def fine_tune(run: Path, data: Path, out: Path, steps: int, lr: float | None,
               seed: int | None = None) -> None:
     """``s3k train DATA --out OUT --init-from RUN --steps STEPS``: RUN's configuration continued where it
     ended (each pass at its final learning rate, the self-supervised term on from the start), at ``lr``
-    instead where given; ``seed`` (batches, augmentation) instead of RUN's."""
+    instead where given; ``seed`` (batches, augmentation) instead of RUN's. The same call continues a begun
+    OUT and keeps a finished one (:func:`benchmarks.common.fine_tune_args`)."""
     from s3k import cli
-    from s3k.run_folder import RunFolder
 
-    started = RunFolder(out)
-    if started.config_file.is_file() or started.options_file.is_file():  # started: continued,
-        args = ["train", str(data), "--out", str(out), "--resume", "--no-progress"]  # or (finished) kept
-    else:
-        args = ["train", str(data), "--out", str(out), "--init-from", str(run), "--steps", str(steps),
-                "--val-every", "0", "--threads", "1", "--no-progress"]
-        if lr is not None:
-            args += ["--lr", str(lr)]
-        if seed is not None:
-            args += ["--seed", str(seed)]
+    args = fine_tune_args(data, run, out, steps, lr=lr, seed=seed, validate=False)
     if cli.main(args) != 0:
         raise SystemExit(f"s3k train {out} failed")
 

@@ -171,3 +171,31 @@ def test_a_fine_tune_in_one_command_trains_from_the_runs_configuration(tiny_data
     assert RunFolder(tuned).config().to_dict() == expected.to_dict()
     assert f"fine-tuning: the network starts from {first}" in (tuned / "train.log").read_text()
     assert load_network(tuned)[0] is not None
+
+
+class _Killed(Exception):
+    pass
+
+
+def _kill_after_three(step, terms):
+    if step == 3:
+        raise _Killed
+
+
+def test_a_killed_fine_tune_resumes_from_its_checkpoint_not_from_the_other_run(tiny_dataset, tmp_path):
+    """A fine-tune stopped after its checkpoint at step 2 and resumed with ``--init-from`` still given (as a
+    script repeats its command) continues from its own checkpoint: it ends where an uninterrupted fine-tune
+    ends, not where one restarted from the other run's network would."""
+    first = tmp_path / "first"
+    train(tiny_dataset, first, config(seed=1))
+    cfg = config(steps=4, checkpoint_every=2, seed=2)
+    full = train(tiny_dataset, tmp_path / "full", cfg, init_from=first)
+    with pytest.raises(_Killed):
+        train(tiny_dataset, tmp_path / "killed", cfg, init_from=first, progress=_kill_after_three)
+    assert not RunFolder(tmp_path / "killed").model.exists()
+    resumed = train(tiny_dataset, tmp_path / "killed", cfg, init_from=first, resume=True)
+    assert resumed.step == full.step == 4
+    a, b = weights(tmp_path / "full"), weights(tmp_path / "killed")
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    assert "resumed from" in RunFolder(tmp_path / "killed").log.read_text()
