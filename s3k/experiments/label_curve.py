@@ -397,6 +397,13 @@ def train_options_of(summary: dict[str, Any]) -> str:
     return value if isinstance(value, str) else named
 
 
+def plotted_counts(summary: dict[str, Any]) -> list[int]:
+    """The label counts the figure marks: its own and those of every curve added beside it."""
+    curves = [summary["curve"], *(c["curve"] for c in summary.get(ADDED, {}).values())]
+    return sorted({int(n) for curve in curves for per_count in curve.values() for n in per_count}
+                  | {int(n) for n in summary["labels"]})
+
+
 def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     """Median and RMS against labelled frames, one line per model (the mean over seeds), the seeds' range as
     error bars, S3K's figure at the reference count as a dashed line."""
@@ -431,7 +438,8 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
             ax.set_yscale("log")
             ax.yaxis.set_major_formatter(ScalarFormatter())
             ax.yaxis.set_minor_formatter(NullFormatter())
-        ax.set_xticks(summary["labels"], [str(n) for n in summary["labels"]])
+        counts = plotted_counts(summary)
+        ax.set_xticks(counts, [str(n) for n in counts])
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set_xlabel("labelled frames")
         ax.set_ylabel(label)

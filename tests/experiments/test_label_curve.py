@@ -172,7 +172,7 @@ def test_the_summary_names_the_steps_and_minutes_of_a_training_begun(tmp_path):
 
 def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     from s3k.base.errors import UserError
-    from s3k.experiments.label_curve import add_curve
+    from s3k.experiments.label_curve import add_curve, plotted_counts
 
     def point(median):
         stats = {"mean": median, "sd": 0.0, "min": median, "max": median, "per_seed": [median]}
@@ -208,6 +208,7 @@ def test_another_configurations_curve_goes_beside_and_stays(tmp_path):
     with pytest.raises(UserError, match=r"S3K at 2 labels is in .*other.json too"):
         add_curve(results, "encoder", [other, other], "cmd")
     assert figure.read_bytes() != alone  # drawn in the same figure
+    assert plotted_counts(summary) == [1, 2]  # its count 1 marked on the axis beside this curve's 2
 
     # this curve's own summary written again keeps the added one, and its own figures are its own
     again = run_curve(opts, work, results, "again", "abc", MACHINE, summary_only=True)
