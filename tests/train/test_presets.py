@@ -100,3 +100,10 @@ def test_the_two_pass_options_are_the_configurations_fields_with_their_ranges(ca
         assert exc.value.code == 2 and option in capsys.readouterr().err
     args = parser.parse_args(["data", "--out", "run", "--two-pass", "--coarse-steps", "none"])
     assert args.two_pass is True and args.coarse_steps is None
+
+
+def test_box_precise_preset_is_the_headline_on_256_px_crops():
+    """The configuration measured in docs/results/accuracy/crops-256: the headline's, crops of 256 px."""
+    chosen, headline = PRESETS["box-precise"].config, PRESETS["box-headline"].config
+    assert chosen.passes.crop_size == 256 and headline.passes.crop_size == 192
+    assert chosen.replace(crop_size=headline.passes.crop_size) == headline
