@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from helpers.interrupt import Killed, kill_after_three
 from helpers.synthetic_rig import make_dataset
 
 from s3k.base.errors import UserError
@@ -173,15 +174,6 @@ def test_a_fine_tune_in_one_command_trains_from_the_runs_configuration(tiny_data
     assert load_network(tuned)[0] is not None
 
 
-class _Killed(Exception):
-    pass
-
-
-def _kill_after_three(step, terms):
-    if step == 3:
-        raise _Killed
-
-
 def test_a_killed_fine_tune_resumes_from_its_checkpoint_not_from_the_other_run(tiny_dataset, tmp_path):
     """A fine-tune stopped after its checkpoint at step 2 and resumed with ``--init-from`` still given (as a
     script repeats its command) continues from its own checkpoint: it ends where an uninterrupted fine-tune
@@ -190,8 +182,8 @@ def test_a_killed_fine_tune_resumes_from_its_checkpoint_not_from_the_other_run(t
     train(tiny_dataset, first, config(seed=1))
     cfg = config(steps=4, checkpoint_every=2, seed=2)
     full = train(tiny_dataset, tmp_path / "full", cfg, init_from=first)
-    with pytest.raises(_Killed):
-        train(tiny_dataset, tmp_path / "killed", cfg, init_from=first, progress=_kill_after_three)
+    with pytest.raises(Killed):
+        train(tiny_dataset, tmp_path / "killed", cfg, init_from=first, progress=kill_after_three)
     assert not RunFolder(tmp_path / "killed").model.exists()
     resumed = train(tiny_dataset, tmp_path / "killed", cfg, init_from=first, resume=True)
     assert resumed.step == full.step == 4

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.interrupt import Killed, kill_after_three
 from helpers.synthetic_rig import KEYPOINTS, make_dataset
 
 import s3k.train.loop as loop_module
@@ -83,16 +84,6 @@ def test_labels_only_baseline_draws_no_unlabelled_batch(tiny_dataset, tmp_path, 
 
 def _state(result):
     return {k: v.clone() for k, v in result.model.state_dict().items()}
-
-
-class Killed(Exception):
-    pass
-
-
-def kill_after_three(step, terms):
-    """A training callback that aborts the run after its third step, as a kill would."""
-    if step == 3:
-        raise Killed
 
 
 def test_resume_after_kill_continues_identically(tiny_dataset, tmp_path):
