@@ -105,3 +105,9 @@ def mismatches(text: str, load: Callable[[str], dict], figures: Figures) -> list
             if shown != want:
                 out.append(f"{shown} in {template[:70]!r} should read {want}")
     return out
+
+
+def page_mismatches(pages: dict[str, Figures], load: Callable[[str], dict]) -> dict[str, list[str]]:
+    """:func:`mismatches` of each page (a path from the repository's root) with its figures, by page."""
+    return {page: mismatches((ROOT / page).read_text(encoding="utf-8"), load, figures)
+            for page, figures in pages.items()}

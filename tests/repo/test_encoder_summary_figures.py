@@ -4,7 +4,7 @@ to the digits shown (the rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
-from helpers.figures import Figures, Getter, loader, mismatches, value_at
+from helpers.figures import Figures, Getter, loader, mismatches, page_mismatches, value_at
 from helpers.paths import REPO as ROOT
 from helpers.pretrained_files import (
     CURVE,
@@ -70,10 +70,7 @@ PAGES = {"docs/training.md": TRAINING, "s3k/train/presets.py": PRESET}
 
 
 def test_every_encoder_summary_figure_equals_its_json():
-    load = loader()
-    for page, figures in PAGES.items():
-        text = (ROOT / page).read_text(encoding="utf-8")
-        assert mismatches(text, load, figures) == [], page
+    assert page_mismatches(PAGES, loader()) == {page: [] for page in PAGES}
 
 
 def test_a_changed_mugs_median_fails_in_both_places():

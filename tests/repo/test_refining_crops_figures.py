@@ -6,7 +6,7 @@ rules of ``helpers.figures``)."""
 
 from __future__ import annotations
 
-from helpers.figures import Figures, Getter, loader, mismatches, value_at
+from helpers.figures import Figures, Getter, loader, mismatches, page_mismatches, value_at
 from helpers.paths import REPO as ROOT
 
 SUMMARY = "docs/results/accuracy/crops-256/summary.json"
@@ -179,11 +179,8 @@ PAGES = {"docs/accuracy.md": ACCURACY, "docs/training.md": TRAINING, "README.md"
          "docs/accuracy-log.md": LOG}
 
 
-def test_every_256_px_crop_figure_equals_its_json():
-    load = loader()
-    for page, figures in PAGES.items():
-        text = (ROOT / page).read_text(encoding="utf-8")
-        assert mismatches(text, load, figures) == [], page
+def test_every_refining_crop_figure_equals_its_json():
+    assert page_mismatches(PAGES, loader()) == {page: [] for page in PAGES}
 
 
 def test_the_by_pose_reading_is_of_the_summarys_runs():
