@@ -417,6 +417,7 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
     colours = {"s3k": "tab:blue", "labels_only": "tab:orange"}
     curves = [(summary["curve"], "", "o", "-")]
     curves += [(c["curve"], f", {name}", "s", ":") for name, c in summary.get(ADDED, {}).items()]
+    counts = plotted_counts(summary)  # both axes mark the same counts
     for ax, (k, label) in zip(axes, (("median_mm", "median 3D error (mm)"), ("rms_mm", "RMS 3D error (mm)"))):
         for curve, suffix, marker, ls in curves:
             for m, per_count in curve.items():
@@ -438,7 +439,6 @@ def plot_curve(summary: dict[str, Any], path: Path) -> Path:
             ax.set_yscale("log")
             ax.yaxis.set_major_formatter(ScalarFormatter())
             ax.yaxis.set_minor_formatter(NullFormatter())
-        counts = plotted_counts(summary)
         ax.set_xticks(counts, [str(n) for n in counts])
         ax.xaxis.set_minor_locator(NullLocator())
         ax.set_xlabel("labelled frames")
