@@ -54,7 +54,7 @@ from s3k.geometry.warp import (
     resize_crop,
 )
 from s3k.model import UNet
-from s3k.readout import DEFAULT_MIN_WEIGHT, LayoutPrior, ReadOut, read_out
+from s3k.readout import DEFAULT_MIN_WEIGHT, LayoutPrior, ReadOut, coarse_stands_in, read_out
 
 __all__ = ["PRECISIONS", "Detection", "Detector", "OnePassDetector", "TwoPassDetector", "autocast",
            "native_bfloat16", "pick_device", "training_precision"]
@@ -117,6 +117,9 @@ class Detection(ReadOut):
         coarse: a two-pass detector's coarse read-out (None for one pass).
         placed: ``(B,)`` bool, a two-pass detector's coarse pass placed a keypoint (else the crops were cut
             around the workspace centre); None for one pass.
+        fallback: ``(B,)`` bool, a rigid two-pass detector's refining points broke the object's layout and
+            the coarse read-out (as it placed the crops: every view weighted) stands in for the frame
+            (:func:`s3k.readout.coarse_stands_in`); None for one pass.
         input_size: ``(w, h)`` of the (last) network's input.
     """
 
@@ -124,6 +127,7 @@ class Detection(ReadOut):
     inputs: Tensor | None = None
     coarse: ReadOut | None = None
     placed: Tensor | None = None
+    fallback: Tensor | None = None
     input_size: tuple[int, int] = (0, 0)
 
     def network_cameras(self) -> Cameras:
@@ -443,9 +447,12 @@ class OnePassDetector(Detector):
 
 class TwoPassDetector(Detector):
     """A coarse detector that places the object and a refining detector on crops around it, cut by
-    ``rule`` (:class:`Detector`; module docstring)."""
+    ``rule`` (:class:`Detector`; module docstring). With a rigid layout, a frame whose refining points break
+    it while the coarse points hold it takes the coarse read-out (``coarse_fallback``; ``Detection.fallback``
+    says which)."""
 
-    def __init__(self, coarse: OnePassDetector, fine: OnePassDetector, rule: CropRule) -> None:
+    def __init__(self, coarse: OnePassDetector, fine: OnePassDetector, rule: CropRule,
+                 coarse_fallback: bool = True) -> None:
         if list(coarse.keypoints) != list(fine.keypoints):
             raise UserError(f"the coarse pass's keypoints {coarse.keypoints} differ from the refining pass's "
                             f"{fine.keypoints}", hint="train both passes on the same dataset")
@@ -453,6 +460,7 @@ class TwoPassDetector(Detector):
             raise UserError(f"the refining pass takes {fine.input_size} px but the crop rule cuts "
                             f"{rule.size} px", hint="retrain the refining pass on the rule's crops")
         self.coarse, self.fine, self.rule = coarse, fine, rule
+        self.coarse_fallback = coarse_fallback
         self.meta, self.device = fine.meta, fine.device
 
     @property
@@ -475,6 +483,9 @@ class TwoPassDetector(Detector):
         if rigid:
             prior = LayoutPrior(coarse.probs, coarse.network_cameras(), self.coarse.meta.stride)
         out = self.fine._detect(views, cams, crop_boxes, min_weight, keep, crops=True, prior=prior)
+        if fine.rigid and self.coarse_fallback:
+            assert fine.layout is not None
+            out.fallback = coarse_stands_in(out, coarse, fine.layout, fine.layout_tol)
         coarse.inputs = None
         if not keep:
             coarse.probs = None

@@ -35,7 +35,8 @@ def split_frames(dataset: DatasetLike, split: str) -> np.ndarray:
 
 
 COLUMNS = ("pred_uv", "reproj_uv", "gt_uv", "gt_mask", "X", "X_valid", "X_gt", "X_gt_mask", "weight",
-           "confidence", "frame_ids", "mm_per_px", "image_err", "placed", "lab_X", "lab_valid", "loo_px")
+           "confidence", "frame_ids", "mm_per_px", "image_err", "placed", "fallback", "lab_X", "lab_valid",
+           "loo_px")
 
 
 def _to_network(uv: np.ndarray, maps: np.ndarray) -> np.ndarray:
@@ -59,6 +60,7 @@ def _columns(batch, pred: Detection, order: np.ndarray, units: str) -> dict[str,
            "frame_ids": np.asarray(batch.frame_ids),
            "mm_per_px": pixel_sizes_mm(pred.network_cameras(), mm_per_unit(units)),
            "placed": np.ones(len(uv), bool) if pred.placed is None else pred.placed.numpy(),
+           "fallback": np.zeros(len(uv), bool) if pred.fallback is None else pred.fallback.numpy(),
            "image_err": np.where(gt_mask & inside, np.linalg.norm(uv - gt_img, axis=-1), np.nan)}
     if batch.points is not None and batch.points_mask is not None:
         row["X_gt"], row["X_gt_mask"] = batch.points.numpy()[:, order], batch.points_mask.numpy()[:, order]
@@ -133,5 +135,6 @@ def evaluate_store(detector: Detector, store: FrameStore, batch_size: int = 16, 
     if isinstance(detector, TwoPassDetector):
         rule = detector.rule
         metrics["two_pass"] = {"extent": rule.extent, "size": rule.size, "margin": rule.margin,
-                               "coarse_frames_placed": sum(int(p.sum()) for p in cols["placed"])}
+                               "coarse_frames_placed": sum(int(p.sum()) for p in cols["placed"]),
+                               "coarse_fallback_frames": sum(int(f.sum()) for f in cols["fallback"])}
     return metrics, arrays

@@ -42,7 +42,7 @@ at least half are right, whatever the run's weights.
 
 from s3k.readout.confidence import CALIBRATION_SIGMAS, ConfidenceMap, fit_confidence, reliability
 from s3k.readout.config import LAYOUT_FITS, ReadoutConfig
-from s3k.readout.pipeline import ReadOut, read_out
+from s3k.readout.pipeline import ReadOut, breaks_layout, coarse_stands_in, read_out
 from s3k.readout.rigid import (
     LAYOUT_SAMPLES,
     LayoutPrior,
@@ -67,7 +67,8 @@ from s3k.readout.views import (
 __all__ = [
     "CALIBRATION_SIGMAS", "ConfidenceMap", "fit_confidence", "reliability",
     "DEFAULT_MIN_WEIGHT", "DTYPE", "LAYOUT_FITS", "LAYOUT_SAMPLES", "WINDOW_SIGMAS", "LayoutPrior", "ReadOut",
-    "ReadoutConfig", "fit_layout", "layout_locus", "layout_shape", "moments", "read_out", "reject_layout",
+    "ReadoutConfig", "breaks_layout", "coarse_stands_in", "fit_layout", "layout_locus", "layout_shape",
+    "moments", "read_out", "reject_layout",
     "reject_outliers",
     "search_layout", "select_views", "settle_ties", "triangulate", "window_cells",
 ]

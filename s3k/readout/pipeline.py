@@ -34,7 +34,7 @@ from s3k.readout.views import (
     window_cells,
 )
 
-__all__ = ["ReadOut", "read_out"]
+__all__ = ["ReadOut", "breaks_layout", "coarse_stands_in", "read_out"]
 
 
 @dataclass
@@ -105,6 +105,36 @@ class ReadOut:
         return ReadOut(self.uv.cpu(), self.var.cpu(), self.weights.cpu(), self.used.cpu(), self.X.cpu(),
                        self.valid.cpu(), self.cams.to(device="cpu"),
                        None if self.probs is None else self.probs.cpu(), self.confidence.cpu())
+
+
+def breaks_layout(X: Tensor, valid: Tensor, layout: Tensor, tol: float) -> Tensor:
+    """``(B,)`` bool: a frame whose valid points ``X (B, K, 3)`` break a rigid object's layout, that is
+    :func:`s3k.readout.reject_layout` drops one of them."""
+    layout = torch.as_tensor(layout, dtype=DTYPE, device=X.device)
+    return (valid & ~reject_layout(X, valid, layout, tol)).any(dim=1)
+
+
+_FRAME_FIELDS = ("uv", "var", "weights", "used", "X", "valid", "confidence")
+
+
+def coarse_stands_in(fine: ReadOut, coarse: ReadOut, layout: Tensor, tol: float) -> Tensor:
+    """A two-pass detector's refining read-out ``fine`` with the coarse read-out in place of every frame
+    whose refining points still break the rigid ``layout`` (the rigid read-out found no consistent set to
+    fit it to: the refining pass read part of the object elsewhere) where the coarse points, with at least
+    as many keypoints valid, hold it. A stood-in frame carries the coarse pass's detections, weights,
+    confidences and points (its variances in the coarse network's pixels). Changes ``fine`` in place;
+    returns the frames stood in for, ``(B,)`` bool."""
+    swap = (breaks_layout(fine.X, fine.valid, layout, tol)
+            & ~breaks_layout(coarse.X, coarse.valid, layout, tol)
+            & (coarse.valid.sum(dim=1) >= fine.valid.sum(dim=1)))
+    if bool(swap.any()):
+        for name in _FRAME_FIELDS:
+            mine, theirs = getattr(fine, name), getattr(coarse, name)
+            where = swap.view(-1, *([1] * (mine.ndim - 1)))
+            setattr(fine, name, torch.where(where, theirs.to(device=mine.device, dtype=mine.dtype), mine))
+        for cached in ("reproj", "residual"):  # the points changed
+            fine.__dict__.pop(cached, None)
+    return swap
 
 
 def _affine_inverse(M: Tensor) -> Tensor:
