@@ -11,7 +11,8 @@ verification, the labelling app's suggestions, the robot loop and validation dur
   points in the cameras' world frame.
 - :class:`TwoPassDetector`: the coarse detector places the object; every view is cut around the crop
   centre of its coarse keypoints by the run's :class:`s3k.detector.CropRule` (the one centre rule,
-  :func:`s3k.detector.crop_rule.crop_centres`), on the device, and the refining detector reads the crops.
+  :func:`s3k.detector.crop_rule.crop_centres`), on the device, and the refining detector reads the crops;
+  with a rigid layout, a frame whose refining points break it takes the coarse read-out where that holds it.
 
 The network inputs are rounded to 8-bit levels before they are scaled to [0, 1]: both passes were trained
 on images stored as 8-bit files, and the same rounding keeps what they see at inference what they saw in

@@ -37,7 +37,9 @@ evaluate`` scores exactly the points ``s3k predict`` and ``s3k track`` write. A 
 --min-weight``) drops uncertain views outright instead of down-weighting them: 0.5 keeps the views of which
 at least half are right, whatever the run's weights.
 :func:`reject_outliers` (``max_residual_px``) also drops views that miss the other views' consensus;
-:func:`reject_layout` drops 3D keypoints whose distances to the others break a rigid object's layout.
+:func:`reject_layout` drops 3D keypoints whose distances to the others break a rigid object's layout;
+:func:`coarse_stands_in` gives a two-pass detector's coarse read-out to a frame whose refining points still
+break it.
 """
 
 from s3k.readout.confidence import CALIBRATION_SIGMAS, ConfidenceMap, fit_confidence, reliability
