@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import shlex
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -28,13 +27,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import (  # noqa: E402
-    add_run_data_arguments,
-    git_revision,
-    run_data_pairs,
-    without_notes,
-    write_and_emit,
-)
+from benchmarks.common import add_run_data_arguments, run_data_pairs, split_store, write_runs  # noqa: E402
 
 FIGURES = ("median_mm", "rms_mm", "pck_10mm")
 
@@ -43,15 +36,11 @@ def read(run: str, data: str, split: str) -> dict:
     """``run`` read on ``data``'s ``split`` with the coarse fallback on and off."""
     import torch
 
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
     from s3k.detector import Detector, TwoPassDetector
     from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.predict import split_frames
 
     torch.set_num_threads(1)
-    ds = Dataset.open(data, cache="none")
-    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
+    ds, store = split_store(data, split)
     detector = Detector.load(run, "cpu")
     if not isinstance(detector, TwoPassDetector):
         raise SystemExit(f"{run}: not a two-pass run; the fallback is a two-pass detector's")
@@ -98,10 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     with ProcessPoolExecutor(a.workers) as pool:
         results = list(pool.map(read, *zip(*pairs), [a.split] * len(pairs)))
     runs = {run: r for (run, _), r in zip(pairs, results)}
-    given = sys.argv[1:] if argv is None else argv
-    write_and_emit({"command": shlex.join(["python", "benchmarks/coarse_fallback.py", *without_notes(given)]),
-                    "git_revision": git_revision(), "split": a.split, "runs": runs,
-                    "configurations": configurations(runs), **({"notes": a.notes} if a.notes else {})}, a.out)
+    write_runs("benchmarks/coarse_fallback.py", argv, a, runs, {"configurations": configurations(runs)})
 
 
 if __name__ == "__main__":

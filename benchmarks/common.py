@@ -398,12 +398,25 @@ def run_data_pairs(p, args) -> list[tuple[str, str]]:
     return list(zip(args.pairs[::2], args.pairs[1::2]))
 
 
-def write_runs(script: str, argv: list[str] | None, args, runs: dict[str, Any]) -> None:
+def split_store(data: str | Path, split: str) -> tuple[Any, Any]:
+    """``(dataset, frame store)`` of ``data``'s ``split`` with its 3D points, nothing preloaded: what a
+    run-reading benchmark evaluates a detector on (``s3k.inference.evaluate.evaluate_store``)."""
+    from s3k.data import Dataset
+    from s3k.data.frames import FrameStore
+    from s3k.inference.predict import split_frames
+
+    ds = Dataset.open(data, cache="none")
+    return ds, FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
+
+
+def write_runs(script: str, argv: list[str] | None, args, runs: dict[str, Any],
+               extra: dict[str, Any] | None = None) -> None:
     """Write and print the result of a run-reading benchmark: its command (notes kept apart), revision,
-    split, ``runs`` and notes (:func:`write_and_emit` to ``args.out``)."""
+    split, ``runs``, ``extra`` (e.g. figures over the runs) and notes (:func:`write_and_emit` to
+    ``args.out``)."""
     given = sys.argv[1:] if argv is None else argv
     result = {"command": shlex.join(["python", script, *without_notes(given)]),
-              "git_revision": git_revision(), "split": args.split, "runs": runs,
+              "git_revision": git_revision(), "split": args.split, "runs": runs, **(extra or {}),
               **({"notes": args.notes} if args.notes else {})}
     write_and_emit(result, args.out)
 

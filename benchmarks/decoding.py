@@ -31,7 +31,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
+from benchmarks.common import add_run_data_arguments, run_data_pairs, split_store, write_runs  # noqa: E402
 
 FIGURES = ("median_mm", "rms_mm", "pck_10mm")
 
@@ -87,15 +87,11 @@ def passes(detector) -> list:
 
 def read(run: Path, data: Path, split: str, windows: list[int]) -> dict:
     """The ways of decoding ``run``'s heatmaps on ``data``'s ``split``."""
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
     from s3k.detector import Detector
     from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.predict import split_frames
     from s3k.readout import window_cells
 
-    ds = Dataset.open(data, cache="none")
-    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
+    ds, store = split_store(data, split)
     detector = Detector.load(run, "cpu")
     trained = [(p, p.readout) for p in passes(detector)]
     out: dict = {"default_window_cells": [window_cells(p.meta.sigma, p.meta.stride, r.window)

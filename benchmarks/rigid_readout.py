@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.common import add_run_data_arguments, run_data_pairs, write_runs  # noqa: E402
+from benchmarks.common import add_run_data_arguments, run_data_pairs, split_store, write_runs  # noqa: E402
 from s3k.cli import showing_library_messages  # noqa: E402
 
 #: way -> (rigid read-out in the coarse pass, in the refining pass, ties settled, coarse heatmaps in search)
@@ -57,17 +57,13 @@ def _detector(run: Path, rigid: bool, layout, tol: float, ties: bool = True, pri
 
 def read(run: Path, data: Path, split: str, tol: float) -> dict:
     """The ways (``WAYS``) of reading ``run`` on ``data``'s ``split``."""
-    from s3k.data import Dataset
-    from s3k.data.frames import FrameStore
     from s3k.detector import TwoPassDetector, load_network, read_two_pass
     from s3k.inference.evaluate import evaluate_store
-    from s3k.inference.predict import split_frames
     from s3k.train import labelled_distances
 
     rule, coarse, fine = read_two_pass(run)
-    ds = Dataset.open(data, cache="none")
+    ds, store = split_store(data, split)
     layout = labelled_distances(ds, ds.frames("labelled")).numpy()
-    store = FrameStore(ds, split_frames(ds, split), preload_mb=0, points=True)
     out: dict = {"layout_from": {}}
     for name, (rigid_coarse, rigid_fine, ties, prior) in WAYS.items():
         first = _detector(coarse, rigid_coarse, layout, tol, ties, prior)
