@@ -110,7 +110,6 @@ class ReadOut:
 def breaks_layout(X: Tensor, valid: Tensor, layout: Tensor, tol: float) -> Tensor:
     """``(B,)`` bool: a frame whose valid points ``X (B, K, 3)`` break a rigid object's layout, that is
     :func:`s3k.readout.reject_layout` drops one of them."""
-    layout = torch.as_tensor(layout, dtype=DTYPE, device=X.device)
     return (valid & ~reject_layout(X, valid, layout, tol)).any(dim=1)
 
 
